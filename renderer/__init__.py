@@ -1,0 +1,20 @@
+"""renderer: a batched PyTorch ray tracer for unusual cameras.
+
+Public API:
+    load_scene(path_or_dict, overrides) -> Scene     (scene files as in docs/conventions.md)
+    render(scene, spp, sampler, device=...) -> RenderResult(image (H, W, 3) linear, coverage (H, W))
+    read_image / write_image                          (OpenImageIO; sRGB for 8-bit files)
+and the building blocks: cameras, shapes, materials, Scene, trace.
+"""
+from .io import read_image, write_image
+from .materials import CheckerTexture, ImageTexture, Material
+from .params import SceneError
+from .rays import Hit, Rays
+from .render import RenderResult, render
+from .scene import ImageSettings, Light, Scene, SceneObject
+from .transforms import CameraTransform
+
+__all__ = [
+    "CameraTransform", "CheckerTexture", "Hit", "ImageSettings", "ImageTexture", "Light", "Material", "Rays",
+    "RenderResult", "Scene", "SceneError", "SceneObject", "read_image", "render", "write_image",
+]

@@ -1,0 +1,72 @@
+"""Cameras, registered by name and built from plain dicts (the scene file's `camera` section).
+
+Each camera module declares its parameters (`PARAMS`, a list of `renderer.params.Param`) and a builder
+`from_config(cfg, transform, width, height) -> Camera`, and registers them with `register_camera`.
+`build_camera(path, cfg, width, height)` validates a dict and builds the camera it names.
+"""
+from __future__ import annotations
+
+from ..params import Param, SceneError, parse_params
+from ..transforms import CameraTransform
+from .base import Camera, Screen
+
+CAMERAS: dict[str, tuple[list[Param], object]] = {}
+
+POSE_PARAMS = [
+    Param("position", "vec3", (0.0, 0.0, 0.0), "viewpoint, scene units"),
+    Param("look_at", "vec3", (0.0, 0.0, 1.0), "point the optical axis passes through"),
+    Param("up", "vec3", (0.0, -1.0, 0.0), "world direction shown upwards in the image"),
+]
+
+SCREEN_PARAMS = [
+    Param("screen_distance", "float", 1.0, "q3: screen distance from the viewpoint, scene units"),
+    Param("screen_size", "vec2", None, "[width, height] of the screen, scene units"),
+    Param("fov_deg", "float", None, "horizontal field of view (instead of screen_size), degrees"),
+]
+
+
+def register_camera(name: str, params: list[Param]):
+    """Class decorator: register a camera class (with a `from_config` classmethod) under `name`."""
+
+    def deco(cls):
+        CAMERAS[name] = (params, cls)
+        return cls
+
+    return deco
+
+
+def screen_from_config(path: str, cfg: dict, width: int, height: int) -> Screen:
+    """The screen of `screen_size` (or `fov_deg`) at `screen_distance`, for cameras that use SCREEN_PARAMS."""
+    q3 = cfg["screen_distance"]
+    if q3 <= 0:
+        raise SceneError(f"{path}.screen_distance: expected a positive distance, got {q3}")
+    if cfg.get("screen_size") is not None:
+        sx, sy = cfg["screen_size"]
+        if sx <= 0 or sy <= 0:
+            raise SceneError(f"{path}.screen_size: expected positive sizes, got {[sx, sy]}")
+        return Screen(width, height, (sx, sy), q3)
+    if cfg.get("fov_deg") is not None:
+        if not 0 < cfg["fov_deg"] < 180:
+            raise SceneError(f"{path}.fov_deg: expected an angle in (0, 180), got {cfg['fov_deg']}")
+        return Screen.from_fov(width, height, cfg["fov_deg"], q3)
+    raise SceneError(f"{path}: give screen_size or fov_deg")
+
+
+def build_camera(path: str, cfg: dict, width: int, height: int) -> Camera:
+    """Validate the `camera` section and build the camera it names (`type`)."""
+    if not isinstance(cfg, dict):
+        raise SceneError(f"{path}: expected an object, got {cfg!r}")
+    kind = cfg.get("type", "pinhole")
+    if kind not in CAMERAS:
+        raise SceneError(f"{path}.type: unknown camera {kind!r} (expected one of: {', '.join(sorted(CAMERAS))})")
+    params, cls = CAMERAS[kind]
+    parsed = parse_params(path, cfg, POSE_PARAMS + params, ignore=("type",))
+    try:
+        transform = CameraTransform.look_at(parsed["position"], parsed["look_at"], parsed["up"])
+    except ValueError as e:
+        raise SceneError(f"{path}: {e}") from None
+    return cls.from_config(path, parsed, transform, width, height)
+
+
+# Registration happens on import of each camera module.
+from . import pinhole  # noqa: E402,F401

@@ -1,0 +1,110 @@
+"""What every camera shares: the pose, the pixel-to-screen mapping and the ray-generation call.
+
+A camera = pose (`CameraTransform`) + projection or lens (the subclass) + sensor mapping (`Screen`).
+Every camera answers one call, `generate_rays(uv_px, lens_uv)`: pixel positions and lens samples in,
+world-frame rays out. The caller owns the random numbers.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from ..rays import Rays
+from ..transforms import CameraTransform
+
+
+@dataclass(frozen=True)
+class Screen:
+    """Maps pixels to points on a plane z = distance in the camera frame.
+
+    Pixel (x, y), with (0, 0) the centre of the top-left pixel, lands at
+    ((x − cx) · size_x / W, (y − cy) · size_y / H, distance), where (cx, cy) is the principal point,
+    by default ((W − 1)/2, (H − 1)/2).
+
+    Attributes:
+        width_px, height_px: image size in pixels.
+        size: (size_x, size_y) screen extent in scene units (W and H pixel pitches).
+        distance: screen distance along the camera z axis, scene units (q3 of the papers, or w).
+        principal_point_px: optional (cx, cy).
+    """
+
+    width_px: int
+    height_px: int
+    size: tuple[float, float]
+    distance: float
+    principal_point_px: tuple[float, float] | None = None
+
+    @property
+    def pitch(self) -> tuple[float, float]:
+        return self.size[0] / self.width_px, self.size[1] / self.height_px
+
+    @property
+    def center_px(self) -> tuple[float, float]:
+        if self.principal_point_px is not None:
+            return self.principal_point_px
+        return (self.width_px - 1) / 2.0, (self.height_px - 1) / 2.0
+
+    def to_plane(self, uv_px: torch.Tensor) -> torch.Tensor:
+        """(..., 2) pixels -> (..., 3) points on the screen plane, camera frame."""
+        (cx, cy), (px, py) = self.center_px, self.pitch
+        x = (uv_px[..., 0] - cx) * px
+        y = (uv_px[..., 1] - cy) * py
+        return torch.stack([x, y, torch.full_like(x, self.distance)], dim=-1)
+
+    def to_pixels(self, p_plane: torch.Tensor) -> torch.Tensor:
+        """Inverse of `to_plane`: (..., 2) plane coordinates (x, y) -> pixels."""
+        (cx, cy), (px, py) = self.center_px, self.pitch
+        return torch.stack([p_plane[..., 0] / px + cx, p_plane[..., 1] / py + cy], dim=-1)
+
+    @staticmethod
+    def from_fov(width_px: int, height_px: int, fov_deg: float, distance: float = 1.0) -> "Screen":
+        """Screen whose horizontal field of view is fov_deg, with square pixels."""
+        sx = 2.0 * distance * math.tan(math.radians(fov_deg) / 2.0)
+        return Screen(width_px, height_px, (sx, sx * height_px / width_px), distance)
+
+
+class Camera:
+    """Base class: subclasses implement `rays_in_camera`; the pose is applied once here.
+
+    Attributes:
+        transform: the pose.
+        screen: the sensor/screen mapping of pixels (its `width_px`, `height_px` set the image size).
+        uses_lens_samples: whether `lens_uv` affects the rays (False for pinhole-like projections).
+    """
+
+    uses_lens_samples = False
+
+    def __init__(self, transform: CameraTransform, screen: Screen):
+        self.transform = transform
+        self.screen = screen
+
+    @property
+    def width(self) -> int:
+        return self.screen.width_px
+
+    @property
+    def height(self) -> int:
+        return self.screen.height_px
+
+    def rays_in_camera(self, uv_px: torch.Tensor, lens_uv: torch.Tensor) -> Rays:
+        """Rays in the camera frame for pixels (..., 2) and lens samples (..., 2) in [0, 1)²."""
+        raise NotImplementedError
+
+    def generate_rays(self, uv_px: torch.Tensor, lens_uv: torch.Tensor | None = None) -> Rays:
+        """World-frame rays for pixel positions (..., 2) and lens samples (..., 2) in [0, 1)².
+
+        Args:
+            uv_px: (..., 2) float pixel positions (x = column, y = row), (0, 0) the top-left pixel centre.
+            lens_uv: (..., 2) uniform samples for the aperture; ignored by cameras without a lens.
+        Returns:
+            Rays with (..., 3) origin, unit direction, (...,) valid mask and weight, world frame.
+        """
+        if lens_uv is None:
+            lens_uv = torch.full_like(uv_px, 0.5)
+        return self.transform.rays_to_world(self.rays_in_camera(uv_px, lens_uv))
+
+    def project(self, p_world: torch.Tensor) -> torch.Tensor:
+        """(..., 3) world points -> (..., 2) pixels, where the projection has a closed form."""
+        raise NotImplementedError(f"{type(self).__name__} has no closed-form projection")

@@ -1,0 +1,41 @@
+"""Infinite plane through a point with a normal."""
+from __future__ import annotations
+
+import torch
+
+from ..rays import normalize
+from .base import INF, Shape
+
+
+def tangent_frame(n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Two unit vectors completing the unit normal n (float64, shape (3,)) to a right-handed frame."""
+    helper = torch.tensor([0.0, 0.0, 1.0], dtype=n.dtype) if abs(float(n[2])) < 0.9 else torch.tensor(
+        [1.0, 0.0, 0.0], dtype=n.dtype)
+    u = normalize(torch.linalg.cross(helper, n))
+    return u, torch.linalg.cross(n, u)
+
+
+class Plane(Shape):
+    """The plane {x : n·(x − point) = 0}; its normal is the given `normal` (one-sided only for shading)."""
+
+    type_name = "plane"
+
+    def __init__(self, point, normal):
+        super().__init__()
+        self.point = torch.as_tensor(point, dtype=torch.float64)
+        self.normal = normalize(torch.as_tensor(normal, dtype=torch.float64))
+        if float(torch.linalg.vector_norm(self.normal)) < 0.5:
+            raise ValueError("normal must be non-zero")
+        self.tangent_u, self.tangent_v = tangent_frame(self.normal)
+
+    def intersect(self, o, d, t_min):
+        n = self._param("normal", o)
+        denom = d @ n
+        t = ((self._param("point", o) - o) @ n) / torch.where(denom.abs() > 1e-12, denom, torch.full_like(denom, 1e-12))
+        t = torch.where((t > t_min) & (denom.abs() > 1e-12), t, torch.full_like(t, INF))
+        return t, torch.zeros_like(t, dtype=torch.long)
+
+    def surface(self, p, aux):
+        rel = p - self._param("point", p)
+        uv = torch.stack([rel @ self._param("tangent_u", p), rel @ self._param("tangent_v", p)], -1)
+        return self._param("normal", p).expand_as(p), uv

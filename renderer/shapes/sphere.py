@@ -1,0 +1,42 @@
+"""Sphere: centre and radius."""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from .base import INF, Shape, nearest_positive
+
+
+class Sphere(Shape):
+    """Sphere of `radius` about `center` (scene units)."""
+
+    type_name = "sphere"
+
+    def __init__(self, center, radius: float):
+        super().__init__()
+        if radius <= 0:
+            raise ValueError("radius must be positive")
+        self.center = torch.as_tensor(center, dtype=torch.float64)
+        self.radius = float(radius)
+
+    def intersect(self, o, d, t_min):
+        c = self._param("center", o)
+        oc = o - c
+        b = (oc * d).sum(-1)
+        # r² − |oc − b d|² instead of b² − (|oc|² − r²): no cancellation for distant, small spheres.
+        perp = oc - b[..., None] * d
+        disc = self.radius**2 - (perp * perp).sum(-1)
+        sq = disc.clamp_min(0).sqrt()
+        t = nearest_positive(-b - sq, -b + sq, t_min)
+        t = torch.where(disc >= 0, t, torch.full_like(t, INF))
+        return t, torch.zeros_like(t, dtype=torch.long)
+
+    def surface(self, p, aux):
+        n = (p - self._param("center", p)) / self.radius
+        phi = torch.atan2(n[..., 0], n[..., 2])
+        theta = torch.acos(n[..., 1].clamp(-1, 1))
+        return n, torch.stack([phi * self.radius, theta * self.radius], -1)
+
+    def bounding_sphere(self):
+        return self.center, self.radius

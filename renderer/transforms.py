@@ -1,0 +1,70 @@
+"""Rigid transforms and camera poses (the transform kept apart from the projection, as in pbrt)."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from .rays import Rays, normalize
+
+
+def look_at_rotation(position, look_at, up) -> torch.Tensor:
+    """Rotation world_from_camera for a camera at `position` looking at `look_at`.
+
+    The camera frame is x right, y down, z forward (OpenCV). `up` is the world direction that appears
+    upwards in the image, so camera -y is the component of `up` orthogonal to the view direction.
+
+    Returns:
+        (3, 3) float64 matrix whose columns are the camera axes in world coordinates.
+    """
+    p = torch.as_tensor(position, dtype=torch.float64)
+    z = normalize(torch.as_tensor(look_at, dtype=torch.float64) - p)
+    u = torch.as_tensor(up, dtype=torch.float64)
+    y = normalize(-(u - (u @ z) * z))
+    if torch.linalg.vector_norm(y) < 1e-9:
+        raise ValueError("camera.up is parallel to the viewing direction")
+    x = torch.linalg.cross(y, z)
+    return torch.stack([x, y, z], dim=1)
+
+
+def euler_xyz_deg(rotation_deg) -> torch.Tensor:
+    """Rotation matrix R = Rz · Ry · Rx for angles in degrees about x, then y, then z (float64)."""
+    rx, ry, rz = (math.radians(float(a)) for a in rotation_deg)
+    cx, sx, cy, sy, cz, sz = math.cos(rx), math.sin(rx), math.cos(ry), math.sin(ry), math.cos(rz), math.sin(rz)
+    Rx = torch.tensor([[1, 0, 0], [0, cx, -sx], [0, sx, cx]], dtype=torch.float64)
+    Ry = torch.tensor([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]], dtype=torch.float64)
+    Rz = torch.tensor([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]], dtype=torch.float64)
+    return Rz @ Ry @ Rx
+
+
+@dataclass(frozen=True)
+class CameraTransform:
+    """Pose of a camera: x_world = world_from_camera · x_cam + position.
+
+    Attributes:
+        world_from_camera: (3, 3) rotation, columns are the camera x, y, z axes in the world.
+        position: (3,) camera centre in the world, scene units.
+    """
+
+    world_from_camera: torch.Tensor
+    position: torch.Tensor
+
+    @staticmethod
+    def look_at(position=(0.0, 0.0, 0.0), look_at=(0.0, 0.0, 1.0), up=(0.0, -1.0, 0.0)) -> "CameraTransform":
+        return CameraTransform(look_at_rotation(position, look_at, up), torch.as_tensor(position, dtype=torch.float64))
+
+    @staticmethod
+    def identity() -> "CameraTransform":
+        return CameraTransform(torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64))
+
+    def rays_to_world(self, rays_cam: Rays) -> Rays:
+        """Move rays built in the camera frame to the world frame (done once per batch)."""
+        R = self.world_from_camera.to(rays_cam.origin)
+        t = self.position.to(rays_cam.origin)
+        return rays_cam.transformed(R, t)
+
+    def points_to_camera(self, p_world: torch.Tensor) -> torch.Tensor:
+        """(..., 3) world points to the camera frame."""
+        R = self.world_from_camera.to(p_world)
+        return (p_world - self.position.to(p_world)) @ R

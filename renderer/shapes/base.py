@@ -7,13 +7,36 @@ Every shape answers three calls on flat batches of N rays or points (world frame
   units (so a checker `size` means the same length on every shape);
 - `bounding_sphere()` -> (center (3,), radius) or None for unbounded shapes; the scene uses it to send each
   shape only the rays that can reach it.
-Shapes keep their parameters in float64 and convert them once per device/dtype (`_param`).
+Shapes keep their parameters in float64 and convert them once per device/dtype (`_param`). A bad
+parameter raises `ParameterError` naming it; `build_shape` prefixes the scene-file path.
 """
 from __future__ import annotations
+
+import math
 
 import torch
 
 INF = float("inf")
+
+
+class ParameterError(ValueError):
+    """A bad shape parameter. `field` is its key in the scene file (`size`, `file`, ...); `build_shape`
+    reports it as `objects[i].shape.<field>: <message>`."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(f"{field}: {message}")
+        self.field = field
+        self.message = message
+
+
+def positive(field: str, value, count: int | None = None):
+    """`value` (a number, or a sequence of `count` numbers) checked finite and > 0, else ParameterError."""
+    values = [value] if count is None else list(value)
+    shown = value if count is None else [float(v) for v in values]
+    what = "a positive number" if count is None else f"{count} positive numbers"
+    if len(values) != (count or 1) or not all(math.isfinite(v) and v > 0 for v in map(float, values)):
+        raise ParameterError(field, f"expected {what}, got {shown}")
+    return value
 
 
 class Shape:
@@ -47,3 +70,22 @@ def nearest_positive(t0: torch.Tensor, t1: torch.Tensor, t_min: float) -> torch.
     a = torch.where(t0 > t_min, t0, inf)
     b = torch.where(t1 > t_min, t1, inf)
     return torch.minimum(a, b)
+
+
+def quadratic_roots(a: torch.Tensor, half_b: torch.Tensor, c: torch.Tensor,
+                    disc: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Real roots of a·t² + 2·half_b·t + c = 0, batched, without cancellation.
+
+    Uses q = −(half_b + sign(half_b)·√disc), roots q/a and c/q (Numerical Recipes §5.6), so a = 0 (a linear
+    equation) gives one finite root and ±inf or NaN for the other, which callers mask with their own tests.
+
+    Args:
+        disc: half_b² − a·c if the caller has a better-conditioned form of it (default: computed).
+    Returns:
+        (t0, t1, real): the two roots (order not fixed) and a bool mask of where they are real.
+    """
+    if disc is None:
+        disc = half_b * half_b - a * c
+    sign = torch.where(half_b >= 0, torch.ones_like(half_b), -torch.ones_like(half_b))
+    q = -(half_b + sign * disc.clamp_min(0).sqrt())
+    return q / a, c / q, disc >= 0

@@ -4,7 +4,7 @@ from __future__ import annotations
 import torch
 
 from ..rays import normalize
-from .base import INF, Shape
+from .base import INF, ParameterError, Shape
 
 
 def tangent_frame(n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -25,7 +25,7 @@ class Plane(Shape):
         self.point = torch.as_tensor(point, dtype=torch.float64)
         self.normal = normalize(torch.as_tensor(normal, dtype=torch.float64))
         if float(torch.linalg.vector_norm(self.normal)) < 0.5:
-            raise ValueError("normal must be non-zero")
+            raise ParameterError("normal", f"expected a non-zero direction, got {list(normal)}")
         self.tangent_u, self.tangent_v = tangent_frame(self.normal)
 
     def intersect(self, o, d, t_min):

@@ -1,11 +1,9 @@
 """Sphere: centre and radius."""
 from __future__ import annotations
 
-import math
-
 import torch
 
-from .base import INF, Shape, nearest_positive
+from .base import INF, Shape, nearest_positive, positive
 
 
 class Sphere(Shape):
@@ -15,8 +13,7 @@ class Sphere(Shape):
 
     def __init__(self, center, radius: float):
         super().__init__()
-        if radius <= 0:
-            raise ValueError("radius must be positive")
+        positive("radius", radius)
         self.center = torch.as_tensor(center, dtype=torch.float64)
         self.radius = float(radius)
 

@@ -70,3 +70,5 @@ def build_camera(path: str, cfg: dict, width: int, height: int) -> Camera:
 
 # Registration happens on import of each camera module.
 from . import pinhole  # noqa: E402,F401
+from . import orthographic  # noqa: E402,F401
+from . import inverted_perspective  # noqa: E402,F401

@@ -12,9 +12,10 @@ from .params import SceneError
 from .rays import Hit, Rays
 from .render import RenderResult, render
 from .scene import ImageSettings, Light, Scene, SceneObject
+from .scenefile import load_scene
 from .transforms import CameraTransform
 
 __all__ = [
     "CameraTransform", "CheckerTexture", "Hit", "ImageSettings", "ImageTexture", "Light", "Material", "Rays",
-    "RenderResult", "Scene", "SceneError", "SceneObject", "read_image", "render", "write_image",
+    "RenderResult", "Scene", "SceneError", "SceneObject", "load_scene", "read_image", "render", "write_image",
 ]

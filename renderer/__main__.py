@@ -1,0 +1,6 @@
+"""`python -m renderer ...` is the `renderer` command."""
+import sys
+
+from .cli import main
+
+sys.exit(main())

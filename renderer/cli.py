@@ -1,0 +1,258 @@
+"""The `renderer` command.
+
+    renderer render SCENE.json -o OUT.(exr|png|tif) [--spp N] [--sampler S] [--set key.path=value ...]
+                    [--device cpu|cuda] [--seed N] [--encoding srgb|linear] [--quiet]
+    renderer gallery [-o gallery.png] [--quick] [--size PX] [--spp N] [--manifest M.json] [--device ...]
+
+Errors in the input (a bad scene file, an unreadable image, an unwritable output) print one line
+`renderer: <message>` on stderr and exit with status 2, leaving no output file behind.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import tempfile
+import textwrap
+import time
+
+from .io import ImageIOError, linear_to_srgb, write_image
+from .params import SceneError
+
+SCENES_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "scenes")
+GALLERY_MANIFEST = os.path.join(SCENES_DIR, "gallery.json")
+EXIT_USAGE = 2
+
+
+class UsageError(Exception):
+    """A bad command-line value that argparse cannot check by itself (one-line message)."""
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from .sampling import SAMPLERS
+
+    parser = argparse.ArgumentParser(prog="renderer", description="Batched PyTorch ray tracer for unusual cameras "
+                                     "(inverted and mixed perspective, tilted lenses).")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    r = sub.add_parser("render", help="render a scene file to an image",
+                       description="Render a scene file. EXR keeps linear float; PNG is 8-bit sRGB, TIFF 16-bit sRGB.")
+    r.add_argument("scene", metavar="SCENE", help="scene file (JSON), or the name of a shipped scene such as fig7")
+    r.add_argument("-o", "--output", required=True, metavar="OUT", help="output image: .exr, .png or .tif")
+    r.add_argument("--spp", type=_positive_int, help="samples per pixel [the scene's image.spp]")
+    r.add_argument("--sampler", choices=SAMPLERS, help="sample pattern [the scene's image.sampler]")
+    r.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY.PATH=VALUE",
+                   help="override a scene key before validation, e.g. camera.alpha=2 or objects.2.material.color="
+                        "[1,0,0] (value parsed as JSON, else a string); repeatable")
+    _common(r)
+    r.add_argument("--encoding", choices=("srgb", "linear"),
+                   help="output encoding [sRGB for PNG/TIFF, linear for EXR]")
+    r.add_argument("--quiet", action="store_true", help="no progress on stderr")
+
+    g = sub.add_parser("gallery", help="render the paper figures into one labelled contact sheet",
+                       description="Render every entry of the gallery manifest and lay them out in one PNG.")
+    g.add_argument("-o", "--output", default="gallery.png", metavar="OUT", help="contact sheet [gallery.png]")
+    g.add_argument("--quick", action="store_true", help="small previews: at most 128 px and 4 spp per panel")
+    g.add_argument("--size", type=_positive_int, metavar="PX", help="longest side of each panel, pixels")
+    g.add_argument("--spp", type=_positive_int, help="samples per pixel for every panel")
+    g.add_argument("--columns", type=_positive_int, default=4, help="panels per row [4]")
+    g.add_argument("--manifest", default=GALLERY_MANIFEST, metavar="M.json",
+                   help="list of {scene, label, set?, note?} entries [the shipped renderer/scenes/gallery.json]")
+    _common(g)
+    return parser
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--device", default="cpu", help="torch device: cpu or cuda [cpu]")
+    p.add_argument("--seed", type=int, default=0, help="sampler seed [0]")
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        device = _device(args.device)
+        if args.command == "render":
+            return cmd_render(args, device)
+        return cmd_gallery(args, device)
+    except (SceneError, ImageIOError, OSError, UsageError) as e:
+        print(f"renderer: {_one_line(e)}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print("renderer: interrupted", file=sys.stderr)
+        return 130
+
+
+def _one_line(e: Exception) -> str:
+    if isinstance(e, OSError) and e.filename is not None and e.strerror:
+        return f"{e.filename}: {e.strerror}"
+    return " ".join(str(e).split())
+
+
+def _device(name: str):
+    import torch
+
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise UsageError(f"--device: unknown device {name!r} (expected cpu or cuda)") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise UsageError("--device cuda: CUDA is not available on this machine")
+    return device
+
+
+def resolve_scene(name: str) -> str:
+    """A scene file as given, else the shipped scene of that name (`fig7` -> renderer/scenes/fig7.json)."""
+    if os.path.exists(name) or os.sep in name:
+        return name
+    shipped = os.path.join(SCENES_DIR, name if name.endswith(".json") else name + ".json")
+    return shipped if os.path.isfile(shipped) else name
+
+
+def cmd_render(args, device) -> int:
+    from .render import render
+    from .scenefile import load_scene
+
+    _check_output(args.output, (".exr", ".png", ".tif", ".tiff"))
+    scene = load_scene(resolve_scene(args.scene), args.overrides)
+    start = time.perf_counter()
+    result = render(scene, args.spp, args.sampler, device=device, seed=args.seed, progress=not args.quiet)
+    write_image(args.output, result.image, args.encoding)
+    if not args.quiet:
+        h, w = result.image.shape[:2]
+        print(f"renderer: wrote {args.output} ({w}x{h}, {time.perf_counter() - start:.1f} s)", file=sys.stderr)
+    return 0
+
+
+def _check_output(path: str, extensions: tuple[str, ...]) -> None:
+    """Fail before any work when the output format is wrong or its folder cannot be created."""
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in extensions:
+        raise UsageError(f"{path}: unsupported output format {ext or '(none)'} (use {', '.join(extensions)})")
+    folder = os.path.dirname(os.path.abspath(path))
+    if os.path.exists(folder) and not os.path.isdir(folder):
+        raise UsageError(f"{path}: {folder} is not a folder")
+
+
+# ----------------------------------------------------------------------------------------------- gallery
+
+
+def read_manifest(path: str) -> list[dict]:
+    """The gallery manifest: a JSON list of {scene, label, set?: [key.path=value, ...], note?}.
+
+    `scene` is relative to the manifest; `note` is free text for the reader (why the overrides do what they do).
+    """
+    try:
+        with open(path, encoding="utf-8") as f:
+            entries = json.load(f)
+    except OSError as e:
+        raise SceneError(f"{path}: cannot read manifest ({e.strerror or e})") from None
+    except json.JSONDecodeError as e:
+        raise SceneError(f"{path}:{e.lineno}:{e.colno}: invalid JSON ({e.msg})") from None
+    if not isinstance(entries, list):
+        raise SceneError(f"{path}: expected a list of {{scene, label, set}} entries")
+    out = []
+    for i, e in enumerate(entries):
+        where = f"{path}: [{i}]"
+        if not isinstance(e, dict):
+            raise SceneError(f"{where}: expected an object, got {e!r}")
+        for key in e:
+            if key not in ("scene", "label", "set", "note"):
+                raise SceneError(f"{where}.{key}: unknown key (expected scene, label, set, note)")
+        for key in ("scene", "label"):
+            if not isinstance(e.get(key), str):
+                raise SceneError(f"{where}.{key}: expected a string, got {e.get(key)!r}")
+        sets = e.get("set", [])
+        if not isinstance(sets, list) or not all(isinstance(s, str) for s in sets):
+            raise SceneError(f"{where}.set: expected a list of key.path=value strings, got {sets!r}")
+        out.append({"scene": os.path.join(os.path.dirname(path), e["scene"]), "label": e["label"], "set": sets})
+    return out
+
+
+def _panel_overrides(scene, size: int | None, spp: int | None) -> list[str]:
+    """Overrides that shrink a scene's image to `size` on its longest side (same view) and set spp."""
+    extra = []
+    w, h = scene.image.width, scene.image.height
+    if size is not None and max(w, h) > size:
+        k = size / max(w, h)
+        extra += [f"image.width={max(1, round(w * k))}", f"image.height={max(1, round(h * k))}"]
+    if spp is not None:
+        extra.append(f"image.spp={spp}")
+    return extra
+
+
+def cmd_gallery(args, device) -> int:
+    import numpy as np
+
+    from .render import render
+    from .scenefile import load_scene
+
+    _check_output(args.output, (".png",))
+    entries = read_manifest(args.manifest)
+    if not entries:
+        raise SceneError(f"{args.manifest}: no entries")
+    size = args.size or (128 if args.quick else None)
+    panels = []
+    start = time.perf_counter()
+    for k, entry in enumerate(entries, 1):
+        t0 = time.perf_counter()
+        scene = load_scene(entry["scene"], entry["set"])
+        spp = args.spp or (min(scene.image.spp, 4) if args.quick else None)
+        extra = _panel_overrides(scene, size, spp)
+        if extra:
+            scene = load_scene(entry["scene"], entry["set"] + extra)
+        result = render(scene, device=device, seed=args.seed, progress=False)
+        srgb = linear_to_srgb(result.image.cpu().numpy())
+        panels.append((entry["label"], (np.clip(srgb, 0, 1) * 255 + 0.5).astype(np.uint8)))
+        print(f"gallery: [{k}/{len(entries)}] {entry['label']} ({scene.image.width}x{scene.image.height}, "
+              f"{scene.image.spp} spp) {time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
+    write_contact_sheet(args.output, panels, args.columns)
+    print(f"gallery: wrote {args.output} ({len(panels)} panels, {time.perf_counter() - start:.1f} s)",
+          file=sys.stderr)
+    return 0
+
+
+def write_contact_sheet(path: str, panels: list, columns: int = 4) -> None:
+    """Lay out (label, (H, W, 3) uint8 sRGB image) panels in a labelled grid and write a PNG atomically."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    cols = min(columns, len(panels))
+    rows = math.ceil(len(panels) / cols)
+    panel_in = max(2.0, max(max(img.shape[:2]) for _, img in panels) / 100.0)
+    chars_per_line = max(16, int(panel_in * 13))  # about 13 characters of 9-point text per inch
+    titles = [textwrap.fill(label, chars_per_line) for label, _ in panels]
+    title_in = 0.2 + 0.16 * max(t.count("\n") + 1 for t in titles)
+    fig = Figure(figsize=(cols * panel_in, rows * (panel_in + title_in)), dpi=100)
+    FigureCanvasAgg(fig)
+    for i, ((_, img), title) in enumerate(zip(panels, titles)):
+        ax = fig.add_subplot(rows, cols, i + 1)
+        ax.imshow(img, interpolation="nearest")
+        ax.set_title(title, fontsize=9)
+        ax.set_axis_off()
+    fig.tight_layout()
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".png", dir=folder)
+    os.close(fd)
+    try:
+        fig.savefig(tmp, format="png")
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,349 @@
+"""Scene files: JSON in, a validated `Scene` out (the contract is in /work/shared/CONTRACTS.md).
+
+A scene file is one JSON object with the sections
+
+| key | required | meaning |
+|---|---|---|
+| `image` | yes | `width`, `height` (pixels), `spp` [1], `max_depth` [5], `background` [[0,0,0]], `sampler` ["sobol"] |
+| `camera` | yes | `type` [pinhole] and that camera's keys (see `renderer.cameras`) |
+| `lights` | no | list of `{type: "point", position, intensity}` or `{type: "ambient", intensity}` |
+| `objects` | no | list of `{name, shape: {type, ...}, material: {...}}`; names are unique |
+| `layers` | no | mixed-projection layers (see `renderer.cameras.layers`) |
+| `extends` | no | another scene file (relative to this one) this file is merged onto |
+| `description` | no | free text for the reader |
+
+`extends` merges objects key by key (this file wins) and replaces everything else (lists included), so
+a variant states only what differs from its base (relative file names inside are still resolved against
+the folder of the file being loaded). `--set key.path=value` overrides are applied after the
+merge and before validation: the value is parsed as JSON (falling back to a plain string), list elements
+are addressed by index (`objects.2.material.color`) or by their `name` (`objects.plate.material.color`),
+and a path into a missing section creates it.
+
+Every problem raises `SceneError` with one line naming the file and the field, e.g.
+`scene.json: objects[3].material.ior: expected a number, got 'glass'`.
+"""
+from __future__ import annotations
+
+import copy
+import json
+import math
+import os
+
+import numpy as np
+
+from .cameras import build_camera
+from .io import ImageIOError, read_image
+from .materials import CheckerTexture, ImageTexture, Material
+from .params import Param, SceneError, check_value, parse_params
+from .sampling import SAMPLERS
+from .scene import ImageSettings, Light, Scene, SceneObject
+from .shapes import build_shape
+
+SECTIONS = ("image", "camera", "lights", "objects", "layers", "extends", "description")
+
+IMAGE_PARAMS = [
+    Param("width", "int", doc="image width, pixels"),
+    Param("height", "int", doc="image height, pixels"),
+    Param("spp", "int", 1, "samples per pixel"),
+    Param("max_depth", "int", 5, "secondary bounces (reflection, refraction) per path"),
+    Param("background", "color", (0.0, 0.0, 0.0), "linear RGB seen by rays that hit nothing"),
+    Param("sampler", "str", "sobol", "pixel and lens sample pattern", SAMPLERS),
+]
+
+LIGHT_PARAMS = {
+    "point": [
+        Param("position", "vec3", doc="scene units"),
+        Param("intensity", "color", doc="linear RGB radiant intensity; irradiance falls off as 1/r²"),
+    ],
+    "ambient": [Param("intensity", "color", doc="linear RGB, added as intensity · albedo, no shadows")],
+}
+
+MATERIAL_PARAMS = [
+    Param("color", "color", (0.8, 0.8, 0.8), "linear RGB albedo; also tints transmitted light"),
+    Param("diffuse", "float", 1.0, "Lambertian weight"),
+    Param("specular", "float", 0.0, "Phong highlight weight"),
+    Param("shininess", "float", 32.0, "Phong exponent"),
+    Param("reflect", "float", 0.0, "mirror reflection weight"),
+    Param("transmit", "float", 0.0, "transparency weight"),
+    Param("ior", "float", 1.0, "index of refraction of the inside"),
+    Param("texture", "dict", None, "checker or image texture replacing `color`"),
+]
+
+TEXTURE_PARAMS = {
+    "checker": [
+        Param("size", "float", doc="cell size, scene units (in the shape's uv coordinates)"),
+        Param("colors", "list", [[0.9, 0.9, 0.9], [0.1, 0.1, 0.1]], "the two linear RGB colours"),
+    ],
+    "image": [
+        Param("file", "str", doc="image file, relative to the scene file"),
+        Param("size", "any", doc="scene units covered by one copy: a number or [sx, sy]"),
+        Param("encoding", "str", None, "srgb or linear [8-bit files sRGB, others linear]", ("srgb", "linear")),
+    ],
+}
+
+OBJECT_PARAMS = [
+    Param("name", "str", doc="unique name (layers refer to objects by name)"),
+    Param("shape", "dict", doc="{type, ...} (see renderer.shapes)"),
+    Param("material", "dict", {}, "see MATERIAL_PARAMS"),
+]
+
+
+# ----------------------------------------------------------------------------------------------- reading
+
+
+def read_scene_json(path: str, _seen: tuple[str, ...] = ()) -> dict:
+    """Read a scene file and resolve its `extends` chain into one plain dict (not yet validated)."""
+    real = os.path.realpath(path)
+    if real in _seen:
+        raise SceneError(f"{path}: extends: circular reference")
+    try:
+        with open(path, encoding="utf-8") as f:
+            text = f.read()
+    except OSError as e:
+        raise SceneError(f"{path}: cannot read scene file ({e.strerror or e})") from None
+    try:
+        cfg = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise SceneError(f"{path}:{e.lineno}:{e.colno}: invalid JSON ({e.msg})") from None
+    except ValueError as e:  # e.g. invalid UTF-8 escapes
+        raise SceneError(f"{path}: invalid JSON ({e})") from None
+    if not isinstance(cfg, dict):
+        raise SceneError(f"{path}: expected a JSON object at the top level, got {type(cfg).__name__}")
+    base = cfg.pop("extends", None)
+    if base is None:
+        return cfg
+    if not isinstance(base, str):
+        raise SceneError(f"{path}: extends: expected a file name, got {base!r}")
+    base_path = os.path.join(os.path.dirname(path), base)
+    return merge(read_scene_json(base_path, _seen + (real,)), cfg)
+
+
+def merge(base: dict, over: dict) -> dict:
+    """`over` merged onto `base`: objects key by key (recursively), anything else replaced."""
+    out = copy.deepcopy(base)
+    for key, value in over.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def parse_override(text: str) -> tuple[list[str], object]:
+    """'a.b.2.c=value' -> (['a', 'b', '2', 'c'], value parsed as JSON, else the raw string)."""
+    key, sep, raw = text.partition("=")
+    keys = key.strip().split(".")
+    if not sep or not all(keys):
+        raise SceneError(f"--set {text}: expected key.path=value, e.g. camera.alpha=2")
+    try:
+        value = json.loads(raw)
+    except ValueError:
+        value = raw
+    return keys, value
+
+
+def apply_override(cfg: dict, text: str) -> None:
+    """Apply one `--set key.path=value` to the raw scene dict in place (see the module docstring)."""
+    keys, value = parse_override(text)
+    node, where = cfg, ""
+    for i, key in enumerate(keys):
+        last = i == len(keys) - 1
+        here = f"{where}.{key}" if where else key
+        if isinstance(node, list):
+            index = _list_index(node, key)
+            if index is None:
+                raise SceneError(f"--set {text}: {where} has no element {key!r} "
+                                 f"(give an index 0..{len(node) - 1} or an element's name)")
+            if last:
+                node[index] = value
+            else:
+                if not isinstance(node[index], (dict, list)):
+                    node[index] = {}
+                node = node[index]
+        elif isinstance(node, dict):
+            if last:
+                node[key] = value
+            else:
+                if key not in node or node[key] is None:
+                    node[key] = {}
+                elif not isinstance(node[key], (dict, list)):
+                    raise SceneError(f"--set {text}: {here} is {node[key]!r}, not a section or list")
+                node = node[key]
+        where = here
+
+
+def _list_index(node: list, key: str) -> int | None:
+    if key.lstrip("-").isdigit():
+        i = int(key)
+        return i if 0 <= i < len(node) else None
+    for i, item in enumerate(node):
+        if isinstance(item, dict) and item.get("name") == key:
+            return i
+    return None
+
+
+def _check_finite(value, path: str) -> None:
+    """Reject NaN and ±inf anywhere (Python's JSON reader accepts them)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        raise SceneError(f"{path}: expected a finite number, got {value!r}")
+    if isinstance(value, dict):
+        for k, v in value.items():
+            _check_finite(v, f"{path}.{k}" if path else str(k))
+    elif isinstance(value, list):
+        for i, v in enumerate(value):
+            _check_finite(v, f"{path}[{i}]")
+
+
+# -------------------------------------------------------------------------------------------- validating
+
+
+def load_scene(source, overrides=(), base_dir: str | None = None) -> Scene:
+    """Read, override and validate a scene; build its camera, shapes, materials, lights and layers.
+
+    Args:
+        source: path of a JSON scene file, or the scene as a dict (not modified).
+        overrides: `key.path=value` strings, applied in order before validation.
+        base_dir: folder that relative file names (meshes, textures) are resolved against
+            [the scene file's folder, or the working directory for a dict].
+    Returns:
+        The Scene.
+    Raises:
+        SceneError: one line naming the file and the field.
+    """
+    if isinstance(overrides, str):
+        overrides = [overrides]
+    if isinstance(source, dict):
+        name, cfg = None, copy.deepcopy(source)
+        base_dir = base_dir or "."
+    else:
+        name = os.fspath(source)
+        cfg = read_scene_json(name)
+        base_dir = base_dir or os.path.dirname(os.path.abspath(name))
+    try:
+        if not isinstance(cfg, dict):
+            raise SceneError(f"expected an object at the top level, got {cfg!r}")
+        for text in overrides:
+            apply_override(cfg, text)
+        cfg.pop("extends", None)
+        return build_scene(cfg, base_dir)
+    except SceneError as e:
+        raise SceneError(f"{name}: {e}" if name else str(e)) from None
+
+
+def build_scene(cfg: dict, base_dir: str = ".") -> Scene:
+    """Validate an already merged and overridden scene dict and build the Scene (messages without file)."""
+    _check_finite(cfg, "")
+    for key in cfg:
+        if key not in SECTIONS:
+            raise SceneError(f"{key}: unknown key (expected one of: {', '.join(SECTIONS)})")
+    if "description" in cfg:
+        check_value("description", "str", cfg["description"])
+    for key in ("image", "camera"):
+        if key not in cfg:
+            raise SceneError(f"{key}: missing required section")
+    image = ImageSettings(**_positive_image(parse_params("image", cfg["image"], IMAGE_PARAMS)))
+    camera = build_camera("camera", cfg["camera"], image.width, image.height)
+    lights = [_light(f"lights[{i}]", c) for i, c in enumerate(_list(cfg, "lights"))]
+    objects = []
+    first_use: dict[str, int] = {}
+    for i, c in enumerate(_list(cfg, "objects")):
+        path = f"objects[{i}]"
+        obj = _object(path, c, base_dir)
+        if obj.name in first_use:
+            raise SceneError(f"{path}.name: duplicate name {obj.name!r} (also objects[{first_use[obj.name]}])")
+        first_use[obj.name] = i
+        objects.append(obj)
+    layers = []
+    if cfg.get("layers") is not None:
+        layer_cfgs = check_value("layers", "list", cfg["layers"])
+        if layer_cfgs:
+            try:
+                from .cameras.layers import build_layers
+            except ModuleNotFoundError as e:
+                if e.name != f"{__package__}.cameras.layers":
+                    raise
+                raise SceneError("layers: mixed-projection layers are not available in this version") from None
+            layers = build_layers("layers", layer_cfgs, [o.name for o in objects], camera, cfg["camera"])
+    return Scene(objects=objects, lights=lights, camera=camera, image=image, layers=layers)
+
+
+def _list(cfg: dict, key: str) -> list:
+    return check_value(key, "list", cfg.get(key, []))
+
+
+def _positive_image(p: dict) -> dict:
+    for key, low in (("width", 1), ("height", 1), ("spp", 1), ("max_depth", 0)):
+        if p[key] < low:
+            raise SceneError(f"image.{key}: expected an integer >= {low}, got {p[key]}")
+    return p
+
+
+def _typed(path: str, cfg, table: dict) -> tuple[str, dict]:
+    """Validate a `{type, ...}` dict against `table[type]` (a list of Params)."""
+    if not isinstance(cfg, dict):
+        raise SceneError(f"{path}: expected an object, got {cfg!r}")
+    if "type" not in cfg:
+        raise SceneError(f"{path}.type: missing required key (one of: {', '.join(table)})")
+    kind = cfg["type"]
+    if kind not in table:
+        raise SceneError(f"{path}.type: expected one of {', '.join(table)}, got {kind!r}")
+    return kind, parse_params(path, cfg, table[kind], ignore=("type",))
+
+
+def _light(path: str, cfg) -> Light:
+    kind, p = _typed(path, cfg, LIGHT_PARAMS)
+    if min(p["intensity"]) < 0:
+        raise SceneError(f"{path}.intensity: expected non-negative values, got {list(p['intensity'])}")
+    return Light(kind, p["intensity"], p.get("position"))
+
+
+def _object(path: str, cfg, base_dir: str) -> SceneObject:
+    p = parse_params(path, cfg, OBJECT_PARAMS)
+    shape = build_shape(f"{path}.shape", p["shape"], base_dir)
+    return SceneObject(p["name"], shape, build_material(f"{path}.material", p["material"], base_dir))
+
+
+def build_material(path: str, cfg: dict, base_dir: str = ".") -> Material:
+    """Validate a `material` section (weights in [0, 1], reflect + transmit <= 1, ior > 0)."""
+    p = parse_params(path, cfg, MATERIAL_PARAMS)
+    for key in ("diffuse", "specular", "reflect", "transmit"):
+        if not 0.0 <= p[key] <= 1.0:
+            raise SceneError(f"{path}.{key}: expected a weight in [0, 1], got {p[key]}")
+    if p["reflect"] + p["transmit"] > 1.0 + 1e-9:
+        raise SceneError(f"{path}: reflect + transmit must not exceed 1, got {p['reflect'] + p['transmit']}")
+    if p["ior"] <= 0:
+        raise SceneError(f"{path}.ior: expected a positive index of refraction, got {p['ior']}")
+    if p["shininess"] < 0:
+        raise SceneError(f"{path}.shininess: expected a non-negative exponent, got {p['shininess']}")
+    if min(p["color"]) < 0:
+        raise SceneError(f"{path}.color: expected non-negative values, got {list(p['color'])}")
+    texture = None
+    if p["texture"] is not None:
+        texture = _texture(f"{path}.texture", p["texture"], base_dir)
+    return Material(p["color"], p["diffuse"], p["specular"], p["shininess"], p["reflect"], p["transmit"], p["ior"],
+                    texture)
+
+
+def _texture(path: str, cfg, base_dir: str):
+    kind, p = _typed(path, cfg, TEXTURE_PARAMS)
+    if kind == "checker":
+        if p["size"] <= 0:
+            raise SceneError(f"{path}.size: expected a positive length, got {p['size']}")
+        colors = p["colors"]
+        if len(colors) != 2:
+            raise SceneError(f"{path}.colors: expected two colours, got {colors!r}")
+        return CheckerTexture(p["size"], tuple(check_value(f"{path}.colors[{i}]", "color", c)
+                                               for i, c in enumerate(colors)))
+    size = p["size"]
+    size = check_value(f"{path}.size", "vec2" if isinstance(size, list) else "float", size)
+    size = size if isinstance(size, tuple) else (size, size)
+    if min(size) <= 0:
+        raise SceneError(f"{path}.size: expected positive lengths, got {list(size)}")
+    file = os.path.join(base_dir, p["file"])
+    try:
+        pixels = read_image(file, p["encoding"])
+    except ImageIOError as e:
+        raise SceneError(f"{path}.file: {e}") from None
+    channels = pixels.shape[2]
+    rgb = pixels[..., :3] if channels >= 3 else np.repeat(pixels[..., :1], 3, axis=2)
+    return ImageTexture(p["file"], size, np.ascontiguousarray(rgb, dtype=np.float32))

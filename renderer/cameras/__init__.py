@@ -72,3 +72,5 @@ def build_camera(path: str, cfg: dict, width: int, height: int) -> Camera:
 from . import pinhole  # noqa: E402,F401
 from . import orthographic  # noqa: E402,F401
 from . import inverted_perspective  # noqa: E402,F401
+from . import thin_lens  # noqa: E402,F401
+from . import accumulation  # noqa: E402,F401

@@ -1,0 +1,166 @@
+"""Thin lens with a tilted lens and plane of focus: distributed ray tracing (Cook 1984; tilt-lens paper 3.3).
+
+| key | unit | default | meaning |
+|---|---|---|---|
+| `w` | scene | required | lens centre to sensor (effective focal length) |
+| `U` | scene | — | lens centre to the plane of focus along the optical axis (give `U` or `f`) |
+| `f` | scene | — | focal length instead of `U`; U then follows from the hinge rule for the lens tilt |
+| `d` | scene | required | aperture diameter (0: a pinhole) |
+| `sensor_size` | scene | required | [width, height] of the sensor at distance w |
+| `theta_F_deg` | degrees | 0 | tilt of the plane of focus z = U + y tan θF about the camera x axis, \\|θF\\| < 90 |
+| `theta_L_deg` | degrees | — | lens tilt instead of `theta_F_deg`, converted exactly (`renderer.optics`) |
+| `principal_point_px` | pixels | centre | (cx, cy) where the optical axis meets the image |
+
+Geometry (camera frame x right, y down, z forward; lens centre at the origin):
+- The sensor is at z = −w behind the lens. The image is read out upright: pixel (x, y) maps through
+  `Screen` to (x_s, y_s) (sensor size at distance w), its sensor point is P = (−x_s, −y_s, −w) and its
+  chief ray, through the lens centre, has direction c = (x_s, y_s, w) -- the same ray as a pinhole with
+  screen distance w and the same screen size. So world points land on the same pixels as for that pinhole.
+- The lens disc (diameter d) lies in the lens plane z = y tan θL; a lens sample lens_uv ∈ [0, 1)² is
+  mapped to the disc by the concentric mapping, S = (s_x, s_y cos θL, s_y sin θL).
+- The plane of focus is z = U + y tan θF, θF and θL related by the exact Scheimpflug rule
+  tan θF = (U + w) tan θL / w. The chief ray meets it at P_f = t c with t = U / D, D = w − y_s tan θF.
+- Every ray of the pixel starts at S and passes through P_f: direction P_f − S when P_f is in front of
+  the lens (t > 0, paper eq. (5)), S − P_f when P_f is behind it (t < 0, the virtual focus point of
+  pixels with no finite focus distance, eq. (6)), and c when the chief ray is parallel to the plane
+  (D = 0). One branch-free form covers all three: the direction is
+        c − (D / U) · S   (= (D / U)(P_f − S), a positive multiple of the right one in each case),
+  finite for every pixel and every |θF| < 90°. It is exactly the thin-lens refraction of the ray from P
+  through S for a lens of focal length f = U w cos θL / (U + w) (see tests).
+- d = 0 gives S = 0 and the direction c: bit for bit the pinhole. θF = 0 gives the plain thin lens.
+Rays are valid everywhere and carry weight 1 (no cos⁴ vignetting). Pixels beyond the Scheimpflug line
+(y_s > w / tan θL, only for extreme tilts) would put the sensor in front of the lens plane; the formula
+extends smoothly there.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from .. import optics
+from ..params import Param, SceneError
+from ..rays import Rays, normalize
+from . import register_camera
+from .base import Camera, Screen
+
+THIN_LENS_PARAMS = [
+    Param("w", "float", doc="lens centre to sensor (effective focal length), scene units"),
+    Param("U", "float", None, "lens centre to the plane of focus along the optical axis, scene units"),
+    Param("f", "float", None, "focal length instead of U (U from the hinge rule), scene units"),
+    Param("d", "float", doc="aperture diameter, scene units (0: pinhole)"),
+    Param("sensor_size", "vec2", doc="[width, height] of the sensor at distance w, scene units"),
+    Param("theta_F_deg", "float", None, "tilt of the plane of focus about the camera x axis, degrees [0]"),
+    Param("theta_L_deg", "float", None, "lens tilt instead of theta_F_deg (exact conversion), degrees"),
+    Param("principal_point_px", "vec2", None, "(cx, cy) principal point, pixels [image centre]"),
+]
+
+
+def concentric_disk(lens_uv: torch.Tensor) -> torch.Tensor:
+    """Shirley–Chiu concentric map of (..., 2) uniform samples in [0, 1)² to the unit disc, (..., 2).
+
+    Area-preserving and low-distortion, so stratified or Sobol samples stay well spread on the disc;
+    (0.5, 0.5) maps to the centre.
+    """
+    a = 2 * lens_uv[..., 0] - 1
+    b = 2 * lens_uv[..., 1] - 1
+    use_a = a.abs() > b.abs()
+    r = torch.where(use_a, a, b)
+    # Ratios only where their denominators are the larger magnitude (and non-zero), so no 0/0.
+    safe_a = torch.where(use_a, a, torch.ones_like(a))
+    safe_b = torch.where(use_a | (b == 0), torch.ones_like(b), b)
+    phi = torch.where(use_a, (math.pi / 4) * (b / safe_a), math.pi / 2 - (math.pi / 4) * (a / safe_b))
+    return torch.stack([r * torch.cos(phi), r * torch.sin(phi)], -1)
+
+
+def parse_lens(path: str, cfg: dict) -> dict:
+    """Validate the thin-lens keys and resolve U, θF, θL (radians) exactly. Messages name the field."""
+    w, d = cfg["w"], cfg["d"]
+    if w <= 0:
+        raise SceneError(f"{path}.w: expected a positive distance, got {w}")
+    if d < 0:
+        raise SceneError(f"{path}.d: expected a diameter >= 0, got {d}")
+    sx, sy = cfg["sensor_size"]
+    if sx <= 0 or sy <= 0:
+        raise SceneError(f"{path}.sensor_size: expected positive sizes, got {[sx, sy]}")
+    if cfg.get("theta_F_deg") is not None and cfg.get("theta_L_deg") is not None:
+        raise SceneError(f"{path}: give theta_F_deg or theta_L_deg, not both")
+    if (cfg.get("U") is None) == (cfg.get("f") is None):
+        raise SceneError(f"{path}: give exactly one of U (focus distance) and f (focal length)")
+    for key in ("theta_F_deg", "theta_L_deg"):
+        if cfg.get(key) is not None and not abs(cfg[key]) < 90:
+            raise SceneError(f"{path}.{key}: expected an angle in (-90, 90), got {cfg[key]}")
+    if cfg.get("U") is not None:
+        U = cfg["U"]
+        if U <= 0:
+            raise SceneError(f"{path}.U: expected a positive distance, got {U}")
+        if cfg.get("theta_L_deg") is not None:
+            theta_L = math.radians(cfg["theta_L_deg"])
+            theta_F = float(optics.theta_F_from_theta_L(theta_L, w, U))
+        else:
+            theta_F = math.radians(cfg.get("theta_F_deg") or 0.0)
+            theta_L = float(optics.theta_L_from_theta_F(theta_F, w, U))
+        return dict(w=w, U=U, d=d, theta_F=theta_F, theta_L=theta_L)
+    f = cfg["f"]
+    if cfg.get("theta_L_deg") is not None:
+        theta_L = math.radians(cfg["theta_L_deg"])
+    else:
+        theta_F = math.radians(cfg.get("theta_F_deg") or 0.0)
+        if not 0 < f < w:
+            raise SceneError(f"{path}.f: expected 0 < f < w = {w} for a real plane of focus, got {f}")
+        theta_L = float(optics.theta_L_from_theta_F_f(theta_F, w, f))
+    if not 0 < f < w * math.cos(theta_L):
+        raise SceneError(f"{path}.f: expected 0 < f < w cos(theta_L) = {w * math.cos(theta_L):.6g} "
+                         f"for a real plane of focus, got {f}")
+    U = float(optics.focus_distance_tilted(w, f, theta_L))
+    theta_F = float(optics.theta_F_from_theta_L(theta_L, w, U))
+    return dict(w=w, U=U, d=d, theta_F=theta_F, theta_L=theta_L)
+
+
+@register_camera("thin_lens", THIN_LENS_PARAMS)
+class ThinLensCamera(Camera):
+    """Thin lens of aperture d, sensor at w, plane of focus z = U + y tan θF (distributed ray tracing).
+
+    Attributes (scene units, radians): w, U, d, theta_F, theta_L; f = U w cos θL / (U + w).
+    """
+
+    uses_lens_samples = True
+
+    def __init__(self, transform, screen: Screen, w: float, U: float, d: float, theta_F: float = 0.0,
+                 theta_L: float | None = None):
+        super().__init__(transform, screen)
+        if theta_L is None:
+            theta_L = float(optics.theta_L_from_theta_F(theta_F, w, U))
+        self.w, self.U, self.d = float(w), float(U), float(d)
+        self.theta_F, self.theta_L = float(theta_F), float(theta_L)
+        self.f = float(optics.focal_length(w, U, theta_L))
+
+    @classmethod
+    def from_config(cls, path, cfg, transform, width, height):
+        lens = parse_lens(path, cfg)
+        pp = cfg.get("principal_point_px")
+        screen = Screen(width, height, tuple(cfg["sensor_size"]), lens["w"], pp)
+        return cls(transform, screen, **lens)
+
+    def lens_points(self, lens_uv: torch.Tensor) -> torch.Tensor:
+        """(..., 2) samples in [0, 1)² -> (..., 3) points on the tilted lens disc, camera frame."""
+        s = concentric_disk(lens_uv) * (self.d / 2)
+        cL, sL = math.cos(self.theta_L), math.sin(self.theta_L)
+        return torch.stack([s[..., 0], s[..., 1] * cL, s[..., 1] * sL], -1)
+
+    def focus_weight(self, c: torch.Tensor) -> torch.Tensor:
+        """D / U = 1 / t for chief directions c = (x_s, y_s, w): the pixel's focus point is P_f = c · U / D."""
+        return (c[..., 2] - c[..., 1] * math.tan(self.theta_F)) / self.U
+
+    def rays_in_camera(self, uv_px: torch.Tensor, lens_uv: torch.Tensor) -> Rays:
+        c = self.screen.to_plane(uv_px)
+        s = self.lens_points(lens_uv.to(c))
+        direction = c - self.focus_weight(c)[..., None] * s
+        valid = torch.ones(c.shape[:-1], dtype=torch.bool, device=c.device)
+        return Rays(s, normalize(direction), valid, torch.ones_like(c[..., 0]))
+
+    def project(self, p_world: torch.Tensor) -> torch.Tensor:
+        """Chief-ray projection (pixel of the blur spot's centre of projection), same as the pinhole at w."""
+        p_cam = self.transform.points_to_camera(p_world)
+        q = p_cam[..., :2] * (self.screen.distance / p_cam[..., 2:3])
+        return self.screen.to_pixels(q)

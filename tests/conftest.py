@@ -1,11 +1,9 @@
-import os
-
 import pytest
 import torch
 
-# Two pytest-xdist workers share two cores: one torch thread each avoids oversubscription.
-if os.environ.get("PYTEST_XDIST_WORKER"):
-    torch.set_num_threads(1)
+# Tests check correctness, not speed: one torch thread per process avoids oversubscribing the two cores
+# that the two pytest-xdist workers already share.
+torch.set_num_threads(1)
 
 
 @pytest.fixture(autouse=True)

@@ -1,0 +1,180 @@
+"""CALIB.json, the calibration file of `tiltfit calibrate` (keys as in CONTRACTS.md, plus extras).
+
+Contract keys: pixel_pitch_mm, image_size_px [W, H], principal_point_px [cx, cy], w_mm, U_mm, d_mm, f_mm,
+theta_F_deg, theta_L_deg (exact thin-lens relation), theta_L_paper_deg (the paper's eq (1)),
+views [{image, R (3×3, camera_from_target), T_mm, rms_reprojection_px, rms_blur_px, n_points}],
+sigma {w_mm, U_mm, d_mm, theta_F_deg, theta_L_deg} (one standard deviation), runtime_s.
+
+Extras (readers must ignore keys they do not know): fit (mode), blur_model, noise {sigma_corner_px,
+sigma_blur_px, variance_factor}, sigma.{f_mm, theta_L_paper_deg, principal_point_px}, views[].{sigma_rvec_deg,
+sigma_T_mm}, model_selection {theta_F: {...,justified}, principal_point: {...}}, iterations, n_residuals,
+n_parameters, software.
+
+Numbers that are not finite (e.g. the blur RMS of a view without blur widths) are written as null.
+The file is written atomically (temporary file in the same folder, then renamed).
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+
+import numpy as np
+import torch
+
+from .model import TiltLensCamera
+
+REQUIRED_KEYS = ("pixel_pitch_mm", "image_size_px", "principal_point_px", "w_mm", "U_mm", "d_mm", "f_mm",
+                 "theta_F_deg", "theta_L_deg", "theta_L_paper_deg", "views", "sigma", "runtime_s")
+VIEW_KEYS = ("image", "R", "T_mm", "rms_reprojection_px", "rms_blur_px", "n_points")
+SIGMA_KEYS = ("w_mm", "U_mm", "d_mm", "theta_F_deg", "theta_L_deg")
+
+
+class CalibFileError(ValueError):
+    """A CALIB.json that cannot be read or is malformed; the message is one line, naming file and key."""
+
+
+def _clean(v):
+    """JSON-safe copy: tensors and arrays to lists, non-finite floats to None."""
+    if isinstance(v, torch.Tensor):
+        v = v.detach().cpu().tolist()
+    if isinstance(v, np.ndarray):
+        v = v.tolist()
+    if isinstance(v, dict):
+        return {str(k): _clean(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_clean(x) for x in v]
+    if isinstance(v, (np.floating, np.integer)):
+        v = v.item()
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    return v
+
+
+def calib_dict(result, runtime_s: float | None = None) -> dict:
+    """The CALIB.json content of a `tiltfit.fit.FitResult`."""
+    cam = result.camera
+    v, s = result.values, result.sigma
+    out = {
+        "pixel_pitch_mm": cam.pixel_pitch_mm,
+        "image_size_px": list(cam.image_size_px),
+        "principal_point_px": v["principal_point_px"],
+        "w_mm": v["w_mm"], "U_mm": v["U_mm"], "d_mm": v["d_mm"], "f_mm": v["f_mm"],
+        "theta_F_deg": v["theta_F_deg"], "theta_L_deg": v["theta_L_deg"],
+        "theta_L_paper_deg": v["theta_L_paper_deg"],
+        "views": [dict(view) for view in result.views],
+        "sigma": {k: s[k] for k in SIGMA_KEYS} | {"f_mm": s["f_mm"], "theta_L_paper_deg": s["theta_L_paper_deg"],
+                                                   "principal_point_px": s["principal_point_px"]},
+        "runtime_s": result.runtime_s if runtime_s is None else runtime_s,
+        "fit": result.mode,
+        "blur_model": cam.blur_model,
+        "noise": dict(result.noise),
+        "model_selection": result.model_selection,
+        "iterations": result.iterations,
+        "n_residuals": result.n_residuals,
+        "n_parameters": result.n_parameters,
+        "software": "tiltfit",
+    }
+    return _clean(out)
+
+
+def write_calib(path: str, data) -> None:
+    """Write CALIB.json atomically. `data` is a FitResult or a dict from `calib_dict`."""
+    if not isinstance(data, dict):
+        data = calib_dict(data)
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".calib-", suffix=".json.tmp", dir=folder)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            json.dump(_clean(data), f, indent=1, allow_nan=False)
+            f.write("\n")
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
+def _number(path, key, value, positive=False):
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise CalibFileError(f"{path}: {key}: expected a number, got {value!r}")
+    if positive and not value > 0:
+        raise CalibFileError(f"{path}: {key}: expected a positive number, got {value!r}")
+    return float(value)
+
+
+def _vector(path, key, value, n):
+    if not isinstance(value, list) or len(value) != n:
+        raise CalibFileError(f"{path}: {key}: expected a list of {n} numbers, got {value!r}")
+    return [_number(path, f"{key}[{i}]", x) for i, x in enumerate(value)]
+
+
+def read_calib(path: str) -> dict:
+    """Read and validate CALIB.json; returns the parsed dict (extras kept as they are).
+
+    Raises:
+        CalibFileError: missing file, invalid JSON, a missing key or a malformed value (one line).
+    """
+    if not os.path.isfile(path):
+        raise CalibFileError(f"{path}: no such file")
+    try:
+        with open(path, encoding="utf-8") as f:
+            data = json.load(f)
+    except json.JSONDecodeError as e:
+        raise CalibFileError(f"{path}: not valid JSON (line {e.lineno}, column {e.colno}: {e.msg})") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise CalibFileError(f"{path}: cannot read ({e})") from None
+    if not isinstance(data, dict):
+        raise CalibFileError(f"{path}: expected a JSON object")
+    # Only the lens state is needed to start another fit; views and sigma may be absent in hand-made files.
+    for key in ("pixel_pitch_mm", "image_size_px", "w_mm", "U_mm", "d_mm"):
+        if key not in data:
+            raise CalibFileError(f"{path}: {key}: missing key")
+    for key in ("pixel_pitch_mm", "w_mm", "U_mm", "d_mm"):
+        _number(path, key, data[key], positive=True)
+    size = _vector(path, "image_size_px", data["image_size_px"], 2)
+    if not all(s >= 1 and s == int(s) for s in size):
+        raise CalibFileError(f"{path}: image_size_px: expected two positive integers, got {data['image_size_px']!r}")
+    if data.get("principal_point_px") is not None:
+        _vector(path, "principal_point_px", data["principal_point_px"], 2)
+    if data.get("theta_F_deg") is not None:
+        if abs(_number(path, "theta_F_deg", data["theta_F_deg"])) >= 90:
+            raise CalibFileError(f"{path}: theta_F_deg: expected |θF| < 90, got {data['theta_F_deg']!r}")
+    views = data.get("views", [])
+    if not isinstance(views, list):
+        raise CalibFileError(f"{path}: views: expected a list, got {views!r}")
+    for i, view in enumerate(views):
+        if not isinstance(view, dict):
+            raise CalibFileError(f"{path}: views[{i}]: expected an object")
+        for key in ("R", "T_mm"):
+            if key not in view:
+                raise CalibFileError(f"{path}: views[{i}].{key}: missing key")
+        R = view["R"]
+        if not (isinstance(R, list) and len(R) == 3 and all(isinstance(r, list) and len(r) == 3 for r in R)):
+            raise CalibFileError(f"{path}: views[{i}].R: expected a 3×3 matrix")
+        _vector(path, f"views[{i}].T_mm", view["T_mm"], 3)
+    sigma = data.get("sigma", {})
+    if not isinstance(sigma, dict):
+        raise CalibFileError(f"{path}: sigma: expected an object, got {sigma!r}")
+    return data
+
+
+def camera_from_calib(data: dict, blur_model: str | None = None) -> TiltLensCamera:
+    """A TiltLensCamera with the file's lens state and views (one identity view if it has none)."""
+    views = data.get("views") or []
+    n = max(len(views), 1)
+    R = [v["R"] for v in views] if views else None
+    T = [v["T_mm"] for v in views] if views else None
+    return TiltLensCamera(
+        n, tuple(int(s) for s in data["image_size_px"]), data["pixel_pitch_mm"], data["w_mm"], data["U_mm"],
+        data["d_mm"], math.radians(data.get("theta_F_deg") or 0.0), R=R, T_mm=T,
+        principal_point_px=data.get("principal_point_px"),
+        blur_model=blur_model or data.get("blur_model") or "ellipse")
+
+
+def sigma_from_calib(data: dict) -> dict:
+    """The file's one-σ values of w_mm, U_mm, d_mm (those present and finite)."""
+    sig = data.get("sigma") or {}
+    return {k: float(sig[k]) for k in ("w_mm", "U_mm", "d_mm")
+            if isinstance(sig.get(k), (int, float)) and math.isfinite(sig[k]) and sig[k] > 0}

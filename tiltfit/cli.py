@@ -1,0 +1,321 @@
+"""Command line: `tiltfit detect`, `tiltfit calibrate`, `tiltfit reproduce`.
+
+    tiltfit detect IMAGE --target T.json [--encoding srgb|linear] -o DET.json
+    tiltfit calibrate IMAGE... --target T.json --pixel-pitch-mm P [--fit unified|tilt|joint]
+                      [--init CALIB.json] [--encoding srgb|linear] -o CALIB.json
+    tiltfit reproduce [--quick] [-o DIR]
+
+`calibrate` also accepts DET.json files (written by `tiltfit detect`) in place of images.
+Errors (bad or missing file, missing key, no board found, truncated image, a fit that does not converge)
+print one line `tiltfit: <file>: <problem>` on stderr and exit with status 2, leaving no output file.
+Progress goes to stderr; nothing but results goes to stdout.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import math
+import os
+import sys
+import tempfile
+import time
+
+EXIT_ERROR = 2
+
+
+class CliError(Exception):
+    """A user-facing failure: `tiltfit: <file>: <problem>`."""
+
+    def __init__(self, file: str, problem: str):
+        super().__init__(f"{file}: {problem}")
+        self.file, self.problem = file, problem
+
+
+def _as_cli_error(file: str, err: Exception) -> CliError:
+    """Wrap an exception whose message may already start with the file name (one line)."""
+    msg = "; ".join(line.strip() for line in str(err).strip().splitlines()) or type(err).__name__
+    prefix = f"{file}: "
+    return CliError(file, msg[len(prefix):] if msg.startswith(prefix) else msg)
+
+
+def _say(quiet: bool):
+    def say(line: str):
+        if not quiet:
+            print(line, file=sys.stderr, flush=True)
+
+    return say
+
+
+# --- detection ---------------------------------------------------------------------------------------------
+
+@contextlib.contextmanager
+def _quiet_c_stderr():
+    """Keep what C libraries print on file descriptor 2 (libpng's complaints) off the terminal: the
+    failure is reported once, as the one-line error."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):
+        yield
+        return
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+
+
+def _load_target(path: str):
+    from .target import load_target
+
+    try:
+        return load_target(path)
+    except (ValueError, OSError) as e:
+        raise _as_cli_error(path, e) from None
+
+
+def _detect_image(path: str, target, encoding: str | None) -> dict:
+    """Read an image, detect the board; returns the DET.json dict. Raises CliError naming the image."""
+    from renderer import read_image
+
+    try:
+        with _quiet_c_stderr():
+            image = read_image(path, encoding)
+    except (ValueError, OSError) as e:
+        raise _as_cli_error(path, e) from None
+    try:
+        from .detect import detect
+    except ImportError:
+        raise CliError(path, "board detection is not available in this installation (tiltfit.detect)") from None
+    try:
+        found = detect(image, target)
+    except (ValueError, RuntimeError, ImportError) as e:
+        raise _as_cli_error(path, e) from None
+    if hasattr(found, "to_json_dict"):
+        det = found.to_json_dict()
+    else:
+        corners, blur = (found.corners_px, found.blur_px) if hasattr(found, "corners_px") else found
+        det = _det_dict(image.shape[1], image.shape[0], corners, blur)
+    if not det.get("grid_found") or not any(c is not None for c in det["corners_px"]):
+        why = getattr(found, "message", "") or ""
+        raise CliError(path, "no board found" + (f" ({why})" if why else ""))
+    return det
+
+
+def _det_dict(width: int, height: int, corners, blur) -> dict:
+    import numpy as np
+
+    c = np.asarray(corners, dtype=np.float64).reshape(-1, 2)
+    b = np.asarray(blur, dtype=np.float64).reshape(-1)
+    corners_out = [[float(x), float(y)] if np.isfinite(x) and np.isfinite(y) else None for x, y in c]
+    blur_out = [float(v) if np.isfinite(v) else None for v in b]
+    return {"image_size_px": [int(width), int(height)], "corners_px": corners_out, "blur_px": blur_out,
+            "grid_found": any(v is not None for v in corners_out)}
+
+
+def _write_json_atomic(path: str, data: dict) -> None:
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".tiltfit-", suffix=".json.tmp", dir=folder)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            json.dump(data, f, indent=1, allow_nan=False)
+            f.write("\n")
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
+def _read_det(path: str, n_points: int) -> dict:
+    """Read and validate a DET.json for a target of n_points feature points."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            det = json.load(f)
+    except json.JSONDecodeError as e:
+        raise CliError(path, f"not valid JSON (line {e.lineno}, column {e.colno}: {e.msg})") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise CliError(path, f"cannot read ({e})") from None
+    if not isinstance(det, dict):
+        raise CliError(path, "expected a JSON object (a detection file of `tiltfit detect`)")
+    for key in ("image_size_px", "corners_px", "blur_px"):
+        if key not in det:
+            raise CliError(path, f"{key}: missing key")
+    size = det["image_size_px"]
+    if not (isinstance(size, list) and len(size) == 2 and all(isinstance(s, int) and s > 0 for s in size)):
+        raise CliError(path, f"image_size_px: expected [width, height] in pixels, got {size!r}")
+    for key, per in (("corners_px", 2), ("blur_px", 1)):
+        vals = det[key]
+        if not isinstance(vals, list) or len(vals) != n_points:
+            raise CliError(path, f"{key}: expected a list of {n_points} entries (one per feature point), "
+                                 f"got {len(vals) if isinstance(vals, list) else type(vals).__name__}")
+        for i, v in enumerate(vals):
+            ok = v is None or (per == 1 and _is_num(v)) or (
+                per == 2 and isinstance(v, list) and len(v) == 2 and all(_is_num(x) for x in v))
+            if not ok:
+                raise CliError(path, f"{key}[{i}]: expected {'[x, y]' if per == 2 else 'a number'} or null, "
+                                     f"got {v!r}")
+    if not any(v is not None for v in det["corners_px"]):
+        raise CliError(path, "no board found")
+    return det
+
+
+def _is_num(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _is_det_file(path: str) -> bool:
+    return path.lower().endswith(".json")
+
+
+# --- commands ----------------------------------------------------------------------------------------------
+
+def cmd_detect(args) -> int:
+    say = _say(args.quiet)
+    target = _load_target(args.target)
+    t0 = time.perf_counter()
+    det = _detect_image(args.image, target, args.encoding)
+    n = sum(v is not None for v in det["corners_px"])
+    say(f"{args.image}: {n} of {len(det['corners_px'])} corners in {time.perf_counter() - t0:.1f} s")
+    try:
+        _write_json_atomic(args.output, det)
+    except OSError as e:
+        raise CliError(args.output, f"cannot write ({e.strerror or e})") from None
+    return 0
+
+
+def _observations(args, target, say):
+    """Observations of all inputs (images are detected, DET.json files read)."""
+    import numpy as np
+
+    from .model import Observations
+
+    points = target.feature_points()
+    corners, blur, size = [], [], None
+    for path in args.inputs:
+        if not os.path.isfile(path):
+            raise CliError(path, "no such file")
+        if _is_det_file(path):
+            det = _read_det(path, len(points))
+        else:
+            t0 = time.perf_counter()
+            det = _detect_image(path, target, args.encoding)
+            n = sum(v is not None for v in det["corners_px"])
+            say(f"{path}: {n} of {len(points)} corners detected in {time.perf_counter() - t0:.1f} s")
+        if size is not None and list(det["image_size_px"]) != size:
+            raise CliError(path, f"image size {det['image_size_px']} differs from the first input's {size}")
+        size = list(det["image_size_px"])
+        corners.append([c if c is not None else [math.nan, math.nan] for c in det["corners_px"]])
+        blur.append([b if b is not None else math.nan for b in det["blur_px"]])
+    return Observations(points, np.array(corners, dtype=np.float64), np.array(blur, dtype=np.float64),
+                        tuple(size), args.pixel_pitch_mm, names=list(args.inputs))
+
+
+def cmd_calibrate(args) -> int:
+    from .calibfile import calib_dict, camera_from_calib, read_calib, sigma_from_calib, write_calib
+    from .fit import FitError, FitOptions, calibrate
+
+    say = _say(args.quiet)
+    t0 = time.perf_counter()
+    if not (math.isfinite(args.pixel_pitch_mm) and args.pixel_pitch_mm > 0):
+        raise CliError("--pixel-pitch-mm", f"expected a positive pixel pitch in mm, got {args.pixel_pitch_mm}")
+    if args.max_iterations < 1:
+        raise CliError("--max-iterations", f"expected at least 1, got {args.max_iterations}")
+    if args.fit == "tilt" and not args.init:
+        raise CliError("--init", "the tilt fit (stage 2) needs the stage-1 CALIB.json as --init")
+    init = init_sigma = None
+    if args.init:
+        try:
+            data = read_calib(args.init)
+            init = camera_from_calib(data, args.blur_model)
+        except ValueError as e:
+            raise _as_cli_error(args.init, e) from None
+        init_sigma = sigma_from_calib(data)
+    target = _load_target(args.target)
+    obs = _observations(args, target, say)
+    if init is not None and tuple(init.image_size_px) != tuple(obs.image_size_px):
+        raise CliError(args.init, f"image_size_px {list(init.image_size_px)} differs from the images' "
+                                  f"{list(obs.image_size_px)}")
+    blur_model = args.blur_model or (init.blur_model if init is not None else "ellipse")
+    options = FitOptions(robust=args.robust, free_principal_point=args.free_principal_point,
+                         blur_model=blur_model, nominal_focal_mm=args.focal_mm,
+                         max_iterations=args.max_iterations, model_selection=not args.no_model_selection,
+                         progress=say)
+    label = args.inputs[0] if len(args.inputs) == 1 else f"{args.inputs[0]} (+{len(args.inputs) - 1} more)"
+    try:
+        result = calibrate(obs, args.fit, init=init, options=options, init_sigma=init_sigma)
+    except FitError as e:
+        raise CliError(label, str(e)) from None
+    data = calib_dict(result, runtime_s=time.perf_counter() - t0)
+    try:
+        write_calib(args.output, data)
+    except OSError as e:
+        raise CliError(args.output, f"cannot write ({e.strerror or e})") from None
+    say(f"wrote {args.output}")
+    return 0
+
+
+def cmd_reproduce(argv) -> int:
+    """`tiltfit reproduce ...` is `tiltfit.reproduce.main` (its own options and help)."""
+    from . import reproduce
+
+    return int(reproduce.main(list(argv)) or 0)
+
+
+# --- parser ------------------------------------------------------------------------------------------------
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="tiltfit", description="Tilt-lens calibration (Baba, Nakane, Hiura 2017).")
+    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("detect", help="find the target's corners and blur widths in one image")
+    p.add_argument("image", metavar="IMAGE")
+    p.add_argument("--target", required=True, metavar="T.json", help="target file")
+    p.add_argument("--encoding", choices=("srgb", "linear"), help="override the file's encoding")
+    p.add_argument("-o", "--output", required=True, metavar="DET.json")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
+    p.set_defaults(func=cmd_detect)
+
+    p = sub.add_parser("calibrate", help="calibrate w, U, d, θF and the poses from target images")
+    p.add_argument("inputs", nargs="+", metavar="IMAGE", help="target images (or DET.json files)")
+    p.add_argument("--target", required=True, metavar="T.json", help="target file")
+    p.add_argument("--pixel-pitch-mm", required=True, type=float, metavar="P", help="sensor pixel pitch, mm")
+    p.add_argument("--fit", choices=("unified", "tilt", "joint"), default="unified",
+                   help="unified: stage 1 (θF = 0); tilt: stage 2 (w, U, d from --init held); joint: all free "
+                        "[unified]")
+    p.add_argument("--init", metavar="CALIB.json", help="starting (tilt: held) lens parameters")
+    p.add_argument("--encoding", choices=("srgb", "linear"), help="override the images' encoding")
+    p.add_argument("--focal-mm", type=float, help="nominal focal length to start w from (default: estimated "
+                                                  "from the views)")
+    p.add_argument("--robust", choices=("huber", "cauchy"), help="robust loss (threshold 3σ)")
+    p.add_argument("--free-principal-point", action="store_true", help="fit the principal point too")
+    p.add_argument("--blur-model", choices=("ellipse", "first_order", "paper"),
+                   help="blur model: exact spot (ellipse, default), first order, or the paper's eq (4)")
+    p.add_argument("--max-iterations", type=int, default=200, help="Levenberg–Marquardt iterations [200]")
+    p.add_argument("--no-model-selection", action="store_true", help="skip the θF / principal-point tests")
+    p.add_argument("-o", "--output", required=True, metavar="CALIB.json")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
+    p.set_defaults(func=cmd_calibrate)
+
+    # Listed for --help; its arguments are parsed by tiltfit.reproduce itself (see main).
+    sub.add_parser("reproduce", help="the paper's experiment end to end on a simulated camera", add_help=False)
+    return ap
+
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
+    if argv and argv[0] == "reproduce":
+        return cmd_reproduce(argv[1:])
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except CliError as e:
+        print(f"tiltfit: {e.file}: {e.problem}", file=sys.stderr)
+        return EXIT_ERROR
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,738 @@
+"""Calibration of a tilt-lens camera: initialisation, Levenberg–Marquardt, uncertainties, model selection.
+
+    calibrate(obs, mode="unified" | "tilt" | "joint", init=None, options=FitOptions()) -> FitResult
+
+Modes (the paper's two stages, and one fit of everything):
+    unified  stage 1, eq (3): θF = 0; fits w, U, d and every view's R, T from corners and blur.
+    tilt     stage 2, eq (4): w, U, d held at `init`'s values; fits θF and every view's R, T. Because the
+             lens tilts about its centre, the true U moves with the tilt (hinge rule); holding U biases θF.
+    joint    w, U, d, θF and the poses together; `init` (if any) is only the starting point.
+The principal point is held at the image centre (or `init`'s) unless `FitOptions.free_principal_point`.
+
+Objective: ½ Σ ρ((r_i / σ_g)²) over reprojection residuals (group g = corners, pixels) and blur residuals
+(g = blur, pixels); ρ is quadratic, Huber or Cauchy. The noise levels σ_g are estimated from the residuals
+(variance components, with the degrees of freedom each group uses) unless given. Minimised by
+Levenberg–Marquardt with Marquardt's diagonal scaling on the free parameters of `TiltLensCamera`, its
+Jacobian from torch forward-mode autodiff (`torch.func.jacfwd`), robust losses by iterative reweighting.
+
+Uncertainties: C = s² (Jᵀ W J)⁻¹ on the free parameters (s² the residual variance factor), propagated to
+w, U, d, θF, θL (exact Scheimpflug), θL of the paper's eq (1) and f by the Jacobian of those functions. In
+`tilt` mode the held w, U, d carry the uncertainties `init` gives for them (through the fit's implicit
+dependence on them), but not the bias of holding U.
+
+Model selection: the fit is repeated with θF (and the principal point) switched to the other state; the
+likelihood-ratio statistic Λ = Σ_g n_g ln(RSS_g,restricted / RSS_g,full) (Gaussian, each group's variance
+profiled out) is compared with χ²(k), and AIC/BIC differences are reported. A parameter is "justified"
+when the test rejects the restricted model at level `alpha` and BIC prefers the larger one.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import torch
+from torch.func import functional_call, jacfwd
+
+from .model import BLUR_MODELS, ROBUST_LOSSES, Observations, TiltLensCamera, residuals, robust_rho, robust_weight
+
+MODES = ("unified", "tilt", "joint")
+MAX_RMS_REPROJECTION_PX = 5.0  # a calibrated view reprojecting worse than this means mismatched data
+
+_MODE_FREE = {
+    "unified": ("lens", "pose"),
+    "tilt": ("theta_F", "pose"),
+    "joint": ("lens", "theta_F", "pose"),
+}
+
+
+class FitError(RuntimeError):
+    """A calibration that cannot be done or did not converge; the message is one line."""
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """Settings of `calibrate` (defaults in brackets).
+
+    Attributes:
+        robust: None, "huber" or "cauchy" [None]; `robust_scale` is the threshold in σ [3.0].
+        free_principal_point: fit the principal point too [False].
+        sigma_corner_px, sigma_blur_px: noise levels; None estimates them from the residuals [None].
+        blur_model: the camera's blur model ("ellipse", "first_order", "paper") ["ellipse"].
+        nominal_focal_mm: starting w when no `init` gives one; None estimates it from homographies [None].
+        max_iterations: Levenberg–Marquardt iterations per solve [200].
+        noise_iterations: re-estimations of σ_g (each followed by a warm re-solve) [4].
+        model_selection: run the θF / principal-point tests [True].
+        alpha: significance level of the tests [0.01].
+        progress: callable(str) for progress lines, or None [None].
+    """
+
+    robust: str | None = None
+    robust_scale: float = 3.0
+    free_principal_point: bool = False
+    sigma_corner_px: float | None = None
+    sigma_blur_px: float | None = None
+    blur_model: str = "ellipse"
+    nominal_focal_mm: float | None = None
+    max_iterations: int = 200
+    noise_iterations: int = 4
+    model_selection: bool = True
+    alpha: float = 0.01
+    progress: object = None
+
+    def __post_init__(self):
+        if self.robust not in ROBUST_LOSSES:
+            raise ValueError(f"robust: expected one of {ROBUST_LOSSES}, got {self.robust!r}")
+        if self.blur_model not in BLUR_MODELS:
+            raise ValueError(f"blur_model: expected one of {BLUR_MODELS}, got {self.blur_model!r}")
+        if self.max_iterations < 1:
+            raise ValueError(f"max_iterations: expected at least 1, got {self.max_iterations}")
+
+
+@dataclass
+class FitResult:
+    """What `calibrate` found.
+
+    Attributes:
+        mode: "unified", "tilt" or "joint".
+        camera: the fitted camera (float64; free/frozen state as fitted).
+        values: w_mm, U_mm, d_mm, f_mm, theta_F_deg, theta_L_deg, theta_L_paper_deg, principal_point_px.
+        sigma: one-σ uncertainties of the same keys (0 for held ones without an `init` sigma).
+        views: per view: image, R, T_mm, rms_reprojection_px, rms_blur_px, n_points, sigma_rvec_deg,
+            sigma_T_mm.
+        noise: estimated (or given) sigma_corner_px, sigma_blur_px.
+        parameter_names, covariance: the free parameters (stored units of the camera) and their covariance.
+        chi2: Σ ρ((r/σ)²) at the solution; n_residuals, n_parameters; iterations; runtime_s.
+        model_selection: per tested parameter, the test's numbers and a verdict (see the module docstring).
+    """
+
+    mode: str
+    camera: TiltLensCamera
+    values: dict
+    sigma: dict
+    views: list
+    noise: dict
+    parameter_names: list
+    covariance: torch.Tensor
+    chi2: float
+    n_residuals: int
+    n_parameters: int
+    iterations: int
+    runtime_s: float
+    rss: dict = field(default_factory=dict)
+    model_selection: dict = field(default_factory=dict)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The least-squares problem over a camera's free parameters
+# ---------------------------------------------------------------------------------------------------------
+
+class _Problem:
+    """Flat vector x of a camera's free parameters and the normalised residual vector r(x)."""
+
+    def __init__(self, camera: TiltLensCamera, obs: Observations, names: list[str] | None = None):
+        self.camera = camera
+        self.obs = obs
+        self.names = names if names is not None else camera.free_parameter_names()
+        if not self.names:
+            raise FitError("no free parameters to fit")
+        params = dict(camera.named_parameters())
+        self.shapes = [params[n].shape for n in self.names]
+        self.sizes = [int(np.prod(s)) if len(s) else 1 for s in self.shapes]
+        self.held = {n: p.detach() for n, p in params.items() if n not in self.names}
+        self.points = obs.points_mm.to(torch.float64)
+        self.cmask = obs.corner_mask
+        self.bmask = obs.blur_mask
+        self.corners = torch.nan_to_num(obs.corners_px)
+        self.blur = torch.nan_to_num(obs.blur_px)
+        self.n_corner = int(self.cmask.sum()) * 2
+        self.n_blur = int(self.bmask.sum())
+        nc = self.cmask.numel() * 2
+        self.corner_rows = torch.zeros(nc + self.bmask.numel(), dtype=torch.bool)
+        self.corner_rows[:nc] = self.cmask[..., None].expand(-1, -1, 2).reshape(-1)
+        self.blur_rows = torch.zeros_like(self.corner_rows)
+        self.blur_rows[nc:] = self.bmask.reshape(-1)
+
+    def x0(self) -> torch.Tensor:
+        params = dict(self.camera.named_parameters())
+        return torch.cat([params[n].detach().reshape(-1) for n in self.names]).to(torch.float64)
+
+    def unflatten(self, x: torch.Tensor) -> dict:
+        out, i = {}, 0
+        for n, shape, size in zip(self.names, self.shapes, self.sizes):
+            out[n] = x[i:i + size].reshape(shape)
+            i += size
+        return out
+
+    def params(self, x: torch.Tensor, held: dict | None = None) -> dict:
+        return {**(held if held is not None else self.held), **self.unflatten(x)}
+
+    def raw(self, x: torch.Tensor, held: dict | None = None) -> torch.Tensor:
+        """Model − observation, flat: corners (V·N·2, pixels) then blur (V·N, pixels); 0 where unobserved."""
+        uv, b = functional_call(self.camera, self.params(x, held), (self.points,))
+        rc = torch.where(self.cmask[..., None], uv - self.corners, torch.zeros_like(uv)).reshape(-1)
+        rb = torch.where(self.bmask, b - self.blur, torch.zeros_like(b)).reshape(-1)
+        return torch.cat([rc, rb])
+
+    def scale(self, sigma_c: float, sigma_b: float) -> torch.Tensor:
+        nc = self.cmask.numel() * 2
+        s = torch.full((self.corner_rows.numel(),), 1.0 / sigma_c, dtype=torch.float64)
+        s[nc:] = 1.0 / sigma_b
+        return s
+
+    def write_back(self, x: torch.Tensor):
+        with torch.no_grad():
+            params = dict(self.camera.named_parameters())
+            for n, v in self.unflatten(x).items():
+                params[n].copy_(v)
+
+
+@dataclass
+class _LMResult:
+    x: torch.Tensor
+    cost: float
+    iterations: int
+    J: torch.Tensor
+    r: torch.Tensor
+    weights: torch.Tensor
+
+
+def levenberg_marquardt(residual_fn, x0: torch.Tensor, robust: str | None = None, robust_scale: float = 3.0,
+                        max_iterations: int = 200, decrement_tol: float = 1e-9, xtol: float = 1e-12,
+                        jacobian_fn=None) -> _LMResult:
+    """Minimise ½ Σ ρ(r_i(x)²) by Levenberg–Marquardt with Marquardt scaling and IRLS robust weights.
+
+    Converged when the Gauss–Newton decrement ½ gᵀ (JᵀWJ)⁻¹ g (the cost a full Newton step would still
+    gain) is below `decrement_tol`: with residuals in units of their σ that means the parameters are within
+    a tiny fraction of their standard deviation of the minimum. Also stops on steps below `xtol`.
+
+    Args:
+        residual_fn: (P,) -> (M,) float64 residuals, already divided by their σ.
+        x0: (P,) start.
+        jacobian_fn: (P,) -> (M, P); default `torch.func.jacfwd(residual_fn)`.
+    Returns:
+        _LMResult with the solution, cost, iterations, and J, r, IRLS weights at the solution.
+    Raises:
+        FitError: non-finite residuals at the start, or no convergence within max_iterations.
+    """
+    jac = jacobian_fn or jacfwd(residual_fn)
+    x = x0.detach().clone()
+    r = residual_fn(x).detach()
+    if not torch.isfinite(r).all():
+        raise FitError("the model is undefined at the starting point (a point behind the camera?)")
+
+    def cost_of(res):
+        return 0.5 * float(robust_rho(res * res, robust, robust_scale).sum())
+
+    cost = cost_of(r)
+    J = jac(x).detach()
+    wts = robust_weight(r * r, robust, robust_scale)
+    lam, nu, diag_max = 1e-6, 2.0, None
+    for it in range(max_iterations + 1):
+        Jw = J * wts[:, None]
+        A = J.T @ Jw
+        g = Jw.T @ r
+        d = torch.diagonal(A).clamp(min=1e-300)
+        diag_max = d if diag_max is None else torch.maximum(diag_max, d)
+        try:
+            gn = torch.linalg.solve(A + 1e-12 * torch.diag(diag_max), g)
+            decrement = 0.5 * float(g @ gn)
+        except RuntimeError:
+            decrement = math.inf
+        if decrement < decrement_tol:
+            return _LMResult(x, cost, it, J, r, wts)
+        if it == max_iterations:
+            break
+        while True:
+            try:
+                step = -torch.linalg.solve(A + lam * torch.diag(diag_max), g)
+            except RuntimeError:
+                step = torch.full_like(g, float("nan"))
+            ok = bool(torch.isfinite(step).all())
+            r_new = residual_fn(x + step).detach() if ok else None
+            cost_new = cost_of(r_new) if ok and torch.isfinite(r_new).all() else math.inf
+            predicted = float(-(g @ step) - 0.5 * step @ (A @ step)) if ok else 0.0
+            rho = (cost - cost_new) / predicted if predicted > 0 else -1.0
+            if rho > 0:
+                break
+            lam *= nu
+            nu *= 2.0
+            if lam > 1e16:
+                # No damped step decreases the cost: x is a stationary point to working precision.
+                return _LMResult(x, cost, it, J, r, wts)
+        x, r, cost = x + step, r_new, cost_new
+        lam *= max(0.1, 1.0 - (2.0 * rho - 1.0) ** 3)
+        nu = 2.0
+        J = jac(x).detach()
+        wts = robust_weight(r * r, robust, robust_scale)
+        if float(step.abs().max()) <= xtol * (float(x.abs().max()) + xtol):
+            return _LMResult(x, cost, it + 1, J, r, wts)
+    raise FitError(f"the fit did not converge in {max_iterations} iterations (cost {cost:.6g}, "
+                   f"still decreasing by about {decrement:.3g})")
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Initialisation
+# ---------------------------------------------------------------------------------------------------------
+
+def focal_from_homographies(obs: Observations, principal_point_px=None) -> float | None:
+    """Focal length in pixels from the board homographies, principal point known and square pixels.
+
+    Each homography H ~ K [r1 r2 t] gives two linear equations in 1/F² (r1 ⟂ r2, |r1| = |r2|); they are
+    solved together in the least-squares sense (Zhang's method with the principal point fixed). Returns
+    None for a planar target seen only fronto-parallel (no solution) or a non-planar target.
+    """
+    import cv2
+
+    W, H = obs.image_size_px
+    c = np.array(principal_point_px if principal_point_px is not None else ((W - 1) / 2, (H - 1) / 2))
+    s = float(max(W, H))  # pixel coordinates in units of the image size keep the equations O(1)
+    pts = obs.points_mm.numpy()
+    if np.ptp(pts[:, 2]) > 1e-9:
+        return None
+    rows_a, rows_c = [], []
+    for v in range(obs.n_views):
+        m = obs.corner_mask[v].numpy()
+        if m.sum() < 4:
+            continue
+        Hm, _ = cv2.findHomography(pts[m, :2] / s, (obs.corners_px[v].numpy()[m] - c) / s, 0)
+        if Hm is None:
+            continue
+        Hm = Hm / np.linalg.norm(Hm)
+        h1, h2 = Hm[:, 0], Hm[:, 1]
+        rows_a += [h1[0] * h2[0] + h1[1] * h2[1], h1[0] ** 2 + h1[1] ** 2 - h2[0] ** 2 - h2[1] ** 2]
+        rows_c += [h1[2] * h2[2], h1[2] ** 2 - h2[2] ** 2]
+    a, cc = np.array(rows_a), np.array(rows_c)
+    if len(a) == 0 or float(a @ a) <= 0:
+        return None
+    inv_f2 = -float(a @ cc) / float(a @ a)
+    if not inv_f2 > 0:
+        return None
+    F = s / math.sqrt(inv_f2)
+    return F if 0.05 * s < F < 50 * s else None
+
+
+def poses_from_pnp(obs: Observations, focal_px: float, principal_point_px) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-view rvec (V, 3) and T (V, 3, mm) by OpenCV's solvePnP on the detected corners (no distortion)."""
+    import cv2
+
+    K = np.array([[focal_px, 0, principal_point_px[0]], [0, focal_px, principal_point_px[1]], [0, 0, 1.0]])
+    pts = obs.points_mm.numpy()
+    rv, tv = [], []
+    for v in range(obs.n_views):
+        m = obs.corner_mask[v].numpy()
+        if m.sum() < 4:
+            raise FitError(f"{obs.names[v]}: only {int(m.sum())} corners detected, at least 4 are needed")
+        ok, r, t = cv2.solvePnP(pts[m], obs.corners_px[v].numpy()[m], K, None, flags=cv2.SOLVEPNP_IPPE
+                                if np.ptp(pts[m, 2]) < 1e-9 else cv2.SOLVEPNP_ITERATIVE)
+        if not ok:
+            raise FitError(f"{obs.names[v]}: cannot find the board's pose")
+        ok, r, t = cv2.solvePnP(pts[m], obs.corners_px[v].numpy()[m], K, None, r, t, True,
+                                cv2.SOLVEPNP_ITERATIVE)
+        rv.append(r.ravel())
+        tv.append(t.ravel())
+    return torch.tensor(np.array(rv)), torch.tensor(np.array(tv))
+
+
+def blur_from_scan(p_cam: torch.Tensor, blur_px: torch.Tensor, mask: torch.Tensor, w_mm: float,
+                   pixel_pitch_mm: float, fit_tilt: bool) -> tuple[float, float, float]:
+    """Starting U, d (mm) and θF (rad) by a scan: for each candidate U (and tan θF) the blur model is linear in
+    the scale w·d, solved in closed form; the candidate with the least squared error wins.
+
+    Uses b = w d |U + y tan θF − z| / (U z) (the first-order model, eq (2) for θF = 0).
+    """
+    y = p_cam[..., 1][mask].double()
+    z = p_cam[..., 2][mask].double()
+    b = blur_px[mask].double() * pixel_pitch_mm
+    if b.numel() < 3:
+        raise FitError(f"only {b.numel()} blur measurements, at least 3 are needed")
+    zmin, zmax = float(z.min()), float(z.max())
+    U = torch.exp(torch.linspace(math.log(0.3 * zmin), math.log(3.0 * zmax), 241, dtype=torch.float64))
+    tans = torch.tan(torch.deg2rad(torch.arange(-80.0, 80.5, 1.0, dtype=torch.float64))) if fit_tilt \
+        else torch.zeros(1, dtype=torch.float64)
+    best = (math.inf, None, None, None)
+    for t in tans:
+        m = torch.abs(U[:, None] + y[None] * t - z[None]) / (U[:, None] * z[None])  # (nU, n)
+        c = (m @ b) / (m * m).sum(-1).clamp(min=1e-300)
+        rss = ((c[:, None] * m - b[None]) ** 2).sum(-1)
+        i = int(torch.argmin(rss))
+        if float(rss[i]) < best[0]:
+            best = (float(rss[i]), float(U[i]), float(c[i]), float(torch.atan(t)))
+    _, U0, wd, th = best
+    if not wd > 0:
+        raise FitError("cannot start the blur parameters: the blur widths show no defocus")
+    return U0, wd / w_mm, th
+
+
+def _blur_rss(cam: TiltLensCamera, obs: Observations, U_mm: float, d_mm: float, theta_F: float) -> float:
+    with torch.no_grad():
+        cam.log_U_mm.fill_(math.log(U_mm))
+        cam.log_d_mm.fill_(math.log(d_mm))
+        cam.theta_F.fill_(theta_F)
+        b = cam.blur(obs.points_mm)
+        r = torch.where(obs.blur_mask, b - torch.nan_to_num(obs.blur_px), torch.zeros_like(b))
+        rss = float((r * r).sum())
+    return rss if math.isfinite(rss) else math.inf
+
+
+def initialize(obs: Observations, mode: str = "unified", init: TiltLensCamera | None = None,
+               options: FitOptions = FitOptions()) -> TiltLensCamera:
+    """A starting camera for `calibrate`.
+
+    Poses from PnP with w from `init`, else the nominal focal length, else the homographies. The blur
+    parameters are the best (least squared blur error) of: `init`'s U, d, θF; the linear scan
+    (`blur_from_scan`, θF scanned too in `joint` mode) unless `tilt` mode holds U and d; and, in `tilt` mode,
+    a scan of θF over ±80° with `init`'s U and d.
+    """
+    W, H = obs.image_size_px
+    if init is not None:
+        init = init.copy().requires_grad_(False)
+        pp = [float(v) for v in init.principal_point_px]
+        w_mm = float(init.w_mm)
+    else:
+        pp = [(W - 1) / 2.0, (H - 1) / 2.0]
+        if options.nominal_focal_mm is not None:
+            w_mm = float(options.nominal_focal_mm)
+        else:
+            F = focal_from_homographies(obs, pp)
+            if F is None:
+                raise FitError("cannot estimate the focal length from these views (too fronto-parallel, or the "
+                               "target does not match the detections); give a nominal focal length")
+            w_mm = F * obs.pixel_pitch_mm
+    rvec, T = poses_from_pnp(obs, w_mm / obs.pixel_pitch_mm, pp)
+    cam = TiltLensCamera(obs.n_views, obs.image_size_px, obs.pixel_pitch_mm, w_mm, 600.0, 10.0, rvec=rvec,
+                         T_mm=T, principal_point_px=pp, blur_model=options.blur_model)
+    candidates = []
+    if init is not None:
+        th = float(init.theta_F) if mode != "unified" else 0.0
+        candidates.append((float(init.U_mm), float(init.d_mm), th))
+    if mode == "tilt":
+        U0, d0 = float(init.U_mm), float(init.d_mm)
+        candidates += [(U0, d0, math.radians(a)) for a in np.arange(-80.0, 80.5, 1.0)]
+    else:
+        with torch.no_grad():
+            p_cam = cam.to_camera(obs.points_mm)
+        candidates.append(blur_from_scan(p_cam, obs.blur_px, obs.blur_mask, w_mm, obs.pixel_pitch_mm,
+                                         fit_tilt=(mode == "joint")))
+    best = min(candidates, key=lambda c: _blur_rss(cam, obs, *c))
+    _blur_rss(cam, obs, *best)
+    return cam
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The fit
+# ---------------------------------------------------------------------------------------------------------
+
+def _group_sigma(prob: _Problem, r_raw: torch.Tensor, J: torch.Tensor, wts: torch.Tensor,
+                 robust: str | None) -> tuple[float, float]:
+    """Variance components: σ_g² = Σ_g r² / (n_g − tr_g(hat matrix)) (MAD-based under a robust loss)."""
+    Js = J * wts[:, None]
+    A = J.T @ Js
+    try:
+        Ainv = torch.linalg.inv(A)
+    except RuntimeError:
+        Ainv = torch.linalg.pinv(A)
+    out = []
+    for rows, n in ((prob.corner_rows, prob.n_corner), (prob.blur_rows, prob.n_blur)):
+        if n == 0:
+            out.append(1.0)
+            continue
+        Jg = J[rows]
+        used = float(torch.einsum("ij,jk,ik->", Jg * wts[rows][:, None], Ainv, Jg))
+        dof = max(n - used, 1.0)
+        rg = r_raw[rows]
+        if robust in (None, "none"):
+            s2 = float((rg * rg).sum()) / dof
+        else:
+            s2 = (1.4826 * float(rg.abs().median())) ** 2 * n / dof
+        out.append(math.sqrt(max(s2, 1e-24)))
+    return out[0], out[1]
+
+
+def _solve(camera: TiltLensCamera, obs: Observations, options: FitOptions, sigma=None, say=None):
+    """Fit the camera's free parameters in place; returns (problem, LM result, σ_corner, σ_blur).
+
+    Unless both σ are given, alternates solving with re-estimating them until they change by less than
+    0.1 % (at most `noise_iterations` re-estimations), then solves once more with the final σ if needed.
+    """
+    prob = _Problem(camera, obs)
+    sc = options.sigma_corner_px or (sigma[0] if sigma else 1.0)
+    sb = options.sigma_blur_px or (sigma[1] if sigma else 1.0)
+    estimate = options.sigma_corner_px is None or options.sigma_blur_px is None
+    x, total_it = prob.x0(), 0
+    for outer in range(options.noise_iterations + 1):
+        scale = prob.scale(sc, sb)
+        res = levenberg_marquardt(lambda v: prob.raw(v) * scale, x, options.robust, options.robust_scale,
+                                  options.max_iterations)
+        x, total_it = res.x, total_it + res.iterations
+        if not estimate or outer == options.noise_iterations:
+            break
+        new_sc, new_sb = _group_sigma(prob, res.r / scale, res.J, res.weights, options.robust)
+        new_sc = options.sigma_corner_px or new_sc
+        new_sb = options.sigma_blur_px or new_sb
+        changed = abs(new_sc / sc - 1) > 1e-3 or abs(new_sb / sb - 1) > 1e-3
+        if say:
+            say(f"  pass {outer + 1}: cost {res.cost:.6g} after {res.iterations} iterations; "
+                f"σ_corner {new_sc:.4g} px, σ_blur {new_sb:.4g} px")
+        if not changed:
+            break
+        sc, sb = new_sc, new_sb
+    res.iterations = total_it
+    prob.write_back(res.x)
+    return prob, res, sc, sb
+
+
+def _derived(camera: TiltLensCamera, params: dict) -> torch.Tensor:
+    """(w, U, d, f, θF°, θL°, θL_paper°, cx, cy) as functions of the stored parameters."""
+    from renderer import optics
+
+    w, U, d = (torch.exp(params[k]) for k in ("log_w_mm", "log_U_mm", "log_d_mm"))
+    thF = params["theta_F"]
+    thL = optics.theta_L_from_theta_F(thF, w, U)
+    f = optics.focal_length(w, U, thL)
+    thLp = optics.theta_L_paper(thF, f, U)
+    pp = camera.image_centre_px + params["pp_scaled"] * camera.pixel_scale_px
+    deg = 180.0 / math.pi
+    return torch.stack([w, U, d, f, thF * deg, thL * deg, thLp * deg, pp[0], pp[1]])
+
+
+_DERIVED_KEYS = ("w_mm", "U_mm", "d_mm", "f_mm", "theta_F_deg", "theta_L_deg", "theta_L_paper_deg")
+
+
+def _held_sigma(init_sigma: dict | None, camera: TiltLensCamera, names: list[str]) -> dict:
+    """σ of held stored lens parameters from an `init` sigma dict (relative σ for log lengths)."""
+    out = {}
+    if not init_sigma:
+        return out
+    for stored, key, val in (("log_w_mm", "w_mm", camera.w_mm), ("log_U_mm", "U_mm", camera.U_mm),
+                             ("log_d_mm", "d_mm", camera.d_mm)):
+        if stored in names and init_sigma.get(key):
+            out[stored] = float(init_sigma[key]) / float(val)
+    return out
+
+
+def _uncertainties(prob: _Problem, res: _LMResult, scale: torch.Tensor, init_sigma: dict | None):
+    """Covariance of the free parameters and σ of the derived quantities and per-view poses."""
+    cam = prob.camera
+    Jw = res.J * res.weights[:, None]
+    A = res.J.T @ Jw
+    n = prob.n_corner + prob.n_blur
+    p = res.x.numel()
+    s2 = float((res.weights * res.r * res.r).sum()) / max(n - p, 1)
+    try:
+        Ainv = torch.linalg.inv(A)
+    except RuntimeError:
+        raise FitError("the fit is degenerate: the free parameters are not all determined by the data") from None
+    if not torch.isfinite(Ainv).all() or (torch.diagonal(Ainv) <= 0).any():
+        raise FitError("the fit is degenerate: the free parameters are not all determined by the data")
+    C = s2 * Ainv
+    G = jacfwd(lambda v: _derived(cam, prob.params(v)))(res.x)
+    cov_d = G @ C @ G.T
+    # Held lens parameters with known uncertainty: total derivative through the re-fitted free parameters.
+    held_sig = _held_sigma(init_sigma, cam, list(prob.held))
+    if held_sig:
+        hnames = list(held_sig)
+        h0 = torch.stack([prob.held[k].reshape(()) for k in hnames])
+
+        def with_h(hv):
+            held = dict(prob.held)
+            for i, k in enumerate(hnames):
+                held[k] = hv[i]
+            return held
+
+        Jh = jacfwd(lambda hv: prob.raw(res.x, with_h(hv)) * scale)(h0)
+        dx_dh = -torch.linalg.solve(A, Jw.T @ Jh)
+        Gh = jacfwd(lambda hv: _derived(cam, prob.params(res.x, with_h(hv))))(h0) + G @ dx_dh
+        Sh = torch.diag(torch.tensor([held_sig[k] ** 2 for k in hnames], dtype=torch.float64))
+        cov_d = cov_d + Gh @ Sh @ Gh.T
+    sig = torch.sqrt(torch.clamp(torch.diagonal(cov_d), min=0.0))
+    sigma = {k: float(sig[i]) for i, k in enumerate(_DERIVED_KEYS)}
+    sigma["principal_point_px"] = [float(sig[7]), float(sig[8])]
+    # Per-view pose σ, if the poses are free.
+    view_sig = []
+    offsets, i = {}, 0
+    for nme, size in zip(prob.names, prob.sizes):
+        offsets[nme] = (i, size)
+        i += size
+    for v in range(cam.n_views):
+        entry = {}
+        if "rvec" in offsets:
+            o = offsets["rvec"][0] + 3 * v
+            entry["sigma_rvec_deg"] = [math.degrees(math.sqrt(float(C[o + k, o + k]))) for k in range(3)]
+        if "T_scaled" in offsets:
+            o = offsets["T_scaled"][0] + 3 * v
+            entry["sigma_T_mm"] = [math.sqrt(float(C[o + k, o + k])) * cam.length_scale_mm for k in range(3)]
+        view_sig.append(entry)
+    return C, sigma, view_sig, s2
+
+
+def _flat_names(prob: _Problem) -> list[str]:
+    out = []
+    for n, shape in zip(prob.names, prob.shapes):
+        if len(shape) == 0:
+            out.append(n)
+        else:
+            out += [f"{n}[{','.join(map(str, idx))}]" for idx in np.ndindex(*shape)]
+    return out
+
+
+def _set_free(camera: TiltLensCamera, mode: str, free_pp: bool):
+    camera.freeze("all")
+    camera.free(*_MODE_FREE[mode])
+    if free_pp:
+        camera.free("principal_point")
+    if mode == "unified":
+        with torch.no_grad():
+            camera.theta_F.zero_()
+
+
+def _group_rss(prob: _Problem, res: _LMResult, scale: torch.Tensor) -> dict:
+    raw = res.r / scale
+    return {"corners": float((raw[prob.corner_rows] ** 2).sum()), "blur": float((raw[prob.blur_rows] ** 2).sum()),
+            "n_corners": prob.n_corner, "n_blur": prob.n_blur}
+
+
+def _fit_camera(camera: TiltLensCamera, obs: Observations, options: FitOptions, init_sigma=None, say=None,
+                sigma=None, mode: str = "joint"):
+    t0 = time.perf_counter()
+    prob, res, sc, sb = _solve(camera, obs, options, sigma, say)
+    scale = prob.scale(sc, sb)
+    C, sig, view_sig, s2 = _uncertainties(prob, res, scale, init_sigma)
+    with torch.no_grad():
+        vals = _derived(camera, dict(camera.named_parameters()))
+        rc, rb = residuals(camera, obs).rms_per_view()
+    values = {k: float(vals[i]) for i, k in enumerate(_DERIVED_KEYS)}
+    values["principal_point_px"] = [float(vals[7]), float(vals[8])]
+    views = []
+    R = camera.R.detach()
+    T = camera.T_mm.detach()
+    for v in range(obs.n_views):
+        views.append({
+            "image": obs.names[v], "R": R[v].tolist(), "T_mm": T[v].tolist(),
+            "rms_reprojection_px": float(rc[v]), "rms_blur_px": float(rb[v]),
+            "n_points": int(obs.corner_mask[v].sum()), **view_sig[v],
+        })
+    return FitResult(
+        mode=mode, camera=camera, values=values, sigma=sig, views=views,
+        noise={"sigma_corner_px": sc, "sigma_blur_px": sb, "variance_factor": s2},
+        parameter_names=_flat_names(prob), covariance=C, chi2=2.0 * res.cost,
+        n_residuals=prob.n_corner + prob.n_blur, n_parameters=res.x.numel(), iterations=res.iterations,
+        runtime_s=time.perf_counter() - t0, rss=_group_rss(prob, res, scale))
+
+
+def _chi2_sf(x: float, k: int) -> float:
+    """Survival function of χ²(k) (regularised upper incomplete gamma)."""
+    if x <= 0:
+        return 1.0
+    return float(torch.special.gammaincc(torch.tensor(k / 2.0, dtype=torch.float64),
+                                         torch.tensor(x / 2.0, dtype=torch.float64)))
+
+
+def likelihood_ratio(restricted: FitResult, full: FitResult, k: int, alpha: float = 0.01) -> dict:
+    """Test a restricted fit against a fuller one (k extra parameters), group variances profiled out.
+
+    Λ = Σ_g n_g ln(RSS_g,restricted / RSS_g,full) ~ χ²(k) under the restricted model; ΔAIC = Λ − 2k and
+    ΔBIC = Λ − k ln n are the improvements of the fuller model (positive: it is preferred).
+    """
+    lam = 0.0
+    for g in ("corners", "blur"):
+        n = full.rss[f"n_{g}"]
+        if n > 0:
+            lam += n * math.log(max(restricted.rss[g], 1e-300) / max(full.rss[g], 1e-300))
+    lam = max(lam, 0.0)
+    n = full.n_residuals
+    p = _chi2_sf(lam, k)
+    d_aic, d_bic = lam - 2 * k, lam - k * math.log(n)
+    return {"lr_statistic": lam, "dof": k, "p_value": p, "delta_aic": d_aic, "delta_bic": d_bic,
+            "justified": bool(p < alpha and d_bic > 0), "alpha": alpha}
+
+
+def _model_selection(base: FitResult, obs: Observations, mode: str, options: FitOptions, say=None) -> dict:
+    """Re-fit with θF (and the principal point) switched and test which state the data support."""
+    out = {}
+    quiet = replace(options, model_selection=False)
+    sigma = (base.noise["sigma_corner_px"], base.noise["sigma_blur_px"])
+    tests = [("theta_F", ("theta_F",), 1)]
+    tests.append(("principal_point", ("principal_point",), 2))
+    for label, names, k in tests:
+        cam = base.camera.copy()
+        stored = cam.parameter_names(*names)
+        is_free = all(getattr(cam, s).requires_grad for s in stored)
+        if is_free:
+            cam.freeze(*names)
+            with torch.no_grad():
+                for s in stored:
+                    getattr(cam, s).zero_()
+        else:
+            cam.free(*names)
+        try:
+            alt = _fit_camera(cam, obs, quiet, sigma=sigma, mode=mode)
+        except FitError as e:
+            out[label] = {"error": str(e), "justified": None}
+            continue
+        full, restricted = (base, alt) if is_free else (alt, base)
+        entry = likelihood_ratio(restricted, full, k, options.alpha)
+        entry["fitted"] = is_free
+        if label == "theta_F":
+            entry["theta_F_deg_full"] = full.values["theta_F_deg"]
+        else:
+            entry["principal_point_px_full"] = full.values["principal_point_px"]
+        out[label] = entry
+        if say:
+            verdict = "justified" if entry["justified"] else "not justified"
+            say(f"model selection: freeing {label} is {verdict} (Λ = {entry['lr_statistic']:.3g}, "
+                f"p = {entry['p_value']:.3g}, ΔBIC = {entry['delta_bic']:.3g})")
+    return out
+
+
+def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | None = None,
+              options: FitOptions = FitOptions(), init_sigma: dict | None = None) -> FitResult:
+    """Calibrate a tilt-lens camera from detected corners and blur widths of several views.
+
+    Args:
+        obs: the observations (target points, corners, blur widths) of V views.
+        mode: "unified", "tilt" or "joint" (module docstring).
+        init: a camera whose lens state (w, U, d, θF, principal point) starts the fit; required for "tilt",
+            where w, U, d are held at its values. Its poses are not used (they come from PnP).
+        options: `FitOptions`.
+        init_sigma: one-σ of `init`'s w_mm, U_mm, d_mm (e.g. the `sigma` of a stage-1 CALIB.json); in
+            "tilt" mode they are propagated into θF and θL.
+    Returns:
+        FitResult.
+    Raises:
+        FitError: too few observations, no convergence, or a degenerate problem (one-line message).
+    """
+    if mode not in MODES:
+        raise ValueError(f"mode: expected one of {MODES}, got {mode!r}")
+    if mode == "tilt" and init is None:
+        raise FitError("the tilt fit (stage 2) needs the stage-1 calibration as init")
+    t0 = time.perf_counter()
+    say = options.progress
+    if say:
+        say(f"{mode} fit of {obs.n_views} views, {int(obs.corner_mask.sum())} corners, "
+            f"{int(obs.blur_mask.sum())} blur widths")
+    cam = initialize(obs, mode, init, options)
+    if say:
+        s = cam.summary()
+        say(f"start: w {s['w_mm']:.3f} mm, U {s['U_mm']:.1f} mm, d {s['d_mm']:.2f} mm, "
+            f"θF {s['theta_F_deg']:.2f}°")
+    _set_free(cam, mode, options.free_principal_point)
+    result = _fit_camera(cam, obs, options, init_sigma if mode == "tilt" else None, say, mode=mode)
+    worst = max((v["rms_reprojection_px"] for v in result.views if math.isfinite(v["rms_reprojection_px"])),
+                default=0.0)
+    if worst > MAX_RMS_REPROJECTION_PX:
+        bad = max(result.views, key=lambda v: v["rms_reprojection_px"] if math.isfinite(v["rms_reprojection_px"])
+                  else 0.0)
+        raise FitError(f"the fit found no consistent solution: {bad['image']} reprojects with an RMS of "
+                       f"{worst:.3g} px (the target file or the detections do not match)")
+    if options.model_selection:
+        result.model_selection = _model_selection(result, obs, mode, options, say)
+    result.runtime_s = time.perf_counter() - t0
+    if say:
+        v, s = result.values, result.sigma
+        say(f"done in {result.runtime_s:.2f} s: w {v['w_mm']:.4f} ± {s['w_mm']:.2g} mm, "
+            f"U {v['U_mm']:.2f} ± {s['U_mm']:.2g} mm, d {v['d_mm']:.3f} ± {s['d_mm']:.2g} mm, "
+            f"θF {v['theta_F_deg']:.3f} ± {s['theta_F_deg']:.2g}°, θL {v['theta_L_deg']:.3f} ± "
+            f"{s['theta_L_deg']:.2g}° (paper's (1): {v['theta_L_paper_deg']:.3f}°)")
+    return result

@@ -30,11 +30,24 @@ def _hash32(x: torch.Tensor) -> torch.Tensor:
     return x ^ (x >> 16)
 
 
+def _chain(h, key):
+    """One step of the key chain behind `uniform_hash` (works on ints and int64 tensors alike)."""
+    return _hash32(key + h * 0x9E3779B1)
+
+
 def uniform_hash(*keys: torch.Tensor | int) -> torch.Tensor:
-    """Uniform float64 numbers in [0, 1) from integer keys (broadcast together)."""
+    """Uniform float64 numbers in [0, 1) from integer keys (broadcast together).
+
+    The keys are chained left to right, so shaping them to broadcast progressively (per pixel, then per
+    sample, then per dimension) hashes each prefix once instead of once per output element.
+    """
     h = torch.zeros((), dtype=torch.int64)
     for k in keys:
-        h = _hash32(torch.as_tensor(k, dtype=torch.int64) + h * 0x9E3779B1)
+        h = _chain(h, torch.as_tensor(k, dtype=torch.int64))
+    return h.to(torch.float64) / 2.0**32
+
+
+def _unit(h: torch.Tensor) -> torch.Tensor:
     return h.to(torch.float64) / 2.0**32
 
 
@@ -58,7 +71,52 @@ class Sampler:
             engine = torch.quasirandom.SobolEngine(4, scramble=True, seed=seed)
             self._points = engine.draw(spp, dtype=torch.float64)
 
+    def pixel_samples(self, pixel: torch.Tensor) -> torch.Tensor:
+        """All spp samples of each pixel: (n, spp, 4) float64, equal to samples(pixel[i], s) for s < spp.
+
+        Args:
+            pixel: (n,) long pixel indices (row · width + column).
+        """
+        spp = self.spp
+        if self.name == "center":
+            return torch.full((pixel.shape[0], spp, 4), 0.5, dtype=torch.float64)
+        pix = pixel[:, None, None]
+        sample = torch.arange(spp)[None, :, None]
+        dims = torch.arange(4)
+        if self.name == "independent":
+            return uniform_hash(self.seed, pix, sample, dims)
+        if self.name == "sobol":
+            return torch.remainder(self._points + uniform_hash(self.seed + 7919, pix, dims), 1.0)
+        return self._stratified(pix, sample, dims)
+
+    def pixel_columns(self, pixel: torch.Tensor) -> list[torch.Tensor]:
+        """All spp samples of each pixel as four (n, spp) float64 columns (pixel jitter x, y; lens u, v),
+        equal to `pixel_samples(pixel)[..., i]`. Keys shared by a pixel's samples are hashed once per pixel."""
+        n, spp = pixel.shape[0], self.spp
+        if self.name == "center":
+            return [torch.full((n, spp), 0.5, dtype=torch.float64, device=pixel.device)] * 4
+        pix = pixel[:, None]
+        sample = torch.arange(spp, device=pixel.device)
+        if self.name == "sobol":
+            h = _chain(_chain(0, self.seed + 7919), pix)
+            points = self._points.to(pixel.device)
+            out = []
+            for d in range(4):
+                v = points[:, d] + _unit(_chain(h, d))  # in [0, 2): equals torch.remainder(v, 1.0) below
+                out.append(v - (v >= 1).to(v.dtype))
+            return out
+        h = _chain(_chain(_chain(0, self.seed), pix), sample)
+        jitter = [_unit(_chain(h, d)) for d in range(4)]
+        if self.name == "independent":
+            return jitter
+        nx, ny = _grid(spp)
+        offset = (_unit(_chain(_chain(0, self.seed + 1), pix)) * spp).long()
+        lens_stratum = (sample * _coprime_step(spp) + offset) % spp
+        return [(sample % nx + jitter[0]) / nx, (sample // nx + jitter[1]) / ny,
+                (lens_stratum % nx + jitter[2]) / nx, (lens_stratum // nx + jitter[3]) / ny]
+
     def samples(self, pixel: torch.Tensor, sample: torch.Tensor) -> torch.Tensor:
+        """Samples for matching (n,) pixel and sample indices: (n, 4) float64."""
         dims = torch.arange(4)
         if self.name == "center":
             return torch.full((pixel.shape[0], 4), 0.5, dtype=torch.float64)
@@ -67,16 +125,19 @@ class Sampler:
         if self.name == "sobol":
             shift = uniform_hash(self.seed + 7919, pixel[:, None], dims)
             return torch.remainder(self._points[sample] + shift, 1.0)
-        # stratified
+        return self._stratified(pixel[:, None], sample[:, None], dims)
+
+    def _stratified(self, pixel, sample, dims):
+        """Stratified samples; pixel and sample broadcast against each other and against dims (4,)."""
         nx, ny = _grid(self.spp)
-        jitter = uniform_hash(self.seed, pixel[:, None], sample[:, None], dims)
+        jitter = uniform_hash(self.seed, pixel, sample, dims)
         offset = (uniform_hash(self.seed + 1, pixel) * self.spp).long()
         lens_stratum = (sample * _coprime_step(self.spp) + offset) % self.spp
-        px = (sample % nx + jitter[:, 0]) / nx
-        py = (sample // nx + jitter[:, 1]) / ny
-        lx = (lens_stratum % nx + jitter[:, 2]) / nx
-        ly = (lens_stratum // nx + jitter[:, 3]) / ny
-        return torch.stack([px, py, lx, ly], -1)
+        px = (sample % nx + jitter[..., 0:1]) / nx
+        py = (sample // nx + jitter[..., 1:2]) / ny
+        lx = (lens_stratum % nx + jitter[..., 2:3]) / nx
+        ly = (lens_stratum // nx + jitter[..., 3:4]) / ny
+        return torch.cat(torch.broadcast_tensors(px, py, lx, ly), -1)
 
 
 def _coprime_step(n: int) -> int:

@@ -1,11 +1,17 @@
 """A scene: objects (shape + material), lights, a camera, image settings and optional layers.
 
-`Scene.intersect` finds the nearest hit for a flat batch of rays. Each bounded shape is tested only
-against the rays that can reach its bounding sphere (one (N, K) test, then compaction), so an object
-that covers a small part of the screen costs little. `Scene.transmittance` answers shadow rays.
+`Scene.intersect` finds the nearest hit for a flat batch of rays; `Scene.transmittance` answers shadow rays.
+Both cull by packets: consecutive rays are grouped into packets of `TraceOptions.packet_size`, each packet
+is bounded by a ball around its origins and a cone around its directions, and each bounded object is tested
+only against the packets whose bounds can reach its bounding sphere (a (packets, objects) test, then a
+gather of whole packets). The render loop feeds rays in screen tiles, so primary rays of a packet are
+neighbours and the test is tight; incoherent batches only lose the saving, never correctness.
 """
 from __future__ import annotations
 
+import math
+import types
+import warnings
 from dataclasses import dataclass, field
 
 import torch
@@ -15,8 +21,37 @@ from .materials import Material, MaterialTable
 from .rays import Hit
 from .shapes.base import Shape
 
-# Above this fraction of candidate rays, testing every ray is cheaper than compacting.
-_COMPACT_BELOW = 0.6
+# Above this fraction of candidate packets, testing every ray in place is cheaper than gathering.
+_COMPACT_BELOW = 0.75
+# Culling slack: bounding radii grow by this factor and cone angles by this many radians, so float32
+# rounding in the bounds can never drop a ray that the shape's own (also rounded) test would hit.
+_RADIUS_SLACK = 1e-3
+_ANGLE_SLACK = 1e-4
+# A ray leaving a convex solid's surface from its outside (origin offset along the outward normal,
+# direction into that half-space) cannot meet the solid again; nor can a ray leaving a flat shape on
+# either side.
+_CONVEX = {"sphere", "box", "cylinder", "cone", "polyhedron"}
+_FLAT = {"rectangle", "plane"}
+# Shape types whose intersection is not worth compiling: the mesh's loop over triangle chunks depends on
+# the batch size, so every new batch size would recompile.
+_EAGER_ONLY = {"mesh"}
+
+
+@dataclass(frozen=True)
+class TraceOptions:
+    """How rays are traced. None of these change the image beyond float rounding (see tests/renderer/test_render.py).
+
+    Attributes:
+        culling: test bounded objects only against ray packets that can reach their bounding sphere [True].
+        packet_size: rays per culling packet [64].
+        compile: run each shape type's intersection through torch.compile (one graph per type, any batch
+            size); falls back to eager with a warning where compiling fails [False]. The first use of each
+            shape type costs a few seconds of compilation (cached on disk by torch between runs).
+    """
+
+    culling: bool = True
+    packet_size: int = 64
+    compile: bool = False
 
 
 @dataclass
@@ -48,28 +83,118 @@ class ImageSettings:
     sampler: str = "sobol"
 
 
+_MISSING = object()
+_COMPILED: dict = {}  # function -> its torch.compile wrapper, or None where compiling failed
+_PER_CLASS: dict = {}  # (function, class) -> a copy of the function with its own code object
+# Leading dimensions at least this long are batch dimensions: compiled graphs treat them as dynamic.
+_MIN_DYNAMIC = 16
+
+
+def per_class(fn, cls):
+    """A copy of `fn` with its own code object for `cls`.
+
+    torch.compile keeps one cache of graphs per code object, with a small limit; giving every shape class
+    its own copy of a generic helper (`fn(shape, ...)`) gives each class its own cache.
+    """
+    key = (fn, cls)
+    if key not in _PER_CLASS:
+        code = fn.__code__.replace(co_name=f"{fn.__name__}__{cls.__name__}")
+        _PER_CLASS[key] = types.FunctionType(code, fn.__globals__, code.co_name, fn.__defaults__, fn.__closure__)
+    return _PER_CLASS[key]
+
+
+def compiled_call(enabled: bool, fn, *args):
+    """fn(*args), through torch.compile when `enabled`.
+
+    One graph per function (per code object: see `per_class`), dynamic in the leading dimension of every
+    tensor argument that has at least `_MIN_DYNAMIC` rows, so fixed sizes (3 coordinates, 6 box faces)
+    stay static and vectorise, and any batch size reuses the graph. Falls back to eager, with one warning,
+    where compiling is unavailable or fails; batches of fewer than 2 rays always run eagerly (torch
+    specialises sizes 0 and 1).
+    """
+    first = next((a for a in args if isinstance(a, torch.Tensor)), None)
+    if not enabled or first is None or first.shape[0] < 2:
+        return fn(*args)
+    entry = _COMPILED.get(fn, _MISSING)
+    if entry is _MISSING:
+        try:
+            # Small matrix products (points @ 3×3 rotations) become fused arithmetic instead of GEMM calls.
+            entry = torch.compile(fn, options={"decompose_mem_bound_mm": True})
+        except Exception as e:  # no compiler backend on this platform
+            warnings.warn(f"torch.compile unavailable ({e}); tracing eagerly", RuntimeWarning, stacklevel=2)
+            entry = None
+        _COMPILED[fn] = entry
+    if entry is None:
+        return fn(*args)
+    for a in args:
+        if isinstance(a, torch.Tensor) and a.dim() and a.shape[0] >= _MIN_DYNAMIC:
+            torch._dynamo.maybe_mark_dynamic(a, 0)
+    try:
+        return entry(*args)
+    except Exception as e:
+        warnings.warn(f"torch.compile failed for {fn.__qualname__} ({type(e).__name__}: {e}); using eager",
+                      RuntimeWarning, stacklevel=2)
+        _COMPILED[fn] = None
+        return fn(*args)
+
+
+def _nearest(shape, o_p, d_p, sel, t_min: float, t_best, obj, aux, k):
+    """Packets `sel` (all when None) of rays (B, P, 3) tested against `shape` and merged with the nearest
+    hits so far: returns the merged (t, object, aux) rows of those packets, each (m, P)."""
+    if sel is not None:
+        o_p, d_p = o_p.index_select(0, sel), d_p.index_select(0, sel)
+        t_best, obj, aux = t_best.index_select(0, sel), obj.index_select(0, sel), aux.index_select(0, sel)
+    t, a = shape.intersect(o_p.reshape(-1, 3), d_p.reshape(-1, 3), t_min)
+    t, a = t.view_as(t_best), a.view_as(aux)
+    closer = t < t_best
+    return torch.where(closer, t, t_best), torch.where(closer, k, obj), torch.where(closer, a, aux)
+
+
+def _occluded(shape, o_p, d_p, sel, t_min: float, t_max, visible):
+    """Visibility (m, P) of packets `sel` (all when None) after an opaque `shape`: 0 where it blocks."""
+    if sel is not None:
+        o_p, d_p = o_p.index_select(0, sel), d_p.index_select(0, sel)
+        t_max, visible = t_max.index_select(0, sel), visible.index_select(0, sel)
+    t, _ = shape.intersect(o_p.reshape(-1, 3), d_p.reshape(-1, 3), t_min)
+    return visible.masked_fill(t.view_as(t_max) < t_max, 0)
+
+
+def _attenuated(shape, o_p, d_p, sel, t_min: float, t_max, trans, factor):
+    """Transmittance (m, P, 3) of packets `sel` (all when None) after `shape`, which passes `factor` (3,)."""
+    if sel is not None:
+        o_p, d_p = o_p.index_select(0, sel), d_p.index_select(0, sel)
+        t_max, trans = t_max.index_select(0, sel), trans.index_select(0, sel)
+    t, _ = shape.intersect(o_p.reshape(-1, 3), d_p.reshape(-1, 3), t_min)
+    return torch.where((t.view_as(t_max) < t_max)[..., None], trans * factor, trans)
+
+
 @dataclass
 class Scene:
-    """Everything needed to render. `layers` holds mixed-projection layers (see cameras.layers)."""
+    """Everything needed to render. `layers` holds mixed-projection layers (see cameras.layers); `options`
+    how rays are traced (speed only)."""
 
     objects: list[SceneObject]
     lights: list[Light]
     camera: Camera
     image: ImageSettings
     layers: list = field(default_factory=list)
+    options: TraceOptions = field(default_factory=TraceOptions)
 
     def __post_init__(self):
         self._tables: dict = {}
+        self._warm: set = set()
         names = [o.name for o in self.objects]
         self.index_of = {n: i for i, n in enumerate(names)}
         bounded = [o.shape.bounding_sphere() for o in self.objects]
         self._bounded_ids = [i for i, b in enumerate(bounded) if b is not None]
         self._unbounded_ids = [i for i, b in enumerate(bounded) if b is None]
-        if self._bounded_ids:
-            self._centers = torch.stack([bounded[i][0].to(torch.float64) for i in self._bounded_ids])
-            self._radii = torch.tensor([bounded[i][1] for i in self._bounded_ids], dtype=torch.float64)
-        ext = [float(torch.linalg.vector_norm(c)) + r for c, r in (b for b in bounded if b is not None)]
+        self._centers = torch.stack([torch.as_tensor(bounded[i][0], dtype=torch.float64).reshape(3)
+                                     for i in self._bounded_ids]) if self._bounded_ids else torch.zeros(0, 3)
+        self._radii = torch.tensor([float(bounded[i][1]) for i in self._bounded_ids], dtype=torch.float64)
+        ext = [float(torch.linalg.vector_norm(c)) + r for c, r in zip(self._centers, self._radii.tolist())]
         self.extent = max(ext + [1.0])
+        self._convex = torch.tensor([o.shape.type_name in _CONVEX for o in self.objects], dtype=torch.bool)
+        self._flat = torch.tensor([o.shape.type_name in _FLAT for o in self.objects], dtype=torch.bool)
 
     @property
     def ray_epsilon(self) -> float:
@@ -82,79 +207,187 @@ class Scene:
             self._tables[key] = MaterialTable([o.material for o in self.objects], like.device, like.dtype)
         return self._tables[key]
 
-    def _candidates(self, o, d, t_max=None):
-        """(N, Kb) bool: rays that can meet each bounded object's bounding sphere (within t_max)."""
-        c = self._centers.to(o)
-        r = self._radii.to(o)
-        oc = c[None] - o[:, None]  # (N, Kb, 3)
-        tca = (oc * d[:, None]).sum(-1)
-        d2 = (oc * oc).sum(-1) - tca * tca
-        ok = (d2 <= r * r) & (tca + r > 0)
-        if t_max is not None:
-            ok &= tca - r < t_max[:, None]
-        return ok
+    def _compiled(self, k: int, fn, options: TraceOptions, args):
+        """fn(shape_k, *args), compiled per shape class when options.compile is set (see `compiled_call`)."""
+        shape = self.objects[k].shape
+        if not options.compile or shape.type_name in _EAGER_ONLY:
+            return fn(shape, *args)
+        key = (k, args[0].device, args[0].dtype)
+        if key not in self._warm:
+            # Fill the shape's parameter cache eagerly first, so that compiled graphs see it filled.
+            p = torch.zeros(2, 3, dtype=args[0].dtype, device=args[0].device)
+            shape.intersect(p, p, 0.0)
+            shape.surface(p, torch.zeros(2, dtype=torch.long, device=p.device))
+            self._warm.add(key)
+        return compiled_call(True, per_class(fn, type(shape)), shape, *args)
 
-    def _each_object(self, o, d, object_mask=None, t_max=None):
-        """Yield (k, idx) with idx the ray indices (or None for all) worth testing against object k."""
+    @staticmethod
+    def _all_packets(o_p):
+        return torch.arange(o_p.shape[0], device=o_p.device)
+
+    def surface(self, k: int, p: torch.Tensor, aux: torch.Tensor, *, options: TraceOptions | None = None):
+        """Outward normals (n, 3) and uv (n, 2) of object k at its hit points p (n, 3) with `aux` (n,)."""
+        options = self.options if options is None else options
+        return self._compiled(k, _surface_of, options, (p, aux))
+
+    def _packets(self, o, d, t_max, options: TraceOptions, object_mask, skip=None):
+        """Split the batch into packets and decide which objects each packet must test.
+
+        Args:
+            skip: optional (N,) object id (−1 for none) that each ray cannot meet (see `self_shadow_free`);
+                a packet whose rays all skip the same object does not test it.
+        Returns:
+            (o_p, d_p, t_max_p, plan): the inputs padded to whole packets and viewed as (packets, P, ...),
+            and plan = [(k, sel)] for every object k to test, sel the (m,) packet indices or None for all
+            packets.
+        """
+        n = o.shape[0]
+        P = max(1, int(options.packet_size)) if options.culling else 1
+        pad = (-n) % P
+        if pad:  # repeat the last ray: it does not widen the last packet's bounds
+            o = torch.cat([o, o[-1:].expand(pad, 3)])
+            d = torch.cat([d, d[-1:].expand(pad, 3)])
+            if t_max is not None:
+                t_max = torch.cat([t_max, t_max[-1:].expand(pad)])
+            if skip is not None:
+                skip = torch.cat([skip, skip[-1:].expand(pad)])
+        o_p, d_p = o.view(-1, P, 3), d.view(-1, P, 3)
+        t_p = None if t_max is None else t_max.view(-1, P)
+        n_packets = o_p.shape[0]
+        wanted = [k for k in range(len(self.objects)) if object_mask is None or object_mask[k]]
+        if P == 1:
+            return o_p, d_p, t_p, [(k, None) for k in wanted]
+        cand = torch.ones(n_packets, len(self.objects), dtype=torch.bool, device=o.device)
         if self._bounded_ids:
-            cand = self._candidates(o, d, t_max)
-            frac = cand.float().mean(0)
-            for j, k in enumerate(self._bounded_ids):
-                if object_mask is not None and not object_mask[k]:
-                    continue
-                if frac[j] > _COMPACT_BELOW:
-                    yield k, None
-                else:
-                    idx = cand[:, j].nonzero().squeeze(1)
-                    if idx.numel():
-                        yield k, idx
-        for k in self._unbounded_ids:
-            if object_mask is None or object_mask[k]:
-                yield k, None
+            cand[:, self._bounded_ids] = compiled_call(options.compile, packet_candidates, o_p, d_p,
+                                                       self._centers.to(o), self._radii.to(o), t_p)
+        if skip is not None:
+            skip_p = skip.view(-1, P)
+            first = skip_p[:, 0]
+            rows = ((skip_p == first[:, None]).all(1) & (first >= 0)).nonzero().squeeze(1)
+            cand[rows, first.index_select(0, rows)] = False
+        counts = cand.sum(0).tolist()
+        plan = []
+        for k in wanted:
+            if counts[k] == 0:
+                continue
+            plan.append((k, None if counts[k] > _COMPACT_BELOW * n_packets else cand[:, k].nonzero().squeeze(1)))
+        return o_p, d_p, t_p, plan
 
-    def intersect(self, o: torch.Tensor, d: torch.Tensor, object_mask: list[bool] | None = None) -> Hit:
+    def self_shadow_free(self, obj: torch.Tensor, entering: torch.Tensor) -> torch.Tensor:
+        """(n,) the object that a ray leaving its hit point cannot meet again, or −1.
+
+        For hit points on object `obj` (n,) reached from outside (`entering`, n,) of a convex solid, or on
+        either side of a flat shape, a ray whose origin is offset along the normal facing that side and
+        whose direction points into that side cannot meet the object again: its shadow rays skip it.
+        """
+        convex, flat = self._convex.to(obj.device), self._flat.to(obj.device)
+        free = flat.index_select(0, obj) | (entering & convex.index_select(0, obj))
+        return torch.where(free, obj, -1)
+
+    def intersect(self, o: torch.Tensor, d: torch.Tensor, object_mask: list[bool] | None = None, *,
+                  options: TraceOptions | None = None) -> Hit:
         """Nearest hit of each ray.
 
         Args:
             o, d: (N, 3) origins and unit directions, world frame.
             object_mask: optional per-object flags; only flagged objects are considered (layers).
+            options: how to trace [self.options]; the result does not depend on it beyond float rounding.
         """
+        options = self.options if options is None else options
         n = o.shape[0]
-        t_best = torch.full((n,), float("inf"), dtype=o.dtype, device=o.device)
-        obj = torch.full((n,), -1, dtype=torch.long, device=o.device)
-        aux = torch.zeros(n, dtype=torch.long, device=o.device)
-        eps = self.ray_epsilon
-        for k, idx in self._each_object(o, d, object_mask):
-            shape = self.objects[k].shape
-            if idx is None:
-                t, a = shape.intersect(o, d, eps)
-                closer = t < t_best
-                t_best = torch.where(closer, t, t_best)
-                obj = torch.where(closer, torch.full_like(obj, k), obj)
-                aux = torch.where(closer, a, aux)
+        o_p, d_p, _, plan = self._packets(o, d, None, options, object_mask)
+        t_best = torch.full(o_p.shape[:2], float("inf"), dtype=o.dtype, device=o.device)
+        obj = torch.full(o_p.shape[:2], -1, dtype=torch.long, device=o.device)
+        aux = torch.zeros(o_p.shape[:2], dtype=torch.long, device=o.device)
+        if options.compile:  # one graph per shape class: gather every packet rather than none
+            plan = [(k, self._all_packets(o_p) if sel is None else sel) for k, sel in plan]
+        for k, sel in plan:
+            rows = self._compiled(k, _nearest, options, (o_p, d_p, sel, self.ray_epsilon, t_best, obj, aux,
+                                                         torch.tensor(k, device=o.device)))
+            if sel is None:
+                t_best, obj, aux = rows
             else:
-                t, a = shape.intersect(o[idx], d[idx], eps)
-                closer = t < t_best[idx]
-                sel = idx[closer]
-                t_best[sel] = t[closer]
-                obj[sel] = k
-                aux[sel] = a[closer]
-        return Hit(t_best, obj, aux)
+                for dst, src in zip((t_best, obj, aux), rows):
+                    dst.index_copy_(0, sel, src)
+        return Hit(t_best.view(-1)[:n], obj.view(-1)[:n], aux.view(-1)[:n])
 
-    def transmittance(self, o: torch.Tensor, d: torch.Tensor, t_max: torch.Tensor) -> torch.Tensor:
+    def transmittance(self, o: torch.Tensor, d: torch.Tensor, t_max: torch.Tensor, *,
+                      options: TraceOptions | None = None) -> torch.Tensor:
         """(N, 3) fraction of light reaching o from o + t_max·d: opaque blockers give 0, transparent ones
         multiply by their transmit · colour (each object counted once)."""
-        trans = torch.ones(o.shape[0], 3, dtype=o.dtype, device=o.device)
+        return self.shadow(o, d, t_max, options=options).expand(o.shape[0], 3).contiguous()
+
+    def shadow(self, o: torch.Tensor, d: torch.Tensor, t_max: torch.Tensor, *,
+               options: TraceOptions | None = None, leaving: torch.Tensor | None = None) -> torch.Tensor:
+        """`transmittance` as (N, 1) when every object is opaque (visibility 0 or 1), else (N, 3).
+
+        Args:
+            leaving: optional (N,) id of an object each ray cannot meet (−1 for none), from
+                `self_shadow_free`.
+        """
+        options = self.options if options is None else options
+        n = o.shape[0]
+        o_p, d_p, t_p, plan = self._packets(o, d, t_max, options, None, leaving)
         table = self.materials(o)
+        opaque = not bool(table.shadow_transmittance.any())
+        trans = torch.ones(o_p.shape[:2] if opaque else (*o_p.shape[:2], 3), dtype=o.dtype, device=o.device)
         eps = self.ray_epsilon
-        for k, idx in self._each_object(o, d, None, t_max):
-            shape = self.objects[k].shape
-            if idx is None:
-                t, _ = shape.intersect(o, d, eps)
-                blocked = t < t_max
-                trans = torch.where(blocked[:, None], trans * table.shadow_transmittance[k], trans)
+        if options.compile:
+            plan = [(k, self._all_packets(o_p) if sel is None else sel) for k, sel in plan]
+        for k, sel in plan:
+            if opaque:
+                rows = self._compiled(k, _occluded, options, (o_p, d_p, sel, eps, t_p, trans))
             else:
-                t, _ = shape.intersect(o[idx], d[idx], eps)
-                blocked = idx[t < t_max[idx]]
-                trans[blocked] = trans[blocked] * table.shadow_transmittance[k]
-        return trans
+                rows = self._compiled(k, _attenuated, options, (o_p, d_p, sel, eps, t_p, trans,
+                                                                table.shadow_transmittance[k]))
+            if sel is None:
+                trans = rows
+            else:
+                trans.index_copy_(0, sel, rows)
+        return trans.reshape(-1, 1)[:n] if opaque else trans.reshape(-1, 3)[:n]
+
+
+def _surface_of(shape, p, aux):
+    return shape.surface(p, aux)
+
+
+def packet_candidates(o_p: torch.Tensor, d_p: torch.Tensor, centers: torch.Tensor, radii: torch.Tensor,
+                      t_max: torch.Tensor | None = None) -> torch.Tensor:
+    """Which packets of rays can meet which spheres (conservative).
+
+    A packet's origins lie in a ball (o_c, ρ) and its unit directions in a cone (axis a, half-angle θ), both
+    from the bounding boxes of its origins and directions. If a ray of the packet meets the sphere (c, r),
+    the ray with the same direction from o_c meets the sphere (c, r + ρ), so its direction is within
+    α = asin((r + ρ)/|c − o_c|) of c − o_c, and the angle φ between c − o_c and a is at most θ + α.
+    With t_max, the sphere must also start within the longest ray: |c − o_c| − (r + ρ) ≤ max t_max.
+
+    Args:
+        o_p, d_p: (B, P, 3) packets of origins and unit directions; centers (K, 3), radii (K,) spheres.
+        t_max: optional (B, P) ray lengths.
+    Returns:
+        (B, K) bool, True where the packet must be tested against sphere k.
+    """
+    o_lo, o_hi = torch.aminmax(o_p, dim=1)
+    d_lo, d_hi = torch.aminmax(d_p, dim=1)
+    o_c = (o_lo + o_hi) / 2
+    rho = torch.linalg.vector_norm(o_hi - o_lo, dim=-1) / 2
+    axis = (d_lo + d_hi) / 2
+    spread = torch.linalg.vector_norm(d_hi - d_lo, dim=-1) / 2
+    length = torch.linalg.vector_norm(axis, dim=-1)
+    # Every direction in the box lies within `spread` of its centre `axis`, so within asin(spread/|axis|).
+    theta = torch.where(spread < length, torch.asin((spread / length.clamp_min(1e-30)).clamp(max=1.0)),
+                        torch.full_like(length, math.pi))
+    axis = axis / length.clamp_min(1e-30)[:, None]
+    v = centers[None] - o_c[:, None]  # (B, K, 3)
+    if t_max is not None:
+        t_max = t_max.amax(1)
+    dist = torch.linalg.vector_norm(v, dim=-1)
+    reach = radii * (1 + _RADIUS_SLACK) + rho[:, None]
+    phi = torch.atan2(torch.linalg.vector_norm(torch.linalg.cross(v, axis[:, None].expand_as(v)), dim=-1),
+                      (v * axis[:, None]).sum(-1))
+    alpha = torch.asin((reach / dist.clamp_min(1e-30)).clamp(max=1.0))
+    ok = (dist <= reach) | (phi <= theta[:, None] + alpha + _ANGLE_SLACK)
+    if t_max is not None:
+        ok &= dist - reach <= t_max[:, None]
+    return ok

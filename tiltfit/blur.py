@@ -1,0 +1,487 @@
+"""Blur-disc diameter at each feature point, from the edges that meet there (paper (2), (4)).
+
+A lens focused elsewhere spreads a point into a uniform disc of diameter b (per-axis standard deviation
+b/4). Across a straight edge the image is then the edge spread function
+    F(s) = 1/2 + (u √(1 − u²) + asin u)/π,   u = clip(s / r, −1, 1),   r = b / 2,
+the area of the disc segment beyond the edge, and each pixel integrates F over its square: projected on
+the edge normal n = (cos α, sin α) the square is a box of width |cos α| convolved with one of width
+|sin α|, so the pixel value is a second difference of the double antiderivative of F (`pixel_esf`, exact).
+
+For each feature point, pixels of a band along each of the (up to four) edges leaving it — the half of the
+edge nearest the point, away from it by more than the blur radius so the crossing edge does not reach them
+— are fitted with the profile of the cells the band crosses: the two cells on either side of the edge and
+the next cell beyond each (their edges, placed by a local homography of the detected corners, share the
+blur), so blur nearly as wide as a square is modelled. The blur varies over the neighbourhood as
+b(x) = |β + g · (x − p)|, linear through zero if need be (the signed form of the paper's (4) is linear in
+position to first order), so a point on the plane of focus is measured sharp although its edges, away from
+it, are not. Free per point: β and g; per band: dark level, contrast and edge offset (Levenberg–Marquardt,
+batched over points). The reported b is |β| with its standard error.
+
+Fits run on the 2×2 box pyramid level where the blur is a few pixels (a level pixel is exactly the box
+integral of f × f pixels, so the model holds there with b / f): a first pass where squares are 24–48 px
+finds the blur, the next passes refit on bands cut for it.
+
+Intensities must be linear: an sRGB-encoded image bends the profile and biases b (see the tests).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from .target import Target
+
+
+
+def _G(u: torch.Tensor) -> torch.Tensor:
+    """G(u) = ∫_{−1}^{u} F: antiderivative of the disc edge spread function (radius units); G(u ≥ 1) = u."""
+    uc = u.clamp(-1.0, 1.0)
+    s = torch.sqrt(1 - uc * uc)
+    return 0.5 * uc + (uc * torch.asin(uc) + s * (1 - s * s / 3.0)) / math.pi + (u - 1).clamp_min(0.0)
+
+
+def _G2(u: torch.Tensor) -> torch.Tensor:
+    """G2(u) = ∫_{−1}^{u} G, closed form; G2(u ≥ 1) = 5/8 + (u² − 1)/2."""
+    uc = u.clamp(-1.0, 1.0)
+    s = torch.sqrt(1 - uc * uc)
+    inner = (0.25 * uc * uc + 1.0 / 16
+             + (torch.asin(uc) * (0.5 * uc * uc + 0.125) + uc * s * (0.625 - s * s / 12)) / math.pi)
+    over = (u - 1).clamp_min(0.0)
+    return inner + over * (1 + 0.5 * over)  # (u² − 1)/2 = over + over²/2 for u = 1 + over
+
+
+def pixel_esf(d: torch.Tensor, r: torch.Tensor, wa: torch.Tensor, wb: torch.Tensor, with_derivatives: bool = False):
+    """Disc edge spread function integrated exactly over a pixel.
+
+    The pixel square projected on the edge normal is a box of width wa convolved with one of width wb
+    (wa ≥ wb: |cos α|, |sin α|); integrating F over both is a second difference of G2:
+        E(d) = r² [G2(u₁) − G2(u₂) − G2(u₃) + G2(u₄)] / (wa wb),   u = (d ± (wa ± wb)/2) / r.
+
+    Args:
+        d: (...) signed distance of pixel centres from the edge, pixels (positive on the far side).
+        r: blur-disc radius b/2, pixels (broadcast); wa, wb: projected pixel widths (broadcast).
+    Returns:
+        E (...) in [0, 1]; with_derivatives: also ∂E/∂d and ∂E/∂r.
+    """
+    r = r.clamp_min(1e-3)
+    wb = wb.clamp_min(0.02)  # an axis-aligned edge: a box of 0.02 px changes E by < 1e-4
+    reach = r + 0.5 * (wa + wb) + 1e-3
+    d = torch.maximum(torch.minimum(d, reach), -reach)  # E is exactly 0 or 1 beyond; keeps G2 small
+    hp, hm = 0.5 * (wa + wb), 0.5 * (wa - wb)
+    u = torch.stack([d + hp, d + hm, d - hm, d - hp], -1) / r[..., None]
+    sgn = torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=d.dtype)
+    norm = r * r / (wa * wb)
+    G2u = (_G2(u) * sgn).sum(-1)
+    E = G2u * norm
+    if not with_derivatives:
+        return E
+    Gu = _G(u) * sgn
+    dE_dd = Gu.sum(-1) * norm / r
+    dE_dr = (2 * G2u - (u * Gu).sum(-1)) * norm / r
+    return E, dE_dd, dE_dr
+
+
+def _local_homographies(target: Target, corners_px: np.ndarray, found: np.ndarray):
+    """Per found corner, the homography target (X, Y) -> pixels fitted on found corners within 2 indices."""
+    from .detect import _homography_dlt
+
+    ny, nx = target.grid_shape
+    pts = target.feature_points()[:, :2]
+    out = {}
+    for k in np.nonzero(found)[0]:
+        j, i = divmod(int(k), nx)
+        ii, jj = np.meshgrid(np.arange(max(0, i - 2), min(nx, i + 3)), np.arange(max(0, j - 2), min(ny, j + 3)))
+        kk = (jj * nx + ii).ravel()
+        kk = kk[found[kk]]
+        if kk.size < 4:
+            continue
+        Hm = _homography_dlt(pts[kk], corners_px[kk])
+        if Hm is not None and np.isfinite(Hm).all():
+            out[int(k)] = Hm
+    return out
+
+
+def _line_px(Hm: np.ndarray, axis: int, value: float) -> np.ndarray:
+    """Image line (a, b, c), a² + b² = 1, of the target line X = value (axis 0) or Y = value (axis 1)."""
+    lt = np.array([1.0, 0.0, -value]) if axis == 0 else np.array([0.0, 1.0, -value])
+    li = np.linalg.inv(Hm).T @ lt
+    return li / np.hypot(li[0], li[1])
+
+
+def _half_edges(target: Target, k: int, Hm: np.ndarray, r_est: float, image_shape, max_pixels: int,
+                first_pass: bool = False, grad: np.ndarray | None = None):
+    """Pixel bands of the up-to-four half-edges at feature point k, with their profile geometry.
+
+    Args:
+        Hm: homography target -> pixels of the image the bands are cut from.
+        r_est: blur radius expected at the point, pixels; grad: expected gradient of the diameter, per pixel.
+        first_pass: allow bands nearer the point (to 0.3 of the edge) when r_est is only an upper bound.
+    Returns:
+        list of dicts: px (n, 2) pixel positions, dxy (n, 2) offsets from the point, d0 / d_lo / d_hi signed
+        distances to the edge and the next parallel edges (positive towards larger target coordinates),
+        kappa (4,) white (1) or dark (0) for the cells crossed, wa, wb the pixel's projected widths.
+    """
+    gnorm = 0.0 if grad is None else float(np.hypot(*grad))
+    ny, nx = target.grid_shape
+    j, i = divmod(k, nx)
+    xe, ye = target.x_edges, target.y_edges
+    H_img, W_img = image_shape
+    bands = []
+    # (axis of the edge line, its coordinate, along-axis direction sign, cells either side)
+    # A horizontal edge Y = ye[j+1] leaving the corner towards +X lies along cell column i+1; towards −X, column i.
+    specs = []
+    for sgn in (1, -1):
+        col = i + 1 if sgn > 0 else i
+        specs.append((1, ye[j + 1], 0, xe[i + 1], xe[i + 1 + sgn], col, j))  # horizontal edge
+        row = j + 1 if sgn > 0 else j
+        specs.append((0, xe[i + 1], 1, ye[j + 1], ye[j + 1 + sgn], row, i))  # vertical edge
+    centre = _apply(Hm, np.array([[xe[i + 1], ye[j + 1]]]))[0]
+    for axis, value, along_axis, a_near, a_far, lane, idx in specs:
+        # cells across the edge: along the normal (target axis `axis`), indices idx−1, idx (before), idx+1,
+        # idx+2 (after); for a horizontal edge at ye[j+1] the rows are j−1, j | j+1, j+2
+        edges_t = ye if axis == 1 else xe
+        e0 = idx + 1  # index of the edge line in edges_t
+        far_lo = edges_t[e0 - 1] if e0 - 1 >= 0 else None
+        far_hi = edges_t[e0 + 1] if e0 + 1 < len(edges_t) else None
+        cells = [idx - 1, idx, idx + 1, idx + 2]
+        if axis == 1:
+            dark = [bool(target.is_dark(lane, c)) for c in cells]
+        else:
+            dark = [bool(target.is_dark(c, lane)) for c in cells]
+        kappa = [0.0 if dk else 1.0 for dk in dark]
+        L0 = _line_px(Hm, axis, value)
+        P_near = _line_px(Hm, along_axis, a_near)
+        P_far = _line_px(Hm, along_axis, a_far)
+        L_lo = _line_px(Hm, axis, far_lo) if far_lo is not None else None
+        L_hi = _line_px(Hm, axis, far_hi) if far_hi is not None else None
+        # orient: L0 positive towards the "after" cells (larger target coordinate)
+        probe_after = np.zeros(2)
+        probe_after[axis] = value + 0.25 * ((far_hi if far_hi is not None else value + 1.0) - value)
+        probe_after[along_axis] = 0.5 * (a_near + a_far)
+        pa = _apply(Hm, probe_after[None])[0]
+        if L0[:2] @ pa + L0[2] < 0:
+            L0 = -L0
+        mid = np.zeros(2)
+        mid[axis] = value
+        mid[along_axis] = 0.5 * (a_near + a_far)
+        pm = _apply(Hm, mid[None])[0]
+        if P_near[:2] @ pm + P_near[2] < 0:
+            P_near = -P_near
+        if P_far[:2] @ pm + P_far[2] < 0:
+            P_far = -P_far
+        if L_lo is not None and L_lo[:2] @ pm + L_lo[2] < 0:
+            L_lo = -L_lo  # positive towards the central edge
+        if L_hi is not None and L_hi[:2] @ pm + L_hi[2] < 0:
+            L_hi = -L_hi
+        seg = np.hypot(*(pm - centre)) * 2.0  # image length of the whole edge segment (approx.)
+        r_far = r_est + 0.5 * gnorm * seg  # the blur may grow along the band
+        margin = min(r_est + 1.5, 0.3 * seg) if first_pass else max(r_est, min(r_far, 0.45 * seg)) + 1.5
+        reach = max(0.5 * seg, margin + max(3.0, 0.1 * seg))  # the near half, or a short band past it
+        if seg - 2 * margin < 3.0:
+            continue
+        s_max = 1.3 * max(r_est, min(r_far, 0.45 * seg)) + 4.0
+        # bounding box of the band
+        n = L0[:2]
+        p_end = centre + (pm - centre) * min(2.0, reach / (0.5 * seg))
+        corners = [centre + s * n for s in (-s_max, s_max)] + [p_end + s * n for s in (-s_max, s_max)]
+        bb = np.array(corners)
+        x0, y0 = np.floor(bb.min(0)).astype(int)
+        x1, y1 = np.ceil(bb.max(0)).astype(int)
+        x0, y0 = max(x0, 0), max(y0, 0)
+        x1, y1 = min(x1, W_img - 1), min(y1, H_img - 1)
+        if x1 <= x0 or y1 <= y0:
+            continue
+        yy, xx = np.mgrid[y0:y1 + 1, x0:x1 + 1]
+        P = np.stack([xx.ravel(), yy.ravel()], -1).astype(np.float64)
+        d0 = P @ L0[:2] + L0[2]
+        dn = P @ P_near[:2] + P_near[2]
+        dfar = P @ P_far[:2] + P_far[2]
+        keep = (np.abs(d0) <= s_max) & (dn >= margin) & (dfar >= margin) & (dn <= reach)
+        # both far lines are oriented positive towards the central edge; missing ones are far away
+        d_lo = P @ L_lo[:2] + L_lo[2] if L_lo is not None else np.full(len(P), 1e6)
+        d_hi = P @ L_hi[:2] + L_hi[2] if L_hi is not None else np.full(len(P), 1e6)
+        keep &= (d_lo >= 0) & (d_hi >= 0)
+        idx_keep = np.nonzero(keep)[0]
+        if idx_keep.size < 12:
+            continue
+        if idx_keep.size > max_pixels:
+            idx_keep = idx_keep[np.linspace(0, idx_keep.size - 1, max_pixels).astype(int)]
+        alpha = math.atan2(L0[1], L0[0])
+        wa, wb = max(abs(math.cos(alpha)), abs(math.sin(alpha))), min(abs(math.cos(alpha)), abs(math.sin(alpha)))
+        bands.append(dict(px=P[idx_keep].astype(int), dxy=P[idx_keep] - centre, d0=d0[idx_keep],
+                          d_lo=d_lo[idx_keep], d_hi=-d_hi[idx_keep], kappa=kappa, wa=wa, wb=wb))
+    return bands
+
+
+def _apply(Hm, p):
+    q = np.c_[p, np.ones(len(p))] @ Hm.T
+    return q[:, :2] / q[:, 2:]
+
+
+def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, iterations: int = 30):
+    """Levenberg–Marquardt fit of the cell-profile model to the bands of each point, batched over points.
+
+    The blur diameter varies linearly over a point's neighbourhood through zero if need be,
+    b(x) = |β + g · (x − p)| (the paper's (4) is linear in position to first order), so a point on the plane
+    of focus is measured as sharp even though its edges away from it are not. Free per point: β, g (2);
+    per band: dark level, contrast and edge offset.
+
+    Args:
+        img: the (pyramid-level) image; groups: per point, the bands from `_half_edges`;
+        r0: (C,) upper bound of the blur radius per point, pixels (the start is scanned below it).
+    Returns:
+        b (C,) = |β|, sigma_b (C,), grad (C, 2), ok (C,), in pixels of `img`.
+    """
+    C = len(groups)
+    B = max(len(g) for g in groups)
+    n = max(len(b["d0"]) for g in groups for b in g)
+    P = 3 + 3 * B
+    f32, f64 = torch.float32, torch.float64
+    mask = np.zeros((C, B, n))
+    vals = np.zeros((C, B, n))
+    d0 = np.zeros((C, B, n))
+    dlo = np.full((C, B, n), 1e6)
+    dhi = np.full((C, B, n), -1e6)
+    dxy = np.zeros((C, B, n, 2))
+    kap = np.ones((C, B, 4))
+    wa = np.ones((C, B))
+    wb = np.zeros((C, B))
+    for c, g in enumerate(groups):
+        for e, b in enumerate(g):
+            m = len(b["d0"])
+            mask[c, e, :m] = 1.0
+            vals[c, e, :m] = img[b["px"][:, 1], b["px"][:, 0]]
+            d0[c, e, :m], dlo[c, e, :m], dhi[c, e, :m] = b["d0"], b["d_lo"], b["d_hi"]
+            dxy[c, e, :m] = b["dxy"]
+            kap[c, e], wa[c, e], wb[c, e] = b["kappa"], b["wa"], b["wb"]
+    has_band = torch.from_numpy(mask.any(-1))
+    mask, I = torch.from_numpy(mask), torch.from_numpy(vals)
+    r0 = torch.as_tensor(np.asarray(r0, dtype=np.float64))
+    r_cap = 1.5 * r0 + 1.0
+    lim = (r_cap + 2.0)[:, None, None] + 0.0
+    dxy_t = torch.from_numpy(dxy).to(f32)
+    d0_t = torch.from_numpy(d0.clip(-1e4, 1e4)).to(f32)
+    dlo_t, dhi_t = torch.from_numpy(dlo), torch.from_numpy(dhi)
+    # far lines: only the entries within reach are evaluated, elsewhere the step is 0 or 1
+    near_lo = torch.nonzero((dlo_t.abs() < 1.3 * lim).reshape(-1)).squeeze(1)
+    near_hi = torch.nonzero((dhi_t.abs() < 1.3 * lim).reshape(-1)).squeeze(1)
+    step_lo = (dlo_t > 0).to(f32).reshape(-1)
+    step_hi = (dhi_t > 0).to(f32).reshape(-1)
+    dlo_n, dhi_n = dlo_t.reshape(-1)[near_lo].to(f32), dhi_t.reshape(-1)[near_hi].to(f32)
+    kap_t = torch.from_numpy(kap).to(f32)
+    c_lo, c_0, c_hi = (kap_t[..., 1] - kap_t[..., 0]), (kap_t[..., 2] - kap_t[..., 1]), (kap_t[..., 3] - kap_t[..., 2])
+    wa_t = torch.from_numpy(wa).to(f32)[..., None].expand(C, B, n)
+    wb_t = torch.from_numpy(wb).to(f32)[..., None].expand(C, B, n)
+
+    def far_term(d_n, idx, steps, r):
+        e = steps.clone()
+        e_r = torch.zeros_like(steps)
+        if idx.numel():
+            ev, _, evr = pixel_esf(d_n, r.reshape(-1)[idx], wa_t.reshape(-1)[idx], wb_t.reshape(-1)[idx], True)
+            e[idx] = ev
+            e_r[idx] = evr
+        return e.reshape(C, B, n), e_r.reshape(C, B, n)
+
+    def model(theta, deriv=True):
+        th = theta.to(f32)
+        beta, gx, gy = th[:, 0], th[:, 1], th[:, 2]
+        o, c, delta = th[:, 3::3], th[:, 4::3], th[:, 5::3]  # (C, B)
+        sb = beta[:, None, None] + gx[:, None, None] * dxy_t[..., 0] + gy[:, None, None] * dxy_t[..., 1]
+        r = (0.5 * sb.abs()).clamp_min(1e-3)
+        e0, e0_d, e0_r = pixel_esf(d0_t - delta[..., None], r, wa_t, wb_t, True)
+        elo, elo_r = far_term(dlo_n, near_lo, step_lo, r)
+        ehi, ehi_r = far_term(dhi_n, near_hi, step_hi, r)
+        gsum = kap_t[..., 0:1] + c_lo[..., None] * elo + c_0[..., None] * e0 + c_hi[..., None] * ehi
+        f = o[..., None] + c[..., None] * gsum
+        if not deriv:
+            return f.double(), None
+        dr = c[..., None] * (c_lo[..., None] * elo_r + c_0[..., None] * e0_r + c_hi[..., None] * ehi_r) \
+            * 0.5 * torch.sign(sb)
+        J = torch.zeros(C, B, n, P, dtype=f32)
+        J[..., 0], J[..., 1], J[..., 2] = dr, dr * dxy_t[..., 0], dr * dxy_t[..., 1]
+        eye = torch.eye(B, dtype=f32)[None, :, None, :]  # band e's own parameters
+        J[..., 3::3] = eye.expand(C, B, n, B)
+        J[..., 4::3] = eye * gsum[..., None]
+        J[..., 5::3] = eye * (-c[..., None] * c_0[..., None] * e0_d)[..., None]
+        return f.double(), J.double()
+
+    # start: scan β from 4 % to 200 % of 2 r0 (g = 0) with the levels of each band solved linearly
+    npix = mask.sum(-1)
+    best = torch.full((C,), float("inf"), dtype=f64)
+    theta = torch.zeros(C, P, dtype=f64)
+    for frac in (0.05, 0.13, 0.3, 0.55, 1.0, 1.6):
+        trial = torch.zeros(C, P, dtype=f64)
+        trial[:, 0] = (2 * r0 * frac).clamp_min(0.1)  # β is a diameter
+        trial[:, 4::3] = 1.0
+        gg = model(trial, deriv=False)[0] * mask
+        sg, sI = gg.sum(-1), (I * mask).sum(-1)
+        sgg, sgI = (gg * gg).sum(-1), (gg * I * mask).sum(-1)
+        det = npix * sgg - sg * sg
+        cc = (npix * sgI - sg * sI) / det.clamp_min(1e-30)
+        oo = (sI - cc * sg) / npix.clamp_min(1)
+        cost = ((((I - oo[..., None] - cc[..., None] * gg) * mask) ** 2).sum((-1, -2)))
+        better = cost < best
+        trial[:, 3::3], trial[:, 4::3] = oo, torch.where(has_band, cc, torch.ones_like(cc))
+        theta = torch.where(better[:, None], trial, theta)
+        best = torch.where(better, cost, best)
+    lam = torch.full((C,), 1e-3, dtype=f64)
+    # weak prior on g (1 % per pixel) keeps points with few bands well posed
+    prior = 1e-2 * torch.sqrt(npix.sum(-1)) * theta[:, 4::3].abs().mean(-1).clamp_min(1e-6)
+
+    def total(th, f):
+        res = (I - f) * mask
+        return res, (res * res).sum((-1, -2)) + ((prior[:, None] * th[:, 1:3]) ** 2).sum(-1)
+
+    f, J = model(theta)
+    res, cost = total(theta, f)
+    for _ in range(iterations):
+        Jm = (J * mask[..., None]).reshape(C, B * n, P)
+        A = Jm.transpose(1, 2) @ Jm
+        A[:, 1, 1] += prior ** 2
+        A[:, 2, 2] += prior ** 2
+        gvec = (Jm * res.reshape(C, B * n, 1)).sum(1)
+        gvec[:, 1:3] -= prior[:, None] ** 2 * theta[:, 1:3]
+        diag = torch.diagonal(A, dim1=1, dim2=2)
+        A_d = A + lam[:, None, None] * torch.diag_embed(diag + 1e-9)
+        step = torch.linalg.solve(A_d, gvec[..., None])[..., 0]
+        new = theta + step
+        new[:, 0] = new[:, 0].clamp(-2 * r_cap, 2 * r_cap)
+        f2, J2 = model(new)
+        res2, cost2 = total(new, f2)
+        better = cost2 < cost
+        theta = torch.where(better[:, None], new, theta)
+        res = torch.where(better[:, None, None], res2, res)
+        J = torch.where(better[:, None, None, None], J2, J)
+        cost = torch.where(better, cost2, cost)
+        lam = torch.where(better, lam * 0.3, lam * 10.0).clamp(1e-9, 1e9)
+        # converged: the diameter moves by < 1e-4 of itself (+1e-4 px) and the cost no longer drops
+        small = (step[:, 0].abs() < 1e-4 * (theta[:, 0].abs() + 1)) & (step[:, 1:3].abs().max(1).values < 1e-5)
+        if bool((small | (lam > 1e6)).all()):
+            break
+    dof = (npix.sum(-1) - (3 + 3 * has_band.sum(-1))).clamp_min(1)
+    contrast = theta[:, 4::3].abs().max(-1).values
+    # a floor of 0.1 % of the contrast keeps noise-free fits honest where b is not identifiable (a sharp
+    # edge almost parallel to the pixel grid samples its profile at one phase only)
+    s2 = torch.maximum(cost / dof, (1e-3 * contrast) ** 2)
+    Jm = (J * mask[..., None]).reshape(C, B * n, P)
+    A = Jm.transpose(1, 2) @ Jm
+    A[:, 1, 1] += prior ** 2
+    A[:, 2, 2] += prior ** 2
+    keep = torch.cat([torch.ones(C, 3, dtype=torch.bool), has_band.repeat_interleave(3, dim=1)], 1)
+    A = torch.where(keep[:, :, None] & keep[:, None, :], A, torch.diag_embed(torch.ones(C, P, dtype=f64)))
+    cov = torch.linalg.pinv(A) * s2[:, None, None]
+    b = theta[:, 0].abs()
+    sig = torch.sqrt(cov[:, 0, 0].clamp_min(0))
+    ok = torch.isfinite(b) & torch.isfinite(sig) & (contrast > 0) & (has_band.sum(-1) >= 1)
+    return b.numpy(), sig.numpy(), theta[:, 1:3].numpy(), ok.numpy()
+
+
+def _level_homography(Hm: np.ndarray, factor: int) -> np.ndarray:
+    """Compose a full-resolution homography with full -> pyramid-level pixels, x_l = (x + 0.5)/f − 0.5."""
+    S = np.array([[1.0 / factor, 0.0, 0.5 / factor - 0.5], [0.0, 1.0 / factor, 0.5 / factor - 0.5], [0, 0, 1.0]])
+    return S @ Hm
+
+
+def measure_blur(gray: np.ndarray, target: Target, corners_px: np.ndarray, *, levels: dict | None = None,
+                 max_passes: int = 3, max_pixels: int = 600, level_blur_px: float = 5.0,
+                 min_level_square_px: float = 16.0) -> tuple[np.ndarray, np.ndarray]:
+    """Blur-disc diameter at each found feature point.
+
+    Each fit runs on a level of the 2×2 box pyramid (a level pixel is exactly the box integral of f × f
+    pixels, so the model holds there with b/f): the first pass on the level where squares are about
+    24–48 px, with bands cut for blur up to 0.8 of a square; later passes on the level where the blur found
+    is about `level_blur_px` (but squares at least `min_level_square_px`), with bands cut for that blur.
+    A corner is refitted until its level and band stop changing (at most `max_passes`).
+
+    Args:
+        gray: (H, W) linear image.
+        target: the Target; corners_px: (N, 2) detected feature points (full resolution), NaN where missing.
+        levels: the pyramid of `gray` ({factor: image}), if already built.
+        max_pixels: pixels per band at most (evenly thinned beyond).
+    Returns:
+        blur_px (N,), blur_sigma_px (N,): diameters and one-standard-deviation uncertainties, full-resolution
+        pixels, NaN where not measured.
+    """
+    from .detect import _torch_threads
+
+    with _torch_threads(1):
+        return _measure_blur(gray, target, corners_px, levels, max_passes, max_pixels, level_blur_px,
+                             min_level_square_px)
+
+
+def _measure_blur(gray, target, corners_px, levels, max_passes, max_pixels, level_blur_px, min_level_square_px):
+    from .detect import build_pyramid
+
+    if levels is None:
+        levels = build_pyramid(np.asarray(gray, dtype=np.float32))
+    factors = sorted(levels)
+    N = target.n_points
+    blur = np.full(N, np.nan)
+    sigma = np.full(N, np.nan)
+    found = np.isfinite(corners_px).all(1)
+    Hs = _local_homographies(target, corners_px, found)
+    if not Hs:
+        return blur, sigma
+    ny, nx = target.grid_shape
+    square = {}
+    for k, Hm in Hs.items():
+        j, i = divmod(k, nx)
+        c = _apply(Hm, np.array([[target.x_edges[i + 1], target.y_edges[j + 1]]]))[0]
+        nb = _apply(Hm, np.array([[target.x_edges[i], target.y_edges[j + 1]],
+                                  [target.x_edges[i + 2], target.y_edges[j + 1]],
+                                  [target.x_edges[i + 1], target.y_edges[j]],
+                                  [target.x_edges[i + 1], target.y_edges[j + 2]]]))
+        square[k] = float(np.min(np.hypot(*(nb - c).T)))
+
+    def level_for(sq, b=None):
+        ok = [f for f in factors if sq / f >= (24.0 if b is None else min_level_square_px)
+              and (b is None or f <= max(1.0, b / level_blur_px))]
+        return ok[-1] if ok else factors[0]
+
+    # plan per point: (level factor, expected radius there, its gradient, first pass?)
+    plan = {k: (level_for(square[k]), 0.4 * square[k] / level_for(square[k]), None, True) for k in Hs}
+    for _ in range(max_passes):
+        if not plan:
+            break
+        results = {}
+        for f in sorted({p[0] for p in plan.values()}):
+            keys, groups = [], []
+            for k, (fk, r_l, g_l, first) in plan.items():
+                if fk != f:
+                    continue
+                # the first pass only has to find the blur to within ~10 %: fewer pixels, fewer iterations
+                bk = _half_edges(target, k, _level_homography(Hs[k], f), r_l, levels[f].shape,
+                                 max_pixels // 3 if first else max_pixels, first_pass=first, grad=g_l)
+                if bk:
+                    keys.append(k)
+                    groups.append(bk)
+            if not groups:
+                continue
+            r0 = np.array([max(plan[k][1], 0.3) for k in keys])
+            first = plan[keys[0]][3]
+            b, sb, grad, ok = fit_corners(levels[f], groups, r0, iterations=8 if first else 30)
+            for i, k in enumerate(keys):
+                if ok[i]:
+                    results[k] = (b[i] * f, sb[i] * f, grad[i])
+        new_plan = {}
+        for k, (m, s, g) in results.items():
+            blur[k], sigma[k] = m, s
+            f_new = level_for(square[k], m)
+            r_new = 0.55 * m / f_new + 0.5
+            fk, r_l, _, first = plan[k]
+            if first or f_new != fk or abs(r_new - r_l) > 0.25 * r_l:
+                new_plan[k] = (f_new, r_new, g, False)
+        plan = new_plan
+    return blur, sigma
+
+
+def _combine(b: np.ndarray, sb: np.ndarray) -> tuple[float, float]:
+    """Inverse-variance mean of a point's edge estimates; the uncertainty grows with their scatter."""
+    w = 1.0 / np.maximum(sb, 1e-9) ** 2
+    m = float((w * b).sum() / w.sum())
+    s = float(1.0 / math.sqrt(w.sum()))
+    if b.size > 1:
+        chi2 = float((w * (b - m) ** 2).sum() / (b.size - 1))
+        s *= math.sqrt(max(1.0, chi2))
+    return m, s

@@ -1,0 +1,419 @@
+"""The calibration target: a checkerboard with non-uniform row spacing (Maruyama & Kanatani).
+
+Target frame (mm): the board lies in Z = 0, X along the columns (to the right on the print), Y along the rows
+(downwards on the print), origin where the file's edges put it (designed targets: the top-left corner of the
+checkered area). `x_edges` / `y_edges` are the ascending column / row boundaries of the checkered area;
+cell (i, j) (column i, row j) is dark when i + j has the parity of `dark_cell[0] + dark_cell[1]`; a white
+margin of `margin` mm surrounds the checkered area.
+
+Feature points are the interior intersections (x_edges[1:-1] × y_edges[1:-1]), ordered row by row
+(Y outer, X inner): feature point k = j · nx + i sits at (x_edges[i + 1], y_edges[j + 1], 0), where
+nx = len(x_edges) − 2. Corner (i, j) touches cells (i, j), (i + 1, j), (i, j + 1) and (i + 1, j + 1).
+
+Target file (JSON), as in the contract:
+    {"type": "checkerboard", "units": "mm", "x_edges": [...], "y_edges": [...], "dark_cell": [0, 0],
+     "margin": 25}
+`type`, `x_edges`, `y_edges` are required; `units` ["mm"], `dark_cell` [[0, 0]], `margin` [25] and the
+informational `name`, `description` are optional.
+
+Design (`design_target`): for a target inclined by φ about its X axis at distance D in front of a camera
+with lens-to-sensor distance w, a target point at height Y (from the design centre) images at
+    y = w · Y cos φ / (D + Y sin φ)                                   (sensor mm)
+a projective map of Y. Its inverse Y = y D / (w cos φ − y sin φ) turns equally spaced image rows
+y_k = (k − n/2) Δ into the row edges, so the projected rows are equally spaced (the paper's Fig. 4 target).
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+
+class TargetError(ValueError):
+    """A bad target file or target description; the message is one line naming the file and the field."""
+
+
+@dataclass(frozen=True)
+class Target:
+    """A checkerboard target.
+
+    Attributes:
+        x_edges: ascending column boundaries of the checkered area, mm (at least 3: one interior edge).
+        y_edges: ascending row boundaries, mm (at least 3).
+        dark_cell: a (column, row) cell that is dark [(0, 0)]; only its parity matters.
+        margin: width of the white border around the checkered area, mm [25].
+    """
+
+    x_edges: tuple[float, ...]
+    y_edges: tuple[float, ...]
+    dark_cell: tuple[int, int] = (0, 0)
+    margin: float = 25.0
+
+    def __post_init__(self):
+        object.__setattr__(self, "x_edges", tuple(float(v) for v in self.x_edges))
+        object.__setattr__(self, "y_edges", tuple(float(v) for v in self.y_edges))
+        object.__setattr__(self, "dark_cell", (int(self.dark_cell[0]), int(self.dark_cell[1])))
+        object.__setattr__(self, "margin", float(self.margin))
+        for name in ("x_edges", "y_edges"):
+            problem = _edges_problem(getattr(self, name))
+            if problem:
+                raise TargetError(f"{name}: expected {problem}, got {list(getattr(self, name))}")
+        if not (math.isfinite(self.margin) and self.margin >= 0):
+            raise TargetError(f"margin: expected a non-negative number of mm, got {self.margin}")
+
+    # --- sizes -------------------------------------------------------------------------------------------
+    @property
+    def n_cols(self) -> int:
+        """Number of cell columns."""
+        return len(self.x_edges) - 1
+
+    @property
+    def n_rows(self) -> int:
+        """Number of cell rows."""
+        return len(self.y_edges) - 1
+
+    @property
+    def grid_shape(self) -> tuple[int, int]:
+        """(ny, nx): feature points per column and per row."""
+        return len(self.y_edges) - 2, len(self.x_edges) - 2
+
+    @property
+    def n_points(self) -> int:
+        ny, nx = self.grid_shape
+        return nx * ny
+
+    @property
+    def extent_mm(self) -> tuple[float, float, float, float]:
+        """(x_min, y_min, x_max, y_max) of the board including the margin, target frame, mm."""
+        m = self.margin
+        return self.x_edges[0] - m, self.y_edges[0] - m, self.x_edges[-1] + m, self.y_edges[-1] + m
+
+    # --- features and colours ----------------------------------------------------------------------------
+    def feature_points(self) -> np.ndarray:
+        """(N, 3) float64 feature points in the target frame, mm, row by row (Y outer, X inner), Z = 0."""
+        xs = np.asarray(self.x_edges[1:-1])
+        ys = np.asarray(self.y_edges[1:-1])
+        X, Y = np.meshgrid(xs, ys)  # (ny, nx)
+        return np.stack([X.ravel(), Y.ravel(), np.zeros(X.size)], axis=-1)
+
+    def feature_index(self, i, j):
+        """Feature-point index k of corner (i, j) (column i, row j of interior intersections)."""
+        return np.asarray(j) * self.grid_shape[1] + np.asarray(i)
+
+    def is_dark(self, col, row) -> np.ndarray:
+        """Whether cell (col, row) is dark; cells outside the checkered area (the margin) are white."""
+        col, row = np.asarray(col), np.asarray(row)
+        inside = (col >= 0) & (col < self.n_cols) & (row >= 0) & (row < self.n_rows)
+        parity = (self.dark_cell[0] + self.dark_cell[1]) % 2
+        return inside & ((col + row) % 2 == parity)
+
+    def cell_colours(self) -> np.ndarray:
+        """(n_rows, n_cols) bool, True where the cell is dark."""
+        r, c = np.meshgrid(np.arange(self.n_rows), np.arange(self.n_cols), indexing="ij")
+        return self.is_dark(c, r)
+
+    # --- files -------------------------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        return {"type": "checkerboard", "units": "mm", "x_edges": list(self.x_edges),
+                "y_edges": list(self.y_edges), "dark_cell": list(self.dark_cell), "margin": self.margin}
+
+    def save(self, path: str) -> None:
+        """Write the target file (JSON)."""
+        with open(path, "w") as f:
+            json.dump(self.to_dict(), f, indent=1)
+            f.write("\n")
+
+
+def _edges_problem(edges) -> str | None:
+    if len(edges) < 3:
+        return "at least 3 edges (one interior intersection)"
+    if not all(math.isfinite(v) for v in edges):
+        return "finite numbers"
+    if any(b <= a for a, b in zip(edges, edges[1:])):
+        return "strictly ascending values"
+    return None
+
+
+_KNOWN_KEYS = ("type", "units", "x_edges", "y_edges", "dark_cell", "margin", "name", "description")
+
+
+def target_from_dict(data, source: str = "<target>") -> Target:
+    """Validate a target description (the parsed JSON) and build the Target; errors name `source` and field."""
+
+    def fail(field, expected, got):
+        raise TargetError(f"{source}: {field}: expected {expected}, got {got!r}")
+
+    if not isinstance(data, dict):
+        raise TargetError(f"{source}: expected a JSON object, got {type(data).__name__}")
+    unknown = [k for k in data if k not in _KNOWN_KEYS]
+    if unknown:
+        raise TargetError(f"{source}: {unknown[0]}: unknown key (expected one of: {', '.join(_KNOWN_KEYS)})")
+    for key in ("type", "x_edges", "y_edges"):
+        if key not in data:
+            raise TargetError(f"{source}: {key}: missing key")
+    if data["type"] != "checkerboard":
+        fail("type", '"checkerboard"', data["type"])
+    if data.get("units", "mm") != "mm":
+        fail("units", '"mm"', data["units"])
+    edges = {}
+    for key in ("x_edges", "y_edges"):
+        v = data[key]
+        if not isinstance(v, list) or not all(_is_number(e) for e in v):
+            fail(key, "a list of numbers (mm)", v)
+        problem = _edges_problem(v)
+        if problem:
+            fail(key, problem, v)
+        edges[key] = v
+    dark = data.get("dark_cell", [0, 0])
+    if (not isinstance(dark, list) or len(dark) != 2
+            or not all(_is_number(e) and float(e) == int(e) for e in dark)):
+        fail("dark_cell", "[column, row] integers", dark)
+    margin = data.get("margin", 25.0)
+    if not _is_number(margin) or not math.isfinite(margin) or margin < 0:
+        fail("margin", "a non-negative number of mm", margin)
+    return Target(tuple(edges["x_edges"]), tuple(edges["y_edges"]), (int(dark[0]), int(dark[1])), float(margin))
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def load_target(path: str) -> Target:
+    """Read and validate a target file; raises TargetError with a one-line message naming file and field."""
+    if not os.path.isfile(path):
+        raise TargetError(f"{path}: no such file")
+    try:
+        with open(path) as f:
+            data = json.load(f)
+    except json.JSONDecodeError as e:
+        raise TargetError(f"{path}: not valid JSON (line {e.lineno}, column {e.colno}: {e.msg})") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise TargetError(f"{path}: cannot read ({e})") from None
+    return target_from_dict(data, path)
+
+
+# --- design ------------------------------------------------------------------------------------------------
+def design_target(n_cols: int, n_rows: int, square_mm: float | None = None, *, w_mm: float, distance_mm: float,
+                  inclination_deg: float = 0.0, pixel_pitch_mm: float | None = None,
+                  square_px: float | None = None, margin_mm: float = 25.0, dark_cell=(0, 0),
+                  decimals: int = 2) -> Target:
+    """A target whose rows project equally spaced for the design view (Maruyama & Kanatani).
+
+    The design view: the camera (lens-to-sensor distance w) looks along its axis at the design centre of
+    the board, D away; the board is inclined by φ about its X axis, so a point (X, Y) from the design
+    centre is at camera-frame (X, Y cos φ, D + Y sin φ) (φ > 0: rows further down the print are further
+    away). Rows then image at y = w Y cos φ / (D + Y sin φ); the row edges are chosen as the inverse images
+    Y_k = y_k D / (w cos φ − y_k sin φ) of y_k = (k − n_rows/2) Δ, with Δ = square · w cos φ / D (the
+    projected square at the centre). Columns are uniform. Edges are rounded to `decimals` and shifted so the
+    checkered area starts at (0, 0). `designed_pose` gives the design view's pose.
+
+    Args:
+        n_cols, n_rows: number of cells (use n_cols + n_rows odd so a 180° turn changes the corner colour).
+        square_mm: column width and central row height, mm; or give `square_px` and `pixel_pitch_mm` for
+            the square's projected size at the centre, pixels.
+        w_mm, distance_mm, inclination_deg: the design view (w, D, φ).
+    Returns:
+        Target.
+    """
+    if n_cols < 2 or n_rows < 2:
+        raise TargetError(f"n_cols, n_rows: expected at least 2 cells each, got {n_cols}, {n_rows}")
+    if w_mm <= 0 or distance_mm <= 0:
+        raise TargetError(f"w_mm, distance_mm: expected positive lengths, got {w_mm}, {distance_mm}")
+    phi = math.radians(inclination_deg)
+    if not abs(phi) < math.pi / 2:
+        raise TargetError(f"inclination_deg: expected |φ| < 90, got {inclination_deg}")
+    if square_mm is None:
+        if square_px is None or pixel_pitch_mm is None:
+            raise TargetError("square_mm: give square_mm, or square_px with pixel_pitch_mm")
+        square_mm = square_px * pixel_pitch_mm * distance_mm / (w_mm * math.cos(phi))
+    if not square_mm > 0:
+        raise TargetError(f"square_mm: expected a positive length, got {square_mm}")
+    delta = square_mm * w_mm * math.cos(phi) / distance_mm
+    y_img = (np.arange(n_rows + 1) - n_rows / 2.0) * delta
+    denom = w_mm * math.cos(phi) - y_img * math.sin(phi)
+    if np.any(denom <= 0):
+        raise TargetError("inclination_deg: the board would reach behind the camera; use fewer rows or less tilt")
+    ys = y_img * distance_mm / denom
+    xs = (np.arange(n_cols + 1) - n_cols / 2.0) * square_mm
+    xs, ys = xs - xs[0], ys - ys[0]
+    return Target(tuple(np.round(xs, decimals)), tuple(np.round(ys, decimals)), tuple(dark_cell), margin_mm)
+
+
+def design_centre_mm(target: Target) -> tuple[float, float]:
+    """(X_c, Y_c): the board point `design_target` placed on the optical axis.
+
+    Rows of a designed target are a projective image of equally spaced indices, Y(k) = (αk + β)/(γk + 1),
+    so three edges determine the map; the design centre is Y(n_rows / 2).
+    """
+    ys = np.asarray(target.y_edges)
+    n = target.n_rows
+    k = np.array([0.0, n // 2, n])
+    Yk = ys[[0, n // 2, n]]
+    # Y (γ k + 1) = α k + β  ->  [k, 1, −k Y] · (α, β, γ) = Y
+    A = np.stack([k, np.ones(3), -k * Yk], axis=1)
+    alpha, beta, gamma = np.linalg.solve(A, Yk)
+    kc = n / 2.0
+    return 0.5 * (target.x_edges[0] + target.x_edges[-1]), float((alpha * kc + beta) / (gamma * kc + 1.0))
+
+
+def designed_pose(target: Target, distance_mm: float, inclination_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """Pose (R, T), X_cam = R X_target + T, of the view `design_target` was made for.
+
+    R is the rotation about the x axis by the inclination; the design centre sits at (0, 0, D).
+    """
+    phi = math.radians(inclination_deg)
+    c, s = math.cos(phi), math.sin(phi)
+    R = np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    xc, yc = design_centre_mm(target)
+    T = np.array([0.0, 0.0, distance_mm]) - R @ np.array([xc, yc, 0.0])
+    return R, T
+
+
+def projected_row_spacing(target: Target, w_mm: float, distance_mm: float, inclination_deg: float) -> np.ndarray:
+    """(n_rows,) projected row heights in the design view, sensor mm (uniform for a designed target)."""
+    R, T = designed_pose(target, distance_mm, inclination_deg)
+    xc, _ = design_centre_mm(target)
+    p = np.stack([np.full(target.n_rows + 1, xc), np.asarray(target.y_edges), np.zeros(target.n_rows + 1)], 1)
+    pc = p @ R.T + T
+    return np.diff(w_mm * pc[:, 1] / pc[:, 2])
+
+
+# --- images of the board -----------------------------------------------------------------------------------
+def _cumulative_sign(edges: np.ndarray, first_sign: float, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Along one axis: (length of [e0, x] inside the checkered span, ∫ of the ±1 column sign up to x)."""
+    e = np.asarray(edges, dtype=np.float64)
+    signs = first_sign * (-1.0) ** np.arange(len(e) - 1)
+    knots_sign = np.concatenate([[0.0], np.cumsum(signs * np.diff(e))])
+    inside = np.interp(x, e, e - e[0], left=0.0, right=e[-1] - e[0])
+    signed = np.interp(x, e, knots_sign, left=0.0, right=knots_sign[-1])
+    return inside, signed
+
+
+def rasterise(target: Target, x_range_mm, y_range_mm, width_px: int, height_px: int,
+              dark: float = 0.0, white: float = 1.0) -> np.ndarray:
+    """Exact area-averaged (H, W) image of the board over a rectangle of the target plane.
+
+    Pixel (c, r) covers X in x0 + [c, c + 1]·(x1 − x0)/W and Y likewise (column = X, row = Y). The checker is
+    separable in ±1 signs, so each pixel's dark fraction is (A + ε · Sx · Sy) / 2 with A the overlap of the
+    pixel with the checkered area and Sx, Sy the signed overlaps along each axis.
+    """
+    x0, x1 = x_range_mm
+    y0, y1 = y_range_mm
+    bx = np.linspace(x0, x1, width_px + 1)
+    by = np.linspace(y0, y1, height_px + 1)
+    ax, sx = (np.diff(v) for v in _cumulative_sign(target.x_edges, 1.0, bx))
+    ay, sy = (np.diff(v) for v in _cumulative_sign(target.y_edges, 1.0, by))
+    eps = 1.0 if (target.dark_cell[0] + target.dark_cell[1]) % 2 == 0 else -1.0
+    dark_area = 0.5 * (np.outer(ay, ax) + eps * np.outer(sy, sx))
+    dark_frac = dark_area / (np.diff(by)[:, None] * np.diff(bx)[None, :])
+    return (white + (dark - white) * dark_frac).astype(np.float32)
+
+
+def render_target(target: Target, dpi: float) -> np.ndarray:
+    """(H, W) float32 reflectance image of the board incl. margin at `dpi` (dark 0, white 1, edges area-averaged).
+
+    Row 0 is the top of the print (smallest Y), column 0 the left (smallest X); one pixel is 25.4 / dpi mm.
+    The image is the whole number of pixels that covers the board; any fraction left over is white.
+    """
+    x0, y0, x1, y1 = target.extent_mm
+    px = 25.4 / dpi
+    W, H = int(math.ceil((x1 - x0) / px - 1e-9)), int(math.ceil((y1 - y0) / px - 1e-9))
+    return rasterise(target, (x0, x0 + W * px), (y0, y0 + H * px), W, H)
+
+
+def target_texture(target: Target, px_per_mm: float, dark: float = 0.0, white: float = 1.0) -> np.ndarray:
+    """(H, W, 3) float32 linear texture of the board incl. margin, for a textured `rectangle`.
+
+    Orientation: image column = target X, image row = target Y; column 0 / row 0 at (x_min, y_min) of
+    `target.extent_mm`, the last column / row at (x_max, y_max). The image covers the extent exactly:
+    W = round(width · px_per_mm), so the actual scale is W / width (likewise H). Edges are area-averaged.
+    """
+    x0, y0, x1, y1 = target.extent_mm
+    W = max(1, int(round((x1 - x0) * px_per_mm)))
+    H = max(1, int(round((y1 - y0) * px_per_mm)))
+    img = rasterise(target, (x0, x1), (y0, y1), W, H, dark, white)
+    return np.repeat(img[..., None], 3, axis=-1)
+
+
+def write_printable(target: Target, png_path: str | None, pdf_path: str | None, dpi: float = 300.0,
+                    scale_bar_mm: float | None = None) -> None:
+    """Write the board at true size with a scale bar below it: a PNG at `dpi` and/or a vector PDF.
+
+    The page is the board incl. margin plus a 15 mm strip at the bottom holding a scale bar of
+    `scale_bar_mm` (default: the largest of 10/20/50/100/200 mm that fits) with 10 mm ticks and a caption;
+    print at 100 % and check the bar with a ruler.
+    """
+    x0, y0, x1, y1 = target.extent_mm
+    width, strip = x1 - x0, 15.0
+    if scale_bar_mm is None:
+        fits = [v for v in (10.0, 20.0, 50.0, 100.0, 200.0) if v <= 0.8 * width]
+        scale_bar_mm = fits[-1] if fits else 0.5 * width
+    caption = (f"{target.n_cols}x{target.n_rows} cells, board {target.x_edges[-1] - target.x_edges[0]:.1f} x "
+               f"{target.y_edges[-1] - target.y_edges[0]:.1f} mm, margin {target.margin:g} mm; "
+               f"bar = {scale_bar_mm:g} mm")
+    if png_path:
+        _write_png(target, png_path, dpi, strip, scale_bar_mm)
+    if pdf_path:
+        _write_pdf(target, pdf_path, strip, scale_bar_mm, caption)
+
+
+def _bar_geometry(target, strip, bar_mm):
+    x0, _, _, y1 = target.extent_mm
+    bx0 = x0 + max(5.0, 0.1 * target.margin)
+    by0 = y1 + 4.0
+    return bx0, by0, bar_mm, 2.0  # left, top, length, thickness (mm)
+
+
+def _write_png(target, path, dpi, strip, bar_mm):
+    from matplotlib.image import imsave
+
+    from renderer.io import linear_to_srgb
+
+    x0, y0, x1, y1 = target.extent_mm
+    px = 25.4 / dpi
+    W, H = int(math.ceil((x1 - x0) / px - 1e-9)), int(math.ceil((y1 + strip - y0) / px - 1e-9))
+    Hb = int(math.ceil((y1 - y0) / px - 1e-9))
+    img = np.ones((H, W), dtype=np.float32)
+    img[:Hb] = rasterise(target, (x0, x0 + W * px), (y0, y0 + Hb * px), W, Hb)
+    bx0, by0, L, t = _bar_geometry(target, strip, bar_mm)
+    c = lambda x: int(round((x - x0) / px))  # noqa: E731
+    r = lambda y: int(round((y - y0) / px))  # noqa: E731
+    img[r(by0):r(by0 + t), c(bx0):c(bx0 + L)] = 0.0
+    for k in range(int(L // 10) + 1):
+        xk = bx0 + 10.0 * k
+        img[r(by0 - 1.5):r(by0 + t), c(xk) - 1:c(xk) + 1] = 0.0
+    srgb = linear_to_srgb(img)
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    imsave(path, srgb, cmap="gray", vmin=0.0, vmax=1.0, dpi=dpi)
+
+
+def _write_pdf(target, path, strip, bar_mm, caption):
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Rectangle
+
+    x0, y0, x1, y1 = target.extent_mm
+    Wmm, Hmm = x1 - x0, y1 + strip - y0
+    fig = Figure(figsize=(Wmm / 25.4, Hmm / 25.4))
+    ax = fig.add_axes((0, 0, 1, 1))
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y1 + strip, y0)  # Y down, as on the print
+    ax.set_axis_off()
+    xe, ye = target.x_edges, target.y_edges
+    dark = target.cell_colours()
+    for j in range(target.n_rows):
+        for i in range(target.n_cols):
+            if dark[j, i]:
+                ax.add_patch(Rectangle((xe[i], ye[j]), xe[i + 1] - xe[i], ye[j + 1] - ye[j], facecolor="black",
+                                       edgecolor="none", linewidth=0, antialiased=False))
+    bx0, by0, L, t = _bar_geometry(target, strip, bar_mm)
+    ax.add_patch(Rectangle((bx0, by0), L, t, facecolor="black", edgecolor="none"))
+    for k in range(int(L // 10) + 1):
+        ax.plot([bx0 + 10.0 * k] * 2, [by0 - 1.5, by0 + t], color="black", linewidth=0.5)
+    ax.text(bx0, by0 + t + 2.0, caption, fontsize=6, va="top", ha="left")
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    fig.savefig(path, format="pdf")

@@ -14,7 +14,7 @@ OUT ?= out
 install: .venv/.installed
 
 reproduce: .venv/.installed
-	$(PY) -m renderer gallery -o $(OUT)/gallery.png
+	$(PY) -m tiltfit reproduce -o $(OUT)/reproduce
 
 test: .venv/.installed
 	$(PY) -m pytest -n 2 --durations=15 tests

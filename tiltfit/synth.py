@@ -4,8 +4,10 @@ Camera model (the paper's unified model with a tilted plane of focus, `docs/conv
 X_target goes to the camera frame as p = R X_target + T (x right, y down, z forward, mm); its image is
     (u, v) = (cx + w x / (z p_px), cy + w y / (z p_px))                        (paper (3); p_px = pixel pitch)
 and its blur-disc diameter on the sensor is
-    b = w d |1/(U + y tan θF) − 1/z|                                           (paper (2), (4))
-in mm, b / p_px in pixels. The principal point defaults to the image centre ((W − 1)/2, (H − 1)/2).
+    b = w d |1/U − 1/z|                                                       (paper (2))
+in mm, b / p_px in pixels, when untilted; with a tilted plane of focus the exact equivalent-area diameter of
+the thin lens's blur ellipse (`renderer.optics.blur_diameter_exact`), of which the paper's (4),
+b = w d |1/(U + y tan θF) − 1/z|, is an approximation. The principal point defaults to the image centre ((W − 1)/2, (H − 1)/2).
 
 Images (`render_view`):
 - `analytic` (default): the exact "gather" model: each pixel is the average, over the pixel square, of the
@@ -24,6 +26,9 @@ import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import torch
+
+from renderer import optics
 
 from .target import Target
 
@@ -80,11 +85,15 @@ class SynthCamera:
         return np.stack([cx + f * p_cam[..., 0] / p_cam[..., 2], cy + f * p_cam[..., 1] / p_cam[..., 2]], -1)
 
     def blur_px(self, p_cam: np.ndarray) -> np.ndarray:
-        """(..., 3) camera-frame points, mm -> (...,) blur-disc diameters, pixels (paper (4))."""
-        p_cam = np.asarray(p_cam, dtype=np.float64)
-        focus = self.U_mm + p_cam[..., 1] * math.tan(self.theta_F_rad)
-        b_mm = self.w_mm * self.d_mm * np.abs(1.0 / focus - 1.0 / p_cam[..., 2])
-        return b_mm / self.pixel_pitch_mm
+        """(..., 3) camera-frame points, mm -> (...,) blur-disc diameters, pixels.
+
+        The exact thin-lens value for a lens tilted about its centre (`renderer.optics.blur_diameter_exact`,
+        the equivalent-area diameter of the blur ellipse), not the paper's approximate (4): simulated truth
+        must not carry the approximation a fit is meant to be judged against. For θF = 0 both are (2).
+        """
+        p = torch.as_tensor(np.asarray(p_cam, dtype=np.float64))
+        b_mm = optics.blur_diameter_exact(p, self.w_mm, self.U_mm, self.d_mm, self.theta_F_rad)
+        return b_mm.numpy() / self.pixel_pitch_mm
 
 
 #: The paper's camera (Canon EOS 6D, TS-E 45 mm at f/2.8, stage-1 estimates): 5472 × 3648, 6.54 µm pixels.

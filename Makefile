@@ -20,6 +20,8 @@ test: .venv/.installed
 	$(PY) -m pytest -n 2 --durations=15 tests
 
 bench: .venv/.installed
+	# Mitsuba's CPU (LLVM) backend needs a newer libLLVM than Debian 12's default; it finds libllvm19 itself.
+	-command -v apt-get >/dev/null && apt-get install -y -q libllvm19 >/dev/null
 	.venv/bin/pip install -q -e '.[bench]'
 	$(PY) benchmarks/run_all.py
 

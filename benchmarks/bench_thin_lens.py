@@ -7,12 +7,13 @@ the point light with one shadow ray per camera sample (ours `max_depth` 0; Mitsu
 emitter_samples=1, bsdf_samples=0), box pixel filter, so the only randomness is the pixel × lens sample.
 
 Measured, in one run (ours and Mitsuba interleaved: for each repeat and each spp, every method in a
-rotating order, so load from other processes hits all of them alike):
+rotating order, so busy spells of other jobs on the machine fall on all of them):
 - RMSE against a high-spp reference of the same renderer and median wall time over the repeats, for spp
   1, 2, 4, ..., 256, for our samplers (independent, stratified, sobol) and Mitsuba's (independent,
   stratified, multijitter, orthogonal, ldsampler; those that round spp to squares or primes² use the spp
   they accept, recorded as `spp_actual`);
-- ours / Mitsuba wall time at EQUAL RMSE, interpolating each curve in log-log;
+- ours / Mitsuba time at EQUAL RMSE, interpolating each curve in log-log (median wall time, the
+  headline; also median CPU time and the fastest repeat's wall time);
 - the cross-check: the two references' mean absolute difference as a fraction of the mean intensity;
 - the conventions: Mitsuba's rays against ours for the same film position (pixel grid, axes, plane of
   focus, aperture), and an in-focus (d = 0, pinhole) image with and without flips.
@@ -22,9 +23,10 @@ halves (different seeds), so its own noise is known, MSE_ref = mean((a − b)²)
 every measured MSE (`rmse`; `rmse_raw` keeps the uncorrected value).
 
 Usage (writes benchmarks/results/thin_lens_speed_accuracy.{json,md,png} and thin_lens_crosscheck.png):
-    .venv/bin/python benchmarks/bench_thin_lens.py                  # 160 × 107, about 10-15 min on 2 cores
-    .venv/bin/python benchmarks/bench_thin_lens.py --width 320 --height 213   # the full size, ~4× longer
-    .venv/bin/python benchmarks/bench_thin_lens.py --quick          # smoke run, under a minute
+    .venv/bin/python benchmarks/bench_thin_lens.py            # 320 × 213, spp 1 ... 256, 3 repeats
+    .venv/bin/python benchmarks/bench_thin_lens.py --quick    # smoke run: 64 × 43, spp ≤ 16, under a minute
+Timed runs use 2 torch and 2 Dr.Jit threads (`--threads`) and OMP_WAIT_POLICY=PASSIVE for torch unless the
+environment sets it (see the comment at the imports).
 Mitsuba's LLVM backend needs LLVM ≥ 16 (LLVM 14/15 abort with "Cannot select ... fmaximum"); on Debian 12
 `apt-get install libllvm19`, or point DRJIT_LIBLLVM_PATH at one.
 """
@@ -39,6 +41,13 @@ import platform
 import subprocess
 import sys
 import time
+
+if __name__ == "__main__" and not os.environ.get("THIN_LENS_BENCH_KEEP_OMP"):
+    # torch's OpenMP workers spin while they wait for each other. On a machine shared with other jobs a
+    # spinning worker holds the core its partner needs, and 2 threads ran 5-20× slower than 1 here (the
+    # `thread_probe` numbers in the results); sleeping waits cost nothing measurable on an idle machine.
+    # It has to be set before torch loads OpenMP.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numpy as np
 import torch
@@ -59,7 +68,8 @@ MI_SAMPLERS = ("independent", "stratified", "multijitter", "orthogonal", "ldsamp
 PEER = {"independent": "independent", "stratified": "stratified", "sobol": "ldsampler"}
 # Sample counts each Mitsuba sampler accepts as given (others are rounded up; see `mi_spp_levels`).
 _SQUARE_POW2 = (1, 4, 16, 64, 256, 1024)
-_PRIME_SQUARES = (4, 9, 25, 49, 121, 169, 289)
+_PRIME_SQUARES = (4, 9, 25, 49, 121, 169, 289)  # orthogonal (strength 2): 1 is rounded up to 4
+_LDSAMPLER = (4, 16, 64, 256, 1024)  # ldsampler rounds 1 up to 4
 
 # Largest Mitsuba wavefront (samples) rendered at once; bigger counts are split into passes with new seeds.
 MI_MAX_SAMPLES = 1 << 22
@@ -67,7 +77,7 @@ MI_MAX_SAMPLES = 1 << 22
 
 # ------------------------------------------------------------------------------------------------ scene
 
-def scene_config(width: int = 160, height: int = 107, d: float = D_MM) -> dict:
+def scene_config(width: int = 320, height: int = 213, d: float = D_MM) -> dict:
     """The benchmark scene as a scene-file dict (see CONTRACTS.md); camera frame = world frame (y down).
 
     Args:
@@ -294,10 +304,13 @@ def check_conventions(width: int = 33, height: int = 21, spp: int = 1024, mi_spp
 
 def mi_spp_levels(sampler: str, levels: list[int]) -> list[int]:
     """The spp Mitsuba's sampler accepts unrounded, within the range of `levels` (stratified and ldsampler:
-    squares of powers of two; orthogonal: squares of primes; the others: `levels` themselves)."""
+    squares of powers of two, ldsampler from 4; orthogonal: squares of primes; the others: `levels`
+    themselves, though multijitter still rounds some, e.g. 32 to 35: `spp_actual` records it)."""
     lo, hi = min(levels), max(levels)
-    if sampler in ("stratified", "ldsampler"):
+    if sampler == "stratified":
         return [n for n in _SQUARE_POW2 if lo <= n <= hi]
+    if sampler == "ldsampler":
+        return [n for n in _LDSAMPLER if n <= hi]
     if sampler == "orthogonal":
         return [n for n in _PRIME_SQUARES if n <= hi]
     return list(levels)
@@ -430,6 +443,19 @@ def time_at_rmse(method: dict, rmse: np.ndarray, time_key: str = "time_s_median"
     return np.where((x >= le.min()) & (x <= le.max()), out, np.nan)
 
 
+def stalls(curves: dict, factor: float = 0.9) -> list[str]:
+    """Methods whose RMSE falls by less than `factor` between consecutive sample counts (2× or more spp
+    should give at most 1/sqrt(2) ≈ 0.71 even for plain Monte Carlo): a sampler that stops converging."""
+    out = []
+    for key, m in curves.items():
+        pts = m["points"]
+        for p, q in zip(pts, pts[1:]):
+            if q["spp_actual"] >= 2 * p["spp_actual"] and q["rmse_median"] > factor * p["rmse_median"]:
+                out.append(f"{key}: RMSE {p['rmse_median']:.3e} at {p['spp_actual']} spp, "
+                           f"{q['rmse_median']:.3e} at {q['spp_actual']} spp")
+    return out
+
+
 def equal_error_ratios(curves: dict, n_levels: int = 9, time_key: str = "time_s_median") -> dict:
     """ours / Mitsuba time (`time_key`) at equal RMSE, for every pair and against Mitsuba's best sampler.
 
@@ -470,6 +496,44 @@ def equal_error_ratios(curves: dict, n_levels: int = 9, time_key: str = "time_s_
     return out
 
 
+# ------------------------------------------------------------------------------------------ threads
+
+def probe_threads(width: int, height: int, spp: int = 16, repeats: int = 3) -> dict:
+    """Median wall and CPU time of our sobol render at 1 and 2 torch threads, interleaved, in this process."""
+    scene = load_scene(scene_config(width, height))
+    render_ours(scene, 1, "sobol")
+    runs = {1: [], 2: []}
+    for rep in range(repeats):
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            t0, c0 = time.perf_counter(), time.process_time()
+            render_ours(scene, spp, "sobol", seed=rep)
+            runs[n].append((time.perf_counter() - t0, time.process_time() - c0))
+    return {f"{n}_threads": {"wall_s": float(np.median([r[0] for r in v])), "cpu_s": float(np.median([r[1] for r in v]))}
+            for n, v in runs.items()}
+
+
+def thread_probe(width: int, height: int) -> dict:
+    """`probe_threads` in child processes with OpenMP's default wait policy (spinning) and with PASSIVE.
+
+    Shows what the wait policy does to ours at 2 threads on this (shared) machine; spp 16, medians of 3.
+    """
+    out = {}
+    for policy in ("default", "PASSIVE"):
+        env = dict(os.environ, THIN_LENS_BENCH_KEEP_OMP="1")
+        env.pop("OMP_WAIT_POLICY", None)
+        if policy == "PASSIVE":
+            env["OMP_WAIT_POLICY"] = "PASSIVE"
+        cmd = [sys.executable, os.path.abspath(__file__), "--probe-threads", "--width", str(width),
+               "--height", str(height)]
+        try:
+            proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, check=True)
+            out[policy] = json.loads(proc.stdout.strip().splitlines()[-1])
+        except (OSError, subprocess.SubprocessError, ValueError, IndexError) as e:
+            out[policy] = {"error": f"{type(e).__name__}: {e}"}
+    return out
+
+
 # ------------------------------------------------------------------------------------------ reporting
 
 def machine_info() -> dict:
@@ -487,6 +551,7 @@ def machine_info() -> dict:
             "python": platform.python_version(), "torch": torch.__version__, "mitsuba": mi.__version__,
             "drjit": dr.__version__, "mitsuba_variant": mi.variant(),
             "torch_threads": torch.get_num_threads(), "drjit_threads": dr.thread_count(),
+            "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "(default)"),
             "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
 
 
@@ -550,6 +615,17 @@ def plot_crosscheck(refs: dict, path: str) -> None:
     plt.close(fig)
 
 
+def _thread_line(probe: dict) -> str:
+    parts = []
+    for policy, r in probe.items():
+        if "error" in r:
+            parts.append(f"{policy}: {r['error']}")
+        else:
+            parts.append(f"{policy} policy {r['1_threads']['wall_s']:.2f} s at 1 thread, "
+                         f"{r['2_threads']['wall_s']:.2f} s at 2")
+    return "Ours, sobol 16 spp, median wall time: " + "; ".join(parts) + "."
+
+
 def _fmt(x, digits=3) -> str:
     return "—" if x is None else f"{x:.{digits}g}"
 
@@ -567,6 +643,8 @@ def write_markdown(res: dict, path: str) -> None:
         f"torch {res['machine']['torch']} with {res['machine']['torch_threads']} threads, Mitsuba "
         f"{res['machine']['mitsuba']} `{res['machine']['mitsuba_variant']}` with {res['machine']['drjit_threads']} "
         f"threads. Total run {res['total_s']:.0f} s.",
+        "",
+        f"OpenMP wait policy for ours: {res['machine']['OMP_WAIT_POLICY']}. " + _thread_line(res["thread_probe"]),
         "",
         f"Scene: {c['width']}×{c['height']} px, w = {c['w_mm']} mm, U = {c['U_mm']} mm, d = {c['d_mm']:.3f} mm, "
         f"sensor {c['sensor_mm'][0]}×{c['sensor_mm'][1]:.3f} mm; direct light from one point light, one shadow "
@@ -598,6 +676,8 @@ def write_markdown(res: dict, path: str) -> None:
     L += ["", "Named peers (Mitsuba's counterpart of each of our samplers): " + ", ".join(
         f"{a} ↔ {b}: {_fmt((ratios[f'ours/{a}'].get(f'mitsuba/{b}') or {}).get('geomean'))}×"
         for a, b in PEER.items()) + ".", "",
+        "RMSE that stops falling (doubling spp should give ≤ 0.71×; flagged above 0.9×): "
+        + ("; ".join(res["rmse_stalls"]) if res["rmse_stalls"] else "none") + ".", "",
         "## Cross-check (references)", "",
         f"Mean |ours − Mitsuba| = {100 * cx['mean_abs_diff_rel']:.3f} % of the mean intensity "
         f"({cx['mean_intensity']:.4f}); threshold 1 % — {'PASS' if cx['pass'] else 'FAIL'}. "
@@ -635,8 +715,8 @@ def write_markdown(res: dict, path: str) -> None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--width", type=int, default=160)
-    ap.add_argument("--height", type=int, default=107)
+    ap.add_argument("--width", type=int, default=320)
+    ap.add_argument("--height", type=int, default=213)
     ap.add_argument("--max-spp", type=int, default=256, help="largest spp of the sweep (powers of two from 1)")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--ref-spp", type=int, default=1024, help="our reference, sobol (two halves)")
@@ -644,7 +724,11 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2, help="torch and Dr.Jit threads for everything timed")
     ap.add_argument("--quick", action="store_true", help="smoke run: 64×43, spp ≤ 16, small references")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results"))
+    ap.add_argument("--probe-threads", action="store_true", help=argparse.SUPPRESS)  # child of `thread_probe`
     args = ap.parse_args(argv)
+    if args.probe_threads:
+        print(json.dumps(probe_threads(args.width, args.height)))
+        return 0
     if args.quick:
         args.width, args.height, args.max_spp, args.ref_spp, args.mi_ref_spp = 64, 43, 16, 128, 1024
     import drjit as dr
@@ -661,6 +745,9 @@ def main(argv=None) -> int:
     log("conventions ...")
     conventions = check_conventions()
     log(f"  {conventions}")
+    log("threads ...")
+    threads = thread_probe(args.width, args.height)
+    log(f"  {threads}")
     log("references ...")
     refs = references(cfg, args.ref_spp, args.mi_ref_spp, log)
     cx = crosscheck(refs)
@@ -684,10 +771,12 @@ def main(argv=None) -> int:
                    "mitsuba_integrator": "direct (emitter_samples=1, bsdf_samples=0)",
                    "ours_options": "max_depth 0, float32, default chunking and culling, no torch.compile"},
         "conventions": conventions,
+        "thread_probe": threads,
         "references": {k: {kk: vv for kk, vv in v.items() if kk != "image"} for k, v in refs.items()},
         "crosscheck": cx,
         "curves": curves,
         "equal_rmse_ratio": ratios,
+        "rmse_stalls": stalls(curves),
         "equal_rmse_ratio_cpu": ratios_cpu,
         "equal_rmse_ratio_min_wall": ratios_min,
         "time_ratio_equal_spp_vs_mitsuba_independent": same_spp,

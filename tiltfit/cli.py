@@ -1,9 +1,10 @@
-"""Command line: `tiltfit detect`, `tiltfit calibrate`, `tiltfit reproduce`.
+"""Command line: `tiltfit detect`, `tiltfit calibrate`, `tiltfit reproduce`, `tiltfit stability`.
 
     tiltfit detect IMAGE --target T.json [--encoding srgb|linear] -o DET.json
     tiltfit calibrate IMAGE... --target T.json --pixel-pitch-mm P [--fit unified|tilt|joint]
                       [--init CALIB.json] [--encoding srgb|linear] -o CALIB.json
     tiltfit reproduce [--quick] [-o DIR]
+    tiltfit stability [--quick] [-o DIR]
 
 `calibrate` also accepts DET.json files (written by `tiltfit detect`) in place of images.
 Errors (bad or missing file, missing key, no board found, truncated image, a fit that does not converge)
@@ -265,6 +266,13 @@ def cmd_reproduce(argv) -> int:
     return int(reproduce.main(list(argv)) or 0)
 
 
+def cmd_stability(argv) -> int:
+    """`tiltfit stability ...` is `tiltfit.stability.main` (its own options and help)."""
+    from . import stability
+
+    return int(stability.main(list(argv)) or 0)
+
+
 # --- parser ------------------------------------------------------------------------------------------------
 
 def build_parser() -> argparse.ArgumentParser:
@@ -302,6 +310,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     # Listed for --help; its arguments are parsed by tiltfit.reproduce itself (see main).
     sub.add_parser("reproduce", help="the paper's experiment end to end on a simulated camera", add_help=False)
+    sub.add_parser("stability", help="where each method fails, and how ours behaves there", add_help=False)
     return ap
 
 
@@ -309,6 +318,8 @@ def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     if argv and argv[0] == "reproduce":
         return cmd_reproduce(argv[1:])
+    if argv and argv[0] == "stability":
+        return cmd_stability(argv[1:])
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)

@@ -330,6 +330,8 @@ def poses_from_pnp(obs: Observations, focal_px: float, principal_point_px) -> tu
             raise FitError(f"{obs.names[v]}: cannot find the board's pose")
         ok, r, t = cv2.solvePnP(pts[m], obs.corners_px[v].numpy()[m], K, None, r, t, True,
                                 cv2.SOLVEPNP_ITERATIVE)
+        if not ok or not (np.isfinite(r).all() and np.isfinite(t).all()):
+            raise FitError(f"{obs.names[v]}: cannot find the board's pose (degenerate corner layout)")
         rv.append(r.ravel())
         tv.append(t.ravel())
     return torch.tensor(np.array(rv)), torch.tensor(np.array(tv))
@@ -360,7 +362,7 @@ def blur_from_scan(p_cam: torch.Tensor, blur_px: torch.Tensor, mask: torch.Tenso
         if float(rss[i]) < best[0]:
             best = (float(rss[i]), float(U[i]), float(c[i]), float(torch.atan(t)))
     _, U0, wd, th = best
-    if not wd > 0:
+    if wd is None or not wd > 0:
         raise FitError("cannot start the blur parameters: the blur widths show no defocus")
     return U0, wd / w_mm, th
 

@@ -288,3 +288,16 @@ def test_mismatched_target_is_an_error():
     obs.points_mm[:, 1] *= 1.25  # the wrong target file: rows 25 % further apart than on the board seen
     with pytest.raises(FitError, match="no consistent solution"):
         calibrate(obs, "unified", options=FitOptions(nominal_focal_mm=50.0, model_selection=False))
+
+
+def test_blur_scan_on_non_finite_geometry_raises_fit_error_not_type_error():
+    """A NaN starting pose (seen from solvePnP on degenerate views) must end in a clear FitError."""
+    import pytest as _pytest
+
+    from tiltfit.fit import FitError, blur_from_scan
+
+    p_cam = torch.full((1, 6, 3), float("nan"), dtype=torch.float64)
+    blur = torch.ones(1, 6, dtype=torch.float64)
+    mask = torch.ones(1, 6, dtype=torch.bool)
+    with _pytest.raises(FitError, match="blur"):
+        blur_from_scan(p_cam, blur, mask, 55.39, 0.00654, fit_tilt=False)

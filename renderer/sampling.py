@@ -110,8 +110,7 @@ class Sampler:
         if self.name == "independent":
             return jitter
         nx, ny = _grid(spp)
-        offset = (_unit(_chain(_chain(0, self.seed + 1), pix)) * spp).long()
-        lens_stratum = (sample * _coprime_step(spp) + offset) % spp
+        lens_stratum = permute(sample, spp, _chain(_chain(0, self.seed + 1), pix))
         return [(sample % nx + jitter[0]) / nx, (sample // nx + jitter[1]) / ny,
                 (lens_stratum % nx + jitter[2]) / nx, (lens_stratum // nx + jitter[3]) / ny]
 
@@ -131,8 +130,7 @@ class Sampler:
         """Stratified samples; pixel and sample broadcast against each other and against dims (4,)."""
         nx, ny = _grid(self.spp)
         jitter = uniform_hash(self.seed, pixel, sample, dims)
-        offset = (uniform_hash(self.seed + 1, pixel) * self.spp).long()
-        lens_stratum = (sample * _coprime_step(self.spp) + offset) % self.spp
+        lens_stratum = permute(sample, self.spp, _chain(_chain(0, self.seed + 1), pixel))
         px = (sample % nx + jitter[..., 0:1]) / nx
         py = (sample // nx + jitter[..., 1:2]) / ny
         lx = (lens_stratum % nx + jitter[..., 2:3]) / nx
@@ -140,9 +138,43 @@ class Sampler:
         return torch.cat(torch.broadcast_tensors(px, py, lx, ly), -1)
 
 
-def _coprime_step(n: int) -> int:
-    """A step coprime with n near 0.618 n, so lens strata visit all cells in a scrambled order."""
-    step = max(1, round(0.618 * n))
-    while math.gcd(step, n) != 1:
-        step += 1
-    return step
+def permute(index: torch.Tensor, n: int, key: torch.Tensor) -> torch.Tensor:
+    """Element `index` of a pseudo-random permutation of range(n) chosen by the 32-bit `key` (broadcast).
+
+    Kensler's hash-based permutation ("Correlated Multi-Jittered Sampling", 2013), the one pbrt uses:
+    a bijection on the next power of two, applied again while the result falls outside range(n) (cycle
+    walking), so every key gives a true permutation and no table is stored. Stratified sampling uses one per
+    pixel to pair lens strata with pixel strata without correlating them.
+    """
+    w = n - 1
+    for shift in (1, 2, 4, 8, 16):
+        w |= w >> shift
+    p = torch.as_tensor(key, dtype=torch.int64) & _M32
+    i, p = torch.broadcast_tensors(torch.as_tensor(index, dtype=torch.int64), p)
+    i, p = i.clone(), p.clone()
+    todo = torch.ones_like(i, dtype=torch.bool)
+    for _ in range(64):  # each round leaves a value outside range(n) with probability < 1/2
+        j = i.clone()
+        j = j ^ p
+        j = (j * 0xE170893D) & _M32
+        j = j ^ (p >> 16)
+        j = j ^ ((j & w) >> 4)
+        j = j ^ (p >> 8)
+        j = (j * 0x0929EB3F) & _M32
+        j = j ^ (p >> 23)
+        j = j ^ ((j & w) >> 1)
+        j = (j * (1 | (p >> 27))) & _M32
+        j = (j * 0x6935FA69) & _M32
+        j = j ^ ((j & w) >> 11)
+        j = (j * 0x74DCB303) & _M32
+        j = j ^ ((j & w) >> 2)
+        j = (j * 0x9E501CC3) & _M32
+        j = j ^ ((j & w) >> 2)
+        j = (j * 0xC860A3DF) & _M32
+        j = j & w
+        j = j ^ (j >> 5)
+        i = torch.where(todo, j, i)
+        todo = todo & (i >= n)
+        if not bool(todo.any()):
+            break
+    return (i + p) % n

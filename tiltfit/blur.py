@@ -474,14 +474,3 @@ def _measure_blur(gray, target, corners_px, levels, max_passes, max_pixels, leve
                 new_plan[k] = (f_new, r_new, g, False)
         plan = new_plan
     return blur, sigma
-
-
-def _combine(b: np.ndarray, sb: np.ndarray) -> tuple[float, float]:
-    """Inverse-variance mean of a point's edge estimates; the uncertainty grows with their scatter."""
-    w = 1.0 / np.maximum(sb, 1e-9) ** 2
-    m = float((w * b).sum() / w.sum())
-    s = float(1.0 / math.sqrt(w.sum()))
-    if b.size > 1:
-        chi2 = float((w * (b - m) ** 2).sum() / (b.size - 1))
-        s *= math.sqrt(max(1.0, chi2))
-    return m, s

@@ -5,23 +5,30 @@ Pipeline (`detect`):
    (x_f + 0.5) f − 0.5).
 2. At a coarse level (coarsest first, finer on failure): saddle candidates, the local minima of the Hessian
    determinant det H = Ixx Iyy − Ixy² of the Gaussian-smoothed image (kornia), below a threshold set from the
-   measured noise. A checker corner stays a saddle under any symmetric blur, even when the blur is as wide
-   as the square and the pattern is nearly a sinusoid, so this works where edge-based detectors give up.
-   The two zero directions of the quadratic form vᵀHv are the edges through the corner.
+   measured noise, where the saddle is well formed (−det H / (½(Ixx² + Iyy²) + Ixy²) > 0.3) and the
+   gradient is small (a saddle's centre is flat, a point on an edge is not). A checker corner stays a
+   saddle under any symmetric blur, even when the blur is as wide as the square and the pattern is nearly
+   a sinusoid, so this works where edge-based detectors give up. The two zero directions of the quadratic
+   form vᵀHv are the edges through the corner.
 3. Grid growth: a seed corner with neighbours along both edge directions, then predict-and-verify over the
-   lattice (local affine prediction from known neighbours, nearest candidate or a local saddle search).
-   Each accepted corner must look like an X-junction: the four cell centres around it alternate
-   (diagonal pairs equal, pairs different), which rejects the board's outer L-corners and clutter.
+   lattice (local affine prediction from known neighbours, the strongest candidate near the prediction or
+   a local saddle search). Each accepted corner must look like an X-junction: the four cell centres around
+   it alternate (diagonal pairs equal, pairs different), which rejects the board's outer L-corners.
 4. Sub-pixel refinement at full resolution: a checker corner under any point-symmetric blur (disc, pixel
    box, Gaussian) is a centre of point symmetry, I(p + v) = I(p − v). Gauss–Newton on p minimises
-   Σ_v w(v) [I(p + v) − I(p − v)]² over a window of up to 0.4 of the local square (bicubic interpolation
-   on patches, all corners batched). No edge model, so no bias from the blur size or the contrast.
+   Σ_v w(v) [I(p + v) − I(p − v)]² over a window of 0.4 of the local square (at most 20 px), on patches
+   smoothed by a 1.4 px Gaussian (symmetric, so the optimum stays put; it damps aliasing of sharp edges)
+   and interpolated with Keys' cubic, all corners batched. No edge or blur model, so no bias from the blur
+   size, its shape or the contrast; measured bias < 0.015 px for blur ≥ 1 px, < 0.035 px for sharp edges.
 5. Indexing: which target corner (i, j) each lattice node is. A checkerboard is ambiguous under 90°
    turns, 180° turns and shifts; each hypothesis (4 turns × shifts that keep the nodes on the board) is
    scored by the colours it predicts: the cells between detected corners (the parity of the dark cell),
    one ring of cells beyond them (board cells) and a second ring (board or white margin). A tie is broken
-   by the fit of a homography from the target coordinates (non-uniform rows tell the turns apart).
-6. Blur per feature point (`tiltfit.blur.measure_blur`).
+   by the fit of a homography from the target coordinates (non-uniform rows tell the turns apart); a tie
+   that remains is reported (grid_found False) rather than guessed.
+6. Completion: corners the growth missed, predicted by a local homography from the indexed ones, refined
+   and kept when they are clean X-junctions (`complete_corners`).
+7. Blur per feature point (`tiltfit.blur.measure_blur`).
 
 Images are (H, W) or (H, W, C) linear float arrays (decode sRGB first: `renderer.io.read_image` does).
 Outputs are numpy float64 in pixels: x = column, y = row, (0, 0) the centre of the top-left pixel.
@@ -364,7 +371,7 @@ class _Grid:
         return contrast > 8 * self.noise and asym < 0.4 * contrast
 
     def find_near(self, p, radius):
-        """Nearest unused candidate within radius of p, else a local saddle search in det H."""
+        """The strongest unused candidate within radius of p, else a local saddle search in det H."""
         sm = self.sm
         d = np.hypot(sm.xy[:, 0] - p[0], sm.xy[:, 1] - p[1])
         near = np.nonzero(d <= radius)[0]
@@ -809,8 +816,60 @@ def detect_corners(gray: np.ndarray, target: Target, *, coarse_max_size: int = 4
             return corners, False, res.message, f
         k = target.feature_index(res.ij[:, 0], res.ij[:, 1])
         corners[k] = xy_r[ok]
+        t4 = time.perf_counter()
+        complete_corners(gray, target, corners, refine_radius_max)
+        timings["complete"] = time.perf_counter() - t4
         return corners, True, "", f
     return corners, False, message, 0
+
+
+def complete_corners(gray: np.ndarray, target: Target, corners: np.ndarray, refine_radius_max: float = 20.0,
+                     rounds: int = 2, max_asymmetry: float = 0.35) -> int:
+    """Look for the target's corners that the grid growth missed, where the found ones predict them.
+
+    Once the corners are indexed, a local homography (target plane -> image) from found corners within two
+    indices predicts each missing one; it is refined like the others and kept when it is a clean point-
+    symmetric X-junction near the prediction. Recovers corners whose coarse saddle was too weak (very
+    heavy blur, the board's outer ring). Modifies `corners` in place; returns the number added.
+    """
+    H, W = gray.shape
+    ny, nx = target.grid_shape
+    pts = target.feature_points()[:, :2]
+    xe, ye = target.x_edges, target.y_edges
+    added = 0
+    for _ in range(rounds):
+        found = np.isfinite(corners).all(1)
+        missing = np.nonzero(~found)[0]
+        if missing.size == 0 or found.sum() < 4:
+            break
+        cand, pred, spacing = [], [], []
+        for k in missing:
+            j, i = divmod(int(k), nx)
+            near = [jj * nx + ii for jj in range(max(0, j - 2), min(ny, j + 3))
+                    for ii in range(max(0, i - 2), min(nx, i + 3)) if found[jj * nx + ii]]
+            if len(near) < 4 or np.linalg.matrix_rank(pts[near] - pts[near].mean(0)) < 2:
+                continue
+            Hm = _homography_dlt(pts[near], corners[near])
+            if Hm is None or not np.isfinite(Hm).all():
+                continue
+            q = _apply_h(Hm, np.array([[xe[i + 1], ye[j + 1]], [xe[i], ye[j + 1]], [xe[i + 2], ye[j + 1]],
+                                     [xe[i + 1], ye[j]], [xe[i + 1], ye[j + 2]]]))
+            sp = float(np.min(np.hypot(*(q[1:] - q[0]).T)))
+            if not (3 <= q[0, 0] <= W - 4 and 3 <= q[0, 1] <= H - 4) or sp < 6:
+                continue
+            cand.append(int(k))
+            pred.append(q[0])
+            spacing.append(sp)
+        if not cand:
+            break
+        pred, spacing = np.array(pred), np.array(spacing)
+        xy, asym, ok = refine_symmetric(gray, pred, np.clip(0.4 * spacing, 3.0, refine_radius_max))
+        keep = ok & (asym < max_asymmetry) & (np.hypot(*(xy - pred).T) < 0.25 * spacing)
+        corners[np.array(cand)[keep]] = xy[keep]
+        added += int(keep.sum())
+        if not keep.any():
+            break
+    return added
 
 
 def _median_spacing(nodes: np.ndarray, xy: np.ndarray) -> float:

@@ -7,7 +7,8 @@ and its blur-disc diameter on the sensor is
     b = w d |1/U − 1/z|                                                       (paper (2))
 in mm, b / p_px in pixels, when untilted; with a tilted plane of focus the exact equivalent-area diameter of
 the thin lens's blur ellipse (`renderer.optics.blur_diameter_exact`), of which the paper's (4),
-b = w d |1/(U + y tan θF) − 1/z|, is an approximation. The principal point defaults to the image centre ((W − 1)/2, (H − 1)/2).
+b = w d |1/(U + y tan θF) − 1/z|, is an approximation. The principal point defaults to the image centre,
+((W − 1)/2, (H − 1)/2).
 
 Images (`render_view`):
 - `analytic` (default): the exact "gather" model: each pixel is the average, over the pixel square, of the

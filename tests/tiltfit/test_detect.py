@@ -66,9 +66,9 @@ def test_works_at_blur_08_of_the_square():
     det = detect(v.image, TARGET, measure_blur=False)
     assert det.grid_found, f"no grid at blur 0.8 of the square: {det.message}"
     e = errors(det, v)
-    assert det.found.sum() >= 0.8 * TARGET.n_points, f"only {det.found.sum()} corners at blur 0.8"
-    assert np.nanmax(e) < 0.5, f"a corner is {np.nanmax(e):.2f} px off: wrong index or lost refinement"
-    assert rms(e) < 0.15, f"corner RMS {rms(e):.3f} px at blur 0.8 of the square"
+    assert det.found.sum() >= 0.95 * TARGET.n_points, f"only {det.found.sum()} corners at blur 0.8"
+    assert np.nanmax(e) < 0.3, f"a corner is {np.nanmax(e):.2f} px off: wrong index or lost refinement"
+    assert rms(e) < 0.1, f"corner RMS {rms(e):.3f} px at blur 0.8 of the square"
 
 
 @pytest.mark.parametrize("roll", [90.0, 180.0, 270.0])

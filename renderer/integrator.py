@@ -35,7 +35,9 @@ def _group_by_object(object_id: torch.Tensor, n_objects: int, multiple: int = 1)
     if max(counts[1:]) == object_id.shape[0]:  # one object took every ray: already grouped
         order = torch.arange(n_hit, device=object_id.device)
     else:
-        order = torch.argsort(object_id.to(torch.int32), stable=True)[n_miss:]
+        # Sorting is several times faster on narrow keys; misses (key 0) come first.
+        narrow = torch.uint8 if n_objects < 255 else torch.int16 if n_objects < 32767 else torch.int32
+        order = torch.argsort((object_id + 1).to(narrow), stable=True)[n_miss:]
     pad = (-n_hit) % multiple
     if pad:
         order = torch.cat([order, order[-1:].expand(pad)])

@@ -7,7 +7,9 @@ the image does not depend on the chunk size.
 """
 from __future__ import annotations
 
+import concurrent.futures
 import math
+import multiprocessing
 from dataclasses import dataclass, replace
 
 import torch
@@ -15,7 +17,7 @@ import torch
 from .integrator import trace
 from .progress import Progress
 from .sampling import Sampler
-from .scene import Scene, compiled_call
+from .scene import Scene, TraceOptions, compiled_call
 
 # Side of the square screen tiles, pixels.
 TILE = 8
@@ -77,9 +79,73 @@ def _pixel_estimates(color, weight, valid, background, spp: int):
     return estimate, valid.view(-1, spp).sum(1).to(color.dtype) / spp
 
 
+def _render_pixels(scene: Scene, pixel: torch.Tensor, sampler: Sampler, options: TraceOptions, device, dtype,
+                   max_depth: int | None):
+    """Estimates (n, 3) and coverage (n,) of the pixels `pixel` (n,), traced as one batch of n·spp rays.
+
+    `pixel` may repeat its last entry to fill whole culling packets; the repeats are traced and dropped by
+    the caller.
+    """
+    spp, W = sampler.spp, scene.camera.width
+    background = torch.tensor(scene.image.background, dtype=dtype, device=device)
+    uv_px, lens_uv = _camera_samples(sampler, pixel, W, dtype)
+    uv_px, lens_uv = uv_px.to(device), lens_uv.to(device)
+    color = weight = valid = None
+    for camera, flags in render_passes(scene):
+        rays = compiled_call(options.compile, type(camera).generate_rays, camera, uv_px, lens_uv)
+        rad, found = trace(scene, rays.origin, rays.direction, flags, max_depth, options=options)
+        take = rays.valid if flags is None else rays.valid & found
+        if color is None and bool(take.all()):
+            color = rad
+        else:
+            base = background.expand_as(rad) if color is None else color
+            color = torch.where(take[:, None], rad, base)
+        if weight is None:
+            weight, valid = rays.weight, rays.valid
+    return compiled_call(options.compile, _pixel_estimates, color, weight, valid, background, spp)
+
+
+def _chunks(scene: Scene, spp: int, options: TraceOptions, chunk_rays: int):
+    """(pixels, n) per chunk: whole pixels in tile order, padded to whole culling packets by repeating the
+    last pixel; n is the number of real pixels."""
+    W, H = scene.camera.width, scene.camera.height
+    order = tile_order(W, H)
+    packet = max(1, options.packet_size)
+    step = packet // math.gcd(packet, spp)
+    pixels_per_chunk = max(step, chunk_rays // spp // step * step)
+    for start in range(0, W * H, pixels_per_chunk):
+        pixel = order[start:start + pixels_per_chunk]
+        n = pixel.shape[0]
+        if n % step:
+            pixel = torch.cat([pixel, pixel[-1:].expand(step - n % step)])
+        yield pixel, n
+
+
+_POOL: dict = {}  # number of workers -> ProcessPoolExecutor, kept for later renders
+
+
+def _worker_start():
+    # One thread per process: the processes share the cores instead of torch's threads.
+    torch.set_num_threads(1)
+
+
+def _worker_render(scene, pixel, n, spp, sampler, seed, options, dtype, max_depth):
+    estimate, covered = _render_pixels(scene, pixel, Sampler(sampler, spp, seed), options, "cpu", dtype, max_depth)
+    return estimate[:n].clone(), covered[:n].clone()
+
+
+def _pool(workers: int):
+    if workers not in _POOL:
+        context = multiprocessing.get_context("spawn")  # forking a process with torch's threads can hang
+        _POOL[workers] = concurrent.futures.ProcessPoolExecutor(workers, mp_context=context,
+                                                                initializer=_worker_start)
+    return _POOL[workers]
+
+
 def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, device="cpu",
-           dtype=torch.float32, seed: int = 0, chunk_rays: int = 1 << 16, progress: bool = False,
-           max_depth: int | None = None, culling: bool | None = None, compile: bool | None = None) -> RenderResult:
+           dtype=torch.float32, seed: int = 0, chunk_rays: int = 1 << 17, progress: bool = False,
+           max_depth: int | None = None, culling: bool | None = None, compile: bool | None = None,
+           workers: int = 1) -> RenderResult:
     """Render the scene's camera image.
 
     Args:
@@ -89,51 +155,40 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
         chunk_rays: camera samples traced at once (rounded to whole pixels); bounds memory (about 1 KB per
             ray at depth 5). The image does not depend on it.
         culling, compile: override scene.options (see `renderer.scene.TraceOptions`); speed only.
+        workers: CPU only: trace chunks in this many worker processes with one torch thread each (they
+            are started on first use and kept for later calls; the scene is sent with every chunk). Uses
+            several cores far better than torch's threads do on this op-by-op workload; the image does not
+            depend on it.
     Returns:
         RenderResult with the (H, W, 3) image and the (H, W) coverage; pixels without any valid ray keep
         the background colour.
     """
-    cam = scene.camera
-    W, H = cam.width, cam.height
+    W, H = scene.camera.width, scene.camera.height
     spp = scene.image.spp if spp is None else spp
+    sampler = sampler or scene.image.sampler
     options = scene.options
     if culling is not None:
         options = replace(options, culling=culling)
     if compile is not None:
         options = replace(options, compile=compile)
-    smp = Sampler(sampler or scene.image.sampler, spp, seed)
-    passes = render_passes(scene)
+    smp = Sampler(sampler, spp, seed)
     image = torch.empty(W * H, 3, dtype=dtype, device=device)
     coverage = torch.empty(W * H, dtype=dtype, device=device)
-    background = torch.tensor(scene.image.background, dtype=dtype, device=device)
-    order = tile_order(W, H)
-    # Whole pixels per chunk, and whole culling packets: the last chunk repeats its last pixel to fill up.
-    packet = max(1, options.packet_size)
-    step = packet // math.gcd(packet, spp)
-    pixels_per_chunk = max(step, chunk_rays // spp // step * step)
     bar = Progress(W * H * spp, "render", enabled=progress)
-    for start in range(0, W * H, pixels_per_chunk):
-        pixel = order[start:start + pixels_per_chunk]
-        n = pixel.shape[0]
-        if n % step:
-            pixel = torch.cat([pixel, pixel[-1:].expand(step - n % step)])
-        uv_px, lens_uv = _camera_samples(smp, pixel, W, dtype)
-        uv_px, lens_uv = uv_px.to(device), lens_uv.to(device)
-        color = weight = valid = None
-        for camera, flags in passes:
-            rays = compiled_call(options.compile, type(camera).generate_rays, camera, uv_px, lens_uv)
-            rad, found = trace(scene, rays.origin, rays.direction, flags, max_depth, options=options)
-            take = rays.valid if flags is None else rays.valid & found
-            if color is None and bool(take.all()):
-                color = rad
-            else:
-                base = background.expand_as(rad) if color is None else color
-                color = torch.where(take[:, None], rad, base)
-            if weight is None:
-                weight, valid = rays.weight, rays.valid
-        estimate, covered = compiled_call(options.compile, _pixel_estimates, color, weight, valid, background, spp)
-        pixel = pixel[:n].to(device)
-        image.index_copy_(0, pixel, estimate[:n])
-        coverage.index_copy_(0, pixel, covered[:n])
-        bar.update(n * spp)
+    if workers > 1 and torch.device(device).type == "cpu":
+        pool = _pool(workers)
+        jobs = {pool.submit(_worker_render, scene, pixel, n, spp, sampler, seed, options, dtype, max_depth):
+                pixel[:n] for pixel, n in _chunks(scene, spp, options, chunk_rays)}
+        for job in concurrent.futures.as_completed(jobs):
+            estimate, covered = job.result()
+            image.index_copy_(0, jobs[job], estimate)
+            coverage.index_copy_(0, jobs[job], covered)
+            bar.update(covered.shape[0] * spp)
+    else:
+        for pixel, n in _chunks(scene, spp, options, chunk_rays):
+            estimate, covered = _render_pixels(scene, pixel, smp, options, device, dtype, max_depth)
+            pixel = pixel[:n].to(device)
+            image.index_copy_(0, pixel, estimate[:n])
+            coverage.index_copy_(0, pixel, covered[:n])
+            bar.update(n * spp)
     return RenderResult(image.reshape(H, W, 3), coverage.reshape(H, W))

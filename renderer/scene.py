@@ -5,7 +5,11 @@ Both cull by packets: consecutive rays are grouped into packets of `TraceOptions
 is bounded by a ball around its origins and a cone around its directions, and each bounded object is tested
 only against the packets whose bounds can reach its bounding sphere (a (packets, objects) test, then a
 gather of whole packets). The render loop feeds rays in screen tiles, so primary rays of a packet are
-neighbours and the test is tight; incoherent batches only lose the saving, never correctness.
+neighbours and the test is tight; incoherent batches only lose the saving, never correctness. Shadow rays
+also skip the convex or flat object they leave (`Scene.self_shadow_free`), which cannot block them.
+
+With `TraceOptions.compile`, each shape type's intersection and normals run as one fused torch.compile
+graph per type (`per_class`, `compiled_call`), as do the integrator's per-ray arithmetic steps.
 """
 from __future__ import annotations
 
@@ -44,9 +48,10 @@ class TraceOptions:
     Attributes:
         culling: test bounded objects only against ray packets that can reach their bounding sphere [True].
         packet_size: rays per culling packet [64].
-        compile: run each shape type's intersection through torch.compile (one graph per type, any batch
-            size); falls back to eager with a warning where compiling fails [False]. The first use of each
-            shape type costs a few seconds of compilation (cached on disk by torch between runs).
+        compile: run shape intersections and normals (one graph per shape type) and the integrator's per-ray
+            arithmetic through torch.compile, any batch size; falls back to eager with a warning where
+            compiling fails [False]. Costs tens of seconds of compilation on first use in a process (much
+            of it cached on disk by torch between runs); pays for renders of a few million rays or more.
     """
 
     culling: bool = True
@@ -251,7 +256,7 @@ class Scene:
                 t_max = torch.cat([t_max, t_max[-1:].expand(pad)])
             if skip is not None:
                 skip = torch.cat([skip, skip[-1:].expand(pad)])
-        o_p, d_p = o.view(-1, P, 3), d.view(-1, P, 3)
+        o_p, d_p = o.reshape(-1, P, 3), d.reshape(-1, P, 3)
         t_p = None if t_max is None else t_max.view(-1, P)
         n_packets = o_p.shape[0]
         wanted = [k for k in range(len(self.objects)) if object_mask is None or object_mask[k]]

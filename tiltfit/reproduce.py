@@ -50,6 +50,7 @@ from renderer import optics, render, write_image
 from .evaluate import (compare_profiles, grey_levels, linear_from_grey_levels, plot_images, plot_profiles,
                        save_figure, write_csv, write_markdown, markdown_table)
 from .scenes import EOS_6D, LensParams, Sensor, boxes_scene, boxes_scene_dict, profile_lines
+from .runlog import RunLog
 
 PENDING = "pending"
 
@@ -192,20 +193,8 @@ class SetValues:
 
 # ------------------------------------------------------------------------------------------ plumbing
 
-class _Log:
-    """Progress lines on stderr with the time since the start of the run."""
-
-    def __init__(self, enabled: bool = True):
-        self.t0 = time.perf_counter()
-        self.enabled = enabled
-
-    def __call__(self, msg: str) -> None:
-        if self.enabled:
-            print(f"[reproduce {time.perf_counter() - self.t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
-
-    @property
-    def elapsed(self) -> float:
-        return time.perf_counter() - self.t0
+def _Log(enabled: bool = True) -> RunLog:
+    return RunLog("reproduce", enabled)
 
 
 def _lens_record(lens: LensParams) -> dict:

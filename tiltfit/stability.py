@@ -46,6 +46,7 @@ import torch
 from renderer import load_scene, optics, render
 
 from .evaluate import markdown_table, save_figure, write_csv
+from .runlog import RunLog
 
 # --------------------------------------------------------------------------------------------- configuration
 
@@ -269,20 +270,8 @@ def srgb_blur_bias(b_px: float, dark: float = 0.05, white: float = 0.8, angle_de
 
 # ------------------------------------------------------------------------------------------------- plumbing
 
-class _Log:
-    """Progress lines on stderr with the time since the start of the run."""
-
-    def __init__(self, enabled: bool = True):
-        self.t0 = time.perf_counter()
-        self.enabled = enabled
-
-    def __call__(self, msg: str) -> None:
-        if self.enabled:
-            print(f"[stability {time.perf_counter() - self.t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
-
-    @property
-    def elapsed(self) -> float:
-        return time.perf_counter() - self.t0
+def _Log(enabled: bool = True) -> RunLog:
+    return RunLog("stability", enabled)
 
 
 @dataclass

@@ -9,7 +9,8 @@ trace one camera ray and, where it hits, one shadow ray per sample, at the same 
 
 Timing: one warm-up render each (excluded; it includes our torch.compile and Mitsuba's JIT, reported
 separately), then `--repeats` renders each, interleaved ours/Mitsuba, in one process; medians of wall time
-and of process CPU time (the CPU time is less disturbed by other programs sharing the cores). Image
+and of process CPU time (the CPU time is less disturbed by other programs sharing the cores; for ours in
+worker processes it counts only the parent, so that ratio is not meaningful there). Image
 agreement: mean |ours − Mitsuba| over the mean, on the last timed images (4 spp noise included) and on
 2 × 2-pixel block means.
 
@@ -200,11 +201,10 @@ def main(argv=None):
     ap.add_argument("--sizes", default="640x480,1280x960", help="comma-separated WxH")
     ap.add_argument("--spp", type=int, default=4)
     ap.add_argument("--repeats", type=int, default=7)
-    ap.add_argument("--modes", default="compile,eager",
-                    help="ours with torch.compile (`compile`) and/or eager (`eager`), comma-separated")
+    ap.add_argument("--modes", default="compile,eager,processes",
+                    help="comma-separated: ours with torch.compile (`compile`), eager (`eager`), compiled in one "
+                         "single-threaded process per thread (`processes`, skipped for one thread)")
     ap.add_argument("--chunk-rays", type=int, default=1 << 17)
-    ap.add_argument("--workers", type=int, default=1,
-                    help="ours in this many single-threaded worker processes (CPU time then excludes them)")
     ap.add_argument("--variant", default="llvm_ad_rgb")
     ap.add_argument("--threads", default="1,default",
                     help="comma-separated thread counts for both renderers (torch.set_num_threads, "
@@ -229,9 +229,12 @@ def main(argv=None):
         torch.set_num_threads(t_torch)
         dr.set_thread_count(t_dr)
         for mode in args.modes.split(","):
+            workers = t_torch if mode == "processes" else 1
+            if mode == "processes" and workers == 1:
+                continue
             for size in args.sizes.split(","):
                 w, h = (int(x) for x in size.lower().split("x"))
-                run = bench_size(w, h, args.spp, args.repeats, mode == "compile", args.chunk_rays, mi, args.workers)
+                run = bench_size(w, h, args.spp, args.repeats, mode != "eager", args.chunk_rays, mi, workers)
                 run["threads"] = {"torch": t_torch, "drjit": t_dr}
                 result["runs"].append(run)
                 print(f"{w}x{h}x{args.spp} {mode}, threads {t_torch}/{t_dr}: ours "

@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import math
 import os
 import platform
 import statistics
@@ -132,28 +133,29 @@ NOTES = """\
   code and the integrator's per-ray arithmetic; `eager` is the default `render(...)`. Warm-up (excluded
   above, shown in the last column) is mostly that compilation; torch caches much of it on disk, so a second
   process starts faster.
-- The `1/1` rows pin both renderers to one thread. They are the fair comparison on a shared machine: the
-  two cores here are shared with other engineers' jobs (see the load average), and torch's OpenMP threads,
-  whose every operation ends in a barrier, lose badly when another process takes a core, while Mitsuba's
-  work-stealing pool does not. With the cores to itself, torch's second thread still gains little
-  (each chunk is hundreds of small operations, many single-threaded or memory-bound); `render(workers=2)`
-  (one single-threaded process per core) is the way to use both cores, but on a loaded machine it too
-  gains little.
+- The `1/1` rows pin both renderers to one thread: the per-core comparison, and the fair one while the two
+  cores are shared with other jobs (see the load average): torch's OpenMP threads, whose every operation
+  ends in a barrier, lose badly when another process takes a core, while Mitsuba's work-stealing pool does
+  not. Even with the cores to itself, torch's second thread gains little here (each chunk is hundreds of
+  small operations, many single-threaded or memory-bound, and compiled kernels hold the GIL). To use both
+  cores, `render(..., workers=2)` traces chunks in two single-threaded processes (`processes` rows); its
+  CPU-time ratio counts only the parent process and means nothing.
 - Image agreement is noise at 4 spp (both renderers jitter within pixels with different samplers); at 64
   spp the images agree to 0.2 % of the mean (the cone, tessellated for Mitsuba, differs most).
 
 ## What limits ours (measured with torch.profiler and per-section timers, one thread)
 
-Per camera ray (one primary and one shadow ray), Mitsuba spends about 100 ns of CPU; ours, compiled,
-about 400-550 ns, eager about 800-1000 ns. Where ours goes:
+Per camera ray (one primary and one shadow ray), Mitsuba spends about 80 ns of one core; ours about
+380-400 ns compiled and 800 ns eager (the `1/1` rows). Where ours goes:
 1. Shape intersection kernels, the largest item. Culling (ray packets of 64 against bounding spheres,
    shadow rays skipping the convex or flat object they leave) brought the tests from 22 to about 3.3 per
    camera ray, but each test is still slow: the box (`renderer/shapes/box.py`, not in this benchmark's
    files) runs its slab test as a general convex clip with (N, 6) stacks and arg-max/arg-min reductions,
    58 ns per ray compiled and about 170 ns eager. A plain slab test (min/max of the two plane distances per
-   axis, face index recovered in `surface`) measured 16 ns compiled and 56 ns eager on the same rays; with
-   seven boxes in the scene that alone would bring ours near or under 4x. Reductions with indices over a
-   tiny last dimension (`Tensor.max(-1)`) are also pathological in eager torch with two threads.
+   axis, face index recovered in `surface`) measured 16 ns compiled and 56 ns eager on the same rays; at
+   1.4 box tests per camera ray here (seven boxes) that alone would save about 60 ns, bringing the compiled
+   ratio to about 4.0-4.3x. Reductions with indices over a tiny last dimension (`Tensor.max(-1)`, used by
+   the box and cylinder) are also pathological in eager torch with two threads (10x slower than one).
 2. Overheads of expressing a ray tracer as tensor operations: sorting hits by object (a stable argsort,
    10-25 ns per ray even on uint8 keys), gathers and scatters of ray packets, the per-pixel sample hash
    in int64 (about 25 ns per sample), and about 40 compiled-graph calls per chunk at 50-150 us of dynamo
@@ -191,6 +193,15 @@ def write_markdown(path: str, result: dict) -> None:
             f"| {r['warmup_s']['ours']:.1f} / {r['warmup_s']['mitsuba']:.1f} |")
     lines += ["", "Rays/s count camera rays (each followed by one shadow ray where it hits); times are medians "
               f"of {result['runs'][0]['repeats']} interleaved repeats, warm-up excluded.", ""]
+    best = {}
+    for r in result["runs"]:
+        key = "one thread each" if r["threads"]["torch"] == 1 else "both cores (Mitsuba's threads vs our best use)"
+        best[key] = min(best.get(key, math.inf), r["time_ratio_ours_over_mitsuba"])
+    target = 4.0
+    lines += ["## Summary", ""]
+    lines += [f"- Best time ratio ours/Mitsuba, {k}: {v:.2f} ({'within' if v <= target else 'misses'} the {target:g}x "
+              "target)." for k, v in best.items()]
+    lines += [""]
     lines += NOTES
     with open(path, "w") as f:
         f.write("\n".join(lines) + "\n")
@@ -249,5 +260,5 @@ def main(argv=None):
     write_markdown(args.out + ".md", result)
 
 
-if __name__ == "__main__":  # the guard matters: --workers starts processes that import this module
+if __name__ == "__main__":  # the guard matters: the `processes` mode starts processes that import this module
     main()

@@ -8,8 +8,10 @@ the image does not depend on the chunk size.
 from __future__ import annotations
 
 import concurrent.futures
+import hashlib
 import math
 import multiprocessing
+import pickle
 from dataclasses import dataclass, replace
 
 import torch
@@ -129,7 +131,14 @@ def _worker_start():
     torch.set_num_threads(1)
 
 
-def _worker_render(scene, pixel, n, spp, sampler, seed, options, dtype, max_depth):
+_WORKER_SCENE: dict = {}  # in a worker: digest of the pickled scene -> the scene, kept while it is reused
+
+
+def _worker_render(digest, blob, pixel, n, spp, sampler, seed, options, dtype, max_depth):
+    if digest not in _WORKER_SCENE:  # unpickle once per render, so caches and compiled state are reused
+        _WORKER_SCENE.clear()
+        _WORKER_SCENE[digest] = pickle.loads(blob)
+    scene = _WORKER_SCENE[digest]
     estimate, covered = _render_pixels(scene, pixel, Sampler(sampler, spp, seed), options, "cpu", dtype, max_depth)
     return estimate[:n].clone(), covered[:n].clone()
 
@@ -156,9 +165,8 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
             ray at depth 5). The image does not depend on it.
         culling, compile: override scene.options (see `renderer.scene.TraceOptions`); speed only.
         workers: CPU only: trace chunks in this many worker processes with one torch thread each (they
-            are started on first use and kept for later calls; the scene is sent with every chunk). Uses
-            several cores far better than torch's threads do on this op-by-op workload; the image does not
-            depend on it.
+            are started on first use and kept for later calls; each unpickles the scene once per render).
+            The image does not depend on it.
     Returns:
         RenderResult with the (H, W, 3) image and the (H, W) coverage; pixels without any valid ray keep
         the background colour.
@@ -177,7 +185,9 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
     bar = Progress(W * H * spp, "render", enabled=progress)
     if workers > 1 and torch.device(device).type == "cpu":
         pool = _pool(workers)
-        jobs = {pool.submit(_worker_render, scene, pixel, n, spp, sampler, seed, options, dtype, max_depth):
+        blob = pickle.dumps(scene)
+        digest = hashlib.sha1(blob).hexdigest()
+        jobs = {pool.submit(_worker_render, digest, blob, pixel, n, spp, sampler, seed, options, dtype, max_depth):
                 pixel[:n] for pixel, n in _chunks(scene, spp, options, chunk_rays)}
         for job in concurrent.futures.as_completed(jobs):
             estimate, covered = job.result()

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from ..params import Param, SceneError, parse_params
 from ..transforms import CameraTransform
-from .base import Camera, Screen
+from .base import Camera, Screen, screen_from_config  # noqa: F401  (re-exported)
 
 CAMERAS: dict[str, tuple[list[Param], object]] = {}
 
@@ -33,23 +33,6 @@ def register_camera(name: str, params: list[Param]):
         return cls
 
     return deco
-
-
-def screen_from_config(path: str, cfg: dict, width: int, height: int) -> Screen:
-    """The screen of `screen_size` (or `fov_deg`) at `screen_distance`, for cameras that use SCREEN_PARAMS."""
-    q3 = cfg["screen_distance"]
-    if q3 <= 0:
-        raise SceneError(f"{path}.screen_distance: expected a positive distance, got {q3}")
-    if cfg.get("screen_size") is not None:
-        sx, sy = cfg["screen_size"]
-        if sx <= 0 or sy <= 0:
-            raise SceneError(f"{path}.screen_size: expected positive sizes, got {[sx, sy]}")
-        return Screen(width, height, (sx, sy), q3)
-    if cfg.get("fov_deg") is not None:
-        if not 0 < cfg["fov_deg"] < 180:
-            raise SceneError(f"{path}.fov_deg: expected an angle in (0, 180), got {cfg['fov_deg']}")
-        return Screen.from_fov(width, height, cfg["fov_deg"], q3)
-    raise SceneError(f"{path}: give screen_size or fov_deg")
 
 
 def build_camera(path: str, cfg: dict, width: int, height: int) -> Camera:

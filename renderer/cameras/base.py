@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ..params import SceneError
 from ..rays import Rays
 from ..transforms import CameraTransform
 
@@ -65,6 +66,23 @@ class Screen:
         return Screen(width_px, height_px, (sx, sx * height_px / width_px), distance)
 
 
+def screen_from_config(path: str, cfg: dict, width: int, height: int) -> Screen:
+    """The screen of `screen_size` (or `fov_deg`) at `screen_distance`, for cameras that use SCREEN_PARAMS."""
+    q3 = cfg["screen_distance"]
+    if q3 <= 0:
+        raise SceneError(f"{path}.screen_distance: expected a positive distance, got {q3}")
+    if cfg.get("screen_size") is not None:
+        sx, sy = cfg["screen_size"]
+        if sx <= 0 or sy <= 0:
+            raise SceneError(f"{path}.screen_size: expected positive sizes, got {[sx, sy]}")
+        return Screen(width, height, (sx, sy), q3)
+    if cfg.get("fov_deg") is not None:
+        if not 0 < cfg["fov_deg"] < 180:
+            raise SceneError(f"{path}.fov_deg: expected an angle in (0, 180), got {cfg['fov_deg']}")
+        return Screen.from_fov(width, height, cfg["fov_deg"], q3)
+    raise SceneError(f"{path}: give screen_size or fov_deg")
+
+
 class Camera:
     """Base class: subclasses implement `rays_in_camera`; the pose is applied once here.
 
@@ -87,6 +105,17 @@ class Camera:
     @property
     def height(self) -> int:
         return self.screen.height_px
+
+    @classmethod
+    def from_config(cls, path: str, cfg: dict, transform: CameraTransform, width: int, height: int) -> "Camera":
+        """Build from a validated scene-file section; the default suits cameras defined by their screen alone."""
+        return cls(transform, screen_from_config(path, cfg, width, height))
+
+    def project_central(self, p_world: torch.Tensor) -> torch.Tensor:
+        """(..., 3) world points -> (..., 2) pixels by central projection through the camera centre onto the
+        screen (the pinhole's projection, and a thin lens's chief ray)."""
+        p_cam = self.transform.points_to_camera(p_world)
+        return self.screen.to_pixels(p_cam[..., :2] * (self.screen.distance / p_cam[..., 2:3]))
 
     def rays_in_camera(self, uv_px: torch.Tensor, lens_uv: torch.Tensor) -> Rays:
         """Rays in the camera frame for pixels (..., 2) and lens samples (..., 2) in [0, 1)²."""

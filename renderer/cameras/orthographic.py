@@ -15,7 +15,7 @@ import torch
 
 from ..params import Param
 from ..rays import Rays
-from . import register_camera, screen_from_config
+from . import register_camera
 from .base import Camera
 
 PARAMS = [
@@ -27,10 +27,6 @@ PARAMS = [
 @register_camera("orthographic", PARAMS)
 class OrthographicCamera(Camera):
     """Parallel projection along the camera z axis; the screen's size is the view window."""
-
-    @classmethod
-    def from_config(cls, path, cfg, transform, width, height):
-        return cls(transform, screen_from_config(path, cfg, width, height))
 
     def rays_in_camera(self, uv_px: torch.Tensor, lens_uv: torch.Tensor) -> Rays:
         q_cam = self.screen.to_plane(uv_px)

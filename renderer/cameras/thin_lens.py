@@ -161,6 +161,4 @@ class ThinLensCamera(Camera):
 
     def project(self, p_world: torch.Tensor) -> torch.Tensor:
         """Chief-ray projection (pixel of the blur spot's centre of projection), same as the pinhole at w."""
-        p_cam = self.transform.points_to_camera(p_world)
-        q = p_cam[..., :2] * (self.screen.distance / p_cam[..., 2:3])
-        return self.screen.to_pixels(q)
+        return self.project_central(p_world)

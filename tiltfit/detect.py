@@ -747,6 +747,7 @@ def resolve_indices(nodes: np.ndarray, xy_level: np.ndarray, xy_full: np.ndarray
     best = max(s for s, _, _ in hyps)
     top = [(k, off) for s, k, off in hyps if s == best]
     scores = sorted([s for s, _, _ in hyps], reverse=True)
+    note = ""
     if len(top) > 1:
         # tie-break by the homography fit of the target coordinates (non-uniform rows)
         pts = target.feature_points()[:, :2]
@@ -758,18 +759,59 @@ def resolve_indices(nodes: np.ndarray, xy_level: np.ndarray, xy_full: np.ndarray
                                                     - xy_full) ** 2).sum())
             rss.append(res)
         order = np.argsort(rss)
-        if not (rss[order[1]] > 2.0 * rss[order[0]] + 1e-6 * len(nodes)):
-            turned = {(k - top[order[0]][0]) % 4 for k, _ in top}
-            if len(top) == 2 and turned == {0, 2}:
-                why = ("the target looks the same turned by 180° (even n_cols + n_rows and near-uniform rows); "
-                       "use a target with n_cols + n_rows odd")
-            else:
+        if rss[order[1]] > 2.0 * rss[order[0]] + 1e-6 * len(nodes):
+            top = [top[order[0]]]
+        else:
+            close = [top[o] for o in order if rss[o] <= 2.0 * rss[order[0]] + 1e-6 * len(nodes)]
+            twin = _half_turn_pair(close, nodes, xy_full, target)
+            if twin is None:
                 why = "show more of the board (its border, or more rows of a non-uniform target)"
-            return IndexResult(None, f"{len(top)} placements of the corners on the target explain the image "
-                                     f"equally well: {why}", scores)
-        top = [top[order[0]]]
+                return IndexResult(None, f"{len(top)} placements of the corners on the target explain the image "
+                                         f"equally well: {why}", scores)
+            top = [twin]
+            note = HALF_TURN_NOTE
     k, off = top[0]
-    return IndexResult(_rot(k, nodes) + off, "", scores)
+    return IndexResult(_rot(k, nodes) + off, note, scores)
+
+
+HALF_TURN_NOTE = ("the target looks the same turned by 180°: labelled so that corner 0 is the one nearer the "
+                  "image's top-left; either labelling is a valid pose")
+
+
+def _half_turn_pair(hyps: list, nodes: np.ndarray, xy: np.ndarray, target: Target):
+    """The labelling to use when the only ambiguity left is the board's 180° turn, else None.
+
+    `hyps` are the (quarter turns, offset) placements that explain the image equally well. When they are
+    exactly two, related by the half turn (i, j) -> (nx − 1 − i, ny − 1 − j), the image cannot tell them
+    apart (a board with n_cols + n_rows even and symmetric edges, or nearly so). One is chosen by image
+    geometry, so that every view of the board is labelled alike: the one whose diagonal from corner 0 to
+    corner N − 1 points to the image's lower right, measured by an affine fit of the image positions to
+    the corner indices (sign of (A · (nx − 1, ny − 1)) · (1, 1); the x component breaks an exact tie).
+    """
+    if len(hyps) != 2:
+        return None
+    ny, nx = target.grid_shape
+    (k0, off0), (k1, off1) = hyps
+    ij0, ij1 = _rot(k0, nodes) + off0, _rot(k1, nodes) + off1
+    if not np.array_equal(ij1, np.array([nx - 1, ny - 1]) - ij0):
+        return None
+    return hyps[0] if _diagonal_points_down_right(ij0, xy, nx, ny) else hyps[1]
+
+
+def _diagonal_points_down_right(ij: np.ndarray, xy: np.ndarray, nx: int, ny: int) -> bool:
+    """Whether corner (nx−1, ny−1) lies to the lower right of corner (0, 0) in the image.
+
+    Args:
+        ij: (n, 2) corner indices of the seen corners; xy: (n, 2) their image positions, pixels.
+    The diagonal's image direction d = A · (nx − 1, ny − 1) comes from a least-squares affine fit
+    xy ≈ A ij + c (enough for its sign under perspective and lens distortion); the answer is
+    d_x + d_y > 0 (d_x > 0 breaks an exact tie).
+    """
+    A = np.c_[ij.astype(np.float64), np.ones(len(ij))]
+    coef, *_ = np.linalg.lstsq(A, xy.astype(np.float64), rcond=None)
+    d = coef[:2].T @ np.array([nx - 1.0, ny - 1.0])
+    s = d[0] + d[1]
+    return bool(s > 0 or (s == 0 and d[0] > 0))
 
 
 # --- the whole pipeline ------------------------------------------------------------------------------------
@@ -819,7 +861,7 @@ def detect_corners(gray: np.ndarray, target: Target, *, coarse_max_size: int = 4
         t4 = time.perf_counter()
         complete_corners(gray, target, corners, refine_radius_max)
         timings["complete"] = time.perf_counter() - t4
-        return corners, True, "", f
+        return corners, True, res.message, f
     return corners, False, message, 0
 
 

@@ -314,6 +314,10 @@ def edge_directions(hxx, hxy, hyy) -> np.ndarray:
 
 # --- stage 3: grid growth ----------------------------------------------------------------------------------
 _DIRS = ((1, 0), (-1, 0), (0, 1), (0, -1))
+# half-angle of the cone around each Hessian edge direction in which a seed looks for its neighbours: the
+# zero directions of a blurred, foreshortened corner can be ~18° off the true edges (small squares seen
+# at a grazing angle); a diagonal neighbour is further off and the X-junction test rejects a wrong pick
+SEED_CONE_DEG = 30.0
 
 
 class _Grid:
@@ -440,7 +444,7 @@ def _seed(sm: SaddleMap, k: int, noise: float):
         for sgn in (1.0, -1.0):
             t = sgn * e
             cosang = (d[near] @ t) / dist[near]
-            ok = near[cosang > math.cos(math.radians(20))]
+            ok = near[cosang > math.cos(math.radians(SEED_CONE_DEG))]
             if ok.size == 0:
                 return None
             found[(e_i, sgn)] = ok[np.argmin(dist[ok])]

@@ -909,7 +909,12 @@ def complete_corners(gray: np.ndarray, target: Target, corners: np.ndarray, refi
         if not cand:
             break
         pred, spacing = np.array(pred), np.array(spacing)
-        xy, asym, ok = refine_symmetric(gray, pred, np.clip(0.4 * spacing, 3.0, refine_radius_max))
+        # coarse to fine: under strong lens distortion a local homography misses by up to ~0.1 of a square,
+        # beyond the reach of the final window when squares are large; a first pass with a window of half
+        # the square pulls the start in, the second uses the usual window
+        start, _, ok0 = refine_symmetric(gray, pred, np.clip(0.45 * spacing, 3.0, 2.5 * refine_radius_max))
+        start = np.where(ok0[:, None] & (np.hypot(*(start - pred).T) < 0.25 * spacing)[:, None], start, pred)
+        xy, asym, ok = refine_symmetric(gray, start, np.clip(0.4 * spacing, 3.0, refine_radius_max))
         keep = ok & (asym < max_asymmetry) & (np.hypot(*(xy - pred).T) < 0.25 * spacing)
         corners[np.array(cand)[keep]] = xy[keep]
         added += int(keep.sum())

@@ -731,20 +731,24 @@ def resolve_indices(nodes: np.ndarray, xy_level: np.ndarray, xy_full: np.ndarray
     observed_dark = val < 0.5 * (lo + hi)
 
     hyps = []
+    match = np.where(observed_dark, 1, -1)  # +1 where a probe is dark: score = Σ match · (±1 expected)
     for k in range(4):
         r = _rot(k, nodes)
         rmin, rmax = r.min(0), r.max(0)
-        for oi in range(-rmin[0], nx - rmax[0]):
-            for oj in range(-rmin[1], ny - rmax[1]):
-                off = np.array([oi, oj])
-                # cell (a, b) spans nodes a..a+1: its centre (a + 0.5, b + 0.5) maps to corner-index space;
-                # corner index i sits at x_edges[i + 1], so the cell column is the mapped centre + 0.5.
-                cc = _rot(k, probe_ab * 2 + 1) / 2.0 + off  # half-integer corner coordinates
-                col = np.round(cc[:, 0] + 0.5).astype(int)
-                row = np.round(cc[:, 1] + 0.5).astype(int)
-                expected = target.is_dark(col, row)
-                score = int((expected == observed_dark).sum() - (expected != observed_dark).sum())
-                hyps.append((score, k, off))
+        oi = np.arange(-rmin[0], nx - rmax[0])
+        oj = np.arange(-rmin[1], ny - rmax[1])
+        if oi.size == 0 or oj.size == 0:
+            continue
+        # cell (a, b) spans nodes a..a+1: its centre (a + 0.5, b + 0.5) maps to corner-index space; corner
+        # index i sits at x_edges[i + 1], so the cell column is the mapped centre + 0.5. All placements
+        # (offsets oi × oj) are scored at once: (n_oi, n_oj, n_probes).
+        cc = _rot(k, probe_ab * 2 + 1) / 2.0
+        col = np.round(cc[:, 0] + 0.5).astype(int)[None, None, :] + oi[:, None, None]
+        row = np.round(cc[:, 1] + 0.5).astype(int)[None, None, :] + oj[None, :, None]
+        score = np.where(target.is_dark(col, row), 1, -1) @ match
+        for a in range(oi.size):
+            for b in range(oj.size):
+                hyps.append((int(score[a, b]), k, np.array([oi[a], oj[b]])))
     if not hyps:
         return IndexResult(None, f"the lattice ({len(nodes)} corners) does not fit on the "
                                  f"{nx}×{ny}-corner target in any orientation")
@@ -752,6 +756,9 @@ def resolve_indices(nodes: np.ndarray, xy_level: np.ndarray, xy_full: np.ndarray
     top = [(k, off) for s, k, off in hyps if s == best]
     scores = sorted([s for s, _, _ in hyps], reverse=True)
     note = ""
+    if len(top) > MAX_TIED_PLACEMENTS:
+        return IndexResult(None, f"{len(top)} placements of the corners on the target explain the image equally "
+                                 f"well: show more of the board (its border)", scores)
     if len(top) > 1:
         # tie-break by the homography fit of the target coordinates (non-uniform rows)
         pts = target.feature_points()[:, :2]
@@ -777,6 +784,10 @@ def resolve_indices(nodes: np.ndarray, xy_level: np.ndarray, xy_full: np.ndarray
     k, off = top[0]
     return IndexResult(_rot(k, nodes) + off, note, scores)
 
+
+# more equally good placements than this are not told apart by the homography fit either (a small patch of
+# a large uniform board); bounds the work
+MAX_TIED_PLACEMENTS = 64
 
 HALF_TURN_NOTE = ("the target looks the same turned by 180°: labelled so that corner 0 is the one nearer the "
                   "image's top-left; either labelling is a valid pose")
@@ -885,9 +896,16 @@ def complete_corners(gray: np.ndarray, target: Target, corners: np.ndarray, refi
     added = 0
     for _ in range(rounds):
         found = np.isfinite(corners).all(1)
-        missing = np.nonzero(~found)[0]
-        if missing.size == 0 or found.sum() < 4:
+        if found.all() or found.sum() < 4:
             break
+        # only corners within two indices of a found one can be predicted: the work grows with the corners
+        # seen, not with the size of the target
+        grid = np.pad(found.reshape(ny, nx), 2)
+        near_found = np.zeros((ny, nx), bool)
+        for dj in range(5):
+            for di in range(5):
+                near_found |= grid[dj:dj + ny, di:di + nx]
+        missing = np.nonzero(~found & near_found.ravel())[0]
         cand, pred, spacing = [], [], []
         for k in missing:
             j, i = divmod(int(k), nx)
@@ -949,6 +967,43 @@ def detect_file(path: str, target: Target, encoding: str | None = None, **option
     return detect(read_image(path, encoding), target, **options)
 
 
+def detect_files(paths, target: Target, *, encoding: str | None = None, measure_blur: bool = True,
+                 progress=None, **options) -> list[Detection | None]:
+    """`detect` on several image files: one entry per path, None where the image shows no usable board.
+
+    Args:
+        paths: image files (read by `renderer.io.read_image`; 8-bit files are decoded from sRGB).
+        target: the Target.
+        encoding: override the files' encoding ("srgb" or "linear").
+        measure_blur: also measure the blur per point.
+        progress: optional callable taking one line per file (e.g. `print` to stderr): the number of corners
+            found and the time, or why the view has no board, plus the detection's note if it has one.
+        options: passed to `detect_corners`.
+    Returns:
+        list of Detection (grid_found True) or None, in the order of `paths`.
+    Raises:
+        DetectionError: a target too large to detect; ValueError / OSError from `read_image` for a file
+        that cannot be read (bad input is an error, not a view without a board).
+    """
+    from renderer.io import read_image
+
+    check_target_size(target)
+    out: list[Detection | None] = []
+    for path in paths:
+        t0 = time.perf_counter()
+        det = detect(read_image(path, encoding), target, measure_blur=measure_blur, **options)
+        ok = det.grid_found and bool(det.found.any())
+        out.append(det if ok else None)
+        if progress is not None:
+            if ok:
+                line = (f"{path}: {int(det.found.sum())} of {target.n_points} corners in "
+                        f"{time.perf_counter() - t0:.1f} s")
+                progress(line + (f" ({det.message})" if det.message else ""))
+            else:
+                progress(f"{path}: no board ({det.message or 'no checkerboard found'}); skipped")
+    return out
+
+
 def detect(image, target: Target, *, measure_blur: bool = True, **options) -> Detection:
     """Find the target's feature points and their blur in a linear image.
 
@@ -964,7 +1019,21 @@ def detect(image, target: Target, *, measure_blur: bool = True, **options) -> De
         return _detect(image, target, measure_blur, options)
 
 
+# the largest target `detect` accepts (200 × 200 corners): beyond it the indexing (every placement of the
+# seen corners on the target) and the bookkeeping per feature point would run for minutes or exhaust memory
+MAX_FEATURE_POINTS = 40_000
+
+
+def check_target_size(target: Target) -> None:
+    """Raise DetectionError (one line) for a target too large to detect in bounded time."""
+    ny, nx = target.grid_shape
+    if target.n_points > MAX_FEATURE_POINTS:
+        raise DetectionError(f"target: {nx} × {ny} = {target.n_points} corners; detection handles at most "
+                             f"{MAX_FEATURE_POINTS} (200 × 200)")
+
+
 def _detect(image, target, measure_blur, options) -> Detection:
+    check_target_size(target)
     timings: dict = {}
     t0 = time.perf_counter()
     gray = to_gray(image)

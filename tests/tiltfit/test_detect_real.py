@@ -163,9 +163,11 @@ def jpeg(linear, quality, rng, noise):
 
 
 def test_dim_noisy_jpeg_board_with_barrel_distortion_is_found():
-    R, T = look_at_pose(ASYMMETRIC, (60.0, -40.0, -330.0), roll_deg=8.0)
-    v = render_view(ASYMMETRIC, CAM, R, T, dark=0.01, white=0.07, background=0.03)
-    warped, truth = barrel(v.clean, 0.25, v.truth.corners_px)
+    R, T = look_at_pose(ASYMMETRIC, (60.0, -40.0, -240.0), roll_deg=8.0)
+    v = render_view(ASYMMETRIC, CAM, R, T, dark=0.01, white=0.07, background=0.03)  # 7 % of full scale
+    warped, truth = barrel(v.clean, 0.4, v.truth.corners_px)
+    shift = np.hypot(*(truth - v.truth.corners_px).T)
+    assert shift.max() > 25, f"the distortion should bend the board strongly: corners move {shift.max():.1f} px"
     img = jpeg(warped, 70, np.random.default_rng(3), 0.006)
     det = detect(img, ASYMMETRIC, measure_blur=False)
     assert det.grid_found, f"dim, noisy, JPEG, distorted board not found: {det.message}"

@@ -24,10 +24,15 @@ Pipeline (`detect`):
    turns, 180° turns and shifts; each hypothesis (4 turns × shifts that keep the nodes on the board) is
    scored by the colours it predicts: the cells between detected corners (the parity of the dark cell),
    one ring of cells beyond them (board cells) and a second ring (board or white margin). A tie is broken
-   by the fit of a homography from the target coordinates (non-uniform rows tell the turns apart); a tie
-   that remains is reported (grid_found False) rather than guessed.
-6. Completion: corners the growth missed, predicted by a local homography from the indexed ones, refined
-   and kept when they are clean X-junctions (`complete_corners`).
+   by the fit of a homography from the target coordinates (non-uniform rows tell the turns apart). A tie
+   left between exactly the two placements related by the board's 180° turn (n_cols + n_rows even,
+   symmetric edges: the image cannot tell them apart, and either is a valid pose) is settled by image
+   geometry, consistently across views: corner 0 is the one nearer the image's top-left (the labelling
+   OpenCV's findChessboardCorners gives); the detection's message says so. Any other tie (a partial view
+   that fits several places on the board) is reported (grid_found False) rather than guessed.
+6. Completion: corners the growth missed, predicted by a local homography from the indexed ones within two
+   indices (local, so curved rows under lens distortion are followed), refined coarse to fine and kept when
+   they are clean X-junctions (`complete_corners`).
 7. Blur per feature point (`tiltfit.blur.measure_blur`).
 
 Images are (H, W) or (H, W, C) linear float arrays (decode sRGB first: `renderer.io.read_image` does).
@@ -62,7 +67,8 @@ class Detection:
         corners_px: (N, 2) float64 pixel positions, NaN where the point was not found.
         blur_px: (N,) blur-disc diameters, pixels, NaN where not measured.
         blur_sigma_px: (N,) one-standard-deviation uncertainty of blur_px, NaN where not measured.
-        grid_found: True when a board was found and its corners indexed without ambiguity.
+        grid_found: True when a board was found and its corners indexed (a board that looks the same
+            turned by 180° is labelled by image geometry, noted in `message`).
         message: why not, or notes.
         level: pyramid factor at which the grid was found.
         timings_s: seconds per stage.

@@ -14,7 +14,7 @@ labelling (the board looks the same turned by 180°: the peer's order as is, or 
 `labelling_same` counts the views where the peer's labelling already equals ours.
 
 Writes benchmarks/results/real_detect.{json,md}. Usage:
-    python benchmarks/bench_real_detect.py [--repeats 3] [--out benchmarks/results]
+    python benchmarks/bench_real_detect.py [--repeats 3 | --quick] [--out benchmarks/results]
 """
 from __future__ import annotations
 
@@ -86,8 +86,11 @@ def stats(e):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--quick", action="store_true", help="one run per image (--repeats 1)")
     ap.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results"))
     args = ap.parse_args(argv)
+    if args.quick:
+        args.repeats = 1
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     target = load_target(os.path.join(DATA, "target.json"))

@@ -90,18 +90,18 @@ def test_gopro_at_least_34_of_36_boards_with_consistent_labelling(gopro):
 
 
 def test_gopro_corners_agree_with_opencv(gopro):
+    """Every third photo (OpenCV's exhaustive search is slow; benchmarks/bench_real_detect.py does all 36)."""
     paths, target, dets = gopro
-    errors, turned, both = [], 0, 0
-    for p, d in zip(paths, dets):
+    errors, both = [], 0
+    for p, d in list(zip(paths, dets))[::3]:
         theirs = opencv_corners(p)
         if d is None or theirs is None:
             continue
         both += 1
-        e, how = match_labelling(d.corners_px, theirs)
-        turned += how == "turned"
+        e, _ = match_labelling(d.corners_px, theirs)
         errors.append(e[np.isfinite(e)])
     e = np.concatenate(errors)
-    assert both >= 32, f"only {both} views found by both"
+    assert both >= 10, f"only {both} of 12 views found by both"
     med, p95, worst = np.median(e), np.percentile(e, 95), e.max()
     assert med < AGREE_MEDIAN_PX and p95 < AGREE_P95_PX and worst < AGREE_MAX_PX, (
         f"ours vs OpenCV SB+cornerSubPix on {both} views, {e.size} corners: median {med:.3f}, p95 {p95:.3f}, "
@@ -182,7 +182,7 @@ def test_dim_noisy_jpeg_board_with_barrel_distortion_is_found(pose):
     v = render_view(ASYMMETRIC, WIDE, R, T, dark=0.01, white=0.07, background=0.03)
     warped, truth = barrel(v.clean, 0.4, v.truth.corners_px)
     shift = np.hypot(*(truth - (v.truth.corners_px - [160, 120])).T)
-    assert np.nanmax(shift) > 15, f"the distortion should bend the board strongly: corners move {np.nanmax(shift):.1f} px"
+    assert np.nanmax(shift) > 15, f"the distortion should bend the board: corners move {np.nanmax(shift):.1f} px"
     img = jpeg(warped, 70, np.random.default_rng(3), 0.006)
     H, W = img.shape
     with np.errstate(invalid="ignore"):

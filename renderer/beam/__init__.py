@@ -32,7 +32,9 @@ class Frame:
         camera: the ScreenCamera. regions: the screen regions.
         seconds: segmentation time (steps (1)-(3); step (1) only in the tracer's first frame).
         polygon_seconds, determine_seconds, project_seconds: its parts.
-        redetermined: whether the eye crossed a candidate plane of a reused node since the last frame.
+        redetermined: whether the eye crossed the infinite plane of a real polygon since the last frame, so
+            that step (2) was redone for every node (always True for a first frame or without reuse).
+        crossed: face ids of those planes.
     """
 
     camera: ScreenCamera
@@ -42,6 +44,7 @@ class Frame:
     determine_seconds: float
     project_seconds: float
     redetermined: bool
+    crossed: list[int]
     timing: Timing
 
 
@@ -71,17 +74,22 @@ class BeamTracer:
     def frame(self, camera=None) -> Frame:
         """Segment the screen for `camera` (a renderer camera or a ScreenCamera) [the scene's camera]."""
         cam = camera if isinstance(camera, ScreenCamera) else ScreenCamera.of(camera or self.scene.camera)
-        if not self.reuse:
-            self.segmenter.nodes.clear()
-        crossed = self._last is not None and self.reuse and self.segmenter.crossed(self._last.eye, cam.eye)
         start = time.perf_counter()
+        crossed = []
+        if not self.reuse or self._last is None:
+            self.segmenter.nodes.clear()
+        else:
+            crossed = self.segmenter.crossed(self._last.eye, cam.eye).tolist()
+            if crossed:
+                self.segmenter.forget_order()
         regions = self.segmenter.segment(cam)
         seconds = time.perf_counter() - start
         polygon = self.polygon_seconds if self._first or not self.reuse else 0.0
         self._first = False
-        self._last = cam
         t = self.segmenter.timing
-        return Frame(cam, regions, seconds + polygon, polygon, t.determine, t.project, crossed, t)
+        redetermined = self._last is None or not self.reuse or bool(crossed)
+        self._last = cam
+        return Frame(cam, regions, seconds + polygon, polygon, t.determine, t.project, redetermined, crossed, t)
 
     @property
     def lit(self):

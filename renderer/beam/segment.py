@@ -18,7 +18,10 @@ One `Node` per ray-tree signature (the tuple of mirror face ids) holds
 Both the front-facing set and the occlusion order depend on the eye only through the side of each
 candidate plane it is on. When the viewpoint moves, a node is reused unless the eye crossed the infinite
 plane of one of its candidates (the root node's candidates are the real polygons, so this includes every
-real polygon plane); only then is step (2) redone for that node (`redetermined`).
+real polygon plane); only then is step (2) redone for that node. As in the paper, crossing a real polygon
+plane re-determines every node (`BeamTracer.frame` reports it as `redetermined`); the eye can also cross
+the plane of a mirrored polygon while crossing no real one (the paper does not consider this), which
+re-determines just that node (`Timing.nodes_redetermined`).
 """
 from __future__ import annotations
 
@@ -143,8 +146,9 @@ class Timing:
 
     determine: float = 0.0  # step (2)
     project: float = 0.0  # step (3)
-    nodes_built: int = 0
-    nodes_redetermined: int = 0
+    nodes_built: int = 0  # new signatures: candidates moved and clipped
+    nodes_ordered: int = 0  # front-facing sets and occlusion orders determined (new or forgotten nodes)
+    nodes_redetermined: int = 0  # reused nodes whose own (possibly mirrored) candidate plane the eye crossed
 
 
 class Segmenter:
@@ -235,6 +239,7 @@ class Segmenter:
         if eye is not None:
             if node.side is None:
                 self._order(node, eye)
+                self.timing.nodes_ordered += 1
             else:
                 side, near = node.eye_sides(eye, self.tol)
                 if (side != node.side).any() or near.any():
@@ -242,14 +247,17 @@ class Segmenter:
                     self.timing.nodes_redetermined += 1
         return node
 
-    def crossed(self, eye_from: np.ndarray, eye_to: np.ndarray) -> bool:
-        """Whether moving the eye crosses (or touches) the plane of any cached node's candidate."""
+    def crossed(self, eye_from: np.ndarray, eye_to: np.ndarray) -> np.ndarray:
+        """Face ids whose (real) infinite plane the eye crosses or touches moving from eye_from to eye_to."""
+        n = np.array([f.n for f in self.faces]).reshape(-1, 3)
+        c = np.array([f.c for f in self.faces])
+        a, b = n @ eye_from - c, n @ eye_to - c
+        return np.nonzero(((a > 0) != (b > 0)) | (np.abs(b) <= self.tol))[0]
+
+    def forget_order(self) -> None:
+        """Drop step (2)'s eye-dependent results (front-facing sets, occlusion order) of every node."""
         for node in self.nodes.values():
-            a, _ = node.eye_sides(eye_from, self.tol)
-            b, near = node.eye_sides(eye_to, self.tol)
-            if (a != b).any() or near.any():
-                return True
-        return False
+            node.side = node.front_of = node.behind_of = None
 
     # ------------------------------------------------------------------------------------------- step (3)
 

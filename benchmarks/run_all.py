@@ -13,7 +13,7 @@ import subprocess
 import sys
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-BENCHMARKS = ["bench_fig6_mitsuba.py", "bench_thin_lens.py", "bench_detect_opencv.py"]
+BENCHMARKS = ["bench_fig6_mitsuba.py", "bench_thin_lens.py", "bench_detect_opencv.py", "bench_beam.py"]
 
 
 def main(argv=None) -> int:

@@ -286,6 +286,13 @@ class Segmenter:
         st, idx = shapely.get_coordinates(geoms, return_index=True)
         world = node.O[front][idx] + st[:, :1] * node.U[front][idx] + st[:, 1:2] * node.V[front][idx]
         screen = shapely.set_coordinates(geoms.copy(), cam.to_pixels(world))
+        # Only candidates whose bounding box meets the region's can be seen in it.
+        x0, y0, x1, y1 = region.bounds
+        b = shapely.bounds(screen)
+        meets = (b[:, 0] <= x1) & (b[:, 2] >= x0) & (b[:, 1] <= y1) & (b[:, 3] >= y0)
+        front, screen = front[meets], screen[meets]
+        if front.size == 0:
+            return [(-1, region)]
         screen = shapely.make_valid(screen)
         clipped = shapely.intersection(screen, region)
         keep = shapely.area(clipped) > MIN_AREA

@@ -98,6 +98,14 @@ def to_world(st: np.ndarray, o, u, v) -> np.ndarray:
     return o + st[:, :1] * u + st[:, 1:2] * v
 
 
+def areal(geom):
+    """The polygonal part of a shapely geometry (lines and points that an overlay leaves are dropped)."""
+    if geom.geom_type in ("Polygon", "MultiPolygon"):
+        return geom
+    parts = polygons_of(geom)
+    return parts[0] if len(parts) == 1 else shapely.MultiPolygon(parts) if parts else EMPTY
+
+
 def polygons_of(geom) -> list[Polygon]:
     """The non-degenerate Polygons of any shapely geometry (MultiPolygon and collections split)."""
     if geom.is_empty:

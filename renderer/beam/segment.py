@@ -32,10 +32,14 @@ import numpy as np
 import shapely
 from shapely.geometry import Polygon, box
 
-from .polygons import EMPTY, MIN_AREA, clip_halfspace, polygons_of
+from .polygons import MIN_AREA, areal, clip_halfspace, polygons_of
 
 # The integrator drops paths whose throughput falls to this; the segmentation stops recursing there too.
 MIN_THROUGHPUT = 1e-4
+# Screen-space clipping snaps to this grid (pixels): GEOS's fixed-precision overlay is robust, so regions
+# stay an exact partition; without it, slivers between edges that should coincide (projected from two
+# frames) left near-degenerate rings on which later overlays gave wrong areas.
+SCREEN_GRID = 1e-9
 # Eye closer to a candidate plane than this (scene units, relative to the scene size) counts as a crossing.
 SIDE_TOL = 1e-9
 
@@ -294,9 +298,10 @@ class Segmenter:
         if front.size == 0:
             return [(-1, region)]
         screen = shapely.make_valid(screen)
-        clipped = shapely.intersection(screen, region)
+        clipped = shapely.intersection(screen, region, grid_size=SCREEN_GRID)
         keep = shapely.area(clipped) > MIN_AREA
-        front, clipped = front[keep], clipped[keep]
+        front = front[keep]
+        clipped = np.array([areal(g) for g in clipped[keep]], dtype=object)
         if front.size == 0:
             return [(-1, region)]
         tree = shapely.STRtree(clipped)
@@ -311,7 +316,7 @@ class Segmenter:
             elif cb in node.behind_of[ca]:
                 cover[b].append(a)
             else:  # no plane separates them: compare depths at a point of their overlap
-                overlap = shapely.intersection(clipped[a], clipped[b])
+                overlap = shapely.intersection(clipped[a], clipped[b], grid_size=SCREEN_GRID)
                 if shapely.area(overlap) <= MIN_AREA:
                     continue
                 p = shapely.get_coordinates(shapely.point_on_surface(overlap))
@@ -323,9 +328,11 @@ class Segmenter:
         for j in range(front.size):
             geom = clipped[j]
             if cover[j]:
-                geom = shapely.difference(geom, shapely.union_all(clipped[cover[j]]))
+                geom = areal(shapely.difference(geom, shapely.union_all(clipped[cover[j]], grid_size=SCREEN_GRID),
+                                                grid_size=SCREEN_GRID))
             pieces.append((int(front[j]), geom))
-        pieces.append((-1, shapely.difference(region, shapely.union_all(clipped))))
+        pieces.append((-1, areal(shapely.difference(region, shapely.union_all(clipped, grid_size=SCREEN_GRID),
+                                                    grid_size=SCREEN_GRID))))
         return pieces
 
     # ------------------------------------------------------------------------------------------- step (4)

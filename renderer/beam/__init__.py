@@ -33,7 +33,8 @@ class Frame:
         seconds: segmentation time (steps (1)-(3); step (1) only in the tracer's first frame).
         polygon_seconds, determine_seconds, project_seconds: its parts.
         redetermined: whether the eye crossed the infinite plane of a real polygon since the last frame, so
-            that step (2) was redone for every node (always True for a first frame or without reuse).
+            that step (2) was redone (for the nodes with a candidate plane crossed, the root among them;
+            always True for a first frame or without reuse).
         crossed: face ids of those planes.
     """
 
@@ -79,9 +80,9 @@ class BeamTracer:
         if not self.reuse or self._last is None:
             self.segmenter.nodes.clear()
         else:
+            # Every node re-determines itself when the eye crossed one of its own candidate planes (the root's
+            # candidates are the real polygons); `crossed` names the real planes for the report.
             crossed = self.segmenter.crossed(self._last.eye, cam.eye).tolist()
-            if crossed:
-                self.segmenter.forget_order()
         regions = self.segmenter.segment(cam)
         seconds = time.perf_counter() - start
         polygon = self.polygon_seconds if self._first or not self.reuse else 0.0

@@ -18,10 +18,10 @@ One `Node` per ray-tree signature (the tuple of mirror face ids) holds
 Both the front-facing set and the occlusion order depend on the eye only through the side of each
 candidate plane it is on. When the viewpoint moves, a node is reused unless the eye crossed the infinite
 plane of one of its candidates (the root node's candidates are the real polygons, so this includes every
-real polygon plane); only then is step (2) redone for that node. As in the paper, crossing a real polygon
-plane re-determines every node (`BeamTracer.frame` reports it as `redetermined`); the eye can also cross
-the plane of a mirrored polygon while crossing no real one (the paper does not consider this), which
-re-determines just that node (`Timing.nodes_redetermined`).
+real polygon plane); only then is step (2) redone, and only for that node. A crossing of a real polygon
+plane (the paper's criterion) always re-determines the root; `BeamTracer.frame` reports it as
+`redetermined`. The eye can also cross the plane of a mirrored polygon while crossing no real one (the
+paper does not consider this); that re-determines just the node concerned (`Timing.nodes_redetermined`).
 """
 from __future__ import annotations
 
@@ -151,7 +151,7 @@ class Timing:
     determine: float = 0.0  # step (2)
     project: float = 0.0  # step (3)
     nodes_built: int = 0  # new signatures: candidates moved and clipped
-    nodes_ordered: int = 0  # front-facing sets and occlusion orders determined (new or forgotten nodes)
+    nodes_ordered: int = 0  # front-facing sets and occlusion orders determined for new nodes
     nodes_redetermined: int = 0  # reused nodes whose own (possibly mirrored) candidate plane the eye crossed
 
 
@@ -257,11 +257,6 @@ class Segmenter:
         c = np.array([f.c for f in self.faces])
         a, b = n @ eye_from - c, n @ eye_to - c
         return np.nonzero(((a > 0) != (b > 0)) | (np.abs(b) <= self.tol))[0]
-
-    def forget_order(self) -> None:
-        """Drop step (2)'s eye-dependent results (front-facing sets, occlusion order) of every node."""
-        for node in self.nodes.values():
-            node.side = node.front_of = node.behind_of = None
 
     # ------------------------------------------------------------------------------------------- step (3)
 

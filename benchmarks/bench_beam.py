@@ -215,7 +215,8 @@ def main(argv=None) -> int:
             "mean_abs_diff": float(np.abs(b - t).mean()), "max_abs_diff": float(diff.max()),
         })
     result = {
-        "benchmark": "bench_beam", "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "benchmark": "bench_beam",
+        "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "machine": {"platform": platform.platform(), "python": platform.python_version(), "torch": torch.__version__,
                     "shapely": shapely.__version__, "geos": ".".join(map(str, shapely.geos_version)),
                     "torch_threads": args.threads, "loadavg": os.getloadavg()},

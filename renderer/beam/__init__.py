@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..cameras.pinhole import PinholeCamera
 from ..params import SceneError
 from .polygons import Face, scene_faces
 from .segment import Region, ScreenCamera, Segmenter, Timing
@@ -58,8 +59,10 @@ class BeamTracer:
     """
 
     def __init__(self, scene, reuse: bool = True):
-        if type(scene.camera).__name__ != "PinholeCamera":
+        if not isinstance(scene.camera, PinholeCamera):
             raise SceneError(f"camera.type: beam tracing needs a pinhole camera, got {type(scene.camera).__name__}")
+        if scene.layers:
+            raise SceneError("layers: beam tracing renders one perspective view; remove the layers")
         self.scene = scene
         self.reuse = reuse
         t0 = time.perf_counter()

@@ -115,7 +115,8 @@ def test_first_hit_from_outside_enters_with_an_outward_normal(name):
     before = truth((p - 1e-6 * dt[hit]).numpy())
     after = truth((p + 1e-6 * dt[hit]).numpy())
     assert (~before).mean() > 0.999 and after.mean() > 0.999, \
-        f"{name}: hits are not where the solid starts (outside before {(~before).mean():.4f}, inside after {after.mean():.4f})"
+        f"{name}: hits are not where the solid starts (outside before {(~before).mean():.4f}, " \
+        f"inside after {after.mean():.4f})"
     # Rays that miss never pass through the solid: sample points along them are all outside.
     miss = ~hit
     s = np.linspace(0, 12, 241)

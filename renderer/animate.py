@@ -67,7 +67,10 @@ def animate(path: str, method: str, frames: int, step: float, out_dir: str, over
     if method == "beam":
         from .beam import BeamTracer, ScreenCamera
 
-        tracer = BeamTracer(scene)
+        try:
+            tracer = BeamTracer(scene)
+        except SceneError as e:
+            raise SceneError(f"{path}: {e}") from None
         base = ScreenCamera.of(scene.camera)
     for k in range(frames):
         start = time.perf_counter()

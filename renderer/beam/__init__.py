@@ -107,4 +107,4 @@ class BeamTracer:
         cam = frame.camera
         labels = label_pixels(frame.regions, cam.width, cam.height)
         return render_regions(frame.regions, labels, cam, self.faces, self.materials, self.scene.lights, self.lit,
-                              self.scene.image.background)
+                              self.scene.image.background, self.scene.ray_epsilon)

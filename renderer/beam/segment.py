@@ -86,6 +86,22 @@ class ScreenCamera:
         return np.stack([p[:, 0] * k[:, 0] / self.pitch[0] + self.center_px[0],
                          p[:, 1] * k[:, 0] / self.pitch[1] + self.center_px[1]], -1)
 
+    def pyramid(self, bounds, pad_px: float = 1.0) -> list[tuple[np.ndarray, float]]:
+        """Half-spaces a·x ≤ b (world) whose intersection is the pyramid from the eye through the screen
+        rectangle `bounds` (x0, y0, x1, y1, pixels) grown by pad_px."""
+        x0, y0, x1, y1 = bounds
+        px = np.array([[x0 - pad_px, y0 - pad_px], [x1 + pad_px, y0 - pad_px], [x1 + pad_px, y1 + pad_px],
+                       [x0 - pad_px, y1 + pad_px]])
+        d = self.directions(px)
+        center = d.sum(0)
+        planes = []
+        for d0, d1 in zip(d, np.roll(d, -1, axis=0)):
+            a = np.cross(d0, d1)
+            if a @ center > 0:
+                a = -a
+            planes.append((a, float(a @ self.eye)))
+        return planes
+
     def directions(self, xy_px: np.ndarray) -> np.ndarray:
         """(N, 2) pixels -> (N, 3) unit world directions of the rays from the eye through them."""
         q = np.stack([(xy_px[:, 0] - self.center_px[0]) * self.pitch[0],
@@ -271,12 +287,20 @@ class Segmenter:
         if front.size == 0:
             return [(-1, region)]
         polys = [node.polys[i] for i in front]
-        # Parts behind the eye never reach the screen; cut them off before the central projection.
+        # Parts behind the eye never reach the screen, and parts near the eye's plane project far away (where
+        # the overlay grid loses precision): such candidates are first cut to the view pyramid of the region.
         view = cam.world_from_camera[:, 2]
         near = 1e-9 * (1.0 + np.abs(cam.eye).max()) + cam.distance * 1e-6
+        far_px = 1e3 * (cam.width + cam.height)
+        pyramid = None
         for j, i in enumerate(front):
-            if (node.vertices[i] @ view - cam.eye @ view).min() < near:
-                polys[j] = clip_halfspace(polys[j], node.O[i], node.U[i], node.V[i], -view, -(cam.eye @ view + near))
+            depth = (node.vertices[i] - cam.eye) @ view
+            if depth.min() >= near and np.abs(cam.to_pixels(node.vertices[i])).max() <= far_px:
+                continue
+            if pyramid is None:
+                pyramid = cam.pyramid(region.bounds, pad_px=1.0) + [(-view, -(cam.eye @ view + near))]
+            for a, b in pyramid:
+                polys[j] = clip_halfspace(polys[j], node.O[i], node.U[i], node.V[i], a, b)
         geoms = np.array(polys, dtype=object)
         keep = ~shapely.is_empty(geoms)
         front, geoms = front[keep], geoms[keep]
@@ -292,7 +316,7 @@ class Segmenter:
         front, screen = front[meets], screen[meets]
         if front.size == 0:
             return [(-1, region)]
-        screen = shapely.make_valid(screen)
+        screen = np.array([areal(g) for g in shapely.make_valid(screen)], dtype=object)
         clipped = shapely.intersection(screen, region, grid_size=SCREEN_GRID)
         keep = shapely.area(clipped) > MIN_AREA
         front = front[keep]

@@ -22,7 +22,11 @@ import shapely
 import torch
 
 from ..shapes.polyhedron import coordinates_across
-from .polygons import EMPTY, clip_halfspace
+from .polygons import EMPTY, areal, clip_halfspace
+
+# Shadow polygons are combined on this grid (scene units, in each face's plane): fixed-precision overlay
+# is robust where the projected polygons nearly share edges.
+SHADOW_GRID = 1e-10
 
 
 def lit_regions(faces, lights) -> list[list]:
@@ -45,12 +49,15 @@ def lit_regions(faces, lights) -> list[list]:
                 per_light.append(EMPTY)
                 continue
             tol = 1e-9 * (1.0 + abs(f.c))
+            pyramid = _pyramid(f, P)
             shadows = []
             for g in faces:
                 if g.index == f.index or (abs(abs(g.n @ f.n) - 1) < 1e-9 and abs(g.n @ f.o - g.c) < tol):
                     continue
                 part = clip_halfspace(g.poly, g.o, g.u, g.v, -f.n, -(f.c + tol))  # in front of f's plane
                 part = clip_halfspace(part, g.o, g.u, g.v, f.n, f.n @ P - tol)  # ... and before the light
+                for a, b in pyramid:  # ... and between the light and f (so its shadow stays near f)
+                    part = clip_halfspace(part, g.o, g.u, g.v, a, b)
                 if part.is_empty:
                     continue
                 st = shapely.get_coordinates(part)
@@ -58,19 +65,44 @@ def lit_regions(faces, lights) -> list[list]:
                 k = h / (f.n @ P - x @ f.n)
                 y = P + k[:, None] * (x - P)
                 shadows.append(shapely.set_coordinates(part, np.stack([(y - f.o) @ f.u, (y - f.o) @ f.v], -1)))
-            lit = f.poly if not shadows else shapely.difference(f.poly, shapely.union_all(shadows))
+            if shadows:
+                # A face seen edge-on from the light projects to a degenerate ring: make_valid first.
+                shadows = [areal(x) for x in shapely.make_valid(np.array(shadows, dtype=object))]
+                shade = areal(shapely.union_all(shadows, grid_size=SHADOW_GRID))
+                lit = areal(shapely.difference(f.poly, shade, grid_size=SHADOW_GRID))
+            else:
+                lit = f.poly
             shapely.prepare(lit)
             per_light.append(lit)
         out.append(per_light)
     return out
 
 
-def shade_local(face, material, x: np.ndarray, d: np.ndarray, lights, lit: list) -> np.ndarray:
+def _pyramid(face, light: np.ndarray) -> list[tuple[np.ndarray, float]]:
+    """Half-spaces a·x ≤ b whose intersection is the pyramid from the light through the face's bounding
+    rectangle (in its plane, slightly enlarged): only what lies inside can shadow the face."""
+    s0, t0, s1, t1 = face.poly.bounds
+    pad = 1e-6 * (1.0 + max(s1 - s0, t1 - t0))
+    corners = [face.o + s * face.u + t * face.v for s, t in ((s0 - pad, t0 - pad), (s1 + pad, t0 - pad),
+                                                            (s1 + pad, t1 + pad), (s0 - pad, t1 + pad))]
+    center = sum(corners) / 4
+    planes = []
+    for q0, q1 in zip(corners, corners[1:] + corners[:1]):
+        a = np.cross(q0 - light, q1 - light)
+        if a @ center > a @ light:
+            a = -a
+        planes.append((a, float(a @ light)))
+    return planes
+
+
+def shade_local(face, material, x: np.ndarray, d: np.ndarray, lights, lit: list, eps: float = 0.0) -> np.ndarray:
     """Local radiance (N, 3) leaving points x (N, 3) of `face` towards rays of direction d (N, 3).
 
     Args:
         material: the face's `renderer.materials.Material`.
         lit: the face's lit polygons per light (`lit_regions`).
+        eps: the ray tracer's offset of shadow-ray origins along the normal (`Scene.ray_epsilon`); the
+            light's distance and direction are taken from there, as the integrator does.
     """
     n = face.n
     if material.texture is not None:
@@ -88,7 +120,7 @@ def shade_local(face, material, x: np.ndarray, d: np.ndarray, lights, lit: list)
             continue
         if region.is_empty:
             continue
-        to_light = np.asarray(light.position, dtype=np.float64) - x
+        to_light = np.asarray(light.position, dtype=np.float64) - (x + eps * n)
         dist2 = (to_light * to_light).sum(-1)
         l = to_light / np.sqrt(dist2)[:, None]
         cos = np.clip(l @ n, 0.0, None)
@@ -124,12 +156,13 @@ def label_pixels(regions, width: int, height: int) -> np.ndarray:
     return labels
 
 
-def render_regions(regions, labels: np.ndarray, cam, faces, materials, lights, lit, background) -> np.ndarray:
+def render_regions(regions, labels: np.ndarray, cam, faces, materials, lights, lit, background,
+                   eps: float = 0.0) -> np.ndarray:
     """(H, W, 3) linear RGB image from the regions (see the module docstring).
 
     Args:
         labels: `label_pixels(regions, W, H)`; materials: per face, its object's Material;
-        background: linear RGB of beams that leave the scene.
+        background: linear RGB of beams that leave the scene; eps: see `shade_local`.
     """
     h, w = labels.shape
     image = np.zeros((h * w, 3))
@@ -160,7 +193,7 @@ def render_regions(regions, labels: np.ndarray, cam, faces, materials, lights, l
             x = (cam.eye + t[:, None] * d - b) @ A  # back to the real scene: A^T (x' − b)
             d_real = d @ A
             m = materials[face_id]
-            radiance += throughput * (1.0 - m.reflect) * shade_local(f, m, x, d_real, lights, lit[face_id])
+            radiance += throughput * (1.0 - m.reflect) * shade_local(f, m, x, d_real, lights, lit[face_id], eps)
             throughput *= m.reflect
         image[pix] = radiance
     return image.reshape(h, w, 3)

@@ -82,13 +82,16 @@ def test_polygons_have_the_closed_form_area_and_no_redundant_faces(cfg, faces, a
 
 def test_regions_tile_the_screen_without_overlap(scene):
     tracer = BeamTracer(scene)
-    frame = tracer.frame()
     w, h = scene.image.width, scene.image.height
-    total, union, overlap = regions_cover(frame.regions, w, h)
-    assert 20 <= len(frame.regions) <= 150, f"expected a few tens of regions, got {len(frame.regions)}"
-    assert abs(total - w * h) <= 1e-9 * w * h, f"region areas sum to {total}, screen is {w * h}"
-    assert abs(union - w * h) <= 1e-9 * w * h, f"regions cover {union} of the screen's {w * h}"
-    assert overlap <= 1e-9 * w * h, f"regions overlap by {overlap} px²"
+    base = ScreenCamera.of(scene.camera)
+    for k in range(8):  # the shipped animation's path at half its step, nodes reused from frame to frame
+        frame = tracer.frame(base.moved(0.175 * k))
+        total, union, overlap = regions_cover(frame.regions, w, h)
+        assert 20 <= len(frame.regions) <= 150, f"frame {k}: expected a few tens of regions, got {len(frame.regions)}"
+        assert abs(total - w * h) <= 1e-9 * w * h, f"frame {k}: region areas sum to {total}, screen is {w * h}"
+        assert abs(union - w * h) <= 1e-9 * w * h, f"frame {k}: regions cover {union} of the screen's {w * h}"
+        assert overlap <= 1e-9 * w * h, f"frame {k}: regions overlap by {overlap} px²"
+    frame = tracer.frame(base)
     sigs = {r.signature for r in frame.regions}
     assert max(len(s) for s in sigs) >= 2, "the scene should produce beams reflected more than once"
     assert any(r.target < 0 for r in frame.regions), "some beam should reach the background"
@@ -129,6 +132,61 @@ def test_region_image_equals_the_ray_traced_image_away_from_borders(scene, frame
     flat = no_mirror.render(no_mirror.frame(cam))
     differs = np.abs(flat - ref).max(-1) > 1e-3
     assert differs.mean() > 0.1, f"mirrors change only {differs.mean():.3f} of the image: the test would be weak"
+
+
+def random_scene(seed: int, width=96, height=72) -> dict:
+    """Six random convex polyhedra (random planes inside a box) far enough apart not to interpenetrate,
+    some of them CSG unions or differences with a smaller polyhedron, half of them mirrors."""
+    rng = np.random.default_rng(seed)
+
+    def solid(center, size):
+        rows = [[*n, float(n @ center + size)] for n in np.vstack([np.eye(3), -np.eye(3)])]
+        for _ in range(int(rng.integers(3, 7))):
+            n = rng.normal(size=3)
+            n /= np.linalg.norm(n)
+            rows.append([*n, float(n @ center + size * rng.uniform(0.6, 1.0))])
+        return {"type": "polyhedron", "halfspaces": rows}
+
+    objects, centers = [], []
+    while len(objects) < 6:
+        c = rng.uniform([-3, -2, 3], [3, 2, 10])
+        if any(np.linalg.norm(c - other) < 2.9 for other in centers):
+            continue
+        centers.append(c)
+        size = rng.uniform(0.4, 0.8)
+        shape = solid(c, size)
+        if rng.random() < 0.4:
+            shape = {"type": "csg", "op": str(rng.choice(["union", "difference"])),
+                     "children": [shape, solid(c + rng.uniform(-0.4, 0.4, 3), 0.6 * size)]}
+        material = {"color": rng.uniform(0.2, 0.9, 3).tolist()}
+        if rng.random() < 0.5:
+            material["reflect"] = float(rng.uniform(0.5, 1.0))
+        objects.append({"name": f"o{len(objects)}", "shape": shape, "material": material})
+    return {"image": {"width": width, "height": height, "spp": 1, "sampler": "center", "max_depth": 3,
+                      "background": [0.2, 0.3, 0.4]},
+            "camera": {"type": "pinhole", "position": [0, 0, 0], "look_at": [0, 0, 5], "fov_deg": 60},
+            "lights": [{"type": "point", "position": [1, -4, 1], "intensity": [30, 30, 30]},
+                       {"type": "ambient", "intensity": 0.05}],
+            "objects": objects}
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_random_scenes_tile_the_screen_and_match_the_ray_tracer(seed):
+    from renderer.beam.shade import label_pixels
+
+    scene = load_scene(random_scene(seed))
+    tracer = BeamTracer(scene)
+    frame = tracer.frame()
+    w, h = scene.image.width, scene.image.height
+    total, union, overlap = regions_cover(frame.regions, w, h)
+    assert max(abs(total - w * h), abs(union - w * h), overlap) <= 1e-9 * w * h, \
+        f"seed {seed}: areas {total}, union {union}, overlap {overlap} for a {w * h} px² screen"
+    assert any(r.signature for r in frame.regions), f"seed {seed}: no reflected beam at all"
+    image = tracer.render(frame)
+    ref = render(scene, spp=1, sampler="center", dtype=torch.float64).image.numpy()
+    away = ~border_pixels(label_pixels(frame.regions, w, h))
+    same = np.abs(image - ref).max(-1) <= 1e-6 + 1e-4 * np.abs(ref).max(-1)
+    assert same[away].mean() >= 0.99, f"seed {seed}: only {same[away].mean():.4f} of the pixels match"
 
 
 # ------------------------------------------------------------------------------------------ moving viewpoint

@@ -70,6 +70,8 @@ def lit_regions(faces, lights) -> list[list]:
                 shadows = [areal(x) for x in shapely.make_valid(np.array(shadows, dtype=object))]
                 shade = areal(shapely.union_all(shadows, grid_size=SHADOW_GRID))
                 lit = areal(shapely.difference(f.poly, shade, grid_size=SHADOW_GRID))
+                if shade.is_empty:
+                    lit = f.poly
             else:
                 lit = f.poly
             shapely.prepare(lit)
@@ -124,8 +126,9 @@ def shade_local(face, material, x: np.ndarray, d: np.ndarray, lights, lit: list,
         dist2 = (to_light * to_light).sum(-1)
         l = to_light / np.sqrt(dist2)[:, None]
         cos = np.clip(l @ n, 0.0, None)
-        visible = shapely.intersects_xy(region, s, t)
-        scale = np.where(visible, cos / np.maximum(dist2, 1e-30), 0.0)
+        scale = cos / np.maximum(dist2, 1e-30)
+        if region is not face.poly:  # (the face's own polygon when nothing shadows it)
+            scale = np.where(shapely.intersects_xy(region, s, t), scale, 0.0)
         shade = material.diffuse * albedo / math.pi
         if material.specular > 0:
             refl = 2 * cos[:, None] * n - l
@@ -147,6 +150,7 @@ def label_pixels(regions, width: int, height: int) -> np.ndarray:
         if c1 < c0 or r1 < r0:
             continue
         ys, xs = np.mgrid[r0:r1 + 1, c0:c1 + 1]
+        shapely.prepare(r.poly)
         free = labels[r0:r1 + 1, c0:c1 + 1] < 0
         inside = shapely.intersects_xy(r.poly, xs[free].astype(np.float64), ys[free].astype(np.float64))
         block = labels[r0:r1 + 1, c0:c1 + 1]
@@ -172,6 +176,8 @@ def render_regions(regions, labels: np.ndarray, cam, faces, materials, lights, l
     start = counts[0]
     background = np.asarray(background, dtype=np.float64)
     image[order[:start]] = background  # pixel centres in no region (none expected)
+    # Walk every region's beam, collecting the real hit points per face; then shade each face once.
+    hits: dict[int, list] = {}
     for k, region in enumerate(regions):
         pix = order[start:start + counts[k + 1]]
         start += counts[k + 1]
@@ -179,21 +185,25 @@ def render_regions(regions, labels: np.ndarray, cam, faces, materials, lights, l
             continue
         xy = np.stack([pix % w, pix // w], -1).astype(np.float64)
         d = cam.directions(xy)
-        radiance = np.zeros((pix.size, 3))
         throughput = 1.0
         levels = list(region.signature) + [region.target]
         for face_id, (A, b) in zip(levels, region.transforms):
             if face_id < 0:
-                radiance += throughput * background
+                image[pix] += throughput * background
                 break
             f = faces[face_id]
             n_v = A @ f.n
             c_v = f.c + n_v @ b
             t = (c_v - n_v @ cam.eye) / (d @ n_v)
             x = (cam.eye + t[:, None] * d - b) @ A  # back to the real scene: A^T (x' − b)
-            d_real = d @ A
             m = materials[face_id]
-            radiance += throughput * (1.0 - m.reflect) * shade_local(f, m, x, d_real, lights, lit[face_id], eps)
+            hits.setdefault(face_id, []).append((pix, x, d @ A, throughput * (1.0 - m.reflect)))
             throughput *= m.reflect
-        image[pix] = radiance
+    for face_id, parts in hits.items():
+        pix = np.concatenate([p[0] for p in parts])
+        x = np.concatenate([p[1] for p in parts])
+        d = np.concatenate([p[2] for p in parts])
+        weight = np.concatenate([np.full(p[0].size, p[3]) for p in parts])
+        local = shade_local(faces[face_id], materials[face_id], x, d, lights, lit[face_id], eps)
+        np.add.at(image, pix, weight[:, None] * local)  # a beam may meet one face more than once
     return image.reshape(h, w, 3)

@@ -145,6 +145,8 @@ class Node:
     N: np.ndarray  # (m, 3) outward normals, virtual
     C: np.ndarray  # (m,) plane offsets, virtual
     vertices: list  # m (k, 3) ring vertices, virtual
+    vertex_array: np.ndarray | None = None  # the m vertex arrays concatenated
+    vertex_start: np.ndarray | None = None  # (m,) where each candidate's vertices start in it
     side: np.ndarray | None = None  # (m,) bool: eye on the outer side (front-facing) at determination
     front_of: list | None = None  # per candidate: candidate indices certainly in front of it
     behind_of: list | None = None  # per candidate: candidate indices certainly behind it
@@ -224,6 +226,8 @@ class Segmenter:
         node = Node(signature, A, b, np.array(ids, dtype=np.int64), polys, np.array(O).reshape(-1, 3),
                     np.array(U).reshape(-1, 3), np.array(V).reshape(-1, 3), np.array(N).reshape(-1, 3),
                     np.array(C), verts)
+        node.vertex_array = np.concatenate(verts) if verts else np.zeros((0, 3))
+        node.vertex_start = np.cumsum([0] + [len(v) for v in verts[:-1]]).astype(np.int64)
         self.timing.nodes_built += 1
         return node
 
@@ -293,9 +297,12 @@ class Segmenter:
         near = 1e-9 * (1.0 + np.abs(cam.eye).max()) + cam.distance * 1e-6
         far_px = 1e3 * (cam.width + cam.height)
         pyramid = None
+        with np.errstate(divide="ignore", invalid="ignore"):
+            depth = (node.vertex_array - cam.eye) @ view
+            px = np.abs(cam.to_pixels(node.vertex_array)).max(-1)
+        bad = np.logical_or.reduceat((depth < near) | ~(px <= far_px), node.vertex_start)
         for j, i in enumerate(front):
-            depth = (node.vertices[i] - cam.eye) @ view
-            if depth.min() >= near and np.abs(cam.to_pixels(node.vertices[i])).max() <= far_px:
+            if not bad[i]:
                 continue
             if pyramid is None:
                 pyramid = cam.pyramid(region.bounds, pad_px=1.0) + [(-view, -(cam.eye @ view + near))]

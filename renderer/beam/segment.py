@@ -240,14 +240,17 @@ class Segmenter:
         side, _ = node.eye_sides(eye, self.tol)
         node.side = side
         m = len(node.ids)
-        ahead = np.zeros((m, m), dtype=bool)  # ahead[a, b]: a in front of b
+        if m == 0:
+            node.front_of, node.behind_of = [], []
+            return
         g_eye = node.N @ eye - node.C  # (m,)
+        # Every candidate's vertices against every plane, signed so that > 0 is the eye's side: (K, m).
+        toward = (node.vertex_array @ node.N.T - node.C) * np.sign(g_eye)
         tol = self.tol
-        for a in range(m):
-            g = node.vertices[a] @ node.N.T - node.C  # (k, m): a's vertices against every plane
-            toward = g * np.sign(g_eye)  # > 0 on the eye's side of plane b
-            ahead[a] |= (toward >= -tol).all(0)  # a wholly on the eye's side of plane b: a in front of b
-            ahead[:, a] |= (toward <= tol).all(0)  # a wholly behind plane b: b in front of a
+        on_eye_side = np.logical_and.reduceat(toward >= -tol, node.vertex_start, axis=0)  # (m, m): a vs plane b
+        behind = np.logical_and.reduceat(toward <= tol, node.vertex_start, axis=0)
+        # a wholly on the eye's side of b's plane: a in front of b; a wholly behind it: b in front of a.
+        ahead = on_eye_side | behind.T
         np.fill_diagonal(ahead, False)
         certain = ahead & ~ahead.T
         node.front_of = [np.nonzero(certain[:, a])[0] for a in range(m)]

@@ -15,7 +15,8 @@ Writes DIR/frame_0000.png ... (8-bit sRGB) and DIR/frames.csv with the columns
 re-determined (always 1 for frame 0; empty for trace) |
 | `segment_seconds` | the segmentation part of `seconds` (beam; empty for trace) |
 
-`beam` is the improved beam tracer (`renderer.beam`): pinhole camera, polyhedron/csg objects; it shades one
+`beam` is the improved beam tracer (`renderer.beam`, numpy and shapely on the CPU; `--device` applies to
+`trace` only): pinhole camera, polyhedron/csg objects; it shades one
 sample at each pixel centre. `trace` renders each frame with the ray tracer at the scene's `image.spp` and
 `sampler` (the shipped beam scenes use 1 spp at the pixel centre, so both show the same image).
 """

@@ -11,6 +11,7 @@ A scene file is one JSON object with the sections
 | `layers` | no | mixed-projection layers (see `renderer.cameras.layers`) |
 | `extends` | no | another scene file (relative to this one) this file is merged onto |
 | `description` | no | free text for the reader |
+| `animation` | no | `{frames, step}`: defaults for `renderer animate` (see `ANIMATION_PARAMS`) |
 
 `extends` merges objects key by key (this file wins) and replaces everything else (lists included), so
 a variant states only what differs from its base (relative file names inside are still resolved against
@@ -39,7 +40,7 @@ from .sampling import SAMPLERS
 from .scene import ImageSettings, Light, Scene, SceneObject
 from .shapes import build_shape
 
-SECTIONS = ("image", "camera", "lights", "objects", "layers", "extends", "description")
+SECTIONS = ("image", "camera", "lights", "objects", "layers", "extends", "description", "animation")
 
 IMAGE_PARAMS = [
     Param("width", "int", doc="image width, pixels"),
@@ -80,6 +81,22 @@ TEXTURE_PARAMS = {
         Param("encoding", "str", None, "srgb or linear [8-bit files sRGB, others linear]", ("srgb", "linear")),
     ],
 }
+
+ANIMATION_PARAMS = [
+    Param("frames", "int", doc="number of frames, >= 1"),
+    Param("step", "float", doc="camera move per frame along its view direction, scene units"),
+]
+
+
+def parse_animation(cfg) -> dict:
+    """The validated `animation` section ({frames, step}), or {} when the scene has none."""
+    if cfg.get("animation") is None:
+        return {}
+    p = parse_params("animation", cfg["animation"], ANIMATION_PARAMS)
+    if p["frames"] < 1:
+        raise SceneError(f"animation.frames: expected an integer >= 1, got {p['frames']}")
+    return p
+
 
 OBJECT_PARAMS = [
     Param("name", "str", doc="unique name (layers refer to objects by name)"),
@@ -238,6 +255,7 @@ def build_scene(cfg: dict, base_dir: str = ".") -> Scene:
             raise SceneError(f"{key}: unknown key (expected one of: {', '.join(SECTIONS)})")
     if "description" in cfg:
         check_value("description", "str", cfg["description"])
+    parse_animation(cfg)
     for key in ("image", "camera"):
         if key not in cfg:
             raise SceneError(f"{key}: missing required section")

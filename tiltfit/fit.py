@@ -175,6 +175,48 @@ class _Problem:
         rb = torch.where(self.bmask, b - self.blur, torch.zeros_like(b)).reshape(-1)
         return torch.cat([rc, rb])
 
+    def jacobian_fn(self, scale: torch.Tensor):
+        """The Jacobian of `raw(x) * scale` as a `BlockJacobian` when poses are free (else None: use jacfwd).
+
+        Every view's pose is perturbed by the same (K,) vector at once: since view v's rows depend only on its
+        own pose, the (M, K) Jacobian of that common perturbation holds each row's pose derivatives. So one
+        forward-mode pass per shared parameter plus K (≤ 6), whatever the number of views.
+        """
+        pose_names = [n for n in ("rvec", "T_scaled") if n in self.names]
+        if not pose_names:
+            return None
+        V, N = self.cmask.shape
+        offsets, i = {}, 0
+        for n, size in zip(self.names, self.sizes):
+            offsets[n] = (i, size)
+            i += size
+        P = i
+        shared = [n for n in self.names if n not in pose_names]
+        s_idx = torch.cat([torch.arange(offsets[n][0], offsets[n][0] + offsets[n][1]) for n in shared]) \
+            if shared else torch.zeros(0, dtype=torch.long)
+        p_idx = torch.cat([offsets[n][0] + 3 * torch.arange(V)[:, None] + torch.arange(3)[None]
+                           for n in pose_names], 1)
+        rows = torch.cat([2 * N * torch.arange(V)[:, None] + torch.arange(2 * N)[None],
+                          2 * V * N + N * torch.arange(V)[:, None] + torch.arange(N)[None]], 1)
+        K = 3 * len(pose_names)
+
+        def jac(x: torch.Tensor) -> BlockJacobian:
+            x = x.detach()
+            z0 = torch.cat([x[s_idx], x.new_zeros(K)])
+
+            def g(z):
+                xz = x.clone()
+                xz = xz.index_copy(0, s_idx, z[:len(s_idx)]) if len(s_idx) else xz
+                q = z[len(s_idx):]
+                for j, _ in enumerate(pose_names):
+                    xz = xz.index_add(0, p_idx[:, 3 * j:3 * j + 3].reshape(-1), q[3 * j:3 * j + 3].repeat(V))
+                return self.raw(xz) * scale
+
+            Jc = jacfwd(g)(z0).detach()
+            return BlockJacobian(Jc[:, :len(s_idx)], Jc[:, len(s_idx):], rows, s_idx, p_idx, P)
+
+        return jac
+
     def scale(self, sigma_c: float, sigma_b: float) -> torch.Tensor:
         nc = self.cmask.numel() * 2
         s = torch.full((self.corner_rows.numel(),), 1.0 / sigma_c, dtype=torch.float64)
@@ -186,6 +228,123 @@ class _Problem:
             params = dict(self.camera.named_parameters())
             for n, v in self.unflatten(x).items():
                 params[n].copy_(v)
+
+
+class DenseNormal:
+    """Normal equations A = Jᵀ W J of a dense Jacobian (M, P)."""
+
+    def __init__(self, J: torch.Tensor, wts: torch.Tensor):
+        self.J = J
+        self.Jw = J * wts[:, None]
+        self.A = J.T @ self.Jw
+
+    def gradient(self, r: torch.Tensor) -> torch.Tensor:
+        return self.Jw.T @ r
+
+    def diag(self) -> torch.Tensor:
+        return torch.diagonal(self.A)
+
+    def matvec(self, v: torch.Tensor) -> torch.Tensor:
+        return self.A @ v
+
+    def solve(self, damping: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
+        """(A + diag(damping))⁻¹ rhs."""
+        return torch.linalg.solve(self.A + torch.diag(damping), rhs)
+
+
+@dataclass
+class BlockJacobian:
+    """A Jacobian with the multi-view block structure: each view's pose touches only its own residual rows.
+
+    Attributes:
+        Js: (M, S) columns of the shared (lens) parameters.
+        Jp: (M, K) columns of the pose parameters: row i holds the derivatives with respect to the pose of the
+            view that row i belongs to (computed for all views at once by perturbing every pose together).
+        rows: (V, R) long, the residual rows of each view.
+        s_idx: (S,) long, positions of the shared parameters in the flat parameter vector.
+        p_idx: (V, K) long, positions of each view's pose parameters.
+        n_params: P = S + V·K.
+    """
+
+    Js: torch.Tensor
+    Jp: torch.Tensor
+    rows: torch.Tensor
+    s_idx: torch.Tensor
+    p_idx: torch.Tensor
+    n_params: int
+
+    def dense(self) -> torch.Tensor:
+        """(M, P) the full Jacobian (for covariances)."""
+        J = self.Js.new_zeros(self.Js.shape[0], self.n_params)
+        J[:, self.s_idx] = self.Js
+        J[self.rows[:, :, None], self.p_idx[:, None, :]] = self.Jp[self.rows]
+        return J
+
+
+class BlockNormal:
+    """Normal equations of a `BlockJacobian`, solved by the Schur complement of the pose blocks.
+
+    With A = [[A_ss, A_sp], [A_ps, A_pp]] where A_pp is block diagonal (one K×K block per view), the damped
+    system is reduced to the shared parameters: (A_ss − Σ_v A_sv A_vv⁻¹ A_vs) δ_s = g_s − Σ_v A_sv A_vv⁻¹ g_v,
+    then δ_v = A_vv⁻¹ (g_v − A_vs δ_s). Cost O(M (S + K)² + V K³ + S³) instead of O(M P² + P³).
+    """
+
+    def __init__(self, bj: BlockJacobian, wts: torch.Tensor):
+        self.bj = bj
+        self.w = wts
+        self.Jsw = bj.Js * wts[:, None]
+        self.A_ss = bj.Js.T @ self.Jsw
+        self.Jp_v = bj.Jp[bj.rows]                       # (V, R, K)
+        self.w_v = wts[bj.rows]                          # (V, R)
+        Js_v = bj.Js[bj.rows]                            # (V, R, S)
+        Jpw_v = self.Jp_v * self.w_v[..., None]
+        self.A_pp = Jpw_v.transpose(1, 2) @ self.Jp_v    # (V, K, K)
+        self.A_sp = Js_v.transpose(1, 2) @ Jpw_v         # (V, S, K)
+
+    def _split(self, v: torch.Tensor):
+        return v[self.bj.s_idx], v[self.bj.p_idx]
+
+    def _join(self, vs: torch.Tensor, vp: torch.Tensor) -> torch.Tensor:
+        out = vs.new_zeros(self.bj.n_params)
+        out[self.bj.s_idx] = vs
+        out[self.bj.p_idx] = vp
+        return out
+
+    def gradient(self, r: torch.Tensor) -> torch.Tensor:
+        gs = self.Jsw.T @ r
+        gp = ((self.Jp_v * (self.w_v * r[self.bj.rows])[..., None]).sum(1))
+        return self._join(gs, gp)
+
+    def diag(self) -> torch.Tensor:
+        return self._join(torch.diagonal(self.A_ss), torch.diagonal(self.A_pp, dim1=-2, dim2=-1))
+
+    def matvec(self, v: torch.Tensor) -> torch.Tensor:
+        vs, vp = self._split(v)
+        out_s = self.A_ss @ vs + (self.A_sp @ vp[..., None]).squeeze(-1).sum(0)
+        out_p = torch.einsum("vsk,s->vk", self.A_sp, vs) + (self.A_pp @ vp[..., None]).squeeze(-1)
+        return self._join(out_s, out_p)
+
+    def solve(self, damping: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
+        ds, dp = self._split(damping)
+        gs, gp = self._split(rhs)
+        App = self.A_pp + torch.diag_embed(dp)
+        App_inv = torch.linalg.inv(App)                              # (V, K, K)
+        B = self.A_sp                                                # (V, S, K)
+        BAi = B @ App_inv                                            # (V, S, K)
+        S = self.A_ss + torch.diag(ds) - (BAi @ B.transpose(1, 2)).sum(0)
+        rhs_s = gs - (BAi @ gp[..., None]).squeeze(-1).sum(0)
+        xs = torch.linalg.solve(S, rhs_s)
+        xp = (App_inv @ (gp - torch.einsum("vsk,s->vk", B, xs))[..., None]).squeeze(-1)
+        return self._join(xs, xp)
+
+
+def _normal_equations(J, wts):
+    return BlockNormal(J, wts) if isinstance(J, BlockJacobian) else DenseNormal(J, wts)
+
+
+def dense_jacobian(J) -> torch.Tensor:
+    """The (M, P) matrix of a dense or block Jacobian."""
+    return J.dense() if isinstance(J, BlockJacobian) else J
 
 
 @dataclass
@@ -210,9 +369,10 @@ def levenberg_marquardt(residual_fn, x0: torch.Tensor, robust: str | None = None
     Args:
         residual_fn: (P,) -> (M,) float64 residuals, already divided by their σ.
         x0: (P,) start.
-        jacobian_fn: (P,) -> (M, P); default `torch.func.jacfwd(residual_fn)`.
+        jacobian_fn: (P,) -> (M, P) tensor or `BlockJacobian` (then the normal equations are solved by the
+            Schur complement of the per-view pose blocks); default `torch.func.jacfwd(residual_fn)`.
     Returns:
-        _LMResult with the solution, cost, iterations, and J, r, IRLS weights at the solution.
+        _LMResult with the solution, cost, iterations, and J (as `jacobian_fn` gives it), r, IRLS weights.
     Raises:
         FitError: non-finite residuals at the start, or no convergence within max_iterations.
     """
@@ -230,14 +390,15 @@ def levenberg_marquardt(residual_fn, x0: torch.Tensor, robust: str | None = None
     wts = robust_weight(r * r, robust, robust_scale)
     lam, nu, diag_max = 1e-6, 2.0, None
     for it in range(max_iterations + 1):
-        Jw = J * wts[:, None]
-        A = J.T @ Jw
-        g = Jw.T @ r
-        d = torch.diagonal(A).clamp(min=1e-300)
+        ne = _normal_equations(J, wts)
+        g = ne.gradient(r)
+        d = ne.diag().clamp(min=1e-300)
         diag_max = d if diag_max is None else torch.maximum(diag_max, d)
         try:
-            gn = torch.linalg.solve(A + 1e-12 * torch.diag(diag_max), g)
+            gn = ne.solve(1e-12 * diag_max, g)
             decrement = 0.5 * float(g @ gn)
+            if not math.isfinite(decrement):
+                decrement = math.inf
         except RuntimeError:
             decrement = math.inf
         if decrement < decrement_tol:
@@ -246,13 +407,13 @@ def levenberg_marquardt(residual_fn, x0: torch.Tensor, robust: str | None = None
             break
         while True:
             try:
-                step = -torch.linalg.solve(A + lam * torch.diag(diag_max), g)
+                step = -ne.solve(lam * diag_max, g)
             except RuntimeError:
                 step = torch.full_like(g, float("nan"))
             ok = bool(torch.isfinite(step).all())
             r_new = residual_fn(x + step).detach() if ok else None
             cost_new = cost_of(r_new) if ok and torch.isfinite(r_new).all() else math.inf
-            predicted = float(-(g @ step) - 0.5 * step @ (A @ step)) if ok else 0.0
+            predicted = float(-(g @ step) - 0.5 * step @ ne.matvec(step)) if ok else 0.0
             rho = (cost - cost_new) / predicted if predicted > 0 else -1.0
             if rho > 0:
                 break
@@ -369,7 +530,7 @@ def blur_from_scan(p_cam: torch.Tensor, blur_px: torch.Tensor, mask: torch.Tenso
 
 def _blur_rss(cam: TiltLensCamera, obs: Observations, U_mm: float, d_mm: float, theta_F: float) -> float:
     with torch.no_grad():
-        cam.log_U_mm.fill_(math.log(U_mm))
+        cam.inv_U_per_m.fill_(1000.0 / U_mm)
         cam.log_d_mm.fill_(math.log(d_mm))
         cam.theta_F.fill_(theta_F)
         b = cam.blur(obs.points_mm)
@@ -466,11 +627,11 @@ def _solve(camera: TiltLensCamera, obs: Observations, options: FitOptions, sigma
     for outer in range(options.noise_iterations + 1):
         scale = prob.scale(sc, sb)
         res = levenberg_marquardt(lambda v: prob.raw(v) * scale, x, options.robust, options.robust_scale,
-                                  options.max_iterations)
+                                  options.max_iterations, jacobian_fn=prob.jacobian_fn(scale))
         x, total_it = res.x, total_it + res.iterations
         if not estimate or outer == options.noise_iterations:
             break
-        new_sc, new_sb = _group_sigma(prob, res.r / scale, res.J, res.weights, options.robust)
+        new_sc, new_sb = _group_sigma(prob, res.r / scale, dense_jacobian(res.J), res.weights, options.robust)
         new_sc = options.sigma_corner_px or new_sc
         new_sb = options.sigma_blur_px or new_sb
         changed = abs(new_sc / sc - 1) > 1e-3 or abs(new_sb / sb - 1) > 1e-3
@@ -489,7 +650,8 @@ def _derived(camera: TiltLensCamera, params: dict) -> torch.Tensor:
     """(w, U, d, f, θF°, θL°, θL_paper°, cx, cy) as functions of the stored parameters."""
     from renderer import optics
 
-    w, U, d = (torch.exp(params[k]) for k in ("log_w_mm", "log_U_mm", "log_d_mm"))
+    w, d = torch.exp(params["log_w_mm"]), torch.exp(params["log_d_mm"])
+    U = 1000.0 / params["inv_U_per_m"]
     thF = params["theta_F"]
     thL = optics.theta_L_from_theta_F(thF, w, U)
     f = optics.focal_length(w, U, thL)
@@ -507,18 +669,20 @@ def _held_sigma(init_sigma: dict | None, camera: TiltLensCamera, names: list[str
     out = {}
     if not init_sigma:
         return out
-    for stored, key, val in (("log_w_mm", "w_mm", camera.w_mm), ("log_U_mm", "U_mm", camera.U_mm),
-                             ("log_d_mm", "d_mm", camera.d_mm)):
+    for stored, key, val in (("log_w_mm", "w_mm", camera.w_mm), ("log_d_mm", "d_mm", camera.d_mm)):
         if stored in names and init_sigma.get(key):
             out[stored] = float(init_sigma[key]) / float(val)
+    if "inv_U_per_m" in names and init_sigma.get("U_mm") and math.isfinite(float(camera.U_mm)):
+        out["inv_U_per_m"] = 1000.0 * float(init_sigma["U_mm"]) / float(camera.U_mm) ** 2
     return out
 
 
 def _uncertainties(prob: _Problem, res: _LMResult, scale: torch.Tensor, init_sigma: dict | None):
     """Covariance of the free parameters and σ of the derived quantities and per-view poses."""
     cam = prob.camera
-    Jw = res.J * res.weights[:, None]
-    A = res.J.T @ Jw
+    J = dense_jacobian(res.J)
+    Jw = J * res.weights[:, None]
+    A = J.T @ Jw
     n = prob.n_corner + prob.n_blur
     p = res.x.numel()
     s2 = float((res.weights * res.r * res.r).sum()) / max(n - p, 1)
@@ -557,6 +721,14 @@ def _uncertainties(prob: _Problem, res: _LMResult, scale: torch.Tensor, init_sig
     for nme, size in zip(prob.names, prob.sizes):
         offsets[nme] = (i, size)
         i += size
+    sigma["distortion"] = [math.sqrt(float(C[offsets[n][0], offsets[n][0]])) if n in offsets else 0.0
+                           for n in TiltLensCamera.parameter_names("distortion")]
+    if "inv_U_per_m" in offsets:
+        o = offsets["inv_U_per_m"][0]
+        sigma["inv_U_per_m"] = math.sqrt(float(C[o, o]))
+    if "log_d_mm" in offsets:
+        o = offsets["log_d_mm"][0]
+        sigma["log_d_mm"] = math.sqrt(float(C[o, o]))
     for v in range(cam.n_views):
         entry = {}
         if "rvec" in offsets:

@@ -35,7 +35,10 @@ import numpy as np
 import torch
 from torch.func import functional_call, jacfwd
 
-from .model import BLUR_MODELS, ROBUST_LOSSES, Observations, TiltLensCamera, residuals, robust_rho, robust_weight
+from renderer.cameras.distortion import MODEL_TERMS, MODELS as DISTORTION_MODELS
+
+from .model import (BLUR_MODELS, ROBUST_LOSSES, Observations, TiltLensCamera, distortion_parameter_names, residuals,
+                    robust_rho, robust_weight)
 
 MODES = ("unified", "tilt", "joint")
 MAX_RMS_REPROJECTION_PX = 5.0  # a calibrated view reprojecting worse than this means mismatched data
@@ -66,6 +69,13 @@ class FitOptions:
         model_selection: run the θF / principal-point tests [True].
         alpha: significance level of the tests [0.01].
         progress: callable(str) for progress lines, or None [None].
+        distortion: "none", "k1", "k1k2", "opencv5", "rational" or "auto" (free terms in that order while the
+            likelihood-ratio test and BIC justify them, on the corners alone) ["none"].
+        max_rms_px: a view reprojecting worse than this is an error (mismatched data); None: no check [5.0].
+        min_corners: views with fewer detected corners are skipped (listed in `FitResult.skipped`) [6].
+        blur_floor_px: blur widths all below this carry no information on U and d (sharp images): the fit is
+            geometric and U, d are reported undetermined [1.0].
+        outlier_factor: a view whose RMS exceeds this many times the median view RMS is flagged [3.0].
     """
 
     robust: str | None = None
@@ -80,6 +90,11 @@ class FitOptions:
     model_selection: bool = True
     alpha: float = 0.01
     progress: object = None
+    distortion: str = "none"
+    max_rms_px: float | None = MAX_RMS_REPROJECTION_PX
+    min_corners: int = 6
+    blur_floor_px: float = 1.0
+    outlier_factor: float = 3.0
 
     def __post_init__(self):
         if self.robust not in ROBUST_LOSSES:
@@ -88,6 +103,8 @@ class FitOptions:
             raise ValueError(f"blur_model: expected one of {BLUR_MODELS}, got {self.blur_model!r}")
         if self.max_iterations < 1:
             raise ValueError(f"max_iterations: expected at least 1, got {self.max_iterations}")
+        if self.distortion not in DISTORTION_MODELS + ("auto",):
+            raise ValueError(f"distortion: expected one of {DISTORTION_MODELS + ('auto',)}, got {self.distortion!r}")
 
 
 @dataclass
@@ -105,6 +122,11 @@ class FitResult:
         parameter_names, covariance: the free parameters (stored units of the camera) and their covariance.
         chi2: Σ ρ((r/σ)²) at the solution; n_residuals, n_parameters; iterations; runtime_s.
         model_selection: per tested parameter, the test's numbers and a verdict (see the module docstring).
+        distortion_model: the distortion terms fitted ("none", "k1", …); distortion_selection: the tests that
+            chose them under `distortion="auto"` (one entry per candidate).
+        undetermined: keys the data cannot determine (e.g. "U_mm", "d_mm" from sharp images); their values
+            are not meaningful and CALIB.json writes null.
+        skipped: views left out, [{image, reason}]; notes: one-line remarks for the user (stderr).
     """
 
     mode: str
@@ -122,6 +144,11 @@ class FitResult:
     runtime_s: float
     rss: dict = field(default_factory=dict)
     model_selection: dict = field(default_factory=dict)
+    distortion_model: str = "none"
+    distortion_selection: list = field(default_factory=list)
+    undetermined: list = field(default_factory=list)
+    skipped: list = field(default_factory=list)
+    notes: list = field(default_factory=list)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -272,6 +299,9 @@ class BlockJacobian:
     s_idx: torch.Tensor
     p_idx: torch.Tensor
     n_params: int
+
+    def detach(self) -> "BlockJacobian":
+        return self
 
     def dense(self) -> torch.Tensor:
         """(M, P) the full Jacobian (for covariances)."""
@@ -474,22 +504,27 @@ def focal_from_homographies(obs: Observations, principal_point_px=None) -> float
     return F if 0.05 * s < F < 50 * s else None
 
 
-def poses_from_pnp(obs: Observations, focal_px: float, principal_point_px) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-view rvec (V, 3) and T (V, 3, mm) by OpenCV's solvePnP on the detected corners (no distortion)."""
+def poses_from_pnp(obs: Observations, focal_px: float, principal_point_px,
+                   distortion=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-view rvec (V, 3) and T (V, 3, mm) by OpenCV's solvePnP on the detected corners.
+
+    `distortion`: None or up to 8 Brown–Conrady coefficients in OpenCV's order."""
     import cv2
 
     K = np.array([[focal_px, 0, principal_point_px[0]], [0, focal_px, principal_point_px[1]], [0, 0, 1.0]])
+    dist = None if distortion is None or not any(float(v) for v in distortion) else \
+        np.array([float(v) for v in distortion], dtype=np.float64)
     pts = obs.points_mm.numpy()
     rv, tv = [], []
     for v in range(obs.n_views):
         m = obs.corner_mask[v].numpy()
         if m.sum() < 4:
             raise FitError(f"{obs.names[v]}: only {int(m.sum())} corners detected, at least 4 are needed")
-        ok, r, t = cv2.solvePnP(pts[m], obs.corners_px[v].numpy()[m], K, None, flags=cv2.SOLVEPNP_IPPE
+        ok, r, t = cv2.solvePnP(pts[m], obs.corners_px[v].numpy()[m], K, dist, flags=cv2.SOLVEPNP_IPPE
                                 if np.ptp(pts[m, 2]) < 1e-9 else cv2.SOLVEPNP_ITERATIVE)
         if not ok:
             raise FitError(f"{obs.names[v]}: cannot find the board's pose")
-        ok, r, t = cv2.solvePnP(pts[m], obs.corners_px[v].numpy()[m], K, None, r, t, True,
+        ok, r, t = cv2.solvePnP(pts[m], obs.corners_px[v].numpy()[m], K, dist, r, t, True,
                                 cv2.SOLVEPNP_ITERATIVE)
         if not ok or not (np.isfinite(r).all() and np.isfinite(t).all()):
             raise FitError(f"{obs.names[v]}: cannot find the board's pose (degenerate corner layout)")
@@ -540,19 +575,22 @@ def _blur_rss(cam: TiltLensCamera, obs: Observations, U_mm: float, d_mm: float, 
 
 
 def initialize(obs: Observations, mode: str = "unified", init: TiltLensCamera | None = None,
-               options: FitOptions = FitOptions()) -> TiltLensCamera:
+               options: FitOptions = FitOptions(), blur: bool = True) -> TiltLensCamera:
     """A starting camera for `calibrate`.
 
     Poses from PnP with w from `init`, else the nominal focal length, else the homographies. The blur
     parameters are the best (least squared blur error) of: `init`'s U, d, θF; the linear scan
     (`blur_from_scan`, θF scanned too in `joint` mode) unless `tilt` mode holds U and d; and, in `tilt` mode,
-    a scan of θF over ±80° with `init`'s U and d.
+    a scan of θF over ±80° with `init`'s U and d. With `blur` False the blur parameters are `init`'s (or
+    U = 600 mm, d = 10 mm) and θF = 0: they are not fitted then. `init`'s distortion is kept.
     """
     W, H = obs.image_size_px
+    dist = None
     if init is not None:
         init = init.copy().requires_grad_(False)
         pp = [float(v) for v in init.principal_point_px]
         w_mm = float(init.w_mm)
+        dist = [float(v) for v in init.distortion]
     else:
         pp = [(W - 1) / 2.0, (H - 1) / 2.0]
         if options.nominal_focal_mm is not None:
@@ -563,9 +601,18 @@ def initialize(obs: Observations, mode: str = "unified", init: TiltLensCamera | 
                 raise FitError("cannot estimate the focal length from these views (too fronto-parallel, or the "
                                "target does not match the detections); give a nominal focal length")
             w_mm = F * obs.pixel_pitch_mm
-    rvec, T = poses_from_pnp(obs, w_mm / obs.pixel_pitch_mm, pp)
-    cam = TiltLensCamera(obs.n_views, obs.image_size_px, obs.pixel_pitch_mm, w_mm, 600.0, 10.0, rvec=rvec,
-                         T_mm=T, principal_point_px=pp, blur_model=options.blur_model)
+    rvec, T = poses_from_pnp(obs, w_mm / obs.pixel_pitch_mm, pp, dist)
+    U0, d0 = (float(init.U_mm), float(init.d_mm)) if init is not None else (600.0, 10.0)
+    cam = TiltLensCamera(obs.n_views, obs.image_size_px, obs.pixel_pitch_mm, w_mm, U0, d0, rvec=rvec,
+                         T_mm=T, principal_point_px=pp, blur_model=options.blur_model, distortion=dist)
+    if blur:
+        start_blur(cam, obs, mode, init)
+    return cam
+
+
+def start_blur(cam: TiltLensCamera, obs: Observations, mode: str, init: TiltLensCamera | None = None):
+    """Set cam's U, d, θF to the best start (see `initialize`) for its current poses; returns cam."""
+    w_mm = float(cam.w_mm)
     candidates = []
     if init is not None:
         th = float(init.theta_F) if mode != "unified" else 0.0
@@ -822,12 +869,15 @@ def likelihood_ratio(restricted: FitResult, full: FitResult, k: int, alpha: floa
             "justified": bool(p < alpha and d_bic > 0), "alpha": alpha}
 
 
-def _model_selection(base: FitResult, obs: Observations, mode: str, options: FitOptions, say=None) -> dict:
+def _model_selection(base: FitResult, obs: Observations, mode: str, options: FitOptions, say=None,
+                     test_theta_F: bool = True) -> dict:
     """Re-fit with θF (and the principal point) switched and test which state the data support."""
     out = {}
     quiet = replace(options, model_selection=False)
     sigma = (base.noise["sigma_corner_px"], base.noise["sigma_blur_px"])
-    tests = [("theta_F", ("theta_F",), 1)]
+    if base.rss.get("n_blur", 0) == 0:
+        obs = without_blur(obs)
+    tests = [("theta_F", ("theta_F",), 1)] if test_theta_F else []
     tests.append(("principal_point", ("principal_point",), 2))
     for label, names, k in tests:
         cam = base.camera.copy()
@@ -860,15 +910,130 @@ def _model_selection(base: FitResult, obs: Observations, mode: str, options: Fit
     return out
 
 
+def _usable_views(obs: Observations, min_corners: int, say=None) -> tuple[Observations, list]:
+    """Drop views with fewer than `min_corners` corners; returns (observations kept, [{image, reason}])."""
+    n = obs.corner_mask.sum(-1)
+    keep = [v for v in range(obs.n_views) if int(n[v]) >= min_corners]
+    skipped = [{"image": obs.names[v], "reason": f"{int(n[v])} corners found, at least {min_corners} needed"}
+               for v in range(obs.n_views) if int(n[v]) < min_corners]
+    for sk in skipped:
+        if say:
+            say(f"warning: skipping {sk['image']}: {sk['reason']}")
+    return (obs if len(keep) == obs.n_views else obs.subset(keep)), skipped
+
+
+def blur_is_informative(obs: Observations, floor_px: float = 1.0) -> bool:
+    """Whether the blur widths can say anything about U and d: at least 3 of them, and some above `floor_px`
+    (below it a detector's width is its own resolution, not defocus)."""
+    b = obs.blur_px[obs.blur_mask]
+    return b.numel() >= 3 and float(b.max()) >= floor_px
+
+
+def without_blur(obs: Observations) -> Observations:
+    """The same observations with every blur width removed (geometry only)."""
+    return Observations(obs.points_mm, obs.corners_px, torch.full_like(obs.blur_px, math.nan), obs.image_size_px,
+                        obs.pixel_pitch_mm, list(obs.names))
+
+
+def _set_free_geometry(camera: TiltLensCamera, mode: str, free_pp: bool, distortion: str):
+    camera.freeze("all")
+    camera.free("pose")
+    if mode != "tilt":
+        camera.free("w")
+    if free_pp:
+        camera.free("principal_point")
+    camera.free(*distortion_parameter_names(distortion))
+
+
+def fit_geometry(camera: TiltLensCamera, obs: Observations, options: FitOptions, mode: str = "unified",
+                 say=None) -> FitResult:
+    """Fit w (unless `mode` is "tilt"), the poses, the principal point if asked and the distortion on the
+    corners alone (blur widths ignored; U, d, θF held). `options.distortion` "auto" picks the terms.
+
+    Distortion models are tried in the order none, k1, k1k2, opencv5, rational, each starting from the
+    previous fit; a model is kept while the likelihood-ratio test against the previous one rejects it at
+    `options.alpha` and BIC prefers it (`likelihood_ratio`), so terms are freed only while the data justify
+    them. The tests are in `FitResult.distortion_selection`.
+    """
+    obs = without_blur(obs)
+    quiet = replace(options, model_selection=False, progress=None)
+    models = DISTORTION_MODELS if options.distortion == "auto" else (options.distortion,)
+    best, selection = None, []
+    for m in models:
+        cam = (best.camera if best is not None else camera).copy()
+        _set_free_geometry(cam, mode, options.free_principal_point, m)
+        try:
+            fit = _fit_camera(cam, obs, quiet, mode=mode)
+        except FitError as e:
+            if best is None:
+                raise
+            selection.append({"model": m, "error": str(e), "justified": False})
+            if say:
+                say(f"distortion {m}: not fitted ({e})")
+            break
+        fit.distortion_model = m
+        rms = math.sqrt(fit.rss["corners"] / max(fit.rss["n_corners"], 1))
+        entry = {"model": m, "rms_px": rms, "n_terms": len(MODEL_TERMS[m])}
+        if best is not None:
+            k = len(MODEL_TERMS[m]) - len(MODEL_TERMS[best.distortion_model])
+            entry.update(likelihood_ratio(best, fit, k, options.alpha))
+        else:
+            entry["justified"] = True
+        selection.append(entry)
+        if say and options.distortion == "auto":
+            why = "" if best is None else (f" (Λ = {entry['lr_statistic']:.3g}, p = {entry['p_value']:.2g}, "
+                                           f"ΔBIC = {entry['delta_bic']:.3g} against {best.distortion_model})")
+            say(f"distortion {m}: RMS {rms:.3f} px, {'justified' if entry['justified'] else 'not justified'}"
+                f"{why}")
+        if not entry["justified"]:
+            break
+        best = fit
+    best.distortion_selection = selection
+    return best
+
+
+def _flag_outliers(result: FitResult, factor: float) -> list:
+    rms = [v["rms_reprojection_px"] for v in result.views if math.isfinite(v["rms_reprojection_px"])]
+    if len(rms) < 3:
+        return []
+    med = float(np.median(rms))
+    out = []
+    for v in result.views:
+        v["outlier"] = bool(math.isfinite(v["rms_reprojection_px"]) and v["rms_reprojection_px"] > factor * med
+                            and v["rms_reprojection_px"] > 0.5)
+        if v["outlier"]:
+            out.append(v["image"])
+    return out
+
+
+def _undetermined_focus(result: FitResult) -> list:
+    """U and d the blur fit could not pin down: 1/U within 2σ of 0 (focus indistinguishable from infinity) or
+    d known to worse than a factor e^0.5."""
+    out = []
+    cam = result.camera
+    s_inv = result.sigma.get("inv_U_per_m")
+    if s_inv is not None and not abs(float(cam.inv_U_per_m)) > 2.0 * s_inv:
+        out.append("U_mm")
+    s_logd = result.sigma.get("log_d_mm")
+    if s_logd is not None and s_logd > 0.5:
+        out.append("d_mm")
+    return out
+
+
 def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | None = None,
               options: FitOptions = FitOptions(), init_sigma: dict | None = None) -> FitResult:
     """Calibrate a tilt-lens camera from detected corners and blur widths of several views.
 
+    Views with fewer than `options.min_corners` corners are skipped (`FitResult.skipped`). When the blur
+    widths carry no information (none, or all below `options.blur_floor_px`) or the blur fit cannot determine
+    U and d, the fit is geometric and those parameters are listed in `FitResult.undetermined`. Distortion
+    terms (`options.distortion`) are fitted on the corners first; "auto" chooses them (`fit_geometry`).
+
     Args:
         obs: the observations (target points, corners, blur widths) of V views.
         mode: "unified", "tilt" or "joint" (module docstring).
-        init: a camera whose lens state (w, U, d, θF, principal point) starts the fit; required for "tilt",
-            where w, U, d are held at its values. Its poses are not used (they come from PnP).
+        init: a camera whose lens state (w, U, d, θF, principal point, distortion) starts the fit; required for
+            "tilt", where w, U, d are held at its values. Its poses are not used (they come from PnP).
         options: `FitOptions`.
         init_sigma: one-σ of `init`'s w_mm, U_mm, d_mm (e.g. the `sigma` of a stage-1 CALIB.json); in
             "tilt" mode they are propagated into θF and θL.
@@ -883,30 +1048,85 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
         raise FitError("the tilt fit (stage 2) needs the stage-1 calibration as init")
     t0 = time.perf_counter()
     say = options.progress
+    n_all = obs.n_views
+    obs, skipped = _usable_views(obs, options.min_corners, say)
+    if obs.n_views == 0:
+        raise FitError(f"none of the {n_all} views has a board with at least {options.min_corners} corners")
     if say:
         say(f"{mode} fit of {obs.n_views} views, {int(obs.corner_mask.sum())} corners, "
             f"{int(obs.blur_mask.sum())} blur widths")
-    cam = initialize(obs, mode, init, options)
-    if say:
-        s = cam.summary()
-        say(f"start: w {s['w_mm']:.3f} mm, U {s['U_mm']:.1f} mm, d {s['d_mm']:.2f} mm, "
-            f"θF {s['theta_F_deg']:.2f}°")
-    _set_free(cam, mode, options.free_principal_point)
-    result = _fit_camera(cam, obs, options, init_sigma if mode == "tilt" else None, say, mode=mode)
+    blur_ok = blur_is_informative(obs, options.blur_floor_px)
+    cam = initialize(obs, mode, init, options, blur=blur_ok)
+    notes, undetermined = [], []
+    geometry = None
+    distortion = options.distortion
+    if not blur_ok or distortion != "none":
+        geometry = fit_geometry(cam, obs, options, mode, say)
+        distortion = geometry.distortion_model
+        cam = geometry.camera.copy()
+    result = None
+    if blur_ok:
+        if geometry is not None:
+            start_blur(cam, obs, mode, init)
+        if say:
+            s = cam.summary()
+            say(f"start: w {s['w_mm']:.3f} mm, U {s['U_mm']:.1f} mm, d {s['d_mm']:.2f} mm, "
+                f"θF {s['theta_F_deg']:.2f}°")
+        _set_free(cam, mode, options.free_principal_point)
+        cam.free(*distortion_parameter_names(distortion))
+        try:
+            result = _fit_camera(cam, obs, options, init_sigma if mode == "tilt" else None, say, mode=mode)
+            undetermined = _undetermined_focus(result)
+        except FitError as e:
+            if geometry is None:
+                raise
+            undetermined = ["U_mm", "d_mm"]
+            notes.append(f"the blur fit failed ({e}); the calibration is geometric")
+        if undetermined and geometry is not None and result is not None and len(undetermined) == 2:
+            result = None  # neither focus parameter determined: report the geometric fit
+    else:
+        undetermined = ["U_mm", "d_mm"] if mode != "tilt" else []
+        if mode != "unified":
+            undetermined.append("theta_F_deg")
+        why = "no blur widths" if int(obs.blur_mask.sum()) == 0 else \
+            f"all blur widths below {options.blur_floor_px:g} px (sharp images)"
+        notes.append(f"{' and '.join(k.split('_')[0] for k in undetermined)} undetermined: {why}; "
+                     f"the calibration is geometric (focal length, principal point, distortion, poses)")
+    if result is None:
+        if geometry is None:
+            geometry = fit_geometry(cam, obs, replace(options, distortion=distortion), mode, say)
+        result = geometry
+    result.mode = mode
+    result.distortion_model = distortion
+    if geometry is not None:
+        result.distortion_selection = geometry.distortion_selection
+    result.undetermined = undetermined
+    if undetermined and blur_ok:
+        notes.append(f"{' and '.join(k.split('_')[0] for k in undetermined)} undetermined: the blur widths "
+                     f"do not constrain them (1/U within 2σ of 0, or d known to worse than ×1.6)")
     worst = max((v["rms_reprojection_px"] for v in result.views if math.isfinite(v["rms_reprojection_px"])),
                 default=0.0)
-    if worst > MAX_RMS_REPROJECTION_PX:
+    if options.max_rms_px is not None and worst > options.max_rms_px:
         bad = max(result.views, key=lambda v: v["rms_reprojection_px"] if math.isfinite(v["rms_reprojection_px"])
                   else 0.0)
+        hint = "" if distortion != "none" else "; a lens with distortion needs --distortion auto"
         raise FitError(f"the fit found no consistent solution: {bad['image']} reprojects with an RMS of "
-                       f"{worst:.3g} px (the target file or the detections do not match)")
+                       f"{worst:.3g} px (the target file or the detections do not match{hint})")
+    outliers = _flag_outliers(result, options.outlier_factor)
+    if outliers:
+        notes.append(f"outlier views (RMS above {options.outlier_factor:g}× the median): {', '.join(outliers)}")
     if options.model_selection:
-        result.model_selection = _model_selection(result, obs, mode, options, say)
+        result.model_selection = _model_selection(result, obs, mode, options, say,
+                                                  test_theta_F="theta_F_deg" not in undetermined and blur_ok)
+    result.skipped = skipped
+    result.notes = notes
     result.runtime_s = time.perf_counter() - t0
     if say:
         v, s = result.values, result.sigma
-        say(f"done in {result.runtime_s:.2f} s: w {v['w_mm']:.4f} ± {s['w_mm']:.2g} mm, "
-            f"U {v['U_mm']:.2f} ± {s['U_mm']:.2g} mm, d {v['d_mm']:.3f} ± {s['d_mm']:.2g} mm, "
-            f"θF {v['theta_F_deg']:.3f} ± {s['theta_F_deg']:.2g}°, θL {v['theta_L_deg']:.3f} ± "
-            f"{s['theta_L_deg']:.2g}° (paper's (1): {v['theta_L_paper_deg']:.3f}°)")
+        focus = ", ".join(f"{k} {v[k]:.4g} ± {s[k]:.2g} mm" for k in ("U_mm", "d_mm") if k not in undetermined)
+        say(f"done in {result.runtime_s:.2f} s: w {v['w_mm']:.4f} ± {s['w_mm']:.2g} mm"
+            + (f", {focus}" if focus else "")
+            + (f", θF {v['theta_F_deg']:.3f} ± {s['theta_F_deg']:.2g}°, θL {v['theta_L_deg']:.3f} ± "
+               f"{s['theta_L_deg']:.2g}° (paper's (1): {v['theta_L_paper_deg']:.3f}°)" if blur_ok else "")
+            + f", distortion {distortion}")
     return result

@@ -248,11 +248,15 @@ def test_tilt_mode_needs_init():
         calibrate(obs, "tilt")
 
 
-def test_too_few_corners_is_an_error():
-    truth = truth_camera(3, seed=11)
+def test_a_view_with_too_few_corners_is_skipped_and_none_left_is_an_error():
+    truth = truth_camera(4, seed=11)
     obs, _ = observe(truth, seed=1111)
     obs.corners_px[1, 3:] = float("nan")
-    with pytest.raises(FitError, match="only 3 corners"):
+    res = calibrate(obs, "unified", options=QUIET)
+    assert [s["image"] for s in res.skipped] == ["view1"], f"the 3-corner view is skipped: {res.skipped}"
+    assert len(res.views) == 3, "the other three views are calibrated"
+    obs.corners_px[:, 3:] = float("nan")
+    with pytest.raises(FitError, match="none of the 4 views"):
         calibrate(obs, "unified", options=QUIET)
 
 

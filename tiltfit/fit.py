@@ -197,7 +197,7 @@ class _Problem:
 
     def raw(self, x: torch.Tensor, held: dict | None = None) -> torch.Tensor:
         """Model − observation, flat: corners (V·N·2, pixels) then blur (V·N, pixels); 0 where unobserved."""
-        uv, b = functional_call(self.camera, self.params(x, held), (self.points,))
+        uv, b = functional_call(self.camera, self.params(x, held), (self.points,), {"with_blur": self.n_blur > 0})
         rc = torch.where(self.cmask[..., None], uv - self.corners, torch.zeros_like(uv)).reshape(-1)
         rb = torch.where(self.bmask, b - self.blur, torch.zeros_like(b)).reshape(-1)
         return torch.cat([rc, rb])

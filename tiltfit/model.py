@@ -311,10 +311,6 @@ class TiltLensCamera(torch.nn.Module):
         return torch.stack([getattr(self, n) for n in _DIST])
 
     @property
-    def has_distortion(self) -> bool:
-        return any(bool(getattr(self, n).detach() != 0) or getattr(self, n).requires_grad for n in _DIST)
-
-    @property
     def d_mm(self) -> torch.Tensor:
         return torch.exp(self.log_d_mm)
 
@@ -377,9 +373,7 @@ class TiltLensCamera(torch.nn.Module):
 
     def project_camera(self, p_cam: torch.Tensor) -> torch.Tensor:
         """(..., 3) camera-frame points -> (..., 2) pixels: uv = c + (w / p) D(x / z, y / z)."""
-        xy = p_cam[..., :2] / p_cam[..., 2:3]
-        if self.has_distortion:
-            xy = distort(xy, self.distortion)
+        xy = distort(p_cam[..., :2] / p_cam[..., 2:3], self.distortion)
         return self.principal_point_px + self.focal_px * xy
 
     def blur_camera(self, p_cam: torch.Tensor) -> torch.Tensor:
@@ -395,10 +389,12 @@ class TiltLensCamera(torch.nn.Module):
         """(..., 3) world points (mm) -> (...,) blur diameters in pixels in `view` (or (V, ...))."""
         return self.blur_camera(self.to_camera(X_world, view))
 
-    def forward(self, X_world: torch.Tensor):
-        """All views at once: (N, 3) world points -> ((V, N, 2) uv_px, (V, N) blur_px)."""
+    def forward(self, X_world: torch.Tensor, with_blur: bool = True):
+        """All views at once: (N, 3) world points -> ((V, N, 2) uv_px, (V, N) blur_px); the blur is zeros
+        when `with_blur` is False (geometric fits skip its cost)."""
         p_cam = self.to_camera(X_world)
-        return self.project_camera(p_cam), self.blur_camera(p_cam)
+        uv = self.project_camera(p_cam)
+        return uv, (self.blur_camera(p_cam) if with_blur else torch.zeros_like(p_cam[..., 0]))
 
     # --- convenience -------------------------------------------------------------------------------------
     def copy(self) -> "TiltLensCamera":

@@ -935,25 +935,34 @@ def without_blur(obs: Observations) -> Observations:
                         obs.pixel_pitch_mm, list(obs.names))
 
 
-def _set_free_geometry(camera: TiltLensCamera, mode: str, free_pp: bool, distortion: str):
+def _set_free_geometry(camera: TiltLensCamera, mode: str, free_pp: bool, distortion: str | None):
+    """Free the geometric parameters; `distortion` None holds the coefficients as they are, a model name frees
+    its terms and sets the others to 0."""
     camera.freeze("all")
     camera.free("pose")
     if mode != "tilt":
         camera.free("w")
     if free_pp:
         camera.free("principal_point")
-    camera.free(*distortion_parameter_names(distortion))
+    if distortion is not None:
+        free = distortion_parameter_names(distortion)
+        with torch.no_grad():
+            for n in camera.parameter_names("distortion"):
+                if n not in free:
+                    getattr(camera, n).zero_()
+        camera.free(*free)
 
 
 def fit_geometry(camera: TiltLensCamera, obs: Observations, options: FitOptions, mode: str = "unified",
-                 say=None) -> FitResult:
+                 say=None, hold_distortion: bool = False) -> FitResult:
     """Fit w (unless `mode` is "tilt"), the poses, the principal point if asked and the distortion on the
     corners alone (blur widths ignored; U, d, θF held). `options.distortion` "auto" picks the terms.
 
     Distortion models are tried in the order none, k1, k1k2, opencv5, rational, each starting from the
     previous fit; a model is kept while the likelihood-ratio test against the previous one rejects it at
     `options.alpha` and BIC prefers it (`likelihood_ratio`), so terms are freed only while the data justify
-    them. The tests are in `FitResult.distortion_selection`.
+    them. The tests are in `FitResult.distortion_selection`. Terms outside the model are set to 0, except
+    with `hold_distortion`, which keeps the camera's coefficients fixed as they are.
     """
     obs = without_blur(obs)
     quiet = replace(options, model_selection=False, progress=None)
@@ -961,7 +970,7 @@ def fit_geometry(camera: TiltLensCamera, obs: Observations, options: FitOptions,
     best, selection = None, []
     for m in models:
         cam = (best.camera if best is not None else camera).copy()
-        _set_free_geometry(cam, mode, options.free_principal_point, m)
+        _set_free_geometry(cam, mode, options.free_principal_point, None if hold_distortion else m)
         try:
             fit = _fit_camera(cam, obs, quiet, mode=mode)
         except FitError as e:

@@ -29,7 +29,7 @@ def predict_views(camera, obs: Observations, options: FitOptions = FitOptions())
     held = replace(options, distortion="none", free_principal_point=False, model_selection=False, progress=None,
                    max_rms_px=None)
     cam = initialize(obs, "tilt", init=camera, options=held, blur=False)
-    return fit_geometry(cam, without_blur(obs), held, mode="tilt")
+    return fit_geometry(cam, without_blur(obs), held, mode="tilt", hold_distortion=True)
 
 
 def held_out_rms(obs: Observations, options: FitOptions = FitOptions(), folds: int = 5,

@@ -173,6 +173,8 @@ class _Problem:
         self.bmask = obs.blur_mask
         self.corners = torch.nan_to_num(obs.corners_px)
         self.blur = torch.nan_to_num(obs.blur_px)
+        dist_names = camera.parameter_names("distortion")
+        self.with_distortion = any(n in self.names or bool(self.held[n] != 0) for n in dist_names)
         self.n_corner = int(self.cmask.sum()) * 2
         self.n_blur = int(self.bmask.sum())
         nc = self.cmask.numel() * 2
@@ -197,7 +199,8 @@ class _Problem:
 
     def raw(self, x: torch.Tensor, held: dict | None = None) -> torch.Tensor:
         """Model − observation, flat: corners (V·N·2, pixels) then blur (V·N, pixels); 0 where unobserved."""
-        uv, b = functional_call(self.camera, self.params(x, held), (self.points,), {"with_blur": self.n_blur > 0})
+        uv, b = functional_call(self.camera, self.params(x, held), (self.points,),
+                                {"with_blur": self.n_blur > 0, "with_distortion": self.with_distortion})
         rc = torch.where(self.cmask[..., None], uv - self.corners, torch.zeros_like(uv)).reshape(-1)
         rb = torch.where(self.bmask, b - self.blur, torch.zeros_like(b)).reshape(-1)
         return torch.cat([rc, rb])
@@ -612,7 +615,7 @@ def initialize(obs: Observations, mode: str = "unified", init: TiltLensCamera | 
 
 def start_blur(cam: TiltLensCamera, obs: Observations, mode: str, init: TiltLensCamera | None = None):
     """Set cam's U, d, θF to the best start (see `initialize`) for its current poses; returns cam."""
-    w_mm = float(cam.w_mm)
+    w_mm = float(cam.w_mm.detach())
     candidates = []
     if init is not None:
         th = float(init.theta_F) if mode != "unified" else 0.0
@@ -1021,7 +1024,7 @@ def _undetermined_focus(result: FitResult) -> list:
     out = []
     cam = result.camera
     s_inv = result.sigma.get("inv_U_per_m")
-    if s_inv is not None and not abs(float(cam.inv_U_per_m)) > 2.0 * s_inv:
+    if s_inv is not None and not abs(float(cam.inv_U_per_m.detach())) > 2.0 * s_inv:
         out.append("U_mm")
     s_logd = result.sigma.get("log_d_mm")
     if s_logd is not None and s_logd > 0.5:

@@ -371,9 +371,13 @@ class TiltLensCamera(torch.nn.Module):
         T = T.reshape((T.shape[0],) + (1,) * extra + (3,))
         return (X.unsqueeze(0).unsqueeze(-2) @ R.transpose(-1, -2)).squeeze(-2) + T
 
-    def project_camera(self, p_cam: torch.Tensor) -> torch.Tensor:
-        """(..., 3) camera-frame points -> (..., 2) pixels: uv = c + (w / p) D(x / z, y / z)."""
-        xy = distort(p_cam[..., :2] / p_cam[..., 2:3], self.distortion)
+    def project_camera(self, p_cam: torch.Tensor, with_distortion: bool = True) -> torch.Tensor:
+        """(..., 3) camera-frame points -> (..., 2) pixels: uv = c + (w / p) D(x / z, y / z).
+
+        `with_distortion` False skips D (callers that know all coefficients are held at 0 save its cost)."""
+        xy = p_cam[..., :2] / p_cam[..., 2:3]
+        if with_distortion:
+            xy = distort(xy, self.distortion)
         return self.principal_point_px + self.focal_px * xy
 
     def blur_camera(self, p_cam: torch.Tensor) -> torch.Tensor:
@@ -389,11 +393,11 @@ class TiltLensCamera(torch.nn.Module):
         """(..., 3) world points (mm) -> (...,) blur diameters in pixels in `view` (or (V, ...))."""
         return self.blur_camera(self.to_camera(X_world, view))
 
-    def forward(self, X_world: torch.Tensor, with_blur: bool = True):
+    def forward(self, X_world: torch.Tensor, with_blur: bool = True, with_distortion: bool = True):
         """All views at once: (N, 3) world points -> ((V, N, 2) uv_px, (V, N) blur_px); the blur is zeros
-        when `with_blur` is False (geometric fits skip its cost)."""
+        when `with_blur` is False (geometric fits skip its cost); see `project_camera` for `with_distortion`."""
         p_cam = self.to_camera(X_world)
-        uv = self.project_camera(p_cam)
+        uv = self.project_camera(p_cam, with_distortion)
         return uv, (self.blur_camera(p_cam) if with_blur else torch.zeros_like(p_cam[..., 0]))
 
     # --- convenience -------------------------------------------------------------------------------------

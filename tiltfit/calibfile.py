@@ -133,7 +133,9 @@ def calib_dict(result, runtime_s: float | None = None, obs=None, target: dict | 
         "skipped": list(getattr(result, "skipped", []) or []),
         "notes": list(getattr(result, "notes", []) or []),
         "rms_reprojection_px": math.sqrt(result.rss["corners"] / n_rows) if n_rows else None,
+        "blur_offset_px": v.get("blur_offset_px"),
     }
+    out["sigma"]["blur_offset_px"] = s.get("blur_offset_px")
     out["sigma"]["distortion"] = s.get("distortion")
     if target is not None:
         out["target"] = target
@@ -245,12 +247,16 @@ def camera_from_calib(data: dict, blur_model: str | None = None) -> TiltLensCame
     R = [v["R"] for v in views] if views else None
     T = [v["T_mm"] for v in views] if views else None
     dist = (data.get("distortion") or {}).get("coefficients")
-    return TiltLensCamera(
+    cam = TiltLensCamera(
         n, tuple(int(s) for s in data["image_size_px"]), data["pixel_pitch_mm"], data["w_mm"],
         data["U_mm"] if data["U_mm"] is not None else 600.0, data["d_mm"] if data["d_mm"] is not None else 10.0,
         math.radians(data.get("theta_F_deg") or 0.0), R=R, T_mm=T,
         principal_point_px=data.get("principal_point_px"),
         blur_model=blur_model or data.get("blur_model") or "ellipse", distortion=dist)
+    if isinstance(data.get("blur_offset_px"), (int, float)) and math.isfinite(data["blur_offset_px"]):
+        with torch.no_grad():
+            cam.blur_offset_px.fill_(float(data["blur_offset_px"]))
+    return cam
 
 
 def sigma_from_calib(data: dict) -> dict:

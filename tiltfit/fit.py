@@ -76,6 +76,11 @@ class FitOptions:
         blur_floor_px: blur widths all below this carry no information on U and d (sharp images): the fit is
             geometric and U, d are reported undetermined [1.0].
         outlier_factor: a view whose RMS exceeds this many times the median view RMS is flagged [3.0].
+        blur_offset: fit a constant offset of the measured blur widths (the blur detector's bias) beside the
+            lens [True]. Without it such a bias goes into d and U, and their σ (which only sees the scatter)
+            is too small: on rendered captures a −0.011 px bias put stage 1's d 8–12σ off. Held at 0 when the
+            depths do not straddle the plane of focus (then it is not separable from U), and in "tilt" mode,
+            which holds `init`'s offset with its w, U, d (the same detector's bias, calibrated in stage 1).
     """
 
     robust: str | None = None
@@ -95,6 +100,7 @@ class FitOptions:
     min_corners: int = 6
     blur_floor_px: float = 1.0
     outlier_factor: float = 3.0
+    blur_offset: bool = True
 
     def __post_init__(self):
         if self.robust not in ROBUST_LOSSES:
@@ -608,6 +614,9 @@ def initialize(obs: Observations, mode: str = "unified", init: TiltLensCamera | 
     U0, d0 = (float(init.U_mm), float(init.d_mm)) if init is not None else (600.0, 10.0)
     cam = TiltLensCamera(obs.n_views, obs.image_size_px, obs.pixel_pitch_mm, w_mm, U0, d0, rvec=rvec,
                          T_mm=T, principal_point_px=pp, blur_model=options.blur_model, distortion=dist)
+    if init is not None:
+        with torch.no_grad():
+            cam.blur_offset_px.copy_(init.blur_offset_px)
     if blur:
         start_blur(cam, obs, mode, init)
     return cam
@@ -779,6 +788,9 @@ def _uncertainties(prob: _Problem, res: _LMResult, scale: torch.Tensor, init_sig
     if "log_d_mm" in offsets:
         o = offsets["log_d_mm"][0]
         sigma["log_d_mm"] = math.sqrt(float(C[o, o]))
+    if "blur_offset_px" in offsets:
+        o = offsets["blur_offset_px"][0]
+        sigma["blur_offset_px"] = math.sqrt(float(C[o, o]))
     for v in range(cam.n_views):
         entry = {}
         if "rvec" in offsets:
@@ -828,6 +840,7 @@ def _fit_camera(camera: TiltLensCamera, obs: Observations, options: FitOptions, 
         rc, rb = residuals(camera, obs).rms_per_view()
     values = {k: float(vals[i]) for i, k in enumerate(_DERIVED_KEYS)}
     values["principal_point_px"] = [float(vals[7]), float(vals[8])]
+    values["blur_offset_px"] = float(camera.blur_offset_px.detach())
     views = []
     R = camera.R.detach()
     T = camera.T_mm.detach()
@@ -1004,6 +1017,16 @@ def fit_geometry(camera: TiltLensCamera, obs: Observations, options: FitOptions,
     return best
 
 
+def _sigma_without_offset(start: TiltLensCamera, obs: Observations, options: FitOptions, mode: str) -> float:
+    """σ of 1/U (per m) of a quick fit with the blur offset held (to see whether freeing it costs U)."""
+    cam = start.copy()
+    try:
+        fit = _fit_camera(cam, obs, replace(options, noise_iterations=1, progress=None), mode=mode)
+    except FitError:
+        return math.inf
+    return fit.sigma.get("inv_U_per_m", math.inf)
+
+
 def _flag_outliers(result: FitResult, factor: float) -> list:
     rms = [v["rms_reprojection_px"] for v in result.views if math.isfinite(v["rms_reprojection_px"])]
     if len(rms) < 3:
@@ -1086,8 +1109,21 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
                 f"θF {s['theta_F_deg']:.2f}°")
         _set_free(cam, mode, options.free_principal_point)
         cam.free(*distortion_parameter_names(distortion))
+        start = cam.copy()
         try:
-            result = _fit_camera(cam, obs, options, init_sigma if mode == "tilt" else None, say, mode=mode)
+            if options.blur_offset and mode != "tilt":
+                cam.free("blur_offset")
+                try:
+                    result = _fit_camera(cam, obs, options, init_sigma if mode == "tilt" else None, say, mode=mode)
+                    if result.sigma.get("inv_U_per_m", 0.0) > 4 * _sigma_without_offset(start, obs, options, mode):
+                        raise FitError("the blur offset is not separable from U")
+                except FitError as e:
+                    if say:
+                        say(f"blur offset held at 0 ({e})")
+                    cam = start.copy()
+                    result = None
+            if result is None:
+                result = _fit_camera(cam, obs, options, init_sigma if mode == "tilt" else None, say, mode=mode)
             undetermined = _undetermined_focus(result)
         except FitError as e:
             if geometry is None:

@@ -51,11 +51,13 @@ _GROUPS = {
     "R": ("rvec",),
     "T": ("T_scaled",),
     "principal_point": ("pp_scaled",),
+    "blur_offset": ("blur_offset_px",),
     "lens": ("log_w_mm", "inv_U_per_m", "log_d_mm"),
     "pose": ("rvec", "T_scaled"),
     **{k: (f"dist_{k}",) for k in COEFFICIENT_NAMES},
     "distortion": _DIST,
-    "all": ("log_w_mm", "inv_U_per_m", "log_d_mm", "theta_F", "rvec", "T_scaled", "pp_scaled") + _DIST,
+    "all": ("log_w_mm", "inv_U_per_m", "log_d_mm", "theta_F", "rvec", "T_scaled", "pp_scaled", "blur_offset_px")
+    + _DIST,
 }
 
 
@@ -255,7 +257,10 @@ class TiltLensCamera(torch.nn.Module):
         k += [0.0] * (len(_DIST) - len(k))
         for name, v in zip(_DIST, k):
             setattr(self, name, P(torch.tensor(v, dtype=dtype)))
-        self.freeze("principal_point", "distortion")
+        # A constant added to every measured blur width: a blur detector's bias (e.g. from its edge model),
+        # not optics. Frozen at 0 unless freed; the fit frees it so the bias does not leak into d and U.
+        self.blur_offset_px = P(torch.tensor(0.0, dtype=dtype))
+        self.freeze("principal_point", "distortion", "blur_offset")
 
     # --- freeing and freezing --------------------------------------------------------------------------
     @staticmethod
@@ -383,7 +388,7 @@ class TiltLensCamera(torch.nn.Module):
     def blur_camera(self, p_cam: torch.Tensor) -> torch.Tensor:
         """(..., 3) camera-frame points -> (...,) blur diameters in pixels (eq (2)/(4), `blur_model`)."""
         b_mm = blur_diameter_mm(p_cam, self.w_mm, self.U_mm, self.d_mm, self.theta_F, self.blur_model)
-        return b_mm / self.pixel_pitch_mm
+        return b_mm / self.pixel_pitch_mm + self.blur_offset_px
 
     def project(self, X_world: torch.Tensor, view=None) -> torch.Tensor:
         """(..., 3) world points (mm) -> (..., 2) pixels in `view` (or (V, ..., 2) for view=None)."""
@@ -417,6 +422,7 @@ class TiltLensCamera(torch.nn.Module):
                 "theta_L_paper_deg": math.degrees(float(self.theta_L_paper)),
                 "principal_point_px": [float(v) for v in self.principal_point_px],
                 "distortion": [float(v) for v in self.distortion],
+                "blur_offset_px": float(self.blur_offset_px),
             }
 
     @staticmethod

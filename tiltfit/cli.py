@@ -28,6 +28,7 @@ import tempfile
 import time
 
 EXIT_ERROR = 2
+MIN_VIEWS_AFTER_SKIPPING = 3  # when images without a board were skipped, at least this many must remain
 
 
 class CliError(Exception):
@@ -226,6 +227,9 @@ def _observations(args, target, say):
         names.append(path)
     if not corners:
         raise CliError(args.inputs[0], f"no board found in any of the {len(args.inputs)} images")
+    if skipped and len(corners) < MIN_VIEWS_AFTER_SKIPPING:
+        raise CliError(args.inputs[0], f"only {len(corners)} of {len(args.inputs)} images have a board "
+                                       f"(at least {MIN_VIEWS_AFTER_SKIPPING} needed)")
     obs = Observations(points, np.array(corners, dtype=np.float64), np.array(blur, dtype=np.float64),
                        tuple(size), args.pixel_pitch_mm, names=names)
     obs.skipped = skipped

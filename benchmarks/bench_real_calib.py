@@ -130,7 +130,7 @@ def main(argv=None) -> int:
         (rms_cv, K, dist, _, _), t_cv = timed(lambda: opencv_calibrate(obs, model), args.repeats)
         res, t_ours = timed(lambda: ours(obs, model), args.repeats)
         cam = res.camera
-        F = float(cam.focal_px)
+        F = float(cam.focal_px.detach())
         sF = res.sigma["w_mm"] / obs.pixel_pitch_mm
         ho = held_out_rms(obs, FitOptions(free_principal_point=True), folds=5, distortion=model)
         ho_ours = ho["rms_px"] * math.sqrt(2)  # per-coordinate -> per-corner (OpenCV's definition)

@@ -1149,6 +1149,12 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
     if geometry is not None:
         result.distortion_selection = geometry.distortion_selection
     result.undetermined = undetermined
+    if options.distortion == "auto" and result.distortion_selection:
+        last = result.distortion_selection[-1]
+        why = "every model tried was justified" if last["justified"] else (
+            f"{last['model']} not justified: " + (last.get("error") or f"p = {last['p_value']:.2g}, ΔBIC = "
+                                                  f"{last['delta_bic']:.3g}"))
+        notes.append(f"distortion auto: {distortion} ({why})")
     if undetermined and blur_ok:
         notes.append(f"{' and '.join(k.split('_')[0] for k in undetermined)} undetermined: the blur widths "
                      f"do not constrain them (1/U within 2σ of 0, or d known to worse than ×1.6)")

@@ -19,15 +19,17 @@ Blur models (`blur_model`; closed forms from `renderer.optics`, all equal to eq 
     "first_order": b = w d |1/z_F − 1/z| with z_F = U z / (z − y tan θF), where the chief ray meets the plane
         of focus: the exact width along x to first order in the aperture.
     "paper": b = w d |1/(U + y tan θF) − 1/z|, the paper's eq (4) (focus depth at the point's own height).
+A constant `blur_offset_px` (0 unless fitted) is added to every width: the blur detector's bias, not optics.
 
 Parametrisation (for conditioning, so one learning rate suits all parameters): w and d are stored as
 logarithms (`log_w_mm`, `log_d_mm`), the focus as its inverse in dioptres (`inv_U_per_m` = 1000 / U_mm, so
-focus at infinity is the ordinary value 0), the distortion coefficients as themselves (`dist_k1` …), rotations as axis-angle vectors (`rvec`), translations in units of
-`length_scale_mm` (`T_scaled`, default 100 mm) and the principal-point offset from the image centre in
-units of `pixel_scale_px` (`pp_scaled`, default 100 px). Physical values are properties (`w_mm`, `T_mm`,
-`R`, `principal_point_px` …). `free(*names)` / `freeze(*names)` switch parameters on and off by friendly
-name: w, U, d, theta_F, rvec, T, principal_point, k1 … k6, p1, p2, or the groups lens (w, U, d), pose (rvec, T),
-distortion (all eight coefficients), all.
+focus at infinity is the ordinary value 0), the distortion coefficients as themselves (`dist_k1` …),
+rotations as axis-angle vectors (`rvec`), translations in units of `length_scale_mm` (`T_scaled`, default
+100 mm) and the principal-point offset from the image centre in units of `pixel_scale_px` (`pp_scaled`,
+default 100 px). Physical values are properties (`w_mm`, `T_mm`, `R`, `principal_point_px` …).
+`free(*names)` / `freeze(*names)` switch parameters on and off by friendly name: w, U, d, theta_F, rvec, T,
+principal_point, blur_offset, k1 … k6, p1, p2, or the groups lens (w, U, d), pose (rvec, T), distortion (all
+eight coefficients), all.
 """
 from __future__ import annotations
 

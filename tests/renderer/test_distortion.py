@@ -1,5 +1,4 @@
 """renderer.cameras.distortion: OpenCV's Brown–Conrady model, its inverse, and distorted cameras in scenes."""
-import math
 
 import cv2
 import numpy as np

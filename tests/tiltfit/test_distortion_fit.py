@@ -2,13 +2,11 @@
 `auto` choosing the right terms, and sharp images (no usable blur) giving a geometric calibration with U and d
 reported undetermined."""
 import json
-import math
 import os
 
 import cv2
 import numpy as np
 import pytest
-import torch
 
 from tiltfit import cli
 from tiltfit.fit import FitOptions, calibrate

@@ -1,6 +1,5 @@
 """tiltfit.export: OpenCV FileStorage round trip through cv2.projectPoints, --init from an OpenCV file, kornia."""
 import json
-import math
 import os
 
 import cv2
@@ -12,7 +11,7 @@ from tiltfit import cli
 from tiltfit.calibfile import calib_dict, camera_from_calib, read_calib
 from tiltfit.export import ExportError, kornia_camera, read_opencv, write_opencv
 from tiltfit.fit import FitOptions, calibrate
-from tiltfit.model import Observations, TiltLensCamera
+from tiltfit.model import Observations
 from tiltfit.target import load_target
 
 DATA = os.path.join(os.path.dirname(__file__), "..", "..", "data", "real", "gopro_wide")

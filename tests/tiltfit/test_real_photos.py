@@ -10,7 +10,6 @@ import os
 import cv2
 import numpy as np
 import pytest
-import torch
 
 from tiltfit.fit import FitOptions, calibrate
 from tiltfit.model import Observations

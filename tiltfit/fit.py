@@ -1017,14 +1017,28 @@ def fit_geometry(camera: TiltLensCamera, obs: Observations, options: FitOptions,
     return best
 
 
-def _sigma_without_offset(start: TiltLensCamera, obs: Observations, options: FitOptions, mode: str) -> float:
-    """σ of 1/U (per m) of a quick fit with the blur offset held (to see whether freeing it costs U)."""
-    cam = start.copy()
+MAX_OFFSET_CORRELATION = 0.99  # |multiple correlation| of the blur offset with (1/U, d) above which it is held
+
+
+def _offset_correlation(result: FitResult) -> float:
+    """Multiple correlation of the fitted blur offset with 1/U and log d: near 1 when blur widths all lie on
+    one side of the plane of focus, where an offset and a change of U explain the data equally well."""
+    names = result.parameter_names
+    if "blur_offset_px" not in names:
+        return 0.0
+    idx = [names.index(n) for n in ("inv_U_per_m", "log_d_mm") if n in names]
+    if not idx:
+        return 0.0
+    o = names.index("blur_offset_px")
+    C = result.covariance
+    c_oo = float(C[o, o])
+    c_ol = C[o, idx]
+    C_ll = C[idx][:, idx]
     try:
-        fit = _fit_camera(cam, obs, replace(options, noise_iterations=1, progress=None), mode=mode)
-    except FitError:
-        return math.inf
-    return fit.sigma.get("inv_U_per_m", math.inf)
+        r2 = float(c_ol @ torch.linalg.solve(C_ll, c_ol)) / c_oo
+    except RuntimeError:
+        return 1.0
+    return math.sqrt(min(max(r2, 0.0), 1.0))
 
 
 def _flag_outliers(result: FitResult, factor: float) -> list:
@@ -1115,8 +1129,9 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
                 cam.free("blur_offset")
                 try:
                     result = _fit_camera(cam, obs, options, init_sigma if mode == "tilt" else None, say, mode=mode)
-                    if result.sigma.get("inv_U_per_m", 0.0) > 4 * _sigma_without_offset(start, obs, options, mode):
-                        raise FitError("the blur offset is not separable from U")
+                    if _offset_correlation(result) > MAX_OFFSET_CORRELATION:
+                        raise FitError("the blur offset is not separable from U and d: the depths do not "
+                                       "straddle the plane of focus")
                 except FitError as e:
                     if say:
                         say(f"blur offset held at 0 ({e})")

@@ -277,7 +277,10 @@ def cmd_calibrate(args) -> int:
         raise CliError(label, str(e)) from None
     result.skipped = list(obs.skipped) + list(result.skipped)
     for note in result.notes:
-        print(f"tiltfit: note: {note}", file=sys.stderr, flush=True)
+        if note.startswith("distortion auto:"):
+            say(note)  # the choice is progress; what the data cannot determine is worth a line even with -q
+        else:
+            print(f"tiltfit: note: {note}", file=sys.stderr, flush=True)
     held_out = None
     used = obs.subset([obs.names.index(v["image"]) for v in result.views])
     if args.held_out and used.n_views >= max(3, args.held_out):

@@ -627,10 +627,10 @@ def start_blur(cam: TiltLensCamera, obs: Observations, mode: str, init: TiltLens
     w_mm = float(cam.w_mm.detach())
     candidates = []
     if init is not None:
-        th = float(init.theta_F) if mode != "unified" else 0.0
-        candidates.append((float(init.U_mm), float(init.d_mm), th))
+        th = float(init.theta_F.detach()) if mode != "unified" else 0.0
+        candidates.append((float(init.U_mm.detach()), float(init.d_mm.detach()), th))
     if mode == "tilt":
-        U0, d0 = float(init.U_mm), float(init.d_mm)
+        U0, d0 = float(init.U_mm.detach()), float(init.d_mm.detach())
         candidates += [(U0, d0, math.radians(a)) for a in np.arange(-80.0, 80.5, 1.0)]
     else:
         with torch.no_grad():
@@ -1144,7 +1144,7 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
             if geometry is None:
                 raise
             undetermined = ["U_mm", "d_mm"]
-            notes.append(f"the blur fit failed ({e}); the calibration is geometric")
+            notes.append(f"U and d undetermined: the blur fit failed ({e}); the calibration is geometric")
         if undetermined and geometry is not None and result is not None and len(undetermined) == 2:
             result = None  # neither focus parameter determined: report the geometric fit
     else:
@@ -1170,7 +1170,7 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
             f"{last['model']} not justified: " + (last.get("error") or f"p = {last['p_value']:.2g}, ΔBIC = "
                                                   f"{last['delta_bic']:.3g}"))
         notes.append(f"distortion auto: {distortion} ({why})")
-    if undetermined and blur_ok:
+    if undetermined and blur_ok and not any("undetermined" in n for n in notes):
         notes.append(f"{' and '.join(k.split('_')[0] for k in undetermined)} undetermined: the blur widths "
                      f"do not constrain them (1/U within 2σ of 0, or d known to worse than ×1.6)")
     worst = max((v["rms_reprojection_px"] for v in result.views if math.isfinite(v["rms_reprojection_px"])),

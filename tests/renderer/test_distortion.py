@@ -81,3 +81,27 @@ def test_scene_camera_with_distortion_matches_opencv_and_traces_through_undistor
     d = p / p.norm(dim=-1, keepdim=True)
     assert rays.valid.all(), "valid rays"
     assert (rays.direction.to(torch.float64) - d).abs().max() < 1e-6, "ray through the distorted pixel hits the point"
+
+
+def test_thin_lens_with_distortion_focuses_the_distorted_pixel_on_its_point():
+    """Every lens sample's ray at the distorted pixel of a point on the plane of focus passes through it."""
+    from renderer.scenefile import build_scene
+
+    W, H, w, U, pitch = 201, 151, 50.0, 600.0, 0.05
+    cfg = {"image": {"width": W, "height": H},
+           "camera": {"type": "thin_lens", "w": w, "U": U, "d": 20.0, "sensor_size": [W * pitch, H * pitch],
+                      "distortion": {"model": "brown_conrady", "coefficients": [-0.3, 0.1]}},
+           "objects": []}
+    cam = build_scene(cfg).camera
+    p = torch.tensor([[120.0, -80.0, U]], dtype=torch.float64)  # on the plane of focus (θF = 0)
+    uv = cam.project(p).to(torch.float64)
+    K = np.array([[w / pitch, 0, (W - 1) / 2], [0, w / pitch, (H - 1) / 2], [0, 0, 1]])
+    ref, _ = cv2.projectPoints(p.numpy(), np.zeros(3), np.zeros(3), K, np.array([-0.3, 0.1, 0, 0, 0]))
+    assert np.abs(uv.numpy() - ref.reshape(-1, 2)).max() < 1e-9, "chief ray projects as OpenCV"
+    lens = torch.rand(64, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    rays = cam.generate_rays(uv.expand(64, 2), lens)
+    o, d = rays.origin.to(torch.float64), rays.direction.to(torch.float64)
+    t = (p[0, 2] - o[:, 2]) / d[:, 2]
+    hit = o + t[:, None] * d
+    assert rays.valid.all(), "valid rays"
+    assert (hit - p).norm(dim=-1).max() < 1e-3, f"rays meet at the point: {(hit - p).norm(dim=-1).max():.2g} mm"

@@ -57,7 +57,7 @@ def opencv_detections(paths, target, cache: str | None = None, say=None) -> list
                 say(f"{key}: {'board found' if cached[key] else 'no board'}")
         out.append(cached[key])
     if cache and changed:
-        with open(cache, "w", encoding="utf-8") as f:
-            json.dump(cached, f, indent=0)
-            f.write("\n")
+        with open(cache, "w", encoding="utf-8") as f:  # one image per line: small diffs, readable
+            f.write("{\n" + ",\n".join(f"{json.dumps(k)}: {json.dumps(v)}" for k, v in sorted(cached.items()))
+                    + "\n}\n")
     return out

@@ -260,7 +260,15 @@ def build_scene(cfg: dict, base_dir: str = ".") -> Scene:
         if key not in cfg:
             raise SceneError(f"{key}: missing required section")
     image = ImageSettings(**_positive_image(parse_params("image", cfg["image"], IMAGE_PARAMS)))
-    camera = build_camera("camera", cfg["camera"], image.width, image.height)
+    camera_cfg = cfg["camera"]
+    distortion = camera_cfg.get("distortion") if isinstance(camera_cfg, dict) else None
+    if isinstance(camera_cfg, dict) and "distortion" in camera_cfg:
+        camera_cfg = {k: v for k, v in camera_cfg.items() if k != "distortion"}
+    camera = build_camera("camera", camera_cfg, image.width, image.height)
+    if distortion is not None:
+        from .cameras.distortion import distortion_from_config
+
+        camera.distortion = distortion_from_config("camera.distortion", distortion)
     lights = [_light(f"lights[{i}]", c) for i, c in enumerate(_list(cfg, "lights"))]
     objects = []
     first_use: dict[str, int] = {}

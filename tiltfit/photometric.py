@@ -201,7 +201,8 @@ def render_target(target: Target, sensor: SensorGeometry, uv_px: torch.Tensor, l
     """
     # A finite sample set under-fills the disc's second moment (64 Hammersley points: 2.3 % low), which
     # would bias d by about half that: scale the aperture so the samples' E|s|² is the disc's, r²/2.
-    fill = math.sqrt(0.5 / float((concentric_disk(lens_uv) ** 2).sum(-1).mean()))
+    m2 = float((concentric_disk(lens_uv) ** 2).sum(-1).mean())
+    fill = math.sqrt(0.5 / m2) if m2 > 0 else 1.0   # a lone central sample: a pinhole, nothing to fill
     cam = lens_camera(sensor, w_mm, inv_U_per_m, d_mm * fill, theta_F, rvec, T_mm)
     n, s = uv_px.shape[0], lens_uv.shape[0]
     rays = cam.generate_rays(uv_px[:, None, :].expand(n, s, 2), lens_uv[None].expand(n, s, 2))

@@ -18,10 +18,12 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 
 import numpy as np
 import torch
+
+from renderer.io import write_text
+from renderer.validation import describe, is_finite_number, read_json
 
 from .model import TiltLensCamera
 
@@ -29,6 +31,10 @@ REQUIRED_KEYS = ("pixel_pitch_mm", "image_size_px", "principal_point_px", "w_mm"
                  "theta_F_deg", "theta_L_deg", "theta_L_paper_deg", "views", "sigma", "runtime_s")
 VIEW_KEYS = ("image", "R", "T_mm", "rms_reprojection_px", "rms_blur_px", "n_points")
 SIGMA_KEYS = ("w_mm", "U_mm", "d_mm", "theta_F_deg", "theta_L_deg")
+
+
+# Lengths in a calibration file beyond this (mm, a thousand kilometres) are unit mistakes, not lenses.
+MAX_LENGTH_MM = 1e9
 
 
 class CalibFileError(ValueError):
@@ -83,22 +89,12 @@ def write_calib(path: str, data) -> None:
     """Write CALIB.json atomically. `data` is a FitResult or a dict from `calib_dict`."""
     if not isinstance(data, dict):
         data = calib_dict(data)
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".calib-", suffix=".json.tmp", dir=folder)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(_clean(data), f, indent=1, allow_nan=False)
-            f.write("\n")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    write_text(path, json.dumps(_clean(data), indent=1, allow_nan=False) + "\n")
 
 
 def _number(path, key, value, positive=False):
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise CalibFileError(f"{path}: {key}: expected a number, got {value!r}")
+    if not is_finite_number(value):
+        raise CalibFileError(f"{path}: {key}: expected a finite number, got {describe(value)}")
     if positive and not value > 0:
         raise CalibFileError(f"{path}: {key}: expected a positive number, got {value!r}")
     return float(value)
@@ -106,7 +102,7 @@ def _number(path, key, value, positive=False):
 
 def _vector(path, key, value, n):
     if not isinstance(value, list) or len(value) != n:
-        raise CalibFileError(f"{path}: {key}: expected a list of {n} numbers, got {value!r}")
+        raise CalibFileError(f"{path}: {key}: expected a list of {n} numbers, got {describe(value)}")
     return [_number(path, f"{key}[{i}]", x) for i, x in enumerate(value)]
 
 
@@ -116,15 +112,9 @@ def read_calib(path: str) -> dict:
     Raises:
         CalibFileError: missing file, invalid JSON, a missing key or a malformed value (one line).
     """
-    if not os.path.isfile(path):
+    if not os.path.exists(path):
         raise CalibFileError(f"{path}: no such file")
-    try:
-        with open(path, encoding="utf-8") as f:
-            data = json.load(f)
-    except json.JSONDecodeError as e:
-        raise CalibFileError(f"{path}: not valid JSON (line {e.lineno}, column {e.colno}: {e.msg})") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise CalibFileError(f"{path}: cannot read ({e})") from None
+    data = read_json(path, CalibFileError, "calibration file")
     if not isinstance(data, dict):
         raise CalibFileError(f"{path}: expected a JSON object")
     # Only the lens state is needed to start another fit; views and sigma may be absent in hand-made files.
@@ -133,8 +123,11 @@ def read_calib(path: str) -> dict:
             raise CalibFileError(f"{path}: {key}: missing key")
     for key in ("pixel_pitch_mm", "w_mm", "U_mm", "d_mm"):
         _number(path, key, data[key], positive=True)
+    for key in ("pixel_pitch_mm", "w_mm", "U_mm", "d_mm"):
+        if is_finite_number(data[key]) and abs(data[key]) > MAX_LENGTH_MM:
+            raise CalibFileError(f"{path}: {key}: expected at most {MAX_LENGTH_MM:g} mm, got {describe(data[key])}")
     size = _vector(path, "image_size_px", data["image_size_px"], 2)
-    if not all(s >= 1 and s == int(s) for s in size):
+    if not all(1 <= s <= 1 << 17 and s == int(s) for s in size):
         raise CalibFileError(f"{path}: image_size_px: expected two positive integers, got {data['image_size_px']!r}")
     if data.get("principal_point_px") is not None:
         _vector(path, "principal_point_px", data["principal_point_px"], 2)
@@ -153,6 +146,11 @@ def read_calib(path: str) -> dict:
         R = view["R"]
         if not (isinstance(R, list) and len(R) == 3 and all(isinstance(r, list) and len(r) == 3 for r in R)):
             raise CalibFileError(f"{path}: views[{i}].R: expected a 3×3 matrix")
+        for j, row in enumerate(R):
+            _vector(path, f"views[{i}].R[{j}]", row, 3)
+        Rm = np.array(R, dtype=np.float64)
+        if not (np.abs(Rm @ Rm.T - np.eye(3)).max() < 1e-6 and np.linalg.det(Rm) > 0):
+            raise CalibFileError(f"{path}: views[{i}].R: expected a rotation (orthonormal, determinant +1)")
         _vector(path, f"views[{i}].T_mm", view["T_mm"], 3)
     sigma = data.get("sigma", {})
     if not isinstance(sigma, dict):
@@ -177,4 +175,4 @@ def sigma_from_calib(data: dict) -> dict:
     """The file's one-σ values of w_mm, U_mm, d_mm (those present and finite)."""
     sig = data.get("sigma") or {}
     return {k: float(sig[k]) for k in ("w_mm", "U_mm", "d_mm")
-            if isinstance(sig.get(k), (int, float)) and math.isfinite(sig[k]) and sig[k] > 0}
+            if is_finite_number(sig.get(k)) and 0 < sig[k] < MAX_LENGTH_MM}

@@ -23,7 +23,9 @@ import math
 import os
 import shutil
 import signal
+import subprocess
 import sys
+import threading
 import tempfile
 import time
 import traceback
@@ -187,3 +189,27 @@ def tally(cases: list[dict], results: list[Result]) -> dict:
             row = table.setdefault(key, {})
             row[res.outcome] = row.get(res.outcome, 0) + 1
     return table
+
+
+def interrupt_after_progress(argv: list[str], sig, marker: str, timeout_s: float = 60) -> tuple[int, list[str]]:
+    """Run `python -m ...argv` in a subprocess, send `sig` once a stderr line contains `marker`; returns
+    (exit status, stderr lines)."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", *argv], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL,
+                            env=env, text=True, bufsize=1)
+    lines, seen = [], threading.Event()
+
+    def reader():
+        for chunk in iter(lambda: proc.stderr.readline(), ""):
+            lines.extend(part for part in chunk.replace("\r", "\n").splitlines() if part.strip())
+            if marker in chunk:
+                seen.set()
+
+    t = threading.Thread(target=reader, daemon=True)
+    t.start()
+    seen.wait(timeout_s)
+    time.sleep(0.3)
+    proc.send_signal(sig)
+    proc.wait(timeout=timeout_s)
+    t.join(timeout=5)
+    return proc.returncode, lines

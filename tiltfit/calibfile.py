@@ -130,7 +130,10 @@ def read_calib(path: str) -> dict:
     if not all(1 <= s <= 1 << 17 and s == int(s) for s in size):
         raise CalibFileError(f"{path}: image_size_px: expected two positive integers, got {data['image_size_px']!r}")
     if data.get("principal_point_px") is not None:
-        _vector(path, "principal_point_px", data["principal_point_px"], 2)
+        pp = _vector(path, "principal_point_px", data["principal_point_px"], 2)
+        if not all(-s <= c <= 2 * s for c, s in zip(pp, size)):
+            raise CalibFileError(f"{path}: principal_point_px: expected a point within one image size of the "
+                                 f"{int(size[0])}x{int(size[1])} image, got {pp}")
     if data.get("theta_F_deg") is not None:
         if abs(_number(path, "theta_F_deg", data["theta_F_deg"])) >= 90:
             raise CalibFileError(f"{path}: theta_F_deg: expected |θF| < 90, got {data['theta_F_deg']!r}")
@@ -151,7 +154,9 @@ def read_calib(path: str) -> dict:
         Rm = np.array(R, dtype=np.float64)
         if not (np.abs(Rm @ Rm.T - np.eye(3)).max() < 1e-6 and np.linalg.det(Rm) > 0):
             raise CalibFileError(f"{path}: views[{i}].R: expected a rotation (orthonormal, determinant +1)")
-        _vector(path, f"views[{i}].T_mm", view["T_mm"], 3)
+        T = _vector(path, f"views[{i}].T_mm", view["T_mm"], 3)
+        if max(abs(t) for t in T) > MAX_LENGTH_MM:
+            raise CalibFileError(f"{path}: views[{i}].T_mm: expected coordinates within ±{MAX_LENGTH_MM:g} mm, got {T}")
     sigma = data.get("sigma", {})
     if not isinstance(sigma, dict):
         raise CalibFileError(f"{path}: sigma: expected an object, got {sigma!r}")

@@ -130,8 +130,20 @@ def _is_det_file(path: str) -> bool:
 
 # --- commands ----------------------------------------------------------------------------------------------
 
+def _check_output(path: str) -> None:
+    """Refuse, before any work, an output path that is a folder or lies under a file."""
+    if os.path.isdir(path):
+        raise CliError(path, "is a folder; give an output file name")
+    folder = os.path.dirname(os.path.abspath(path))
+    while not os.path.exists(folder) and os.path.dirname(folder) != folder:
+        folder = os.path.dirname(folder)
+    if not os.path.isdir(folder):
+        raise CliError(path, f"{folder} is not a folder")
+
+
 def cmd_detect(args) -> int:
     say = _say(args.quiet)
+    _check_output(args.output)
     target = _load_target(args.target)
     t0 = time.perf_counter()
     det = _detect_image(args.image, target, args.encoding)
@@ -199,6 +211,7 @@ def cmd_calibrate(args) -> int:
 
     say = _say(args.quiet)
     t0 = time.perf_counter()
+    _check_output(args.output)
     _check_range("--pixel-pitch-mm", args.pixel_pitch_mm, 0.0, MAX_PIXEL_PITCH_MM, "a pixel pitch in mm")
     if args.focal_mm is not None:
         _check_range("--focal-mm", args.focal_mm, 0.0, MAX_FOCAL_MM, "a focal length in mm")

@@ -180,7 +180,7 @@ def target_from_dict(data, source: str = "<target>") -> Target:
         edges[key] = v
     dark = data.get("dark_cell", [0, 0])
     if (not isinstance(dark, list) or len(dark) != 2
-            or not all(is_finite_number(e) and float(e) == int(e) for e in dark)):
+            or not all(is_finite_number(e) and float(e) == int(e) and abs(e) < 2**31 for e in dark)):
         fail("dark_cell", "[column, row] integers", dark)
     margin = data.get("margin", 25.0)
     if not is_finite_number(margin) or not 0 <= margin <= MAX_MM:

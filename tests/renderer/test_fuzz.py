@@ -427,39 +427,13 @@ def test_corpus_covers_every_category():
 SLOW_SCENE = {**BASE, "image": {"width": 1024, "height": 1024, "spp": 64, "max_depth": 8}}
 
 
-def interrupt_after_progress(argv: list[str], sig, marker: str, timeout_s: float = 60) -> tuple[int, list[str]]:
-    """Run `python -m ...argv` in a subprocess, send `sig` once a stderr line contains `marker`; returns
-    (exit status, stderr lines)."""
-    import threading
-
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p), "OMP_NUM_THREADS": "1"}
-    proc = subprocess.Popen([sys.executable, "-m", *argv], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL,
-                            env=env, text=True, bufsize=1)
-    lines, seen = [], threading.Event()
-
-    def reader():
-        for chunk in iter(lambda: proc.stderr.readline(), ""):
-            lines.extend(part for part in chunk.replace("\r", "\n").splitlines() if part.strip())
-            if marker in chunk:
-                seen.set()
-
-    t = threading.Thread(target=reader, daemon=True)
-    t.start()
-    seen.wait(timeout_s)
-    time.sleep(0.3)
-    proc.send_signal(sig)
-    proc.wait(timeout=timeout_s)
-    t.join(timeout=5)
-    return proc.returncode, lines
-
-
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_interrupt_render_one_line_exit_130_nothing_left(tmp_path, sig):
     scene = tmp_path / "scene.json"
     scene.write_text(json.dumps(SLOW_SCENE))
     out = tmp_path / "out.exr"
     out.write_bytes(b"previous")
-    rc, lines = interrupt_after_progress(["renderer", "render", str(scene), "-o", str(out)], sig, "render")
+    rc, lines = fuzz_harness.interrupt_after_progress(["renderer", "render", str(scene), "-o", str(out)], sig, "render")
     last = [ln for ln in lines if ln.startswith("renderer:")]
     assert rc == 130, f"exit {rc}: {lines[-3:]}"
     assert last == ["renderer: interrupted"], f"one line at the end: {lines[-3:]}"

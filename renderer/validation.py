@@ -173,9 +173,9 @@ def parse_json(path: str, text: str, error=ValueError, max_depth: int = MAX_JSON
     try:
         return json.loads(text)
     except json.JSONDecodeError as e:
-        raise error(f"{path}:{e.lineno}:{e.colno}: invalid JSON ({e.msg})") from None
+        raise error(f"{path}:{e.lineno}:{e.colno}: not valid JSON ({e.msg})") from None
     except (ValueError, RecursionError) as e:  # e.g. an integer of more than 4300 digits
-        raise error(f"{path}: invalid JSON ({' '.join(str(e).split())})") from None
+        raise error(f"{path}: not valid JSON ({' '.join(str(e).split())})") from None
 
 
 def available_memory_bytes() -> int:

@@ -1,4 +1,4 @@
-"""CALIB.json, the calibration file of `tiltfit calibrate` (keys as in CONTRACTS.md, plus extras).
+"""CALIB.json, the calibration file of `tiltfit calibrate` (keys as in docs/file_formats.md, plus extras).
 
 Contract keys: pixel_pitch_mm, image_size_px [W, H], principal_point_px [cx, cy], w_mm, U_mm, d_mm, f_mm,
 theta_F_deg, theta_L_deg (exact thin-lens relation), theta_L_paper_deg (the paper's eq (1)),

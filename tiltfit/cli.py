@@ -308,13 +308,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
-    if argv and argv[0] == "reproduce":
-        return cmd_reproduce(argv[1:])
-    if argv and argv[0] == "stability":
-        return cmd_stability(argv[1:])
-    args = build_parser().parse_args(argv)
     previous = _interrupt_on_sigterm()
     try:
+        if argv and argv[0] == "reproduce":
+            return cmd_reproduce(argv[1:])
+        if argv and argv[0] == "stability":
+            return cmd_stability(argv[1:])
+        args = build_parser().parse_args(argv)
         with warnings.catch_warnings():
             # numpy's floating-point warnings would print before the one-line error; failures are reported once.
             warnings.simplefilter("ignore", RuntimeWarning)

@@ -158,10 +158,10 @@ def classify(case: dict, main, prog: str, timeout_s: float = 20.0) -> Result:
         if extra:
             return result("leftover", ", ".join(sorted(extra)))
         if rc == 0:
-            if case["expect"] == "refuse":
-                return result("accepted_bad", "exit 0 where a refusal was expected")
             if out is not None and os.path.isfile(out) and nonfinite_output(out):
                 return result("nan_output", "NaN/Inf values in the output with exit 0")
+            if case["expect"] == "refuse":
+                return result("accepted_bad", "exit 0 where a refusal was expected")
             return result("ok")
         if out_bytes is not None and (not os.path.isfile(out) or open(out, "rb").read() != out_bytes):
             return result("leftover", "the existing output was changed by a failed run")

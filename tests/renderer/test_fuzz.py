@@ -179,7 +179,8 @@ def _size_cases() -> list[dict]:
             ("width0", {"width": 0}, "refuse"), ("height-1", {"height": -1}, "refuse"),
             ("width2.5", {"width": 2.5}, "refuse"), ("spp0", {"spp": 0}, "refuse"),
             ("width-float", {"width": 4.0}, "either"), ("max_depth0", {"max_depth": 0}, "either"),
-            ("max_depth64-mirrors", {"max_depth": 64}, "either"), ("1x1", {"width": 1, "height": 1}, "either")):
+            ("max_depth64-mirrors", {"max_depth": 64}, "either"), ("1x1", {"width": 1, "height": 1}, "either"),
+            ("max_depth1e6-mirrors", {"max_depth": 1000000}, "refuse")):
         s = _scene()
         s["image"].update(image)
         if "mirrors" in name:

@@ -24,6 +24,8 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n" + bytes(range(40))
 TARGET = {"type": "checkerboard", "units": "mm", "x_edges": [0, 25, 50, 75, 100, 125, 150, 175, 200],
           "y_edges": [0, 25, 50, 75, 100, 125, 150], "dark_cell": [0, 0], "margin": 25}
 PITCH = "0.02"
+# 8 columns, 7 rows: odd n_cols + n_rows, so the detector can tell the board from its 180° turn.
+BOARD_TARGET = {**TARGET, "y_edges": [0, 25, 50, 75, 100, 125, 150, 175]}
 
 
 POSES = ((100, 75, -950), (-150, 20, -900), (330, 160, -880), (120, -200, -900))
@@ -94,6 +96,29 @@ def _blank_png() -> bytes:
     return _PNG["png"]
 
 
+def _board_png() -> bytes:
+    """An 8-bit photo of BOARD_TARGET (tiltfit.synth's analytic renderer), cached."""
+    if "board" not in _PNG:
+        import tempfile
+
+        import OpenImageIO as oiio
+        from tiltfit.synth import SynthCamera, look_at_pose, render_view
+        from tiltfit.target import target_from_dict
+
+        t = target_from_dict(BOARD_TARGET)
+        cam = SynthCamera(w_mm=35, U_mm=900, d_mm=8, pixel_pitch_mm=0.02, width_px=640, height_px=480)
+        R, T = look_at_pose(t, POSES[0])
+        view = render_view(t, cam, R, T, noise_sigma=0.002, srgb8=True, seed=0)
+        with tempfile.TemporaryDirectory() as d:
+            p = os.path.join(d, "b.png")
+            out = oiio.ImageOutput.create(p)
+            out.open(p, oiio.ImageSpec(640, 480, 3, oiio.UINT8))
+            out.write_image(np.ascontiguousarray(view.image_srgb8))
+            out.close()
+            _PNG["board"] = open(p, "rb").read()
+    return _PNG["board"]
+
+
 def _with(obj, path: str, raw: str) -> str:
     """JSON text of `obj` with the value at the dotted `path` replaced by the raw JSON token `raw`."""
     obj = copy.deepcopy(obj)
@@ -138,6 +163,13 @@ def _target_cases() -> list[dict]:
         t = {**TARGET, "x_edges": list(range(n)), "y_edges": list(range(n))}
         out.append(_detect({"T.json": json.dumps(t)}, expect=expect, name=f"target/size/{n}x{n}",
                            fields=("T.json", "x_edges") if expect == "refuse" else ()))
+    # On a real board image: a matching target is found; an absurd one is refused before detection starts.
+    board = {"img.png": _board_png()}
+    out.append(_detect({**board, "T.json": json.dumps(BOARD_TARGET)}, expect="ok", name="target/board-ok"))
+    for n in (1000, 300):
+        t = {**TARGET, "x_edges": list(range(0, 25 * n, 25)), "y_edges": list(range(0, 25 * n, 25))}
+        out.append(_detect({**board, "T.json": json.dumps(t)}, name=f"target/board-size/{n}x{n}",
+                           fields=("T.json", "x_edges")))
     for name, t in (("descending", {**TARGET, "x_edges": [3, 2, 1]}), ("two-edges", {**TARGET, "x_edges": [0, 1]}),
                     ("units-inch", {**TARGET, "units": "inch"}), ("type", {**TARGET, "type": "charuco"}),
                     ("unknown-key", {**TARGET, "colour": 1}), ("missing-x", {k: v for k, v in TARGET.items()

@@ -4,6 +4,8 @@
     PYTHONPATH=/work/main python benchmarks/fuzz_counts.py --label before -o benchmarks/results/fuzz_before.json
     PYTHONPATH=.          python benchmarks/fuzz_counts.py --label after  -o benchmarks/results/fuzz_after.json
 
+    python benchmarks/fuzz_counts.py compare benchmarks/results/fuzz_before.json benchmarks/results/fuzz_after.json
+
 (The corpus is always this checkout's; only the code under test changes.) Outcomes: ok, refused, and the
 failures traceback, hang, nan_output, leftover, bad_message, bad_exit, accepted_bad, unexpected_failure.
 """
@@ -27,7 +29,27 @@ def _load(path: str, name: str):
     return mod
 
 
+def compare(before_file: str, after_file: str) -> str:
+    """Markdown table: per suite and category, cases and failure counts before -> after."""
+    before, after = (json.load(open(f)) for f in (before_file, after_file))
+    rows = ["| suite | category | cases | tracebacks | hangs | NaN/Inf outputs (exit 0) | leftovers | bad messages "
+            "| wrongly accepted | other failures |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for suite, r in after["suites"].items():
+        b_counts = before["suites"][suite]["counts"]
+        for cat, counts in r["counts"].items():
+            bc = b_counts.get(cat, {})
+            cell = lambda k: f"{bc.get(k, 0)} → {counts.get(k, 0)}"  # noqa: E731
+            other = lambda c: sum(c.get(k, 0) for k in ("bad_exit", "unexpected_failure"))  # noqa: E731
+            rows.append(f"| {suite} | {cat} | {sum(counts.values())} | {cell('traceback')} | {cell('hang')} | "
+                        f"{cell('nan_output')} | {cell('leftover')} | {cell('bad_message')} | {cell('accepted_bad')} | "
+                        f"{other(bc)} → {other(counts)} |")
+    return "\n".join(rows) + "\n"
+
+
 def main(argv=None) -> int:
+    if argv is None and len(sys.argv) > 1 and sys.argv[1] == "compare":
+        print(compare(sys.argv[2], sys.argv[3]), end="")
+        return 0
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--label", required=True)
     ap.add_argument("--only", choices=("renderer", "tiltfit"))

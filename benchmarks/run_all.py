@@ -14,6 +14,7 @@ import sys
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 BENCHMARKS = ["bench_fig6_mitsuba.py", "bench_thin_lens.py", "bench_detect_opencv.py"]
+BENCHMARKS.append("bench_real_detect.py")  # the shipped real photos (data/real/gopro_wide) against OpenCV
 
 
 def main(argv=None) -> int:

@@ -40,13 +40,24 @@ class ImageTexture:
     pixels: np.ndarray = field(repr=False, compare=False, default=None)  # (H, W, 3) linear float32
 
     def evaluate(self, uv: torch.Tensor) -> torch.Tensor:
+        """(N, 2) uv -> (N, 3) linear RGB, bilinear between texel centres and wrapping at the tile edges.
+
+        Bilinear (not the nearest texel) so the colour is continuous in uv: rendered edges are not quantised
+        to texels and gradients with respect to anything that moves the hit point are non-zero.
+        """
         img = torch.as_tensor(self.pixels, dtype=uv.dtype, device=uv.device)
         h, w = img.shape[:2]
-        s = torch.remainder(uv[..., 0] / self.size[0], 1.0)
-        t = torch.remainder(uv[..., 1] / self.size[1], 1.0)
-        x = (s * w).long().clamp(0, w - 1)
-        y = (t * h).long().clamp(0, h - 1)
-        return img[y, x]
+        # Texel (i, j) has its centre at s = (i + 0.5) / w; fx in [0, w) measured from texel 0's centre.
+        fx = torch.remainder(uv[..., 0] / self.size[0], 1.0) * w - 0.5
+        fy = torch.remainder(uv[..., 1] / self.size[1], 1.0) * h - 0.5
+        x0, y0 = torch.floor(fx), torch.floor(fy)
+        ax, ay = (fx - x0)[..., None], (fy - y0)[..., None]
+        x0, y0 = x0.long(), y0.long()
+        xa, xb = torch.remainder(x0, w), torch.remainder(x0 + 1, w)
+        ya, yb = torch.remainder(y0, h), torch.remainder(y0 + 1, h)
+        top = img[ya, xa] * (1 - ax) + img[ya, xb] * ax
+        bottom = img[yb, xa] * (1 - ax) + img[yb, xb] * ax
+        return top * (1 - ay) + bottom * ay
 
 
 @dataclass(frozen=True)

@@ -5,6 +5,7 @@
                       [--init CALIB.json] [--encoding srgb|linear] -o CALIB.json
     tiltfit reproduce [--quick] [-o DIR]
     tiltfit stability [--quick] [-o DIR]
+    tiltfit target design|print ...   (tiltfit.target_cli: the target designer and the printable)
 
 `calibrate` also accepts DET.json files (written by `tiltfit detect`) in place of images.
 Errors (bad or missing file, missing key, no board found, truncated image, a fit that does not converge)
@@ -152,6 +153,8 @@ def cmd_detect(args) -> int:
     det = describe_detection(det, args.image, args.target, target)
     n = sum(v is not None for v in det["corners_px"])
     say(f"{args.image}: {n} of {len(det['corners_px'])} corners in {time.perf_counter() - t0:.1f} s")
+    if det.get("message"):
+        say(f"{args.image}: note: {det['message']}")
     try:
         _write_json_atomic(args.output, det)
     except (OSError, ValueError) as e:
@@ -303,6 +306,7 @@ def build_parser() -> argparse.ArgumentParser:
     # Listed for --help; its arguments are parsed by tiltfit.reproduce itself (see main).
     sub.add_parser("reproduce", help="the paper's experiment end to end on a simulated camera", add_help=False)
     sub.add_parser("stability", help="where each method fails, and how ours behaves there", add_help=False)
+    sub.add_parser("target", help="design a target (design) or print it at true size (print)", add_help=False)
     return ap
 
 
@@ -314,6 +318,10 @@ def main(argv=None) -> int:
             return cmd_reproduce(argv[1:])
         if argv and argv[0] == "stability":
             return cmd_stability(argv[1:])
+        if argv and argv[0] == "target":
+            from . import target_cli
+
+            return target_cli.main(argv[1:])
         args = build_parser().parse_args(argv)
         with warnings.catch_warnings():
             # numpy's floating-point warnings would print before the one-line error; failures are reported once.

@@ -24,10 +24,15 @@ Pipeline (`detect`):
    turns, 180° turns and shifts; each hypothesis (4 turns × shifts that keep the nodes on the board) is
    scored by the colours it predicts: the cells between detected corners (the parity of the dark cell),
    one ring of cells beyond them (board cells) and a second ring (board or white margin). A tie is broken
-   by the fit of a homography from the target coordinates (non-uniform rows tell the turns apart); a tie
-   that remains is reported (grid_found False) rather than guessed.
-6. Completion: corners the growth missed, predicted by a local homography from the indexed ones, refined
-   and kept when they are clean X-junctions (`complete_corners`).
+   by the fit of a homography from the target coordinates (non-uniform rows tell the turns apart). A tie
+   left between exactly the two placements related by the board's 180° turn (n_cols + n_rows even,
+   symmetric edges: the image cannot tell them apart, and either is a valid pose) is settled by image
+   geometry, consistently across views: corner 0 is the one nearer the image's top-left (the labelling
+   OpenCV's findChessboardCorners gives); the detection's message says so. Any other tie (a partial view
+   that fits several places on the board) is reported (grid_found False) rather than guessed.
+6. Completion: corners the growth missed, predicted by a local homography from the indexed ones within two
+   indices (local, so curved rows under lens distortion are followed), refined coarse to fine and kept when
+   they are clean X-junctions (`complete_corners`).
 7. Blur per feature point (`tiltfit.blur.measure_blur`).
 
 Images are (H, W) or (H, W, C) linear float arrays (decode sRGB first: `renderer.io.read_image` does).
@@ -62,7 +67,8 @@ class Detection:
         corners_px: (N, 2) float64 pixel positions, NaN where the point was not found.
         blur_px: (N,) blur-disc diameters, pixels, NaN where not measured.
         blur_sigma_px: (N,) one-standard-deviation uncertainty of blur_px, NaN where not measured.
-        grid_found: True when a board was found and its corners indexed without ambiguity.
+        grid_found: True when a board was found and its corners indexed (a board that looks the same
+            turned by 180° is labelled by image geometry, noted in `message`).
         message: why not, or notes.
         level: pyramid factor at which the grid was found.
         timings_s: seconds per stage.
@@ -314,6 +320,10 @@ def edge_directions(hxx, hxy, hyy) -> np.ndarray:
 
 # --- stage 3: grid growth ----------------------------------------------------------------------------------
 _DIRS = ((1, 0), (-1, 0), (0, 1), (0, -1))
+# half-angle of the cone around each Hessian edge direction in which a seed looks for its neighbours: the
+# zero directions of a blurred, foreshortened corner can be ~18° off the true edges (small squares seen
+# at a grazing angle); a diagonal neighbour is further off and the X-junction test rejects a wrong pick
+SEED_CONE_DEG = 30.0
 
 
 class _Grid:
@@ -440,7 +450,7 @@ def _seed(sm: SaddleMap, k: int, noise: float):
         for sgn in (1.0, -1.0):
             t = sgn * e
             cosang = (d[near] @ t) / dist[near]
-            ok = near[cosang > math.cos(math.radians(20))]
+            ok = near[cosang > math.cos(math.radians(SEED_CONE_DEG))]
             if ok.size == 0:
                 return None
             found[(e_i, sgn)] = ok[np.argmin(dist[ok])]
@@ -727,26 +737,34 @@ def resolve_indices(nodes: np.ndarray, xy_level: np.ndarray, xy_full: np.ndarray
     observed_dark = val < 0.5 * (lo + hi)
 
     hyps = []
+    match = np.where(observed_dark, 1, -1)  # +1 where a probe is dark: score = Σ match · (±1 expected)
     for k in range(4):
         r = _rot(k, nodes)
         rmin, rmax = r.min(0), r.max(0)
-        for oi in range(-rmin[0], nx - rmax[0]):
-            for oj in range(-rmin[1], ny - rmax[1]):
-                off = np.array([oi, oj])
-                # cell (a, b) spans nodes a..a+1: its centre (a + 0.5, b + 0.5) maps to corner-index space;
-                # corner index i sits at x_edges[i + 1], so the cell column is the mapped centre + 0.5.
-                cc = _rot(k, probe_ab * 2 + 1) / 2.0 + off  # half-integer corner coordinates
-                col = np.round(cc[:, 0] + 0.5).astype(int)
-                row = np.round(cc[:, 1] + 0.5).astype(int)
-                expected = target.is_dark(col, row)
-                score = int((expected == observed_dark).sum() - (expected != observed_dark).sum())
-                hyps.append((score, k, off))
+        oi = np.arange(-rmin[0], nx - rmax[0])
+        oj = np.arange(-rmin[1], ny - rmax[1])
+        if oi.size == 0 or oj.size == 0:
+            continue
+        # cell (a, b) spans nodes a..a+1: its centre (a + 0.5, b + 0.5) maps to corner-index space; corner
+        # index i sits at x_edges[i + 1], so the cell column is the mapped centre + 0.5. All placements
+        # (offsets oi × oj) are scored at once: (n_oi, n_oj, n_probes).
+        cc = _rot(k, probe_ab * 2 + 1) / 2.0
+        col = np.round(cc[:, 0] + 0.5).astype(int)[None, None, :] + oi[:, None, None]
+        row = np.round(cc[:, 1] + 0.5).astype(int)[None, None, :] + oj[None, :, None]
+        score = np.where(target.is_dark(col, row), 1, -1) @ match
+        for a in range(oi.size):
+            for b in range(oj.size):
+                hyps.append((int(score[a, b]), k, np.array([oi[a], oj[b]])))
     if not hyps:
         return IndexResult(None, f"the lattice ({len(nodes)} corners) does not fit on the "
                                  f"{nx}×{ny}-corner target in any orientation")
     best = max(s for s, _, _ in hyps)
     top = [(k, off) for s, k, off in hyps if s == best]
     scores = sorted([s for s, _, _ in hyps], reverse=True)
+    note = ""
+    if len(top) > MAX_TIED_PLACEMENTS:
+        return IndexResult(None, f"{len(top)} placements of the corners on the target explain the image equally "
+                                 f"well: show more of the board (its border)", scores)
     if len(top) > 1:
         # tie-break by the homography fit of the target coordinates (non-uniform rows)
         pts = target.feature_points()[:, :2]
@@ -758,18 +776,63 @@ def resolve_indices(nodes: np.ndarray, xy_level: np.ndarray, xy_full: np.ndarray
                                                     - xy_full) ** 2).sum())
             rss.append(res)
         order = np.argsort(rss)
-        if not (rss[order[1]] > 2.0 * rss[order[0]] + 1e-6 * len(nodes)):
-            turned = {(k - top[order[0]][0]) % 4 for k, _ in top}
-            if len(top) == 2 and turned == {0, 2}:
-                why = ("the target looks the same turned by 180° (even n_cols + n_rows and near-uniform rows); "
-                       "use a target with n_cols + n_rows odd")
-            else:
+        if rss[order[1]] > 2.0 * rss[order[0]] + 1e-6 * len(nodes):
+            top = [top[order[0]]]
+        else:
+            close = [top[o] for o in order if rss[o] <= 2.0 * rss[order[0]] + 1e-6 * len(nodes)]
+            twin = _half_turn_pair(close, nodes, xy_full, target)
+            if twin is None:
                 why = "show more of the board (its border, or more rows of a non-uniform target)"
-            return IndexResult(None, f"{len(top)} placements of the corners on the target explain the image "
-                                     f"equally well: {why}", scores)
-        top = [top[order[0]]]
+                return IndexResult(None, f"{len(top)} placements of the corners on the target explain the image "
+                                         f"equally well: {why}", scores)
+            top = [twin]
+            note = HALF_TURN_NOTE
     k, off = top[0]
-    return IndexResult(_rot(k, nodes) + off, "", scores)
+    return IndexResult(_rot(k, nodes) + off, note, scores)
+
+
+# more equally good placements than this are not told apart by the homography fit either (a small patch of
+# a large uniform board); bounds the work
+MAX_TIED_PLACEMENTS = 64
+
+HALF_TURN_NOTE = ("the target looks the same turned by 180°: labelled so that corner 0 is the one nearer the "
+                  "image's top-left; either labelling is a valid pose")
+
+
+def _half_turn_pair(hyps: list, nodes: np.ndarray, xy: np.ndarray, target: Target):
+    """The labelling to use when the only ambiguity left is the board's 180° turn, else None.
+
+    `hyps` are the (quarter turns, offset) placements that explain the image equally well. When they are
+    exactly two, related by the half turn (i, j) -> (nx − 1 − i, ny − 1 − j), the image cannot tell them
+    apart (a board with n_cols + n_rows even and symmetric edges, or nearly so). One is chosen by image
+    geometry, so that every view of the board is labelled alike: the one whose diagonal from corner 0 to
+    corner N − 1 points to the image's lower right, measured by an affine fit of the image positions to
+    the corner indices (sign of (A · (nx − 1, ny − 1)) · (1, 1); the x component breaks an exact tie).
+    """
+    if len(hyps) != 2:
+        return None
+    ny, nx = target.grid_shape
+    (k0, off0), (k1, off1) = hyps
+    ij0, ij1 = _rot(k0, nodes) + off0, _rot(k1, nodes) + off1
+    if not np.array_equal(ij1, np.array([nx - 1, ny - 1]) - ij0):
+        return None
+    return hyps[0] if _diagonal_points_down_right(ij0, xy, nx, ny) else hyps[1]
+
+
+def _diagonal_points_down_right(ij: np.ndarray, xy: np.ndarray, nx: int, ny: int) -> bool:
+    """Whether corner (nx−1, ny−1) lies to the lower right of corner (0, 0) in the image.
+
+    Args:
+        ij: (n, 2) corner indices of the seen corners; xy: (n, 2) their image positions, pixels.
+    The diagonal's image direction d = A · (nx − 1, ny − 1) comes from a least-squares affine fit
+    xy ≈ A ij + c (enough for its sign under perspective and lens distortion); the answer is
+    d_x + d_y > 0 (d_x > 0 breaks an exact tie).
+    """
+    A = np.c_[ij.astype(np.float64), np.ones(len(ij))]
+    coef, *_ = np.linalg.lstsq(A, xy.astype(np.float64), rcond=None)
+    d = coef[:2].T @ np.array([nx - 1.0, ny - 1.0])
+    s = d[0] + d[1]
+    return bool(s > 0 or (s == 0 and d[0] > 0))
 
 
 # --- the whole pipeline ------------------------------------------------------------------------------------
@@ -819,7 +882,7 @@ def detect_corners(gray: np.ndarray, target: Target, *, coarse_max_size: int = 4
         t4 = time.perf_counter()
         complete_corners(gray, target, corners, refine_radius_max)
         timings["complete"] = time.perf_counter() - t4
-        return corners, True, "", f
+        return corners, True, res.message, f
     return corners, False, message, 0
 
 
@@ -839,9 +902,16 @@ def complete_corners(gray: np.ndarray, target: Target, corners: np.ndarray, refi
     added = 0
     for _ in range(rounds):
         found = np.isfinite(corners).all(1)
-        missing = np.nonzero(~found)[0]
-        if missing.size == 0 or found.sum() < 4:
+        if found.all() or found.sum() < 4:
             break
+        # only corners within two indices of a found one can be predicted: the work grows with the corners
+        # seen, not with the size of the target
+        grid = np.pad(found.reshape(ny, nx), 2)
+        near_found = np.zeros((ny, nx), bool)
+        for dj in range(5):
+            for di in range(5):
+                near_found |= grid[dj:dj + ny, di:di + nx]
+        missing = np.nonzero(~found & near_found.ravel())[0]
         cand, pred, spacing = [], [], []
         for k in missing:
             j, i = divmod(int(k), nx)
@@ -863,7 +933,12 @@ def complete_corners(gray: np.ndarray, target: Target, corners: np.ndarray, refi
         if not cand:
             break
         pred, spacing = np.array(pred), np.array(spacing)
-        xy, asym, ok = refine_symmetric(gray, pred, np.clip(0.4 * spacing, 3.0, refine_radius_max))
+        # coarse to fine: under strong lens distortion a local homography misses by up to ~0.1 of a square,
+        # beyond the reach of the final window when squares are large; a first pass with a window of half
+        # the square pulls the start in, the second uses the usual window
+        start, _, ok0 = refine_symmetric(gray, pred, np.clip(0.45 * spacing, 3.0, 2.5 * refine_radius_max))
+        start = np.where(ok0[:, None] & (np.hypot(*(start - pred).T) < 0.25 * spacing)[:, None], start, pred)
+        xy, asym, ok = refine_symmetric(gray, start, np.clip(0.4 * spacing, 3.0, refine_radius_max))
         keep = ok & (asym < max_asymmetry) & (np.hypot(*(xy - pred).T) < 0.25 * spacing)
         corners[np.array(cand)[keep]] = xy[keep]
         added += int(keep.sum())
@@ -898,6 +973,43 @@ def detect_file(path: str, target: Target, encoding: str | None = None, **option
     return detect(read_image(path, encoding), target, **options)
 
 
+def detect_files(paths, target: Target, *, encoding: str | None = None, measure_blur: bool = True,
+                 progress=None, **options) -> list[Detection | None]:
+    """`detect` on several image files: one entry per path, None where the image shows no usable board.
+
+    Args:
+        paths: image files (read by `renderer.io.read_image`; 8-bit files are decoded from sRGB).
+        target: the Target.
+        encoding: override the files' encoding ("srgb" or "linear").
+        measure_blur: also measure the blur per point.
+        progress: optional callable taking one line per file (e.g. `print` to stderr): the number of corners
+            found and the time, or why the view has no board, plus the detection's note if it has one.
+        options: passed to `detect_corners`.
+    Returns:
+        list of Detection (grid_found True) or None, in the order of `paths`.
+    Raises:
+        DetectionError: a target too large to detect; ValueError / OSError from `read_image` for a file
+        that cannot be read (bad input is an error, not a view without a board).
+    """
+    from renderer.io import read_image
+
+    check_target_size(target)
+    out: list[Detection | None] = []
+    for path in paths:
+        t0 = time.perf_counter()
+        det = detect(read_image(path, encoding), target, measure_blur=measure_blur, **options)
+        ok = det.grid_found and bool(det.found.any())
+        out.append(det if ok else None)
+        if progress is not None:
+            if ok:
+                line = (f"{path}: {int(det.found.sum())} of {target.n_points} corners in "
+                        f"{time.perf_counter() - t0:.1f} s")
+                progress(line + (f" ({det.message})" if det.message else ""))
+            else:
+                progress(f"{path}: no board ({det.message or 'no checkerboard found'}); skipped")
+    return out
+
+
 def detect(image, target: Target, *, measure_blur: bool = True, **options) -> Detection:
     """Find the target's feature points and their blur in a linear image.
 
@@ -913,7 +1025,21 @@ def detect(image, target: Target, *, measure_blur: bool = True, **options) -> De
         return _detect(image, target, measure_blur, options)
 
 
+# the largest target `detect` accepts (200 × 200 corners): beyond it the indexing (every placement of the
+# seen corners on the target) and the bookkeeping per feature point would run for minutes or exhaust memory
+MAX_FEATURE_POINTS = 40_000
+
+
+def check_target_size(target: Target) -> None:
+    """Raise DetectionError (one line) for a target too large to detect in bounded time."""
+    ny, nx = target.grid_shape
+    if target.n_points > MAX_FEATURE_POINTS:
+        raise DetectionError(f"target: {nx} × {ny} = {target.n_points} corners; detection handles at most "
+                             f"{MAX_FEATURE_POINTS} (200 × 200)")
+
+
 def _detect(image, target, measure_blur, options) -> Detection:
+    check_target_size(target)
     timings: dict = {}
     t0 = time.perf_counter()
     gray = to_gray(image)

@@ -359,9 +359,18 @@ def write_printable(target: Target, png_path: str | None, pdf_path: str | None, 
                f"{target.y_edges[-1] - target.y_edges[0]:.1f} mm, margin {target.margin:g} mm; "
                f"bar = {scale_bar_mm:g} mm")
     if png_path:
-        _write_png(target, png_path, dpi, strip, scale_bar_mm)
+        pixels = (width / 25.4 * dpi) * ((y1 + strip - y0) / 25.4 * dpi)
+        if not (dpi > 0 and pixels <= MAX_PRINT_PIXELS):
+            raise TargetError(f"dpi: {dpi:g} dpi gives a {pixels / 1e6:.0f}-megapixel PNG of this "
+                              f"{width:.0f} × {y1 - y0:.0f} mm board (at most {MAX_PRINT_PIXELS / 1e6:.0f}); "
+                              f"lower the dpi or print the PDF")
+        _write_png(target, png_path, dpi, strip, scale_bar_mm, caption)
     if pdf_path:
         _write_pdf(target, pdf_path, strip, scale_bar_mm, caption)
+
+
+# the largest PNG `write_printable` writes (a poster of 1.2 × 0.85 m at 600 dpi)
+MAX_PRINT_PIXELS = 400e6
 
 
 def _bar_geometry(target, strip, bar_mm):
@@ -371,8 +380,10 @@ def _bar_geometry(target, strip, bar_mm):
     return bx0, by0, bar_mm, 2.0  # left, top, length, thickness (mm)
 
 
-def _write_png(target, path, dpi, strip, bar_mm):
-    from matplotlib.image import imsave
+def _write_png(target, path, dpi, strip, bar_mm, caption):
+    """The board rasterised exactly at `dpi`, the bar and its ticks drawn in pixels, the caption (the bar's
+    length) drawn as text over the strip; the PNG records its dpi so viewers and printers keep true size."""
+    from matplotlib.figure import Figure
 
     from renderer.io import linear_to_srgb
 
@@ -390,9 +401,13 @@ def _write_png(target, path, dpi, strip, bar_mm):
         xk = bx0 + 10.0 * k
         img[r(by0 - 1.5):r(by0 + t), c(xk) - 1:c(xk) + 1] = 0.0
     srgb = linear_to_srgb(img)
+    fig = Figure(figsize=(W / dpi, H / dpi), dpi=dpi)
+    fig.figimage(srgb, cmap="gray", vmin=0.0, vmax=1.0, origin="upper", resize=False)
+    # the caption 2 mm below the bar, 6 pt as in the PDF (figure coordinates: y up from the bottom)
+    fig.text(c(bx0) / W, 1.0 - r(by0 + t + 2.0) / H, caption, fontsize=6, va="top", ha="left", color="black")
     folder = os.path.dirname(os.path.abspath(path))
     os.makedirs(folder, exist_ok=True)
-    imsave(path, srgb, cmap="gray", vmin=0.0, vmax=1.0, dpi=dpi)
+    fig.savefig(path, dpi=dpi, format="png")
 
 
 def _write_pdf(target, path, strip, bar_mm, caption):

@@ -27,7 +27,8 @@ class Screen:
     Attributes:
         width_px, height_px: image size in pixels.
         size: (size_x, size_y) screen extent in scene units (W and H pixel pitches).
-        distance: screen distance along the camera z axis, scene units (q3 of the papers, or w).
+        distance: screen distance along the camera z axis, scene units (q3 of the papers, or w); a float or a
+            0-dim tensor (gradients then reach it).
         principal_point_px: optional (cx, cy).
     """
 
@@ -52,7 +53,8 @@ class Screen:
         (cx, cy), (px, py) = self.center_px, self.pitch
         x = (uv_px[..., 0] - cx) * px
         y = (uv_px[..., 1] - cy) * py
-        return torch.stack([x, y, torch.full_like(x, self.distance)], dim=-1)
+        # `distance` may be a tensor (the thin lens's w, fitted): broadcast, don't copy it into a fill.
+        return torch.stack([x, y, torch.zeros_like(x) + self.distance], dim=-1)
 
     def to_pixels(self, p_plane: torch.Tensor) -> torch.Tensor:
         """Inverse of `to_plane`: (..., 2) plane coordinates (x, y) -> pixels."""

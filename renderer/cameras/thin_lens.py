@@ -56,6 +56,20 @@ THIN_LENS_PARAMS = [
 ]
 
 
+def _same_kind(value: torch.Tensor, *params):
+    """`value` as a Python float when every parameter is a plain number, else the tensor (keeps its graph)."""
+    if any(isinstance(p, torch.Tensor) for p in params):
+        return value
+    return float(value)
+
+
+def _like(value, like: torch.Tensor) -> torch.Tensor:
+    """A float or tensor parameter as a tensor of `like`'s dtype and device (a tensor keeps its graph)."""
+    if isinstance(value, torch.Tensor):
+        return value.to(dtype=like.dtype, device=like.device)
+    return torch.tensor(value, dtype=like.dtype, device=like.device)
+
+
 def concentric_disk(lens_uv: torch.Tensor) -> torch.Tensor:
     """Shirley–Chiu concentric map of (..., 2) uniform samples in [0, 1)² to the unit disc, (..., 2).
 
@@ -126,14 +140,25 @@ class ThinLensCamera(Camera):
 
     uses_lens_samples = True
 
-    def __init__(self, transform, screen: Screen, w: float, U: float, d: float, theta_F: float = 0.0,
-                 theta_L: float | None = None):
+    def __init__(self, transform, screen: Screen, w, U, d, theta_F=0.0, theta_L=None):
         super().__init__(transform, screen)
-        if theta_L is None:
-            theta_L = float(optics.theta_L_from_theta_F(theta_F, w, U))
-        self.w, self.U, self.d = float(w), float(U), float(d)
-        self.theta_F, self.theta_L = float(theta_F), float(theta_L)
-        self.f = float(optics.focal_length(w, U, theta_L))
+        # w, U, d, θF may be Python floats or (0-dim) tensors: with tensors that require grad, gradients
+        # reach them through every ray. θL and f are derived on every call, never cached, so a parameter
+        # changed after construction changes them too.
+        if theta_L is not None and not isinstance(theta_F, torch.Tensor) and theta_F == 0.0:
+            theta_F = optics.theta_F_from_theta_L(theta_L, w, U)
+            theta_F = theta_F if isinstance(theta_L, torch.Tensor) else float(theta_F)
+        self.w, self.U, self.d, self.theta_F = w, U, d, theta_F
+
+    @property
+    def theta_L(self):
+        """Exact lens tilt, radians (tan θL = w tan θF / (U + w)); a float when the parameters are floats."""
+        return _same_kind(optics.theta_L_from_theta_F(self.theta_F, self.w, self.U), self.w, self.U, self.theta_F)
+
+    @property
+    def f(self):
+        """Focal length of the thin lens in this state, f = U w cos θL / (U + w) (hinge rule)."""
+        return _same_kind(optics.focal_length(self.w, self.U, self.theta_L), self.w, self.U, self.theta_F)
 
     @classmethod
     def from_config(cls, path, cfg, transform, width, height):
@@ -145,12 +170,14 @@ class ThinLensCamera(Camera):
     def lens_points(self, lens_uv: torch.Tensor) -> torch.Tensor:
         """(..., 2) samples in [0, 1)² -> (..., 3) points on the tilted lens disc, camera frame."""
         s = concentric_disk(lens_uv) * (self.d / 2)
-        cL, sL = math.cos(self.theta_L), math.sin(self.theta_L)
+        theta_L = _like(self.theta_L, s)
+        cL, sL = torch.cos(theta_L), torch.sin(theta_L)
         return torch.stack([s[..., 0], s[..., 1] * cL, s[..., 1] * sL], -1)
 
     def focus_weight(self, c: torch.Tensor) -> torch.Tensor:
         """D / U = 1 / t for chief directions c = (x_s, y_s, w): the pixel's focus point is P_f = c · U / D."""
-        return (c[..., 2] - c[..., 1] * math.tan(self.theta_F)) / self.U
+        tan_F = torch.tan(_like(self.theta_F, c))
+        return (c[..., 2] - c[..., 1] * tan_F) / self.U
 
     def rays_in_camera(self, uv_px: torch.Tensor, lens_uv: torch.Tensor) -> Rays:
         c = self.screen.to_plane(uv_px)

@@ -95,14 +95,25 @@ def test_partly_visible_board_returns_the_corners_it_sees():
     assert np.nanmax(e) < 0.1, f"worst corner {np.nanmax(e):.2f} px: the partial board is mis-indexed"
 
 
-def test_target_symmetric_under_180_is_reported_ambiguous():
-    """Even n_cols + n_rows and uniform rows: a 180° turn gives the same image, so refuse to guess."""
-    sym = Target(tuple(np.arange(0, 161, 20.0)), tuple(np.arange(0, 121, 20.0)), (0, 0), 25.0)  # 8 × 6
-    R, T = look_at_pose(sym, (40.0, -30.0, -650.0))
-    v = render_view(sym, with_blur_ratio(CAM, sym, R, T, 0.1, U_mm=400.0), R, T, noise_sigma=0.004, seed=6)
-    det = detect(v.image, sym, measure_blur=False)
-    assert not det.grid_found and "180" in det.message, f"expected an ambiguity report, got {det.message!r}"
-    assert not det.found.any(), "no corners may be reported when their indices are ambiguous"
+SYMMETRIC = Target(tuple(np.arange(0, 161, 20.0)), tuple(np.arange(0, 121, 20.0)), (0, 0), 25.0)  # 8 × 6 cells
+
+
+@pytest.mark.parametrize("roll", [0.0, 180.0])
+def test_target_symmetric_under_180_is_labelled_by_image_geometry(roll):
+    """Even n_cols + n_rows and uniform rows: a 180° turn gives the same image. The board turned by 0° and by
+    180° must get the same labelling in the image (corner 0 nearer the top-left), i.e. the labels follow the
+    image, not the board; the note says so."""
+    R, T = look_at_pose(SYMMETRIC, (40.0, -30.0, -650.0), roll_deg=roll + 10.0)
+    v = render_view(SYMMETRIC, with_blur_ratio(CAM, SYMMETRIC, R, T, 0.1, U_mm=400.0), R, T, noise_sigma=0.004,
+                    seed=6)
+    det = detect(v.image, SYMMETRIC, measure_blur=False)
+    assert det.grid_found and det.found.all(), f"turned {roll}°: {det.message}"
+    assert "180" in det.message, f"the labelling choice must be noted, got {det.message!r}"
+    truth = v.truth.corners_px if roll == 0 else v.truth.corners_px[::-1]  # the half turn reverses the order
+    e = np.hypot(*(det.corners_px - truth).T)
+    assert e.max() < 0.1, f"turned {roll}°: worst corner {e.max():.2f} px from the image-geometry labelling"
+    first, last = det.corners_px[0], det.corners_px[-1]
+    assert (last - first).sum() > 0, f"corner 0 {first} should be nearer the top-left than corner N-1 {last}"
 
 
 def test_no_board_in_noise():

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from tiltfit import reproduce
-from tiltfit.reproduce import LENS_STATES, NOISE_FLOOR, RunConfig, SetValues, SimulatedCamera
+from tiltfit.reproduce import LENS_STATES, NOISE_FLOOR, TRUE_LENS, RunConfig, SetValues, SimulatedCamera
 from tiltfit.scenes import (EOS_6D, FOCUS_DISTANCE_MM, LensParams, boxes_scene_dict, camera_pose, profile_lines,
                             scene_objects)
 
@@ -140,6 +140,28 @@ def test_quick_run_end_to_end(tmp_path):
                 assert cal[line] <= floor[line] + 2.0, \
                     f"{state} {line}: {name} {cal[line]:.2f} not within 2 grey levels of the noise floor " \
                     f"{floor[line]:.2f}"
+    # Table 1: the joint fit recovers the true tilt (two-sided: within 3σ and within 0.05°).
+    for row in result.table1:
+        if row["state"] == "(a)":
+            continue
+        err = row["joint_deg"] - row["theta_L_true_deg"]
+        sigma = row["joint_sigma_deg"]
+        assert abs(err) <= 0.05, f"{row['state']}: joint θL {row['joint_deg']:.3f}° is {err:+.3f}° off the truth"
+        assert abs(err) <= 3 * sigma, f"{row['state']}: joint θL off by {err / sigma:+.1f}σ (σ {sigma:.4f}°)"
+        assert 0.001 < sigma < 0.05, f"{row['state']}: joint σ {sigma:.4f}° is implausible"
+    # Stage 1 (the paper's eq. (3)) in physical units: w to 0.05 %, U to 0.1 %, d to 0.5 %.
+    stage1 = json.loads((tmp_path / "run.json").read_text())
+    table_s1 = {r["parameter"]: r for r in reproduce.stage1_rows(reproduce.SimulatedCamera(), reproduce.SetValues(),
+                                                                 {"records": stage1["calibration"]})}
+    for key, tol in (("w_mm", 5e-4), ("U_mm", 1e-3), ("d_mm", 5e-3)):
+        r = table_s1[key]
+        assert abs(r["stage1"] - r["true"]) <= tol * r["true"], \
+            f"stage 1 {key}: {r['stage1']:.3f} against the true {r['true']:.3f} (tolerance {tol:.2%})"
+    # The true lens is the reference a perfect calibration reaches: it beats the set values on every line.
+    for s in LENS_STATES:
+        state = f"({s.label})"
+        for line in ("red", "green"):
+            assert by[(state, TRUE_LENS)][line] < by[(state, "set")][line], f"{state} {line}: true lens vs set"
     # About a minute on two idle cores; the bound only catches a run that has grown out of --quick.
     assert result.runtime_s < 600, f"--quick took {result.runtime_s:.0f} s"
 
@@ -151,7 +173,8 @@ def test_set_value_stages_run_and_write_outputs(tmp_path, monkeypatch):
     cfg = RunConfig(downscale=96, spp_capture=2, spp_cg=2, spp_sweep=(1, 2))
     result = reproduce.run(str(tmp_path), config=cfg, progress=False)
     assert result.pending == ["(b) target photographs", "(c) calibration"]
-    assert {r["parameters"] for r in result.table2} == {NOISE_FLOOR, "set"}, "no calibrated rows while pending"
+    assert {r["parameters"] for r in result.table2} == {NOISE_FLOOR, "set", TRUE_LENS}, \
+        "no calibrated rows while pending"
     assert result.table1[1]["joint_deg"] == "pending" and "pending" in (tmp_path / "table1.md").read_text()
     states = {r["state"] for r in result.table2}
     assert states == {"(a)", "(b)", "(c)"}

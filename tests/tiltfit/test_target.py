@@ -164,3 +164,65 @@ def test_write_printable_true_size(tmp_path):
     box = [float(v) for v in re.search(r"/MediaBox\s*\[\s*([\d.\s]+)\]", text).group(1).split()]
     assert math.isclose(box[2] / 72 * 25.4, x1 - x0, rel_tol=1e-3), f"PDF page width {box} is not the board width"
     assert box[3] / 72 * 25.4 > y1 - y0, "the PDF page must hold the board and the scale bar"
+
+
+# --- `tiltfit target design|print` ---------------------------------------------------------------------------
+def test_png_scale_bar_is_labelled_and_the_board_unchanged(tmp_path):
+    """The PNG holds the exact rasterised board, the bar, and the caption text below the bar."""
+    from matplotlib.image import imread
+
+    from renderer.io import linear_to_srgb
+    from tiltfit.target import _bar_geometry
+
+    t = design_target(5, 4, 20.0, w_mm=W_MM, distance_mm=D_MM, inclination_deg=20)
+    png = tmp_path / "t.png"
+    write_printable(t, str(png), None, dpi=200)
+    img = imread(str(png))[..., 0]
+    x0, y0, x1, y1 = t.extent_mm
+    board = render_target(t, 200)
+    ref = linear_to_srgb(board[:-1])  # the last row may be cut differently where the strip begins
+    assert np.abs(img[:ref.shape[0], :ref.shape[1]] - ref).max() < 1.5 / 255, "the board in the PNG is altered"
+    bx0, by0, L, th = _bar_geometry(t, 15.0, 50.0)
+    px = lambda mm: int(round(mm / 25.4 * 200))  # noqa: E731
+    under = img[px(by0 + th - y0 + 1.5):px(by0 + th - y0 + 6.0), px(bx0 - x0):px(bx0 - x0 + L)]
+    dark = (under < 0.5).mean()
+    assert 0.02 < dark < 0.5, f"no caption text under the scale bar in the PNG (dark fraction {dark:.3f})"
+
+
+def test_target_cli_design_and_print(tmp_path, capsys):
+    from tiltfit.cli import main
+
+    out = tmp_path / "t.json"
+    rc = main(["target", "design", "--cols", "9", "--rows", "7", "--square-mm", "25", "--w-mm", "4",
+               "--distance-mm", "500", "--inclination-deg", "10", "-o", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 0 and out.is_file(), f"design failed: {err}"
+    assert "180" in err, f"an even cols + rows should be noted: {err!r}"
+    t = load_target(str(out))
+    ref = design_target(9, 7, 25.0, w_mm=4.0, distance_mm=500.0, inclination_deg=10.0)
+    assert t == ref, "the command line and design_target disagree"
+    rc = main(["target", "print", str(out), "--png", str(tmp_path / "t.png"), "--pdf", str(tmp_path / "t.pdf"),
+               "--dpi", "100"])
+    assert rc == 0 and (tmp_path / "t.png").is_file() and (tmp_path / "t.pdf").is_file(), capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, where", [
+    (["design", "--cols", "1001", "--rows", "1001", "--square-mm", "5", "--w-mm", "4", "--distance-mm", "500"],
+     "--cols"),
+    (["design", "--cols", "9", "--rows", "7", "--square-mm", "-5", "--w-mm", "4", "--distance-mm", "500"],
+     "--square-mm"),
+    (["print", "{t}", "--png", "{d}/x.png", "--dpi", "100000"], "dpi"),
+    (["print", "{d}/missing.json", "--pdf", "{d}/x.pdf"], "missing.json"),
+])
+def test_target_cli_errors_are_one_line(tmp_path, capsys, argv, where):
+    from tiltfit.cli import main
+
+    t = tmp_path / "t.json"
+    design_target(5, 4, 20.0, w_mm=W_MM, distance_mm=D_MM).save(str(t))
+    argv = [a.format(t=t, d=tmp_path) for a in argv]
+    if argv[0] == "design":
+        argv += ["-o", str(tmp_path / "out.json")]
+    rc = main(["target"] + argv)
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err.startswith("tiltfit: ") and "\n" not in err and where in err, f"rc {rc}: {err!r}"
+    assert not (tmp_path / "x.png").exists() and not (tmp_path / "out.json").exists(), "partial output left"

@@ -1,0 +1,148 @@
+"""Photometric refinement: the analytic target renderer and the fit to ray-traced photographs.
+
+The photographs are rendered by the general ray tracer (`tiltfit.synth.render_view(method="renderer")`:
+thin-lens distributed ray tracing, image texture, Monte Carlo noise), not by the fit's own analytic target
+model, so the fit has to bridge a different generator.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from renderer import optics
+from tiltfit import reproduce, synth
+from tiltfit.photometric import (PhotometricOptions, SensorGeometry, checker_dark_fraction,
+                                 hammersley_disc_samples, refine_photometric, render_target)
+from tiltfit.target import Target
+
+# A coarse board (6 x 4 cells of 50 mm) so heavy blur still leaves structure at 1/16 of the EOS 6D.
+BOARD = Target(tuple(50.0 * i for i in range(7)), tuple(50.0 * j for j in range(5)), (0, 0), 25.0)
+DOWNSCALE = 16
+W_MM, D_MM, THETA_L_DEG = 55.39, 40.0, 4.65
+
+
+def _phi(z):
+    return 0.5 * (1 + math.erf(z / math.sqrt(2)))
+
+
+# ------------------------------------------------------------------------------------------ the checker
+
+def test_dark_fraction_closed_forms():
+    t = torch.tensor
+    s = t([0.5], dtype=torch.float64)
+    # Cell (0, 0) is dark (dark_cell parity even), cell (1, 0) white; far from edges the footprint is pure.
+    for (x, y), want in (((25.0, 25.0), 1.0), ((75.0, 25.0), 0.0), ((75.0, 75.0), 1.0), ((-12.0, 25.0), 0.0)):
+        got = float(checker_dark_fraction(t([x], dtype=torch.float64), t([y], dtype=torch.float64), s, BOARD))
+        assert got == pytest.approx(want, abs=1e-12), f"({x}, {y}): {got} vs {want}"
+    # Across an interior edge the Gaussian-smoothed value is Φ of the signed distance (dark to the left).
+    for dx in (-1.0, -0.3, 0.0, 0.4, 1.2):
+        got = float(checker_dark_fraction(t([50.0 + dx], dtype=torch.float64), t([25.0], dtype=torch.float64), s,
+                                          BOARD))
+        assert got == pytest.approx(1 - _phi(dx / 0.5), abs=1e-12), f"interior edge at dx={dx}"
+    # On the outer edge of the dark corner cell, half the footprint sees the white margin.
+    got = float(checker_dark_fraction(t([0.0], dtype=torch.float64), t([25.0], dtype=torch.float64), s, BOARD))
+    assert got == pytest.approx(0.5, abs=1e-12), "outer edge of a dark cell"
+    # At a corner of four cells the separable expectation is exact: ½ (1 + 0 · 0).
+    got = float(checker_dark_fraction(t([50.0], dtype=torch.float64), t([50.0], dtype=torch.float64), s, BOARD))
+    assert got == pytest.approx(0.5, abs=1e-12), "interior corner"
+
+
+def _sensor():
+    w, h, _ = reproduce.EOS_6D.downscaled(DOWNSCALE)
+    return SensorGeometry(w, h, reproduce.EOS_6D.pixel_pitch_mm * DOWNSCALE, ((w - 1) / 2, (h - 1) / 2))
+
+
+def test_render_target_gradcheck():
+    sensor = _sensor()
+    R, T = reproduce.target_pose(BOARD, 30.0, 5.0, 600.0)
+    import cv2
+
+    rvec = torch.tensor(cv2.Rodrigues(R)[0].reshape(3), dtype=torch.float64, requires_grad=True)
+    T_mm = torch.tensor(T, dtype=torch.float64, requires_grad=True)
+    g = dict(w=55.0, inv_U=1.4, d=30.0, theta_F=math.radians(40), white=0.8, black=0.06, vig=0.05)
+    scalars = [torch.tensor(v, dtype=torch.float64, requires_grad=True) for v in g.values()]
+    # Pixels on the board's edges and corners, where every parameter moves the rendered value.
+    uv = torch.tensor([[171.0, 114.0], [150.3, 100.7], [190.2, 130.1], [130.0, 120.0], [205.5, 95.5]],
+                      dtype=torch.float64)
+    lens = hammersley_disc_samples(8)
+
+    def model(w, inv_U, d, theta_F, white, black, vig, rvec, T_mm):
+        return render_target(BOARD, sensor, uv, lens, w, inv_U, d, theta_F, rvec, T_mm, white, black, vig)
+
+    inputs = (*scalars, rvec, T_mm)
+    value = model(*inputs)
+    assert float(value.detach().min()) < 0.7 and float(value.detach().max()) > 0.1, "pixels see edges"
+    assert torch.autograd.gradcheck(model, inputs, eps=1e-6, atol=1e-7, rtol=1e-4), "target renderer gradients"
+
+
+# ------------------------------------------------------------------------------------------ the fit
+
+def _captures(U0_mm: float, n_views: int = 3, spp: int = 64):
+    """Ray-traced photographs of BOARD through a lens tilted by THETA_L_DEG (focus U0 when untilted)."""
+    w_px, h_px, _ = reproduce.EOS_6D.downscaled(DOWNSCALE)
+    pitch = reproduce.EOS_6D.pixel_pitch_mm * DOWNSCALE
+    f = float(optics.focal_length(W_MM, U0_mm))
+    theta_L = math.radians(THETA_L_DEG)
+    U = float(optics.focus_distance_tilted(W_MM, f, theta_L))
+    theta_F = float(optics.theta_F_from_theta_L(theta_L, W_MM, U))
+    cam = synth.SynthCamera(W_MM, U, D_MM, pitch, w_px, h_px, theta_F)
+    images, poses, blur = [], [], []
+    for k, (rx, ry, dist) in enumerate(reproduce.TARGET_VIEWS[:n_views]):
+        R, T = reproduce.target_pose(BOARD, rx, ry, dist)
+        view = synth.render_view(BOARD, cam, R, T, method="renderer", spp=spp, noise_sigma=0.003, seed=k)
+        images.append(view.image[..., 0].astype(np.float64))
+        poses.append((R, T))
+        blur.append(view.truth.blur_px)
+    square = min(float(synth.projected_square_px(BOARD, cam, R, T).min()) for R, T in poses)
+    return images, poses, {"U_mm": U, "theta_F": theta_F, "pitch": pitch, "blur_px": np.concatenate(blur),
+                           "square_px": square}
+
+
+def _perturbed_init(poses, truth, seed=1):
+    """A start like a corner-and-blur calibration's errors: pose 0.1°, 0.5 mm; lens 0.3 % w, 1 % U, 3 % d, 1°."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    views = [{"R": cv2.Rodrigues(rng.normal(0, math.radians(0.1), 3))[0] @ R, "T_mm": T + rng.normal(0, 0.5, 3)}
+             for R, T in poses]
+    return {"w_mm": W_MM * 1.003, "U_mm": truth["U_mm"] * 1.01, "d_mm": D_MM * 0.97,
+            "theta_F_deg": math.degrees(truth["theta_F"]) + 1.0, "views": views}
+
+
+@pytest.mark.slow
+def test_photometric_fit_recovers_a_tilted_lens_from_ray_traced_photographs():
+    images, poses, truth = _captures(U0_mm=760.0)
+    assert float(np.min(truth["blur_px"])) > 10, "heavy blur: discs of 11 px and more"
+    res = refine_photometric(images, BOARD, _perturbed_init(poses, truth), truth["pitch"],
+                             PhotometricOptions(lens_samples=64, max_pixels=1500))
+    v = res.values
+    err_L = v["theta_L_deg"] - THETA_L_DEG
+    assert abs(err_L) <= 0.01, f"θL {v['theta_L_deg']:.4f}° vs {THETA_L_DEG}° (started 1° off in θF)"
+    assert abs(v["U_mm"] / truth["U_mm"] - 1) <= 1e-3, f"U {v['U_mm']:.2f} vs {truth['U_mm']:.2f} mm"
+    assert abs(v["d_mm"] / D_MM - 1) <= 3e-3, f"d {v['d_mm']:.3f} vs {D_MM} mm"
+    assert abs(v["w_mm"] / W_MM - 1) <= 1e-3, f"w {v['w_mm']:.3f} vs {W_MM} mm"
+    assert abs(err_L) <= 3 * res.sigma["theta_L_deg"] + 1e-3, "θL error within its σ"
+    # The residual is the photographs' noise (0.003 sensor + Monte Carlo at 64 spp), not a misfit.
+    assert res.rms < 0.025, f"photometric RMS {res.rms:.4f}"
+    for (R, T), view in zip(poses, res.views):
+        assert np.abs(view["T_mm"] - T).max() < 1.0, f"translation {view['T_mm']} vs {T}"
+
+
+@pytest.mark.slow
+def test_photometric_fit_converges_where_blur_exceeds_the_square():
+    images, poses, truth = _captures(U0_mm=1400.0)
+    assert float(np.min(truth["blur_px"])) >= 0.9 * truth["square_px"], \
+        f"blur {np.min(truth['blur_px']):.1f} px against squares of {truth['square_px']:.1f} px"
+    res = refine_photometric(images, BOARD, _perturbed_init(poses, truth), truth["pitch"],
+                             PhotometricOptions(lens_samples=128, max_pixels=1500))
+    v, sg = res.values, res.sigma
+    # No corner detector sees these boards; the fit still lands on the truth, within its (larger) σ.
+    err_L = v["theta_L_deg"] - THETA_L_DEG
+    assert abs(err_L) <= 3 * sg["theta_L_deg"] and abs(err_L) <= 0.15, f"θL off by {err_L:+.4f}° (σ {sg['theta_L_deg']:.4f})"
+    assert 0.005 < sg["theta_L_deg"] < 0.2, f"σ(θL) {sg['theta_L_deg']:.4f}° is implausible"
+    err_U = v["U_mm"] - truth["U_mm"]
+    assert abs(err_U) <= 3 * sg["U_mm"] and abs(err_U) <= 0.02 * truth["U_mm"], f"U off by {err_U:+.1f} mm"
+    assert abs(v["d_mm"] / D_MM - 1) <= 0.01, f"d {v['d_mm']:.3f} vs {D_MM} mm"

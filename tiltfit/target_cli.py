@@ -1,0 +1,132 @@
+"""`tiltfit target design|print`: the target designer and the printable on the command line.
+
+    tiltfit target design --cols N --rows M (--square-mm S | --square-px P --pixel-pitch-mm p)
+                          --w-mm W --distance-mm D [--inclination-deg PHI] [--margin-mm 25] -o T.json
+    tiltfit target print T.json [--png OUT.png] [--pdf OUT.pdf] [--dpi 300] [--scale-bar-mm L]
+
+`design` writes a target whose rows project equally spaced in the design view (`tiltfit.target.design_target`:
+a camera with lens-to-sensor distance W looking at the board D away, the board inclined by PHI about its X
+axis). `print` writes the board at true size with a labelled scale bar (`tiltfit.target.write_printable`).
+Errors print one line `tiltfit: <file or option>: <problem>` on stderr and exit with status 2.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+
+EXIT_ERROR = 2
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="tiltfit target", description="Design a target and print it at true size.")
+    sub = ap.add_subparsers(dest="action", required=True, metavar="ACTION")
+
+    p = sub.add_parser("design", help="a target whose rows project equally spaced for a design view")
+    p.add_argument("--cols", type=int, required=True, help="number of cell columns")
+    p.add_argument("--rows", type=int, required=True, help="number of cell rows (cols + rows odd: no 180° twin)")
+    p.add_argument("--square-mm", type=float, help="column width and central row height, mm")
+    p.add_argument("--square-px", type=float, help="projected size of the central square, pixels (with "
+                                                   "--pixel-pitch-mm)")
+    p.add_argument("--pixel-pitch-mm", type=float, help="sensor pixel pitch, mm")
+    p.add_argument("--w-mm", type=float, required=True, help="lens-to-sensor distance of the design view, mm")
+    p.add_argument("--distance-mm", type=float, required=True, help="distance to the board's design centre, mm")
+    p.add_argument("--inclination-deg", type=float, default=0.0, help="board inclination about its X axis [0]")
+    p.add_argument("--margin-mm", type=float, default=25.0, help="white margin around the checkered area [25]")
+    p.add_argument("-o", "--output", required=True, metavar="T.json")
+    p.add_argument("-q", "--quiet", action="store_true", help="no notes on stderr")
+
+    p = sub.add_parser("print", help="the board at true size with a labelled scale bar (PNG and/or PDF)")
+    p.add_argument("target", metavar="T.json")
+    p.add_argument("--png", metavar="OUT.png", help="raster at --dpi")
+    p.add_argument("--pdf", metavar="OUT.pdf", help="vector PDF, page = board + scale bar")
+    p.add_argument("--dpi", type=float, default=300.0, help="PNG resolution [300]")
+    p.add_argument("--scale-bar-mm", type=float, help="length of the scale bar [largest of 10/20/50/100/200 that "
+                                                      "fits]")
+    p.add_argument("-q", "--quiet", action="store_true", help="no notes on stderr")
+    return ap
+
+
+class _Fail(Exception):
+    def __init__(self, where: str, problem: str):
+        super().__init__(f"{where}: {problem}")
+
+
+def _design(args, say) -> None:
+    from .detect import MAX_FEATURE_POINTS
+    from .target import TargetError, design_target
+
+    for name in ("cols", "rows"):
+        v = getattr(args, name)
+        if v < 2:
+            raise _Fail(f"--{name}", f"expected at least 2 cells, got {v}")
+    if (args.cols - 1) * (args.rows - 1) > MAX_FEATURE_POINTS:
+        raise _Fail("--cols", f"{args.cols} × {args.rows} cells have more corners than the detector handles "
+                              f"({MAX_FEATURE_POINTS})")
+    for name in ("square_mm", "square_px", "pixel_pitch_mm", "w_mm", "distance_mm", "margin_mm"):
+        v = getattr(args, name)
+        if v is not None and not (math.isfinite(v) and (v > 0 or (name == "margin_mm" and v == 0))):
+            raise _Fail("--" + name.replace("_", "-"), f"expected a positive number, got {v}")
+    if (args.square_mm is None) == (args.square_px is None):
+        raise _Fail("--square-mm", "give --square-mm, or --square-px with --pixel-pitch-mm")
+    if args.square_px is not None and args.pixel_pitch_mm is None:
+        raise _Fail("--pixel-pitch-mm", "--square-px needs the sensor's pixel pitch")
+    try:
+        target = design_target(args.cols, args.rows, args.square_mm, w_mm=args.w_mm, distance_mm=args.distance_mm,
+                               inclination_deg=args.inclination_deg, pixel_pitch_mm=args.pixel_pitch_mm,
+                               square_px=args.square_px, margin_mm=args.margin_mm)
+    except TargetError as e:
+        raise _Fail(args.output, str(e)) from None
+    if (args.cols + args.rows) % 2 == 0:
+        say(f"{args.output}: note: {args.cols} + {args.rows} cells is even, so the board looks alike turned by "
+            f"180° unless its rows differ; detection then labels it by image geometry (any labelling is a "
+            f"valid pose). An odd sum avoids the ambiguity.")
+    try:
+        folder = os.path.dirname(os.path.abspath(args.output))
+        os.makedirs(folder, exist_ok=True)
+        target.save(args.output)
+    except OSError as e:
+        raise _Fail(args.output, f"cannot write ({e.strerror or e})") from None
+    x, y = target.x_edges[-1] - target.x_edges[0], target.y_edges[-1] - target.y_edges[0]
+    say(f"wrote {args.output}: {args.cols} × {args.rows} cells, {x:.1f} × {y:.1f} mm, "
+        f"{target.grid_shape[1]} × {target.grid_shape[0]} corners")
+
+
+def _print(args, say) -> None:
+    from .target import TargetError, load_target, write_printable
+
+    if not args.png and not args.pdf:
+        raise _Fail("--png", "give --png OUT.png and/or --pdf OUT.pdf")
+    if not (math.isfinite(args.dpi) and args.dpi > 0):
+        raise _Fail("--dpi", f"expected a positive resolution, got {args.dpi}")
+    if args.scale_bar_mm is not None and not (math.isfinite(args.scale_bar_mm) and args.scale_bar_mm > 0):
+        raise _Fail("--scale-bar-mm", f"expected a positive length, got {args.scale_bar_mm}")
+    try:
+        target = load_target(args.target)
+    except TargetError as e:
+        raise _Fail(args.target, str(e).removeprefix(f"{args.target}: ")) from None
+    try:
+        write_printable(target, args.png, args.pdf, dpi=args.dpi, scale_bar_mm=args.scale_bar_mm)
+    except TargetError as e:
+        raise _Fail(args.target, str(e)) from None
+    except OSError as e:
+        raise _Fail(args.png or args.pdf, f"cannot write ({e.strerror or e})") from None
+    for path in (args.png, args.pdf):
+        if path:
+            say(f"wrote {path}: print at 100 % and check the scale bar with a ruler")
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(sys.argv[1:] if argv is None else [str(a) for a in argv])
+
+    def say(line: str):
+        if not args.quiet:
+            print(line, file=sys.stderr, flush=True)
+
+    try:
+        (_design if args.action == "design" else _print)(args, say)
+    except _Fail as e:
+        print(f"tiltfit: {e}", file=sys.stderr)
+        return EXIT_ERROR
+    return 0

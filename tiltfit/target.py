@@ -33,9 +33,9 @@ import numpy as np
 
 from renderer.validation import describe, is_finite_number, read_json
 
-# Stated limit: a target of at most this many edges per axis (255 × 255 feature points). Real boards have
-# tens; beyond this, detection's work (hypotheses × nodes) grows past anything useful.
-MAX_EDGES = 257
+# Stated limit for target files: at most this many edges per axis (200 × 200 feature points, detection's own
+# limit `tiltfit.detect.MAX_FEATURE_POINTS`), so an absurd file is refused when it is loaded. Real boards have tens.
+MAX_EDGES = 201
 # Edge positions and the margin, mm: beyond a kilometre is a unit mistake, not a target.
 MAX_MM = 1e6
 
@@ -138,8 +138,6 @@ class Target:
 def _edges_problem(edges) -> str | None:
     if len(edges) < 3:
         return "at least 3 edges (one interior intersection)"
-    if len(edges) > MAX_EDGES:
-        return f"at most {MAX_EDGES} edges (got {len(edges)})"
     if not all(is_finite_number(v) and abs(v) <= MAX_MM for v in edges):
         return f"finite numbers within ±{MAX_MM:g} mm"
     if any(b <= a for a, b in zip(edges, edges[1:])):
@@ -174,7 +172,7 @@ def target_from_dict(data, source: str = "<target>") -> Target:
         v = data[key]
         if not isinstance(v, list) or not all(_is_number(e) for e in v):
             fail(key, "a list of numbers (mm)", v)
-        problem = _edges_problem(v)
+        problem = _edges_problem(v) or (f"at most {MAX_EDGES} edges" if len(v) > MAX_EDGES else None)
         if problem:
             fail(key, problem, v)
         edges[key] = v

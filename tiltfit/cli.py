@@ -143,12 +143,18 @@ def _check_output(path: str) -> None:
 
 
 def cmd_detect(args) -> int:
+    import numpy as np
+
     say = _say(args.quiet)
     _check_output(args.output)
     target = _load_target(args.target)
     t0 = time.perf_counter()
     det = _detect_image(args.image, target, args.encoding)
-    from .detfile import describe_detection
+    from .detfile import MIRRORED, describe_detection, mirrored
+
+    corners = [c if c is not None else [math.nan, math.nan] for c in det["corners_px"]]
+    if mirrored(np.array(corners, dtype=np.float64), target.feature_points()):
+        raise CliError(args.image, MIRRORED)
 
     det = describe_detection(det, args.image, args.target, target)
     n = sum(v is not None for v in det["corners_px"])

@@ -135,13 +135,60 @@ def check_view(name: str, corners_px: np.ndarray, points: np.ndarray) -> None:
         if not s[0] > 0 or s[1] / s[0] < 1e-6:
             raise DetFileError(f"{name}: corners_px: the {n} found corners lie on one line {what}; a view needs "
                                "corners in at least two rows and two columns")
-    # Affine fit image ≈ A · target + b: its determinant's sign is the view's handedness. Target X (columns)
-    # and Y (rows) seen from the printed side map to image x right, y down: det A > 0 for every real view.
-    M = np.column_stack([XY, np.ones(n)])
-    A = np.linalg.lstsq(M, xy, rcond=None)[0][:2].T
+    if mirrored(corners_px, points):
+        raise DetFileError(f"{name}: corners_px: {MIRRORED}")
+
+
+MIRRORED = "the board appears mirrored (a flipped image, or the target seen from behind); no lens maps the target " \
+           "like this"
+
+
+def mirrored(corners_px: np.ndarray, points: np.ndarray) -> bool:
+    """Whether the found corners (N, 2) show the target's feature points (N, 3, in feature order) mirrored.
+
+    Two signs, either suffices:
+    - handedness: an affine fit image ≈ A · target + b has det A < 0. Target X (columns) and Y (rows) seen
+      from the printed side map to image x right, y down, so det A > 0 for every real view;
+    - a board with non-uniform rows or columns seen in a mirror is labelled by a detector with an
+      orientation-preserving placement that does not fit: the plane homography leaves an RMS above 1 px while
+      the same corners with their rows (or columns) read backwards fit at least 5 times better. (A uniform
+      board's mirror image is indistinguishable from a turned board, and is not flagged.)
+    """
+    found = np.isfinite(corners_px).all(-1)
+    n = int(found.sum())
+    if n < 3:
+        return False
+    XY = points[:, :2]
+    M = np.column_stack([XY[found], np.ones(n)])
+    A = np.linalg.lstsq(M, corners_px[found], rcond=None)[0][:2].T
     if np.linalg.det(A) < 0:
-        raise DetFileError(f"{name}: corners_px: the board appears mirrored (a flipped image, or the target seen "
-                           "from behind); no lens maps the target like this")
+        return True
+    if n < 8:
+        return False
+    nx = len(np.unique(XY[:, 0]))
+    ny = len(XY) // nx
+    if nx * ny != len(XY):
+        return False
+    k = np.arange(len(XY))
+    i, j = k % nx, k // nx
+    fit = _homography_rms(XY[found], corners_px[found])
+    if not fit > 1.0:
+        return False
+    backwards = [XY[j * nx + (nx - 1 - i)], XY[(ny - 1 - j) * nx + i]]
+    return min(_homography_rms(P[found], corners_px[found]) for P in backwards) < fit / 5
+
+
+def _homography_rms(src: np.ndarray, dst: np.ndarray) -> float:
+    """RMS residual, pixels, of the least-squares plane homography src (N, 2) -> dst (N, 2)."""
+    import cv2
+
+    H, _ = cv2.findHomography(src.astype(np.float64), dst.astype(np.float64), 0)
+    if H is None or not np.isfinite(H).all():
+        return float("inf")
+    p = np.column_stack([src, np.ones(len(src))]) @ H.T
+    if not (np.abs(p[:, 2]) > 1e-12).all():
+        return float("inf")
+    return float(np.sqrt((((p[:, :2] / p[:, 2:3]) - dst) ** 2).sum(1).mean()))
 
 
 def check_views(names: list[str], corners_px: np.ndarray) -> None:

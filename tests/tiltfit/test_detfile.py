@@ -87,6 +87,26 @@ def test_every_real_view_passes_and_its_mirror_image_is_refused():
             check_view("v.json", mirrored, points)
 
 
+def test_a_mirror_image_labelled_as_a_turned_board_is_flagged_when_rows_are_non_uniform():
+    """A detector labels a mirrored photo with an orientation-preserving placement (rows read backwards); with
+    non-uniform rows that placement leaves a large homography residual which reading the rows back removes."""
+    from tiltfit.detfile import mirrored
+
+    nonuniform = target_from_dict({"type": "checkerboard", "x_edges": [0, 25, 50, 75, 100, 125, 150],
+                                   "y_edges": [0, 18, 38, 60, 84, 110]})
+    uniform = target_from_dict({"type": "checkerboard", "x_edges": [0, 25, 50, 75, 100, 125, 150],
+                                "y_edges": [0, 25, 50, 75, 100, 125]})
+    for t, flagged in ((nonuniform, True), (uniform, False)):
+        R, T = look_at_pose(t, (75, 55, -700))
+        corners = observe(t, CAMERA, R, T).corners_px
+        ny, nx = t.grid_shape
+        assert not mirrored(corners, t.feature_points()), "the true view is not mirrored"
+        image_mirror = corners.copy()
+        image_mirror[:, 0] = 639 - image_mirror[:, 0]
+        rows_backwards = image_mirror.reshape(ny, nx, 2)[::-1].reshape(-1, 2)  # orientation-preserving labels
+        assert mirrored(rows_backwards, t.feature_points()) is flagged, f"non-uniform rows: {flagged}"
+
+
 def test_collinear_and_too_few_corners_are_refused():
     points = TARGET.feature_points()
     corners, _ = _view()

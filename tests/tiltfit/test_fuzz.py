@@ -24,8 +24,8 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n" + bytes(range(40))
 TARGET = {"type": "checkerboard", "units": "mm", "x_edges": [0, 25, 50, 75, 100, 125, 150, 175, 200],
           "y_edges": [0, 25, 50, 75, 100, 125, 150], "dark_cell": [0, 0], "margin": 25}
 PITCH = "0.02"
-# 8 columns, 7 rows: odd n_cols + n_rows, so the detector can tell the board from its 180° turn.
-BOARD_TARGET = {**TARGET, "y_edges": [0, 25, 50, 75, 100, 125, 150, 175]}
+# 8 columns, 7 non-uniform rows: the detector tells the board from its 180° turn, and a mirror image from the board.
+BOARD_TARGET = {**TARGET, "y_edges": [0, 18, 38, 60, 84, 110, 138, 168]}
 
 
 POSES = ((100, 75, -950), (-150, 20, -900), (330, 160, -880), (120, -200, -900))
@@ -96,9 +96,10 @@ def _blank_png() -> bytes:
     return _PNG["png"]
 
 
-def _board_png() -> bytes:
-    """An 8-bit photo of BOARD_TARGET (tiltfit.synth's analytic renderer), cached."""
-    if "board" not in _PNG:
+def _board_png(mirror: bool = False) -> bytes:
+    """An 8-bit photo of BOARD_TARGET (tiltfit.synth's analytic renderer), or its mirror image; cached."""
+    key = "mirror" if mirror else "board"
+    if key not in _PNG:
         import tempfile
 
         import OpenImageIO as oiio
@@ -113,10 +114,11 @@ def _board_png() -> bytes:
             p = os.path.join(d, "b.png")
             out = oiio.ImageOutput.create(p)
             out.open(p, oiio.ImageSpec(640, 480, 3, oiio.UINT8))
-            out.write_image(np.ascontiguousarray(view.image_srgb8))
+            pixels = view.image_srgb8[:, ::-1] if mirror else view.image_srgb8
+            out.write_image(np.ascontiguousarray(pixels))
             out.close()
-            _PNG["board"] = open(p, "rb").read()
-    return _PNG["board"]
+            _PNG[key] = open(p, "rb").read()
+    return _PNG[key]
 
 
 def _with(obj, path: str, raw: str) -> str:
@@ -166,6 +168,8 @@ def _target_cases() -> list[dict]:
     # On a real board image: a matching target is found; an absurd one is refused before detection starts.
     board = {"img.png": _board_png()}
     out.append(_detect({**board, "T.json": json.dumps(BOARD_TARGET)}, expect="ok", name="target/board-ok"))
+    out.append(_detect({"img.png": _board_png(mirror=True), "T.json": json.dumps(BOARD_TARGET)}, category="image",
+                       name="image/mirrored-board", fields=("img.png", "mirrored")))
     for n in (1000, 300):
         t = {**TARGET, "x_edges": list(range(0, 25 * n, 25)), "y_edges": list(range(0, 25 * n, 25))}
         out.append(_detect({**board, "T.json": json.dumps(t)}, name=f"target/board-size/{n}x{n}",

@@ -13,8 +13,8 @@ import subprocess
 import sys
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-BENCHMARKS = ["bench_fig6_mitsuba.py", "bench_thin_lens.py", "bench_detect_opencv.py"]
-BENCHMARKS.append("bench_real_detect.py")  # the shipped real photos (data/real/gopro_wide) against OpenCV
+BENCHMARKS = ["bench_fig6_mitsuba.py", "bench_thin_lens.py", "bench_detect_opencv.py", "bench_beam.py",
+              "bench_real_detect.py", "bench_photometric.py"]
 
 
 def main(argv=None) -> int:

@@ -2,6 +2,7 @@
 
     renderer render SCENE.json -o OUT.(exr|png|tif) [--spp N] [--sampler S] [--set key.path=value ...]
                     [--device cpu|cuda] [--seed N] [--encoding srgb|linear] [--quiet]
+    renderer animate SCENE.json --method beam|trace [--frames N] [--step D] -o DIR [--set key.path=value ...]
     renderer gallery [-o gallery.png] [--quick] [--size PX] [--spp N] [--manifest M.json] [--device ...]
 
 Errors in the input (a bad scene file, an unreadable image, an unwritable output, a render whose float32
@@ -90,6 +91,20 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--manifest", default=GALLERY_MANIFEST, metavar="M.json",
                    help="list of {scene, label, set?, note?} entries [the shipped renderer/scenes/gallery.json]")
     _common(g)
+
+    a = sub.add_parser("animate", help="move the camera along its view direction and render each frame",
+                       description="Move the camera by D along its view direction per frame; write DIR/frame_0000.png "
+                                   "... and DIR/frames.csv (frame, seconds, regions, redetermined, segment_seconds).")
+    a.add_argument("scene", metavar="SCENE", help="scene file (JSON), or the name of a shipped scene such as beam_fig2")
+    a.add_argument("--method", choices=("beam", "trace"), default="beam",
+                   help="beam: improved beam tracing (renderer.beam); trace: the ray tracer [beam]")
+    a.add_argument("--frames", type=_positive_int, help="number of frames [the scene's animation.frames]")
+    a.add_argument("--step", type=float, help="camera move per frame, scene units [the scene's animation.step]")
+    a.add_argument("-o", "--output", required=True, metavar="DIR", help="output folder")
+    a.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY.PATH=VALUE",
+                   help="override a scene key before validation (as for render); repeatable")
+    a.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    _common(a)
     return parser
 
 
@@ -108,6 +123,8 @@ def main(argv: list[str] | None = None) -> int:
             device = _device(args.device)
             if args.command == "render":
                 return cmd_render(args, device)
+            if args.command == "animate":
+                return cmd_animate(args, device)
             return cmd_gallery(args, device)
     except (SceneError, ImageIOError, OSError, UsageError) as e:
         print(f"renderer: {_one_line(e)}", file=sys.stderr)
@@ -179,6 +196,26 @@ def cmd_render(args, device) -> int:
     if not args.quiet:
         h, w = result.image.shape[:2]
         print(f"renderer: wrote {args.output} ({w}x{h}, {time.perf_counter() - start:.1f} s)", file=sys.stderr)
+    return 0
+
+
+def cmd_animate(args, device) -> int:
+    from .animate import animate, animation_defaults
+
+    path = resolve_scene(args.scene)
+    defaults = animation_defaults(path, args.overrides)
+    frames = args.frames if args.frames is not None else defaults.get("frames")
+    step = args.step if args.step is not None else defaults.get("step")
+    for name, value in (("--frames", frames), ("--step", step)):
+        if value is None:
+            raise UsageError(f"{name}: not given and {path} has no animation.{name[2:]}")
+    if os.path.exists(args.output) and not os.path.isdir(args.output):
+        raise UsageError(f"{args.output}: not a folder")
+    start = time.perf_counter()
+    animate(path, args.method, frames, step, args.output, args.overrides, device=device, progress=not args.quiet)
+    if not args.quiet:
+        print(f"renderer: wrote {frames} frames and frames.csv to {args.output} ({time.perf_counter() - start:.1f} s)",
+              file=sys.stderr)
     return 0
 
 

@@ -11,6 +11,7 @@ A scene file is one JSON object with the sections
 | `layers` | no | mixed-projection layers (see `renderer.cameras.layers`) |
 | `extends` | no | another scene file (relative to this one) this file is merged onto |
 | `description` | no | free text for the reader |
+| `animation` | no | `{frames, step}`: defaults for `renderer animate` (see `ANIMATION_PARAMS`) |
 
 `extends` merges objects key by key (this file wins) and replaces everything else (lists included), so
 a variant states only what differs from its base (relative file names inside are still resolved against
@@ -41,7 +42,7 @@ from .validation import MAX_EXTENDS, MAX_JSON_DEPTH, MAX_SET_SEGMENTS, check_mem
 from .scene import ImageSettings, Light, Scene, SceneObject
 from .shapes import build_shape
 
-SECTIONS = ("image", "camera", "lights", "objects", "layers", "extends", "description")
+SECTIONS = ("image", "camera", "lights", "objects", "layers", "extends", "description", "animation")
 
 # Stated limits of the image section: beyond them a render is a mistake, not a picture (a 65536-pixel side,
 # 65536 samples per pixel, 64 bounces already mean hours or a mirror hall that converges long before).
@@ -91,6 +92,22 @@ TEXTURE_PARAMS = {
         Param("encoding", "str", None, "srgb or linear [8-bit files sRGB, others linear]", ("srgb", "linear")),
     ],
 }
+
+ANIMATION_PARAMS = [
+    Param("frames", "int", doc="number of frames, >= 1"),
+    Param("step", "float", doc="camera move per frame along its view direction, scene units"),
+]
+
+
+def parse_animation(cfg) -> dict:
+    """The validated `animation` section ({frames, step}), or {} when the scene has none."""
+    if cfg.get("animation") is None:
+        return {}
+    p = parse_params("animation", cfg["animation"], ANIMATION_PARAMS)
+    if p["frames"] < 1:
+        raise SceneError(f"animation.frames: expected an integer >= 1, got {p['frames']}")
+    return p
+
 
 OBJECT_PARAMS = [
     Param("name", "str", doc="unique name (layers refer to objects by name)"),
@@ -241,11 +258,20 @@ def build_scene(cfg: dict, base_dir: str = ".") -> Scene:
             raise SceneError(f"{key}: unknown key (expected one of: {', '.join(SECTIONS)})")
     if "description" in cfg:
         check_value("description", "str", cfg["description"])
+    parse_animation(cfg)
     for key in ("image", "camera"):
         if key not in cfg:
             raise SceneError(f"{key}: missing required section")
     image = ImageSettings(**_positive_image(parse_params("image", cfg["image"], IMAGE_PARAMS)))
-    camera = build_camera("camera", cfg["camera"], image.width, image.height)
+    camera_cfg = cfg["camera"]
+    distortion = camera_cfg.get("distortion") if isinstance(camera_cfg, dict) else None
+    if isinstance(camera_cfg, dict) and "distortion" in camera_cfg:
+        camera_cfg = {k: v for k, v in camera_cfg.items() if k != "distortion"}
+    camera = build_camera("camera", camera_cfg, image.width, image.height)
+    if distortion is not None:
+        from .cameras.distortion import distortion_from_config
+
+        camera.distortion = distortion_from_config("camera.distortion", distortion)
     lights = [_light(f"lights[{i}]", c) for i, c in enumerate(_list(cfg, "lights"))]
     objects = []
     first_use: dict[str, int] = {}

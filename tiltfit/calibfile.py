@@ -10,6 +10,15 @@ sigma_blur_px, variance_factor}, sigma.{f_mm, theta_L_paper_deg, principal_point
 sigma_T_mm}, model_selection {theta_F: {...,justified}, principal_point: {...}}, iterations, n_residuals,
 n_parameters, software.
 
+Since the real-photos work (format_version 2): `format_version`, `created` (UTC, ISO 8601), `target` (the
+target file's content), `distortion` ({model: "brown_conrady", coefficients: [k1, k2, p1, p2, k3, k4, k5,
+k6]}, OpenCV's order), `distortion_model` (the terms fitted) and `distortion_selection` (the `auto` tests),
+`sigma.distortion`, `undetermined` (keys the data cannot determine; their values are null), `skipped`
+([{image, reason}]), `notes`, `rms_reprojection_px` (all views, per coordinate), `held_out` (see
+`tiltfit.validate`), and per view `corners_px` (detected, null where missing), `residuals_px` (model −
+detected), `blur_px`, `blur_residuals_px`, `depth_mm` (camera-frame z of each feature point) and `outlier`
+— what `tiltfit report` draws.
+
 Numbers that are not finite (e.g. the blur RMS of a view without blur widths) are written as null.
 The file is written atomically (temporary file in the same folder, then renamed).
 """
@@ -25,7 +34,9 @@ import torch
 from renderer.io import write_text
 from renderer.validation import describe, is_finite_number, read_json
 
-from .model import TiltLensCamera
+from .model import TiltLensCamera, residuals
+
+FORMAT_VERSION = 2
 
 REQUIRED_KEYS = ("pixel_pitch_mm", "image_size_px", "principal_point_px", "w_mm", "U_mm", "d_mm", "f_mm",
                  "theta_F_deg", "theta_L_deg", "theta_L_paper_deg", "views", "sigma", "runtime_s")
@@ -58,10 +69,48 @@ def _clean(v):
     return v
 
 
-def calib_dict(result, runtime_s: float | None = None) -> dict:
-    """The CALIB.json content of a `tiltfit.fit.FitResult`."""
+def _per_view_data(result, obs) -> list:
+    """Per-view corners, residuals, blur and depths for the report (lists aligned with the feature points)."""
     cam = result.camera
-    v, s = result.values, result.sigma
+    with torch.no_grad():
+        r = residuals(cam, obs)
+        depth = cam.to_camera(obs.points_mm)[..., 2]
+    out = []
+    for v in range(obs.n_views):
+        cm, bm = obs.corner_mask[v].tolist(), obs.blur_mask[v].tolist()
+        out.append({
+            "corners_px": [c if ok else None for c, ok in zip(obs.corners_px[v].tolist(), cm)],
+            "residuals_px": [e if ok else None for e, ok in zip(r.corners_px[v].tolist(), cm)],
+            "blur_px": [b if ok else None for b, ok in zip(obs.blur_px[v].tolist(), bm)],
+            "blur_residuals_px": [e if ok else None for e, ok in zip(r.blur_px[v].tolist(), bm)],
+            "depth_mm": depth[v].tolist(),
+        })
+    return out
+
+
+def calib_dict(result, runtime_s: float | None = None, obs=None, target: dict | None = None,
+               held_out: dict | None = None) -> dict:
+    """The CALIB.json content of a `tiltfit.fit.FitResult`.
+
+    Args:
+        obs: the observations the fit used (its views, in order), to store per-view corners and residuals.
+        target: the target file's content, stored under `target`.
+        held_out: `tiltfit.validate.held_out_rms`'s result, stored under `held_out`.
+    """
+    import datetime
+
+    cam = result.camera
+    v, s = dict(result.values), dict(result.sigma)
+    undetermined = list(getattr(result, "undetermined", []) or [])
+    for k in undetermined:
+        v[k] = None
+        s[k] = None
+    if "U_mm" in undetermined:  # f = U w / (U + w) needs U
+        v["f_mm"] = s["f_mm"] = None
+    if "theta_F_deg" in undetermined:
+        for k in ("theta_L_deg", "theta_L_paper_deg"):
+            v[k] = s[k] = None
+    n_rows = result.rss.get("n_corners", 0)
     out = {
         "pixel_pitch_mm": cam.pixel_pitch_mm,
         "image_size_px": list(cam.image_size_px),
@@ -81,7 +130,26 @@ def calib_dict(result, runtime_s: float | None = None) -> dict:
         "n_residuals": result.n_residuals,
         "n_parameters": result.n_parameters,
         "software": "tiltfit",
+        "format_version": FORMAT_VERSION,
+        "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "distortion": {"model": "brown_conrady", "coefficients": [float(c) for c in cam.distortion.detach()]},
+        "distortion_model": getattr(result, "distortion_model", "none"),
+        "distortion_selection": getattr(result, "distortion_selection", []),
+        "undetermined": undetermined,
+        "skipped": list(getattr(result, "skipped", []) or []),
+        "notes": list(getattr(result, "notes", []) or []),
+        "rms_reprojection_px": math.sqrt(result.rss["corners"] / n_rows) if n_rows else None,
+        "blur_offset_px": v.get("blur_offset_px"),
     }
+    out["sigma"]["blur_offset_px"] = s.get("blur_offset_px")
+    out["sigma"]["distortion"] = s.get("distortion")
+    if target is not None:
+        out["target"] = target
+    if held_out is not None:
+        out["held_out"] = held_out
+    if obs is not None:
+        for view, extra in zip(out["views"], _per_view_data(result, obs)):
+            view.update(extra)
     return _clean(out)
 
 
@@ -121,10 +189,22 @@ def read_calib(path: str) -> dict:
     for key in ("pixel_pitch_mm", "image_size_px", "w_mm", "U_mm", "d_mm"):
         if key not in data:
             raise CalibFileError(f"{path}: {key}: missing key")
-    for key in ("pixel_pitch_mm", "w_mm", "U_mm", "d_mm"):
+    for key in ("pixel_pitch_mm", "w_mm"):
         _number(path, key, data[key], positive=True)
+    for key in ("U_mm", "d_mm"):
+        if data[key] is not None:
+            _number(path, key, data[key], positive=True)
+    dist = data.get("distortion")
+    if dist is not None:
+        from renderer.cameras.distortion import distortion_from_config
+        from renderer.params import SceneError
+
+        try:
+            distortion_from_config("distortion", dist)
+        except SceneError as e:
+            raise CalibFileError(f"{path}: {e}") from None
     for key in ("pixel_pitch_mm", "w_mm", "U_mm", "d_mm"):
-        if is_finite_number(data[key]) and abs(data[key]) > MAX_LENGTH_MM:
+        if data[key] is not None and is_finite_number(data[key]) and abs(data[key]) > MAX_LENGTH_MM:
             raise CalibFileError(f"{path}: {key}: expected at most {MAX_LENGTH_MM:g} mm, got {describe(data[key])}")
     size = _vector(path, "image_size_px", data["image_size_px"], 2)
     if not all(1 <= s <= 1 << 17 and s == int(s) for s in size):
@@ -169,11 +249,17 @@ def camera_from_calib(data: dict, blur_model: str | None = None) -> TiltLensCame
     n = max(len(views), 1)
     R = [v["R"] for v in views] if views else None
     T = [v["T_mm"] for v in views] if views else None
-    return TiltLensCamera(
-        n, tuple(int(s) for s in data["image_size_px"]), data["pixel_pitch_mm"], data["w_mm"], data["U_mm"],
-        data["d_mm"], math.radians(data.get("theta_F_deg") or 0.0), R=R, T_mm=T,
+    dist = (data.get("distortion") or {}).get("coefficients")
+    cam = TiltLensCamera(
+        n, tuple(int(s) for s in data["image_size_px"]), data["pixel_pitch_mm"], data["w_mm"],
+        data["U_mm"] if data["U_mm"] is not None else 600.0, data["d_mm"] if data["d_mm"] is not None else 10.0,
+        math.radians(data.get("theta_F_deg") or 0.0), R=R, T_mm=T,
         principal_point_px=data.get("principal_point_px"),
-        blur_model=blur_model or data.get("blur_model") or "ellipse")
+        blur_model=blur_model or data.get("blur_model") or "ellipse", distortion=dist)
+    if isinstance(data.get("blur_offset_px"), (int, float)) and math.isfinite(data["blur_offset_px"]):
+        with torch.no_grad():
+            cam.blur_offset_px.fill_(float(data["blur_offset_px"]))
+    return cam
 
 
 def sigma_from_calib(data: dict) -> dict:

@@ -3,11 +3,16 @@
     tiltfit detect IMAGE --target T.json [--encoding srgb|linear] -o DET.json
     tiltfit calibrate IMAGE... --target T.json --pixel-pitch-mm P [--fit unified|tilt|joint]
                       [--init CALIB.json] [--encoding srgb|linear] -o CALIB.json
+                      [--distortion auto|none|k1|k1k2|opencv5|rational] [--held-out K]
+    tiltfit export CALIB.json --to opencv -o camera.yml
+    tiltfit report CALIB.json -o DIR
     tiltfit reproduce [--quick] [-o DIR]
     tiltfit stability [--quick] [-o DIR]
     tiltfit target design|print ...   (tiltfit.target_cli: the target designer and the printable)
 
-`calibrate` also accepts DET.json files (written by `tiltfit detect`) in place of images.
+`calibrate` also accepts DET.json files (written by `tiltfit detect`) in place of images; an image where no
+board is found is skipped with a warning (listed under `skipped` in CALIB.json). `--init` accepts a CALIB.json
+or an OpenCV camera file (`tiltfit export`'s, or any FileStorage with camera_matrix and image size).
 Errors (bad or missing file, missing key, no board found, truncated image, a fit that does not converge)
 print one line `tiltfit: <file>: <problem>` on stderr and exit with status 2, leaving no output file; an
 interrupt (Ctrl-C, SIGTERM) prints `tiltfit: interrupted` and exits with 130. Input files are checked by
@@ -28,6 +33,7 @@ import warnings
 from renderer.io import quiet_c_stderr as _quiet_c_stderr
 
 EXIT_ERROR = 2
+MIN_VIEWS_AFTER_SKIPPING = 3  # when images without a board were skipped, at least this many must remain
 EXIT_INTERRUPTED = 130
 # Stated ranges of the command-line numbers (mm); beyond them the value is a unit mistake.
 MAX_PIXEL_PITCH_MM = 10.0
@@ -175,7 +181,7 @@ def _observations(args, target, say):
     from .model import Observations
 
     points = target.feature_points()
-    corners, blur, size = [], [], None
+    corners, blur, size, names, skipped = [], [], None, [], []
     for path in args.inputs:
         if not os.path.isfile(path):
             raise CliError(path, "no such file")
@@ -183,7 +189,14 @@ def _observations(args, target, say):
             det = _read_det(path, len(points))
         else:
             t0 = time.perf_counter()
-            det = _detect_image(path, target, args.encoding)
+            try:
+                det = _detect_image(path, target, args.encoding)
+            except CliError as e:
+                if not e.problem.startswith("no board found"):
+                    raise
+                print(f"tiltfit: warning: {path}: {e.problem}; skipped", file=sys.stderr, flush=True)
+                skipped.append({"image": path, "reason": e.problem})
+                continue
             n = sum(v is not None for v in det["corners_px"])
             say(f"{path}: {n} of {len(points)} corners detected in {time.perf_counter() - t0:.1f} s")
         if size is not None and list(det["image_size_px"]) != size:
@@ -191,10 +204,17 @@ def _observations(args, target, say):
         size = list(det["image_size_px"])
         corners.append([c if c is not None else [math.nan, math.nan] for c in det["corners_px"]])
         blur.append([b if b is not None else math.nan for b in det["blur_px"]])
-    corners_px = np.array(corners, dtype=np.float64)
-    _check_views(list(args.inputs), corners_px, points)
-    return Observations(points, np.array(corners, dtype=np.float64), np.array(blur, dtype=np.float64),
-                        tuple(size), args.pixel_pitch_mm, names=list(args.inputs))
+        names.append(path)
+    if not corners:
+        raise CliError(args.inputs[0], f"no board found in any of the {len(args.inputs)} images")
+    if skipped and len(corners) < MIN_VIEWS_AFTER_SKIPPING:
+        raise CliError(args.inputs[0], f"only {len(corners)} of {len(args.inputs)} images have a board "
+                                       f"(at least {MIN_VIEWS_AFTER_SKIPPING} needed)")
+    _check_views(names, np.array(corners, dtype=np.float64), points)
+    obs = Observations(points, np.array(corners, dtype=np.float64), np.array(blur, dtype=np.float64),
+                       tuple(size), args.pixel_pitch_mm, names=names)
+    obs.skipped = skipped
+    return obs
 
 
 def _check_views(names: list[str], corners_px, points) -> None:
@@ -230,12 +250,16 @@ def cmd_calibrate(args) -> int:
         raise CliError("--init", "the tilt fit (stage 2) needs the stage-1 CALIB.json as --init")
     init = init_sigma = None
     if args.init:
+        from .export import is_opencv_file, read_opencv
+
         try:
-            data = read_calib(args.init)
+            data = read_opencv(args.init, args.pixel_pitch_mm) if is_opencv_file(args.init) else read_calib(args.init)
             init = camera_from_calib(data, args.blur_model)
         except ValueError as e:
             raise _as_cli_error(args.init, e) from None
         init_sigma = sigma_from_calib(data)
+        if args.fit == "tilt" and (data.get("U_mm") is None or data.get("d_mm") is None):
+            raise CliError(args.init, "U_mm, d_mm: undetermined in this calibration; the tilt fit needs them")
     target = _load_target(args.target)
     obs = _observations(args, target, say)
     if init is not None and tuple(init.image_size_px) != tuple(obs.image_size_px):
@@ -245,18 +269,80 @@ def cmd_calibrate(args) -> int:
     options = FitOptions(robust=args.robust, free_principal_point=args.free_principal_point,
                          blur_model=blur_model, nominal_focal_mm=args.focal_mm,
                          max_iterations=args.max_iterations, model_selection=not args.no_model_selection,
-                         progress=say)
+                         progress=say, distortion=args.distortion)
     label = args.inputs[0] if len(args.inputs) == 1 else f"{args.inputs[0]} (+{len(args.inputs) - 1} more)"
     try:
         result = calibrate(obs, args.fit, init=init, options=options, init_sigma=init_sigma)
     except FitError as e:
         raise CliError(label, str(e)) from None
-    data = calib_dict(result, runtime_s=time.perf_counter() - t0)
+    result.skipped = list(obs.skipped) + list(result.skipped)
+    for note in result.notes:
+        if note.startswith("distortion auto:"):
+            say(note)  # the choice is progress; what the data cannot determine is worth a line even with -q
+        else:
+            print(f"tiltfit: note: {note}", file=sys.stderr, flush=True)
+    held_out = None
+    used = obs.subset([obs.names.index(v["image"]) for v in result.views])
+    if args.held_out and used.n_views >= max(3, args.held_out):
+        from .validate import held_out_rms
+
+        try:
+            held_out = held_out_rms(used, options, folds=args.held_out, mode=args.fit,
+                                    distortion=result.distortion_model)
+            fit_rms = math.sqrt(result.rss["corners"] / max(result.rss["n_corners"], 1))
+            say(f"reprojection RMS {fit_rms:.4f} px (fit), {held_out['rms_px']:.4f} px (held out, "
+                f"{held_out['folds']}-fold)")
+        except FitError as e:
+            say(f"held-out error not computed: {e}")
+    data = calib_dict(result, runtime_s=time.perf_counter() - t0, obs=used, target=target.to_dict(),
+                      held_out=held_out)
     try:
         write_calib(args.output, data)
     except OSError as e:
         raise CliError(args.output, f"cannot write ({e.strerror or e})") from None
     say(f"wrote {args.output}")
+    return 0
+
+
+def cmd_export(args) -> int:
+    from .calibfile import read_calib
+    from .export import ExportError, write_opencv
+
+    try:
+        data = read_calib(args.calib)
+    except ValueError as e:
+        raise _as_cli_error(args.calib, e) from None
+    tmp = os.path.join(os.path.dirname(os.path.abspath(args.output)),
+                       f".tiltfit-export-{os.getpid()}{os.path.splitext(args.output)[1] or '.yml'}")
+    try:
+        write_opencv(data, tmp)
+        os.replace(tmp, args.output)
+    except (ExportError, OSError) as e:
+        raise _as_cli_error(args.output, e) from None
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    _say(args.quiet)(f"wrote {args.output}")
+    return 0
+
+
+def cmd_report(args) -> int:
+    from .calibfile import read_calib
+    from .report import write_report
+
+    try:
+        data = read_calib(args.calib)
+    except ValueError as e:
+        raise _as_cli_error(args.calib, e) from None
+    try:
+        files = write_report(data, args.output)
+    except OSError as e:
+        raise CliError(args.output, f"cannot write ({e.strerror or e})") from None
+    except ValueError as e:
+        raise _as_cli_error(args.calib, e) from None
+    say = _say(args.quiet)
+    for f in files:
+        say(f"wrote {f}")
     return 0
 
 
@@ -305,9 +391,27 @@ def build_parser() -> argparse.ArgumentParser:
                    help="blur model: exact spot (ellipse, default), first order, or the paper's eq (4)")
     p.add_argument("--max-iterations", type=int, default=200, help="Levenberg–Marquardt iterations [200]")
     p.add_argument("--no-model-selection", action="store_true", help="skip the θF / principal-point tests")
+    p.add_argument("--distortion", choices=("auto", "none", "k1", "k1k2", "opencv5", "rational"), default="auto",
+                   help="lens distortion terms (OpenCV's order); auto frees them while the data justify them "
+                        "[auto]")
+    p.add_argument("--held-out", type=int, default=5, metavar="K",
+                   help="K-fold held-out reprojection error beside the fit RMS (0: skip) [5]")
     p.add_argument("-o", "--output", required=True, metavar="CALIB.json")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=cmd_calibrate)
+
+    p = sub.add_parser("export", help="write a calibration for another library (OpenCV FileStorage)")
+    p.add_argument("calib", metavar="CALIB.json")
+    p.add_argument("--to", choices=("opencv",), default="opencv", help="format [opencv]")
+    p.add_argument("-o", "--output", required=True, metavar="camera.yml")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
+    p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("report", help="residual, blur and coverage plots of a calibration")
+    p.add_argument("calib", metavar="CALIB.json")
+    p.add_argument("-o", "--output", required=True, metavar="DIR")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
+    p.set_defaults(func=cmd_report)
 
     # Listed for --help; its arguments are parsed by tiltfit.reproduce itself (see main).
     sub.add_parser("reproduce", help="the paper's experiment end to end on a simulated camera", add_help=False)

@@ -35,7 +35,10 @@ import numpy as np
 import torch
 from torch.func import functional_call, jacfwd
 
-from .model import BLUR_MODELS, ROBUST_LOSSES, Observations, TiltLensCamera, residuals, robust_rho, robust_weight
+from renderer.cameras.distortion import MODEL_TERMS, MODELS as DISTORTION_MODELS
+
+from .model import (BLUR_MODELS, ROBUST_LOSSES, Observations, TiltLensCamera, distortion_parameter_names, residuals,
+                    robust_rho, robust_weight)
 
 MODES = ("unified", "tilt", "joint")
 MAX_RMS_REPROJECTION_PX = 5.0  # a calibrated view reprojecting worse than this means mismatched data
@@ -66,6 +69,18 @@ class FitOptions:
         model_selection: run the θF / principal-point tests [True].
         alpha: significance level of the tests [0.01].
         progress: callable(str) for progress lines, or None [None].
+        distortion: "none", "k1", "k1k2", "opencv5", "rational" or "auto" (free terms in that order while the
+            likelihood-ratio test and BIC justify them, on the corners alone) ["none"].
+        max_rms_px: a view reprojecting worse than this is an error (mismatched data); None: no check [5.0].
+        min_corners: views with fewer detected corners are skipped (listed in `FitResult.skipped`) [6].
+        blur_floor_px: blur widths all below this carry no information on U and d (sharp images): the fit is
+            geometric and U, d are reported undetermined [1.0].
+        outlier_factor: a view whose RMS exceeds this many times the median view RMS is flagged [3.0].
+        blur_offset: fit a constant offset of the measured blur widths (the blur detector's bias) beside the
+            lens [True]. Without it such a bias goes into d and U, and their σ (which only sees the scatter)
+            is too small: on rendered captures a −0.011 px bias put stage 1's d 8–12σ off. Held at 0 when the
+            depths do not straddle the plane of focus (then it is not separable from U), and in "tilt" mode,
+            which holds `init`'s offset with its w, U, d (the same detector's bias, calibrated in stage 1).
     """
 
     robust: str | None = None
@@ -80,6 +95,12 @@ class FitOptions:
     model_selection: bool = True
     alpha: float = 0.01
     progress: object = None
+    distortion: str = "none"
+    max_rms_px: float | None = MAX_RMS_REPROJECTION_PX
+    min_corners: int = 6
+    blur_floor_px: float = 1.0
+    outlier_factor: float = 3.0
+    blur_offset: bool = True
 
     def __post_init__(self):
         if self.robust not in ROBUST_LOSSES:
@@ -88,6 +109,8 @@ class FitOptions:
             raise ValueError(f"blur_model: expected one of {BLUR_MODELS}, got {self.blur_model!r}")
         if self.max_iterations < 1:
             raise ValueError(f"max_iterations: expected at least 1, got {self.max_iterations}")
+        if self.distortion not in DISTORTION_MODELS + ("auto",):
+            raise ValueError(f"distortion: expected one of {DISTORTION_MODELS + ('auto',)}, got {self.distortion!r}")
 
 
 @dataclass
@@ -105,6 +128,11 @@ class FitResult:
         parameter_names, covariance: the free parameters (stored units of the camera) and their covariance.
         chi2: Σ ρ((r/σ)²) at the solution; n_residuals, n_parameters; iterations; runtime_s.
         model_selection: per tested parameter, the test's numbers and a verdict (see the module docstring).
+        distortion_model: the distortion terms fitted ("none", "k1", …); distortion_selection: the tests that
+            chose them under `distortion="auto"` (one entry per candidate).
+        undetermined: keys the data cannot determine (e.g. "U_mm", "d_mm" from sharp images); their values
+            are not meaningful and CALIB.json writes null.
+        skipped: views left out, [{image, reason}]; notes: one-line remarks for the user (stderr).
     """
 
     mode: str
@@ -122,6 +150,11 @@ class FitResult:
     runtime_s: float
     rss: dict = field(default_factory=dict)
     model_selection: dict = field(default_factory=dict)
+    distortion_model: str = "none"
+    distortion_selection: list = field(default_factory=list)
+    undetermined: list = field(default_factory=list)
+    skipped: list = field(default_factory=list)
+    notes: list = field(default_factory=list)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -146,6 +179,8 @@ class _Problem:
         self.bmask = obs.blur_mask
         self.corners = torch.nan_to_num(obs.corners_px)
         self.blur = torch.nan_to_num(obs.blur_px)
+        dist_names = camera.parameter_names("distortion")
+        self.with_distortion = any(n in self.names or bool(self.held[n] != 0) for n in dist_names)
         self.n_corner = int(self.cmask.sum()) * 2
         self.n_blur = int(self.bmask.sum())
         nc = self.cmask.numel() * 2
@@ -170,10 +205,53 @@ class _Problem:
 
     def raw(self, x: torch.Tensor, held: dict | None = None) -> torch.Tensor:
         """Model − observation, flat: corners (V·N·2, pixels) then blur (V·N, pixels); 0 where unobserved."""
-        uv, b = functional_call(self.camera, self.params(x, held), (self.points,))
+        uv, b = functional_call(self.camera, self.params(x, held), (self.points,),
+                                {"with_blur": self.n_blur > 0, "with_distortion": self.with_distortion})
         rc = torch.where(self.cmask[..., None], uv - self.corners, torch.zeros_like(uv)).reshape(-1)
         rb = torch.where(self.bmask, b - self.blur, torch.zeros_like(b)).reshape(-1)
         return torch.cat([rc, rb])
+
+    def jacobian_fn(self, scale: torch.Tensor):
+        """The Jacobian of `raw(x) * scale` as a `BlockJacobian` when poses are free (else None: use jacfwd).
+
+        Every view's pose is perturbed by the same (K,) vector at once: since view v's rows depend only on its
+        own pose, the (M, K) Jacobian of that common perturbation holds each row's pose derivatives. So one
+        forward-mode pass per shared parameter plus K (≤ 6), whatever the number of views.
+        """
+        pose_names = [n for n in ("rvec", "T_scaled") if n in self.names]
+        if not pose_names:
+            return None
+        V, N = self.cmask.shape
+        offsets, i = {}, 0
+        for n, size in zip(self.names, self.sizes):
+            offsets[n] = (i, size)
+            i += size
+        P = i
+        shared = [n for n in self.names if n not in pose_names]
+        s_idx = torch.cat([torch.arange(offsets[n][0], offsets[n][0] + offsets[n][1]) for n in shared]) \
+            if shared else torch.zeros(0, dtype=torch.long)
+        p_idx = torch.cat([offsets[n][0] + 3 * torch.arange(V)[:, None] + torch.arange(3)[None]
+                           for n in pose_names], 1)
+        rows = torch.cat([2 * N * torch.arange(V)[:, None] + torch.arange(2 * N)[None],
+                          2 * V * N + N * torch.arange(V)[:, None] + torch.arange(N)[None]], 1)
+        K = 3 * len(pose_names)
+
+        def jac(x: torch.Tensor) -> BlockJacobian:
+            x = x.detach()
+            z0 = torch.cat([x[s_idx], x.new_zeros(K)])
+
+            def g(z):
+                xz = x.clone()
+                xz = xz.index_copy(0, s_idx, z[:len(s_idx)]) if len(s_idx) else xz
+                q = z[len(s_idx):]
+                for j, _ in enumerate(pose_names):
+                    xz = xz.index_add(0, p_idx[:, 3 * j:3 * j + 3].reshape(-1), q[3 * j:3 * j + 3].repeat(V))
+                return self.raw(xz) * scale
+
+            Jc = jacfwd(g)(z0).detach()
+            return BlockJacobian(Jc[:, :len(s_idx)], Jc[:, len(s_idx):], rows, s_idx, p_idx, P)
+
+        return jac
 
     def scale(self, sigma_c: float, sigma_b: float) -> torch.Tensor:
         nc = self.cmask.numel() * 2
@@ -186,6 +264,126 @@ class _Problem:
             params = dict(self.camera.named_parameters())
             for n, v in self.unflatten(x).items():
                 params[n].copy_(v)
+
+
+class DenseNormal:
+    """Normal equations A = Jᵀ W J of a dense Jacobian (M, P)."""
+
+    def __init__(self, J: torch.Tensor, wts: torch.Tensor):
+        self.J = J
+        self.Jw = J * wts[:, None]
+        self.A = J.T @ self.Jw
+
+    def gradient(self, r: torch.Tensor) -> torch.Tensor:
+        return self.Jw.T @ r
+
+    def diag(self) -> torch.Tensor:
+        return torch.diagonal(self.A)
+
+    def matvec(self, v: torch.Tensor) -> torch.Tensor:
+        return self.A @ v
+
+    def solve(self, damping: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
+        """(A + diag(damping))⁻¹ rhs."""
+        return torch.linalg.solve(self.A + torch.diag(damping), rhs)
+
+
+@dataclass
+class BlockJacobian:
+    """A Jacobian with the multi-view block structure: each view's pose touches only its own residual rows.
+
+    Attributes:
+        Js: (M, S) columns of the shared (lens) parameters.
+        Jp: (M, K) columns of the pose parameters: row i holds the derivatives with respect to the pose of the
+            view that row i belongs to (computed for all views at once by perturbing every pose together).
+        rows: (V, R) long, the residual rows of each view.
+        s_idx: (S,) long, positions of the shared parameters in the flat parameter vector.
+        p_idx: (V, K) long, positions of each view's pose parameters.
+        n_params: P = S + V·K.
+    """
+
+    Js: torch.Tensor
+    Jp: torch.Tensor
+    rows: torch.Tensor
+    s_idx: torch.Tensor
+    p_idx: torch.Tensor
+    n_params: int
+
+    def detach(self) -> "BlockJacobian":
+        return self
+
+    def dense(self) -> torch.Tensor:
+        """(M, P) the full Jacobian (for covariances)."""
+        J = self.Js.new_zeros(self.Js.shape[0], self.n_params)
+        J[:, self.s_idx] = self.Js
+        J[self.rows[:, :, None], self.p_idx[:, None, :]] = self.Jp[self.rows]
+        return J
+
+
+class BlockNormal:
+    """Normal equations of a `BlockJacobian`, solved by the Schur complement of the pose blocks.
+
+    With A = [[A_ss, A_sp], [A_ps, A_pp]] where A_pp is block diagonal (one K×K block per view), the damped
+    system is reduced to the shared parameters: (A_ss − Σ_v A_sv A_vv⁻¹ A_vs) δ_s = g_s − Σ_v A_sv A_vv⁻¹ g_v,
+    then δ_v = A_vv⁻¹ (g_v − A_vs δ_s). Cost O(M (S + K)² + V K³ + S³) instead of O(M P² + P³).
+    """
+
+    def __init__(self, bj: BlockJacobian, wts: torch.Tensor):
+        self.bj = bj
+        self.w = wts
+        self.Jsw = bj.Js * wts[:, None]
+        self.A_ss = bj.Js.T @ self.Jsw
+        self.Jp_v = bj.Jp[bj.rows]                       # (V, R, K)
+        self.w_v = wts[bj.rows]                          # (V, R)
+        Js_v = bj.Js[bj.rows]                            # (V, R, S)
+        Jpw_v = self.Jp_v * self.w_v[..., None]
+        self.A_pp = Jpw_v.transpose(1, 2) @ self.Jp_v    # (V, K, K)
+        self.A_sp = Js_v.transpose(1, 2) @ Jpw_v         # (V, S, K)
+
+    def _split(self, v: torch.Tensor):
+        return v[self.bj.s_idx], v[self.bj.p_idx]
+
+    def _join(self, vs: torch.Tensor, vp: torch.Tensor) -> torch.Tensor:
+        out = vs.new_zeros(self.bj.n_params)
+        out[self.bj.s_idx] = vs
+        out[self.bj.p_idx] = vp
+        return out
+
+    def gradient(self, r: torch.Tensor) -> torch.Tensor:
+        gs = self.Jsw.T @ r
+        gp = ((self.Jp_v * (self.w_v * r[self.bj.rows])[..., None]).sum(1))
+        return self._join(gs, gp)
+
+    def diag(self) -> torch.Tensor:
+        return self._join(torch.diagonal(self.A_ss), torch.diagonal(self.A_pp, dim1=-2, dim2=-1))
+
+    def matvec(self, v: torch.Tensor) -> torch.Tensor:
+        vs, vp = self._split(v)
+        out_s = self.A_ss @ vs + (self.A_sp @ vp[..., None]).squeeze(-1).sum(0)
+        out_p = torch.einsum("vsk,s->vk", self.A_sp, vs) + (self.A_pp @ vp[..., None]).squeeze(-1)
+        return self._join(out_s, out_p)
+
+    def solve(self, damping: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
+        ds, dp = self._split(damping)
+        gs, gp = self._split(rhs)
+        App = self.A_pp + torch.diag_embed(dp)
+        App_inv = torch.linalg.inv(App)                              # (V, K, K)
+        B = self.A_sp                                                # (V, S, K)
+        BAi = B @ App_inv                                            # (V, S, K)
+        S = self.A_ss + torch.diag(ds) - (BAi @ B.transpose(1, 2)).sum(0)
+        rhs_s = gs - (BAi @ gp[..., None]).squeeze(-1).sum(0)
+        xs = torch.linalg.solve(S, rhs_s)
+        xp = (App_inv @ (gp - torch.einsum("vsk,s->vk", B, xs))[..., None]).squeeze(-1)
+        return self._join(xs, xp)
+
+
+def _normal_equations(J, wts):
+    return BlockNormal(J, wts) if isinstance(J, BlockJacobian) else DenseNormal(J, wts)
+
+
+def dense_jacobian(J) -> torch.Tensor:
+    """The (M, P) matrix of a dense or block Jacobian."""
+    return J.dense() if isinstance(J, BlockJacobian) else J
 
 
 @dataclass
@@ -210,9 +408,10 @@ def levenberg_marquardt(residual_fn, x0: torch.Tensor, robust: str | None = None
     Args:
         residual_fn: (P,) -> (M,) float64 residuals, already divided by their σ.
         x0: (P,) start.
-        jacobian_fn: (P,) -> (M, P); default `torch.func.jacfwd(residual_fn)`.
+        jacobian_fn: (P,) -> (M, P) tensor or `BlockJacobian` (then the normal equations are solved by the
+            Schur complement of the per-view pose blocks); default `torch.func.jacfwd(residual_fn)`.
     Returns:
-        _LMResult with the solution, cost, iterations, and J, r, IRLS weights at the solution.
+        _LMResult with the solution, cost, iterations, and J (as `jacobian_fn` gives it), r, IRLS weights.
     Raises:
         FitError: non-finite residuals at the start, or no convergence within max_iterations.
     """
@@ -230,14 +429,15 @@ def levenberg_marquardt(residual_fn, x0: torch.Tensor, robust: str | None = None
     wts = robust_weight(r * r, robust, robust_scale)
     lam, nu, diag_max = 1e-6, 2.0, None
     for it in range(max_iterations + 1):
-        Jw = J * wts[:, None]
-        A = J.T @ Jw
-        g = Jw.T @ r
-        d = torch.diagonal(A).clamp(min=1e-300)
+        ne = _normal_equations(J, wts)
+        g = ne.gradient(r)
+        d = ne.diag().clamp(min=1e-300)
         diag_max = d if diag_max is None else torch.maximum(diag_max, d)
         try:
-            gn = torch.linalg.solve(A + 1e-12 * torch.diag(diag_max), g)
+            gn = ne.solve(1e-12 * diag_max, g)
             decrement = 0.5 * float(g @ gn)
+            if not math.isfinite(decrement):
+                decrement = math.inf
         except RuntimeError:
             decrement = math.inf
         if decrement < decrement_tol:
@@ -246,13 +446,13 @@ def levenberg_marquardt(residual_fn, x0: torch.Tensor, robust: str | None = None
             break
         while True:
             try:
-                step = -torch.linalg.solve(A + lam * torch.diag(diag_max), g)
+                step = -ne.solve(lam * diag_max, g)
             except RuntimeError:
                 step = torch.full_like(g, float("nan"))
             ok = bool(torch.isfinite(step).all())
             r_new = residual_fn(x + step).detach() if ok else None
             cost_new = cost_of(r_new) if ok and torch.isfinite(r_new).all() else math.inf
-            predicted = float(-(g @ step) - 0.5 * step @ (A @ step)) if ok else 0.0
+            predicted = float(-(g @ step) - 0.5 * step @ ne.matvec(step)) if ok else 0.0
             rho = (cost - cost_new) / predicted if predicted > 0 else -1.0
             if rho > 0:
                 break
@@ -313,22 +513,27 @@ def focal_from_homographies(obs: Observations, principal_point_px=None) -> float
     return F if 0.05 * s < F < 50 * s else None
 
 
-def poses_from_pnp(obs: Observations, focal_px: float, principal_point_px) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-view rvec (V, 3) and T (V, 3, mm) by OpenCV's solvePnP on the detected corners (no distortion)."""
+def poses_from_pnp(obs: Observations, focal_px: float, principal_point_px,
+                   distortion=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-view rvec (V, 3) and T (V, 3, mm) by OpenCV's solvePnP on the detected corners.
+
+    `distortion`: None or up to 8 Brown–Conrady coefficients in OpenCV's order."""
     import cv2
 
     K = np.array([[focal_px, 0, principal_point_px[0]], [0, focal_px, principal_point_px[1]], [0, 0, 1.0]])
+    dist = None if distortion is None or not any(float(v) for v in distortion) else \
+        np.array([float(v) for v in distortion], dtype=np.float64)
     pts = obs.points_mm.numpy()
     rv, tv = [], []
     for v in range(obs.n_views):
         m = obs.corner_mask[v].numpy()
         if m.sum() < 4:
             raise FitError(f"{obs.names[v]}: only {int(m.sum())} corners detected, at least 4 are needed")
-        ok, r, t = cv2.solvePnP(pts[m], obs.corners_px[v].numpy()[m], K, None, flags=cv2.SOLVEPNP_IPPE
+        ok, r, t = cv2.solvePnP(pts[m], obs.corners_px[v].numpy()[m], K, dist, flags=cv2.SOLVEPNP_IPPE
                                 if np.ptp(pts[m, 2]) < 1e-9 else cv2.SOLVEPNP_ITERATIVE)
         if not ok:
             raise FitError(f"{obs.names[v]}: cannot find the board's pose")
-        ok, r, t = cv2.solvePnP(pts[m], obs.corners_px[v].numpy()[m], K, None, r, t, True,
+        ok, r, t = cv2.solvePnP(pts[m], obs.corners_px[v].numpy()[m], K, dist, r, t, True,
                                 cv2.SOLVEPNP_ITERATIVE)
         if not ok or not (np.isfinite(r).all() and np.isfinite(t).all()):
             raise FitError(f"{obs.names[v]}: cannot find the board's pose (degenerate corner layout)")
@@ -369,7 +574,7 @@ def blur_from_scan(p_cam: torch.Tensor, blur_px: torch.Tensor, mask: torch.Tenso
 
 def _blur_rss(cam: TiltLensCamera, obs: Observations, U_mm: float, d_mm: float, theta_F: float) -> float:
     with torch.no_grad():
-        cam.log_U_mm.fill_(math.log(U_mm))
+        cam.inv_U_per_m.fill_(1000.0 / U_mm)
         cam.log_d_mm.fill_(math.log(d_mm))
         cam.theta_F.fill_(theta_F)
         b = cam.blur(obs.points_mm)
@@ -379,19 +584,22 @@ def _blur_rss(cam: TiltLensCamera, obs: Observations, U_mm: float, d_mm: float, 
 
 
 def initialize(obs: Observations, mode: str = "unified", init: TiltLensCamera | None = None,
-               options: FitOptions = FitOptions()) -> TiltLensCamera:
+               options: FitOptions = FitOptions(), blur: bool = True) -> TiltLensCamera:
     """A starting camera for `calibrate`.
 
     Poses from PnP with w from `init`, else the nominal focal length, else the homographies. The blur
     parameters are the best (least squared blur error) of: `init`'s U, d, θF; the linear scan
     (`blur_from_scan`, θF scanned too in `joint` mode) unless `tilt` mode holds U and d; and, in `tilt` mode,
-    a scan of θF over ±80° with `init`'s U and d.
+    a scan of θF over ±80° with `init`'s U and d. With `blur` False the blur parameters are `init`'s (or
+    U = 600 mm, d = 10 mm) and θF = 0: they are not fitted then. `init`'s distortion is kept.
     """
     W, H = obs.image_size_px
+    dist = None
     if init is not None:
         init = init.copy().requires_grad_(False)
         pp = [float(v) for v in init.principal_point_px]
         w_mm = float(init.w_mm)
+        dist = [float(v) for v in init.distortion]
     else:
         pp = [(W - 1) / 2.0, (H - 1) / 2.0]
         if options.nominal_focal_mm is not None:
@@ -402,15 +610,27 @@ def initialize(obs: Observations, mode: str = "unified", init: TiltLensCamera | 
                 raise FitError("cannot estimate the focal length from these views (too fronto-parallel, or the "
                                "target does not match the detections); give a nominal focal length")
             w_mm = F * obs.pixel_pitch_mm
-    rvec, T = poses_from_pnp(obs, w_mm / obs.pixel_pitch_mm, pp)
-    cam = TiltLensCamera(obs.n_views, obs.image_size_px, obs.pixel_pitch_mm, w_mm, 600.0, 10.0, rvec=rvec,
-                         T_mm=T, principal_point_px=pp, blur_model=options.blur_model)
+    rvec, T = poses_from_pnp(obs, w_mm / obs.pixel_pitch_mm, pp, dist)
+    U0, d0 = (float(init.U_mm), float(init.d_mm)) if init is not None else (600.0, 10.0)
+    cam = TiltLensCamera(obs.n_views, obs.image_size_px, obs.pixel_pitch_mm, w_mm, U0, d0, rvec=rvec,
+                         T_mm=T, principal_point_px=pp, blur_model=options.blur_model, distortion=dist)
+    if init is not None:
+        with torch.no_grad():
+            cam.blur_offset_px.copy_(init.blur_offset_px)
+    if blur:
+        start_blur(cam, obs, mode, init)
+    return cam
+
+
+def start_blur(cam: TiltLensCamera, obs: Observations, mode: str, init: TiltLensCamera | None = None):
+    """Set cam's U, d, θF to the best start (see `initialize`) for its current poses; returns cam."""
+    w_mm = float(cam.w_mm.detach())
     candidates = []
     if init is not None:
-        th = float(init.theta_F) if mode != "unified" else 0.0
-        candidates.append((float(init.U_mm), float(init.d_mm), th))
+        th = float(init.theta_F.detach()) if mode != "unified" else 0.0
+        candidates.append((float(init.U_mm.detach()), float(init.d_mm.detach()), th))
     if mode == "tilt":
-        U0, d0 = float(init.U_mm), float(init.d_mm)
+        U0, d0 = float(init.U_mm.detach()), float(init.d_mm.detach())
         candidates += [(U0, d0, math.radians(a)) for a in np.arange(-80.0, 80.5, 1.0)]
     else:
         with torch.no_grad():
@@ -466,11 +686,11 @@ def _solve(camera: TiltLensCamera, obs: Observations, options: FitOptions, sigma
     for outer in range(options.noise_iterations + 1):
         scale = prob.scale(sc, sb)
         res = levenberg_marquardt(lambda v: prob.raw(v) * scale, x, options.robust, options.robust_scale,
-                                  options.max_iterations)
+                                  options.max_iterations, jacobian_fn=prob.jacobian_fn(scale))
         x, total_it = res.x, total_it + res.iterations
         if not estimate or outer == options.noise_iterations:
             break
-        new_sc, new_sb = _group_sigma(prob, res.r / scale, res.J, res.weights, options.robust)
+        new_sc, new_sb = _group_sigma(prob, res.r / scale, dense_jacobian(res.J), res.weights, options.robust)
         new_sc = options.sigma_corner_px or new_sc
         new_sb = options.sigma_blur_px or new_sb
         changed = abs(new_sc / sc - 1) > 1e-3 or abs(new_sb / sb - 1) > 1e-3
@@ -489,7 +709,8 @@ def _derived(camera: TiltLensCamera, params: dict) -> torch.Tensor:
     """(w, U, d, f, θF°, θL°, θL_paper°, cx, cy) as functions of the stored parameters."""
     from renderer import optics
 
-    w, U, d = (torch.exp(params[k]) for k in ("log_w_mm", "log_U_mm", "log_d_mm"))
+    w, d = torch.exp(params["log_w_mm"]), torch.exp(params["log_d_mm"])
+    U = 1000.0 / params["inv_U_per_m"]
     thF = params["theta_F"]
     thL = optics.theta_L_from_theta_F(thF, w, U)
     f = optics.focal_length(w, U, thL)
@@ -507,18 +728,20 @@ def _held_sigma(init_sigma: dict | None, camera: TiltLensCamera, names: list[str
     out = {}
     if not init_sigma:
         return out
-    for stored, key, val in (("log_w_mm", "w_mm", camera.w_mm), ("log_U_mm", "U_mm", camera.U_mm),
-                             ("log_d_mm", "d_mm", camera.d_mm)):
+    for stored, key, val in (("log_w_mm", "w_mm", camera.w_mm), ("log_d_mm", "d_mm", camera.d_mm)):
         if stored in names and init_sigma.get(key):
             out[stored] = float(init_sigma[key]) / float(val)
+    if "inv_U_per_m" in names and init_sigma.get("U_mm") and math.isfinite(float(camera.U_mm)):
+        out["inv_U_per_m"] = 1000.0 * float(init_sigma["U_mm"]) / float(camera.U_mm) ** 2
     return out
 
 
 def _uncertainties(prob: _Problem, res: _LMResult, scale: torch.Tensor, init_sigma: dict | None):
     """Covariance of the free parameters and σ of the derived quantities and per-view poses."""
     cam = prob.camera
-    Jw = res.J * res.weights[:, None]
-    A = res.J.T @ Jw
+    J = dense_jacobian(res.J)
+    Jw = J * res.weights[:, None]
+    A = J.T @ Jw
     n = prob.n_corner + prob.n_blur
     p = res.x.numel()
     s2 = float((res.weights * res.r * res.r).sum()) / max(n - p, 1)
@@ -557,6 +780,17 @@ def _uncertainties(prob: _Problem, res: _LMResult, scale: torch.Tensor, init_sig
     for nme, size in zip(prob.names, prob.sizes):
         offsets[nme] = (i, size)
         i += size
+    sigma["distortion"] = [math.sqrt(float(C[offsets[n][0], offsets[n][0]])) if n in offsets else 0.0
+                           for n in TiltLensCamera.parameter_names("distortion")]
+    if "inv_U_per_m" in offsets:
+        o = offsets["inv_U_per_m"][0]
+        sigma["inv_U_per_m"] = math.sqrt(float(C[o, o]))
+    if "log_d_mm" in offsets:
+        o = offsets["log_d_mm"][0]
+        sigma["log_d_mm"] = math.sqrt(float(C[o, o]))
+    if "blur_offset_px" in offsets:
+        o = offsets["blur_offset_px"][0]
+        sigma["blur_offset_px"] = math.sqrt(float(C[o, o]))
     for v in range(cam.n_views):
         entry = {}
         if "rvec" in offsets:
@@ -606,6 +840,7 @@ def _fit_camera(camera: TiltLensCamera, obs: Observations, options: FitOptions, 
         rc, rb = residuals(camera, obs).rms_per_view()
     values = {k: float(vals[i]) for i, k in enumerate(_DERIVED_KEYS)}
     values["principal_point_px"] = [float(vals[7]), float(vals[8])]
+    values["blur_offset_px"] = float(camera.blur_offset_px.detach())
     views = []
     R = camera.R.detach()
     T = camera.T_mm.detach()
@@ -650,12 +885,15 @@ def likelihood_ratio(restricted: FitResult, full: FitResult, k: int, alpha: floa
             "justified": bool(p < alpha and d_bic > 0), "alpha": alpha}
 
 
-def _model_selection(base: FitResult, obs: Observations, mode: str, options: FitOptions, say=None) -> dict:
+def _model_selection(base: FitResult, obs: Observations, mode: str, options: FitOptions, say=None,
+                     test_theta_F: bool = True) -> dict:
     """Re-fit with θF (and the principal point) switched and test which state the data support."""
     out = {}
     quiet = replace(options, model_selection=False)
     sigma = (base.noise["sigma_corner_px"], base.noise["sigma_blur_px"])
-    tests = [("theta_F", ("theta_F",), 1)]
+    if base.rss.get("n_blur", 0) == 0:
+        obs = without_blur(obs)
+    tests = [("theta_F", ("theta_F",), 1)] if test_theta_F else []
     tests.append(("principal_point", ("principal_point",), 2))
     for label, names, k in tests:
         cam = base.camera.copy()
@@ -688,15 +926,163 @@ def _model_selection(base: FitResult, obs: Observations, mode: str, options: Fit
     return out
 
 
+def _usable_views(obs: Observations, min_corners: int, say=None) -> tuple[Observations, list]:
+    """Drop views with fewer than `min_corners` corners; returns (observations kept, [{image, reason}])."""
+    n = obs.corner_mask.sum(-1)
+    keep = [v for v in range(obs.n_views) if int(n[v]) >= min_corners]
+    skipped = [{"image": obs.names[v], "reason": f"{int(n[v])} corners found, at least {min_corners} needed"}
+               for v in range(obs.n_views) if int(n[v]) < min_corners]
+    for sk in skipped:
+        if say:
+            say(f"warning: skipping {sk['image']}: {sk['reason']}")
+    return (obs if len(keep) == obs.n_views else obs.subset(keep)), skipped
+
+
+def blur_is_informative(obs: Observations, floor_px: float = 1.0) -> bool:
+    """Whether the blur widths can say anything about U and d: at least 3 of them, and some above `floor_px`
+    (below it a detector's width is its own resolution, not defocus)."""
+    b = obs.blur_px[obs.blur_mask]
+    return b.numel() >= 3 and float(b.max()) >= floor_px
+
+
+def without_blur(obs: Observations) -> Observations:
+    """The same observations with every blur width removed (geometry only)."""
+    return Observations(obs.points_mm, obs.corners_px, torch.full_like(obs.blur_px, math.nan), obs.image_size_px,
+                        obs.pixel_pitch_mm, list(obs.names))
+
+
+def _set_free_geometry(camera: TiltLensCamera, mode: str, free_pp: bool, distortion: str | None):
+    """Free the geometric parameters; `distortion` None holds the coefficients as they are, a model name frees
+    its terms and sets the others to 0."""
+    camera.freeze("all")
+    camera.free("pose")
+    if mode != "tilt":
+        camera.free("w")
+    if free_pp:
+        camera.free("principal_point")
+    if distortion is not None:
+        free = distortion_parameter_names(distortion)
+        with torch.no_grad():
+            for n in camera.parameter_names("distortion"):
+                if n not in free:
+                    getattr(camera, n).zero_()
+        camera.free(*free)
+
+
+def fit_geometry(camera: TiltLensCamera, obs: Observations, options: FitOptions, mode: str = "unified",
+                 say=None, hold_distortion: bool = False) -> FitResult:
+    """Fit w (unless `mode` is "tilt"), the poses, the principal point if asked and the distortion on the
+    corners alone (blur widths ignored; U, d, θF held). `options.distortion` "auto" picks the terms.
+
+    Distortion models are tried in the order none, k1, k1k2, opencv5, rational, each starting from the
+    previous fit; a model is kept while the likelihood-ratio test against the previous one rejects it at
+    `options.alpha` and BIC prefers it (`likelihood_ratio`), so terms are freed only while the data justify
+    them. The tests are in `FitResult.distortion_selection`. Terms outside the model are set to 0, except
+    with `hold_distortion`, which keeps the camera's coefficients fixed as they are.
+    """
+    obs = without_blur(obs)
+    quiet = replace(options, model_selection=False, progress=None)
+    models = DISTORTION_MODELS if options.distortion == "auto" else (options.distortion,)
+    best, selection = None, []
+    for m in models:
+        cam = (best.camera if best is not None else camera).copy()
+        _set_free_geometry(cam, mode, options.free_principal_point, None if hold_distortion else m)
+        try:
+            fit = _fit_camera(cam, obs, quiet, mode=mode)
+        except FitError as e:
+            if best is None:
+                raise
+            selection.append({"model": m, "error": str(e), "justified": False})
+            if say:
+                say(f"distortion {m}: not fitted ({e})")
+            break
+        fit.distortion_model = m
+        rms = math.sqrt(fit.rss["corners"] / max(fit.rss["n_corners"], 1))
+        entry = {"model": m, "rms_px": rms, "n_terms": len(MODEL_TERMS[m])}
+        if best is not None:
+            k = len(MODEL_TERMS[m]) - len(MODEL_TERMS[best.distortion_model])
+            entry.update(likelihood_ratio(best, fit, k, options.alpha))
+        else:
+            entry["justified"] = True
+        selection.append(entry)
+        if say and options.distortion == "auto":
+            why = "" if best is None else (f" (Λ = {entry['lr_statistic']:.3g}, p = {entry['p_value']:.2g}, "
+                                           f"ΔBIC = {entry['delta_bic']:.3g} against {best.distortion_model})")
+            say(f"distortion {m}: RMS {rms:.3f} px, {'justified' if entry['justified'] else 'not justified'}"
+                f"{why}")
+        if not entry["justified"]:
+            break
+        best = fit
+    best.distortion_selection = selection
+    return best
+
+
+MAX_OFFSET_CORRELATION = 0.99  # |multiple correlation| of the blur offset with (1/U, d) above which it is held
+
+
+def _offset_correlation(result: FitResult) -> float:
+    """Multiple correlation of the fitted blur offset with 1/U and log d: near 1 when blur widths all lie on
+    one side of the plane of focus, where an offset and a change of U explain the data equally well."""
+    names = result.parameter_names
+    if "blur_offset_px" not in names:
+        return 0.0
+    idx = [names.index(n) for n in ("inv_U_per_m", "log_d_mm") if n in names]
+    if not idx:
+        return 0.0
+    o = names.index("blur_offset_px")
+    C = result.covariance
+    c_oo = float(C[o, o])
+    c_ol = C[o, idx]
+    C_ll = C[idx][:, idx]
+    try:
+        r2 = float(c_ol @ torch.linalg.solve(C_ll, c_ol)) / c_oo
+    except RuntimeError:
+        return 1.0
+    return math.sqrt(min(max(r2, 0.0), 1.0))
+
+
+def _flag_outliers(result: FitResult, factor: float) -> list:
+    rms = [v["rms_reprojection_px"] for v in result.views if math.isfinite(v["rms_reprojection_px"])]
+    if len(rms) < 3:
+        return []
+    med = float(np.median(rms))
+    out = []
+    for v in result.views:
+        v["outlier"] = bool(math.isfinite(v["rms_reprojection_px"]) and v["rms_reprojection_px"] > factor * med
+                            and v["rms_reprojection_px"] > 0.5)
+        if v["outlier"]:
+            out.append(v["image"])
+    return out
+
+
+def _undetermined_focus(result: FitResult) -> list:
+    """U and d the blur fit could not pin down: 1/U within 2σ of 0 (focus indistinguishable from infinity) or
+    d known to worse than a factor e^0.5."""
+    out = []
+    cam = result.camera
+    s_inv = result.sigma.get("inv_U_per_m")
+    if s_inv is not None and not abs(float(cam.inv_U_per_m.detach())) > 2.0 * s_inv:
+        out.append("U_mm")
+    s_logd = result.sigma.get("log_d_mm")
+    if s_logd is not None and s_logd > 0.5:
+        out.append("d_mm")
+    return out
+
+
 def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | None = None,
               options: FitOptions = FitOptions(), init_sigma: dict | None = None) -> FitResult:
     """Calibrate a tilt-lens camera from detected corners and blur widths of several views.
 
+    Views with fewer than `options.min_corners` corners are skipped (`FitResult.skipped`). When the blur
+    widths carry no information (none, or all below `options.blur_floor_px`) or the blur fit cannot determine
+    U and d, the fit is geometric and those parameters are listed in `FitResult.undetermined`. Distortion
+    terms (`options.distortion`) are fitted on the corners first; "auto" chooses them (`fit_geometry`).
+
     Args:
         obs: the observations (target points, corners, blur widths) of V views.
         mode: "unified", "tilt" or "joint" (module docstring).
-        init: a camera whose lens state (w, U, d, θF, principal point) starts the fit; required for "tilt",
-            where w, U, d are held at its values. Its poses are not used (they come from PnP).
+        init: a camera whose lens state (w, U, d, θF, principal point, distortion) starts the fit; required for
+            "tilt", where w, U, d are held at its values. Its poses are not used (they come from PnP).
         options: `FitOptions`.
         init_sigma: one-σ of `init`'s w_mm, U_mm, d_mm (e.g. the `sigma` of a stage-1 CALIB.json); in
             "tilt" mode they are propagated into θF and θL.
@@ -711,30 +1097,105 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
         raise FitError("the tilt fit (stage 2) needs the stage-1 calibration as init")
     t0 = time.perf_counter()
     say = options.progress
+    n_all = obs.n_views
+    obs, skipped = _usable_views(obs, options.min_corners, say)
+    if obs.n_views == 0:
+        raise FitError(f"none of the {n_all} views has a board with at least {options.min_corners} corners")
     if say:
         say(f"{mode} fit of {obs.n_views} views, {int(obs.corner_mask.sum())} corners, "
             f"{int(obs.blur_mask.sum())} blur widths")
-    cam = initialize(obs, mode, init, options)
-    if say:
-        s = cam.summary()
-        say(f"start: w {s['w_mm']:.3f} mm, U {s['U_mm']:.1f} mm, d {s['d_mm']:.2f} mm, "
-            f"θF {s['theta_F_deg']:.2f}°")
-    _set_free(cam, mode, options.free_principal_point)
-    result = _fit_camera(cam, obs, options, init_sigma if mode == "tilt" else None, say, mode=mode)
+    blur_ok = blur_is_informative(obs, options.blur_floor_px)
+    cam = initialize(obs, mode, init, options, blur=blur_ok)
+    notes, undetermined = [], []
+    geometry = None
+    distortion = options.distortion
+    if not blur_ok or distortion != "none":
+        geometry = fit_geometry(cam, obs, options, mode, say)
+        distortion = geometry.distortion_model
+        cam = geometry.camera.copy()
+    result = None
+    if blur_ok:
+        if geometry is not None:
+            start_blur(cam, obs, mode, init)
+        if say:
+            s = cam.summary()
+            say(f"start: w {s['w_mm']:.3f} mm, U {s['U_mm']:.1f} mm, d {s['d_mm']:.2f} mm, "
+                f"θF {s['theta_F_deg']:.2f}°")
+        _set_free(cam, mode, options.free_principal_point)
+        cam.free(*distortion_parameter_names(distortion))
+        start = cam.copy()
+        try:
+            if options.blur_offset and mode != "tilt":
+                cam.free("blur_offset")
+                try:
+                    result = _fit_camera(cam, obs, options, init_sigma if mode == "tilt" else None, say, mode=mode)
+                    if _offset_correlation(result) > MAX_OFFSET_CORRELATION:
+                        raise FitError("the blur offset is not separable from U and d: the depths do not "
+                                       "straddle the plane of focus")
+                except FitError as e:
+                    if say:
+                        say(f"blur offset held at 0 ({e})")
+                    cam = start.copy()
+                    result = None
+            if result is None:
+                result = _fit_camera(cam, obs, options, init_sigma if mode == "tilt" else None, say, mode=mode)
+            undetermined = _undetermined_focus(result)
+        except FitError as e:
+            if geometry is None:
+                raise
+            undetermined = ["U_mm", "d_mm"]
+            notes.append(f"U and d undetermined: the blur fit failed ({e}); the calibration is geometric")
+        if undetermined and geometry is not None and result is not None and len(undetermined) == 2:
+            result = None  # neither focus parameter determined: report the geometric fit
+    else:
+        undetermined = ["U_mm", "d_mm"] if mode != "tilt" else []
+        if mode != "unified":
+            undetermined.append("theta_F_deg")
+        why = "no blur widths" if int(obs.blur_mask.sum()) == 0 else \
+            f"all blur widths below {options.blur_floor_px:g} px (sharp images)"
+        notes.append(f"{' and '.join(k.split('_')[0] for k in undetermined)} undetermined: {why}; "
+                     f"the calibration is geometric (focal length, principal point, distortion, poses)")
+    if result is None:
+        if geometry is None:
+            geometry = fit_geometry(cam, obs, replace(options, distortion=distortion), mode, say)
+        result = geometry
+    result.mode = mode
+    result.distortion_model = distortion
+    if geometry is not None:
+        result.distortion_selection = geometry.distortion_selection
+    result.undetermined = undetermined
+    if options.distortion == "auto" and result.distortion_selection:
+        last = result.distortion_selection[-1]
+        why = "every model tried was justified" if last["justified"] else (
+            f"{last['model']} not justified: " + (last.get("error") or f"p = {last['p_value']:.2g}, ΔBIC = "
+                                                  f"{last['delta_bic']:.3g}"))
+        notes.append(f"distortion auto: {distortion} ({why})")
+    if undetermined and blur_ok and not any("undetermined" in n for n in notes):
+        notes.append(f"{' and '.join(k.split('_')[0] for k in undetermined)} undetermined: the blur widths "
+                     f"do not constrain them (1/U within 2σ of 0, or d known to worse than ×1.6)")
     worst = max((v["rms_reprojection_px"] for v in result.views if math.isfinite(v["rms_reprojection_px"])),
                 default=0.0)
-    if worst > MAX_RMS_REPROJECTION_PX:
+    if options.max_rms_px is not None and worst > options.max_rms_px:
         bad = max(result.views, key=lambda v: v["rms_reprojection_px"] if math.isfinite(v["rms_reprojection_px"])
                   else 0.0)
+        hint = "" if distortion != "none" else "; a lens with distortion needs --distortion auto"
         raise FitError(f"the fit found no consistent solution: {bad['image']} reprojects with an RMS of "
-                       f"{worst:.3g} px (the target file or the detections do not match)")
+                       f"{worst:.3g} px (the target file or the detections do not match{hint})")
+    outliers = _flag_outliers(result, options.outlier_factor)
+    if outliers:
+        notes.append(f"outlier views (RMS above {options.outlier_factor:g}× the median): {', '.join(outliers)}")
     if options.model_selection:
-        result.model_selection = _model_selection(result, obs, mode, options, say)
+        result.model_selection = _model_selection(result, obs, mode, options, say,
+                                                  test_theta_F="theta_F_deg" not in undetermined and blur_ok)
+    result.skipped = skipped
+    result.notes = notes
     result.runtime_s = time.perf_counter() - t0
     if say:
         v, s = result.values, result.sigma
-        say(f"done in {result.runtime_s:.2f} s: w {v['w_mm']:.4f} ± {s['w_mm']:.2g} mm, "
-            f"U {v['U_mm']:.2f} ± {s['U_mm']:.2g} mm, d {v['d_mm']:.3f} ± {s['d_mm']:.2g} mm, "
-            f"θF {v['theta_F_deg']:.3f} ± {s['theta_F_deg']:.2g}°, θL {v['theta_L_deg']:.3f} ± "
-            f"{s['theta_L_deg']:.2g}° (paper's (1): {v['theta_L_paper_deg']:.3f}°)")
+        focus = ", ".join(f"{k} {v[k]:.4g} ± {s[k]:.2g} mm" for k in ("U_mm", "d_mm") if k not in undetermined)
+        say(f"done in {result.runtime_s:.2f} s: w {v['w_mm']:.4f} ± {s['w_mm']:.2g} mm"
+            + (f", {focus}" if focus else "")
+            + (f", θF {v['theta_F_deg']:.3f} ± {s['theta_F_deg']:.2g}°, θL {v['theta_L_deg']:.3f} ± "
+               f"{s['theta_L_deg']:.2g}° (paper's (1): {v['theta_L_paper_deg']:.3f}°)" if blur_ok else "")
+            + f", distortion {distortion}")
     return result

@@ -3,12 +3,15 @@
 A `TiltLensCamera` holds the lens state shared by all views (w, U, d, θF and optionally the principal
 point) and one pose per view. It answers two calls, both differentiable in every parameter:
 
-    project(X_world, view) -> uv_px    pinhole: uv = c + (w / p) · (x / z, y / z),  (x, y, z) = R X + T
+    project(X_world, view) -> uv_px    uv = c + (w / p) · D(x / z, y / z),  (x, y, z) = R X + T
     blur(X_world, view)    -> b_px     blur-disc diameter b = w d |1/z_F − 1/z| / p     (eqs 2 and 4)
 
 Conventions (docs/conventions.md): camera frame x right, y down, z forward; X_cam = R X_world + T;
 pixel (0, 0) is the centre of the top-left pixel and the principal point defaults to ((W−1)/2, (H−1)/2);
 the plane of focus is z = U + y tan θF in the camera frame; lengths in mm, angles in radians.
+D is the lens's Brown–Conrady distortion in OpenCV's order and normalisation
+(`renderer.cameras.distortion`, coefficients k1, k2, p1, p2, k3, k4, k5, k6; identity when all are 0), so an
+untilted camera equals `cv2.projectPoints` with K = [[w/p, 0, cx], [0, w/p, cy], [0, 0, 1]].
 
 Blur models (`blur_model`; closed forms from `renderer.optics`, all equal to eq (2) when θF = 0):
     "ellipse" (default): equivalent-area diameter 2 sqrt(ab) of the exact blur ellipse of an ideal thin lens
@@ -16,13 +19,17 @@ Blur models (`blur_model`; closed forms from `renderer.optics`, all equal to eq 
     "first_order": b = w d |1/z_F − 1/z| with z_F = U z / (z − y tan θF), where the chief ray meets the plane
         of focus: the exact width along x to first order in the aperture.
     "paper": b = w d |1/(U + y tan θF) − 1/z|, the paper's eq (4) (focus depth at the point's own height).
+A constant `blur_offset_px` (0 unless fitted) is added to every width: the blur detector's bias, not optics.
 
-Parametrisation (for conditioning, so one learning rate suits all parameters): lengths of the lens are
-stored as logarithms (`log_w_mm` …), rotations as axis-angle vectors (`rvec`), translations in units of
-`length_scale_mm` (`T_scaled`, default 100 mm) and the principal-point offset from the image centre in
-units of `pixel_scale_px` (`pp_scaled`, default 100 px). Physical values are properties (`w_mm`, `T_mm`,
-`R`, `principal_point_px` …). `free(*names)` / `freeze(*names)` switch parameters on and off by friendly
-name: w, U, d, theta_F, rvec, T, principal_point, or the groups lens (w, U, d), pose (rvec, T), all.
+Parametrisation (for conditioning, so one learning rate suits all parameters): w and d are stored as
+logarithms (`log_w_mm`, `log_d_mm`), the focus as its inverse in dioptres (`inv_U_per_m` = 1000 / U_mm, so
+focus at infinity is the ordinary value 0), the distortion coefficients as themselves (`dist_k1` …),
+rotations as axis-angle vectors (`rvec`), translations in units of `length_scale_mm` (`T_scaled`, default
+100 mm) and the principal-point offset from the image centre in units of `pixel_scale_px` (`pp_scaled`,
+default 100 px). Physical values are properties (`w_mm`, `T_mm`, `R`, `principal_point_px` …).
+`free(*names)` / `freeze(*names)` switch parameters on and off by friendly name: w, U, d, theta_F, rvec, T,
+principal_point, blur_offset, k1 … k6, p1, p2, or the groups lens (w, U, d), pose (rvec, T), distortion (all
+eight coefficients), all.
 """
 from __future__ import annotations
 
@@ -31,23 +38,36 @@ from dataclasses import dataclass
 
 import torch
 from renderer import optics
+from renderer.cameras.distortion import COEFFICIENT_NAMES, MODEL_TERMS, distort
 
 BLUR_MODELS = ("ellipse", "first_order", "paper")
 ROBUST_LOSSES = (None, "none", "huber", "cauchy")
 
+_DIST = tuple(f"dist_{k}" for k in COEFFICIENT_NAMES)
 _GROUPS = {
     "w": ("log_w_mm",),
-    "U": ("log_U_mm",),
+    "U": ("inv_U_per_m",),
     "d": ("log_d_mm",),
     "theta_F": ("theta_F",),
     "rvec": ("rvec",),
     "R": ("rvec",),
     "T": ("T_scaled",),
     "principal_point": ("pp_scaled",),
-    "lens": ("log_w_mm", "log_U_mm", "log_d_mm"),
+    "blur_offset": ("blur_offset_px",),
+    "lens": ("log_w_mm", "inv_U_per_m", "log_d_mm"),
     "pose": ("rvec", "T_scaled"),
-    "all": ("log_w_mm", "log_U_mm", "log_d_mm", "theta_F", "rvec", "T_scaled", "pp_scaled"),
+    **{k: (f"dist_{k}",) for k in COEFFICIENT_NAMES},
+    "distortion": _DIST,
+    "all": ("log_w_mm", "inv_U_per_m", "log_d_mm", "theta_F", "rvec", "T_scaled", "pp_scaled", "blur_offset_px")
+    + _DIST,
 }
+
+
+def distortion_parameter_names(model: str) -> tuple[str, ...]:
+    """Stored names of the coefficients a distortion model frees ("none", "k1", "k1k2", "opencv5", "rational")."""
+    if model not in MODEL_TERMS:
+        raise ValueError(f"distortion: expected one of {tuple(MODEL_TERMS)}, got {model!r}")
+    return tuple(f"dist_{k}" for k in MODEL_TERMS[model])
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -182,8 +202,10 @@ class TiltLensCamera(torch.nn.Module):
         image_size_px: (W, H).
         pixel_pitch_mm: sensor pixel pitch p, mm (a constant, not fitted).
         w_mm: lens centre to sensor (effective focal length), mm.
-        U_mm: lens centre to the plane of focus on the optical axis, mm.
+        U_mm: lens centre to the plane of focus on the optical axis, mm (math.inf: focus at infinity).
         d_mm: effective aperture diameter, mm.
+        distortion: up to 8 Brown–Conrady coefficients (k1, k2, p1, p2, k3, k4, k5, k6) [zeros]; frozen
+            unless freed (`free("k1")`, `free(*distortion_parameter_names("opencv5"))`).
         theta_F: tilt of the plane of focus about the camera x axis, radians [0].
         R: (V, 3, 3) rotations camera_from_world [identity]; or `rvec` (V, 3) axis-angle.
         T_mm: (V, 3) translations, mm [(0, 0, 600)].
@@ -197,13 +219,15 @@ class TiltLensCamera(torch.nn.Module):
     def __init__(self, n_views: int, image_size_px, pixel_pitch_mm: float, w_mm: float, U_mm: float,
                  d_mm: float, theta_F: float = 0.0, R=None, T_mm=None, rvec=None, principal_point_px=None,
                  blur_model: str = "ellipse", length_scale_mm: float = 100.0, pixel_scale_px: float = 100.0,
-                 dtype=torch.float64):
+                 dtype=torch.float64, distortion=None):
         super().__init__()
         if blur_model not in BLUR_MODELS:
             raise ValueError(f"blur_model: expected one of {BLUR_MODELS}, got {blur_model!r}")
-        for name, v in (("pixel_pitch_mm", pixel_pitch_mm), ("w_mm", w_mm), ("U_mm", U_mm), ("d_mm", d_mm)):
+        for name, v in (("pixel_pitch_mm", pixel_pitch_mm), ("w_mm", w_mm), ("d_mm", d_mm)):
             if not (math.isfinite(float(v)) and float(v) > 0):
                 raise ValueError(f"{name}: expected a positive length, got {v!r}")
+        if not float(U_mm) > 0:
+            raise ValueError(f"U_mm: expected a positive length or inf, got {U_mm!r}")
         if not abs(float(theta_F)) < math.pi / 2:
             raise ValueError(f"theta_F: expected |θF| < 90°, got {math.degrees(float(theta_F))}°")
         self.image_size_px = (int(image_size_px[0]), int(image_size_px[1]))
@@ -219,7 +243,7 @@ class TiltLensCamera(torch.nn.Module):
         T_mm = torch.as_tensor(T_mm, dtype=dtype).reshape(V, 3)
         P = torch.nn.Parameter
         self.log_w_mm = P(torch.tensor(math.log(float(w_mm)), dtype=dtype))
-        self.log_U_mm = P(torch.tensor(math.log(float(U_mm)), dtype=dtype))
+        self.inv_U_per_m = P(torch.tensor(1000.0 / float(U_mm), dtype=dtype))
         self.log_d_mm = P(torch.tensor(math.log(float(d_mm)), dtype=dtype))
         self.theta_F = P(torch.tensor(float(theta_F), dtype=dtype))
         self.rvec = P(rvec.clone())
@@ -229,7 +253,16 @@ class TiltLensCamera(torch.nn.Module):
         self.register_buffer("image_centre_px", centre)
         pp = centre if principal_point_px is None else torch.as_tensor(principal_point_px, dtype=dtype)
         self.pp_scaled = P((pp - centre) / self.pixel_scale_px)
-        self.freeze("principal_point")
+        k = [0.0] * len(_DIST) if distortion is None else [float(v) for v in distortion]
+        if len(k) > len(_DIST):
+            raise ValueError(f"distortion: expected at most {len(_DIST)} coefficients, got {len(k)}")
+        k += [0.0] * (len(_DIST) - len(k))
+        for name, v in zip(_DIST, k):
+            setattr(self, name, P(torch.tensor(v, dtype=dtype)))
+        # A constant added to every measured blur width: a blur detector's bias (e.g. from its edge model),
+        # not optics. Frozen at 0 unless freed; the fit frees it so the bias does not leak into d and U.
+        self.blur_offset_px = P(torch.tensor(0.0, dtype=dtype))
+        self.freeze("principal_point", "distortion", "blur_offset")
 
     # --- freeing and freezing --------------------------------------------------------------------------
     @staticmethod
@@ -272,7 +305,17 @@ class TiltLensCamera(torch.nn.Module):
 
     @property
     def U_mm(self) -> torch.Tensor:
-        return torch.exp(self.log_U_mm)
+        """Focus distance, mm (inf at focus at infinity)."""
+        return 1000.0 / self.inv_U_per_m
+
+    @property
+    def inv_U_per_mm(self) -> torch.Tensor:
+        return self.inv_U_per_m / 1000.0
+
+    @property
+    def distortion(self) -> torch.Tensor:
+        """(8,) Brown–Conrady coefficients (k1, k2, p1, p2, k3, k4, k5, k6)."""
+        return torch.stack([getattr(self, n) for n in _DIST])
 
     @property
     def d_mm(self) -> torch.Tensor:
@@ -335,14 +378,19 @@ class TiltLensCamera(torch.nn.Module):
         T = T.reshape((T.shape[0],) + (1,) * extra + (3,))
         return (X.unsqueeze(0).unsqueeze(-2) @ R.transpose(-1, -2)).squeeze(-2) + T
 
-    def project_camera(self, p_cam: torch.Tensor) -> torch.Tensor:
-        """(..., 3) camera-frame points -> (..., 2) pixels: uv = c + (w / p) (x / z, y / z)."""
-        return self.principal_point_px + self.focal_px * p_cam[..., :2] / p_cam[..., 2:3]
+    def project_camera(self, p_cam: torch.Tensor, with_distortion: bool = True) -> torch.Tensor:
+        """(..., 3) camera-frame points -> (..., 2) pixels: uv = c + (w / p) D(x / z, y / z).
+
+        `with_distortion` False skips D (callers that know all coefficients are held at 0 save its cost)."""
+        xy = p_cam[..., :2] / p_cam[..., 2:3]
+        if with_distortion:
+            xy = distort(xy, self.distortion)
+        return self.principal_point_px + self.focal_px * xy
 
     def blur_camera(self, p_cam: torch.Tensor) -> torch.Tensor:
         """(..., 3) camera-frame points -> (...,) blur diameters in pixels (eq (2)/(4), `blur_model`)."""
         b_mm = blur_diameter_mm(p_cam, self.w_mm, self.U_mm, self.d_mm, self.theta_F, self.blur_model)
-        return b_mm / self.pixel_pitch_mm
+        return b_mm / self.pixel_pitch_mm + self.blur_offset_px
 
     def project(self, X_world: torch.Tensor, view=None) -> torch.Tensor:
         """(..., 3) world points (mm) -> (..., 2) pixels in `view` (or (V, ..., 2) for view=None)."""
@@ -352,10 +400,12 @@ class TiltLensCamera(torch.nn.Module):
         """(..., 3) world points (mm) -> (...,) blur diameters in pixels in `view` (or (V, ...))."""
         return self.blur_camera(self.to_camera(X_world, view))
 
-    def forward(self, X_world: torch.Tensor):
-        """All views at once: (N, 3) world points -> ((V, N, 2) uv_px, (V, N) blur_px)."""
+    def forward(self, X_world: torch.Tensor, with_blur: bool = True, with_distortion: bool = True):
+        """All views at once: (N, 3) world points -> ((V, N, 2) uv_px, (V, N) blur_px); the blur is zeros
+        when `with_blur` is False (geometric fits skip its cost); see `project_camera` for `with_distortion`."""
         p_cam = self.to_camera(X_world)
-        return self.project_camera(p_cam), self.blur_camera(p_cam)
+        uv = self.project_camera(p_cam, with_distortion)
+        return uv, (self.blur_camera(p_cam) if with_blur else torch.zeros_like(p_cam[..., 0]))
 
     # --- convenience -------------------------------------------------------------------------------------
     def copy(self) -> "TiltLensCamera":
@@ -373,6 +423,8 @@ class TiltLensCamera(torch.nn.Module):
                 "theta_L_deg": math.degrees(float(self.theta_L)),
                 "theta_L_paper_deg": math.degrees(float(self.theta_L_paper)),
                 "principal_point_px": [float(v) for v in self.principal_point_px],
+                "distortion": [float(v) for v in self.distortion],
+                "blur_offset_px": float(self.blur_offset_px),
             }
 
     @staticmethod

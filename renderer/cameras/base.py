@@ -95,10 +95,29 @@ class Camera:
     """
 
     uses_lens_samples = False
+    distortion = None  # a `distortion.BrownConrady` of the lens, set from the scene file's camera.distortion
 
     def __init__(self, transform: CameraTransform, screen: Screen):
         self.transform = transform
         self.screen = screen
+
+    def _normalised(self, uv_px: torch.Tensor) -> torch.Tensor:
+        """(..., 2) pixels -> (..., 2) normalised image coordinates (x_s, y_s) / distance about the principal point."""
+        return self.screen.to_plane(uv_px)[..., :2] / self.screen.distance
+
+    def _from_normalised(self, xy: torch.Tensor) -> torch.Tensor:
+        return self.screen.to_pixels(xy * self.screen.distance)
+
+    def undistort_pixels(self, uv_px: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Pixels of the distorted image -> ((..., 2) pixels of the ideal, distortion-free camera, (...,) valid).
+
+        Identity without `distortion`; invalid where the distortion cannot be inverted.
+        """
+        if self.distortion is None or self.distortion.is_identity:
+            return uv_px, torch.ones(uv_px.shape[:-1], dtype=torch.bool, device=uv_px.device)
+        xy = self.distortion.undistort(self._normalised(uv_px))
+        ok = torch.isfinite(xy).all(-1)
+        return torch.where(ok[..., None], self._from_normalised(torch.nan_to_num(xy)), uv_px), ok
 
     @property
     def width(self) -> int:
@@ -117,7 +136,10 @@ class Camera:
         """(..., 3) world points -> (..., 2) pixels by central projection through the camera centre onto the
         screen (the pinhole's projection, and a thin lens's chief ray)."""
         p_cam = self.transform.points_to_camera(p_world)
-        return self.screen.to_pixels(p_cam[..., :2] * (self.screen.distance / p_cam[..., 2:3]))
+        xy = p_cam[..., :2] / p_cam[..., 2:3]
+        if self.distortion is not None and not self.distortion.is_identity:
+            xy = self.distortion.distort(xy)
+        return self._from_normalised(xy)
 
     def rays_in_camera(self, uv_px: torch.Tensor, lens_uv: torch.Tensor) -> Rays:
         """Rays in the camera frame for pixels (..., 2) and lens samples (..., 2) in [0, 1)²."""
@@ -134,7 +156,13 @@ class Camera:
         """
         if lens_uv is None:
             lens_uv = torch.full_like(uv_px, 0.5)
-        return self.transform.rays_to_world(self.rays_in_camera(uv_px, lens_uv))
+        if self.distortion is None or self.distortion.is_identity:
+            return self.transform.rays_to_world(self.rays_in_camera(uv_px, lens_uv))
+        # The lens distorts: trace each pixel through its ideal (undistorted) position.
+        ideal_px, ok = self.undistort_pixels(uv_px)
+        rays = self.rays_in_camera(ideal_px, lens_uv)
+        rays.valid = rays.valid & ok
+        return self.transform.rays_to_world(rays)
 
     def project(self, p_world: torch.Tensor) -> torch.Tensor:
         """(..., 3) world points -> (..., 2) pixels, where the projection has a closed form."""

@@ -123,3 +123,14 @@ _HALFSPACES = Param("halfspaces", "list", doc="[[nx, ny, nz, c], ...]: the conve
 @register_shape("polyhedron", [_HALFSPACES])
 def _polyhedron(path, cfg, base_dir):
     return Polyhedron(cfg["halfspaces"])
+
+
+from .csg import OPS as _CSG_OPS, CSG  # noqa: E402
+
+
+@register_shape("csg", [Param("op", "str", doc="intersection, union or difference (first minus the rest)",
+                              choices=_CSG_OPS),
+                        Param("children", "list", doc="shapes: polyhedron (the leaf) or csg")])
+def _csg(path, cfg, base_dir):
+    children = [build_shape(f"{path}.children[{i}]", c, base_dir) for i, c in enumerate(cfg["children"])]
+    return CSG(cfg["op"], children)

@@ -135,7 +135,7 @@ def test_axis_angle_round_trip_and_zero():
 
 def test_free_and_freeze():
     cam = paper_camera(2)
-    assert cam.free_parameter_names() == ["log_w_mm", "log_U_mm", "log_d_mm", "theta_F", "rvec", "T_scaled"], \
+    assert cam.free_parameter_names() == ["log_w_mm", "inv_U_per_m", "log_d_mm", "theta_F", "rvec", "T_scaled"], \
         "default: everything free but the principal point"
     cam.freeze("lens", "theta_F")
     assert cam.free_parameter_names() == ["rvec", "T_scaled"], "lens and θF frozen"
@@ -143,7 +143,7 @@ def test_free_and_freeze():
     assert cam.free_parameter_names() == ["log_w_mm", "rvec", "T_scaled", "pp_scaled"], "w and pp freed"
     obs = synthesize_observations(paper_camera(2, seed=1), board_points_mm(), 0.1, 0.5, seed=0)
     loss(cam, obs).backward()
-    assert cam.log_U_mm.grad is None and cam.theta_F.grad is None, "frozen parameters get no gradient"
+    assert cam.inv_U_per_m.grad is None and cam.theta_F.grad is None, "frozen parameters get no gradient"
     assert cam.log_w_mm.grad is not None and cam.pp_scaled.grad is not None, "free parameters get one"
     with pytest.raises(ValueError, match="unknown parameter"):
         cam.free("focal")

@@ -1,0 +1,179 @@
+"""Brown–Conrady lens distortion in OpenCV's order and normalisation, shared by the renderer and tiltfit.
+
+The distortion belongs to the lens: it maps the chief ray's ideal normalised image coordinates
+(x, y) = (X/Z, Y/Z) (camera frame, about the principal point) to distorted ones (x_d, y_d):
+
+    r² = x² + y²,  s = (1 + k1 r² + k2 r⁴ + k3 r⁶) / (1 + k4 r² + k5 r⁴ + k6 r⁶)
+    x_d = x s + 2 p1 x y + p2 (r² + 2 x²)
+    y_d = y s + p1 (r² + 2 y²) + 2 p2 x y
+
+with the coefficients ordered (k1, k2, p1, p2, k3, k4, k5, k6) exactly as `cv2.projectPoints` takes them,
+so an untilted camera exported to OpenCV projects identically. Fewer than 8 coefficients mean the missing
+ones are 0. The renderer generates rays through `undistort(x_d, y_d)` of each pixel (so CG rendered from a
+calibration lines up with the photo); tiltfit's projection applies `distort`.
+
+Scene files: `camera.distortion = {model: "brown_conrady", coefficients: [k1, k2, p1, p2, k3 (, k4, k5, k6)]}`.
+
+Models by name (the terms tiltfit frees; `MODEL_TERMS`): none, k1, k1k2, opencv5 (k1 k2 p1 p2 k3),
+rational (all eight).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from ..params import SceneError
+
+N_COEFFICIENTS = 8
+COEFFICIENT_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+MODEL_TERMS = {
+    "none": (),
+    "k1": ("k1",),
+    "k1k2": ("k1", "k2"),
+    "opencv5": ("k1", "k2", "p1", "p2", "k3"),
+    "rational": COEFFICIENT_NAMES,
+}
+MODELS = tuple(MODEL_TERMS)
+
+
+def _padded(coefficients, like: torch.Tensor) -> torch.Tensor:
+    """(..., n ≤ 8) coefficients -> (..., 8) on `like`'s device and dtype, zeros appended."""
+    k = torch.as_tensor(coefficients, dtype=like.dtype, device=like.device)
+    if k.shape[-1] > N_COEFFICIENTS:
+        raise ValueError(f"distortion: expected at most {N_COEFFICIENTS} coefficients, got {k.shape[-1]}")
+    if k.shape[-1] < N_COEFFICIENTS:
+        k = torch.cat([k, k.new_zeros(k.shape[:-1] + (N_COEFFICIENTS - k.shape[-1],))], -1)
+    return k
+
+
+def _radial(r2: torch.Tensor, k: torch.Tensor):
+    """Radial factor s(r²) and ds/dr² for (..., 8) coefficients."""
+    k1, k2, k3, k4, k5, k6 = (k[..., i] for i in (0, 1, 4, 5, 6, 7))
+    a = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    b = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    da = k1 + r2 * (2 * k2 + 3 * r2 * k3)
+    db = k4 + r2 * (2 * k5 + 3 * r2 * k6)
+    return a / b, (da * b - a * db) / (b * b)
+
+
+def distort(xy: torch.Tensor, coefficients) -> torch.Tensor:
+    """Ideal normalised image coordinates -> distorted ones (OpenCV's model; differentiable).
+
+    Args:
+        xy: (..., 2) ideal normalised coordinates (X/Z, Y/Z), camera frame, dimensionless.
+        coefficients: (≤ 8,) or (..., ≤ 8) (k1, k2, p1, p2, k3, k4, k5, k6), broadcast against xy[..., 0].
+    Returns:
+        (..., 2) distorted normalised coordinates.
+    """
+    k = _padded(coefficients, xy)
+    x, y = xy[..., 0], xy[..., 1]
+    p1, p2 = k[..., 2], k[..., 3]
+    r2 = x * x + y * y
+    s, _ = _radial(r2, k)
+    xd = x * s + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * s + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return torch.stack([xd, yd], -1)
+
+
+def distort_jacobian(xy: torch.Tensor, coefficients) -> torch.Tensor:
+    """(..., 2, 2) Jacobian ∂(x_d, y_d)/∂(x, y) of `distort`."""
+    k = _padded(coefficients, xy)
+    x, y = xy[..., 0], xy[..., 1]
+    p1, p2 = k[..., 2], k[..., 3]
+    s, ds = _radial(x * x + y * y, k)
+    dxx = s + 2 * x * x * ds + 2 * p1 * y + 6 * p2 * x
+    dxy = 2 * x * y * ds + 2 * p1 * x + 2 * p2 * y
+    dyy = s + 2 * y * y * ds + 6 * p1 * y + 2 * p2 * x
+    return torch.stack([torch.stack([dxx, dxy], -1), torch.stack([dxy, dyy], -1)], -2)
+
+
+def undistort(xy_d: torch.Tensor, coefficients, iterations: int = 20) -> torch.Tensor:
+    """Distorted normalised coordinates -> ideal ones: the inverse of `distort`, by Newton's method.
+
+    The iterations run without autograd; one final Newton step with autograd on gives the exact first-order
+    derivatives (implicit function theorem) with respect to `xy_d` and the coefficients.
+
+    Args:
+        xy_d: (..., 2) distorted normalised coordinates.
+        coefficients: as in `distort`.
+        iterations: Newton steps (each step is damped to stay where the model is monotonic).
+    Returns:
+        (..., 2) ideal normalised coordinates; NaN where Newton's method did not converge (outside the
+        region where the distortion is invertible).
+    """
+    k = _padded(coefficients, xy_d)
+    with torch.no_grad():
+        xy = xy_d.detach().clone()
+        kd = k.detach()
+        for _ in range(iterations):
+            J = distort_jacobian(xy, kd)
+            err = distort(xy, kd) - xy_d.detach()
+            step = torch.linalg.solve(J, err.unsqueeze(-1)).squeeze(-1)
+            # Limit steps to half the current radius plus a little: keeps Newton inside the invertible zone.
+            limit = 0.5 * xy.norm(dim=-1, keepdim=True) + 0.05
+            n = step.norm(dim=-1, keepdim=True)
+            xy = xy - step * torch.clamp(limit / n.clamp(min=1e-300), max=1.0)
+        bad = (distort(xy, kd) - xy_d.detach()).norm(dim=-1) > 1e-9 * (1 + xy_d.detach().norm(dim=-1))
+        bad |= torch.linalg.det(distort_jacobian(xy, kd)) <= 0
+    J = distort_jacobian(xy, k)
+    out = xy - torch.linalg.solve(J, (distort(xy, k) - xy_d).unsqueeze(-1)).squeeze(-1)
+    return torch.where(bad[..., None], torch.full_like(out, math.nan), out)
+
+
+@dataclass(frozen=True)
+class BrownConrady:
+    """A lens's distortion: coefficients (k1, k2, p1, p2, k3, k4, k5, k6) in OpenCV's order (zeros padded).
+
+    Attributes:
+        coefficients: tuple of 8 floats.
+    """
+
+    coefficients: tuple = (0.0,) * N_COEFFICIENTS
+
+    def __post_init__(self):
+        c = tuple(float(v) for v in self.coefficients)
+        if len(c) > N_COEFFICIENTS:
+            raise ValueError(f"distortion.coefficients: expected at most 8 numbers, got {len(c)}")
+        object.__setattr__(self, "coefficients", c + (0.0,) * (N_COEFFICIENTS - len(c)))
+
+    @property
+    def is_identity(self) -> bool:
+        return not any(self.coefficients)
+
+    def distort(self, xy: torch.Tensor) -> torch.Tensor:
+        return distort(xy, self.coefficients)
+
+    def undistort(self, xy_d: torch.Tensor) -> torch.Tensor:
+        return undistort(xy_d, self.coefficients)
+
+    def to_config(self) -> dict:
+        """The scene-file / CALIB.json form (trailing zero rational terms dropped)."""
+        c = list(self.coefficients)
+        n = N_COEFFICIENTS if any(c[5:]) else 5
+        return {"model": "brown_conrady", "coefficients": c[:n]}
+
+
+def distortion_from_config(path: str, cfg) -> BrownConrady | None:
+    """Parse `{model: "brown_conrady", coefficients: [...]}` (None or null: no distortion).
+
+    Raises:
+        SceneError: naming `path` and the bad field.
+    """
+    if cfg is None:
+        return None
+    if not isinstance(cfg, dict):
+        raise SceneError(f"{path}: expected an object {{model, coefficients}}, got {cfg!r}")
+    for key in cfg:
+        if key not in ("model", "coefficients"):
+            raise SceneError(f"{path}.{key}: unknown key (expected one of: coefficients, model)")
+    model = cfg.get("model", "brown_conrady")
+    if model != "brown_conrady":
+        raise SceneError(f"{path}.model: expected 'brown_conrady', got {model!r}")
+    c = cfg.get("coefficients")
+    if not (isinstance(c, list) and 1 <= len(c) <= N_COEFFICIENTS
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in c)):
+        raise SceneError(f"{path}.coefficients: expected 1 to 8 numbers [k1, k2, p1, p2, k3, k4, k5, k6], "
+                         f"got {c!r}")
+    return BrownConrady(tuple(c))

@@ -1,0 +1,63 @@
+"""Corners of a checkerboard found by OpenCV's `findChessboardCornersSB`, as tiltfit detections.
+
+Used where tiltfit's own detector is not the subject: the reference corners of the shipped real photo sets
+(so that our fit and OpenCV's `calibrateCamera` work on the very same corners), and the benchmarks.
+
+    opencv_detections(paths, target) -> list[dict | None]     DET.json-style dicts, None where no board
+
+The corners are put in the target's feature-point order (row by row, Y outer, X inner) as OpenCV returns
+them for the pattern size (n_cols, n_rows) of inner corners. A board that looks the same turned by 180°
+has two valid labellings; OpenCV's is kept (it is a rigid motion of the board, so any pose fits it).
+"""
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+
+
+def opencv_detection(path: str, target) -> dict | None:
+    """One image's corners by cv2.findChessboardCornersSB (grey levels as stored; no blur widths).
+
+    Args:
+        path: image file (any format OpenCV reads).
+        target: a `tiltfit.target.Target` (its inner-corner grid sets the pattern size).
+    Returns:
+        {image_size_px, corners_px, blur_px, grid_found, detector} or None when no board is found.
+    """
+    import cv2
+
+    grey = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
+    if grey is None:
+        raise ValueError(f"{path}: cannot read the image")
+    nx, ny = len(target.x_edges) - 2, len(target.y_edges) - 2
+    ok, c = cv2.findChessboardCornersSB(grey, (nx, ny), flags=cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
+    if not ok or c is None:
+        return None
+    c = c.reshape(-1, 2).astype(np.float64)
+    h, w = grey.shape
+    return {"image_size_px": [int(w), int(h)], "corners_px": c.tolist(), "blur_px": [None] * len(c),
+            "grid_found": True, "detector": "cv2.findChessboardCornersSB"}
+
+
+def opencv_detections(paths, target, cache: str | None = None, say=None) -> list:
+    """Detections of several images, read from / written to a JSON cache {basename: detection | null}."""
+    cached = {}
+    if cache and os.path.isfile(cache):
+        with open(cache, encoding="utf-8") as f:
+            cached = json.load(f)
+    out, changed = [], False
+    for p in paths:
+        key = os.path.basename(p)
+        if key not in cached:
+            cached[key] = opencv_detection(p, target)
+            changed = True
+            if say:
+                say(f"{key}: {'board found' if cached[key] else 'no board'}")
+        out.append(cached[key])
+    if cache and changed:
+        with open(cache, "w", encoding="utf-8") as f:  # one image per line: small diffs, readable
+            f.write("{\n" + ",\n".join(f"{json.dumps(k)}: {json.dumps(v)}" for k, v in sorted(cached.items()))
+                    + "\n}\n")
+    return out

@@ -16,6 +16,16 @@ SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
 _NUMBER = {"type": "number", "minimum": -FLOAT32_MAX, "maximum": FLOAT32_MAX}
 
 
+def _distortion_schema() -> dict:
+    from .cameras.distortion import N_COEFFICIENTS
+
+    return {"type": ["object", "null"], "description": "lens distortion, OpenCV's order and normalisation",
+            "properties": {"model": {"const": "brown_conrady"},
+                           "coefficients": {"type": "array", "items": _NUMBER, "minItems": 1,
+                                            "maxItems": N_COEFFICIENTS}},
+            "additionalProperties": False}
+
+
 def param_schema(p: Param) -> dict:
     """JSON Schema of one declared parameter (its kind, choices and documentation)."""
     vec = lambda n: {"type": "array", "items": _NUMBER, "minItems": n, "maxItems": n}  # noqa: E731
@@ -55,6 +65,7 @@ def _limits(schema: dict, limits: dict) -> dict:
 def scene_schema() -> dict:
     """The JSON Schema of a scene file (draft 2020-12)."""
     from . import scenefile as sf
+    distortion = _distortion_schema()
     from .cameras import CAMERAS, POSE_PARAMS
     from .shapes import SHAPES
 
@@ -63,7 +74,7 @@ def scene_schema() -> dict:
         "spp": {"minimum": 1, "maximum": sf.MAX_SPP}, "max_depth": {"minimum": 0, "maximum": sf.MAX_DEPTH}})
     cameras = []
     for name, (params, _) in sorted(CAMERAS.items()):
-        cam = object_schema(POSE_PARAMS + params, name)
+        cam = object_schema(POSE_PARAMS + params, name, {"distortion": distortion})
         cam["required"] = [k for k in cam["required"] if k != "type"]  # type defaults to pinhole
         cameras.append(cam)
     shapes = [object_schema(params, name) for name, (params, _) in sorted(SHAPES.items())]
@@ -85,7 +96,8 @@ def scene_schema() -> dict:
             "image": image, "camera": {"oneOf": cameras}, "lights": {"type": "array", "items": {"oneOf": lights}},
             "objects": {"type": "array", "items": obj}, "layers": {"type": ["array", "null"]},
             "extends": {"type": "string", "description": "base scene file, relative to this one"},
-            "description": {"type": "string"}}},
+            "description": {"type": "string"},
+            **({"animation": object_schema(sf.ANIMATION_PARAMS)} if hasattr(sf, "ANIMATION_PARAMS") else {})}},
         "additionalProperties": False,
     }
 
@@ -100,9 +112,13 @@ def scene_reference() -> str:
            "JSON, UTF-8. Top-level sections: " + ", ".join(f"`{s}`" for s in sf.SECTIONS) + ". "
            "Schema: [docs/schemas/scene.schema.json](schemas/scene.schema.json).", "",
            "### `image`", "", params_table(sf.IMAGE_PARAMS), "",
-           "### `camera`", "", "Every camera takes the pose keys:", "", params_table(POSE_PARAMS), ""]
+           "### `camera`", "", "Every camera takes the pose keys, and an optional `distortion`: `{model: "
+           "\"brown_conrady\", coefficients: [k1, k2, p1, p2, k3 (, k4, k5, k6)]}` (OpenCV's order and "
+           "normalisation):", "", params_table(POSE_PARAMS), ""]
     for name, (params, _) in sorted(CAMERAS.items()):
         out += [f"#### `type: {name}`", "", params_table(params), ""]
+    if hasattr(sf, "ANIMATION_PARAMS"):
+        out += ["### `animation`", "", params_table(sf.ANIMATION_PARAMS), ""]
     out += ["### `lights[]`", ""]
     for name, params in sorted(sf.LIGHT_PARAMS.items()):
         out += [f"#### `type: {name}`", "", params_table(params), ""]

@@ -49,3 +49,17 @@ def test_the_reference_states_the_limits_the_code_enforces():
     for needle in (f"`spp` ≤ {scenefile.MAX_SPP}", f"`max_depth` ≤ {scenefile.MAX_DEPTH}", "| `radius` |",
                    "diameter of the blur disc", "Overflow policy"):
         assert needle in text, f"file_formats.md lacks {needle!r}"
+
+
+def test_schema_and_validator_agree_on_optional_sections():
+    """camera.distortion and animation: accepted by the validator and by the schema alike."""
+    from renderer.scenefile import build_scene
+
+    validator = jsonschema.Draft202012Validator(json.loads(formats.build()["schemas/scene.schema.json"]))
+    cfg = read_scene_json(os.path.join(ROOT, "renderer", "scenes", "fig6.json"))
+    cfg["camera"]["distortion"] = {"model": "brown_conrady", "coefficients": [0.1, 0.0, 0.0, 0.0]}
+    cfg["animation"] = {"frames": 3, "step": 0.5}
+    assert not [e.message for e in validator.iter_errors(cfg)], "the schema accepts distortion and animation"
+    assert build_scene(cfg) is not None, "the validator accepts them"
+    cfg["camera"]["distortion"]["coefficients"] = [0.0] * 9
+    assert list(validator.iter_errors(cfg)), "nine coefficients fail the schema"

@@ -12,8 +12,10 @@ file behind; an interrupt (Ctrl-C, SIGTERM) prints `renderer: interrupted` and e
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
+import shutil
 import signal
 import sys
 import textwrap
@@ -211,12 +213,34 @@ def cmd_animate(args, device) -> int:
             raise UsageError(f"{name}: not given and {path} has no animation.{name[2:]}")
     if os.path.exists(args.output) and not os.path.isdir(args.output):
         raise UsageError(f"{args.output}: not a folder")
+    from .validation import number
+
+    step = number("--step", step, UsageError, float32=True)
     start = time.perf_counter()
-    animate(path, args.method, frames, step, args.output, args.overrides, device=device, progress=not args.quiet)
+    with _removed_on_failure(args.output):
+        animate(path, args.method, frames, step, args.output, args.overrides, device=device,
+                progress=not args.quiet)
     if not args.quiet:
         print(f"renderer: wrote {frames} frames and frames.csv to {args.output} ({time.perf_counter() - start:.1f} s)",
               file=sys.stderr)
     return 0
+
+
+@contextlib.contextmanager
+def _removed_on_failure(folder: str):
+    """On any exception, remove what this run added to `folder` (and the folder, if this run created it)."""
+    existed = os.path.isdir(folder)
+    before = set(os.listdir(folder)) if existed else set()
+    try:
+        yield
+    except BaseException:
+        if os.path.isdir(folder):
+            for name in set(os.listdir(folder)) - before:
+                target = os.path.join(folder, name)
+                shutil.rmtree(target, ignore_errors=True) if os.path.isdir(target) else os.remove(target)
+            if not existed and not os.listdir(folder):
+                os.rmdir(folder)
+        raise
 
 
 def _check_output(path: str, extensions: tuple[str, ...]) -> None:

@@ -153,12 +153,18 @@ def classify(case: dict, main, prog: str, timeout_s: float = 20.0) -> Result:
             return result("hang", f"no exit within {timeout_s} s")
         if tb is not None:
             return result("traceback", tb.strip().splitlines()[-1])
-        extra = after - before - ({case["output"]} if rc == 0 and case.get("output") else set())
+        made = case.get("output") if rc == 0 else None
+        extra = {e for e in after - before if not (made and (e == made or e.startswith(made + os.sep)))}
         extra = {e for e in extra if not any(e.startswith(p + os.sep) for p in extra)}
         if extra:
             return result("leftover", ", ".join(sorted(extra)))
         if rc == 0:
-            if out is not None and os.path.isfile(out) and nonfinite_output(out):
+            outputs = [out] if out is not None and os.path.isfile(out) else []
+            if out is not None and os.path.isdir(out):
+                outputs = [os.path.join(out, f) for f in sorted(os.listdir(out))
+                           if f.lower().endswith((".png", ".exr", ".tif", ".json"))]
+            outputs = [f for f in outputs if f.lower().endswith((".png", ".exr", ".tif", ".tiff", ".hdr", ".json"))]
+            if any(nonfinite_output(f) for f in outputs):
                 return result("nan_output", "NaN/Inf values in the output with exit 0")
             if case["expect"] == "refuse":
                 return result("accepted_bad", "exit 0 where a refusal was expected")

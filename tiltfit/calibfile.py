@@ -182,7 +182,12 @@ def read_calib(path: str) -> dict:
     """
     if not os.path.exists(path):
         raise CalibFileError(f"{path}: no such file")
-    data = read_json(path, CalibFileError, "calibration file")
+    return validate_calib(path, read_json(path, CalibFileError, "calibration file"))
+
+
+def validate_calib(path: str, data) -> dict:
+    """The checks of `read_calib` on an already parsed CALIB dict (also an OpenCV file's, from
+    `tiltfit.export.read_opencv`); `path` names the file in messages."""
     if not isinstance(data, dict):
         raise CalibFileError(f"{path}: expected a JSON object")
     # Only the lens state is needed to start another fit; views and sigma may be absent in hand-made files.

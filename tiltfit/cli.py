@@ -39,6 +39,7 @@ EXIT_INTERRUPTED = 130
 MAX_PIXEL_PITCH_MM = 10.0
 MAX_FOCAL_MM = 10000.0
 MAX_ITERATIONS = 100000
+MAX_HELD_OUT = 1000
 
 
 class CliError(Exception):
@@ -235,7 +236,7 @@ def _check_range(option: str, value, low_exclusive: float, high: float, what: st
 
 
 def cmd_calibrate(args) -> int:
-    from .calibfile import calib_dict, camera_from_calib, read_calib, sigma_from_calib, write_calib
+    from .calibfile import calib_dict, camera_from_calib, read_calib, sigma_from_calib, validate_calib, write_calib
     from .fit import FitError, FitOptions, calibrate
 
     say = _say(args.quiet)
@@ -244,6 +245,8 @@ def cmd_calibrate(args) -> int:
     _check_range("--pixel-pitch-mm", args.pixel_pitch_mm, 0.0, MAX_PIXEL_PITCH_MM, "a pixel pitch in mm")
     if args.focal_mm is not None:
         _check_range("--focal-mm", args.focal_mm, 0.0, MAX_FOCAL_MM, "a focal length in mm")
+    if not 0 <= args.held_out <= MAX_HELD_OUT:
+        raise CliError("--held-out", f"expected 0 (off) to {MAX_HELD_OUT} folds, got {args.held_out}")
     if not 1 <= args.max_iterations <= MAX_ITERATIONS:
         raise CliError("--max-iterations", f"expected 1 to {MAX_ITERATIONS}, got {args.max_iterations}")
     if args.fit == "tilt" and not args.init:
@@ -253,7 +256,11 @@ def cmd_calibrate(args) -> int:
         from .export import is_opencv_file, read_opencv
 
         try:
-            data = read_opencv(args.init, args.pixel_pitch_mm) if is_opencv_file(args.init) else read_calib(args.init)
+            if is_opencv_file(args.init):
+                with _quiet_c_stderr():  # OpenCV's parser prints its complaints before raising
+                    data = validate_calib(args.init, read_opencv(args.init, args.pixel_pitch_mm))
+            else:
+                data = read_calib(args.init)
             init = camera_from_calib(data, args.blur_model)
         except ValueError as e:
             raise _as_cli_error(args.init, e) from None
@@ -308,6 +315,7 @@ def cmd_export(args) -> int:
     from .calibfile import read_calib
     from .export import ExportError, write_opencv
 
+    _check_output(args.output)
     try:
         data = read_calib(args.calib)
     except ValueError as e:
@@ -330,6 +338,8 @@ def cmd_report(args) -> int:
     from .calibfile import read_calib
     from .report import write_report
 
+    if os.path.exists(args.output) and not os.path.isdir(args.output):
+        raise CliError(args.output, "not a folder")
     try:
         data = read_calib(args.calib)
     except ValueError as e:

@@ -392,10 +392,68 @@ def _gallery_cases() -> list[dict]:
     return out
 
 
+def _merged_feature_cases() -> list[dict]:
+    """`renderer animate`, the csg shape and camera.distortion (added by other issues)."""
+    out = []
+    base = {"scene.json": json.dumps(BASE)}
+
+    def animate(files, *extra, expect="refuse", fields=(), name=""):
+        return {"name": f"animate/{name}", "category": "animate", "files": files, "expect": expect, "fields": fields,
+                "output": "anim", "argv": ["animate", "{d}/scene.json", "-o", "{d}/anim", "--quiet", *extra]}
+
+    for value in ("0", "-1", "1e9", "70000", "x"):
+        out.append(animate(base, "--method", "trace", "--frames", value, "--step", "0.1", fields=("--frames",),
+                           name=f"--frames={value}"))
+    for value in ("nan", "inf", "-inf", "1e39", "1e400"):
+        out.append(animate(base, "--method", "trace", "--frames", "2", "--step", value, fields=("--step",),
+                           name=f"--step={value}"))
+    out.append(animate({**base, "anim": b"a file"}, "--method", "trace", "--frames", "2", "--step", "0.1",
+                       fields=("anim",), name="output-is-a-file"))
+    out.append(animate(base, "--method", "trace", "--frames", "2", "--step", "0.1", expect="either",
+                       name="trace-ok"))
+    out.append(animate({"scene.json": _set_text(_scene(), "image.width", HUGE)}, "--method", "trace", "--frames",
+                       "2", "--step", "0.1", fields=("image.width",), name="huge-width"))
+    out.append(animate(base, "--method", "beam", "--frames", "2", "--step", "0.1", expect="either",
+                       name="beam-sphere"))
+    leaf = {"type": "polyhedron", "halfspaces": [[1, 0, 0, 1], [-1, 0, 0, 1], [0, 1, 0, 1], [0, -1, 0, 1],
+                                                  [0, 0, 1, 1], [0, 0, -1, 1]]}
+    for name, shape, expect, field in (
+            ("ok", {"type": "csg", "op": "intersection", "children": [leaf, leaf]}, "either", ""),
+            ("no-children", {"type": "csg", "op": "union", "children": []}, "refuse", "children"),
+            ("bad-op", {"type": "csg", "op": "xor", "children": [leaf]}, "refuse", "op"),
+            ("child-nan", {"type": "csg", "op": "union", "children": [{**leaf, "halfspaces": [[1, 0, 0, "NaN"]]}]},
+             "refuse", "halfspaces"),
+            ("child-sphere", {"type": "csg", "op": "union", "children": [{"type": "sphere", "center": [0, 0, 0],
+                                                                          "radius": 1}]}, "refuse", "children"),
+            ("deep", json.loads(_deep_csg(40, leaf)), "either", ""),
+            ("too-deep", json.loads(_deep_csg(70, leaf)), "refuse", "")):
+        text = _set_text(_scene(), "objects.0.shape", json.dumps(shape).replace('"NaN"', "NaN"))
+        out.append(_render({"scene.json": text}, expect=expect, category="csg", name=f"csg/{name}",
+                           fields=("scene.json", field) if expect == "refuse" else ()))
+    for name, coeffs, expect in (("nan", "[NaN, 0, 0, 0]", "refuse"), ("huge", f"[{HUGE}, 0, 0, 0]", "refuse"),
+                                 ("1e39", "[1e39, 0, 0, 0]", "refuse"), ("nine", "[0, 0, 0, 0, 0, 0, 0, 0, 0]",
+                                                                        "refuse"),
+                                 ("empty", "[]", "refuse"), ("k1=0.1", "[0.1, 0, 0, 0]", "either"),
+                                 ("k1=1e30", "[1e30, 0, 0, 0]", "either"), ("k1=-5", "[-5, 0, 0, 0]", "either")):
+        scene = _scene()
+        scene["camera"]["distortion"] = {"model": "brown_conrady", "coefficients": "__C__"}
+        text = json.dumps(scene).replace('"__C__"', coeffs)
+        out.append(_render({"scene.json": text}, expect=expect, category="distortion", name=f"distortion/{name}",
+                           fields=("scene.json", "distortion") if expect == "refuse" else ()))
+    return out
+
+
+def _deep_csg(depth: int, leaf: dict) -> str:
+    text = json.dumps(leaf)
+    for _ in range(depth):
+        text = '{"type": "csg", "op": "union", "children": [' + text + "]}"
+    return text
+
+
 def cases() -> list[dict]:
     """The whole renderer corpus (names unique)."""
     out = (_encoding_cases() + _depth_cases() + _number_cases() + _size_cases() + _physics_cases()
-           + _message_cases() + _overflow_cases() + _cli_cases() + _gallery_cases())
+           + _message_cases() + _overflow_cases() + _cli_cases() + _gallery_cases() + _merged_feature_cases())
     names = [c["name"] for c in out]
     assert len(names) == len(set(names)), "fuzz case names are unique"
     return out
@@ -421,7 +479,7 @@ def test_corpus_covers_every_category():
     for c in CASES:
         counts[c["category"]] = counts.get(c["category"], 0) + 1
     assert set(counts) == {"encoding", "depth", "number", "size", "physics", "message", "overflow", "cli",
-                           "gallery"}, f"categories: {counts}"
+                           "gallery", "animate", "csg", "distortion"}, f"categories: {counts}"
     assert len(CASES) >= 400, f"renderer corpus has {len(CASES)} cases"
 
 

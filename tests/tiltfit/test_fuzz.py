@@ -292,8 +292,57 @@ def _cli_cases() -> list[dict]:
     return out
 
 
+YML = """%YAML:1.0
+---
+image_width: 640
+image_height: 480
+pixel_pitch_mm: 0.02
+camera_matrix: !!opencv-matrix
+   rows: 3
+   cols: 3
+   dt: d
+   data: [ __FX__, 0., 319.5, 0., 1750., 239.5, 0., 0., 1. ]
+"""
+
+
+def _export_cases() -> list[dict]:
+    """`tiltfit export`, `tiltfit report` and OpenCV files given to --init (added by other issues)."""
+    out = []
+    good = json.dumps(CALIB)
+
+    def export(files, expect="refuse", fields=("I.json",), name="", output="cam.yml"):
+        return {"name": f"export/{name}", "category": "export", "files": files, "expect": expect, "fields": fields,
+                "output": output, "argv": ["export", "{d}/I.json", "--to", "opencv", "-o", "{d}/" + output, "-q"]}
+
+    out.append(export({"I.json": good}, expect="either", fields=(), name="ok"))
+    for k, blob in list(_encodings(good).items())[:6]:
+        out.append(export({"I.json": blob}, name=f"encoding/{k}"))
+    for raw in ("NaN", HUGE, "-1", "1e400"):
+        out.append(export({"I.json": _with(CALIB, "w_mm", raw)}, fields=("I.json", "w_mm"), name=f"w_mm={raw[:8]}"))
+    out.append(export({"I.json": good, "cam.yml": None}, fields=("cam.yml",), name="output-folder"))
+    out.append(export({"I.json": good, "f": b"x"}, fields=("f",), name="output-under-file", output="f/cam.yml"))
+    for raw in ("NaN", "1e39", "-1"):
+        out.append({"name": f"report/w_mm={raw}", "category": "export", "expect": "refuse", "output": "rep",
+                    "fields": ("I.json", "w_mm"), "files": {"I.json": _with(CALIB, "w_mm", raw)},
+                    "argv": ["report", "{d}/I.json", "-o", "{d}/rep", "-q"]})
+    for name, text, expect in (("garbage", "not: [a, valid", "refuse"), ("fx-nan", YML.replace("__FX__", ".nan"),
+                                                                          "refuse"),
+                               ("fx-inf", YML.replace("__FX__", ".inf"), "refuse"),
+                               ("fx-negative", YML.replace("__FX__", "-1750."), "refuse"),
+                               ("fx-1e300", YML.replace("__FX__", "1e300"), "refuse"),
+                               ("width-1e12", YML.replace("__FX__", "1750.").replace("640", "1e12"), "refuse"),
+                               ("ok", YML.replace("__FX__", "1750."), "either")):
+        out.append(_calibrate({"cam.yml": text}, "--fit", "joint", "--init", "{d}/cam.yml", expect=expect,
+                              fields=("cam.yml",) if expect == "refuse" else (), name=f"init-yml/{name}",
+                              category="export"))
+    for value in ("-1", "1000000000"):
+        out.append(_calibrate({}, "--held-out", value, expect="refuse", fields=("--held-out",),
+                              name=f"cli/--held-out={value}", category="cli"))
+    return out
+
+
 def cases() -> list[dict]:
-    out = _target_cases() + _det_cases() + _calib_cases() + _cli_cases()
+    out = _target_cases() + _det_cases() + _calib_cases() + _cli_cases() + _export_cases()
     names = [c["name"] for c in out]
     assert len(names) == len(set(names)), "fuzz case names are unique"
     return out

@@ -303,12 +303,62 @@ def cmd_calibrate(args) -> int:
             say(f"held-out error not computed: {e}")
     data = calib_dict(result, runtime_s=time.perf_counter() - t0, obs=used, target=target.to_dict(),
                       held_out=held_out)
+    if args.refine == "photometric":
+        _refine_photometric(data, target, args, say)
+        data["runtime_s"] = time.perf_counter() - t0
     try:
         write_calib(args.output, data)
     except OSError as e:
         raise CliError(args.output, f"cannot write ({e.strerror or e})") from None
     say(f"wrote {args.output}")
     return 0
+
+
+def _refine_photometric(data: dict, target, args, say) -> None:
+    """`--refine photometric`: refit lens and poses to the photos' pixels; records the corner fit beside it."""
+    import numpy as np
+
+    from renderer import optics, read_image
+    from renderer.io import ImageIOError
+
+    from .photometric import PhotometricError, refine_photometric
+
+    images = []
+    for view in data["views"]:
+        path = view["image"]
+        if _is_det_file(path):
+            raise CliError(path, "--refine photometric needs the photographs, not DET files")
+        try:
+            img = read_image(path, args.encoding)
+        except (ImageIOError, OSError, ValueError) as e:
+            raise _as_cli_error(path, e) from None
+        images.append(np.asarray(img, dtype=np.float64).mean(-1) if img.ndim == 3 else np.asarray(img, np.float64))
+    try:
+        res = refine_photometric(images, target, data, args.pixel_pitch_mm, say=say)
+    except PhotometricError as e:
+        raise CliError(args.inputs[0], f"photometric refinement: {e}") from None
+    v, s = res.values, res.sigma
+    data["photometric"] = {
+        "rms_linear": res.rms, "iterations": res.iterations, "runtime_s": res.runtime_s,
+        "vignetting": v["vignetting"], "levels": [{"white": x["white"], "black": x["black"]} for x in res.views],
+        "corner_fit": {k: data.get(k) for k in ("w_mm", "U_mm", "d_mm", "theta_F_deg", "theta_L_deg")},
+        "corner_fit_sigma": {k: data.get("sigma", {}).get(k) for k in ("w_mm", "U_mm", "d_mm", "theta_F_deg",
+                                                                        "theta_L_deg")}}
+    theta_L = math.radians(v["theta_L_deg"])
+    f = float(optics.focal_length(v["w_mm"], v["U_mm"], theta_L))
+    data.update({"w_mm": v["w_mm"], "U_mm": v["U_mm"], "d_mm": v["d_mm"], "theta_F_deg": v["theta_F_deg"],
+                 "theta_L_deg": v["theta_L_deg"], "f_mm": f,
+                 "theta_L_paper_deg": math.degrees(float(optics.theta_L_paper(math.radians(v["theta_F_deg"]), f,
+                                                                              v["U_mm"])))})
+    data.setdefault("sigma", {}).update({k: s[k] for k in ("w_mm", "U_mm", "d_mm", "theta_F_deg", "theta_L_deg")})
+    data["undetermined"] = [k for k in data.get("undetermined", []) if k not in ("U_mm", "d_mm")]
+    for view, fitted in zip(data["views"], res.views):
+        view["R"] = np.asarray(fitted["R"]).tolist()
+        view["T_mm"] = [float(t) for t in fitted["T_mm"]]
+        view["rms_photometric"] = fitted["rms"]
+    data["refinement"] = "photometric"
+    say(f"photometric refinement: RMS {res.rms:.4g} (linear), θL {v['theta_L_deg']:+.4f} ± {s['theta_L_deg']:.4f}°, "
+        f"U {v['U_mm']:.2f} mm, d {v['d_mm']:.3f} mm ({res.iterations} iterations, {res.runtime_s:.1f} s)")
 
 
 def cmd_export(args) -> int:
@@ -404,6 +454,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--distortion", choices=("auto", "none", "k1", "k1k2", "opencv5", "rational"), default="auto",
                    help="lens distortion terms (OpenCV's order); auto frees them while the data justify them "
                         "[auto]")
+    p.add_argument("--refine", choices=("none", "photometric"), default="none",
+                   help="photometric: after the corner-and-blur fit, fit the photos' pixels by rendering the "
+                        "target (analysis by synthesis; needs the images, not DET files) [none]")
     p.add_argument("--held-out", type=int, default=5, metavar="K",
                    help="K-fold held-out reprojection error beside the fit RMS (0: skip) [5]")
     p.add_argument("-o", "--output", required=True, metavar="CALIB.json")

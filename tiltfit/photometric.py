@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from renderer.cameras.base import Screen
+from renderer.cameras.distortion import BrownConrady
 from renderer.cameras.thin_lens import ThinLensCamera, concentric_disk
 from renderer.optics import theta_L_from_theta_F
 from renderer.transforms import CameraTransform
@@ -156,12 +157,14 @@ def checker_dark_fraction(X: torch.Tensor, Y: torch.Tensor, sigma: torch.Tensor,
 
 @dataclass(frozen=True)
 class SensorGeometry:
-    """The held part of the camera: image size (W, H) px, pixel pitch mm, principal point (cx, cy) px."""
+    """The held part of the camera: image size (W, H) px, pixel pitch mm, principal point (cx, cy) px and
+    the lens distortion coefficients (OpenCV's order, None: none)."""
 
     width_px: int
     height_px: int
     pixel_pitch_mm: float
     principal_point_px: tuple[float, float]
+    distortion: tuple | None = None
 
 
 def lens_camera(sensor: SensorGeometry, w_mm, inv_U_per_m, d_mm, theta_F, rvec, T_mm) -> ThinLensCamera:
@@ -169,6 +172,8 @@ def lens_camera(sensor: SensorGeometry, w_mm, inv_U_per_m, d_mm, theta_F, rvec, 
 
     Args:
         rvec: (3,) axis-angle of R (camera_from_target); T_mm: (3,) translation; X_cam = R X + T.
+    The sensor's distortion (held, not fitted) is the renderer's: pixels are traced through their ideal,
+    undistorted positions.
     """
     R = _rotation(rvec)
     world_from_camera = R.transpose(0, 1)
@@ -176,7 +181,10 @@ def lens_camera(sensor: SensorGeometry, w_mm, inv_U_per_m, d_mm, theta_F, rvec, 
     W, H, p = sensor.width_px, sensor.height_px, sensor.pixel_pitch_mm
     screen = Screen(W, H, (W * p, H * p), w_mm, sensor.principal_point_px)
     U_mm = 1000.0 / inv_U_per_m
-    return ThinLensCamera(CameraTransform(world_from_camera, position), screen, w_mm, U_mm, d_mm, theta_F)
+    cam = ThinLensCamera(CameraTransform(world_from_camera, position), screen, w_mm, U_mm, d_mm, theta_F)
+    if sensor.distortion is not None:
+        cam.distortion = BrownConrady(sensor.distortion)
+    return cam
 
 
 def render_target(target: Target, sensor: SensorGeometry, uv_px: torch.Tensor, lens_uv: torch.Tensor,
@@ -193,7 +201,8 @@ def render_target(target: Target, sensor: SensorGeometry, uv_px: torch.Tensor, l
     """
     # A finite sample set under-fills the disc's second moment (64 Hammersley points: 2.3 % low), which
     # would bias d by about half that: scale the aperture so the samples' E|s|² is the disc's, r²/2.
-    fill = math.sqrt(0.5 / float((concentric_disk(lens_uv) ** 2).sum(-1).mean()))
+    m2 = float((concentric_disk(lens_uv) ** 2).sum(-1).mean())
+    fill = math.sqrt(0.5 / m2) if m2 > 0 else 1.0   # a lone central sample: a pinhole, nothing to fill
     cam = lens_camera(sensor, w_mm, inv_U_per_m, d_mm * fill, theta_F, rvec, T_mm)
     n, s = uv_px.shape[0], lens_uv.shape[0]
     rays = cam.generate_rays(uv_px[:, None, :].expand(n, s, 2), lens_uv[None].expand(n, s, 2))
@@ -297,7 +306,8 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
         images: list of (H, W) or (H, W, 3) linear images (decode sRGB first), one per view.
         target: the board.
         init: a calibration in CALIB.json's shape: w_mm, U_mm (None: at infinity), d_mm (None: 1 mm),
-            theta_F_deg [0], principal_point_px [image centre], views: [{R, T_mm}, ...] one per image.
+            theta_F_deg [0], principal_point_px [image centre], distortion [none; held],
+            views: [{R, T_mm}, ...] one per image.
         pixel_pitch_mm: sensor pixel pitch.
         options: PhotometricOptions.
         say: optional progress callback taking one line.
@@ -314,7 +324,9 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
         raise PhotometricError(f"init has {len(init.get('views', []))} views for {len(imgs)} images")
     H, W = imgs[0].shape
     pp = init.get("principal_point_px") or ((W - 1) / 2.0, (H - 1) / 2.0)
-    sensor = SensorGeometry(W, H, float(pixel_pitch_mm), (float(pp[0]), float(pp[1])))
+    dist = (init.get("distortion") or {}).get("coefficients")
+    dist = tuple(float(c) for c in dist) if dist and any(dist) else None
+    sensor = SensorGeometry(W, H, float(pixel_pitch_mm), (float(pp[0]), float(pp[1])), dist)
     U0 = init.get("U_mm")
     inv_U0 = 1000.0 / U0 if U0 not in (None, 0) and math.isfinite(U0) else 1e-3
     d0 = init.get("d_mm") if init.get("d_mm") is not None else 1.0

@@ -83,6 +83,8 @@ class RunConfig:
         target_downscale: pixel binning of the target photographs (detection wants more pixels).
         target_views: target views per lens state (the first of TARGET_VIEWS).
         target_method: how `tiltfit.synth` renders the target (`analytic` or `renderer`).
+        photometric_pixels, photometric_lens_samples: pixels per view and fixed lens samples of the
+            photometric refinement (0 pixels: skip it).
     """
 
     downscale: int = 16
@@ -95,6 +97,8 @@ class RunConfig:
     target_downscale: int = 8
     target_views: int = 5
     target_method: str = "analytic"
+    photometric_pixels: int = 2000
+    photometric_lens_samples: int = 64
 
     @staticmethod
     def full() -> "RunConfig":
@@ -106,7 +110,7 @@ class RunConfig:
         # The target photographs keep the full run's size and views: Table 1 is the experiment's result and
         # its test holds the joint fit to 0.05°, which 3 views at 1/16 do not reach (0.1° at −5°).
         return RunConfig(downscale=32, spp_capture=16, spp_cg=16, spp_sweep=(1, 4, 16), target_downscale=8,
-                         target_views=5)
+                         target_views=5, photometric_pixels=800, photometric_lens_samples=48)
 
 
 # ------------------------------------------------------------------------------------- (a) the truth
@@ -298,7 +302,7 @@ def stage_targets(camera: SimulatedCamera, set_values: SetValues, cfg: RunConfig
     width, height, _ = camera.sensor.downscaled(k)
     pitch = camera.sensor.pixel_pitch_mm * k
     out = {"target": target, "image_size_px": (width, height), "pixel_pitch_mm": pitch, "detections": {},
-           "files": {}}
+           "files": {}, "linear": {}}
     target.save(os.path.join(out_dir, "target.json"))
     for state in LENS_STATES:
         lens = camera.lens(state.theta_L_set_deg)
@@ -315,9 +319,11 @@ def stage_targets(camera: SimulatedCamera, set_values: SetValues, cfg: RunConfig
             name = f"target_{state.label}_{v}.png"
             _save_png(os.path.join(out_dir, "images", name), photo)
             t1 = time.perf_counter()
-            det = detect(linear_from_grey_levels(photo), target)
+            linear = linear_from_grey_levels(photo)
+            det = detect(linear, target)
             dets.append(det)
             files.append(f"images/{name}")
+            out["linear"][f"images/{name}"] = linear.mean(-1)
             log(f"(b) ({state.label}) θL set {state.theta_L_set_deg:+g}°: target view {v + 1}/{cfg.target_views}, "
                 f"{width}x{height}, rendered {t1 - t0:.1f} s, detected {int(det.found.sum())}/{target.n_points} "
                 f"corners in {time.perf_counter() - t1:.1f} s{'' if det.grid_found else ': ' + det.message}")
@@ -341,6 +347,31 @@ def observations(targets: dict, label: str):
     return Observations(target.feature_points(), np.stack([d.corners_px for d, _ in dets]),
                         np.stack([d.blur_px for d, _ in dets]), targets["image_size_px"],
                         targets["pixel_pitch_mm"], [f for _, f in dets])
+
+
+def _photometric(targets: dict, result, cfg: RunConfig, log, label: str) -> dict | None:
+    """Photometric refinement (`tiltfit.photometric`) of a corner-and-blur fit on the same photographs."""
+    if not cfg.photometric_pixels:
+        return None
+    from .photometric import PhotometricError, PhotometricOptions, refine_photometric
+
+    v = result.values
+    init = {"w_mm": v["w_mm"], "U_mm": v["U_mm"], "d_mm": v["d_mm"], "theta_F_deg": v["theta_F_deg"],
+            "principal_point_px": v.get("principal_point_px"),
+            "views": [{"R": view["R"], "T_mm": view["T_mm"]} for view in result.views]}
+    images = [targets["linear"][view["image"]] for view in result.views]
+    try:
+        res = refine_photometric(images, targets["target"], init, targets["pixel_pitch_mm"],
+                                 PhotometricOptions(lens_samples=cfg.photometric_lens_samples,
+                                                    max_pixels=cfg.photometric_pixels))
+    except PhotometricError as e:
+        log(f"(c) ({label}) photometric refinement failed: {e}")
+        return None
+    rec = {k: res.values[k] for k in ("w_mm", "U_mm", "d_mm", "theta_F_deg", "theta_L_deg", "vignetting")}
+    rec.update(sigma=dict(res.sigma), rms_linear=res.rms, iterations=res.iterations, runtime_s=res.runtime_s)
+    log(f"(c) ({label}) photometric: θL {rec['theta_L_deg']:+.3f} ± {res.sigma['theta_L_deg']:.3f}°, "
+        f"U {rec['U_mm']:.1f}, d {rec['d_mm']:.3f} mm, RMS {res.rms:.4f} ({res.runtime_s:.1f} s)")
+    return rec
 
 
 def _fit_record(result) -> dict:
@@ -388,7 +419,11 @@ def stage_calibrate(targets: dict | None, set_values: SetValues, cfg: RunConfig,
     log(f"(c) stage 1 ({s1['n_views']} views): w {s1['w_mm']:.3f}, U {s1['U_mm']:.1f}, d {s1['d_mm']:.3f} mm "
         f"({stage1.runtime_s:.1f} s)")
     lens1 = LensParams(s1["w_mm"], s1["U_mm"], s1["d_mm"], theta_F_deg=0.0)
-    paper, joint = {"a": lens1}, {"a": lens1}
+    paper, joint, photometric = {"a": lens1}, {"a": lens1}, {}
+    ph = _photometric(targets, stage1, cfg, log, "a")
+    if ph is not None:
+        out["records"]["stage1"]["photometric"] = ph
+        photometric["a"] = LensParams(ph["w_mm"], ph["U_mm"], ph["d_mm"], theta_F_deg=ph["theta_F_deg"])
     for state in LENS_STATES:
         if state.label == "a":
             continue
@@ -406,6 +441,11 @@ def stage_calibrate(targets: dict | None, set_values: SetValues, cfg: RunConfig,
             rec["joint"] = _fit_record(jt)
             j = rec["joint"]
             joint[state.label] = LensParams(j["w_mm"], j["U_mm"], j["d_mm"], theta_F_deg=j["theta_F_deg"])
+            ph = _photometric(targets, jt, cfg, log, state.label)
+            if ph is not None:
+                rec["photometric"] = ph
+                photometric[state.label] = LensParams(ph["w_mm"], ph["U_mm"], ph["d_mm"],
+                                                      theta_F_deg=ph["theta_F_deg"])
             log(f"(c) ({state.label}) stage 2: θF {rec['stage2']['theta_F_deg']:+.3f}°, θL (1) "
                 f"{rec['stage2']['theta_L_paper_deg']:+.3f}°, exact {rec['stage2']['theta_L_deg']:+.3f}°; joint: "
                 f"θL {j['theta_L_deg']:+.3f}°, U {j['U_mm']:.1f} mm")
@@ -417,6 +457,8 @@ def stage_calibrate(targets: dict | None, set_values: SetValues, cfg: RunConfig,
         out["lenses"]["calibrated (paper)"] = paper
     if len(joint) == len(LENS_STATES):
         out["lenses"]["calibrated (joint)"] = joint
+    if len(photometric) == len(LENS_STATES):
+        out["lenses"]["calibrated (photometric)"] = photometric
     return out
 
 
@@ -424,7 +466,8 @@ def table1_rows(camera: SimulatedCamera, calibration: dict) -> list[dict]:
     """Table 1: lens tilt set → estimated (the paper's), with the simulated truth beside it, degrees.
 
     Estimates: stage 2 through the paper's eq. (1) and through the exact Scheimpflug relation, and the joint
-    fit (exact), each with its one-σ; `pending` until stage (c) has run, empty where it failed.
+    fit (exact) and its photometric refinement, each with its one-σ; `pending` until stage (c) has run, empty
+    where it failed.
     """
     records = calibration.get("records", {})
     pending = not records
@@ -444,6 +487,9 @@ def table1_rows(camera: SimulatedCamera, calibration: dict) -> list[dict]:
         row["joint_deg"] = PENDING if pending else (jt or {}).get("theta_L_deg")
         row["joint_sigma_deg"] = PENDING if pending else (jt or {}).get("sigma", {}).get("theta_L_deg")
         row["joint_U_mm"] = PENDING if pending else (jt or {}).get("U_mm")
+        ph = records.get("stage1", {}).get("photometric") if state.label == "a" else rec.get("photometric")
+        row["photometric_deg"] = PENDING if pending else (ph or {}).get("theta_L_deg")
+        row["photometric_sigma_deg"] = PENDING if pending else (ph or {}).get("sigma", {}).get("theta_L_deg")
         row["true_U_mm"] = camera.lens(state.theta_L_set_deg).U_mm
         rows.append(row)
     return rows
@@ -558,23 +604,35 @@ def _write_scene(out_dir: str, stem: str, lens: LensParams, cfg: RunConfig, spp:
 
 # ------------------------------------------------------------------------------------- (e) plots, sweep
 
-def stage_speed(results: list[StateResult], cfg: RunConfig, lines: dict, log) -> list[dict]:
-    """Speed–accuracy: CG of lens state (b) at each `spp_sweep` against its photograph (error, time).
+SPEED_METHODS = (("calibrated (joint)", "corners + blur"), ("calibrated (photometric)", "photometric"),
+                 ("set", "set values"))
 
-    Uses the calibrated values when there are any (joint first), else the set values.
+
+def stage_speed(results: list[StateResult], cfg: RunConfig, lines: dict, log, calib_seconds=None,
+                camera: SimulatedCamera | None = None) -> list[dict]:
+    """Speed–accuracy: CG of lens state (b) at each `spp_sweep` against its photograph, per calibration method.
+
+    Each row is one (method, spp): the mean Table-2 error of the CG and the time it took to get it, the
+    calibration's own time (`calib_seconds[name]`) plus the render. Methods: the corner-and-blur joint fit,
+    its photometric refinement (where they ran) and the set values (no calibration).
     """
     res = next(r for r in results if r.state.label == "b")
-    name = next((n for n in ("calibrated (joint)", "calibrated (paper)") if n in res.lenses), "set")
-    lens = res.lenses[name]
+    calib_seconds = calib_seconds or {}
     rows = []
-    for spp in cfg.spp_sweep:
-        radiance, dt = render_boxes(lens, cfg, spp, _seed(cfg, "sweep", spp))
-        r, _ = compare_profiles(res.captures[0], grey_levels(radiance).astype(np.uint8), lines, cfg.step_px)
-        row = {"parameters": name, "spp": spp, "render_s": dt}
-        row.update({x["line"]: x["average_error"] for x in r})
-        row["mean"] = float(np.mean([x["average_error"] for x in r]))
-        rows.append(row)
-        log(f"(e) speed–accuracy: {spp} spp, {dt:.2f} s, mean average error {row['mean']:.2f}")
+    for name, method in SPEED_METHODS:
+        if name not in res.lenses:
+            continue
+        for spp in cfg.spp_sweep:
+            radiance, dt = render_boxes(res.lenses[name], cfg, spp, _seed(cfg, "sweep", spp))
+            cg = grey_levels((camera or SimulatedCamera()).vignette(radiance)).astype(np.uint8)
+            r, _ = compare_profiles(res.captures[0], cg, lines, cfg.step_px)
+            calib_s = float(calib_seconds.get(name, 0.0))
+            row = {"method": method, "parameters": name, "spp": spp, "render_s": dt, "calibration_s": calib_s,
+                   "total_s": calib_s + dt}
+            row.update({x["line"]: x["average_error"] for x in r})
+            row["mean"] = float(np.mean([x["average_error"] for x in r]))
+            rows.append(row)
+            log(f"(e) speed–accuracy: {method}, {spp} spp, {calib_s + dt:.2f} s, mean average error {row['mean']:.2f}")
     return rows
 
 
@@ -607,30 +665,22 @@ def plot_all(results: list[StateResult], speed_rows: list[dict], lines: dict, ou
         save_figure(fig, os.path.join(out_dir, files[line]))
 
     if speed_rows:
-        fig = Figure(figsize=(8.0, 3.0), layout="constrained")
-        ax1, ax2 = fig.subplots(1, 2)
-        spp = [r["spp"] for r in speed_rows]
-        for line in lines:
-            ax1.plot(spp, [r[line] for r in speed_rows], "o-", color=f"tab:{line}" if line in ("red", "green")
-                     else None, label=f"{line} line")
+        fig = Figure(figsize=(6.5, 4.0), layout="constrained")
+        ax = fig.subplots()
+        for method in dict.fromkeys(r["method"] for r in speed_rows):
+            sel = [r for r in speed_rows if r["method"] == method]
+            ax.plot([r["total_s"] for r in sel], [r["mean"] for r in sel], "o-", label=method)
+            for r in sel:
+                ax.annotate(f"{r['spp']}", (r["total_s"], r["mean"]), fontsize="x-small",
+                            xytext=(3, 3), textcoords="offset points")
         floor = next(r for r in results if r.state.label == "b").rows[0]
-        for line in lines:
-            ax1.axhline(floor[line], ls=":", color=f"tab:{line}" if line in ("red", "green") else "k",
-                        label=f"noise floor, {line}")
-        ax1.set_xscale("log", base=2)
-        ax1.set_xticks(spp, [str(s) for s in spp])
-        ax1.set_xlabel("CG samples per pixel")
-        ax1.set_ylabel("average error [grey level]")
-        ax1.legend(fontsize="x-small")
-        ax1.grid(alpha=0.3)
-        ax2.plot(spp, [r["render_s"] for r in speed_rows], "o-")
-        ax2.set_xscale("log", base=2)
-        ax2.set_xticks(spp, [str(s) for s in spp])
-        ax2.set_yscale("log")
-        ax2.set_xlabel("CG samples per pixel")
-        ax2.set_ylabel("render time [s]")
-        ax2.grid(alpha=0.3)
-        fig.suptitle(f"Speed and accuracy, lens state (b), {speed_rows[0]['parameters']} values")
+        ax.axhline(float(np.mean([floor[line] for line in lines])), ls=":", color="k", label="noise floor")
+        ax.set_xscale("log")
+        ax.set_xlabel("time to the CG: calibration + render [s] (labels: CG samples per pixel)")
+        ax.set_ylabel("mean average error, red and green lines [grey level]")
+        ax.legend(fontsize="small")
+        ax.grid(alpha=0.3)
+        ax.set_title("Speed and accuracy, lens state (b): one curve per method")
         files["speed"] = "speed_accuracy.png"
         save_figure(fig, os.path.join(out_dir, files["speed"]))
     return files
@@ -719,7 +769,11 @@ def _run(out_dir, quick, progress, config, camera, set_values) -> ReproduceResul
     param_sets.update(calibration["lenses"])
     results = stage_boxes(camera, param_sets, cfg, lines, out_dir, log)                   # (d)
     table2 = [row for res in results for row in res.rows]
-    speed = stage_speed(results, cfg, lines, log)                                # (e)
+    rec_b = calibration.get("records", {}).get("b", {})
+    joint_s = (rec_b.get("joint") or {}).get("runtime_s", 0.0)
+    calib_seconds = {"calibrated (joint)": joint_s,
+                     "calibrated (photometric)": joint_s + (rec_b.get("photometric") or {}).get("runtime_s", 0.0)}
+    speed = stage_speed(results, cfg, lines, log, calib_seconds, camera)         # (e)
     files = plot_all(results, speed, lines, out_dir)
 
     # (f) tables, figure data, run record, report

@@ -5,7 +5,7 @@ import time
 import pytest
 
 NOTEBOOKS = sorted((pathlib.Path(__file__).resolve().parents[2] / "notebooks").glob("*.ipynb"))
-TIMEOUT_S = 60
+TIMEOUT_S = 120  # the real-photo notebook detects, calibrates and renders 1280 x 960 twice
 
 
 @pytest.mark.slow

@@ -276,6 +276,9 @@ def _publish_tmpfile(fd: int, folder: str, hidden: str, path: str) -> None:
                 break
             except FileExistsError:
                 continue
+            except OSError:  # linking an anonymous inode refused (a restricted /proc): copy it instead
+                _publish_copy(fd, folder, hidden, path)
+                return
         else:
             raise FileExistsError(17, "cannot create a temporary name", os.path.join(folder, hidden))
         try:
@@ -286,6 +289,20 @@ def _publish_tmpfile(fd: int, folder: str, hidden: str, path: str) -> None:
             raise
     finally:
         os.close(dir_fd)
+
+
+def _publish_copy(fd: int, folder: str, hidden: str, path: str) -> None:
+    """Copy the anonymous inode `fd` to a hidden temporary file, then rename it over `path`."""
+    tmp_fd, tmp = tempfile.mkstemp(prefix=hidden, suffix=".tmp", dir=folder)
+    try:
+        with open(f"/proc/self/fd/{fd}", "rb") as src, os.fdopen(tmp_fd, "wb") as dst:
+            while chunk := src.read(1 << 20):
+                dst.write(chunk)
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
 
 
 def write_text(path: str, text: str) -> None:

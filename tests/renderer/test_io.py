@@ -126,6 +126,21 @@ def test_a_failed_write_keeps_the_old_file_and_leaves_nothing(tmp_path, monkeypa
     assert os.listdir(tmp_path) == ["out.json"], f"left behind: {os.listdir(tmp_path)}"
 
 
+@pytest.mark.skipif(not rio._tmpfile_supported("."), reason="needs O_TMPFILE (Linux)")
+def test_when_linking_the_anonymous_file_is_refused_it_is_copied(tmp_path, monkeypatch):
+    real_link = os.link
+
+    def refuse(src, *args, **kwargs):
+        if str(src).startswith("/proc/self/fd/"):
+            raise PermissionError(1, "Operation not permitted")
+        return real_link(src, *args, **kwargs)
+
+    monkeypatch.setattr(os, "link", refuse)
+    write_image(str(tmp_path / "a.png"), _ramp())
+    assert float(np.abs(read_image(str(tmp_path / "a.png")) - _ramp()).max()) < 0.005, "the copy holds the image"
+    assert os.listdir(tmp_path) == ["a.png"], f"left behind: {os.listdir(tmp_path)}"
+
+
 def test_an_output_path_that_is_a_folder_is_refused_before_writing(tmp_path):
     with pytest.raises(IsADirectoryError):
         with atomic_output(str(tmp_path)):

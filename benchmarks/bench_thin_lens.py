@@ -78,7 +78,7 @@ MI_MAX_SAMPLES = 1 << 22
 # ------------------------------------------------------------------------------------------------ scene
 
 def scene_config(width: int = 320, height: int = 213, d: float = D_MM) -> dict:
-    """The benchmark scene as a scene-file dict (see CONTRACTS.md); camera frame = world frame (y down).
+    """The benchmark scene as a scene-file dict (see docs/file_formats.md); camera frame = world frame (y down).
 
     Args:
         width, height: image size, pixels (square pixels: the sensor height is 36 mm · height / width).

@@ -5,22 +5,26 @@
     renderer animate SCENE.json --method beam|trace [--frames N] [--step D] -o DIR [--set key.path=value ...]
     renderer gallery [-o gallery.png] [--quick] [--size PX] [--spp N] [--manifest M.json] [--device ...]
 
-Errors in the input (a bad scene file, an unreadable image, an unwritable output) print one line
-`renderer: <message>` on stderr and exit with status 2, leaving no output file behind.
+Errors in the input (a bad scene file, an unreadable image, an unwritable output, a render whose float32
+result overflowed) print one line `renderer: <message>` on stderr and exit with status 2, leaving no output
+file behind; an interrupt (Ctrl-C, SIGTERM) prints `renderer: interrupted` and exits with 130.
 """
 from __future__ import annotations
 
 import argparse
-import json
+import contextlib
 import math
 import os
+import shutil
+import signal
 import sys
-import tempfile
 import textwrap
 import time
+import warnings
 
-from .io import ImageIOError, linear_to_srgb, write_image
+from .io import ImageIOError, atomic_output, linear_to_srgb, write_image
 from .params import SceneError
+from .validation import read_json
 
 SCENES_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "scenes")
 GALLERY_MANIFEST = os.path.join(SCENES_DIR, "gallery.json")
@@ -38,6 +42,23 @@ def _positive_int(text: str) -> int:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
     if value < 1:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    if value > MAX_COUNT:
+        raise argparse.ArgumentTypeError(f"expected an integer <= {MAX_COUNT}, got {value}")
+    return value
+
+
+# Command-line counts (--spp, --size, --columns) share the scene file's largest limit (MAX_SPP, MAX_IMAGE_SIDE).
+MAX_COUNT = 1 << 16
+MAX_SEED = (1 << 63) - 1
+
+
+def _seed(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"expected an integer in [0, 2^63 - 1], got {value}")
     return value
 
 
@@ -91,24 +112,46 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="cpu", help="torch device: cpu or cuda [cpu]")
-    p.add_argument("--seed", type=int, default=0, help="sampler seed [0]")
+    p.add_argument("--seed", type=_seed, default=0, help="sampler seed, 0 to 2^63 - 1 [0]")
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    previous = _interrupt_on_sigterm()
     try:
-        device = _device(args.device)
-        if args.command == "render":
-            return cmd_render(args, device)
-        if args.command == "animate":
-            return cmd_animate(args, device)
-        return cmd_gallery(args, device)
+        with warnings.catch_warnings():
+            # numpy's floating-point warnings would print before the one-line error; failures are reported once.
+            warnings.simplefilter("ignore", RuntimeWarning)
+            device = _device(args.device)
+            if args.command == "render":
+                return cmd_render(args, device)
+            if args.command == "animate":
+                return cmd_animate(args, device)
+            return cmd_gallery(args, device)
     except (SceneError, ImageIOError, OSError, UsageError) as e:
         print(f"renderer: {_one_line(e)}", file=sys.stderr)
+        return EXIT_USAGE
+    except MemoryError:
+        print("renderer: out of memory (use a smaller image.width/height or --spp)", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print("renderer: interrupted", file=sys.stderr)
         return 130
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _interrupt_on_sigterm():
+    """SIGTERM ends the command like Ctrl-C (temporary files removed, exit 130); returns the old handler."""
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt
+
+    try:
+        return signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread
+        return None
 
 
 def _one_line(e: Exception) -> str:
@@ -124,6 +167,8 @@ def _device(name: str):
         device = torch.device(name)
     except RuntimeError:
         raise UsageError(f"--device: unknown device {name!r} (expected cpu or cuda)") from None
+    if device.type not in ("cpu", "cuda"):
+        raise UsageError(f"--device: {name!r} cannot render (expected cpu or cuda)")
     if device.type == "cuda" and not torch.cuda.is_available():
         raise UsageError("--device cuda: CUDA is not available on this machine")
     return device
@@ -142,10 +187,14 @@ def cmd_render(args, device) -> int:
     from .scenefile import load_scene
 
     _check_output(args.output, (".exr", ".png", ".tif", ".tiff"))
-    scene = load_scene(resolve_scene(args.scene), args.overrides)
+    scene_file = resolve_scene(args.scene)
+    scene = load_scene(scene_file, args.overrides)
     start = time.perf_counter()
     result = render(scene, args.spp, args.sampler, device=device, seed=args.seed, progress=not args.quiet)
-    write_image(args.output, result.image, args.encoding)
+    check_finite_image(scene_file, result.image)
+    write_image(args.output, result.image, args.encoding,
+                metadata=image_metadata(scene_file, scene, args.spp or scene.image.spp,
+                                        args.sampler or scene.image.sampler, args.seed, args.overrides))
     if not args.quiet:
         h, w = result.image.shape[:2]
         print(f"renderer: wrote {args.output} ({w}x{h}, {time.perf_counter() - start:.1f} s)", file=sys.stderr)
@@ -164,22 +213,78 @@ def cmd_animate(args, device) -> int:
             raise UsageError(f"{name}: not given and {path} has no animation.{name[2:]}")
     if os.path.exists(args.output) and not os.path.isdir(args.output):
         raise UsageError(f"{args.output}: not a folder")
+    from .validation import number
+
+    step = number("--step", step, UsageError, float32=True)
     start = time.perf_counter()
-    animate(path, args.method, frames, step, args.output, args.overrides, device=device, progress=not args.quiet)
+    with _removed_on_failure(args.output):
+        animate(path, args.method, frames, step, args.output, args.overrides, device=device,
+                progress=not args.quiet)
     if not args.quiet:
         print(f"renderer: wrote {frames} frames and frames.csv to {args.output} ({time.perf_counter() - start:.1f} s)",
               file=sys.stderr)
     return 0
 
 
+@contextlib.contextmanager
+def _removed_on_failure(folder: str):
+    """On any exception, remove what this run added to `folder` (and the folder, if this run created it)."""
+    existed = os.path.isdir(folder)
+    before = set(os.listdir(folder)) if existed else set()
+    try:
+        yield
+    except BaseException:
+        if os.path.isdir(folder):
+            for name in set(os.listdir(folder)) - before:
+                target = os.path.join(folder, name)
+                shutil.rmtree(target, ignore_errors=True) if os.path.isdir(target) else os.remove(target)
+            if not existed and not os.listdir(folder):
+                os.rmdir(folder)
+        raise
+
+
 def _check_output(path: str, extensions: tuple[str, ...]) -> None:
-    """Fail before any work when the output format is wrong or its folder cannot be created."""
+    """Fail before any work when the output is a folder, its format is wrong, or its folder cannot be
+    created or written."""
+    if os.path.isdir(path):
+        raise UsageError(f"{path}: is a folder; give an output file name")
     ext = os.path.splitext(path)[1].lower()
     if ext not in extensions:
         raise UsageError(f"{path}: unsupported output format {ext or '(none)'} (use {', '.join(extensions)})")
     folder = os.path.dirname(os.path.abspath(path))
-    if os.path.exists(folder) and not os.path.isdir(folder):
-        raise UsageError(f"{path}: {folder} is not a folder")
+    existing = folder
+    while not os.path.exists(existing) and os.path.dirname(existing) != existing:
+        existing = os.path.dirname(existing)
+    if not os.path.isdir(existing):
+        raise UsageError(f"{path}: {existing} is not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise UsageError(f"{path}: cannot write in {existing} (permission denied)")
+
+
+def check_finite_image(scene_file: str, image) -> None:
+    """The tracer computes in float32: a scene whose light intensities, background or material values
+    overflow there gives NaN/Inf pixels. They are refused here, never written (docs/file_formats.md)."""
+    import torch
+
+    bad = int((~torch.isfinite(image)).sum())
+    if bad:
+        raise UsageError(f"{scene_file}: the render overflowed float32 in {bad} values (a light intensity, "
+                         "background or material value too large); nothing written")
+
+
+def image_metadata(scene_file: str, scene, spp: int, sampler: str, seed: int, overrides=()) -> dict:
+    """What a rendered image records about itself: scene file, overrides, camera, size, spp, sampler, seed."""
+    cam = scene.camera
+    pose = cam.transform
+    position = [round(float(v), 6) for v in pose.position.tolist()] if hasattr(pose, "position") else None
+    meta = {"scene": scene_file, "camera": type(cam).__name__}
+    if position is not None:
+        meta["camera_position"] = position
+    meta.update({"size": f"{scene.image.width}x{scene.image.height}", "spp": spp, "sampler": sampler,
+                 "seed": seed, "max_depth": scene.image.max_depth})
+    if overrides:
+        meta["set"] = " ".join(overrides)
+    return meta
 
 
 # ----------------------------------------------------------------------------------------------- gallery
@@ -190,13 +295,7 @@ def read_manifest(path: str) -> list[dict]:
 
     `scene` is relative to the manifest; `note` is free text for the reader (why the overrides do what they do).
     """
-    try:
-        with open(path, encoding="utf-8") as f:
-            entries = json.load(f)
-    except OSError as e:
-        raise SceneError(f"{path}: cannot read manifest ({e.strerror or e})") from None
-    except json.JSONDecodeError as e:
-        raise SceneError(f"{path}:{e.lineno}:{e.colno}: invalid JSON ({e.msg})") from None
+    entries = read_json(path, SceneError, "manifest")
     if not isinstance(entries, list):
         raise SceneError(f"{path}: expected a list of {{scene, label, set}} entries")
     out = []
@@ -250,6 +349,7 @@ def cmd_gallery(args, device) -> int:
         if extra:
             scene = load_scene(entry["scene"], entry["set"] + extra)
         result = render(scene, device=device, seed=args.seed, progress=False)
+        check_finite_image(entry["scene"], result.image)
         srgb = linear_to_srgb(result.image.cpu().numpy())
         panels.append((entry["label"], (np.clip(srgb, 0, 1) * 255 + 0.5).astype(np.uint8)))
         print(f"gallery: [{k}/{len(entries)}] {entry['label']} ({scene.image.width}x{scene.image.height}, "
@@ -279,16 +379,8 @@ def write_contact_sheet(path: str, panels: list, columns: int = 4) -> None:
         ax.set_title(title, fontsize=9)
         ax.set_axis_off()
     fig.tight_layout()
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".png", dir=folder)
-    os.close(fd)
-    try:
-        fig.savefig(tmp, format="png")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    with atomic_output(path) as tmp:
+        fig.savefig(tmp, format="png", metadata={"Software": "renderer gallery"})
 
 
 if __name__ == "__main__":

@@ -6,9 +6,10 @@ path, what was expected and what was received. The same table renders as user do
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
+
+from .validation import describe, is_finite_number, is_number
 
 REQUIRED = object()
 
@@ -29,21 +30,21 @@ class Param:
 
 
 def _is_number(x) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool)
+    return is_number(x)
 
 
 def check_value(path: str, kind: str, value, choices=None):
     """Validate one value of a declared kind; returns it normalised (floats, tuples)."""
 
     def fail(expected):
-        raise SceneError(f"{path}: expected {expected}, got {value!r}")
+        raise SceneError(f"{path}: expected {expected}, got {describe(value)}")
 
     if kind == "any":
         return value
     if kind in ("float", "int"):
         if not _is_number(value):
             fail("a number")
-        if not math.isfinite(value):
+        if not is_finite_number(value):
             fail("a finite number")
         if kind == "int":
             if float(value) != int(value):
@@ -66,7 +67,7 @@ def check_value(path: str, kind: str, value, choices=None):
             value = [value] * 3
         if not isinstance(value, (list, tuple)) or len(value) != n or not all(_is_number(v) for v in value):
             fail(f"a list of {n} numbers")
-        if not all(math.isfinite(v) for v in value):
+        if not all(is_finite_number(v) for v in value):
             fail(f"a list of {n} finite numbers")
         return tuple(float(v) for v in value)
     if kind == "list":

@@ -1,4 +1,4 @@
-"""Scene files: JSON in, a validated `Scene` out (the contract is in /work/shared/CONTRACTS.md).
+"""Scene files: JSON in, a validated `Scene` out (every key is listed in docs/file_formats.md).
 
 A scene file is one JSON object with the sections
 
@@ -21,13 +21,14 @@ are addressed by index (`objects.2.material.color`) or by their `name` (`objects
 and a path into a missing section creates it.
 
 Every problem raises `SceneError` with one line naming the file and the field, e.g.
-`scene.json: objects[3].material.ior: expected a number, got 'glass'`.
+`scene.json: objects[3].material.ior: expected a number, got 'glass'`. The file-level checks (encoding,
+nesting depth, numbers finite and within float32, `extends` chain length, `--set` path length) are
+`renderer.validation`'s; the image limits are `MAX_IMAGE_SIDE`, `MAX_SPP` and `MAX_DEPTH` below.
 """
 from __future__ import annotations
 
 import copy
 import json
-import math
 import os
 
 import numpy as np
@@ -37,16 +38,26 @@ from .io import ImageIOError, read_image
 from .materials import CheckerTexture, ImageTexture, Material
 from .params import Param, SceneError, check_value, parse_params
 from .sampling import SAMPLERS
+from .validation import MAX_EXTENDS, MAX_JSON_DEPTH, MAX_SET_SEGMENTS, check_memory, check_tree, json_depth, read_json
 from .scene import ImageSettings, Light, Scene, SceneObject
 from .shapes import build_shape
 
 SECTIONS = ("image", "camera", "lights", "objects", "layers", "extends", "description", "animation")
 
+# Stated limits of the image section: beyond them a render is a mistake, not a picture (a 65536-pixel side,
+# 65536 samples per pixel, 64 bounces already mean hours or a mirror hall that converges long before).
+MAX_IMAGE_SIDE = 1 << 16
+MAX_SPP = 1 << 16
+MAX_DEPTH = 64
+MAX_SHININESS = 1e6
+# Peak bytes per pixel of a render (image, coverage, tile order and its sort keys), for the memory check.
+BYTES_PER_PIXEL = 96
+
 IMAGE_PARAMS = [
-    Param("width", "int", doc="image width, pixels"),
-    Param("height", "int", doc="image height, pixels"),
-    Param("spp", "int", 1, "samples per pixel"),
-    Param("max_depth", "int", 5, "secondary bounces (reflection, refraction) per path"),
+    Param("width", "int", doc=f"image width, pixels (at most {MAX_IMAGE_SIDE})"),
+    Param("height", "int", doc=f"image height, pixels (at most {MAX_IMAGE_SIDE})"),
+    Param("spp", "int", 1, f"samples per pixel, at most {MAX_SPP}"),
+    Param("max_depth", "int", 5, f"secondary bounces (reflection, refraction) per path, at most {MAX_DEPTH}"),
     Param("background", "color", (0.0, 0.0, 0.0), "linear RGB seen by rays that hit nothing"),
     Param("sampler", "str", "sobol", "pixel and lens sample pattern", SAMPLERS),
 ]
@@ -63,7 +74,7 @@ MATERIAL_PARAMS = [
     Param("color", "color", (0.8, 0.8, 0.8), "linear RGB albedo; also tints transmitted light"),
     Param("diffuse", "float", 1.0, "Lambertian weight"),
     Param("specular", "float", 0.0, "Phong highlight weight"),
-    Param("shininess", "float", 32.0, "Phong exponent"),
+    Param("shininess", "float", 32.0, f"Phong exponent, at most {MAX_SHININESS:g}"),
     Param("reflect", "float", 0.0, "mirror reflection weight"),
     Param("transmit", "float", 0.0, "transparency weight"),
     Param("ior", "float", 1.0, "index of refraction of the inside"),
@@ -113,17 +124,9 @@ def read_scene_json(path: str, _seen: tuple[str, ...] = ()) -> dict:
     real = os.path.realpath(path)
     if real in _seen:
         raise SceneError(f"{path}: extends: circular reference")
-    try:
-        with open(path, encoding="utf-8") as f:
-            text = f.read()
-    except OSError as e:
-        raise SceneError(f"{path}: cannot read scene file ({e.strerror or e})") from None
-    try:
-        cfg = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise SceneError(f"{path}:{e.lineno}:{e.colno}: invalid JSON ({e.msg})") from None
-    except ValueError as e:  # e.g. invalid UTF-8 escapes
-        raise SceneError(f"{path}: invalid JSON ({e})") from None
+    if len(_seen) >= MAX_EXTENDS:
+        raise SceneError(f"{path}: extends: a chain of more than {MAX_EXTENDS} files (from {_seen[0]})")
+    cfg = read_json(path, SceneError, "scene file")
     if not isinstance(cfg, dict):
         raise SceneError(f"{path}: expected a JSON object at the top level, got {type(cfg).__name__}")
     base = cfg.pop("extends", None)
@@ -150,8 +153,13 @@ def parse_override(text: str) -> tuple[list[str], object]:
     """'a.b.2.c=value' -> (['a', 'b', '2', 'c'], value parsed as JSON, else the raw string)."""
     key, sep, raw = text.partition("=")
     keys = key.strip().split(".")
+    shown = text if len(text) <= 60 else text[:57] + "..."
     if not sep or not all(keys):
-        raise SceneError(f"--set {text}: expected key.path=value, e.g. camera.alpha=2")
+        raise SceneError(f"--set {shown}: expected key.path=value, e.g. camera.alpha=2")
+    if len(keys) > MAX_SET_SEGMENTS:
+        raise SceneError(f"--set {shown}: a path of {len(keys)} keys; at most {MAX_SET_SEGMENTS} are allowed")
+    if json_depth(raw) > MAX_JSON_DEPTH:
+        raise SceneError(f"--set {shown}: value nested deeper than {MAX_JSON_DEPTH} levels")
     try:
         value = json.loads(raw)
     except ValueError:
@@ -200,15 +208,9 @@ def _list_index(node: list, key: str) -> int | None:
 
 
 def _check_finite(value, path: str) -> None:
-    """Reject NaN and ±inf anywhere (Python's JSON reader accepts them)."""
-    if isinstance(value, float) and not math.isfinite(value):
-        raise SceneError(f"{path}: expected a finite number, got {value!r}")
-    if isinstance(value, dict):
-        for k, v in value.items():
-            _check_finite(v, f"{path}.{k}" if path else str(k))
-    elif isinstance(value, list):
-        for i, v in enumerate(value):
-            _check_finite(v, f"{path}[{i}]")
+    """Reject NaN, ±inf, integers too large for a float and magnitudes outside float32 anywhere (Python's
+    JSON reader accepts them all; the tracer computes in float32), and nesting beyond MAX_JSON_DEPTH."""
+    check_tree(value, path, SceneError, float32=True)
 
 
 # -------------------------------------------------------------------------------------------- validating
@@ -230,6 +232,7 @@ def load_scene(source, overrides=(), base_dir: str | None = None) -> Scene:
     if isinstance(overrides, str):
         overrides = [overrides]
     if isinstance(source, dict):
+        check_tree(source, "", SceneError)  # depth first: deepcopy and merge recurse
         name, cfg = None, copy.deepcopy(source)
         base_dir = base_dir or "."
     else:
@@ -298,9 +301,14 @@ def _list(cfg: dict, key: str) -> list:
 
 
 def _positive_image(p: dict) -> dict:
-    for key, low in (("width", 1), ("height", 1), ("spp", 1), ("max_depth", 0)):
+    for key, low, high in (("width", 1, MAX_IMAGE_SIDE), ("height", 1, MAX_IMAGE_SIDE), ("spp", 1, MAX_SPP),
+                           ("max_depth", 0, MAX_DEPTH)):
         if p[key] < low:
             raise SceneError(f"image.{key}: expected an integer >= {low}, got {p[key]}")
+        if p[key] > high:
+            raise SceneError(f"image.{key}: expected an integer <= {high}, got {p[key]}")
+    check_memory("image", p["width"] * p["height"] * BYTES_PER_PIXEL, SceneError,
+                 f"a {p['width']}x{p['height']} image")
     return p
 
 
@@ -339,8 +347,8 @@ def build_material(path: str, cfg: dict, base_dir: str = ".") -> Material:
         raise SceneError(f"{path}: reflect + transmit must not exceed 1, got {p['reflect'] + p['transmit']}")
     if p["ior"] <= 0:
         raise SceneError(f"{path}.ior: expected a positive index of refraction, got {p['ior']}")
-    if p["shininess"] < 0:
-        raise SceneError(f"{path}.shininess: expected a non-negative exponent, got {p['shininess']}")
+    if not 0 <= p["shininess"] <= MAX_SHININESS:
+        raise SceneError(f"{path}.shininess: expected an exponent in [0, {MAX_SHININESS:g}], got {p['shininess']}")
     if min(p["color"]) < 0:
         raise SceneError(f"{path}.color: expected non-negative values, got {list(p['color'])}")
     texture = None

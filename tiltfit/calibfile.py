@@ -1,4 +1,4 @@
-"""CALIB.json, the calibration file of `tiltfit calibrate` (keys as in CONTRACTS.md, plus extras).
+"""CALIB.json, the calibration file of `tiltfit calibrate` (keys as in docs/file_formats.md, plus extras).
 
 Contract keys: pixel_pitch_mm, image_size_px [W, H], principal_point_px [cx, cy], w_mm, U_mm, d_mm, f_mm,
 theta_F_deg, theta_L_deg (exact thin-lens relation), theta_L_paper_deg (the paper's eq (1)),
@@ -27,10 +27,12 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 
 import numpy as np
 import torch
+
+from renderer.io import write_text
+from renderer.validation import describe, is_finite_number, read_json
 
 from .model import TiltLensCamera, residuals
 
@@ -40,6 +42,10 @@ REQUIRED_KEYS = ("pixel_pitch_mm", "image_size_px", "principal_point_px", "w_mm"
                  "theta_F_deg", "theta_L_deg", "theta_L_paper_deg", "views", "sigma", "runtime_s")
 VIEW_KEYS = ("image", "R", "T_mm", "rms_reprojection_px", "rms_blur_px", "n_points")
 SIGMA_KEYS = ("w_mm", "U_mm", "d_mm", "theta_F_deg", "theta_L_deg")
+
+
+# Lengths in a calibration file beyond this (mm, a thousand kilometres) are unit mistakes, not lenses.
+MAX_LENGTH_MM = 1e9
 
 
 class CalibFileError(ValueError):
@@ -151,22 +157,12 @@ def write_calib(path: str, data) -> None:
     """Write CALIB.json atomically. `data` is a FitResult or a dict from `calib_dict`."""
     if not isinstance(data, dict):
         data = calib_dict(data)
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".calib-", suffix=".json.tmp", dir=folder)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(_clean(data), f, indent=1, allow_nan=False)
-            f.write("\n")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    write_text(path, json.dumps(_clean(data), indent=1, allow_nan=False) + "\n")
 
 
 def _number(path, key, value, positive=False):
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise CalibFileError(f"{path}: {key}: expected a number, got {value!r}")
+    if not is_finite_number(value):
+        raise CalibFileError(f"{path}: {key}: expected a finite number, got {describe(value)}")
     if positive and not value > 0:
         raise CalibFileError(f"{path}: {key}: expected a positive number, got {value!r}")
     return float(value)
@@ -174,7 +170,7 @@ def _number(path, key, value, positive=False):
 
 def _vector(path, key, value, n):
     if not isinstance(value, list) or len(value) != n:
-        raise CalibFileError(f"{path}: {key}: expected a list of {n} numbers, got {value!r}")
+        raise CalibFileError(f"{path}: {key}: expected a list of {n} numbers, got {describe(value)}")
     return [_number(path, f"{key}[{i}]", x) for i, x in enumerate(value)]
 
 
@@ -184,15 +180,14 @@ def read_calib(path: str) -> dict:
     Raises:
         CalibFileError: missing file, invalid JSON, a missing key or a malformed value (one line).
     """
-    if not os.path.isfile(path):
+    if not os.path.exists(path):
         raise CalibFileError(f"{path}: no such file")
-    try:
-        with open(path, encoding="utf-8") as f:
-            data = json.load(f)
-    except json.JSONDecodeError as e:
-        raise CalibFileError(f"{path}: not valid JSON (line {e.lineno}, column {e.colno}: {e.msg})") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise CalibFileError(f"{path}: cannot read ({e})") from None
+    return validate_calib(path, read_json(path, CalibFileError, "calibration file"))
+
+
+def validate_calib(path: str, data) -> dict:
+    """The checks of `read_calib` on an already parsed CALIB dict (also an OpenCV file's, from
+    `tiltfit.export.read_opencv`); `path` names the file in messages."""
     if not isinstance(data, dict):
         raise CalibFileError(f"{path}: expected a JSON object")
     # Only the lens state is needed to start another fit; views and sigma may be absent in hand-made files.
@@ -213,11 +208,17 @@ def read_calib(path: str) -> dict:
             distortion_from_config("distortion", dist)
         except SceneError as e:
             raise CalibFileError(f"{path}: {e}") from None
+    for key in ("pixel_pitch_mm", "w_mm", "U_mm", "d_mm"):
+        if data[key] is not None and is_finite_number(data[key]) and abs(data[key]) > MAX_LENGTH_MM:
+            raise CalibFileError(f"{path}: {key}: expected at most {MAX_LENGTH_MM:g} mm, got {describe(data[key])}")
     size = _vector(path, "image_size_px", data["image_size_px"], 2)
-    if not all(s >= 1 and s == int(s) for s in size):
+    if not all(1 <= s <= 1 << 17 and s == int(s) for s in size):
         raise CalibFileError(f"{path}: image_size_px: expected two positive integers, got {data['image_size_px']!r}")
     if data.get("principal_point_px") is not None:
-        _vector(path, "principal_point_px", data["principal_point_px"], 2)
+        pp = _vector(path, "principal_point_px", data["principal_point_px"], 2)
+        if not all(-s <= c <= 2 * s for c, s in zip(pp, size)):
+            raise CalibFileError(f"{path}: principal_point_px: expected a point within one image size of the "
+                                 f"{int(size[0])}x{int(size[1])} image, got {pp}")
     if data.get("theta_F_deg") is not None:
         if abs(_number(path, "theta_F_deg", data["theta_F_deg"])) >= 90:
             raise CalibFileError(f"{path}: theta_F_deg: expected |θF| < 90, got {data['theta_F_deg']!r}")
@@ -233,7 +234,14 @@ def read_calib(path: str) -> dict:
         R = view["R"]
         if not (isinstance(R, list) and len(R) == 3 and all(isinstance(r, list) and len(r) == 3 for r in R)):
             raise CalibFileError(f"{path}: views[{i}].R: expected a 3×3 matrix")
-        _vector(path, f"views[{i}].T_mm", view["T_mm"], 3)
+        for j, row in enumerate(R):
+            _vector(path, f"views[{i}].R[{j}]", row, 3)
+        Rm = np.array(R, dtype=np.float64)
+        if not (np.abs(Rm @ Rm.T - np.eye(3)).max() < 1e-6 and np.linalg.det(Rm) > 0):
+            raise CalibFileError(f"{path}: views[{i}].R: expected a rotation (orthonormal, determinant +1)")
+        T = _vector(path, f"views[{i}].T_mm", view["T_mm"], 3)
+        if max(abs(t) for t in T) > MAX_LENGTH_MM:
+            raise CalibFileError(f"{path}: views[{i}].T_mm: expected coordinates within ±{MAX_LENGTH_MM:g} mm, got {T}")
     sigma = data.get("sigma", {})
     if not isinstance(sigma, dict):
         raise CalibFileError(f"{path}: sigma: expected an object, got {sigma!r}")
@@ -263,4 +271,4 @@ def sigma_from_calib(data: dict) -> dict:
     """The file's one-σ values of w_mm, U_mm, d_mm (those present and finite)."""
     sig = data.get("sigma") or {}
     return {k: float(sig[k]) for k in ("w_mm", "U_mm", "d_mm")
-            if isinstance(sig.get(k), (int, float)) and math.isfinite(sig[k]) and sig[k] > 0}
+            if is_finite_number(sig.get(k)) and 0 < sig[k] < MAX_LENGTH_MM}

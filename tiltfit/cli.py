@@ -14,22 +14,32 @@
 board is found is skipped with a warning (listed under `skipped` in CALIB.json). `--init` accepts a CALIB.json
 or an OpenCV camera file (`tiltfit export`'s, or any FileStorage with camera_matrix and image size).
 Errors (bad or missing file, missing key, no board found, truncated image, a fit that does not converge)
-print one line `tiltfit: <file>: <problem>` on stderr and exit with status 2, leaving no output file.
+print one line `tiltfit: <file>: <problem>` on stderr and exit with status 2, leaving no output file; an
+interrupt (Ctrl-C, SIGTERM) prints `tiltfit: interrupted` and exits with 130. Input files are checked by
+`renderer.validation` (encoding, depth, numbers), `tiltfit.target`, `tiltfit.detfile` and `tiltfit.calibfile`.
 Progress goes to stderr; nothing but results goes to stdout.
 """
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import math
 import os
+import signal
 import sys
-import tempfile
 import time
+import warnings
+
+from renderer.io import quiet_c_stderr as _quiet_c_stderr
 
 EXIT_ERROR = 2
 MIN_VIEWS_AFTER_SKIPPING = 3  # when images without a board were skipped, at least this many must remain
+EXIT_INTERRUPTED = 130
+# Stated ranges of the command-line numbers (mm); beyond them the value is a unit mistake.
+MAX_PIXEL_PITCH_MM = 10.0
+MAX_FOCAL_MM = 10000.0
+MAX_ITERATIONS = 100000
+MAX_HELD_OUT = 1000
 
 
 class CliError(Exception):
@@ -56,25 +66,6 @@ def _say(quiet: bool):
 
 
 # --- detection ---------------------------------------------------------------------------------------------
-
-@contextlib.contextmanager
-def _quiet_c_stderr():
-    """Keep what C libraries print on file descriptor 2 (libpng's complaints) off the terminal: the
-    failure is reported once, as the one-line error."""
-    try:
-        sys.stderr.flush()
-        saved = os.dup(2)
-    except (OSError, ValueError):
-        yield
-        return
-    with tempfile.TemporaryFile() as sink:
-        os.dup2(sink.fileno(), 2)
-        try:
-            yield
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-
 
 def _load_target(path: str):
     from .target import load_target
@@ -125,54 +116,20 @@ def _det_dict(width: int, height: int, corners, blur) -> dict:
 
 
 def _write_json_atomic(path: str, data: dict) -> None:
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".tiltfit-", suffix=".json.tmp", dir=folder)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(data, f, indent=1, allow_nan=False)
-            f.write("\n")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    """Write JSON atomically with umask-respecting permissions (renderer.io.atomic_output)."""
+    from renderer.io import write_text
+
+    write_text(path, json.dumps(data, indent=1, allow_nan=False) + "\n")
 
 
 def _read_det(path: str, n_points: int) -> dict:
-    """Read and validate a DET.json for a target of n_points feature points."""
+    """Read and validate a DET.json for a target of n_points feature points (tiltfit.detfile)."""
+    from .detfile import DetFileError, read_det
+
     try:
-        with open(path, encoding="utf-8") as f:
-            det = json.load(f)
-    except json.JSONDecodeError as e:
-        raise CliError(path, f"not valid JSON (line {e.lineno}, column {e.colno}: {e.msg})") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise CliError(path, f"cannot read ({e})") from None
-    if not isinstance(det, dict):
-        raise CliError(path, "expected a JSON object (a detection file of `tiltfit detect`)")
-    for key in ("image_size_px", "corners_px", "blur_px"):
-        if key not in det:
-            raise CliError(path, f"{key}: missing key")
-    size = det["image_size_px"]
-    if not (isinstance(size, list) and len(size) == 2 and all(isinstance(s, int) and s > 0 for s in size)):
-        raise CliError(path, f"image_size_px: expected [width, height] in pixels, got {size!r}")
-    for key, per in (("corners_px", 2), ("blur_px", 1)):
-        vals = det[key]
-        if not isinstance(vals, list) or len(vals) != n_points:
-            raise CliError(path, f"{key}: expected a list of {n_points} entries (one per feature point), "
-                                 f"got {len(vals) if isinstance(vals, list) else type(vals).__name__}")
-        for i, v in enumerate(vals):
-            ok = v is None or (per == 1 and _is_num(v)) or (
-                per == 2 and isinstance(v, list) and len(v) == 2 and all(_is_num(x) for x in v))
-            if not ok:
-                raise CliError(path, f"{key}[{i}]: expected {'[x, y]' if per == 2 else 'a number'} or null, "
-                                     f"got {v!r}")
-    if not any(v is not None for v in det["corners_px"]):
-        raise CliError(path, "no board found")
-    return det
-
-
-def _is_num(x) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+        return read_det(path, n_points)
+    except DetFileError as e:
+        raise _as_cli_error(path, e) from None
 
 
 def _is_det_file(path: str) -> bool:
@@ -181,18 +138,39 @@ def _is_det_file(path: str) -> bool:
 
 # --- commands ----------------------------------------------------------------------------------------------
 
+def _check_output(path: str) -> None:
+    """Refuse, before any work, an output path that is a folder or lies under a file."""
+    if os.path.isdir(path):
+        raise CliError(path, "is a folder; give an output file name")
+    folder = os.path.dirname(os.path.abspath(path))
+    while not os.path.exists(folder) and os.path.dirname(folder) != folder:
+        folder = os.path.dirname(folder)
+    if not os.path.isdir(folder):
+        raise CliError(path, f"{folder} is not a folder")
+
+
 def cmd_detect(args) -> int:
+    import numpy as np
+
     say = _say(args.quiet)
+    _check_output(args.output)
     target = _load_target(args.target)
     t0 = time.perf_counter()
     det = _detect_image(args.image, target, args.encoding)
+    from .detfile import MIRRORED, describe_detection, mirrored
+
+    corners = [c if c is not None else [math.nan, math.nan] for c in det["corners_px"]]
+    if mirrored(np.array(corners, dtype=np.float64), target.feature_points()):
+        raise CliError(args.image, MIRRORED)
+
+    det = describe_detection(det, args.image, args.target, target)
     n = sum(v is not None for v in det["corners_px"])
     say(f"{args.image}: {n} of {len(det['corners_px'])} corners in {time.perf_counter() - t0:.1f} s")
     if det.get("message"):
         say(f"{args.image}: note: {det['message']}")
     try:
         _write_json_atomic(args.output, det)
-    except OSError as e:
+    except (OSError, ValueError) as e:
         raise CliError(args.output, f"cannot write ({e.strerror or e})") from None
     return 0
 
@@ -233,22 +211,44 @@ def _observations(args, target, say):
     if skipped and len(corners) < MIN_VIEWS_AFTER_SKIPPING:
         raise CliError(args.inputs[0], f"only {len(corners)} of {len(args.inputs)} images have a board "
                                        f"(at least {MIN_VIEWS_AFTER_SKIPPING} needed)")
+    _check_views(names, np.array(corners, dtype=np.float64), points)
     obs = Observations(points, np.array(corners, dtype=np.float64), np.array(blur, dtype=np.float64),
                        tuple(size), args.pixel_pitch_mm, names=names)
     obs.skipped = skipped
     return obs
 
 
+def _check_views(names: list[str], corners_px, points) -> None:
+    """Refuse views no calibration should use (tiltfit.detfile.check_view / check_views)."""
+    from .detfile import DetFileError, check_view, check_views
+
+    try:
+        for name, c in zip(names, corners_px):
+            check_view(name, c, points)
+        check_views(names, corners_px)
+    except DetFileError as e:
+        raise CliError(*str(e).split(": ", 1)) from None
+
+
+def _check_range(option: str, value, low_exclusive: float, high: float, what: str) -> None:
+    if not (math.isfinite(value) and low_exclusive < value <= high):
+        raise CliError(option, f"expected {what} in ({low_exclusive:g}, {high:g}], got {value}")
+
+
 def cmd_calibrate(args) -> int:
-    from .calibfile import calib_dict, camera_from_calib, read_calib, sigma_from_calib, write_calib
+    from .calibfile import calib_dict, camera_from_calib, read_calib, sigma_from_calib, validate_calib, write_calib
     from .fit import FitError, FitOptions, calibrate
 
     say = _say(args.quiet)
     t0 = time.perf_counter()
-    if not (math.isfinite(args.pixel_pitch_mm) and args.pixel_pitch_mm > 0):
-        raise CliError("--pixel-pitch-mm", f"expected a positive pixel pitch in mm, got {args.pixel_pitch_mm}")
-    if args.max_iterations < 1:
-        raise CliError("--max-iterations", f"expected at least 1, got {args.max_iterations}")
+    _check_output(args.output)
+    _check_range("--pixel-pitch-mm", args.pixel_pitch_mm, 0.0, MAX_PIXEL_PITCH_MM, "a pixel pitch in mm")
+    if args.focal_mm is not None:
+        _check_range("--focal-mm", args.focal_mm, 0.0, MAX_FOCAL_MM, "a focal length in mm")
+    if not 0 <= args.held_out <= MAX_HELD_OUT:
+        raise CliError("--held-out", f"expected 0 (off) to {MAX_HELD_OUT} folds, got {args.held_out}")
+    if not 1 <= args.max_iterations <= MAX_ITERATIONS:
+        raise CliError("--max-iterations", f"expected 1 to {MAX_ITERATIONS}, got {args.max_iterations}")
     if args.fit == "tilt" and not args.init:
         raise CliError("--init", "the tilt fit (stage 2) needs the stage-1 CALIB.json as --init")
     init = init_sigma = None
@@ -256,7 +256,11 @@ def cmd_calibrate(args) -> int:
         from .export import is_opencv_file, read_opencv
 
         try:
-            data = read_opencv(args.init, args.pixel_pitch_mm) if is_opencv_file(args.init) else read_calib(args.init)
+            if is_opencv_file(args.init):
+                with _quiet_c_stderr():  # OpenCV's parser prints its complaints before raising
+                    data = validate_calib(args.init, read_opencv(args.init, args.pixel_pitch_mm))
+            else:
+                data = read_calib(args.init)
             init = camera_from_calib(data, args.blur_model)
         except ValueError as e:
             raise _as_cli_error(args.init, e) from None
@@ -361,6 +365,7 @@ def cmd_export(args) -> int:
     from .calibfile import read_calib
     from .export import ExportError, write_opencv
 
+    _check_output(args.output)
     try:
         data = read_calib(args.calib)
     except ValueError as e:
@@ -383,6 +388,8 @@ def cmd_report(args) -> int:
     from .calibfile import read_calib
     from .report import write_report
 
+    if os.path.exists(args.output) and not os.path.isdir(args.output):
+        raise CliError(args.output, "not a folder")
     try:
         data = read_calib(args.calib)
     except ValueError as e:
@@ -478,20 +485,45 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
-    if argv and argv[0] == "reproduce":
-        return cmd_reproduce(argv[1:])
-    if argv and argv[0] == "stability":
-        return cmd_stability(argv[1:])
-    if argv and argv[0] == "target":
-        from . import target_cli
-
-        return target_cli.main(argv[1:])
-    args = build_parser().parse_args(argv)
+    previous = _interrupt_on_sigterm()
     try:
-        return args.func(args)
+        if argv and argv[0] == "reproduce":
+            return cmd_reproduce(argv[1:])
+        if argv and argv[0] == "stability":
+            return cmd_stability(argv[1:])
+        if argv and argv[0] == "target":
+            from . import target_cli
+
+            return target_cli.main(argv[1:])
+        args = build_parser().parse_args(argv)
+        with warnings.catch_warnings():
+            # numpy's floating-point warnings would print before the one-line error; failures are reported once.
+            warnings.simplefilter("ignore", RuntimeWarning)
+            return args.func(args)
     except CliError as e:
-        print(f"tiltfit: {e.file}: {e.problem}", file=sys.stderr)
+        print(f"tiltfit: {e.file}: {' '.join(e.problem.split())}", file=sys.stderr)
         return EXIT_ERROR
+    except MemoryError:
+        print("tiltfit: out of memory", file=sys.stderr)
+        return EXIT_ERROR
+    except KeyboardInterrupt:
+        print("tiltfit: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _interrupt_on_sigterm():
+    """SIGTERM ends the command like Ctrl-C (one line, exit 130); returns the old handler."""
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt
+
+    try:
+        return signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread
+        return None
 
 
 if __name__ == "__main__":

@@ -99,7 +99,7 @@ def read_opencv(path: str, pixel_pitch_mm: float | None = None) -> dict:
         raise ExportError(f"{path}: no such file")
     try:
         fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
-    except cv2.error:
+    except (cv2.error, SystemError):  # a parse error surfaces as either
         raise ExportError(f"{path}: not an OpenCV FileStorage file") from None
     if not fs.isOpened():
         raise ExportError(f"{path}: not an OpenCV FileStorage file")

@@ -6,7 +6,7 @@ point) and one pose per view. It answers two calls, both differentiable in every
     project(X_world, view) -> uv_px    uv = c + (w / p) · D(x / z, y / z),  (x, y, z) = R X + T
     blur(X_world, view)    -> b_px     blur-disc diameter b = w d |1/z_F − 1/z| / p     (eqs 2 and 4)
 
-Conventions (CONTRACTS.md): camera frame x right, y down, z forward; X_cam = R X_world + T;
+Conventions (docs/conventions.md): camera frame x right, y down, z forward; X_cam = R X_world + T;
 pixel (0, 0) is the centre of the top-left pixel and the principal point defaults to ((W−1)/2, (H−1)/2);
 the plane of focus is z = U + y tan θF in the camera frame; lengths in mm, angles in radians.
 D is the lens's Brown–Conrady distortion in OpenCV's order and normalisation

@@ -31,6 +31,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from renderer.validation import describe, is_finite_number, read_json
+
+# Stated limit for target files: at most this many edges per axis (200 × 200 feature points, detection's own
+# limit `tiltfit.detect.MAX_FEATURE_POINTS`), so an absurd file is refused when it is loaded. Real boards have tens.
+MAX_EDGES = 201
+# Edge positions and the margin, mm: beyond a kilometre is a unit mistake, not a target.
+MAX_MM = 1e6
+
 
 class TargetError(ValueError):
     """A bad target file or target description; the message is one line naming the file and the field."""
@@ -122,16 +130,16 @@ class Target:
 
     def save(self, path: str) -> None:
         """Write the target file (JSON)."""
-        with open(path, "w") as f:
-            json.dump(self.to_dict(), f, indent=1)
-            f.write("\n")
+        from renderer.io import write_text
+
+        write_text(path, json.dumps(self.to_dict(), indent=1) + "\n")
 
 
 def _edges_problem(edges) -> str | None:
     if len(edges) < 3:
         return "at least 3 edges (one interior intersection)"
-    if not all(math.isfinite(v) for v in edges):
-        return "finite numbers"
+    if not all(is_finite_number(v) and abs(v) <= MAX_MM for v in edges):
+        return f"finite numbers within ±{MAX_MM:g} mm"
     if any(b <= a for a, b in zip(edges, edges[1:])):
         return "strictly ascending values"
     return None
@@ -144,7 +152,8 @@ def target_from_dict(data, source: str = "<target>") -> Target:
     """Validate a target description (the parsed JSON) and build the Target; errors name `source` and field."""
 
     def fail(field, expected, got):
-        raise TargetError(f"{source}: {field}: expected {expected}, got {got!r}")
+        shown = describe(got) if not isinstance(got, list) or len(got) <= 12 else f"a list of {len(got)} values"
+        raise TargetError(f"{source}: {field}: expected {expected}, got {shown}")
 
     if not isinstance(data, dict):
         raise TargetError(f"{source}: expected a JSON object, got {type(data).__name__}")
@@ -163,16 +172,16 @@ def target_from_dict(data, source: str = "<target>") -> Target:
         v = data[key]
         if not isinstance(v, list) or not all(_is_number(e) for e in v):
             fail(key, "a list of numbers (mm)", v)
-        problem = _edges_problem(v)
+        problem = _edges_problem(v) or (f"at most {MAX_EDGES} edges" if len(v) > MAX_EDGES else None)
         if problem:
             fail(key, problem, v)
         edges[key] = v
     dark = data.get("dark_cell", [0, 0])
     if (not isinstance(dark, list) or len(dark) != 2
-            or not all(_is_number(e) and float(e) == int(e) for e in dark)):
+            or not all(is_finite_number(e) and float(e) == int(e) and abs(e) < 2**31 for e in dark)):
         fail("dark_cell", "[column, row] integers", dark)
     margin = data.get("margin", 25.0)
-    if not _is_number(margin) or not math.isfinite(margin) or margin < 0:
+    if not is_finite_number(margin) or not 0 <= margin <= MAX_MM:
         fail("margin", "a non-negative number of mm", margin)
     return Target(tuple(edges["x_edges"]), tuple(edges["y_edges"]), (int(dark[0]), int(dark[1])), float(margin))
 
@@ -183,16 +192,9 @@ def _is_number(x) -> bool:
 
 def load_target(path: str) -> Target:
     """Read and validate a target file; raises TargetError with a one-line message naming file and field."""
-    if not os.path.isfile(path):
+    if not os.path.exists(path):
         raise TargetError(f"{path}: no such file")
-    try:
-        with open(path) as f:
-            data = json.load(f)
-    except json.JSONDecodeError as e:
-        raise TargetError(f"{path}: not valid JSON (line {e.lineno}, column {e.colno}: {e.msg})") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise TargetError(f"{path}: cannot read ({e})") from None
-    return target_from_dict(data, path)
+    return target_from_dict(read_json(path, TargetError, "target file"), path)
 
 
 # --- design ------------------------------------------------------------------------------------------------

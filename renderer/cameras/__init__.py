@@ -44,6 +44,9 @@ def build_camera(path: str, cfg: dict, width: int, height: int) -> Camera:
         raise SceneError(f"{path}.type: unknown camera {kind!r} (expected one of: {', '.join(sorted(CAMERAS))})")
     params, cls = CAMERAS[kind]
     parsed = parse_params(path, cfg, POSE_PARAMS + params, ignore=("type",))
+    if parsed["position"] == parsed["look_at"]:
+        raise SceneError(f"{path}.look_at: equals camera.position {list(parsed['position'])}, so there is no "
+                         "viewing direction")
     try:
         transform = CameraTransform.look_at(parsed["position"], parsed["look_at"], parsed["up"])
     except ValueError as e:

@@ -29,6 +29,7 @@ from __future__ import annotations
 import torch
 
 from ..transforms import euler_xyz_deg
+from ..validation import FLOAT32_MAX
 from .base import INF, ParameterError, Shape
 from .polyhedron import coordinates_across
 
@@ -65,6 +66,8 @@ def load_obj(path: str) -> tuple[torch.Tensor, torch.Tensor]:
                 raise bad("expected numbers after 'v'") from None
             if len(xyz) != 3:
                 raise bad("expected 3 coordinates after 'v'")
+            if not all(abs(c) <= FLOAT32_MAX for c in xyz):  # NaN fails too
+                raise bad("a vertex coordinate is NaN, infinite or beyond float32's range")
             vertices.append(xyz)
         elif words[0] == "f":
             if len(words) < 4:

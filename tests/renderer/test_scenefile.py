@@ -126,7 +126,7 @@ def test_bad_json_names_line_and_column(tmp_path):
     file = write_scene(tmp_path, '{\n  "image": {"width": 8,, "height": 6}\n}')
     message = error_of(file)
     assert message.startswith(f"{file}:2:"), f"expected file:line:col, got {message!r}"
-    assert "invalid JSON" in message, message
+    assert "not valid JSON" in message, message
 
 
 def test_missing_file_is_one_line(tmp_path):

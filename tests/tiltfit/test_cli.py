@@ -219,6 +219,7 @@ def test_python_m_tiltfit(files):
 @pytest.mark.slow
 def test_end_to_end_on_rendered_images(tmp_path, capfd):
     """Render target photographs (tiltfit.synth), then `tiltfit calibrate` them: detection + fit."""
+    from renderer.io import srgb_to_linear
     from tiltfit.synth import PAPER_CAMERA, pose_from_axis_angle, render_view
     from tiltfit.target import design_target
 
@@ -232,7 +233,8 @@ def test_end_to_end_on_rendered_images(tmp_path, capfd):
         R, Tv = pose_from_axis_angle(rvec[v].numpy(), T[v].numpy())
         view = render_view(target, cam, R, Tv, noise_sigma=0.003, srgb8=True, seed=v)
         path = str(tmp_path / f"view{v}.png")
-        write_image(path, view.image_srgb8.astype("float32") / 255.0, encoding="linear")
+        # sRGB codes stored as they are: decoded to linear here, encoded back to the same codes by write_image.
+        write_image(path, srgb_to_linear(view.image_srgb8 / 255.0))
         images.append(path)
     out = tmp_path / "calib.json"
     rc, _, err = run_cli(["calibrate", *images, "--target", target_file, "--pixel-pitch-mm", cam.pixel_pitch_mm,

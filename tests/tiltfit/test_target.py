@@ -82,7 +82,7 @@ def test_load_target_errors_name_file_and_field(tmp_path, change, field):
 def test_load_target_bad_json_and_missing_file(tmp_path):
     path = tmp_path / "broken.json"
     path.write_text("{\"type\": ")
-    with pytest.raises(TargetError, match="broken.json: not valid JSON"):
+    with pytest.raises(TargetError, match=r"broken.json:1:\d+: not valid JSON"):
         load_target(str(path))
     with pytest.raises(TargetError, match="no such file"):
         load_target(str(tmp_path / "absent.json"))

@@ -1,0 +1,143 @@
+"""Build docs/file_formats.md and docs/schemas/*.json from the code's own declarations.
+
+    python -m tiltfit.formats [--check]
+
+The scene part comes from `renderer.formats` (the validator's `Param` tables); the target, DET and CALIB parts
+from the constants the readers use (`tiltfit.target`, `tiltfit.detfile`, `tiltfit.calibfile`). `--check` exits
+1 when the committed files differ from a fresh build (the test suite runs the same comparison).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+from renderer.formats import SCHEMA_DIALECT, scene_reference, scene_schema
+from renderer.validation import MAX_JSON_DEPTH
+
+from . import calibfile, detfile, target
+
+DOCS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "docs")
+
+TARGET_FIELDS = [
+    ("type", "string", "required", '"checkerboard"'),
+    ("units", "string", '"mm"', '"mm" (the only unit)'),
+    ("x_edges", "list of numbers", "required", f"ascending column boundaries, mm; 3 to {target.MAX_EDGES} values "
+                                               f"within ±{target.MAX_MM:g}"),
+    ("y_edges", "list of numbers", "required", "ascending row boundaries, mm; as `x_edges`"),
+    ("dark_cell", "[int, int]", "[0, 0]", "a (column, row) cell that is dark; only the parity of the sum matters"),
+    ("margin", "number", "25", f"white border around the checkered area, mm, 0 to {target.MAX_MM:g}"),
+    ("name, description", "string", "—", "free text"),
+]
+
+DET_FIELDS = [
+    ("image_size_px", "[int, int]", "required", f"[width, height], pixels, each 1 to {detfile.MAX_IMAGE_SIDE}"),
+    ("corners_px", "list of [x, y] or null", "required", "one per feature point (target order); "
+                                                         + detfile.UNITS["corners_px"] + "; inside the image"),
+    ("blur_px", "list of numbers or null", "required", "one per feature point; " + detfile.UNITS["blur_px"]
+     + "; 0 to the image diagonal (negative widths are refused)"),
+    ("grid_found", "bool", "—", "the board was found and indexed without ambiguity"),
+    ("format_version", "int", str(detfile.DET_FORMAT_VERSION), "refused when newer than this tiltfit's"),
+    ("image", "string", "—", "the image the corners were found in"),
+    ("target", "object", "—", "`{file, n_points, x_edges_count, y_edges_count}` of the target used"),
+    ("units", "object", "—", "what each array holds and in which unit (the texts above)"),
+    ("created", "string", "—", "UTC date and time, ISO 8601"),
+    ("software", "string", "—", '"tiltfit <version>"'),
+]
+
+
+def _table(rows) -> str:
+    out = ["| key | kind | default | meaning |", "|---|---|---|---|"]
+    out += [f"| `{k}` | {kind} | {d} | {m} |" for k, kind, d, m in rows]
+    return "\n".join(out)
+
+
+def calibration_reference() -> str:
+    """Markdown reference of the target, DET and CALIB files and of what reading them checks."""
+    return "\n".join([
+        "## Target files (`--target T.json`)", "", _table(TARGET_FIELDS), "",
+        "Unknown keys are refused. Feature points are the interior intersections, row by row.", "",
+        "## Detection files (`tiltfit detect -o DET.json`)", "", _table(DET_FIELDS), "",
+        "Checks when `tiltfit calibrate` reads DET files (or detects images): every number finite; each view has at "
+        "least 4 corners that do not lie on one line (in the image or on the target); no view repeats another's "
+        "detections (a copy would shrink σ as if it were new evidence); no view is a mirror image of the target "
+        "(a flipped photo, or the board seen from behind).", "",
+        "## Calibration files (`tiltfit calibrate -o CALIB.json`, `--init`)", "",
+        "Keys: " + ", ".join(f"`{k}`" for k in calibfile.REQUIRED_KEYS) + "; each view: "
+        + ", ".join(f"`{k}`" for k in calibfile.VIEW_KEYS) + "; `sigma`: "
+        + ", ".join(f"`{k}`" for k in calibfile.SIGMA_KEYS) + " (one standard deviation). Lengths in mm, angles in "
+        "degrees, pixels as in the DET file. Non-finite values are written as null.", "",
+        "Checks when reading (`--init`): `pixel_pitch_mm`, `w_mm`, `U_mm`, `d_mm` positive and at most "
+        f"{calibfile.MAX_LENGTH_MM:g} mm; `image_size_px` two integers 1 to {1 << 17}; `principal_point_px` within one "
+        "image size of the image; `|theta_F_deg| < 90`; each view's `R` a rotation (orthonormal, determinant +1, "
+        f"finite) and `T_mm` within ±{calibfile.MAX_LENGTH_MM:g} mm.", "",
+        "## Every JSON file", "",
+        f"UTF-8 (UTF-16/32, other encodings and image bytes are refused by name), nested at most {MAX_JSON_DEPTH} "
+        "levels, numbers finite. Each refusal is one line `tiltfit: <file>: <field>: <problem>`, exit status 2; "
+        "an interrupt prints `tiltfit: interrupted`, exit status 130. Outputs are written atomically with "
+        "permissions 0666 minus the umask.", ""])
+
+
+def target_schema() -> dict:
+    edges = {"type": "array", "items": {"type": "number", "minimum": -target.MAX_MM, "maximum": target.MAX_MM},
+             "minItems": 3, "maxItems": target.MAX_EDGES}
+    return {"$schema": SCHEMA_DIALECT, "title": "tiltfit target file", "type": "object",
+            "properties": {"type": {"const": "checkerboard"}, "units": {"const": "mm"}, "x_edges": edges,
+                           "y_edges": edges, "dark_cell": {"type": "array", "items": {"type": "integer"},
+                                                           "minItems": 2, "maxItems": 2},
+                           "margin": {"type": "number", "minimum": 0, "maximum": target.MAX_MM},
+                           "name": {"type": "string"}, "description": {"type": "string"}},
+            "required": ["type", "x_edges", "y_edges"], "additionalProperties": False}
+
+
+def det_schema() -> dict:
+    side = {"type": "integer", "minimum": 1, "maximum": detfile.MAX_IMAGE_SIDE}
+    corner = {"oneOf": [{"type": "null"}, {"type": "array", "items": {"type": "number"}, "minItems": 2,
+                                           "maxItems": 2}]}
+    return {"$schema": SCHEMA_DIALECT, "title": "tiltfit detection file", "type": "object",
+            "properties": {"image_size_px": {"type": "array", "items": side, "minItems": 2, "maxItems": 2},
+                           "corners_px": {"type": "array", "items": corner},
+                           "blur_px": {"type": "array", "items": {"oneOf": [{"type": "null"},
+                                                                            {"type": "number", "minimum": 0}]}},
+                           "grid_found": {"type": "boolean"},
+                           "format_version": {"type": "integer", "minimum": 1,
+                                              "maximum": detfile.DET_FORMAT_VERSION}},
+            "required": ["image_size_px", "corners_px", "blur_px"]}
+
+
+def build() -> dict[str, str]:
+    """{path relative to docs/: content} of every generated file."""
+    head = ("# File formats\n\n"
+            "Generated by `python -m tiltfit.formats` from the validators' own declarations; do not edit by hand "
+            "(tests fail when this file and the code disagree). Conventions (frames, units, pixels): "
+            "[conventions.md](conventions.md).\n\n")
+    schemas = {"scene": scene_schema(), "target": target_schema(), "det": det_schema()}
+    out = {"file_formats.md": head + scene_reference() + "\n" + calibration_reference()}
+    for name, schema in schemas.items():
+        out[f"schemas/{name}.schema.json"] = json.dumps(schema, indent=1, ensure_ascii=False) + "\n"
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m tiltfit.formats", description=__doc__.splitlines()[0])
+    ap.add_argument("--check", action="store_true", help="exit 1 when the committed files are out of date")
+    args = ap.parse_args(argv)
+    stale = []
+    for rel, text in build().items():
+        path = os.path.join(DOCS, rel)
+        current = open(path, encoding="utf-8").read() if os.path.isfile(path) else None
+        if current != text:
+            stale.append(rel)
+            if not args.check:
+                os.makedirs(os.path.dirname(path), exist_ok=True)
+                with open(path, "w", encoding="utf-8") as f:
+                    f.write(text)
+    if args.check and stale:
+        print("out of date (run python -m tiltfit.formats): " + ", ".join(stale), file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

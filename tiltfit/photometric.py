@@ -23,7 +23,7 @@ e_j and z = (X − e_j)/σ give A = E[inside] and B = E[inside · s] (s = ±1 th
 Gaussian of standard deviation σ; the dark fraction is D = ½ (A_x A_y + p B_x B_y) with p the parity of
 `dark_cell`. σ along X and along Y match the variance of the pixel's box footprint on the board (from the
 local Jacobian of the chief-ray map), so the pixel's area adds the blur a box filter adds. The lens samples
-are a fixed Hammersley set whose aperture is scaled so their second moment is the disc's.
+are a fixed polar grid, symmetric on the aperture, with the disc's second moment, traced from 2 x 2 sub-pixels.
 
 Parameters fitted (Levenberg–Marquardt with Huber weights, Jacobians by forward-mode autodiff, one view
 block at a time): w, 1/U (so U = ∞ is an ordinary value), d, θF, vignetting v, and per view the pose
@@ -61,7 +61,8 @@ class PhotometricOptions:
     """How the refinement runs.
 
     Attributes:
-        lens_samples: fixed lens samples per pixel [32], each traced from 4 sub-pixel centres (a symmetrised Hammersley set on the aperture).
+        lens_samples: fixed lens samples per pixel [32] (a symmetric polar grid on the aperture), each traced
+            from the pixel's 4 sub-pixel centres.
         max_pixels: pixels used per view [4000], chosen where the image carries information (edges), plus
             a share of flat pixels for the exposure levels.
         iterations: Levenberg–Marquardt iterations at most [30].

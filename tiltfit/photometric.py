@@ -226,8 +226,8 @@ def render_target(target: Target, sensor: SensorGeometry, uv_px: torch.Tensor, l
         (N,) linear intensities (the model of the module docstring). 1/U must be > 0 here (a finite U);
         `refine_photometric` keeps it so.
     """
-    # A finite sample set under-fills the disc's second moment (64 Hammersley points: 2.3 % low), which
-    # would bias d by about half that: scale the aperture so the samples' E|s|² is the disc's, r²/2.
+    # A sample set whose E|s|² is not the disc's r²/2 would bias d by half the difference: the polar grid
+    # has it exactly, any other set given here is rescaled to it.
     m2 = float((concentric_disk(lens_uv) ** 2).sum(-1).mean())
     fill = math.sqrt(0.5 / m2) if m2 > 0 else 1.0   # a lone central sample: a pinhole, nothing to fill
     cam = lens_camera(sensor, w_mm, inv_U_per_m, d_mm * fill, theta_F, rvec, T_mm)

@@ -118,7 +118,7 @@ def main(argv=None) -> int:
             start_name = "corner fit"
         else:
             start, start_name = rough_start(poses, truth), "rough start"
-        n_samples = 32 if truth["blur_px"] < 15 else 64
+        n_samples = 64
         t0 = time.perf_counter()
         ph = refine_photometric(images, BOARD, start, truth["pitch"],
                                 PhotometricOptions(lens_samples=n_samples, max_pixels=1500))

@@ -125,16 +125,18 @@ def test_photometric_fit_recovers_a_tilted_lens_from_ray_traced_photographs():
     images, poses, truth = _captures(U0_mm=760.0)
     assert float(np.median(truth["blur_px"])) > 10, "heavy blur: discs of 4-14 px, median over 10 px"
     res = refine_photometric(images, BOARD, _perturbed_init(poses, truth), truth["pitch"],
-                             PhotometricOptions(lens_samples=32, max_pixels=1500))
+                             PhotometricOptions(lens_samples=64, max_pixels=1500))
     v, sg = res.values, res.sigma
     # 1500 pixels per view at 342 x 228 give σ(θL) about 0.02°: the error is checked against σ and in degrees.
     err_L = v["theta_L_deg"] - THETA_L_DEG
     assert abs(err_L) <= 3 * sg["theta_L_deg"] and abs(err_L) <= 0.06, \
         f"θL {v['theta_L_deg']:.4f}° vs {THETA_L_DEG}° (σ {sg['theta_L_deg']:.4f}°; started 0.1° off)"
     assert 0.002 < sg["theta_L_deg"] < 0.05, f"σ(θL) {sg['theta_L_deg']:.4f}° is implausible"
-    assert abs(v["U_mm"] / truth["U_mm"] - 1) <= 3e-3, f"U {v['U_mm']:.2f} vs {truth['U_mm']:.2f} mm"
-    assert abs(v["d_mm"] / D_MM - 1) <= 5e-3, f"d {v['d_mm']:.3f} vs {D_MM} mm"
-    assert abs(v["w_mm"] / W_MM - 1) <= 2e-3, f"w {v['w_mm']:.3f} vs {W_MM} mm"
+    assert 0.01 < sg["d_mm"] / D_MM * 100 < 1.0, f"σ(d) {sg['d_mm']:.4f} mm is implausible"
+    for key, true, bound in (("U_mm", truth["U_mm"], 3e-3), ("d_mm", D_MM, 1e-2), ("w_mm", W_MM, 2e-3)):
+        err = v[key] - true
+        assert abs(err) <= 3 * sg[key] and abs(err) <= bound * true, \
+            f"{key} {v[key]:.3f} vs {true:.3f} ({err / sg[key]:+.1f} σ, bound {bound:.1%})"
     # The residual is the photographs' noise (0.003 sensor + Monte Carlo at 64 spp), not a misfit.
     assert res.rms < 0.025, f"photometric RMS {res.rms:.4f}"
     for (R, T), view in zip(poses, res.views):
@@ -153,7 +155,7 @@ def test_photometric_fit_converges_where_blur_exceeds_the_square():
     # Start far off (θL +0.3°, U +3 %, d −9 %, w +0.9 %).
     start = _perturbed_init(poses, truth, d_mm=d_mm, scale=3.0)
     res = refine_photometric(images, SMALL_BOARD, start, truth["pitch"],
-                             PhotometricOptions(lens_samples=48, max_pixels=1200))
+                             PhotometricOptions(lens_samples=64, max_pixels=1200))
     v, sg = res.values, res.sigma
     start_L = math.degrees(float(optics.theta_L_from_theta_F(math.radians(start["theta_F_deg"]), start["w_mm"],
                                                               start["U_mm"])))
@@ -185,7 +187,7 @@ def test_calibrate_refine_photometric_on_the_command_line(tmp_path):
     U, d = 700.0, 30.0
     cam = synth.SynthCamera(W_MM, U, d, pitch, w_px, h_px, 0.0)
     paths = []
-    for k, i in enumerate((0, 1, 2, 4)):
+    for k, i in enumerate((0, 1, 2)):
         R, T = reproduce.target_pose(BOARD, *reproduce.TARGET_VIEWS[i])
         view = synth.render_view(BOARD, cam, R, T, noise_sigma=0.002, seed=k)
         paths.append(str(tmp_path / f"view{k}.exr"))

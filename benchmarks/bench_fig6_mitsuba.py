@@ -32,11 +32,9 @@ import time
 import numpy as np
 import torch
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from mitsuba_export import load_mitsuba, to_mitsuba  # noqa: E402
-
-from renderer import render  # noqa: E402
-from renderer.scenefile import load_scene  # noqa: E402
+from renderer import render
+from renderer.mitsuba import load_mitsuba, to_mitsuba
+from renderer.scenefile import load_scene
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCENE = os.path.join(ROOT, "renderer", "scenes", "fig6.json")

@@ -1,6 +1,7 @@
 """Where the time of one render goes: per-stage wall time and torch kernel counts on the issue-11 speed scene.
 
-Wraps the render loop's stages with timers (inclusive times; the nesting is shown by indentation in the
+Wraps the render loop's stages with CPU-time timers (process time, less disturbed than wall time by other
+programs on the cores; inclusive times; the nesting is shown by indentation in the
 report) and counts the torch operator calls per stage with torch.profiler. One torch thread, warm (one
 render first), median of `--repeats`.
 
@@ -20,7 +21,7 @@ import torch
 
 import importlib
 
-from renderer import integrator
+from renderer import direct, integrator
 from renderer.scene import Scene
 from renderer.scenefile import load_scene
 
@@ -39,11 +40,11 @@ def _wrap(owner, name: str, label: str):
 
     def timed(*args, **kwargs):
         _STACK.append(label)
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         try:
             return fn(*args, **kwargs)
         finally:
-            _TIMES[" / ".join(_STACK)] += time.perf_counter() - t0
+            _TIMES[" / ".join(_STACK)] += time.process_time() - t0
             _CALLS[" / ".join(_STACK)] += 1
             _STACK.pop()
 
@@ -59,6 +60,10 @@ def instrument(scene):
         _wrap(cam, "generate_rays", "ray generation")
     _wrap(render_mod, "trace", "trace")
     _wrap(Scene, "intersect", "intersect")
+    _wrap(Scene, "intersect_rows", "intersect (3, N)")
+    _wrap(Scene, "visibility_rows", "shadow rays (3, N)")
+    _wrap(direct.NormalTables, "normals", "normals (3, N)")
+    _wrap(integrator.direct, "trace_direct", "direct-light fast path")
     _wrap(Scene, "shadow", "shadow rays")
     _wrap(Scene, "_packets", "packet culling")
     _wrap(integrator, "_group_by_object", "group hits by object")
@@ -87,22 +92,22 @@ def main(argv=None):
     render_mod.render(scene, **kwargs)
     plain = []
     for _ in range(args.repeats):
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         render_mod.render(scene, **kwargs)
-        plain.append(time.perf_counter() - t0)
+        plain.append(time.process_time() - t0)
     instrument(scene)
     _TIMES.clear()
     _CALLS.clear()
-    t0 = time.perf_counter()
+    t0 = time.process_time()
     render_mod.render(scene, **kwargs)
-    total = time.perf_counter() - t0
+    total = time.process_time() - t0
     times, calls = dict(_TIMES), dict(_CALLS)
     with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
         render_mod.render(scene, **kwargs)
     ops = sum(e.count for e in prof.key_averages() if e.key.startswith("aten::"))
     W, H, spp = scene.camera.width, scene.camera.height, scene.image.spp if "spp" not in kwargs else kwargs["spp"]
     rays = W * H * spp
-    print(f"render {W}x{H}x{spp}, kwargs {kwargs}: median {statistics.median(plain):.3f} s "
+    print(f"render {W}x{H}x{spp}, kwargs {kwargs}: median CPU {statistics.median(plain):.3f} s "
           f"({rays / statistics.median(plain) / 1e6:.2f} M camera rays/s); instrumented {total:.3f} s; "
           f"{ops} aten calls per render")
     print("| stage (inclusive; nested under /) | s | % of render | ns per camera ray | calls |")

@@ -12,6 +12,7 @@ import math
 
 import torch
 
+from . import direct
 from .rays import normalize
 from .scene import Scene, TraceOptions, compiled_call
 
@@ -171,6 +172,8 @@ def trace(scene: Scene, o: torch.Tensor, d: torch.Tensor, first_hit_objects: lis
     radiance = torch.zeros(n_rays, 3, dtype=o.dtype, device=o.device)
     background = torch.tensor(scene.image.background, dtype=o.dtype, device=o.device)
     table = scene.materials(o)
+    if direct.applies(scene, options, table):
+        return direct.trace_direct(scene, o, d, first_hit_objects, table, options)
     bounces = bool(((table.reflect > 0) | (table.transmit > 0)).any())
     pix = None  # pixel (index into the N input rays) of each ray in the batch; None: the identity
     thr = None  # path throughput of each ray; None: all ones (primary rays)

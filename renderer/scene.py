@@ -52,11 +52,14 @@ class TraceOptions:
             arithmetic through torch.compile, any batch size; falls back to eager with a warning where
             compiling fails [False]. Costs tens of seconds of compilation on first use in a process (much
             of it cached on disk by torch between runs); pays for renders of a few million rays or more.
+        fast_paths: eager tracing only: scenes that only need direct light from point and ambient lights
+            take `renderer.direct.trace_direct` on (3, N) rows [True]; False forces the general integrator.
     """
 
     culling: bool = True
     packet_size: int = 64
     compile: bool = False
+    fast_paths: bool = True
 
 
 @dataclass
@@ -262,10 +265,11 @@ class Scene:
         options = self.options if options is None else options
         return self._compiled(k, _surface_of, options, (p, aux))
 
-    def _packets(self, o, d, t_max, options: TraceOptions, object_mask, skip=None):
+    def _packets(self, o, d, t_max, options: TraceOptions, object_mask, skip=None, rows: bool = False):
         """Split the batch into packets and decide which objects each packet must test.
 
         Args:
+            o, d: (N, 3) origins and directions, or (3, N) component rows with `rows` (eager only).
             skip: optional (N,) object id (−1 for none) that each ray cannot meet (see `self_shadow_free`);
                 a packet whose rays all skip the same object does not test it.
         Returns:
@@ -274,12 +278,16 @@ class Scene:
             and plan = [(k, sel)] for every object k to test, sel the (m,) packet indices or None for all
             packets.
         """
-        n = o.shape[0]
+        n = o.shape[1] if rows else o.shape[0]
         P = max(1, int(options.packet_size)) if options.culling else 1
         pad = (-n) % P
-        if pad:  # repeat the last ray: it does not widen the last packet's bounds
+        if pad and rows:
+            o = torch.cat([o, o[:, -1:].expand(3, pad)], 1)
+            d = torch.cat([d, d[:, -1:].expand(3, pad)], 1)
+        elif pad:  # repeat the last ray: it does not widen the last packet's bounds
             o = torch.cat([o, o[-1:].expand(pad, 3)])
             d = torch.cat([d, d[-1:].expand(pad, 3)])
+        if pad:
             if t_max is not None:
                 t_max = torch.cat([t_max, t_max[-1:].expand(pad)])
             if skip is not None:
@@ -287,6 +295,8 @@ class Scene:
         t_p = None if t_max is None else t_max.view(-1, P)
         if options.compile:
             o_p, d_p = o.reshape(-1, P, 3), d.reshape(-1, P, 3)
+        elif rows:
+            o_p, d_p = o.view(3, -1, P), d.view(3, -1, P)
         else:  # (3, B, P) component rows: see `Shape.intersect_soa`
             o_p, d_p = _components(o).view(3, -1, P), _components(d).view(3, -1, P)
         n_packets = o_p.shape[0 if options.compile else 1]
@@ -357,6 +367,40 @@ class Scene:
                 for dst, src in zip((t_best, obj, aux), rows):
                     dst.index_copy_(0, sel, src)
         return Hit(t_best.view(-1)[:n], obj.view(-1)[:n], aux.view(-1)[:n])
+
+    def intersect_rows(self, o: torch.Tensor, d: torch.Tensor, object_mask: list[bool] | None = None, *,
+                       options: TraceOptions | None = None) -> Hit:
+        """`intersect` for (3, N) component rows o, d (eager tracing; see `Shape.intersect_soa`)."""
+        options = self.options if options is None else options
+        n = o.shape[1]
+        o_p, d_p, _, plan = self._packets(o, d, None, options, object_mask, rows=True)
+        t_best = torch.full(o_p.shape[1:], float("inf"), dtype=o.dtype, device=o.device)
+        obj = torch.full(o_p.shape[1:], -1, dtype=torch.long, device=o.device)
+        aux = torch.zeros(o_p.shape[1:], dtype=torch.long, device=o.device)
+        for k, sel in plan:
+            rows = _nearest_eager(self.objects[k].shape, o_p, d_p, sel, self.ray_epsilon, t_best, obj, aux, k)
+            if sel is None:
+                t_best, obj, aux = rows
+            else:
+                for dst, src in zip((t_best, obj, aux), rows):
+                    dst.index_copy_(0, sel, src)
+        return Hit(t_best.view(-1)[:n], obj.view(-1)[:n], aux.view(-1)[:n])
+
+    def visibility_rows(self, o: torch.Tensor, d: torch.Tensor, t_max: torch.Tensor, *,
+                        options: TraceOptions | None = None, leaving: torch.Tensor | None = None) -> torch.Tensor:
+        """(N,) 1 where nothing opaque lies on o + t·d for t in (ε, t_max), else 0; o, d (3, N) component
+        rows. Every object must be opaque (see `shadow` for transparent ones)."""
+        options = self.options if options is None else options
+        n = o.shape[1]
+        o_p, d_p, t_p, plan = self._packets(o, d, t_max, options, None, leaving, rows=True)
+        vis = torch.ones(o_p.shape[1:], dtype=o.dtype, device=o.device)
+        for k, sel in plan:
+            rows = _blocked_eager(self.objects[k].shape, o_p, d_p, sel, self.ray_epsilon, t_p, vis, None)
+            if sel is None:
+                vis = rows
+            else:
+                vis.index_copy_(0, sel, rows)
+        return vis.view(-1)[:n]
 
     def transmittance(self, o: torch.Tensor, d: torch.Tensor, t_max: torch.Tensor, *,
                       options: TraceOptions | None = None) -> torch.Tensor:
@@ -445,13 +489,16 @@ def candidates_from_bounds(o_lo, o_hi, d_lo, d_hi, centers, radii, t_max=None) -
     theta = torch.where(spread < length, torch.asin((spread / length.clamp_min(1e-30)).clamp(max=1.0)),
                         torch.full_like(length, math.pi))
     axis = axis / length.clamp_min(1e-30)[:, None]
-    v = centers[None] - o_c[:, None]  # (B, K, 3)
+    # v = centre − o_c per packet and sphere, (B, K) per component: (B, K, 3) norms and cross products
+    # are slow in eager torch.
+    vx, vy, vz = (centers[:, i][None] - o_c[:, i, None] for i in range(3))
+    ax, ay, az = (axis[:, i, None] for i in range(3))
     if t_max is not None:
         t_max = t_max.amax(1)
-    dist = torch.linalg.vector_norm(v, dim=-1)
+    dist = (vx * vx + vy * vy + vz * vz).sqrt()
     reach = radii * (1 + _RADIUS_SLACK) + rho[:, None]
-    phi = torch.atan2(torch.linalg.vector_norm(torch.linalg.cross(v, axis[:, None].expand_as(v)), dim=-1),
-                      (v * axis[:, None]).sum(-1))
+    cx, cy, cz = vy * az - vz * ay, vz * ax - vx * az, vx * ay - vy * ax
+    phi = torch.atan2((cx * cx + cy * cy + cz * cz).sqrt(), vx * ax + vy * ay + vz * az)
     alpha = torch.asin((reach / dist.clamp_min(1e-30)).clamp(max=1.0))
     ok = (dist <= reach) | (phi <= theta[:, None] + alpha + _ANGLE_SLACK)
     if t_max is not None:

@@ -12,7 +12,8 @@ Two optional fast paths, same results (tests/renderer/test_fast_paths.py):
   element-wise operations on (N,) rows several times faster than on (N, 3) rows, whose length-3 last axis
   defeats its vectorised loops. Shapes with `soa_native = True` implement it (and `intersect` calls it,
   keeping their former (N, 3) code as `intersect_reference`); the default transposes;
-- `normal_at(p, aux)` -> (N, 3): the normal alone, for untextured objects (no texture coordinates computed).
+- `normal_at(p, aux)` -> (N, 3): the normal alone, for untextured objects (no texture coordinates computed);
+  shapes with `soa_native` also have `normal_rows(p, aux)` for (3, N) rows (renderer/direct.py).
 Shapes keep their parameters in float64 and convert them once per device/dtype (`_param`). A bad
 parameter raises `ParameterError` naming it; `build_shape` prefixes the scene-file path.
 """

@@ -72,6 +72,13 @@ class Box(PlacedShape):
         hit = (t_in <= t_out) & (t > t_min) & (t < INF)
         return torch.where(hit, t, INF), torch.where(hit, torch.where(use_in, face_in, face_out), 0)
 
+    def normal_rows(self, p, aux):
+        """(3, N) outward normals at hit points given as (3, N) component rows, from the face index aux."""
+        axis, sign = aux // 2, (2 * (aux % 2) - 1).to(p.dtype)
+        zero = torch.zeros((), dtype=p.dtype, device=p.device)
+        n = torch.stack([torch.where(axis == a, sign, zero) for a in range(3)])
+        return n if self.axis_aligned else self._param("world_from_local", p) @ n
+
     def normal_at(self, p, aux):
         axis, side = aux // 2, aux % 2
         normal_local = torch.zeros_like(p)

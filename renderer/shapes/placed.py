@@ -42,6 +42,11 @@ class PlacedShape(Shape):
         R = self._param("local_from_world", o)
         return R @ o, R @ d
 
+    def _points_to_local_soa(self, p: torch.Tensor) -> torch.Tensor:
+        """(3, N) world points -> (3, N) local points."""
+        p = p - self._param("origin_column", p)
+        return p if self.axis_aligned else self._param("local_from_world", p) @ p
+
     def _points_to_local(self, p: torch.Tensor) -> torch.Tensor:
         return (p - self._param("origin", p)) @ self._param("world_from_local", p)
 

@@ -46,6 +46,10 @@ class Plane(Shape):
         t = num / torch.where(flat, denom, 1e-12)
         return torch.where((t > t_min) & flat, t, INF), torch.zeros(o.shape[1], dtype=torch.long, device=o.device)
 
+    def normal_rows(self, p, aux):
+        """(3, N) normals (the constant one) at hit points given as (3, N) component rows."""
+        return self._param("normal", p)[:, None].expand_as(p)
+
     def normal_at(self, p, aux):
         return self._param("normal", p).expand_as(p)
 

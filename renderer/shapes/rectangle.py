@@ -61,6 +61,14 @@ class Rectangle(PlacedShape):
         hit = inside & ~parallel & (t > t_min)
         return torch.where(hit, t, INF), torch.zeros(o.shape[1], dtype=torch.long, device=o.device)
 
+    def uv_rows(self, p, aux):
+        """(2, N) texture coordinates (as `surface`) at hit points given as (3, N) component rows."""
+        return self._points_to_local_soa(p)[:2] + self._param("half", p)[:, None]
+
+    def normal_rows(self, p, aux):
+        """(3, N) normals (the constant one) at hit points given as (3, N) component rows."""
+        return self._param("normal", p)[:, None].expand_as(p)
+
     def normal_at(self, p, aux):
         return self._param("normal", p).expand_as(p)
 

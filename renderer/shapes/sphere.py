@@ -42,6 +42,10 @@ class Sphere(Shape):
         sq = disc.sqrt()  # NaN where disc < 0: every comparison below is then False, a miss
         return nearest_positive_soa(-b - sq, -b + sq, t_min), torch.zeros(o.shape[1], dtype=torch.long, device=o.device)
 
+    def normal_rows(self, p, aux):
+        """(3, N) outward normals at hit points given as (3, N) component rows."""
+        return (p - self._param("center", p)[:, None]) / self.radius
+
     def normal_at(self, p, aux):
         return (p - self._param("center", p)) / self.radius
 

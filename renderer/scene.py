@@ -158,12 +158,13 @@ def _nearest(shape, o_p, d_p, sel, t_min: float, t_best, obj, aux, k):
     return torch.where(closer, t, t_best), torch.where(closer, k, obj), torch.where(closer, a, aux)
 
 
-def _shape_hits(shape, o_p, d_p, sel, t_min: float):
-    """(t, aux) of `shape` for the packets `sel` (all when None) of (3, B, P) component rows, each (m, P)."""
+def _shape_hits(shape, o_p, d_p, sel, t_min: float, need_aux: bool = True):
+    """(t, aux) of `shape` for the packets `sel` (all when None) of (3, B, P) component rows, each (m, P)
+    (aux None where not needed and the shape skips it)."""
     if sel is not None:
         o_p, d_p = o_p.index_select(1, sel), d_p.index_select(1, sel)
-    t, a = shape.intersect_soa(o_p.reshape(3, -1), d_p.reshape(3, -1), t_min)
-    return t.view(o_p.shape[1:]), a.view(o_p.shape[1:])
+    t, a = shape.intersect_soa(o_p.reshape(3, -1), d_p.reshape(3, -1), t_min, need_aux)
+    return t.view(o_p.shape[1:]), None if a is None else a.view(o_p.shape[1:])
 
 
 def _nearest_eager(shape, o_p, d_p, sel, t_min: float, t_best, obj, aux, k: int):
@@ -177,7 +178,7 @@ def _nearest_eager(shape, o_p, d_p, sel, t_min: float, t_best, obj, aux, k: int)
 
 def _blocked_eager(shape, o_p, d_p, sel, t_min: float, t_max, trans, factor):
     """`_occluded` (factor None) or `_attenuated` without torch.compile, on (3, B, P) component rows."""
-    t, _ = _shape_hits(shape, o_p, d_p, sel, t_min)
+    t, _ = _shape_hits(shape, o_p, d_p, sel, t_min, need_aux=False)
     if sel is not None:
         t_max, trans = t_max.index_select(0, sel), trans.index_select(0, sel)
     if factor is None:

@@ -75,8 +75,10 @@ class Shape:
     # True where `intersect_soa` is written for (3, N) rows rather than falling back to `intersect`.
     soa_native = False
 
-    def intersect_soa(self, o: torch.Tensor, d: torch.Tensor, t_min: float) -> tuple[torch.Tensor, torch.Tensor]:
-        """`intersect` for rays given as (3, N) component rows (origins o, unit directions d): (t, aux), (N,)."""
+    def intersect_soa(self, o: torch.Tensor, d: torch.Tensor, t_min: float,
+                      need_aux: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """`intersect` for rays given as (3, N) component rows (origins o, unit directions d): (t, aux), (N,).
+        With need_aux=False a shape may return None for aux (shadow rays only need t)."""
         return self.intersect(o.T, d.T, t_min)
 
     def normal_at(self, p: torch.Tensor, aux: torch.Tensor) -> torch.Tensor:

@@ -44,33 +44,37 @@ class Box(PlacedShape):
 
     soa_native = True
 
-    def intersect_soa(self, o, d, t_min):
-        """The same crossings and face numbers as `intersect` (up to ties at edges), as a plain slab test
-        per local axis on (3, N) rows: t_enter = max of the per-axis entries, t_exit = min of the exits."""
+    def intersect_soa(self, o, d, t_min, need_aux: bool = True):
+        """The same crossings and face numbers as `intersect_reference`, as a plain slab test on (3, N) rows:
+        per local axis the two plane distances (−half − o)/d and (half − o)/d, their min and max; t_enter the
+        largest min, t_exit the smallest max. A ray parallel to an axis is inside that slab everywhere, faces included, or nowhere. The face index (aux) is worked out only
+        for the winning axis, and not at all with `need_aux=False` (shadow rays)."""
         o_l, d_l = self._rays_to_local_soa(o, d)
         half = self._param("half", o)
-        t_in = t_out = face_in = face_out = None
-        for a in range(3):
-            oa, da, h = o_l[a], d_l[a], half[a]
-            parallel = da == 0
-            inv = 1 / torch.where(parallel, 1.0, da)
-            t_lo, t_hi = (-h - oa) * inv, (h - oa) * inv
-            neg = da < 0  # enters through the + face (side 1) and leaves through the − face
-            near, far = torch.where(neg, t_hi, t_lo), torch.where(neg, t_lo, t_hi)
-            # A parallel ray is inside the slab everywhere or nowhere.
-            outside = parallel & (oa.abs() > h)
-            near = torch.where(parallel, torch.where(outside, INF, -INF), near)
-            far = torch.where(parallel, torch.where(outside, -INF, INF), far)
-            if a == 0:
-                t_in, t_out, face_in, face_out = near, far, neg.long(), 1 - neg.long()
-            else:
-                later, sooner = near > t_in, far < t_out
-                t_in, face_in = torch.where(later, near, t_in), torch.where(later, 2 * a + neg.long(), face_in)
-                t_out, face_out = torch.where(sooner, far, t_out), torch.where(sooner, 2 * a + 1 - neg.long(), face_out)
+        inv = 1 / d_l
+        t_lo = (-half[:, None] - o_l) * inv  # (3, N) distances to the − faces
+        t_hi = (half[:, None] - o_l) * inv   # and to the + faces
+        near, far = torch.minimum(t_lo, t_hi), torch.maximum(t_lo, t_hi)
+        # Parallel to an axis: inside that slab everywhere (on its faces too) or nowhere, as the reference.
+        # (Always applied: a data-dependent branch would need a host sync.)
+        parallel, inside = d_l == 0, o_l.abs() <= half[:, None]
+        near = torch.where(parallel, torch.where(inside, -INF, INF), near)
+        far = torch.where(parallel, torch.where(inside, INF, -INF), far)
+        t_in = torch.maximum(torch.maximum(near[0], near[1]), near[2])
+        t_out = torch.minimum(torch.minimum(far[0], far[1]), far[2])
         use_in = t_in > t_min
         t = torch.where(use_in, t_in, t_out)
         hit = (t_in <= t_out) & (t > t_min) & (t < INF)
-        return torch.where(hit, t, INF), torch.where(hit, torch.where(use_in, face_in, face_out), 0)
+        t = torch.where(hit, t, INF)
+        if not need_aux:
+            return t, None
+        neg = d_l < 0  # (3, N): enters through the + face (side 1), leaves through the − face
+        axis_in = torch.where(near[0] == t_in, 0, torch.where(near[1] == t_in, 1, 2))
+        axis_out = torch.where(far[0] == t_out, 0, torch.where(far[1] == t_out, 1, 2))
+        side_in = neg.gather(0, axis_in[None])[0].long()
+        side_out = 1 - neg.gather(0, axis_out[None])[0].long()
+        face = torch.where(use_in, 2 * axis_in + side_in, 2 * axis_out + side_out)
+        return t, torch.where(hit, face, 0)
 
     def normal_rows(self, p, aux):
         """(3, N) outward normals at hit points given as (3, N) component rows, from the face index aux."""

@@ -38,7 +38,7 @@ class Plane(Shape):
 
     soa_native = True
 
-    def intersect_soa(self, o, d, t_min):
+    def intersect_soa(self, o, d, t_min, need_aux: bool = True):
         n, q = self._param("normal", o), self._param("point", o)
         denom = d[0] * n[0] + d[1] * n[1] + d[2] * n[2]
         num = (q[0] - o[0]) * n[0] + (q[1] - o[1]) * n[1] + (q[2] - o[2]) * n[2]

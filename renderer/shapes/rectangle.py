@@ -51,7 +51,7 @@ class Rectangle(PlacedShape):
 
     soa_native = True
 
-    def intersect_soa(self, o, d, t_min):
+    def intersect_soa(self, o, d, t_min, need_aux: bool = True):
         o_l, d_l = self._rays_to_local_soa(o, d)
         half = self._param("half", o)
         dz = d_l[2]

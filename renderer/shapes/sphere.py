@@ -32,7 +32,7 @@ class Sphere(Shape):
 
     soa_native = True
 
-    def intersect_soa(self, o, d, t_min):
+    def intersect_soa(self, o, d, t_min, need_aux: bool = True):
         c = self._param("center", o)
         ox, oy, oz = o[0] - c[0], o[1] - c[1], o[2] - c[2]
         dx, dy, dz = d[0], d[1], d[2]

@@ -40,41 +40,36 @@ def _rows(x: torch.Tensor) -> torch.Tensor:
 
 # Local outward normals of the box faces 0..5 (−x, +x, −y, +y, −z, +z), as (3, 6) columns.
 _FACES = torch.tensor([[-1, 1, 0, 0, 0, 0], [0, 0, -1, 1, 0, 0], [0, 0, 0, 0, -1, 1]], dtype=torch.float64)
-_SPHERE, _FLAT, _BOX = 1, 2, 3
 
 
 class NormalTables:
     """Per-object parameters stacked so that the normals of all hits come from gathers by object id.
 
-    kind (K,): 1 sphere, 2 flat (rectangle, plane: a constant normal), 3 box, 0 textured (its own hits
-    are gathered and go through `Shape.surface`, which also gives the texture coordinates).
+    Flat shapes and boxes: a table of world normals per (object, face), gathered at 6·object + aux (flat
+    shapes repeat their one normal; turned boxes have their faces turned in the table). Spheres: centre and
+    1/radius per object. Other objects (textured ones without `uv_rows`) gather their own hits.
     """
 
     def __init__(self, scene: Scene, table, like: torch.Tensor):
         K = len(scene.objects)
         f64 = dict(dtype=torch.float64)
-        kind, center, inv_r = torch.zeros(K, dtype=torch.long), torch.zeros(3, K, **f64), torch.zeros(K, **f64)
-        flat, rot = torch.zeros(3, K, **f64), torch.eye(3, **f64)[:, :, None].repeat(1, 1, K)
+        sphere, center, inv_r = torch.zeros(K, dtype=torch.bool), torch.zeros(3, K, **f64), torch.zeros(K, **f64)
+        faces = torch.zeros(3, K, 6, **f64)
         for k, item in enumerate(scene.objects):
             shape = item.shape
-            if k in table.textures:
-                continue
             if shape.type_name == "sphere":
-                kind[k], center[:, k], inv_r[k] = _SPHERE, shape.center, 1 / shape.radius
+                sphere[k], center[:, k], inv_r[k] = True, shape.center, 1 / shape.radius
             elif shape.type_name in ("rectangle", "plane"):
-                kind[k], flat[:, k] = _FLAT, shape.normal
+                faces[:, k, :] = shape.normal[:, None]
             elif shape.type_name == "box":
-                kind[k], rot[:, :, k] = _BOX, shape.world_from_local
+                faces[:, k, :] = shape.world_from_local @ _FACES
         self.textured = sorted(table.textures)
-        self.kinds = set(kind.tolist())
-        self.boxes_aligned = bool(torch.equal(rot, torch.eye(3, **f64)[:, :, None].expand_as(rot)))
+        self.any_sphere = bool(sphere.any())
         to = dict(dtype=like.dtype, device=like.device)
         # One 1-D table per component: gathers along a tensor's first axis are the fast ones.
-        self.kind = kind.to(like.device)
-        self.center, self.flat = center.to(**to).unbind(0), flat.to(**to).unbind(0)
-        self.inv_r = inv_r.to(**to)
-        self.rot = rot.to(**to).reshape(9, K).unbind(0)
-        self.faces = _FACES.to(**to).unbind(0)
+        self.sphere = sphere.to(like.device)
+        self.center, self.inv_r = center.to(**to).unbind(0), inv_r.to(**to)
+        self.faces = faces.reshape(3, K * 6).to(**to).unbind(0)
 
     @staticmethod
     def _gather(rows, index):
@@ -86,19 +81,10 @@ class NormalTables:
 
     def normals(self, scene: Scene, p, aux, obj, found):
         """(3, N) outward normals at the hit points p (3, N) of objects obj (N, clamped to >= 0)."""
-        kind = self.kind.index_select(0, obj)
-        normal = torch.zeros_like(p)
-        if _FLAT in self.kinds:
-            normal = self._gather(self.flat, obj)
-        if _SPHERE in self.kinds:
+        normal = self._gather(self.faces, obj * 6 + aux.clamp(0, 5))
+        if self.any_sphere:
             sphere = (p - self._gather(self.center, obj)) * self.inv_r.index_select(0, obj)
-            normal = torch.where(kind == _SPHERE, sphere, normal)
-        if _BOX in self.kinds:
-            face = self._gather(self.faces, aux.clamp(0, 5))
-            if not self.boxes_aligned:
-                R = self._gather(self.rot, obj).view(3, 3, -1)
-                face = (R * face[None]).sum(1)
-            normal = torch.where(kind == _BOX, face, normal)
+            normal = torch.where(self.sphere.index_select(0, obj), sphere, normal)
         return normal
 
 
@@ -136,7 +122,6 @@ def trace_direct(scene: Scene, o: torch.Tensor, d: torch.Tensor, first_hit_objec
             odd = torch.remainder(torch.floor(uv[0] / texture.size) + torch.floor(uv[1] / texture.size), 2) > 0
             c0, c1 = (torch.tensor(c, dtype=dtype, device=device)[:, None] for c in texture.colors)
             albedo = torch.where(mine, torch.where(odd, c1, c0), albedo)
-            normal = torch.where(mine, shape.normal_rows(p, hit.aux), normal)
             continue
         idx = (obj == k).nonzero().squeeze(1)
         if idx.numel():

@@ -155,7 +155,7 @@ def _pool(workers: int):
 
 
 def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, device="cpu",
-           dtype=torch.float32, seed: int = 0, chunk_rays: int = 1 << 17, progress: bool = False,
+           dtype=torch.float32, seed: int = 0, chunk_rays: int = 1 << 15, progress: bool = False,
            max_depth: int | None = None, culling: bool | None = None, compile: bool | None = None,
            workers: int = 1, threads: int | None = 1) -> RenderResult:
     """Render the scene's camera image.
@@ -165,7 +165,9 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
             `center` [scene.image.sampler].
         device, dtype: where and in what precision to trace (float32 for speed, float64 for checks).
         chunk_rays: camera samples traced at once (rounded to whole pixels); bounds memory (about 1 KB per
-            ray at depth 5). The image does not depend on it.
+            ray at depth 5). The image does not depend on it. The default, 2^15, keeps a batch's (N,) rows
+            in the caches: 10 % faster than 2^17 on the issue-11 speed scene, 2^12 was 2x slower (Python
+            overhead per operation).
         culling, compile: override scene.options (see `renderer.scene.TraceOptions`); speed only.
         workers: CPU only: trace chunks in this many worker processes with one torch thread each (they
             are started on first use and kept for later calls; each unpickles the scene once per render).

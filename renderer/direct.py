@@ -1,8 +1,9 @@
 """Fast path of `integrator.trace` for direct lighting only, on (3, N) component rows.
 
-Taken when nothing in the scene bounces light (no mirror or refraction weights), every shape has the
-(3, N) intersection (`Shape.soa_native`), lights are point or ambient, materials have no specular term
-(the Phong lobe is left to the general path) and tracing is eager. Then one camera ray and one shadow ray
+Taken when nothing in the scene bounces light (no mirror or refraction weights), every shape is a sphere,
+box, rectangle or plane (the shapes with the (3, N) intersection, `Shape.soa_native`), lights are point
+or ambient, materials have no specular term (the Phong lobe is left to the general path) and tracing is
+eager. Then one camera ray and one shadow ray
 per point light per sample is the whole computation, and it runs without grouping hits by object: every
 stage is an element-wise operation over all N rays (misses masked at the end), per-object values come
 from small tables gathered by object id, and only textured objects gather their own hits for texture
@@ -22,11 +23,15 @@ import torch
 from .scene import Scene, TraceOptions
 
 
+# Shape types whose normals `NormalTables` knows (and that have `intersect_soa`).
+_KINDS = {"sphere", "box", "rectangle", "plane"}
+
+
 def applies(scene: Scene, options: TraceOptions, table) -> bool:
     """Whether `trace_direct` computes exactly what `integrator.trace` would for this scene."""
     if options.compile or not getattr(options, "fast_paths", True):
         return False
-    if not all(o.shape.soa_native for o in scene.objects):
+    if not all(o.shape.soa_native and o.shape.type_name in _KINDS for o in scene.objects):
         return False
     if any(light.type not in ("point", "ambient") for light in scene.lights):
         return False

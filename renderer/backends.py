@@ -49,5 +49,5 @@ def render_with(backend: str, cluster: str | None, scene, spp, sampler, *, devic
     try:
         from .distributed import render_on_ray
         return render_on_ray(scene, spp, sampler, address=cluster, seed=seed, progress=progress)
-    except ImportError as e:
+    except (ImportError, ConnectionError) as e:
         raise UsageError(str(e)) from None

@@ -50,8 +50,23 @@ def connect(address: str = "auto"):
                                 "OMP_NUM_THREADS": "1"}}
             ray.init(runtime_env=env, **kwargs)
     else:
+        _check_reachable(address)
         ray.init(address=address, **kwargs)
     return ray
+
+
+def _check_reachable(address: str, timeout: float = 5.0) -> None:
+    """ConnectionError naming the address when nothing listens there (Ray itself retries for minutes)."""
+    import socket
+
+    hostport = address.split("://", 1)[-1]
+    host, _, port = hostport.rpartition(":")
+    if not host or not port.isdigit():
+        raise ConnectionError(f"--cluster {address}: expected auto or HOST:PORT (or ray://HOST:PORT)")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout).close()
+    except OSError as e:
+        raise ConnectionError(f"--cluster {address}: cannot reach {host}:{port} ({e.strerror or e})") from None
 
 
 def _trace_chunks(scene: Scene, chunks, spp: int, sampler: str, seed: int, options, dtype, max_depth):

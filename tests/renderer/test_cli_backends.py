@@ -36,3 +36,14 @@ def test_cluster_with_mitsuba_is_a_usage_error(tmp_path, capsys):
     rc = main(["render", SCENE, "-o", str(tmp_path / "x.exr"), "--backend", "mitsuba", "--cluster", "auto", *SMALL])
     assert rc == 2, f"exit status {rc}"
     assert "--cluster works with the torch backend only" in capsys.readouterr().err, "one-line message expected"
+
+
+def test_unreachable_cluster_is_a_one_line_error(tmp_path, capsys):
+    """A cluster address where nothing listens fails fast (Ray itself would retry for minutes), exit 2."""
+    pytest.importorskip("ray")
+    out = tmp_path / "x.exr"
+    rc = main(["render", SCENE, "-o", str(out), "--cluster", "127.0.0.1:9", *SMALL])
+    err = capsys.readouterr().err
+    assert rc == 2, f"exit status {rc}"
+    assert "--cluster 127.0.0.1:9: cannot reach" in err and err.count("\n") == 1, f"stderr: {err!r}"
+    assert not out.exists(), "no output file on error"

@@ -1,10 +1,10 @@
 """Fast path of `integrator.trace` for direct lighting only, on (3, N) component rows.
 
 Taken when nothing in the scene bounces light (no mirror or refraction weights), every shape is a sphere,
-box, rectangle or plane (the shapes with the (3, N) intersection, `Shape.soa_native`), lights are point
-or ambient, materials have no specular term (the Phong lobe is left to the general path) and tracing is
-eager. Then one camera ray and one shadow ray
-per point light per sample is the whole computation, and it runs without grouping hits by object: every
+box, rectangle, plane, cylinder or cone (the shapes with the (3, N) intersection, `Shape.soa_native`),
+lights are point or ambient, materials have no specular term (the Phong lobe is left to the general path)
+and tracing is eager. Then one camera ray and one shadow ray per point light per sample is the whole
+computation, and it runs without grouping hits by object: every
 stage is an element-wise operation over all N rays (misses masked at the end), per-object values come
 from small tables gathered by object id, and only textured objects gather their own hits for texture
 coordinates. Eager torch runs such (N,) rows several times faster than (N, 3) ones (see
@@ -23,8 +23,10 @@ import torch
 from .scene import Scene, TraceOptions
 
 
-# Shape types whose normals `NormalTables` knows (and that have `intersect_soa`).
-_KINDS = {"sphere", "box", "rectangle", "plane"}
+# Shape types whose normals `NormalTables` knows (and that have `intersect_soa`): from its tables, or
+# (cylinder, cone) from the shape's own `normal_rows` per object.
+_KINDS = {"sphere", "box", "rectangle", "plane", "cylinder", "cone"}
+_OWN_NORMALS = {"cylinder", "cone"}
 
 
 def applies(scene: Scene, options: TraceOptions, table) -> bool:
@@ -52,7 +54,8 @@ class NormalTables:
 
     Flat shapes and boxes: a table of world normals per (object, face), gathered at 6·object + aux (flat
     shapes repeat their one normal; turned boxes have their faces turned in the table). Spheres: centre and
-    1/radius per object. Other objects (textured ones without `uv_rows`) gather their own hits.
+    1/radius per object. Cylinders and cones: their own `normal_rows` over all rows, kept where they were
+    hit. Textured objects without `uv_rows` gather their own hits (`Shape.surface`).
     """
 
     def __init__(self, scene: Scene, table, like: torch.Tensor):
@@ -69,6 +72,7 @@ class NormalTables:
             elif shape.type_name == "box":
                 faces[:, k, :] = shape.world_from_local @ _FACES
         self.textured = sorted(table.textures)
+        self.own = [k for k, item in enumerate(scene.objects) if item.shape.type_name in _OWN_NORMALS]
         self.any_sphere = bool(sphere.any())
         to = dict(dtype=like.dtype, device=like.device)
         # One 1-D table per component: gathers along a tensor's first axis are the fast ones.
@@ -90,6 +94,8 @@ class NormalTables:
         if self.any_sphere:
             sphere = (p - self._gather(self.center, obj)) * self.inv_r.index_select(0, obj)
             normal = torch.where(self.sphere.index_select(0, obj), sphere, normal)
+        for k in self.own:
+            normal = torch.where(obj == k, scene.objects[k].shape.normal_rows(p, aux), normal)
         return normal
 
 

@@ -16,7 +16,7 @@ import torch
 from renderer import render
 from renderer.direct import applies
 from renderer.integrator import trace
-from renderer.shapes import Box, Plane, Rectangle, Sphere
+from renderer.shapes import Box, Cone, Cylinder, Plane, Rectangle, Sphere
 from renderer.scenefile import load_scene
 
 SCENE = os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks", "scenes", "speed_thin_lens.json")
@@ -27,6 +27,9 @@ SHAPES = {
     "rectangle": lambda: Rectangle((0.0, 0.0, 2.0), (4.0, 2.0), (10.0, 20.0, 30.0)),
     "rectangle aligned": lambda: Rectangle((0.5, 0.0, 2.0), (3.0, 2.0)),
     "plane": lambda: Plane((0.0, 1.0, 0.0), (0.2, -1.0, 0.1)),
+    "cylinder": lambda: Cylinder((1.0, 0.0, 1.0), (1.0, 2.0, 2.0), 0.7, 2.5),
+    "cylinder along z": lambda: Cylinder((0.5, 0.5, 1.0), (0.0, 0.0, 1.0), 1.0, 2.0),
+    "cone": lambda: Cone((0.0, 1.0, 1.0), (0.0, -1.0, 1.0), 1.2, 2.0),
 }
 
 
@@ -82,6 +85,10 @@ CASES = {
                                     '{"type":"point","position":[2.0,-1.0,1.0],"intensity":[20,10,5]},'
                                     '{"type":"ambient","intensity":[0.1,0.1,0.1]}]'],
     "float64, no culling": [],
+    "cylinder and cone": ['objects.sphere_left.shape={"type":"cylinder","center":[-1.2,0.6,4],"axis":[0.2,-1,0.3],'
+                          '"radius":0.4,"height":0.8}',
+                          'objects.sphere_right.shape={"type":"cone","center":[1.2,0.6,4],"axis":[0,-1,-0.4],'
+                          '"radius":0.4,"height":0.8}'],
 }
 
 
@@ -118,8 +125,8 @@ def test_direct_fast_path_honours_the_object_mask():
 
 @pytest.mark.parametrize("override", ["objects.sphere_top.material.reflect=0.5",
                                       "objects.cube_bottom.material.specular=0.5",
-                                      'objects.sphere_top.shape={"type":"cone","center":[0,-1.2,4],"axis":[0,-1,0],'
-                                      '"radius":0.4,"height":0.8}'])
+                                      'objects.sphere_top.shape={"type":"polyhedron","halfspaces":[[-1,0,0,0],'
+                                      '[0,-1,0,0],[0,0,-1,-4],[1,1,1,6]]}'])
 def test_scenes_the_fast_path_cannot_render_exactly_do_not_take_it(override):
     scene = load_scene(SCENE, ["image.width=8", "image.height=8", override])
     assert not applies(scene, scene.options, scene.materials(torch.zeros(1))), f"{override} should not apply"

@@ -147,11 +147,11 @@ Per camera ray (one primary and one shadow ray), Mitsuba spends about 80 ns of o
 380-400 ns compiled and 800 ns eager (the `1/1` rows). Where ours goes:
 1. Shape intersection kernels, the largest item. Culling (ray packets of 64 against bounding spheres,
    shadow rays skipping the convex or flat object they leave) brought the tests from 22 to about 3.3 per
-   camera ray. Since issue 11 the sphere, box (a plain slab test), rectangle and plane test rays given as
-   (3, N) component rows, several times faster in eager torch than the former (N, 3) code (see
-   `benchmarks/results/profile_fig6.md`); this scene's cone and cylinder still run (N, 3) code, so it
-   takes the general integrator rather than the direct-light fast path (`renderer/direct.py`), and its
-   ratio barely moved (`fig6_mitsuba_issue11.md`: 8.3x eager at one thread).
+   camera ray. Since issue 11 the sphere, box (a plain slab test), rectangle, plane, cylinder and cone test
+   rays given as (3, N) component rows, several times faster in eager torch than the former (N, 3) code,
+   and this direct-light scene takes the fast path of `renderer/direct.py` (no grouping of hits by
+   object); see `benchmarks/results/profile_fig6.md`. Eager at one thread went from 8.1x to 6.5x
+   (`fig6_mitsuba_issue11.md`, 640x480).
 2. Overheads of expressing a ray tracer as tensor operations: sorting hits by object (a stable argsort,
    10-25 ns per ray even on uint8 keys), gathers and scatters of ray packets, the per-pixel sample hash
    in int64 (about 25 ns per sample), and about 40 compiled-graph calls per chunk at 50-150 us of dynamo

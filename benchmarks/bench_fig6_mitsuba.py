@@ -32,11 +32,9 @@ import time
 import numpy as np
 import torch
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from mitsuba_export import load_mitsuba, to_mitsuba  # noqa: E402
-
-from renderer import render  # noqa: E402
-from renderer.scenefile import load_scene  # noqa: E402
+from renderer import render
+from renderer.mitsuba import load_mitsuba, to_mitsuba
+from renderer.scenefile import load_scene
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCENE = os.path.join(ROOT, "renderer", "scenes", "fig6.json")
@@ -149,13 +147,11 @@ Per camera ray (one primary and one shadow ray), Mitsuba spends about 80 ns of o
 380-400 ns compiled and 800 ns eager (the `1/1` rows). Where ours goes:
 1. Shape intersection kernels, the largest item. Culling (ray packets of 64 against bounding spheres,
    shadow rays skipping the convex or flat object they leave) brought the tests from 22 to about 3.3 per
-   camera ray, but each test is still slow: the box (`renderer/shapes/box.py`, not in this benchmark's
-   files) runs its slab test as a general convex clip with (N, 6) stacks and arg-max/arg-min reductions,
-   58 ns per ray compiled and about 170 ns eager. A plain slab test (min/max of the two plane distances per
-   axis, face index recovered in `surface`) measured 16 ns compiled and 56 ns eager on the same rays; at
-   1.4 box tests per camera ray here (seven boxes) that alone would save about 60 ns, bringing the compiled
-   ratio to about 4.0-4.3x. Reductions with indices over a tiny last dimension (`Tensor.max(-1)`, used by
-   the box and cylinder) are also pathological in eager torch with two threads (10x slower than one).
+   camera ray. Since issue 11 the sphere, box (a plain slab test), rectangle, plane, cylinder and cone test
+   rays given as (3, N) component rows, several times faster in eager torch than the former (N, 3) code,
+   and this direct-light scene takes the fast path of `renderer/direct.py` (no grouping of hits by
+   object); see `benchmarks/results/profile_fig6.md`. Eager at one thread went from 8.1x to 6.5x
+   (`fig6_mitsuba_issue11.md`, 640x480).
 2. Overheads of expressing a ray tracer as tensor operations: sorting hits by object (a stable argsort,
    10-25 ns per ray even on uint8 keys), gathers and scatters of ray packets, the per-pixel sample hash
    in int64 (about 25 ns per sample), and about 40 compiled-graph calls per chunk at 50-150 us of dynamo
@@ -215,7 +211,7 @@ def main(argv=None):
     ap.add_argument("--modes", default="compile,eager,processes",
                     help="comma-separated: ours with torch.compile (`compile`), eager (`eager`), compiled in one "
                          "single-threaded process per thread (`processes`, skipped for one thread)")
-    ap.add_argument("--chunk-rays", type=int, default=1 << 17)
+    ap.add_argument("--chunk-rays", type=int, default=1 << 15, help="camera rays per batch [2^15, render's default]")
     ap.add_argument("--variant", default="llvm_ad_rgb")
     ap.add_argument("--threads", default="1,default",
                     help="comma-separated thread counts for both renderers (torch.set_num_threads, "

@@ -13,8 +13,8 @@ import subprocess
 import sys
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-BENCHMARKS = ["bench_fig6_mitsuba.py", "bench_thin_lens.py", "bench_detect_opencv.py", "bench_beam.py",
-              "bench_real_detect.py", "bench_photometric.py"]
+BENCHMARKS = ["bench_fig6_mitsuba.py", "bench_speed_mitsuba.py", "bench_thin_lens.py", "bench_detect_opencv.py",
+              "bench_beam.py", "bench_real_detect.py", "bench_photometric.py"]
 
 
 def main(argv=None) -> int:
@@ -25,7 +25,9 @@ def main(argv=None) -> int:
     failed = []
     for i, name in enumerate(BENCHMARKS, 1):
         cmd = [sys.executable, os.path.join(HERE, name)]
-        if args.quick and name != "bench_fig6_mitsuba.py":
+        if args.quick and name == "bench_speed_mitsuba.py":
+            cmd += ["--size", "128", "--repeats", "3", "--out", os.path.join(HERE, "results", "speed_thin_lens_quick")]
+        elif args.quick and name != "bench_fig6_mitsuba.py":
             cmd.append("--quick")
         elif args.quick:
             cmd += ["--sizes", "320x240", "--repeats", "3", "--modes", "eager", "--out", os.path.join(HERE, "results", "fig6_mitsuba_quick")]

@@ -2,6 +2,7 @@
 
     renderer render SCENE.json -o OUT.(exr|png|tif) [--spp N] [--sampler S] [--set key.path=value ...]
                     [--device cpu|cuda] [--seed N] [--encoding srgb|linear] [--quiet]
+                    [--backend torch|mitsuba] [--cluster auto|ADDRESS]
     renderer animate SCENE.json --method beam|trace [--frames N] [--step D] -o DIR [--set key.path=value ...]
     renderer gallery [-o gallery.png] [--quick] [--size PX] [--spp N] [--manifest M.json] [--device ...]
 
@@ -82,6 +83,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--encoding", choices=("srgb", "linear"),
                    help="output encoding [sRGB for PNG/TIFF, linear for EXR]")
     r.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    r.add_argument("--backend", choices=("torch", "mitsuba"), default="torch",
+                   help="torch: our tracer [default]; mitsuba: export the scene to Mitsuba 3 and render it there with "
+                        "our camera (the `direct` integrator; what cannot be mapped is named on stderr)")
+    r.add_argument("--cluster", metavar="auto|ADDRESS",
+                   help="trace on a Ray cluster (auto: the running one, else a local one); same image as one process")
 
     g = sub.add_parser("gallery", help="render the paper figures into one labelled contact sheet",
                        description="Render every entry of the gallery manifest and lay them out in one PNG.")
@@ -190,7 +196,13 @@ def cmd_render(args, device) -> int:
     scene_file = resolve_scene(args.scene)
     scene = load_scene(scene_file, args.overrides)
     start = time.perf_counter()
-    result = render(scene, args.spp, args.sampler, device=device, seed=args.seed, progress=not args.quiet)
+    if args.backend == "mitsuba" or args.cluster:
+        from .backends import render_with
+
+        result = render_with(args.backend, args.cluster, scene, args.spp, args.sampler, device=device, seed=args.seed,
+                             progress=not args.quiet)
+    else:
+        result = render(scene, args.spp, args.sampler, device=device, seed=args.seed, progress=not args.quiet)
     check_finite_image(scene_file, result.image)
     write_image(args.output, result.image, args.encoding,
                 metadata=image_metadata(scene_file, scene, args.spp or scene.image.spp,

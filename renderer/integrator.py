@@ -12,6 +12,7 @@ import math
 
 import torch
 
+from . import direct
 from .rays import normalize
 from .scene import Scene, TraceOptions, compiled_call
 
@@ -53,12 +54,19 @@ def _slices(counts: list[int]):
         start += c
 
 
-def _surface(scene: Scene, p, aux, counts, options):
-    """Outward normals (n, 3) and uv (n, 2) for hit points grouped by object, one shape call per object."""
+def _surface(scene: Scene, p, aux, counts, options, textured=None):
+    """Outward normals (n, 3) and uv (n, 2) for hit points grouped by object, one shape call per object.
+
+    Objects not in `textured` (a set of object ids; None: all) get their normal only (`Shape.normal_at`, eager
+    tracing): their uv rows are left unset, as nothing reads them.
+    """
     normal = torch.empty_like(p)
     uv = torch.empty(p.shape[0], 2, dtype=p.dtype, device=p.device)
     for k, a, b in _slices(counts):
-        normal[a:b], uv[a:b] = scene.surface(k, p[a:b], aux[a:b], options=options)
+        if textured is None or k in textured or options.compile:
+            normal[a:b], uv[a:b] = scene.surface(k, p[a:b], aux[a:b], options=options)
+        else:
+            normal[a:b] = scene.objects[k].shape.normal_at(p[a:b], aux[a:b])
     return normal, uv
 
 
@@ -164,6 +172,8 @@ def trace(scene: Scene, o: torch.Tensor, d: torch.Tensor, first_hit_objects: lis
     radiance = torch.zeros(n_rays, 3, dtype=o.dtype, device=o.device)
     background = torch.tensor(scene.image.background, dtype=o.dtype, device=o.device)
     table = scene.materials(o)
+    if direct.applies(scene, options, table):
+        return direct.trace_direct(scene, o, d, first_hit_objects, table, options)
     bounces = bool(((table.reflect > 0) | (table.transmit > 0)).any())
     pix = None  # pixel (index into the N input rays) of each ray in the batch; None: the identity
     thr = None  # path throughput of each ray; None: all ones (primary rays)
@@ -194,7 +204,7 @@ def trace(scene: Scene, o: torch.Tensor, d: torch.Tensor, first_hit_objects: lis
         thr = None if thr is None else thr.index_select(0, hits)
         obj = torch.repeat_interleave(torch.arange(n_objects, device=o.device),
                                       torch.tensor(rows, device=o.device), output_size=n_rows)
-        normal, uv = _surface(scene, p, aux, rows, options)
+        normal, uv = _surface(scene, p, aux, rows, options, table.textures)
         n_f, entering = compiled_call(fast, _orient, normal, d)
         albedo = _albedo(table, uv, rows)
         if not bounces:

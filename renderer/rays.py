@@ -6,6 +6,9 @@ from dataclasses import dataclass
 import torch
 
 
+_EYE = torch.eye(3)
+
+
 @dataclass
 class Rays:
     """A batch of rays in the world frame.
@@ -36,6 +39,11 @@ class Rays:
 
     def transformed(self, world_from_local: torch.Tensor, local_origin_in_world: torch.Tensor) -> "Rays":
         """Rays given in a local frame moved to the world: x_world = R x_local + t."""
+        if (not torch.compiler.is_compiling() and world_from_local.shape == (3, 3)
+                and bool((world_from_local == _EYE.to(world_from_local)).all())):
+            # The identity rotation (a camera looking along +z): skip two (N, 3) x (3, 3) products (eager
+            # only: the check is data-dependent, a graph break for torch.compile).
+            return Rays(self.origin + local_origin_in_world, self.direction, self.valid, self.weight)
         return Rays(
             self.origin @ world_from_local.transpose(-1, -2) + local_origin_in_world,
             self.direction @ world_from_local.transpose(-1, -2),

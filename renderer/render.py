@@ -75,7 +75,10 @@ def _pixel_estimates(color, weight, valid, background, spp: int):
     """Weighted mean of each pixel's spp consecutive samples (n, 3) (background where no sample has
     weight), and the fraction of valid samples (n,)."""
     w = torch.where(valid, weight, torch.zeros_like(weight))
-    acc = (color * w[:, None]).view(-1, spp, 3).sum(1)
+    if color.T.is_contiguous() and not color.is_contiguous():  # a view of (3, n·spp) rows (renderer.direct)
+        acc = (color.T * w).view(3, -1, spp).sum(-1).T
+    else:
+        acc = (color * w[:, None]).reshape(-1, spp, 3).sum(1)
     wsum = w.view(-1, spp).sum(1)
     estimate = torch.where((wsum > 0)[:, None], acc / wsum.clamp_min(1e-30)[:, None], background)
     return estimate, valid.view(-1, spp).sum(1).to(color.dtype) / spp
@@ -152,9 +155,9 @@ def _pool(workers: int):
 
 
 def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, device="cpu",
-           dtype=torch.float32, seed: int = 0, chunk_rays: int = 1 << 17, progress: bool = False,
+           dtype=torch.float32, seed: int = 0, chunk_rays: int = 1 << 15, progress: bool = False,
            max_depth: int | None = None, culling: bool | None = None, compile: bool | None = None,
-           workers: int = 1) -> RenderResult:
+           workers: int = 1, threads: int | None = 1) -> RenderResult:
     """Render the scene's camera image.
 
     Args:
@@ -162,11 +165,18 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
             `center` [scene.image.sampler].
         device, dtype: where and in what precision to trace (float32 for speed, float64 for checks).
         chunk_rays: camera samples traced at once (rounded to whole pixels); bounds memory (about 1 KB per
-            ray at depth 5). The image does not depend on it.
+            ray at depth 5). The image does not depend on it. The default, 2^15, keeps a batch's (N,) rows
+            in the caches: 10 % faster than 2^17 on the issue-11 speed scene, 2^12 was 2x slower (Python
+            overhead per operation).
         culling, compile: override scene.options (see `renderer.scene.TraceOptions`); speed only.
         workers: CPU only: trace chunks in this many worker processes with one torch thread each (they
             are started on first use and kept for later calls; each unpickles the scene once per render).
             The image does not depend on it.
+        threads: torch threads while tracing on the CPU in this process, restored afterwards [1; None:
+            torch's own setting]. Eager tracing is a chain of small memory-bound operations: a second
+            thread gained little on these 2 cores, and torch's OpenMP barriers made 2 threads up to 15x
+            slower while other programs shared the cores (benchmarks/results/speed_thin_lens.md); use
+            `workers` for the other cores.
     Returns:
         RenderResult with the (H, W, 3) image and the (H, W) coverage; pixels without any valid ray keep
         the background colour.
@@ -183,6 +193,21 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
     image = torch.empty(W * H, 3, dtype=dtype, device=device)
     coverage = torch.empty(W * H, dtype=dtype, device=device)
     bar = Progress(W * H * spp, "render", enabled=progress)
+    previous = torch.get_num_threads()
+    if threads is not None and torch.device(device).type == "cpu" and threads != previous:
+        torch.set_num_threads(threads)
+    try:
+        _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device, dtype, seed, chunk_rays,
+                     max_depth, workers)
+    finally:
+        if torch.get_num_threads() != previous:
+            torch.set_num_threads(previous)
+    return RenderResult(image.reshape(H, W, 3), coverage.reshape(H, W))
+
+
+def _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device, dtype, seed, chunk_rays,
+                 max_depth, workers):
+    """The chunk loop of `render`, filling image (W·H, 3) and coverage (W·H,) in place."""
     if workers > 1 and torch.device(device).type == "cpu":
         pool = _pool(workers)
         blob = pickle.dumps(scene)
@@ -201,4 +226,3 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
             image.index_copy_(0, pixel, estimate[:n])
             coverage.index_copy_(0, pixel, covered[:n])
             bar.update(n * spp)
-    return RenderResult(image.reshape(H, W, 3), coverage.reshape(H, W))

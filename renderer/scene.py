@@ -52,11 +52,14 @@ class TraceOptions:
             arithmetic through torch.compile, any batch size; falls back to eager with a warning where
             compiling fails [False]. Costs tens of seconds of compilation on first use in a process (much
             of it cached on disk by torch between runs); pays for renders of a few million rays or more.
+        fast_paths: eager tracing only: scenes that only need direct light from point and ambient lights
+            take `renderer.direct.trace_direct` on (3, N) rows [True]; False forces the general integrator.
     """
 
     culling: bool = True
     packet_size: int = 64
     compile: bool = False
+    fast_paths: bool = True
 
 
 @dataclass
@@ -155,6 +158,34 @@ def _nearest(shape, o_p, d_p, sel, t_min: float, t_best, obj, aux, k):
     return torch.where(closer, t, t_best), torch.where(closer, k, obj), torch.where(closer, a, aux)
 
 
+def _shape_hits(shape, o_p, d_p, sel, t_min: float, need_aux: bool = True):
+    """(t, aux) of `shape` for the packets `sel` (all when None) of (3, B, P) component rows, each (m, P)
+    (aux None where not needed and the shape skips it)."""
+    if sel is not None:
+        o_p, d_p = o_p.index_select(1, sel), d_p.index_select(1, sel)
+    t, a = shape.intersect_soa(o_p.reshape(3, -1), d_p.reshape(3, -1), t_min, need_aux)
+    return t.view(o_p.shape[1:]), None if a is None else a.view(o_p.shape[1:])
+
+
+def _nearest_eager(shape, o_p, d_p, sel, t_min: float, t_best, obj, aux, k: int):
+    """`_nearest` without torch.compile, on (3, B, P) component rows (see `Shape.intersect_soa`)."""
+    t, a = _shape_hits(shape, o_p, d_p, sel, t_min)
+    if sel is not None:
+        t_best, obj, aux = t_best.index_select(0, sel), obj.index_select(0, sel), aux.index_select(0, sel)
+    closer = t < t_best
+    return torch.where(closer, t, t_best), obj.masked_fill(closer, k), torch.where(closer, a, aux)
+
+
+def _blocked_eager(shape, o_p, d_p, sel, t_min: float, t_max, trans, factor):
+    """`_occluded` (factor None) or `_attenuated` without torch.compile, on (3, B, P) component rows."""
+    t, _ = _shape_hits(shape, o_p, d_p, sel, t_min, need_aux=False)
+    if sel is not None:
+        t_max, trans = t_max.index_select(0, sel), trans.index_select(0, sel)
+    if factor is None:
+        return trans.masked_fill(t < t_max, 0)
+    return torch.where((t < t_max)[..., None], trans * factor, trans)
+
+
 def _occluded(shape, o_p, d_p, sel, t_min: float, t_max, visible):
     """Visibility (m, P) of packets `sel` (all when None) after an opaque `shape`: 0 where it blocks."""
     if sel is not None:
@@ -235,37 +266,54 @@ class Scene:
         options = self.options if options is None else options
         return self._compiled(k, _surface_of, options, (p, aux))
 
-    def _packets(self, o, d, t_max, options: TraceOptions, object_mask, skip=None):
+    def _packets(self, o, d, t_max, options: TraceOptions, object_mask, skip=None, rows: bool = False):
         """Split the batch into packets and decide which objects each packet must test.
 
         Args:
+            o, d: (N, 3) origins and directions, or (3, N) component rows with `rows` (eager only).
             skip: optional (N,) object id (−1 for none) that each ray cannot meet (see `self_shadow_free`);
                 a packet whose rays all skip the same object does not test it.
         Returns:
-            (o_p, d_p, t_max_p, plan): the inputs padded to whole packets and viewed as (packets, P, ...),
+            (o_p, d_p, t_max_p, plan): the inputs padded to whole packets and viewed as (packets, P, 3), or
+            as (3, packets, P) component rows when tracing eagerly (t_max_p (packets, P) either way),
             and plan = [(k, sel)] for every object k to test, sel the (m,) packet indices or None for all
             packets.
         """
-        n = o.shape[0]
+        n = o.shape[1] if rows else o.shape[0]
         P = max(1, int(options.packet_size)) if options.culling else 1
         pad = (-n) % P
-        if pad:  # repeat the last ray: it does not widen the last packet's bounds
+        if pad and rows:
+            o = torch.cat([o, o[:, -1:].expand(3, pad)], 1)
+            d = torch.cat([d, d[:, -1:].expand(3, pad)], 1)
+        elif pad:  # repeat the last ray: it does not widen the last packet's bounds
             o = torch.cat([o, o[-1:].expand(pad, 3)])
             d = torch.cat([d, d[-1:].expand(pad, 3)])
+        if pad:
             if t_max is not None:
                 t_max = torch.cat([t_max, t_max[-1:].expand(pad)])
             if skip is not None:
                 skip = torch.cat([skip, skip[-1:].expand(pad)])
-        o_p, d_p = o.reshape(-1, P, 3), d.reshape(-1, P, 3)
         t_p = None if t_max is None else t_max.view(-1, P)
-        n_packets = o_p.shape[0]
+        if options.compile:
+            o_p, d_p = o.reshape(-1, P, 3), d.reshape(-1, P, 3)
+        elif rows:
+            o_p, d_p = o.view(3, -1, P), d.view(3, -1, P)
+        else:  # (3, B, P) component rows: see `Shape.intersect_soa`
+            o_p, d_p = _components(o).view(3, -1, P), _components(d).view(3, -1, P)
+        n_packets = o_p.shape[0 if options.compile else 1]
         wanted = [k for k in range(len(self.objects)) if object_mask is None or object_mask[k]]
         if P == 1:
             return o_p, d_p, t_p, [(k, None) for k in wanted]
         cand = torch.ones(n_packets, len(self.objects), dtype=torch.bool, device=o.device)
-        if self._bounded_ids:
+        if self._bounded_ids and options.compile:
             cand[:, self._bounded_ids] = compiled_call(options.compile, packet_candidates, o_p, d_p,
                                                        self._centers.to(o), self._radii.to(o), t_p)
+        elif self._bounded_ids:
+            # Bounds from component rows: reductions over a (B, P, 3) middle axis are slow in eager torch.
+            o_lo, o_hi = packet_bounds_soa(o_p)
+            d_lo, d_hi = packet_bounds_soa(d_p)
+            cand[:, self._bounded_ids] = candidates_from_bounds(o_lo, o_hi, d_lo, d_hi, self._centers.to(o),
+                                                                self._radii.to(o), t_p)
         if skip is not None:
             skip_p = skip.view(-1, P)
             first = skip_p[:, 0]
@@ -302,20 +350,58 @@ class Scene:
         options = self.options if options is None else options
         n = o.shape[0]
         o_p, d_p, _, plan = self._packets(o, d, None, options, object_mask)
-        t_best = torch.full(o_p.shape[:2], float("inf"), dtype=o.dtype, device=o.device)
-        obj = torch.full(o_p.shape[:2], -1, dtype=torch.long, device=o.device)
-        aux = torch.zeros(o_p.shape[:2], dtype=torch.long, device=o.device)
+        rows_shape = o_p.shape[:2] if options.compile else o_p.shape[1:]
+        t_best = torch.full(rows_shape, float("inf"), dtype=o.dtype, device=o.device)
+        obj = torch.full(rows_shape, -1, dtype=torch.long, device=o.device)
+        aux = torch.zeros(rows_shape, dtype=torch.long, device=o.device)
         if options.compile:  # one graph per shape class: gather every packet rather than none
             plan = [(k, self._all_packets(o_p) if sel is None else sel) for k, sel in plan]
         for k, sel in plan:
-            rows = self._compiled(k, _nearest, options, (o_p, d_p, sel, self.ray_epsilon, t_best, obj, aux,
-                                                         torch.tensor(k, device=o.device)))
+            if not options.compile:
+                rows = _nearest_eager(self.objects[k].shape, o_p, d_p, sel, self.ray_epsilon, t_best, obj, aux, k)
+            else:
+                rows = self._compiled(k, _nearest, options, (o_p, d_p, sel, self.ray_epsilon, t_best, obj, aux,
+                                                             torch.tensor(k, device=o.device)))
             if sel is None:
                 t_best, obj, aux = rows
             else:
                 for dst, src in zip((t_best, obj, aux), rows):
                     dst.index_copy_(0, sel, src)
         return Hit(t_best.view(-1)[:n], obj.view(-1)[:n], aux.view(-1)[:n])
+
+    def intersect_rows(self, o: torch.Tensor, d: torch.Tensor, object_mask: list[bool] | None = None, *,
+                       options: TraceOptions | None = None) -> Hit:
+        """`intersect` for (3, N) component rows o, d (eager tracing; see `Shape.intersect_soa`)."""
+        options = self.options if options is None else options
+        n = o.shape[1]
+        o_p, d_p, _, plan = self._packets(o, d, None, options, object_mask, rows=True)
+        t_best = torch.full(o_p.shape[1:], float("inf"), dtype=o.dtype, device=o.device)
+        obj = torch.full(o_p.shape[1:], -1, dtype=torch.long, device=o.device)
+        aux = torch.zeros(o_p.shape[1:], dtype=torch.long, device=o.device)
+        for k, sel in plan:
+            rows = _nearest_eager(self.objects[k].shape, o_p, d_p, sel, self.ray_epsilon, t_best, obj, aux, k)
+            if sel is None:
+                t_best, obj, aux = rows
+            else:
+                for dst, src in zip((t_best, obj, aux), rows):
+                    dst.index_copy_(0, sel, src)
+        return Hit(t_best.view(-1)[:n], obj.view(-1)[:n], aux.view(-1)[:n])
+
+    def visibility_rows(self, o: torch.Tensor, d: torch.Tensor, t_max: torch.Tensor, *,
+                        options: TraceOptions | None = None, leaving: torch.Tensor | None = None) -> torch.Tensor:
+        """(N,) 1 where nothing opaque lies on o + t·d for t in (ε, t_max), else 0; o, d (3, N) component
+        rows. Every object must be opaque (see `shadow` for transparent ones)."""
+        options = self.options if options is None else options
+        n = o.shape[1]
+        o_p, d_p, t_p, plan = self._packets(o, d, t_max, options, None, leaving, rows=True)
+        vis = torch.ones(o_p.shape[1:], dtype=o.dtype, device=o.device)
+        for k, sel in plan:
+            rows = _blocked_eager(self.objects[k].shape, o_p, d_p, sel, self.ray_epsilon, t_p, vis, None)
+            if sel is None:
+                vis = rows
+            else:
+                vis.index_copy_(0, sel, rows)
+        return vis.view(-1)[:n]
 
     def transmittance(self, o: torch.Tensor, d: torch.Tensor, t_max: torch.Tensor, *,
                       options: TraceOptions | None = None) -> torch.Tensor:
@@ -336,12 +422,16 @@ class Scene:
         o_p, d_p, t_p, plan = self._packets(o, d, t_max, options, None, leaving)
         table = self.materials(o)
         opaque = not bool(table.shadow_transmittance.any())
-        trans = torch.ones(o_p.shape[:2] if opaque else (*o_p.shape[:2], 3), dtype=o.dtype, device=o.device)
+        rows_shape = o_p.shape[:2] if options.compile else o_p.shape[1:]
+        trans = torch.ones(rows_shape if opaque else (*rows_shape, 3), dtype=o.dtype, device=o.device)
         eps = self.ray_epsilon
         if options.compile:
             plan = [(k, self._all_packets(o_p) if sel is None else sel) for k, sel in plan]
         for k, sel in plan:
-            if opaque:
+            if not options.compile:
+                rows = _blocked_eager(self.objects[k].shape, o_p, d_p, sel, eps, t_p, trans,
+                                      None if opaque else table.shadow_transmittance[k])
+            elif opaque:
                 rows = self._compiled(k, _occluded, options, (o_p, d_p, sel, eps, t_p, trans))
             else:
                 rows = self._compiled(k, _attenuated, options, (o_p, d_p, sel, eps, t_p, trans,
@@ -351,6 +441,12 @@ class Scene:
             else:
                 trans.index_copy_(0, sel, rows)
         return trans.reshape(-1, 1)[:n] if opaque else trans.reshape(-1, 3)[:n]
+
+
+def _components(x: torch.Tensor) -> torch.Tensor:
+    """(N, 3) -> (3, N) contiguous component rows (the layout of `Shape.intersect_soa`); stacking the three
+    strided columns is several times faster than `x.T.contiguous()` in eager torch."""
+    return torch.stack(x.unbind(-1))
 
 
 def _surface_of(shape, p, aux):
@@ -375,6 +471,16 @@ def packet_candidates(o_p: torch.Tensor, d_p: torch.Tensor, centers: torch.Tenso
     """
     o_lo, o_hi = torch.aminmax(o_p, dim=1)
     d_lo, d_hi = torch.aminmax(d_p, dim=1)
+    return candidates_from_bounds(o_lo, o_hi, d_lo, d_hi, centers, radii, t_max)
+
+
+def packet_bounds_soa(x_s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-packet coordinate bounds (lo, hi), each (B, 3), of (3, B, P) component rows (fast in eager torch)."""
+    return x_s.amin(-1).T, x_s.amax(-1).T
+
+
+def candidates_from_bounds(o_lo, o_hi, d_lo, d_hi, centers, radii, t_max=None) -> torch.Tensor:
+    """`packet_candidates` from the packets' origin and direction bounds (B, 3) each; t_max (B, P) or None."""
     o_c = (o_lo + o_hi) / 2
     rho = torch.linalg.vector_norm(o_hi - o_lo, dim=-1) / 2
     axis = (d_lo + d_hi) / 2
@@ -384,13 +490,16 @@ def packet_candidates(o_p: torch.Tensor, d_p: torch.Tensor, centers: torch.Tenso
     theta = torch.where(spread < length, torch.asin((spread / length.clamp_min(1e-30)).clamp(max=1.0)),
                         torch.full_like(length, math.pi))
     axis = axis / length.clamp_min(1e-30)[:, None]
-    v = centers[None] - o_c[:, None]  # (B, K, 3)
+    # v = centre − o_c per packet and sphere, (B, K) per component: (B, K, 3) norms and cross products
+    # are slow in eager torch.
+    vx, vy, vz = (centers[:, i][None] - o_c[:, i, None] for i in range(3))
+    ax, ay, az = (axis[:, i, None] for i in range(3))
     if t_max is not None:
         t_max = t_max.amax(1)
-    dist = torch.linalg.vector_norm(v, dim=-1)
+    dist = (vx * vx + vy * vy + vz * vz).sqrt()
     reach = radii * (1 + _RADIUS_SLACK) + rho[:, None]
-    phi = torch.atan2(torch.linalg.vector_norm(torch.linalg.cross(v, axis[:, None].expand_as(v)), dim=-1),
-                      (v * axis[:, None]).sum(-1))
+    cx, cy, cz = vy * az - vz * ay, vz * ax - vx * az, vx * ay - vy * ax
+    phi = torch.atan2((cx * cx + cy * cy + cz * cz).sqrt(), vx * ax + vy * ay + vz * az)
     alpha = torch.asin((reach / dist.clamp_min(1e-30)).clamp(max=1.0))
     ok = (dist <= reach) | (phi <= theta[:, None] + alpha + _ANGLE_SLACK)
     if t_max is not None:

@@ -7,6 +7,13 @@ Every shape answers three calls on flat batches of N rays or points (world frame
   units (so a checker `size` means the same length on every shape);
 - `bounding_sphere()` -> (center (3,), radius) or None for unbounded shapes; the scene uses it to send each
   shape only the rays that can reach it.
+Two optional fast paths, same results (tests/renderer/test_fast_paths.py):
+- `intersect_soa(o, d, t_min)` with o, d as (3, N) component rows ("structure of arrays"): eager torch runs
+  element-wise operations on (N,) rows several times faster than on (N, 3) rows, whose length-3 last axis
+  defeats its vectorised loops. Shapes with `soa_native = True` implement it (and `intersect` calls it,
+  keeping their former (N, 3) code as `intersect_reference`); the default transposes;
+- `normal_at(p, aux)` -> (N, 3): the normal alone, for untextured objects (no texture coordinates computed);
+  shapes with `soa_native` also have `normal_rows(p, aux)` for (3, N) rows (renderer/direct.py).
 Shapes keep their parameters in float64 and convert them once per device/dtype (`_param`). A bad
 parameter raises `ParameterError` naming it; `build_shape` prefixes the scene-file path.
 """
@@ -55,6 +62,8 @@ class Shape:
         return self._cache[key]
 
     def intersect(self, o: torch.Tensor, d: torch.Tensor, t_min: float) -> tuple[torch.Tensor, torch.Tensor]:
+        if self.soa_native:  # one implementation, so both layouts give the same bits
+            return self.intersect_soa(torch.stack(o.unbind(-1)), torch.stack(d.unbind(-1)), t_min)
         raise NotImplementedError
 
     def surface(self, p: torch.Tensor, aux: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -62,6 +71,25 @@ class Shape:
 
     def bounding_sphere(self) -> tuple[torch.Tensor, float] | None:
         return None
+
+    # True where `intersect_soa` is written for (3, N) rows rather than falling back to `intersect`.
+    soa_native = False
+
+    def intersect_soa(self, o: torch.Tensor, d: torch.Tensor, t_min: float,
+                      need_aux: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """`intersect` for rays given as (3, N) component rows (origins o, unit directions d): (t, aux), (N,).
+        With need_aux=False a shape may return None for aux (shadow rays only need t)."""
+        return self.intersect(o.T, d.T, t_min)
+
+    def normal_at(self, p: torch.Tensor, aux: torch.Tensor) -> torch.Tensor:
+        """(N, 3) outward unit normals at hit points p (N, 3): `surface` without the texture coordinates."""
+        return self.surface(p, aux)[0]
+
+
+def nearest_positive_soa(t0: torch.Tensor, t1: torch.Tensor, t_min: float) -> torch.Tensor:
+    """`nearest_positive` for two candidate rows (N,) with t0 <= t1 (or NaN): t0 if beyond t_min, else t1 if
+    beyond t_min, else +inf."""
+    return torch.where(t0 > t_min, t0, torch.where(t1 > t_min, t1, INF))
 
 
 def nearest_positive(t0: torch.Tensor, t1: torch.Tensor, t_min: float) -> torch.Tensor:

@@ -18,7 +18,7 @@ from __future__ import annotations
 import torch
 
 from ..transforms import euler_xyz_deg
-from .base import positive
+from .base import INF, positive
 from .placed import PlacedShape
 from .polyhedron import clip_convex, coordinates_across
 
@@ -33,13 +33,61 @@ class Box(PlacedShape):
         positive("size", size, 3)
         self.half = torch.as_tensor(size, dtype=torch.float64) / 2
 
-    def intersect(self, o, d, t_min):
+    def intersect_reference(self, o, d, t_min):
+        """The (N, 3) form of `intersect` kept as the reference of the (3, N) fast path (see tests)."""
         # The slab method written as six planes ±e_a·x ≤ half_a in the local frame, numbered as the faces.
         o_l, d_l = self._rays_to_local(o, d)
         half = self._param("half", o)
         num = torch.stack([half + o_l, half - o_l], -1).flatten(-2)
         den = torch.stack([-d_l, d_l], -1).flatten(-2)
         return clip_convex(num, den, t_min)
+
+    soa_native = True
+
+    def intersect_soa(self, o, d, t_min, need_aux: bool = True):
+        """The same crossings and face numbers as `intersect_reference`, as a plain slab test on (3, N) rows:
+        per local axis the two plane distances (−half − o)/d and (half − o)/d, their min and max; t_enter the
+        largest min, t_exit the smallest max. A ray parallel to an axis is inside that slab everywhere, faces included, or nowhere. The face index (aux) is worked out only
+        for the winning axis, and not at all with `need_aux=False` (shadow rays)."""
+        o_l, d_l = self._rays_to_local_soa(o, d)
+        half = self._param("half", o)
+        inv = 1 / d_l
+        t_lo = (-half[:, None] - o_l) * inv  # (3, N) distances to the − faces
+        t_hi = (half[:, None] - o_l) * inv   # and to the + faces
+        near, far = torch.minimum(t_lo, t_hi), torch.maximum(t_lo, t_hi)
+        # Parallel to an axis: inside that slab everywhere (on its faces too) or nowhere, as the reference.
+        # (Always applied: a data-dependent branch would need a host sync.)
+        parallel, inside = d_l == 0, o_l.abs() <= half[:, None]
+        near = torch.where(parallel, torch.where(inside, -INF, INF), near)
+        far = torch.where(parallel, torch.where(inside, INF, -INF), far)
+        t_in = torch.maximum(torch.maximum(near[0], near[1]), near[2])
+        t_out = torch.minimum(torch.minimum(far[0], far[1]), far[2])
+        use_in = t_in > t_min
+        t = torch.where(use_in, t_in, t_out)
+        hit = (t_in <= t_out) & (t > t_min) & (t < INF)
+        t = torch.where(hit, t, INF)
+        if not need_aux:
+            return t, None
+        neg = d_l < 0  # (3, N): enters through the + face (side 1), leaves through the − face
+        axis_in = torch.where(near[0] == t_in, 0, torch.where(near[1] == t_in, 1, 2))
+        axis_out = torch.where(far[0] == t_out, 0, torch.where(far[1] == t_out, 1, 2))
+        side_in = neg.gather(0, axis_in[None])[0].long()
+        side_out = 1 - neg.gather(0, axis_out[None])[0].long()
+        face = torch.where(use_in, 2 * axis_in + side_in, 2 * axis_out + side_out)
+        return t, torch.where(hit, face, 0)
+
+    def normal_rows(self, p, aux):
+        """(3, N) outward normals at hit points given as (3, N) component rows, from the face index aux."""
+        axis, sign = aux // 2, (2 * (aux % 2) - 1).to(p.dtype)
+        zero = torch.zeros((), dtype=p.dtype, device=p.device)
+        n = torch.stack([torch.where(axis == a, sign, zero) for a in range(3)])
+        return n if self.axis_aligned else self._param("world_from_local", p) @ n
+
+    def normal_at(self, p, aux):
+        axis, side = aux // 2, aux % 2
+        normal_local = torch.zeros_like(p)
+        normal_local.scatter_(-1, axis[:, None], (2 * side - 1)[:, None].to(p.dtype))
+        return normal_local if self.axis_aligned else self._vectors_to_world(normal_local)
 
     def surface(self, p, aux):
         axis, side = aux // 2, aux % 2

@@ -21,7 +21,8 @@ import math
 import torch
 
 from .base import INF, positive, quadratic_roots
-from .cylinder import BASE, SIDE, axial_normal, cap_hits, nearest_of, side_uv
+from .cylinder import (BASE, SIDE, axial_normal, cap_hits, cap_hits_rows, nearest_of, nearest_of_rows,
+                       side_hits_rows, side_uv)
 from .placed import PlacedShape, frame_from_axis
 
 
@@ -36,7 +37,37 @@ class Cone(PlacedShape):
         self.height = float(positive("height", height))
         self.slope = self.radius / self.height
 
-    def intersect(self, o, d, t_min):
+    soa_native = True
+
+    def intersect_soa(self, o, d, t_min, need_aux: bool = True):
+        o_l, d_l = self._rays_to_local_soa(o, d)
+        h, k2 = self.height, self.slope**2
+        (ox, oy, oz), (dx, dy, dz) = o_l, d_l
+        w = h - oz
+        a = dx * dx + dy * dy - k2 * dz * dz
+        half_b = ox * dx + oy * dy + k2 * w * dz
+        c = ox * ox + oy * oy - k2 * w * w
+        t0, t1, real = quadratic_roots(a, half_b, c)
+        sides = side_hits_rows(o_l, d_l, t0, t1, real, t_min, h)
+        return nearest_of_rows(sides + [cap_hits_rows(o_l, d_l, 0.0, self.radius, t_min)], [SIDE, SIDE, BASE])
+
+    def normal_rows(self, p, aux):
+        """(3, N) outward normals at hit points given as (3, N) component rows (+axis at the apex)."""
+        x, y, _ = self._points_to_local_soa(p)
+        rho = (x * x + y * y).sqrt()
+        sz = self.slope * rho
+        length = (x * x + y * y + sz * sz).sqrt()
+        inv = 1 / length.clamp_min(1e-30)
+        apex = length > 0
+        side = aux == SIDE
+        one, zero = torch.ones_like(x), torch.zeros_like(x)
+        nx = torch.where(side & apex, x * inv, zero)
+        ny = torch.where(side & apex, y * inv, zero)
+        nz = torch.where(side, torch.where(apex, sz * inv, one), -one)
+        return self._param("world_from_local", p) @ torch.stack([nx, ny, nz])
+
+    def intersect_reference(self, o, d, t_min):
+        """The (N, 3) form of `intersect` kept as the reference of the (3, N) fast path (see tests)."""
         o_l, d_l = self._rays_to_local(o, d)
         h, k2 = self.height, self.slope**2
         ox, oy, oz = o_l.unbind(-1)

@@ -36,6 +36,34 @@ def cap_hits(o_l, d_l, z_cap: float, radius: float, t_min: float) -> torch.Tenso
     return torch.where(inside & ~parallel & (t > t_min), t, torch.full_like(t, INF))
 
 
+def cap_hits_rows(o_l, d_l, z_cap: float, radius: float, t_min: float) -> torch.Tensor:
+    """`cap_hits` for local rays given as (3, N) component rows."""
+    dz = d_l[2]
+    parallel = dz == 0
+    t = (z_cap - o_l[2]) / torch.where(parallel, 1.0, dz)
+    x, y = o_l[0] + t * d_l[0], o_l[1] + t * d_l[1]
+    inside = x * x + y * y <= radius * radius
+    return torch.where(inside & ~parallel & (t > t_min), t, INF)
+
+
+def nearest_of_rows(candidates: list[torch.Tensor], labels: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """`nearest_of` by a chain of minima (the first of equal candidates wins, as there)."""
+    t, which = candidates[0], torch.full_like(candidates[0], labels[0], dtype=torch.long)
+    for c, label in zip(candidates[1:], labels[1:]):
+        closer = c < t
+        t, which = torch.where(closer, c, t), torch.where(closer, label, which)
+    return t, which
+
+
+def side_hits_rows(o_l, d_l, t0, t1, real, t_min: float, height: float) -> list[torch.Tensor]:
+    """The two roots on a surface of revolution kept where they are real, beyond t_min and 0 <= z <= height."""
+    out = []
+    for t in (t0, t1):
+        z = o_l[2] + t * d_l[2]
+        out.append(torch.where(real & (t > t_min) & (z >= 0) & (z <= height), t, INF))
+    return out
+
+
 def nearest_of(candidates: list[torch.Tensor], labels: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
     """Smallest of several (N,) candidate ray parameters and the label (aux) of the one chosen."""
     t, which = torch.stack(candidates, -1).min(-1)
@@ -64,7 +92,31 @@ class Cylinder(PlacedShape):
         self.radius = float(positive("radius", radius))
         self.height = float(positive("height", height))
 
-    def intersect(self, o, d, t_min):
+    soa_native = True
+
+    def intersect_soa(self, o, d, t_min, need_aux: bool = True):
+        o_l, d_l = self._rays_to_local_soa(o, d)
+        r, h = self.radius, self.height
+        (ox, oy, _), (dx, dy, _) = o_l, d_l
+        a = dx * dx + dy * dy
+        cross = ox * dy - oy * dx
+        t0, t1, real = quadratic_roots(a, ox * dx + oy * dy, ox * ox + oy * oy - r * r, a * r * r - cross * cross)
+        sides = side_hits_rows(o_l, d_l, t0, t1, real, t_min, h)
+        caps = [cap_hits_rows(o_l, d_l, 0.0, r, t_min), cap_hits_rows(o_l, d_l, h, r, t_min)]
+        return nearest_of_rows(sides + caps, [SIDE, SIDE, BASE, TOP])
+
+    def normal_rows(self, p, aux):
+        """(3, N) outward normals at hit points given as (3, N) component rows."""
+        x, y, _ = self._points_to_local_soa(p)
+        rho = (x * x + y * y).sqrt().clamp_min(1e-30)
+        side = aux == SIDE
+        zero = torch.zeros_like(x)
+        n_l = torch.stack([torch.where(side, x / rho, zero), torch.where(side, y / rho, zero),
+                           torch.where(side, zero, torch.where(aux == TOP, 1.0, -1.0).to(p.dtype))])
+        return self._param("world_from_local", p) @ n_l
+
+    def intersect_reference(self, o, d, t_min):
+        """The (N, 3) form of `intersect` kept as the reference of the (3, N) fast path (see tests)."""
         o_l, d_l = self._rays_to_local(o, d)
         r, h = self.radius, self.height
         ox, oy, oz = o_l.unbind(-1)

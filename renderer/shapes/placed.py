@@ -24,11 +24,28 @@ class PlacedShape(Shape):
         super().__init__()
         self.origin = torch.as_tensor(origin, dtype=torch.float64).reshape(3)
         self.world_from_local = world_from_local.to(torch.float64)
+        # Precomputed for the (3, N) fast path: the local frame is the world's, shifted (no rotation needed).
+        self.axis_aligned = bool(torch.equal(self.world_from_local, torch.eye(3, dtype=torch.float64)))
+        self.local_from_world = self.world_from_local.T.contiguous()
+        self.origin_column = self.origin[:, None].clone()
 
     def _rays_to_local(self, o: torch.Tensor, d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(N, 3) world origins and directions -> local ones (directions keep their length)."""
         R = self._param("world_from_local", o)
         return (o - self._param("origin", o)) @ R, d @ R
+
+    def _rays_to_local_soa(self, o: torch.Tensor, d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(3, N) world origins and directions -> local ones, (3, N) each (directions keep their length)."""
+        o = o - self._param("origin_column", o)
+        if self.axis_aligned:
+            return o, d
+        R = self._param("local_from_world", o)
+        return R @ o, R @ d
+
+    def _points_to_local_soa(self, p: torch.Tensor) -> torch.Tensor:
+        """(3, N) world points -> (3, N) local points."""
+        p = p - self._param("origin_column", p)
+        return p if self.axis_aligned else self._param("local_from_world", p) @ p
 
     def _points_to_local(self, p: torch.Tensor) -> torch.Tensor:
         return (p - self._param("origin", p)) @ self._param("world_from_local", p)

@@ -28,12 +28,30 @@ class Plane(Shape):
             raise ParameterError("normal", f"expected a non-zero direction, got {list(normal)}")
         self.tangent_u, self.tangent_v = tangent_frame(self.normal)
 
-    def intersect(self, o, d, t_min):
+    def intersect_reference(self, o, d, t_min):
+        """The (N, 3) form of `intersect` kept as the reference of the (3, N) fast path (see tests)."""
         n = self._param("normal", o)
         denom = d @ n
         t = ((self._param("point", o) - o) @ n) / torch.where(denom.abs() > 1e-12, denom, torch.full_like(denom, 1e-12))
         t = torch.where((t > t_min) & (denom.abs() > 1e-12), t, torch.full_like(t, INF))
         return t, torch.zeros_like(t, dtype=torch.long)
+
+    soa_native = True
+
+    def intersect_soa(self, o, d, t_min, need_aux: bool = True):
+        n, q = self._param("normal", o), self._param("point", o)
+        denom = d[0] * n[0] + d[1] * n[1] + d[2] * n[2]
+        num = (q[0] - o[0]) * n[0] + (q[1] - o[1]) * n[1] + (q[2] - o[2]) * n[2]
+        flat = denom.abs() > 1e-12
+        t = num / torch.where(flat, denom, 1e-12)
+        return torch.where((t > t_min) & flat, t, INF), torch.zeros(o.shape[1], dtype=torch.long, device=o.device)
+
+    def normal_rows(self, p, aux):
+        """(3, N) normals (the constant one) at hit points given as (3, N) component rows."""
+        return self._param("normal", p)[:, None].expand_as(p)
+
+    def normal_at(self, p, aux):
+        return self._param("normal", p).expand_as(p)
 
     def surface(self, p, aux):
         rel = p - self._param("point", p)

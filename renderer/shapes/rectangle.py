@@ -38,7 +38,8 @@ class Rectangle(PlacedShape):
         self.half = torch.as_tensor(size, dtype=torch.float64) / 2
         self.normal = self.world_from_local[:, 2].clone()
 
-    def intersect(self, o, d, t_min):
+    def intersect_reference(self, o, d, t_min):
+        """The (N, 3) form of `intersect` kept as the reference of the (3, N) fast path (see tests)."""
         o_l, d_l = self._rays_to_local(o, d)
         dz = d_l[:, 2]
         parallel = dz == 0
@@ -47,6 +48,29 @@ class Rectangle(PlacedShape):
         inside = (xy.abs() <= self._param("half", o)).all(-1)
         hit = inside & ~parallel & (t > t_min)
         return torch.where(hit, t, torch.full_like(t, INF)), torch.zeros_like(t, dtype=torch.long)
+
+    soa_native = True
+
+    def intersect_soa(self, o, d, t_min, need_aux: bool = True):
+        o_l, d_l = self._rays_to_local_soa(o, d)
+        half = self._param("half", o)
+        dz = d_l[2]
+        parallel = dz == 0
+        t = -o_l[2] / torch.where(parallel, 1.0, dz)
+        inside = ((o_l[0] + t * d_l[0]).abs() <= half[0]) & ((o_l[1] + t * d_l[1]).abs() <= half[1])
+        hit = inside & ~parallel & (t > t_min)
+        return torch.where(hit, t, INF), torch.zeros(o.shape[1], dtype=torch.long, device=o.device)
+
+    def uv_rows(self, p, aux):
+        """(2, N) texture coordinates (as `surface`) at hit points given as (3, N) component rows."""
+        return self._points_to_local_soa(p)[:2] + self._param("half", p)[:, None]
+
+    def normal_rows(self, p, aux):
+        """(3, N) normals (the constant one) at hit points given as (3, N) component rows."""
+        return self._param("normal", p)[:, None].expand_as(p)
+
+    def normal_at(self, p, aux):
+        return self._param("normal", p).expand_as(p)
 
     def surface(self, p, aux):
         uv = self._points_to_local(p)[:, :2] + self._param("half", p)

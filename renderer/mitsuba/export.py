@@ -3,6 +3,9 @@
 What carries over (exactly, up to tessellation where noted):
 - camera: `pinhole` (pose, horizontal field of view, square pixels, centred principal point) as a Mitsuba
   `perspective` sensor with a box pixel filter, so pixel (x, y) of both images covers the same solid angle;
+  an untilted `thin_lens` with square pixels and centred principal point as Mitsuba's `thinlens`
+  (aperture_radius d/2, focus_distance U); a tilted thin lens (or any thin lens) and the
+  `inverted_perspective` camera through our sensor plugins (`renderer.mitsuba.sensors`);
 - lights: `point` (radiant intensity, 1/r² fall-off in both);
 - shapes: `sphere`, `cylinder` (Mitsuba's open cylinder plus two disc caps), `rectangle`, `box` (Mitsuba's
   `cube` scaled and rotated), `plane` (a square of side `plane_size` centred on the plane's point), `cone`
@@ -10,15 +13,15 @@ What carries over (exactly, up to tessellation where noted):
 - materials: Lambert with reflectance diffuse · colour, or diffuse · a checker texture, made two-sided as
   the renderer shades both sides of every surface.
 What does not: specular, mirror and refractive terms, ambient lights, image textures, the background
-colour (Mitsuba would light the scene with it) and cameras other than the pinhole; `to_mitsuba` says which
+colour (Mitsuba would light the scene with it), layers, and the other cameras; `to_mitsuba` says which
 it dropped in the returned `dropped` list, and raises NotImplementedError for a camera it cannot express.
 
 Frames. Mitsuba's camera looks along its local +z with +x to the left and +y up in the image; ours looks
 along +z with x right and y down (OpenCV). So the sensor's to_world has columns (−x_cam, −y_cam, z_cam,
 position) in world coordinates, which keeps the image unmirrored (checked in `benchmarks/bench_fig6_mitsuba.py`
-by comparing the two images).
+by comparing the two images). Our sensor plugins work in our camera frame and need no flip.
 
-Mitsuba is an optional extra (`pip install -e '.[bench]'`); it is imported on first use.
+Mitsuba is an optional extra (`pip install -e '.[test]'` or `'.[bench]'`); it is imported on first use.
 """
 from __future__ import annotations
 
@@ -29,13 +32,45 @@ import numpy as np
 DEFAULT_VARIANT = "llvm_ad_rgb"
 
 
-def load_mitsuba(variant: str = DEFAULT_VARIANT):
-    """Import mitsuba and set `variant` (falls back to scalar_rgb when the LLVM backend is missing)."""
+_LLVM_RUNS: dict = {}  # variant -> whether its JIT runs here (probed once per process)
+_PROBE = ("import drjit as dr, mitsuba as mi; mi.set_variant({v!r}); "
+          "x = dr.maximum(mi.Float([1, 2]), mi.Float([2, 1])); dr.eval(x); print(x)")
+
+
+def jit_variant_runs(variant: str) -> bool:
+    """Whether a JIT variant (llvm_*, cuda_*) runs here, probed in a child process: Dr.Jit needs LLVM >= 16,
+    and with an older libLLVM the first kernel aborts the whole process."""
+    if variant.startswith("scalar"):
+        return True
+    if variant not in _LLVM_RUNS:
+        import subprocess
+        import sys
+
+        try:
+            probe = subprocess.run([sys.executable, "-c", _PROBE.format(v=variant)], capture_output=True,
+                                   text=True, timeout=300)
+            _LLVM_RUNS[variant] = probe.returncode == 0
+        except (OSError, subprocess.TimeoutExpired):
+            _LLVM_RUNS[variant] = False
+    return _LLVM_RUNS[variant]
+
+
+def load_mitsuba(variant: str | None = DEFAULT_VARIANT):
+    """Import mitsuba and set `variant` (None: keep the current one, or the default if none is set); falls
+    back to scalar_rgb where a JIT variant is missing or cannot run here (see `jit_variant_runs`)."""
     try:
         import mitsuba as mi
     except ImportError as e:  # pragma: no cover - depends on the environment
-        raise ImportError("mitsuba is not installed; pip install -e '.[bench]'") from e
+        raise ImportError("mitsuba is not installed; pip install -e '.[test]'") from e
+    if variant is None:
+        if mi.variant() is not None:
+            return mi
+        variant = DEFAULT_VARIANT
+    if mi.variant() == variant:
+        return mi
     try:
+        if not jit_variant_runs(variant):
+            raise ImportError(variant)
         mi.set_variant(variant)
     except (ImportError, AttributeError):
         mi.set_variant("scalar_rgb")
@@ -148,21 +183,43 @@ def _bsdf(mi, material, uv_scale=None, dropped=None, name=""):
     return {"type": "twosided", "material": {"type": "diffuse", "reflectance": reflectance}}
 
 
-def _sensor(mi, camera, spp: int):
-    if type(camera).__name__ != "PinholeCamera":
-        raise NotImplementedError(f"mitsuba_export: camera {type(camera).__name__} has no Mitsuba counterpart here")
+def _native_lens(camera) -> bool:
+    """Whether Mitsuba's own `perspective` / `thinlens` sensor reproduces the camera (square pixels, centred
+    principal point, untilted)."""
+    kind = type(camera).__name__
+    if kind not in ("PinholeCamera", "ThinLensCamera"):
+        return False
+    (px, py), screen = camera.screen.pitch, camera.screen
+    square = abs(px - py) <= 1e-9 * max(px, py)
+    return square and screen.principal_point_px is None and (kind == "PinholeCamera" or camera.theta_F == 0)
+
+
+def _sensor(mi, camera, spp: int, plugin: bool = False):
+    """Mitsuba sensor dict: Mitsuba's own sensor where it matches the camera exactly (unless `plugin`), else
+    our plugin (`renderer.mitsuba.sensors`)."""
+    kind = type(camera).__name__
+    if plugin or not _native_lens(camera):
+        if kind in ("ThinLensCamera", "InvertedPerspectiveCamera"):
+            from .sensors import sensor_dict
+
+            return sensor_dict(mi, camera, spp)
+        if kind != "PinholeCamera":
+            raise NotImplementedError(f"mitsuba export: camera {kind} has no Mitsuba counterpart")
     screen = camera.screen
     W, H = screen.width_px, screen.height_px
     (px, py), q3 = screen.pitch, screen.distance
     if abs(px - py) > 1e-9 * max(px, py):
-        raise NotImplementedError("mitsuba_export: Mitsuba's perspective sensor needs square pixels")
+        raise NotImplementedError("mitsuba export: Mitsuba's perspective sensor needs square pixels")
     if screen.principal_point_px is not None:
-        raise NotImplementedError("mitsuba_export: only a centred principal point is supported")
+        raise NotImplementedError("mitsuba export: only a centred principal point is supported")
     R = camera.transform.world_from_camera.numpy()
     t = camera.transform.position.numpy()
     to_world = _matrix(np.stack([-R[:, 0], -R[:, 1], R[:, 2]], axis=1), t)
+    lens = {"type": "perspective"}
+    if kind == "ThinLensCamera" and camera.d > 0:
+        lens = {"type": "thinlens", "aperture_radius": camera.d / 2, "focus_distance": camera.U}
     return {
-        "type": "perspective",
+        **lens,
         "fov_axis": "x",
         "fov": math.degrees(2 * math.atan(screen.size[0] / 2 / q3)),
         "to_world": mi.ScalarTransform4f(to_world),
@@ -172,8 +229,8 @@ def _sensor(mi, camera, spp: int):
     }
 
 
-def to_mitsuba(scene, spp: int | None = None, integrator: dict | None = None, *, variant: str = DEFAULT_VARIANT,
-               plane_size: float = 1e3, segments: int = 256):
+def to_mitsuba(scene, spp: int | None = None, integrator: dict | None = None, *, variant: str | None = None,
+               plane_size: float = 1e3, segments: int = 256, plugin_sensor: bool = False):
     """Mitsuba scene dict for `scene` (see the module docstring for what carries over).
 
     Args:
@@ -181,6 +238,8 @@ def to_mitsuba(scene, spp: int | None = None, integrator: dict | None = None, *,
         integrator: Mitsuba integrator dict [direct lighting, one emitter sample, no BSDF samples].
         plane_size: side of the square standing in for an infinite plane, scene units.
         segments: facets around the axis of a cone.
+        variant: Mitsuba variant to set [None: the current one, else the default, see `load_mitsuba`].
+        plugin_sensor: use our sensor plugin even where Mitsuba's own sensor matches (pinhole excepted).
     Returns:
         (scene_dict, dropped): the dict for `mitsuba.load_dict`, and a list of what could not be expressed.
     """
@@ -190,7 +249,7 @@ def to_mitsuba(scene, spp: int | None = None, integrator: dict | None = None, *,
     out = {
         "type": "scene",
         "integrator": integrator or {"type": "direct", "emitter_samples": 1, "bsdf_samples": 0},
-        "sensor": _sensor(mi, scene.camera, scene.image.spp if spp is None else spp),
+        "sensor": _sensor(mi, scene.camera, scene.image.spp if spp is None else spp, plugin_sensor),
     }
     if any(scene.image.background):
         dropped.append("image.background (Mitsuba would light the scene with it)")
@@ -239,5 +298,5 @@ def to_mitsuba(scene, spp: int | None = None, integrator: dict | None = None, *,
                 nrm = None
             out[key] = _triangle_mesh(mi, key, tri, nrm, bsdf)
         else:
-            raise NotImplementedError(f"mitsuba_export: shape type {kind!r} ({obj.name})")
+            raise NotImplementedError(f"mitsuba export: shape type {kind!r} ({obj.name})")
     return out, dropped

@@ -1,0 +1,53 @@
+"""`renderer render --backend mitsuba` and `--cluster`: the renders that do not run in our own process."""
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import torch
+
+from .cli import UsageError
+from .render import RenderResult
+
+
+def render_mitsuba(scene, spp: int | None = None, sampler: str | None = None, *, seed: int = 0,
+                   variant: str | None = None, progress: bool = True) -> RenderResult:
+    """Render `scene` in Mitsuba 3 with our camera (renderer.mitsuba): `direct` integrator, one emitter
+    sample, box pixel filter, Mitsuba's own `independent` sampler (`sampler` is ours only; a note says so).
+    Prints one line naming what could not be mapped. variant: Mitsuba variant [llvm_ad_rgb where it runs,
+    else scalar_rgb]. Coverage is 1 everywhere (our cameras give every pixel a ray)."""
+    try:
+        from .mitsuba import load_mitsuba, to_mitsuba
+        mi = load_mitsuba(variant or "llvm_ad_rgb")
+    except ImportError as e:
+        raise UsageError(f"--backend mitsuba: {e}") from None
+    spp = scene.image.spp if spp is None else spp
+    try:
+        scene_dict, dropped = to_mitsuba(scene, spp)
+    except NotImplementedError as e:
+        raise UsageError(f"--backend mitsuba: {e}") from None
+    notes = list(dropped)
+    if sampler not in (None, "independent"):
+        notes.append(f"sampler {sampler} (Mitsuba's independent sampler used)")
+    if progress or notes:
+        print(f"renderer: mitsuba {mi.variant()}; not mapped: {'; '.join(notes) if notes else 'nothing'}",
+              file=sys.stderr)
+    image = np.array(mi.render(mi.load_dict(scene_dict), seed=seed), dtype=np.float32)[..., :3]
+    image = torch.from_numpy(np.ascontiguousarray(image))
+    return RenderResult(image, torch.ones(image.shape[:2], dtype=image.dtype))
+
+
+def render_with(backend: str, cluster: str | None, scene, spp, sampler, *, device, seed: int,
+                progress: bool) -> RenderResult:
+    """Dispatch of `cmd_render` for --backend mitsuba and --cluster (not both)."""
+    if backend == "mitsuba":
+        if cluster:
+            raise UsageError("--cluster works with the torch backend only")
+        return render_mitsuba(scene, spp, sampler, seed=seed, progress=progress)
+    if torch.device(device).type != "cpu":
+        raise UsageError("--cluster traces on the cluster's CPUs: leave out --device")
+    try:
+        from .distributed import render_on_ray
+        return render_on_ray(scene, spp, sampler, address=cluster, seed=seed, progress=progress)
+    except (ImportError, ConnectionError) as e:
+        raise UsageError(str(e)) from None

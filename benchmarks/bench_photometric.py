@@ -27,7 +27,6 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from renderer import optics  # noqa: E402
 from tiltfit import reproduce, synth  # noqa: E402
 from tiltfit.detect import detect  # noqa: E402
 from tiltfit.fit import FitError, FitOptions, calibrate  # noqa: E402
@@ -44,11 +43,8 @@ RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
 def captures(U0_mm: float, spp: int):
     w_px, h_px, _ = reproduce.EOS_6D.downscaled(DOWNSCALE)
     pitch = reproduce.EOS_6D.pixel_pitch_mm * DOWNSCALE
-    f = float(optics.focal_length(W_MM, U0_mm))
-    theta_L = math.radians(THETA_L_DEG)
-    U = float(optics.focus_distance_tilted(W_MM, f, theta_L))
-    theta_F = float(optics.theta_F_from_theta_L(theta_L, W_MM, U))
-    cam = synth.SynthCamera(W_MM, U, D_MM, pitch, w_px, h_px, theta_F)
+    cam = synth.tilted_lens_camera(W_MM, U0_mm, D_MM, THETA_L_DEG, pitch, w_px, h_px)
+    U, theta_F = cam.U_mm, cam.theta_F_rad
     images, poses, blur, ratio = [], [], [], []
     for k, i in enumerate(VIEWS):
         R, T = reproduce.target_pose(BOARD, *reproduce.TARGET_VIEWS[i])

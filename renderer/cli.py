@@ -123,7 +123,7 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    previous = _interrupt_on_sigterm()
+    previous = interrupt_on_sigterm()
     try:
         with warnings.catch_warnings():
             # numpy's floating-point warnings would print before the one-line error; failures are reported once.
@@ -148,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
             signal.signal(signal.SIGTERM, previous)
 
 
-def _interrupt_on_sigterm():
+def interrupt_on_sigterm():
     """SIGTERM ends the command like Ctrl-C (temporary files removed, exit 130); returns the old handler."""
 
     def handler(signum, frame):

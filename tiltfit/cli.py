@@ -30,6 +30,7 @@ import sys
 import time
 import warnings
 
+from renderer.cli import interrupt_on_sigterm
 from renderer.io import quiet_c_stderr as _quiet_c_stderr
 
 EXIT_ERROR = 2
@@ -485,7 +486,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
-    previous = _interrupt_on_sigterm()
+    previous = interrupt_on_sigterm()
     try:
         if argv and argv[0] == "reproduce":
             return cmd_reproduce(argv[1:])
@@ -512,18 +513,6 @@ def main(argv=None) -> int:
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
-
-
-def _interrupt_on_sigterm():
-    """SIGTERM ends the command like Ctrl-C (one line, exit 130); returns the old handler."""
-
-    def handler(signum, frame):
-        raise KeyboardInterrupt
-
-    try:
-        return signal.signal(signal.SIGTERM, handler)
-    except ValueError:  # not the main thread
-        return None
 
 
 if __name__ == "__main__":

@@ -406,6 +406,19 @@ def _pixels_value(flat_idx, W, sub, radius, c_lo, r_lo, kc, kr, near_outer, insi
     return value.mean(-1)
 
 
+def tilted_lens_camera(w_mm: float, U0_mm: float, d_mm: float, theta_L_deg: float, pixel_pitch_mm: float,
+                       width_px: int, height_px: int) -> SynthCamera:
+    """The camera whose thin lens (sensor at w, focused at U0 when untilted) is tilted by θL about its centre:
+    U from the hinge rule U = f w / (w cos θL − f), θF from the exact Scheimpflug relation."""
+    from renderer import optics
+
+    theta_L = math.radians(theta_L_deg)
+    f = float(optics.focal_length(w_mm, U0_mm))
+    U = float(optics.focus_distance_tilted(w_mm, f, theta_L))
+    theta_F = float(optics.theta_F_from_theta_L(theta_L, w_mm, U))
+    return SynthCamera(w_mm, U, d_mm, pixel_pitch_mm, width_px, height_px, theta_F)
+
+
 # --- the ray tracer ----------------------------------------------------------------------------------------
 def renderer_available() -> bool:
     """Whether the renderer has the `thin_lens` camera and the `rectangle` shape this module needs."""

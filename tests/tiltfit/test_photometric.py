@@ -89,11 +89,8 @@ def _captures(U0_mm: float, spp: int = 64, board: Target = BOARD, d_mm: float = 
     """Ray-traced photographs of `board` through a lens tilted by THETA_L_DEG (focus U0 when untilted)."""
     w_px, h_px, _ = reproduce.EOS_6D.downscaled(DOWNSCALE)
     pitch = reproduce.EOS_6D.pixel_pitch_mm * DOWNSCALE
-    f = float(optics.focal_length(W_MM, U0_mm))
-    theta_L = math.radians(THETA_L_DEG)
-    U = float(optics.focus_distance_tilted(W_MM, f, theta_L))
-    theta_F = float(optics.theta_F_from_theta_L(theta_L, W_MM, U))
-    cam = synth.SynthCamera(W_MM, U, d_mm, pitch, w_px, h_px, theta_F)
+    cam = synth.tilted_lens_camera(W_MM, U0_mm, d_mm, THETA_L_DEG, pitch, w_px, h_px)
+    U, theta_F = cam.U_mm, cam.theta_F_rad
     images, poses, blur, ratio = [], [], [], []
     for k, (rx, ry, dist) in enumerate(reproduce.TARGET_VIEWS[i] for i in views):
         R, T = reproduce.target_pose(board, rx, ry, dist)

@@ -201,8 +201,11 @@ def interrupt_after_progress(argv: list[str], sig, marker: str, timeout_s: float
     """Run `python -m ...argv` in a subprocess, send `sig` once a stderr line contains `marker`; returns
     (exit status, stderr lines)."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p), "OMP_NUM_THREADS": "1"}
+    # A command started in the background by a non-interactive shell (as CI may start the suite) inherits an
+    # ignored SIGINT; give the child the default disposition, as a terminal would.
     proc = subprocess.Popen([sys.executable, "-m", *argv], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL,
-                            env=env, text=True, bufsize=1)
+                            env=env, text=True, bufsize=1,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     lines, seen = [], threading.Event()
 
     def reader():

@@ -173,12 +173,11 @@ def main(argv=None) -> int:
     pairs += [(f"frame 0 -> step {s}", last_frames[0], base.moved(s)) for s in (0.01, 0.05, 0.15)]
     for label, prev, cam in pairs:
         exact = BeamTracer(scene)
-        t0 = time.perf_counter()
         exact_frame = exact.frame(cam)
         times, exact_times = [], []
         for _ in range(repeats):
             t0 = time.perf_counter()
-            approx = scaled_regions(prev.regions, tracer.faces, prev.camera, cam)
+            approx = scaled_regions(prev.regions, exact.faces, prev.camera, cam)
             times.append(time.perf_counter() - t0)
             exact.segmenter.timing = type(exact.segmenter.timing)()
             exact.segmenter.segment(cam)

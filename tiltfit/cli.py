@@ -302,11 +302,11 @@ def cmd_calibrate(args) -> int:
                 f"{held_out['folds']}-fold)")
         except FitError as e:
             say(f"held-out error not computed: {e}")
+    photometric = _refine_photometric(result, used, target, args, say) if args.refine == "photometric" else None
     data = calib_dict(result, runtime_s=time.perf_counter() - t0, obs=used, target=target.to_dict(),
                       held_out=held_out)
-    if args.refine == "photometric":
-        _refine_photometric(data, target, args, say)
-        data["runtime_s"] = time.perf_counter() - t0
+    if photometric is not None:
+        data["refinement"], data["photometric"] = "photometric", photometric
     try:
         write_calib(args.output, data)
     except OSError as e:
@@ -315,51 +315,63 @@ def cmd_calibrate(args) -> int:
     return 0
 
 
-def _refine_photometric(data: dict, target, args, say) -> None:
-    """`--refine photometric`: refit lens and poses to the photos' pixels; records the corner fit beside it."""
-    import numpy as np
+def _refine_photometric(result, obs, target, args, say) -> dict:
+    """`--refine photometric`: refit lens and poses to the photos' pixels.
 
-    from renderer import optics, read_image
+    The refined values are written into `result` (its camera, values, σ and views, so every key CALIB.json
+    derives from them, residuals and f included, follows); returns the CALIB.json `photometric` block, which
+    keeps the corner fit beside the refinement.
+    """
+    import numpy as np
+    import torch
+
+    from renderer import read_image
     from renderer.io import ImageIOError
 
+    from .calibfile import calib_dict
+    from .model import matrix_to_axis_angle, residuals
     from .photometric import PhotometricError, refine_photometric
 
     images = []
-    for view in data["views"]:
+    for view in result.views:
         path = view["image"]
         if _is_det_file(path):
             raise CliError(path, "--refine photometric needs the photographs, not DET files")
         try:
-            img = read_image(path, args.encoding)
+            img = np.asarray(read_image(path, args.encoding), dtype=np.float64)
         except (ImageIOError, OSError, ValueError) as e:
             raise _as_cli_error(path, e) from None
-        images.append(np.asarray(img, dtype=np.float64).mean(-1) if img.ndim == 3 else np.asarray(img, np.float64))
+        images.append(img.mean(-1) if img.ndim == 3 else img)
+    keys = ("w_mm", "U_mm", "d_mm", "theta_F_deg", "theta_L_deg")
+    block = {"corner_fit": {k: result.values.get(k) for k in keys},
+             "corner_fit_sigma": {k: result.sigma.get(k) for k in keys}}
     try:
-        res = refine_photometric(images, target, data, args.pixel_pitch_mm, say=say)
+        res = refine_photometric(images, target, calib_dict(result), args.pixel_pitch_mm, say=say)
     except PhotometricError as e:
         raise CliError(args.inputs[0], f"photometric refinement: {e}") from None
-    v, s = res.values, res.sigma
-    data["photometric"] = {
-        "rms_linear": res.rms, "iterations": res.iterations, "runtime_s": res.runtime_s,
-        "vignetting": v["vignetting"], "levels": [{"white": x["white"], "black": x["black"]} for x in res.views],
-        "corner_fit": {k: data.get(k) for k in ("w_mm", "U_mm", "d_mm", "theta_F_deg", "theta_L_deg")},
-        "corner_fit_sigma": {k: data.get("sigma", {}).get(k) for k in ("w_mm", "U_mm", "d_mm", "theta_F_deg",
-                                                                        "theta_L_deg")}}
-    theta_L = math.radians(v["theta_L_deg"])
-    f = float(optics.focal_length(v["w_mm"], v["U_mm"], theta_L))
-    data.update({"w_mm": v["w_mm"], "U_mm": v["U_mm"], "d_mm": v["d_mm"], "theta_F_deg": v["theta_F_deg"],
-                 "theta_L_deg": v["theta_L_deg"], "f_mm": f,
-                 "theta_L_paper_deg": math.degrees(float(optics.theta_L_paper(math.radians(v["theta_F_deg"]), f,
-                                                                              v["U_mm"])))})
-    data.setdefault("sigma", {}).update({k: s[k] for k in ("w_mm", "U_mm", "d_mm", "theta_F_deg", "theta_L_deg")})
-    data["undetermined"] = [k for k in data.get("undetermined", []) if k not in ("U_mm", "d_mm")]
-    for view, fitted in zip(data["views"], res.views):
-        view["R"] = np.asarray(fitted["R"]).tolist()
-        view["T_mm"] = [float(t) for t in fitted["T_mm"]]
-        view["rms_photometric"] = fitted["rms"]
-    data["refinement"] = "photometric"
-    say(f"photometric refinement: RMS {res.rms:.4g} (linear), θL {v['theta_L_deg']:+.4f} ± {s['theta_L_deg']:.4f}°, "
+    v, sg, cam = res.values, res.sigma, result.camera
+    with torch.no_grad():
+        cam.log_w_mm.fill_(math.log(v["w_mm"]))
+        cam.inv_U_per_m.fill_(v["inv_U_per_m"])
+        cam.log_d_mm.fill_(math.log(max(v["d_mm"], 1e-9)))
+        cam.theta_F.fill_(math.radians(v["theta_F_deg"]))
+        cam.rvec.copy_(matrix_to_axis_angle(np.stack([x["R"] for x in res.views])))
+        cam.T_scaled.copy_(torch.as_tensor(np.stack([x["T_mm"] for x in res.views])) / cam.length_scale_mm)
+        r = residuals(cam, obs)
+        rms_corners, rms_blur = r.rms_per_view()
+    result.values.update({k: x for k, x in cam.summary().items() if k in result.values})
+    # σ of the refined keys from the photometric covariance; f and the paper's θL are not propagated.
+    result.sigma.update({k: sg[k] for k in keys}, f_mm=None, theta_L_paper_deg=None)
+    result.undetermined = [k for k in result.undetermined if k not in ("U_mm", "d_mm")]
+    result.rss = dict(result.rss, corners=float((r.corners_px**2).sum()))
+    for k, (view, fitted) in enumerate(zip(result.views, res.views)):
+        view.update(R=cam.R[k].tolist(), T_mm=cam.T_mm[k].tolist(), rms_reprojection_px=float(rms_corners[k]),
+                    rms_blur_px=float(rms_blur[k]), rms_photometric=fitted["rms"])
+    block.update(rms_linear=res.rms, iterations=res.iterations, runtime_s=res.runtime_s, vignetting=v["vignetting"],
+                 levels=[{"white": x["white"], "black": x["black"]} for x in res.views])
+    say(f"photometric refinement: RMS {res.rms:.4g} (linear), θL {v['theta_L_deg']:+.4f} ± {sg['theta_L_deg']:.4f}°, "
         f"U {v['U_mm']:.2f} mm, d {v['d_mm']:.3f} mm ({res.iterations} iterations, {res.runtime_s:.1f} s)")
+    return block
 
 
 def cmd_export(args) -> int:

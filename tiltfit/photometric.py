@@ -44,6 +44,7 @@ from renderer.cameras.thin_lens import ThinLensCamera, concentric_disk
 from renderer.optics import theta_L_from_theta_F
 from renderer.transforms import CameraTransform
 
+from .model import axis_angle_to_matrix, matrix_to_axis_angle
 from .target import Target
 
 #: Names of the global parameters in the flat vector, in order (units: mm, 1/m, mm, rad, dimensionless).
@@ -209,7 +210,7 @@ def lens_camera(sensor: SensorGeometry, w_mm, inv_U_per_m, d_mm, theta_F, rvec, 
     The sensor's distortion (held, not fitted) is the renderer's: pixels are traced through their ideal,
     undistorted positions.
     """
-    R = _rotation(rvec)
+    R = axis_angle_to_matrix(rvec)
     world_from_camera = R.transpose(0, 1)
     position = -(world_from_camera @ T_mm)
     W, H, p = sensor.width_px, sensor.height_px, sensor.pixel_pitch_mm
@@ -227,17 +228,14 @@ def render_target(target: Target, sensor: SensorGeometry, uv_px: torch.Tensor, l
 
     Args:
         uv_px: (N, 2) pixel positions (x = column, y = row).
-        lens_uv: (S, 2) lens samples in [0, 1)², the same for every pixel.
+        lens_uv: (S, 2) lens samples in [0, 1)², the same for every pixel; their points on the aperture should
+            have the disc's moments (`hammersley_disc_samples` does), or d comes out scaled.
         w_mm, inv_U_per_m, d_mm, theta_F, vignetting, white, black: 0-dim tensors; rvec, T_mm: (3,).
     Returns:
         (N,) linear intensities (the model of the module docstring). 1/U must be > 0 here (a finite U);
         `refine_photometric` keeps it so.
     """
-    # A sample set whose E|s|² is not the disc's r²/2 would bias d by half the difference: the polar grid
-    # has it exactly, any other set given here is rescaled to it.
-    m2 = float((concentric_disk(lens_uv) ** 2).sum(-1).mean())
-    fill = math.sqrt(0.5 / m2) if m2 > 0 else 1.0   # a lone central sample: a pinhole, nothing to fill
-    cam = lens_camera(sensor, w_mm, inv_U_per_m, d_mm * fill, theta_F, rvec, T_mm)
+    cam = lens_camera(sensor, w_mm, inv_U_per_m, d_mm, theta_F, rvec, T_mm)
     n, s = uv_px.shape[0], lens_uv.shape[0]
     # The pixel's area: every lens sample is traced from each of the 2 x 2 sub-pixel centres, and each
     # sub-pixel's remaining box (half a pixel wide) is a Gaussian footprint on the board of the same
@@ -265,23 +263,6 @@ def _on_board(rays) -> torch.Tensor:
     """(..., 3) points where rays meet the board plane Z = 0 (target frame)."""
     t = -rays.origin[..., 2] / rays.direction[..., 2]
     return rays.origin + t[..., None] * rays.direction
-
-
-def _skew(v: torch.Tensor) -> torch.Tensor:
-    z = torch.zeros_like(v[0])
-    return torch.stack([torch.stack([z, -v[2], v[1]]), torch.stack([v[2], z, -v[0]]),
-                        torch.stack([-v[1], v[0], z])])
-
-
-def _rotation(rvec: torch.Tensor) -> torch.Tensor:
-    """Axis-angle (3,) -> (3, 3) rotation; matrix_exp keeps it smooth through the zero rotation."""
-    return torch.linalg.matrix_exp(_skew(rvec))
-
-
-def _axis_angle(R: np.ndarray) -> np.ndarray:
-    import cv2
-
-    return cv2.Rodrigues(np.asarray(R, dtype=np.float64))[0].reshape(3)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -378,8 +359,8 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
     for k, (im, v) in enumerate(zip(imgs, init["views"])):
         if im.shape != (H, W):
             raise PhotometricError(f"view {k}: image is {im.shape[1]}x{im.shape[0]}, expected {W}x{H}")
-        vp = torch.tensor([*_axis_angle(v["R"]), *np.asarray(v["T_mm"], dtype=np.float64), 0.0, 0.0],
-                          dtype=torch.float64)
+        rvec = matrix_to_axis_angle(v["R"]).tolist()
+        vp = torch.tensor([*rvec, *np.asarray(v["T_mm"], dtype=np.float64), 0.0, 0.0], dtype=torch.float64)
         usable = _usable_mask(target, sensor, glob, vp, lens_uv)
         white, black = _initial_levels(im, usable)
         vp[6], vp[7] = white, black
@@ -439,9 +420,11 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
             sl = torch.tensor(sl)
             JTJ[sl[:, None], sl[None, :]] += J.T @ (wk[:, None] * J)
             JTr[sl] += J.T @ (wk * rk)
+        # Marquardt's scaling by the diagonal; a held parameter (zero column) gets 1 so the system stays regular.
         diag = torch.diagonal(JTJ).clone()
-        diag[diag == 0] = 1.0
-        JTJ_reg = JTJ + torch.diag(torch.where(torch.diagonal(JTJ) == 0, torch.ones_like(diag), torch.zeros_like(diag)))
+        held = diag == 0
+        diag[held] = 1.0
+        JTJ_reg = JTJ + torch.diag(held.to(JTJ.dtype))
         improved = False
         for _ in range(10):
             A = JTJ_reg + lam * torch.diag(diag)
@@ -496,7 +479,7 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
         n = dv.uv.shape[0]
         rk = r[offset:offset + n]
         offset += n
-        views.append({"R": _rotation(vp[0:3]).numpy(), "T_mm": vp[3:6].numpy().copy(), "white": float(vp[6]),
+        views.append({"R": axis_angle_to_matrix(vp[0:3]).numpy(), "T_mm": vp[3:6].numpy().copy(), "white": float(vp[6]),
                       "black": float(vp[7]), "rms": float(torch.sqrt((rk * rk).mean())), "n_pixels": n})
     rms = float(torch.sqrt((r * r).mean()))
     return PhotometricResult(values, sigma, views, rms, it, time.perf_counter() - t0, history)

@@ -16,7 +16,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..cameras.pinhole import PinholeCamera
 from ..params import SceneError
 from .polygons import Face, scene_faces
 from .segment import Region, ScreenCamera, Segmenter, Timing
@@ -59,8 +58,7 @@ class BeamTracer:
     """
 
     def __init__(self, scene, reuse: bool = True):
-        if not isinstance(scene.camera, PinholeCamera):
-            raise SceneError(f"camera.type: beam tracing needs a pinhole camera, got {type(scene.camera).__name__}")
+        ScreenCamera.of(scene.camera)  # refuses cameras the segmentation cannot model, with the field named
         if scene.layers:
             raise SceneError("layers: beam tracing renders one perspective view; remove the layers")
         self.scene = scene

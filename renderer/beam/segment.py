@@ -64,7 +64,14 @@ class ScreenCamera:
 
     @staticmethod
     def of(camera) -> "ScreenCamera":
-        """From a renderer PinholeCamera."""
+        """From a renderer PinholeCamera without distortion (the segmentation projects straight lines)."""
+        from ..cameras.pinhole import PinholeCamera
+        from ..params import SceneError
+
+        if not isinstance(camera, PinholeCamera):
+            raise SceneError(f"camera.type: beam tracing needs a pinhole camera, got {type(camera).__name__}")
+        if camera.distortion is not None and not camera.distortion.is_identity:
+            raise SceneError("camera.distortion: beam tracing projects straight edges; it has no distortion model")
         s = camera.screen
         return ScreenCamera(camera.transform.position.numpy().astype(np.float64),
                             camera.transform.world_from_camera.numpy().astype(np.float64),
@@ -185,6 +192,8 @@ class Segmenter:
 
     def __init__(self, faces, reflect: np.ndarray, max_depth: int, extent: float = 1.0):
         self.faces = faces
+        self._face_n = np.array([f.n for f in faces]).reshape(-1, 3)  # the real planes, for `crossed`
+        self._face_c = np.array([f.c for f in faces])
         self.reflect = np.asarray(reflect, dtype=np.float64)
         self.max_depth = max_depth
         self.tol = SIDE_TOL * (1.0 + extent)
@@ -276,9 +285,7 @@ class Segmenter:
 
     def crossed(self, eye_from: np.ndarray, eye_to: np.ndarray) -> np.ndarray:
         """Face ids whose (real) infinite plane the eye crosses or touches moving from eye_from to eye_to."""
-        n = np.array([f.n for f in self.faces]).reshape(-1, 3)
-        c = np.array([f.c for f in self.faces])
-        a, b = n @ eye_from - c, n @ eye_to - c
+        a, b = self._face_n @ eye_from - self._face_c, self._face_n @ eye_to - self._face_c
         return np.nonzero(((a > 0) != (b > 0)) | (np.abs(b) <= self.tol))[0]
 
     # ------------------------------------------------------------------------------------------- step (3)

@@ -69,9 +69,7 @@ def lit_regions(faces, lights) -> list[list]:
                 # A face seen edge-on from the light projects to a degenerate ring: make_valid first.
                 shadows = [areal(x) for x in shapely.make_valid(np.array(shadows, dtype=object))]
                 shade = areal(shapely.union_all(shadows, grid_size=SHADOW_GRID))
-                lit = areal(shapely.difference(f.poly, shade, grid_size=SHADOW_GRID))
-                if shade.is_empty:
-                    lit = f.poly
+                lit = f.poly if shade.is_empty else areal(shapely.difference(f.poly, shade, grid_size=SHADOW_GRID))
             else:
                 lit = f.poly
             shapely.prepare(lit)

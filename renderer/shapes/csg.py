@@ -99,15 +99,8 @@ class CSG(Shape):
         normals, offsets = self._param("normals", o), self._param("offsets", o)
         num = (offsets - o @ normals.T).view(n_rays, n_leaves, self.k_max)
         den = (d @ normals.T).view(n_rays, n_leaves, self.k_max)
-        # Each convex leaf along the ray: t·den_k <= num_k for every plane k (see polyhedron.clip_convex).
-        ratio = num / torch.where(den == 0, torch.ones_like(den), den)
-        inf = torch.full_like(ratio, INF)
-        outside = (den == 0) & (num < 0)
-        t_in = torch.where(outside, inf, torch.where(den < 0, ratio, -inf))
-        t_out = torch.where(outside, -inf, torch.where(den > 0, ratio, inf))
-        t_enter, k_enter = t_in.max(-1)  # (N, L)
-        t_exit, k_exit = t_out.min(-1)
-        met = t_enter <= t_exit
+        # Each convex leaf along the ray: t·den_k <= num_k for every plane k; (N, L) intervals.
+        t_enter, k_enter, t_exit, k_exit, met = slab_interval(num, den)
         t_enter = torch.where(met, t_enter, torch.full_like(t_enter, INF))
         t_exit = torch.where(met, t_exit, torch.full_like(t_exit, -INF))
         # Candidates: the finite interval ends; the others sort to the end as +inf.

@@ -37,22 +37,29 @@ def clip_convex(num: torch.Tensor, den: torch.Tensor, t_min: float) -> tuple[tor
         t (N,): t_enter if beyond t_min, else t_exit for rays starting inside, else +inf;
         plane (N,) long: the plane index of that crossing (0 on a miss).
     """
-    ratio = num / torch.where(den == 0, torch.ones_like(den), den)
-    inf = torch.full_like(ratio, INF)
-    outside = (den == 0) & (num < 0)
-    t_in = torch.where(den < 0, ratio, -inf)
-    t_out = torch.where(den > 0, ratio, inf)
-    # A parallel ray outside one slab misses: an empty interval [+inf, -inf].
-    t_in = torch.where(outside, inf, t_in)
-    t_out = torch.where(outside, -inf, t_out)
-    t_enter, k_enter = t_in.max(-1)
-    t_exit, k_exit = t_out.min(-1)
-    met = t_enter <= t_exit
+    t_enter, k_enter, t_exit, k_exit, met = slab_interval(num, den)
     use_enter = t_enter > t_min
     t = torch.where(use_enter, t_enter, t_exit)
     plane = torch.where(use_enter, k_enter, k_exit)
     hit = met & (t > t_min) & (t < INF)
-    return torch.where(hit, t, inf[:, 0]), torch.where(hit, plane, torch.zeros_like(plane))
+    return torch.where(hit, t, torch.full_like(t, INF)), torch.where(hit, plane, torch.zeros_like(plane))
+
+
+def slab_interval(num: torch.Tensor, den: torch.Tensor):
+    """The ray-parameter interval inside the intersection of half-spaces t·den_k ≤ num_k (last axis k).
+
+    Returns:
+        t_enter, k_enter: the largest entering crossing and its plane; t_exit, k_exit: the smallest exiting
+        crossing and its plane; met: t_enter ≤ t_exit (a parallel ray outside one slab gets [+inf, −inf]).
+    """
+    ratio = num / torch.where(den == 0, torch.ones_like(den), den)
+    inf = torch.full_like(ratio, INF)
+    outside = (den == 0) & (num < 0)
+    t_in = torch.where(outside, inf, torch.where(den < 0, ratio, -inf))
+    t_out = torch.where(outside, -inf, torch.where(den > 0, ratio, inf))
+    t_enter, k_enter = t_in.max(-1)
+    t_exit, k_exit = t_out.min(-1)
+    return t_enter, k_enter, t_exit, k_exit, t_enter <= t_exit
 
 
 def polytope_vertices(normals: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:

@@ -105,3 +105,15 @@ def test_thin_lens_with_distortion_focuses_the_distorted_pixel_on_its_point():
     hit = o + t[:, None] * d
     assert rays.valid.all(), "valid rays"
     assert (hit - p).norm(dim=-1).max() < 1e-3, f"rays meet at the point: {(hit - p).norm(dim=-1).max():.2g} mm"
+
+
+@pytest.mark.parametrize("k", [[-0.1, 0.02], [0.05], [-0.3, 0.1, 0.001, 0.001]])
+def test_undistort_converges_in_float32(k):
+    """The renderer traces in float32: no pixel may be left unconverged (a hole) where float64 converges."""
+    grid = torch.stack(torch.meshgrid(torch.linspace(-0.7, 0.7, 101), torch.linspace(-0.55, 0.55, 81),
+                                      indexing="ij"), -1).reshape(-1, 2)
+    u64 = undistort(grid.to(torch.float64), k)
+    u32 = undistort(grid.to(torch.float32), k)
+    assert not bool(torch.isnan(u64).any()), "float64 converges on this grid"
+    assert float(torch.isnan(u32).any(-1).float().mean()) == 0.0, "float32 pixels left unconverged"
+    assert float((u32.double() - u64).abs().max()) < 1e-5, "float32 agrees with float64"

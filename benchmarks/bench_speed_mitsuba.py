@@ -231,7 +231,7 @@ def main(argv=None):
                        "drjit_threads": dr.thread_count(), "load_start": load_start}}
     res["timing"] = time_modes(scene, ms, modes, args.repeats, log)
     if args.equal_error:
-        res["equal_error"] = equal_error(scene, ms, args.spp, [4, 8, 16, 32], [4, 8, 16, 32, 64, 128],
+        res["equal_error"] = equal_error(scene, ms, args.spp, sorted({4, 8, 16, 32, args.spp}), [4, 8, 16, 32, 64, 128],
                                          args.ee_repeats, log)
     res["machine"]["load_end"] = [round(x, 1) for x in os.getloadavg()]
     os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)

@@ -156,7 +156,7 @@ def trace_direct(scene: Scene, o: torch.Tensor, d: torch.Tensor, first_hit_objec
         dist = dist2.sqrt()
         l = to_light / dist.clamp_min(1e-12)
         cos = (n_f * l).sum(0).clamp_min(0)
-        reach = torch.where(cos > 0, dist, 0)
+        reach = torch.where((cos > 0) & found, dist, 0)  # misses (background) trace no shadow ray
         vis = scene.visibility_rows(origin, l, reach, options=options, leaving=leaving)
         scale = kd * cos * vis / (math.pi * (reach * reach).clamp_min(1e-30))
         radiance = radiance + albedo * scale * intensity

@@ -362,11 +362,7 @@ class Scene:
             else:
                 rows = self._compiled(k, _nearest, options, (o_p, d_p, sel, self.ray_epsilon, t_best, obj, aux,
                                                              torch.tensor(k, device=o.device)))
-            if sel is None:
-                t_best, obj, aux = rows
-            else:
-                for dst, src in zip((t_best, obj, aux), rows):
-                    dst.index_copy_(0, sel, src)
+            t_best, obj, aux = _merged((t_best, obj, aux), rows, sel)
         return Hit(t_best.view(-1)[:n], obj.view(-1)[:n], aux.view(-1)[:n])
 
     def intersect_rows(self, o: torch.Tensor, d: torch.Tensor, object_mask: list[bool] | None = None, *,
@@ -380,11 +376,7 @@ class Scene:
         aux = torch.zeros(o_p.shape[1:], dtype=torch.long, device=o.device)
         for k, sel in plan:
             rows = _nearest_eager(self.objects[k].shape, o_p, d_p, sel, self.ray_epsilon, t_best, obj, aux, k)
-            if sel is None:
-                t_best, obj, aux = rows
-            else:
-                for dst, src in zip((t_best, obj, aux), rows):
-                    dst.index_copy_(0, sel, src)
+            t_best, obj, aux = _merged((t_best, obj, aux), rows, sel)
         return Hit(t_best.view(-1)[:n], obj.view(-1)[:n], aux.view(-1)[:n])
 
     def visibility_rows(self, o: torch.Tensor, d: torch.Tensor, t_max: torch.Tensor, *,
@@ -397,10 +389,7 @@ class Scene:
         vis = torch.ones(o_p.shape[1:], dtype=o.dtype, device=o.device)
         for k, sel in plan:
             rows = _blocked_eager(self.objects[k].shape, o_p, d_p, sel, self.ray_epsilon, t_p, vis, None)
-            if sel is None:
-                vis = rows
-            else:
-                vis.index_copy_(0, sel, rows)
+            (vis,) = _merged((vis,), (rows,), sel)
         return vis.view(-1)[:n]
 
     def transmittance(self, o: torch.Tensor, d: torch.Tensor, t_max: torch.Tensor, *,
@@ -447,6 +436,16 @@ def _components(x: torch.Tensor) -> torch.Tensor:
     """(N, 3) -> (3, N) contiguous component rows (the layout of `Shape.intersect_soa`); stacking the three
     strided columns is several times faster than `x.T.contiguous()` in eager torch."""
     return torch.stack(x.unbind(-1))
+
+
+def _merged(state: tuple, rows: tuple, sel):
+    """A shape's per-packet results written into the running state: all packets (sel None) replace it,
+    selected packets are copied into their rows."""
+    if sel is None:
+        return tuple(rows)
+    for dst, src in zip(state, rows):
+        dst.index_copy_(0, sel, src)
+    return state
 
 
 def _surface_of(shape, p, aux):

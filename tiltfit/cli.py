@@ -295,7 +295,7 @@ def cmd_calibrate(args) -> int:
         from .validate import held_out_rms
 
         try:
-            held_out = held_out_rms(used, options, folds=args.held_out, mode=args.fit,
+            held_out = held_out_rms(used, options, folds=args.held_out,
                                     distortion=result.distortion_model)
             fit_rms = math.sqrt(result.rss["corners"] / max(result.rss["n_corners"], 1))
             say(f"reprojection RMS {fit_rms:.4f} px (fit), {held_out['rms_px']:.4f} px (held out, "

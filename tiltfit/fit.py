@@ -1105,7 +1105,8 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
         say(f"{mode} fit of {obs.n_views} views, {int(obs.corner_mask.sum())} corners, "
             f"{int(obs.blur_mask.sum())} blur widths")
     blur_ok = blur_is_informative(obs, options.blur_floor_px)
-    cam = initialize(obs, mode, init, options, blur=blur_ok)
+    # With distortion to fit, the geometric fit comes first and the blur start is made after it (below).
+    cam = initialize(obs, mode, init, options, blur=blur_ok and options.distortion == "none")
     notes, undetermined = [], []
     geometry = None
     distortion = options.distortion

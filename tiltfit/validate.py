@@ -6,7 +6,7 @@ for each fold fit the lens (w, principal point, distortion, as the full fit did)
 hold that lens fixed and fit only each held-out view's pose; the RMS of those views' residuals is what the
 lens predicts. Blur widths are not used (geometry only).
 
-    held_out_rms(obs, options, folds=5, mode="unified") -> {"rms_px", "per_view_px", "folds"}
+    held_out_rms(obs, options, folds=5) -> {"rms_px", "per_view_px", "folds"}
 """
 from __future__ import annotations
 
@@ -19,10 +19,6 @@ from .fit import FitError, FitOptions, fit_geometry, initialize, without_blur
 from .model import Observations
 
 
-def _rms(result) -> float:
-    return math.sqrt(result.rss["corners"] / max(result.rss["n_corners"], 1))
-
-
 def predict_views(camera, obs: Observations, options: FitOptions = FitOptions()):
     """Fit only the poses of `obs`'s views with `camera`'s lens held (w, U, d, θF, principal point,
     distortion); returns the FitResult (its RMS is the prediction error)."""
@@ -33,7 +29,7 @@ def predict_views(camera, obs: Observations, options: FitOptions = FitOptions())
 
 
 def held_out_rms(obs: Observations, options: FitOptions = FitOptions(), folds: int = 5,
-                 mode: str = "unified", distortion: str | None = None) -> dict:
+                 distortion: str | None = None) -> dict:
     """K-fold held-out reprojection RMS (pixels) of a geometric calibration with `options`' settings.
 
     Args:
@@ -56,7 +52,7 @@ def held_out_rms(obs: Observations, options: FitOptions = FitOptions(), folds: i
         test = [v for v in range(V) if v % K == k]
         train = [v for v in range(V) if v % K != k]
         tr = obs.subset(train)
-        cam = initialize(tr, mode if mode != "tilt" else "unified", options=opts, blur=False)
+        cam = initialize(tr, "unified", options=opts, blur=False)  # geometry only: the lens mode does not enter
         fit = fit_geometry(cam, tr, opts, mode="unified")
         pred = predict_views(fit.camera, obs.subset(test), opts)
         sq += pred.rss["corners"]

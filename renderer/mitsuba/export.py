@@ -85,16 +85,6 @@ def _matrix(R, t, scale=(1.0, 1.0, 1.0)):
     return M.tolist()
 
 
-def _frame_from_normal(n):
-    """(3, 3) rotation whose third column is the unit vector n."""
-    n = np.asarray(n, dtype=np.float64)
-    n = n / np.linalg.norm(n)
-    helper = np.array([0.0, 0.0, 1.0]) if abs(n[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    u = np.cross(helper, n)
-    u /= np.linalg.norm(u)
-    return np.stack([u, np.cross(n, u), n], axis=1)
-
-
 def _cone_triangles(shape, segments: int):
     """World-space triangles (T, 3, 3) and per-corner normals (T, 3, 3) of a closed cone."""
     R = shape.world_from_local.numpy()

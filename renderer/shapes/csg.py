@@ -20,7 +20,7 @@ from __future__ import annotations
 import torch
 
 from .base import INF, ParameterError, Shape
-from .polyhedron import Polyhedron, coordinates_across
+from .polyhedron import Polyhedron, coordinates_across, slab_interval
 
 OPS = ("intersection", "union", "difference")
 

@@ -33,6 +33,7 @@ import torch
 from renderer.io import read_image
 from tiltfit.blur import measure_blur
 from tiltfit.detect import build_pyramid, detect, to_gray
+from tiltfit.opencv_corners import match_labelling, sb_corners
 from tiltfit.target import load_target
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -41,12 +42,7 @@ PATTERN = (8, 6)
 
 
 def opencv_sb(gray8):
-    flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
-    ok, c = cv2.findChessboardCornersSB(gray8, PATTERN, flags=flags)
-    if not ok:
-        return None
-    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 1e-3)
-    return cv2.cornerSubPix(gray8, c.astype(np.float32), (5, 5), (-1, -1), crit).reshape(-1, 2).astype(np.float64)
+    return sb_corners(gray8, PATTERN)
 
 
 def opencv_classic(gray8):
@@ -68,11 +64,8 @@ def timed(fn, arg, repeats):
 
 def agreement(ours, theirs):
     """(distances on our found corners after matching the labelling, whether the labelling was the same)."""
-    same = np.hypot(*(ours - theirs).T)
-    turned = np.hypot(*(ours - theirs[::-1]).T)
-    is_same = np.nanmedian(same) <= np.nanmedian(turned)
-    e = same if is_same else turned
-    return e[np.isfinite(e)], bool(is_same)
+    e, is_same = match_labelling(ours, theirs)
+    return e[np.isfinite(e)], is_same
 
 
 def stats(e):

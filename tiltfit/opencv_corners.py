@@ -17,6 +17,29 @@ import os
 import numpy as np
 
 
+def sb_corners(gray8: np.ndarray, pattern: tuple[int, int]) -> np.ndarray | None:
+    """(n, 2) corners of an 8-bit grey image by findChessboardCornersSB (normalised, exhaustive, accurate)
+    refined by cornerSubPix (5 × 5), in OpenCV's order; None when no board is found. `pattern` is (columns,
+    rows) of inner corners. The peer the detection benchmarks and tests compare with."""
+    import cv2
+
+    flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
+    ok, c = cv2.findChessboardCornersSB(gray8, pattern, flags=flags)
+    if not ok:
+        return None
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 1e-3)
+    return cv2.cornerSubPix(gray8, c.astype(np.float32), (5, 5), (-1, -1), crit).reshape(-1, 2).astype(np.float64)
+
+
+def match_labelling(ours: np.ndarray, theirs: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Per-corner distances between two (n, 2) labellings of a board that looks the same turned by 180°:
+    in the same order or reversed, whichever fits (smaller median); and whether it was the same order."""
+    same = np.hypot(*(ours - theirs).T)
+    turned = np.hypot(*(ours - theirs[::-1]).T)
+    is_same = bool(np.nanmedian(same) <= np.nanmedian(turned))
+    return (same if is_same else turned), is_same
+
+
 def opencv_detection(path: str, target) -> dict | None:
     """One image's corners by cv2.findChessboardCornersSB (grey levels as stored; no blur widths).
 

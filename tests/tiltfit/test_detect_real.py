@@ -11,6 +11,7 @@ import torch
 
 from renderer.io import linear_to_srgb, srgb_to_linear
 from tiltfit.detect import DetectionError, detect, detect_files
+from tiltfit.opencv_corners import match_labelling, sb_corners
 from tiltfit.synth import SynthCamera, look_at_pose, observe, render_view
 from tiltfit.target import Target, load_target
 
@@ -24,24 +25,6 @@ PATTERN = (8, 6)  # OpenCV: inner corners per row, per column
 # after matching the labelling (the board looks the same turned by 180°): measured median 0.09 px,
 # 95th percentile 0.17 px, worst 0.66 px (benchmarks/results/real_detect.md).
 AGREE_MEDIAN_PX, AGREE_P95_PX, AGREE_MAX_PX = 0.15, 0.30, 1.0
-
-
-def opencv_corners(path):
-    """(48, 2) corners of findChessboardCornersSB refined by cornerSubPix, or None."""
-    gray = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
-    flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
-    ok, c = cv2.findChessboardCornersSB(gray, PATTERN, flags=flags)
-    if not ok:
-        return None
-    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 1e-3)
-    return cv2.cornerSubPix(gray, c.astype(np.float32), (5, 5), (-1, -1), crit).reshape(-1, 2).astype(np.float64)
-
-
-def match_labelling(ours, theirs):
-    """Distances to `theirs` in the same order or turned by 180° (reversed), whichever fits; and which."""
-    same = np.hypot(*(ours - theirs).T)
-    turned = np.hypot(*(ours - theirs[::-1]).T)
-    return (same, "same") if np.nanmedian(same) <= np.nanmedian(turned) else (turned, "turned")
 
 
 @pytest.fixture(scope="module")
@@ -94,7 +77,7 @@ def test_gopro_corners_agree_with_opencv(gopro):
     paths, target, dets = gopro
     errors, both = [], 0
     for p, d in list(zip(paths, dets))[::3]:
-        theirs = opencv_corners(p)
+        theirs = sb_corners(cv2.imread(p, cv2.IMREAD_GRAYSCALE), PATTERN)
         if d is None or theirs is None:
             continue
         both += 1

@@ -129,7 +129,7 @@ def hammersley_disc_samples(n: int, dtype=torch.float64) -> torch.Tensor:
 
     Hammersley keeps n distinct radii and angles, so edge profiles are smooth; the whitening is a small
     linear correction (the plain 64-point set has E xy = 0.026 r² and E r² 2.3 % low: an elliptical,
-    tilted aperture that biased θF by 0.16° on sharp boards and d by 1 %).
+    tilted aperture, which biased θF on sharp boards and d).
     """
     n = max(int(n), 1)
     if n < 4:

@@ -31,9 +31,10 @@ def _K(calib: dict) -> np.ndarray:
 
 
 def _dist(calib: dict) -> np.ndarray:
-    c = list((calib.get("distortion") or {}).get("coefficients") or [])
-    n = 8 if any(c[5:]) else 5
-    return np.array((c + [0.0] * 8)[:n], dtype=np.float64)
+    from renderer.cameras.distortion import BrownConrady
+
+    c = tuple((calib.get("distortion") or {}).get("coefficients") or ())
+    return np.array(BrownConrady(c).to_config()["coefficients"], dtype=np.float64)  # OpenCV's 5 or 8
 
 
 def opencv_note(calib: dict) -> str:

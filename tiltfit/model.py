@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import torch
 from renderer import optics
-from renderer.cameras.distortion import COEFFICIENT_NAMES, MODEL_TERMS, distort
+from renderer.cameras.distortion import COEFFICIENT_NAMES, MODEL_TERMS, BrownConrady, distort
 
 BLUR_MODELS = ("ellipse", "first_order", "paper")
 ROBUST_LOSSES = (None, "none", "huber", "cauchy")
@@ -253,10 +253,7 @@ class TiltLensCamera(torch.nn.Module):
         self.register_buffer("image_centre_px", centre)
         pp = centre if principal_point_px is None else torch.as_tensor(principal_point_px, dtype=dtype)
         self.pp_scaled = P((pp - centre) / self.pixel_scale_px)
-        k = [0.0] * len(_DIST) if distortion is None else [float(v) for v in distortion]
-        if len(k) > len(_DIST):
-            raise ValueError(f"distortion: expected at most {len(_DIST)} coefficients, got {len(k)}")
-        k += [0.0] * (len(_DIST) - len(k))
+        k = BrownConrady(() if distortion is None else tuple(distortion)).coefficients  # checked, padded to 8
         for name, v in zip(_DIST, k):
             setattr(self, name, P(torch.tensor(v, dtype=dtype)))
         # A constant added to every measured blur width: a blur detector's bias (e.g. from its edge model),

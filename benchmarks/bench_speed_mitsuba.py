@@ -73,7 +73,7 @@ def time_modes(scene, ms: Mitsuba, modes: dict, repeats: int, log) -> dict:
     """Warm-up and interleaved medians of every mode of ours and of Mitsuba."""
     out = {}
     for name, kwargs in modes.items():
-        _, wall, cpu = _timed(lambda: render(scene, **kwargs))
+        _, wall, cpu = _timed(lambda: render(scene, **kwargs).image.cpu())
         out[name] = {"kwargs": {k: str(v) for k, v in kwargs.items()}, "warmup_s": wall, "wall": [], "cpu": []}
         log(f"warm-up ours {name}: {wall:.2f} s")
     _, wall, cpu = _timed(lambda: ms.render(seed=0))
@@ -81,7 +81,7 @@ def time_modes(scene, ms: Mitsuba, modes: dict, repeats: int, log) -> dict:
     log(f"warm-up Mitsuba: {wall:.2f} s")
     for r in range(repeats):
         for name, kwargs in modes.items():
-            img, wall, cpu = _timed(lambda: render(scene, **kwargs).image)
+            img, wall, cpu = _timed(lambda: render(scene, **kwargs).image.cpu())  # .cpu(): waits for a GPU
             out[name]["wall"].append(wall)
             out[name]["cpu"].append(cpu)
             out[name]["mean"] = float(img.mean())
@@ -96,10 +96,11 @@ def time_modes(scene, ms: Mitsuba, modes: dict, repeats: int, log) -> dict:
     return out
 
 
-def equal_error(scene, ms: Mitsuba, spp: int, levels_ours, levels_mi, repeats: int, log) -> dict:
+def equal_error(scene, ms: Mitsuba, spp: int, levels_ours, levels_mi, repeats: int, log, ours_kwargs=None) -> dict:
     """RMSE against each renderer's own reference (16·spp, another seed) and median times per spp level."""
     ref_spp = 16 * spp
-    ref_ours = render(scene, spp=ref_spp, seed=1000).image.numpy()
+    ours_kwargs = ours_kwargs or {}
+    ref_ours = render(scene, spp=ref_spp, seed=1000, **ours_kwargs).image.cpu().numpy()
     ref_mi = ms.render(ref_spp, seed=1000)
     log(f"references: ours {ref_spp} spp mean {ref_ours.mean():.5f}, Mitsuba mean {ref_mi.mean():.5f}")
     res = {"reference_spp": ref_spp, "ours": {}, "mitsuba": {}}
@@ -107,7 +108,7 @@ def equal_error(scene, ms: Mitsuba, spp: int, levels_ours, levels_mi, repeats: i
         ms.render(s, seed=0)  # JIT per sample count
     for r in range(repeats):
         for s in levels_ours:
-            img, wall, _ = _timed(lambda: render(scene, spp=s, seed=r).image.numpy())
+            img, wall, _ = _timed(lambda: render(scene, spp=s, seed=r, **ours_kwargs).image.cpu().numpy())
             e = res["ours"].setdefault(s, {"wall": [], "rmse": []})
             e["wall"].append(wall)
             e["rmse"].append(float(np.sqrt(((img - ref_ours) ** 2).mean())))
@@ -191,8 +192,10 @@ def write_markdown(path: str, res: dict) -> None:
         lines.append(f"- Equal RMSE: {a['ratio']:.2f}x against the goal of 1x: {'met' if a['ratio'] <= 1 else 'missed'}.")
     lines += ["", "Ours runs one thread (its default; `workers=2` two processes) where Mitsuba runs its own thread "
               "pool on both cores; with other jobs on the cores, wall times of both are stretched (see the load "
-              "average) and only ratios from the same run compare. The GPU (`cuda_ad_rgb`, our `--device cuda`) "
-              "was not measured: no GPU was lent to this task.", ""]
+              "average) and only ratios from the same run compare.", ""]
+    if m.get("gpu"):
+        lines += [f"GPU: {m['gpu']}. The `cuda*` rows trace on it (`device='cuda'`); Mitsuba's `cuda_ad_*` "
+                  "variants render on it; times include copying the image back to the host.", ""]
     lines += res.get("notes", [])
     with open(path, "w") as f:
         f.write("\n".join(lines) + "\n")
@@ -203,7 +206,10 @@ def main(argv=None):
     ap.add_argument("--size", type=int, default=512)
     ap.add_argument("--spp", type=int, default=16)
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--modes", default="defaults,workers2", help="defaults, workers2, threads2, compile")
+    ap.add_argument("--modes", default="defaults,workers2",
+                    help="defaults, workers2, threads2, compile; on a GPU cuda (its default 2^22 rays a batch), "
+                         "cuda_chunk15 (the CPU's 2^15), cuda_compile")
+    ap.add_argument("--ee-mode", default="defaults", help="our settings in the equal-error comparison [defaults]")
     ap.add_argument("--variant", default="llvm_ad_rgb")
     ap.add_argument("--equal-error", action="store_true", help="also time both renderers at equal RMSE")
     ap.add_argument("--ee-repeats", type=int, default=3)
@@ -219,7 +225,9 @@ def main(argv=None):
     scene = load_scene(SCENE, [f"image.width={args.size}", f"image.height={args.size}", f"image.spp={args.spp}"])
     ms = Mitsuba(scene, args.spp, args.variant)
     all_modes = {"defaults": {}, "workers2": {"workers": 2}, "threads2": {"threads": 2},
-                 "compile": {"compile": True}}
+                 "compile": {"compile": True}, "cuda": {"device": "cuda"},
+                 "cuda_chunk15": {"device": "cuda", "chunk_rays": 1 << 15},
+                 "cuda_compile": {"device": "cuda", "compile": True}}
     modes = {k: all_modes[k] for k in args.modes.split(",")}
     import drjit as dr
 
@@ -228,11 +236,13 @@ def main(argv=None):
            "scene": os.path.relpath(SCENE, ROOT), "size": args.size, "spp": args.spp, "repeats": args.repeats,
            "ee_repeats": args.ee_repeats,
            "machine": {"cores": os.cpu_count(), "torch": torch.__version__, "mitsuba": ms.mi.__version__,
-                       "drjit_threads": dr.thread_count(), "load_start": load_start}}
+                       "drjit_threads": dr.thread_count(), "load_start": load_start,
+                       "gpu": torch.cuda.get_device_name() if torch.cuda.is_available() else None}}
     res["timing"] = time_modes(scene, ms, modes, args.repeats, log)
     if args.equal_error:
         res["equal_error"] = equal_error(scene, ms, args.spp, sorted({4, 8, 16, 32, args.spp}), [4, 8, 16, 32, 64, 128],
-                                         args.ee_repeats, log)
+                                         args.ee_repeats, log, all_modes[args.ee_mode])
+        res["equal_error"]["ours_mode"] = args.ee_mode
     res["machine"]["load_end"] = [round(x, 1) for x in os.getloadavg()]
     os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
     with open(args.out + ".json", "w") as f:

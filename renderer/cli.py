@@ -177,6 +177,9 @@ def _device(name: str):
         raise UsageError(f"--device: {name!r} cannot render (expected cpu or cuda)")
     if device.type == "cuda" and not torch.cuda.is_available():
         raise UsageError("--device cuda: CUDA is not available on this machine")
+    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
+        raise UsageError(f"--device {name}: this machine has {torch.cuda.device_count()} CUDA device(s), "
+                         f"numbered from 0")
     return device
 
 

@@ -154,8 +154,22 @@ def _pool(workers: int):
     return _POOL[workers]
 
 
+CPU_CHUNK_RAYS, GPU_CHUNK_RAYS = 1 << 15, 1 << 22
+BYTES_PER_RAY = 2048  # twice the measured ~1 KB a ray at depth 5: headroom for the allocator
+
+
+def default_chunk_rays(device) -> int:
+    """Rays traced at once by default: 2^15 on the CPU (cache-sized); on a GPU 2^22 (launch overhead
+    amortised), fewer where the device's free memory would not hold them."""
+    device = torch.device(device)
+    if device.type != "cuda":
+        return CPU_CHUNK_RAYS
+    free, _ = torch.cuda.mem_get_info(device)
+    return int(max(CPU_CHUNK_RAYS, min(GPU_CHUNK_RAYS, free // (2 * BYTES_PER_RAY))))
+
+
 def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, device="cpu",
-           dtype=torch.float32, seed: int = 0, chunk_rays: int = 1 << 15, progress: bool = False,
+           dtype=torch.float32, seed: int = 0, chunk_rays: int | None = None, progress: bool = False,
            max_depth: int | None = None, culling: bool | None = None, compile: bool | None = None,
            workers: int = 1, threads: int | None = 1) -> RenderResult:
     """Render the scene's camera image.
@@ -165,9 +179,11 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
             `center` [scene.image.sampler].
         device, dtype: where and in what precision to trace (float32 for speed, float64 for checks).
         chunk_rays: camera samples traced at once (rounded to whole pixels); bounds memory (about 1 KB per
-            ray at depth 5). The image does not depend on it. The default, 2^15, keeps a batch's (N,) rows
-            in the caches: 10 % faster than 2^17 on the issue-11 speed scene, 2^12 was 2x slower (Python
-            overhead per operation).
+            ray at depth 5). The image does not depend on it. Default on the CPU 2^15, which keeps a batch's
+            (N,) rows in the caches: 10 % faster than 2^17 on the issue-11 speed scene, 2^12 was 2x slower
+            (Python overhead per operation). Default on a GPU 2^22, fewer if its free memory is short: with
+            2^15 an H100 waited on kernel launches and was no faster than one CPU thread; 2^22 was 18x
+            faster (benchmarks/results/speed_gpu_h100.md).
         culling, compile: override scene.options (see `renderer.scene.TraceOptions`); speed only.
         workers: CPU only: trace chunks in this many worker processes with one torch thread each (they
             are started on first use and kept for later calls; each unpickles the scene once per render).
@@ -183,6 +199,7 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
     """
     W, H = scene.camera.width, scene.camera.height
     spp = scene.image.spp if spp is None else spp
+    chunk_rays = default_chunk_rays(device) if chunk_rays is None else chunk_rays
     sampler = sampler or scene.image.sampler
     options = scene.options
     if culling is not None:

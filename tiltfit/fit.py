@@ -533,9 +533,14 @@ def poses_from_pnp(obs: Observations, focal_px: float, principal_point_px,
                                 if np.ptp(pts[m, 2]) < 1e-9 else cv2.SOLVEPNP_ITERATIVE)
         if not ok:
             raise FitError(f"{obs.names[v]}: cannot find the board's pose")
-        ok, r, t = cv2.solvePnP(pts[m], obs.corners_px[v].numpy()[m], K, dist, r, t, True,
-                                cv2.SOLVEPNP_ITERATIVE)
-        if not ok or not (np.isfinite(r).all() and np.isfinite(t).all()):
+        # The iterative refinement only polishes the first pose (the joint fit refines it again); some OpenCV
+        # builds refuse it where the first pose is fine (seen with opencv-python-headless 5.0.0 on a GPU
+        # machine), so its failure keeps the first pose instead of failing the calibration.
+        ok2, r2, t2 = cv2.solvePnP(pts[m], obs.corners_px[v].numpy()[m], K, dist, r.copy(), t.copy(), True,
+                                   cv2.SOLVEPNP_ITERATIVE)
+        if ok2 and np.isfinite(r2).all() and np.isfinite(t2).all():
+            r, t = r2, t2
+        if not (np.isfinite(r).all() and np.isfinite(t).all()):
             raise FitError(f"{obs.names[v]}: cannot find the board's pose (degenerate corner layout)")
         rv.append(r.ravel())
         tv.append(t.ravel())

@@ -120,3 +120,18 @@ def test_cuda_default_chunk_is_large_and_changes_nothing():
     big = render(scene, spp=4, device="cuda", dtype=torch.float64).image
     small = render(scene, spp=4, device="cuda", dtype=torch.float64, chunk_rays=1 << 12).image
     assert float((big - small).abs().max()) <= 1e-9, "the image should not depend on the batch size"
+
+
+@pytest.mark.parametrize("name", ["independent", "stratified", "sobol", "center"])
+def test_cuda_camera_samples_are_the_cpu_samples_bit_for_bit(name):
+    from renderer.render import _camera_samples
+    from renderer.sampling import Sampler
+
+    pixel = torch.arange(0, 5000, 7)
+    smp = Sampler(name, 16, seed=5)
+    for dtype in (torch.float32, torch.float64):
+        cpu = _camera_samples(smp, pixel, 97, dtype)
+        gpu = _camera_samples(smp, pixel.cuda(), 97, dtype)
+        for a, b in zip(cpu, gpu):
+            assert b.device.type == "cuda"
+            assert torch.equal(a, b.cpu()), f"{name} {dtype}: samples differ between devices"

@@ -529,9 +529,14 @@ def poses_from_pnp(obs: Observations, focal_px: float, principal_point_px,
         m = obs.corner_mask[v].numpy()
         if m.sum() < 4:
             raise FitError(f"{obs.names[v]}: only {int(m.sum())} corners detected, at least 4 are needed")
-        ok, r, t = cv2.solvePnP(pts[m], obs.corners_px[v].numpy()[m], K, dist, flags=cv2.SOLVEPNP_IPPE
-                                if np.ptp(pts[m, 2]) < 1e-9 else cv2.SOLVEPNP_ITERATIVE)
-        if not ok:
+        planar = np.ptp(pts[m, 2]) < 1e-9
+        # IPPE for a flat board; SQPnP where it fails (a board exactly facing the camera gave IPPE NaNs with
+        # opencv-python-headless 5.0.0 on a GPU machine), then the iterative method.
+        for flags in ([cv2.SOLVEPNP_IPPE] if planar else []) + [cv2.SOLVEPNP_SQPNP, cv2.SOLVEPNP_ITERATIVE]:
+            ok, r, t = cv2.solvePnP(pts[m], obs.corners_px[v].numpy()[m], K, dist, flags=flags)
+            if ok and np.isfinite(r).all() and np.isfinite(t).all():
+                break
+        else:
             raise FitError(f"{obs.names[v]}: cannot find the board's pose")
         # The iterative refinement only polishes the first pose (the joint fit refines it again); some OpenCV
         # builds refuse it where the first pose is fine (seen with opencv-python-headless 5.0.0 on a GPU

@@ -329,7 +329,7 @@ def _refine_photometric(result, obs, target, args, say) -> dict:
     from renderer.io import ImageIOError
 
     from .calibfile import calib_dict
-    from .model import matrix_to_axis_angle, residuals
+    from .model import APERTURE_SCALE_MM, matrix_to_axis_angle, residuals
     from .photometric import PhotometricError, refine_photometric
 
     images = []
@@ -353,7 +353,7 @@ def _refine_photometric(result, obs, target, args, say) -> dict:
     with torch.no_grad():
         cam.log_w_mm.fill_(math.log(v["w_mm"]))
         cam.inv_U_per_m.fill_(v["inv_U_per_m"])
-        cam.log_d_mm.fill_(math.log(max(v["d_mm"], 1e-9)))
+        cam.d_scaled.fill_(v["d_mm"] / APERTURE_SCALE_MM)
         cam.theta_F.fill_(math.radians(v["theta_F_deg"]))
         cam.rvec.copy_(matrix_to_axis_angle(np.stack([x["R"] for x in res.views])))
         cam.T_scaled.copy_(torch.as_tensor(np.stack([x["T_mm"] for x in res.views])) / cam.length_scale_mm)

@@ -37,8 +37,8 @@ from torch.func import functional_call, jacfwd
 
 from renderer.cameras.distortion import MODEL_TERMS, MODELS as DISTORTION_MODELS
 
-from .model import (BLUR_MODELS, ROBUST_LOSSES, Observations, TiltLensCamera, distortion_parameter_names, residuals,
-                    robust_rho, robust_weight)
+from .model import (APERTURE_SCALE_MM, BLUR_MODELS, ROBUST_LOSSES, Observations, TiltLensCamera,
+                    distortion_parameter_names, residuals, robust_rho, robust_weight)
 
 MODES = ("unified", "tilt", "joint")
 MAX_RMS_REPROJECTION_PX = 5.0  # a calibrated view reprojecting worse than this means mismatched data
@@ -585,7 +585,7 @@ def blur_from_scan(p_cam: torch.Tensor, blur_px: torch.Tensor, mask: torch.Tenso
 def _blur_rss(cam: TiltLensCamera, obs: Observations, U_mm: float, d_mm: float, theta_F: float) -> float:
     with torch.no_grad():
         cam.inv_U_per_m.fill_(1000.0 / U_mm)
-        cam.log_d_mm.fill_(math.log(d_mm))
+        cam.d_scaled.fill_(d_mm / APERTURE_SCALE_MM)
         cam.theta_F.fill_(theta_F)
         b = cam.blur(obs.points_mm)
         r = torch.where(obs.blur_mask, b - torch.nan_to_num(obs.blur_px), torch.zeros_like(b))
@@ -719,7 +719,7 @@ def _derived(camera: TiltLensCamera, params: dict) -> torch.Tensor:
     """(w, U, d, f, θF°, θL°, θL_paper°, cx, cy) as functions of the stored parameters."""
     from renderer import optics
 
-    w, d = torch.exp(params["log_w_mm"]), torch.exp(params["log_d_mm"])
+    w, d = torch.exp(params["log_w_mm"]), params["d_scaled"].abs() * APERTURE_SCALE_MM
     U = 1000.0 / params["inv_U_per_m"]
     thF = params["theta_F"]
     thL = optics.theta_L_from_theta_F(thF, w, U)
@@ -734,13 +734,14 @@ _DERIVED_KEYS = ("w_mm", "U_mm", "d_mm", "f_mm", "theta_F_deg", "theta_L_deg", "
 
 
 def _held_sigma(init_sigma: dict | None, camera: TiltLensCamera, names: list[str]) -> dict:
-    """σ of held stored lens parameters from an `init` sigma dict (relative σ for log lengths)."""
+    """σ of held stored lens parameters from an `init` sigma dict (relative σ for log w, cm for d)."""
     out = {}
     if not init_sigma:
         return out
-    for stored, key, val in (("log_w_mm", "w_mm", camera.w_mm), ("log_d_mm", "d_mm", camera.d_mm)):
-        if stored in names and init_sigma.get(key):
-            out[stored] = float(init_sigma[key]) / float(val)
+    if "log_w_mm" in names and init_sigma.get("w_mm"):
+        out["log_w_mm"] = float(init_sigma["w_mm"]) / float(camera.w_mm)
+    if "d_scaled" in names and init_sigma.get("d_mm"):
+        out["d_scaled"] = float(init_sigma["d_mm"]) / APERTURE_SCALE_MM
     if "inv_U_per_m" in names and init_sigma.get("U_mm") and math.isfinite(float(camera.U_mm)):
         out["inv_U_per_m"] = 1000.0 * float(init_sigma["U_mm"]) / float(camera.U_mm) ** 2
     return out
@@ -795,9 +796,6 @@ def _uncertainties(prob: _Problem, res: _LMResult, scale: torch.Tensor, init_sig
     if "inv_U_per_m" in offsets:
         o = offsets["inv_U_per_m"][0]
         sigma["inv_U_per_m"] = math.sqrt(float(C[o, o]))
-    if "log_d_mm" in offsets:
-        o = offsets["log_d_mm"][0]
-        sigma["log_d_mm"] = math.sqrt(float(C[o, o]))
     if "blur_offset_px" in offsets:
         o = offsets["blur_offset_px"][0]
         sigma["blur_offset_px"] = math.sqrt(float(C[o, o]))
@@ -1036,7 +1034,7 @@ def _offset_correlation(result: FitResult) -> float:
     names = result.parameter_names
     if "blur_offset_px" not in names:
         return 0.0
-    idx = [names.index(n) for n in ("inv_U_per_m", "log_d_mm") if n in names]
+    idx = [names.index(n) for n in ("inv_U_per_m", "d_scaled") if n in names]
     if not idx:
         return 0.0
     o = names.index("blur_offset_px")
@@ -1067,14 +1065,14 @@ def _flag_outliers(result: FitResult, factor: float) -> list:
 
 def _undetermined_focus(result: FitResult) -> list:
     """U and d the blur fit could not pin down: 1/U within 2σ of 0 (focus indistinguishable from infinity) or
-    d known to worse than a factor e^0.5."""
+    d within 2σ of 0 (indistinguishable from a pinhole: relative σ above 0.5)."""
     out = []
     cam = result.camera
     s_inv = result.sigma.get("inv_U_per_m")
     if s_inv is not None and not abs(float(cam.inv_U_per_m.detach())) > 2.0 * s_inv:
         out.append("U_mm")
-    s_logd = result.sigma.get("log_d_mm")
-    if s_logd is not None and s_logd > 0.5:
+    s_d = result.sigma.get("d_mm")
+    if "d_scaled" in result.parameter_names and s_d is not None and not float(cam.d_mm.detach()) > 2.0 * s_d:
         out.append("d_mm")
     return out
 
@@ -1152,8 +1150,13 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
                 result = _fit_camera(cam, obs, options, init_sigma if mode == "tilt" else None, say, mode=mode)
             undetermined = _undetermined_focus(result)
         except FitError as e:
+            if mode == "tilt":
+                raise  # the tilt stage fits the blur alone: nothing geometric to fall back on
             if geometry is None:
-                raise
+                # Widths above the floor that no focus explains (e.g. the same blur at every depth: a soft
+                # lens or detector blur): the corners still calibrate the camera.
+                geometry = fit_geometry(start.copy(), obs, options, mode, say)
+            result = None
             undetermined = ["U_mm", "d_mm"]
             notes.append(f"U and d undetermined: the blur fit failed ({e}); the calibration is geometric")
         if undetermined and geometry is not None and result is not None and len(undetermined) == 2:

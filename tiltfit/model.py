@@ -21,9 +21,10 @@ Blur models (`blur_model`; closed forms from `renderer.optics`, all equal to eq 
     "paper": b = w d |1/(U + y tan θF) − 1/z|, the paper's eq (4) (focus depth at the point's own height).
 A constant `blur_offset_px` (0 unless fitted) is added to every width: the blur detector's bias, not optics.
 
-Parametrisation (for conditioning, so one learning rate suits all parameters): w and d are stored as
-logarithms (`log_w_mm`, `log_d_mm`), the focus as its inverse in dioptres (`inv_U_per_m` = 1000 / U_mm, so
-focus at infinity is the ordinary value 0), the distortion coefficients as themselves (`dist_k1` …),
+Parametrisation (for conditioning, so one learning rate suits all parameters): w is stored as its logarithm
+(`log_w_mm`), the aperture in centimetres with d = |d_scaled| · 10 mm (`d_scaled`, so d ≥ 0 and a pinhole,
+d = 0, is an ordinary value: sharp images leave it near 0 instead of driving a logarithm to −∞), the focus as
+its inverse in dioptres (`inv_U_per_m` = 1000 / U_mm, so focus at infinity is the ordinary value 0), the distortion coefficients as themselves (`dist_k1` …),
 rotations as axis-angle vectors (`rvec`), translations in units of `length_scale_mm` (`T_scaled`, default
 100 mm) and the principal-point offset from the image centre in units of `pixel_scale_px` (`pp_scaled`,
 default 100 px). Physical values are properties (`w_mm`, `T_mm`, `R`, `principal_point_px` …).
@@ -41,24 +42,25 @@ from renderer import optics
 from renderer.cameras.distortion import COEFFICIENT_NAMES, MODEL_TERMS, BrownConrady, distort
 
 BLUR_MODELS = ("ellipse", "first_order", "paper")
+APERTURE_SCALE_MM = 10.0  # d_scaled is the aperture diameter in cm
 ROBUST_LOSSES = (None, "none", "huber", "cauchy")
 
 _DIST = tuple(f"dist_{k}" for k in COEFFICIENT_NAMES)
 _GROUPS = {
     "w": ("log_w_mm",),
     "U": ("inv_U_per_m",),
-    "d": ("log_d_mm",),
+    "d": ("d_scaled",),
     "theta_F": ("theta_F",),
     "rvec": ("rvec",),
     "R": ("rvec",),
     "T": ("T_scaled",),
     "principal_point": ("pp_scaled",),
     "blur_offset": ("blur_offset_px",),
-    "lens": ("log_w_mm", "inv_U_per_m", "log_d_mm"),
+    "lens": ("log_w_mm", "inv_U_per_m", "d_scaled"),
     "pose": ("rvec", "T_scaled"),
     **{k: (f"dist_{k}",) for k in COEFFICIENT_NAMES},
     "distortion": _DIST,
-    "all": ("log_w_mm", "inv_U_per_m", "log_d_mm", "theta_F", "rvec", "T_scaled", "pp_scaled", "blur_offset_px")
+    "all": ("log_w_mm", "inv_U_per_m", "d_scaled", "theta_F", "rvec", "T_scaled", "pp_scaled", "blur_offset_px")
     + _DIST,
 }
 
@@ -244,7 +246,7 @@ class TiltLensCamera(torch.nn.Module):
         P = torch.nn.Parameter
         self.log_w_mm = P(torch.tensor(math.log(float(w_mm)), dtype=dtype))
         self.inv_U_per_m = P(torch.tensor(1000.0 / float(U_mm), dtype=dtype))
-        self.log_d_mm = P(torch.tensor(math.log(float(d_mm)), dtype=dtype))
+        self.d_scaled = P(torch.tensor(float(d_mm) / APERTURE_SCALE_MM, dtype=dtype))
         self.theta_F = P(torch.tensor(float(theta_F), dtype=dtype))
         self.rvec = P(rvec.clone())
         self.T_scaled = P(T_mm / self.length_scale_mm)
@@ -316,7 +318,7 @@ class TiltLensCamera(torch.nn.Module):
 
     @property
     def d_mm(self) -> torch.Tensor:
-        return torch.exp(self.log_d_mm)
+        return self.d_scaled.abs() * APERTURE_SCALE_MM
 
     @property
     def tan_theta_F(self) -> torch.Tensor:

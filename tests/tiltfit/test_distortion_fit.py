@@ -106,3 +106,23 @@ def test_sharp_images_give_exit_0_and_undetermined_focus(tmp_path, capsys):
            for v in numbers(v) if abs(v) > 1e6]
     assert not big, f"nothing absurd in the file: {big}"
     assert abs(data["w_mm"] / PITCH / F_PX - 1) < 0.01, "geometry still calibrated"
+
+
+@pytest.mark.parametrize("width_px", [1.5, 3.0])
+def test_blur_the_same_at_every_depth_calibrates_geometrically(width_px):
+    """Blur widths above the sharpness floor but unrelated to depth (a soft lens, detector blur): no focus
+    explains them. The fit still calibrates the camera from the corners and reports U and d undetermined
+    instead of failing or writing a focus inside the lens (before: U 9 mm for 1.5 px, no convergence for 3)."""
+    from dataclasses import replace
+
+    import torch
+
+    obs = opencv_observations([0, 0, 0, 0, 0], n_views=10, seed=7)
+    rng = np.random.default_rng(1)
+    obs = replace(obs, blur_px=torch.tensor(width_px + 0.2 * rng.standard_normal(obs.corners_px.shape[:2])))
+    res = calibrate(obs, "unified", options=FitOptions(distortion="none", free_principal_point=False))
+    assert set(res.undetermined) == {"U_mm", "d_mm"}, res.undetermined
+    f_px = float(res.camera.w_mm) / PITCH
+    assert abs(f_px / F_PX - 1) < 0.005, f"focal length {f_px:.2f} px, true {F_PX}"
+    d = float(res.camera.d_mm)
+    assert d >= 0 and np.isfinite(d), f"d {d}"

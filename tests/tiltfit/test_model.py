@@ -135,7 +135,7 @@ def test_axis_angle_round_trip_and_zero():
 
 def test_free_and_freeze():
     cam = paper_camera(2)
-    assert cam.free_parameter_names() == ["log_w_mm", "inv_U_per_m", "log_d_mm", "theta_F", "rvec", "T_scaled"], \
+    assert cam.free_parameter_names() == ["log_w_mm", "inv_U_per_m", "d_scaled", "theta_F", "rvec", "T_scaled"], \
         "default: everything free but the principal point"
     cam.freeze("lens", "theta_F")
     assert cam.free_parameter_names() == ["rvec", "T_scaled"], "lens and θF frozen"

@@ -953,6 +953,28 @@ def blur_is_informative(obs: Observations, floor_px: float = 1.0) -> bool:
     return b.numel() >= 3 and float(b.max()) >= floor_px
 
 
+def blur_depends_on_depth(camera: TiltLensCamera, obs: Observations, alpha: float = 1e-3) -> bool:
+    """Whether the blur widths vary with the corners' place in the camera frame beyond their scatter: a
+    likelihood-ratio test (χ², 4 degrees of freedom) of widths regressed on (1, 1/z, 1/z², x/z, y/z)
+    (defocus on either side of a plane of focus, tilted or not) against a constant, at level `alpha`, with
+    `camera`'s poses. Widths the same at every depth (a soft lens, detector blur) say nothing about U and d."""
+    m = obs.blur_mask
+    b = obs.blur_px[m].double()
+    if b.numel() < 10:
+        return False
+    with torch.no_grad():
+        X = camera.to_camera(obs.points_mm.to(camera.rvec.dtype))[m]
+    iz = 1.0 / X[:, 2].clamp_min(1e-9)
+    iz = iz / iz.mean()
+    A = torch.stack([torch.ones_like(iz), iz, iz**2, X[:, 0] / X[:, 2], X[:, 1] / X[:, 2]], -1).double()
+    coef = torch.linalg.lstsq(A, b[:, None]).solution
+    rss1 = float(((A @ coef)[:, 0] - b).pow(2).sum())
+    rss0 = float((b - b.mean()).pow(2).sum())
+    if rss1 <= 0:
+        return rss0 > 0
+    return _chi2_sf(b.numel() * math.log(rss0 / rss1), A.shape[1] - 1) < alpha
+
+
 def without_blur(obs: Observations) -> Observations:
     """The same observations with every blur width removed (geometry only)."""
     return Observations(obs.points_mm, obs.corners_px, torch.full_like(obs.blur_px, math.nan), obs.image_size_px,
@@ -1150,8 +1172,8 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
                 result = _fit_camera(cam, obs, options, init_sigma if mode == "tilt" else None, say, mode=mode)
             undetermined = _undetermined_focus(result)
         except FitError as e:
-            if mode == "tilt":
-                raise  # the tilt stage fits the blur alone: nothing geometric to fall back on
+            if mode == "tilt" or blur_depends_on_depth(start, obs):
+                raise  # the tilt stage fits the blur alone; widths that vary with depth should have fitted
             if geometry is None:
                 # Widths above the floor that no focus explains (e.g. the same blur at every depth: a soft
                 # lens or detector blur): the corners still calibrate the camera.

@@ -26,6 +26,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from renderer.io import linear_to_srgb
+from renderer.sensor import decode_srgb8
+
 # ITU-R BT.601 luma weights, as OpenCV's RGB->grey conversion (the usual "brightness" of an 8-bit photo).
 LUMA_WEIGHTS = (0.299, 0.587, 0.114)
 
@@ -81,16 +84,13 @@ def grey_levels(image, quantize: bool = True) -> np.ndarray:
         return arr.astype(np.float64)
     if not np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.complexfloating):
         raise EvaluationError(f"image: expected real values, got dtype {arr.dtype}")
-    v = np.clip(arr.astype(np.float64), 0.0, 1.0)
-    srgb = np.where(v <= 0.0031308, 12.92 * v, 1.055 * np.power(v, 1 / 2.4) - 0.055)
-    out = srgb * 255.0
+    out = linear_to_srgb(np.clip(arr.astype(np.float64), 0.0, 1.0)) * 255.0
     return np.round(out) if quantize else out
 
 
 def linear_from_grey_levels(levels) -> np.ndarray:
     """Inverse of `grey_levels`: 0–255 sRGB grey levels (uint8 or float) to linear float64 in [0, 1]."""
-    v = np.clip(np.asarray(levels, dtype=np.float64) / 255.0, 0.0, 1.0)
-    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+    return decode_srgb8(levels)
 
 
 def select_channel(image, channel: str | int = "luma") -> np.ndarray:

@@ -15,8 +15,9 @@ Model of one photograph (linear intensities, image (H, W)):
     I(u) = (1 − v ρ(u)²) · (white_k − (white_k − black_k) · D(u))
 where D(u) ∈ [0, 1] is the dark fraction of the board seen by pixel u (average over the lens samples of the
 antialiased checker), white_k and black_k the view's radiance of white paper and dark cells, v the lens's
-vignetting and ρ the distance from the image centre, 1 at the corners (as `tiltfit.synth` and the simulated
-camera of `tiltfit.reproduce`).
+vignetting and ρ the distance from the image centre, 1 at the corners: the fall-off of the one sensor model,
+`renderer.sensor` (`radial_falloff`), which `tiltfit.synth` and the simulated camera of `tiltfit.reproduce`
+expose their captures with.
 
 Antialiased checker: for a hit (X, Y) on the board with pixel footprint σ (mm), per axis the nearest cell edge
 e_j and z = (X − e_j)/σ give A = E[inside] and B = E[inside · s] (s = ±1 the column's parity sign) under a
@@ -42,6 +43,7 @@ from renderer.cameras.base import Screen
 from renderer.cameras.distortion import BrownConrady
 from renderer.cameras.thin_lens import ThinLensCamera, concentric_disk
 from renderer.optics import theta_L_from_theta_F
+from renderer.sensor import radial_falloff
 from renderer.transforms import CameraTransform
 
 from .model import axis_angle_to_matrix, matrix_to_axis_angle
@@ -253,10 +255,8 @@ def render_target(target: Target, sensor: SensorGeometry, uv_px: torch.Tensor, l
     sigma_xy = torch.sqrt((J**2).sum(1) / 48.0)          # (N, 2)
     dark = checker_dark_fraction(hit[..., 0], hit[..., 1], sigma_xy[:, None, 0], target,
                                  sigma_y=sigma_xy[:, None, 1]).mean(-1)
-    W, H = sensor.width_px, sensor.height_px
-    cx, cy = (W - 1) / 2.0, (H - 1) / 2.0
-    rho2 = ((uv_px[:, 0] - cx) ** 2 + (uv_px[:, 1] - cy) ** 2) / (cx**2 + cy**2)
-    return (1 - vignetting * rho2) * (white - (white - black) * dark)
+    falloff = radial_falloff(uv_px[:, 0], uv_px[:, 1], sensor.width_px, sensor.height_px, vignetting)
+    return falloff * (white - (white - black) * dark)
 
 
 def _on_board(rays) -> torch.Tensor:

@@ -46,8 +46,9 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 import torch
 from renderer import optics, render, write_image
+from renderer.sensor import SensorResponse
 
-from .evaluate import (compare_profiles, grey_levels, linear_from_grey_levels, plot_images, plot_profiles,
+from .evaluate import (compare_profiles, linear_from_grey_levels, plot_images, plot_profiles,
                        save_figure, write_csv, write_markdown, markdown_table)
 from .scenes import EOS_6D, LensParams, Sensor, boxes_scene, boxes_scene_dict, profile_lines
 from .runlog import RunLog
@@ -160,17 +161,18 @@ class SimulatedCamera:
         U = float(optics.focus_distance_tilted(self.w_mm, self.f_mm, math.radians(theta_L)))
         return LensParams(self.w_mm, U, self.d_mm, theta_L_deg=theta_L)
 
+    @property
+    def response(self) -> SensorResponse:
+        """The sensor's response (`renderer.sensor`): vignetting, shot and read noise, 8-bit sRGB."""
+        return SensorResponse(vignetting=self.vignetting, read_noise=self.read_noise, full_well=self.full_well,
+                              encoding="srgb8")
+
     def vignette(self, radiance) -> np.ndarray:
         """The lens's fall-off 1 − v r² applied to a (H, W, 3) linear image (r = 1 at the corners); no noise.
 
         The CG re-renders carry it too: a user compositing CG into the photo flat-fields both alike.
         """
-        img = np.asarray(radiance, dtype=np.float64)
-        h, w = img.shape[:2]
-        y, x = np.mgrid[0:h, 0:w].astype(np.float64)
-        cx, cy = (w - 1) / 2, (h - 1) / 2
-        r2 = ((x - cx) ** 2 + (y - cy) ** 2) / (cx**2 + cy**2)
-        return img * (1.0 - self.vignetting * r2)[..., None]
+        return self.response.signal(radiance)
 
     def expose(self, radiance, rng: np.random.Generator) -> np.ndarray:
         """What the camera writes for a linear image: vignetting, shot + read noise, 8-bit sRGB.
@@ -181,10 +183,11 @@ class SimulatedCamera:
         Returns:
             (H, W, 3) uint8 sRGB image.
         """
-        signal = self.vignette(radiance)
-        sigma = np.sqrt(np.clip(signal, 0.0, None) / self.full_well + self.read_noise**2)
-        noisy = signal + sigma * rng.standard_normal(signal.shape)
-        return grey_levels(noisy).astype(np.uint8)
+        return self.response.expose(radiance, rng)
+
+    def expose_cg(self, radiance) -> np.ndarray:
+        """A CG render written as the camera writes its photos, noise excepted: (H, W, 3) uint8 sRGB."""
+        return replace(self.response, read_noise=0.0, full_well=None).expose(radiance)
 
 
 @dataclass(frozen=True)
@@ -576,7 +579,7 @@ def stage_boxes(camera: SimulatedCamera, param_sets: dict, cfg: RunConfig, lines
             if lens not in rendered:
                 # One seed per state for every CG (common random numbers): the rows differ by the lens only.
                 radiance, dt = render_boxes(lens, cfg, cfg.spp_cg, _seed(cfg, "cg", state.label))
-                rendered[lens] = grey_levels(camera.vignette(radiance)).astype(np.uint8), dt
+                rendered[lens] = camera.expose_cg(radiance), dt
             cg, dt = rendered[lens]
             res.cg[name], res.lenses[name], res.render_s[name] = cg, lens, dt
             slug = _slug(name)
@@ -626,7 +629,7 @@ def stage_speed(results: list[StateResult], cfg: RunConfig, lines: dict, log, ca
             continue
         for spp in cfg.spp_sweep:
             radiance, dt = render_boxes(res.lenses[name], cfg, spp, _seed(cfg, "sweep", spp))
-            cg = grey_levels((camera or SimulatedCamera()).vignette(radiance)).astype(np.uint8)
+            cg = (camera or SimulatedCamera()).expose_cg(radiance)
             r, _ = compare_profiles(res.captures[0], cg, lines, cfg.step_px)
             calib_s = float(calib_seconds.get(name, 0.0))
             row = {"method": method, "parameters": name, "spp": spp, "render_s": dt, "calibration_s": calib_s,

@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from renderer import optics
+from renderer.sensor import SensorResponse
 
 from .target import Target
 
@@ -227,24 +228,13 @@ def render_view(target: Target, camera: SynthCamera, R, T, *, dark: float = 0.05
         clean = render_with_renderer(target, camera, R, T, dark, white, background, spp=spp, seed=seed)
     else:
         raise ValueError(f"method: expected analytic or renderer, got {method!r}")
-    img = clean.astype(np.float64)
-    if vignetting:
-        H, W = img.shape
-        cx, cy = camera.center_px
-        yy, xx = np.mgrid[0:H, 0:W]
-        rho2 = ((xx - cx) ** 2 + (yy - cy) ** 2) / (((W - 1) / 2) ** 2 + ((H - 1) / 2) ** 2)
-        img = img * (1.0 - vignetting * rho2)
-    rng = np.random.default_rng(seed)
-    if noise_sigma or shot_noise:
-        sd = np.sqrt(noise_sigma ** 2 + shot_noise * np.clip(img, 0.0, None))
-        img = img + sd * rng.standard_normal(img.shape)
-    enc = None
+    sensor = SensorResponse(vignetting=vignetting, read_noise=noise_sigma,
+                            full_well=1.0 / shot_noise if shot_noise else None,
+                            encoding="srgb8" if srgb8 else "float")
+    recorded = sensor.expose(clean, np.random.default_rng(seed), centre=camera.center_px)
+    img, enc = sensor.decode(recorded), None
     if srgb8:
-        from renderer.io import linear_to_srgb, srgb_to_linear
-
-        enc = np.clip(np.round(linear_to_srgb(np.clip(img, 0.0, 1.0)) * 255.0), 0, 255).astype(np.uint8)
-        img = srgb_to_linear(enc.astype(np.float64) / 255.0)
-        enc = np.repeat(enc[..., None], 3, axis=-1)
+        enc = np.repeat(recorded[..., None], 3, axis=-1)
     image = np.repeat(img.astype(np.float32)[..., None], 3, axis=-1)
     return SynthView(image, enc, clean.astype(np.float32), observe(target, camera, R, T))
 

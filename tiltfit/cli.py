@@ -330,7 +330,7 @@ def _refine_photometric(result, obs, target, args, say) -> dict:
 
     from .calibfile import calib_dict
     from .model import APERTURE_SCALE_MM, matrix_to_axis_angle, residuals
-    from .photometric import PhotometricError, refine_photometric
+    from .photometric import PhotometricError, PhotometricOptions, refine_photometric
 
     images = []
     for view in result.views:
@@ -346,7 +346,9 @@ def _refine_photometric(result, obs, target, args, say) -> dict:
     block = {"corner_fit": {k: result.values.get(k) for k in keys},
              "corner_fit_sigma": {k: result.sigma.get(k) for k in keys}}
     try:
-        res = refine_photometric(images, target, calib_dict(result), args.pixel_pitch_mm, say=say)
+        res = refine_photometric(images, target, calib_dict(result), args.pixel_pitch_mm,
+                                 PhotometricOptions(kernel=args.psf, lens_samples=128 if args.psf == "auto" else 64),
+                                 say=say)
     except PhotometricError as e:
         raise CliError(args.inputs[0], f"photometric refinement: {e}") from None
     v, sg, cam = res.values, res.sigma, result.camera
@@ -368,7 +370,10 @@ def _refine_photometric(result, obs, target, args, say) -> dict:
         view.update(R=cam.R[k].tolist(), T_mm=cam.T_mm[k].tolist(), rms_reprojection_px=float(rms_corners[k]),
                     rms_blur_px=float(rms_blur[k]), rms_photometric=fitted["rms"])
     block.update(rms_linear=res.rms, iterations=res.iterations, runtime_s=res.runtime_s, vignetting=v["vignetting"],
-                 levels=[{"white": x["white"], "black": x["black"]} for x in res.views])
+                 levels=[{"white": x["white"], "black": x["black"]} for x in res.views], kernel=v["kernel"],
+                 psf_sigma_px=v["psf_sigma_px"], psf_sigma_px_sigma=sg["psf_sigma_px"])
+    if res.kernel_selection is not None:
+        block["kernel_selection"] = res.kernel_selection
     say(f"photometric refinement: RMS {res.rms:.4g} (linear), θL {v['theta_L_deg']:+.4f} ± {sg['theta_L_deg']:.4f}°, "
         f"U {v['U_mm']:.2f} mm, d {v['d_mm']:.3f} mm ({res.iterations} iterations, {res.runtime_s:.1f} s)")
     return block
@@ -470,6 +475,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--refine", choices=("none", "photometric"), default="none",
                    help="photometric: after the corner-and-blur fit, fit the photos' pixels by rendering the "
                         "target (analysis by synthesis; needs the images, not DET files) [none]")
+    p.add_argument("--psf", choices=("disc", "disc_gaussian", "auto"), default="disc",
+                   help="blur kernel of --refine photometric: the lens's disc, the disc convolved with a fitted "
+                        "Gaussian, or auto (the Gaussian where a likelihood-ratio test justifies it) [disc]")
     p.add_argument("--held-out", type=int, default=5, metavar="K",
                    help="K-fold held-out reprojection error beside the fit RMS (0: skip) [5]")
     p.add_argument("-o", "--output", required=True, metavar="CALIB.json")

@@ -50,7 +50,12 @@ from .model import axis_angle_to_matrix, matrix_to_axis_angle
 from .target import Target
 
 #: Names of the global parameters in the flat vector, in order (units: mm, 1/m, mm, rad, dimensionless).
-GLOBAL_NAMES = ("w_mm", "inv_U_per_m", "d_mm", "theta_F", "vignetting")
+GLOBAL_NAMES = ("w_mm", "inv_U_per_m", "d_mm", "theta_F", "vignetting", "psf_var_px2")
+#: Blur kernels: the lens's disc alone, or the disc convolved with a Gaussian (diffraction, aberrations,
+#: the sensor's own spread) of variance psf_var_px2 in pixels²; `auto` frees the Gaussian where the data
+#: justify it (likelihood-ratio test and BIC on the same pixels).
+KERNELS = ("disc", "disc_gaussian", "auto")
+AUTO_KERNEL_LENS_SAMPLES = 128
 #: Per-view parameters: axis-angle (rad), translation (mm), white and black linear levels.
 VIEW_NAMES = ("rvec_x", "rvec_y", "rvec_z", "T_x", "T_y", "T_z", "white", "black")
 
@@ -71,6 +76,11 @@ class PhotometricOptions:
         iterations: Levenberg–Marquardt iterations at most [30].
         huber_scale: Huber threshold in units of the residuals' robust σ [3].
         fit_vignetting: fit the vignetting coefficient [True].
+        kernel: blur kernel, one of KERNELS [disc]. `auto` needs at least AUTO_KERNEL_LENS_SAMPLES lens
+            samples: the fixed samples' own coarseness looks like a Gaussian to the test, so with 32 or 64
+            samples it freed a Gaussian of 0.5-0.8 px on ray-traced captures that had none, and d moved by
+            almost 1 mm. At 128 it can still free about 0.4 px there: read a σ below 0.5 px as "no evidence".
+        alpha: level of the kernel's likelihood-ratio test under `auto` [0.01].
         seed: seed of the pixel selection [0].
     """
 
@@ -79,7 +89,16 @@ class PhotometricOptions:
     iterations: int = 30
     huber_scale: float = 3.0
     fit_vignetting: bool = True
+    kernel: str = "disc"
+    alpha: float = 0.01
     seed: int = 0
+
+    def __post_init__(self):
+        if self.kernel not in KERNELS:
+            raise ValueError(f"kernel: expected one of {', '.join(KERNELS)}, got {self.kernel!r}")
+        if self.kernel == "auto" and self.lens_samples < AUTO_KERNEL_LENS_SAMPLES:
+            raise ValueError(f"kernel auto: needs at least {AUTO_KERNEL_LENS_SAMPLES} lens samples (got "
+                             f"{self.lens_samples}); fewer make the disc itself look Gaussian-blurred")
 
 
 @dataclass
@@ -87,12 +106,14 @@ class PhotometricResult:
     """What `refine_photometric` found.
 
     Attributes:
-        values: w_mm, U_mm (inf when 1/U = 0), inv_U_per_m, d_mm, theta_F_deg, theta_L_deg, vignetting.
+        values: w_mm, U_mm (inf when 1/U = 0), inv_U_per_m, d_mm, theta_F_deg, theta_L_deg, vignetting,
+            psf_sigma_px (σ of the Gaussian part of the kernel, 0 for the disc alone), kernel.
         sigma: one-σ uncertainties of the same keys (from the Gauss–Newton covariance, scaled by the
             residuals' robust σ).
         views: per view: R (3×3), T_mm, white, black, rms (linear units), n_pixels.
         rms: RMS photometric residual over all views (linear intensity units).
         iterations, runtime_s, history: LM iterations, wall time, cost per iteration.
+        kernel_selection: under kernel `auto`, the test that chose the kernel (Λ, p, ΔBIC, costs).
     """
 
     values: dict
@@ -102,6 +123,7 @@ class PhotometricResult:
     iterations: int
     runtime_s: float
     history: list = field(default_factory=list)
+    kernel_selection: dict | None = None
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -225,7 +247,8 @@ def lens_camera(sensor: SensorGeometry, w_mm, inv_U_per_m, d_mm, theta_F, rvec, 
 
 
 def render_target(target: Target, sensor: SensorGeometry, uv_px: torch.Tensor, lens_uv: torch.Tensor,
-                  w_mm, inv_U_per_m, d_mm, theta_F, rvec, T_mm, white, black, vignetting) -> torch.Tensor:
+                  w_mm, inv_U_per_m, d_mm, theta_F, rvec, T_mm, white, black, vignetting,
+                  psf_var_px2=0.0) -> torch.Tensor:
     """Linear intensity of the target seen by pixels `uv_px`, averaged over the fixed lens samples.
 
     Args:
@@ -233,6 +256,8 @@ def render_target(target: Target, sensor: SensorGeometry, uv_px: torch.Tensor, l
         lens_uv: (S, 2) lens samples in [0, 1)², the same for every pixel; their points on the aperture should
             have the disc's moments (`hammersley_disc_samples` does), or d comes out scaled.
         w_mm, inv_U_per_m, d_mm, theta_F, vignetting, white, black: 0-dim tensors; rvec, T_mm: (3,).
+        psf_var_px2: variance (px²) of a Gaussian convolved with the lens's disc [0: the disc alone]; it
+            widens each sub-pixel's Gaussian footprint on the board.
     Returns:
         (N,) linear intensities (the model of the module docstring). 1/U must be > 0 here (a finite U);
         `refine_photometric` keeps it so.
@@ -252,7 +277,7 @@ def render_target(target: Target, sensor: SensorGeometry, uv_px: torch.Tensor, l
     steps = torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]], dtype=uv_px.dtype, device=uv_px.device)
     chief = _on_board(cam.generate_rays(uv_px[:, None, :] + steps, torch.full((n, 3, 2), 0.5, dtype=uv_px.dtype)))
     J = chief[:, 1:, :2] - chief[:, :1, :2]              # (N, 2 (du, dv), 2 (X, Y))
-    sigma_xy = torch.sqrt((J**2).sum(1) / 48.0)          # (N, 2)
+    sigma_xy = torch.sqrt((J**2).sum(1) * (1.0 / 48.0 + psf_var_px2))  # (N, 2)
     dark = checker_dark_fraction(hit[..., 0], hit[..., 1], sigma_xy[:, None, 0], target,
                                  sigma_y=sigma_xy[:, None, 1]).mean(-1)
     falloff = radial_falloff(uv_px[:, 0], uv_px[:, 1], sensor.width_px, sensor.height_px, vignetting)
@@ -351,8 +376,8 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
     U0 = init.get("U_mm")
     inv_U0 = 1000.0 / U0 if U0 not in (None, 0) and math.isfinite(U0) else 1e-3
     d0 = init.get("d_mm") if init.get("d_mm") is not None else 1.0
-    glob = torch.tensor([init["w_mm"], inv_U0, max(d0, 1e-3), math.radians(init.get("theta_F_deg") or 0.0), 0.0],
-                        dtype=torch.float64)
+    glob = torch.tensor([init["w_mm"], inv_U0, max(d0, 1e-3), math.radians(init.get("theta_F_deg") or 0.0), 0.0,
+                         0.0], dtype=torch.float64)
     lens_uv = hammersley_disc_samples(opts.lens_samples)
     rng = np.random.default_rng(opts.seed)
     views_p, data = [], []
@@ -370,7 +395,7 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
             pred = np.empty(uv_all.shape[0])
             for a in range(0, uv_all.shape[0], 8192):
                 pred[a:a + 8192] = render_target(target, sensor, uv_all[a:a + 8192], lens_uv[::4], *glob[:4],
-                                                 vp[0:3], vp[3:6], vp[6], vp[7], glob[4]).numpy()
+                                                 vp[0:3], vp[3:6], vp[6], vp[7], glob[4], glob[5]).numpy()
         pred_img = np.full((H, W), np.nan)
         pred_img[yy, xx] = pred
         pick = _select_pixels(im, pred_img.reshape(-1), usable.reshape(-1), white, black, opts.max_pixels, rng)
@@ -382,11 +407,11 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
             f"{opts.lens_samples} lens samples per pixel")
 
     n_g, n_v = len(GLOBAL_NAMES), len(VIEW_NAMES)
-    free_g = torch.tensor([True, True, True, True, opts.fit_vignetting])
+    free_g = torch.tensor([True, True, True, True, opts.fit_vignetting, opts.kernel == "disc_gaussian"])
 
     def residual(g, vp, view: _View):
         return render_target(target, sensor, view.uv, lens_uv, g[0], g[1], g[2], g[3], vp[0:3], vp[3:6],
-                             vp[6], vp[7], g[4]) - view.observed
+                             vp[6], vp[7], g[4], g[5]) - view.observed
 
     def jac(g, vp, view):
         return torch.func.jacfwd(lambda gg, vv: residual(gg, vv, view), argnums=(0, 1))(g, vp)
@@ -399,13 +424,68 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
         a = r.abs() / (opts.huber_scale * s)
         return torch.where(a <= 1, torch.ones_like(r), 1 / a), s
 
+    n_par = n_g + n_v * len(imgs)
+    history = []
+    glob, views_p, r, wts, scale, JTJ, it = _levenberg_marquardt(
+        glob, views_p, free_g, all_residuals, jac, robust_weights, data, n_par, opts.iterations, history, say)
+    selection = None
+    if opts.kernel == "auto":
+        # The Gaussian part, freed from the disc's solution on the same pixels and weights.
+        w0 = wts
+        rss0 = float((w0 * r * r).sum())
+        free_k = free_g.clone()
+        free_k[5] = True
+        out = _levenberg_marquardt(glob, views_p, free_k, all_residuals, jac, robust_weights, data, n_par,
+                                   opts.iterations, history, say)
+        rss1 = float((w0 * out[2] * out[2]).sum())
+        n = int(r.numel())
+        lam_stat = n * math.log(rss0 / rss1) if rss1 > 0 else math.inf
+        from .fit import _chi2_sf
+
+        p_value = _chi2_sf(lam_stat, 1)
+        delta_bic = lam_stat - math.log(n)
+        justified = p_value < opts.alpha and delta_bic > 0
+        disc_values = _lens_values(glob)
+        selection = {"kernel": "disc_gaussian" if justified else "disc", "lr_statistic": lam_stat,
+                     "disc_fit": disc_values,
+                     "p_value": p_value, "delta_bic": delta_bic, "rss_disc": rss0, "rss_disc_gaussian": rss1,
+                     "psf_sigma_px": math.sqrt(max(float(out[0][5]), 0.0))}
+        if say:
+            say(f"photometric: kernel {selection['kernel']} (Gaussian σ {selection['psf_sigma_px']:.3f} px, "
+                f"Λ = {lam_stat:.3g}, p = {p_value:.2g}, ΔBIC = {delta_bic:.3g})")
+        if justified:
+            glob, views_p, r, wts, scale, JTJ, it2 = out
+            free_g, it = free_k, it + it2
+    kernel = "disc_gaussian" if bool(free_g[5]) else "disc"
+    if kernel == "disc":
+        glob = glob.clone()
+        glob[5] = 0.0
+    return _photometric_result(glob, views_p, r, scale, JTJ, free_g, data, n_g, n_v, n_par, it, t0, history,
+                               kernel, selection)
+
+
+def _lens_values(glob) -> dict:
+    """w, U, d, θF, θL of a global parameter vector (mm, degrees)."""
+    w, invU, d, thF = (float(x) for x in glob[:4])
+    U = 1000.0 / invU
+    return {"w_mm": w, "U_mm": U, "d_mm": d, "theta_F_deg": math.degrees(thF),
+            "theta_L_deg": math.degrees(float(theta_L_from_theta_F(thF, w, U)))}
+
+
+def _levenberg_marquardt(glob, views_p, free_g, all_residuals, jac, robust_weights, data, n_par, iterations,
+                         history, say):
+    """The photometric fit's LM loop (view-blocked normal equations, IRLS Huber weights, Marquardt scaling)
+    over the free global parameters `free_g` and every view's parameters. Returns (glob, views_p, r, wts,
+    scale, JTJ, iterations)."""
+    n_g, n_v = len(GLOBAL_NAMES), len(VIEW_NAMES)
     with torch.no_grad():
         r = all_residuals(glob, views_p)
     wts, scale = robust_weights(r)
     cost = float((wts * r * r).sum())
-    lam, history, it = 1e-3, [cost], 0
-    n_par = n_g + n_v * len(imgs)
-    for it in range(1, opts.iterations + 1):
+    lam, it, rel = 1e-3, 0, 0.0
+    history.append(cost)
+    JTJ = torch.zeros(n_par, n_par, dtype=torch.float64)
+    for it in range(1, iterations + 1):
         JTJ = torch.zeros(n_par, n_par, dtype=torch.float64)
         JTr = torch.zeros(n_par, dtype=torch.float64)
         offset = 0
@@ -432,7 +512,7 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
             g_new = glob + step[:n_g]
             vps_new = [vp + step[n_g + n_v * k: n_g + n_v * (k + 1)] for k, vp in enumerate(views_p)]
             if not (float(g_new[0]) > 0 and float(g_new[1]) > 0 and float(g_new[2]) >= 0
-                    and abs(float(g_new[3])) < 1.5):
+                    and abs(float(g_new[3])) < 1.5 and float(g_new[5]) >= 0):
                 lam *= 10
                 continue
             with torch.no_grad():
@@ -452,9 +532,15 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
                 f"U {1000.0 / float(glob[1]):.2f} mm, d {float(glob[2]):.4f} mm")
         if not improved or rel < 1e-7:
             break
+    return glob, views_p, r, wts, scale, JTJ, it
 
+
+def _photometric_result(glob, views_p, r, scale, JTJ, free_g, data, n_g, n_v, n_par, it, t0, history, kernel,
+                        selection) -> PhotometricResult:
+    """The result: values, σ from the Gauss–Newton covariance (robust σ of the residuals), per-view poses."""
+    n_views = len(views_p)
     # Covariance of the free parameters (Gauss–Newton, robust σ of the residuals).
-    free = torch.cat([free_g, torch.ones(n_v * len(imgs), dtype=torch.bool)])
+    free = torch.cat([free_g, torch.ones(n_v * n_views, dtype=torch.bool)])
     idx = torch.nonzero(free).squeeze(1)
     cov = torch.zeros(n_par, n_par, dtype=torch.float64)
     try:
@@ -463,17 +549,22 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
     except RuntimeError:
         cov = torch.full((n_par, n_par), float("nan"), dtype=torch.float64)
     sd = torch.sqrt(torch.diagonal(cov).clamp_min(0))
-    w, invU, d, thF, vig = (float(x) for x in glob)
+    w, invU, d, thF, vig, psf_var = (float(x) for x in glob)
     U = 1000.0 / invU
     thL = float(theta_L_from_theta_F(thF, w, U))
     # θL's σ by the chain rule through tan θL = w tan θF / (U + w).
     gL = torch.func.jacrev(lambda g: theta_L_from_theta_F(g[3], g[0], 1000.0 / g[1]))(glob)
     var_L = float(gL @ cov[:n_g, :n_g] @ gL)
     values = {"w_mm": w, "U_mm": U, "inv_U_per_m": invU, "d_mm": d, "theta_F_deg": math.degrees(thF),
-              "theta_L_deg": math.degrees(thL), "vignetting": vig}
+              "theta_L_deg": math.degrees(thL), "vignetting": vig, "psf_sigma_px": math.sqrt(max(psf_var, 0.0)),
+              "kernel": kernel}
+    # σ of the Gaussian's σ by the delta method (σ_var / 2σ); at σ = 0, where that diverges, sqrt(σ_var).
+    s_var = float(sd[5])
+    s_psf = s_var / (2 * values["psf_sigma_px"]) if values["psf_sigma_px"] > 0 else math.sqrt(s_var)
     sigma = {"w_mm": float(sd[0]), "inv_U_per_m": float(sd[1]), "U_mm": float(sd[1]) * U * U / 1000.0,
              "d_mm": float(sd[2]), "theta_F_deg": math.degrees(float(sd[3])),
-             "theta_L_deg": math.degrees(math.sqrt(max(var_L, 0.0))), "vignetting": float(sd[4])}
+             "theta_L_deg": math.degrees(math.sqrt(max(var_L, 0.0))), "vignetting": float(sd[4]),
+             "psf_sigma_px": s_psf}
     views, offset = [], 0
     for k, (vp, dv) in enumerate(zip(views_p, data)):
         n = dv.uv.shape[0]
@@ -482,4 +573,4 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
         views.append({"R": axis_angle_to_matrix(vp[0:3]).numpy(), "T_mm": vp[3:6].numpy().copy(), "white": float(vp[6]),
                       "black": float(vp[7]), "rms": float(torch.sqrt((rk * rk).mean())), "n_pixels": n})
     rms = float(torch.sqrt((r * r).mean()))
-    return PhotometricResult(values, sigma, views, rms, it, time.perf_counter() - t0, history)
+    return PhotometricResult(values, sigma, views, rms, it, time.perf_counter() - t0, history, selection)

@@ -203,3 +203,32 @@ def test_calibrate_refine_photometric_on_the_command_line(tmp_path):
     assert abs(data["U_mm"] / U - 1) < 0.01, f"U {data['U_mm']:.2f} vs {U}"
     assert abs(data["theta_L_deg"]) < 0.05, f"untilted lens: θL {data['theta_L_deg']:.4f}°"
     assert all("rms_photometric" in v for v in data["views"]), "per-view photometric RMS"
+
+
+@pytest.mark.slow
+def test_kernel_selection_finds_a_gaussian_where_there_is_one():
+    """Ray-traced captures (the lens's disc) convolved with a Gaussian of σ 1.2 px (diffraction, the sensor's
+    spread): `auto` frees the Gaussian and measures its σ, where the disc alone absorbs it into a larger
+    aperture. (On the plain captures the test can still free a small Gaussian, σ 0.4 px at 128 lens samples:
+    the fixed samples' coarseness; see PhotometricOptions.kernel.)"""
+    import cv2
+
+    images, poses, truth = _captures(U0_mm=700.0, views=(0, 1))
+    start = _perturbed_init(poses, truth, scale=0.5)
+    opts = PhotometricOptions(kernel="auto", lens_samples=128, max_pixels=700)
+    psf = 1.2
+    blurred = [cv2.GaussianBlur(im, (0, 0), psf, borderType=cv2.BORDER_REFLECT) for im in images]
+    auto = refine_photometric(blurred, BOARD, start, truth["pitch"], opts)
+    sel = auto.kernel_selection
+    assert auto.values["kernel"] == "disc_gaussian", f"the Gaussian should be justified: {sel}"
+    s, ss = auto.values["psf_sigma_px"], auto.sigma["psf_sigma_px"]
+    assert abs(s - psf) < max(3 * ss, 0.2), f"Gaussian σ {s:.3f} ± {ss:.3f} px, true {psf}"
+    err_auto, err_disc = abs(auto.values["d_mm"] - D_MM), abs(sel["disc_fit"]["d_mm"] - D_MM)
+    assert err_auto < err_disc, f"d error with the Gaussian {err_auto:.3f} mm, disc alone {err_disc:.3f} mm"
+
+
+def test_auto_kernel_needs_enough_lens_samples():
+    with pytest.raises(ValueError, match="lens samples"):
+        PhotometricOptions(kernel="auto", lens_samples=64)
+    with pytest.raises(ValueError, match="kernel"):
+        PhotometricOptions(kernel="gauss")

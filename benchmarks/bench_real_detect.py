@@ -32,7 +32,8 @@ import torch
 
 from renderer.io import read_image
 from tiltfit.blur import measure_blur
-from tiltfit.detect import build_pyramid, detect, to_gray
+from tiltfit.detect import detect, to_gray
+from tiltfit.imaging import build_pyramid
 from tiltfit.opencv_corners import match_labelling, sb_corners
 from tiltfit.target import load_target
 

@@ -30,6 +30,7 @@ import math
 import numpy as np
 import torch
 
+from .imaging import apply_homography, build_pyramid, homography_dlt, torch_threads
 from .target import Target
 
 
@@ -84,8 +85,6 @@ def pixel_esf(d: torch.Tensor, r: torch.Tensor, wa: torch.Tensor, wb: torch.Tens
 
 def _local_homographies(target: Target, corners_px: np.ndarray, found: np.ndarray):
     """Per found corner, the homography target (X, Y) -> pixels fitted on found corners within 2 indices."""
-    from .detect import _homography_dlt
-
     ny, nx = target.grid_shape
     pts = target.feature_points()[:, :2]
     out = {}
@@ -96,7 +95,7 @@ def _local_homographies(target: Target, corners_px: np.ndarray, found: np.ndarra
         kk = kk[found[kk]]
         if kk.size < 4:
             continue
-        Hm = _homography_dlt(pts[kk], corners_px[kk])
+        Hm = homography_dlt(pts[kk], corners_px[kk])
         if Hm is not None and np.isfinite(Hm).all():
             out[int(k)] = Hm
     return out
@@ -136,7 +135,7 @@ def _half_edges(target: Target, k: int, Hm: np.ndarray, r_est: float, image_shap
         specs.append((1, ye[j + 1], 0, xe[i + 1], xe[i + 1 + sgn], col, j))  # horizontal edge
         row = j + 1 if sgn > 0 else j
         specs.append((0, xe[i + 1], 1, ye[j + 1], ye[j + 1 + sgn], row, i))  # vertical edge
-    centre = _apply(Hm, np.array([[xe[i + 1], ye[j + 1]]]))[0]
+    centre = apply_homography(Hm, np.array([[xe[i + 1], ye[j + 1]]]))[0]
     for axis, value, along_axis, a_near, a_far, lane, idx in specs:
         # cells across the edge: along the normal (target axis `axis`), indices idx−1, idx (before), idx+1,
         # idx+2 (after); for a horizontal edge at ye[j+1] the rows are j−1, j | j+1, j+2
@@ -159,13 +158,13 @@ def _half_edges(target: Target, k: int, Hm: np.ndarray, r_est: float, image_shap
         probe_after = np.zeros(2)
         probe_after[axis] = value + 0.25 * ((far_hi if far_hi is not None else value + 1.0) - value)
         probe_after[along_axis] = 0.5 * (a_near + a_far)
-        pa = _apply(Hm, probe_after[None])[0]
+        pa = apply_homography(Hm, probe_after[None])[0]
         if L0[:2] @ pa + L0[2] < 0:
             L0 = -L0
         mid = np.zeros(2)
         mid[axis] = value
         mid[along_axis] = 0.5 * (a_near + a_far)
-        pm = _apply(Hm, mid[None])[0]
+        pm = apply_homography(Hm, mid[None])[0]
         if P_near[:2] @ pm + P_near[2] < 0:
             P_near = -P_near
         if P_far[:2] @ pm + P_far[2] < 0:
@@ -212,11 +211,6 @@ def _half_edges(target: Target, k: int, Hm: np.ndarray, r_est: float, image_shap
         bands.append(dict(px=P[idx_keep].astype(int), dxy=P[idx_keep] - centre, d0=d0[idx_keep],
                           d_lo=d_lo[idx_keep], d_hi=-d_hi[idx_keep], kappa=kappa, wa=wa, wb=wb))
     return bands
-
-
-def _apply(Hm, p):
-    q = np.c_[p, np.ones(len(p))] @ Hm.T
-    return q[:, :2] / q[:, 2:]
 
 
 def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, iterations: int = 30):
@@ -403,16 +397,12 @@ def measure_blur(gray: np.ndarray, target: Target, corners_px: np.ndarray, *, le
         blur_px (N,), blur_sigma_px (N,): diameters and one-standard-deviation uncertainties, full-resolution
         pixels, NaN where not measured.
     """
-    from .detect import _torch_threads
-
-    with _torch_threads(1):
+    with torch_threads(1):
         return _measure_blur(gray, target, corners_px, levels, max_passes, max_pixels, level_blur_px,
                              min_level_square_px)
 
 
 def _measure_blur(gray, target, corners_px, levels, max_passes, max_pixels, level_blur_px, min_level_square_px):
-    from .detect import build_pyramid
-
     if levels is None:
         levels = build_pyramid(np.asarray(gray, dtype=np.float32))
     factors = sorted(levels)
@@ -427,8 +417,8 @@ def _measure_blur(gray, target, corners_px, levels, max_passes, max_pixels, leve
     square = {}
     for k, Hm in Hs.items():
         j, i = divmod(k, nx)
-        c = _apply(Hm, np.array([[target.x_edges[i + 1], target.y_edges[j + 1]]]))[0]
-        nb = _apply(Hm, np.array([[target.x_edges[i], target.y_edges[j + 1]],
+        c = apply_homography(Hm, np.array([[target.x_edges[i + 1], target.y_edges[j + 1]]]))[0]
+        nb = apply_homography(Hm, np.array([[target.x_edges[i], target.y_edges[j + 1]],
                                   [target.x_edges[i + 2], target.y_edges[j + 1]],
                                   [target.x_edges[i + 1], target.y_edges[j]],
                                   [target.x_edges[i + 1], target.y_edges[j + 2]]]))

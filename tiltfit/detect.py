@@ -51,6 +51,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from .blur import measure_blur as _measure_blur
+from .imaging import apply_homography, build_pyramid, homography_dlt, to_full, torch_threads
 from .target import Target
 
 
@@ -133,22 +135,6 @@ def read_detection_json(path: str, n_points: int | None = None) -> Detection:
 
 
 # --- image helpers -----------------------------------------------------------------------------------------
-class _torch_threads:
-    """Run a block with `n` torch threads, then restore. The tensors here are small (patches, bands): extra
-    threads only add synchronisation, and on a busy machine OpenMP spinning makes them many times slower."""
-
-    def __init__(self, n: int = 1):
-        self.n = n
-
-    def __enter__(self):
-        self.saved = torch.get_num_threads()
-        if self.saved != self.n:
-            torch.set_num_threads(self.n)
-
-    def __exit__(self, *exc):
-        if torch.get_num_threads() != self.saved:
-            torch.set_num_threads(self.saved)
-
 def to_gray(image) -> np.ndarray:
     """(H, W) float32 grey image from a (H, W) or (H, W, C) linear image (mean of the colour channels)."""
     img = np.asarray(image.detach().cpu() if hasattr(image, "detach") else image)
@@ -157,27 +143,6 @@ def to_gray(image) -> np.ndarray:
     if img.ndim != 2:
         raise DetectionError(f"image: expected (H, W) or (H, W, C), got shape {img.shape}")
     return np.ascontiguousarray(img, dtype=np.float32)
-
-
-def build_pyramid(gray: np.ndarray, min_size: int = 64) -> dict[int, np.ndarray]:
-    """{factor: image} with factor 1, 2, 4, ...: each level the 2×2 box average of the previous one."""
-    levels = {1: gray}
-    f, img = 1, gray
-    while min(img.shape) // 2 >= min_size:
-        h, w = (img.shape[0] // 2) * 2, (img.shape[1] // 2) * 2
-        img = 0.25 * (img[0:h:2, 0:w:2] + img[1:h:2, 0:w:2] + img[0:h:2, 1:w:2] + img[1:h:2, 1:w:2])
-        f *= 2
-        levels[f] = img
-    return levels
-
-
-def to_full(xy_level: np.ndarray, factor: int) -> np.ndarray:
-    """Pixel coordinates at a pyramid level -> full resolution."""
-    return (xy_level + 0.5) * factor - 0.5
-
-
-def to_level(xy_full: np.ndarray, factor: int) -> np.ndarray:
-    return (xy_full + 0.5) / factor - 0.5
 
 
 def estimate_noise(img: np.ndarray) -> float:
@@ -639,34 +604,6 @@ def _rot(k: int, ab: np.ndarray) -> np.ndarray:
     return np.stack([a, b], -1)
 
 
-def _homography_dlt(src: np.ndarray, dst: np.ndarray) -> np.ndarray | None:
-    """Least-squares homography dst ~ H src (normalised DLT), or None."""
-    if src.shape[0] < 4:
-        return None
-
-    def norm(p):
-        m = p.mean(0)
-        s = math.sqrt(2) / max(np.sqrt(((p - m) ** 2).sum(1)).mean(), 1e-12)
-        return np.array([[s, 0, -s * m[0]], [0, s, -s * m[1]], [0, 0, 1]])
-
-    Ts, Td = norm(src), norm(dst)
-    s = np.c_[src, np.ones(len(src))] @ Ts.T
-    d = np.c_[dst, np.ones(len(dst))] @ Td.T
-    rows = []
-    for (x, y, _), (u, v, _) in zip(s, d):
-        rows.append([-x, -y, -1, 0, 0, 0, u * x, u * y, u])
-        rows.append([0, 0, 0, -x, -y, -1, v * x, v * y, v])
-    _, sv, vt = np.linalg.svd(np.asarray(rows))
-    Hn = vt[-1].reshape(3, 3)
-    Hm = np.linalg.inv(Td) @ Hn @ Ts
-    return Hm / Hm[2, 2] if abs(Hm[2, 2]) > 1e-15 else None
-
-
-def _apply_h(Hm: np.ndarray, p: np.ndarray) -> np.ndarray:
-    q = np.c_[p, np.ones(len(p))] @ Hm.T
-    return q[:, :2] / q[:, 2:]
-
-
 @dataclass
 class IndexResult:
     """Lattice nodes mapped to target corners: ij (n, 2) per node (in node order), or None; message."""
@@ -713,9 +650,9 @@ def resolve_indices(nodes: np.ndarray, xy_level: np.ndarray, xy_full: np.ndarray
         A = np.c_[src - centre, np.ones(len(src))]
         if np.linalg.matrix_rank(A[:, :2]) < 2:
             continue
-        Hm = _homography_dlt(src, dst) if len(nb) >= 6 else None
+        Hm = homography_dlt(src, dst) if len(nb) >= 6 else None
         if Hm is not None:
-            c = _apply_h(Hm, centre[None])[0]
+            c = apply_homography(Hm, centre[None])[0]
         else:
             coef, *_ = np.linalg.lstsq(A, dst, rcond=None)
             c = coef[2]
@@ -771,8 +708,8 @@ def resolve_indices(nodes: np.ndarray, xy_level: np.ndarray, xy_full: np.ndarray
         rss = []
         for k, off in top:
             ij = _rot(k, nodes) + off
-            Hm = _homography_dlt(pts[target.feature_index(ij[:, 0], ij[:, 1])], xy_full)
-            res = np.inf if Hm is None else float(((_apply_h(Hm, pts[target.feature_index(ij[:, 0], ij[:, 1])])
+            Hm = homography_dlt(pts[target.feature_index(ij[:, 0], ij[:, 1])], xy_full)
+            res = np.inf if Hm is None else float(((apply_homography(Hm, pts[target.feature_index(ij[:, 0], ij[:, 1])])
                                                     - xy_full) ** 2).sum())
             rss.append(res)
         order = np.argsort(rss)
@@ -919,10 +856,10 @@ def complete_corners(gray: np.ndarray, target: Target, corners: np.ndarray, refi
                     for ii in range(max(0, i - 2), min(nx, i + 3)) if found[jj * nx + ii]]
             if len(near) < 4 or np.linalg.matrix_rank(pts[near] - pts[near].mean(0)) < 2:
                 continue
-            Hm = _homography_dlt(pts[near], corners[near])
+            Hm = homography_dlt(pts[near], corners[near])
             if Hm is None or not np.isfinite(Hm).all():
                 continue
-            q = _apply_h(Hm, np.array([[xe[i + 1], ye[j + 1]], [xe[i], ye[j + 1]], [xe[i + 2], ye[j + 1]],
+            q = apply_homography(Hm, np.array([[xe[i + 1], ye[j + 1]], [xe[i], ye[j + 1]], [xe[i + 2], ye[j + 1]],
                                      [xe[i + 1], ye[j]], [xe[i + 1], ye[j + 2]]]))
             sp = float(np.min(np.hypot(*(q[1:] - q[0]).T)))
             if not (3 <= q[0, 0] <= W - 4 and 3 <= q[0, 1] <= H - 4) or sp < 6:
@@ -1021,7 +958,7 @@ def detect(image, target: Target, *, measure_blur: bool = True, **options) -> De
     Returns:
         Detection; grid_found False (and all NaN) when no board was found or its placement is ambiguous.
     """
-    with _torch_threads(1):
+    with torch_threads(1):
         return _detect(image, target, measure_blur, options)
 
 
@@ -1049,10 +986,8 @@ def _detect(image, target, measure_blur, options) -> Detection:
     N = target.n_points
     blur, sigma = np.full(N, np.nan), np.full(N, np.nan)
     if found and measure_blur:
-        from .blur import measure_blur as _measure
-
         t1 = time.perf_counter()
-        blur, sigma = _measure(gray, target, corners, levels=levels)
+        blur, sigma = _measure_blur(gray, target, corners, levels=levels)
         timings["blur"] = time.perf_counter() - t1
     timings["total"] = time.perf_counter() - t0
     return Detection((W, H), corners, blur, sigma, found, message, level, timings)

@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from renderer import load_scene, optics, render
+from renderer import load_scene, render
 from tiltfit import stability as st
 from tiltfit.fit import FitOptions, calibrate
+from tiltfit.stability import coverage, gamma_noise, singular, two_stage
 
 torch.set_num_threads(1)
 
@@ -23,23 +24,23 @@ def _quiet(_msg):
 # ------------------------------------------------------------------------ (c) accumulation-buffer coverage
 
 def test_first_row_is_lost_where_the_closed_form_says():
-    scene = load_scene(st.coverage_scene(0.0, "thin_lens_accumulation", QUICK))
+    scene = load_scene(coverage.coverage_scene(0.0, "thin_lens_accumulation", QUICK))
     h = scene.camera.screen.size[1]
     theta = st.first_row_lost_theta_F(st.W_MM, h)
     assert theta == pytest.approx(math.atan(2 * st.W_MM / h), abs=1e-15), "D = w − (h/2) tan θF = 0"
     assert math.degrees(theta) == pytest.approx(77.846, abs=1e-3), "EOS 6D sensor (23.86 mm) at w = 55.39 mm"
-    assert st.bottom_edge_valid(scene, theta - 1e-9), "just below θF*: the bottom edge still has a focus point"
-    assert not st.bottom_edge_valid(scene, theta + 1e-9), "just above θF*: the bottom edge has none"
-    ours = load_scene(st.coverage_scene(0.0, "thin_lens", QUICK))
-    assert st.bottom_edge_valid(ours, math.radians(89.0)), "distributed ray tracing has a ray for every pixel"
+    assert coverage.bottom_edge_valid(scene, theta - 1e-9), "just below θF*: the bottom edge still has a focus point"
+    assert not coverage.bottom_edge_valid(scene, theta + 1e-9), "just above θF*: the bottom edge has none"
+    ours = load_scene(coverage.coverage_scene(0.0, "thin_lens", QUICK))
+    assert coverage.bottom_edge_valid(ours, math.radians(89.0)), "distributed ray tracing has a ray for every pixel"
 
 
 @pytest.mark.parametrize("theta_F_deg", [84.0, -84.0])
 def test_rendered_coverage_follows_the_closed_form(theta_F_deg):
     cfg = replace(QUICK, coverage_spp=8)
-    acc = render(load_scene(st.coverage_scene(theta_F_deg, "thin_lens_accumulation", cfg)), spp=8, seed=3)
-    ours = render(load_scene(st.coverage_scene(theta_F_deg, "thin_lens", cfg)), spp=8, seed=3)
-    h = load_scene(st.coverage_scene(0.0, "thin_lens", cfg)).camera.screen.size[1]
+    acc = render(load_scene(coverage.coverage_scene(theta_F_deg, "thin_lens_accumulation", cfg)), spp=8, seed=3)
+    ours = render(load_scene(coverage.coverage_scene(theta_F_deg, "thin_lens", cfg)), spp=8, seed=3)
+    h = load_scene(coverage.coverage_scene(0.0, "thin_lens", cfg)).camera.screen.size[1]
     expected = st.coverage_closed_form(math.radians(theta_F_deg), st.W_MM, h)
     assert expected == pytest.approx(0.5 + st.W_MM / (h * math.tan(math.radians(84.0))), abs=1e-12)
     assert float(acc.coverage.mean()) == pytest.approx(expected, abs=0.01), "coverage = 1/2 + w / (h |tan θF|)"
@@ -61,13 +62,13 @@ def test_coverage_closed_form_limits():
 
 @pytest.fixture(scope="module")
 def stage1():
-    obs, _ = st.tilt_observations(0.0, QUICK, seed=11)
+    obs, _ = two_stage.tilt_observations(0.0, QUICK, seed=11)
     return calibrate(obs, "unified", options=FitOptions(model_selection=False, nominal_focal_mm=55.0))
 
 
 def test_exact_physics_of_a_5_degree_tilt():
     """The numbers of the papers' NOTES: U 618.4 → 648.4 mm, θF = 48.03°, eq. (1) maps it back to 4.62°."""
-    _, truth = st.tilt_observations(math.radians(5.0), QUICK, seed=0)
+    _, truth = two_stage.tilt_observations(math.radians(5.0), QUICK, seed=0)
     s = truth.summary()
     assert s["U_mm"] == pytest.approx(648.4, abs=0.05), "hinge rule"
     assert s["theta_F_deg"] == pytest.approx(48.03, abs=0.01), "Scheimpflug rule"
@@ -76,7 +77,7 @@ def test_exact_physics_of_a_5_degree_tilt():
 
 def test_two_stage_bias_at_5_degrees_has_the_predicted_sign_and_size(stage1):
     theta_L = math.radians(5.0)
-    obs, truth = st.tilt_observations(theta_L, QUICK, seed=12)
+    obs, truth = two_stage.tilt_observations(theta_L, QUICK, seed=12)
     with torch.no_grad():
         p_cam = truth.to_camera(obs.points_mm)[obs.blur_mask].numpy()
     v = stage1.values
@@ -104,24 +105,24 @@ def test_two_stage_prediction_vanishes_without_tilt():
 # ----------------------------------------------------------------------- (d) inverted perspective, singular
 
 def test_inverted_perspective_stays_finite_near_its_singular_depth():
-    a_star = st.singular_depth(st.IP_ALPHA, st.IP_P3)
+    a_star = st.singular_depth(singular.IP_ALPHA, singular.IP_P3)
     assert a_star == pytest.approx(8.0), "α p3 / (α − 1) for α = 2, p3 = 4"
-    cam = load_scene(st.singular_scene(a_star)).camera
+    cam = load_scene(singular.singular_scene(a_star)).camera
     c = torch.tensor(cam.screen.center_px, dtype=torch.float64)
-    screen_w = 2 * st.IP_Q3 * math.tan(math.radians(st.IP_FOV_DEG) / 2)
+    screen_w = 2 * singular.IP_Q3 * math.tan(math.radians(singular.IP_FOV_DEG) / 2)
     px_per_unit = cam.width / screen_w
     for eps in (1.0, 1e-3, 1e-6, 1e-10, -1e-6):
         a = torch.tensor([[0.1, 0.05, a_star - eps]], dtype=torch.float64)
         uv = cam.project(a)[0]
         assert bool(torch.isfinite(uv).all()), f"ε = {eps:g}: projected position {uv.tolist()}"
         m = float(torch.linalg.norm(uv - c)) / (math.hypot(0.1, 0.05) * px_per_unit)
-        m_closed = abs(st.IP_Q3 / ((st.IP_ALPHA - 1) * eps))
+        m_closed = abs(singular.IP_Q3 / ((singular.IP_ALPHA - 1) * eps))
         assert m == pytest.approx(m_closed, rel=1e-6), f"ε = {eps:g}: magnification q3 / ((α − 1) ε)"
     at = cam.project(torch.tensor([[0.1, 0.05, a_star]], dtype=torch.float64))
     assert not bool(torch.isnan(at).any()), "no NaN at the singular depth"
     assert bool(torch.isinf(at).all()), "the point at the singular depth has no image (+inf)"
     for eps in (1e-9, 0.0):
-        res = render(load_scene(st.singular_scene(a_star - eps)), seed=1)
+        res = render(load_scene(singular.singular_scene(a_star - eps)), seed=1)
         assert bool(torch.isfinite(res.image).all()), f"ε = {eps:g}: rendered image finite"
         assert float(res.coverage.min()) == 1.0, f"ε = {eps:g}: every ray valid"
         assert float(res.image.std()) < 1e-6, f"ε = {eps:g}: all rays meet at the apex: one colour"
@@ -148,7 +149,7 @@ def test_srgb_bias_prediction_changes_sign_with_blur_size():
 
 @pytest.mark.parametrize("ratio, expect", [(0.05, "up"), (0.5, "down")])
 def test_measured_srgb_bias_is_the_predicted_one(ratio, expect):
-    (row,) = st.srgb_bias_rows(replace(QUICK, srgb_ratios=(ratio,)), _quiet)
+    (row,) = gamma_noise.srgb_bias_rows(replace(QUICK, srgb_ratios=(ratio,)), _quiet)
     assert abs(row["bias_decoded"]) < 0.02, f"decoded to linear: bias {row['bias_decoded']:+.3f}"
     bias = row["bias_encoded_vs_decoded"]  # the encoding's own effect, what `srgb_blur_bias` predicts
     if expect == "up":

@@ -13,13 +13,16 @@ Over N machines: throughput grows with the total number of cores as long as each
 Ray's per-task overhead (about a millisecond) and the result transfer: each task returns 16 bytes per pixel
 (float32 RGB + coverage), a 5472×3648 frame about 320 MB in total, gathered by the driver; the scene is
 shipped once per node (a few KB, or the mesh arrays). The driver's single-threaded gathering and the
-slowest task (the last tile) bound the speed-up; animation frames or parameter sweeps would be spread the
-same way, one task per frame or parameter set, with no gathering bottleneck.
+slowest task (the last tile) bound the speed-up.
 
 The same plumbing serves any list of independent jobs: `imap_on_cluster` / `map_on_cluster` run
 `fn(shared, item)` for each item as Ray tasks (the `shared` object put into the object store once) and
-give the results back in input order, or run them here one after another when no cluster is asked for.
-`renderer animate --cluster` (frames) and `tiltfit stability --cluster` (the studies) use it.
+give the results back in input order, or run them here one after another when no cluster is asked for;
+a session started for the call is shut down after it, one the caller holds is left running. Users:
+this render (unordered, tiles written as they come), `renderer animate --cluster` (a task per frame, or a
+contiguous run of frames per CPU for beam tracing; `renderer.animate`) and `tiltfit stability --cluster`
+(a task per study; `tiltfit.cluster`). Costs measured on this machine (per task, shipping, gathering):
+`benchmarks/results/cluster.md`.
 """
 from __future__ import annotations
 

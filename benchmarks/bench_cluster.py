@@ -48,17 +48,36 @@ from renderer.scenefile import load_scene, read_scene_json  # noqa: E402
 RESULTS = os.path.join(ROOT, "benchmarks", "results")
 
 
-def timed_animate(scene, method, frames, step, overrides, out, cluster=None, threads=1):
-    """Wall seconds of one `animate` call and its frames (8-bit values as read back)."""
+def timed_animate(scene, method, frames, step, overrides, out, cluster=None, threads=1, frame_seconds=None):
+    """Wall seconds of one `animate` call and its frames (8-bit values as read back); appends the median
+    per-frame `seconds` (measured where the frame was rendered) to `frame_seconds` when given."""
     previous = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
         t0 = time.perf_counter()
-        animate(scene, method, frames, step, out, overrides, progress=False, cluster=cluster)
+        rows = animate(scene, method, frames, step, out, overrides, progress=False, cluster=cluster)
         seconds = time.perf_counter() - t0
     finally:
         torch.set_num_threads(previous)
+    if frame_seconds is not None:
+        frame_seconds.append(statistics.median(r["seconds"] for r in rows))
     return seconds, [read_image(os.path.join(out, f"frame_{k:04d}.png")) for k in range(frames)]
+
+
+def busy_cores(seconds: float = 3.0) -> float:
+    """Cores kept busy by other processes over `seconds` before the run (Linux /proc/stat; nan elsewhere)."""
+    def sample():
+        with open("/proc/stat", encoding="ascii") as f:
+            fields = [int(x) for x in f.readline().split()[1:]]
+        return sum(fields), fields[3] + fields[4]  # total, idle + iowait
+
+    try:
+        total0, idle0 = sample()
+        time.sleep(seconds)
+        total1, idle1 = sample()
+    except OSError:
+        return float("nan")
+    return (os.cpu_count() or 1) * (1 - (idle1 - idle0) / max(total1 - total0, 1))
 
 
 def overheads(scene_path, overrides, frame_shape, repeats: int) -> dict:
@@ -104,12 +123,14 @@ def main(argv=None) -> int:
     beam_scene, beam_frames, beam_step = resolve_scene("beam_fig2"), 5, 0.35
     beam_over = ["image.width=320", "image.height=240"]
 
+    busy = busy_cores()
     t0 = time.perf_counter()
     ray.init(num_cpus=cores, include_dashboard=False, log_to_driver=False,
              runtime_env={"env_vars": {"OMP_NUM_THREADS": "1", "PYTHONPATH": ROOT}})
     ray_start = time.perf_counter() - t0
     runs = {k: [] for k in ("trace_1thread", f"trace_{cores}threads", "trace_ray", "beam_here", "beam_ray")}
     equal = {"trace": True, "beam": True}
+    frame_s = {"here": [], "ray": []}
     with tempfile.TemporaryDirectory() as tmp:
         # Untimed warm-up: starts the Ray workers (timed here as the first run) and fills every import cache.
         first_ray, _ = timed_animate(trace_scene, "trace", frames, trace_step, trace_over, f"{tmp}/warm_r", "auto")
@@ -117,9 +138,11 @@ def main(argv=None) -> int:
         timed_animate(beam_scene, "beam", beam_frames, beam_step, beam_over, f"{tmp}/warm_b", "auto")
         for r in range(repeats):
             print(f"bench_cluster: repeat {r + 1}/{repeats}", file=sys.stderr, flush=True)
-            s1, ref = timed_animate(trace_scene, "trace", frames, trace_step, trace_over, f"{tmp}/t1_{r}")
+            s1, ref = timed_animate(trace_scene, "trace", frames, trace_step, trace_over, f"{tmp}/t1_{r}",
+                                    frame_seconds=frame_s["here"])
             sn, _ = timed_animate(trace_scene, "trace", frames, trace_step, trace_over, f"{tmp}/tn_{r}", threads=cores)
-            sr, got = timed_animate(trace_scene, "trace", frames, trace_step, trace_over, f"{tmp}/tr_{r}", "auto")
+            sr, got = timed_animate(trace_scene, "trace", frames, trace_step, trace_over, f"{tmp}/tr_{r}", "auto",
+                                    frame_seconds=frame_s["ray"])
             equal["trace"] &= all(np.array_equal(a, b) for a, b in zip(ref, got))
             b1, bref = timed_animate(beam_scene, "beam", beam_frames, beam_step, beam_over, f"{tmp}/b1_{r}")
             br, bgot = timed_animate(beam_scene, "beam", beam_frames, beam_step, beam_over, f"{tmp}/br_{r}", "auto")
@@ -130,13 +153,13 @@ def main(argv=None) -> int:
     ray.shutdown()
     med = {k: statistics.median(v) for k, v in runs.items()}
     result = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-              "machine": {"cores": cores, "load_average": os.getloadavg(), "python": platform.python_version(),
+              "machine": {"cores": cores, "busy_cores_before": busy, "load_average": os.getloadavg(), "python": platform.python_version(),
                           "torch": torch.__version__, "ray": ray.__version__},
               "trace": {"scene": "tilt_fig9b", "width": w, "height": h, "spp": spp, "frames": frames,
                         "step": trace_step},
               "beam": {"scene": "beam_fig2", "width": 320, "height": 240, "frames": beam_frames, "step": beam_step},
               "repeats": repeats, "ray_start_s": ray_start, "first_ray_run_s": first_ray, "runs_s": runs,
-              "median_s": med, "frames_equal": equal, "overheads": cost}
+              "median_s": med, "median_frame_s": {k: statistics.median(v) for k, v in frame_s.items()}, "frames_equal": equal, "overheads": cost}
     stem = "cluster_quick" if quick else "cluster"
     os.makedirs(RESULTS, exist_ok=True)
     with open(os.path.join(RESULTS, stem + ".json"), "w", encoding="utf-8") as f:
@@ -169,11 +192,12 @@ def report(r: dict, quick: bool) -> str:
         f"(>1: Ray faster). Starting the local Ray (`ray.init`) took {r['ray_start_s']:.1f} s, paid once per "
         f"cluster, not per run (the first `--cluster` run, which also starts the workers, took "
         f"{r['first_ray_run_s']:.2f} s; it is an untimed warm-up here). Frames equal to one process pixel for pixel: "
-        f"{r['frames_equal']['trace']}." + (
-            f" The 1-minute load average at the end ({r['machine']['load_average'][0]:.1f}) was above the "
-            f"{cores} cores: other processes held them, so neither torch threads nor Ray workers had idle cores "
-            "to gain from; the ratios then show the overhead, not the spread." if
-            r['machine']['load_average'][0] > cores else "") + "\n",
+        f"{r['frames_equal']['trace']}. One frame's render, timed where it ran (median): "
+        f"{r['median_frame_s']['here']:.2f} s in one process, {r['median_frame_s']['ray']:.2f} s in a Ray task. "
+        f"Before the run, other processes kept {r['machine']['busy_cores_before']:.1f} of the {cores} cores busy"
+        + (": with a core already taken, two workers share what is left, which the per-frame times show, so this "
+           "run measures the overhead rather than the spread." if r['machine']['busy_cores_before'] > 0.5 else ".")
+        + "\n",
         f"## Frames by beam tracing: `{b['scene']}` {b['width']}×{b['height']}, {b['frames']} frames\n",
         "| run | wall s (median) |", "|---|---|",
         f"| one process (one tracer, reuse across all frames) | {m['beam_here']:.3f} |",

@@ -129,3 +129,26 @@ def test_cli_animate_unreachable_cluster_is_one_line(tmp_path, capsys):
     assert status == 2, f"exit status {status}"
     assert err.count("\n") == 0 and "127.0.0.1:1" in err, f"one line naming the address: {err!r}"
     assert not out.exists(), "no output folder"
+
+
+def test_cli_animate_cluster_flag_writes_the_same_frames(cluster, tmp_path):
+    """`renderer animate --cluster auto --seed 3` writes the frames (8-bit values) and frames.csv columns of
+    the same command without --cluster; the seed reaches the tasks."""
+    import csv
+
+    from renderer.cli import main
+    from renderer.io import read_image
+
+    args = ["animate", "tilt_fig9b", "--method", "trace", "--frames", "2", "--step", "5", "--quiet",
+            "--set", "image.width=24", "--set", "image.height=16", "--set", "image.spp=2"]
+    outputs = {}
+    for name, extra in (("here", ["--seed", "3"]), ("ray", ["--seed", "3", "--cluster", "auto"]),
+                        ("other_seed", ["--seed", "4"])):
+        assert main(args + extra + ["-o", str(tmp_path / name)]) == 0, f"{name}: exit status"
+        with open(tmp_path / name / "frames.csv", newline="") as f:
+            table = [{k: v for k, v in r.items() if k != "seconds"} for r in csv.DictReader(f)]
+        outputs[name] = ([read_image(str(tmp_path / name / f"frame_{k:04d}.png")) for k in range(2)], table)
+    for k in range(2):
+        assert np.array_equal(outputs["ray"][0][k], outputs["here"][0][k]), f"frame {k} differs"
+    assert outputs["ray"][1] == outputs["here"][1], "frames.csv differs beyond the timings"
+    assert not np.array_equal(outputs["other_seed"][0][1], outputs["here"][0][1]), "--seed should change the frame"

@@ -153,13 +153,15 @@ def main(argv=None) -> int:
     ray.shutdown()
     med = {k: statistics.median(v) for k, v in runs.items()}
     result = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-              "machine": {"cores": cores, "busy_cores_before": busy, "load_average": os.getloadavg(), "python": platform.python_version(),
+              "machine": {"cores": cores, "busy_cores_before": busy, "load_average": os.getloadavg(),
+                          "python": platform.python_version(),
                           "torch": torch.__version__, "ray": ray.__version__},
               "trace": {"scene": "tilt_fig9b", "width": w, "height": h, "spp": spp, "frames": frames,
                         "step": trace_step},
               "beam": {"scene": "beam_fig2", "width": 320, "height": 240, "frames": beam_frames, "step": beam_step},
               "repeats": repeats, "ray_start_s": ray_start, "first_ray_run_s": first_ray, "runs_s": runs,
-              "median_s": med, "median_frame_s": {k: statistics.median(v) for k, v in frame_s.items()}, "frames_equal": equal, "overheads": cost}
+              "median_s": med, "median_frame_s": {k: statistics.median(v) for k, v in frame_s.items()},
+              "frames_equal": equal, "overheads": cost}
     stem = "cluster_quick" if quick else "cluster"
     os.makedirs(RESULTS, exist_ok=True)
     with open(os.path.join(RESULTS, stem + ".json"), "w", encoding="utf-8") as f:

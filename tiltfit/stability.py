@@ -1186,7 +1186,8 @@ def main(argv=None) -> int:
     ap.add_argument("--only", nargs="+", choices=list(STUDIES), metavar="NAME",
                     help=f"run only these sweeps ({', '.join(STUDIES)})")
     ap.add_argument("--threads", type=int, default=1, help="torch threads [1]; 0 keeps torch's default")
-    ap.add_argument("--cluster", metavar="auto|ADDRESS", help="run the studies as Ray tasks (auto: the running cluster, else a local one)")
+    ap.add_argument("--cluster", metavar="auto|ADDRESS",
+                    help="run the studies as Ray tasks (auto: the running cluster, else a local one)")
     args = ap.parse_args(argv)
     if os.path.exists(args.output) and not os.path.isdir(args.output):
         print(f"tiltfit stability: {args.output}: not a folder", file=sys.stderr)

@@ -4,6 +4,7 @@
                     [--device cpu|cuda] [--seed N] [--encoding srgb|linear] [--quiet]
                     [--backend torch|mitsuba] [--cluster auto|ADDRESS]
     renderer animate SCENE.json --method beam|trace [--frames N] [--step D] -o DIR [--set key.path=value ...]
+                     [--cluster auto|ADDRESS]
     renderer gallery [-o gallery.png] [--quick] [--size PX] [--spp N] [--manifest M.json] [--device ...]
 
 Errors in the input (a bad scene file, an unreadable image, an unwritable output, a render whose float32
@@ -112,6 +113,8 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY.PATH=VALUE",
                    help="override a scene key before validation (as for render); repeatable")
     a.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    a.add_argument("--cluster", metavar="auto|ADDRESS",
+                   help="render the frames as Ray tasks (auto: the running cluster, else a local one); same frames")
     _common(a)
     return parser
 
@@ -232,9 +235,16 @@ def cmd_animate(args, device) -> int:
 
     step = number("--step", step, UsageError, float32=True)
     start = time.perf_counter()
+    if args.cluster and device.type != "cpu":
+        raise UsageError("--cluster renders on the cluster's CPUs: leave out --device")
     with _removed_on_failure(args.output):
-        animate(path, args.method, frames, step, args.output, args.overrides, device=device,
-                progress=not args.quiet)
+        try:
+            animate(path, args.method, frames, step, args.output, args.overrides, device=device,
+                    progress=not args.quiet, seed=args.seed, cluster=args.cluster)
+        except ImportError as e:
+            if not args.cluster:
+                raise
+            raise UsageError(str(e)) from None
     if not args.quiet:
         print(f"renderer: wrote {frames} frames and frames.csv to {args.output} ({time.perf_counter() - start:.1f} s)",
               file=sys.stderr)

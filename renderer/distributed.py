@@ -13,11 +13,20 @@ Over N machines: throughput grows with the total number of cores as long as each
 Ray's per-task overhead (about a millisecond) and the result transfer: each task returns 16 bytes per pixel
 (float32 RGB + coverage), a 5472×3648 frame about 320 MB in total, gathered by the driver; the scene is
 shipped once per node (a few KB, or the mesh arrays). The driver's single-threaded gathering and the
-slowest task (the last tile) bound the speed-up; animation frames or parameter sweeps would be spread the
-same way, one task per frame or parameter set, with no gathering bottleneck.
+slowest task (the last tile) bound the speed-up.
+
+The same plumbing serves any list of independent jobs: `imap_on_cluster` / `map_on_cluster` run
+`fn(shared, item)` for each item as Ray tasks (the `shared` object put into the object store once) and
+give the results back in input order, or run them here one after another when no cluster is asked for;
+a session started for the call is shut down after it, one the caller holds is left running. Users:
+this render (unordered, tiles written as they come), `renderer animate --cluster` (a task per frame, or a
+contiguous run of frames per CPU for beam tracing; `renderer.animate`) and `tiltfit stability --cluster`
+(a task per study; `tiltfit.cluster`). Costs measured on this machine (per task, shipping, gathering):
+`benchmarks/results/cluster.md`.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 from dataclasses import replace
@@ -30,13 +39,21 @@ from .sampling import Sampler
 from .scene import Scene
 
 
-def connect(address: str = "auto"):
-    """Import ray and connect: `auto` joins the cluster this machine belongs to, or starts a local one;
-    any other value is a cluster address (`ray://host:10001` or `host:6379`). Returns the ray module."""
+def _import_ray():
     try:
         import ray
     except ImportError as e:
         raise ImportError("--cluster needs ray: pip install -e '.[distributed]'") from e
+    return ray
+
+
+def connect(address: str = "auto"):
+    """Import ray and connect: `auto` joins the cluster this machine belongs to, or starts a local one;
+    any other value is a cluster address (`ray://host:10001` or `host:6379`). Returns the ray module.
+    When this process is already connected, that connection is used (an address is still checked)."""
+    ray = _import_ray()
+    if address != "auto":
+        _check_reachable(address)
     if ray.is_initialized():
         return ray
     kwargs = dict(ignore_reinit_error=True, log_to_driver=False, include_dashboard=False)
@@ -50,9 +67,90 @@ def connect(address: str = "auto"):
                                 "OMP_NUM_THREADS": "1"}}
             ray.init(runtime_env=env, **kwargs)
     else:
-        _check_reachable(address)
         ray.init(address=address, **kwargs)
     return ray
+
+
+@contextlib.contextmanager
+def cluster_session(address: str = "auto"):
+    """`connect(address)` for the duration of a with-block; shuts Ray down afterwards only if this call
+    started the connection (an enclosing session or the caller's own `ray.init` is left running)."""
+    ray = _import_ray()
+    started = not ray.is_initialized()
+    connect(address)
+    try:
+        yield ray
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def cluster_cpus(ray) -> int:
+    """CPUs of the connected cluster (at least 1)."""
+    return max(1, int(ray.cluster_resources().get("CPU", 1)))
+
+
+def _call(fn, shared, item, threads: int | None):
+    """One task: `fn(shared, item)` with `threads` torch threads (None: the worker's setting)."""
+    if threads is not None:
+        torch.set_num_threads(threads)
+    return fn(shared, item)
+
+
+def imap_on_cluster(fn, items, cluster: str | None = None, *, shared=None, ordered: bool = True,
+                    threads: int | None = 1):
+    """Yield `(i, fn(shared, items[i]))` for every item: as Ray tasks (one CPU each) when `cluster` names one
+    (`auto` or an address, see `connect`), else here, one after another, in input order.
+
+    Args:
+        fn: a module-level function (workers import it by name) of (shared, item); each call independent.
+        items: the jobs (each pickled into its task; keep them small).
+        cluster: None (run here), `auto` or a cluster address.
+        shared: an object every call needs (scene, configuration): put into Ray's object store once.
+        ordered: yield in input order, each result as soon as all earlier ones are in (True), or in the
+            order the tasks finish (False).
+        threads: torch threads inside each task [1: one task per core]; None leaves the worker's setting.
+            Ignored when running here.
+    Raises:
+        ImportError (ray missing), ConnectionError (address not reachable); an exception raised by `fn` in
+        a task is raised here as itself.
+    """
+    items = list(items)
+    if cluster is None:
+        for i, item in enumerate(items):
+            yield i, fn(shared, item)
+        return
+    with cluster_session(cluster) as ray:
+        remote = ray.remote(num_cpus=1)(_call)
+        shared_ref = ray.put(shared)
+        refs = [remote.remote(fn, shared_ref, item, threads) for item in items]
+        index = {ref: i for i, ref in enumerate(refs)}
+        finished, next_out, pending = {}, 0, list(refs)
+        try:
+            while pending:
+                done, pending = ray.wait(pending, num_returns=1)
+                for ref in done:
+                    i = index[ref]
+                    try:
+                        result = ray.get(ref)
+                    except ray.exceptions.RayTaskError as e:
+                        cause = getattr(e, "cause", None)
+                        raise (cause if isinstance(cause, Exception) else e) from None
+                    if not ordered:
+                        yield i, result
+                    else:
+                        finished[i] = result
+                while ordered and next_out in finished:
+                    yield next_out, finished.pop(next_out)
+                    next_out += 1
+        finally:
+            for ref in pending:
+                ray.cancel(ref)
+
+
+def map_on_cluster(fn, items, cluster: str | None = None, *, shared=None, threads: int | None = 1) -> list:
+    """`[fn(shared, item) for item in items]`, on a Ray cluster when `cluster` is given (see `imap_on_cluster`)."""
+    return [result for _, result in imap_on_cluster(fn, items, cluster, shared=shared, threads=threads)]
 
 
 def _check_reachable(address: str, timeout: float = 5.0) -> None:
@@ -69,9 +167,10 @@ def _check_reachable(address: str, timeout: float = 5.0) -> None:
         raise ConnectionError(f"--cluster {address}: cannot reach {host}:{port} ({e.strerror or e})") from None
 
 
-def _trace_chunks(scene: Scene, chunks, spp: int, sampler: str, seed: int, options, dtype, max_depth):
-    """Estimates (n, 3) and coverage (n,) of the real pixels of `chunks` [(pixel, n), ...], concatenated."""
-    torch.set_num_threads(1)
+def _trace_chunks(job, chunks):
+    """Estimates (n, 3) and coverage (n,) of the real pixels of `chunks` [(pixel, n), ...], concatenated.
+    job: (scene, spp, sampler, seed, options, dtype, max_depth), shared by every task."""
+    scene, spp, sampler, seed, options, dtype, max_depth = job
     smp = Sampler(sampler, spp, seed)
     est, cov = [], []
     for pixel, n in chunks:
@@ -86,28 +185,21 @@ def render_on_ray(scene: Scene, spp: int | None = None, sampler: str | None = No
                   tasks_per_cpu: int = 4, progress: bool = False) -> RenderResult:
     """`renderer.render(scene, spp, sampler, seed=..., dtype=..., max_depth=...)` traced on a Ray cluster
     (CPU; see the module docstring). chunk_rays: camera samples per chunk, as in `render`."""
-    ray = connect(address)
     W, H = scene.camera.width, scene.camera.height
     spp = scene.image.spp if spp is None else spp
     sampler = sampler or scene.image.sampler
     options = replace(scene.options, compile=False)
     chunks = list(_chunks(scene, spp, options, chunk_rays))
-    cpus = max(1, int(ray.cluster_resources().get("CPU", 1)))
-    n_tasks = min(len(chunks), cpus * tasks_per_cpu)
-    per_task = math.ceil(len(chunks) / n_tasks)
-    groups = [chunks[i:i + per_task] for i in range(0, len(chunks), per_task)]
-    remote = ray.remote(num_cpus=1)(_trace_chunks)
-    scene_ref = ray.put(scene)
-    pending = {remote.remote(scene_ref, g, spp, sampler, seed, options, dtype, max_depth):
-               torch.cat([p[:n] for p, n in g]) for g in groups}
-    image = torch.empty(W * H, 3, dtype=dtype)
-    coverage = torch.empty(W * H, dtype=dtype)
-    bar = Progress(W * H * spp, "render (ray)", enabled=progress)
-    while pending:
-        done, _ = ray.wait(list(pending), num_returns=1)
-        for ref in done:
-            pixels = pending.pop(ref)
-            estimate, covered = ray.get(ref)
+    with cluster_session(address) as ray:
+        n_tasks = min(len(chunks), cluster_cpus(ray) * tasks_per_cpu)
+        per_task = math.ceil(len(chunks) / n_tasks)
+        groups = [chunks[i:i + per_task] for i in range(0, len(chunks), per_task)]
+        image = torch.empty(W * H, 3, dtype=dtype)
+        coverage = torch.empty(W * H, dtype=dtype)
+        bar = Progress(W * H * spp, "render (ray)", enabled=progress)
+        job = (scene, spp, sampler, seed, options, dtype, max_depth)
+        for i, (estimate, covered) in imap_on_cluster(_trace_chunks, groups, address, shared=job, ordered=False):
+            pixels = torch.cat([p[:n] for p, n in groups[i]])
             image.index_copy_(0, pixels, estimate)
             coverage.index_copy_(0, pixels, covered)
             bar.update(pixels.shape[0] * spp)

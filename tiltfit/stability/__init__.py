@@ -106,7 +106,7 @@ class StabilityResult:
 
 
 def run(out_dir: str, quick: bool = False, progress: bool = True, config: StabilityConfig | None = None,
-        only=None, threads: int | None = 1) -> StabilityResult:
+        only=None, threads: int | None = 1, cluster: str | None = None) -> StabilityResult:
     """Run the sweeps, write every output into `out_dir` and print the summary.
 
     Args:
@@ -116,6 +116,7 @@ def run(out_dir: str, quick: bool = False, progress: bool = True, config: Stabil
         config: override the run size.
         only: names of STUDIES to run [all].
         threads: torch (and OpenCV) threads for the run, restored afterwards; None keeps the settings [1].
+        cluster: None, or `auto` / a Ray address: the studies run as Ray tasks (`tiltfit.cluster`), same outputs.
     Returns:
         StabilityResult.
     """
@@ -131,7 +132,7 @@ def run(out_dir: str, quick: bool = False, progress: bool = True, config: Stabil
         except ImportError:
             pass
     try:
-        return _run(out_dir, quick, progress, config, only)
+        return _run(out_dir, quick, progress, config, only, cluster)
     finally:
         torch.set_num_threads(previous)
         if cv2_previous is not None:
@@ -140,7 +141,7 @@ def run(out_dir: str, quick: bool = False, progress: bool = True, config: Stabil
             cv2.setNumThreads(cv2_previous)
 
 
-def _run(out_dir, quick, progress, config, only) -> StabilityResult:
+def _run(out_dir, quick, progress, config, only, cluster=None) -> StabilityResult:
     cfg = config or (StabilityConfig.quick() if quick else StabilityConfig.full())
     names = list(STUDIES) if only is None else list(only)
     unknown = [n for n in names if n not in STUDIES]
@@ -149,9 +150,9 @@ def _run(out_dir, quick, progress, config, only) -> StabilityResult:
     log = _Log(progress)
     os.makedirs(out_dir, exist_ok=True)
     studies, files = {}, {}
-    for name in names:
-        log(f"{name}: start")
-        study = STUDIES[name](cfg, log)
+    from ..cluster import run_studies
+
+    for name, study in run_studies(STUDIES, names, cfg, log, cluster):
         studies[name] = study
         files[name] = write_study(out_dir, study)
         log(f"{name}: done in {study.runtime_s:.1f} s")
@@ -222,12 +223,17 @@ def main(argv=None) -> int:
     ap.add_argument("--only", nargs="+", choices=list(STUDIES), metavar="NAME",
                     help=f"run only these sweeps ({', '.join(STUDIES)})")
     ap.add_argument("--threads", type=int, default=1, help="torch threads [1]; 0 keeps torch's default")
+    ap.add_argument("--cluster", metavar="auto|ADDRESS",
+                    help="run the studies as Ray tasks (auto: the running cluster, else a local one)")
     args = ap.parse_args(argv)
     if os.path.exists(args.output) and not os.path.isdir(args.output):
         print(f"tiltfit stability: {args.output}: not a folder", file=sys.stderr)
         return 2
     try:
-        run(args.output, quick=args.quick, only=args.only, threads=args.threads or None)
+        run(args.output, quick=args.quick, only=args.only, threads=args.threads or None, cluster=args.cluster)
+    except (ImportError, ConnectionError) as e:
+        print(f"tiltfit stability: {e}", file=sys.stderr)
+        return 2
     except OSError as e:
         print(f"tiltfit stability: {e.filename or args.output}: cannot write ({e.strerror or e})", file=sys.stderr)
         return 2

@@ -102,10 +102,11 @@ class SensorResponse:
         if self.read_noise or self.full_well is not None:
             if rng is None:
                 raise ValueError("expose: a noisy sensor needs an rng")
-            var = self.read_noise**2
-            if self.full_well is not None:
-                var = np.clip(img, 0.0, None) / self.full_well + var
-            img = img + np.sqrt(var) * rng.standard_normal(img.shape)
+            if self.full_well is None:
+                sd = self.read_noise
+            else:
+                sd = np.sqrt(np.clip(img, 0.0, None) / self.full_well + self.read_noise**2)
+            img = img + sd * rng.standard_normal(img.shape)
         if self.encoding == "srgb8":
             return encode_srgb8(img)
         if self.encoding == "linear8":

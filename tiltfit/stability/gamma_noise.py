@@ -43,11 +43,11 @@ def srgb_bias_rows(cfg: StabilityConfig, log) -> list[dict]:
 
 
 def _expose(clean: np.ndarray, sigma: float, rng: np.random.Generator) -> np.ndarray:
-    """(H, W) clean linear image -> (H, W) uint8 sRGB photograph with Gaussian noise σ (linear units)."""
-    from renderer.io import linear_to_srgb
+    """(H, W) clean linear image -> (H, W) uint8 sRGB photograph with Gaussian noise σ (linear units): the one
+    sensor model, `renderer.sensor`."""
+    from renderer.sensor import SensorResponse
 
-    noisy = clean + sigma * rng.standard_normal(clean.shape)
-    return np.clip(np.round(linear_to_srgb(np.clip(noisy, 0.0, 1.0)) * 255.0), 0, 255).astype(np.uint8)
+    return SensorResponse(read_noise=sigma, encoding="srgb8").expose(clean, rng)
 
 
 def _calibrate_photos(photos8, decode: bool, target, size, pitch):

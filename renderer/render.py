@@ -94,7 +94,8 @@ def _render_pixels(scene: Scene, pixel: torch.Tensor, sampler: Sampler, options:
     spp, W = sampler.spp, scene.camera.width
     background = torch.tensor(scene.image.background, dtype=dtype, device=device)
     # Samples are made where they are traced: integer hashing and exact float steps give the same values on
-    # every device, and on a GPU this saves the host-side sampling and its copy (a third of a warm render).
+    # every device, and on a GPU this saves the host-side sampling and its copy (0.058 -> 0.044 s a warm
+    # render on an H100, benchmarks/results/profile_gpu_h100.md).
     uv_px, lens_uv = _camera_samples(sampler, pixel.to(device), W, dtype)
     color = weight = valid = None
     for camera, flags in render_passes(scene):
@@ -156,7 +157,8 @@ def _pool(workers: int):
 
 
 CPU_CHUNK_RAYS, GPU_CHUNK_RAYS = 1 << 15, 1 << 22
-BYTES_PER_RAY = 2048  # twice the measured ~1 KB a ray at depth 5: headroom for the allocator
+BYTES_PER_RAY = 2048  # twice the measured ~1 KB a ray (float32, depth 5); the batch takes at most half the
+                     # free memory: room for float64 and for torch's cached blocks
 
 
 def default_chunk_rays(device) -> int:
@@ -183,8 +185,8 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
             ray at depth 5). The image does not depend on it. Default on the CPU 2^15, which keeps a batch's
             (N,) rows in the caches: 10 % faster than 2^17 on the issue-11 speed scene, 2^12 was 2x slower
             (Python overhead per operation). Default on a GPU 2^22, fewer if its free memory is short: with
-            2^15 an H100 waited on kernel launches and was no faster than one CPU thread; 2^22 was 18x
-            faster (benchmarks/results/speed_gpu_h100.md).
+            2^15 an H100 waited on kernel launches (1.6 s, no faster than one CPU thread), with 2^22 it took
+            0.032 s (benchmarks/results/speed_gpu_h100.md, profile_gpu_h100.md).
         culling, compile: override scene.options (see `renderer.scene.TraceOptions`); speed only.
         workers: CPU only: trace chunks in this many worker processes with one torch thread each (they
             are started on first use and kept for later calls; each unpickles the scene once per render).

@@ -1,7 +1,7 @@
 """The CUDA path against the CPU reference (skipped where no GPU is present; CI has none).
 
-Camera samples are drawn on the CPU and moved to the device, so a float64 render on CUDA should be the CPU
-image up to rounding, except on the few pixels where a ray grazes an edge and the two devices' rounding
+Camera samples are the same numbers on every device (integer hashing; checked bit for bit below), so a
+float64 render on CUDA should be the CPU image up to rounding, except on the few pixels where a ray grazes an edge and the two devices' rounding
 takes different sides. Run on a GPU machine with `pytest tests/test_cuda.py`.
 """
 from __future__ import annotations

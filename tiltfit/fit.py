@@ -866,7 +866,7 @@ def _fit_camera(camera: TiltLensCamera, obs: Observations, options: FitOptions, 
         runtime_s=time.perf_counter() - t0, rss=_group_rss(prob, res, scale))
 
 
-def _chi2_sf(x: float, k: int) -> float:
+def chi2_sf(x: float, k: int) -> float:
     """Survival function of χ²(k) (regularised upper incomplete gamma)."""
     if x <= 0:
         return 1.0
@@ -887,7 +887,7 @@ def likelihood_ratio(restricted: FitResult, full: FitResult, k: int, alpha: floa
             lam += n * math.log(max(restricted.rss[g], 1e-300) / max(full.rss[g], 1e-300))
     lam = max(lam, 0.0)
     n = full.n_residuals
-    p = _chi2_sf(lam, k)
+    p = chi2_sf(lam, k)
     d_aic, d_bic = lam - 2 * k, lam - k * math.log(n)
     return {"lr_statistic": lam, "dof": k, "p_value": p, "delta_aic": d_aic, "delta_bic": d_bic,
             "justified": bool(p < alpha and d_bic > 0), "alpha": alpha}
@@ -972,7 +972,7 @@ def blur_depends_on_depth(camera: TiltLensCamera, obs: Observations, alpha: floa
     rss0 = float((b - b.mean()).pow(2).sum())
     if rss1 <= 0:
         return rss0 > 0
-    return _chi2_sf(b.numel() * math.log(rss0 / rss1), A.shape[1] - 1) < alpha
+    return chi2_sf(b.numel() * math.log(rss0 / rss1), A.shape[1] - 1) < alpha
 
 
 def without_blur(obs: Observations) -> Observations:
@@ -1172,11 +1172,12 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
                 result = _fit_camera(cam, obs, options, init_sigma if mode == "tilt" else None, say, mode=mode)
             undetermined = _undetermined_focus(result)
         except FitError as e:
-            if mode == "tilt" or blur_depends_on_depth(start, obs):
-                raise  # the tilt stage fits the blur alone; widths that vary with depth should have fitted
             if geometry is None:
-                # Widths above the floor that no focus explains (e.g. the same blur at every depth: a soft
-                # lens or detector blur): the corners still calibrate the camera.
+                # No geometric fit to fall back on (no distortion fitted): make one where the widths say
+                # nothing about focus (the same blur at every depth: a soft lens, detector blur); widths
+                # that vary with depth should have fitted, and the tilt stage fits the blur alone.
+                if mode == "tilt" or blur_depends_on_depth(start, obs):
+                    raise
                 geometry = fit_geometry(start.copy(), obs, options, mode, say)
             result = None
             undetermined = ["U_mm", "d_mm"]
@@ -1208,7 +1209,7 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
         notes.append(f"distortion auto: {distortion} ({why})")
     if undetermined and blur_ok and not any("undetermined" in n for n in notes):
         notes.append(f"{' and '.join(k.split('_')[0] for k in undetermined)} undetermined: the blur widths "
-                     f"do not constrain them (1/U within 2σ of 0, or d known to worse than ×1.6)")
+                     f"do not constrain them (1/U or d within 2σ of 0)")
     worst = max((v["rms_reprojection_px"] for v in result.views if math.isfinite(v["rms_reprojection_px"])),
                 default=0.0)
     if options.max_rms_px is not None and worst > options.max_rms_px:

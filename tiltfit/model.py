@@ -246,7 +246,8 @@ class TiltLensCamera(torch.nn.Module):
         P = torch.nn.Parameter
         self.log_w_mm = P(torch.tensor(math.log(float(w_mm)), dtype=dtype))
         self.inv_U_per_m = P(torch.tensor(1000.0 / float(U_mm), dtype=dtype))
-        self.d_scaled = P(torch.tensor(float(d_mm) / APERTURE_SCALE_MM, dtype=dtype))
+        # d = 0 exactly would be a stationary point of |d_scaled| (zero gradient): start a hair above it.
+        self.d_scaled = P(torch.tensor(max(float(d_mm), 1e-6) / APERTURE_SCALE_MM, dtype=dtype))
         self.theta_F = P(torch.tensor(float(theta_F), dtype=dtype))
         self.rvec = P(rvec.clone())
         self.T_scaled = P(T_mm / self.length_scale_mm)

@@ -46,16 +46,20 @@ from renderer.optics import theta_L_from_theta_F
 from renderer.sensor import radial_falloff
 from renderer.transforms import CameraTransform
 
+from .fit import chi2_sf
 from .model import axis_angle_to_matrix, matrix_to_axis_angle
 from .target import Target
 
 #: Names of the global parameters in the flat vector, in order (units: mm, 1/m, mm, rad, dimensionless).
-GLOBAL_NAMES = ("w_mm", "inv_U_per_m", "d_mm", "theta_F", "vignetting", "psf_var_px2")
+GLOBAL_NAMES = ("w_mm", "inv_U_per_m", "d_mm", "theta_F", "vignetting", "psf_sigma_px")
 #: Blur kernels: the lens's disc alone, or the disc convolved with a Gaussian (diffraction, aberrations,
-#: the sensor's own spread) of variance psf_var_px2 in pixels²; `auto` frees the Gaussian where the data
-#: justify it (likelihood-ratio test and BIC on the same pixels).
+#: the sensor's own spread) of std psf_sigma_px in pixels (stored signed, squared in the model, so it has no
+#: bound to stall on); `auto` frees the Gaussian where the data justify it (likelihood-ratio test and BIC on
+#: the same pixels) and it is at least PSF_EVIDENCE_PX wide.
 KERNELS = ("disc", "disc_gaussian", "auto")
 AUTO_KERNEL_LENS_SAMPLES = 128
+PSF_EVIDENCE_PX = 0.5    # narrower Gaussians `auto` rejects: the fixed lens samples' own coarseness
+PSF_START_PX = 0.5       # where a freed Gaussian starts (σ = 0 is a stationary point of σ²)
 #: Per-view parameters: axis-angle (rad), translation (mm), white and black linear levels.
 VIEW_NAMES = ("rvec_x", "rvec_y", "rvec_z", "T_x", "T_y", "T_z", "white", "black")
 
@@ -77,9 +81,9 @@ class PhotometricOptions:
         huber_scale: Huber threshold in units of the residuals' robust σ [3].
         fit_vignetting: fit the vignetting coefficient [True].
         kernel: blur kernel, one of KERNELS [disc]. `auto` needs at least AUTO_KERNEL_LENS_SAMPLES lens
-            samples: the fixed samples' own coarseness looks like a Gaussian to the test, so with 32 or 64
-            samples it freed a Gaussian of 0.5-0.8 px on ray-traced captures that had none, and d moved by
-            almost 1 mm. At 128 it can still free about 0.4 px there: read a σ below 0.5 px as "no evidence".
+            samples and a Gaussian of at least PSF_EVIDENCE_PX: the fixed samples' own coarseness looks like
+            a narrow Gaussian to the likelihood-ratio test (in a trial on ray-traced captures without one,
+            fewer samples freed a wider one and moved d; see docs/photometric.md).
         alpha: level of the kernel's likelihood-ratio test under `auto` [0.01].
         seed: seed of the pixel selection [0].
     """
@@ -376,8 +380,9 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
     U0 = init.get("U_mm")
     inv_U0 = 1000.0 / U0 if U0 not in (None, 0) and math.isfinite(U0) else 1e-3
     d0 = init.get("d_mm") if init.get("d_mm") is not None else 1.0
+    psf0 = PSF_START_PX if opts.kernel == "disc_gaussian" else 0.0
     glob = torch.tensor([init["w_mm"], inv_U0, max(d0, 1e-3), math.radians(init.get("theta_F_deg") or 0.0), 0.0,
-                         0.0], dtype=torch.float64)
+                         psf0], dtype=torch.float64)
     lens_uv = hammersley_disc_samples(opts.lens_samples)
     rng = np.random.default_rng(opts.seed)
     views_p, data = [], []
@@ -395,7 +400,7 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
             pred = np.empty(uv_all.shape[0])
             for a in range(0, uv_all.shape[0], 8192):
                 pred[a:a + 8192] = render_target(target, sensor, uv_all[a:a + 8192], lens_uv[::4], *glob[:4],
-                                                 vp[0:3], vp[3:6], vp[6], vp[7], glob[4], glob[5]).numpy()
+                                                 vp[0:3], vp[3:6], vp[6], vp[7], glob[4], glob[5]**2).numpy()
         pred_img = np.full((H, W), np.nan)
         pred_img[yy, xx] = pred
         pick = _select_pixels(im, pred_img.reshape(-1), usable.reshape(-1), white, black, opts.max_pixels, rng)
@@ -411,7 +416,7 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
 
     def residual(g, vp, view: _View):
         return render_target(target, sensor, view.uv, lens_uv, g[0], g[1], g[2], g[3], vp[0:3], vp[3:6],
-                             vp[6], vp[7], g[4], g[5]) - view.observed
+                             vp[6], vp[7], g[4], g[5] ** 2) - view.observed
 
     def jac(g, vp, view):
         return torch.func.jacfwd(lambda gg, vv: residual(gg, vv, view), argnums=(0, 1))(g, vp)
@@ -435,21 +440,22 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
         rss0 = float((w0 * r * r).sum())
         free_k = free_g.clone()
         free_k[5] = True
-        out = _levenberg_marquardt(glob, views_p, free_k, all_residuals, jac, robust_weights, data, n_par,
+        start_k = glob.clone()
+        start_k[5] = PSF_START_PX
+        out = _levenberg_marquardt(start_k, views_p, free_k, all_residuals, jac, robust_weights, data, n_par,
                                    opts.iterations, history, say)
         rss1 = float((w0 * out[2] * out[2]).sum())
         n = int(r.numel())
         lam_stat = n * math.log(rss0 / rss1) if rss1 > 0 else math.inf
-        from .fit import _chi2_sf
-
-        p_value = _chi2_sf(lam_stat, 1)
+        p_value = chi2_sf(lam_stat, 1)
         delta_bic = lam_stat - math.log(n)
-        justified = p_value < opts.alpha and delta_bic > 0
+        psf = abs(float(out[0][5]))
+        justified = p_value < opts.alpha and delta_bic > 0 and psf >= PSF_EVIDENCE_PX
         disc_values = _lens_values(glob)
         selection = {"kernel": "disc_gaussian" if justified else "disc", "lr_statistic": lam_stat,
                      "disc_fit": disc_values,
                      "p_value": p_value, "delta_bic": delta_bic, "rss_disc": rss0, "rss_disc_gaussian": rss1,
-                     "psf_sigma_px": math.sqrt(max(float(out[0][5]), 0.0))}
+                     "psf_sigma_px": psf}
         if say:
             say(f"photometric: kernel {selection['kernel']} (Gaussian σ {selection['psf_sigma_px']:.3f} px, "
                 f"Λ = {lam_stat:.3g}, p = {p_value:.2g}, ΔBIC = {delta_bic:.3g})")
@@ -512,7 +518,7 @@ def _levenberg_marquardt(glob, views_p, free_g, all_residuals, jac, robust_weigh
             g_new = glob + step[:n_g]
             vps_new = [vp + step[n_g + n_v * k: n_g + n_v * (k + 1)] for k, vp in enumerate(views_p)]
             if not (float(g_new[0]) > 0 and float(g_new[1]) > 0 and float(g_new[2]) >= 0
-                    and abs(float(g_new[3])) < 1.5 and float(g_new[5]) >= 0):
+                    and abs(float(g_new[3])) < 1.5):
                 lam *= 10
                 continue
             with torch.no_grad():
@@ -549,22 +555,19 @@ def _photometric_result(glob, views_p, r, scale, JTJ, free_g, data, n_g, n_v, n_
     except RuntimeError:
         cov = torch.full((n_par, n_par), float("nan"), dtype=torch.float64)
     sd = torch.sqrt(torch.diagonal(cov).clamp_min(0))
-    w, invU, d, thF, vig, psf_var = (float(x) for x in glob)
+    w, invU, d, thF, vig, psf = (float(x) for x in glob)
     U = 1000.0 / invU
     thL = float(theta_L_from_theta_F(thF, w, U))
     # θL's σ by the chain rule through tan θL = w tan θF / (U + w).
     gL = torch.func.jacrev(lambda g: theta_L_from_theta_F(g[3], g[0], 1000.0 / g[1]))(glob)
     var_L = float(gL @ cov[:n_g, :n_g] @ gL)
     values = {"w_mm": w, "U_mm": U, "inv_U_per_m": invU, "d_mm": d, "theta_F_deg": math.degrees(thF),
-              "theta_L_deg": math.degrees(thL), "vignetting": vig, "psf_sigma_px": math.sqrt(max(psf_var, 0.0)),
+              "theta_L_deg": math.degrees(thL), "vignetting": vig, "psf_sigma_px": abs(psf),
               "kernel": kernel}
-    # σ of the Gaussian's σ by the delta method (σ_var / 2σ); at σ = 0, where that diverges, sqrt(σ_var).
-    s_var = float(sd[5])
-    s_psf = s_var / (2 * values["psf_sigma_px"]) if values["psf_sigma_px"] > 0 else math.sqrt(s_var)
     sigma = {"w_mm": float(sd[0]), "inv_U_per_m": float(sd[1]), "U_mm": float(sd[1]) * U * U / 1000.0,
              "d_mm": float(sd[2]), "theta_F_deg": math.degrees(float(sd[3])),
              "theta_L_deg": math.degrees(math.sqrt(max(var_L, 0.0))), "vignetting": float(sd[4]),
-             "psf_sigma_px": s_psf}
+             "psf_sigma_px": float(sd[5])}
     views, offset = [], 0
     for k, (vp, dv) in enumerate(zip(views_p, data)):
         n = dv.uv.shape[0]

@@ -167,13 +167,6 @@ class SimulatedCamera:
         return SensorResponse(vignetting=self.vignetting, read_noise=self.read_noise, full_well=self.full_well,
                               encoding="srgb8")
 
-    def vignette(self, radiance) -> np.ndarray:
-        """The lens's fall-off 1 − v r² applied to a (H, W, 3) linear image (r = 1 at the corners); no noise.
-
-        The CG re-renders carry it too: a user compositing CG into the photo flat-fields both alike.
-        """
-        return self.response.signal(radiance)
-
     def expose(self, radiance, rng: np.random.Generator) -> np.ndarray:
         """What the camera writes for a linear image: vignetting, shot + read noise, 8-bit sRGB.
 
@@ -186,7 +179,8 @@ class SimulatedCamera:
         return self.response.expose(radiance, rng)
 
     def expose_cg(self, radiance) -> np.ndarray:
-        """A CG render written as the camera writes its photos, noise excepted: (H, W, 3) uint8 sRGB."""
+        """A CG render written as the camera writes its photos, noise excepted: (H, W, 3) uint8 sRGB. The CG
+        carries the lens's vignetting too: a user compositing CG into the photo flat-fields both alike."""
         return replace(self.response, read_noise=0.0, full_well=None).expose(radiance)
 
 

@@ -64,15 +64,15 @@ def test_render_target_gradcheck():
 
     rvec = torch.tensor(cv2.Rodrigues(R)[0].reshape(3), dtype=torch.float64, requires_grad=True)
     T_mm = torch.tensor(T, dtype=torch.float64, requires_grad=True)
-    g = dict(w=55.0, inv_U=1.4, d=30.0, theta_F=math.radians(40), white=0.8, black=0.06, vig=0.05)
+    g = dict(w=55.0, inv_U=1.4, d=30.0, theta_F=math.radians(40), white=0.8, black=0.06, vig=0.05, psf=0.6)
     scalars = [torch.tensor(v, dtype=torch.float64, requires_grad=True) for v in g.values()]
     # Pixels on the board's edges and corners, where every parameter moves the rendered value.
     uv = torch.tensor([[171.0, 114.0], [150.3, 100.7], [190.2, 130.1], [130.0, 120.0], [205.5, 95.5]],
                       dtype=torch.float64)
     lens = hammersley_disc_samples(8)
 
-    def model(w, inv_U, d, theta_F, white, black, vig, rvec, T_mm):
-        return render_target(BOARD, sensor, uv, lens, w, inv_U, d, theta_F, rvec, T_mm, white, black, vig)
+    def model(w, inv_U, d, theta_F, white, black, vig, psf, rvec, T_mm):
+        return render_target(BOARD, sensor, uv, lens, w, inv_U, d, theta_F, rvec, T_mm, white, black, vig, psf)
 
     inputs = (*scalars, rvec, T_mm)
     value = model(*inputs)
@@ -228,7 +228,7 @@ def test_kernel_selection_finds_a_gaussian_where_there_is_one():
 
 
 def test_auto_kernel_needs_enough_lens_samples():
-    with pytest.raises(ValueError, match="lens samples"):
+    with pytest.raises(ValueError, match="lens samples"):  # too coarse a disc for the kernel test
         PhotometricOptions(kernel="auto", lens_samples=64)
-    with pytest.raises(ValueError, match="kernel"):
+    with pytest.raises(ValueError, match="kernel"):  # not a kernel name
         PhotometricOptions(kernel="gauss")

@@ -5,7 +5,13 @@ Public API:
     render(scene, spp, sampler, device=...) -> RenderResult(image (H, W, 3) linear, coverage (H, W))
     read_image / write_image                          (OpenImageIO; sRGB for 8-bit files)
 and the building blocks: cameras, shapes, materials, Scene, trace.
+
+Importing it raises glibc's mmap and trim thresholds (`renderer.memory`; RENDERER_MALLOPT=0 opts out).
 """
+from .memory import tune_allocator
+
+tune_allocator()
+
 from .io import read_image, write_image
 from .materials import CheckerTexture, ImageTexture, Material
 from .params import SceneError

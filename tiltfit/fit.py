@@ -39,6 +39,7 @@ from renderer.cameras.distortion import MODEL_TERMS, MODELS as DISTORTION_MODELS
 
 from .model import (APERTURE_SCALE_MM, BLUR_MODELS, ROBUST_LOSSES, Observations, TiltLensCamera,
                     distortion_parameter_names, residuals, robust_rho, robust_weight)
+from .stats import nested_test
 
 MODES = ("unified", "tilt", "joint")
 MAX_RMS_REPROJECTION_PX = 5.0  # a calibrated view reprojecting worse than this means mismatched data
@@ -866,31 +867,15 @@ def _fit_camera(camera: TiltLensCamera, obs: Observations, options: FitOptions, 
         runtime_s=time.perf_counter() - t0, rss=_group_rss(prob, res, scale))
 
 
-def chi2_sf(x: float, k: int) -> float:
-    """Survival function of χ²(k) (regularised upper incomplete gamma)."""
-    if x <= 0:
-        return 1.0
-    return float(torch.special.gammaincc(torch.tensor(k / 2.0, dtype=torch.float64),
-                                         torch.tensor(x / 2.0, dtype=torch.float64)))
-
-
 def likelihood_ratio(restricted: FitResult, full: FitResult, k: int, alpha: float = 0.01) -> dict:
-    """Test a restricted fit against a fuller one (k extra parameters), group variances profiled out.
-
-    Λ = Σ_g n_g ln(RSS_g,restricted / RSS_g,full) ~ χ²(k) under the restricted model; ΔAIC = Λ − 2k and
-    ΔBIC = Λ − k ln n are the improvements of the fuller model (positive: it is preferred).
-    """
-    lam = 0.0
-    for g in ("corners", "blur"):
-        n = full.rss[f"n_{g}"]
-        if n > 0:
-            lam += n * math.log(max(restricted.rss[g], 1e-300) / max(full.rss[g], 1e-300))
-    lam = max(lam, 0.0)
-    n = full.n_residuals
-    p = chi2_sf(lam, k)
-    d_aic, d_bic = lam - 2 * k, lam - k * math.log(n)
-    return {"lr_statistic": lam, "dof": k, "p_value": p, "delta_aic": d_aic, "delta_bic": d_bic,
-            "justified": bool(p < alpha and d_bic > 0), "alpha": alpha}
+    """Test a restricted fit against a fuller one (k extra parameters) over the corner and blur groups
+    (`tiltfit.stats.nested_test`). ΔBIC uses all of the fit's residuals."""
+    groups = [(full.rss[f"n_{g}"], restricted.rss[g], full.rss[g]) for g in ("corners", "blur")]
+    out = nested_test(groups, k, alpha)
+    # The fit's residual count (corners and blur widths with their own σ) sets the BIC penalty.
+    out["delta_bic"] = out["lr_statistic"] - k * math.log(full.n_residuals)
+    out["justified"] = bool(out["p_value"] < alpha and out["delta_bic"] > 0)
+    return out
 
 
 def _model_selection(base: FitResult, obs: Observations, mode: str, options: FitOptions, say=None,
@@ -972,7 +957,7 @@ def blur_depends_on_depth(camera: TiltLensCamera, obs: Observations, alpha: floa
     rss0 = float((b - b.mean()).pow(2).sum())
     if rss1 <= 0:
         return rss0 > 0
-    return chi2_sf(b.numel() * math.log(rss0 / rss1), A.shape[1] - 1) < alpha
+    return nested_test([(b.numel(), rss0, rss1)], A.shape[1] - 1, alpha)["p_value"] < alpha
 
 
 def without_blur(obs: Observations) -> Observations:

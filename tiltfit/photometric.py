@@ -46,8 +46,8 @@ from renderer.optics import theta_L_from_theta_F
 from renderer.sensor import radial_falloff
 from renderer.transforms import CameraTransform
 
-from .fit import chi2_sf
 from .model import axis_angle_to_matrix, matrix_to_axis_angle
+from .stats import nested_test
 from .target import Target
 
 #: Names of the global parameters in the flat vector, in order (units: mm, 1/m, mm, rad, dimensionless).
@@ -445,12 +445,10 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
         out = _levenberg_marquardt(start_k, views_p, free_k, all_residuals, jac, robust_weights, data, n_par,
                                    opts.iterations, history, say)
         rss1 = float((w0 * out[2] * out[2]).sum())
-        n = int(r.numel())
-        lam_stat = n * math.log(rss0 / rss1) if rss1 > 0 else math.inf
-        p_value = chi2_sf(lam_stat, 1)
-        delta_bic = lam_stat - math.log(n)
+        test = nested_test([(int(r.numel()), rss0, rss1)], 1, opts.alpha)
+        lam_stat, p_value, delta_bic = test["lr_statistic"], test["p_value"], test["delta_bic"]
         psf = abs(float(out[0][5]))
-        justified = p_value < opts.alpha and delta_bic > 0 and psf >= PSF_EVIDENCE_PX
+        justified = test["justified"] and psf >= PSF_EVIDENCE_PX
         disc_values = _lens_values(glob)
         selection = {"kernel": "disc_gaussian" if justified else "disc", "lr_statistic": lam_stat,
                      "disc_fit": disc_values,

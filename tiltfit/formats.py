@@ -72,6 +72,12 @@ def calibration_reference() -> str:
         f"{calibfile.MAX_LENGTH_MM:g} mm; `image_size_px` two integers 1 to {1 << 17}; `principal_point_px` within one "
         "image size of the image; `|theta_F_deg| < 90`; each view's `R` a rotation (orthonormal, determinant +1, "
         f"finite) and `T_mm` within ±{calibfile.MAX_LENGTH_MM:g} mm.", "",
+        "After `--refine photometric`: `refinement: \"photometric\"` and a `photometric` block with the corner "
+        "fit it started from (`corner_fit`, `corner_fit_sigma`), `rms_linear` (photometric RMS, linear units), "
+        "`iterations`, `runtime_s`, `vignetting`, per-view `levels` (`white`, `black`), the blur `kernel` "
+        "(`disc` or `disc_gaussian`), `psf_sigma_px` and its σ `psf_sigma_px_sigma` (0 for the disc), and under "
+        "`--psf auto` the `kernel_selection` test (`lr_statistic`, `p_value`, `delta_bic`, the disc-only fit's "
+        "lens values); the top-level lens values and σ are then the photometric fit's.", "",
         "## Every JSON file", "",
         f"UTF-8 (UTF-16/32, other encodings and image bytes are refused by name), nested at most {MAX_JSON_DEPTH} "
         "levels, numbers finite. Each refusal is one line `tiltfit: <file>: <field>: <problem>`, exit status 2; "

@@ -91,10 +91,16 @@ def cluster_cpus(ray) -> int:
 
 
 def _call(fn, shared, item, threads: int | None):
-    """One task: `fn(shared, item)` with `threads` torch threads (None: the worker's setting)."""
-    if threads is not None:
+    """One task: `fn(shared, item)` with `threads` torch threads (None: the worker's setting), restored
+    afterwards (Ray reuses its worker processes for other tasks)."""
+    previous = torch.get_num_threads()
+    if threads is not None and threads != previous:
         torch.set_num_threads(threads)
-    return fn(shared, item)
+    try:
+        return fn(shared, item)
+    finally:
+        if torch.get_num_threads() != previous:
+            torch.set_num_threads(previous)
 
 
 def imap_on_cluster(fn, items, cluster: str | None = None, *, shared=None, ordered: bool = True,

@@ -168,6 +168,8 @@ def default_chunk_rays(device) -> int:
     if device.type != "cuda":
         return CPU_CHUNK_RAYS
     free, _ = torch.cuda.mem_get_info(device)
+    # Blocks torch holds in its cache are free to this render too (mem_get_info does not count them).
+    free += torch.cuda.memory_reserved(device) - torch.cuda.memory_allocated(device)
     return int(max(CPU_CHUNK_RAYS, min(GPU_CHUNK_RAYS, free // (2 * BYTES_PER_RAY))))
 
 

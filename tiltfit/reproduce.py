@@ -867,14 +867,20 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=1, help="torch threads [1]; 0 keeps torch's default")
     ap.add_argument("--scale", type=int, default=None,
                     help="pixel binning of the boxes images: 1 is the paper's 5472x3648 [16; --quick 32]")
-    ap.add_argument("--device", default="cpu", help="torch device of the boxes renders: cpu or cuda [cpu]")
+    ap.add_argument("--device", default="cpu", help="torch device of the boxes renders: cpu, cuda or cuda:N [cpu]")
     args = ap.parse_args(argv)
     if args.scale is not None and not 1 <= args.scale <= 256:
         ap.error(f"--scale: expected an integer from 1 to 256, got {args.scale}")
-    if args.device not in ("cpu", "cuda"):
-        ap.error(f"--device: expected cpu or cuda, got {args.device!r}")
-    if args.device == "cuda" and not torch.cuda.is_available():
-        ap.error("--device cuda: CUDA is not available on this machine")
+    try:
+        device = torch.device(args.device)
+    except RuntimeError:
+        ap.error(f"--device: expected cpu, cuda or cuda:N, got {args.device!r}")
+    if device.type not in ("cpu", "cuda"):
+        ap.error(f"--device: expected cpu, cuda or cuda:N, got {args.device!r}")
+    if device.type == "cuda" and not torch.cuda.is_available():
+        ap.error(f"--device {args.device}: CUDA is not available on this machine")
+    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
+        ap.error(f"--device {args.device}: this machine has {torch.cuda.device_count()} CUDA device(s)")
     cfg = RunConfig.quick() if args.quick else RunConfig.full()
     cfg = replace(cfg, device=args.device, **({} if args.scale is None else {"downscale": args.scale}))
     t0 = time.perf_counter()

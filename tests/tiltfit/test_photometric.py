@@ -199,6 +199,8 @@ def test_calibrate_refine_photometric_on_the_command_line(tmp_path):
     ph = data["photometric"]
     assert 0 < ph["rms_linear"] < 0.01, f"photometric RMS {ph['rms_linear']} (noise 0.002)"
     assert set(ph["corner_fit"]) >= {"w_mm", "U_mm", "d_mm", "theta_L_deg"}, "the corner fit is kept beside it"
+    assert ph["kernel"] == "disc" and ph["psf_sigma_px"] == 0 and "kernel_selection" not in ph, \
+        f"the default kernel is the disc alone: {ph['kernel']}, σ {ph['psf_sigma_px']}"
     assert abs(data["d_mm"] / d - 1) < 0.01, f"d {data['d_mm']:.3f} vs {d}"
     assert abs(data["U_mm"] / U - 1) < 0.01, f"U {data['U_mm']:.2f} vs {U}"
     assert abs(data["theta_L_deg"]) < 0.05, f"untilted lens: θL {data['theta_L_deg']:.4f}°"
@@ -209,8 +211,8 @@ def test_calibrate_refine_photometric_on_the_command_line(tmp_path):
 def test_kernel_selection_finds_a_gaussian_where_there_is_one():
     """Ray-traced captures (the lens's disc) convolved with a Gaussian of σ 1.2 px (diffraction, the sensor's
     spread): `auto` frees the Gaussian and measures its σ, where the disc alone absorbs it into a larger
-    aperture. (On the plain captures the test can still free a small Gaussian, σ 0.4 px at 128 lens samples:
-    the fixed samples' coarseness; see PhotometricOptions.kernel.)"""
+    aperture. On the plain captures `auto` keeps the disc (the test alone may free a Gaussian narrower than
+    PSF_EVIDENCE_PX there: the fixed samples' coarseness; see PhotometricOptions.kernel)."""
     import cv2
 
     images, poses, truth = _captures(U0_mm=700.0, views=(0, 1))
@@ -225,6 +227,9 @@ def test_kernel_selection_finds_a_gaussian_where_there_is_one():
     assert abs(s - psf) < max(3 * ss, 0.2), f"Gaussian σ {s:.3f} ± {ss:.3f} px, true {psf}"
     err_auto, err_disc = abs(auto.values["d_mm"] - D_MM), abs(sel["disc_fit"]["d_mm"] - D_MM)
     assert err_auto < err_disc, f"d error with the Gaussian {err_auto:.3f} mm, disc alone {err_disc:.3f} mm"
+    plain = refine_photometric(images, BOARD, start, truth["pitch"], opts)
+    assert plain.values["kernel"] == "disc" and plain.values["psf_sigma_px"] == 0, \
+        f"no Gaussian in the plain ray-traced captures: {plain.kernel_selection}"
 
 
 def test_auto_kernel_needs_enough_lens_samples():

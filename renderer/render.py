@@ -117,8 +117,7 @@ def _chunks(scene: Scene, spp: int, options: TraceOptions, chunk_rays: int):
     last pixel; n is the number of real pixels."""
     W, H = scene.camera.width, scene.camera.height
     order = tile_order(W, H)
-    packet = max(1, options.packet_size)
-    step = packet // math.gcd(packet, spp)
+    step = _packet_step(options, spp)
     pixels_per_chunk = max(step, chunk_rays // spp // step * step)
     for start in range(0, W * H, pixels_per_chunk):
         pixel = order[start:start + pixels_per_chunk]
@@ -128,7 +127,18 @@ def _chunks(scene: Scene, spp: int, options: TraceOptions, chunk_rays: int):
         yield pixel, n
 
 
+def _packet_step(options: TraceOptions, spp: int) -> int:
+    """Pixels whose samples fill whole culling packets: chunks are multiples of it."""
+    packet = max(1, options.packet_size)
+    return packet // math.gcd(packet, spp)
+
+
 _POOL: dict = {}  # number of workers -> ProcessPoolExecutor, kept for later renders
+# Jobs per worker process in a render: each job ships the pickled scene and returns its pixels, so jobs are
+# few and large (a worker traces its job in chunk_rays batches); several per worker keep the cores busy to the
+# end. On the issue-11 speed scene two workers took 0.51 s against 0.89 s in one process with these jobs
+# (benchmarks/results/speed_thin_lens.md); with 2^15-ray jobs they had taken 0.78 s (10.4x Mitsuba there).
+JOBS_PER_WORKER = 4
 
 
 def _worker_start():
@@ -139,12 +149,18 @@ def _worker_start():
 _WORKER_SCENE: dict = {}  # in a worker: digest of the pickled scene -> the scene, kept while it is reused
 
 
-def _worker_render(digest, blob, pixel, n, spp, sampler, seed, options, dtype, max_depth):
+def _worker_render(digest, blob, pixel, n, spp, sampler, seed, options, dtype, max_depth, chunk_rays):
+    """One job in a worker: the pixels `pixel` (padded to whole packets) traced in chunk_rays batches."""
     if digest not in _WORKER_SCENE:  # unpickle once per render, so caches and compiled state are reused
         _WORKER_SCENE.clear()
         _WORKER_SCENE[digest] = pickle.loads(blob)
     scene = _WORKER_SCENE[digest]
-    estimate, covered = _render_pixels(scene, pixel, Sampler(sampler, spp, seed), options, "cpu", dtype, max_depth)
+    smp = Sampler(sampler, spp, seed)
+    step = _packet_step(options, spp)
+    sub = max(step, chunk_rays // spp // step * step)
+    parts = [_render_pixels(scene, pixel[a:a + sub], smp, options, "cpu", dtype, max_depth)
+             for a in range(0, pixel.shape[0], sub)]
+    estimate, covered = torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
     return estimate[:n].clone(), covered[:n].clone()
 
 
@@ -234,8 +250,9 @@ def _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device
         pool = _pool(workers)
         blob = pickle.dumps(scene)
         digest = hashlib.sha1(blob).hexdigest()
-        jobs = {pool.submit(_worker_render, digest, blob, pixel, n, spp, sampler, seed, options, dtype, max_depth):
-                pixel[:n] for pixel, n in _chunks(scene, spp, options, chunk_rays)}
+        job_rays = max(chunk_rays, -(-scene.camera.width * scene.camera.height * spp // (JOBS_PER_WORKER * workers)))
+        jobs = {pool.submit(_worker_render, digest, blob, pixel, n, spp, sampler, seed, options, dtype, max_depth,
+                            chunk_rays): pixel[:n] for pixel, n in _chunks(scene, spp, options, job_rays)}
         for job in concurrent.futures.as_completed(jobs):
             estimate, covered = job.result()
             image.index_copy_(0, jobs[job], estimate)

@@ -68,7 +68,7 @@ def main(argv=None) -> int:
         results, t0 = [], time.perf_counter()
         failures = []
         for k, case in enumerate(cases):
-            res = fuzz_harness.classify(case, mod._main, suite, args.timeout)
+            res = fuzz_harness.classify(case, importlib.import_module(f"{suite}.cli").main, suite, args.timeout)
             results.append(res)
             if res.outcome in fuzz_harness.FAILURES:
                 failures.append({"case": case["name"], "outcome": res.outcome, "detail": res.detail[:300]})

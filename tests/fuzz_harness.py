@@ -222,3 +222,18 @@ def interrupt_after_progress(argv: list[str], sig, marker: str, timeout_s: float
     proc.wait(timeout=timeout_s)
     t.join(timeout=5)
     return proc.returncode, lines
+
+
+def unique(cases: list[dict]) -> list[dict]:
+    """The corpus, checked for unique case names (they are the test ids)."""
+    names = [c["name"] for c in cases]
+    assert len(names) == len(set(names)), "fuzz case names are unique"
+    return cases
+
+
+def check(case: dict, prog: str) -> None:
+    """Run one case through `prog`'s CLI main (`renderer` or `tiltfit`) and fail on a bad outcome."""
+    import importlib
+
+    res = classify(case, importlib.import_module(f"{prog}.cli").main, prog)
+    assert res.outcome not in FAILURES, f"{case['name']}: {res.outcome}: {res.detail}"

@@ -13,14 +13,6 @@ SCENES = {"tilted thin lens": ("tilt_fig9b", ["image.width=40", "image.height=30
           "layers": ("fig10", ["image.width=32", "image.height=24", "image.spp=2"])}
 
 
-@pytest.fixture(scope="module")
-def cluster():
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False,
-             runtime_env={"env_vars": {"OMP_NUM_THREADS": "1"}})
-    yield ray
-    ray.shutdown()
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(SCENES))
 def test_ray_render_equals_single_process(cluster, name):

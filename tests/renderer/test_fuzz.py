@@ -12,9 +12,7 @@ import copy
 import json
 import os
 import signal
-import subprocess
 import sys
-import time
 
 import pytest
 
@@ -454,24 +452,15 @@ def cases() -> list[dict]:
     """The whole renderer corpus (names unique)."""
     out = (_encoding_cases() + _depth_cases() + _number_cases() + _size_cases() + _physics_cases()
            + _message_cases() + _overflow_cases() + _cli_cases() + _gallery_cases() + _merged_feature_cases())
-    names = [c["name"] for c in out]
-    assert len(names) == len(set(names)), "fuzz case names are unique"
-    return out
+    return fuzz_harness.unique(out)
 
 
 CASES = cases()
 
 
-def _main(argv):
-    from renderer.cli import main
-
-    return main(argv)
-
-
 @pytest.mark.parametrize("case", CASES, ids=[c["name"] for c in CASES])
 def test_fuzz_case(case):
-    res = fuzz_harness.classify(case, _main, "renderer")
-    assert res.outcome not in fuzz_harness.FAILURES, f"{case['name']}: {res.outcome}: {res.detail}"
+    fuzz_harness.check(case, "renderer")
 
 
 def test_corpus_covers_every_category():

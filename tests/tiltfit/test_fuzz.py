@@ -343,24 +343,15 @@ def _export_cases() -> list[dict]:
 
 def cases() -> list[dict]:
     out = _target_cases() + _det_cases() + _calib_cases() + _cli_cases() + _export_cases()
-    names = [c["name"] for c in out]
-    assert len(names) == len(set(names)), "fuzz case names are unique"
-    return out
+    return fuzz_harness.unique(out)
 
 
 CASES = cases()
 
 
-def _main(argv):
-    from tiltfit.cli import main
-
-    return main(argv)
-
-
 @pytest.mark.parametrize("case", CASES, ids=[c["name"] for c in CASES])
 def test_fuzz_case(case):
-    res = fuzz_harness.classify(case, _main, "tiltfit")
-    assert res.outcome not in fuzz_harness.FAILURES, f"{case['name']}: {res.outcome}: {res.detail}"
+    fuzz_harness.check(case, "tiltfit")
 
 
 def test_corpus_size():

@@ -10,14 +10,6 @@ from tiltfit import stability as st  # noqa: E402
 ONLY = ["two_stage", "singular", "coverage"]  # the quickest studies; two_stage fits seeded noisy observations
 
 
-@pytest.fixture(scope="module")
-def cluster():
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False,
-             runtime_env={"env_vars": {"OMP_NUM_THREADS": "1"}})
-    yield ray
-    ray.shutdown()
-
-
 def _untimed(path):
     data = json.loads(path.read_text())
     data.pop("runtime_s")
@@ -27,7 +19,7 @@ def _untimed(path):
 def test_studies_on_cluster_equal_serial_run(cluster, tmp_path, capsys):
     """Same seeds, same outputs: every study's JSON (timing aside), CSV and plot, and the findings."""
     here, spread = tmp_path / "here", tmp_path / "spread"
-    serial = st.run(str(here), quick=True, only=ONLY, progress=False)
+    st.run(str(here), quick=True, only=ONLY, progress=False)
     serial_out = capsys.readouterr().out
     on_ray = st.run(str(spread), quick=True, only=ONLY, progress=False, cluster="auto")
     assert capsys.readouterr().out == serial_out, "the findings printed differ"

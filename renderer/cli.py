@@ -131,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
         with warnings.catch_warnings():
             # numpy's floating-point warnings would print before the one-line error; failures are reported once.
             warnings.simplefilter("ignore", RuntimeWarning)
-            device = _device(args.device)
+            device = parse_device(args.device)
             if args.command == "render":
                 return cmd_render(args, device)
             if args.command == "animate":
@@ -169,7 +169,8 @@ def _one_line(e: Exception) -> str:
     return " ".join(str(e).split())
 
 
-def _device(name: str):
+def parse_device(name: str):
+    """A --device value as a torch.device that can render here (cpu, cuda, cuda:N); UsageError otherwise."""
     import torch
 
     try:

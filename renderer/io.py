@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime
+import functools
 import os
 import sys
 import tempfile
@@ -39,14 +40,15 @@ WRITE_FORMATS = {".exr": "float", ".hdr": "float", ".png": "uint8", ".jpg": "uin
                  ".tif": "uint16", ".tiff": "uint16"}
 
 
-def software_version() -> str:
-    """`renderer <version>` for the files' Software field."""
+@functools.lru_cache(maxsize=None)
+def software_version(name: str = "renderer") -> str:
+    """`<name> <version>` for the files' Software field (the package metadata is read once)."""
     try:
         from importlib.metadata import version
 
-        return f"renderer {version('unusual-cameras')}"
+        return f"{name} {version('unusual-cameras')}"
     except Exception:  # not installed (run from a checkout)
-        return "renderer 0.1.0"
+        return f"{name} 0.1.0"
 
 
 def srgb_to_linear(v: np.ndarray) -> np.ndarray:

@@ -95,7 +95,7 @@ def _render_pixels(scene: Scene, pixel: torch.Tensor, sampler: Sampler, options:
     background = torch.tensor(scene.image.background, dtype=dtype, device=device)
     # Samples are made where they are traced: integer hashing and exact float steps give the same values on
     # every device, and on a GPU this saves the host-side sampling and its copy (0.058 -> 0.044 s a warm
-    # render on an H100, benchmarks/results/profile_gpu_h100.md).
+    # render on an H100: benchmarks/results/profile_gpu_h100_samples_on_host.md, profile_gpu_h100.md).
     uv_px, lens_uv = _camera_samples(sampler, pixel.to(device), W, dtype)
     color = weight = valid = None
     for camera, flags in render_passes(scene):
@@ -118,7 +118,7 @@ def _chunks(scene: Scene, spp: int, options: TraceOptions, chunk_rays: int):
     W, H = scene.camera.width, scene.camera.height
     order = tile_order(W, H)
     step = _packet_step(options, spp)
-    pixels_per_chunk = max(step, chunk_rays // spp // step * step)
+    pixels_per_chunk = _pixels_per_chunk(options, spp, chunk_rays)
     for start in range(0, W * H, pixels_per_chunk):
         pixel = order[start:start + pixels_per_chunk]
         n = pixel.shape[0]
@@ -131,6 +131,12 @@ def _packet_step(options: TraceOptions, spp: int) -> int:
     """Pixels whose samples fill whole culling packets: chunks are multiples of it."""
     packet = max(1, options.packet_size)
     return packet // math.gcd(packet, spp)
+
+
+def _pixels_per_chunk(options: TraceOptions, spp: int, chunk_rays: int) -> int:
+    """Whole pixels in a batch of about chunk_rays rays, a multiple of `_packet_step`."""
+    step = _packet_step(options, spp)
+    return max(step, chunk_rays // spp // step * step)
 
 
 _POOL: dict = {}  # number of workers -> ProcessPoolExecutor, kept for later renders
@@ -156,8 +162,7 @@ def _worker_render(digest, blob, pixel, n, spp, sampler, seed, options, dtype, m
         _WORKER_SCENE[digest] = pickle.loads(blob)
     scene = _WORKER_SCENE[digest]
     smp = Sampler(sampler, spp, seed)
-    step = _packet_step(options, spp)
-    sub = max(step, chunk_rays // spp // step * step)
+    sub = _pixels_per_chunk(options, spp, chunk_rays)
     parts = [_render_pixels(scene, pixel[a:a + sub], smp, options, "cpu", dtype, max_depth)
              for a in range(0, pixel.shape[0], sub)]
     estimate, covered = torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
@@ -260,8 +265,8 @@ def _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device
             bar.update(covered.shape[0] * spp)
     else:
         for pixel, n in _chunks(scene, spp, options, chunk_rays):
+            pixel = pixel.to(device)  # once: the samples are made from it and the results go back through it
             estimate, covered = _render_pixels(scene, pixel, smp, options, device, dtype, max_depth)
-            pixel = pixel[:n].to(device)
-            image.index_copy_(0, pixel, estimate[:n])
-            coverage.index_copy_(0, pixel, covered[:n])
+            image.index_copy_(0, pixel[:n], estimate[:n])
+            coverage.index_copy_(0, pixel[:n], covered[:n])
             bar.update(n * spp)

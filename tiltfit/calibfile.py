@@ -34,6 +34,7 @@ import torch
 from renderer.io import write_text
 from renderer.validation import describe, is_finite_number, read_json
 
+from .detfile import MAX_IMAGE_SIDE
 from .model import TiltLensCamera, residuals
 
 FORMAT_VERSION = 2
@@ -212,7 +213,7 @@ def validate_calib(path: str, data) -> dict:
         if data[key] is not None and is_finite_number(data[key]) and abs(data[key]) > MAX_LENGTH_MM:
             raise CalibFileError(f"{path}: {key}: expected at most {MAX_LENGTH_MM:g} mm, got {describe(data[key])}")
     size = _vector(path, "image_size_px", data["image_size_px"], 2)
-    if not all(1 <= s <= 1 << 17 and s == int(s) for s in size):
+    if not all(1 <= s <= MAX_IMAGE_SIDE and s == int(s) for s in size):
         raise CalibFileError(f"{path}: image_size_px: expected two positive integers, got {data['image_size_px']!r}")
     if data.get("principal_point_px") is not None:
         pp = _vector(path, "principal_point_px", data["principal_point_px"], 2)

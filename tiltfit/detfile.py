@@ -23,6 +23,7 @@ import datetime
 
 import numpy as np
 
+from renderer.io import software_version
 from renderer.validation import describe, is_finite_number, read_json
 
 DET_FORMAT_VERSION = 1
@@ -41,12 +42,7 @@ class DetFileError(ValueError):
 
 
 def software() -> str:
-    try:
-        from importlib.metadata import version
-
-        return f"tiltfit {version('unusual-cameras')}"
-    except Exception:  # run from a checkout
-        return "tiltfit 0.1.0"
+    return software_version("tiltfit")
 
 
 def describe_detection(det: dict, image: str, target_file: str, target) -> dict:

@@ -69,7 +69,7 @@ def calibration_reference() -> str:
         + ", ".join(f"`{k}`" for k in calibfile.SIGMA_KEYS) + " (one standard deviation). Lengths in mm, angles in "
         "degrees, pixels as in the DET file. Non-finite values are written as null.", "",
         "Checks when reading (`--init`): `pixel_pitch_mm`, `w_mm`, `U_mm`, `d_mm` positive and at most "
-        f"{calibfile.MAX_LENGTH_MM:g} mm; `image_size_px` two integers 1 to {1 << 17}; `principal_point_px` within one "
+        f"{calibfile.MAX_LENGTH_MM:g} mm; `image_size_px` two integers 1 to {detfile.MAX_IMAGE_SIDE}; `principal_point_px` within one "
         "image size of the image; `|theta_F_deg| < 90`; each view's `R` a rotation (orthonormal, determinant +1, "
         f"finite) and `T_mm` within ±{calibfile.MAX_LENGTH_MM:g} mm.", "",
         "After `--refine photometric`: `refinement: \"photometric\"` and a `photometric` block with the corner "

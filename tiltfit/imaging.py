@@ -48,11 +48,6 @@ def to_full(xy_level: np.ndarray, factor: int) -> np.ndarray:
     return (xy_level + 0.5) * factor - 0.5
 
 
-def to_level(xy_full: np.ndarray, factor: int) -> np.ndarray:
-    """Full-resolution pixel coordinates -> a pyramid level (the inverse of `to_full`)."""
-    return (xy_full + 0.5) / factor - 0.5
-
-
 # --- plane homography --------------------------------------------------------------------------------------
 def homography_dlt(src: np.ndarray, dst: np.ndarray) -> np.ndarray | None:
     """Least-squares homography dst ~ H src (normalised DLT), or None.

@@ -309,10 +309,6 @@ class TiltLensCamera(torch.nn.Module):
         return 1000.0 / self.inv_U_per_m
 
     @property
-    def inv_U_per_mm(self) -> torch.Tensor:
-        return self.inv_U_per_m / 1000.0
-
-    @property
     def distortion(self) -> torch.Tensor:
         """(8,) Brown–Conrady coefficients (k1, k2, p1, p2, k3, k4, k5, k6)."""
         return torch.stack([getattr(self, n) for n in _DIST])

@@ -46,7 +46,7 @@ from renderer.optics import theta_L_from_theta_F
 from renderer.sensor import radial_falloff
 from renderer.transforms import CameraTransform
 
-from .model import axis_angle_to_matrix, matrix_to_axis_angle
+from .model import axis_angle_to_matrix, matrix_to_axis_angle, robust_weight
 from .stats import nested_test
 from .target import Target
 
@@ -426,8 +426,7 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
 
     def robust_weights(r):
         s = 1.4826 * float(torch.median(r.abs())) + 1e-12
-        a = r.abs() / (opts.huber_scale * s)
-        return torch.where(a <= 1, torch.ones_like(r), 1 / a), s
+        return robust_weight((r / s) ** 2, "huber", opts.huber_scale), s
 
     n_par = n_g + n_v * len(imgs)
     history = []
@@ -553,15 +552,13 @@ def _photometric_result(glob, views_p, r, scale, JTJ, free_g, data, n_g, n_v, n_
     except RuntimeError:
         cov = torch.full((n_par, n_par), float("nan"), dtype=torch.float64)
     sd = torch.sqrt(torch.diagonal(cov).clamp_min(0))
-    w, invU, d, thF, vig, psf = (float(x) for x in glob)
-    U = 1000.0 / invU
-    thL = float(theta_L_from_theta_F(thF, w, U))
+    lens = _lens_values(glob)
+    vig, psf = float(glob[4]), float(glob[5])
+    U, invU = lens["U_mm"], float(glob[1])
     # θL's σ by the chain rule through tan θL = w tan θF / (U + w).
     gL = torch.func.jacrev(lambda g: theta_L_from_theta_F(g[3], g[0], 1000.0 / g[1]))(glob)
     var_L = float(gL @ cov[:n_g, :n_g] @ gL)
-    values = {"w_mm": w, "U_mm": U, "inv_U_per_m": invU, "d_mm": d, "theta_F_deg": math.degrees(thF),
-              "theta_L_deg": math.degrees(thL), "vignetting": vig, "psf_sigma_px": abs(psf),
-              "kernel": kernel}
+    values = {**lens, "inv_U_per_m": invU, "vignetting": vig, "psf_sigma_px": abs(psf), "kernel": kernel}
     sigma = {"w_mm": float(sd[0]), "inv_U_per_m": float(sd[1]), "U_mm": float(sd[1]) * U * U / 1000.0,
              "d_mm": float(sd[2]), "theta_F_deg": math.degrees(float(sd[3])),
              "theta_L_deg": math.degrees(math.sqrt(max(var_L, 0.0))), "vignetting": float(sd[4]),

@@ -871,16 +871,12 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.scale is not None and not 1 <= args.scale <= 256:
         ap.error(f"--scale: expected an integer from 1 to 256, got {args.scale}")
+    from renderer.cli import UsageError, parse_device
+
     try:
-        device = torch.device(args.device)
-    except RuntimeError:
-        ap.error(f"--device: expected cpu, cuda or cuda:N, got {args.device!r}")
-    if device.type not in ("cpu", "cuda"):
-        ap.error(f"--device: expected cpu, cuda or cuda:N, got {args.device!r}")
-    if device.type == "cuda" and not torch.cuda.is_available():
-        ap.error(f"--device {args.device}: CUDA is not available on this machine")
-    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
-        ap.error(f"--device {args.device}: this machine has {torch.cuda.device_count()} CUDA device(s)")
+        parse_device(args.device)
+    except UsageError as e:
+        ap.error(str(e))
     cfg = RunConfig.quick() if args.quick else RunConfig.full()
     cfg = replace(cfg, device=args.device, **({} if args.scale is None else {"downscale": args.scale}))
     t0 = time.perf_counter()

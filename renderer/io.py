@@ -153,13 +153,18 @@ def write_image(path: str, image, encoding: str | None = None, metadata: dict | 
         encoding: `srgb` or `linear` for the stored values [per format as above]; recorded in the file.
         metadata: `key: value` pairs describing the image (scene, camera, spp, ...), written into the
             file's ImageDescription (and as `renderer:<key>` attributes in EXR).
+    A numpy uint8 image is taken as the file's 8-bit levels themselves (already encoded as `encoding`
+    says, e.g. what a simulated camera records) and written unchanged to a .png or .jpg: no decode and
+    re-encode of every pixel.
     Raises:
         ImageIOError: unsupported format or encoding, non-finite pixels, an unwritable path (one line).
     The file is written atomically (see the module docstring): a failure leaves the old file or nothing.
     """
     import OpenImageIO as oiio
 
-    arr = np.asarray(image.detach().cpu() if hasattr(image, "detach") else image, dtype=np.float32)
+    levels = isinstance(image, np.ndarray) and image.dtype == np.uint8
+    arr = image if levels else np.asarray(image.detach().cpu() if hasattr(image, "detach") else image,
+                                          dtype=np.float32)
     if arr.ndim == 2:
         arr = arr[..., None]
     ext = os.path.splitext(path)[1].lower()
@@ -167,7 +172,9 @@ def write_image(path: str, image, encoding: str | None = None, metadata: dict | 
         raise ImageIOError(f"{path}: unsupported output format {ext or '(none)'} (use .exr, .png or .tif)")
     if arr.ndim != 3 or arr.shape[0] < 1 or arr.shape[1] < 1 or not 1 <= arr.shape[2] <= 4:
         raise ImageIOError(f"{path}: expected an (H, W, C) image with 1 to 4 channels, got shape {arr.shape}")
-    if not np.isfinite(arr).all():
+    if levels and WRITE_FORMATS[ext] != "uint8":
+        raise ImageIOError(f"{path}: uint8 levels go to an 8-bit format (.png or .jpg), not {ext}")
+    if not levels and not np.isfinite(arr).all():
         raise ImageIOError(f"{path}: the image holds {int((~np.isfinite(arr)).sum())} NaN or infinite values; "
                            "not written")
     kind = WRITE_FORMATS[ext]
@@ -178,9 +185,12 @@ def write_image(path: str, image, encoding: str | None = None, metadata: dict | 
     if (ext in (".jpg", ".jpeg") and enc != "srgb") or (ext == ".hdr" and enc != "linear"):
         raise ImageIOError(f"{path}: {ext[1:].upper()} files cannot record a {enc} encoding "
                            f"(use .png or .tif for 8/16-bit {enc}, .exr for float)")
-    data = linear_to_srgb(arr) if enc == "srgb" else arr
-    if fmt != oiio.FLOAT:
-        data = np.clip(data, 0.0, 1.0)
+    if levels:
+        data = arr
+    else:
+        data = linear_to_srgb(arr) if enc == "srgb" else arr
+        if fmt != oiio.FLOAT:
+            data = np.clip(data, 0.0, 1.0)
     spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], arr.shape[2], fmt)
     spec.attribute("oiio:ColorSpace", SRGB_SPACE if enc == "srgb" else LINEAR_SPACE)
     spec.attribute("Software", software_version())
@@ -192,7 +202,7 @@ def write_image(path: str, image, encoding: str | None = None, metadata: dict | 
             spec.attribute(f"renderer:{k}", _one_line(str(v)))
     with atomic_output(path) as tmp:
         out = oiio.ImageOutput.create(path)
-        if not out or not out.open(tmp, spec) or not out.write_image(np.ascontiguousarray(data, dtype=np.float32)):
+        if not out or not out.open(tmp, spec) or not out.write_image(np.ascontiguousarray(data, dtype=np.uint8 if levels else np.float32)):
             err = (out.geterror() if out else "") or oiio.geterror()
             raise ImageIOError(f"{path}: cannot write image ({_one_line(err) or 'unknown error'})")
         if not out.close():

@@ -12,13 +12,17 @@ the photometric fit, so a capture and its re-rendering age the same way:
 - Q: none (float output), or 8-bit sRGB (round(255 · sRGB(clip(v, 0, 1)))), or 8-bit linear.
 
 The falloff works on numpy arrays and on torch tensors alike (the photometric fit differentiates through it).
-sRGB's transfer functions are `renderer.io.linear_to_srgb` / `srgb_to_linear`.
+`SensorResponse.expose` also takes a torch tensor, and then works where the tensor lives: a 20-Mpx render made
+on a GPU is exposed there (noise from a `torch.Generator`) instead of in single-threaded numpy (8.7 s a
+5472 x 3648 photo on these cores). sRGB's transfer functions are `renderer.io.linear_to_srgb` /
+`srgb_to_linear`.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 from .io import linear_to_srgb, srgb_to_linear
 
@@ -44,6 +48,13 @@ def encode_srgb8(linear) -> np.ndarray:
     """Linear values to the uint8 an 8-bit sRGB file holds: round(255 · sRGB(clip(v, 0, 1)))."""
     v = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
     return np.clip(np.round(linear_to_srgb(v) * 255.0), 0, 255).astype(np.uint8)
+
+
+def _encode_srgb8_torch(linear: torch.Tensor) -> torch.Tensor:
+    """`encode_srgb8` for a tensor, on its device: uint8 tensor."""
+    v = linear.to(torch.float64).clamp(0.0, 1.0)
+    s = torch.where(v <= 0.0031308, v * 12.92, 1.055 * v.pow(1 / 2.4) - 0.055)
+    return torch.round(s * 255.0).clamp(0, 255).to(torch.uint8)
 
 
 def decode_srgb8(levels) -> np.ndarray:
@@ -98,6 +109,8 @@ class SensorResponse:
     def expose(self, radiance, rng: np.random.Generator | None = None, centre=None) -> np.ndarray:
         """What the sensor writes for a linear (H, W[, C]) image: float64, or uint8 for the 8-bit encodings.
         `rng` draws the noise (needed where there is noise)."""
+        if isinstance(radiance, torch.Tensor):
+            return self._expose_tensor(radiance, rng, centre)
         img = self.signal(radiance, centre)
         if self.read_noise or self.full_well is not None:
             if rng is None:
@@ -112,6 +125,30 @@ class SensorResponse:
         if self.encoding == "linear8":
             return np.clip(np.round(np.clip(img, 0.0, 1.0) * 255.0), 0, 255).astype(np.uint8)
         return img
+
+    def _expose_tensor(self, radiance: torch.Tensor, rng: torch.Generator | None, centre) -> np.ndarray:
+        """`expose` on the tensor's device (float64 there), the result copied to a numpy array; the noise
+        comes from `rng`, a torch.Generator on that device (another draw than numpy's for the same seed)."""
+        img = radiance.to(torch.float64)
+        h, w = img.shape[:2]
+        if self.vignetting:
+            x = torch.arange(w, dtype=torch.float64, device=img.device)[None, :]
+            y = torch.arange(h, dtype=torch.float64, device=img.device)[:, None]
+            fall = radial_falloff(x, y, w, h, self.vignetting, centre)
+            img = img * (fall[..., None] if img.ndim == 3 else fall)
+        img = self.gain * img + self.black
+        if self.read_noise or self.full_well is not None:
+            if not isinstance(rng, torch.Generator):
+                raise ValueError("expose: a noisy sensor exposing a tensor needs a torch.Generator as rng")
+            var = torch.full_like(img, self.read_noise**2)
+            if self.full_well is not None:
+                var = var + img.clamp(min=0.0) / self.full_well
+            img = img + var.sqrt() * torch.randn(img.shape, generator=rng, dtype=img.dtype, device=img.device)
+        if self.encoding == "srgb8":
+            return _encode_srgb8_torch(img).cpu().numpy()
+        if self.encoding == "linear8":
+            return torch.round(img.clamp(0.0, 1.0) * 255.0).to(torch.uint8).cpu().numpy()
+        return img.cpu().numpy()
 
     def decode(self, recorded) -> np.ndarray:
         """Recorded values back to linear float64 (the inverse of the encoding, not of gain or noise)."""

@@ -167,12 +167,12 @@ class SimulatedCamera:
         return SensorResponse(vignetting=self.vignetting, read_noise=self.read_noise, full_well=self.full_well,
                               encoding="srgb8")
 
-    def expose(self, radiance, rng: np.random.Generator) -> np.ndarray:
+    def expose(self, radiance, rng) -> np.ndarray:
         """What the camera writes for a linear image: vignetting, shot + read noise, 8-bit sRGB.
 
         Args:
-            radiance: (H, W, 3) linear float image as rendered.
-            rng: the noise source.
+            radiance: (H, W, 3) linear float image as rendered (numpy, or a tensor exposed on its device).
+            rng: the noise source (np.random.Generator; a torch.Generator on the device for a tensor).
         Returns:
             (H, W, 3) uint8 sRGB image.
         """
@@ -220,17 +220,34 @@ def _lens_record(lens: LensParams) -> dict:
     return {"w_mm": lens.w_mm, "U_mm": lens.U_mm, "d_mm": lens.d_mm, "theta_L_deg": tl, "theta_F_deg": tf}
 
 
-def render_boxes(lens: LensParams, cfg: RunConfig, spp: int, seed: int) -> tuple[np.ndarray, float]:
-    """Render the boxes scene through `lens`; returns the (H, W, 3) linear image and the render time, s."""
+def render_boxes(lens: LensParams, cfg: RunConfig, spp: int, seed: int):
+    """Render the boxes scene through `lens`; returns the (H, W, 3) linear image and the render time, s.
+
+    The image is a numpy array from a CPU render, and a tensor left on the device from a GPU render: the
+    camera exposes it there (`SimulatedCamera.expose`), which at full resolution took longer than the
+    render in numpy.
+    """
     scene = boxes_scene(lens, downscale=cfg.downscale, spp=spp, sampler=cfg.sampler)
     t = time.perf_counter()
-    image = render(scene, spp=spp, seed=seed, device=cfg.device).image.cpu().numpy()  # .cpu() waits for a GPU
+    image = render(scene, spp=spp, seed=seed, device=cfg.device).image
+    if image.device.type == "cpu":
+        image = image.numpy()
+    else:
+        torch.cuda.synchronize(image.device)  # the render's time, not its launch
     return image, time.perf_counter() - t
 
 
+def _noise_source(radiance, seed: int):
+    """The sensor-noise generator for an image: numpy's for a numpy image, torch's on the image's device for
+    a tensor (another draw for the same seed)."""
+    if isinstance(radiance, torch.Tensor):
+        return torch.Generator(radiance.device).manual_seed(seed)
+    return np.random.default_rng(seed)
+
+
 def _save_png(path: str, image_u8: np.ndarray) -> None:
-    """Write an 8-bit sRGB image exactly (decoded to linear for `renderer.write_image`, which re-encodes)."""
-    write_image(path, linear_from_grey_levels(image_u8).astype(np.float32))
+    """Write an 8-bit sRGB image exactly (`renderer.write_image` stores uint8 levels unchanged)."""
+    write_image(path, np.asarray(image_u8, dtype=np.uint8), encoding="srgb")
 
 
 def _seed(cfg: RunConfig, *keys) -> int:
@@ -557,7 +574,7 @@ def stage_boxes(camera: SimulatedCamera, param_sets: dict, cfg: RunConfig, lines
         tag = f"({state.label}) θL set {state.theta_L_set_deg:+g}°"
         for k in range(2):
             radiance, dt = render_boxes(true_lens, cfg, cfg.spp_capture, _seed(cfg, "photo", state.label, k))
-            res.captures.append(camera.expose(radiance, np.random.default_rng(_seed(cfg, "noise", state.label, k))))
+            res.captures.append(camera.expose(radiance, _noise_source(radiance, _seed(cfg, "noise", state.label, k))))
             _save_png(os.path.join(out_dir, "images", f"photo_{state.label}{'' if k == 0 else '_2'}.png"),
                       res.captures[-1])
             log(f"(d) {tag}: photograph {k + 1}/2 with the true lens (θL {true_lens.theta_L_deg:+.3f}°, "

@@ -104,3 +104,40 @@ def test_capture_simulations_use_the_sensor_model():
     s = SensorResponse(vignetting=0.2, read_noise=0.01, encoding="srgb8")
     want = s.expose(view.clean.astype(np.float64), np.random.default_rng(4), centre=sc.center_px)
     assert np.array_equal(view.image_srgb8[..., 0], want), "synth's 8-bit views"
+
+
+def test_a_tensor_is_exposed_like_an_array():
+    """Noise-free, a tensor (exposed on its device) gives the numpy path's levels; with noise, the torch draw
+    has the stated mean and variance."""
+    s = SensorResponse(gain=0.9, black=0.01, vignetting=0.3, encoding="srgb8")
+    rad = np.random.default_rng(5).random((40, 60, 3)) * 0.9
+    want = s.expose(rad, centre=(20.0, 15.0))
+    got = s.expose(torch.from_numpy(rad), centre=(20.0, 15.0))
+    assert got.dtype == np.uint8 and np.array_equal(got, want), "noise-free levels equal numpy's"
+
+    noisy = SensorResponse(read_noise=0.004, full_well=2000.0)
+    flat = torch.full((400, 500), 0.3, dtype=torch.float64)
+    out = noisy.expose(flat, torch.Generator().manual_seed(3))
+    var = 0.004**2 + 0.3 / 2000.0
+    assert abs(out.mean() - 0.3) < 4 * np.sqrt(var / out.size), f"mean {out.mean():.6f}"
+    assert 0.97 < out.var() / var < 1.03, f"variance ratio {out.var() / var:.4f}"
+    again = noisy.expose(flat, torch.Generator().manual_seed(3))
+    assert np.array_equal(out, again), "the same generator seed gives the same draw"
+    with pytest.raises(ValueError, match="torch.Generator"):
+        noisy.expose(flat, np.random.default_rng(3))
+
+
+def test_uint8_levels_are_written_unchanged(tmp_path):
+    from renderer.io import ImageIOError, read_image, write_image
+    import OpenImageIO as oiio
+
+    levels = np.random.default_rng(2).integers(0, 256, (7, 9, 3), dtype=np.uint8)
+    path = str(tmp_path / "levels.png")
+    write_image(path, levels)
+    inp = oiio.ImageInput.open(path)
+    stored = inp.read_image(format=oiio.UINT8)
+    inp.close()
+    assert np.array_equal(stored, levels), "the file holds the levels given"
+    assert np.allclose(read_image(path), decode_srgb8(levels), atol=1e-6), "read back as sRGB-decoded linear"
+    with pytest.raises(ImageIOError, match="8-bit format"):
+        write_image(str(tmp_path / "levels.exr"), levels)

@@ -77,8 +77,9 @@ def _load_target(path: str):
         raise _as_cli_error(path, e) from None
 
 
-def _detect_image(path: str, target, encoding: str | None) -> dict:
-    """Read an image, detect the board; returns the DET.json dict. Raises CliError naming the image."""
+def _detect_image(path: str, target, encoding: str | None, keep: dict | None = None) -> dict:
+    """Read an image, detect the board; returns the DET.json dict. Raises CliError naming the image.
+    `keep`: where given, the image read is stored there under its path (for `--refine photometric`)."""
     from renderer import read_image
 
     try:
@@ -86,6 +87,8 @@ def _detect_image(path: str, target, encoding: str | None) -> dict:
             image = read_image(path, encoding)
     except (ValueError, OSError) as e:
         raise _as_cli_error(path, e) from None
+    if keep is not None:
+        keep[path] = image
     try:
         from .detect import detect
     except ImportError:
@@ -176,8 +179,9 @@ def cmd_detect(args) -> int:
     return 0
 
 
-def _observations(args, target, say):
-    """Observations of all inputs (images are detected, DET.json files read)."""
+def _observations(args, target, say, images: dict | None = None):
+    """Observations of all inputs (images are detected, DET.json files read; with `images`, each image read
+    is kept there under its path)."""
     import numpy as np
 
     from .model import Observations
@@ -192,7 +196,7 @@ def _observations(args, target, say):
         else:
             t0 = time.perf_counter()
             try:
-                det = _detect_image(path, target, args.encoding)
+                det = _detect_image(path, target, args.encoding, images)
             except CliError as e:
                 if not e.problem.startswith("no board found"):
                     raise
@@ -269,7 +273,8 @@ def cmd_calibrate(args) -> int:
         if args.fit == "tilt" and (data.get("U_mm") is None or data.get("d_mm") is None):
             raise CliError(args.init, "U_mm, d_mm: undetermined in this calibration; the tilt fit needs them")
     target = _load_target(args.target)
-    obs = _observations(args, target, say)
+    images = {} if args.refine == "photometric" else None  # read once, for detection and the refinement
+    obs = _observations(args, target, say, images)
     if init is not None and tuple(init.image_size_px) != tuple(obs.image_size_px):
         raise CliError(args.init, f"image_size_px {list(init.image_size_px)} differs from the images' "
                                   f"{list(obs.image_size_px)}")
@@ -302,7 +307,7 @@ def cmd_calibrate(args) -> int:
                 f"{held_out['folds']}-fold)")
         except FitError as e:
             say(f"held-out error not computed: {e}")
-    photometric = _refine_photometric(result, used, target, args, say) if args.refine == "photometric" else None
+    photometric = _refine_photometric(result, used, target, args, say, images) if args.refine == "photometric" else None
     data = calib_dict(result, runtime_s=time.perf_counter() - t0, obs=used, target=target.to_dict(),
                       held_out=held_out)
     if photometric is not None:
@@ -315,12 +320,12 @@ def cmd_calibrate(args) -> int:
     return 0
 
 
-def _refine_photometric(result, obs, target, args, say) -> dict:
+def _refine_photometric(result, obs, target, args, say, photos: dict | None = None) -> dict:
     """`--refine photometric`: refit lens and poses to the photos' pixels.
 
     The refined values are written into `result` (its camera, values, σ and views, so every key CALIB.json
     derives from them, residuals and f included, follows); returns the CALIB.json `photometric` block, which
-    keeps the corner fit beside the refinement.
+    keeps the corner fit beside the refinement. `photos`: the photographs already read, by path.
     """
     import numpy as np
     import torch
@@ -338,7 +343,8 @@ def _refine_photometric(result, obs, target, args, say) -> dict:
         if _is_det_file(path):
             raise CliError(path, "--refine photometric needs the photographs, not DET files")
         try:
-            img = np.asarray(read_image(path, args.encoding), dtype=np.float64)
+            img = (photos or {}).get(path)
+            img = np.asarray(read_image(path, args.encoding) if img is None else img, dtype=np.float64)
         except (ImageIOError, OSError, ValueError) as e:
             raise _as_cli_error(path, e) from None
         images.append(img.mean(-1) if img.ndim == 3 else img)

@@ -38,7 +38,9 @@ from .target import Target
 
 @dataclass(frozen=True)
 class SynthCamera:
-    """A thin-lens camera with a (possibly) tilted plane of focus z = U + y tan θF.
+    """A thin-lens camera with a (possibly) tilted plane of focus z = U + y tan θF: the plain-number record the
+    synthetic images are made from. Its projection and blur are the renderer's (`renderer.project_pinhole`,
+    `renderer.optics.blur_diameter_exact`), the same code as `renderer.LensCamera`'s.
 
     Attributes:
         w_mm: lens centre to sensor (effective focal length), mm.
@@ -82,8 +84,7 @@ class SynthCamera:
 
     def project(self, p_cam: np.ndarray) -> np.ndarray:
         """(..., 3) camera-frame points, mm -> (..., 2) pixels (`renderer.project_pinhole`, no distortion)."""
-        p = torch.as_tensor(np.asarray(p_cam, dtype=np.float64))
-        return project_pinhole(p, self.w_mm / self.pixel_pitch_mm, self.center_px).numpy()
+        return project_pinhole(np.asarray(p_cam, dtype=np.float64), self.w_mm / self.pixel_pitch_mm, self.center_px)
 
     def blur_px(self, p_cam: np.ndarray) -> np.ndarray:
         """(..., 3) camera-frame points, mm -> (...,) blur-disc diameters, pixels.

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from renderer import project_pinhole
 from renderer.validation import describe, is_finite_number, read_json
 
 # Stated limit for target files: at most this many edges per axis (200 × 200 feature points, detection's own
@@ -280,7 +281,7 @@ def projected_row_spacing(target: Target, w_mm: float, distance_mm: float, incli
     xc, _ = design_centre_mm(target)
     p = np.stack([np.full(target.n_rows + 1, xc), np.asarray(target.y_edges), np.zeros(target.n_rows + 1)], 1)
     pc = p @ R.T + T
-    return np.diff(w_mm * pc[:, 1] / pc[:, 2])
+    return np.diff(project_pinhole(pc, w_mm, (0.0, 0.0))[:, 1])  # sensor mm: focal w, centre 0
 
 
 # --- images of the board -----------------------------------------------------------------------------------

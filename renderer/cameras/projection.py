@@ -13,18 +13,24 @@ calibration model `LensCamera` and tiltfit's synthetic observations all call `pr
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from .distortion import distort
 
 
 def _pair(v):
-    """(a, b) of a pair (tuple, list, or a tensor whose last axis has 2 entries), or (v, v) of a scalar."""
+    """(a, b) of a pair (tuple, list, or an array whose last axis has 2 entries), or (v, v) of a scalar."""
     if isinstance(v, (tuple, list)):
         return v[0], v[1]
-    if isinstance(v, torch.Tensor) and v.dim() > 0:
+    if isinstance(v, (torch.Tensor, np.ndarray)) and v.ndim > 0:
         return v[..., 0], v[..., 1]
     return v, v
+
+
+def _stack(parts, like):
+    """Stack along a new last axis as numpy or torch, following `like` (numpy callers stay in numpy)."""
+    return np.stack(parts, -1) if isinstance(like, np.ndarray) else torch.stack(parts, -1)
 
 
 def pixels_from_normalised(xy: torch.Tensor, focal_px, principal_point_px) -> torch.Tensor:
@@ -35,25 +41,27 @@ def pixels_from_normalised(xy: torch.Tensor, focal_px, principal_point_px) -> to
         focal_px: f (a float or 0-dim tensor) or (f_x, f_y) (a pair, or a tensor (..., 2)), pixels.
         principal_point_px: (c_x, c_y) (a pair or a tensor (..., 2)), pixels.
     Returns:
-        (..., 2) pixels; gradients reach tensor focal lengths and principal points.
+        (..., 2) pixels; gradients reach tensor focal lengths and principal points. A numpy `xy` gives numpy
+        (the beam tracer's and tiltfit's numpy callers).
     """
     fx, fy = _pair(focal_px)
     cx, cy = _pair(principal_point_px)
-    return torch.stack([cx + fx * xy[..., 0], cy + fy * xy[..., 1]], -1)
+    return _stack([cx + fx * xy[..., 0], cy + fy * xy[..., 1]], xy)
 
 
 def normalised_from_pixels(uv_px: torch.Tensor, focal_px, principal_point_px) -> torch.Tensor:
     """Inverse of `pixels_from_normalised`: (..., 2) pixels -> (..., 2) normalised (distorted) coordinates."""
     fx, fy = _pair(focal_px)
     cx, cy = _pair(principal_point_px)
-    return torch.stack([(uv_px[..., 0] - cx) / fx, (uv_px[..., 1] - cy) / fy], -1)
+    return _stack([(uv_px[..., 0] - cx) / fx, (uv_px[..., 1] - cy) / fy], uv_px)
 
 
 def project_pinhole(p_cam: torch.Tensor, focal_px, principal_point_px, distortion=None) -> torch.Tensor:
     """(..., 3) camera-frame points -> (..., 2) pixels: uv = c + f ⊙ D(x / z, y / z).
 
     Args:
-        p_cam: (..., 3) points in the camera frame (x right, y down, z forward), any length unit.
+        p_cam: (..., 3) points in the camera frame (x right, y down, z forward), any length unit; a tensor, or
+            a numpy array when there is no distortion (the result is then numpy too).
         focal_px, principal_point_px: as in `pixels_from_normalised`.
         distortion: None (no distortion) or up to 8 Brown–Conrady coefficients (k1, k2, p1, p2, k3, k4, k5, k6)
             as a sequence or a tensor (differentiable).

@@ -36,7 +36,7 @@ def _points_in_view(cam: LensCamera, view: int, n: int = 200, seed: int = 0) -> 
     g = torch.Generator().manual_seed(seed)
     z = 300 + 900 * torch.rand(n, generator=g, dtype=torch.float64)
     W, H = cam.image_size_px
-    half = torch.tensor([0.4 * W, 0.4 * H], dtype=torch.float64) * cam.pixel_pitch_mm / float(cam.w_mm)
+    half = torch.tensor([0.4 * W, 0.4 * H], dtype=torch.float64) * cam.pixel_pitch_mm / float(cam.w_mm.detach())
     xy = (2 * torch.rand(n, 2, generator=g, dtype=torch.float64) - 1) * half * z[:, None]
     p_cam = torch.cat([xy, z[:, None]], -1)
     with torch.no_grad():

@@ -31,7 +31,7 @@ import torch
 
 from renderer import axis_angle_to_matrix, optics, project_pinhole
 from renderer.sensor import SensorResponse
-from renderer.transforms import look_at_rotation
+from renderer.transforms import euler_xyz_deg, look_at_rotation
 
 from .target import Target
 
@@ -137,10 +137,7 @@ def look_at_pose(target: Target, camera_position_mm, look_at_mm=None, roll_deg: 
         look_at_mm = (0.5 * (target.x_edges[0] + target.x_edges[-1]), 0.5 * (target.y_edges[0] + target.y_edges[-1]),
                       0.0)
     # `up` is the target's −Y: the rows of R, the camera axes in the target frame, are look-at's columns.
-    R = look_at_rotation(c, look_at_mm, (0.0, -1.0, 0.0)).numpy().T
-    a = math.radians(roll_deg)
-    Rz = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
-    R = Rz @ R
+    R = euler_xyz_deg((0.0, 0.0, roll_deg)).numpy() @ look_at_rotation(c, look_at_mm, (0.0, -1.0, 0.0)).numpy().T
     return R, -R @ c
 
 

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from renderer import project_pinhole
+from renderer.transforms import euler_xyz_deg
 from renderer.validation import describe, is_finite_number, read_json
 
 # Stated limit for target files: at most this many edges per axis (200 × 200 feature points, detection's own
@@ -267,9 +268,7 @@ def designed_pose(target: Target, distance_mm: float, inclination_deg: float) ->
 
     R is the rotation about the x axis by the inclination; the design centre sits at (0, 0, D).
     """
-    phi = math.radians(inclination_deg)
-    c, s = math.cos(phi), math.sin(phi)
-    R = np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    R = euler_xyz_deg((inclination_deg, 0.0, 0.0)).numpy()
     xc, yc = design_centre_mm(target)
     T = np.array([0.0, 0.0, distance_mm]) - R @ np.array([xc, yc, 0.0])
     return R, T

@@ -29,10 +29,10 @@ A constant `blur_offset_px` (0 unless fitted) is added to every width: the blur 
 Parametrisation (for conditioning, so one learning rate suits all parameters): w is stored as its logarithm
 (`log_w_mm`), the aperture in centimetres with d = |d_scaled| · 10 mm (`d_scaled`, so d ≥ 0 and a pinhole,
 d = 0, is an ordinary value: sharp images leave it near 0 instead of driving a logarithm to −∞), the focus as
-its inverse in dioptres (`inv_U_per_m` = 1000 / U_mm, so focus at infinity is the ordinary value 0), the distortion coefficients as themselves (`dist_k1` …),
-rotations as axis-angle vectors (`rvec`), translations in units of `length_scale_mm` (`T_scaled`, default
-100 mm) and the principal-point offset from the image centre in units of `pixel_scale_px` (`pp_scaled`,
-default 100 px). Physical values are properties (`w_mm`, `T_mm`, `R`, `principal_point_px` …).
+its inverse in dioptres (`inv_U_per_m` = 1000 / U_mm, so focus at infinity is the ordinary value 0), the
+distortion coefficients as themselves (`dist_k1` …), rotations as axis-angle vectors (`rvec`), translations
+in units of `length_scale_mm` (`T_scaled`, default 100 mm) and the principal-point offset from the image
+centre in units of `pixel_scale_px` (`pp_scaled`, default 100 px). Physical values are properties (`w_mm`, `T_mm`, `R`, `principal_point_px` …).
 `free(*names)` / `freeze(*names)` switch parameters on and off by friendly name: w, U, d, theta_F, rvec, T,
 principal_point, blur_offset, k1 … k6, p1, p2, or the groups lens (w, U, d), pose (rvec, T), distortion (all
 eight coefficients), all.

@@ -47,7 +47,8 @@ def _points_in_view(cam: LensCamera, view: int, n: int = 200, seed: int = 0) -> 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_view_camera_projects_like_the_module_and_its_chief_rays_hit_the_points(seed):
     cam = _random_camera(seed)
-    assert abs(float(cam.theta_F.detach())) > 1e-3 and bool(cam.distortion.detach().abs().sum() > 0), "tilted, distorted"
+    tilted, distorted = abs(float(cam.theta_F.detach())) > 1e-3, bool(cam.distortion.detach().abs().sum() > 0)
+    assert tilted and distorted, "a tilted plane of focus and a distorting lens"
     for v in range(cam.n_views):
         X = _points_in_view(cam, v, seed=seed + 10 * v)
         with torch.no_grad():

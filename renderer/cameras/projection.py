@@ -19,18 +19,17 @@ import torch
 from .distortion import distort
 
 
-def _pair(v):
-    """(a, b) of a pair (tuple, list, or an array whose last axis has 2 entries), or (v, v) of a scalar."""
+def _as_pair(v, like):
+    """A focal length or principal point as something that broadcasts against (..., 2) coordinates `like`:
+    a scalar (number or 0-dim tensor) as it is, a pair (tuple, list) as a (2,) array of `like`'s kind (tensors
+    in it keep their graph), an array (..., 2) as it is."""
     if isinstance(v, (tuple, list)):
-        return v[0], v[1]
-    if isinstance(v, (torch.Tensor, np.ndarray)) and v.ndim > 0:
-        return v[..., 0], v[..., 1]
-    return v, v
-
-
-def _stack(parts, like):
-    """Stack along a new last axis as numpy or torch, following `like` (numpy callers stay in numpy)."""
-    return np.stack(parts, -1) if isinstance(like, np.ndarray) else torch.stack(parts, -1)
+        if isinstance(like, np.ndarray):
+            return np.asarray(v, dtype=np.float64)
+        if any(isinstance(a, torch.Tensor) for a in v):
+            return torch.stack([torch.as_tensor(a, dtype=like.dtype, device=like.device) for a in v])
+        return torch.tensor(v, dtype=like.dtype, device=like.device)
+    return v
 
 
 def pixels_from_normalised(xy: torch.Tensor, focal_px, principal_point_px) -> torch.Tensor:
@@ -38,22 +37,18 @@ def pixels_from_normalised(xy: torch.Tensor, focal_px, principal_point_px) -> to
 
     Args:
         xy: (..., 2) normalised coordinates, dimensionless.
-        focal_px: f (a float or 0-dim tensor) or (f_x, f_y) (a pair, or a tensor (..., 2)), pixels.
+        focal_px: f (a number or 0-dim tensor) or (f_x, f_y) (a pair, or a tensor (..., 2)), pixels.
         principal_point_px: (c_x, c_y) (a pair or a tensor (..., 2)), pixels.
     Returns:
         (..., 2) pixels; gradients reach tensor focal lengths and principal points. A numpy `xy` gives numpy
         (the beam tracer's and tiltfit's numpy callers).
     """
-    fx, fy = _pair(focal_px)
-    cx, cy = _pair(principal_point_px)
-    return _stack([cx + fx * xy[..., 0], cy + fy * xy[..., 1]], xy)
+    return xy * _as_pair(focal_px, xy) + _as_pair(principal_point_px, xy)
 
 
 def normalised_from_pixels(uv_px: torch.Tensor, focal_px, principal_point_px) -> torch.Tensor:
     """Inverse of `pixels_from_normalised`: (..., 2) pixels -> (..., 2) normalised (distorted) coordinates."""
-    fx, fy = _pair(focal_px)
-    cx, cy = _pair(principal_point_px)
-    return _stack([(uv_px[..., 0] - cx) / fx, (uv_px[..., 1] - cy) / fy], uv_px)
+    return (uv_px - _as_pair(principal_point_px, uv_px)) / _as_pair(focal_px, uv_px)
 
 
 def project_pinhole(p_cam: torch.Tensor, focal_px, principal_point_px, distortion=None) -> torch.Tensor:

@@ -47,8 +47,12 @@ from __future__ import annotations
 
 import torch
 
+#: Names of the blur closed forms `blur_diameter` dispatches to (the calibration model's `blur_model`).
+BLUR_MODELS = ("ellipse", "first_order", "paper")
+
 __all__ = [
-    "blur_diameter_exact", "blur_diameter_first_order", "blur_diameter_paper", "blur_ellipse", "blur_width",
+    "BLUR_MODELS", "blur_diameter", "blur_diameter_exact", "blur_diameter_first_order", "blur_diameter_paper",
+    "blur_ellipse", "blur_width",
     "focal_length", "focus_depth", "focus_distance_tilted", "hinge_line_y", "scheimpflug_line_y",
     "theta_F_from_theta_L", "theta_F_from_theta_L_f", "theta_L_from_theta_F", "theta_L_from_theta_F_f",
     "theta_L_paper",
@@ -283,3 +287,22 @@ def blur_diameter_exact(p_cam, w, U, d, theta_F=0.0) -> torch.Tensor:
     sqrt_s, alpha, gx, gy, _, bounded = _ellipse_terms(p_cam, w, U, d, theta_F)
     dia = 2 * sqrt_s * torch.sqrt(torch.sqrt(alpha) * torch.abs(gy))
     return torch.where(bounded, dia, torch.full_like(dia, float("inf")))
+
+
+def blur_diameter(p_cam, w, U, d, theta_F=0.0, blur_model: str = "ellipse") -> torch.Tensor:
+    """Blur diameter on the sensor for camera-frame points by the named closed form (all equal eq (2) at θF = 0).
+
+    Args:
+        p_cam: (..., 3) camera-frame points. Lens parameters: numbers or broadcastable tensors (lengths, rad).
+        blur_model: "ellipse" (`blur_diameter_exact`, the equivalent-area diameter of the exact spot),
+            "first_order" (`blur_diameter_first_order`) or "paper" (`blur_diameter_paper`, eq (4)).
+    Returns:
+        (...,) diameter on the sensor, in the unit of the lengths.
+    """
+    if blur_model == "ellipse":
+        return blur_diameter_exact(p_cam, w, U, d, theta_F)
+    if blur_model == "first_order":
+        return blur_diameter_first_order(p_cam, w, U, d, theta_F)
+    if blur_model == "paper":
+        return blur_diameter_paper(p_cam[..., 1], p_cam[..., 2], w, U, d, theta_F)
+    raise ValueError(f"blur_model: expected one of {BLUR_MODELS}, got {blur_model!r}")

@@ -1,4 +1,9 @@
-"""Rigid transforms and camera poses (the transform kept apart from the projection, as in pbrt)."""
+"""Rigid transforms and camera poses (the transform kept apart from the projection, as in pbrt).
+
+The one owner of rotations in both packages: look-at (`look_at_rotation`), axis-angle ↔ matrix (Rodrigues,
+`axis_angle_to_matrix` / `matrix_to_axis_angle`) and the camera pose (`CameraTransform`, with
+`from_extrinsics` for tiltfit's X_cam = R X_world + T).
+"""
 from __future__ import annotations
 
 import math
@@ -28,6 +33,42 @@ def look_at_rotation(position, look_at, up) -> torch.Tensor:
     return torch.stack([x, y, z], dim=1)
 
 
+def _skew(v: torch.Tensor) -> torch.Tensor:
+    """(..., 3) vectors -> (..., 3, 3) cross-product matrices [v]×."""
+    o = torch.zeros_like(v[..., 0])
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    return torch.stack([o, -z, y, z, o, -x, -y, x, o], dim=-1).reshape(v.shape[:-1] + (3, 3))
+
+
+def axis_angle_to_matrix(rvec: torch.Tensor) -> torch.Tensor:
+    """(..., 3) axis-angle vectors (radians) -> (..., 3, 3) rotation matrices (Rodrigues; smooth at 0).
+
+    R = I + (sin θ / θ) K + ((1 − cos θ) / θ²) K²,  K = [rvec]×, θ = |rvec|; the series near θ = 0 keeps it
+    differentiable there. Device and dtype follow `rvec`.
+    """
+    rvec = torch.as_tensor(rvec)
+    theta2 = (rvec * rvec).sum(-1)[..., None, None]
+    small = theta2 < 1e-8
+    safe = torch.where(small, torch.ones_like(theta2), theta2)
+    theta = torch.sqrt(safe)
+    a = torch.where(small, 1.0 - theta2 / 6.0, torch.sin(theta) / theta)
+    b = torch.where(small, 0.5 - theta2 / 24.0, (1.0 - torch.cos(theta)) / safe)
+    K = _skew(rvec)
+    eye = torch.eye(3, dtype=rvec.dtype, device=rvec.device).expand(K.shape)
+    return eye + a * K + b * (K @ K)
+
+
+def matrix_to_axis_angle(R) -> torch.Tensor:
+    """(..., 3, 3) rotation matrices -> (..., 3) axis-angle vectors, radians, float64 (via quaternions, kornia;
+    not differentiable: for initial values)."""
+    from kornia.geometry.conversions import rotation_matrix_to_axis_angle
+
+    R = torch.as_tensor(R, dtype=torch.float64).detach()
+    flat = R.reshape(-1, 3, 3)
+    out = rotation_matrix_to_axis_angle(flat) if len(flat) else torch.zeros(0, 3, dtype=torch.float64)
+    return out.reshape(R.shape[:-2] + (3,))
+
+
 def euler_xyz_deg(rotation_deg) -> torch.Tensor:
     """Rotation matrix R = Rz · Ry · Rx for angles in degrees about x, then y, then z (float64)."""
     rx, ry, rz = (math.radians(float(a)) for a in rotation_deg)
@@ -53,6 +94,16 @@ class CameraTransform:
     @staticmethod
     def look_at(position=(0.0, 0.0, 0.0), look_at=(0.0, 0.0, 1.0), up=(0.0, -1.0, 0.0)) -> "CameraTransform":
         return CameraTransform(look_at_rotation(position, look_at, up), torch.as_tensor(position, dtype=torch.float64))
+
+    @staticmethod
+    def from_extrinsics(R: torch.Tensor, T: torch.Tensor) -> "CameraTransform":
+        """The pose of X_cam = R X_world + T (tiltfit's convention): world_from_camera = Rᵀ, position = −Rᵀ T.
+
+        Args:
+            R: (3, 3) rotation camera_from_world; T: (3,) translation, scene units. Tensors keep their graph.
+        """
+        world_from_camera = R.transpose(-1, -2)
+        return CameraTransform(world_from_camera, -(world_from_camera @ T))
 
     @staticmethod
     def identity() -> "CameraTransform":

@@ -17,6 +17,8 @@ from __future__ import annotations
 import os
 
 import numpy as np
+import torch
+from renderer import axis_angle_to_matrix, matrix_to_axis_angle
 
 
 class ExportError(ValueError):
@@ -71,7 +73,7 @@ def write_opencv(calib: dict, path: str) -> None:
         fs.write("distortion_coefficients", _dist(calib).reshape(1, -1))
         views = calib.get("views") or []
         if views:
-            rv = np.array([cv2.Rodrigues(np.array(v["R"], dtype=np.float64))[0].ravel() for v in views])
+            rv = matrix_to_axis_angle(np.array([v["R"] for v in views], dtype=np.float64)).numpy()
             tv = np.array([v["T_mm"] for v in views], dtype=np.float64)
             fs.write("rvecs", rv)
             fs.write("tvecs", tv)
@@ -135,7 +137,7 @@ def read_opencv(path: str, pixel_pitch_mm: float | None = None) -> dict:
            "distortion": {"model": "brown_conrady", "coefficients": d or [0.0]},
            "undetermined": ["U_mm", "d_mm"], "source": os.path.abspath(path)}
     if rv is not None and tv is not None and rv.shape[0] == tv.shape[0] and rv.size and rv.shape[-1] == 3:
-        out["views"] = [{"R": cv2.Rodrigues(r.reshape(3, 1).astype(np.float64))[0].tolist(),
+        out["views"] = [{"R": axis_angle_to_matrix(torch.tensor(r, dtype=torch.float64)).tolist(),
                          "T_mm": [float(x) for x in t.ravel()]} for r, t in zip(rv.reshape(-1, 3), tv.reshape(-1, 3))]
     return out
 

@@ -6,7 +6,7 @@ make the two agree. Corners are only a starting point, so their bias under heavy
 reach the result, and boards too blurred for any corner detector can still be fitted.
 
 The target renderer (`render_target`) uses the renderer's own thin-lens camera
-(`renderer.cameras.thin_lens.ThinLensCamera`, tensor parameters) to generate rays for each pixel and a fixed
+(`renderer.ThinLensCamera`, tensor parameters) to generate rays for each pixel and a fixed
 set of lens samples, intersects them with the board plane Z = 0 and evaluates the checkerboard analytically,
 antialiased over the pixel's footprint: no general tracer, no random numbers, so the objective is smooth and
 deterministic and its gradients are exact (checked against finite differences in the tests).
@@ -39,12 +39,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from renderer.cameras.base import Screen
-from renderer.cameras.distortion import BrownConrady
-from renderer.cameras.thin_lens import ThinLensCamera, concentric_disk
+from renderer.cameras import ThinLensCamera, concentric_disk
 from renderer.optics import theta_L_from_theta_F
 from renderer.sensor import radial_falloff
-from renderer.transforms import CameraTransform
 
 from .model import axis_angle_to_matrix, matrix_to_axis_angle, robust_weight
 from .stats import nested_test
@@ -236,18 +233,11 @@ def lens_camera(sensor: SensorGeometry, w_mm, inv_U_per_m, d_mm, theta_F, rvec, 
     Args:
         rvec: (3,) axis-angle of R (camera_from_target); T_mm: (3,) translation; X_cam = R X + T.
     The sensor's distortion (held, not fitted) is the renderer's: pixels are traced through their ideal,
-    undistorted positions.
+    undistorted positions. Built as `renderer.LensCamera.view_camera` builds a view (one construction path).
     """
-    R = axis_angle_to_matrix(rvec)
-    world_from_camera = R.transpose(0, 1)
-    position = -(world_from_camera @ T_mm)
-    W, H, p = sensor.width_px, sensor.height_px, sensor.pixel_pitch_mm
-    screen = Screen(W, H, (W * p, H * p), w_mm, sensor.principal_point_px)
-    U_mm = 1000.0 / inv_U_per_m
-    cam = ThinLensCamera(CameraTransform(world_from_camera, position), screen, w_mm, U_mm, d_mm, theta_F)
-    if sensor.distortion is not None:
-        cam.distortion = BrownConrady(sensor.distortion)
-    return cam
+    return ThinLensCamera.from_calibration((sensor.width_px, sensor.height_px), sensor.pixel_pitch_mm, w_mm,
+                                           1000.0 / inv_U_per_m, d_mm, theta_F, axis_angle_to_matrix(rvec), T_mm,
+                                           sensor.principal_point_px, sensor.distortion)
 
 
 def render_target(target: Target, sensor: SensorGeometry, uv_px: torch.Tensor, lens_uv: torch.Tensor,

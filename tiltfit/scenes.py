@@ -70,6 +70,10 @@ EOS_6D = Sensor()  # Canon EOS 6D: full frame, 5472 x 3648, 6.54 µm pixels
 class LensParams:
     """Unified thin-lens parameters of one lens state (the paper's Fig. 3), as the renderer's `thin_lens`.
 
+    A scene-file record (the `thin_lens` keys of one boxes scene, read from a calibration's w, U, d, θF or set
+    by hand), not a camera model: the camera is the renderer's (`thin_lens` in the scene file; the fitted,
+    differentiable one is `renderer.LensCamera`).
+
     Attributes:
         w_mm: lens centre to sensor (effective focal length), mm.
         U_mm: lens centre to the plane of focus along the optical axis, mm.

@@ -29,15 +29,18 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from renderer import optics
+from renderer import axis_angle_to_matrix, optics, project_pinhole
 from renderer.sensor import SensorResponse
+from renderer.transforms import euler_xyz_deg, look_at_rotation
 
 from .target import Target
 
 
 @dataclass(frozen=True)
 class SynthCamera:
-    """A thin-lens camera with a (possibly) tilted plane of focus z = U + y tan θF.
+    """A thin-lens camera with a (possibly) tilted plane of focus z = U + y tan θF: the plain-number record the
+    synthetic images are made from. Its projection and blur are the renderer's (`renderer.project_pinhole`,
+    `renderer.optics.blur_diameter_exact`), the same code as `renderer.LensCamera`'s.
 
     Attributes:
         w_mm: lens centre to sensor (effective focal length), mm.
@@ -80,11 +83,8 @@ class SynthCamera:
                        height_px=self.height_px // factor, principal_point_px=pp)
 
     def project(self, p_cam: np.ndarray) -> np.ndarray:
-        """(..., 3) camera-frame points, mm -> (..., 2) pixels."""
-        p_cam = np.asarray(p_cam, dtype=np.float64)
-        f = self.w_mm / self.pixel_pitch_mm
-        cx, cy = self.center_px
-        return np.stack([cx + f * p_cam[..., 0] / p_cam[..., 2], cy + f * p_cam[..., 1] / p_cam[..., 2]], -1)
+        """(..., 3) camera-frame points, mm -> (..., 2) pixels (`renderer.project_pinhole`, no distortion)."""
+        return project_pinhole(np.asarray(p_cam, dtype=np.float64), self.w_mm / self.pixel_pitch_mm, self.center_px)
 
     def blur_px(self, p_cam: np.ndarray) -> np.ndarray:
         """(..., 3) camera-frame points, mm -> (...,) blur-disc diameters, pixels.
@@ -122,13 +122,7 @@ class Observation:
 
 def pose_from_axis_angle(rvec, T) -> tuple[np.ndarray, np.ndarray]:
     """(R, T) from an axis-angle vector (radians) and a translation (mm)."""
-    r = np.asarray(rvec, dtype=np.float64)
-    th = float(np.linalg.norm(r))
-    if th < 1e-15:
-        return np.eye(3), np.asarray(T, dtype=np.float64)
-    k = r / th
-    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    R = np.eye(3) + math.sin(th) * Kx + (1 - math.cos(th)) * Kx @ Kx
+    R = axis_angle_to_matrix(torch.as_tensor(np.asarray(rvec, dtype=np.float64))).numpy()
     return R, np.asarray(T, dtype=np.float64)
 
 
@@ -142,15 +136,8 @@ def look_at_pose(target: Target, camera_position_mm, look_at_mm=None, roll_deg: 
     if look_at_mm is None:
         look_at_mm = (0.5 * (target.x_edges[0] + target.x_edges[-1]), 0.5 * (target.y_edges[0] + target.y_edges[-1]),
                       0.0)
-    z = np.asarray(look_at_mm, dtype=np.float64) - c
-    z /= np.linalg.norm(z)
-    y = np.array([0.0, 1.0, 0.0]) - z[1] * z
-    y /= np.linalg.norm(y)
-    x = np.cross(y, z)
-    R = np.stack([x, y, z])  # rows: camera axes in the target frame -> R maps target to camera
-    a = math.radians(roll_deg)
-    Rz = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
-    R = Rz @ R
+    # `up` is the target's −Y: the rows of R, the camera axes in the target frame, are look-at's columns.
+    R = euler_xyz_deg((0.0, 0.0, roll_deg)).numpy() @ look_at_rotation(c, look_at_mm, (0.0, -1.0, 0.0)).numpy().T
     return R, -R @ c
 
 

@@ -31,6 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from renderer import project_pinhole
+from renderer.transforms import euler_xyz_deg
 from renderer.validation import describe, is_finite_number, read_json
 
 # Stated limit for target files: at most this many edges per axis (200 × 200 feature points, detection's own
@@ -266,9 +268,7 @@ def designed_pose(target: Target, distance_mm: float, inclination_deg: float) ->
 
     R is the rotation about the x axis by the inclination; the design centre sits at (0, 0, D).
     """
-    phi = math.radians(inclination_deg)
-    c, s = math.cos(phi), math.sin(phi)
-    R = np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    R = euler_xyz_deg((inclination_deg, 0.0, 0.0)).numpy()
     xc, yc = design_centre_mm(target)
     T = np.array([0.0, 0.0, distance_mm]) - R @ np.array([xc, yc, 0.0])
     return R, T
@@ -280,7 +280,7 @@ def projected_row_spacing(target: Target, w_mm: float, distance_mm: float, incli
     xc, _ = design_centre_mm(target)
     p = np.stack([np.full(target.n_rows + 1, xc), np.asarray(target.y_edges), np.zeros(target.n_rows + 1)], 1)
     pc = p @ R.T + T
-    return np.diff(w_mm * pc[:, 1] / pc[:, 2])
+    return np.diff(project_pinhole(pc, w_mm, (0.0, 0.0))[:, 1])  # sensor mm: focal w, centre 0
 
 
 # --- images of the board -----------------------------------------------------------------------------------

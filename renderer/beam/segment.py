@@ -32,6 +32,7 @@ import numpy as np
 import shapely
 from shapely.geometry import Polygon, box
 
+from ..cameras.projection import project_pinhole
 from .polygons import MIN_AREA, areal, clip_halfspace, polygons_of
 
 # The integrator drops paths whose throughput falls to this; the segmentation stops recursing there too.
@@ -89,9 +90,7 @@ class ScreenCamera:
     def to_pixels(self, x_world: np.ndarray) -> np.ndarray:
         """(N, 3) world points in front of the eye -> (N, 2) pixels (central projection)."""
         p = (x_world - self.eye) @ self.world_from_camera
-        k = self.distance / p[:, 2:3]
-        return np.stack([p[:, 0] * k[:, 0] / self.pitch[0] + self.center_px[0],
-                         p[:, 1] * k[:, 0] / self.pitch[1] + self.center_px[1]], -1)
+        return project_pinhole(p, (self.distance / self.pitch[0], self.distance / self.pitch[1]), self.center_px)
 
     def pyramid(self, bounds, pad_px: float = 1.0) -> list[tuple[np.ndarray, float]]:
         """Half-spaces a·x ≤ b (world) whose intersection is the pyramid from the eye through the screen

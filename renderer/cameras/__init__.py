@@ -3,6 +3,11 @@
 Each camera module declares its parameters (`PARAMS`, a list of `renderer.params.Param`) and a builder
 `from_config(cfg, transform, width, height) -> Camera`, and registers them with `register_camera`.
 `build_camera(path, cfg, width, height)` validates a dict and builds the camera it names.
+
+Public API (what `tiltfit` and users import from here): the camera classes, `LensCamera` (the one fitted and
+rendered camera model: pose, lens, distortion and sensor as a torch module over V views; `lens_model`),
+`project_pinhole` and its inverse (the one pinhole projection; `projection`), `concentric_disk` (lens samples
+to the aperture disc) and the registry (`CAMERAS`, `build_camera`).
 """
 from __future__ import annotations
 
@@ -60,3 +65,7 @@ from . import orthographic  # noqa: E402,F401
 from . import inverted_perspective  # noqa: E402,F401
 from . import thin_lens  # noqa: E402,F401
 from . import accumulation  # noqa: E402,F401
+
+from .lens_model import APERTURE_SCALE_MM, LensCamera, distortion_parameter_names  # noqa: E402,F401
+from .projection import normalised_from_pixels, pixels_from_normalised, project_pinhole  # noqa: E402,F401
+from .thin_lens import ThinLensCamera, concentric_disk  # noqa: E402,F401

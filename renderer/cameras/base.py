@@ -14,6 +14,7 @@ import torch
 from ..params import SceneError
 from ..rays import Rays
 from ..transforms import CameraTransform
+from .projection import normalised_from_pixels, pixels_from_normalised, project_pinhole
 
 
 @dataclass(frozen=True)
@@ -101,12 +102,18 @@ class Camera:
         self.transform = transform
         self.screen = screen
 
+    @property
+    def focal_px(self):
+        """(f_x, f_y): the screen distance in pixels along each axis (a tensor where the distance is one)."""
+        px, py = self.screen.pitch
+        return self.screen.distance / px, self.screen.distance / py
+
     def _normalised(self, uv_px: torch.Tensor) -> torch.Tensor:
         """(..., 2) pixels -> (..., 2) normalised image coordinates (x_s, y_s) / distance about the principal point."""
-        return self.screen.to_plane(uv_px)[..., :2] / self.screen.distance
+        return normalised_from_pixels(uv_px, self.focal_px, self.screen.center_px)
 
     def _from_normalised(self, xy: torch.Tensor) -> torch.Tensor:
-        return self.screen.to_pixels(xy * self.screen.distance)
+        return pixels_from_normalised(xy, self.focal_px, self.screen.center_px)
 
     def undistort_pixels(self, uv_px: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Pixels of the distorted image -> ((..., 2) pixels of the ideal, distortion-free camera, (...,) valid).
@@ -134,12 +141,10 @@ class Camera:
 
     def project_central(self, p_world: torch.Tensor) -> torch.Tensor:
         """(..., 3) world points -> (..., 2) pixels by central projection through the camera centre onto the
-        screen (the pinhole's projection, and a thin lens's chief ray)."""
+        screen (the pinhole's projection, and a thin lens's chief ray): `projection.project_pinhole`."""
         p_cam = self.transform.points_to_camera(p_world)
-        xy = p_cam[..., :2] / p_cam[..., 2:3]
-        if self.distortion is not None and not self.distortion.is_identity:
-            xy = self.distortion.distort(xy)
-        return self._from_normalised(xy)
+        k = None if self.distortion is None or self.distortion.is_identity else self.distortion.coefficients
+        return project_pinhole(p_cam, self.focal_px, self.screen.center_px, k)
 
     def rays_in_camera(self, uv_px: torch.Tensor, lens_uv: torch.Tensor) -> Rays:
         """Rays in the camera frame for pixels (..., 2) and lens samples (..., 2) in [0, 1)²."""

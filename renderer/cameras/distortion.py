@@ -129,20 +129,31 @@ class BrownConrady:
     """A lens's distortion: coefficients (k1, k2, p1, p2, k3, k4, k5, k6) in OpenCV's order (zeros padded).
 
     Attributes:
-        coefficients: tuple of 8 floats.
+        coefficients: tuple of 8 floats, or a (8,) tensor (a fitted lens's coefficients, e.g. from
+            `LensCamera.view_camera`: gradients then reach them through every ray and projection).
     """
 
     coefficients: tuple = (0.0,) * N_COEFFICIENTS
 
     def __post_init__(self):
-        c = tuple(float(v) for v in self.coefficients)
+        c = self.coefficients
+        if isinstance(c, torch.Tensor):
+            if c.dim() != 1 or c.shape[0] > N_COEFFICIENTS:
+                raise ValueError(f"distortion.coefficients: expected at most 8 numbers, got shape {tuple(c.shape)}")
+            object.__setattr__(self, "coefficients", _padded(c, c))
+            return
+        c = tuple(float(v) for v in c)
         if len(c) > N_COEFFICIENTS:
             raise ValueError(f"distortion.coefficients: expected at most 8 numbers, got {len(c)}")
         object.__setattr__(self, "coefficients", c + (0.0,) * (N_COEFFICIENTS - len(c)))
 
     @property
     def is_identity(self) -> bool:
-        return not any(self.coefficients)
+        """All coefficients 0 and none of them a tensor that requires grad (its derivative at 0 is wanted)."""
+        c = self.coefficients
+        if isinstance(c, torch.Tensor):
+            return not c.requires_grad and not bool(c.detach().any())
+        return not any(c)
 
     def distort(self, xy: torch.Tensor) -> torch.Tensor:
         return distort(xy, self.coefficients)
@@ -152,7 +163,7 @@ class BrownConrady:
 
     def to_config(self) -> dict:
         """The scene-file / CALIB.json form (trailing zero rational terms dropped)."""
-        c = list(self.coefficients)
+        c = [float(v) for v in self.coefficients]
         n = N_COEFFICIENTS if any(c[5:]) else 5
         return {"model": "brown_conrady", "coefficients": c[:n]}
 

@@ -41,8 +41,10 @@ import torch
 from .. import optics
 from ..params import Param, SceneError
 from ..rays import Rays, normalize
+from ..transforms import CameraTransform
 from . import register_camera
 from .base import Camera, Screen
+from .distortion import BrownConrady
 
 THIN_LENS_PARAMS = [
     Param("w", "float", doc="lens centre to sensor (effective focal length), scene units"),
@@ -166,6 +168,26 @@ class ThinLensCamera(Camera):
         pp = cfg.get("principal_point_px")
         screen = Screen(width, height, tuple(cfg["sensor_size"]), lens["w"], pp)
         return cls(transform, screen, **lens)
+
+    @classmethod
+    def from_calibration(cls, image_size_px, pixel_pitch, w, U, d, theta_F, R, T, principal_point_px=None,
+                         distortion=None) -> "ThinLensCamera":
+        """The camera of a calibration's parametrisation (tiltfit's; `LensCamera.view_camera` builds its views
+        with it): a sensor of W x H pixels of pitch p at w, pose X_cam = R X_world + T.
+
+        Args:
+            image_size_px: (W, H); pixel_pitch: p, scene units (mm for a real camera).
+            w, U, d, theta_F: lens state (scene units, radians); floats or 0-dim tensors (gradients reach them).
+            R: (3, 3) rotation camera_from_world; T: (3,) translation.
+            principal_point_px: (cx, cy), a pair or a (2,) tensor [image centre].
+            distortion: None or up to 8 Brown–Conrady coefficients (sequence or tensor).
+        """
+        W, H = int(image_size_px[0]), int(image_size_px[1])
+        screen = Screen(W, H, (W * pixel_pitch, H * pixel_pitch), w, principal_point_px)
+        cam = cls(CameraTransform.from_extrinsics(R, T), screen, w, U, d, theta_F)
+        if distortion is not None:
+            cam.distortion = BrownConrady(distortion)
+        return cam
 
     def lens_points(self, lens_uv: torch.Tensor) -> torch.Tensor:
         """(..., 2) samples in [0, 1)² -> (..., 3) points on the tilted lens disc, camera frame."""

@@ -165,3 +165,61 @@ def test_renderer_never_imports_tiltfit():
     bad = [f"{os.path.relpath(p, ROOT)}:{line}" for m, p in mods.items()
            for dst, line in _imports(m, p, {"tiltfit"} | set(_modules("tiltfit"))) if _in(dst, ("tiltfit",))]
     assert not bad, "renderer imports tiltfit (tiltfit builds on renderer, never the reverse): " + ", ".join(bad)
+
+
+#: `renderer`'s public API, the only renderer modules tiltfit may import: the package itself (`renderer.__all__`:
+#: LensCamera, ThinLensCamera, project_pinhole, the rotations, render, load_scene, images ...), the cameras
+#: package (`renderer.cameras`: the camera classes and the one camera model), and the modules of shared
+#: concepts: distortion, optics (closed forms), sensor (exposure), transforms (poses), io, validation, params,
+#: formats, distributed, shapes (the registry), cli (the command-line helpers both front ends share).
+RENDERER_PUBLIC = ("renderer", "renderer.cameras", "renderer.cameras.distortion", "renderer.optics",
+                   "renderer.sensor", "renderer.transforms", "renderer.io", "renderer.validation", "renderer.params",
+                   "renderer.formats", "renderer.distributed", "renderer.shapes", "renderer.cli")
+
+
+def _renderer_imports(path: str) -> list[tuple[str, str | None, int]]:
+    """(renderer module, imported name or None, line) for every import of `renderer` in the file."""
+    with open(path, encoding="utf-8") as f:
+        tree = ast.parse(f.read(), path)
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out += [(a.name, None, node.lineno) for a in node.names if _in(a.name, ("renderer",))]
+        elif isinstance(node, ast.ImportFrom) and not node.level and _in(node.module or "", ("renderer",)):
+            out += [(node.module, a.name, node.lineno) for a in node.names]
+    return out
+
+
+def _private_renderer_uses(path: str) -> list[str]:
+    """Imports in the file that reach past renderer's public API (a module not in RENDERER_PUBLIC, or a
+    name with a leading underscore)."""
+    bad = []
+    for module, name, line in _renderer_imports(path):
+        # `from renderer import cameras` names a module: judge the module it names.
+        target = f"{module}.{name}" if name and f"{module}.{name}" in RENDERER_PUBLIC else module
+        if target not in RENDERER_PUBLIC or (name or "").startswith("_") or any(
+                p.startswith("_") for p in module.split(".")):
+            bad.append(f"{os.path.relpath(path, ROOT)}:{line} {module}{'.' + name if name else ''}")
+    return bad
+
+
+def test_the_public_api_check_finds_private_imports(tmp_path):
+    src = tmp_path / "x.py"
+    src.write_text("from renderer import LensCamera, optics\nfrom renderer.cameras import project_pinhole\n"
+                   "def f():\n    import renderer.io\n")
+    assert _private_renderer_uses(str(src)) == [], "public names and modules pass"
+    src.write_text("from renderer.cameras.thin_lens import ThinLensCamera\nfrom renderer.optics import _tensors\n"
+                   "def f():\n    import renderer.integrator\n")
+    got = _private_renderer_uses(str(src))
+    assert len(got) == 3, f"an implementation module, a private name and a private module import are found: {got}"
+
+
+def test_tiltfit_uses_only_renderers_public_api():
+    for module in RENDERER_PUBLIC:
+        parts = module.split(".")
+        path = os.path.join(ROOT, *parts) + ".py"
+        assert os.path.exists(path) or os.path.exists(os.path.join(ROOT, *parts, "__init__.py")), \
+            f"{module}: listed as public here but no such module (update RENDERER_PUBLIC)"
+    bad = [b for p in _modules("tiltfit").values() for b in _private_renderer_uses(p)]
+    assert not bad, "tiltfit reaches past renderer's public API (import from renderer or renderer.cameras): " + \
+        "; ".join(bad)

@@ -1,0 +1,339 @@
+"""The one camera model: pose, lens and sensor mapping as a torch module with tensor parameters, V views sharing
+one lens. It renders (`view_camera(v)` is the renderer's `ThinLensCamera` of view v, built from the module's own
+tensors, so gradients of a rendered image reach every parameter) and it is fitted (tiltfit's calibration uses it
+as `tiltfit.model.TiltLensCamera`: pinhole geometry plus thin-lens blur, paper eqs 2–4). Its two closed-form
+calls, both differentiable in every parameter:
+
+    project(X_world, view) -> uv_px    uv = c + (w / p) · D(x / z, y / z),  (x, y, z) = R X + T
+    blur(X_world, view)    -> b_px     blur-disc diameter b = w d |1/z_F − 1/z| / p     (eqs 2 and 4)
+
+The projection is `renderer.cameras.projection.project_pinhole` (the same function as every renderer camera's
+chief-ray projection), the blur `renderer.optics.blur_diameter`, rotations `renderer.transforms`.
+
+Conventions (docs/conventions.md): camera frame x right, y down, z forward; X_cam = R X_world + T;
+pixel (0, 0) is the centre of the top-left pixel and the principal point defaults to ((W−1)/2, (H−1)/2);
+the plane of focus is z = U + y tan θF in the camera frame; lengths in mm (the scene unit of a real camera),
+angles in radians.
+D is the lens's Brown–Conrady distortion in OpenCV's order and normalisation
+(`renderer.cameras.distortion`, coefficients k1, k2, p1, p2, k3, k4, k5, k6; identity when all are 0), so an
+untilted camera equals `cv2.projectPoints` with K = [[w/p, 0, cx], [0, w/p, cy], [0, 0, 1]].
+
+Blur models (`blur_model`; closed forms from `renderer.optics`, all equal to eq (2) when θF = 0):
+    "ellipse" (default): equivalent-area diameter 2 sqrt(ab) of the exact blur ellipse of an ideal thin lens
+        tilted about its centre by θL (θL from θF, w, U by the exact Scheimpflug relation).
+    "first_order": b = w d |1/z_F − 1/z| with z_F = U z / (z − y tan θF), where the chief ray meets the plane
+        of focus: the exact width along x to first order in the aperture.
+    "paper": b = w d |1/(U + y tan θF) − 1/z|, the paper's eq (4) (focus depth at the point's own height).
+A constant `blur_offset_px` (0 unless fitted) is added to every width: the blur detector's bias, not optics.
+
+Parametrisation (for conditioning, so one learning rate suits all parameters): w is stored as its logarithm
+(`log_w_mm`), the aperture in centimetres with d = |d_scaled| · 10 mm (`d_scaled`, so d ≥ 0 and a pinhole,
+d = 0, is an ordinary value: sharp images leave it near 0 instead of driving a logarithm to −∞), the focus as
+its inverse in dioptres (`inv_U_per_m` = 1000 / U_mm, so focus at infinity is the ordinary value 0), the
+distortion coefficients as themselves (`dist_k1` …), rotations as axis-angle vectors (`rvec`), translations
+in units of `length_scale_mm` (`T_scaled`, default 100 mm) and the principal-point offset from the image
+centre in units of `pixel_scale_px` (`pp_scaled`, default 100 px). Physical values are properties (`w_mm`, `T_mm`, `R`, `principal_point_px` …).
+`free(*names)` / `freeze(*names)` switch parameters on and off by friendly name: w, U, d, theta_F, rvec, T,
+principal_point, blur_offset, k1 … k6, p1, p2, or the groups lens (w, U, d), pose (rvec, T), distortion (all
+eight coefficients), all.
+"""
+from __future__ import annotations
+
+import copy
+import math
+
+import torch
+
+from .. import optics
+from ..optics import BLUR_MODELS
+from ..transforms import axis_angle_to_matrix, matrix_to_axis_angle
+from .distortion import COEFFICIENT_NAMES, MODEL_TERMS, BrownConrady
+from .projection import project_pinhole
+from .thin_lens import ThinLensCamera
+
+APERTURE_SCALE_MM = 10.0  # d_scaled is the aperture diameter in cm
+
+_DIST = tuple(f"dist_{k}" for k in COEFFICIENT_NAMES)
+_GROUPS = {
+    "w": ("log_w_mm",),
+    "U": ("inv_U_per_m",),
+    "d": ("d_scaled",),
+    "theta_F": ("theta_F",),
+    "rvec": ("rvec",),
+    "R": ("rvec",),
+    "T": ("T_scaled",),
+    "principal_point": ("pp_scaled",),
+    "blur_offset": ("blur_offset_px",),
+    "lens": ("log_w_mm", "inv_U_per_m", "d_scaled"),
+    "pose": ("rvec", "T_scaled"),
+    **{k: (f"dist_{k}",) for k in COEFFICIENT_NAMES},
+    "distortion": _DIST,
+    "all": ("log_w_mm", "inv_U_per_m", "d_scaled", "theta_F", "rvec", "T_scaled", "pp_scaled", "blur_offset_px")
+    + _DIST,
+}
+
+
+def distortion_parameter_names(model: str) -> tuple[str, ...]:
+    """Stored names of the coefficients a distortion model frees ("none", "k1", "k1k2", "opencv5", "rational")."""
+    if model not in MODEL_TERMS:
+        raise ValueError(f"distortion: expected one of {tuple(MODEL_TERMS)}, got {model!r}")
+    return tuple(f"dist_{k}" for k in MODEL_TERMS[model])
+
+
+class LensCamera(torch.nn.Module):
+    """Thin-lens camera with a tilted plane of focus and lens distortion, V views sharing one lens (tiltfit calls
+    it `TiltLensCamera`).
+
+    Args:
+        n_views: number of views V (poses).
+        image_size_px: (W, H).
+        pixel_pitch_mm: sensor pixel pitch p, mm (a constant, not fitted).
+        w_mm: lens centre to sensor (effective focal length), mm.
+        U_mm: lens centre to the plane of focus on the optical axis, mm (math.inf: focus at infinity).
+        d_mm: effective aperture diameter, mm.
+        distortion: up to 8 Brown–Conrady coefficients (k1, k2, p1, p2, k3, k4, k5, k6) [zeros]; frozen
+            unless freed (`free("k1")`, `free(*distortion_parameter_names("opencv5"))`).
+        theta_F: tilt of the plane of focus about the camera x axis, radians [0].
+        R: (V, 3, 3) rotations camera_from_world [identity]; or `rvec` (V, 3) axis-angle.
+        T_mm: (V, 3) translations, mm [(0, 0, 600)].
+        principal_point_px: (cx, cy) [image centre]; frozen unless freed.
+        blur_model: "ellipse", "first_order" or "paper" (see the module docstring).
+        length_scale_mm, pixel_scale_px: units of the stored translation and principal-point parameters.
+
+    By default every parameter is free except the principal point.
+    """
+
+    def __init__(self, n_views: int, image_size_px, pixel_pitch_mm: float, w_mm: float, U_mm: float,
+                 d_mm: float, theta_F: float = 0.0, R=None, T_mm=None, rvec=None, principal_point_px=None,
+                 blur_model: str = "ellipse", length_scale_mm: float = 100.0, pixel_scale_px: float = 100.0,
+                 dtype=torch.float64, distortion=None):
+        super().__init__()
+        if blur_model not in BLUR_MODELS:
+            raise ValueError(f"blur_model: expected one of {BLUR_MODELS}, got {blur_model!r}")
+        for name, v in (("pixel_pitch_mm", pixel_pitch_mm), ("w_mm", w_mm), ("d_mm", d_mm)):
+            if not (math.isfinite(float(v)) and float(v) > 0):
+                raise ValueError(f"{name}: expected a positive length, got {v!r}")
+        if not float(U_mm) > 0:
+            raise ValueError(f"U_mm: expected a positive length or inf, got {U_mm!r}")
+        if not abs(float(theta_F)) < math.pi / 2:
+            raise ValueError(f"theta_F: expected |θF| < 90°, got {math.degrees(float(theta_F))}°")
+        self.image_size_px = (int(image_size_px[0]), int(image_size_px[1]))
+        self.pixel_pitch_mm = float(pixel_pitch_mm)
+        self.blur_model = blur_model
+        self.length_scale_mm = float(length_scale_mm)
+        self.pixel_scale_px = float(pixel_scale_px)
+        V = int(n_views)
+        if rvec is None:
+            rvec = torch.zeros(V, 3) if R is None else matrix_to_axis_angle(R)
+        rvec = torch.as_tensor(rvec, dtype=dtype).reshape(V, 3)
+        T_mm = torch.tensor([[0.0, 0.0, 600.0]] * V) if T_mm is None else T_mm
+        T_mm = torch.as_tensor(T_mm, dtype=dtype).reshape(V, 3)
+        P = torch.nn.Parameter
+        self.log_w_mm = P(torch.tensor(math.log(float(w_mm)), dtype=dtype))
+        self.inv_U_per_m = P(torch.tensor(1000.0 / float(U_mm), dtype=dtype))
+        # d = 0 exactly would be a stationary point of |d_scaled| (zero gradient): start a hair above it.
+        self.d_scaled = P(torch.tensor(max(float(d_mm), 1e-6) / APERTURE_SCALE_MM, dtype=dtype))
+        self.theta_F = P(torch.tensor(float(theta_F), dtype=dtype))
+        self.rvec = P(rvec.clone())
+        self.T_scaled = P(T_mm / self.length_scale_mm)
+        W, H = self.image_size_px
+        centre = torch.tensor([(W - 1) / 2.0, (H - 1) / 2.0], dtype=dtype)
+        self.register_buffer("image_centre_px", centre)
+        pp = centre if principal_point_px is None else torch.as_tensor(principal_point_px, dtype=dtype)
+        self.pp_scaled = P((pp - centre) / self.pixel_scale_px)
+        k = BrownConrady(() if distortion is None else tuple(distortion)).coefficients  # checked, padded to 8
+        for name, v in zip(_DIST, k):
+            setattr(self, name, P(torch.tensor(v, dtype=dtype)))
+        # A constant added to every measured blur width: a blur detector's bias (e.g. from its edge model),
+        # not optics. Frozen at 0 unless freed; the fit frees it so the bias does not leak into d and U.
+        self.blur_offset_px = P(torch.tensor(0.0, dtype=dtype))
+        self.freeze("principal_point", "distortion", "blur_offset")
+
+    # --- freeing and freezing --------------------------------------------------------------------------
+    @staticmethod
+    def parameter_names(*names: str) -> list[str]:
+        """Stored parameter names for friendly names (w, U, d, theta_F, rvec, T, principal_point, lens,
+        pose, all) or stored names themselves."""
+        out: list[str] = []
+        for n in names:
+            if n in _GROUPS:
+                out.extend(_GROUPS[n])
+            elif n in _GROUPS["all"]:
+                out.append(n)
+            else:
+                raise ValueError(f"unknown parameter {n!r} (expected one of {', '.join(_GROUPS)})")
+        return list(dict.fromkeys(out))
+
+    def free(self, *names: str) -> "LensCamera":
+        """Let the named parameters be fitted (requires_grad = True); returns self."""
+        for n in self.parameter_names(*names):
+            getattr(self, n).requires_grad_(True)
+        return self
+
+    def freeze(self, *names: str) -> "LensCamera":
+        """Hold the named parameters (requires_grad = False); returns self."""
+        for n in self.parameter_names(*names):
+            getattr(self, n).requires_grad_(False)
+        return self
+
+    def free_parameter_names(self) -> list[str]:
+        return [n for n, p in self.named_parameters() if p.requires_grad]
+
+    # --- physical values ---------------------------------------------------------------------------------
+    @property
+    def n_views(self) -> int:
+        return self.rvec.shape[0]
+
+    @property
+    def w_mm(self) -> torch.Tensor:
+        return torch.exp(self.log_w_mm)
+
+    @property
+    def U_mm(self) -> torch.Tensor:
+        """Focus distance, mm (inf at focus at infinity)."""
+        return 1000.0 / self.inv_U_per_m
+
+    @property
+    def distortion(self) -> torch.Tensor:
+        """(8,) Brown–Conrady coefficients (k1, k2, p1, p2, k3, k4, k5, k6)."""
+        return torch.stack([getattr(self, n) for n in _DIST])
+
+    @property
+    def d_mm(self) -> torch.Tensor:
+        return self.d_scaled.abs() * APERTURE_SCALE_MM
+
+    @property
+    def tan_theta_F(self) -> torch.Tensor:
+        return torch.tan(self.theta_F)
+
+    @property
+    def theta_L(self) -> torch.Tensor:
+        """Exact lens tilt, radians (tan θL = w tan θF / (U + w))."""
+        return optics.theta_L_from_theta_F(self.theta_F, self.w_mm, self.U_mm)
+
+    @property
+    def f_mm(self) -> torch.Tensor:
+        """Focal length of the ideal thin lens in this state: f = U w cos θL / (U + w) (hinge rule)."""
+        return optics.focal_length(self.w_mm, self.U_mm, self.theta_L)
+
+    @property
+    def theta_L_paper(self) -> torch.Tensor:
+        """The paper's eq (1), θL = atan(f tan θF / (U + f)), with this state's f; radians."""
+        return optics.theta_L_paper(self.theta_F, self.f_mm, self.U_mm)
+
+    @property
+    def R(self) -> torch.Tensor:
+        """(V, 3, 3) rotations camera_from_world."""
+        return axis_angle_to_matrix(self.rvec)
+
+    @property
+    def T_mm(self) -> torch.Tensor:
+        """(V, 3) translations, mm."""
+        return self.T_scaled * self.length_scale_mm
+
+    @property
+    def principal_point_px(self) -> torch.Tensor:
+        """(2,) principal point (cx, cy), pixels."""
+        return self.image_centre_px + self.pp_scaled * self.pixel_scale_px
+
+    @property
+    def focal_px(self) -> torch.Tensor:
+        return self.w_mm / self.pixel_pitch_mm
+
+    # --- the two calls -----------------------------------------------------------------------------------
+    def to_camera(self, X_world: torch.Tensor, view=None) -> torch.Tensor:
+        """World points to the camera frame: X_cam = R X_world + T.
+
+        Args:
+            X_world: (..., 3) points, mm.
+            view: view index (int), or None for all views.
+        Returns:
+            (..., 3) for one view, (V, ..., 3) for all views; mm.
+        """
+        X = torch.as_tensor(X_world, dtype=self.rvec.dtype, device=self.rvec.device)
+        R, T = self.R, self.T_mm
+        if view is not None:
+            return X @ R[view].transpose(-1, -2) + T[view]
+        extra = X.dim() - 1
+        R = R.reshape((R.shape[0],) + (1,) * extra + (3, 3))
+        T = T.reshape((T.shape[0],) + (1,) * extra + (3,))
+        return (X.unsqueeze(0).unsqueeze(-2) @ R.transpose(-1, -2)).squeeze(-2) + T
+
+    def project_camera(self, p_cam: torch.Tensor, with_distortion: bool = True) -> torch.Tensor:
+        """(..., 3) camera-frame points -> (..., 2) pixels: uv = c + (w / p) D(x / z, y / z) (`project_pinhole`).
+
+        `with_distortion` False skips D (callers that know all coefficients are held at 0 save its cost)."""
+        return project_pinhole(p_cam, self.focal_px, self.principal_point_px,
+                               self.distortion if with_distortion else None)
+
+    def blur_camera(self, p_cam: torch.Tensor) -> torch.Tensor:
+        """(..., 3) camera-frame points -> (...,) blur diameters in pixels (eq (2)/(4), `blur_model`)."""
+        b_mm = optics.blur_diameter(p_cam, self.w_mm, self.U_mm, self.d_mm, self.theta_F, self.blur_model)
+        return b_mm / self.pixel_pitch_mm + self.blur_offset_px
+
+    def project(self, X_world: torch.Tensor, view=None) -> torch.Tensor:
+        """(..., 3) world points (mm) -> (..., 2) pixels in `view` (or (V, ..., 2) for view=None)."""
+        return self.project_camera(self.to_camera(X_world, view))
+
+    def blur(self, X_world: torch.Tensor, view=None) -> torch.Tensor:
+        """(..., 3) world points (mm) -> (...,) blur diameters in pixels in `view` (or (V, ...))."""
+        return self.blur_camera(self.to_camera(X_world, view))
+
+    def forward(self, X_world: torch.Tensor, with_blur: bool = True, with_distortion: bool = True):
+        """All views at once: (N, 3) world points -> ((V, N, 2) uv_px, (V, N) blur_px); the blur is zeros
+        when `with_blur` is False (geometric fits skip its cost); see `project_camera` for `with_distortion`."""
+        p_cam = self.to_camera(X_world)
+        uv = self.project_camera(p_cam, with_distortion)
+        return uv, (self.blur_camera(p_cam) if with_blur else torch.zeros_like(p_cam[..., 0]))
+
+    # --- rendering -----------------------------------------------------------------------------------------
+    def view_camera(self, view: int) -> ThinLensCamera:
+        """The renderer's thin-lens camera of one view, built from this module's tensors.
+
+        Its w, U, d, θF, pose (R, T of the view), principal point and distortion coefficients are the module's
+        parameters (through their physical values, not copies), so an image rendered with it
+        (`renderer.render`, `integrator.trace` of its rays) has gradients with respect to every free parameter.
+        It projects world points exactly as `project(X, view)` (its chief rays; `ThinLensCamera.project`), and
+        traces each pixel through its undistorted position. Lengths in mm: render scenes in mm.
+
+        Args:
+            view: view index, 0 ≤ view < n_views.
+        Returns:
+            ThinLensCamera with image size `image_size_px`. Focus at infinity (1/U = 0) renders, but has no
+            gradient with respect to 1/U there (U = 1000 / inv_U_per_m is infinite).
+        """
+        if not -self.n_views <= int(view) < self.n_views:
+            raise IndexError(f"view: expected 0 <= view < {self.n_views}, got {view}")
+        return ThinLensCamera.from_calibration(self.image_size_px, self.pixel_pitch_mm, self.w_mm, self.U_mm,
+                                               self.d_mm, self.theta_F, self.R[view], self.T_mm[view],
+                                               self.principal_point_px, self.distortion)
+
+    # --- convenience -------------------------------------------------------------------------------------
+    def copy(self) -> "LensCamera":
+        """An independent copy with the same free/frozen state."""
+        return copy.deepcopy(self)
+
+    def summary(self) -> dict:
+        """Plain floats of the lens state (mm and degrees)."""
+        with torch.no_grad():
+            return {
+                "w_mm": float(self.w_mm), "U_mm": float(self.U_mm), "d_mm": float(self.d_mm),
+                "f_mm": float(self.f_mm), "theta_F_deg": math.degrees(float(self.theta_F)),
+                "theta_L_deg": math.degrees(float(self.theta_L)),
+                "theta_L_paper_deg": math.degrees(float(self.theta_L_paper)),
+                "principal_point_px": [float(v) for v in self.principal_point_px],
+                "distortion": [float(v) for v in self.distortion],
+                "blur_offset_px": float(self.blur_offset_px),
+            }
+
+    @classmethod
+    def from_tilted_lens(cls, n_views: int, image_size_px, pixel_pitch_mm: float, w_mm: float, f_mm: float,
+                         d_mm: float, theta_L: float, **kwargs) -> "LensCamera":
+        """A camera whose thin lens (focal f, sensor at w) is tilted by θL about its centre.
+
+        U and θF follow from the exact relations (hinge rule and Scheimpflug), so U moves with the tilt.
+        """
+        U = optics.focus_distance_tilted(w_mm, f_mm, theta_L)
+        theta_F = optics.theta_F_from_theta_L(theta_L, w_mm, U)
+        return cls(n_views, image_size_px, pixel_pitch_mm, w_mm, float(U), d_mm, float(theta_F), **kwargs)
+

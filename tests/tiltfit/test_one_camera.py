@@ -1,0 +1,61 @@
+"""tiltfit's cameras are the renderer's one camera model: the calibration's TiltLensCamera is renderer.LensCamera,
+the synthetic camera's projection and blur agree with it, and the photometric fit's camera is its view camera."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import renderer
+from tiltfit import photometric, synth
+from tiltfit.model import TiltLensCamera
+
+
+def test_the_calibration_camera_is_the_renderers():
+    assert TiltLensCamera is renderer.LensCamera, "one class, two names"
+
+
+def test_synth_camera_projects_and_blurs_as_the_lens_camera():
+    sc = synth.SynthCamera(w_mm=50.0, U_mm=700.0, d_mm=12.0, pixel_pitch_mm=0.01, width_px=801, height_px=533,
+                           theta_F_rad=math.radians(25.0), principal_point_px=(410.5, 260.25))
+    R, T = synth.pose_from_axis_angle([0.2, -0.15, 0.05], [10.0, -5.0, 650.0])
+    lc = TiltLensCamera(1, (sc.width_px, sc.height_px), sc.pixel_pitch_mm, sc.w_mm, sc.U_mm, sc.d_mm,
+                        sc.theta_F_rad, R=R[None], T_mm=T[None], principal_point_px=sc.principal_point_px)
+    X = np.random.default_rng(2).uniform(-60, 60, (40, 3)) * np.array([1, 1, 0])
+    p_cam = X @ R.T + T
+    with torch.no_grad():
+        uv_lens = lc.project(torch.tensor(X), 0).numpy()
+        b_lens = lc.blur(torch.tensor(X), 0).numpy()
+    assert np.abs(sc.project(p_cam) - uv_lens).max() < 1e-9, "SynthCamera.project = LensCamera.project"
+    assert np.abs(sc.blur_px(p_cam) - b_lens).max() < 1e-9, "SynthCamera.blur_px = LensCamera.blur (ellipse)"
+    # pose_from_axis_angle is the renderer's Rodrigues (checked against OpenCV in tests/renderer).
+    assert np.allclose(R, lc.R[0].detach().numpy(), atol=1e-12), "one Rodrigues"
+
+
+def test_photometric_camera_is_the_lens_cameras_view():
+    lc = TiltLensCamera(2, (64, 48), 0.05, 30.0, 500.0, 4.0, math.radians(-20.0),
+                        rvec=[[0.1, 0.2, -0.1], [0.0, -0.1, 0.05]], T_mm=[[3.0, 2.0, 480.0], [-4.0, 1.0, 520.0]],
+                        principal_point_px=(33.0, 22.5), distortion=(-0.1, 0.02))
+    sensor = photometric.SensorGeometry(64, 48, 0.05, (33.0, 22.5), tuple(float(k) for k in lc.distortion))
+    with torch.no_grad():
+        cam = photometric.lens_camera(sensor, lc.w_mm, lc.inv_U_per_m, lc.d_mm, lc.theta_F, lc.rvec[1],
+                                      lc.T_mm[1])
+        view = lc.view_camera(1)
+        uv = torch.tensor([[3.0, 4.0], [40.2, 30.7], [63.0, 47.0]], dtype=torch.float64)
+        lens = torch.tensor([[0.2, 0.7], [0.5, 0.5], [0.9, 0.1]], dtype=torch.float64)
+        a, b = cam.generate_rays(uv, lens), view.generate_rays(uv, lens)
+    for name in ("origin", "direction"):
+        err = float((getattr(a, name) - getattr(b, name)).abs().max())
+        assert err < 1e-12, f"photometric.lens_camera and LensCamera.view_camera: ray {name}s differ by {err:.3g}"
+
+
+def test_lens_params_keys_build_the_same_lens():
+    from tiltfit.scenes import LensParams, boxes_scene
+
+    lens = LensParams(55.0, 640.0, 18.0, theta_L_deg=5.0)
+    cam = boxes_scene(lens, downscale=64).camera
+    tan_F = (640.0 + 55.0) * math.tan(math.radians(5.0)) / 55.0  # Scheimpflug, exact
+    assert (cam.w, cam.U, cam.d) == (55.0, 640.0, 18.0), "w, U, d as given"
+    assert math.tan(cam.theta_F) == pytest.approx(tan_F, rel=1e-12), "θF from θL by the exact Scheimpflug rule"

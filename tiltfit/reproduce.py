@@ -46,6 +46,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 import torch
 from renderer import optics, render, write_image
+from renderer.transforms import euler_xyz_deg
 from renderer.sensor import SensorResponse
 
 from .evaluate import (compare_profiles, linear_from_grey_levels, plot_images, plot_profiles,
@@ -289,10 +290,7 @@ def target_pose(target, rot_x_deg: float, rot_y_deg: float, distance_mm: float) 
     board turned by rot_x then rot_y about the camera axes."""
     from .target import design_centre_mm
 
-    a, b = math.radians(rot_x_deg), math.radians(rot_y_deg)
-    Rx = np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
-    Ry = np.array([[math.cos(b), 0, math.sin(b)], [0, 1, 0], [-math.sin(b), 0, math.cos(b)]])
-    R = Ry @ Rx
+    R = euler_xyz_deg((rot_x_deg, rot_y_deg, 0.0)).numpy()  # Ry · Rx
     xc, yc = design_centre_mm(target)
     return R, np.array([0.0, 0.0, distance_mm]) - R @ np.array([xc, yc, 0.0])
 

@@ -198,7 +198,7 @@ def default_chunk_rays(device) -> int:
 def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, device="cpu",
            dtype=torch.float32, seed: int = 0, chunk_rays: int | None = None, progress: bool = False,
            max_depth: int | None = None, culling: bool | None = None, compile: bool | None = None,
-           workers: int = 1, threads: int | None = 1) -> RenderResult:
+           workers: int = 1, threads: int | None = 1, intersector: str | None = None) -> RenderResult:
     """Render the scene's camera image.
 
     Args:
@@ -211,7 +211,8 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
             (Python overhead per operation). Default on a GPU 2^22, fewer if its free memory is short: with
             2^15 an H100 waited on kernel launches (1.6 s, no faster than one CPU thread), with 2^22 it took
             0.032 s (benchmarks/results/speed_gpu_h100.md, profile_gpu_h100.md).
-        culling, compile: override scene.options (see `renderer.scene.TraceOptions`); speed only.
+        culling, compile, intersector: override scene.options (see `renderer.scene.TraceOptions`); speed only
+            (`intersector="mitsuba"`: hits and shadow rays by Embree through Mitsuba 3, `renderer.mitsuba.intersect`).
         workers: CPU only: trace chunks in this many worker processes with one torch thread each (they
             are started on first use and kept for later calls; each unpickles the scene once per render).
             The image does not depend on it.
@@ -233,6 +234,8 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
         options = replace(options, culling=culling)
     if compile is not None:
         options = replace(options, compile=compile)
+    if intersector is not None:
+        options = replace(options, intersector=intersector)
     smp = Sampler(sampler, spp, seed)
     image = torch.empty(W * H, 3, dtype=dtype, device=device)
     coverage = torch.empty(W * H, dtype=dtype, device=device)

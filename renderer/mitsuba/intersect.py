@@ -148,7 +148,8 @@ class MitsubaIntersector:
         t = dr.select(valid, pi.t + t_min, math.inf)
         obj = dr.select(valid, obj, -1)
         dr.eval(t, obj, aux)
-        return (t.torch().to(o.dtype), obj.torch().long(), aux.torch().long())
+        t, obj, aux = _to_torch(t, obj, aux)
+        return t.to(o.dtype), obj.long(), aux.long()
 
     def visible(self, o: torch.Tensor, d: torch.Tensor, t_max: torch.Tensor, t_min: float) -> torch.Tensor:
         """(N,) 1 where nothing lies on o + t·d for t in (t_min, t_max), else 0 (o's dtype); o, d (3, N) rows."""
@@ -158,7 +159,12 @@ class MitsubaIntersector:
         blocked = self.mscene.ray_test(ray, active)
         vis = dr.select(blocked & active, 0.0, mi.Float(1.0))
         dr.eval(vis)
-        return vis.torch().to(o.dtype)
+        return _to_torch(vis)[0].to(o.dtype)
+
+
+def _to_torch(*arrays):
+    """Evaluated Dr.Jit arrays as torch tensors sharing their memory (DLPack; waits for the kernel)."""
+    return tuple(a.torch() for a in arrays)
 
 
 def _f32(x: torch.Tensor) -> torch.Tensor:

@@ -183,3 +183,20 @@ def engine(scene) -> MitsubaIntersector:
             _ENGINES.clear()
         _ENGINES[key] = (scene, MitsubaIntersector(scene))
     return _ENGINES[key][1]
+
+
+def use_intersector(scene, name: str, device="cpu") -> None:
+    """Set `scene.options.intersector` to `name` for the command line, building the Mitsuba scene now so that
+    a scene or machine it cannot serve is a one-line `UsageError` (exit 2) before any rendering."""
+    from dataclasses import replace
+
+    from ..cli import UsageError
+
+    if name == "mitsuba":
+        if torch.device(device).type != "cpu":
+            raise UsageError(f"--intersector mitsuba: traces on the CPU only, not on {device}")
+        try:
+            engine(scene)
+        except (NotImplementedError, ImportError) as e:
+            raise UsageError(f"--intersector mitsuba: {' '.join(str(e).split())}") from None
+    scene.options = replace(scene.options, intersector=name)

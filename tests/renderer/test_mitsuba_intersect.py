@@ -152,11 +152,12 @@ def test_shadow_rays_agree(scene, calls):
 
 def _assert_close_images(a, b, what):
     """Edge pixels only: at most 0.5 % of the pixels (15 of 64 × 48) differ by more than 1e-3, and the mean
-    |diff| stays below 1e-4 of the image mean (one fully different edge pixel in 3072 would give ~3e-4; the
-    scenes here measured 1.4e-7 and no pixel over 1e-3)."""
+    |diff| stays below 2e-3 of the image mean (about 6 of the 3072 pixels changed by the image mean; a
+    different hit in one of a pixel's 2 samples changes it by about half that). Measured: 1.4e-7 of the
+    mean, no pixel over 1e-3."""
     diff = (a - b).abs()
     frac = float((diff.amax(-1) > 1e-3).float().mean())
-    assert float(diff.mean()) < 1e-4 * float(b.mean()), f"{what}: mean |diff| {float(diff.mean()):.2e}"
+    assert float(diff.mean()) < 2e-3 * float(b.mean()), f"{what}: mean |diff| {float(diff.mean()):.2e}"
     assert frac < 0.005, f"{what}: {100 * frac:.2f} % of pixels differ by more than 1e-3"
 
 

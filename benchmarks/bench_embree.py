@@ -42,8 +42,14 @@ MODES = {"ours defaults": {}, "ours chunk 2^17": {"chunk_rays": 1 << 17},
          "embree": {"intersector": "mitsuba"},
          "embree chunk 2^17": {"intersector": "mitsuba", "chunk_rays": 1 << 17},
          "embree chunk 2^19": {"intersector": "mitsuba", "chunk_rays": 1 << 19},
+         # threads=None: render leaves the thread settings alone, so torch keeps this process's one thread
+         # (set in main) and Dr.Jit its own pool (all cores) instead of render's one thread for both.
+         "embree jit pool": {"intersector": "mitsuba", "threads": None},
+         "embree jit pool chunk 2^17": {"intersector": "mitsuba", "threads": None, "chunk_rays": 1 << 17},
+         "ours workers2": {"workers": 2},
          "embree workers2": {"intersector": "mitsuba", "workers": 2}}
-DEFAULT_MODES = "ours defaults,ours chunk 2^17,embree,embree chunk 2^17,embree chunk 2^19"
+DEFAULT_MODES = ("ours defaults,ours chunk 2^17,embree,embree chunk 2^17,embree chunk 2^19,embree jit pool,"
+                 "embree jit pool chunk 2^17,ours workers2,embree workers2")
 
 
 class _Clock:
@@ -151,8 +157,9 @@ def write_markdown(path: str, res: dict) -> None:
         "",
         f"Date: {res['date']}. {m['cores']} cores shared with other jobs: load average {m['load_start']} at the start, "
         f"{m['load_end']} at the end (1, 5, 15 min). torch {m['torch']} (one thread while tracing, `render`'s "
-        f"default), Mitsuba {m['mitsuba']} `{mi_t['kwargs']['variant']}`, Dr.Jit thread pool {m['drjit_threads']} "
-        "threads (used by the Embree intersector and by Mitsuba's own render).",
+        f"default), Mitsuba {m['mitsuba']} `{mi_t['kwargs']['variant']}`. Dr.Jit's thread pool: {m['drjit_threads']} "
+        "threads for Mitsuba's full render and the `jit pool` modes; the other Embree modes run it with one thread "
+        "(`render(threads=1)`, the default, sets both torch's and Dr.Jit's; workers use one of each).",
         f"Command: `{res['command']}`",
         f"Scene: `{res['scene']}`, {res['size']}×{res['size']}, {res['spp']} spp.",
         "",
@@ -200,7 +207,8 @@ def main(argv=None):
     ap.add_argument("--spp", type=int, default=16)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--modes", default=DEFAULT_MODES, help=f"comma-separated, of: {', '.join(MODES)}")
-    ap.add_argument("--drjit-threads", type=int, help="Dr.Jit's thread pool size [its default: all cores]")
+    ap.add_argument("--drjit-threads", type=int, help="Dr.Jit's thread pool outside our renders (Mitsuba's full render, "
+                    "the `jit pool` modes) [its default: all cores]")
     ap.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", "speed_thin_lens_embree"))
     ap.add_argument("--markdown-only", action="store_true", help="rewrite OUT.md from OUT.json (no timing)")
     args = ap.parse_args(argv)
@@ -209,6 +217,7 @@ def main(argv=None):
             write_markdown(args.out + ".md", json.load(f))
         return
     log = lambda msg: print(msg, file=sys.stderr, flush=True)  # noqa: E731
+    torch.set_num_threads(1)  # what render(threads=1) sets anyway; kept by the threads=None modes
     load_start = [round(x, 1) for x in os.getloadavg()]
     scene = load_scene(SCENE, [f"image.width={args.size}", f"image.height={args.size}", f"image.spp={args.spp}"])
     ms = Mitsuba(scene, args.spp, "llvm_ad_rgb")

@@ -162,6 +162,10 @@ def _worker_render(digest, blob, pixel, n, spp, sampler, seed, options, dtype, m
         _WORKER_SCENE.clear()
         _WORKER_SCENE[digest] = pickle.loads(blob)
     scene = _WORKER_SCENE[digest]
+    if options.intersector == "mitsuba":  # one Dr.Jit thread per worker, as one torch thread
+        from .mitsuba.intersect import set_jit_threads
+
+        set_jit_threads(1)
     smp = Sampler(sampler, spp, seed)
     sub = _pixels_per_chunk(options, spp, chunk_rays)
     parts = [_render_pixels(scene, pixel[a:a + sub], smp, options, "cpu", dtype, max_depth)
@@ -220,7 +224,9 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
             torch's own setting]. Eager tracing is a chain of small memory-bound operations: a second
             thread gained little on these 2 cores, and torch's OpenMP barriers made 2 threads up to 15x
             slower while other programs shared the cores (benchmarks/results/speed_thin_lens.md); use
-            `workers` for the other cores.
+            `workers` for the other cores. With `intersector="mitsuba"` Dr.Jit's thread pool gets the same
+            number of threads while tracing (its default, all cores, was up to 3x slower under load:
+            benchmarks/results/speed_thin_lens_embree.md).
     Returns:
         RenderResult with the (H, W, 3) image and the (H, W) coverage; pixels without any valid ray keep
         the background colour.
@@ -243,12 +249,19 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
     previous = torch.get_num_threads()
     if threads is not None and torch.device(device).type == "cpu" and threads != previous:
         torch.set_num_threads(threads)
+    jit_threads = None
+    if options.intersector == "mitsuba" and threads is not None and workers <= 1:
+        from .mitsuba.intersect import set_jit_threads
+
+        jit_threads = set_jit_threads(threads)
     try:
         _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device, dtype, seed, chunk_rays,
                      max_depth, workers)
     finally:
         if torch.get_num_threads() != previous:
             torch.set_num_threads(previous)
+        if jit_threads is not None:
+            set_jit_threads(jit_threads)
     return RenderResult(image.reshape(H, W, 3), coverage.reshape(H, W))
 
 

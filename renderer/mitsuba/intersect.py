@@ -185,6 +185,16 @@ def engine(scene) -> MitsubaIntersector:
     return _ENGINES[key][1]
 
 
+def set_jit_threads(n: int) -> int:
+    """Set Dr.Jit's thread pool to n threads (what the Embree kernels run on); returns the previous size."""
+    import drjit as dr
+
+    previous = dr.thread_count()
+    if n != previous:
+        dr.set_thread_count(n)
+    return previous
+
+
 def use_intersector(scene, name: str, device="cpu") -> None:
     """Set `scene.options.intersector` to `name` for the command line, building the Mitsuba scene now so that
     a scene or machine it cannot serve is a one-line `UsageError` (exit 2) before any rendering."""

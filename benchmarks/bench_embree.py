@@ -39,17 +39,16 @@ from renderer.scenefile import load_scene  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 MODES = {"ours defaults": {}, "ours chunk 2^17": {"chunk_rays": 1 << 17},
-         "embree": {"intersector": "mitsuba"},
-         "embree chunk 2^17": {"intersector": "mitsuba", "chunk_rays": 1 << 17},
+         "embree chunk 2^15": {"intersector": "mitsuba", "chunk_rays": 1 << 15},
+         "embree": {"intersector": "mitsuba"},  # its default chunk_rays, EMBREE_CHUNK_RAYS = 2^17
          "embree chunk 2^19": {"intersector": "mitsuba", "chunk_rays": 1 << 19},
          # threads=None: render leaves the thread settings alone, so torch keeps this process's one thread
          # (set in main) and Dr.Jit its own pool (all cores) instead of render's one thread for both.
          "embree jit pool": {"intersector": "mitsuba", "threads": None},
-         "embree jit pool chunk 2^17": {"intersector": "mitsuba", "threads": None, "chunk_rays": 1 << 17},
          "ours workers2": {"workers": 2},
          "embree workers2": {"intersector": "mitsuba", "workers": 2}}
-DEFAULT_MODES = ("ours defaults,ours chunk 2^17,embree,embree chunk 2^17,embree chunk 2^19,embree jit pool,"
-                 "embree jit pool chunk 2^17,ours workers2,embree workers2")
+DEFAULT_MODES = ("ours defaults,ours chunk 2^17,embree chunk 2^15,embree,embree chunk 2^19,embree jit pool,"
+                 "ours workers2,embree workers2")
 
 
 class _Clock:
@@ -169,7 +168,7 @@ def write_markdown(path: str, res: dict) -> None:
     ]
     for name, v in t.items():
         ag = res["agreement"].get(name)
-        label = f"Mitsuba {mi_t['kwargs']['variant']}, full render" if name == "mitsuba" else f"ours, {name}"
+        label = f"Mitsuba {mi_t['kwargs']['variant']}, full render" if name == "mitsuba" else name
         lines.append(
             f"| {label} | {v['warmup_s']:.2f} | {v['median_wall_s']:.3f} | {v['median_cpu_s']:.3f} | "
             f"{v['median_wall_s'] / mi_t['median_wall_s']:.2f} | "

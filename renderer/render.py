@@ -183,6 +183,10 @@ def _pool(workers: int):
 
 
 CPU_CHUNK_RAYS, GPU_CHUNK_RAYS = 1 << 15, 1 << 22
+# With `intersector="mitsuba"` (CPU only): larger batches pay Dr.Jit's per-call costs (tracing its IR, handing
+# arrays over) less often; 2^17 took 0.51-0.56x our default's time against 0.65-0.71x at 2^15 on the issue-11
+# speed scene (benchmarks/results/speed_thin_lens_embree.md).
+EMBREE_CHUNK_RAYS = 1 << 17
 BYTES_PER_RAY = 2048  # twice the measured ~1 KB a ray (float32, depth 5); the batch takes at most half the
                      # free memory: room for float64 and for torch's cached blocks
 
@@ -214,7 +218,8 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
             (N,) rows in the caches: 10 % faster than 2^17 on the issue-11 speed scene, 2^12 was 2x slower
             (Python overhead per operation). Default on a GPU 2^22, fewer if its free memory is short: with
             2^15 an H100 waited on kernel launches (1.6 s, no faster than one CPU thread), with 2^22 it took
-            0.032 s (benchmarks/results/speed_gpu_h100.md, profile_gpu_h100.md).
+            0.032 s (benchmarks/results/speed_gpu_h100.md, profile_gpu_h100.md). With
+            `intersector="mitsuba"` 2^17 (`EMBREE_CHUNK_RAYS`).
         culling, compile, intersector: override scene.options (see `renderer.scene.TraceOptions`); speed only
             (`intersector="mitsuba"`: hits and shadow rays by Embree through Mitsuba 3, `renderer.mitsuba.intersect`).
         workers: CPU only: trace chunks in this many worker processes with one torch thread each (they
@@ -233,6 +238,7 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
     """
     W, H = scene.camera.width, scene.camera.height
     spp = scene.image.spp if spp is None else spp
+    chunk_given = chunk_rays
     chunk_rays = default_chunk_rays(device) if chunk_rays is None else chunk_rays
     sampler = sampler or scene.image.sampler
     options = scene.options
@@ -242,6 +248,8 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
         options = replace(options, compile=compile)
     if intersector is not None:
         options = replace(options, intersector=intersector)
+    if chunk_given is None and options.intersector == "mitsuba":
+        chunk_rays = EMBREE_CHUNK_RAYS
     smp = Sampler(sampler, spp, seed)
     image = torch.empty(W * H, 3, dtype=dtype, device=device)
     coverage = torch.empty(W * H, dtype=dtype, device=device)

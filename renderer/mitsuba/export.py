@@ -254,13 +254,16 @@ def to_mitsuba(scene, spp: int | None = None, integrator: dict | None = None, *,
     return out, dropped
 
 
-def shape_dicts(mi, scene, dropped: list[str] | None = None, *, plane_size: float = 1e3, segments: int = 256) -> dict:
-    """Mitsuba shapes of the scene's objects: {key: shape dict or loaded mesh}, keys `object_{i}` (a cylinder
-    also `object_{i}_base` and `object_{i}_top`, its caps); what cannot be expressed is appended to `dropped`.
-    See `to_mitsuba` for the arguments."""
+def shape_dicts(mi, scene, dropped: list[str] | None = None, *, plane_size: float = 1e3, segments: int = 256,
+                only=None) -> dict:
+    """Mitsuba shapes of the scene's objects (those with an index in `only`, when given): {key: shape dict or
+    loaded mesh}, keys `object_{i}` (a cylinder also `object_{i}_base` and `object_{i}_top`, its caps); what
+    cannot be expressed is appended to `dropped`. See `to_mitsuba` for the other arguments."""
     T = mi.ScalarTransform4f
     out: dict = {}
     for i, obj in enumerate(scene.objects):
+        if only is not None and i not in only:
+            continue
         shape, kind, key = obj.shape, obj.shape.type_name, f"object_{i}"
         if kind == "sphere":
             out[key] = {"type": "sphere", "center": shape.center.tolist(), "radius": shape.radius,

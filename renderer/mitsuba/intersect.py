@@ -15,10 +15,11 @@ built at load time (`aux_table`), by Mitsuba's shape registry id and primitive i
 
 Shapes whose Mitsuba counterpart is the same surface: sphere, rectangle, box (Mitsuba's `cube` mesh),
 cylinder (open cylinder + two discs), polyhedron and mesh (their exact triangles), plane (a rectangle of
-side `PLANE_SIDE` times the scene's extent: the same plane for every hit within that distance). A cone
-(tessellated), a CSG shape or another kind makes `MitsubaIntersector` raise a one-line NotImplementedError
-naming the object. Layers' first-hit object masks and transparent blockers (which need each object's
-transmittance on a shadow ray) are answered by our own tracer (`Scene.intersect`, `Scene.shadow`).
+side `PLANE_SIDE` times the scene's extent: the same plane for every hit within that distance). Other
+objects (a cone, which Mitsuba would tessellate, CSG) are tested by their own torch code against every ray of
+the batch (no culling) and merged by distance (`fallback`). Layers' first-hit object masks and transparent
+blockers (which need each object's transmittance on a shadow ray) are answered by our own tracer
+(`Scene.intersect`, `Scene.shadow`).
 
 Precision: Mitsuba traces in float32 (float64 rays are rounded, results widened back). Hits beyond the
 minimum distance t_min = `Scene.ray_epsilon` are emulated by starting each ray at o + t_min·d. Shadow rays
@@ -67,25 +68,24 @@ class MitsubaIntersector:
     """The shapes of a `Scene` as a Mitsuba scene, answering nearest-hit and shadow queries for torch rays.
 
     Args:
-        scene: the renderer scene; its objects must have exact Mitsuba counterparts (`EXACT`).
+        scene: the renderer scene; objects without an exact Mitsuba counterpart (`EXACT`) are traced by
+            their own torch code (`fallback`, their indices).
         variant: a Mitsuba JIT variant that runs here (see `export.jit_variant_runs`).
     Raises:
-        NotImplementedError: a shape without an exact counterpart, or no JIT variant (one line each).
+        NotImplementedError: no JIT variant runs here (one line).
     """
 
     def __init__(self, scene, variant: str = DEFAULT_VARIANT):
-        for obj in scene.objects:
-            if obj.shape.type_name not in EXACT:
-                raise NotImplementedError(
-                    f"intersector mitsuba: object {obj.name!r}: shape {obj.shape.type_name!r} has no exact Mitsuba "
-                    f"counterpart (supported: {', '.join(sorted(EXACT))}); use the torch intersector")
+        self.shapes = [obj.shape for obj in scene.objects]
+        exact = {k for k, shape in enumerate(self.shapes) if shape.type_name in EXACT}
+        self.fallback = [k for k in range(len(self.shapes)) if k not in exact]
         mi = load_mitsuba(variant)
         if not mi.variant().startswith(("llvm", "cuda")):
             raise NotImplementedError(f"intersector mitsuba: variant {variant} does not run here (got {mi.variant()})")
         import drjit as dr
 
         self.mi, self.dr, self.variant = mi, dr, mi.variant()
-        shapes = shape_dicts(mi, scene, plane_size=PLANE_SIDE * scene.extent)
+        shapes = shape_dicts(mi, scene, plane_size=PLANE_SIDE * scene.extent, only=exact)
         for value in shapes.values():
             if isinstance(value, dict):
                 value.pop("bsdf", None)  # intersection only
@@ -108,7 +108,7 @@ class MitsubaIntersector:
                 per_prim = False
             sid = int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(s))[0])
             entries.append((sid, k, aux, per_prim))
-        size = max(e[0] for e in entries) + 1
+        size = max([e[0] for e in entries] + [0]) + 1
         obj_of, start, stride, table = np.full(size, -1), np.zeros(size), np.zeros(size), []
         offset = 0
         for sid, k, aux, per_prim in entries:
@@ -118,7 +118,7 @@ class MitsubaIntersector:
         self._obj_of = mi.Int32(obj_of.astype(np.int32))
         self._start = mi.UInt32(start.astype(np.uint32))
         self._stride = mi.UInt32(stride.astype(np.uint32))
-        self._aux = mi.Int32(np.concatenate(table).astype(np.int32))
+        self._aux = mi.Int32(np.concatenate(table + [np.zeros(1)]).astype(np.int32))
 
     def _ray(self, o, d, t_min: float, t_max=None):
         """Mitsuba rays from (3, N) rows o, d (torch, float32 views, no copy), starting at o + t_min·d."""
@@ -149,7 +149,12 @@ class MitsubaIntersector:
         obj = dr.select(valid, obj, -1)
         dr.eval(t, obj, aux)
         t, obj, aux = _to_torch(t, obj, aux)
-        return t.to(o.dtype), obj.long(), aux.long()
+        t, obj, aux = t.to(o.dtype), obj.long(), aux.long()
+        for k in self.fallback:
+            t_k, aux_k = self.shapes[k].intersect_soa(o, d, t_min)
+            closer = t_k < t
+            t, obj, aux = torch.where(closer, t_k, t), obj.masked_fill(closer, k), torch.where(closer, aux_k, aux)
+        return t, obj, aux
 
     def visible(self, o: torch.Tensor, d: torch.Tensor, t_max: torch.Tensor, t_min: float) -> torch.Tensor:
         """(N,) 1 where nothing lies on o + t·d for t in (t_min, t_max), else 0 (o's dtype); o, d (3, N) rows."""
@@ -159,7 +164,11 @@ class MitsubaIntersector:
         blocked = self.mscene.ray_test(ray, active)
         vis = dr.select(blocked & active, 0.0, mi.Float(1.0))
         dr.eval(vis)
-        return _to_torch(vis)[0].to(o.dtype)
+        vis = _to_torch(vis)[0].to(o.dtype)
+        for k in self.fallback:
+            t_k, _ = self.shapes[k].intersect_soa(o, d, t_min, need_aux=False)
+            vis = vis.masked_fill(t_k < t_max, 0)
+        return vis
 
 
 def _to_torch(*arrays):

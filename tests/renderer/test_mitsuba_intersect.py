@@ -7,8 +7,8 @@
 - Images (same seed, so the same camera rays): the general integrator (mesh and polyhedron in the scene) and
   the direct-light fast path. Differences can only come from rays whose float32 hits fall on different
   sides of an edge, or shadow rays grazing a blocker's silhouette: a handful of pixels, not a mean shift.
-- Shapes without an exact counterpart are refused in one line naming the object; layers' object masks are
-  answered by our own tracer.
+- Shapes without an exact counterpart (cone, CSG) are traced by their own torch code and merged by distance
+  (in every test scene); layers' object masks are answered by our own tracer.
 
 Skipped where Mitsuba is missing or its `llvm_ad_rgb` variant cannot run (renderer.mitsuba.export's probe).
 """
@@ -56,12 +56,20 @@ def _config(tmp_path, width=64, height=48, spp=2, with_triangles=True):
         _object("block", {"type": "box", "center": [0.3, -0.6, 2.8], "size": [0.5, 0.3, 0.4]}, color=[0.8, 0.9, 1.0]),
         _object("can", {"type": "cylinder", "center": [1.2, 0.78, 4.5], "axis": [0, -1, 0], "radius": 0.3,
                         "height": 0.9}, color=[0.9, 0.8, 0.3]),
+        _object("hat", {"type": "cone", "center": [0.9, 0.0, 3.2], "axis": [0, -1, 0.3], "radius": 0.3,
+                        "height": 0.6}, color=[0.2, 0.6, 0.9]),
     ]
     if with_triangles:
         objects += [
             _object("gem", {"type": "polyhedron", "halfspaces": cube}, color=[0.5, 0.5, 0.5]),
             _object("octahedron", {"type": "mesh", "file": "octahedron.obj", "center": [-0.4, 0.0, 3.0],
                                    "scale": 0.35, "rotation_deg": [10, 20, 30]}, color=[0.6, 0.4, 0.9]),
+            _object("notch", {"type": "csg", "op": "difference", "children": [
+                {"type": "polyhedron", "halfspaces": [[1, 0, 0, -0.9], [-1, 0, 0, 1.5], [0, 1, 0, -0.3],
+                                                      [0, -1, 0, 0.9], [0, 0, 1, 2.9], [0, 0, -1, -2.3]]},
+                {"type": "polyhedron", "halfspaces": [[1, 0, 0, -1.1], [-1, 0, 0, 1.3], [0, 1, 0, -0.5],
+                                                      [0, -1, 0, 1.1], [0, 0, 1, 3.0], [0, 0, -1, -2.2]]}]},
+                    color=[0.9, 0.5, 0.1]),
         ]
     return {
         "image": {"width": width, "height": height, "spp": spp, "max_depth": 0, "background": [0.1, 0.1, 0.2]},
@@ -187,20 +195,12 @@ def test_layer_masks_use_our_tracer(scene, calls):
     assert torch.equal(ours.object_id, theirs.object_id) and torch.equal(ours.t, theirs.t), "masked hits differ"
 
 
-def test_unsupported_shape_is_refused(tmp_path, capsys):
-    cfg = _config(tmp_path, with_triangles=False)
-    cfg["objects"].append(_object("hat", {"type": "cone", "center": [0, 0.8, 5], "axis": [0, -1, 0], "radius": 0.4,
-                                          "height": 0.8}))
-    scene = load_scene(cfg, base_dir=str(tmp_path))
-    with pytest.raises(NotImplementedError, match="'hat'.*cone"):
-        render(scene, intersector="mitsuba")
+def test_inexact_shapes_fall_back_to_ours(scene):
+    engine = mi_intersect.engine(scene)
+    names = [scene.objects[k].name for k in engine.fallback]
+    assert names == ["hat", "notch"], f"cone and CSG should be traced by our code, got {names}"
     with pytest.raises(ValueError, match="intersector.*'embree'"):
         render(scene, intersector="embree")
-    path = tmp_path / "cone.json"
-    path.write_text(json.dumps(cfg))
-    code = cli_main(["render", str(path), "-o", str(tmp_path / "x.png"), "--intersector", "mitsuba", "--quiet"])
-    err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and len(err) == 1 and "hat" in err[0] and "cone" in err[0], f"exit {code}, stderr {err}"
 
 
 def test_cli_intersector_flag(tmp_path, calls):

@@ -21,7 +21,8 @@ the batch (no culling) and merged by distance (`fallback`). Layers' first-hit ob
 blockers (which need each object's transmittance on a shadow ray) are answered by our own tracer
 (`Scene.intersect`, `Scene.shadow`).
 
-Precision: Mitsuba traces in float32 (float64 rays are rounded, results widened back). Hits beyond the
+Precision: Mitsuba traces in float32, and its hits carry no gradients, so `Scene` sends only float32 rays
+that need no gradients here (float64 and differentiable rays stay with our tracer). Hits beyond the
 minimum distance t_min = `Scene.ray_epsilon` are emulated by starting each ray at o + t_min·d. Shadow rays
 do not skip the object they leave (`Scene.self_shadow_free`): their origins are already offset along the
 normal by t_min, which Embree's watertight triangle and Mitsuba's analytic tests respect up to rounding.

@@ -210,3 +210,17 @@ def test_cli_intersector_flag(tmp_path, calls):
     code = cli_main(["render", str(path), "-o", str(tmp_path / "x.exr"), "--intersector", "mitsuba", "--quiet"])
     assert code == 0 and calls["nearest"] > 0, f"exit {code}, calls {calls}"
     assert (tmp_path / "x.exr").stat().st_size > 0
+
+
+def test_float64_and_differentiable_rays_use_our_tracer(scene, calls):
+    o, d = _rays(500, seed=6)
+    ours = scene.intersect(o.double(), d.double(), options=OURS)
+    theirs = scene.intersect(o.double(), d.double(), options=EMBREE)
+    assert calls["nearest"] == 0 and torch.equal(ours.t, theirs.t), "float64 rays should stay with our tracer"
+    o_grad = o.clone().requires_grad_(True)
+    hit = scene.intersect(o_grad, d, options=EMBREE)
+    assert calls["nearest"] == 0, "rays that need gradients should stay with our tracer"
+    assert hit.t.requires_grad, "our hits carry gradients with respect to the ray origins"
+    with torch.no_grad():
+        scene.intersect(o_grad, d, options=EMBREE)
+    assert calls["nearest"] == 1, "without grad mode the Mitsuba intersector answers"

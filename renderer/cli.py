@@ -208,7 +208,10 @@ def cmd_render(args, device) -> int:
     if args.intersector != "torch":
         from .mitsuba.intersect import use_intersector
 
-        use_intersector(scene, args.intersector, device)
+        try:
+            use_intersector(scene, args.intersector, device)
+        except (ValueError, NotImplementedError, ImportError) as e:
+            raise UsageError(f"--intersector {args.intersector}: {_one_line(e)}") from None
     start = time.perf_counter()
     if args.backend == "mitsuba" or args.cluster:
         from .backends import render_with

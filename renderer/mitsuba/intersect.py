@@ -206,17 +206,17 @@ def set_jit_threads(n: int) -> int:
 
 
 def use_intersector(scene, name: str, device="cpu") -> None:
-    """Set `scene.options.intersector` to `name` for the command line, building the Mitsuba scene now so that
-    a scene or machine it cannot serve is a one-line `UsageError` (exit 2) before any rendering."""
-    from dataclasses import replace
+    """Set `scene.options.intersector` to `name`, building the Mitsuba scene now (for the command line: a
+    machine it cannot serve fails before any rendering).
 
-    from ..cli import UsageError
+    Raises:
+        ValueError: `mitsuba` asked for on a device other than the CPU.
+        NotImplementedError, ImportError: no Mitsuba JIT variant runs here.
+    """
+    from dataclasses import replace
 
     if name == "mitsuba":
         if torch.device(device).type != "cpu":
-            raise UsageError(f"--intersector mitsuba: traces on the CPU only, not on {device}")
-        try:
-            engine(scene)
-        except (NotImplementedError, ImportError) as e:
-            raise UsageError(f"--intersector mitsuba: {' '.join(str(e).split())}") from None
+            raise ValueError(f"traces on the CPU only, not on {device}")
+        engine(scene)
     scene.options = replace(scene.options, intersector=name)

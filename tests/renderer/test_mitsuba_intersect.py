@@ -224,3 +224,17 @@ def test_float64_and_differentiable_rays_use_our_tracer(scene, calls):
     with torch.no_grad():
         scene.intersect(o_grad, d, options=EMBREE)
     assert calls["nearest"] == 1, "without grad mode the Mitsuba intersector answers"
+
+
+def test_cli_reports_a_missing_jit_variant_in_one_line(tmp_path, monkeypatch, capsys):
+    def no_variant(scene):
+        raise NotImplementedError("intersector mitsuba: variant llvm_ad_rgb does not run here (got scalar_rgb)")
+
+    monkeypatch.setattr(mi_intersect, "engine", no_variant)
+    path = tmp_path / "scene.json"
+    path.write_text(json.dumps(_config(tmp_path, width=8, height=6, spp=1, with_triangles=False)))
+    code = cli_main(["render", str(path), "-o", str(tmp_path / "x.png"), "--intersector", "mitsuba", "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "--intersector mitsuba" in err[0] and "llvm_ad_rgb" in err[0], (
+        f"exit {code}, stderr {err}")
+    assert not (tmp_path / "x.png").exists(), "nothing should be written"

@@ -91,8 +91,8 @@ class MitsubaIntersector:
             if isinstance(value, dict):
                 value.pop("bsdf", None)  # intersection only
         self.mscene = mi.load_dict({"type": "scene", **shapes})
-        # Per Mitsuba shape (by its registry id): our object index, and where its aux values start in
-        # aux_table (per triangle for meshes, one value for the others).
+        # Per Mitsuba shape, indexed by its registry id: our object index (_obj_of), and where its aux values
+        # start in _aux (_start) with _stride 1 (one per triangle: box, polyhedron, mesh) or 0 (one value).
         entries = []
         for s in self.mscene.shapes():
             key = s.id()

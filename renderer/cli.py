@@ -89,6 +89,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "our camera (the `direct` integrator; what cannot be mapped is named on stderr)")
     r.add_argument("--cluster", metavar="auto|ADDRESS",
                    help="trace on a Ray cluster (auto: the running one, else a local one); same image as one process")
+    r.add_argument("--intersector", choices=("torch", "mitsuba"), default="torch",
+                   help="torch: our ray-shape tests [default]; mitsuba: hits and shadow rays by Embree through "
+                        "Mitsuba 3 (CPU), cameras and shading still ours")
 
     g = sub.add_parser("gallery", help="render the paper figures into one labelled contact sheet",
                        description="Render every entry of the gallery manifest and lay them out in one PNG.")
@@ -202,6 +205,13 @@ def cmd_render(args, device) -> int:
     _check_output(args.output, (".exr", ".png", ".tif", ".tiff"))
     scene_file = resolve_scene(args.scene)
     scene = load_scene(scene_file, args.overrides)
+    if args.intersector != "torch":
+        from .mitsuba.intersect import use_intersector
+
+        try:
+            use_intersector(scene, args.intersector, device)
+        except (ValueError, NotImplementedError, ImportError) as e:
+            raise UsageError(f"--intersector {args.intersector}: {_one_line(e)}") from None
     start = time.perf_counter()
     if args.backend == "mitsuba" or args.cluster:
         from .backends import render_with

@@ -162,6 +162,10 @@ def _worker_render(digest, blob, pixel, n, spp, sampler, seed, options, dtype, m
         _WORKER_SCENE.clear()
         _WORKER_SCENE[digest] = pickle.loads(blob)
     scene = _WORKER_SCENE[digest]
+    if options.intersector == "mitsuba":  # one Dr.Jit thread per worker, as one torch thread
+        from .mitsuba.intersect import set_jit_threads
+
+        set_jit_threads(1)
     smp = Sampler(sampler, spp, seed)
     sub = _pixels_per_chunk(options, spp, chunk_rays)
     parts = [_render_pixels(scene, pixel[a:a + sub], smp, options, "cpu", dtype, max_depth)
@@ -179,6 +183,10 @@ def _pool(workers: int):
 
 
 CPU_CHUNK_RAYS, GPU_CHUNK_RAYS = 1 << 15, 1 << 22
+# With `intersector="mitsuba"` (CPU only): larger batches pay Dr.Jit's per-call costs (tracing its IR, handing
+# arrays over) less often; 2^17 took 0.51-0.56x our default's time against 0.65-0.71x at 2^15 on the issue-11
+# speed scene (benchmarks/results/speed_thin_lens_embree.md).
+EMBREE_CHUNK_RAYS = 1 << 17
 BYTES_PER_RAY = 2048  # twice the measured ~1 KB a ray (float32, depth 5); the batch takes at most half the
                      # free memory: room for float64 and for torch's cached blocks
 
@@ -198,7 +206,7 @@ def default_chunk_rays(device) -> int:
 def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, device="cpu",
            dtype=torch.float32, seed: int = 0, chunk_rays: int | None = None, progress: bool = False,
            max_depth: int | None = None, culling: bool | None = None, compile: bool | None = None,
-           workers: int = 1, threads: int | None = 1) -> RenderResult:
+           workers: int = 1, threads: int | None = 1, intersector: str | None = None) -> RenderResult:
     """Render the scene's camera image.
 
     Args:
@@ -210,8 +218,10 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
             (N,) rows in the caches: 10 % faster than 2^17 on the issue-11 speed scene, 2^12 was 2x slower
             (Python overhead per operation). Default on a GPU 2^22, fewer if its free memory is short: with
             2^15 an H100 waited on kernel launches (1.6 s, no faster than one CPU thread), with 2^22 it took
-            0.032 s (benchmarks/results/speed_gpu_h100.md, profile_gpu_h100.md).
-        culling, compile: override scene.options (see `renderer.scene.TraceOptions`); speed only.
+            0.032 s (benchmarks/results/speed_gpu_h100.md, profile_gpu_h100.md). With
+            `intersector="mitsuba"` 2^17 (`EMBREE_CHUNK_RAYS`).
+        culling, compile, intersector: override scene.options (see `renderer.scene.TraceOptions`); speed only
+            (`intersector="mitsuba"`: hits and shadow rays by Embree through Mitsuba 3, `renderer.mitsuba.intersect`).
         workers: CPU only: trace chunks in this many worker processes with one torch thread each (they
             are started on first use and kept for later calls; each unpickles the scene once per render).
             The image does not depend on it.
@@ -219,13 +229,16 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
             torch's own setting]. Eager tracing is a chain of small memory-bound operations: a second
             thread gained little on these 2 cores, and torch's OpenMP barriers made 2 threads up to 15x
             slower while other programs shared the cores (benchmarks/results/speed_thin_lens.md); use
-            `workers` for the other cores.
+            `workers` for the other cores. With `intersector="mitsuba"` Dr.Jit's thread pool gets the same
+            number of threads while tracing (its default, all cores, was up to 3x slower under load:
+            benchmarks/results/speed_thin_lens_embree.md).
     Returns:
         RenderResult with the (H, W, 3) image and the (H, W) coverage; pixels without any valid ray keep
         the background colour.
     """
     W, H = scene.camera.width, scene.camera.height
     spp = scene.image.spp if spp is None else spp
+    chunk_given = chunk_rays
     chunk_rays = default_chunk_rays(device) if chunk_rays is None else chunk_rays
     sampler = sampler or scene.image.sampler
     options = scene.options
@@ -233,6 +246,10 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
         options = replace(options, culling=culling)
     if compile is not None:
         options = replace(options, compile=compile)
+    if intersector is not None:
+        options = replace(options, intersector=intersector)
+    if chunk_given is None and options.intersector == "mitsuba":
+        chunk_rays = EMBREE_CHUNK_RAYS
     smp = Sampler(sampler, spp, seed)
     image = torch.empty(W * H, 3, dtype=dtype, device=device)
     coverage = torch.empty(W * H, dtype=dtype, device=device)
@@ -240,12 +257,19 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
     previous = torch.get_num_threads()
     if threads is not None and torch.device(device).type == "cpu" and threads != previous:
         torch.set_num_threads(threads)
+    jit_threads = None
+    if options.intersector == "mitsuba" and threads is not None and workers <= 1:
+        from .mitsuba.intersect import set_jit_threads
+
+        jit_threads = set_jit_threads(threads)
     try:
         _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device, dtype, seed, chunk_rays,
                      max_depth, workers)
     finally:
         if torch.get_num_threads() != previous:
             torch.set_num_threads(previous)
+        if jit_threads is not None:
+            set_jit_threads(jit_threads)
     return RenderResult(image.reshape(H, W, 3), coverage.reshape(H, W))
 
 

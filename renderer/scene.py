@@ -54,12 +54,17 @@ class TraceOptions:
             of it cached on disk by torch between runs); pays for renders of a few million rays or more.
         fast_paths: eager tracing only: scenes that only need direct light from point and ambient lights
             take `renderer.direct.trace_direct` on (3, N) rows [True]; False forces the general integrator.
+        intersector: who answers nearest-hit and shadow-ray queries: `torch` (ours) or `mitsuba` (Embree
+            through Mitsuba 3's llvm variant, CPU only; cameras and shading stay in torch; see
+            `renderer.mitsuba.intersect`). It answers float32 rays without gradients; float64 rays, rays that
+            need gradients and layers' first hits stay with ours ["torch"].
     """
 
     culling: bool = True
     packet_size: int = 64
     compile: bool = False
     fast_paths: bool = True
+    intersector: str = "torch"
 
 
 @dataclass
@@ -257,6 +262,20 @@ class Scene:
             self._warm.add(key)
         return compiled_call(True, per_class(fn, type(shape)), shape, *args)
 
+    def _external(self, options: TraceOptions, object_mask, *rays: torch.Tensor):
+        """The external intersector named by `options.intersector`, or None for ours: also where it cannot
+        honour a first-hit object mask, and for rays it would not answer exactly (float64, which it would
+        round to float32, or rays that need gradients, which its hits do not carry)."""
+        if options.intersector == "torch" or (object_mask is not None and not all(object_mask)):
+            return None
+        if options.intersector != "mitsuba":
+            raise ValueError(f"TraceOptions.intersector: unknown {options.intersector!r} (expected torch or mitsuba)")
+        if rays[0].dtype != torch.float32 or (torch.is_grad_enabled() and any(r.requires_grad for r in rays)):
+            return None
+        from .mitsuba.intersect import engine
+
+        return engine(self)
+
     @staticmethod
     def _all_packets(o_p):
         return torch.arange(o_p.shape[0], device=o_p.device)
@@ -348,6 +367,9 @@ class Scene:
             options: how to trace [self.options]; the result does not depend on it beyond float rounding.
         """
         options = self.options if options is None else options
+        external = self._external(options, object_mask, o, d)
+        if external is not None:
+            return Hit(*external.nearest(_components(o), _components(d), self.ray_epsilon))
         n = o.shape[0]
         o_p, d_p, _, plan = self._packets(o, d, None, options, object_mask)
         rows_shape = o_p.shape[:2] if options.compile else o_p.shape[1:]
@@ -369,6 +391,9 @@ class Scene:
                        options: TraceOptions | None = None) -> Hit:
         """`intersect` for (3, N) component rows o, d (eager tracing; see `Shape.intersect_soa`)."""
         options = self.options if options is None else options
+        external = self._external(options, object_mask, o, d)
+        if external is not None:
+            return Hit(*external.nearest(o, d, self.ray_epsilon))
         n = o.shape[1]
         o_p, d_p, _, plan = self._packets(o, d, None, options, object_mask, rows=True)
         t_best = torch.full(o_p.shape[1:], float("inf"), dtype=o.dtype, device=o.device)
@@ -384,6 +409,9 @@ class Scene:
         """(N,) 1 where nothing opaque lies on o + t·d for t in (ε, t_max), else 0; o, d (3, N) component
         rows. Every object must be opaque (see `shadow` for transparent ones)."""
         options = self.options if options is None else options
+        external = self._external(options, None, o, d, t_max)
+        if external is not None:
+            return external.visible(o, d, t_max, self.ray_epsilon)
         n = o.shape[1]
         o_p, d_p, t_p, plan = self._packets(o, d, t_max, options, None, leaving, rows=True)
         vis = torch.ones(o_p.shape[1:], dtype=o.dtype, device=o.device)
@@ -407,10 +435,13 @@ class Scene:
                 `self_shadow_free`.
         """
         options = self.options if options is None else options
-        n = o.shape[0]
-        o_p, d_p, t_p, plan = self._packets(o, d, t_max, options, None, leaving)
         table = self.materials(o)
         opaque = not bool(table.shadow_transmittance.any())
+        external = self._external(options, None, o, d, t_max) if opaque else None
+        if external is not None:
+            return external.visible(_components(o), _components(d), t_max, self.ray_epsilon)[:, None]
+        n = o.shape[0]
+        o_p, d_p, t_p, plan = self._packets(o, d, t_max, options, None, leaving)
         rows_shape = o_p.shape[:2] if options.compile else o_p.shape[1:]
         trans = torch.ones(rows_shape if opaque else (*rows_shape, 3), dtype=o.dtype, device=o.device)
         eps = self.ray_epsilon

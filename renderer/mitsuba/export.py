@@ -234,7 +234,6 @@ def to_mitsuba(scene, spp: int | None = None, integrator: dict | None = None, *,
         (scene_dict, dropped): the dict for `mitsuba.load_dict`, and a list of what could not be expressed.
     """
     mi = load_mitsuba(variant)
-    T = mi.ScalarTransform4f
     dropped: list[str] = []
     out = {
         "type": "scene",
@@ -251,7 +250,20 @@ def to_mitsuba(scene, spp: int | None = None, integrator: dict | None = None, *,
                                  "intensity": {"type": "rgb", "value": list(light.intensity)}}
         else:
             dropped.append(f"lights[{i}]: type {light.type}")
+    out.update(shape_dicts(mi, scene, dropped, plane_size=plane_size, segments=segments))
+    return out, dropped
+
+
+def shape_dicts(mi, scene, dropped: list[str] | None = None, *, plane_size: float = 1e3, segments: int = 256,
+                only=None) -> dict:
+    """Mitsuba shapes of the scene's objects (those with an index in `only`, when given): {key: shape dict or
+    loaded mesh}, keys `object_{i}` (a cylinder also `object_{i}_base` and `object_{i}_top`, its caps); what
+    cannot be expressed is appended to `dropped`. See `to_mitsuba` for the other arguments."""
+    T = mi.ScalarTransform4f
+    out: dict = {}
     for i, obj in enumerate(scene.objects):
+        if only is not None and i not in only:
+            continue
         shape, kind, key = obj.shape, obj.shape.type_name, f"object_{i}"
         if kind == "sphere":
             out[key] = {"type": "sphere", "center": shape.center.tolist(), "radius": shape.radius,
@@ -289,4 +301,4 @@ def to_mitsuba(scene, spp: int | None = None, integrator: dict | None = None, *,
             out[key] = _triangle_mesh(mi, key, tri, nrm, bsdf)
         else:
             raise NotImplementedError(f"mitsuba export: shape type {kind!r} ({obj.name})")
-    return out, dropped
+    return out

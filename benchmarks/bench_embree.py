@@ -31,6 +31,7 @@ import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from bench_speed_mitsuba import SCENE, Mitsuba, time_modes  # noqa: E402
+from results_io import add_output_options, markdown_only, save  # noqa: E402
 
 from renderer import render  # noqa: E402
 from renderer.mitsuba import intersect as mi_intersect  # noqa: E402
@@ -208,12 +209,9 @@ def main(argv=None):
     ap.add_argument("--modes", default=DEFAULT_MODES, help=f"comma-separated, of: {', '.join(MODES)}")
     ap.add_argument("--drjit-threads", type=int, help="Dr.Jit's thread pool outside our renders (Mitsuba's full render, "
                     "the `jit pool` modes) [its default: all cores]")
-    ap.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", "speed_thin_lens_embree"))
-    ap.add_argument("--markdown-only", action="store_true", help="rewrite OUT.md from OUT.json (no timing)")
+    add_output_options(ap, "speed_thin_lens_embree")
     args = ap.parse_args(argv)
-    if args.markdown_only:
-        with open(args.out + ".json") as f:
-            write_markdown(args.out + ".md", json.load(f))
+    if markdown_only(args, write_markdown):
         return
     log = lambda msg: print(msg, file=sys.stderr, flush=True)  # noqa: E731
     torch.set_num_threads(1)  # what render(threads=1) sets anyway; kept by the threads=None modes
@@ -243,11 +241,7 @@ def main(argv=None):
     log("profile: " + json.dumps(prof))
     res["handover"] = [handover(ms.mi, dr, n) for n in (1 << 15, 1 << 19)]
     res["machine"]["load_end"] = [round(x, 1) for x in os.getloadavg()]
-    os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-    with open(args.out + ".json", "w") as f:
-        json.dump(res, f, indent=1)
-    write_markdown(args.out + ".md", res)
-    print(open(args.out + ".md").read())
+    save(args.out, res, write_markdown)
 
 
 if __name__ == "__main__":  # the guard matters: workers=2 starts processes that import this module

@@ -35,6 +35,7 @@ import torch
 from renderer import render
 from renderer.mitsuba import load_mitsuba, to_mitsuba
 from renderer.scenefile import load_scene
+from results_io import add_output_options, markdown_only, save
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCENE = os.path.join(ROOT, "renderer", "scenes", "fig6.json")
@@ -216,13 +217,9 @@ def main(argv=None):
     ap.add_argument("--threads", default="1,default",
                     help="comma-separated thread counts for both renderers (torch.set_num_threads, "
                          "drjit.set_thread_count); `default` keeps each library's own")
-    ap.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", "fig6_mitsuba"),
-                    help="output path without extension (.json and .md are written)")
-    ap.add_argument("--markdown-only", action="store_true", help="rewrite OUT.md from OUT.json (no timing)")
+    add_output_options(ap, "fig6_mitsuba")
     args = ap.parse_args(argv)
-    if args.markdown_only:
-        with open(args.out + ".json") as f:
-            write_markdown(args.out + ".md", json.load(f))
+    if markdown_only(args, write_markdown):
         return
     mi = load_mitsuba(args.variant)
     import drjit as dr
@@ -250,10 +247,7 @@ def main(argv=None):
                       f"{run['time_ratio_ours_over_mitsuba']:.2f} (CPU {run['cpu_time_ratio_ours_over_mitsuba']:.2f}), "
                       f"image diff {run['image_rel_mean_abs_diff']:.3f}", flush=True)
     result["machine"]["load_average_end"] = list(os.getloadavg())
-    os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-    with open(args.out + ".json", "w") as f:
-        json.dump(result, f, indent=1)
-    write_markdown(args.out + ".md", result)
+    save(args.out, result, write_markdown)
 
 
 if __name__ == "__main__":  # the guard matters: the `processes` mode starts processes that import this module

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import math
 import os
 import statistics
@@ -36,6 +35,7 @@ import torch
 from renderer import render
 from renderer.mitsuba import load_mitsuba, to_mitsuba
 from renderer.scenefile import load_scene
+from results_io import add_output_options, markdown_only, save
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCENE = os.path.join(ROOT, "benchmarks", "scenes", "speed_thin_lens.json")
@@ -215,12 +215,9 @@ def main(argv=None):
     ap.add_argument("--variant", default="llvm_ad_rgb")
     ap.add_argument("--equal-error", action="store_true", help="also time both renderers at equal RMSE")
     ap.add_argument("--ee-repeats", type=int, default=3)
-    ap.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", "speed_thin_lens"))
-    ap.add_argument("--markdown-only", action="store_true", help="rewrite OUT.md from OUT.json (no timing)")
+    add_output_options(ap, "speed_thin_lens")
     args = ap.parse_args(argv)
-    if args.markdown_only:
-        with open(args.out + ".json") as f:
-            write_markdown(args.out + ".md", json.load(f))
+    if markdown_only(args, write_markdown):
         return
     log = lambda msg: print(msg, file=sys.stderr, flush=True)  # noqa: E731
     load_start = [round(x, 1) for x in os.getloadavg()]
@@ -246,11 +243,7 @@ def main(argv=None):
                                          args.ee_repeats, log, all_modes[args.ee_mode])
         res["equal_error"]["ours_mode"] = args.ee_mode
     res["machine"]["load_end"] = [round(x, 1) for x in os.getloadavg()]
-    os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-    with open(args.out + ".json", "w") as f:
-        json.dump(res, f, indent=1)
-    write_markdown(args.out + ".md", res)
-    print(open(args.out + ".md").read())
+    save(args.out, res, write_markdown)
 
 
 if __name__ == "__main__":  # the guard matters: workers=2 starts processes that import this module

@@ -1,0 +1,37 @@
+"""Where a benchmark's figures go: `OUT.json` (the measurements) and `OUT.md` (the table made from them).
+
+Every timing benchmark takes `--out STEM` and `--markdown-only` (rewrite OUT.md from OUT.json without
+timing anything, after a change to the table's layout), and saves the same way.
+"""
+from __future__ import annotations
+
+import json
+import os
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def add_output_options(ap, stem: str) -> None:
+    """--out (default benchmarks/results/<stem>) and --markdown-only on an argparse parser."""
+    ap.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", stem),
+                    help="output path without extension (.json and .md are written)")
+    ap.add_argument("--markdown-only", action="store_true", help="rewrite OUT.md from OUT.json (no timing)")
+
+
+def markdown_only(args, write_markdown) -> bool:
+    """With --markdown-only: rewrite OUT.md from OUT.json and return True (the caller stops)."""
+    if not args.markdown_only:
+        return False
+    with open(args.out + ".json") as f:
+        write_markdown(args.out + ".md", json.load(f))
+    return True
+
+
+def save(out: str, res: dict, write_markdown) -> None:
+    """Write OUT.json and OUT.md, and print the Markdown."""
+    os.makedirs(os.path.dirname(out) or ".", exist_ok=True)
+    with open(out + ".json", "w") as f:
+        json.dump(res, f, indent=1)
+    write_markdown(out + ".md", res)
+    with open(out + ".md") as f:
+        print(f.read())

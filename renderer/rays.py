@@ -44,9 +44,15 @@ class Rays:
             # The identity rotation (a camera looking along +z): skip two (N, 3) x (3, 3) products (eager
             # only: the check is data-dependent, a graph break for torch.compile).
             return Rays(self.origin + local_origin_in_world, self.direction, self.valid, self.weight)
+        o, d = self.origin, self.direction
+        if (world_from_local.shape == (3, 3) and o.dim() == 2 and o.T.is_contiguous()
+                and d.T.is_contiguous()):
+            # (N, 3) views of (3, N) rows (the thin lens makes them): transform the rows, keep the layout.
+            return Rays(torch.addmm(local_origin_in_world[:, None], world_from_local, o.T).T,
+                        (world_from_local @ d.T).T, self.valid, self.weight)
         return Rays(
-            self.origin @ world_from_local.transpose(-1, -2) + local_origin_in_world,
-            self.direction @ world_from_local.transpose(-1, -2),
+            o @ world_from_local.transpose(-1, -2) + local_origin_in_world,
+            d @ world_from_local.transpose(-1, -2),
             self.valid,
             self.weight,
         )
@@ -69,6 +75,18 @@ class Hit:
     @property
     def found(self) -> torch.Tensor:
         return self.object_id >= 0
+
+
+def vectors_from_rows(x, y, z) -> torch.Tensor:
+    """(..., 3) vectors from their three (...,) components, as a view of (3, ...) rows: the tracer's row code
+    (`Scene.intersect_rows`, `renderer.direct`) then takes them without a transposing copy."""
+    return torch.stack(torch.broadcast_tensors(x, y, z)).movedim(0, -1)
+
+
+def unit_vectors_from_rows(x, y, z, eps: float = 1e-12) -> torch.Tensor:
+    """`normalize` of the vectors with components x, y, z, as `vectors_from_rows` lays them out."""
+    inv = torch.rsqrt(x * x + y * y + z * z).clamp_max(1.0 / eps)
+    return vectors_from_rows(x * inv, y * inv, z * inv)
 
 
 def normalize(v: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:

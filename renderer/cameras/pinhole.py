@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from ..rays import Rays, normalize
+from ..rays import Rays, unit_vectors_from_rows, vectors_from_rows
 from . import SCREEN_PARAMS, register_camera
 from .base import Camera
 
@@ -19,9 +19,13 @@ class PinholeCamera(Camera):
     """Perspective projection: ray from the origin of the camera frame through the screen point q."""
 
     def rays_in_camera(self, uv_px: torch.Tensor, lens_uv: torch.Tensor) -> Rays:
-        q_cam = self.screen.to_plane(uv_px)
-        origin = torch.zeros_like(q_cam)
-        valid = torch.ones(q_cam.shape[:-1], dtype=torch.bool, device=q_cam.device)
-        return Rays(origin, normalize(q_cam), valid, torch.ones_like(q_cam[..., 0]))
+        # Per component, as `Screen.to_plane` and the thin lens (whose d = 0 limit is bit for bit this).
+        (cx, cy), (px, py) = self.screen.center_px, self.screen.pitch
+        x = (uv_px[..., 0] - cx) * px
+        y = (uv_px[..., 1] - cy) * py
+        z = torch.zeros_like(x) + self.screen.distance
+        zero = torch.zeros_like(x)
+        valid = torch.ones(x.shape, dtype=torch.bool, device=x.device)
+        return Rays(vectors_from_rows(zero, zero, zero), unit_vectors_from_rows(x, y, z), valid, torch.ones_like(x))
 
     project = Camera.project_central

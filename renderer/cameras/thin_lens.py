@@ -40,7 +40,7 @@ import torch
 
 from .. import optics
 from ..params import Param, SceneError
-from ..rays import Rays, normalize
+from ..rays import Rays, unit_vectors_from_rows, vectors_from_rows
 from ..transforms import CameraTransform
 from . import register_camera
 from .base import Camera, Screen
@@ -78,6 +78,11 @@ def concentric_disk(lens_uv: torch.Tensor) -> torch.Tensor:
     Area-preserving and low-distortion, so stratified or Sobol samples stay well spread on the disc;
     (0.5, 0.5) maps to the centre.
     """
+    return torch.stack(concentric_disk_xy(lens_uv), -1)
+
+
+def concentric_disk_xy(lens_uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """`concentric_disk` as its two (...,) components x, y (no stacking)."""
     a = 2 * lens_uv[..., 0] - 1
     b = 2 * lens_uv[..., 1] - 1
     use_a = a.abs() > b.abs()
@@ -86,7 +91,7 @@ def concentric_disk(lens_uv: torch.Tensor) -> torch.Tensor:
     safe_a = torch.where(use_a, a, torch.ones_like(a))
     safe_b = torch.where(use_a | (b == 0), torch.ones_like(b), b)
     phi = torch.where(use_a, (math.pi / 4) * (b / safe_a), math.pi / 2 - (math.pi / 4) * (a / safe_b))
-    return torch.stack([r * torch.cos(phi), r * torch.sin(phi)], -1)
+    return r * torch.cos(phi), r * torch.sin(phi)
 
 
 def parse_lens(path: str, cfg: dict) -> dict:
@@ -202,11 +207,21 @@ class ThinLensCamera(Camera):
         return (c[..., 2] - c[..., 1] * tan_F) / self.U
 
     def rays_in_camera(self, uv_px: torch.Tensor, lens_uv: torch.Tensor) -> Rays:
-        c = self.screen.to_plane(uv_px)
-        s = self.lens_points(lens_uv.to(c))
-        direction = c - self.focus_weight(c)[..., None] * s
-        valid = torch.ones(c.shape[:-1], dtype=torch.bool, device=c.device)
-        return Rays(s, normalize(direction), valid, torch.ones_like(c[..., 0]))
+        # Worked per component (x, y, z rows): the same maths as `to_plane`, `lens_points`, `focus_weight`
+        # and `normalize`, without (..., 3) intermediates, whose length-3 last axis is slow in eager torch.
+        # The (..., 3) results are views of (3, ...) rows, which the tracer's row code takes without a copy.
+        (cx, cy), (px, py) = self.screen.center_px, self.screen.pitch
+        x = (uv_px[..., 0] - cx) * px
+        y = (uv_px[..., 1] - cy) * py
+        z = torch.zeros_like(x) + self.screen.distance  # a tensor (w may be one): the pinhole's rounding
+        lx, ly = concentric_disk_xy(lens_uv.to(x))
+        r = self.d / 2
+        theta_L = _like(self.theta_L, x)
+        sx, sy, sz = lx * r, ly * (r * torch.cos(theta_L)), ly * (r * torch.sin(theta_L))
+        weight = (z - y * torch.tan(_like(self.theta_F, x))) / self.U  # focus_weight
+        dx, dy, dz = x - weight * sx, y - weight * sy, z - weight * sz
+        valid = torch.ones(x.shape, dtype=torch.bool, device=x.device)
+        return Rays(vectors_from_rows(sx, sy, sz), unit_vectors_from_rows(dx, dy, dz), valid, torch.ones_like(x))
 
     def project(self, p_world: torch.Tensor) -> torch.Tensor:
         """Chief-ray projection (pixel of the blur spot's centre of projection), same as the pinhole at w."""

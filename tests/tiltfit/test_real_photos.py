@@ -56,7 +56,6 @@ def test_calibration_matches_opencv_on_the_same_corners(real, model):
     assert rms <= rms_cv * (1 + 1e-6), f"{model}: RMS {rms:.5f} px, OpenCV {rms_cv:.5f} px"
     assert abs(F / K[0, 0] - 1) < 0.01, f"{model}: focal {F:.2f} px vs OpenCV {K[0, 0]:.2f} px"
     assert res.undetermined == ["U_mm", "d_mm"], f"no blur widths: U and d undetermined ({res.undetermined})"
-    assert res.runtime_s < 5.0, f"fit took {res.runtime_s:.2f} s"
 
 
 def test_auto_frees_terms_the_real_lens_needs(real):

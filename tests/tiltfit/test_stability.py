@@ -181,11 +181,7 @@ def _no_nan(token):
 
 @pytest.mark.slow
 def test_quick_run_end_to_end(tmp_path):
-    import time
-
-    t0 = time.perf_counter()
     res = st.run(str(tmp_path), quick=True, progress=False)
-    elapsed = time.perf_counter() - t0
     assert set(res.studies) == set(st.STUDIES), "every sweep ran"
     for name in st.STUDIES:
         for ext in ("json", "csv", "png"):
@@ -198,4 +194,3 @@ def test_quick_run_end_to_end(tmp_path):
     two = {r["theta_L_true_deg"]: r for r in res.studies["two_stage"].rows}
     assert two[10.0]["two_stage_error_deg"] < two[5.0]["two_stage_error_deg"] < 0, "two-stage bias grows"
     assert abs(two[10.0]["joint_error_deg"]) < 0.1, "joint fit holds at 10°"
-    assert elapsed < 120, f"quick run took {elapsed:.0f} s (target ≤ 60 s on two idle cores)"

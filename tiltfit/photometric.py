@@ -112,8 +112,11 @@ class PhotometricResult:
     Attributes:
         values: w_mm, U_mm (inf when 1/U = 0), inv_U_per_m, d_mm, theta_F_deg, theta_L_deg, vignetting,
             psf_sigma_px (σ of the Gaussian part of the kernel, 0 for the disc alone), kernel.
-        sigma: one-σ uncertainties of the same keys (from the Gauss–Newton covariance, scaled by the
-            residuals' robust σ).
+        sigma: one-σ uncertainties of the same keys, from the cluster-robust sandwich covariance
+            (`_cluster_sandwich`: errors shared by neighbouring pixels and noise that varies over the image
+            are counted).
+        sigma_gauss_newton: the textbook σ, (J^T W J)⁻¹ scaled by the residuals' robust σ, which assumes
+            independent residuals of one variance (too small on ray-traced captures; kept for comparison).
         views: per view: R (3×3), T_mm, white, black, rms (linear units), n_pixels.
         rms: RMS photometric residual over all views (linear intensity units).
         iterations, runtime_s, history: LM iterations, wall time, cost per iteration.
@@ -128,6 +131,7 @@ class PhotometricResult:
     runtime_s: float
     history: list = field(default_factory=list)
     kernel_selection: dict | None = None
+    sigma_gauss_newton: dict | None = None
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -463,8 +467,9 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
     if kernel == "disc":
         glob = glob.clone()
         glob[5] = 0.0
+    cov_sandwich = _cluster_sandwich(glob, views_p, free_g, jac, r, wts, JTJ, data, sensor, target)
     return _photometric_result(glob, views_p, r, scale, JTJ, free_g, data, n_g, n_v, n_par, it, t0, history,
-                               kernel, selection)
+                               kernel, selection, cov_sandwich)
 
 
 def _lens_values(glob) -> dict:
@@ -538,11 +543,81 @@ def _levenberg_marquardt(glob, views_p, free_g, all_residuals, jac, robust_weigh
     return glob, views_p, r, wts, scale, JTJ, it
 
 
+def _view_blur_px(glob, view, sensor: SensorGeometry, target: Target) -> float:
+    """Blur-disc diameter (px) at the board's centre in one view, paper (4): w d |1/(U + y tan θF) − 1/z| / p."""
+    w, inv_U, d, theta_F = (float(x) for x in glob[:4])
+    x0, y0, x1, y1 = target.extent_mm
+    R = axis_angle_to_matrix(view[0:3]).detach()
+    p = R @ torch.tensor([(x0 + x1) / 2, (y0 + y1) / 2, 0.0], dtype=R.dtype) + view[3:6].detach()
+    y, z = float(p[1]), float(p[2])
+    return w * d * abs(1.0 / (1000.0 / inv_U + y * math.tan(theta_F)) - 1.0 / z) / sensor.pixel_pitch_mm
+
+
+def _cluster_sandwich(glob, views_p, free_g, jac, r, wts, JTJ, data, sensor: SensorGeometry,
+                      target: Target) -> torch.Tensor:
+    """Covariance (n_par, n_par) of all parameters by the cluster-robust sandwich A⁻¹ B A⁻¹ of the Huber fit.
+
+    A = Σ w J J^T is the fit's own normal matrix; B = Σ_c g_c g_c^T sums the score g_c = Σ_{i ∈ c} w_i r_i J_i
+    of each cluster c: the pixels of one square tile of a view, as wide as that view's blur disc (at least
+    8 px). Residuals of neighbouring pixels share their errors — the same blurred edge mis-modelled, the
+    capture's noise varying with the local contrast (Monte Carlo render noise and shot noise are largest on
+    edges, where the information is) — so the textbook (J^T W J)⁻¹ s², which assumes independent residuals of
+    one variance s², comes out too small. The sandwich needs no noise model, only clusters that are roughly
+    independent of each other and many more of them than parameters; it is scaled by C / (C − 1) for C clusters.
+    Held parameters get zero rows and columns.
+    """
+    n_g, n_v = len(GLOBAL_NAMES), len(VIEW_NAMES)
+    n_par = n_g + n_v * len(views_p)
+    free = torch.cat([free_g, torch.ones(n_v * len(views_p), dtype=torch.bool)])
+    idx = torch.nonzero(free).squeeze(1)
+    scores, offset = [], 0
+    for k, (vp, dv) in enumerate(zip(views_p, data)):
+        n = dv.uv.shape[0]
+        with torch.no_grad():
+            jg, jv = jac(glob, vp, dv)
+        J = torch.zeros(n, n_par, dtype=torch.float64)
+        J[:, :n_g] = jg * free_g.to(jg.dtype)
+        J[:, n_g + n_v * k: n_g + n_v * (k + 1)] = jv
+        psi = (wts[offset:offset + n] * r[offset:offset + n])[:, None] * J      # (n, n_par) per-pixel scores
+        offset += n
+        side = max(8.0, _view_blur_px(glob, vp, sensor, target))
+        tile = torch.floor(dv.uv / side).to(torch.int64)
+        key = tile[:, 0] * 100003 + tile[:, 1]
+        _, cluster = torch.unique(key, return_inverse=True)
+        g = torch.zeros(int(cluster.max()) + 1, n_par, dtype=torch.float64).index_add_(0, cluster, psi)
+        scores.append(g)
+    G = torch.cat(scores)
+    C = G.shape[0]
+    B = G.T @ G * (C / max(C - 1, 1))
+    cov = torch.full((n_par, n_par), float("nan"), dtype=torch.float64)
+    try:
+        A_inv = torch.linalg.inv(JTJ[idx[:, None], idx[None, :]])
+    except RuntimeError:
+        return cov
+    cov.zero_()
+    cov[idx[:, None], idx[None, :]] = A_inv @ B[idx[:, None], idx[None, :]] @ A_inv
+    return cov
+
+
+def _sigma_dict(glob, cov, n_g) -> dict:
+    """One-σ of the global parameters (and U, θL by the chain rule) from a covariance of the flat vector."""
+    sd = torch.sqrt(torch.diagonal(cov).clamp_min(0))
+    U = 1000.0 / float(glob[1])
+    # θL's σ by the chain rule through tan θL = w tan θF / (U + w).
+    gL = torch.func.jacrev(lambda g: theta_L_from_theta_F(g[3], g[0], 1000.0 / g[1]))(glob)
+    var_L = float(gL @ cov[:n_g, :n_g] @ gL)
+    return {"w_mm": float(sd[0]), "inv_U_per_m": float(sd[1]), "U_mm": float(sd[1]) * U * U / 1000.0,
+            "d_mm": float(sd[2]), "theta_F_deg": math.degrees(float(sd[3])),
+            "theta_L_deg": math.degrees(math.sqrt(max(var_L, 0.0))) if math.isfinite(var_L) else float("nan"),
+            "vignetting": float(sd[4]), "psf_sigma_px": float(sd[5])}
+
+
 def _photometric_result(glob, views_p, r, scale, JTJ, free_g, data, n_g, n_v, n_par, it, t0, history, kernel,
-                        selection) -> PhotometricResult:
-    """The result: values, σ from the Gauss–Newton covariance (robust σ of the residuals), per-view poses."""
+                        selection, cov_sandwich) -> PhotometricResult:
+    """The result: values, σ from the cluster-robust sandwich (and the textbook Gauss–Newton σ beside it),
+    per-view poses."""
     n_views = len(views_p)
-    # Covariance of the free parameters (Gauss–Newton, robust σ of the residuals).
+    # The textbook covariance (Gauss–Newton, robust σ of the residuals), kept for comparison.
     free = torch.cat([free_g, torch.ones(n_v * n_views, dtype=torch.bool)])
     idx = torch.nonzero(free).squeeze(1)
     cov = torch.zeros(n_par, n_par, dtype=torch.float64)
@@ -551,18 +626,12 @@ def _photometric_result(glob, views_p, r, scale, JTJ, free_g, data, n_g, n_v, n_
         cov[idx[:, None], idx[None, :]] = cov_free
     except RuntimeError:
         cov = torch.full((n_par, n_par), float("nan"), dtype=torch.float64)
-    sd = torch.sqrt(torch.diagonal(cov).clamp_min(0))
     lens = _lens_values(glob)
     vig, psf = float(glob[4]), float(glob[5])
-    U, invU = lens["U_mm"], float(glob[1])
-    # θL's σ by the chain rule through tan θL = w tan θF / (U + w).
-    gL = torch.func.jacrev(lambda g: theta_L_from_theta_F(g[3], g[0], 1000.0 / g[1]))(glob)
-    var_L = float(gL @ cov[:n_g, :n_g] @ gL)
+    invU = float(glob[1])
     values = {**lens, "inv_U_per_m": invU, "vignetting": vig, "psf_sigma_px": abs(psf), "kernel": kernel}
-    sigma = {"w_mm": float(sd[0]), "inv_U_per_m": float(sd[1]), "U_mm": float(sd[1]) * U * U / 1000.0,
-             "d_mm": float(sd[2]), "theta_F_deg": math.degrees(float(sd[3])),
-             "theta_L_deg": math.degrees(math.sqrt(max(var_L, 0.0))), "vignetting": float(sd[4]),
-             "psf_sigma_px": float(sd[5])}
+    sigma = _sigma_dict(glob, cov_sandwich, n_g)
+    sigma_gn = _sigma_dict(glob, cov, n_g)
     views, offset = [], 0
     for k, (vp, dv) in enumerate(zip(views_p, data)):
         n = dv.uv.shape[0]
@@ -571,4 +640,4 @@ def _photometric_result(glob, views_p, r, scale, JTJ, free_g, data, n_g, n_v, n_
         views.append({"R": axis_angle_to_matrix(vp[0:3]).numpy(), "T_mm": vp[3:6].numpy().copy(), "white": float(vp[6]),
                       "black": float(vp[7]), "rms": float(torch.sqrt((rk * rk).mean())), "n_pixels": n})
     rms = float(torch.sqrt((r * r).mean()))
-    return PhotometricResult(values, sigma, views, rms, it, time.perf_counter() - t0, history, selection)
+    return PhotometricResult(values, sigma, views, rms, it, time.perf_counter() - t0, history, selection, sigma_gn)

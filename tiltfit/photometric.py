@@ -24,7 +24,9 @@ e_j and z = (X − e_j)/σ give A = E[inside] and B = E[inside · s] (s = ±1 th
 Gaussian of standard deviation σ; the dark fraction is D = ½ (A_x A_y + p B_x B_y) with p the parity of
 `dark_cell`. σ along X and along Y match the variance of the pixel's box footprint on the board (from the
 local Jacobian of the chief-ray map), so the pixel's area adds the blur a box filter adds. The lens samples
-are a fixed polar grid, symmetric on the aperture, with the disc's second moment, traced from 2 x 2 sub-pixels.
+are a fixed Hammersley set whitened to the disc's second moment (`hammersley_disc_samples`), traced from 2 x 2
+sub-pixels. Their number must grow with the blur disc's area: at 18 px, 64 samples gave θL +0.015° and d −0.3 %
+on average on captures of a fine disc, 192 no bias beyond σ (`benchmarks/results/photometric_diagnosis.md`).
 
 Parameters fitted (Levenberg–Marquardt with Huber weights, Jacobians by forward-mode autodiff, one view
 block at a time): w, 1/U (so U = ∞ is an ordinary value), d, θF, vignetting v, and per view the pose
@@ -74,7 +76,8 @@ class PhotometricOptions:
 
     Attributes:
         lens_samples: fixed lens samples per pixel [64] (a whitened Hammersley set), each traced
-            from the pixel's 4 sub-pixel centres.
+            from the pixel's 4 sub-pixel centres. Too few for blur discs of 18 px (use about 192 there; the
+            number grows with the disc's area; see the module docstring).
         max_pixels: pixels used per view [2000], chosen where the image carries information (edges), plus
             a share of flat pixels for the exposure levels.
         iterations: Levenberg–Marquardt iterations at most [30].

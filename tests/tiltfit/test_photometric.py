@@ -85,16 +85,17 @@ def test_render_target_gradcheck():
 VIEWS = (0, 1, 2)  # reproduce.TARGET_VIEWS at 560, 480 and 700 mm: a spread of depths, so of blur
 
 
-def _captures(U0_mm: float, spp: int = 64, board: Target = BOARD, d_mm: float = D_MM, views=VIEWS):
-    """Ray-traced photographs of `board` through a lens tilted by THETA_L_DEG (focus U0 when untilted)."""
-    w_px, h_px, _ = reproduce.EOS_6D.downscaled(DOWNSCALE)
-    pitch = reproduce.EOS_6D.pixel_pitch_mm * DOWNSCALE
-    cam = synth.tilted_lens_camera(W_MM, U0_mm, d_mm, THETA_L_DEG, pitch, w_px, h_px)
+def _captures(U0_mm: float, spp: int = 64, board: Target = BOARD, d_mm: float = D_MM, views=VIEWS,
+              theta_L_deg: float = THETA_L_DEG, downscale: int = DOWNSCALE, seed: int = 0):
+    """Ray-traced photographs of `board` through a lens tilted by θL (focus U0 when untilted)."""
+    w_px, h_px, _ = reproduce.EOS_6D.downscaled(downscale)
+    pitch = reproduce.EOS_6D.pixel_pitch_mm * downscale
+    cam = synth.tilted_lens_camera(W_MM, U0_mm, d_mm, theta_L_deg, pitch, w_px, h_px)
     U, theta_F = cam.U_mm, cam.theta_F_rad
     images, poses, blur, ratio = [], [], [], []
     for k, (rx, ry, dist) in enumerate(reproduce.TARGET_VIEWS[i] for i in views):
         R, T = reproduce.target_pose(board, rx, ry, dist)
-        view = synth.render_view(board, cam, R, T, method="renderer", spp=spp, noise_sigma=0.003, seed=k)
+        view = synth.render_view(board, cam, R, T, method="renderer", spp=spp, noise_sigma=0.003, seed=100 * seed + k)
         images.append(view.image[..., 0].astype(np.float64))
         poses.append((R, T))
         blur.append(view.truth.blur_px)
@@ -103,7 +104,7 @@ def _captures(U0_mm: float, spp: int = 64, board: Target = BOARD, d_mm: float = 
                            "blur_over_square": min(ratio)}
 
 
-def _perturbed_init(poses, truth, seed=1, d_mm=D_MM, scale=1.0):
+def _perturbed_init(poses, truth, seed=1, d_mm=D_MM, scale=1.0, theta_L_deg=THETA_L_DEG):
     """A start like a corner-and-blur calibration's errors (`scale` = 1): pose 0.1°, 0.5 mm; w +0.3 %,
     U +1 %, d −3 %, θL +0.1°; `scale` multiplies the lens errors."""
     import cv2
@@ -112,7 +113,7 @@ def _perturbed_init(poses, truth, seed=1, d_mm=D_MM, scale=1.0):
     views = [{"R": cv2.Rodrigues(rng.normal(0, math.radians(0.1), 3))[0] @ R, "T_mm": T + rng.normal(0, 0.5, 3)}
              for R, T in poses]
     w, U = W_MM * (1 + 0.003 * scale), truth["U_mm"] * (1 + 0.01 * scale)
-    theta_F = optics.theta_F_from_theta_L(math.radians(THETA_L_DEG + 0.1 * scale), w, U)
+    theta_F = optics.theta_F_from_theta_L(math.radians(theta_L_deg + 0.1 * scale), w, U)
     return {"w_mm": w, "U_mm": U, "d_mm": d_mm * (1 - 0.03 * scale), "theta_F_deg": math.degrees(float(theta_F)),
             "views": views}
 
@@ -166,6 +167,27 @@ def test_photometric_fit_converges_where_blur_exceeds_the_square():
     # (a σ(θL) above 0.05°) rather than report a sharp, wrong tilt. It does not recover θL here.
     assert sg["theta_L_deg"] > 0.05, f"σ(θL) claims more than the data hold: {summary}"
     assert sg["U_mm"] > 0.01 * truth["U_mm"], f"σ(U) claims more than the data hold: {summary}"
+
+
+@pytest.mark.slow
+def test_photometric_sigma_covers_the_error_over_noise_draws():
+    """error / σ of θL, U and d over three independent sets of ray-traced captures (Monte Carlo render noise,
+    largest on the edges, plus sensor noise): the sandwich σ neither claims too much nor too little."""
+    z, ratio = {}, []
+    for seed in range(3):
+        images, poses, truth = _captures(U0_mm=1000.0, spp=32, downscale=32, seed=seed)
+        res = refine_photometric(images, BOARD, _perturbed_init(poses, truth, seed=seed + 1), truth["pitch"],
+                                 PhotometricOptions(lens_samples=64, max_pixels=500, seed=seed))
+        for key, true in (("theta_L_deg", THETA_L_DEG), ("U_mm", truth["U_mm"]), ("d_mm", D_MM)):
+            z[f"{key} seed {seed}"] = (res.values[key] - true) / res.sigma[key]
+            ratio.append(res.sigma[key] / res.sigma_gauss_newton[key])
+    zs = np.array(list(z.values()))
+    summary = ", ".join(f"{k}: {v:+.2f}" for k, v in z.items())
+    assert np.abs(zs).max() < 3.5, f"an error beyond 3.5 σ: {summary}"
+    # Nine z values: an RMS outside [0.3, 2] has a chance under 1e-3 if the σ are right.
+    assert 0.3 < math.sqrt((zs**2).mean()) < 2.0, f"RMS error / σ {math.sqrt((zs**2).mean()):.2f}: {summary}"
+    # Render noise is largest where the information is: the sandwich is at least the textbook σ, not wildly more.
+    assert 0.95 < min(ratio) and max(ratio) < 3.0, f"sandwich / Gauss–Newton σ from {min(ratio):.2f} to {max(ratio):.2f}"
 
 
 # ------------------------------------------------------------------------------------------ command line

@@ -192,11 +192,13 @@ def _met(r) -> str:
 def table(rows, meta) -> list[str]:
     lines = ["# Corner-and-blur fit vs photometric refinement (same ray-traced photographs, same run)\n",
              f"6 x 4 board of 50 mm cells (30 mm past the square), 3 views, "
-             f"{' and '.join(f'{w} x {h}' for w, h in meta['size_px'].values())}, {meta['spp']} spp captures and sensor noise 0.003; photometric fit: "
+             f"{' and '.join(f'{w} x {h}' for w, h in meta['size_px'].values())}, {meta['spp']} spp captures and "
+             f"sensor noise 0.003; photometric fit: "
              f"{meta['pixels_per_view']} pixels per view, {meta['lens_samples']} lens samples. "
              f"{meta['workers']} worker processes, {meta['wall_s'] / 60:.1f} min in all, load average "
              f"{meta['load_average']:.1f} at the end. `python benchmarks/bench_photometric.py`.\n",
-             "Targets (issue 9): |θL error| ≤ 0.01°, |U error| ≤ 0.05 %, |d error| ≤ 0.1 %; the last column says "
+             "Targets (issue 9): |θL error| ≤ 0.01°, |U error| ≤ 0.05 %, |d error| ≤ 0.1 %; the last column "
+             "says "
              "which a row meets (θL U d). σ: the method's own one-σ; for the photometric fit the cluster-robust "
              "sandwich, with the textbook Gauss–Newton σ(θL) in brackets.\n",
              "| θL true ° | size | blur px | blur / square | corners found | method | θL error ° | σ θL ° | "
@@ -206,7 +208,8 @@ def table(rows, meta) -> list[str]:
         gn = r.get("gauss_newton_sigma_theta_L_deg")
         sgl = f"{sg:.4f}" + (f" ({gn:.4f})" if gn is not None else "")
         size = meta["size_px"][str(r["downscale"])]
-        lines.append(f"| {r['theta_L_deg']:+.1f} | {size[0]}x{size[1]} | {r['blur_px']:.1f} | {r['blur_over_square']:.2f} | "
+        lines.append(f"| {r['theta_L_deg']:+.1f} | {size[0]}x{size[1]} | {r['blur_px']:.1f} | "
+                     f"{r['blur_over_square']:.2f} | "
                      f"{'/'.join(map(str, r['corners_found']))} | {r['method']} | {r['theta_L_err_deg']:+.4f} | "
                      f"{sgl} | {r['U_err_pct']:+.3f} | {r['sigma_U_pct']:.3f} | {r['d_err_pct']:+.3f} | "
                      f"{r['sigma_d_pct']:.3f} | {r['w_err_pct']:+.3f} | {r['seconds']:.1f} | {_met(r)} |")

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import sys
 import time
@@ -100,7 +99,8 @@ def table(rows) -> list[str]:
              "342 x 228, blur discs of 18 px (half the square), θL 4.65°, 3 views, 1000 pixels per view; "
              "`python benchmarks/diag_photometric.py`. Errors: θL in degrees, U and d in percent; z = error / σ "
              "(σ: cluster-robust sandwich; Gauss–Newton σ in brackets).\n",
-             "| captures | seed | fit lens samples | residual RMS | θL error | σ θL | z θL | U error | σ U | z U | "
+             "| captures | seed | fit lens samples | residual RMS | θL error | σ θL | z θL | U error | σ U | "
+             "z U | "
              "d error | σ d | z d | fit s |", "|" + "---|" * 14]
     for r in rows:
         lines.append(f"| {r['group']} | {r['seed']} | {r['lens_samples']} | {r['rms']:.4f} | "

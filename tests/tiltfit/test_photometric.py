@@ -189,7 +189,8 @@ def test_photometric_sigma_covers_the_error_over_noise_draws():
     # Nine z values: an RMS outside [0.3, 2] has a chance under 1e-3 if the σ are right.
     assert 0.3 < math.sqrt((zs**2).mean()) < 2.0, f"RMS error / σ {math.sqrt((zs**2).mean()):.2f}: {summary}"
     # Render noise is largest where the information is: the sandwich is at least the textbook σ, not wildly more.
-    assert 0.95 < min(ratio) and max(ratio) < 3.0, f"sandwich / Gauss–Newton σ from {min(ratio):.2f} to {max(ratio):.2f}"
+    assert 0.95 < min(ratio) and max(ratio) < 3.0, \
+        f"sandwich / Gauss–Newton σ from {min(ratio):.2f} to {max(ratio):.2f}"
 
 
 # ------------------------------------------------------------------------------------------ command line

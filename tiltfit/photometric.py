@@ -60,6 +60,9 @@ GLOBAL_NAMES = ("w_mm", "inv_U_per_m", "d_mm", "theta_F", "vignetting", "psf_sig
 #: the same pixels) and it is at least PSF_EVIDENCE_PX wide.
 KERNELS = ("disc", "disc_gaussian", "auto")
 AUTO_KERNEL_LENS_SAMPLES = 128
+#: `lens_samples=0` (auto) takes 64 · (b / 10 px)² samples for the start's largest blur disc b at the board's
+#: centre, in multiples of 16, from 64 to this many (`auto_lens_samples`).
+AUTO_LENS_SAMPLES_MAX = 256
 PSF_EVIDENCE_PX = 0.5    # narrower Gaussians `auto` rejects: the fixed lens samples' own coarseness
 PSF_START_PX = 0.5       # where a freed Gaussian starts (σ = 0 is a stationary point of σ²)
 #: Per-view parameters: axis-angle (rad), translation (mm), white and black linear levels.
@@ -77,7 +80,8 @@ class PhotometricOptions:
     Attributes:
         lens_samples: fixed lens samples per pixel [64] (a whitened Hammersley set), each traced
             from the pixel's 4 sub-pixel centres. Too few for blur discs of 18 px (use about 192 there; the
-            number grows with the disc's area; see the module docstring).
+            number grows with the disc's area; see the module docstring). 0: from the start's blur
+            (`auto_lens_samples`).
         max_pixels: pixels used per view [2000], chosen where the image carries information (edges), plus
             a share of flat pixels for the exposure levels.
         iterations: Levenberg–Marquardt iterations at most [30].
@@ -101,9 +105,11 @@ class PhotometricOptions:
     seed: int = 0
 
     def __post_init__(self):
+        if self.lens_samples < 0:
+            raise ValueError(f"lens_samples: expected 0 (auto) or a positive count, got {self.lens_samples}")
         if self.kernel not in KERNELS:
             raise ValueError(f"kernel: expected one of {', '.join(KERNELS)}, got {self.kernel!r}")
-        if self.kernel == "auto" and self.lens_samples < AUTO_KERNEL_LENS_SAMPLES:
+        if self.kernel == "auto" and 0 < self.lens_samples < AUTO_KERNEL_LENS_SAMPLES:
             raise ValueError(f"kernel auto: needs at least {AUTO_KERNEL_LENS_SAMPLES} lens samples (got "
                              f"{self.lens_samples}); fewer make the disc itself look Gaussian-blurred")
 
@@ -114,7 +120,8 @@ class PhotometricResult:
 
     Attributes:
         values: w_mm, U_mm (inf when 1/U = 0), inv_U_per_m, d_mm, theta_F_deg, theta_L_deg, vignetting,
-            psf_sigma_px (σ of the Gaussian part of the kernel, 0 for the disc alone), kernel.
+            psf_sigma_px (σ of the Gaussian part of the kernel, 0 for the disc alone), kernel, lens_samples
+            (the fixed lens samples used).
         sigma: one-σ uncertainties of the same keys, from the cluster-robust sandwich covariance
             (`_cluster_sandwich`: errors shared by neighbouring pixels and noise that varies over the image
             are counted).
@@ -155,6 +162,14 @@ def _inverse_concentric(xy: np.ndarray) -> np.ndarray:
     a[s2], b[s2] = -r[s2], -r[s2] * (phi[s2] - np.pi) * 4 / np.pi
     b[s3], a[s3] = -r[s3], -r[s3] * (np.pi / 2 - (phi[s3] - np.pi)) * 4 / np.pi
     return np.stack([(a + 1) / 2, (b + 1) / 2], -1)
+
+
+def auto_lens_samples(blur_px: float, minimum: int = 64) -> int:
+    """Fixed lens samples for a blur disc of `blur_px` px: 64 · (b / 10 px)², so the samples' spacing on the
+    image stays about 1.1 px, in multiples of 16, between `minimum` and AUTO_LENS_SAMPLES_MAX (192 samples
+    at 18 px left no bias beyond σ where 64 gave θL +0.015° and d −0.3 %; module docstring)."""
+    n = 16 * math.ceil(64.0 * (max(float(blur_px), 0.0) / 10.0) ** 2 / 16)
+    return int(min(AUTO_LENS_SAMPLES_MAX, max(minimum, n)))
 
 
 def hammersley_disc_samples(n: int, dtype=torch.float64) -> torch.Tensor:
@@ -390,7 +405,13 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
     psf0 = PSF_START_PX if opts.kernel == "disc_gaussian" else 0.0
     glob = torch.tensor([init["w_mm"], inv_U0, max(d0, 1e-3), math.radians(init.get("theta_F_deg") or 0.0), 0.0,
                          psf0], dtype=torch.float64)
-    lens_uv = hammersley_disc_samples(opts.lens_samples)
+    n_samples = opts.lens_samples
+    if n_samples == 0:
+        starts = [torch.tensor([*matrix_to_axis_angle(v["R"]).reshape(3).tolist(), *np.asarray(v["T_mm"], dtype=float),
+                                0.0, 0.0], dtype=torch.float64) for v in init["views"]]
+        blur = max(_view_blur_px(glob, vp, sensor, target) for vp in starts)
+        n_samples = auto_lens_samples(blur, AUTO_KERNEL_LENS_SAMPLES if opts.kernel == "auto" else 64)
+    lens_uv = hammersley_disc_samples(n_samples)
     rng = np.random.default_rng(opts.seed)
     views_p, data = [], []
     for k, (im, v) in enumerate(zip(imgs, init["views"])):
@@ -416,7 +437,7 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
         views_p.append(vp)
     if say:
         say(f"photometric: {len(imgs)} views, {sum(int(d.uv.shape[0]) for d in data)} pixels, "
-            f"{opts.lens_samples} lens samples per pixel")
+            f"{n_samples} lens samples per pixel")
 
     n_g, n_v = len(GLOBAL_NAMES), len(VIEW_NAMES)
     free_g = torch.tensor([True, True, True, True, opts.fit_vignetting, opts.kernel == "disc_gaussian"])
@@ -471,8 +492,10 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
         glob = glob.clone()
         glob[5] = 0.0
     cov_sandwich = _cluster_sandwich(glob, views_p, free_g, jac, r, wts, JTJ, data, sensor, target)
-    return _photometric_result(glob, views_p, r, scale, JTJ, free_g, data, n_g, n_v, n_par, it, t0, history,
-                               kernel, selection, cov_sandwich)
+    result = _photometric_result(glob, views_p, r, scale, JTJ, free_g, data, n_g, n_v, n_par, it, t0, history,
+                                 kernel, selection, cov_sandwich)
+    result.values["lens_samples"] = n_samples
+    return result
 
 
 def _lens_values(glob) -> dict:

@@ -224,6 +224,8 @@ def test_calibrate_refine_photometric_on_the_command_line(tmp_path):
     ph = data["photometric"]
     assert 0 < ph["rms_linear"] < 0.01, f"photometric RMS {ph['rms_linear']} (noise 0.002)"
     assert set(ph["corner_fit"]) >= {"w_mm", "U_mm", "d_mm", "theta_L_deg"}, "the corner fit is kept beside it"
+    # Discs of up to about 10 px (d 30 mm, U 700 mm, views at 480-700 mm): the automatic count stays near 64.
+    assert 64 <= ph["lens_samples"] <= 96, f"lens samples {ph['lens_samples']} for discs of about 10 px"
     assert ph["kernel"] == "disc" and ph["psf_sigma_px"] == 0 and "kernel_selection" not in ph, \
         f"the default kernel is the disc alone: {ph['kernel']}, σ {ph['psf_sigma_px']}"
     assert abs(data["d_mm"] / d - 1) < 0.01, f"d {data['d_mm']:.3f} vs {d}"
@@ -255,6 +257,19 @@ def test_kernel_selection_finds_a_gaussian_where_there_is_one():
     plain = refine_photometric(images, BOARD, start, truth["pitch"], opts)
     assert plain.values["kernel"] == "disc" and plain.values["psf_sigma_px"] == 0, \
         f"no Gaussian in the plain ray-traced captures: {plain.kernel_selection}"
+
+
+def test_auto_lens_samples_grow_with_the_blur_discs_area():
+    from tiltfit.photometric import AUTO_LENS_SAMPLES_MAX, auto_lens_samples
+
+    assert auto_lens_samples(5.0) == 64, "small discs keep the floor of 64"
+    assert auto_lens_samples(10.0) == 64 and auto_lens_samples(12.0) == 96, "64 · (b / 10)², multiples of 16"
+    assert auto_lens_samples(18.0) == 208, "18 px: 64 · 3.24 = 207.4, up to 208"
+    assert auto_lens_samples(40.0) == AUTO_LENS_SAMPLES_MAX, "capped"
+    assert auto_lens_samples(5.0, minimum=128) == 128, "the kernel test's floor"
+    with pytest.raises(ValueError, match="lens_samples"):
+        PhotometricOptions(lens_samples=-1)
+    assert PhotometricOptions(kernel="auto", lens_samples=0).lens_samples == 0, "0 (auto) is allowed under auto"
 
 
 def test_auto_kernel_needs_enough_lens_samples():

@@ -353,7 +353,7 @@ def _refine_photometric(result, obs, target, args, say, photos: dict | None = No
              "corner_fit_sigma": {k: result.sigma.get(k) for k in keys}}
     try:
         res = refine_photometric(images, target, calib_dict(result), args.pixel_pitch_mm,
-                                 PhotometricOptions(kernel=args.psf, lens_samples=128 if args.psf == "auto" else 64),
+                                 PhotometricOptions(kernel=args.psf, lens_samples=0),  # 0: from the blur
                                  say=say)
     except PhotometricError as e:
         raise CliError(args.inputs[0], f"photometric refinement: {e}") from None
@@ -377,7 +377,8 @@ def _refine_photometric(result, obs, target, args, say, photos: dict | None = No
                     rms_blur_px=float(rms_blur[k]), rms_photometric=fitted["rms"])
     block.update(rms_linear=res.rms, iterations=res.iterations, runtime_s=res.runtime_s, vignetting=v["vignetting"],
                  levels=[{"white": x["white"], "black": x["black"]} for x in res.views], kernel=v["kernel"],
-                 psf_sigma_px=v["psf_sigma_px"], psf_sigma_px_sigma=sg["psf_sigma_px"])
+                 psf_sigma_px=v["psf_sigma_px"], psf_sigma_px_sigma=sg["psf_sigma_px"],
+                 lens_samples=v["lens_samples"])
     if res.kernel_selection is not None:
         block["kernel_selection"] = res.kernel_selection
     say(f"photometric refinement: RMS {res.rms:.4g} (linear), θL {v['theta_L_deg']:+.4f} ± {sg['theta_L_deg']:.4f}°, "

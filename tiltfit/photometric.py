@@ -24,7 +24,9 @@ e_j and z = (X − e_j)/σ give A = E[inside] and B = E[inside · s] (s = ±1 th
 Gaussian of standard deviation σ; the dark fraction is D = ½ (A_x A_y + p B_x B_y) with p the parity of
 `dark_cell`. σ along X and along Y match the variance of the pixel's box footprint on the board (from the
 local Jacobian of the chief-ray map), so the pixel's area adds the blur a box filter adds. The lens samples
-are a fixed polar grid, symmetric on the aperture, with the disc's second moment, traced from 2 x 2 sub-pixels.
+are a fixed Hammersley set whitened to the disc's second moment (`hammersley_disc_samples`), traced from 2 x 2
+sub-pixels. Their number must grow with the blur disc's area: at 18 px, 64 samples gave θL +0.015° and d −0.3 %
+on average on captures of a fine disc, 192 no bias beyond σ (`benchmarks/results/photometric_diagnosis.md`).
 
 Parameters fitted (Levenberg–Marquardt with Huber weights, Jacobians by forward-mode autodiff, one view
 block at a time): w, 1/U (so U = ∞ is an ordinary value), d, θF, vignetting v, and per view the pose
@@ -55,6 +57,9 @@ GLOBAL_NAMES = ("w_mm", "inv_U_per_m", "d_mm", "theta_F", "vignetting", "psf_sig
 #: the same pixels) and it is at least PSF_EVIDENCE_PX wide.
 KERNELS = ("disc", "disc_gaussian", "auto")
 AUTO_KERNEL_LENS_SAMPLES = 128
+#: `lens_samples=0` (auto) takes 64 · (b / 10 px)² samples for the start's largest blur disc b at the board's
+#: centre, in multiples of 16, from 64 to this many (`auto_lens_samples`).
+AUTO_LENS_SAMPLES_MAX = 256
 PSF_EVIDENCE_PX = 0.5    # narrower Gaussians `auto` rejects: the fixed lens samples' own coarseness
 PSF_START_PX = 0.5       # where a freed Gaussian starts (σ = 0 is a stationary point of σ²)
 #: Per-view parameters: axis-angle (rad), translation (mm), white and black linear levels.
@@ -71,7 +76,9 @@ class PhotometricOptions:
 
     Attributes:
         lens_samples: fixed lens samples per pixel [64] (a whitened Hammersley set), each traced
-            from the pixel's 4 sub-pixel centres.
+            from the pixel's 4 sub-pixel centres. Too few for blur discs of 18 px (use about 192 there; the
+            number grows with the disc's area; see the module docstring). 0: from the start's blur
+            (`auto_lens_samples`).
         max_pixels: pixels used per view [2000], chosen where the image carries information (edges), plus
             a share of flat pixels for the exposure levels.
         iterations: Levenberg–Marquardt iterations at most [30].
@@ -95,9 +102,11 @@ class PhotometricOptions:
     seed: int = 0
 
     def __post_init__(self):
+        if self.lens_samples < 0:
+            raise ValueError(f"lens_samples: expected 0 (auto) or a positive count, got {self.lens_samples}")
         if self.kernel not in KERNELS:
             raise ValueError(f"kernel: expected one of {', '.join(KERNELS)}, got {self.kernel!r}")
-        if self.kernel == "auto" and self.lens_samples < AUTO_KERNEL_LENS_SAMPLES:
+        if self.kernel == "auto" and 0 < self.lens_samples < AUTO_KERNEL_LENS_SAMPLES:
             raise ValueError(f"kernel auto: needs at least {AUTO_KERNEL_LENS_SAMPLES} lens samples (got "
                              f"{self.lens_samples}); fewer make the disc itself look Gaussian-blurred")
 
@@ -108,9 +117,13 @@ class PhotometricResult:
 
     Attributes:
         values: w_mm, U_mm (inf when 1/U = 0), inv_U_per_m, d_mm, theta_F_deg, theta_L_deg, vignetting,
-            psf_sigma_px (σ of the Gaussian part of the kernel, 0 for the disc alone), kernel.
-        sigma: one-σ uncertainties of the same keys (from the Gauss–Newton covariance, scaled by the
-            residuals' robust σ).
+            psf_sigma_px (σ of the Gaussian part of the kernel, 0 for the disc alone), kernel, lens_samples
+            (the fixed lens samples used).
+        sigma: one-σ uncertainties of the same keys, from the cluster-robust sandwich covariance
+            (`_cluster_sandwich`: errors shared by neighbouring pixels and noise that varies over the image
+            are counted).
+        sigma_gauss_newton: the textbook σ, (J^T W J)⁻¹ scaled by the residuals' robust σ, which assumes
+            independent residuals of one variance (too small on ray-traced captures; kept for comparison).
         views: per view: R (3×3), T_mm, white, black, rms (linear units), n_pixels.
         rms: RMS photometric residual over all views (linear intensity units).
         iterations, runtime_s, history: LM iterations, wall time, cost per iteration.
@@ -125,6 +138,7 @@ class PhotometricResult:
     runtime_s: float
     history: list = field(default_factory=list)
     kernel_selection: dict | None = None
+    sigma_gauss_newton: dict | None = None
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -145,6 +159,14 @@ def _inverse_concentric(xy: np.ndarray) -> np.ndarray:
     a[s2], b[s2] = -r[s2], -r[s2] * (phi[s2] - np.pi) * 4 / np.pi
     b[s3], a[s3] = -r[s3], -r[s3] * (np.pi / 2 - (phi[s3] - np.pi)) * 4 / np.pi
     return np.stack([(a + 1) / 2, (b + 1) / 2], -1)
+
+
+def auto_lens_samples(blur_px: float, minimum: int = 64) -> int:
+    """Fixed lens samples for a blur disc of `blur_px` px: 64 · (b / 10 px)², so the samples' spacing on the
+    image stays about 1.1 px, in multiples of 16, between `minimum` and AUTO_LENS_SAMPLES_MAX (192 samples
+    at 18 px left no bias beyond σ where 64 gave θL +0.015° and d −0.3 %; module docstring)."""
+    n = 16 * math.ceil(64.0 * (max(float(blur_px), 0.0) / 10.0) ** 2 / 16)
+    return int(min(AUTO_LENS_SAMPLES_MAX, max(minimum, n)))
 
 
 def hammersley_disc_samples(n: int, dtype=torch.float64) -> torch.Tensor:
@@ -373,7 +395,13 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
     psf0 = PSF_START_PX if opts.kernel == "disc_gaussian" else 0.0
     glob = torch.tensor([init["w_mm"], inv_U0, max(d0, 1e-3), math.radians(init.get("theta_F_deg") or 0.0), 0.0,
                          psf0], dtype=torch.float64)
-    lens_uv = hammersley_disc_samples(opts.lens_samples)
+    n_samples = opts.lens_samples
+    if n_samples == 0:
+        starts = [torch.tensor([*matrix_to_axis_angle(v["R"]).reshape(3).tolist(), *np.asarray(v["T_mm"], dtype=float),
+                                0.0, 0.0], dtype=torch.float64) for v in init["views"]]
+        blur = max(_view_blur_px(glob, vp, sensor, target) for vp in starts)
+        n_samples = auto_lens_samples(blur, AUTO_KERNEL_LENS_SAMPLES if opts.kernel == "auto" else 64)
+    lens_uv = hammersley_disc_samples(n_samples)
     rng = np.random.default_rng(opts.seed)
     views_p, data = [], []
     for k, (im, v) in enumerate(zip(imgs, init["views"])):
@@ -399,7 +427,7 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
         views_p.append(vp)
     if say:
         say(f"photometric: {len(imgs)} views, {sum(int(d.uv.shape[0]) for d in data)} pixels, "
-            f"{opts.lens_samples} lens samples per pixel")
+            f"{n_samples} lens samples per pixel")
 
     n_g, n_v = len(GLOBAL_NAMES), len(VIEW_NAMES)
     free_g = torch.tensor([True, True, True, True, opts.fit_vignetting, opts.kernel == "disc_gaussian"])
@@ -453,8 +481,11 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
     if kernel == "disc":
         glob = glob.clone()
         glob[5] = 0.0
-    return _photometric_result(glob, views_p, r, scale, JTJ, free_g, data, n_g, n_v, n_par, it, t0, history,
-                               kernel, selection)
+    cov_sandwich = _cluster_sandwich(glob, views_p, free_g, jac, r, wts, JTJ, data, sensor, target)
+    result = _photometric_result(glob, views_p, r, scale, JTJ, free_g, data, n_g, n_v, n_par, it, t0, history,
+                                 kernel, selection, cov_sandwich)
+    result.values["lens_samples"] = n_samples
+    return result
 
 
 def _lens_values(glob) -> dict:
@@ -528,11 +559,81 @@ def _levenberg_marquardt(glob, views_p, free_g, all_residuals, jac, robust_weigh
     return glob, views_p, r, wts, scale, JTJ, it
 
 
+def _view_blur_px(glob, view, sensor: SensorGeometry, target: Target) -> float:
+    """Blur-disc diameter (px) at the board's centre in one view, paper (4): w d |1/(U + y tan θF) − 1/z| / p."""
+    w, inv_U, d, theta_F = (float(x) for x in glob[:4])
+    x0, y0, x1, y1 = target.extent_mm
+    R = axis_angle_to_matrix(view[0:3]).detach()
+    p = R @ torch.tensor([(x0 + x1) / 2, (y0 + y1) / 2, 0.0], dtype=R.dtype) + view[3:6].detach()
+    y, z = float(p[1]), float(p[2])
+    return w * d * abs(1.0 / (1000.0 / inv_U + y * math.tan(theta_F)) - 1.0 / z) / sensor.pixel_pitch_mm
+
+
+def _cluster_sandwich(glob, views_p, free_g, jac, r, wts, JTJ, data, sensor: SensorGeometry,
+                      target: Target) -> torch.Tensor:
+    """Covariance (n_par, n_par) of all parameters by the cluster-robust sandwich A⁻¹ B A⁻¹ of the Huber fit.
+
+    A = Σ w J J^T is the fit's own normal matrix; B = Σ_c g_c g_c^T sums the score g_c = Σ_{i ∈ c} w_i r_i J_i
+    of each cluster c: the pixels of one square tile of a view, as wide as that view's blur disc (at least
+    8 px). Residuals of neighbouring pixels share their errors — the same blurred edge mis-modelled, the
+    capture's noise varying with the local contrast (Monte Carlo render noise and shot noise are largest on
+    edges, where the information is) — so the textbook (J^T W J)⁻¹ s², which assumes independent residuals of
+    one variance s², comes out too small. The sandwich needs no noise model, only clusters that are roughly
+    independent of each other and many more of them than parameters; it is scaled by C / (C − 1) for C clusters.
+    Held parameters get zero rows and columns.
+    """
+    n_g, n_v = len(GLOBAL_NAMES), len(VIEW_NAMES)
+    n_par = n_g + n_v * len(views_p)
+    free = torch.cat([free_g, torch.ones(n_v * len(views_p), dtype=torch.bool)])
+    idx = torch.nonzero(free).squeeze(1)
+    scores, offset = [], 0
+    for k, (vp, dv) in enumerate(zip(views_p, data)):
+        n = dv.uv.shape[0]
+        with torch.no_grad():
+            jg, jv = jac(glob, vp, dv)
+        J = torch.zeros(n, n_par, dtype=torch.float64)
+        J[:, :n_g] = jg * free_g.to(jg.dtype)
+        J[:, n_g + n_v * k: n_g + n_v * (k + 1)] = jv
+        psi = (wts[offset:offset + n] * r[offset:offset + n])[:, None] * J      # (n, n_par) per-pixel scores
+        offset += n
+        side = max(8.0, _view_blur_px(glob, vp, sensor, target))
+        tile = torch.floor(dv.uv / side).to(torch.int64)
+        key = tile[:, 0] * 100003 + tile[:, 1]
+        _, cluster = torch.unique(key, return_inverse=True)
+        g = torch.zeros(int(cluster.max()) + 1, n_par, dtype=torch.float64).index_add_(0, cluster, psi)
+        scores.append(g)
+    G = torch.cat(scores)
+    C = G.shape[0]
+    B = G.T @ G * (C / max(C - 1, 1))
+    cov = torch.full((n_par, n_par), float("nan"), dtype=torch.float64)
+    try:
+        A_inv = torch.linalg.inv(JTJ[idx[:, None], idx[None, :]])
+    except RuntimeError:
+        return cov
+    cov.zero_()
+    cov[idx[:, None], idx[None, :]] = A_inv @ B[idx[:, None], idx[None, :]] @ A_inv
+    return cov
+
+
+def _sigma_dict(glob, cov, n_g) -> dict:
+    """One-σ of the global parameters (and U, θL by the chain rule) from a covariance of the flat vector."""
+    sd = torch.sqrt(torch.diagonal(cov).clamp_min(0))
+    U = 1000.0 / float(glob[1])
+    # θL's σ by the chain rule through tan θL = w tan θF / (U + w).
+    gL = torch.func.jacrev(lambda g: theta_L_from_theta_F(g[3], g[0], 1000.0 / g[1]))(glob)
+    var_L = float(gL @ cov[:n_g, :n_g] @ gL)
+    return {"w_mm": float(sd[0]), "inv_U_per_m": float(sd[1]), "U_mm": float(sd[1]) * U * U / 1000.0,
+            "d_mm": float(sd[2]), "theta_F_deg": math.degrees(float(sd[3])),
+            "theta_L_deg": math.degrees(math.sqrt(max(var_L, 0.0))) if math.isfinite(var_L) else float("nan"),
+            "vignetting": float(sd[4]), "psf_sigma_px": float(sd[5])}
+
+
 def _photometric_result(glob, views_p, r, scale, JTJ, free_g, data, n_g, n_v, n_par, it, t0, history, kernel,
-                        selection) -> PhotometricResult:
-    """The result: values, σ from the Gauss–Newton covariance (robust σ of the residuals), per-view poses."""
+                        selection, cov_sandwich) -> PhotometricResult:
+    """The result: values, σ from the cluster-robust sandwich (and the textbook Gauss–Newton σ beside it),
+    per-view poses."""
     n_views = len(views_p)
-    # Covariance of the free parameters (Gauss–Newton, robust σ of the residuals).
+    # The textbook covariance (Gauss–Newton, robust σ of the residuals), kept for comparison.
     free = torch.cat([free_g, torch.ones(n_v * n_views, dtype=torch.bool)])
     idx = torch.nonzero(free).squeeze(1)
     cov = torch.zeros(n_par, n_par, dtype=torch.float64)
@@ -541,18 +642,12 @@ def _photometric_result(glob, views_p, r, scale, JTJ, free_g, data, n_g, n_v, n_
         cov[idx[:, None], idx[None, :]] = cov_free
     except RuntimeError:
         cov = torch.full((n_par, n_par), float("nan"), dtype=torch.float64)
-    sd = torch.sqrt(torch.diagonal(cov).clamp_min(0))
     lens = _lens_values(glob)
     vig, psf = float(glob[4]), float(glob[5])
-    U, invU = lens["U_mm"], float(glob[1])
-    # θL's σ by the chain rule through tan θL = w tan θF / (U + w).
-    gL = torch.func.jacrev(lambda g: theta_L_from_theta_F(g[3], g[0], 1000.0 / g[1]))(glob)
-    var_L = float(gL @ cov[:n_g, :n_g] @ gL)
+    invU = float(glob[1])
     values = {**lens, "inv_U_per_m": invU, "vignetting": vig, "psf_sigma_px": abs(psf), "kernel": kernel}
-    sigma = {"w_mm": float(sd[0]), "inv_U_per_m": float(sd[1]), "U_mm": float(sd[1]) * U * U / 1000.0,
-             "d_mm": float(sd[2]), "theta_F_deg": math.degrees(float(sd[3])),
-             "theta_L_deg": math.degrees(math.sqrt(max(var_L, 0.0))), "vignetting": float(sd[4]),
-             "psf_sigma_px": float(sd[5])}
+    sigma = _sigma_dict(glob, cov_sandwich, n_g)
+    sigma_gn = _sigma_dict(glob, cov, n_g)
     views, offset = [], 0
     for k, (vp, dv) in enumerate(zip(views_p, data)):
         n = dv.uv.shape[0]
@@ -561,4 +656,4 @@ def _photometric_result(glob, views_p, r, scale, JTJ, free_g, data, n_g, n_v, n_
         views.append({"R": axis_angle_to_matrix(vp[0:3]).numpy(), "T_mm": vp[3:6].numpy().copy(), "white": float(vp[6]),
                       "black": float(vp[7]), "rms": float(torch.sqrt((rk * rk).mean())), "n_pixels": n})
     rms = float(torch.sqrt((r * r).mean()))
-    return PhotometricResult(values, sigma, views, rms, it, time.perf_counter() - t0, history, selection)
+    return PhotometricResult(values, sigma, views, rms, it, time.perf_counter() - t0, history, selection, sigma_gn)

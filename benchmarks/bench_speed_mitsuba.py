@@ -203,11 +203,16 @@ def write_markdown(path: str, res: dict) -> None:
         f.write("\n".join(lines) + "\n")
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def add_speed_scene_options(ap) -> None:
+    """--size, --spp, --repeats of the issue-11 speed scene (this benchmark's and bench_embree's)."""
     ap.add_argument("--size", type=int, default=512)
     ap.add_argument("--spp", type=int, default=16)
     ap.add_argument("--repeats", type=int, default=5)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_speed_scene_options(ap)
     ap.add_argument("--modes", default="defaults,workers2",
                     help="defaults, workers2, threads2, compile; on a GPU cuda (its default 2^22 rays a batch), "
                          "cuda_chunk15 (the CPU's 2^15), cuda_compile")

@@ -182,7 +182,12 @@ def _pool(workers: int):
     return _POOL[workers]
 
 
-CPU_CHUNK_RAYS, GPU_CHUNK_RAYS = 1 << 15, 1 << 22
+# CPU: 2^17 rays a batch. Since the tracer works on (3, N) rows throughout, larger batches pay Python's per-
+# operation cost less often: on the issue-11 speed scene 2^17 took 0.75x the time of 2^15 in two same-run
+# benchmarks (speed_thin_lens_embree.md, "ours chunk 2^17") and 0.63 s against 0.80 s CPU in an A/B of
+# 2^15/2^16/2^17/2^18 (0.69, 0.63, 0.62 s); 2^15 had been 10 % faster before the row code.
+CPU_CHUNK_RAYS, GPU_CHUNK_RAYS = 1 << 17, 1 << 22
+MIN_GPU_CHUNK_RAYS = 1 << 15
 # With `intersector="mitsuba"` (CPU only): larger batches pay Dr.Jit's per-call costs (tracing its IR, handing
 # arrays over) less often; 2^17 took 0.51-0.56x our default's time against 0.65-0.71x at 2^15 on the issue-11
 # speed scene (benchmarks/results/speed_thin_lens_embree.md).
@@ -192,15 +197,15 @@ BYTES_PER_RAY = 2048  # twice the measured ~1 KB a ray (float32, depth 5); the b
 
 
 def default_chunk_rays(device) -> int:
-    """Rays traced at once by default: 2^15 on the CPU (cache-sized); on a GPU 2^22 (launch overhead
-    amortised), fewer where the device's free memory would not hold them."""
+    """Rays traced at once by default: 2^17 on the CPU; on a GPU 2^22 (launch overhead amortised), fewer
+    (down to 2^15) where the device's free memory would not hold them."""
     device = torch.device(device)
     if device.type != "cuda":
         return CPU_CHUNK_RAYS
     free, _ = torch.cuda.mem_get_info(device)
     # Blocks torch holds in its cache are free to this render too (mem_get_info does not count them).
     free += torch.cuda.memory_reserved(device) - torch.cuda.memory_allocated(device)
-    return int(max(CPU_CHUNK_RAYS, min(GPU_CHUNK_RAYS, free // (2 * BYTES_PER_RAY))))
+    return int(max(MIN_GPU_CHUNK_RAYS, min(GPU_CHUNK_RAYS, free // (2 * BYTES_PER_RAY))))
 
 
 def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, device="cpu",
@@ -214,12 +219,11 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
             `center` [scene.image.sampler].
         device, dtype: where and in what precision to trace (float32 for speed, float64 for checks).
         chunk_rays: camera samples traced at once (rounded to whole pixels); bounds memory (about 1 KB per
-            ray at depth 5). The image does not depend on it. Default on the CPU 2^15, which keeps a batch's
-            (N,) rows in the caches: 10 % faster than 2^17 on the issue-11 speed scene, 2^12 was 2x slower
-            (Python overhead per operation). Default on a GPU 2^22, fewer if its free memory is short: with
-            2^15 an H100 waited on kernel launches (1.6 s, no faster than one CPU thread), with 2^22 it took
-            0.032 s (benchmarks/results/speed_gpu_h100.md, profile_gpu_h100.md). With
-            `intersector="mitsuba"` 2^17 (`EMBREE_CHUNK_RAYS`).
+            ray at depth 5). The image does not depend on it. Default on the CPU 2^17: 0.75x the time of 2^15
+            on the issue-11 speed scene (fewer Python calls per ray; see CPU_CHUNK_RAYS). Default on a GPU
+            2^22, fewer if its free memory is short: with 2^15 an H100 waited on kernel launches (1.6 s, no
+            faster than one CPU thread), with 2^22 it took 0.032 s (benchmarks/results/speed_gpu_h100.md,
+            profile_gpu_h100.md). With `intersector="mitsuba"` 2^17 (`EMBREE_CHUNK_RAYS`).
         culling, compile, intersector: override scene.options (see `renderer.scene.TraceOptions`); speed only
             (`intersector="mitsuba"`: hits and shadow rays by Embree through Mitsuba 3, `renderer.mitsuba.intersect`).
         workers: CPU only: trace chunks in this many worker processes with one torch thread each (they

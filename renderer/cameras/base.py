@@ -51,11 +51,15 @@ class Screen:
 
     def to_plane(self, uv_px: torch.Tensor) -> torch.Tensor:
         """(..., 2) pixels -> (..., 3) points on the screen plane, camera frame."""
+        return torch.stack(self.plane_rows(uv_px), dim=-1)
+
+    def plane_rows(self, uv_px: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """`to_plane` as its three (...,) components x, y, z (for cameras that build rays per component)."""
         (cx, cy), (px, py) = self.center_px, self.pitch
         x = (uv_px[..., 0] - cx) * px
         y = (uv_px[..., 1] - cy) * py
         # `distance` may be a tensor (the thin lens's w, fitted): broadcast, don't copy it into a fill.
-        return torch.stack([x, y, torch.zeros_like(x) + self.distance], dim=-1)
+        return x, y, torch.zeros_like(x) + self.distance
 
     def to_pixels(self, p_plane: torch.Tensor) -> torch.Tensor:
         """Inverse of `to_plane`: (..., 2) plane coordinates (x, y) -> pixels."""

@@ -19,11 +19,8 @@ class PinholeCamera(Camera):
     """Perspective projection: ray from the origin of the camera frame through the screen point q."""
 
     def rays_in_camera(self, uv_px: torch.Tensor, lens_uv: torch.Tensor) -> Rays:
-        # Per component, as `Screen.to_plane` and the thin lens (whose d = 0 limit is bit for bit this).
-        (cx, cy), (px, py) = self.screen.center_px, self.screen.pitch
-        x = (uv_px[..., 0] - cx) * px
-        y = (uv_px[..., 1] - cy) * py
-        z = torch.zeros_like(x) + self.screen.distance
+        # Per component, as the thin lens (whose d = 0 limit is bit for bit this).
+        x, y, z = self.screen.plane_rows(uv_px)
         zero = torch.zeros_like(x)
         valid = torch.ones(x.shape, dtype=torch.bool, device=x.device)
         return Rays(vectors_from_rows(zero, zero, zero), unit_vectors_from_rows(x, y, z), valid, torch.ones_like(x))

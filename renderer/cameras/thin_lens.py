@@ -196,29 +196,30 @@ class ThinLensCamera(Camera):
 
     def lens_points(self, lens_uv: torch.Tensor) -> torch.Tensor:
         """(..., 2) samples in [0, 1)² -> (..., 3) points on the tilted lens disc, camera frame."""
-        s = concentric_disk(lens_uv) * (self.d / 2)
-        theta_L = _like(self.theta_L, s)
-        cL, sL = torch.cos(theta_L), torch.sin(theta_L)
-        return torch.stack([s[..., 0], s[..., 1] * cL, s[..., 1] * sL], -1)
+        return torch.stack(self.lens_rows(lens_uv), -1)
+
+    def lens_rows(self, lens_uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """`lens_points` as its three (...,) components."""
+        lx, ly = concentric_disk_xy(lens_uv)
+        r = self.d / 2
+        sx, sy = lx * r, ly * r
+        theta_L = _like(self.theta_L, sx)
+        return sx, sy * torch.cos(theta_L), sy * torch.sin(theta_L)
 
     def focus_weight(self, c: torch.Tensor) -> torch.Tensor:
         """D / U = 1 / t for chief directions c = (x_s, y_s, w): the pixel's focus point is P_f = c · U / D."""
-        tan_F = torch.tan(_like(self.theta_F, c))
-        return (c[..., 2] - c[..., 1] * tan_F) / self.U
+        return self._focus_weight(c[..., 1], c[..., 2])
+
+    def _focus_weight(self, y: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        return (z - y * torch.tan(_like(self.theta_F, y))) / self.U
 
     def rays_in_camera(self, uv_px: torch.Tensor, lens_uv: torch.Tensor) -> Rays:
-        # Worked per component (x, y, z rows): the same maths as `to_plane`, `lens_points`, `focus_weight`
-        # and `normalize`, without (..., 3) intermediates, whose length-3 last axis is slow in eager torch.
-        # The (..., 3) results are views of (3, ...) rows, which the tracer's row code takes without a copy.
-        (cx, cy), (px, py) = self.screen.center_px, self.screen.pitch
-        x = (uv_px[..., 0] - cx) * px
-        y = (uv_px[..., 1] - cy) * py
-        z = torch.zeros_like(x) + self.screen.distance  # a tensor (w may be one): the pinhole's rounding
-        lx, ly = concentric_disk_xy(lens_uv.to(x))
-        r = self.d / 2
-        theta_L = _like(self.theta_L, x)
-        sx, sy, sz = lx * r, ly * (r * torch.cos(theta_L)), ly * (r * torch.sin(theta_L))
-        weight = (z - y * torch.tan(_like(self.theta_F, x))) / self.U  # focus_weight
+        # Per component (x, y, z rows), without (..., 3) intermediates, whose length-3 last axis is slow in
+        # eager torch. The (..., 3) results are views of (3, ...) rows, which the tracer's row code takes
+        # without a copy.
+        x, y, z = self.screen.plane_rows(uv_px)
+        sx, sy, sz = self.lens_rows(lens_uv.to(x))
+        weight = self._focus_weight(y, z)
         dx, dy, dz = x - weight * sx, y - weight * sy, z - weight * sz
         valid = torch.ones(x.shape, dtype=torch.bool, device=x.device)
         return Rays(vectors_from_rows(sx, sy, sz), unit_vectors_from_rows(dx, dy, dz), valid, torch.ones_like(x))

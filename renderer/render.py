@@ -183,9 +183,9 @@ def _pool(workers: int):
 
 
 # CPU: 2^17 rays a batch. Since the tracer works on (3, N) rows throughout, larger batches pay Python's per-
-# operation cost less often: on the issue-11 speed scene 2^17 took 0.75x the time of 2^15 in two same-run
-# benchmarks (speed_thin_lens_embree.md, "ours chunk 2^17") and 0.63 s against 0.80 s CPU in an A/B of
-# 2^15/2^16/2^17/2^18 (0.69, 0.63, 0.62 s); 2^15 had been 10 % faster before the row code.
+# operation cost less often: on the issue-11 speed scene 2^17 took 0.74x the CPU time of 2^15 (2^16 0.80x,
+# 2^18 0.76x; benchmarks/results/batch_io.md), and 0.75x in both same-run speed benchmarks
+# (speed_thin_lens_embree.md, "ours chunk 2^17"); 2^15 had been 10 % faster before the row code.
 CPU_CHUNK_RAYS, GPU_CHUNK_RAYS = 1 << 17, 1 << 22
 MIN_GPU_CHUNK_RAYS = 1 << 15
 # With `intersector="mitsuba"` (CPU only): larger batches pay Dr.Jit's per-call costs (tracing its IR, handing

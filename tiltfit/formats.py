@@ -55,6 +55,8 @@ def _table(rows) -> str:
 
 def calibration_reference() -> str:
     """Markdown reference of the target, DET and CALIB files and of what reading them checks."""
+    from .photometric import CLOSED_FORM_MIN_BLUR_PX
+
     return "\n".join([
         "## Target files (`--target T.json`)", "", _table(TARGET_FIELDS), "",
         "Unknown keys are refused. Feature points are the interior intersections, row by row.", "",
@@ -75,8 +77,10 @@ def calibration_reference() -> str:
         "After `--refine photometric`: `refinement: \"photometric\"` and a `photometric` block with the corner "
         "fit it started from (`corner_fit`, `corner_fit_sigma`), `rms_linear` (photometric RMS, linear units), "
         "`iterations`, `runtime_s`, `vignetting`, per-view `levels` (`white`, `black`), the blur `kernel` "
-        "(`disc` or `disc_gaussian`), `psf_sigma_px` and its σ `psf_sigma_px_sigma` (0 for the disc), the fixed "
-        "`lens_samples` per pixel (chosen from the start's blur), and under "
+        "(`disc` or `disc_gaussian`), `psf_sigma_px` and its σ `psf_sigma_px_sigma` (0 for the disc), how each pixel "
+        "integrated the lens's `aperture` (`closed_form`, exact, where the start's blur disc is at least "
+        f"{CLOSED_FORM_MIN_BLUR_PX:g} px and the kernel is the disc; `samples` otherwise) and the fixed `lens_samples` "
+        "per pixel it then used (chosen from the start's blur; 0 in closed form), and under "
         "`--psf auto` the `kernel_selection` test (`lr_statistic`, `p_value`, `delta_bic`, the disc-only fit's "
         "lens values); the top-level lens values and σ are then the photometric fit's.", "",
         "## Every JSON file", "",

@@ -45,6 +45,7 @@ from renderer.cameras import ThinLensCamera, concentric_disk
 from renderer.optics import theta_L_from_theta_F
 from renderer.sensor import radial_falloff
 
+from .aperture import checker_dark_fraction_disc, near_lines
 from .model import axis_angle_to_matrix, matrix_to_axis_angle, robust_weight
 from .stats import nested_test
 from .target import Target
@@ -63,6 +64,12 @@ AUTO_LENS_SAMPLES_MAX = 256
 PSF_EVIDENCE_PX = 0.5    # narrower Gaussians `auto` rejects: the fixed lens samples' own coarseness
 PSF_START_PX = 0.5       # where a freed Gaussian starts (σ = 0 is a stationary point of σ²)
 #: Per-view parameters: axis-angle (rad), translation (mm), white and black linear levels.
+#: Sensor points per pixel side of the closed-form aperture (`render_target_disc`).
+SUBPIXELS = 4
+#: `aperture="auto"` integrates the disc in closed form from this blur-disc diameter (px) at the start on;
+#: below it the pixel's box matters more than the disc and the fixed lens samples' Gaussian footprints model it.
+CLOSED_FORM_MIN_BLUR_PX = 3.0
+APERTURES = ("auto", "closed_form", "samples")
 VIEW_NAMES = ("rvec_x", "rvec_y", "rvec_z", "T_x", "T_y", "T_z", "white", "black")
 
 
@@ -90,6 +97,10 @@ class PhotometricOptions:
             fewer samples freed a wider one and moved d; see docs/photometric.md).
         alpha: level of the kernel's likelihood-ratio test under `auto` [0.01].
         seed: seed of the pixel selection [0].
+        aperture: how each pixel integrates the lens's disc, one of APERTURES [auto]: `closed_form` exactly
+            (`render_target_disc`: no lens samples, no sample pattern to bias d or θL; disc kernel only),
+            `samples` by the fixed lens samples (`render_target`), `auto` the closed form where the start's
+            blur disc is at least CLOSED_FORM_MIN_BLUR_PX and the kernel is the disc, samples otherwise.
     """
 
     lens_samples: int = 64
@@ -100,12 +111,17 @@ class PhotometricOptions:
     kernel: str = "disc"
     alpha: float = 0.01
     seed: int = 0
+    aperture: str = "auto"
 
     def __post_init__(self):
         if self.lens_samples < 0:
             raise ValueError(f"lens_samples: expected 0 (auto) or a positive count, got {self.lens_samples}")
         if self.kernel not in KERNELS:
             raise ValueError(f"kernel: expected one of {', '.join(KERNELS)}, got {self.kernel!r}")
+        if self.aperture not in APERTURES:
+            raise ValueError(f"aperture: expected one of {', '.join(APERTURES)}, got {self.aperture!r}")
+        if self.aperture == "closed_form" and self.kernel != "disc":
+            raise ValueError(f"aperture closed_form: integrates the disc kernel only, got kernel {self.kernel!r}")
         if self.kernel == "auto" and 0 < self.lens_samples < AUTO_KERNEL_LENS_SAMPLES:
             raise ValueError(f"kernel auto: needs at least {AUTO_KERNEL_LENS_SAMPLES} lens samples (got "
                              f"{self.lens_samples}); fewer make the disc itself look Gaussian-blurred")
@@ -300,6 +316,25 @@ def render_target(target: Target, sensor: SensorGeometry, uv_px: torch.Tensor, l
     return falloff * (white - (white - black) * dark)
 
 
+def render_target_disc(target: Target, sensor: SensorGeometry, uv_px: torch.Tensor, near: int,
+                       w_mm, inv_U_per_m, d_mm, theta_F, rvec, T_mm, white, black, vignetting,
+                       subpixels: int = SUBPIXELS) -> torch.Tensor:
+    """`render_target` with the aperture integrated in closed form (`tiltfit.aperture`): no lens samples.
+
+    Each pixel is the mean of a `subpixels` x `subpixels` grid of sensor points (a box pixel by the midpoint
+    rule: fine once the blur disc spans a few pixels, which is where `aperture="auto"` uses it); each point's
+    dark fraction is exact over the disc. `near`: lines per family given the two-line term
+    (`tiltfit.aperture.near_lines`). Arguments and result otherwise as in `render_target` (disc kernel only).
+    """
+    cam = lens_camera(sensor, w_mm, inv_U_per_m, d_mm, theta_F, rvec, T_mm)
+    step = (torch.arange(subpixels, dtype=uv_px.dtype, device=uv_px.device) + 0.5) / subpixels - 0.5
+    sub = torch.stack(torch.meshgrid(step, step, indexing="xy"), -1).reshape(-1, 2)
+    q_h, centre, axes, _ = cam.focus_geometry(uv_px[:, None, :] + sub)
+    dark = checker_dark_fraction_disc(q_h, centre, axes, target, near).mean(-1)
+    falloff = radial_falloff(uv_px[:, 0], uv_px[:, 1], sensor.width_px, sensor.height_px, vignetting)
+    return falloff * (white - (white - black) * dark)
+
+
 def _on_board(rays) -> torch.Tensor:
     """(..., 3) points where rays meet the board plane Z = 0 (target frame)."""
     t = -rays.origin[..., 2] / rays.direction[..., 2]
@@ -395,13 +430,20 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
     psf0 = PSF_START_PX if opts.kernel == "disc_gaussian" else 0.0
     glob = torch.tensor([init["w_mm"], inv_U0, max(d0, 1e-3), math.radians(init.get("theta_F_deg") or 0.0), 0.0,
                          psf0], dtype=torch.float64)
+    starts = [torch.tensor([*matrix_to_axis_angle(v["R"]).reshape(3).tolist(), *np.asarray(v["T_mm"], dtype=float),
+                            0.0, 0.0], dtype=torch.float64) for v in init["views"]]
+    blur = max(_view_blur_px(glob, vp, sensor, target) for vp in starts)
+    closed_form = opts.aperture == "closed_form" or (opts.aperture == "auto" and opts.kernel == "disc"
+                                                     and blur >= CLOSED_FORM_MIN_BLUR_PX)
     n_samples = opts.lens_samples
-    if n_samples == 0:
-        starts = [torch.tensor([*matrix_to_axis_angle(v["R"]).reshape(3).tolist(), *np.asarray(v["T_mm"], dtype=float),
-                                0.0, 0.0], dtype=torch.float64) for v in init["views"]]
-        blur = max(_view_blur_px(glob, vp, sensor, target) for vp in starts)
+    if closed_form:
+        n_samples = 0
+        near = max(near_lines(_view_blur_px(glob, vp, sensor, target), _view_cell_px(glob, vp, sensor, target),
+                              max(len(target.x_edges), len(target.y_edges))) for vp in starts)
+    elif n_samples == 0:
         n_samples = auto_lens_samples(blur, AUTO_KERNEL_LENS_SAMPLES if opts.kernel == "auto" else 64)
-    lens_uv = hammersley_disc_samples(n_samples)
+    # The pixel selection's preview and the usable mask trace a few samples whichever model is fitted.
+    lens_uv = hammersley_disc_samples(n_samples if n_samples else 64)
     rng = np.random.default_rng(opts.seed)
     views_p, data = [], []
     for k, (im, v) in enumerate(zip(imgs, init["views"])):
@@ -427,12 +469,16 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
         views_p.append(vp)
     if say:
         say(f"photometric: {len(imgs)} views, {sum(int(d.uv.shape[0]) for d in data)} pixels, "
-            f"{n_samples} lens samples per pixel")
+            + (f"aperture in closed form ({SUBPIXELS}x{SUBPIXELS} points per pixel)" if closed_form
+               else f"{n_samples} lens samples per pixel"))
 
     n_g, n_v = len(GLOBAL_NAMES), len(VIEW_NAMES)
     free_g = torch.tensor([True, True, True, True, opts.fit_vignetting, opts.kernel == "disc_gaussian"])
 
     def residual(g, vp, view: _View):
+        if closed_form:
+            return render_target_disc(target, sensor, view.uv, near, g[0], g[1], g[2], g[3], vp[0:3], vp[3:6],
+                                      vp[6], vp[7], g[4]) - view.observed
         return render_target(target, sensor, view.uv, lens_uv, g[0], g[1], g[2], g[3], vp[0:3], vp[3:6],
                              vp[6], vp[7], g[4], g[5] ** 2) - view.observed
 
@@ -485,6 +531,7 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
     result = _photometric_result(glob, views_p, r, scale, JTJ, free_g, data, n_g, n_v, n_par, it, t0, history,
                                  kernel, selection, cov_sandwich)
     result.values["lens_samples"] = n_samples
+    result.values["aperture"] = "closed_form" if closed_form else "samples"
     return result
 
 
@@ -567,6 +614,15 @@ def _view_blur_px(glob, view, sensor: SensorGeometry, target: Target) -> float:
     p = R @ torch.tensor([(x0 + x1) / 2, (y0 + y1) / 2, 0.0], dtype=R.dtype) + view[3:6].detach()
     y, z = float(p[1]), float(p[2])
     return w * d * abs(1.0 / (1000.0 / inv_U + y * math.tan(theta_F)) - 1.0 / z) / sensor.pixel_pitch_mm
+
+
+def _view_cell_px(glob, view, sensor: SensorGeometry, target: Target) -> float:
+    """The board's narrowest cell as seen at its centre in one view, px (pinhole scale w / z)."""
+    x0, y0, x1, y1 = target.extent_mm
+    R = axis_angle_to_matrix(view[0:3]).detach()
+    z = float((R @ torch.tensor([(x0 + x1) / 2, (y0 + y1) / 2, 0.0], dtype=R.dtype) + view[3:6].detach())[2])
+    cell = min(float(np.diff(target.x_edges).min()), float(np.diff(target.y_edges).min()))
+    return float(glob[0]) * cell / max(abs(z), 1e-9) / sensor.pixel_pitch_mm
 
 
 def _cluster_sandwich(glob, views_p, free_g, jac, r, wts, JTJ, data, sensor: SensorGeometry,

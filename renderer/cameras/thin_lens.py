@@ -224,6 +224,38 @@ class ThinLensCamera(Camera):
         valid = torch.ones(x.shape, dtype=torch.bool, device=x.device)
         return Rays(vectors_from_rows(sx, sy, sz), unit_vectors_from_rows(dx, dy, dz), valid, torch.ones_like(x))
 
+    def focus_geometry(self, uv_px: torch.Tensor):
+        """Where the rays of sensor points converge, and the aperture they come from, world frame.
+
+        Every ray `generate_rays` traces from the sensor point of `uv_px` leaves a point L of the lens disc and
+        passes through that point's conjugate, its focus point q (on the plane of focus): the ray is the line
+        (L, q). A pixel's blur is therefore the aperture disc seen through q, in closed form
+        (`tiltfit.aperture` integrates a checkerboard over it exactly).
+
+        Args:
+            uv_px: (..., 2) pixel positions (distorted pixels are traced through their ideal positions, as in
+                `generate_rays`).
+        Returns:
+            q_h: (..., 4) homogeneous focus points (x, y, z, s), world frame: q = (x, y, z) / s, with s ≤ 0 for
+                focus points at infinity or behind the lens (s = D/U, `focus_weight`).
+            centre: (3,) the lens centre; axes: (2, 3) two orthogonal half-diameter vectors of the aperture
+                disc (length d/2), so its points are centre + a·axes[0] + b·axes[1], a² + b² ≤ 1.
+            valid: (...,) False where the distortion cannot be inverted.
+        """
+        ideal_px, valid = self.undistort_pixels(uv_px)
+        x, y, z = self.screen.plane_rows(ideal_px)
+        weight = self._focus_weight(y, z)
+        R = self.transform.world_from_camera.to(x)
+        t = self.transform.position.to(x)
+        c = torch.stack([x, y, z], -1)
+        q = c @ R.transpose(-1, -2) + weight[..., None] * t
+        r = self.d / 2
+        theta_L = _like(self.theta_L, x)
+        zero = torch.zeros((), dtype=x.dtype, device=x.device)
+        local = torch.stack([torch.stack([r + zero, zero, zero]),
+                             torch.stack([zero, r * torch.cos(theta_L), r * torch.sin(theta_L)])])
+        return torch.cat([q, weight[..., None]], -1), t, local @ R.transpose(-1, -2), valid
+
     def project(self, p_world: torch.Tensor) -> torch.Tensor:
         """Chief-ray projection (pixel of the blur spot's centre of projection), same as the pinhole at w."""
         return self.project_central(p_world)

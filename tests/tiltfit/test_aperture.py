@@ -1,0 +1,165 @@
+"""The aperture in closed form: disc areas cut by lines, the thin lens's focus points, and the target renderer
+that integrates the checker over the disc exactly (`tiltfit.aperture`, `render_target_disc`)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from renderer.cameras import ThinLensCamera
+from tiltfit import reproduce
+from tiltfit.aperture import checker_dark_fraction_disc, disc_halfplane_fraction, disc_wedge_fraction, near_lines
+from tiltfit.photometric import SensorGeometry, render_target_disc
+from tiltfit.target import Target
+
+BOARD = Target(tuple(50.0 * i for i in range(7)), tuple(50.0 * j for j in range(5)), (0, 0), 25.0)
+f64 = dict(dtype=torch.float64)
+
+
+def _unit(angle):
+    a = torch.as_tensor(angle, **f64)
+    return torch.cos(a), torch.sin(a)
+
+
+# ------------------------------------------------------------------------------------------ disc areas
+
+def test_halfplane_fraction_is_the_circular_segment():
+    h = torch.linspace(-1.5, 1.5, 61, **f64)
+    F = disc_halfplane_fraction(h)
+    assert float(disc_halfplane_fraction(torch.tensor(0.0, **f64))) == pytest.approx(0.5, abs=1e-15)
+    assert torch.allclose(F + disc_halfplane_fraction(-h), torch.ones_like(h), atol=1e-14), "F(h) + F(−h) = 1"
+    assert bool((F[h >= 1] == 1).all() and (F[h <= -1] == 0).all()), "lines outside the disc"
+    # Its slope is the chord length over the disc's area: dF/dh = 2 √(1 − h²) / π.
+    hs = torch.tensor([-0.9, -0.3, 0.2, 0.7], **f64, requires_grad=True)
+    (g,) = torch.autograd.grad(disc_halfplane_fraction(hs).sum(), hs)
+    want = 2 * torch.sqrt(1 - hs.detach() ** 2) / math.pi
+    assert torch.allclose(g, want, rtol=1e-12), f"dF/dh {g} vs {want}"
+
+
+def test_wedge_through_the_centre_is_its_angle():
+    for phi in (0.3, 1.0, math.pi / 2, 2.5):
+        # Lines through the centre whose positive sides meet in a wedge of angle φ.
+        n1 = _unit(math.pi / 2)                 # y > 0
+        n2 = _unit(phi - math.pi / 2)           # the side of the ray at angle φ towards angle 0
+        got = float(disc_wedge_fraction(*n1, torch.tensor(0.0, **f64), *n2, torch.tensor(0.0, **f64)))
+        assert got == pytest.approx(phi / (2 * math.pi), abs=1e-12), f"wedge of {phi} rad: {got}"
+
+
+def test_wedge_adds_up_to_the_halfplane():
+    rng = np.random.default_rng(3)
+    for _ in range(40):
+        a1, a2 = rng.uniform(0, 2 * math.pi, 2)
+        h1, h2 = (torch.tensor(x, **f64) for x in rng.uniform(-0.95, 0.95, 2))
+        n1, n2 = _unit(a1), _unit(a2)
+        both = disc_wedge_fraction(*n1, h1, *n2, h2)
+        other = disc_wedge_fraction(*n1, h1, -n2[0], -n2[1], -h2)
+        assert float(both + other) == pytest.approx(float(disc_halfplane_fraction(h1)), abs=1e-12), \
+            f"wedges on both sides of line 2 sum to line 1's segment (angles {a1:.3f}, {a2:.3f})"
+        assert 0 <= float(both) <= min(float(disc_halfplane_fraction(h1)), float(disc_halfplane_fraction(h2))) + 1e-12
+
+
+def test_wedge_against_monte_carlo():
+    gen = torch.Generator().manual_seed(1)
+    pts = torch.rand(300_000, 2, generator=gen, **f64) * 2 - 1
+    pts = pts[(pts ** 2).sum(1) < 1]
+    for a1, h1, a2, h2 in ((0.4, 0.3, 2.0, -0.5), (1.1, -0.7, 1.5, 0.6), (3.0, 0.9, 4.5, 0.2)):
+        n1, n2 = _unit(a1), _unit(a2)
+        got = float(disc_wedge_fraction(*n1, torch.tensor(h1, **f64), *n2, torch.tensor(h2, **f64)))
+        inside = ((pts[:, 0] * n1[0] + pts[:, 1] * n1[1] + h1 > 0) & (pts[:, 0] * n2[0] + pts[:, 1] * n2[1] + h2 > 0))
+        mc = float(inside.double().mean())
+        sd = math.sqrt(mc * (1 - mc) / pts.shape[0])
+        assert abs(got - mc) < 4 * sd + 1e-6, f"wedge {got:.5f} vs Monte Carlo {mc:.5f} ± {sd:.5f}"
+
+
+def test_near_lines():
+    assert near_lines(18.0, 70.0, 7) == 1, "a disc a quarter of a cell cuts one line per family"
+    assert near_lines(100.0, 70.0, 7) == 3
+    assert near_lines(1e4, 70.0, 7) == 7, "never more than the board has"
+
+
+# ------------------------------------------------------------------------------------------ the thin lens
+
+def _camera(theta_F_deg=40.0, U=700.0, d=30.0, downscale=16):
+    w_px, h_px, _ = reproduce.EOS_6D.downscaled(downscale)
+    pitch = reproduce.EOS_6D.pixel_pitch_mm * downscale
+    R, T = reproduce.target_pose(BOARD, 30.0, 5.0, 600.0)
+    cam = ThinLensCamera.from_calibration((w_px, h_px), pitch, 55.0, U, d, math.radians(theta_F_deg),
+                                          torch.tensor(R, **f64), torch.tensor(T, **f64))
+    return cam, (w_px, h_px, pitch, R, T)
+
+
+@pytest.mark.parametrize("theta_F_deg", [40.0, 0.0, -80.0])
+def test_every_ray_of_a_pixel_passes_through_its_focus_point(theta_F_deg):
+    """At θF = −80° the plane of focus crosses the lens plane inside the field: some pixels focus behind the
+    lens (s < 0), and their rays still share one point, the virtual focus."""
+    cam, (w_px, h_px, *_) = _camera(theta_F_deg)
+    uv = torch.tensor([[3.0, 4.0], [w_px / 2, h_px / 2], [w_px - 2.0, h_px - 5.0], [10.0, h_px - 1.0]], **f64)
+    lens = torch.rand(uv.shape[0], 16, 2, generator=torch.Generator().manual_seed(0), **f64)
+    rays = cam.generate_rays(uv[:, None, :].expand(-1, 16, 2), lens)
+    q_h, centre, axes, valid = cam.focus_geometry(uv)
+    q = q_h[:, :3] / q_h[:, 3:]
+    # Distance of q from each ray's line, relative to q's distance from the ray's origin.
+    rel = q[:, None, :] - rays.origin
+    off = torch.linalg.cross(rel, rays.direction, dim=-1).norm(dim=-1) / rel.norm(dim=-1)
+    assert float(off.max()) < 1e-9, f"rays miss their focus point by {float(off.max()):.2e} (relative)"
+    # The rays leave the disc centre + a·axes[0] + b·axes[1], a² + b² ≤ 1, of radius d/2.
+    ab = torch.linalg.lstsq(axes.T, (rays.origin - centre).reshape(-1, 3).T).solution.T
+    assert torch.allclose(axes.T @ ab.T, (rays.origin - centre).reshape(-1, 3).T, atol=1e-9), "origins on the disc plane"
+    assert float((ab ** 2).sum(-1).max()) <= 1 + 1e-9, "origins inside the disc"
+    assert torch.allclose(axes.norm(dim=-1), torch.full((2,), 15.0, **f64)) and abs(float(axes[0] @ axes[1])) < 1e-9
+    if theta_F_deg == -80.0:
+        assert bool((q_h[:, 3] < 0).any()) and bool((q_h[:, 3] > 0).any()), "focus on both sides of the lens"
+    assert bool(valid.all())
+
+
+@pytest.mark.parametrize("theta_F_deg, U, d", [(40.0, 700.0, 30.0), (-30.0, 900.0, 40.0), (0.0, 1e5, 20.0)])
+def test_closed_form_equals_the_mean_over_traced_lens_samples(theta_F_deg, U, d):
+    """One sensor point: the closed form against 60 000 random lens samples traced by the camera and looked up
+    on the hard-edged checker (a different integrator), within 4 Monte Carlo σ."""
+    cam, (w_px, h_px, *_) = _camera(theta_F_deg, U, d)
+    # Points along a line across the board's middle; the test takes those in blurred edges and corners.
+    line = torch.stack([torch.linspace(0.3 * w_px, 0.7 * w_px, 400, **f64),
+                        torch.linspace(0.35 * h_px, 0.6 * h_px, 400, **f64)], -1)
+    q_h, centre, axes, _ = cam.focus_geometry(line)
+    dark = checker_dark_fraction_disc(q_h, centre, axes, BOARD, near=7)
+    blurred = torch.nonzero((dark > 0.03) & (dark < 0.97)).squeeze(1)
+    assert blurred.numel() >= 20, f"only {blurred.numel()} of 400 points see a blurred edge"
+    pick = blurred[torch.linspace(0, blurred.numel() - 1, 8).round().long()]
+    uv, got = line[pick], dark[pick]
+    n = 60_000
+    lens = torch.rand(n, 2, generator=torch.Generator().manual_seed(5), **f64)
+    xe, ye = np.asarray(BOARD.x_edges), np.asarray(BOARD.y_edges)
+    for k in range(uv.shape[0]):
+        rays = cam.generate_rays(uv[k].expand(n, 2), lens)
+        t = -rays.origin[:, 2] / rays.direction[:, 2]
+        X, Y = (rays.origin + t[:, None] * rays.direction)[:, :2].T.numpy()
+        col, row = np.searchsorted(xe, X) - 1, np.searchsorted(ye, Y) - 1
+        on = (col >= 0) & (col < len(xe) - 1) & (row >= 0) & (row < len(ye) - 1)
+        dark = on & ((col + row) % 2 == 0)
+        mc, sd = dark.mean(), math.sqrt(max(dark.mean() * (1 - dark.mean()), 1e-4) / n)
+        assert abs(float(got[k]) - mc) < 4 * sd, f"point {k}: closed form {float(got[k]):.4f} vs samples {mc:.4f} ± {sd:.4f}"
+
+
+def test_render_target_disc_gradcheck():
+    w_px, h_px, _ = reproduce.EOS_6D.downscaled(16)
+    pitch = reproduce.EOS_6D.pixel_pitch_mm * 16
+    sensor = SensorGeometry(w_px, h_px, pitch, ((w_px - 1) / 2, (h_px - 1) / 2))
+    R, T = reproduce.target_pose(BOARD, 30.0, 5.0, 600.0)
+    import cv2
+
+    rvec = torch.tensor(cv2.Rodrigues(R)[0].reshape(3), **f64, requires_grad=True)
+    T_mm = torch.tensor(T, **f64, requires_grad=True)
+    g = dict(w=55.0, inv_U=1.4, d=30.0, theta_F=math.radians(40), white=0.8, black=0.06, vig=0.05)
+    scalars = [torch.tensor(v, **f64, requires_grad=True) for v in g.values()]
+    uv = torch.tensor([[171.0, 114.0], [150.3, 100.7], [190.2, 130.1], [130.0, 120.0], [205.5, 95.5]], **f64)
+
+    def model(w, inv_U, d, theta_F, white, black, vig, rvec, T_mm):
+        return render_target_disc(BOARD, sensor, uv, 2, w, inv_U, d, theta_F, rvec, T_mm, white, black, vig,
+                                  subpixels=2)
+
+    inputs = (*scalars, rvec, T_mm)
+    value = model(*inputs)
+    assert float(value.detach().min()) < 0.7 and float(value.detach().max()) > 0.1, "pixels see edges"
+    assert torch.autograd.gradcheck(model, inputs, eps=1e-6, atol=1e-7, rtol=1e-4), "closed-form gradients"

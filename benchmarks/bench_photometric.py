@@ -10,7 +10,9 @@ the EOS 6D: discs 1.4 squares) where no corner detector finds the board.
 - corners + blur: `tiltfit.detect` (corners and edge blur widths) then the joint fit (`calibrate(..., "joint")`).
 - photometric: `tiltfit.photometric.refine_photometric`, started from the corner fit where there is one,
   else from a rough start (pose 0.1°/0.5 mm, w +0.3 %, U +1 %, d −3 %, θL +0.1°: a prior calibration's
-  quality).
+  quality), twice: with the aperture in closed form (its default at these blurs, `tiltfit.aperture`) on
+  `--pixels` pixels per view, and with the fixed lens samples (`aperture="samples"`, 192 samples) on 1500
+  (`--no-samples` leaves that one out: it takes 6 to 12 minutes a case on one thread).
 
 Each row's error is against the truth; σ is the method's own one-σ (the photometric fit's from its
 cluster-robust sandwich covariance, with the textbook Gauss–Newton σ beside it). Times are one thread each
@@ -51,6 +53,8 @@ LEVELS = ((700.0, "board", D_MM, (0, 1, 2), 8), (760.0, "board", D_MM, (0, 1, 2)
           (1400.0, "small", 60.0, (0, 1, 4), 16))
 #: The issue's targets for the refined lens (|error|): θL degrees, U and d percent.
 TARGETS = {"theta_L_err_deg": 0.01, "U_err_pct": 0.05, "d_err_pct": 0.1}
+#: Pixels per view of the lens-sample fit (its cost grows with pixels × samples).
+SAMPLES_PIXELS = 1500
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
 
 
@@ -111,6 +115,18 @@ def corner_fit(images, board, truth):
     return res, time.perf_counter() - t0, found
 
 
+def photometric_row(images, board, start, truth, base, start_name, t_corner, options, label):
+    t0 = time.perf_counter()
+    ph = refine_photometric(images, board, start, truth["pitch"], options)
+    t_ph = time.perf_counter() - t0
+    gn = errors(ph.values, ph.sigma_gauss_newton, truth)
+    return {**base, "method": f"photometric, {label} (from {start_name})", "aperture": ph.values["aperture"],
+            "pixels": options.max_pixels, "seconds": t_ph + t_corner, "photometric_seconds": t_ph,
+            **errors(ph.values, ph.sigma, truth), "rms": ph.rms,
+            "iterations": ph.iterations, "gauss_newton_sigma_theta_L_deg": gn["sigma_theta_L_deg"],
+            "gauss_newton_sigma_U_pct": gn["sigma_U_pct"], "gauss_newton_sigma_d_pct": gn["sigma_d_pct"]}
+
+
 def run_case(case: dict) -> list[dict]:
     """Both methods on one set of captures (one blur level, one tilt); the rows of the table."""
     import torch
@@ -123,7 +139,7 @@ def run_case(case: dict) -> list[dict]:
     base = {**case, "blur_px": truth["blur_px"], "blur_over_square": truth["blur_over_square"],
             "corners_found": found}
     rows = []
-    if res is not None:
+    if res is not None and case["photometric"] == "closed_form":
         rows.append({**base, "method": "corners + blur", "seconds": t_corner,
                      **errors(res.values, res.sigma, truth)})
         start = {**{k: res.values[k] for k in ("w_mm", "U_mm", "d_mm", "theta_F_deg", "principal_point_px")},
@@ -131,15 +147,16 @@ def run_case(case: dict) -> list[dict]:
         start_name = "corner fit"
     else:
         start, start_name = rough_start(poses, truth), "rough start"
-    t0 = time.perf_counter()
-    ph = refine_photometric(images, board, start, truth["pitch"],
-                            PhotometricOptions(lens_samples=case["lens_samples"], max_pixels=case["pixels"]))
-    t_ph = time.perf_counter() - t0
-    gn = errors(ph.values, ph.sigma_gauss_newton, truth)
-    rows.append({**base, "method": f"photometric (from {start_name})", "seconds": t_ph + (t_corner if res else 0.0),
-                 "photometric_seconds": t_ph, **errors(ph.values, ph.sigma, truth), "rms": ph.rms,
-                 "iterations": ph.iterations, "gauss_newton_sigma_theta_L_deg": gn["sigma_theta_L_deg"],
-                 "gauss_newton_sigma_U_pct": gn["sigma_U_pct"], "gauss_newton_sigma_d_pct": gn["sigma_d_pct"]})
+    t_start = t_corner if res else 0.0
+    if case["photometric"] == "closed_form":
+        rows.append(photometric_row(images, board, start, truth, base, start_name, t_start,
+                                    PhotometricOptions(aperture="closed_form", max_pixels=case["pixels"]),
+                                    f"closed form, {case['pixels']} px/view"))
+    else:
+        rows.append(photometric_row(images, board, start, truth, base, start_name, t_start,
+                                    PhotometricOptions(aperture="samples", lens_samples=case["lens_samples"],
+                                                       max_pixels=SAMPLES_PIXELS),
+                                    f"{case['lens_samples']} lens samples, {SAMPLES_PIXELS} px/view"))
     for r in rows:
         print(f"θL {r['theta_L_deg']:+.2f}°, blur {r['blur_px']:.1f} px ({r['blur_over_square']:.2f} square), "
               f"corners {found}: {r['method']}: θL {r['theta_L_err_deg']:+.4f}° (σ {r['sigma_theta_L_deg']:.4f}), "
@@ -151,23 +168,33 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="1/16 images, two blur levels, +5° only")
     ap.add_argument("--workers", type=int, default=2, help="cases run in parallel processes [2]")
+    ap.add_argument("--pixels", type=int, default=None, help="pixels per view of the closed-form fit [20000; "
+                    "--quick 2000]")
+    ap.add_argument("--no-samples", action="store_true", help="leave out the lens-sample photometric fit")
     args = ap.parse_args(argv)
-    spp, pixels, lens_samples = (32, 600, 64) if args.quick else (128, 1500, 192)
+    spp, pixels, lens_samples = (32, 2000, 64) if args.quick else (128, 20000, 192)
+    pixels = args.pixels or pixels
+    lens_samples = 0 if args.no_samples else lens_samples
     levels = [(U0, b, d, v, 16) for U0, b, d, v, _ in LEVELS[1:]] if args.quick else LEVELS
     tilts = TILTS_DEG[:1] if args.quick else TILTS_DEG
     cases = [{"U0_mm": U0, "board": board, "d_mm": d, "views": views, "theta_L_deg": tilt,
-              "downscale": downscale, "spp": spp, "pixels": pixels, "lens_samples": lens_samples}
+              "downscale": downscale, "spp": spp, "pixels": pixels, "lens_samples": lens_samples,
+              "photometric": variant}
+             for variant in ("closed_form", "samples")[:1 if args.no_samples else 2]
              for U0, board, d, views, downscale in levels for tilt in tilts
              if board == "board" or tilt > 0]   # past the square: one tilt (a photometric fit only)
+    # Each job renders its case's captures itself (the same seeds: the same images in every job).
     t0 = time.perf_counter()
     if args.workers > 1:
         import multiprocessing as mp
 
         with mp.get_context("spawn").Pool(args.workers) as pool:
-            rows = [r for rs in pool.map(run_case, cases, chunksize=1) for r in rs]
+            rows = [r for rs in pool.imap(run_case, cases, chunksize=1) for r in rs]
     else:
         rows = [r for c in cases for r in run_case(c)]
     wall = time.perf_counter() - t0
+    order = {"corners + blur": 0, "photometric, closed form": 1, "photometric, lens samples": 2}
+    rows.sort(key=lambda r: (-r["downscale"] < -8, r["U0_mm"], -r["theta_L_deg"], order[_family(r)]))
     os.makedirs(RESULTS, exist_ok=True)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     meta = {"size_px": {str(c["downscale"]): list(reproduce.EOS_6D.downscaled(c["downscale"])[:2]) for c in cases},
@@ -184,6 +211,13 @@ def main(argv=None) -> int:
     return 0
 
 
+def _family(r) -> str:
+    """The method without its settings: corners + blur, photometric closed form or lens samples."""
+    if not r["method"].startswith("photometric"):
+        return r["method"]
+    return "photometric, closed form" if r.get("aperture") == "closed_form" else "photometric, lens samples"
+
+
 def _met(r) -> str:
     """Which of the issue's targets a row meets."""
     return " ".join(("✓" if abs(r[k]) <= v else "✗") for k, v in TARGETS.items())
@@ -194,7 +228,7 @@ def table(rows, meta) -> list[str]:
              f"6 x 4 board of 50 mm cells (30 mm past the square), 3 views, "
              f"{' and '.join(f'{w} x {h}' for w, h in meta['size_px'].values())}, {meta['spp']} spp captures and "
              f"sensor noise 0.003; photometric fit: "
-             f"{meta['pixels_per_view']} pixels per view, {meta['lens_samples']} lens samples. "
+             f"the closed form on {meta['pixels_per_view']} pixels per view, the lens samples on {SAMPLES_PIXELS}. "
              f"{meta['workers']} worker processes, {meta['wall_s'] / 60:.1f} min in all, load average "
              f"{meta['load_average']:.1f} at the end. `python benchmarks/bench_photometric.py`.\n",
              "Targets (issue 9): |θL error| ≤ 0.01°, |U error| ≤ 0.05 %, |d error| ≤ 0.1 %; the last column "
@@ -215,6 +249,12 @@ def table(rows, meta) -> list[str]:
                      f"{r['sigma_d_pct']:.3f} | {r['w_err_pct']:+.3f} | {r['seconds']:.1f} | {_met(r)} |")
     lines.append("\nPhotometric seconds include the corner fit it starts from where there is one. Where no "
                  "corners are found the photometric fit starts from a rough prior calibration instead.")
+    lines.append("\n| method | rows | median seconds | targets met (θL, U, d) |\n|---|---|---|---|")
+    for method in sorted({_family(r) for r in rows}):
+        sel = [r for r in rows if _family(r) == method]
+        met = [sum(abs(r[k]) <= v for r in sel) for k, v in TARGETS.items()]
+        lines.append(f"| {method} | {len(sel)} | {float(np.median([r['seconds'] for r in sel])):.1f} | "
+                     f"{met[0]}/{len(sel)}, {met[1]}/{len(sel)}, {met[2]}/{len(sel)} |")
     return lines
 
 
@@ -227,8 +267,9 @@ def plot(rows, path):
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7.5, 4.8))
-    for method, color in (("corners + blur", "C0"), ("photometric", "C3")):
-        sel = sorted((r for r in rows if r["method"].startswith(method)), key=lambda r: r["seconds"])
+    for method, color in (("corners + blur", "C0"), ("photometric, closed form", "C3"),
+                          ("photometric, lens samples", "C2")):
+        sel = sorted((r for r in rows if _family(r) == method), key=lambda r: r["seconds"])
         if not sel:
             continue
         t = [r["seconds"] for r in sel]

@@ -155,6 +155,18 @@ def checker_dark_fraction_disc(q_h: torch.Tensor, centre: torch.Tensor, axes: to
     return 0.5 * (expect(kix, kiy) + parity * expect(kbx, kby))
 
 
+def lines_cut(q_h: torch.Tensor, centre: torch.Tensor, axes: torch.Tensor, target: Target) -> int:
+    """The most cell edges of one family that any of these points' aperture discs cuts (what `near` must
+    cover for `checker_dark_fraction_disc` to be exact)."""
+    with torch.no_grad():
+        counts = []
+        for k, edges in enumerate((target.x_edges, target.y_edges)):
+            e = torch.as_tensor(edges, dtype=q_h.dtype, device=q_h.device)
+            h = _edge_lines(q_h, centre, axes, e, k)[2]
+            counts.append(int((h.abs() < 1).sum(-1).max()) if h.numel() else 0)
+    return max(counts)
+
+
 def near_lines(blur_px: float, cell_px: float, n_edges: int) -> int:
     """Lines per family that one blur disc of diameter `blur_px` can cut, with a 50 % margin for the blur
     growing during a fit: 1 + ⌊1.5 b / c⌋, at most all of them."""

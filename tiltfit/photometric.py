@@ -5,11 +5,18 @@ re-rendered from the current parameters and compared with the photo pixel by pix
 make the two agree. Corners are only a starting point, so their bias under heavy blur and lens tilt does not
 reach the result, and boards too blurred for any corner detector can still be fitted.
 
-The target renderer (`render_target`) uses the renderer's own thin-lens camera
-(`renderer.ThinLensCamera`, tensor parameters) to generate rays for each pixel and a fixed
-set of lens samples, intersects them with the board plane Z = 0 and evaluates the checkerboard analytically,
-antialiased over the pixel's footprint: no general tracer, no random numbers, so the objective is smooth and
-deterministic and its gradients are exact (checked against finite differences in the tests).
+The target renderer uses the renderer's own thin-lens camera (`renderer.ThinLensCamera`, tensor parameters)
+and no general tracer and no random numbers, so the objective is smooth and deterministic and its gradients
+are exact (checked against finite differences in the tests). It integrates each pixel over the lens's
+aperture in one of two ways (`PhotometricOptions.aperture`):
+- in closed form (`render_target_disc`, the default from 3 px of blur): each of 4 x 4 points of the pixel
+  sees the aperture disc through its focus point (`ThinLensCamera.focus_geometry`), on which the board's
+  cell edges are straight lines, so the dark fraction is a sum of disc segments and wedges
+  (`tiltfit.aperture`). Exact for the thin lens at any tilt and blur, and 25 times faster than the samples
+  at 18 px of blur (`benchmarks/results/photometric.md`);
+- by a fixed set of lens samples (`render_target`): rays for each pixel and sample, intersected with the
+  board plane Z = 0, the checker evaluated analytically and antialiased over the pixel's footprint (below).
+  Sharp boards need it: there the pixel's box matters more than the disc.
 
 Model of one photograph (linear intensities, image (H, W)):
     I(u) = (1 − v ρ(u)²) · (white_k − (white_k − black_k) · D(u))
@@ -45,7 +52,7 @@ from renderer.cameras import ThinLensCamera, concentric_disk
 from renderer.optics import theta_L_from_theta_F
 from renderer.sensor import radial_falloff
 
-from .aperture import checker_dark_fraction_disc, near_lines
+from .aperture import checker_dark_fraction_disc, lines_cut, near_lines
 from .model import axis_angle_to_matrix, matrix_to_axis_angle, robust_weight
 from .stats import nested_test
 from .target import Target
@@ -467,6 +474,11 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
         uv = torch.tensor(np.stack([pick % W, pick // W], -1), dtype=torch.float64)
         data.append(_View(uv, torch.tensor(im.reshape(-1)[pick], dtype=torch.float64)))
         views_p.append(vp)
+        if closed_form:
+            # The lines the chosen pixels' discs cut at the start, plus one for the blur growing in the fit.
+            cam = lens_camera(sensor, *glob[:4], vp[0:3], vp[3:6])
+            n_edges = max(len(target.x_edges), len(target.y_edges))
+            near = min(n_edges, max(near, 1 + lines_cut(*cam.focus_geometry(uv)[:3], target)))
     if say:
         say(f"photometric: {len(imgs)} views, {sum(int(d.uv.shape[0]) for d in data)} pixels, "
             + (f"aperture in closed form ({SUBPIXELS}x{SUBPIXELS} points per pixel)" if closed_form

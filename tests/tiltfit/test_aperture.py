@@ -10,7 +10,8 @@ import torch
 
 from renderer.cameras import ThinLensCamera
 from tiltfit import reproduce
-from tiltfit.aperture import checker_dark_fraction_disc, disc_halfplane_fraction, disc_wedge_fraction, near_lines
+from tiltfit.aperture import (checker_dark_fraction_disc, disc_halfplane_fraction, disc_wedge_fraction, lines_cut,
+                              near_lines)
 from tiltfit.photometric import SensorGeometry, render_target_disc
 from tiltfit.target import Target
 
@@ -163,3 +164,19 @@ def test_render_target_disc_gradcheck():
     value = model(*inputs)
     assert float(value.detach().min()) < 0.7 and float(value.detach().max()) > 0.1, "pixels see edges"
     assert torch.autograd.gradcheck(model, inputs, eps=1e-6, atol=1e-7, rtol=1e-4), "closed-form gradients"
+
+
+def test_lines_cut_counts_the_edges_a_disc_spans():
+    cam, (w_px, h_px, *_) = _camera(0.0, 3000.0, 30.0)   # focused far behind the board
+    uv = torch.tensor([[w_px / 2, h_px / 2]], **f64)
+    q_h, centre, axes, _ = cam.focus_geometry(uv)
+    one = lines_cut(q_h, centre, axes, BOARD)
+    # The same camera with a 6x wider aperture spans more edges; near = that count is exact, fewer is not.
+    wide, _ = _camera(0.0, 3000.0, 180.0)
+    qw, cw, aw, _ = wide.focus_geometry(uv)
+    many = lines_cut(qw, cw, aw, BOARD)
+    assert one <= 1 < many, f"edges cut: {one} at d = 30 mm, {many} at 180 mm"
+    exact = checker_dark_fraction_disc(qw, cw, aw, BOARD, near=7)
+    assert float(checker_dark_fraction_disc(qw, cw, aw, BOARD, near=many)) == pytest.approx(float(exact), abs=1e-12)
+    assert abs(float(checker_dark_fraction_disc(qw, cw, aw, BOARD, near=1)) - float(exact)) > 1e-3, \
+        "one line per family cannot be exact where the disc spans several"

@@ -132,7 +132,7 @@ def checker_dark_fraction_disc(q_h: torch.Tensor, centre: torch.Tensor, axes: to
             half-diameter vectors.
         target: the board (cell edges `x_edges`, `y_edges`, mm; `dark_cell`).
         near: lines of each family given an exact two-line term: at least the number one blur disc can cut
-            (1 + the disc's diameter / the cell size on the aperture's scale); `near_lines` picks it.
+            (`lines_cut` counts them for given points); more only costs time.
     Returns:
         (...,) in [0, 1]: the mean of the checker's darkness (1 dark cell, 0 white or margin) over the disc.
     """
@@ -165,11 +165,3 @@ def lines_cut(q_h: torch.Tensor, centre: torch.Tensor, axes: torch.Tensor, targe
             h = _edge_lines(q_h, centre, axes, e, k)[2]
             counts.append(int((h.abs() < 1).sum(-1).max()) if h.numel() else 0)
     return max(counts)
-
-
-def near_lines(blur_px: float, cell_px: float, n_edges: int) -> int:
-    """Lines per family that one blur disc of diameter `blur_px` can cut, with a 50 % margin for the blur
-    growing during a fit: 1 + ⌊1.5 b / c⌋, at most all of them."""
-    if not (cell_px > 0):
-        return n_edges
-    return int(min(n_edges, 1 + math.floor(1.5 * max(float(blur_px), 0.0) / cell_px)))

@@ -378,7 +378,8 @@ def _refine_photometric(result, obs, target, args, say, photos: dict | None = No
     block.update(rms_linear=res.rms, iterations=res.iterations, runtime_s=res.runtime_s, vignetting=v["vignetting"],
                  levels=[{"white": x["white"], "black": x["black"]} for x in res.views], kernel=v["kernel"],
                  psf_sigma_px=v["psf_sigma_px"], psf_sigma_px_sigma=sg["psf_sigma_px"],
-                 aperture=v["aperture"], lens_samples=v["lens_samples"])
+                 aperture=v["aperture"], closed_form_pixels=v["closed_form_pixels"],
+                 lens_samples=v["lens_samples"])
     if res.kernel_selection is not None:
         block["kernel_selection"] = res.kernel_selection
     say(f"photometric refinement: RMS {res.rms:.4g} (linear), θL {v['theta_L_deg']:+.4f} ± {sg['theta_L_deg']:.4f}°, "

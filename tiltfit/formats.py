@@ -78,9 +78,10 @@ def calibration_reference() -> str:
         "fit it started from (`corner_fit`, `corner_fit_sigma`), `rms_linear` (photometric RMS, linear units), "
         "`iterations`, `runtime_s`, `vignetting`, per-view `levels` (`white`, `black`), the blur `kernel` "
         "(`disc` or `disc_gaussian`), `psf_sigma_px` and its σ `psf_sigma_px_sigma` (0 for the disc), how each pixel "
-        "integrated the lens's `aperture` (`closed_form`, exact, where the start's blur disc is at least "
-        f"{CLOSED_FORM_MIN_BLUR_PX:g} px and the kernel is the disc; `samples` otherwise) and the fixed `lens_samples` "
-        "per pixel it then used (chosen from the start's blur; 0 in closed form), and under "
+        "integrated the lens's `aperture`: `closed_form` (exact) for pixels whose blur disc at the start is at "
+        f"least {CLOSED_FORM_MIN_BLUR_PX:g} px (with the disc kernel), fixed lens samples for the others, so `closed_form`, "
+        "`samples` or `mixed`, with the count `closed_form_pixels` and the fixed `lens_samples` per pixel of the "
+        "others (chosen from the start's blur; 0 when every pixel is in closed form), and under "
         "`--psf auto` the `kernel_selection` test (`lr_statistic`, `p_value`, `delta_bic`, the disc-only fit's "
         "lens values); the top-level lens values and σ are then the photometric fit's.", "",
         "## Every JSON file", "",

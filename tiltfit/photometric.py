@@ -52,7 +52,7 @@ from renderer.cameras import ThinLensCamera, concentric_disk
 from renderer.optics import theta_L_from_theta_F
 from renderer.sensor import radial_falloff
 
-from .aperture import checker_dark_fraction_disc, lines_cut, near_lines
+from .aperture import checker_dark_fraction_disc, lines_cut
 from .model import axis_angle_to_matrix, matrix_to_axis_angle, robust_weight
 from .stats import nested_test
 from .target import Target
@@ -77,6 +77,8 @@ SUBPIXELS = 4
 #: below it the pixel's box matters more than the disc and the fixed lens samples' Gaussian footprints model it.
 CLOSED_FORM_MIN_BLUR_PX = 3.0
 APERTURES = ("auto", "closed_form", "samples")
+#: Pixels per block of the fit's forward-mode Jacobian (bounds its memory; results do not depend on it).
+JACOBIAN_BLOCK = 2048
 VIEW_NAMES = ("rvec_x", "rvec_y", "rvec_z", "T_x", "T_y", "T_z", "white", "black")
 
 
@@ -331,7 +333,7 @@ def render_target_disc(target: Target, sensor: SensorGeometry, uv_px: torch.Tens
     Each pixel is the mean of a `subpixels` x `subpixels` grid of sensor points (a box pixel by the midpoint
     rule: fine once the blur disc spans a few pixels, which is where `aperture="auto"` uses it); each point's
     dark fraction is exact over the disc. `near`: lines per family given the two-line term
-    (`tiltfit.aperture.near_lines`). Arguments and result otherwise as in `render_target` (disc kernel only).
+    (`tiltfit.aperture.lines_cut` counts them). Arguments and result otherwise as in `render_target` (disc kernel only).
     """
     cam = lens_camera(sensor, w_mm, inv_U_per_m, d_mm, theta_F, rvec, T_mm)
     step = (torch.arange(subpixels, dtype=uv_px.dtype, device=uv_px.device) + 0.5) / subpixels - 0.5
@@ -356,6 +358,7 @@ def _on_board(rays) -> torch.Tensor:
 class _View:
     uv: torch.Tensor          # (N, 2) pixels used
     observed: torch.Tensor    # (N,) linear intensities
+    n_closed_form: int = 0    # the first n_closed_form pixels integrate the aperture in closed form
 
 
 def _select_pixels(image: np.ndarray, predicted: np.ndarray, usable: np.ndarray, white: float, black: float,
@@ -440,17 +443,17 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
     starts = [torch.tensor([*matrix_to_axis_angle(v["R"]).reshape(3).tolist(), *np.asarray(v["T_mm"], dtype=float),
                             0.0, 0.0], dtype=torch.float64) for v in init["views"]]
     blur = max(_view_blur_px(glob, vp, sensor, target) for vp in starts)
-    closed_form = opts.aperture == "closed_form" or (opts.aperture == "auto" and opts.kernel == "disc"
-                                                     and blur >= CLOSED_FORM_MIN_BLUR_PX)
+    # Which pixels integrate the aperture in closed form: all (closed_form), none (samples, or a kernel with
+    # a Gaussian part), or under auto those whose blur disc at the start is at least CLOSED_FORM_MIN_BLUR_PX.
+    disc_only = opts.kernel == "disc" and opts.aperture != "samples"
+    n_edges = max(len(target.x_edges), len(target.y_edges))
+    near = 1
     n_samples = opts.lens_samples
-    if closed_form:
-        n_samples = 0
-        near = max(near_lines(_view_blur_px(glob, vp, sensor, target), _view_cell_px(glob, vp, sensor, target),
-                              max(len(target.x_edges), len(target.y_edges))) for vp in starts)
-    elif n_samples == 0:
+    if not disc_only and n_samples == 0:
         n_samples = auto_lens_samples(blur, AUTO_KERNEL_LENS_SAMPLES if opts.kernel == "auto" else 64)
-    # The pixel selection's preview and the usable mask trace a few samples whichever model is fitted.
-    lens_uv = hammersley_disc_samples(n_samples if n_samples else 64)
+    elif n_samples == 0:
+        n_samples = auto_lens_samples(CLOSED_FORM_MIN_BLUR_PX)   # for the sharper pixels only
+    lens_uv = hammersley_disc_samples(n_samples)
     rng = np.random.default_rng(opts.seed)
     views_p, data = [], []
     for k, (im, v) in enumerate(zip(imgs, init["views"])):
@@ -472,30 +475,54 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
         pred_img[yy, xx] = pred
         pick = _select_pixels(im, pred_img.reshape(-1), usable.reshape(-1), white, black, opts.max_pixels, rng)
         uv = torch.tensor(np.stack([pick % W, pick // W], -1), dtype=torch.float64)
-        data.append(_View(uv, torch.tensor(im.reshape(-1)[pick], dtype=torch.float64)))
+        observed = torch.tensor(im.reshape(-1)[pick], dtype=torch.float64)
+        cam = lens_camera(sensor, *glob[:4], vp[0:3], vp[3:6])
+        if opts.aperture == "closed_form":
+            closed = torch.ones(uv.shape[0], dtype=torch.bool)
+        elif disc_only:
+            closed = _pixel_blur_px(cam, uv, sensor) >= CLOSED_FORM_MIN_BLUR_PX
+        else:
+            closed = torch.zeros(uv.shape[0], dtype=torch.bool)
+        order = torch.argsort((~closed).to(torch.int8), stable=True)     # closed-form pixels first
+        n_closed = int(closed.sum())
+        data.append(_View(uv[order], observed[order], n_closed))
         views_p.append(vp)
-        if closed_form:
+        if n_closed:
             # The lines the chosen pixels' discs cut at the start, plus one for the blur growing in the fit.
-            cam = lens_camera(sensor, *glob[:4], vp[0:3], vp[3:6])
-            n_edges = max(len(target.x_edges), len(target.y_edges))
-            near = min(n_edges, max(near, 1 + lines_cut(*cam.focus_geometry(uv)[:3], target)))
+            near = min(n_edges, max(near, 1 + lines_cut(*cam.focus_geometry(uv[order][:n_closed])[:3], target)))
+    n_closed = sum(d.n_closed_form for d in data)
+    n_pixels = sum(int(d.uv.shape[0]) for d in data)
+    aperture = "closed_form" if n_closed == n_pixels else "samples" if n_closed == 0 else "mixed"
     if say:
-        say(f"photometric: {len(imgs)} views, {sum(int(d.uv.shape[0]) for d in data)} pixels, "
-            + (f"aperture in closed form ({SUBPIXELS}x{SUBPIXELS} points per pixel)" if closed_form
-               else f"{n_samples} lens samples per pixel"))
+        say(f"photometric: {len(imgs)} views, {n_pixels} pixels, aperture "
+            + {"closed_form": f"in closed form ({SUBPIXELS}x{SUBPIXELS} points per pixel)",
+               "samples": f"by {n_samples} lens samples per pixel",
+               "mixed": f"in closed form for {n_closed} pixels (blur from {CLOSED_FORM_MIN_BLUR_PX:g} px), "
+                        f"by {n_samples} lens samples for the other {n_pixels - n_closed}"}[aperture])
 
     n_g, n_v = len(GLOBAL_NAMES), len(VIEW_NAMES)
     free_g = torch.tensor([True, True, True, True, opts.fit_vignetting, opts.kernel == "disc_gaussian"])
 
     def residual(g, vp, view: _View):
-        if closed_form:
-            return render_target_disc(target, sensor, view.uv, near, g[0], g[1], g[2], g[3], vp[0:3], vp[3:6],
-                                      vp[6], vp[7], g[4]) - view.observed
-        return render_target(target, sensor, view.uv, lens_uv, g[0], g[1], g[2], g[3], vp[0:3], vp[3:6],
-                             vp[6], vp[7], g[4], g[5] ** 2) - view.observed
+        n = view.n_closed_form
+        parts = []
+        if n:
+            parts.append(render_target_disc(target, sensor, view.uv[:n], near, g[0], g[1], g[2], g[3], vp[0:3],
+                                            vp[3:6], vp[6], vp[7], g[4]))
+        if n < view.uv.shape[0]:
+            parts.append(render_target(target, sensor, view.uv[n:], lens_uv, g[0], g[1], g[2], g[3], vp[0:3],
+                                       vp[3:6], vp[6], vp[7], g[4], g[5] ** 2))
+        return torch.cat(parts) - view.observed
 
     def jac(g, vp, view):
-        return torch.func.jacfwd(lambda gg, vv: residual(gg, vv, view), argnums=(0, 1))(g, vp)
+        # In blocks of JACOBIAN_BLOCK pixels: forward mode carries every parameter's tangent through each
+        # intermediate, so a whole view at once would hold (pixels x sub-points x lines x parameters) arrays.
+        blocks = []
+        for a in range(0, view.uv.shape[0], JACOBIAN_BLOCK):
+            b = min(a + JACOBIAN_BLOCK, view.uv.shape[0])
+            part = _View(view.uv[a:b], view.observed[a:b], min(max(view.n_closed_form - a, 0), b - a))
+            blocks.append(torch.func.jacfwd(lambda gg, vv: residual(gg, vv, part), argnums=(0, 1))(g, vp))
+        return torch.cat([j[0] for j in blocks]), torch.cat([j[1] for j in blocks])
 
     def all_residuals(g, vps):
         return torch.cat([residual(g, vp, dv) for vp, dv in zip(vps, data)])
@@ -542,8 +569,9 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
     cov_sandwich = _cluster_sandwich(glob, views_p, free_g, jac, r, wts, JTJ, data, sensor, target)
     result = _photometric_result(glob, views_p, r, scale, JTJ, free_g, data, n_g, n_v, n_par, it, t0, history,
                                  kernel, selection, cov_sandwich)
-    result.values["lens_samples"] = n_samples
-    result.values["aperture"] = "closed_form" if closed_form else "samples"
+    result.values["lens_samples"] = n_samples if aperture != "closed_form" else 0
+    result.values["aperture"] = aperture
+    result.values["closed_form_pixels"] = n_closed
     return result
 
 
@@ -628,13 +656,16 @@ def _view_blur_px(glob, view, sensor: SensorGeometry, target: Target) -> float:
     return w * d * abs(1.0 / (1000.0 / inv_U + y * math.tan(theta_F)) - 1.0 / z) / sensor.pixel_pitch_mm
 
 
-def _view_cell_px(glob, view, sensor: SensorGeometry, target: Target) -> float:
-    """The board's narrowest cell as seen at its centre in one view, px (pinhole scale w / z)."""
-    x0, y0, x1, y1 = target.extent_mm
-    R = axis_angle_to_matrix(view[0:3]).detach()
-    z = float((R @ torch.tensor([(x0 + x1) / 2, (y0 + y1) / 2, 0.0], dtype=R.dtype) + view[3:6].detach())[2])
-    cell = min(float(np.diff(target.x_edges).min()), float(np.diff(target.y_edges).min()))
-    return float(glob[0]) * cell / max(abs(z), 1e-9) / sensor.pixel_pitch_mm
+def _pixel_blur_px(cam: ThinLensCamera, uv: torch.Tensor, sensor: SensorGeometry) -> torch.Tensor:
+    """(N,) blur-disc diameter (px) of each pixel where its chief ray meets the board, paper (4):
+    w d |1/z − 1/z_f| / p with z the depth of that point and z_f the depth of the pixel's focus point."""
+    with torch.no_grad():
+        q_h, centre, axes, _ = cam.focus_geometry(uv)
+        axis = cam.transform.world_from_camera[:, 2].to(uv)
+        z = ((_on_board(cam.generate_rays(uv)) - centre) @ axis)
+        inv_z_focus = q_h[:, 3] / ((q_h[:, :3] - q_h[:, 3:] * centre) @ axis)     # 0 for a focus at infinity
+        d = 2 * axes[0].norm()
+        return d * float(cam.screen.distance) * (1 / z - inv_z_focus).abs() / sensor.pixel_pitch_mm
 
 
 def _cluster_sandwich(glob, views_p, free_g, jac, r, wts, JTJ, data, sensor: SensorGeometry,

@@ -10,8 +10,7 @@ import torch
 
 from renderer.cameras import ThinLensCamera
 from tiltfit import reproduce
-from tiltfit.aperture import (checker_dark_fraction_disc, disc_halfplane_fraction, disc_wedge_fraction, lines_cut,
-                              near_lines)
+from tiltfit.aperture import checker_dark_fraction_disc, disc_halfplane_fraction, disc_wedge_fraction, lines_cut
 from tiltfit.photometric import SensorGeometry, render_target_disc
 from tiltfit.target import Target
 
@@ -72,12 +71,6 @@ def test_wedge_against_monte_carlo():
         mc = float(inside.double().mean())
         sd = math.sqrt(mc * (1 - mc) / pts.shape[0])
         assert abs(got - mc) < 4 * sd + 1e-6, f"wedge {got:.5f} vs Monte Carlo {mc:.5f} ± {sd:.5f}"
-
-
-def test_near_lines():
-    assert near_lines(18.0, 70.0, 7) == 1, "a disc a quarter of a cell cuts one line per family"
-    assert near_lines(100.0, 70.0, 7) == 3
-    assert near_lines(1e4, 70.0, 7) == 7, "never more than the board has"
 
 
 # ------------------------------------------------------------------------------------------ the thin lens
@@ -180,3 +173,21 @@ def test_lines_cut_counts_the_edges_a_disc_spans():
     assert float(checker_dark_fraction_disc(qw, cw, aw, BOARD, near=many)) == pytest.approx(float(exact), abs=1e-12)
     assert abs(float(checker_dark_fraction_disc(qw, cw, aw, BOARD, near=1)) - float(exact)) > 1e-3, \
         "one line per family cannot be exact where the disc spans several"
+
+
+def test_pixel_blur_is_the_blur_disc_of_paper_4():
+    """`_pixel_blur_px` (from the focus points) against paper (4), w d |1/z_f − 1/z| / p, with z the depth of
+    the board point the chief ray meets and z_f the depth where it meets the plane of focus z = U + y tan θF
+    (camera frame; the paper takes y at the board point instead, a few percent off here)."""
+    from tiltfit.photometric import _on_board, _pixel_blur_px
+
+    theta_F, U, d, w = math.radians(40.0), 700.0, 30.0, 55.0
+    cam, (w_px, h_px, pitch, R, T) = _camera(40.0, U, d)
+    uv = torch.tensor([[w_px * 0.3, h_px * 0.4], [w_px / 2, h_px / 2], [w_px * 0.7, h_px * 0.6]], **f64)
+    got = _pixel_blur_px(cam, uv, SensorGeometry(w_px, h_px, pitch, ((w_px - 1) / 2, (h_px - 1) / 2)))
+    p = _on_board(cam.generate_rays(uv)) @ torch.tensor(R, **f64).T + torch.tensor(T, **f64)
+    slope = p[:, 1] / p[:, 2]                              # chief ray: y = slope · z
+    z_f = U / (1 - slope * math.tan(theta_F))
+    want = w * d * (1 / z_f - 1 / p[:, 2]).abs() / pitch
+    assert torch.allclose(got, want, rtol=1e-9), f"blur {got.tolist()} vs paper (4) {want.tolist()}"
+    assert float(want.max()) > 2.0, "the points are out of focus"

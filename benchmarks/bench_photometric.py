@@ -120,6 +120,8 @@ def photometric_row(images, board, start, truth, base, start_name, t_corner, opt
     ph = refine_photometric(images, board, start, truth["pitch"], options)
     t_ph = time.perf_counter() - t0
     gn = errors(ph.values, ph.sigma_gauss_newton, truth)
+    if ph.values["aperture"] == "mixed":
+        label += f" ({ph.values['closed_form_pixels']} of them; lens samples for the sharper)"
     return {**base, "method": f"photometric, {label} (from {start_name})", "aperture": ph.values["aperture"],
             "pixels": options.max_pixels, "seconds": t_ph + t_corner, "photometric_seconds": t_ph,
             **errors(ph.values, ph.sigma, truth), "rms": ph.rms,
@@ -139,9 +141,10 @@ def run_case(case: dict) -> list[dict]:
     base = {**case, "blur_px": truth["blur_px"], "blur_over_square": truth["blur_over_square"],
             "corners_found": found}
     rows = []
-    if res is not None and case["photometric"] == "closed_form":
-        rows.append({**base, "method": "corners + blur", "seconds": t_corner,
-                     **errors(res.values, res.sigma, truth)})
+    if res is not None:
+        if case["photometric"] == "closed_form":
+            rows.append({**base, "method": "corners + blur", "seconds": t_corner,
+                         **errors(res.values, res.sigma, truth)})
         start = {**{k: res.values[k] for k in ("w_mm", "U_mm", "d_mm", "theta_F_deg", "principal_point_px")},
                  "views": [{"R": v["R"], "T_mm": v["T_mm"]} for v in res.views]}
         start_name = "corner fit"
@@ -150,7 +153,7 @@ def run_case(case: dict) -> list[dict]:
     t_start = t_corner if res else 0.0
     if case["photometric"] == "closed_form":
         rows.append(photometric_row(images, board, start, truth, base, start_name, t_start,
-                                    PhotometricOptions(aperture="closed_form", max_pixels=case["pixels"]),
+                                    PhotometricOptions(max_pixels=case["pixels"]),
                                     f"closed form, {case['pixels']} px/view"))
     else:
         rows.append(photometric_row(images, board, start, truth, base, start_name, t_start,
@@ -171,7 +174,9 @@ def main(argv=None) -> int:
     ap.add_argument("--pixels", type=int, default=None, help="pixels per view of the closed-form fit [20000; "
                     "--quick 2000]")
     ap.add_argument("--no-samples", action="store_true", help="leave out the lens-sample photometric fit")
+    ap.add_argument("--out", default=RESULTS, help="results folder [benchmarks/results]")
     args = ap.parse_args(argv)
+    out = args.out
     spp, pixels, lens_samples = (32, 2000, 64) if args.quick else (128, 20000, 192)
     pixels = args.pixels or pixels
     lens_samples = 0 if args.no_samples else lens_samples
@@ -189,33 +194,55 @@ def main(argv=None) -> int:
         import multiprocessing as mp
 
         with mp.get_context("spawn").Pool(args.workers) as pool:
-            rows = [r for rs in pool.imap(run_case, cases, chunksize=1) for r in rs]
+            rows = []
+            for rs in pool.imap_unordered(run_case, cases, chunksize=1):
+                rows += rs
+                _partial(out, rows)
     else:
-        rows = [r for c in cases for r in run_case(c)]
+        rows = []
+        for c in cases:
+            rows += run_case(c)
+            _partial(out, rows)
     wall = time.perf_counter() - t0
     order = {"corners + blur": 0, "photometric, closed form": 1, "photometric, lens samples": 2}
     rows.sort(key=lambda r: (-r["downscale"] < -8, r["U0_mm"], -r["theta_L_deg"], order[_family(r)]))
-    os.makedirs(RESULTS, exist_ok=True)
+    os.makedirs(out, exist_ok=True)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     meta = {"size_px": {str(c["downscale"]): list(reproduce.EOS_6D.downscaled(c["downscale"])[:2]) for c in cases},
             "spp": spp, "pixels_per_view": pixels, "lens_samples": lens_samples,
             "true": {"w_mm": W_MM, "d_mm": D_MM}, "tilts_deg": list(tilts), "load_average": load,
-            "wall_s": wall, "workers": args.workers, "quick": args.quick, "targets": TARGETS}
-    with open(os.path.join(RESULTS, "photometric.json"), "w", encoding="utf-8") as f:
+            "wall_s": wall, "workers": args.workers, "quick": args.quick, "targets": TARGETS, "cpu": _cpu_name(),
+            "cores": os.cpu_count()}
+    with open(os.path.join(out, "photometric.json"), "w", encoding="utf-8") as f:
         json.dump({"meta": meta, "rows": rows}, f, indent=1)
     lines = table(rows, meta)
-    with open(os.path.join(RESULTS, "photometric.md"), "w", encoding="utf-8") as f:
+    with open(os.path.join(out, "photometric.md"), "w", encoding="utf-8") as f:
         f.write("\n".join(lines) + "\n")
-    plot(rows, os.path.join(RESULTS, "photometric.png"))
+    plot(rows, os.path.join(out, "photometric.png"))
     print("\n".join(lines))
     return 0
+
+
+def _cpu_name() -> str:
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            return next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), "unknown")
+    except OSError:
+        return "unknown"
+
+
+def _partial(out: str, rows: list) -> None:
+    """The rows so far (photometric.partial.json), so an interrupted run keeps its finished cases."""
+    os.makedirs(out, exist_ok=True)
+    with open(os.path.join(out, "photometric.partial.json"), "w", encoding="utf-8") as f:
+        json.dump(rows, f, indent=1)
 
 
 def _family(r) -> str:
     """The method without its settings: corners + blur, photometric closed form or lens samples."""
     if not r["method"].startswith("photometric"):
         return r["method"]
-    return "photometric, closed form" if r.get("aperture") == "closed_form" else "photometric, lens samples"
+    return "photometric, closed form" if r.get("aperture") in ("closed_form", "mixed") else "photometric, lens samples"
 
 
 def _met(r) -> str:
@@ -229,8 +256,8 @@ def table(rows, meta) -> list[str]:
              f"{' and '.join(f'{w} x {h}' for w, h in meta['size_px'].values())}, {meta['spp']} spp captures and "
              f"sensor noise 0.003; photometric fit: "
              f"the closed form on {meta['pixels_per_view']} pixels per view, the lens samples on {SAMPLES_PIXELS}. "
-             f"{meta['workers']} worker processes, {meta['wall_s'] / 60:.1f} min in all, load average "
-             f"{meta['load_average']:.1f} at the end. `python benchmarks/bench_photometric.py`.\n",
+             f"{meta['workers']} worker processes on {meta['cores']} cores ({meta['cpu']}), "
+             f"{meta['wall_s'] / 60:.1f} min in all, load average {meta['load_average']:.1f} at the end. `python benchmarks/bench_photometric.py`.\n",
              "Targets (issue 9): |θL error| ≤ 0.01°, |U error| ≤ 0.05 %, |d error| ≤ 0.1 %; the last column "
              "says "
              "which a row meets (θL U d). σ: the method's own one-σ; for the photometric fit the cluster-robust "

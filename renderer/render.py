@@ -11,7 +11,10 @@ import concurrent.futures
 import hashlib
 import math
 import multiprocessing
+import os
 import pickle
+import sys
+import warnings
 from dataclasses import dataclass, replace
 
 import torch
@@ -156,15 +159,19 @@ def _worker_start():
 _WORKER_SCENE: dict = {}  # in a worker: digest of the pickled scene -> the scene, kept while it is reused
 
 
-def _worker_render(digest, blob, pixel, n, spp, sampler, seed, options, dtype, max_depth, chunk_rays):
-    """One job in a worker: the pixels `pixel` (padded to whole packets) traced in chunk_rays batches."""
+def _worker_render(digest, blob, pixel, n, spp, sampler, seed, options, dtype, max_depth, chunk_rays, jit_runs):
+    """One job in a worker: the pixels `pixel` (padded to whole packets) traced in chunk_rays batches.
+    jit_runs: the parent found Mitsuba's llvm variant running here (the worker need not probe it again)."""
     if digest not in _WORKER_SCENE:  # unpickle once per render, so caches and compiled state are reused
         _WORKER_SCENE.clear()
         _WORKER_SCENE[digest] = pickle.loads(blob)
     scene = _WORKER_SCENE[digest]
     if options.intersector == "mitsuba":  # one Dr.Jit thread per worker, as one torch thread
-        from .mitsuba.intersect import set_jit_threads
+        from .mitsuba.export import variant_runs
+        from .mitsuba.intersect import DEFAULT_VARIANT, set_jit_threads
 
+        if jit_runs:
+            variant_runs(DEFAULT_VARIANT)
         set_jit_threads(1)
     smp = Sampler(sampler, spp, seed)
     sub = _pixels_per_chunk(options, spp, chunk_rays)
@@ -172,6 +179,53 @@ def _worker_render(digest, blob, pixel, n, spp, sampler, seed, options, dtype, m
              for a in range(0, pixel.shape[0], sub)]
     estimate, covered = torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
     return estimate[:n].clone(), covered[:n].clone()
+
+
+# `workers=None` (the default) starts worker processes for renders of at least this many camera rays (512×512
+# at 4 spp): below it, starting the pool (about 1-2 s once per process) and shipping the scene to it cost
+# more than the second core gains.
+AUTO_WORKERS_MIN_RAYS = 1 << 20
+_AUTO_WORKERS_OFF: list = []  # why `workers=None` stopped starting processes in this process, once it had to
+
+
+def _cores() -> int:
+    """CPU cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not on Linux
+        return os.cpu_count() or 1
+
+
+def _main_reloadable() -> bool:
+    """Whether a spawned worker can load this process's main module again: a module or an existing file, or
+    none (an interactive session); not a script read from stdin."""
+    main = sys.modules.get("__main__")
+    if getattr(main, "__spec__", None) is not None:
+        return True
+    path = getattr(main, "__file__", None)
+    return path is None or os.path.exists(path)
+
+
+def auto_workers(scene: Scene, rays: int, device, dtype) -> int:
+    """The worker processes `workers=None` picks: the cores this process may run on, for a float32 CPU render
+    of at least `AUTO_WORKERS_MIN_RAYS` camera rays of a scene without tensors that need gradients (workers
+    return no graph), from a process that is not itself a multiprocessing child and whose main module a
+    worker can load (`_main_reloadable`); 1 otherwise, and from the time worker processes once failed to
+    start here (see `render`). The image does not depend on it."""
+    if (torch.device(device).type != "cpu" or dtype != torch.float32 or rays < AUTO_WORKERS_MIN_RAYS
+            or _AUTO_WORKERS_OFF or multiprocessing.parent_process() is not None or not _main_reloadable()):
+        return 1
+    return 1 if scene.requires_grad() else _cores()
+
+
+def _resolve_intersector(scene: Scene, options: TraceOptions, device, dtype) -> TraceOptions:
+    """options with `intersector="auto"` made `mitsuba` or `torch` for this render, so that workers and the
+    thread settings see what will answer (see `renderer.mitsuba.intersect.auto_engine`)."""
+    if options.intersector != "auto":
+        return options
+    from .mitsuba.intersect import auto_engine
+
+    return replace(options, intersector="torch" if auto_engine(scene, device, dtype) is None else "mitsuba")
 
 
 def _pool(workers: int):
@@ -211,7 +265,7 @@ def default_chunk_rays(device) -> int:
 def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, device="cpu",
            dtype=torch.float32, seed: int = 0, chunk_rays: int | None = None, progress: bool = False,
            max_depth: int | None = None, culling: bool | None = None, compile: bool | None = None,
-           workers: int = 1, threads: int | None = 1, intersector: str | None = None) -> RenderResult:
+           workers: int | None = None, threads: int | None = 1, intersector: str | None = None) -> RenderResult:
     """Render the scene's camera image.
 
     Args:
@@ -225,10 +279,17 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
             faster than one CPU thread), with 2^22 it took 0.032 s (benchmarks/results/speed_gpu_h100.md,
             profile_gpu_h100.md). With `intersector="mitsuba"` 2^17 (`EMBREE_CHUNK_RAYS`).
         culling, compile, intersector: override scene.options (see `renderer.scene.TraceOptions`); speed only
-            (`intersector="mitsuba"`: hits and shadow rays by Embree through Mitsuba 3, `renderer.mitsuba.intersect`).
+            (`intersector="mitsuba"`: hits and shadow rays by Embree through Mitsuba 3, `renderer.mitsuba.intersect`;
+            the default `auto` takes it for float32 CPU renders where Mitsuba's llvm variant loads and every
+            shape is one it has, ours otherwise; `torch`: always ours). Float32 images of the two agree to
+            about 1e-7 (a few pixels in 10^5 by more than 1e-3; benchmarks/results/speed_thin_lens_embree.md).
         workers: CPU only: trace chunks in this many worker processes with one torch thread each (they
             are started on first use and kept for later calls; each unpickles the scene once per render).
-            The image does not depend on it.
+            The image does not depend on it. None (the default): `auto_workers`, i.e. the available cores
+            for float32 CPU renders of at least 2^20 camera rays without gradients, else 1. Processes are
+            started with `spawn`, which runs the main script again in each worker: a script that renders
+            at its top level must guard that with `if __name__ == "__main__":`; where it does not, the
+            workers fail to start, `render` warns once and traces in this process from then on.
         threads: torch threads while tracing on the CPU in this process, restored afterwards [1; None:
             torch's own setting]. Eager tracing is a chain of small memory-bound operations: a second
             thread gained little on these 2 cores, and torch's OpenMP barriers made 2 threads up to 15x
@@ -252,8 +313,16 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
         options = replace(options, compile=compile)
     if intersector is not None:
         options = replace(options, intersector=intersector)
+    options = _resolve_intersector(scene, options, device, dtype)
     if chunk_given is None and options.intersector == "mitsuba":
         chunk_rays = EMBREE_CHUNK_RAYS
+    auto = workers is None
+    if auto:
+        if getattr(multiprocessing.current_process(), "_inheriting", False):
+            # A worker process starting for `workers=None` re-runs the main script: stop it at its first render.
+            raise RuntimeError("render: called while a worker process starts and runs the main script again; guard "
+                               "the script's work with `if __name__ == \"__main__\":` or pass workers=1")
+        workers = auto_workers(scene, W * H * spp * len(render_passes(scene)), device, dtype)
     smp = Sampler(sampler, spp, seed)
     image = torch.empty(W * H, 3, dtype=dtype, device=device)
     coverage = torch.empty(W * H, dtype=dtype, device=device)
@@ -268,7 +337,7 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
         jit_threads = set_jit_threads(threads)
     try:
         _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device, dtype, seed, chunk_rays,
-                     max_depth, workers)
+                     max_depth, workers, auto)
     finally:
         if torch.get_num_threads() != previous:
             torch.set_num_threads(previous)
@@ -278,20 +347,42 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
 
 
 def _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device, dtype, seed, chunk_rays,
-                 max_depth, workers):
-    """The chunk loop of `render`, filling image (W·H, 3) and coverage (W·H,) in place."""
+                 max_depth, workers, auto=False):
+    """The chunk loop of `render`, filling image (W·H, 3) and coverage (W·H,) in place. auto: `workers` was
+    chosen by `auto_workers`; where the workers cannot take the scene or do not start, trace here instead."""
+    blob = None
     if workers > 1 and torch.device(device).type == "cpu":
+        try:
+            blob = pickle.dumps(scene)
+        except Exception:  # noqa: BLE001 - e.g. a user's lambda in the scene; auto keeps to this process
+            if not auto:
+                raise
+    if blob is not None:
+        from .mitsuba.intersect import llvm_available
+
         pool = _pool(workers)
-        blob = pickle.dumps(scene)
         digest = hashlib.sha1(blob).hexdigest()
+        jit_runs = options.intersector == "mitsuba" and llvm_available()
         job_rays = max(chunk_rays, -(-scene.camera.width * scene.camera.height * spp // (JOBS_PER_WORKER * workers)))
         jobs = {pool.submit(_worker_render, digest, blob, pixel, n, spp, sampler, seed, options, dtype, max_depth,
-                            chunk_rays): pixel[:n] for pixel, n in _chunks(scene, spp, options, job_rays)}
-        for job in concurrent.futures.as_completed(jobs):
-            estimate, covered = job.result()
-            image.index_copy_(0, jobs[job], estimate)
-            coverage.index_copy_(0, jobs[job], covered)
-            bar.update(covered.shape[0] * spp)
+                            chunk_rays, jit_runs): pixel[:n] for pixel, n in _chunks(scene, spp, options, job_rays)}
+        try:
+            for job in concurrent.futures.as_completed(jobs):
+                estimate, covered = job.result()
+                image.index_copy_(0, jobs[job], estimate)
+                coverage.index_copy_(0, jobs[job], covered)
+                bar.update(covered.shape[0] * spp)
+        except concurrent.futures.process.BrokenProcessPool as e:
+            if not auto:
+                raise
+            _POOL.pop(workers, None)
+            pool.shutdown(wait=False, cancel_futures=True)
+            _AUTO_WORKERS_OFF.append(str(e))
+            warnings.warn("render: worker processes failed to start (a script that renders outside `if __name__ == "
+                          "\"__main__\":`?); tracing in this process from now on (workers=1 says so explicitly)",
+                          RuntimeWarning, stacklevel=3)
+            _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device, dtype, seed, chunk_rays,
+                         max_depth, 1)
     else:
         for pixel, n in _chunks(scene, spp, options, chunk_rays):
             pixel = pixel.to(device)  # once: the samples are made from it and the results go back through it

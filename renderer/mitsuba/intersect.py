@@ -32,6 +32,7 @@ normal by t_min, which Embree's watertight triangle and Mitsuba's analytic tests
 from __future__ import annotations
 
 import math
+import sys
 
 import numpy as np
 import torch
@@ -216,9 +217,14 @@ def auto_engine(scene, device, dtype) -> MitsubaIntersector | None:
     """The engine `intersector="auto"` uses for the scene's rays on `device` in `dtype`, or None for our own
     tracer. Embree answers where its hits are the ones asked for: rays on the CPU in float32, a scene with
     objects all of an `EXACT` type and no tensor that needs gradients (Embree's hits carry none), and
-    Mitsuba's LLVM variant loading here (`llvm_available`). A scene Mitsuba fails to build falls back too.
-    Per-ray rules stay `Scene`'s (rays that need gradients, layers' first-hit masks go to ours)."""
+    Mitsuba's LLVM variant loading here (`llvm_available`) and not another variant chosen by someone else in
+    this process (switching Mitsuba's global variant costs about 30 ms and would change theirs). A scene
+    Mitsuba fails to build falls back too. Per-ray rules stay `Scene`'s (rays that need gradients, layers'
+    first-hit masks go to ours)."""
     if torch.device(device).type != "cpu" or dtype != torch.float32 or not scene.objects:
+        return None
+    mi = sys.modules.get("mitsuba")
+    if mi is not None and mi.variant() not in (None, DEFAULT_VARIANT):
         return None
     if any(obj.shape.type_name not in EXACT for obj in scene.objects) or scene.requires_grad():
         return None

@@ -205,24 +205,57 @@ def _cores() -> int:
         return os.cpu_count() or 1
 
 
-def _main_reloadable() -> bool:
-    """Whether a spawned worker can load this process's main module again: a module or an existing file, or
-    none (an interactive session); not a script read from stdin."""
+def _spawn_safe() -> bool:
+    """Whether worker processes may start: `spawn` runs the main script (or `-m` module) again in each, so
+    a render reached from its top level must sit under `if __name__ == "__main__":` (else every worker would
+    run the script). True in an interactive session or notebook (no main file), where the call does not come
+    from the main module's top level (a later call: `render` then still stops a worker's rerun, see
+    `render`), or comes from inside that guard; False for a script read from stdin (a worker cannot load
+    it) or a call from the script's unguarded top level."""
     main = sys.modules.get("__main__")
-    if getattr(main, "__spec__", None) is not None:
-        return True
     path = getattr(main, "__file__", None)
-    return path is None or os.path.exists(path)
+    if path is None:
+        return True
+    if not os.path.exists(path):
+        return False
+    frame = sys._getframe(1)
+    while frame is not None:
+        if frame.f_globals is vars(main) and frame.f_code.co_name == "<module>":
+            return any(a <= frame.f_lineno <= b for a, b in _main_guards(path, os.path.getmtime(path)))
+        frame = frame.f_back
+    return True
+
+
+@functools.lru_cache(maxsize=4)
+def _main_guards(path: str, mtime: float) -> list[tuple[int, int]]:
+    """(first, last) lines of the top-level `if __name__ == "__main__":` blocks of the Python file `path`."""
+    import ast
+
+    try:
+        with open(path, "rb") as f:
+            tree = ast.parse(f.read())
+    except (OSError, SyntaxError, ValueError):
+        return []
+    main_test = {("__name__", "__main__"), ("__main__", "__name__")}
+
+    def side(node):
+        return node.id if isinstance(node, ast.Name) else node.value if isinstance(node, ast.Constant) else None
+
+    return [(node.lineno, node.end_lineno) for node in tree.body
+            if isinstance(node, ast.If) and isinstance(node.test, ast.Compare) and len(node.test.ops) == 1
+            and isinstance(node.test.ops[0], ast.Eq)
+            and (side(node.test.left), side(node.test.comparators[0])) in main_test]
 
 
 def auto_workers(scene: Scene, rays: int, device, dtype) -> int:
     """The worker processes `workers=None` picks: the cores this process may run on, for a float32 CPU render
     of at least `AUTO_WORKERS_MIN_RAYS` camera rays of a scene without tensors that need gradients (workers
-    return no graph), from a process that is not itself a multiprocessing child and whose main module a
-    worker can load (`_main_reloadable`); 1 otherwise, and from the time worker processes once failed to
-    start here (see `render`). The image does not depend on it."""
+    return no graph), from a process that is not itself a multiprocessing child, where starting them is safe
+    (`_spawn_safe`: not from a script's top level outside `if __name__ == "__main__":`); 1 otherwise, and
+    from the time worker processes once failed to start here (see `render`). The image does not depend on
+    it."""
     if (torch.device(device).type != "cpu" or dtype != torch.float32 or rays < AUTO_WORKERS_MIN_RAYS
-            or _AUTO_WORKERS_OFF or multiprocessing.parent_process() is not None or not _main_reloadable()):
+            or _AUTO_WORKERS_OFF or multiprocessing.parent_process() is not None or not _spawn_safe()):
         return 1
     return 1 if scene.requires_grad() else _cores()
 
@@ -305,9 +338,10 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
             are started on first use and kept for later calls; each unpickles the scene once per render).
             The image does not depend on it. None (the default): `auto_workers`, i.e. the available cores
             for float32 CPU renders of at least 2^20 camera rays without gradients, else 1. Processes are
-            started with `spawn`, which runs the main script again in each worker: a script that renders
-            at its top level must guard that with `if __name__ == "__main__":`; where it does not, the
-            workers fail to start, `render` warns once and traces in this process from then on.
+            started with `spawn`, which runs the main script again in each worker, so a script's renders
+            get workers only from inside `if __name__ == "__main__":` (a render at a script's unguarded
+            top level traces in its own process); where workers still fail to start, `render` warns once
+            and traces in this process from then on.
         threads: torch threads while tracing on the CPU in this process, restored afterwards [1; None:
             torch's own setting]. Eager tracing is a chain of small memory-bound operations: a second
             thread gained little on these 2 cores, and torch's OpenMP barriers made 2 threads up to 15x

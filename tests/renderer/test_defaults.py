@@ -5,8 +5,8 @@
   a scene tensor that needs gradients, another Mitsuba variant chosen by someone else; the fallback image is
   ours bit for bit.
 - workers=None starts worker processes only for float32 CPU renders of >= AUTO_WORKERS_MIN_RAYS rays without
-  gradients; a script that renders outside `if __name__ == "__main__":` gets a warning and its image from
-  this process (subprocess test).
+  gradients, and not from a script's top level outside `if __name__ == "__main__":`; where workers fail to
+  start anyway, one warning and the image from this process (subprocess test).
 """
 from __future__ import annotations
 
@@ -135,24 +135,41 @@ render_module = sys.modules["renderer.render"]
 render_module.AUTO_WORKERS_MIN_RAYS = 1  # every render would start workers,
 render_module._cores = lambda: 2  # two of them, on any machine
 scene = load_scene({cfg!r})
+alone = render_module.render(scene, seed=4, workers=1).image
 with warnings.catch_warnings(record=True) as caught:
     warnings.simplefilter("always")
+    image = render_module.render(scene, seed=4).image  # the script's top level: no workers
+    print("TOP", len(caught), len(render_module._POOL), torch.equal(image, alone))
+    render_module._spawn_safe = lambda: True  # as if called later, from a thread: workers start, then fail
     image = render_module.render(scene, seed=4).image
-alone = render_module.render(scene, seed=4, workers=1).image
-print("RESULT", sum("failed to start" in str(w.message) for w in caught), bool(render_module._AUTO_WORKERS_OFF),
-      torch.equal(image, alone))
+    print("FORCED", sum("failed to start" in str(w.message) for w in caught), bool(render_module._AUTO_WORKERS_OFF),
+          torch.equal(image, alone))
 """
 
 
-@pytest.mark.slow
-def test_an_unguarded_script_gets_a_warning_and_its_image(tmp_path):
-    """spawn runs the main script again in each worker: render stops those runs at their first render, and
-    the script's own render traces in its process after one warning."""
-    script = tmp_path / "unguarded.py"
-    script.write_text(UNGUARDED.format(cfg=CFG))
+def _run(tmp_path, text):
+    script = tmp_path / "script.py"
+    script.write_text(text)
     env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""), OMP_NUM_THREADS="1")
-    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300, env=env)
+    return subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300, env=env)
+
+
+def test_spawn_safe_reads_the_main_guard(tmp_path):
+    lines = RENDER._main_guards(__file__, 0.0)
+    assert lines == [], f"this test file has no main guard, found {lines}"
+    script = tmp_path / "guarded.py"
+    script.write_text("import os\nx = 1\nif __name__ == '__main__':\n    y = 2\n    z = 3\nw = 4\n")
+    assert RENDER._main_guards(str(script), 1.0) == [(3, 5)], "the guard spans lines 3-5"
+
+
+@pytest.mark.slow
+def test_an_unguarded_script_renders_in_its_own_process(tmp_path):
+    """spawn runs the main script again in each worker: from a script's unguarded top level, workers=None
+    stays in the process; where workers start anyway, render stops their reruns at their first render and
+    the script's render traces in its process after one warning."""
+    out = _run(tmp_path, UNGUARDED.format(cfg=CFG))
     assert out.returncode == 0, f"exit {out.returncode}: {out.stderr[-2000:]}"
-    results = [line for line in out.stdout.splitlines() if line.startswith("RESULT")]
-    assert results == ["RESULT 1 True True"], f"expected one warning, workers off, the same image: {results}"
+    lines = [line for line in out.stdout.splitlines() if line.startswith(("TOP", "FORCED"))]
+    assert lines == ["TOP 0 0 True", "FORCED 1 True True"], (
+        f"expected no workers and no warning at the top level, then one warning and the same image: {lines}")
     assert "guard the script's work with" in out.stderr, "the workers' error should say how to fix the script"

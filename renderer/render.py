@@ -206,16 +206,17 @@ def _cores() -> int:
 
 
 def _spawn_safe() -> bool:
-    """Whether worker processes may start: `spawn` runs the main script (or `-m` module) again in each, so
-    a render reached from its top level must sit under `if __name__ == "__main__":` (else every worker would
-    run the script). True in an interactive session or notebook (no main file), where the call does not come
-    from the main module's top level (a later call: `render` then still stops a worker's rerun, see
-    `render`), or comes from inside that guard; False for a script read from stdin (a worker cannot load
-    it) or a call from the script's unguarded top level."""
+    """Whether worker processes may start. `spawn` runs the main script (or `-m` module) again in each
+    worker, so a render reached from its top level must sit under `if __name__ == "__main__":`, else every
+    worker would run the script. True: an interactive session or notebook (no main file); `python -m
+    package` (spawn skips a package's `__main__`); a call from inside that guard; a call not from the main
+    module's top level (later, e.g. from a thread: `render` still stops a worker's rerun, see `render`).
+    False: a script read from stdin (a worker cannot load it); a call from a script's unguarded top level."""
     main = sys.modules.get("__main__")
     path = getattr(main, "__file__", None)
-    if path is None:
-        return True
+    spec = getattr(main, "__spec__", None)
+    if path is None or (spec is not None and spec.name.endswith(".__main__")):
+        return True  # nothing to run again; `python -m package`: spawn skips a package's __main__
     if not os.path.exists(path):
         return False
     frame = sys._getframe(1)

@@ -182,8 +182,13 @@ def _worker_render(digest, blob, pixel, n, spp, sampler, seed, options, dtype, m
         if jit_runs:
             variant_runs(DEFAULT_VARIANT)
         set_jit_threads(1)
-    smp = Sampler(sampler, spp, seed)
-    sub = _pixels_per_chunk(options, spp, chunk_rays)
+    return _trace_job(scene, pixel, n, Sampler(sampler, spp, seed), options, dtype, max_depth, chunk_rays)
+
+
+def _trace_job(scene, pixel, n, smp, options, dtype, max_depth, chunk_rays):
+    """Estimates (n, 3) and coverage (n,) of the first n of the pixels `pixel` (padded to whole packets),
+    traced on the CPU in chunk_rays batches: one job, in a worker or (workers=None) in the calling process."""
+    sub = _pixels_per_chunk(options, smp.spp, chunk_rays)
     parts = [_render_pixels(scene, pixel[a:a + sub], smp, options, "cpu", dtype, max_depth)
              for a in range(0, pixel.shape[0], sub)]
     estimate, covered = torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
@@ -338,7 +343,8 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
         workers: CPU only: trace chunks in this many worker processes with one torch thread each (they
             are started on first use and kept for later calls; each unpickles the scene once per render).
             The image does not depend on it. None (the default): `auto_workers`, i.e. the available cores
-            for float32 CPU renders of at least 2^20 camera rays without gradients, else 1. Processes are
+            for float32 CPU renders of at least 2^20 camera rays without gradients, else 1, this process
+            being one of them (it traces the jobs no worker process has started yet). Processes are
             started with `spawn`, which runs the main script again in each worker, so a script's renders
             get workers only from inside `if __name__ == "__main__":` (a render at a script's unguarded
             top level traces in its own process); where workers still fail to start, `render` warns once
@@ -384,7 +390,7 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
     if threads is not None and torch.device(device).type == "cpu" and threads != previous:
         torch.set_num_threads(threads)
     jit_threads = None
-    if options.intersector == "mitsuba" and threads is not None and workers <= 1:
+    if options.intersector == "mitsuba" and threads is not None and (workers <= 1 or auto):
         from .mitsuba.intersect import set_jit_threads
 
         jit_threads = set_jit_threads(threads)
@@ -413,18 +419,26 @@ def _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device
     if blob is not None:
         from .mitsuba.intersect import llvm_available
 
-        pool = _pool(workers)
+        # workers=None: this process is one of the workers (it would only wait otherwise), so one process
+        # fewer to start and to feed; it takes jobs from the end of the queue that no worker has started.
+        pool = _pool(workers - 1 if auto else workers)
         digest = hashlib.sha1(blob).hexdigest()
         jit_runs = options.intersector == "mitsuba" and llvm_available()
         job_rays = max(chunk_rays, -(-scene.camera.width * scene.camera.height * spp // (JOBS_PER_WORKER * workers)))
         jobs = {pool.submit(_worker_render, digest, blob, pixel, n, spp, sampler, seed, options, dtype, max_depth,
-                            chunk_rays, jit_runs): pixel[:n] for pixel, n in _chunks(scene, spp, options, job_rays)}
+                            chunk_rays, jit_runs): (pixel, n) for pixel, n in _chunks(scene, spp, options, job_rays)}
+
+        def done(pixel, n, estimate, covered):
+            image.index_copy_(0, pixel[:n], estimate)
+            coverage.index_copy_(0, pixel[:n], covered)
+            bar.update(n * spp)
+
         try:
-            for job in concurrent.futures.as_completed(jobs):
-                estimate, covered = job.result()
-                image.index_copy_(0, jobs[job], estimate)
-                coverage.index_copy_(0, jobs[job], covered)
-                bar.update(covered.shape[0] * spp)
+            for job in reversed(list(jobs) if auto else []):
+                if job.cancel():  # no worker has started it: trace it here
+                    done(*jobs[job], *_trace_job(scene, *jobs[job], smp, options, dtype, max_depth, chunk_rays))
+            for job in concurrent.futures.as_completed([job for job in jobs if not job.cancelled()]):
+                done(*jobs[job], *job.result())
         except concurrent.futures.process.BrokenProcessPool as e:
             if not auto:
                 raise

@@ -254,12 +254,12 @@ def _main_guards(path: str, mtime: float) -> list[tuple[int, int]]:
 
 
 def auto_workers(scene: Scene, rays: int, device, dtype) -> int:
-    """The worker processes `workers=None` picks: the cores this process may run on, for a float32 CPU render
-    of at least `AUTO_WORKERS_MIN_RAYS` camera rays of a scene without tensors that need gradients (workers
-    return no graph), from a process that is not itself a multiprocessing child, where starting them is safe
-    (`_spawn_safe`: not from a script's top level outside `if __name__ == "__main__":`); 1 otherwise, and
-    from the time worker processes once failed to start here (see `render`). The image does not depend on
-    it."""
+    """How many processes trace with `workers=None`, this one included (it starts one fewer): the cores this
+    process may run on, for a float32 CPU render of at least `AUTO_WORKERS_MIN_RAYS` camera rays of a scene
+    without tensors that need gradients (workers return no graph), from a process that is not itself a
+    multiprocessing child, where starting workers is safe (`_spawn_safe`: not from a script's top level
+    outside `if __name__ == "__main__":`); 1 otherwise, and from the time worker processes once failed to
+    start here (see `render`). The image does not depend on it."""
     if (torch.device(device).type != "cpu" or dtype != torch.float32 or rays < AUTO_WORKERS_MIN_RAYS
             or _AUTO_WORKERS_OFF or multiprocessing.parent_process() is not None or not _spawn_safe()):
         return 1
@@ -421,7 +421,8 @@ def _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device
 
         # workers=None: this process is one of the workers (it would only wait otherwise), so one process
         # fewer to start and to feed; it takes jobs from the end of the queue that no worker has started.
-        pool = _pool(workers - 1 if auto else workers)
+        size = workers - 1 if auto else workers
+        pool = _pool(size)
         digest = hashlib.sha1(blob).hexdigest()
         jit_runs = options.intersector == "mitsuba" and llvm_available()
         job_rays = max(chunk_rays, -(-scene.camera.width * scene.camera.height * spp // (JOBS_PER_WORKER * workers)))
@@ -442,7 +443,7 @@ def _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device
         except concurrent.futures.process.BrokenProcessPool as e:
             if not auto:
                 raise
-            _POOL.pop(workers, None)
+            _POOL.pop(size, None)
             pool.shutdown(wait=False, cancel_futures=True)
             _AUTO_WORKERS_OFF.append(str(e))
             warnings.warn("render: worker processes failed to start (a script that renders outside `if __name__ == "

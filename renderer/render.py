@@ -158,6 +158,10 @@ _POOL: dict = {}  # number of workers -> ProcessPoolExecutor, kept for later ren
 # (benchmarks/results/speed_thin_lens.md); with 2^15-ray jobs they had taken 0.78 s (10.4x Mitsuba there:
 # that file as committed in 079e97e).
 JOBS_PER_WORKER = 4
+# ... and at most this many rays a job (8 batches of 2^17), so that big renders show progress and stop on an
+# interrupt within about a second a job (a 1024×1024, 64-spp render in 8 jobs took 10.7 s to its first
+# progress line and interrupt in tests/renderer/test_fuzz.py, against 3.7 s in one process).
+MAX_JOB_RAYS = 1 << 20
 
 
 def _worker_start():
@@ -425,7 +429,8 @@ def _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device
         pool = _pool(size)
         digest = hashlib.sha1(blob).hexdigest()
         jit_runs = options.intersector == "mitsuba" and llvm_available()
-        job_rays = max(chunk_rays, -(-scene.camera.width * scene.camera.height * spp // (JOBS_PER_WORKER * workers)))
+        job_rays = max(chunk_rays, min(MAX_JOB_RAYS, -(-scene.camera.width * scene.camera.height * spp
+                                                       // (JOBS_PER_WORKER * workers))))
         jobs = {pool.submit(_worker_render, digest, blob, pixel, n, spp, sampler, seed, options, dtype, max_depth,
                             chunk_rays, jit_runs): (pixel, n) for pixel, n in _chunks(scene, spp, options, job_rays)}
 
@@ -451,6 +456,12 @@ def _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device
                           RuntimeWarning, stacklevel=3)
             _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device, dtype, seed, chunk_rays,
                          max_depth, 1)
+        except BaseException:  # an interrupt: stop the workers now, not after their jobs (and at exit)
+            _POOL.pop(size, None)
+            pool.shutdown(wait=False, cancel_futures=True)
+            for process in list((getattr(pool, "_processes", None) or {}).values()):
+                process.terminate()
+            raise
     else:
         for pixel, n in _chunks(scene, spp, options, chunk_rays):
             pixel = pixel.to(device)  # once: the samples are made from it and the results go back through it

@@ -191,7 +191,7 @@ def _worker_render(digest, blob, pixel, n, spp, sampler, seed, options, dtype, m
 
 def _trace_job(scene, pixel, n, smp, options, dtype, max_depth, chunk_rays):
     """Estimates (n, 3) and coverage (n,) of the first n of the pixels `pixel` (padded to whole packets),
-    traced on the CPU in chunk_rays batches: one job, in a worker or (workers=None) in the calling process."""
+    traced on the CPU in chunk_rays batches: one job of a worker."""
     sub = _pixels_per_chunk(options, smp.spp, chunk_rays)
     parts = [_render_pixels(scene, pixel[a:a + sub], smp, options, "cpu", dtype, max_depth)
              for a in range(0, pixel.shape[0], sub)]
@@ -258,12 +258,12 @@ def _main_guards(path: str, mtime: float) -> list[tuple[int, int]]:
 
 
 def auto_workers(scene: Scene, rays: int, device, dtype) -> int:
-    """How many processes trace with `workers=None`, this one included (it starts one fewer): the cores this
-    process may run on, for a float32 CPU render of at least `AUTO_WORKERS_MIN_RAYS` camera rays of a scene
-    without tensors that need gradients (workers return no graph), from a process that is not itself a
-    multiprocessing child, where starting workers is safe (`_spawn_safe`: not from a script's top level
-    outside `if __name__ == "__main__":`); 1 otherwise, and from the time worker processes once failed to
-    start here (see `render`). The image does not depend on it."""
+    """How many worker processes trace with `workers=None`: the cores this process may run on, for a
+    float32 CPU render of at least `AUTO_WORKERS_MIN_RAYS` camera rays of a scene without tensors that need
+    gradients (workers return no graph), from a process that is not itself a multiprocessing child, where
+    starting workers is safe (`_spawn_safe`: not from a script's top level outside
+    `if __name__ == "__main__":`); 1 otherwise, and from the time worker processes once failed to start
+    here (see `render`). The image does not depend on it."""
     if (torch.device(device).type != "cpu" or dtype != torch.float32 or rays < AUTO_WORKERS_MIN_RAYS
             or _AUTO_WORKERS_OFF or multiprocessing.parent_process() is not None or not _spawn_safe()):
         return 1
@@ -347,8 +347,7 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
         workers: CPU only: trace chunks in this many worker processes with one torch thread each (they
             are started on first use and kept for later calls; each unpickles the scene once per render).
             The image does not depend on it. None (the default): `auto_workers`, i.e. the available cores
-            for float32 CPU renders of at least 2^20 camera rays without gradients, else 1, this process
-            being one of them (it traces the jobs no worker process has started yet). Processes are
+            for float32 CPU renders of at least 2^20 camera rays without gradients, else 1. Processes are
             started with `spawn`, which runs the main script again in each worker, so a script's renders
             get workers only from inside `if __name__ == "__main__":` (a render at a script's unguarded
             top level traces in its own process); where workers still fail to start, `render` warns once
@@ -394,7 +393,7 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
     if threads is not None and torch.device(device).type == "cpu" and threads != previous:
         torch.set_num_threads(threads)
     jit_threads = None
-    if options.intersector == "mitsuba" and threads is not None and (workers <= 1 or auto):
+    if options.intersector == "mitsuba" and threads is not None and workers <= 1:
         from .mitsuba.intersect import set_jit_threads
 
         jit_threads = set_jit_threads(threads)
@@ -423,9 +422,10 @@ def _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device
     if blob is not None:
         from .mitsuba.intersect import llvm_available
 
-        # workers=None: this process is one of the workers (it would only wait otherwise), so one process
-        # fewer to start and to feed; it takes jobs from the end of the queue that no worker has started.
-        size = workers - 1 if auto else workers
+        # Tracing here too (one worker process fewer, this one taking the jobs none had started) was slower:
+        # 0.35 s against 0.29 s with two workers on the speed scene (speed_thin_lens.md of 04:33, `defaults`
+        # against `embree_workers2`): this process's threads that feed and empty the pool took its core.
+        size = workers
         pool = _pool(size)
         digest = hashlib.sha1(blob).hexdigest()
         jit_runs = options.intersector == "mitsuba" and llvm_available()
@@ -440,10 +440,7 @@ def _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device
             bar.update(n * spp)
 
         try:
-            for job in reversed(list(jobs) if auto else []):
-                if job.cancel():  # no worker has started it: trace it here
-                    done(*jobs[job], *_trace_job(scene, *jobs[job], smp, options, dtype, max_depth, chunk_rays))
-            for job in concurrent.futures.as_completed([job for job in jobs if not job.cancelled()]):
+            for job in concurrent.futures.as_completed(jobs):
                 done(*jobs[job], *job.result())
         except concurrent.futures.process.BrokenProcessPool as e:
             if not auto:

@@ -155,7 +155,7 @@ _POOL: dict = {}  # number of workers -> ProcessPoolExecutor, kept for later ren
 # Jobs per worker process in a render: each job ships the pickled scene and returns its pixels, so jobs are
 # few and large (a worker traces its job in chunk_rays batches); several per worker keep the cores busy to the
 # end. On the issue-11 speed scene two workers took 0.51 s against 0.89 s in one process with these jobs
-# (benchmarks/results/speed_thin_lens.md); with 2^15-ray jobs they had taken 0.78 s (10.4x Mitsuba there:
+# (benchmarks/results/speed_thin_lens.md before issue 11's defaults); with 2^15-ray jobs they had taken 0.78 s (10.4x Mitsuba there:
 # that file as committed in 079e97e).
 JOBS_PER_WORKER = 4
 # ... and at most this many rays a job (8 batches of 2^17), so that big renders show progress and stop on an

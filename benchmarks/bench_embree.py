@@ -39,15 +39,18 @@ from renderer.scene import Scene  # noqa: E402
 from renderer.scenefile import load_scene  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-MODES = {"ours defaults": {}, "ours chunk 2^17": {"chunk_rays": 1 << 17},
-         "embree chunk 2^15": {"intersector": "mitsuba", "chunk_rays": 1 << 15},
-         "embree": {"intersector": "mitsuba"},  # its default chunk_rays, EMBREE_CHUNK_RAYS = 2^17
-         "embree chunk 2^19": {"intersector": "mitsuba", "chunk_rays": 1 << 19},
+# "ours defaults": our own intersection in one process (`render`'s defaults before `intersector="auto"` and
+# `workers=None`; bench_speed_mitsuba.py times those); every mode names its intersector and workers.
+OURS, ONE = {"intersector": "torch", "workers": 1}, {"intersector": "mitsuba", "workers": 1}
+MODES = {"ours defaults": OURS, "ours chunk 2^17": {**OURS, "chunk_rays": 1 << 17},
+         "embree chunk 2^15": {**ONE, "chunk_rays": 1 << 15},
+         "embree": ONE,  # its default chunk_rays, EMBREE_CHUNK_RAYS = 2^17
+         "embree chunk 2^19": {**ONE, "chunk_rays": 1 << 19},
          # threads=None: render leaves the thread settings alone, so torch keeps this process's one thread
          # (set in main) and Dr.Jit its own pool (all cores) instead of render's one thread for both.
-         "embree jit pool": {"intersector": "mitsuba", "threads": None},
-         "ours workers2": {"workers": 2},
-         "embree workers2": {"intersector": "mitsuba", "workers": 2}}
+         "embree jit pool": {**ONE, "threads": None},
+         "ours workers2": {**OURS, "workers": 2},
+         "embree workers2": {**ONE, "workers": 2}}
 DEFAULT_MODES = ("ours defaults,ours chunk 2^17,embree chunk 2^15,embree,embree chunk 2^19,embree jit pool,"
                  "ours workers2,embree workers2")
 
@@ -91,7 +94,7 @@ def profile(scene, chunk_rays: int) -> dict:
     eng.visible = clock.wrap("shadow rays", eng.visible)
     try:
         t0 = time.perf_counter()
-        render(scene, intersector="mitsuba", chunk_rays=chunk_rays)
+        render(scene, chunk_rays=chunk_rays, **ONE)
         total = time.perf_counter() - t0
     finally:
         mi_intersect._to_torch, eng.dr, eng._ray, eng.nearest, eng.visible = saved
@@ -113,7 +116,7 @@ def profile_ours(scene, chunk_rays: int) -> dict:
     Scene.visibility_rows = clock.wrap("shadow rays", Scene.visibility_rows)
     try:
         t0 = time.perf_counter()
-        render(scene, chunk_rays=chunk_rays)
+        render(scene, chunk_rays=chunk_rays, **OURS)
         total = time.perf_counter() - t0
     finally:
         Scene.intersect_rows, Scene.visibility_rows = saved
@@ -230,7 +233,7 @@ def main(argv=None):
            "machine": {"cores": os.cpu_count(), "torch": torch.__version__, "mitsuba": ms.mi.__version__,
                        "drjit_threads": dr.thread_count(), "load_start": load_start}}
     res["timing"] = time_modes(scene, ms, modes, args.repeats, log)
-    ref = render(scene).image
+    ref = render(scene, **OURS).image
     res["agreement"] = {name: agreement(render(scene, **kw).image, ref) for name, kw in modes.items()}
     log("agreement: " + json.dumps(res["agreement"]))
     prof = {f"embree, 2^{c}": profile(scene, 1 << c) for c in (15, 17, 19)}

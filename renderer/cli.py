@@ -89,8 +89,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "our camera (the `direct` integrator; what cannot be mapped is named on stderr)")
     r.add_argument("--cluster", metavar="auto|ADDRESS",
                    help="trace on a Ray cluster (auto: the running one, else a local one); same image as one process")
-    r.add_argument("--intersector", choices=("torch", "mitsuba"), default="torch",
-                   help="torch: our ray-shape tests [default]; mitsuba: hits and shadow rays by Embree through "
+    r.add_argument("--intersector", choices=("auto", "torch", "mitsuba"), default="auto",
+                   help="auto: mitsuba where it runs here (CPU, float32, shapes it has), else torch [default]; "
+                        "torch: our ray-shape tests; mitsuba: hits and shadow rays by Embree through "
                         "Mitsuba 3 (CPU), cameras and shading still ours")
 
     g = sub.add_parser("gallery", help="render the paper figures into one labelled contact sheet",
@@ -205,7 +206,7 @@ def cmd_render(args, device) -> int:
     _check_output(args.output, (".exr", ".png", ".tif", ".tiff"))
     scene_file = resolve_scene(args.scene)
     scene = load_scene(scene_file, args.overrides)
-    if args.intersector != "torch":
+    if args.intersector != "auto":  # the scene's own default
         from .mitsuba.intersect import use_intersector
 
         try:

@@ -7,11 +7,16 @@ the image does not depend on the chunk size.
 """
 from __future__ import annotations
 
+import atexit
 import concurrent.futures
+import functools
 import hashlib
 import math
 import multiprocessing
+import os
 import pickle
+import sys
+import warnings
 from dataclasses import dataclass, replace
 
 import torch
@@ -60,6 +65,13 @@ def tile_order(width: int, height: int, tile: int = TILE) -> torch.Tensor:
     tiles_x = -(-width // tile)
     key = ((y // tile) * tiles_x + x // tile) * tile * tile + (y % tile) * tile + x % tile
     return torch.argsort(key.reshape(-1))
+
+
+@functools.lru_cache(maxsize=4)
+def _tile_order_cached(width: int, height: int) -> torch.Tensor:
+    """`tile_order`, kept for the next render of the same size (about 10 ms at 512×512; only sliced, never
+    written to)."""
+    return tile_order(width, height)
 
 
 def _camera_samples(sampler: Sampler, pixel: torch.Tensor, width: int, dtype: torch.dtype):
@@ -116,7 +128,7 @@ def _chunks(scene: Scene, spp: int, options: TraceOptions, chunk_rays: int):
     """(pixels, n) per chunk: whole pixels in tile order, padded to whole culling packets by repeating the
     last pixel; n is the number of real pixels."""
     W, H = scene.camera.width, scene.camera.height
-    order = tile_order(W, H)
+    order = _tile_order_cached(W, H)
     step = _packet_step(options, spp)
     pixels_per_chunk = _pixels_per_chunk(options, spp, chunk_rays)
     for start in range(0, W * H, pixels_per_chunk):
@@ -143,9 +155,13 @@ _POOL: dict = {}  # number of workers -> ProcessPoolExecutor, kept for later ren
 # Jobs per worker process in a render: each job ships the pickled scene and returns its pixels, so jobs are
 # few and large (a worker traces its job in chunk_rays batches); several per worker keep the cores busy to the
 # end. On the issue-11 speed scene two workers took 0.51 s against 0.89 s in one process with these jobs
-# (benchmarks/results/speed_thin_lens.md); with 2^15-ray jobs they had taken 0.78 s (10.4x Mitsuba there:
+# (benchmarks/results/speed_thin_lens.md before issue 11's defaults); with 2^15-ray jobs they had taken 0.78 s (10.4x Mitsuba there:
 # that file as committed in 079e97e).
 JOBS_PER_WORKER = 4
+# ... and at most this many rays a job (8 batches of 2^17), so that big renders show progress and stop on an
+# interrupt within about a second a job (a 1024×1024, 64-spp render in 8 jobs took 10.7 s to its first
+# progress line and interrupt in tests/renderer/test_fuzz.py, against 3.7 s in one process).
+MAX_JOB_RAYS = 1 << 20
 
 
 def _worker_start():
@@ -156,25 +172,124 @@ def _worker_start():
 _WORKER_SCENE: dict = {}  # in a worker: digest of the pickled scene -> the scene, kept while it is reused
 
 
-def _worker_render(digest, blob, pixel, n, spp, sampler, seed, options, dtype, max_depth, chunk_rays):
-    """One job in a worker: the pixels `pixel` (padded to whole packets) traced in chunk_rays batches."""
+def _worker_render(digest, blob, pixel, n, spp, sampler, seed, options, dtype, max_depth, chunk_rays, jit_runs):
+    """One job in a worker: the pixels `pixel` (padded to whole packets) traced in chunk_rays batches.
+    jit_runs: the parent found Mitsuba's llvm variant running here (the worker need not probe it again)."""
     if digest not in _WORKER_SCENE:  # unpickle once per render, so caches and compiled state are reused
         _WORKER_SCENE.clear()
         _WORKER_SCENE[digest] = pickle.loads(blob)
     scene = _WORKER_SCENE[digest]
     if options.intersector == "mitsuba":  # one Dr.Jit thread per worker, as one torch thread
-        from .mitsuba.intersect import set_jit_threads
+        from .mitsuba.export import variant_runs
+        from .mitsuba.intersect import DEFAULT_VARIANT, set_jit_threads
 
+        if jit_runs:
+            variant_runs(DEFAULT_VARIANT)
         set_jit_threads(1)
-    smp = Sampler(sampler, spp, seed)
-    sub = _pixels_per_chunk(options, spp, chunk_rays)
+    return _trace_job(scene, pixel, n, Sampler(sampler, spp, seed), options, dtype, max_depth, chunk_rays)
+
+
+def _trace_job(scene, pixel, n, smp, options, dtype, max_depth, chunk_rays):
+    """Estimates (n, 3) and coverage (n,) of the first n of the pixels `pixel` (padded to whole packets),
+    traced on the CPU in chunk_rays batches: one job of a worker."""
+    sub = _pixels_per_chunk(options, smp.spp, chunk_rays)
     parts = [_render_pixels(scene, pixel[a:a + sub], smp, options, "cpu", dtype, max_depth)
              for a in range(0, pixel.shape[0], sub)]
     estimate, covered = torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
     return estimate[:n].clone(), covered[:n].clone()
 
 
+# `workers=None` (the default) starts worker processes for renders of at least this many camera rays (512×512
+# at 4 spp): below it, starting the pool (about 1-2 s once per process) and shipping the scene to it cost
+# more than the second core gains.
+AUTO_WORKERS_MIN_RAYS = 1 << 20
+_AUTO_WORKERS_OFF: list = []  # why `workers=None` stopped starting processes in this process, once it had to
+
+
+def _cores() -> int:
+    """CPU cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not on Linux
+        return os.cpu_count() or 1
+
+
+def _spawn_safe() -> bool:
+    """Whether worker processes may start. `spawn` runs the main script (or `-m` module) again in each
+    worker, so a render reached from its top level must sit under `if __name__ == "__main__":`, else every
+    worker would run the script. True: an interactive session or notebook (no main file); `python -m
+    package` (spawn skips a package's `__main__`); a call from inside that guard; a call not from the main
+    module's top level (later, e.g. from a thread: `render` still stops a worker's rerun, see `render`).
+    False: a script read from stdin (a worker cannot load it); a call from a script's unguarded top level."""
+    main = sys.modules.get("__main__")
+    path = getattr(main, "__file__", None)
+    spec = getattr(main, "__spec__", None)
+    if path is None or (spec is not None and spec.name.endswith(".__main__")):
+        return True  # nothing to run again; `python -m package`: spawn skips a package's __main__
+    if not os.path.exists(path):
+        return False
+    frame = sys._getframe(1)
+    while frame is not None:
+        if frame.f_globals is vars(main) and frame.f_code.co_name == "<module>":
+            return any(a <= frame.f_lineno <= b for a, b in _main_guards(path, os.path.getmtime(path)))
+        frame = frame.f_back
+    return True
+
+
+@functools.lru_cache(maxsize=4)
+def _main_guards(path: str, mtime: float) -> list[tuple[int, int]]:
+    """(first, last) lines of the top-level `if __name__ == "__main__":` blocks of the Python file `path`."""
+    import ast
+
+    try:
+        with open(path, "rb") as f:
+            tree = ast.parse(f.read())
+    except (OSError, SyntaxError, ValueError):
+        return []
+    main_test = {("__name__", "__main__"), ("__main__", "__name__")}
+
+    def side(node):
+        return node.id if isinstance(node, ast.Name) else node.value if isinstance(node, ast.Constant) else None
+
+    return [(node.lineno, node.end_lineno) for node in tree.body
+            if isinstance(node, ast.If) and isinstance(node.test, ast.Compare) and len(node.test.ops) == 1
+            and isinstance(node.test.ops[0], ast.Eq)
+            and (side(node.test.left), side(node.test.comparators[0])) in main_test]
+
+
+def auto_workers(scene: Scene, rays: int, device, dtype) -> int:
+    """How many worker processes trace with `workers=None`: the cores this process may run on, for a
+    float32 CPU render of at least `AUTO_WORKERS_MIN_RAYS` camera rays of a scene without tensors that need
+    gradients (workers return no graph), from a process that is not itself a multiprocessing child, where
+    starting workers is safe (`_spawn_safe`: not from a script's top level outside
+    `if __name__ == "__main__":`); 1 otherwise, and from the time worker processes once failed to start
+    here (see `render`). The image does not depend on it."""
+    if (torch.device(device).type != "cpu" or dtype != torch.float32 or rays < AUTO_WORKERS_MIN_RAYS
+            or _AUTO_WORKERS_OFF or multiprocessing.parent_process() is not None or not _spawn_safe()):
+        return 1
+    return 1 if scene.requires_grad() else _cores()
+
+
+def _resolve_intersector(scene: Scene, options: TraceOptions, device, dtype) -> TraceOptions:
+    """options with `intersector="auto"` made `mitsuba` or `torch` for this render, so that workers and the
+    thread settings see what will answer (see `renderer.mitsuba.intersect.auto_engine`)."""
+    if options.intersector != "auto":
+        return options
+    from .mitsuba.intersect import auto_engine
+
+    return replace(options, intersector="torch" if auto_engine(scene, device, dtype) is None else "mitsuba")
+
+
+def _shutdown_pools():
+    """Stop the worker processes at exit (before the interpreter tears down the modules their threads use)."""
+    for pool in _POOL.values():
+        pool.shutdown(wait=True, cancel_futures=True)
+    _POOL.clear()
+
+
 def _pool(workers: int):
+    if not _POOL:
+        atexit.register(_shutdown_pools)
     if workers not in _POOL:
         context = multiprocessing.get_context("spawn")  # forking a process with torch's threads can hang
         _POOL[workers] = concurrent.futures.ProcessPoolExecutor(workers, mp_context=context,
@@ -211,7 +326,7 @@ def default_chunk_rays(device) -> int:
 def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, device="cpu",
            dtype=torch.float32, seed: int = 0, chunk_rays: int | None = None, progress: bool = False,
            max_depth: int | None = None, culling: bool | None = None, compile: bool | None = None,
-           workers: int = 1, threads: int | None = 1, intersector: str | None = None) -> RenderResult:
+           workers: int | None = None, threads: int | None = 1, intersector: str | None = None) -> RenderResult:
     """Render the scene's camera image.
 
     Args:
@@ -225,10 +340,18 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
             faster than one CPU thread), with 2^22 it took 0.032 s (benchmarks/results/speed_gpu_h100.md,
             profile_gpu_h100.md). With `intersector="mitsuba"` 2^17 (`EMBREE_CHUNK_RAYS`).
         culling, compile, intersector: override scene.options (see `renderer.scene.TraceOptions`); speed only
-            (`intersector="mitsuba"`: hits and shadow rays by Embree through Mitsuba 3, `renderer.mitsuba.intersect`).
+            (`intersector="mitsuba"`: hits and shadow rays by Embree through Mitsuba 3, `renderer.mitsuba.intersect`;
+            the default `auto` takes it for float32 CPU renders where Mitsuba's llvm variant loads and every
+            shape is one it has, ours otherwise; `torch`: always ours). Float32 images of the two agree to
+            about 1e-7 (a few pixels in 10^5 by more than 1e-3; benchmarks/results/speed_thin_lens_embree.md).
         workers: CPU only: trace chunks in this many worker processes with one torch thread each (they
             are started on first use and kept for later calls; each unpickles the scene once per render).
-            The image does not depend on it.
+            The image does not depend on it. None (the default): `auto_workers`, i.e. the available cores
+            for float32 CPU renders of at least 2^20 camera rays without gradients, else 1. Processes are
+            started with `spawn`, which runs the main script again in each worker, so a script's renders
+            get workers only from inside `if __name__ == "__main__":` (a render at a script's unguarded
+            top level traces in its own process); where workers still fail to start, `render` warns once
+            and traces in this process from then on.
         threads: torch threads while tracing on the CPU in this process, restored afterwards [1; None:
             torch's own setting]. Eager tracing is a chain of small memory-bound operations: a second
             thread gained little on these 2 cores, and torch's OpenMP barriers made 2 threads up to 15x
@@ -252,8 +375,16 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
         options = replace(options, compile=compile)
     if intersector is not None:
         options = replace(options, intersector=intersector)
+    options = _resolve_intersector(scene, options, device, dtype)
     if chunk_given is None and options.intersector == "mitsuba":
         chunk_rays = EMBREE_CHUNK_RAYS
+    auto = workers is None
+    if auto:
+        if getattr(multiprocessing.current_process(), "_inheriting", False):
+            # A worker process starting for `workers=None` re-runs the main script: stop it at its first render.
+            raise RuntimeError("render: called while a worker process starts and runs the main script again; guard "
+                               "the script's work with `if __name__ == \"__main__\":` or pass workers=1")
+        workers = auto_workers(scene, W * H * spp * len(render_passes(scene)), device, dtype)
     smp = Sampler(sampler, spp, seed)
     image = torch.empty(W * H, 3, dtype=dtype, device=device)
     coverage = torch.empty(W * H, dtype=dtype, device=device)
@@ -268,7 +399,7 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
         jit_threads = set_jit_threads(threads)
     try:
         _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device, dtype, seed, chunk_rays,
-                     max_depth, workers)
+                     max_depth, workers, auto)
     finally:
         if torch.get_num_threads() != previous:
             torch.set_num_threads(previous)
@@ -278,20 +409,56 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
 
 
 def _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device, dtype, seed, chunk_rays,
-                 max_depth, workers):
-    """The chunk loop of `render`, filling image (W·H, 3) and coverage (W·H,) in place."""
+                 max_depth, workers, auto=False):
+    """The chunk loop of `render`, filling image (W·H, 3) and coverage (W·H,) in place. auto: `workers` was
+    chosen by `auto_workers`; where the workers cannot take the scene or do not start, trace here instead."""
+    blob = None
     if workers > 1 and torch.device(device).type == "cpu":
-        pool = _pool(workers)
-        blob = pickle.dumps(scene)
+        try:
+            blob = pickle.dumps(scene)
+        except Exception:  # noqa: BLE001 - e.g. a user's lambda in the scene; auto keeps to this process
+            if not auto:
+                raise
+    if blob is not None:
+        from .mitsuba.intersect import llvm_available
+
+        # Tracing here too (one worker process fewer, this one taking the jobs none had started) was slower:
+        # 0.35 s against 0.29 s with two workers on the speed scene (speed_thin_lens.md of 04:33, `defaults`
+        # against `embree_workers2`): this process's threads that feed and empty the pool took its core.
+        size = workers
+        pool = _pool(size)
         digest = hashlib.sha1(blob).hexdigest()
-        job_rays = max(chunk_rays, -(-scene.camera.width * scene.camera.height * spp // (JOBS_PER_WORKER * workers)))
+        jit_runs = options.intersector == "mitsuba" and llvm_available()
+        job_rays = max(chunk_rays, min(MAX_JOB_RAYS, -(-scene.camera.width * scene.camera.height * spp
+                                                       // (JOBS_PER_WORKER * workers))))
         jobs = {pool.submit(_worker_render, digest, blob, pixel, n, spp, sampler, seed, options, dtype, max_depth,
-                            chunk_rays): pixel[:n] for pixel, n in _chunks(scene, spp, options, job_rays)}
-        for job in concurrent.futures.as_completed(jobs):
-            estimate, covered = job.result()
-            image.index_copy_(0, jobs[job], estimate)
-            coverage.index_copy_(0, jobs[job], covered)
-            bar.update(covered.shape[0] * spp)
+                            chunk_rays, jit_runs): (pixel, n) for pixel, n in _chunks(scene, spp, options, job_rays)}
+
+        def done(pixel, n, estimate, covered):
+            image.index_copy_(0, pixel[:n], estimate)
+            coverage.index_copy_(0, pixel[:n], covered)
+            bar.update(n * spp)
+
+        try:
+            for job in concurrent.futures.as_completed(jobs):
+                done(*jobs[job], *job.result())
+        except concurrent.futures.process.BrokenProcessPool as e:
+            if not auto:
+                raise
+            _POOL.pop(size, None)
+            pool.shutdown(wait=False, cancel_futures=True)
+            _AUTO_WORKERS_OFF.append(str(e))
+            warnings.warn("render: worker processes failed to start (a script that renders outside `if __name__ == "
+                          "\"__main__\":`?); tracing in this process from now on (workers=1 says so explicitly)",
+                          RuntimeWarning, stacklevel=3)
+            _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device, dtype, seed, chunk_rays,
+                         max_depth, 1)
+        except BaseException:  # an interrupt: stop the workers now, not after their jobs (and at exit)
+            _POOL.pop(size, None)
+            pool.shutdown(wait=False, cancel_futures=True)
+            for process in list((getattr(pool, "_processes", None) or {}).values()):
+                process.terminate()
+            raise
     else:
         for pixel, n in _chunks(scene, spp, options, chunk_rays):
             pixel = pixel.to(device)  # once: the samples are made from it and the results go back through it

@@ -54,17 +54,20 @@ class TraceOptions:
             of it cached on disk by torch between runs); pays for renders of a few million rays or more.
         fast_paths: eager tracing only: scenes that only need direct light from point and ambient lights
             take `renderer.direct.trace_direct` on (3, N) rows [True]; False forces the general integrator.
-        intersector: who answers nearest-hit and shadow-ray queries: `torch` (ours) or `mitsuba` (Embree
+        intersector: who answers nearest-hit and shadow-ray queries: `torch` (ours), `mitsuba` (Embree
             through Mitsuba 3's llvm variant, CPU only; cameras and shading stay in torch; see
-            `renderer.mitsuba.intersect`). It answers float32 rays without gradients; float64 rays, rays that
-            need gradients and layers' first hits stay with ours ["torch"].
+            `renderer.mitsuba.intersect`) or `auto`: `mitsuba` where it answers exactly what was asked (CPU,
+            float32, every shape one Mitsuba has, no scene tensor needing gradients, Mitsuba's llvm variant
+            loading here: `renderer.mitsuba.intersect.auto_engine`), else `torch`, silently. Either answers
+            float32 rays without gradients only; float64 rays, rays that need gradients and layers' first
+            hits stay with ours ["auto"; `torch` for our own intersection code bit for bit].
     """
 
     culling: bool = True
     packet_size: int = 64
     compile: bool = False
     fast_paths: bool = True
-    intersector: str = "torch"
+    intersector: str = "auto"
 
 
 @dataclass
@@ -209,6 +212,23 @@ def _attenuated(shape, o_p, d_p, sel, t_min: float, t_max, trans, factor):
     return torch.where((t.view_as(t_max) < t_max)[..., None], trans * factor, trans)
 
 
+def _holds_grad(x, depth: int = 5) -> bool:
+    """Whether x is, or holds within `depth` levels of attributes, lists and dicts, a tensor requiring grad."""
+    if isinstance(x, torch.Tensor):
+        return x.requires_grad
+    if depth == 0 or isinstance(x, (str, bytes, int, float, bool)) or x is None:
+        return False
+    if isinstance(x, dict):
+        items = x.values()
+    elif isinstance(x, (list, tuple)):
+        items = x
+    elif hasattr(x, "__dict__"):
+        items = vars(x).values()
+    else:
+        return False
+    return any(_holds_grad(v, depth - 1) for v in items)
+
+
 @dataclass
 class Scene:
     """Everything needed to render. `layers` holds mixed-projection layers (see cameras.layers); `options`
@@ -236,6 +256,11 @@ class Scene:
         self.extent = max(ext + [1.0])
         self._convex = torch.tensor([o.shape.type_name in _CONVEX for o in self.objects], dtype=torch.bool)
         self._flat = torch.tensor([o.shape.type_name in _FLAT for o in self.objects], dtype=torch.bool)
+
+    def requires_grad(self) -> bool:
+        """Whether any tensor held by its objects, lights, camera or layers requires grad (then the defaults
+        `intersector="auto"` and `workers=None` of `render` keep to this process and our own tracer)."""
+        return _holds_grad([self.objects, self.lights, self.camera, self.layers])
 
     @property
     def ray_epsilon(self) -> float:
@@ -268,13 +293,14 @@ class Scene:
         round to float32, or rays that need gradients, which its hits do not carry)."""
         if options.intersector == "torch" or (object_mask is not None and not all(object_mask)):
             return None
-        if options.intersector != "mitsuba":
-            raise ValueError(f"TraceOptions.intersector: unknown {options.intersector!r} (expected torch or mitsuba)")
+        if options.intersector not in ("mitsuba", "auto"):
+            raise ValueError(f"TraceOptions.intersector: unknown {options.intersector!r} (expected torch, mitsuba "
+                             "or auto)")
         if rays[0].dtype != torch.float32 or (torch.is_grad_enabled() and any(r.requires_grad for r in rays)):
             return None
-        from .mitsuba.intersect import engine
+        from .mitsuba.intersect import auto_engine, engine
 
-        return engine(self)
+        return engine(self) if options.intersector == "mitsuba" else auto_engine(self, rays[0].device, rays[0].dtype)
 
     @staticmethod
     def _all_packets(o_p):

@@ -55,6 +55,11 @@ def jit_variant_runs(variant: str) -> bool:
     return _LLVM_RUNS[variant]
 
 
+def variant_runs(variant: str) -> None:
+    """Record that a JIT variant runs here, without probing: for a worker process whose parent probed it."""
+    _LLVM_RUNS[variant] = True
+
+
 def load_mitsuba(variant: str | None = DEFAULT_VARIANT):
     """Import mitsuba and set `variant` (None: keep the current one, or the default if none is set); falls
     back to scalar_rgb where a JIT variant is missing or cannot run here (see `jit_variant_runs`)."""

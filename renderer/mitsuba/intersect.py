@@ -1,7 +1,9 @@
 """Ray intersection by Mitsuba 3 (Embree on the CPU) for batches of torch rays; cameras and shading stay in torch.
 
 `TraceOptions(intersector="mitsuba")` (or `render(..., intersector="mitsuba")`, `renderer render
---intersector mitsuba`) sends the scene's nearest-hit queries and shadow rays here. The scene's shapes are
+--intersector mitsuba`) sends the scene's nearest-hit queries and shadow rays here; so does the default,
+`intersector="auto"`, where `auto_engine` finds that this engine answers the render exactly as asked
+(else our own tracer answers, without a word). The scene's shapes are
 built once per scene as a Mitsuba scene in a JIT variant (`llvm_ad_rgb`, shapes mapped by
 `renderer.mitsuba.export.shape_dicts`) and cached; each batch of rays goes to Dr.Jit as zero-copy views of the
 torch rows (DLPack), Mitsuba's `ray_intersect_preliminary` / `ray_test` run in one fused kernel with the
@@ -30,6 +32,7 @@ normal by t_min, which Embree's watertight triangle and Mitsuba's analytic tests
 from __future__ import annotations
 
 import math
+import sys
 
 import numpy as np
 import torch
@@ -193,6 +196,47 @@ def engine(scene) -> MitsubaIntersector:
             _ENGINES.clear()
         _ENGINES[key] = (scene, MitsubaIntersector(scene))
     return _ENGINES[key][1]
+
+
+_UNBUILT: dict = {}  # id(scene) -> scene, for scenes `auto_engine` failed to build (not tried again)
+_LLVM: list = []  # [whether Mitsuba's LLVM variant loads here], probed once per process
+
+
+def llvm_available() -> bool:
+    """Whether Mitsuba imports and its LLVM variant (`DEFAULT_VARIANT`) runs here; probed once per process
+    (`export.jit_variant_runs` tries a kernel in a child process), any failure meaning no."""
+    if not _LLVM:
+        try:
+            _LLVM.append(load_mitsuba(DEFAULT_VARIANT).variant().startswith("llvm"))
+        except Exception:  # noqa: BLE001 - not installed, broken install, no libLLVM: all mean "use ours"
+            _LLVM.append(False)
+    return _LLVM[0]
+
+
+def auto_engine(scene, device, dtype) -> MitsubaIntersector | None:
+    """The engine `intersector="auto"` uses for the scene's rays on `device` in `dtype`, or None for our own
+    tracer. Embree answers where its hits are the ones asked for: rays on the CPU in float32, a scene with
+    objects all of an `EXACT` type and no tensor that needs gradients (Embree's hits carry none), and
+    Mitsuba's LLVM variant loading here (`llvm_available`) and not another variant chosen by someone else in
+    this process (switching Mitsuba's global variant costs about 30 ms and would change theirs). A scene
+    Mitsuba fails to build falls back too. Per-ray rules stay `Scene`'s (rays that need gradients, layers'
+    first-hit masks go to ours)."""
+    if torch.device(device).type != "cpu" or dtype != torch.float32 or not scene.objects:
+        return None
+    mi = sys.modules.get("mitsuba")
+    if mi is not None and mi.variant() not in (None, DEFAULT_VARIANT):
+        return None
+    if any(obj.shape.type_name not in EXACT for obj in scene.objects) or scene.requires_grad():
+        return None
+    if not llvm_available() or _UNBUILT.get(id(scene)) is scene:
+        return None
+    try:
+        return engine(scene)
+    except Exception:  # noqa: BLE001 - a scene Mitsuba cannot build is traced by ours
+        if len(_UNBUILT) > 8:
+            _UNBUILT.clear()
+        _UNBUILT[id(scene)] = scene
+        return None
 
 
 def set_jit_threads(n: int) -> int:

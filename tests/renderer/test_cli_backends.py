@@ -26,7 +26,7 @@ def test_backend_mitsuba_renders_our_image(tmp_path, capsys):
     assert "not mapped: lights[1]: type ambient" in err, f"stderr: {err!r}"
     theirs = read_image(out)[..., :3]
     scene = load_scene(SCENE, [v for v in SMALL[1::2]] + [extra[1]])
-    ours = render(scene, spp=256).image.numpy()
+    ours = render(scene, spp=256, intersector="torch").image.numpy()  # our tracer against Mitsuba
     assert theirs.shape == ours.shape, f"image shape {theirs.shape} vs ours {ours.shape}"
     rel = abs(float(theirs.mean()) / float(ours.mean()) - 1)
     assert rel < 0.01, f"mean intensity Mitsuba {theirs.mean():.5f} vs ours {ours.mean():.5f}"

@@ -98,9 +98,10 @@ def test_direct_fast_path_renders_the_general_image(case):
     dtype = torch.float64 if "float64" in case else torch.float32
     culling = "no culling" not in case
     assert applies(scene, scene.options, scene.materials(torch.zeros(1))), "the speed scene should take the fast path"
-    fast = render(scene, spp=4, dtype=dtype, culling=culling).image
+    # Our own intersection code in both (the default `auto` may hand float32 rays to Embree).
+    fast = render(scene, spp=4, dtype=dtype, culling=culling, intersector="torch").image
     scene.options = replace(scene.options, fast_paths=False)
-    general = render(scene, spp=4, dtype=dtype, culling=culling).image
+    general = render(scene, spp=4, dtype=dtype, culling=culling, intersector="torch").image
     tol = 1e-12 if dtype == torch.float64 else 2e-6
     diff = float((fast - general).abs().max())
     assert diff <= tol * max(1.0, float(general.abs().max())), f"{case}: max |fast - general| = {diff:.3g}"
@@ -110,6 +111,7 @@ def test_direct_fast_path_renders_the_general_image(case):
 def test_direct_fast_path_honours_the_object_mask():
     """Layers trace their first ray against their own objects only: the mask gives the general result."""
     scene = load_scene(SCENE, ["image.width=16", "image.height=16"])
+    scene.options = replace(scene.options, intersector="torch")  # our own shadow rays in both
     g = torch.Generator().manual_seed(3)
     o = torch.zeros(500, 3)
     d = torch.randn(500, 3, generator=g) * 0.3 + torch.tensor([0.0, 0.0, 1.0])

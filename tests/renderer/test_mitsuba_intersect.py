@@ -32,7 +32,7 @@ from renderer.mitsuba import intersect as mi_intersect  # noqa: E402
 from renderer.scene import TraceOptions  # noqa: E402
 from renderer.scenefile import load_scene  # noqa: E402
 
-OURS, EMBREE = TraceOptions(), TraceOptions(intersector="mitsuba")
+OURS, EMBREE = TraceOptions(intersector="torch"), TraceOptions(intersector="mitsuba")
 OCTAHEDRON = """v 1 0 0\nv -1 0 0\nv 0 1 0\nv 0 -1 0\nv 0 0 1\nv 0 0 -1
 f 1 3 5\nf 3 2 5\nf 2 4 5\nf 4 1 5\nf 3 1 6\nf 2 3 6\nf 4 2 6\nf 1 4 6
 """
@@ -84,21 +84,6 @@ def _config(tmp_path, width=64, height=48, spp=2, with_triangles=True):
 def scene(tmp_path_factory):
     folder = tmp_path_factory.mktemp("embree")
     return load_scene(_config(folder), base_dir=str(folder))
-
-
-@pytest.fixture
-def calls(monkeypatch):
-    """Counts of the Mitsuba intersector's nearest-hit and shadow calls (so a silent fallback fails)."""
-    count = {"nearest": 0, "visible": 0}
-    for name in count:
-        fn = getattr(mi_intersect.MitsubaIntersector, name)
-
-        def counted(self, *args, _fn=fn, _name=name, **kwargs):
-            count[_name] += 1
-            return _fn(self, *args, **kwargs)
-
-        monkeypatch.setattr(mi_intersect.MitsubaIntersector, name, counted)
-    return count
 
 
 def _rays(n, seed):

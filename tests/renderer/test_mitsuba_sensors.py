@@ -69,7 +69,7 @@ def test_exported_scene_renders_our_image(scalar, case):
     """Our image and Mitsuba's (our plugin sensor, `direct` integrator) at 256 spp: mean intensity within
     1 %, and the per-pixel difference far below that of a mirrored image (orientation)."""
     scene = _scene(case)
-    ours = render(scene, spp=256).image.numpy()
+    ours = render(scene, spp=256, intersector="torch").image.numpy()  # our tracer against Mitsuba
     scene_dict, dropped = to_mitsuba(scene, spp=256, plugin_sensor=True)
     assert dropped == [], f"the speed scene should carry over exactly, dropped {dropped}"
     theirs = np.array(scalar.render(scalar.load_dict(scene_dict), seed=3))

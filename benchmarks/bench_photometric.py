@@ -178,12 +178,19 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=1, help="torch threads of each closed-form job [1] (times "
                     "are CPU seconds, so they compare across thread counts)")
     ap.add_argument("--out", default=RESULTS, help="results folder [benchmarks/results]")
+    ap.add_argument("--levels", default="all", choices=("all", "board", "past"),
+                    help="blur levels: all, the two on the coarse board, or past the square only [all]")
+    ap.add_argument("--table-from", metavar="PARTIAL_JSON", help="write the table and chart from the rows of "
+                    "an interrupted run (its photometric.partial.json) instead of running")
+    ap.add_argument("--note", default="", help="a sentence for the table's header (with --table-from: the "
+                    "machine and why the run stopped)")
     args = ap.parse_args(argv)
     out = args.out
     spp, pixels, lens_samples = (32, 2000, 64) if args.quick else (128, 20000, 192)
     pixels = args.pixels or pixels
     lens_samples = 0 if args.no_samples else lens_samples
     levels = [(U0, b, d, v, 16) for U0, b, d, v, _ in LEVELS[1:]] if args.quick else LEVELS
+    levels = [lv for lv in levels if args.levels == "all" or (lv[1] == "board") == (args.levels == "board")]
     tilts = TILTS_DEG[:1] if args.quick else TILTS_DEG
     cases = [{"U0_mm": U0, "board": board, "d_mm": d, "views": views, "theta_L_deg": tilt,
               "downscale": downscale, "spp": spp, "pixels": pixels, "lens_samples": lens_samples,
@@ -193,7 +200,10 @@ def main(argv=None) -> int:
              if board == "board" or tilt > 0]   # past the square: one tilt (a photometric fit only)
     # Each job renders its case's captures itself (the same seeds: the same images in every job).
     t0 = time.perf_counter()
-    if args.workers > 1:
+    if args.table_from:
+        with open(args.table_from, encoding="utf-8") as f:
+            rows = json.load(f)
+    elif args.workers > 1:
         import multiprocessing as mp
 
         with mp.get_context("spawn").Pool(args.workers) as pool:
@@ -211,11 +221,13 @@ def main(argv=None) -> int:
     rows.sort(key=lambda r: (-r["downscale"] < -8, r["U0_mm"], -r["theta_L_deg"], order[_family(r)]))
     os.makedirs(out, exist_ok=True)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    if args.table_from:
+        wall, load = float("nan"), float("nan")
     meta = {"size_px": {str(c["downscale"]): list(reproduce.EOS_6D.downscaled(c["downscale"])[:2]) for c in cases},
             "spp": spp, "pixels_per_view": pixels, "lens_samples": lens_samples,
             "true": {"w_mm": W_MM, "d_mm": D_MM}, "tilts_deg": list(tilts), "load_average": load,
             "wall_s": wall, "workers": args.workers, "quick": args.quick, "targets": TARGETS, "cpu": _cpu_name(),
-            "cores": os.cpu_count()}
+            "cores": os.cpu_count(), "note": args.note, "table_from": args.table_from}
     with open(os.path.join(out, "photometric.json"), "w", encoding="utf-8") as f:
         json.dump({"meta": meta, "rows": rows}, f, indent=1)
     lines = table(rows, meta)
@@ -259,8 +271,11 @@ def table(rows, meta) -> list[str]:
              f"{' and '.join(f'{w} x {h}' for w, h in meta['size_px'].values())}, {meta['spp']} spp captures and "
              f"sensor noise 0.003; photometric fit: "
              f"the closed form on {meta['pixels_per_view']} pixels per view, the lens samples on {SAMPLES_PIXELS}. "
-             f"{meta['workers']} worker processes on {meta['cores']} cores ({meta['cpu']}), "
-             f"{meta['wall_s'] / 60:.1f} min in all, load average {meta['load_average']:.1f} at the end. `python benchmarks/bench_photometric.py`.\n",
+             (f"{meta['workers']} worker processes on {meta['cores']} cores ({meta['cpu']}), "
+              f"{meta['wall_s'] / 60:.1f} min in all, load average {meta['load_average']:.1f} at the end. "
+              if not meta.get("table_from") else "Rows of an interrupted run (below). ")
+             + "`python benchmarks/bench_photometric.py`.\n",
+             *([meta["note"] + "\n"] if meta.get("note") else []),
              "Targets (issue 9): |θL error| ≤ 0.01°, |U error| ≤ 0.05 %, |d error| ≤ 0.1 %; the last column "
              "says "
              "which a row meets (θL U d). σ: the method's own one-σ; for the photometric fit the cluster-robust "

@@ -271,7 +271,7 @@ def table(rows, meta) -> list[str]:
              f"{' and '.join(f'{w} x {h}' for w, h in meta['size_px'].values())}, {meta['spp']} spp captures and "
              f"sensor noise 0.003; photometric fit: "
              f"the closed form on {meta['pixels_per_view']} pixels per view, the lens samples on {SAMPLES_PIXELS}. "
-             (f"{meta['workers']} worker processes on {meta['cores']} cores ({meta['cpu']}), "
+             + (f"{meta['workers']} worker processes on {meta['cores']} cores ({meta['cpu']}), "
               f"{meta['wall_s'] / 60:.1f} min in all, load average {meta['load_average']:.1f} at the end. "
               if not meta.get("table_from") else "Rows of an interrupted run (below). ")
              + "`python benchmarks/bench_photometric.py`.\n",

@@ -12,8 +12,9 @@ aperture in one of two ways (`PhotometricOptions.aperture`):
 - in closed form (`render_target_disc`, the default from 3 px of blur): each of 4 x 4 points of the pixel
   sees the aperture disc through its focus point (`ThinLensCamera.focus_geometry`), on which the board's
   cell edges are straight lines, so the dark fraction is a sum of disc segments and wedges
-  (`tiltfit.aperture`). Exact for the thin lens at any tilt and blur, and 25 times faster than the samples
-  at 18 px of blur (`benchmarks/results/photometric.md`);
+  (`tiltfit.aperture`). Exact for the thin lens at any tilt and blur, and a fifth of the CPU time per
+  pixel of 192 lens samples (`benchmarks/results/photometric.md`). `auto`, the default, takes it for pixels
+  whose blur disc is at least 3 px, and the samples below;
 - by a fixed set of lens samples (`render_target`): rays for each pixel and sample, intersected with the
   board plane Z = 0, the checker evaluated analytically and antialiased over the pixel's footprint (below).
   Sharp boards need it: there the pixel's box matters more than the disc.
@@ -108,8 +109,9 @@ class PhotometricOptions:
         seed: seed of the pixel selection [0].
         aperture: how each pixel integrates the lens's disc, one of APERTURES [auto]: `closed_form` exactly
             (`render_target_disc`: no lens samples, no sample pattern to bias d or θL; disc kernel only),
-            `samples` by the fixed lens samples (`render_target`), `auto` the closed form where the start's
-            blur disc is at least CLOSED_FORM_MIN_BLUR_PX and the kernel is the disc, samples otherwise.
+            `samples` by the fixed lens samples (`render_target`), `auto` the closed form for the pixels whose
+            blur disc at the start is at least CLOSED_FORM_MIN_BLUR_PX (with the disc kernel), the samples for
+            the others (their Gaussian footprints model the pixel's box, which a sharp edge needs).
     """
 
     lens_samples: int = 64

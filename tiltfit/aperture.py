@@ -72,22 +72,31 @@ def _angle(sin, cos):
 def disc_wedge_fraction(n1x, n1y, h1, n2x, n2y, h2) -> torch.Tensor:
     """Fraction of the unit disc where n₁·x + h₁ > 0 and n₂·x + h₂ > 0 (unit normals n₁, n₂; all (...,)).
 
-    Exact: the wedge between the two lines, cut to a parallelogram that holds its part of the disc, integrated
-    against the disc edge by edge (`_circle_triangle_area`). Lines closer than 1e-6 rad to parallel are taken
-    1e-6 rad apart.
+    Exact. Where the lines cross inside the disc: the wedge between them, cut to a parallelogram that holds
+    its part of the disc, integrated against the circle edge by edge (`_circle_triangle_area`). Where they
+    do not (parallel lines included), each chord lies wholly on one side of the other line and the answer is
+    F₁ + F₂ − 1, F₁, F₂ or 0 (the segment fractions F), by those sides.
     """
     sin = _cross(n1x, n1y, n2x, n2y)
     sign = torch.where(sin >= 0, torch.ones_like(sin), -torch.ones_like(sin))
     sin_safe = sign * sin.abs().clamp_min(1e-6)
     vx = (-h1 * n2y + h2 * n1y) / sin_safe            # the lines' crossing
     vy = (-h2 * n1x + h1 * n2x) / sin_safe
+    crossing = (vx * vx + vy * vy < 1) & (sin.abs() > 1e-6)
+    # Within the disc n₂·x + h₂ ≤ 1 + |h₂| and n₂·(V + a u₁ + b u₂) + h₂ = a |sin|: a ≤ (1 + |h₂|) / |sin|.
+    reach = (1 + torch.maximum(h1.abs(), h2.abs())) / sin_safe.abs() + 1
     u1x, u1y = -n1y * sign, n1x * sign                 # along line 1, into n₂·x + h₂ > 0
     u2x, u2y = n2y * sign, -n2x * sign                 # along line 2, into n₁·x + h₁ > 0
-    reach = (torch.sqrt(vx * vx + vy * vy) + 1) / sin_safe.abs() + 1
     xs = (vx, vx + reach * u1x, vx + reach * (u1x + u2x), vx + reach * u2x)
     ys = (vy, vy + reach * u1y, vy + reach * (u1y + u2y), vy + reach * u2y)
     area = sum(_circle_triangle_area(xs[i], ys[i], xs[(i + 1) % 4], ys[(i + 1) % 4]) for i in range(4))
-    return area.abs() / math.pi
+    # Chords that do not cross in the disc: is each chord's midpoint on the other line's positive side?
+    F1, F2 = disc_halfplane_fraction(h1), disc_halfplane_fraction(h2)
+    chord1_in_2 = (-h1 * (n1x * n2x + n1y * n2y) + h2) > 0
+    chord2_in_1 = (-h2 * (n1x * n2x + n1y * n2y) + h1) > 0
+    apart = torch.where(chord1_in_2, torch.where(chord2_in_1, F1 + F2 - 1, F1),
+                        torch.where(chord2_in_1, F2, torch.zeros_like(F1)))
+    return torch.where(crossing, area.abs() / math.pi, apart.clamp_min(0))
 
 
 def _edge_lines(q_h, centre, axes, edges, k: int):
@@ -101,7 +110,7 @@ def _edge_lines(q_h, centre, axes, edges, k: int):
     alpha = axes[0, 2] * m - qz * axes[0, k]
     beta = axes[1, 2] * m - qz * axes[1, k]
     side = torch.where(centre[2] * s - qz >= 0, 1.0, -1.0).to(m.dtype)
-    norm = torch.sqrt(alpha * alpha + beta * beta).clamp_min(1e-300)
+    norm = torch.sqrt(alpha * alpha + beta * beta).clamp_min(torch.finfo(alpha.dtype).tiny)
     f = side / norm
     return alpha * f, beta * f, gamma * f
 

@@ -338,12 +338,17 @@ def render_target_disc(target: Target, sensor: SensorGeometry, uv_px: torch.Tens
     (`tiltfit.aperture.lines_cut` counts them). Arguments and result otherwise as in `render_target` (disc kernel only).
     """
     cam = lens_camera(sensor, w_mm, inv_U_per_m, d_mm, theta_F, rvec, T_mm)
-    step = (torch.arange(subpixels, dtype=uv_px.dtype, device=uv_px.device) + 0.5) / subpixels - 0.5
-    sub = torch.stack(torch.meshgrid(step, step, indexing="xy"), -1).reshape(-1, 2)
-    q_h, centre, axes, _ = cam.focus_geometry(uv_px[:, None, :] + sub)
+    q_h, centre, axes, _ = cam.focus_geometry(_sub_points(uv_px, subpixels))
     dark = checker_dark_fraction_disc(q_h, centre, axes, target, near).mean(-1)
     falloff = radial_falloff(uv_px[:, 0], uv_px[:, 1], sensor.width_px, sensor.height_px, vignetting)
     return falloff * (white - (white - black) * dark)
+
+
+def _sub_points(uv_px: torch.Tensor, subpixels: int = SUBPIXELS) -> torch.Tensor:
+    """(N, subpixels², 2) the midpoint-rule points of each pixel of `uv_px` (N, 2)."""
+    step = (torch.arange(subpixels, dtype=uv_px.dtype, device=uv_px.device) + 0.5) / subpixels - 0.5
+    sub = torch.stack(torch.meshgrid(step, step, indexing="xy"), -1).reshape(-1, 2)
+    return uv_px[:, None, :] + sub
 
 
 def _on_board(rays) -> torch.Tensor:
@@ -489,9 +494,6 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
         n_closed = int(closed.sum())
         data.append(_View(uv[order], observed[order], n_closed))
         views_p.append(vp)
-        if n_closed:
-            # The lines the chosen pixels' discs cut at the start, plus one for the blur growing in the fit.
-            near = min(n_edges, max(near, 1 + lines_cut(*cam.focus_geometry(uv[order][:n_closed])[:3], target)))
     n_closed = sum(d.n_closed_form for d in data)
     n_pixels = sum(int(d.uv.shape[0]) for d in data)
     aperture = "closed_form" if n_closed == n_pixels else "samples" if n_closed == 0 else "mixed"
@@ -514,9 +516,23 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
         if n < view.uv.shape[0]:
             parts.append(render_target(target, sensor, view.uv[n:], lens_uv, g[0], g[1], g[2], g[3], vp[0:3],
                                        vp[3:6], vp[6], vp[7], g[4], g[5] ** 2))
-        return torch.cat(parts) - view.observed
+        return (torch.cat(parts) if parts else view.observed[:0]) - view.observed
+
+    def grow_near(g, vp, view: _View):
+        """`near` covers every line the closed-form points' discs cut now, plus one (the blur may grow before
+        the next check, which comes with the next Jacobian)."""
+        nonlocal near
+        if view.n_closed_form:
+            with torch.no_grad():
+                cam = lens_camera(sensor, *g[:4], vp[0:3], vp[3:6])
+                cut = lines_cut(*cam.focus_geometry(_sub_points(view.uv[:view.n_closed_form]))[:3], target)
+            near = min(n_edges, max(near, cut + 1))
+
+    for vp, dv in zip(views_p, data):
+        grow_near(glob, vp, dv)
 
     def jac(g, vp, view):
+        grow_near(g, vp, view)
         # In blocks of JACOBIAN_BLOCK pixels: forward mode carries every parameter's tangent through each
         # intermediate, so a whole view at once would hold (pixels x sub-points x lines x parameters) arrays.
         blocks = []

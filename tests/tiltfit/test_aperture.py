@@ -60,6 +60,30 @@ def test_wedge_adds_up_to_the_halfplane():
         assert 0 <= float(both) <= min(float(disc_halfplane_fraction(h1)), float(disc_halfplane_fraction(h2))) + 1e-12
 
 
+def test_wedge_of_nearly_parallel_lines_against_monte_carlo():
+    gen = torch.Generator().manual_seed(2)
+    pts = torch.rand(300_000, 2, generator=gen, **f64) * 2 - 1
+    pts = pts[(pts ** 2).sum(1) < 1]
+    for a1, a2, h1, h2 in ((0.7, 0.7 + 1e-5, 0.3, -0.2), (0.7, 0.7 + math.pi + 1e-6, 0.3, 0.2),
+                           (0.7, 0.7, 0.3, -0.2), (1.0, 1.0 + 1e-3, -0.1, 0.05)):
+        n1, n2 = _unit(a1), _unit(a2)
+        got = float(disc_wedge_fraction(*n1, torch.tensor(h1, **f64), *n2, torch.tensor(h2, **f64)))
+        inside = ((pts[:, 0] * n1[0] + pts[:, 1] * n1[1] + h1 > 0) & (pts[:, 0] * n2[0] + pts[:, 1] * n2[1] + h2 > 0))
+        mc = float(inside.double().mean())
+        sd = math.sqrt(max(mc * (1 - mc), 1e-4) / pts.shape[0])
+        assert abs(got - mc) < 4 * sd + 1e-6, f"angles {a1}, {a2}: wedge {got:.5f} vs Monte Carlo {mc:.5f}"
+
+
+def test_wedge_gradient_where_the_lines_cross_at_the_centre():
+    h = torch.zeros(2, **f64)
+    n1, n2 = _unit(0.3), _unit(1.7)
+    f = lambda hh: disc_wedge_fraction(*n1, hh[0], *n2, hh[1])  # noqa: E731
+    g = torch.func.jacfwd(f)(h)
+    eps = 1e-6
+    fd = torch.stack([(f(h + eps * e) - f(h - eps * e)) / (2 * eps) for e in torch.eye(2, **f64)])
+    assert torch.isfinite(g).all() and torch.allclose(g, fd, atol=1e-6), f"gradient {g} vs differences {fd}"
+
+
 def test_wedge_against_monte_carlo():
     gen = torch.Generator().manual_seed(1)
     pts = torch.rand(300_000, 2, generator=gen, **f64) * 2 - 1
@@ -108,20 +132,22 @@ def test_every_ray_of_a_pixel_passes_through_its_focus_point(theta_F_deg):
     assert bool(valid.all())
 
 
-@pytest.mark.parametrize("theta_F_deg, U, d", [(40.0, 700.0, 30.0), (-30.0, 900.0, 40.0), (0.0, 1e5, 20.0)])
-def test_closed_form_equals_the_mean_over_traced_lens_samples(theta_F_deg, U, d):
+@pytest.mark.parametrize("theta_F_deg, U, d, dark", [(40.0, 700.0, 30.0, (0, 0)), (-30.0, 900.0, 40.0, (1, 0)),
+                                                     (0.0, 1e5, 20.0, (0, 0))])
+def test_closed_form_equals_the_mean_over_traced_lens_samples(theta_F_deg, U, d, dark):
     """One sensor point: the closed form against 60 000 random lens samples traced by the camera and looked up
     on the hard-edged checker (a different integrator), within 4 Monte Carlo σ."""
     cam, (w_px, h_px, *_) = _camera(theta_F_deg, U, d)
     # Points along a line across the board's middle; the test takes those in blurred edges and corners.
     line = torch.stack([torch.linspace(0.3 * w_px, 0.7 * w_px, 400, **f64),
                         torch.linspace(0.35 * h_px, 0.6 * h_px, 400, **f64)], -1)
+    board = Target(BOARD.x_edges, BOARD.y_edges, dark, 25.0)
     q_h, centre, axes, _ = cam.focus_geometry(line)
-    dark = checker_dark_fraction_disc(q_h, centre, axes, BOARD, near=7)
-    blurred = torch.nonzero((dark > 0.03) & (dark < 0.97)).squeeze(1)
+    darkness = checker_dark_fraction_disc(q_h, centre, axes, board, near=7)
+    blurred = torch.nonzero((darkness > 0.03) & (darkness < 0.97)).squeeze(1)
     assert blurred.numel() >= 20, f"only {blurred.numel()} of 400 points see a blurred edge"
     pick = blurred[torch.linspace(0, blurred.numel() - 1, 8).round().long()]
-    uv, got = line[pick], dark[pick]
+    uv, got = line[pick], darkness[pick]
     n = 60_000
     lens = torch.rand(n, 2, generator=torch.Generator().manual_seed(5), **f64)
     xe, ye = np.asarray(BOARD.x_edges), np.asarray(BOARD.y_edges)
@@ -131,8 +157,8 @@ def test_closed_form_equals_the_mean_over_traced_lens_samples(theta_F_deg, U, d)
         X, Y = (rays.origin + t[:, None] * rays.direction)[:, :2].T.numpy()
         col, row = np.searchsorted(xe, X) - 1, np.searchsorted(ye, Y) - 1
         on = (col >= 0) & (col < len(xe) - 1) & (row >= 0) & (row < len(ye) - 1)
-        dark = on & ((col + row) % 2 == 0)
-        mc, sd = dark.mean(), math.sqrt(max(dark.mean() * (1 - dark.mean()), 1e-4) / n)
+        hit_dark = on & ((col + row) % 2 == (dark[0] + dark[1]) % 2)
+        mc, sd = hit_dark.mean(), math.sqrt(max(hit_dark.mean() * (1 - hit_dark.mean()), 1e-4) / n)
         assert abs(float(got[k]) - mc) < 4 * sd, f"point {k}: closed form {float(got[k]):.4f} vs samples {mc:.4f} ± {sd:.4f}"
 
 

@@ -280,3 +280,26 @@ def test_auto_kernel_needs_enough_lens_samples():
         PhotometricOptions(kernel="auto", lens_samples=64)
     with pytest.raises(ValueError, match="kernel"):  # not a kernel name
         PhotometricOptions(kernel="gauss")
+
+
+@pytest.mark.slow
+def test_photometric_fit_does_not_depend_on_the_jacobian_block(monkeypatch):
+    """The Jacobian is formed in blocks of pixels (memory); a view split into many blocks, with the closed-form
+    and the lens-sample pixels in different blocks, gives the same fit as one block per view."""
+    from tiltfit import photometric
+
+    # Focused near the boards: about a third of the pixels are sharper than 3 px (lens samples), the rest in
+    # closed form, so blocks of 97 split both kinds.
+    images, poses, truth = _captures(U0_mm=560.0, spp=16, downscale=32)
+    init = _perturbed_init(poses, truth)
+    results = []
+    for block in (4096, 97):
+        monkeypatch.setattr(photometric, "JACOBIAN_BLOCK", block)
+        results.append(refine_photometric(images, BOARD, init, truth["pitch"], PhotometricOptions(max_pixels=400)))
+    a, b = results
+    assert a.values["aperture"] == "mixed" and 200 < a.values["closed_form_pixels"] < 1000, \
+        f"aperture {a.values['aperture']}, {a.values['closed_form_pixels']} of 1200 pixels in closed form"
+    for key in ("theta_L_deg", "U_mm", "d_mm", "w_mm"):
+        assert a.values[key] == pytest.approx(b.values[key], rel=1e-9, abs=1e-9), \
+            f"{key}: {a.values[key]} in one block, {b.values[key]} in blocks of 97"
+    assert a.iterations == b.iterations and abs(a.rms - b.rms) < 1e-12

@@ -50,7 +50,7 @@ import numpy as np
 import torch
 
 from renderer.cameras import ThinLensCamera, concentric_disk
-from renderer.optics import theta_L_from_theta_F
+from renderer.optics import blur_diameter_first_order, blur_diameter_paper, theta_L_from_theta_F
 from renderer.sensor import radial_falloff
 
 from .aperture import checker_dark_fraction_disc, lines_cut
@@ -665,25 +665,20 @@ def _levenberg_marquardt(glob, views_p, free_g, all_residuals, jac, robust_weigh
 
 
 def _view_blur_px(glob, view, sensor: SensorGeometry, target: Target) -> float:
-    """Blur-disc diameter (px) at the board's centre in one view, paper (4): w d |1/(U + y tan θF) − 1/z| / p."""
-    w, inv_U, d, theta_F = (float(x) for x in glob[:4])
+    """Blur-disc diameter (px) at the board's centre in one view, paper (4) (`optics.blur_diameter_paper`)."""
     x0, y0, x1, y1 = target.extent_mm
     R = axis_angle_to_matrix(view[0:3]).detach()
     p = R @ torch.tensor([(x0 + x1) / 2, (y0 + y1) / 2, 0.0], dtype=R.dtype) + view[3:6].detach()
-    y, z = float(p[1]), float(p[2])
-    return w * d * abs(1.0 / (1000.0 / inv_U + y * math.tan(theta_F)) - 1.0 / z) / sensor.pixel_pitch_mm
+    w, inv_U, d, theta_F = (float(x) for x in glob[:4])
+    return float(blur_diameter_paper(p[1], p[2], w, 1000.0 / inv_U, d, theta_F)) / sensor.pixel_pitch_mm
 
 
 def _pixel_blur_px(cam: ThinLensCamera, uv: torch.Tensor, sensor: SensorGeometry) -> torch.Tensor:
-    """(N,) blur-disc diameter (px) of each pixel where its chief ray meets the board, paper (4):
-    w d |1/z − 1/z_f| / p with z the depth of that point and z_f the depth of the pixel's focus point."""
+    """(N,) blur-disc diameter (px) of each pixel at the board point its chief ray meets: w d |1/z_f − 1/z| with
+    z_f where that ray meets the plane of focus (`optics.blur_diameter_first_order`)."""
     with torch.no_grad():
-        q_h, centre, axes, _ = cam.focus_geometry(uv)
-        axis = cam.transform.world_from_camera[:, 2].to(uv)
-        z = ((_on_board(cam.generate_rays(uv)) - centre) @ axis)
-        inv_z_focus = q_h[:, 3] / ((q_h[:, :3] - q_h[:, 3:] * centre) @ axis)     # 0 for a focus at infinity
-        d = 2 * axes[0].norm()
-        return d * float(cam.screen.distance) * (1 / z - inv_z_focus).abs() / sensor.pixel_pitch_mm
+        p_cam = cam.transform.points_to_camera(_on_board(cam.generate_rays(uv)))
+        return blur_diameter_first_order(p_cam, cam.w, cam.U, cam.d, cam.theta_F) / sensor.pixel_pitch_mm
 
 
 def _cluster_sandwich(glob, views_p, free_g, jac, r, wts, JTJ, data, sensor: SensorGeometry,

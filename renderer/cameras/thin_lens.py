@@ -249,11 +249,9 @@ class ThinLensCamera(Camera):
         t = self.transform.position.to(x)
         c = torch.stack([x, y, z], -1)
         q = c @ R.transpose(-1, -2) + weight[..., None] * t
-        r = self.d / 2
-        theta_L = _like(self.theta_L, x)
-        zero = torch.zeros((), dtype=x.dtype, device=x.device)
-        local = torch.stack([torch.stack([r + zero, zero, zero]),
-                             torch.stack([zero, r * torch.cos(theta_L), r * torch.sin(theta_L)])])
+        # The lens points of the samples that `concentric_disk` maps to (1, 0) and (0, 1): the disc's axes.
+        ends = torch.tensor([[1.0, 0.5], [0.5, 1.0]], dtype=x.dtype, device=x.device)
+        local = torch.stack(self.lens_rows(ends), -1)
         return torch.cat([q, weight[..., None]], -1), t, local @ R.transpose(-1, -2), valid
 
     def project(self, p_world: torch.Tensor) -> torch.Tensor:

@@ -202,7 +202,7 @@ def test_lines_cut_counts_the_edges_a_disc_spans():
 
 
 def test_pixel_blur_is_the_blur_disc_of_paper_4():
-    """`_pixel_blur_px` (from the focus points) against paper (4), w d |1/z_f − 1/z| / p, with z the depth of
+    """`_pixel_blur_px` against paper (4), w d |1/z_f − 1/z| / p, with z the depth of
     the board point the chief ray meets and z_f the depth where it meets the plane of focus z = U + y tan θF
     (camera frame; the paper takes y at the board point instead, a few percent off here)."""
     from tiltfit.photometric import _on_board, _pixel_blur_px

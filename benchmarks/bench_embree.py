@@ -82,6 +82,14 @@ class _SyncedDr:
         return getattr(self._dr, name)
 
 
+def _timed_render(scene, chunk_rays: int, options: dict, clock) -> tuple[float, float]:
+    """Wall seconds of one render with `options`, and the part `clock` timed as nearest hits and shadow rays."""
+    t0 = time.perf_counter()
+    render(scene, chunk_rays=chunk_rays, **options)
+    total = time.perf_counter() - t0
+    return total, clock.t.get("nearest hits", 0) + clock.t.get("shadow rays", 0)
+
+
 def profile(scene, chunk_rays: int) -> dict:
     """Wall seconds per stage of one warm render with the Mitsuba intersector at `chunk_rays`."""
     clock = _Clock()
@@ -93,15 +101,12 @@ def profile(scene, chunk_rays: int) -> dict:
     eng.nearest = clock.wrap("nearest hits", eng.nearest)
     eng.visible = clock.wrap("shadow rays", eng.visible)
     try:
-        t0 = time.perf_counter()
-        render(scene, chunk_rays=chunk_rays, **ONE)
-        total = time.perf_counter() - t0
+        total, inter = _timed_render(scene, chunk_rays, ONE, clock)
     finally:
         mi_intersect._to_torch, eng.dr, eng._ray, eng.nearest, eng.visible = saved
     for name in ("_ray", "nearest", "visible"):
         eng.__dict__.pop(name, None)
     out = {"total": total, **clock.t}
-    inter = clock.t.get("nearest hits", 0) + clock.t.get("shadow rays", 0)
     out["Dr.Jit IR tracing and the rest of the calls"] = inter - sum(
         clock.t.get(k, 0) for k in ("rays to Dr.Jit", "kernel (Embree + look-ups)", "results to torch"))
     out["torch: samples, camera rays, shading, accumulation"] = total - inter
@@ -115,12 +120,9 @@ def profile_ours(scene, chunk_rays: int) -> dict:
     Scene.intersect_rows = clock.wrap("nearest hits", Scene.intersect_rows)
     Scene.visibility_rows = clock.wrap("shadow rays", Scene.visibility_rows)
     try:
-        t0 = time.perf_counter()
-        render(scene, chunk_rays=chunk_rays, **OURS)
-        total = time.perf_counter() - t0
+        total, inter = _timed_render(scene, chunk_rays, OURS, clock)
     finally:
         Scene.intersect_rows, Scene.visibility_rows = saved
-    inter = clock.t.get("nearest hits", 0) + clock.t.get("shadow rays", 0)
     return {"total": total, **clock.t, "torch: samples, camera rays, shading, accumulation": total - inter}
 
 

@@ -149,16 +149,25 @@ def checker_dark_fraction_disc(q_h: torch.Tensor, centre: torch.Tensor, axes: to
     ye = torch.as_tensor(target.y_edges, dtype=q_h.dtype, device=q_h.device)
     Fx, (ax_, ay_, hx), ix, kix, kbx = _family_terms(q_h, centre, axes, xe, 0, near)
     Fy, (bx_, by_, hy), iy, kiy, kby = _family_terms(q_h, centre, axes, ye, 1, near)
-    # Wedges of the near pairs minus their product part (zero unless both lines cut the disc).
-    both = (hx.abs() < 1)[..., :, None] & (hy.abs() < 1)[..., None, :]
-    wedge = disc_wedge_fraction(ax_[..., :, None], ay_[..., :, None], hx[..., :, None],
-                                bx_[..., None, :], by_[..., None, :], hy[..., None, :])
-    Fxn, Fyn = torch.gather(Fx, -1, ix), torch.gather(Fy, -1, iy)
-    excess = torch.where(both, wedge - Fxn[..., :, None] * Fyn[..., None, :], torch.zeros_like(wedge))
+    # Wedges of the near pairs minus their product part, zero unless both lines cut the disc: computed for
+    # those pairs only (a few of every pixel's near x near), gathered into one flat list of (point, i, j).
+    nx_, ny_ = hx.shape[-1], hy.shape[-1]
+    both = (hx.detach().abs() < 1)[..., :, None] & (hy.detach().abs() < 1)[..., None, :]
+    shape = both.shape[:-2]
+    sel = both.reshape(-1).nonzero().squeeze(1)
+    point, pair = sel // (nx_ * ny_), sel % (nx_ * ny_)
+    at_x, at_y = point * nx_ + pair // ny_, point * ny_ + pair % ny_
+    gx = lambda t: t.reshape(-1).index_select(0, at_x)  # noqa: E731
+    gy = lambda t: t.reshape(-1).index_select(0, at_y)  # noqa: E731
+    wedge = disc_wedge_fraction(gx(ax_), gx(ay_), gx(hx), gy(bx_), gy(by_), gy(hy))
+    excess = wedge - gx(torch.gather(Fx, -1, ix)) * gy(torch.gather(Fy, -1, iy))
+    n_points = math.prod(shape)
 
     def expect(cx, cy):
         product = (Fx * cx).sum(-1) * (Fy * cy).sum(-1)
-        return product + (cx[ix][..., :, None] * cy[iy][..., None, :] * excess).sum((-2, -1))
+        pairs = gx(cx[ix]) * gy(cy[iy]) * excess
+        return product + torch.zeros(n_points, dtype=pairs.dtype, device=pairs.device).index_add(
+            0, point, pairs).reshape(shape)
 
     parity = 1.0 if (target.dark_cell[0] + target.dark_cell[1]) % 2 == 0 else -1.0
     return 0.5 * (expect(kix, kiy) + parity * expect(kbx, kby))

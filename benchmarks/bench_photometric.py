@@ -7,12 +7,14 @@ and −5°. The blur grows by focusing the untilted lens farther (U0). Levels: b
 (a quarter and a third of the projected square), and one past the square (30 mm cells, d = 60 mm, 1/16 of
 the EOS 6D: discs 1.4 squares) where no corner detector finds the board.
 
-- corners + blur: `tiltfit.detect` (corners and edge blur widths) then the joint fit (`calibrate(..., "joint")`).
-- photometric: `tiltfit.photometric.refine_photometric`, started from the corner fit where there is one,
-  else from a rough start (pose 0.1°/0.5 mm, w +0.3 %, U +1 %, d −3 %, θL +0.1°: a prior calibration's
-  quality), twice: with the aperture in closed form (its default at these blurs, `tiltfit.aperture`) on
-  `--pixels` pixels per view, and with the fixed lens samples (`aperture="samples"`, 192 samples) on 1500
-  (`--no-samples` leaves that one out: it takes 6 to 12 minutes a case on one thread).
+- corners + blur: `tiltfit.detect` (corners and edge blur widths) then the joint fit (`calibrate(..., "joint")`)
+  on the views where the detector finds at least 3/4 of the corners (at least two views).
+- photometric: `tiltfit.photometric.refine_photometric` on all views, started from the corner fit where there
+  is one (a view the corner fit left out starts from the rough prior's pose), else from a rough start (pose
+  0.1°/0.5 mm, w +0.3 %, U +1 %, d −3 %, θL +0.1°: a prior calibration's quality), twice: with the aperture
+  in closed form (its default at these blurs, `tiltfit.aperture`) on `--pixels` pixels per view, and with
+  the fixed lens samples (`aperture="samples"`, 192 samples) on 1500 (`--no-samples` leaves that one out:
+  it takes 6 to 12 minutes a case on one thread).
 
 Each row's error is against the truth; σ is the method's own one-σ (the photometric fit's from its
 cluster-robust sandwich covariance, with the textbook Gauss–Newton σ beside it). Times are CPU seconds of the
@@ -101,18 +103,21 @@ def rough_start(poses, truth, seed=1):
 
 
 def corner_fit(images, board, truth):
+    """The corner-and-blur calibration on the views where the detector finds at least 3/4 of the corners (at
+    least two views); (result or None, CPU seconds, corners found per view, the views it used)."""
     t0 = time.process_time()
     dets = [detect(im, board) for im in images]
     found = [int(d.found.sum()) for d in dets]
-    if min(found) < 0.75 * board.n_points:
-        return None, time.process_time() - t0, found
-    obs = Observations(board.feature_points(), np.stack([d.corners_px for d in dets]),
-                       np.stack([d.blur_px for d in dets]), truth["size"], truth["pitch"])
+    used = [k for k, n in enumerate(found) if n >= 0.75 * board.n_points]
+    if len(used) < 2:
+        return None, time.process_time() - t0, found, used
+    obs = Observations(board.feature_points(), np.stack([dets[k].corners_px for k in used]),
+                       np.stack([dets[k].blur_px for k in used]), truth["size"], truth["pitch"])
     try:
         res = calibrate(obs, "joint", options=FitOptions(model_selection=False, nominal_focal_mm=55.0))
     except FitError:
-        return None, time.process_time() - t0, found
-    return res, time.process_time() - t0, found
+        return None, time.process_time() - t0, found, used
+    return res, time.process_time() - t0, found, used
 
 
 def photometric_row(images, board, start, truth, base, start_name, t_corner, options, label):
@@ -138,17 +143,22 @@ def run_case(case: dict) -> list[dict]:
     board = BOARD if case["board"] == "board" else SMALL_BOARD
     images, poses, truth = captures(case["U0_mm"], board, case["d_mm"], case["theta_L_deg"], case["views"],
                                     case["downscale"], case["spp"])
-    res, t_corner, found = corner_fit(images, board, truth)
+    res, t_corner, found, used = corner_fit(images, board, truth)
     base = {**case, "blur_px": truth["blur_px"], "blur_over_square": truth["blur_over_square"],
             "corners_found": found}
     rows = []
     if res is not None:
+        partial = len(used) < len(images)
         if case["photometric"] == "closed_form":
-            rows.append({**base, "method": "corners + blur", "seconds": t_corner,
-                         **errors(res.values, res.sigma, truth)})
+            rows.append({**base, "method": "corners + blur" + (f" (views {used})" if partial else ""),
+                         "seconds": t_corner, **errors(res.values, res.sigma, truth)})
+        # Views without corners start from the rough prior's pose (the lens from the corner fit).
+        rough = rough_start(poses, truth)["views"]
+        fitted = dict(zip(used, res.views))
         start = {**{k: res.values[k] for k in ("w_mm", "U_mm", "d_mm", "theta_F_deg", "principal_point_px")},
-                 "views": [{"R": v["R"], "T_mm": v["T_mm"]} for v in res.views]}
-        start_name = "corner fit"
+                 "views": [{"R": fitted[k]["R"], "T_mm": fitted[k]["T_mm"]} if k in fitted else rough[k]
+                           for k in range(len(images))]}
+        start_name = "corner fit" + (f" on views {used}, rough pose elsewhere" if partial else "")
     else:
         start, start_name = rough_start(poses, truth), "rough start"
     t_start = t_corner if res else 0.0
@@ -256,7 +266,7 @@ def _partial(out: str, rows: list) -> None:
 def _family(r) -> str:
     """The method without its settings: corners + blur, photometric closed form or lens samples."""
     if not r["method"].startswith("photometric"):
-        return r["method"]
+        return "corners + blur"
     return "photometric, closed form" if r.get("aperture") in ("closed_form", "mixed") else "photometric, lens samples"
 
 

@@ -118,29 +118,50 @@ def _perturbed_init(poses, truth, seed=1, d_mm=D_MM, scale=1.0, theta_L_deg=THET
             "views": views}
 
 
+def _corner_fit(images, board: Target, pitch: float):
+    """The corner-and-blur calibration (`tiltfit.detect`, then the joint fit) on the same photographs."""
+    from tiltfit.detect import detect
+    from tiltfit.fit import FitOptions, calibrate
+    from tiltfit.model import Observations
+
+    dets = [detect(im, board) for im in images]
+    found = [int(d.found.sum()) for d in dets]
+    assert min(found) == board.n_points, f"corners found {found}: this test needs the corner fit as its baseline"
+    obs = Observations(board.feature_points(), np.stack([d.corners_px for d in dets]),
+                       np.stack([d.blur_px for d in dets]), images[0].shape[::-1], pitch)
+    return calibrate(obs, "joint", options=FitOptions(model_selection=False, nominal_focal_mm=55.0))
+
+
+#: The issue's targets for the refined lens (|error|): θL degrees, U and d relative.
+TARGETS = {"theta_L_deg": 0.01, "U_mm": 0.0005, "d_mm": 0.001}
+
+
 @pytest.mark.slow
-def test_photometric_fit_recovers_a_tilted_lens_under_heavy_blur():
-    """−5° lens tilt, blur discs of 18 px (half the projected square) on ray-traced photographs, a start as far
-    off as a corner fit's: the photometric fit recovers the lens. (At this blur the corner detector is at its
-    limit: it loses the nearest view in some noise draws, benchmarks/results/photometric.md.)"""
-    theta_L = -5.0
-    images, poses, truth = _captures(U0_mm=1000.0, theta_L_deg=theta_L)
-    assert 15 < float(np.median(truth["blur_px"])) < 25, f"median blur {np.median(truth['blur_px']):.1f} px"
-    res = refine_photometric(images, BOARD, _perturbed_init(poses, truth, theta_L_deg=theta_L), truth["pitch"],
-                             PhotometricOptions(lens_samples=128, max_pixels=1000))
-    v, sg = res.values, res.sigma
-    # 1000 pixels per view at 342 x 228 and 64 spp give σ(θL) about 0.05°; the bounds are 3σ and the absolute
-    # bounds this budget reaches (benchmarks/results/photometric_diagnosis.md), not the issue's targets.
-    assert 0.01 < sg["theta_L_deg"] < 0.1, f"σ(θL) {sg['theta_L_deg']:.4f}° is implausible here"
-    for key, true, bound in (("theta_L_deg", theta_L, 0.15), ("U_mm", truth["U_mm"], 0.012 * truth["U_mm"]),
-                             ("d_mm", D_MM, 0.015 * D_MM), ("w_mm", W_MM, 0.004 * W_MM)):
-        err = v[key] - true
-        assert abs(err) <= 3 * sg[key] and abs(err) <= bound, \
-            f"{key} {v[key]:.4f} vs {true:.4f} ({err / sg[key]:+.1f} σ, bound {bound:.4f})"
-    # The residual is the photographs' noise (0.003 sensor + Monte Carlo at 64 spp), not a misfit.
-    assert 0.005 < res.rms < 0.025, f"photometric RMS {res.rms:.4f}"
-    for (R, T), view in zip(poses, res.views):
-        assert np.abs(view["T_mm"] - T).max() < 2.0, f"translation {view['T_mm']} vs {T}"
+@pytest.mark.parametrize("theta_L", [5.0, -5.0])
+def test_photometric_fit_meets_the_targets_where_corners_are_biased(theta_L):
+    """Blur discs of 23 px (a third of the projected square) and ±5° lens tilts, 684 x 456 photographs ray traced
+    at 128 spp with sensor noise 0.003 (`synth.render_view(method="renderer")`, not the fit's model): started
+    from the corner-and-blur fit, the photometric fit (the aperture in closed form, 20,000 pixels a view) meets
+    the issue's targets, θL within 0.01°, U within 0.05 % and d within 0.1 % of the truth, and improves on the
+    corner fit in each. (The captures of `benchmarks/bench_photometric.py`'s 23 px level.)"""
+    images, poses, truth = _captures(U0_mm=760.0, spp=128, downscale=8, theta_L_deg=theta_L)
+    blur = float(np.median(truth["blur_px"]))
+    assert 15 <= blur < 30, f"median blur {blur:.1f} px"
+    corners = _corner_fit(images, BOARD, truth["pitch"])
+    start = {**{k: corners.values[k] for k in ("w_mm", "U_mm", "d_mm", "theta_F_deg", "principal_point_px")},
+             "views": [{"R": v["R"], "T_mm": v["T_mm"]} for v in corners.views]}
+    res = refine_photometric(images, BOARD, start, truth["pitch"], PhotometricOptions(max_pixels=20000))
+    assert res.values["aperture"] in ("closed_form", "mixed") and res.values["closed_form_pixels"] > 50000, \
+        f"aperture {res.values['aperture']}, {res.values['closed_form_pixels']} of 60000 pixels in closed form"
+    true = {"theta_L_deg": theta_L, "U_mm": truth["U_mm"], "d_mm": D_MM}
+    for key, target in TARGETS.items():
+        scale = 1.0 if key == "theta_L_deg" else true[key]  # θL absolute, U and d relative
+        err, err_corner = (res.values[key] - true[key]) / scale, (corners.values[key] - true[key]) / scale
+        summary = f"{key}: photometric error {err:+.5f} (σ {res.sigma[key] / scale:.5f}), corners {err_corner:+.5f}"
+        assert abs(err) <= target, f"{summary}; target {target}"
+        assert abs(err) < abs(err_corner), f"{summary}: no better than the corner fit"
+        # The σ the fit reports is honest: neither far below its error nor so wide the target means nothing.
+        assert abs(err) <= 3 * res.sigma[key] and res.sigma[key] / scale < target / 2, f"{summary}; σ"
 
 
 @pytest.mark.slow

@@ -21,6 +21,7 @@ import math
 import torch
 
 from .scene import Scene, TraceOptions
+from .shapes.base import geometry_key
 
 
 # Shape types whose normals `NormalTables` knows (and that have `intersect_soa`): from its tables, or
@@ -99,16 +100,18 @@ class NormalTables:
         return normal
 
 
-_TABLES: dict = {}  # (id(scene), device, dtype) -> (scene, NormalTables); the scene kept so its id stays unique
+_TABLES: dict = {}  # (id(scene), device, dtype) -> (scene, geometry key, NormalTables); the scene kept so its id
+# stays unique, the key (`renderer.shapes.base.geometry_key`) so a moved shape rebuilds them
 
 
 def _tables(scene: Scene, table, like: torch.Tensor) -> NormalTables:
-    key = (id(scene), like.device, like.dtype)
-    if key not in _TABLES or _TABLES[key][0] is not scene:
+    key, geometry = (id(scene), like.device, like.dtype), geometry_key(scene)
+    cached = _TABLES.get(key)
+    if cached is None or cached[0] is not scene or cached[1] != geometry:
         if len(_TABLES) > 16:
             _TABLES.clear()
-        _TABLES[key] = (scene, NormalTables(scene, table, like))
-    return _TABLES[key][1]
+        _TABLES[key] = cached = (scene, geometry, NormalTables(scene, table, like))
+    return cached[2]
 
 
 def trace_direct(scene: Scene, o: torch.Tensor, d: torch.Tensor, first_hit_objects, table,

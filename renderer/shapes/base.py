@@ -117,3 +117,21 @@ def quadratic_roots(a: torch.Tensor, half_b: torch.Tensor, c: torch.Tensor,
     sign = torch.where(half_b >= 0, torch.ones_like(half_b), -torch.ones_like(half_b))
     q = -(half_b + sign * disc.clamp_min(0).sqrt())
     return q / a, c / q, disc >= 0
+
+
+def geometry_key(scene) -> tuple:
+    """What caches built from a scene's shapes (the Embree scene, `renderer.direct`'s normal tables) depend
+    on, cheaply: per object its shape (type, identity) and, for each attribute, the tensor's identity,
+    storage and in-place version counter (or the plain value). Replacing a shape (the way to move one: shapes
+    convert their parameters once, `Shape._param`), giving it new tensors or editing them in place changes
+    the key."""
+    key = []
+    for obj in scene.objects:
+        items = [type(obj.shape).__name__, id(obj.shape), id(obj.material)]
+        for name, value in sorted(vars(obj.shape).items()):
+            if isinstance(value, torch.Tensor):
+                items.append((name, id(value), value.data_ptr(), value._version, tuple(value.shape)))
+            elif isinstance(value, (int, float, str, bool, tuple)) or value is None:
+                items.append((name, value))
+        key.append(tuple(items))
+    return tuple(key)

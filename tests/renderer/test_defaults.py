@@ -109,6 +109,31 @@ def test_auto_leaves_someone_elses_mitsuba_variant_alone(calls):
             mi.set_variant(previous)
 
 
+@needs_llvm
+def test_embree_scene_follows_a_moved_shape():
+    """The Embree scene is cached per scene; replacing a shape (how one moves it) or editing its tensors in
+    place rebuilds it instead of answering with the old geometry."""
+    import copy
+
+    from renderer.shapes.base import geometry_key
+    from renderer.shapes.sphere import Sphere
+
+    scene = load_scene(CFG)
+    before = render(scene, seed=4, intersector="mitsuba").image
+    scene.objects[0] = copy.copy(scene.objects[0])
+    scene.objects[0].shape = Sphere([0.6, -0.3, 0.0], 1.0)
+    moved = render(scene, seed=4, intersector="mitsuba").image
+    fresh = render(load_scene({**CFG, "objects": [{**CFG["objects"][0], "shape": {
+        "type": "sphere", "center": [0.6, -0.3, 0.0], "radius": 1}}, *CFG["objects"][1:]]}),
+        seed=4, intersector="mitsuba").image
+    assert (moved - before).abs().max() > 0.05, "moving the ball should change the image"
+    assert torch.equal(moved, fresh), "after the move: the image of a scene built with the ball there"
+    box = scene.objects[1].shape
+    key = geometry_key(scene)
+    box.half.mul_(1.0)  # an in-place edit (same values) bumps the tensor's version
+    assert geometry_key(scene) != key, "an in-place edit should change the geometry key"
+
+
 def test_auto_workers_only_for_large_float32_cpu_renders(monkeypatch):
     monkeypatch.setattr(RENDER, "_cores", lambda: 2)
     monkeypatch.setattr(RENDER, "_AUTO_WORKERS_OFF", [])

@@ -12,8 +12,8 @@ aperture in one of two ways (`PhotometricOptions.aperture`):
 - in closed form (`render_target_disc`, the default from 3 px of blur): each of 4 x 4 points of the pixel
   sees the aperture disc through its focus point (`ThinLensCamera.focus_geometry`), on which the board's
   cell edges are straight lines, so the dark fraction is a sum of disc segments and wedges
-  (`tiltfit.aperture`). Exact for the thin lens at any tilt and blur, and a fifth of the CPU time per
-  pixel of 192 lens samples (`benchmarks/results/photometric.md`). `auto`, the default, takes it for pixels
+  (`tiltfit.aperture`). Exact for the thin lens at any tilt and blur, and cheaper per pixel than 192 lens
+  samples (`benchmarks/results/photometric.md`). `auto`, the default, takes it for pixels
   whose blur disc is at least 3 px, and the samples below;
 - by a fixed set of lens samples (`render_target`): rays for each pixel and sample, intersected with the
   board plane Z = 0, the checker evaluated analytically and antialiased over the pixel's footprint (below).

@@ -20,7 +20,6 @@ import math
 
 import torch
 
-from .blend import select
 from .scene import Scene, TraceOptions
 
 
@@ -148,7 +147,8 @@ def trace_direct(scene: Scene, o: torch.Tensor, d: torch.Tensor, first_hit_objec
             half = cell * 0.5  # odd cells: half an integer (exact: |cell| < 2^24)
             first = sum(c.shape[1] for c in colors)
             colors.append(torch.tensor(texture.colors, dtype=dtype, device=device).T)
-            albedo_index = select(obj == k, torch.add(half != half.floor(), first), albedo_index)
+            # Hits on k (slot k + 1) move to slot first + odd: integer arithmetic, no select.
+            albedo_index = albedo_index + (obj == k) * torch.add(half != half.floor(), first - (k + 1))
         else:
             others.append(k)
     albedo = NormalTables._gather(torch.cat(colors, 1).unbind(0), albedo_index)  # (3, N)

@@ -124,25 +124,41 @@ def trace_direct(scene: Scene, o: torch.Tensor, d: torch.Tensor, first_hit_objec
     """Radiance (N, 3) and found (N,) for rays o, d (N, 3), as `integrator.trace` returns them (the radiance
     as a transposed view of (3, N) rows)."""
     o_s, d_s = _rows(o), _rows(d)
-    dtype, device = o.dtype, o.device
     hit = scene.intersect_rows(o_s, d_s, first_hit_objects, options=options)
-    found, obj = hit.found, hit.object_id
+    lit = shade_hits(scene, table, _tables(scene, table, o_s), o_s, d_s, hit.t, hit.object_id, hit.aux)
+    vis = [scene.visibility_rows(origin, l, reach, options=options, leaving=lit[1]) for origin, l, reach in lit[3]]
+    return add_light(scene, lit, vis).T, hit.found  # an (N, 3) view of the rows: no transposing copy
+
+
+def shade_hits(scene: Scene, table, tables: NormalTables, o_s, d_s, t, obj, aux):
+    """The direct light at the first hits of rays o_s, d_s ((3, N) rows) but the shadow rays' answers.
+
+    Args:
+        table: the scene's material table; tables: its `NormalTables` (`_tables`); t, obj, aux: (N,) the
+            rays' `Hit` (object −1 on a miss).
+    Returns:
+        found (N,) bool; leaving (N,) the object each shadow ray cannot meet (`Scene.self_shadow_free`);
+        ambient: (3, N) ambient light, or None; shadow: a list of (origin (3, N), unit direction (3, N),
+        reach (N,)) per point light (reach 0: no shadow ray); unshadowed: a list of (3, N) radiance per point
+        light, to be multiplied by its shadow ray's visibility (`add_light`).
+    """
+    dtype, device = o_s.dtype, o_s.device
+    found = obj >= 0
     safe_obj = obj.clamp_min(0)
-    p = torch.addcmul(o_s, torch.where(found, hit.t, 0), d_s)  # (3, N); misses sit at their origin, masked below
-    tables = _tables(scene, table, p)
-    normal = tables.normals(scene, p, hit.aux, safe_obj, found)
+    p = torch.addcmul(o_s, torch.where(found, t, 0), d_s)  # (3, N); misses sit at their origin, masked below
+    normal = tables.normals(scene, p, aux, safe_obj, found)
     # Albedo and kd: one gather each by slot = object + 1 from tables whose slot 0 (a miss) is zero, so misses
-    # get no light and end up exactly 0 (the background is added below). The colour table is extended by the
-    # two colours of each checker texture: a checker's hits index its colours instead of their object's.
+    # get no light and end up exactly 0 (the background is added in `add_light`). The colour table is extended
+    # by the two colours of each checker texture: a checker's hits index its colours instead of their object's.
     slot = obj + 1
     colors = [torch.zeros(3, 1, dtype=dtype, device=device), table.color.T]
     albedo_index = slot
     others = []
     for k in tables.textured:
         shape, texture = scene.objects[k].shape, table.textures[k]
-        if hasattr(shape, "uv_rows") and type(texture).__name__ == "CheckerTexture":
+        if checker_rows(shape, texture):
             # Rows all through: the checker of `CheckerTexture.evaluate` on every ray, kept where it hit k.
-            uv = shape.uv_rows(p, hit.aux)
+            uv = shape.uv_rows(p, aux)
             cell = torch.floor(uv[0] / texture.size) + torch.floor(uv[1] / texture.size)
             half = cell * 0.5  # odd cells: half an integer (exact: |cell| < 2^24)
             first = sum(c.shape[1] for c in colors)
@@ -155,7 +171,7 @@ def trace_direct(scene: Scene, o: torch.Tensor, d: torch.Tensor, first_hit_objec
     for k in others:
         idx = (obj == k).nonzero().squeeze(1)
         if idx.numel():
-            n_k, uv = scene.objects[k].shape.surface(p.index_select(1, idx).T, hit.aux.index_select(0, idx))
+            n_k, uv = scene.objects[k].shape.surface(p.index_select(1, idx).T, aux.index_select(0, idx))
             normal.index_copy_(1, idx, n_k.T.contiguous())
             albedo.index_copy_(1, idx, table.textures[k].evaluate(uv).T.contiguous())
     entering = _dot(normal, d_s) < 0
@@ -163,25 +179,39 @@ def trace_direct(scene: Scene, o: torch.Tensor, d: torch.Tensor, first_hit_objec
     kd = torch.cat([torch.zeros(1, dtype=dtype, device=device), table.diffuse]).index_select(0, slot)
     leaving = scene.self_shadow_free(safe_obj, entering)
     eps = scene.ray_epsilon
-    radiance = None
+    ambient, shadow, unshadowed = None, [], []
     for light in scene.lights:
         intensity = torch.tensor(light.intensity, dtype=dtype, device=device)[:, None]
         if light.type == "ambient":
-            term = intensity * albedo
-        else:
-            origin = torch.add(p, n_f, alpha=eps)
-            to_light = torch.tensor(light.position, dtype=dtype, device=device)[:, None] - origin
-            dist = _dot(to_light, to_light).sqrt_()
-            l = to_light.div_(dist.clamp_min(1e-12))
-            cos = _dot(n_f, l).clamp_min_(0)
-            reach = torch.where((cos > 0) & found, dist, 0)  # misses (background) trace no shadow ray
-            vis = scene.visibility_rows(origin, l, reach, options=options, leaving=leaving)
-            scale = kd * cos * vis / (math.pi * (reach * reach).clamp_min(1e-30))
-            term = albedo * scale * intensity
-        radiance = term if radiance is None else radiance.add_(term)
-    if radiance is None:
-        radiance = torch.zeros_like(p)
+            ambient = intensity * albedo if ambient is None else ambient.add_(intensity * albedo)
+            continue
+        origin = torch.add(p, n_f, alpha=eps)
+        to_light = torch.tensor(light.position, dtype=dtype, device=device)[:, None] - origin
+        dist = _dot(to_light, to_light).sqrt_()
+        l = to_light.div_(dist.clamp_min(1e-12))
+        cos = _dot(n_f, l).clamp_min_(0)
+        reach = torch.where((cos > 0) & found, dist, 0)  # misses (background) trace no shadow ray
+        shadow.append((origin, l, reach))
+        scale = kd * cos / (math.pi * (reach * reach).clamp_min(1e-30))
+        unshadowed.append(albedo * scale * intensity)
+    if ambient is None and not unshadowed:  # no lights: black, and the background where rays missed
+        ambient = torch.zeros_like(p)
+    return found, leaving, ambient, shadow, unshadowed
+
+
+def add_light(scene: Scene, lit, vis: list[torch.Tensor]) -> torch.Tensor:
+    """(3, N) radiance from `shade_hits`' results `lit` and each point light's visibility vis (N,) (0 or 1,
+    so it multiplies exactly wherever it is applied); the background where the ray missed."""
+    found, _, ambient, _, unshadowed = lit
+    radiance = ambient
+    for term, v in zip(unshadowed, vis):
+        radiance = term.mul_(v) if radiance is None else radiance.add_(term.mul_(v))
     if any(scene.image.background):  # misses are 0 so far: adding the background times "missed" is exact
-        background = torch.tensor(scene.image.background, dtype=dtype, device=device)[:, None]
-        radiance += background * ~found
-    return radiance.T, found  # an (N, 3) view of the rows: no transposing copy
+        background = torch.tensor(scene.image.background, dtype=radiance.dtype, device=radiance.device)[:, None]
+        radiance = radiance + background * ~found
+    return radiance
+
+
+def checker_rows(shape, texture) -> bool:
+    """Whether `shade_hits` computes this texture on (3, N) rows (a checker on a shape with `uv_rows`)."""
+    return hasattr(shape, "uv_rows") and type(texture).__name__ == "CheckerTexture"

@@ -94,7 +94,7 @@ class NormalTables:
             # (p − centre) / r added to every row: the tables hold centre 0 and 1/r = 0 for other objects and
             # face normals 0 for spheres, so each row gets its own normal exactly (p is finite), without a
             # select between the two.
-            sphere = (p - self._gather(self.center, obj)).mul_(self.inv_r.index_select(0, obj))
+            sphere = (p - self._gather(self.center, obj)) * self.inv_r.index_select(0, obj)
             normal += sphere
         for k in self.own:
             normal = torch.where(obj == k, scene.objects[k].shape.normal_rows(p, aux), normal)
@@ -175,7 +175,7 @@ def shade_hits(scene: Scene, table, tables: NormalTables, o_s, d_s, t, obj, aux)
             normal.index_copy_(1, idx, n_k.T.contiguous())
             albedo.index_copy_(1, idx, table.textures[k].evaluate(uv).T.contiguous())
     entering = _dot(normal, d_s) < 0
-    n_f = normal.mul_(entering.to(dtype).mul_(2).sub_(1))  # the normal facing the ray (times ±1: exact)
+    n_f = normal * entering.to(dtype).mul_(2).sub_(1)  # the normal facing the ray (times ±1: exact)
     kd = torch.cat([torch.zeros(1, dtype=dtype, device=device), table.diffuse]).index_select(0, slot)
     leaving = scene.self_shadow_free(safe_obj, entering)
     eps = scene.ray_epsilon
@@ -188,8 +188,8 @@ def shade_hits(scene: Scene, table, tables: NormalTables, o_s, d_s, t, obj, aux)
         origin = torch.add(p, n_f, alpha=eps)
         to_light = torch.tensor(light.position, dtype=dtype, device=device)[:, None] - origin
         dist = _dot(to_light, to_light).sqrt_()
-        l = to_light.div_(dist.clamp_min(1e-12))
-        cos = _dot(n_f, l).clamp_min_(0)
+        l = to_light / dist.clamp_min(1e-12)
+        cos = _dot(n_f, l).clamp_min(0)
         reach = torch.where((cos > 0) & found, dist, 0)  # misses (background) trace no shadow ray
         shadow.append((origin, l, reach))
         scale = kd * cos / (math.pi * (reach * reach).clamp_min(1e-30))
@@ -205,7 +205,7 @@ def add_light(scene: Scene, lit, vis: list[torch.Tensor]) -> torch.Tensor:
     found, _, ambient, _, unshadowed = lit
     radiance = ambient
     for term, v in zip(unshadowed, vis):
-        radiance = term.mul_(v) if radiance is None else radiance.add_(term.mul_(v))
+        radiance = term * v if radiance is None else radiance.add_(term * v)
     if any(scene.image.background):  # misses are 0 so far: adding the background times "missed" is exact
         background = torch.tensor(scene.image.background, dtype=radiance.dtype, device=radiance.device)[:, None]
         radiance = radiance + background * ~found

@@ -89,7 +89,7 @@ class NormalTables:
 
     def normals(self, scene: Scene, p, aux, obj, found):
         """(3, N) outward normals at the hit points p (3, N) of objects obj (N, clamped to >= 0)."""
-        normal = self._gather(self.faces, obj * 6 + aux.clamp(0, 5))
+        normal = self._gather(self.faces, torch.add(aux.clamp(0, 5), obj, alpha=6))
         if self.any_sphere:
             # (p − centre) / r added to every row: the tables hold centre 0 and 1/r = 0 for other objects and
             # face normals 0 for spheres, so each row gets its own normal exactly (p is finite), without a
@@ -126,7 +126,12 @@ def trace_direct(scene: Scene, o: torch.Tensor, d: torch.Tensor, first_hit_objec
     o_s, d_s = _rows(o), _rows(d)
     hit = scene.intersect_rows(o_s, d_s, first_hit_objects, options=options)
     lit = shade_hits(scene, table, _tables(scene, table, o_s), o_s, d_s, hit.t, hit.object_id, hit.aux)
-    vis = [scene.visibility_rows(origin, l, reach, options=options, leaving=lit[1]) for origin, l, reach in lit[3]]
+    leaving, vis = None, []
+    for origin, l, reach in lit[3]:
+        if leaving is None and scene.answers_shadow_rays(options, origin, l, reach):
+            # Only our own tracer skips the object a shadow ray leaves (Embree needs no such help).
+            leaving = scene.self_shadow_free(hit.object_id.clamp_min(0), lit[1])
+        vis.append(scene.visibility_rows(origin, l, reach, options=options, leaving=leaving))
     return add_light(scene, lit, vis).T, hit.found  # an (N, 3) view of the rows: no transposing copy
 
 
@@ -137,7 +142,8 @@ def shade_hits(scene: Scene, table, tables: NormalTables, o_s, d_s, t, obj, aux)
         table: the scene's material table; tables: its `NormalTables` (`_tables`); t, obj, aux: (N,) the
             rays' `Hit` (object −1 on a miss).
     Returns:
-        found (N,) bool; leaving (N,) the object each shadow ray cannot meet (`Scene.self_shadow_free`);
+        found (N,) bool; entering (N,) bool: the ray meets the outside of the surface
+            (`Scene.self_shadow_free` takes it);
         ambient: (3, N) ambient light, or None; shadow: a list of (origin (3, N), unit direction (3, N),
         reach (N,)) per point light (reach 0: no shadow ray); unshadowed: a list of (3, N) radiance per point
         light, to be multiplied by its shadow ray's visibility (`add_light`).
@@ -177,7 +183,6 @@ def shade_hits(scene: Scene, table, tables: NormalTables, o_s, d_s, t, obj, aux)
     entering = _dot(normal, d_s) < 0
     n_f = normal * entering.to(dtype).mul_(2).sub_(1)  # the normal facing the ray (times ±1: exact)
     kd = torch.cat([torch.zeros(1, dtype=dtype, device=device), table.diffuse]).index_select(0, slot)
-    leaving = scene.self_shadow_free(safe_obj, entering)
     eps = scene.ray_epsilon
     ambient, shadow, unshadowed = None, [], []
     for light in scene.lights:
@@ -196,7 +201,7 @@ def shade_hits(scene: Scene, table, tables: NormalTables, o_s, d_s, t, obj, aux)
         unshadowed.append(albedo * scale * intensity)
     if ambient is None and not unshadowed:  # no lights: black, and the background where rays missed
         ambient = torch.zeros_like(p)
-    return found, leaving, ambient, shadow, unshadowed
+    return found, entering, ambient, shadow, unshadowed
 
 
 def add_light(scene: Scene, lit, vis: list[torch.Tensor]) -> torch.Tensor:

@@ -94,8 +94,7 @@ class NormalTables:
             # (p − centre) / r added to every row: the tables hold centre 0 and 1/r = 0 for other objects and
             # face normals 0 for spheres, so each row gets its own normal exactly (p is finite), without a
             # select between the two.
-            sphere = (p - self._gather(self.center, obj)) * self.inv_r.index_select(0, obj)
-            normal += sphere
+            normal = torch.addcmul(normal, p - self._gather(self.center, obj), self.inv_r.index_select(0, obj))
         for k in self.own:
             normal = torch.where(obj == k, scene.objects[k].shape.normal_rows(p, aux), normal)
         return normal

@@ -24,28 +24,46 @@ def selector(cond: torch.Tensor):
     Returns:
         pick(a, b): a, b tensors of one dtype (or a Python number for one of them) broadcasting with cond.
         Bit blending where it is exact and faster (CPU tensors of float32/float64/int32/int64 that need no
-        gradient, outside torch.compile); `torch.where` otherwise.
+        gradient, outside torch.compile); `torch.where` otherwise. `pick.pair(a, b)` returns (pick(a, b),
+        pick(b, a)), the second from the first with one more operation (a ^ b ^ first).
     """
     masks: dict = {}
     eager_cpu = cond.device.type == "cpu" and not torch.compiler.is_compiling()
 
-    def pick(a, b):
+    def blend(a, b):
+        """(x = (a ^ b) & m, b's bits, dtype) for the bit blend, or None where torch.where must answer."""
         like = a if isinstance(a, torch.Tensor) else b
         bits = _BITS.get(like.dtype)
-        if (not eager_cpu or bits is None or torch.is_grad_enabled() and (_grad(a) or _grad(b))):
-            return torch.where(cond, a, b)
+        if not eager_cpu or bits is None or torch.is_grad_enabled() and (_grad(a) or _grad(b)):
+            return None
         a = a if isinstance(a, torch.Tensor) else torch.tensor(a, dtype=like.dtype)
         b = b if isinstance(b, torch.Tensor) else torch.tensor(b, dtype=like.dtype)
         if a.dtype != b.dtype:
-            return torch.where(cond, a, b)
+            return None
         if bits not in masks:
             masks[bits] = cond.to(bits).neg_()  # all ones (−1) where cond holds, else 0
         a_bits, b_bits, m = a.view(bits), b.view(bits), masks[bits]
         x = a_bits ^ b_bits
         x = x.bitwise_and_(m) if x.shape == torch.broadcast_shapes(x.shape, m.shape) else x & m
-        return x.bitwise_xor_(b_bits).view(like.dtype) if x.shape == torch.broadcast_shapes(x.shape, b.shape) \
-            else (x ^ b_bits).view(like.dtype)
+        return x, a_bits, b_bits, like.dtype
 
+    def pick(a, b):
+        parts = blend(a, b)
+        if parts is None:
+            return torch.where(cond, a, b)
+        x, _, b_bits, dtype = parts
+        return x.bitwise_xor_(b_bits).view(dtype) if x.shape == torch.broadcast_shapes(x.shape, b_bits.shape) \
+            else (x ^ b_bits).view(dtype)
+
+    def pair(a, b):
+        parts = blend(a, b)
+        if parts is None:
+            return torch.where(cond, a, b), torch.where(cond, b, a)
+        x, a_bits, b_bits, dtype = parts
+        first = x ^ b_bits  # a where cond, else b
+        return first.view(dtype), (first ^ a_bits ^ b_bits).view(dtype)
+
+    pick.pair = pair
     return pick
 
 

@@ -84,14 +84,15 @@ def concentric_disk(lens_uv: torch.Tensor) -> torch.Tensor:
 
 def concentric_disk_xy(lens_uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """`concentric_disk` as its two (...,) components x, y (no stacking)."""
-    a = 2 * lens_uv[..., 0] - 1
-    b = 2 * lens_uv[..., 1] - 1
+    ab = 2 * lens_uv.movedim(-1, 0) - 1  # rows a, b
+    a, b = ab[0], ab[1]
+    magnitude = ab.abs()
     # Which of |a|, |b| is larger has no order over the samples: `selector` blends instead of branching.
-    pick = selector(a.abs() > b.abs())
-    r = pick(a, b)
+    pick = selector(magnitude[0] > magnitude[1])
+    r, other = pick.pair(a, b)
     # phi = π/4 · b/a where |a| > |b|, else π/2 − π/4 · a/b: each ratio only where its denominator (r) is the
     # larger magnitude; r = 0 (a = b = 0) divides by 1 instead, so no 0/0.
-    q = (math.pi / 4) * (pick(b, a) / (r + (r == 0)))
+    q = (math.pi / 4) * (other / (r + (r == 0)))
     phi = pick(q, math.pi / 2 - q)
     return r * torch.cos(phi), r * torch.sin(phi)
 

@@ -37,3 +37,15 @@ def test_one_selector_serves_several_picks_and_gradients_fall_back():
     out.sum().backward()
     assert torch.equal(a.grad, torch.tensor([1.0, 0.0, 1.0])), f"gradient {a.grad}"
     assert torch.equal(pick(b, a.detach()), torch.tensor([4.0, 2.0, 6.0])), "second pick with the same mask wrong"
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.int64])
+def test_pair_is_both_selections(dtype):
+    g = torch.Generator().manual_seed(1)
+    a, b = (torch.randn(2, 515, generator=g, dtype=torch.float64) * 100).to(dtype)
+    if dtype.is_floating_point:
+        a[:4] = torch.tensor([float("nan"), -0.0, float("inf"), 0.0])
+    cond = torch.rand(515, generator=g) > 0.3
+    first, second = selector(cond).pair(a, b)
+    assert torch.equal(_bits(first), _bits(torch.where(cond, a, b))), "pair: first is not where(cond, a, b)"
+    assert torch.equal(_bits(second), _bits(torch.where(cond, b, a))), "pair: second is not where(cond, b, a)"

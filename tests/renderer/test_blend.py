@@ -22,7 +22,8 @@ def test_select_equals_where_bit_for_bit(dtype):
         b[1, :len(SPECIAL)] = torch.tensor(SPECIAL[::-1], dtype=dtype)
     cond = torch.rand(n, generator=g) > 0.5
     column = b[:, :1].clone()  # (3, 1): broadcast along the rays
-    for x, y in [(a, b), (b, a), (b, column), (column, b), (a, 0), (-7, a)]:
+    strided = b.T.contiguous().T  # (3, n) with strides (1, 3)
+    for x, y in [(a, b), (b, a), (b, column), (column, b), (a, 0), (-7, a), (strided, a), (b, strided)]:
         expected, got = torch.where(cond, x, y), select(cond, x, y)
         assert got.dtype == expected.dtype and got.shape == expected.shape, f"{got.dtype} {got.shape} vs {expected.shape}"
         assert torch.equal(_bits(got), _bits(expected)), f"select differs from where ({dtype})"

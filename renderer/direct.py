@@ -77,7 +77,6 @@ class NormalTables:
         self.any_sphere = bool(sphere.any())
         to = dict(dtype=like.dtype, device=like.device)
         # One 1-D table per component: gathers along a tensor's first axis are the fast ones.
-        self.sphere = sphere.to(like.device)
         self.center, self.inv_r = center.to(**to).unbind(0), inv_r.to(**to)
         self.faces = faces.reshape(3, K * 6).to(**to).unbind(0)
 
@@ -91,13 +90,21 @@ class NormalTables:
 
     def normals(self, scene: Scene, p, aux, obj, found):
         """(3, N) outward normals at the hit points p (3, N) of objects obj (N, clamped to >= 0)."""
-        normal = self._gather(self.faces, obj * 6 + aux.clamp(0, 5))
+        normal = self._gather(self.faces, torch.add(aux.clamp(0, 5), obj, alpha=6))
         if self.any_sphere:
-            sphere = (p - self._gather(self.center, obj)) * self.inv_r.index_select(0, obj)
-            normal = torch.where(self.sphere.index_select(0, obj), sphere, normal)
+            # (p − centre) / r added to every row: the tables hold centre 0 and 1/r = 0 for other objects and
+            # face normals 0 for spheres, so each row gets its own normal exactly (p is finite), without a
+            # select between the two.
+            normal = torch.addcmul(normal, p - self._gather(self.center, obj), self.inv_r.index_select(0, obj))
         for k in self.own:
             normal = torch.where(obj == k, scene.objects[k].shape.normal_rows(p, aux), normal)
         return normal
+
+
+def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """(N,) dot products of (3, N) rows, a0·b0 + a1·b1 + a2·b2: three row operations instead of a (3, N)
+    product and a sum over its first axis."""
+    return (a[0] * b[0]).addcmul_(a[1], b[1]).addcmul_(a[2], b[2])
 
 
 _TABLES: dict = {}  # (id(scene), device, dtype) -> (scene, geometry key, NormalTables); the scene kept so its id
@@ -119,50 +126,99 @@ def trace_direct(scene: Scene, o: torch.Tensor, d: torch.Tensor, first_hit_objec
     """Radiance (N, 3) and found (N,) for rays o, d (N, 3), as `integrator.trace` returns them (the radiance
     as a transposed view of (3, N) rows)."""
     o_s, d_s = _rows(o), _rows(d)
-    dtype, device = o.dtype, o.device
     hit = scene.intersect_rows(o_s, d_s, first_hit_objects, options=options)
-    found, obj = hit.found, hit.object_id
+    lit = shade_hits(scene, table, _tables(scene, table, o_s), o_s, d_s, hit.t, hit.object_id, hit.aux)
+    leaving, vis = None, []
+    for origin, l, reach in lit[3]:
+        if leaving is None and scene.answers_shadow_rays(options, origin, l, reach):
+            # Only our own tracer skips the object a shadow ray leaves (Embree needs no such help).
+            leaving = scene.self_shadow_free(hit.object_id.clamp_min(0), lit[1])
+        vis.append(scene.visibility_rows(origin, l, reach, options=options, leaving=leaving))
+    return add_light(scene, lit, vis).T, hit.found  # an (N, 3) view of the rows: no transposing copy
+
+
+def shade_hits(scene: Scene, table, tables: NormalTables, o_s, d_s, t, obj, aux):
+    """The direct light at the first hits of rays o_s, d_s ((3, N) rows) but the shadow rays' answers.
+
+    Args:
+        table: the scene's material table; tables: its `NormalTables` (`_tables`); t, obj, aux: (N,) the
+            rays' `Hit` (object −1 on a miss).
+    Returns:
+        found (N,) bool; entering (N,) bool: the ray meets the outside of the surface
+            (`Scene.self_shadow_free` takes it);
+        ambient: (3, N) ambient light, or None; shadow: a list of (origin (3, N), unit direction (3, N),
+        reach (N,)) per point light (reach 0: no shadow ray); unshadowed: a list of (3, N) radiance per point
+        light, to be multiplied by its shadow ray's visibility (`add_light`).
+    """
+    dtype, device = o_s.dtype, o_s.device
+    found = obj >= 0
     safe_obj = obj.clamp_min(0)
-    p = o_s + torch.where(found, hit.t, 0) * d_s  # (3, N); misses sit at their origin, masked below
-    tables = _tables(scene, table, p)
-    normal = tables.normals(scene, p, hit.aux, safe_obj, found)
-    albedo = NormalTables._gather(table.color.T.unbind(0), safe_obj)  # (3, N)
+    p = torch.addcmul(o_s, torch.where(found, t, 0), d_s)  # (3, N); misses sit at their origin, masked below
+    normal = tables.normals(scene, p, aux, safe_obj, found)
+    # Albedo and kd: one gather each by slot = object + 1 from tables whose slot 0 (a miss) is zero, so misses
+    # get no light and end up exactly 0 (the background is added in `add_light`). The colour table is extended
+    # by the two colours of each checker texture: a checker's hits index its colours instead of their object's.
+    slot = obj + 1
+    colors = [torch.zeros(3, 1, dtype=dtype, device=device), table.color.T]
+    albedo_index = slot
+    others = []
     for k in tables.textured:
         shape, texture = scene.objects[k].shape, table.textures[k]
-        if hasattr(shape, "uv_rows") and type(texture).__name__ == "CheckerTexture":
+        if checker_rows(shape, texture):
             # Rows all through: the checker of `CheckerTexture.evaluate` on every ray, kept where it hit k.
-            mine = obj == k
-            uv = shape.uv_rows(p, hit.aux)
-            odd = torch.remainder(torch.floor(uv[0] / texture.size) + torch.floor(uv[1] / texture.size), 2) > 0
-            c0, c1 = (torch.tensor(c, dtype=dtype, device=device)[:, None] for c in texture.colors)
-            albedo = torch.where(mine, torch.where(odd, c1, c0), albedo)
-            continue
+            uv = shape.uv_rows(p, aux)
+            cell = torch.floor(uv[0] / texture.size) + torch.floor(uv[1] / texture.size)
+            half = cell * 0.5  # odd cells: half an integer (exact: |cell| < 2^24)
+            first = sum(c.shape[1] for c in colors)
+            colors.append(torch.tensor(texture.colors, dtype=dtype, device=device).T)
+            # Hits on k (slot k + 1) move to slot first + odd: integer arithmetic, no select.
+            albedo_index = albedo_index + (obj == k) * torch.add(half != half.floor(), first - (k + 1))
+        else:
+            others.append(k)
+    albedo = NormalTables._gather(torch.cat(colors, 1).unbind(0), albedo_index)  # (3, N)
+    for k in others:
         idx = (obj == k).nonzero().squeeze(1)
         if idx.numel():
-            n_k, uv = scene.objects[k].shape.surface(p.index_select(1, idx).T, hit.aux.index_select(0, idx))
+            n_k, uv = scene.objects[k].shape.surface(p.index_select(1, idx).T, aux.index_select(0, idx))
             normal.index_copy_(1, idx, n_k.T.contiguous())
             albedo.index_copy_(1, idx, table.textures[k].evaluate(uv).T.contiguous())
-    entering = (normal * d_s).sum(0) < 0
-    n_f = torch.where(entering, normal, -normal)
-    kd = table.diffuse.index_select(0, safe_obj)
-    leaving = scene.self_shadow_free(safe_obj, entering)
+    entering = _dot(normal, d_s) < 0
+    n_f = normal * entering.to(dtype).mul_(2).sub_(1)  # the normal facing the ray (times ±1: exact)
+    kd = torch.cat([torch.zeros(1, dtype=dtype, device=device), table.diffuse]).index_select(0, slot)
     eps = scene.ray_epsilon
-    radiance = torch.zeros_like(p)
+    ambient, shadow, unshadowed = None, [], []
     for light in scene.lights:
         intensity = torch.tensor(light.intensity, dtype=dtype, device=device)[:, None]
         if light.type == "ambient":
-            radiance = radiance + intensity * albedo
+            ambient = intensity * albedo if ambient is None else ambient.add_(intensity * albedo)
             continue
-        origin = p + n_f * eps
+        origin = torch.add(p, n_f, alpha=eps)
         to_light = torch.tensor(light.position, dtype=dtype, device=device)[:, None] - origin
-        dist2 = (to_light * to_light).sum(0)
-        dist = dist2.sqrt()
+        dist = _dot(to_light, to_light).sqrt_()
         l = to_light / dist.clamp_min(1e-12)
-        cos = (n_f * l).sum(0).clamp_min(0)
+        cos = _dot(n_f, l).clamp_min(0)
         reach = torch.where((cos > 0) & found, dist, 0)  # misses (background) trace no shadow ray
-        vis = scene.visibility_rows(origin, l, reach, options=options, leaving=leaving)
-        scale = kd * cos * vis / (math.pi * (reach * reach).clamp_min(1e-30))
-        radiance = radiance + albedo * scale * intensity
-    background = torch.tensor(scene.image.background, dtype=dtype, device=device)[:, None]
-    radiance = torch.where(found, radiance, background)
-    return radiance.T, found  # an (N, 3) view of the rows: no transposing copy
+        shadow.append((origin, l, reach))
+        scale = kd * cos / (math.pi * (reach * reach).clamp_min(1e-30))
+        unshadowed.append(albedo * scale * intensity)
+    if ambient is None and not unshadowed:  # no lights: black, and the background where rays missed
+        ambient = torch.zeros_like(p)
+    return found, entering, ambient, shadow, unshadowed
+
+
+def add_light(scene: Scene, lit, vis: list[torch.Tensor]) -> torch.Tensor:
+    """(3, N) radiance from `shade_hits`' results `lit` and each point light's visibility vis (N,) (0 or 1,
+    so it multiplies exactly wherever it is applied); the background where the ray missed."""
+    found, _, ambient, _, unshadowed = lit
+    radiance = ambient
+    for term, v in zip(unshadowed, vis):
+        radiance = term * v if radiance is None else radiance.add_(term * v)
+    if any(scene.image.background):  # misses are 0 so far: adding the background times "missed" is exact
+        background = torch.tensor(scene.image.background, dtype=radiance.dtype, device=radiance.device)[:, None]
+        radiance = radiance + background * ~found
+    return radiance
+
+
+def checker_rows(shape, texture) -> bool:
+    """Whether `shade_hits` computes this texture on (3, N) rows (a checker on a shape with `uv_rows`)."""
+    return hasattr(shape, "uv_rows") and type(texture).__name__ == "CheckerTexture"

@@ -92,6 +92,15 @@ def unit_vectors_from_rows(x, y, z, eps: float = 1e-12) -> torch.Tensor:
     return vectors_from_rows(x * inv, y * inv, z * inv)
 
 
+def normalize_rows_(v: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
+    """(3, ...) vector rows made unit length in place, as `unit_vectors_from_rows` computes them (the same
+    bits); returns v. For tensors that need no gradient."""
+    norm2 = v[0] * v[0]
+    norm2 += v[1] * v[1]
+    norm2 += v[2] * v[2]
+    return v.mul_(norm2.rsqrt_().clamp_max_(1.0 / eps))
+
+
 def normalize(v: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
     """Unit vectors along the last axis; zero vectors stay zero instead of turning into NaN."""
     return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True).clamp_min(eps)

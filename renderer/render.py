@@ -76,23 +76,28 @@ def _tile_order_cached(width: int, height: int) -> torch.Tensor:
 
 def _camera_samples(sampler: Sampler, pixel: torch.Tensor, width: int, dtype: torch.dtype):
     """Pixel positions (n·spp, 2) (x = column, y = row) and lens samples (n·spp, 2) in [0, 1)² for all
-    samples of the pixels `pixel` (n,), the samples of a pixel consecutive."""
-    jx, jy, lu, lv = sampler.pixel_columns(pixel)
-    x = (pixel % width)[:, None].to(torch.float64) - 0.5 + jx
-    y = (pixel // width)[:, None].to(torch.float64) - 0.5 + jy
-    return torch.stack([x, y], -1).to(dtype).view(-1, 2), torch.stack([lu, lv], -1).to(dtype).view(-1, 2)
+    samples of the pixels `pixel` (n,), the samples of a pixel consecutive. Both are (n·spp, 2) views of one
+    (4, n·spp) block of rows x, y, u, v (the cameras read them row by row), made in float64 and rounded to
+    `dtype` once."""
+    block = sampler.pixel_block(pixel)  # (4, n, spp), ours to write to
+    block[0] += ((pixel % width).to(torch.float64) - 0.5)[:, None]
+    block[1] += ((pixel // width).to(torch.float64) - 0.5)[:, None]
+    rows = block.to(dtype).view(4, -1)
+    return rows[:2].T, rows[2:].T
 
 
-def _pixel_estimates(color, weight, valid, background, spp: int):
+def _pixel_estimates(color, weight, valid, background, spp: int, all_valid: bool = False):
     """Weighted mean of each pixel's spp consecutive samples (n, 3) (background where no sample has
-    weight), and the fraction of valid samples (n,)."""
-    w = torch.where(valid, weight, torch.zeros_like(weight))
+    weight), and the fraction of valid samples (n,). all_valid: the caller knows every sample is valid."""
+    w = weight if all_valid else torch.where(valid, weight, torch.zeros_like(weight))
     if color.T.is_contiguous() and not color.is_contiguous():  # a view of (3, n·spp) rows (renderer.direct)
         acc = (color.T * w).view(3, -1, spp).sum(-1).T
     else:
         acc = (color * w[:, None]).reshape(-1, spp, 3).sum(1)
     wsum = w.view(-1, spp).sum(1)
     estimate = torch.where((wsum > 0)[:, None], acc / wsum.clamp_min(1e-30)[:, None], background)
+    if all_valid:
+        return estimate, torch.ones(wsum.shape, dtype=color.dtype, device=color.device)
     return estimate, valid.view(-1, spp).sum(1).to(color.dtype) / spp
 
 
@@ -110,18 +115,21 @@ def _render_pixels(scene: Scene, pixel: torch.Tensor, sampler: Sampler, options:
     # render on an H100: benchmarks/results/profile_gpu_h100_samples_on_host.md, profile_gpu_h100.md).
     uv_px, lens_uv = _camera_samples(sampler, pixel.to(device), W, dtype)
     color = weight = valid = None
+    all_valid = False
     for camera, flags in render_passes(scene):
         rays = compiled_call(options.compile, type(camera).generate_rays, camera, uv_px, lens_uv)
         rad, found = trace(scene, rays.origin, rays.direction, flags, max_depth, options=options)
         take = rays.valid if flags is None else rays.valid & found
-        if color is None and bool(take.all()):
+        every = color is None and bool(take.all())
+        if every:
             color = rad
         else:
             base = background.expand_as(rad) if color is None else color
             color = torch.where(take[:, None], rad, base)
         if weight is None:
             weight, valid = rays.weight, rays.valid
-    return compiled_call(options.compile, _pixel_estimates, color, weight, valid, background, spp)
+            all_valid = every and flags is None  # take was rays.valid
+    return compiled_call(options.compile, _pixel_estimates, color, weight, valid, background, spp, all_valid)
 
 
 def _chunks(scene: Scene, spp: int, options: TraceOptions, chunk_rays: int):

@@ -91,28 +91,31 @@ class Sampler:
 
     def pixel_columns(self, pixel: torch.Tensor) -> list[torch.Tensor]:
         """All spp samples of each pixel as four (n, spp) float64 columns (pixel jitter x, y; lens u, v),
-        equal to `pixel_samples(pixel)[..., i]`. Keys shared by a pixel's samples are hashed once per pixel."""
+        equal to `pixel_samples(pixel)[..., i]`: the rows of `pixel_block`."""
+        return list(self.pixel_block(pixel).unbind(0))
+
+    def pixel_block(self, pixel: torch.Tensor) -> torch.Tensor:
+        """All spp samples of each pixel as one new (4, n, spp) float64 tensor on pixel's device, rows pixel
+        jitter x, y, lens u, v: block[i] equals `pixel_samples(pixel)[..., i]`. Keys shared by a pixel's
+        samples are hashed once per pixel, and each step runs once over the whole block."""
         n, spp = pixel.shape[0], self.spp
         if self.name == "center":
-            return [torch.full((n, spp), 0.5, dtype=torch.float64, device=pixel.device)] * 4
-        pix = pixel[:, None]
+            return torch.full((4, n, spp), 0.5, dtype=torch.float64, device=pixel.device)
+        dims = torch.arange(4, device=pixel.device)
         sample = torch.arange(spp, device=pixel.device)
         if self.name == "sobol":
-            h = _chain(_chain(0, self.seed + 7919), pix)
-            points = self._points.to(pixel.device)
-            out = []
-            for d in range(4):
-                v = points[:, d] + _unit(_chain(h, d))  # in [0, 2): equals torch.remainder(v, 1.0) below
-                out.append(v - (v >= 1).to(v.dtype))
-            return out
-        h = _chain(_chain(_chain(0, self.seed), pix), sample)
-        jitter = [_unit(_chain(h, d)) for d in range(4)]
+            h = _chain(_chain(0, self.seed + 7919), pixel)  # (n,)
+            shift = _unit(_chain(h, dims[:, None]))  # (4, n)
+            v = self._points.to(pixel.device).T[:, None, :] + shift[:, :, None]  # in [0, 2)
+            return v.frac_()  # v − 1 where v >= 1 (exact): torch.remainder(v, 1.0) of `pixel_samples`
+        h = _chain(_chain(_chain(0, self.seed), pixel[:, None]), sample)  # (n, spp)
+        jitter = _unit(_chain(h, dims[:, None, None]))
         if self.name == "independent":
             return jitter
         nx, ny = _grid(spp)
-        lens_stratum = permute(sample, spp, _chain(_chain(0, self.seed + 1), pix))
-        return [(sample % nx + jitter[0]) / nx, (sample // nx + jitter[1]) / ny,
-                (lens_stratum % nx + jitter[2]) / nx, (lens_stratum // nx + jitter[3]) / ny]
+        lens_stratum = permute(sample, spp, _chain(_chain(0, self.seed + 1), pixel[:, None]))
+        return torch.stack([(sample % nx + jitter[0]) / nx, (sample // nx + jitter[1]) / ny,
+                            (lens_stratum % nx + jitter[2]) / nx, (lens_stratum // nx + jitter[3]) / ny])
 
     def samples(self, pixel: torch.Tensor, sample: torch.Tensor) -> torch.Tensor:
         """Samples for matching (n,) pixel and sample indices: (n, 4) float64."""

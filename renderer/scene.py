@@ -430,6 +430,11 @@ class Scene:
             t_best, obj, aux = _merged((t_best, obj, aux), rows, sel)
         return Hit(t_best.view(-1)[:n], obj.view(-1)[:n], aux.view(-1)[:n])
 
+    def answers_shadow_rays(self, options: TraceOptions | None, *rays: torch.Tensor) -> bool:
+        """Whether our own tracer answers `visibility_rows` for these rays (o, d, t_max), not an external
+        intersector: only then does it use `leaving`."""
+        return self._external(self.options if options is None else options, None, *rays) is None
+
     def visibility_rows(self, o: torch.Tensor, d: torch.Tensor, t_max: torch.Tensor, *,
                         options: TraceOptions | None = None, leaving: torch.Tensor | None = None) -> torch.Tensor:
         """(N,) 1 where nothing opaque lies on o + t·d for t in (ε, t_max), else 0; o, d (3, N) component

@@ -55,11 +55,14 @@ class Screen:
 
     def plane_rows(self, uv_px: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """`to_plane` as its three (...,) components x, y, z (for cameras that build rays per component)."""
-        (cx, cy), (px, py) = self.center_px, self.pitch
-        x = (uv_px[..., 0] - cx) * px
-        y = (uv_px[..., 1] - cy) * py
+        x, y = self.plane_xy(uv_px)
         # `distance` may be a tensor (the thin lens's w, fitted): broadcast, don't copy it into a fill.
         return x, y, torch.zeros_like(x) + self.distance
+
+    def plane_xy(self, uv_px: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The x, y components of `plane_rows` (z is `distance` everywhere)."""
+        (cx, cy), (px, py) = self.center_px, self.pitch
+        return (uv_px[..., 0] - cx) * px, (uv_px[..., 1] - cy) * py
 
     def to_pixels(self, p_plane: torch.Tensor) -> torch.Tensor:
         """Inverse of `to_plane`: (..., 2) plane coordinates (x, y) -> pixels."""

@@ -39,8 +39,9 @@ import math
 import torch
 
 from .. import optics
+from ..blend import selector
 from ..params import Param, SceneError
-from ..rays import Rays, unit_vectors_from_rows, vectors_from_rows
+from ..rays import Rays, normalize_rows_, unit_vectors_from_rows, vectors_from_rows
 from ..transforms import CameraTransform
 from . import register_camera
 from .base import Camera, Screen
@@ -83,14 +84,16 @@ def concentric_disk(lens_uv: torch.Tensor) -> torch.Tensor:
 
 def concentric_disk_xy(lens_uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """`concentric_disk` as its two (...,) components x, y (no stacking)."""
-    a = 2 * lens_uv[..., 0] - 1
-    b = 2 * lens_uv[..., 1] - 1
-    use_a = a.abs() > b.abs()
-    r = torch.where(use_a, a, b)
-    # Ratios only where their denominators are the larger magnitude (and non-zero), so no 0/0.
-    safe_a = torch.where(use_a, a, torch.ones_like(a))
-    safe_b = torch.where(use_a | (b == 0), torch.ones_like(b), b)
-    phi = torch.where(use_a, (math.pi / 4) * (b / safe_a), math.pi / 2 - (math.pi / 4) * (a / safe_b))
+    ab = 2 * lens_uv.movedim(-1, 0) - 1  # rows a, b
+    a, b = ab[0], ab[1]
+    magnitude = ab.abs()
+    # Which of |a|, |b| is larger has no order over the samples: `selector` blends instead of branching.
+    pick = selector(magnitude[0] > magnitude[1])
+    r, other = pick.pair(a, b)
+    # phi = π/4 · b/a where |a| > |b|, else π/2 − π/4 · a/b: each ratio only where its denominator (r) is the
+    # larger magnitude; r = 0 (a = b = 0) divides by 1 instead, so no 0/0.
+    q = (math.pi / 4) * (other / (r + (r == 0)))
+    phi = pick(q, math.pi / 2 - q)
     return r * torch.cos(phi), r * torch.sin(phi)
 
 
@@ -217,12 +220,43 @@ class ThinLensCamera(Camera):
         # Per component (x, y, z rows), without (..., 3) intermediates, whose length-3 last axis is slow in
         # eager torch. The (..., 3) results are views of (3, ...) rows, which the tracer's row code takes
         # without a copy.
+        if self._plain(uv_px, lens_uv):
+            return self._rays_in_place(uv_px, lens_uv)
         x, y, z = self.screen.plane_rows(uv_px)
         sx, sy, sz = self.lens_rows(lens_uv.to(x))
         weight = self._focus_weight(y, z)
         dx, dy, dz = x - weight * sx, y - weight * sy, z - weight * sz
         valid = torch.ones(x.shape, dtype=torch.bool, device=x.device)
         return Rays(vectors_from_rows(sx, sy, sz), unit_vectors_from_rows(dx, dy, dz), valid, torch.ones_like(x))
+
+    def _plain(self, *inputs: torch.Tensor) -> bool:
+        """Whether `_rays_in_place` may answer: lens and screen parameters plain numbers, inputs that need no
+        gradient, eager tracing."""
+        params = (self.w, self.U, self.d, self.theta_F, self.screen.distance)
+        return (not any(isinstance(p, torch.Tensor) for p in params) and not any(t.requires_grad for t in inputs)
+                and not torch.compiler.is_compiling())
+
+    def _rays_in_place(self, uv_px: torch.Tensor, lens_uv: torch.Tensor) -> Rays:
+        """`rays_in_camera`'s formulas, the same operations in the same order (the same bits), written into
+        two (3, ...) blocks with in-place steps: fewer temporaries and no stacking copies (eager, no
+        gradients; about 2x faster on 2^17 rays)."""
+        x, y = self.screen.plane_xy(uv_px)
+        z = self.screen.distance  # a number: rounded to x's dtype in each operation, as a filled row would be
+        lx, ly = concentric_disk_xy(lens_uv.to(x))
+        origin = torch.empty((3, *x.shape), dtype=x.dtype, device=x.device)
+        torch.mul(lx, self.d / 2, out=origin[0])
+        sy = ly.mul_(self.d / 2)
+        theta_L = _like(self.theta_L, x)
+        torch.mul(sy, torch.cos(theta_L), out=origin[1])
+        torch.mul(sy, torch.sin(theta_L), out=origin[2])
+        weight = self._focus_weight(y, z)
+        d = torch.mul(origin, weight)  # weight · S, then P − weight · S row by row
+        torch.sub(x, d[0], out=d[0])
+        torch.sub(y, d[1], out=d[1])
+        d[2].neg_().add_(z)
+        normalize_rows_(d)
+        valid = torch.ones(x.shape, dtype=torch.bool, device=x.device)
+        return Rays(origin.movedim(0, -1), d.movedim(0, -1), valid, torch.ones_like(x))
 
     def focus_geometry(self, uv_px: torch.Tensor):
         """Where the rays of sensor points converge, and the aperture they come from, world frame.

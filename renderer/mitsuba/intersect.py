@@ -120,10 +120,11 @@ class MitsubaIntersector:
             obj_of[sid], start[sid], stride[sid] = k, offset, int(per_prim)
             table.append(aux)
             offset += len(aux)
-        self._obj_of = mi.Int32(obj_of.astype(np.int32))
+        # Object and aux tables as 64-bit integers: the hits come back as the torch longs `Hit` holds, no cast.
+        self._obj_of = mi.Int64(obj_of.astype(np.int64))
         self._start = mi.UInt32(start.astype(np.uint32))
         self._stride = mi.UInt32(stride.astype(np.uint32))
-        self._aux = mi.Int32(np.concatenate(table + [np.zeros(1)]).astype(np.int32))
+        self._aux = mi.Int64(np.concatenate(table + [np.zeros(1)]).astype(np.int64))
 
     def _ray(self, o, d, t_min: float, t_max=None):
         """Mitsuba rays from (3, N) rows o, d (torch, float32 views, no copy), starting at o + t_min·d."""
@@ -147,9 +148,9 @@ class MitsubaIntersector:
         pi = self.mscene.ray_intersect_preliminary(ray, coherent=True)
         valid = pi.is_valid()
         sid = dr.reinterpret_array(mi.UInt32, pi.shape)
-        obj = dr.gather(mi.Int32, self._obj_of, sid)
+        obj = dr.gather(mi.Int64, self._obj_of, sid)
         index = dr.gather(mi.UInt32, self._start, sid) + dr.gather(mi.UInt32, self._stride, sid) * pi.prim_index
-        aux = dr.gather(mi.Int32, self._aux, index, valid)
+        aux = dr.gather(mi.Int64, self._aux, index, valid)
         t = dr.select(valid, pi.t + t_min, math.inf)
         obj = dr.select(valid, obj, -1)
         dr.eval(t, obj, aux)

@@ -291,3 +291,21 @@ def test_rendered_blur_matches_exact_ellipse_tilted(p):
     assert centroid_err < 0.3, f"spot centred on the ellipse centre, off by {centroid_err:.2f} px"
     paper = float(optics.blur_diameter_paper(p[1], p[2], W, U, D, theta_F)) / PITCH
     assert abs(measured_x / paper - 1) > 0.05, f"the paper's eq. (4) misses this spot by more than 5% ({paper:.2f} px)"
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("theta_F_deg", [0.0, 25.0])
+def test_in_place_rays_equal_the_general_formulas_bit_for_bit(dtype, theta_F_deg):
+    """`rays_in_camera` writes rays of plain-number cameras in place (`_rays_in_place`); inputs that need a
+    gradient take the general formulas. Both must give the same bits, on an odd, non-square image with an
+    off-centre principal point, including the lens centre and the square's corners (the concentric map's
+    0/0 and its octant edges)."""
+    cam = _lens(theta_F_deg, size=(36.0, 24.0), px=(13, 7), pp=(5.0, 2.5))
+    uv, lens = _random_samples(4001, cam, seed=3, dtype=dtype)
+    lens[:5] = torch.tensor([[0.5, 0.5], [0.0, 0.0], [0.0, 1.0], [0.75, 0.75], [0.5, 0.0]], dtype=dtype)
+    fast = cam.rays_in_camera(uv, lens)
+    general = cam.rays_in_camera(uv.clone().requires_grad_(True), lens)
+    for name in ("origin", "direction", "weight", "valid"):
+        a, b = getattr(fast, name), getattr(general, name).detach()
+        assert a.dtype == b.dtype and torch.equal(a, b), f"{name}: max |diff| {float((a.double() - b.double()).abs().max()):.3g}"
+    assert torch.allclose(fast.direction.norm(dim=-1), torch.ones(4001, dtype=dtype)), "directions not unit"

@@ -101,16 +101,18 @@ def time_modes(scene, ms: Mitsuba, modes: dict, repeats: int, log) -> dict:
     _, wall, cpu = _timed(lambda: ms.render(seed=0))
     out["mitsuba"] = {"kwargs": {"variant": ms.mi.variant()}, "warmup_s": wall, "wall": [], "cpu": []}
     log(f"warm-up Mitsuba: {wall:.2f} s")
+    # The order rotates every repeat, Mitsuba's render included: the render right after Mitsuba's ran
+    # about 10 % slower in one fixed order (its thread pool winding down), which then fell on one mode.
+    order = [*modes, "mitsuba"]
     for r in range(repeats):
-        for name, kwargs in modes.items():
-            img, wall, cpu = _timed(lambda: render(scene, **kwargs).image.cpu())  # .cpu(): waits for a GPU
+        for name in order[r % len(order):] + order[:r % len(order)]:
+            if name == "mitsuba":
+                img, wall, cpu = _timed(lambda: ms.render(seed=r + 1))
+            else:
+                img, wall, cpu = _timed(lambda: render(scene, **modes[name]).image.cpu())  # .cpu(): waits for a GPU
             out[name]["wall"].append(wall)
             out[name]["cpu"].append(cpu)
             out[name]["mean"] = float(img.mean())
-        img, wall, cpu = _timed(lambda: ms.render(seed=r + 1))
-        out["mitsuba"]["wall"].append(wall)
-        out["mitsuba"]["cpu"].append(cpu)
-        out["mitsuba"]["mean"] = float(img.mean())
         log(f"repeat {r + 1}/{repeats}: " + ", ".join(f"{k} {v['wall'][-1]:.3f} s" for k, v in out.items()))
     for v in out.values():
         v["median_wall_s"] = statistics.median(v["wall"])
@@ -206,7 +208,8 @@ def write_markdown(path: str, res: dict) -> None:
         label = f"Mitsuba {mi_t['kwargs']['variant']}, its defaults" if name == "mitsuba" else f"ours, {name}"
         lines.append(f"| {label} | {v['warmup_s']:.2f} | {v['median_wall_s']:.3f} | {v['median_cpu_s']:.3f} "
                      f"| {ratio} | {v['mean']:.5f} |")
-    lines += ["", f"Medians of {res['repeats']} interleaved repeats after the warm-up render (the first render of "
+    lines += ["", f"Medians of {res['repeats']} interleaved repeats (the order rotating each repeat) after the "
+              "warm-up render (the first render of "
               "that mode in this process, after Mitsuba was loaded for its own render; for `workers` the start of "
               "the worker processes where the mode is the first to use them). CPU time counts this process only "
               "(with workers the work is in the workers).", ""]

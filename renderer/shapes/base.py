@@ -14,7 +14,8 @@ Two optional fast paths, same results (tests/renderer/test_fast_paths.py):
   keeping their former (N, 3) code as `intersect_reference`); the default transposes;
 - `normal_at(p, aux)` -> (N, 3): the normal alone, for untextured objects (no texture coordinates computed);
   shapes with `soa_native` also have `normal_rows(p, aux)` for (3, N) rows (renderer/direct.py).
-Shapes keep their parameters in float64 and convert them once per device/dtype (`_param`). A bad
+Shapes keep their parameters in float64 and convert them once per device/dtype (`_param`), again when one
+is replaced or edited in place. A bad
 parameter raises `ParameterError` naming it; `build_shape` prefixes the scene-file path.
 """
 from __future__ import annotations
@@ -55,11 +56,14 @@ class Shape:
         self._cache: dict = {}
 
     def _param(self, name: str, like: torch.Tensor) -> torch.Tensor:
-        """Attribute `name` (a float64 tensor) converted to `like`'s device and dtype, cached."""
-        key = (name, like.device, like.dtype)
-        if key not in self._cache:
-            self._cache[key] = getattr(self, name).to(device=like.device, dtype=like.dtype)
-        return self._cache[key]
+        """Attribute `name` (a float64 tensor) converted to `like`'s device and dtype, cached until the
+        attribute is replaced or edited in place (its identity or version counter changes)."""
+        value = getattr(self, name)
+        key, stamp = (name, like.device, like.dtype), (id(value), value._version)
+        cached = self._cache.get(key)
+        if cached is None or cached[0] != stamp:
+            self._cache[key] = cached = (stamp, value.to(device=like.device, dtype=like.dtype))
+        return cached[1]
 
     def intersect(self, o: torch.Tensor, d: torch.Tensor, t_min: float) -> tuple[torch.Tensor, torch.Tensor]:
         if self.soa_native:  # one implementation, so both layouts give the same bits

@@ -111,8 +111,9 @@ def test_auto_leaves_someone_elses_mitsuba_variant_alone(calls):
 
 @needs_llvm
 def test_embree_scene_follows_a_moved_shape():
-    """The Embree scene is cached per scene; replacing a shape (how one moves it) or editing its tensors in
-    place rebuilds it instead of answering with the old geometry."""
+    """The Embree scene, the direct path's normal tables and each shape's converted parameters are cached;
+    replacing a shape or editing its tensors in place rebuilds them instead of answering with the old
+    geometry."""
     import copy
 
     from renderer.shapes.base import geometry_key
@@ -132,6 +133,14 @@ def test_embree_scene_follows_a_moved_shape():
     key = geometry_key(scene)
     box.half.mul_(1.0)  # an in-place edit (same values) bumps the tensor's version
     assert geometry_key(scene) != key, "an in-place edit should change the geometry key"
+    # Moved by editing its centre in place: both tracers follow (our own through `Shape._param`'s cache).
+    edited = load_scene(CFG)
+    render(edited, seed=4, intersector="torch")
+    render(edited, seed=4, intersector="mitsuba")
+    edited.objects[0].shape.center.copy_(torch.tensor([0.6, -0.3, 0.0], dtype=torch.float64))
+    for intersector in ("torch", "mitsuba"):
+        got = render(edited, seed=4, intersector=intersector).image
+        assert (got - fresh).abs().max() < 1e-4, f"{intersector}: the ball edited in place should be where it now is"
 
 
 def test_auto_workers_only_for_large_float32_cpu_renders(monkeypatch):

@@ -32,6 +32,7 @@ import argparse
 import datetime
 import math
 import os
+import random
 import statistics
 import sys
 import time
@@ -101,11 +102,12 @@ def time_modes(scene, ms: Mitsuba, modes: dict, repeats: int, log) -> dict:
     _, wall, cpu = _timed(lambda: ms.render(seed=0))
     out["mitsuba"] = {"kwargs": {"variant": ms.mi.variant()}, "warmup_s": wall, "wall": [], "cpu": []}
     log(f"warm-up Mitsuba: {wall:.2f} s")
-    # The order rotates every repeat, Mitsuba's render included: the render right after Mitsuba's ran
-    # about 10 % slower in one fixed order (its thread pool winding down), which then fell on one mode.
-    order = [*modes, "mitsuba"]
+    # Each repeat in its own (seeded) random order, Mitsuba's render included: in a fixed order the render
+    # right after Mitsuba's ran about 10 % slower (its thread pool winding down) and that fell on one mode.
     for r in range(repeats):
-        for name in order[r % len(order):] + order[:r % len(order)]:
+        order = [*modes, "mitsuba"]
+        random.Random(r).shuffle(order)
+        for name in order:
             if name == "mitsuba":
                 img, wall, cpu = _timed(lambda: ms.render(seed=r + 1))
             else:
@@ -208,7 +210,7 @@ def write_markdown(path: str, res: dict) -> None:
         label = f"Mitsuba {mi_t['kwargs']['variant']}, its defaults" if name == "mitsuba" else f"ours, {name}"
         lines.append(f"| {label} | {v['warmup_s']:.2f} | {v['median_wall_s']:.3f} | {v['median_cpu_s']:.3f} "
                      f"| {ratio} | {v['mean']:.5f} |")
-    lines += ["", f"Medians of {res['repeats']} interleaved repeats (the order rotating each repeat) after the "
+    lines += ["", f"Medians of {res['repeats']} interleaved repeats (each in its own random order) after the "
               "warm-up render (the first render of "
               "that mode in this process, after Mitsuba was loaded for its own render; for `workers` the start of "
               "the worker processes where the mode is the first to use them). CPU time counts this process only "

@@ -23,8 +23,8 @@ def selector(cond: torch.Tensor):
         cond: (...,) bool condition.
     Returns:
         pick(a, b): a, b tensors of one dtype (or a Python number for one of them) broadcasting with cond.
-        Bit blending where it is exact and faster (CPU tensors of float32/float64/int32/int64 that need no
-        gradient, outside torch.compile); `torch.where` otherwise. `pick.pair(a, b)` returns (pick(a, b),
+        Bit blending where it is exact and faster (CPU tensors of float32/float64/int32/int64 that carry no
+        derivative, `carries_derivative`, outside torch.compile); `torch.where` otherwise. `pick.pair(a, b)` returns (pick(a, b),
         pick(b, a)), the second from the first with one more operation (a ^ b ^ first).
     """
     masks: dict = {}
@@ -34,7 +34,7 @@ def selector(cond: torch.Tensor):
         """(x = (a ^ b) & m, b's bits, dtype) for the bit blend, or None where torch.where must answer."""
         like = a if isinstance(a, torch.Tensor) else b
         bits = _BITS.get(like.dtype)
-        if not eager_cpu or bits is None or torch.is_grad_enabled() and (_grad(a) or _grad(b)):
+        if not eager_cpu or bits is None or carries_derivative(a) or carries_derivative(b) or _wrapped(cond):
             return None
         a = a if isinstance(a, torch.Tensor) else torch.tensor(a, dtype=like.dtype)
         b = b if isinstance(b, torch.Tensor) else torch.tensor(b, dtype=like.dtype)
@@ -72,5 +72,16 @@ def select(cond: torch.Tensor, a, b) -> torch.Tensor:
     return selector(cond)(a, b)
 
 
-def _grad(x) -> bool:
-    return isinstance(x, torch.Tensor) and x.requires_grad
+def carries_derivative(x) -> bool:
+    """Whether x is a tensor some derivative flows through: one that requires grad (with grad enabled), a
+    forward-mode dual number, or one wrapped by a torch.func transform (jacfwd, vmap, grad). Bit tricks and
+    `out=` steps would drop its derivative or fail; only plain tensors may take them."""
+    if not isinstance(x, torch.Tensor):
+        return False
+    return (torch.is_grad_enabled() and x.requires_grad) or _wrapped(x) \
+        or torch.autograd.forward_ad.unpack_dual(x).tangent is not None
+
+
+def _wrapped(x: torch.Tensor) -> bool:
+    """Whether x is a torch.func transform's wrapper (batched or dual levels)."""
+    return bool(torch._C._functorch.is_functorch_wrapped_tensor(x))

@@ -376,6 +376,7 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
     chunk_given = chunk_rays
     chunk_rays = default_chunk_rays(device) if chunk_rays is None else chunk_rays
     sampler = sampler or scene.image.sampler
+    scene.refresh()  # a shape moved or replaced since the last render: culling spheres, extent, materials
     options = scene.options
     if culling is not None:
         options = replace(options, culling=culling)

@@ -23,7 +23,7 @@ import torch
 from .cameras.base import Camera
 from .materials import Material, MaterialTable
 from .rays import Hit
-from .shapes.base import Shape
+from .shapes.base import Shape, geometry_key
 
 # Above this fraction of candidate packets, testing every ray in place is cheaper than gathering.
 _COMPACT_BELOW = 0.75
@@ -242,6 +242,18 @@ class Scene:
     options: TraceOptions = field(default_factory=TraceOptions)
 
     def __post_init__(self):
+        self._geometry = None
+        self.refresh()
+
+    def refresh(self) -> None:
+        """Recompute what the scene derives from its objects (culling spheres, extent, material tables) if an
+        object, shape or material was replaced or a shape's tensor edited in place since it was last computed
+        (`renderer.shapes.base.geometry_key`). `render` calls it once per render; a caller tracing rays
+        through `intersect`/`shadow` itself after moving a shape calls it first."""
+        key = geometry_key(self)
+        if key == self._geometry:
+            return
+        self._geometry = key
         self._tables: dict = {}
         self._warm: set = set()
         names = [o.name for o in self.objects]

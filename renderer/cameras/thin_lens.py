@@ -39,7 +39,7 @@ import math
 import torch
 
 from .. import optics
-from ..blend import selector
+from ..blend import carries_derivative, selector
 from ..params import Param, SceneError
 from ..rays import Rays, normalize_rows_, unit_vectors_from_rows, vectors_from_rows
 from ..transforms import CameraTransform
@@ -229,11 +229,14 @@ class ThinLensCamera(Camera):
         valid = torch.ones(x.shape, dtype=torch.bool, device=x.device)
         return Rays(vectors_from_rows(sx, sy, sz), unit_vectors_from_rows(dx, dy, dz), valid, torch.ones_like(x))
 
-    def _plain(self, *inputs: torch.Tensor) -> bool:
-        """Whether `_rays_in_place` may answer: lens and screen parameters plain numbers, inputs that need no
-        gradient, eager tracing."""
-        params = (self.w, self.U, self.d, self.theta_F, self.screen.distance)
-        return (not any(isinstance(p, torch.Tensor) for p in params) and not any(t.requires_grad for t in inputs)
+    def _plain(self, uv_px: torch.Tensor, lens_uv: torch.Tensor) -> bool:
+        """Whether `_rays_in_place` may answer: lens and screen parameters plain numbers (the principal point
+        and pitch too), inputs of one shape that carry no derivative of any kind (reverse or forward mode,
+        torch.func), eager tracing."""
+        params = (self.w, self.U, self.d, self.theta_F, self.screen.distance, *self.screen.center_px,
+                  *self.screen.pitch)
+        return (not any(isinstance(p, torch.Tensor) for p in params) and uv_px.shape == lens_uv.shape
+                and not carries_derivative(uv_px) and not carries_derivative(lens_uv)
                 and not torch.compiler.is_compiling())
 
     def _rays_in_place(self, uv_px: torch.Tensor, lens_uv: torch.Tensor) -> Rays:

@@ -110,37 +110,39 @@ def test_auto_leaves_someone_elses_mitsuba_variant_alone(calls):
 
 
 @needs_llvm
-def test_embree_scene_follows_a_moved_shape():
-    """The Embree scene, the direct path's normal tables and each shape's converted parameters are cached;
-    replacing a shape or editing its tensors in place rebuilds them instead of answering with the old
-    geometry."""
+def test_renders_follow_a_moved_shape():
+    """What is cached from a scene's shapes (the Embree scene, the direct path's normal tables, the culling
+    spheres and extent, each shape's converted parameters) follows a shape replaced (how one moves it) or
+    edited in place: both tracers then render what a scene built with the shape there renders."""
     import copy
 
     from renderer.shapes.base import geometry_key
     from renderer.shapes.sphere import Sphere
 
-    scene = load_scene(CFG)
-    before = render(scene, seed=4, intersector="mitsuba").image
+    cfg = {**CFG, "image": {**CFG["image"], "width": 96, "height": 64}}  # packets big enough to be culled
+    moved_cfg = {**cfg, "objects": [{**cfg["objects"][0], "shape": {"type": "sphere", "center": [-1.5, -0.6, 0.5],
+                                                                       "radius": 0.5}}, *cfg["objects"][1:]]}
+    fresh = {i: render(load_scene(moved_cfg), seed=4, intersector=i).image for i in ("torch", "mitsuba")}
+    scene = load_scene(cfg)
+    before = {i: render(scene, seed=4, intersector=i).image for i in ("torch", "mitsuba")}
     scene.objects[0] = copy.copy(scene.objects[0])
-    scene.objects[0].shape = Sphere([0.6, -0.3, 0.0], 1.0)
-    moved = render(scene, seed=4, intersector="mitsuba").image
-    fresh = render(load_scene({**CFG, "objects": [{**CFG["objects"][0], "shape": {
-        "type": "sphere", "center": [0.6, -0.3, 0.0], "radius": 1}}, *CFG["objects"][1:]]}),
-        seed=4, intersector="mitsuba").image
-    assert (moved - before).abs().max() > 0.05, "moving the ball should change the image"
-    assert torch.equal(moved, fresh), "after the move: the image of a scene built with the ball there"
-    box = scene.objects[1].shape
-    key = geometry_key(scene)
-    box.half.mul_(1.0)  # an in-place edit (same values) bumps the tensor's version
-    assert geometry_key(scene) != key, "an in-place edit should change the geometry key"
-    # Moved by editing its centre in place: both tracers follow (our own through `Shape._param`'s cache).
-    edited = load_scene(CFG)
-    render(edited, seed=4, intersector="torch")
-    render(edited, seed=4, intersector="mitsuba")
-    edited.objects[0].shape.center.copy_(torch.tensor([0.6, -0.3, 0.0], dtype=torch.float64))
-    for intersector in ("torch", "mitsuba"):
-        got = render(edited, seed=4, intersector=intersector).image
-        assert (got - fresh).abs().max() < 1e-4, f"{intersector}: the ball edited in place should be where it now is"
+    scene.objects[0].shape = Sphere([-1.5, -0.6, 0.5], 0.5)
+    for i in ("torch", "mitsuba"):
+        moved = render(scene, seed=4, intersector=i).image
+        assert (moved - before[i]).abs().max() > 0.05, f"{i}: moving the ball should change the image"
+        assert torch.equal(moved, fresh[i]), \
+            f"{i}: the replaced ball, {float((moved - fresh[i]).abs().max()):.3g} off the scene built with it there"
+    # Moved by editing its tensors in place (radius too, through a shape that keeps it as a number: replaced).
+    edited = load_scene(cfg)
+    for i in ("torch", "mitsuba"):
+        render(edited, seed=4, intersector=i)
+    key = geometry_key(edited)
+    edited.objects[0].shape.center.copy_(torch.tensor([-1.5, -0.6, 0.5], dtype=torch.float64))
+    assert geometry_key(edited) != key, "an in-place edit should change the geometry key"
+    edited.objects[0].shape.radius = 0.5
+    for i in ("torch", "mitsuba"):
+        got = render(edited, seed=4, intersector=i).image
+        assert torch.equal(got, fresh[i]), f"{i}: the ball edited in place, {float((got - fresh[i]).abs().max()):.3g} off"
 
 
 def test_auto_workers_only_for_large_float32_cpu_renders(monkeypatch):

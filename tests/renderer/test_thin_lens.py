@@ -309,3 +309,29 @@ def test_in_place_rays_equal_the_general_formulas_bit_for_bit(dtype, theta_F_deg
         a, b = getattr(fast, name), getattr(general, name).detach()
         assert a.dtype == b.dtype and torch.equal(a, b), f"{name}: max |diff| {float((a.double() - b.double()).abs().max()):.3g}"
     assert torch.allclose(fast.direction.norm(dim=-1), torch.ones(4001, dtype=dtype)), "directions not unit"
+
+
+def test_in_place_rays_keep_every_kind_of_derivative():
+    """The in-place rays and the branch-free selects of the concentric map are for plain inputs only: a
+    principal point that needs a gradient, forward-mode AD (torch.func.jacfwd) through the pixels or the lens
+    samples, and mismatched shapes all take the general formulas, with the same derivatives as reverse mode."""
+    cam = _lens(20.0, size=(36.0, 24.0), px=(13, 7), pp=(5.0, 2.5))
+    uv, lens = _random_samples(64, cam, seed=5)
+    # A differentiable principal point on a plain-number lens: reverse mode reaches it.
+    pp = torch.tensor([5.0, 2.5], dtype=torch.float64, requires_grad=True)
+    cam_pp = _lens(20.0, size=(36.0, 24.0), px=(13, 7), pp=pp)
+    cam_pp.generate_rays(uv, lens).direction.sum().backward()
+    assert pp.grad is not None and float(pp.grad.abs().sum()) > 0, "no gradient reached the principal point"
+    # Forward mode through the pixels and the lens samples equals reverse mode, and is not zero.
+    for argnum, name in ((0, "pixels"), (1, "lens samples")):
+        f = lambda a, b: cam.generate_rays(a, b).direction  # noqa: E731
+        fwd = torch.func.jacfwd(f, argnums=argnum)(uv[:8], lens[:8])
+        rev = torch.func.jacrev(f, argnums=argnum)(uv[:8], lens[:8])
+        assert float(rev.abs().max()) > 0.01, f"{name}: the reverse-mode Jacobian should not vanish"
+        assert torch.allclose(fwd, rev, atol=1e-12), f"{name}: forward mode {float((fwd - rev).abs().max()):.3g} off"
+    jf = torch.func.jacfwd(concentric_disk)(lens[:8])
+    jr = torch.func.jacrev(concentric_disk)(lens[:8])
+    assert float(jr.abs().max()) > 0.5 and torch.allclose(jf, jr, atol=1e-12), "concentric map: forward mode"
+    # Lens samples of another shape than the pixels: the general formulas' broadcasting error, not (4, 3) rays.
+    with pytest.raises(RuntimeError):
+        cam.generate_rays(uv[:4], lens[:50])

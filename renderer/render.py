@@ -109,6 +109,11 @@ def _render_pixels(scene: Scene, pixel: torch.Tensor, sampler: Sampler, options:
     the caller.
     """
     spp, W = sampler.spp, scene.camera.width
+    if options.compile and options.intersector == "mitsuba":
+        from . import fused
+
+        if fused.applies(scene, options, device, dtype):  # compiled stages between the Embree calls
+            return fused.render_pixels(scene, pixel, sampler, options)
     background = torch.tensor(scene.image.background, dtype=dtype, device=device)
     # Samples are made where they are traced: integer hashing and exact float steps give the same values on
     # every device, and on a GPU this saves the host-side sampling and its copy (0.058 -> 0.044 s a warm

@@ -58,6 +58,9 @@ MODES = {"defaults": {}, "torch": {"intersector": "torch", "workers": 1},
          "embree_jit2": {"intersector": "mitsuba", "workers": 1, "threads": None},
          "embree_threads2": {"intersector": "mitsuba", "workers": 1, "threads": 2},
          "workers2": {"workers": 2}, "threads2": {"threads": 2}, "compile": {"compile": True},
+         # renderer.fused: Embree with the work between its calls in three torch.compile'd stages on 1-D components.
+         "embree_fused": {"intersector": "mitsuba", "workers": 1, "compile": True},
+         "embree_fused_workers2": {"intersector": "mitsuba", "workers": 2, "compile": True},
          "cuda": {"device": "cuda"}, "cuda_chunk15": {"device": "cuda", "chunk_rays": 1 << 15},
          "cuda_compile": {"device": "cuda", "compile": True}}
 DEFAULT_MODES = "defaults,torch,torch_workers2,embree,embree_workers2,embree_jit2"

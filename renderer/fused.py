@@ -115,8 +115,8 @@ def _camera_rays(block, pixel, width: int, spp: int, cam: tuple):
 
 def _shade(o, d, t, obj, aux, faces, center, inv_r, colors, kd, tb: _Tables):
     """Stage 2: `direct.shade_hits` on 1-D components. Returns found (N,), the shadow rays' origin (3 × (N,))
-    and per point light its direction (3 × (N,)) and reach (N,), and the radiance terms: ambient (3 × (N,))
-    and per point light the unshadowed radiance (3 × (N,))."""
+    and per point light its direction (3 × (N,)) and reach (N,), and the radiance terms: ambient (3 × (N,),
+    None without ambient light) and per point light the unshadowed radiance (3 × (N,))."""
     found = obj >= 0
     safe = obj.clamp_min(0)
     tt = torch.where(found, t, 0)
@@ -140,11 +140,11 @@ def _shade(o, d, t, obj, aux, faces, center, inv_r, colors, kd, tb: _Tables):
     nf = [n[i] * sign for i in range(3)]
     kds = kd[slot]
     origin = [p[i] + nf[i] * tb.eps for i in range(3)]
-    ambient = [torch.zeros_like(t) for _ in range(3)]
+    ambient = None  # no zero rows written and read back where the scene has no ambient light
     shadow, unshadowed = [], []
     for kind, intensity, position in tb.lights:
         if kind == "ambient":
-            ambient = [ambient[i] + intensity[i] * albedo[i] for i in range(3)]
+            ambient = [intensity[i] * albedo[i] + (0 if ambient is None else ambient[i]) for i in range(3)]
             continue
         to = [position[i] - origin[i] for i in range(3)]
         dist = (to[0] * to[0] + to[1] * to[1] + to[2] * to[2]).sqrt()
@@ -160,9 +160,11 @@ def _shade(o, d, t, obj, aux, faces, center, inv_r, colors, kd, tb: _Tables):
 
 def _pixel_means(found, ambient, unshadowed, vis, background, spp: int):
     """Stage 3: `direct.add_light` and the mean of each pixel's spp consecutive samples: (n, 3)."""
-    rad = list(ambient)
+    rad = None if ambient is None else list(ambient)
     for term, v in zip(unshadowed, vis):
-        rad = [rad[i] + term[i] * v for i in range(3)]
+        rad = [term[i] * v + (0 if rad is None else rad[i]) for i in range(3)]
+    if rad is None:  # no lights: black
+        rad = [torch.zeros(found.shape, dtype=torch.float32, device=found.device) for _ in range(3)]
     if any(background):
         rad = [rad[i] + background[i] * (~found).to(rad[i].dtype) for i in range(3)]
     return torch.stack([r.view(-1, spp).sum(1) for r in rad], 1) / spp

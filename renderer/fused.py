@@ -9,7 +9,7 @@ gained nothing. A batch of pixels is traced as three compiled stages and two Emb
     samples -> camera rays (stage 1) -> Embree nearest -> shading (stage 2) -> Embree shadow rays
             -> radiance and pixel means (stage 3)
 
-Batches are padded to a power of two of pixels (the last pixel repeated), so a render compiles each stage
+Batches (`CHUNK_RAYS` rays by default) are padded to a power of two of pixels (the last pixel repeated), so a render compiles each stage
 for at most a few sizes (`torch.compile(dynamic=False)`).
 
 Applies (`applies`) where `renderer.direct` would (direct light only: Lambert, point and ambient lights),
@@ -29,6 +29,10 @@ from .direct import applies as direct_applies
 from .scene import Scene, TraceOptions
 
 _KINDS = {"sphere", "box", "rectangle", "plane"}
+# Rays a batch by default: the fused stages leave Python's and Dr.Jit's per-call costs as the larger share, so
+# larger batches pay: on the issue-11 speed scene, one process, 2^19 took 0.86-0.88x the time of 2^17 (2^16
+# 1.07x, 2^18 0.95-1.02x).
+CHUNK_RAYS = 1 << 19
 
 
 def applies(scene: Scene, options: TraceOptions, device, dtype) -> bool:
@@ -91,9 +95,10 @@ def _disk(u, v):
     return r * torch.cos(phi), r * torch.sin(phi)
 
 
-def _camera_rays(block, pixel, width: int, spp: int, cam: tuple):
-    """Stage 1: world rays (ox, oy, oz, dx, dy, dz), each (n·spp,) float32, for the sample block (4, n, spp)
-    float64 of the pixels `pixel` (n,): `render._camera_samples` then `ThinLensCamera._rays_in_place`."""
+def _camera_rays(sampler, pixel, width: int, cam: tuple):
+    """Stage 1: world rays (ox, oy, oz, dx, dy, dz), each (n·spp,) float32, for the samples of the pixels
+    `pixel` (n,): `Sampler.pixel_block`, `render._camera_samples` then `ThinLensCamera._rays_in_place`."""
+    block = sampler.pixel_block(pixel)
     cx, cy, px, py, z, half_d, cos_l, sin_l, tan_f, U, R, t = cam
     xs = (block[0] + ((pixel % width).to(torch.float64) - 0.5)[:, None]).to(torch.float32).reshape(-1)
     ys = (block[1] + ((pixel // width).to(torch.float64) - 0.5)[:, None]).to(torch.float32).reshape(-1)
@@ -224,8 +229,7 @@ def render_pixels(scene: Scene, pixel: torch.Tensor, sampler, options: TraceOpti
     eng = engine(scene)
     if eng.fallback:
         raise AssertionError("fused: every shape should be traced by Embree (see applies)")
-    block = sampler.pixel_block(pixel)
-    rays = _compiled(_camera_rays)(block, pixel, scene.camera.width, spp, cam)
+    rays = _compiled(_camera_rays)(sampler, pixel, scene.camera.width, cam)
     o, d = _Rows(rays[:3]), _Rows(rays[3:])
     t, obj, aux = eng.nearest(o, d, scene.ray_epsilon)
     found, origin, shadow, ambient, unshadowed = _compiled(_shade)(

@@ -391,6 +391,10 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
     options = _resolve_intersector(scene, options, device, dtype)
     if chunk_given is None and options.intersector == "mitsuba":
         chunk_rays = EMBREE_CHUNK_RAYS
+        if options.compile:
+            from . import fused
+
+            chunk_rays = fused.CHUNK_RAYS if fused.applies(scene, options, device, dtype) else chunk_rays
     auto = workers is None
     if auto:
         if getattr(multiprocessing.current_process(), "_inheriting", False):

@@ -216,15 +216,20 @@ def _state(scene: Scene):
     return cached[2], cached[3]
 
 
+def _padded(pixel: torch.Tensor) -> torch.Tensor:
+    """The pixels (n,) padded by their last one to a power of two (at least 64): few sizes to compile."""
+    n = pixel.shape[0]
+    size = 1 << max(6, (n - 1).bit_length())
+    return torch.cat([pixel, pixel[-1:].expand(size - n)]) if size > n else pixel
+
+
 def render_pixels(scene: Scene, pixel: torch.Tensor, sampler, options: TraceOptions):
     """Estimates (n, 3) and coverage (n,) of the pixels `pixel` (n,), as `render._render_pixels` returns
     them (every thin-lens ray is valid with weight 1)."""
     from .mitsuba.intersect import engine
 
     n, spp = pixel.shape[0], sampler.spp
-    size = 1 << max(6, (n - 1).bit_length())
-    if size > n:
-        pixel = torch.cat([pixel, pixel[-1:].expand(size - n)])
+    pixel = _padded(pixel)
     tb, cam = _state(scene)
     eng = engine(scene)
     if eng.fallback:

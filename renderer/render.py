@@ -357,6 +357,9 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
             the default `auto` takes it for float32 CPU renders where Mitsuba's llvm variant loads and every
             shape is one it has, ours otherwise; `torch`: always ours). Float32 images of the two agree to
             about 1e-7 (a few pixels in 10^5 by more than 1e-3; benchmarks/results/speed_thin_lens_embree.md).
+            `compile=True` with `intersector="mitsuba"`: where `renderer.fused.applies` (direct light, thin
+            lens, CPU float32), the work between the Embree calls runs as three compiled stages in 2^19-ray
+            batches (the fastest setting measured; a few seconds of compilation per process and batch size).
         workers: CPU only: trace chunks in this many worker processes with one torch thread each (they
             are started on first use and kept for later calls; each unpickles the scene once per render).
             The image does not depend on it. None (the default): `auto_workers`, i.e. the available cores

@@ -192,28 +192,35 @@ def _compiled(fn):
     return _COMPILED[fn]
 
 
-_STATE: dict = {}  # id(scene) -> (scene, geometry key, _Tables, camera constants)
+_STATE: dict = {}  # id(scene) -> (scene, key, _Tables); the scene kept so its id stays unique
+
+
+def _camera_constants(cam) -> tuple:
+    """The thin lens's numbers as `_camera_rays` takes them (read on every batch: a camera changed between
+    renders is seen; torch.compile then recompiles for its new constants). Trigonometry in float32 as the
+    eager path rounds it."""
+    f32 = lambda v: float(torch.tensor(float(v), dtype=torch.float32))  # noqa: E731
+    trig = lambda fn, angle: f32(fn(torch.tensor(float(angle), dtype=torch.float32)))  # noqa: E731
+    R = cam.transform.world_from_camera.to(torch.float64)
+    eye = bool((R == torch.eye(3, dtype=R.dtype)).all())
+    return (*cam.screen.center_px, *cam.screen.pitch, cam.screen.distance, cam.d / 2,
+            trig(torch.cos, cam.theta_L), trig(torch.sin, cam.theta_L), trig(torch.tan, cam.theta_F), cam.U,
+            None if eye else R.tolist(), [float(v) for v in cam.transform.position])
 
 
 def _state(scene: Scene):
+    """The scene's `_Tables` (rebuilt when a shape, light or the background changed) and camera constants."""
     from .shapes.base import geometry_key
 
-    key, geometry = id(scene), geometry_key(scene)
-    cached = _STATE.get(key)
-    if cached is None or cached[0] is not scene or cached[1] != geometry:
+    key = (geometry_key(scene), tuple(scene.image.background),
+           tuple((l.type, tuple(l.intensity), tuple(getattr(l, "position", None) or ())) for l in scene.lights))
+    cached = _STATE.get(id(scene))
+    if cached is None or cached[0] is not scene or cached[1] != key:
         if len(_STATE) > 8:
             _STATE.clear()
-        cam = scene.camera
-        f32 = lambda v: float(torch.as_tensor(v).to(torch.float32))  # noqa: E731 - the eager path's rounding
-        theta_L = torch.tensor(float(cam.theta_L), dtype=torch.float32)
-        R = cam.transform.world_from_camera.to(torch.float64)
-        eye = bool((R == torch.eye(3, dtype=R.dtype)).all())
-        consts = (*cam.screen.center_px, *cam.screen.pitch, cam.screen.distance, cam.d / 2,
-                  f32(torch.cos(theta_L)), f32(torch.sin(theta_L)), f32(torch.tan(torch.tensor(float(cam.theta_F), dtype=torch.float32))),
-                  cam.U, None if eye else R.tolist(), [float(v) for v in cam.transform.position])
         table = scene.materials(torch.zeros(0, dtype=torch.float32))
-        _STATE[key] = cached = (scene, geometry, _Tables(scene, table), consts)
-    return cached[2], cached[3]
+        _STATE[id(scene)] = cached = (scene, key, _Tables(scene, table))
+    return cached[2], _camera_constants(scene.camera)
 
 
 def _padded(pixel: torch.Tensor) -> torch.Tensor:

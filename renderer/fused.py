@@ -9,8 +9,8 @@ gained nothing. A batch of pixels is traced as three compiled stages and two Emb
     samples -> camera rays (stage 1) -> Embree nearest -> shading (stage 2) -> Embree shadow rays
             -> radiance and pixel means (stage 3)
 
-Batches (`CHUNK_RAYS` rays by default) are padded to a power of two of pixels (the last pixel repeated), so a render compiles each stage
-for at most a few sizes (`torch.compile(dynamic=False)`).
+Batches (`CHUNK_RAYS` rays by default) are padded to a power of two of pixels (the last pixel repeated), so
+a render compiles each stage for at most a few sizes (`torch.compile(dynamic=False)`).
 
 Applies (`applies`) where `renderer.direct` would (direct light only: Lambert, point and ambient lights),
 with the thin-lens camera with plain-number parameters and no distortion, no layers, every shape a sphere,
@@ -29,9 +29,10 @@ from .direct import applies as direct_applies
 from .scene import Scene, TraceOptions
 
 _KINDS = {"sphere", "box", "rectangle", "plane"}
-# Rays a batch by default: the fused stages leave Python's and Dr.Jit's per-call costs as the larger share, so
-# larger batches pay: on the issue-11 speed scene, one process, 2^19 took 0.86-0.88x the time of 2^17 (2^16
-# 1.07x, 2^18 0.95-1.02x).
+# Rays a batch by default: with the stages fused, per-call costs (Python, torch.compile's guards, Dr.Jit) are a
+# larger share, so larger batches pay: on the issue-11 speed scene, one process, 2^19 took 0.85-0.88x the time
+# of 2^17 (2^16 1.07-1.09x, 2^18 0.95-1.02x; benchmarks/results/fused_embree.md). 2^20 was 0.93x of 2^19 but
+# leaves two workers only two jobs each on that scene (`render.MAX_JOB_RAYS`).
 CHUNK_RAYS = 1 << 19
 
 

@@ -9,7 +9,8 @@ sample is one camera ray plus one shadow ray where it hits. 512×512 at 16 spp.
   runs and one worker process per core for a render this size), and the other settings named in the table
   (`torch`: our own intersection in one process, the defaults before issue 11's change; `*_workers2`: two
   single-threaded processes; `embree*`: `intersector="mitsuba"`; `embree_jit2`: one torch thread and
-  Dr.Jit's own pool of two threads in one process; `*_threads2`: two torch and two Dr.Jit threads).
+  Dr.Jit's own pool of two threads in one process; `*_threads2`: two torch and two Dr.Jit threads;
+  `embree_fused*`: `compile=True` with Embree, `renderer.fused`'s compiled stages between the Embree calls).
 - Mitsuba: `llvm_ad_rgb` where it runs here (else `scalar_rgb`, said in the table), its own thread count,
   the scene exported by `renderer.mitsuba.to_mitsuba` (Mitsuba's own `thinlens` sensor, box filter,
   `independent` sampler, the `direct` integrator with one emitter sample and no BSDF sample: the same
@@ -59,9 +60,12 @@ MODES = {"defaults": {}, "torch": {"intersector": "torch", "workers": 1},
          "embree_jit2": {"intersector": "mitsuba", "workers": 1, "threads": None},
          "embree_threads2": {"intersector": "mitsuba", "workers": 1, "threads": 2},
          "workers2": {"workers": 2}, "threads2": {"threads": 2}, "compile": {"compile": True},
+         # renderer.fused: Embree with the work between its calls in three torch.compile'd stages on 1-D components.
+         "embree_fused": {"intersector": "mitsuba", "workers": 1, "compile": True},
+         "embree_fused_workers2": {"intersector": "mitsuba", "workers": 2, "compile": True},
          "cuda": {"device": "cuda"}, "cuda_chunk15": {"device": "cuda", "chunk_rays": 1 << 15},
          "cuda_compile": {"device": "cuda", "compile": True}}
-DEFAULT_MODES = "defaults,torch,torch_workers2,embree,embree_workers2,embree_jit2"
+DEFAULT_MODES = "defaults,torch,torch_workers2,embree,embree_workers2,embree_jit2,embree_fused,embree_fused_workers2"
 
 
 def _timed(fn):

@@ -109,6 +109,11 @@ def _render_pixels(scene: Scene, pixel: torch.Tensor, sampler: Sampler, options:
     the caller.
     """
     spp, W = sampler.spp, scene.camera.width
+    if options.compile and options.intersector == "mitsuba":
+        from . import fused
+
+        if fused.applies(scene, options, device, dtype):  # compiled stages between the Embree calls
+            return fused.render_pixels(scene, pixel, sampler, options)
     background = torch.tensor(scene.image.background, dtype=dtype, device=device)
     # Samples are made where they are traced: integer hashing and exact float steps give the same values on
     # every device, and on a GPU this saves the host-side sampling and its copy (0.058 -> 0.044 s a warm
@@ -352,6 +357,9 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
             the default `auto` takes it for float32 CPU renders where Mitsuba's llvm variant loads and every
             shape is one it has, ours otherwise; `torch`: always ours). Float32 images of the two agree to
             about 1e-7 (a few pixels in 10^5 by more than 1e-3; benchmarks/results/speed_thin_lens_embree.md).
+            `compile=True` with `intersector="mitsuba"`: where `renderer.fused.applies` (direct light, thin
+            lens, CPU float32), the work between the Embree calls runs as three compiled stages in 2^19-ray
+            batches (the fastest setting measured; a few seconds of compilation per process and batch size).
         workers: CPU only: trace chunks in this many worker processes with one torch thread each (they
             are started on first use and kept for later calls; each unpickles the scene once per render).
             The image does not depend on it. None (the default): `auto_workers`, i.e. the available cores
@@ -387,6 +395,10 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
     options = _resolve_intersector(scene, options, device, dtype)
     if chunk_given is None and options.intersector == "mitsuba":
         chunk_rays = EMBREE_CHUNK_RAYS
+        if options.compile:
+            from . import fused
+
+            chunk_rays = fused.CHUNK_RAYS if fused.applies(scene, options, device, dtype) else chunk_rays
     auto = workers is None
     if auto:
         if getattr(multiprocessing.current_process(), "_inheriting", False):

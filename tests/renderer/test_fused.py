@@ -107,3 +107,25 @@ def test_camera_and_lights_read_afresh():
     tables_after, after = fused._state(scene)
     assert before[9] == 4.0 and after[9] == 5.0, f"focus distance U not read afresh: {before[9]} -> {after[9]}"
     assert tables_after is not tables and tables_after.lights[0][2] == [1.0, 2.0, 3.0], "lights not rebuilt"
+
+
+def test_cli_compile_flag_reaches_render(tmp_path, monkeypatch):
+    """`renderer render --compile` asks `render` for compile=True (the fused stages with the Embree
+    intersector); without the flag the scene's own setting stands (compile=None)."""
+    import sys
+
+    from renderer.cli import main as cli_main
+
+    render_module = sys.modules["renderer.render"]
+    seen = []
+    real = render_module.render
+
+    def spy(scene, *args, **kwargs):
+        seen.append(kwargs.get("compile"))
+        return real(scene, *args, **{**kwargs, "compile": None})  # the flag's path, without compiling here
+
+    monkeypatch.setattr(render_module, "render", spy)
+    small = ["--set", "image.width=16", "--set", "image.height=16", "--set", "image.spp=1"]
+    for flags, want in ((["--compile"], True), ([], None)):
+        code = cli_main(["render", SPEED, "-o", str(tmp_path / "x.exr"), "--quiet", *small, *flags])
+        assert code == 0 and seen and seen[-1] is want, f"flags {flags}: exit {code}, compile seen {seen}"

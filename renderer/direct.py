@@ -21,7 +21,6 @@ import math
 import torch
 
 from .scene import Scene, TraceOptions
-from .shapes.base import geometry_key
 
 
 # Shape types whose normals `NormalTables` knows (and that have `intersect_soa`): from its tables, or
@@ -107,17 +106,17 @@ def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return (a[0] * b[0]).addcmul_(a[1], b[1]).addcmul_(a[2], b[2])
 
 
-_TABLES: dict = {}  # (id(scene), device, dtype) -> (scene, geometry key, NormalTables); the scene kept so its id
-# stays unique, the key (`renderer.shapes.base.geometry_key`) so a moved shape rebuilds them
+_TABLES: dict = {}  # (id(scene), device, dtype) -> (scene, its geometry stamp, NormalTables); the scene kept so its
+# id stays unique, the stamp (`Scene.geometry`, new after `Scene.refresh` saw a shape move) so a move rebuilds them
 
 
 def _tables(scene: Scene, table, like: torch.Tensor) -> NormalTables:
-    key, geometry = (id(scene), like.device, like.dtype), geometry_key(scene)
+    key = (id(scene), like.device, like.dtype)
     cached = _TABLES.get(key)
-    if cached is None or cached[0] is not scene or cached[1] != geometry:
+    if cached is None or cached[0] is not scene or cached[1] is not scene.geometry:
         if len(_TABLES) > 16:
             _TABLES.clear()
-        _TABLES[key] = cached = (scene, geometry, NormalTables(scene, table, like))
+        _TABLES[key] = cached = (scene, scene.geometry, NormalTables(scene, table, like))
     return cached[2]
 
 

@@ -193,7 +193,8 @@ def _compiled(fn):
     return _COMPILED[fn]
 
 
-_STATE: dict = {}  # id(scene) -> (scene, key, _Tables); the scene kept so its id stays unique
+_STATE: dict = {}  # id(scene) -> (scene, geometry stamp, lights and background, _Tables); the scene kept so
+# its id stays unique
 
 
 def _camera_constants(cam) -> tuple:
@@ -210,18 +211,17 @@ def _camera_constants(cam) -> tuple:
 
 
 def _state(scene: Scene):
-    """The scene's `_Tables` (rebuilt when a shape, light or the background changed) and camera constants."""
-    from .shapes.base import geometry_key
-
-    key = (geometry_key(scene), tuple(scene.image.background),
+    """The scene's `_Tables` (rebuilt when `Scene.refresh` saw a shape move, or a light or the background
+    changed) and camera constants."""
+    key = (tuple(scene.image.background),
            tuple((l.type, tuple(l.intensity), tuple(getattr(l, "position", None) or ())) for l in scene.lights))
     cached = _STATE.get(id(scene))
-    if cached is None or cached[0] is not scene or cached[1] != key:
+    if cached is None or cached[0] is not scene or cached[1] is not scene.geometry or cached[2] != key:
         if len(_STATE) > 8:
             _STATE.clear()
         table = scene.materials(torch.zeros(0, dtype=torch.float32))
-        _STATE[id(scene)] = cached = (scene, key, _Tables(scene, table))
-    return cached[2], _camera_constants(scene.camera)
+        _STATE[id(scene)] = cached = (scene, scene.geometry, key, _Tables(scene, table))
+    return cached[3], _camera_constants(scene.camera)
 
 
 def _padded(pixel: torch.Tensor) -> torch.Tensor:

@@ -242,18 +242,22 @@ class Scene:
     options: TraceOptions = field(default_factory=TraceOptions)
 
     def __post_init__(self):
-        self._geometry = None
+        self.geometry = None
         self.refresh()
 
     def refresh(self) -> None:
         """Recompute what the scene derives from its objects (culling spheres, extent, material tables) if an
         object, shape or material was replaced or a shape's tensor edited in place since it was last computed
         (`renderer.shapes.base.geometry_key`). `render` calls it once per render; a caller tracing rays
-        through `intersect`/`shadow` itself after moving a shape calls it first."""
+        through `intersect`/`shadow` itself after moving a shape calls it first.
+
+        `geometry` is then a new object (the key): caches built elsewhere from the scene's shapes (the Embree
+        scene, `renderer.direct`'s normal tables, `renderer.fused`'s tables) keep the one they were built
+        for and rebuild when it is no longer `geometry`, without computing the key again per batch."""
         key = geometry_key(self)
-        if key == self._geometry:
+        if key == self.geometry:
             return
-        self._geometry = key
+        self.geometry = key
         self._tables: dict = {}
         self._warm: set = set()
         names = [o.name for o in self.objects]

@@ -37,7 +37,6 @@ import sys
 import numpy as np
 import torch
 
-from ..shapes.base import geometry_key
 from .export import load_mitsuba, shape_dicts
 
 # Shape types with an exact Mitsuba counterpart (see the module docstring).
@@ -187,18 +186,18 @@ def _f32(x: torch.Tensor) -> torch.Tensor:
     return x.to(torch.float32).contiguous()
 
 
-_ENGINES: dict = {}  # id(scene) -> (scene, geometry key, MitsubaIntersector); the scene kept so its id stays unique
+_ENGINES: dict = {}  # id(scene) -> (scene, geometry stamp, MitsubaIntersector); the scene kept so its id stays unique
 
 
 def engine(scene) -> MitsubaIntersector:
     """The scene's `MitsubaIntersector`, built on first use and cached (a few scenes at a time); rebuilt when
-    a shape changed since (`renderer.shapes.base.geometry_key`)."""
-    key, geometry = id(scene), geometry_key(scene)
+    `Scene.refresh` saw a shape move since (a new `Scene.geometry` stamp)."""
+    key = id(scene)
     cached = _ENGINES.get(key)
-    if cached is None or cached[0] is not scene or cached[1] != geometry:
+    if cached is None or cached[0] is not scene or cached[1] is not scene.geometry:
         if len(_ENGINES) > 8:
             _ENGINES.clear()
-        _ENGINES[key] = cached = (scene, geometry, MitsubaIntersector(scene))
+        _ENGINES[key] = cached = (scene, scene.geometry, MitsubaIntersector(scene))
     return cached[2]
 
 

@@ -25,6 +25,7 @@ import math
 
 import torch
 
+from .cameras.thin_lens import concentric_disk_xy
 from .direct import applies as direct_applies
 from .scene import Scene, TraceOptions
 
@@ -86,16 +87,6 @@ class _Tables:
         self.background = [float(v) for v in scene.image.background]
 
 
-def _disk(u, v):
-    """`concentric_disk_xy` of 1-D samples u, v (compiled form, torch.where in place of the selector)."""
-    a, b = 2 * u - 1, 2 * v - 1
-    first = a.abs() > b.abs()
-    r, other = torch.where(first, a, b), torch.where(first, b, a)
-    q = (math.pi / 4) * (other / (r + (r == 0)))
-    phi = torch.where(first, q, math.pi / 2 - q)
-    return r * torch.cos(phi), r * torch.sin(phi)
-
-
 def _camera_rays(sampler, pixel, width: int, cam: tuple):
     """Stage 1: world rays (ox, oy, oz, dx, dy, dz), each (n·spp,) float32, for the samples of the pixels
     `pixel` (n,): `Sampler.pixel_block`, `render._camera_samples` then `ThinLensCamera._rays_in_place`."""
@@ -103,7 +94,8 @@ def _camera_rays(sampler, pixel, width: int, cam: tuple):
     cx, cy, px, py, z, half_d, cos_l, sin_l, tan_f, U, R, t = cam
     xs = (block[0] + ((pixel % width).to(torch.float64) - 0.5)[:, None]).to(torch.float32).reshape(-1)
     ys = (block[1] + ((pixel // width).to(torch.float64) - 0.5)[:, None]).to(torch.float32).reshape(-1)
-    lx, ly = _disk(block[2].to(torch.float32).reshape(-1), block[3].to(torch.float32).reshape(-1))
+    # The thin lens's own concentric map (its selects are torch.where while compiling, one fused loop here).
+    lx, ly = concentric_disk_xy(block[2:].to(torch.float32).reshape(2, -1).T)
     x, y = (xs - cx) * px, (ys - cy) * py
     o0 = lx * half_d
     sy = ly * half_d

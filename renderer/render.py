@@ -443,11 +443,7 @@ def _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device
     if blob is not None:
         from .mitsuba.intersect import llvm_available
 
-        # Tracing here too (one worker process fewer, this one taking the jobs none had started) was slower:
-        # 0.35 s against 0.29 s with two workers on the speed scene (speed_thin_lens.md of 04:33, `defaults`
-        # against `embree_workers2`): this process's threads that feed and empty the pool took its core.
-        size = workers
-        pool = _pool(size)
+        pool = _pool(workers)
         digest = hashlib.sha1(blob).hexdigest()
         jit_runs = options.intersector == "mitsuba" and llvm_available()
         job_rays = max(chunk_rays, min(MAX_JOB_RAYS, -(-scene.camera.width * scene.camera.height * spp
@@ -466,7 +462,7 @@ def _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device
         except concurrent.futures.process.BrokenProcessPool as e:
             if not auto:
                 raise
-            _POOL.pop(size, None)
+            _POOL.pop(workers, None)
             pool.shutdown(wait=False, cancel_futures=True)
             _AUTO_WORKERS_OFF.append(str(e))
             warnings.warn("render: worker processes failed to start (a script that renders outside `if __name__ == "
@@ -475,7 +471,7 @@ def _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device
             _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device, dtype, seed, chunk_rays,
                          max_depth, 1)
         except BaseException:  # an interrupt: stop the workers now, not after their jobs (and at exit)
-            _POOL.pop(size, None)
+            _POOL.pop(workers, None)
             pool.shutdown(wait=False, cancel_futures=True)
             for process in list((getattr(pool, "_processes", None) or {}).values()):
                 process.terminate()

@@ -15,6 +15,7 @@ import torch
 from . import direct
 from .rays import normalize
 from .scene import Scene, TraceOptions, compiled_call
+from .shapes.base import root
 
 # Paths whose throughput falls below this contribute nothing visible and are dropped.
 _MIN_THROUGHPUT = 1e-4
@@ -233,7 +234,7 @@ def trace(scene: Scene, o: torch.Tensor, d: torch.Tensor, first_hit_objects: lis
         k = 1 - eta**2 * (1 - cos_i**2)
         tir = k < 0
         refl_dir = d + 2 * cos_i[:, None] * n_f
-        refr_dir = normalize(eta[:, None] * d + (eta * cos_i - k.clamp_min(0).sqrt())[:, None] * n_f)
+        refr_dir = normalize(eta[:, None] * d + (eta * cos_i - root(k))[:, None] * n_f)
         w_refl = kr + torch.where(tir, kt, torch.zeros_like(kt))
         w_refr = torch.where(tir, torch.zeros_like(kt), kt)
         tint = torch.where(entering[:, None], albedo, torch.ones_like(albedo))

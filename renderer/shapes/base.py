@@ -104,6 +104,20 @@ def nearest_positive(t0: torch.Tensor, t1: torch.Tensor, t_min: float) -> torch.
     return torch.minimum(a, b)
 
 
+def root(disc: torch.Tensor, miss: float = 0.0) -> torch.Tensor:
+    """√disc of an intersection test, `miss` where disc < 0 (0: callers mask misses with disc >= 0; NaN: every
+    comparison with the root is then False, a miss without a mask).
+
+    Without gradients this is the plain √ (with NaN for `miss=nan`). With gradients the backward pass stays
+    finite at misses and grazing rays: √ has an infinite slope at 0, and the zero gradient a masked miss
+    receives times that slope is NaN, which the sum over rays would carry to every camera and shape parameter.
+    """
+    if not disc.requires_grad:
+        return disc.sqrt() if math.isnan(miss) else disc.clamp_min(0).sqrt()
+    safe = disc.clamp_min(torch.finfo(disc.dtype).tiny).sqrt()
+    return torch.where(disc >= 0, safe, torch.full_like(safe, miss))
+
+
 def quadratic_roots(a: torch.Tensor, half_b: torch.Tensor, c: torch.Tensor,
                     disc: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Real roots of a·t² + 2·half_b·t + c = 0, batched, without cancellation.
@@ -119,7 +133,7 @@ def quadratic_roots(a: torch.Tensor, half_b: torch.Tensor, c: torch.Tensor,
     if disc is None:
         disc = half_b * half_b - a * c
     sign = torch.where(half_b >= 0, torch.ones_like(half_b), -torch.ones_like(half_b))
-    q = -(half_b + sign * disc.clamp_min(0).sqrt())
+    q = -(half_b + sign * root(disc))
     return q / a, c / q, disc >= 0
 
 

@@ -1,9 +1,11 @@
 """Sphere: centre and radius."""
 from __future__ import annotations
 
+import math
+
 import torch
 
-from .base import INF, Shape, nearest_positive, nearest_positive_soa, positive
+from .base import INF, Shape, nearest_positive, nearest_positive_soa, positive, root
 
 
 class Sphere(Shape):
@@ -25,7 +27,7 @@ class Sphere(Shape):
         # r² − |oc − b d|² instead of b² − (|oc|² − r²): no cancellation for distant, small spheres.
         perp = oc - b[..., None] * d
         disc = self.radius**2 - (perp * perp).sum(-1)
-        sq = disc.clamp_min(0).sqrt()
+        sq = root(disc)
         t = nearest_positive(-b - sq, -b + sq, t_min)
         t = torch.where(disc >= 0, t, torch.full_like(t, INF))
         return t, torch.zeros_like(t, dtype=torch.long)
@@ -39,7 +41,7 @@ class Sphere(Shape):
         b = ox * dx + oy * dy + oz * dz
         px, py, pz = ox - b * dx, oy - b * dy, oz - b * dz
         disc = self.radius**2 - (px * px + py * py + pz * pz)
-        sq = disc.sqrt()  # NaN where disc < 0: every comparison below is then False, a miss
+        sq = root(disc, math.nan)  # NaN where disc < 0: every comparison below is then False, a miss
         return nearest_positive_soa(-b - sq, -b + sq, t_min), torch.zeros(o.shape[1], dtype=torch.long, device=o.device)
 
     def normal_rows(self, p, aux):

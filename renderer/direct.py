@@ -207,7 +207,8 @@ def shade_hits(scene: Scene, table, tables: NormalTables, o_s, d_s, t, obj, aux)
 
 def add_light(scene: Scene, lit, vis: list[torch.Tensor]) -> torch.Tensor:
     """(3, N) radiance from `shade_hits`' results `lit` and each point light's visibility vis (N,) (0 or 1,
-    so it multiplies exactly wherever it is applied); the background where the ray missed."""
+    so it multiplies exactly wherever it is applied); the background where the ray missed. Consumes `lit`: the
+    light is added into its ambient rows in place (one (3, N) buffer less per batch)."""
     found, _, ambient, _, unshadowed = lit
     radiance = ambient
     for term, v in zip(unshadowed, vis):

@@ -86,8 +86,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--quiet", action="store_true", help="no progress on stderr")
     r.add_argument("--backend", choices=("torch", "mitsuba"), default="torch",
                    help="torch: our tracer [default]; mitsuba: export the scene to Mitsuba 3 and render it there with "
-                        "our camera (the `direct` integrator; what cannot be mapped, the lens distortion and sampler included, and "
-                        "--compile/--intersector/--device, which it ignores, are named in one stderr line)")
+                        "our camera (the `direct` integrator; one stderr line names what cannot be mapped, the lens "
+                        "distortion and sampler included, and the --compile/--intersector/--device it ignores)")
     r.add_argument("--cluster", metavar="auto|ADDRESS",
                    help="trace on a Ray cluster (auto: the running one, else a local one); same image as one process")
     r.add_argument("--intersector", choices=("auto", "torch", "mitsuba"), default="auto",

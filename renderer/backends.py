@@ -10,12 +10,16 @@ from .cli import UsageError
 from .render import RenderResult
 
 
+MITSUBA_SAMPLER = "independent"  # the sampler Mitsuba renders with, whichever pattern the scene asks for
+
+
 def render_mitsuba(scene, spp: int | None = None, sampler: str | None = None, *, seed: int = 0,
-                   variant: str | None = None, progress: bool = True) -> RenderResult:
+                   variant: str | None = None, progress: bool = True, ignored=()) -> RenderResult:
     """Render `scene` in Mitsuba 3 with our camera (renderer.mitsuba): `direct` integrator, one emitter
-    sample, box pixel filter, Mitsuba's own `independent` sampler (`sampler` is ours only; a note says so).
-    Prints one line naming what could not be mapped. variant: Mitsuba variant [llvm_ad_rgb where it runs,
-    else scalar_rgb]. Coverage is 1 everywhere (our cameras give every pixel a ray)."""
+    sample, box pixel filter, Mitsuba's own `MITSUBA_SAMPLER` (`sampler`, else the scene's image.sampler,
+    is named when it differs). Prints one line naming what could not be mapped, and the options in `ignored`
+    (strings such as "--compile"). variant: Mitsuba variant [llvm_ad_rgb where it runs, else scalar_rgb].
+    Coverage is 1 everywhere (our cameras give every pixel a ray)."""
     try:
         from .mitsuba import load_mitsuba, to_mitsuba
         mi = load_mitsuba(variant or "llvm_ad_rgb")
@@ -27,8 +31,10 @@ def render_mitsuba(scene, spp: int | None = None, sampler: str | None = None, *,
     except NotImplementedError as e:
         raise UsageError(f"--backend mitsuba: {e}") from None
     notes = list(dropped)
-    if sampler not in (None, "independent"):
-        notes.append(f"sampler {sampler} (Mitsuba's independent sampler used)")
+    sampler = sampler or scene.image.sampler
+    if sampler != MITSUBA_SAMPLER:
+        notes.append(f"sampler {sampler} (Mitsuba's {MITSUBA_SAMPLER} sampler used)")
+    notes += [f"{option} ignored" for option in ignored]
     if progress or notes:
         print(f"renderer: mitsuba {mi.variant()}; not mapped: {'; '.join(notes) if notes else 'nothing'}",
               file=sys.stderr)
@@ -38,14 +44,20 @@ def render_mitsuba(scene, spp: int | None = None, sampler: str | None = None, *,
 
 
 def render_with(backend: str, cluster: str | None, scene, spp, sampler, *, device, seed: int,
-                progress: bool) -> RenderResult:
-    """Dispatch of `cmd_render` for --backend mitsuba and --cluster (not both)."""
+                progress: bool, compile: bool = False, intersector: str = "auto") -> RenderResult:
+    """Dispatch of `cmd_render` for --backend mitsuba and --cluster (not both). compile, intersector: the
+    command line's --compile and --intersector; what a backend does not use is named on stderr."""
     if backend == "mitsuba":
         if cluster:
             raise UsageError("--cluster works with the torch backend only")
-        return render_mitsuba(scene, spp, sampler, seed=seed, progress=progress)
+        ignored = [name for name, given in (("--compile", compile),
+                                            (f"--intersector {intersector}", intersector != "auto"),
+                                            (f"--device {device}", torch.device(device).type != "cpu")) if given]
+        return render_mitsuba(scene, spp, sampler, seed=seed, progress=progress, ignored=ignored)
     if torch.device(device).type != "cpu":
         raise UsageError("--cluster traces on the cluster's CPUs: leave out --device")
+    if compile:  # render_on_ray traces uncompiled: each Ray worker would pay its own compile (up to a minute)
+        print("renderer: --compile ignored with --cluster (the workers trace uncompiled)", file=sys.stderr)
     try:
         from .distributed import render_on_ray
         return render_on_ray(scene, spp, sampler, address=cluster, seed=seed, progress=progress)

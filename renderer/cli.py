@@ -86,7 +86,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--quiet", action="store_true", help="no progress on stderr")
     r.add_argument("--backend", choices=("torch", "mitsuba"), default="torch",
                    help="torch: our tracer [default]; mitsuba: export the scene to Mitsuba 3 and render it there with "
-                        "our camera (the `direct` integrator; what cannot be mapped is named on stderr)")
+                        "our camera (the `direct` integrator; one stderr line names what cannot be mapped, the lens "
+                        "distortion and sampler included, and the --compile/--intersector/--device it ignores)")
     r.add_argument("--cluster", metavar="auto|ADDRESS",
                    help="trace on a Ray cluster (auto: the running one, else a local one); same image as one process")
     r.add_argument("--intersector", choices=("auto", "torch", "mitsuba"), default="auto",
@@ -210,7 +211,7 @@ def cmd_render(args, device) -> int:
     _check_output(args.output, (".exr", ".png", ".tif", ".tiff"))
     scene_file = resolve_scene(args.scene)
     scene = load_scene(scene_file, args.overrides)
-    if args.intersector != "auto":  # the scene's own default
+    if args.intersector != "auto" and args.backend != "mitsuba":  # auto: the scene's own default
         from .mitsuba.intersect import use_intersector
 
         try:
@@ -222,14 +223,18 @@ def cmd_render(args, device) -> int:
         from .backends import render_with
 
         result = render_with(args.backend, args.cluster, scene, args.spp, args.sampler, device=device, seed=args.seed,
-                             progress=not args.quiet)
+                             progress=not args.quiet, compile=args.compile, intersector=args.intersector)
     else:
         result = render(scene, args.spp, args.sampler, device=device, seed=args.seed, progress=not args.quiet,
                         compile=args.compile or None)
     check_finite_image(scene_file, result.image)
-    write_image(args.output, result.image, args.encoding,
-                metadata=image_metadata(scene_file, scene, args.spp or scene.image.spp,
-                                        args.sampler or scene.image.sampler, args.seed, args.overrides))
+    metadata = image_metadata(scene_file, scene, args.spp or scene.image.spp, args.sampler or scene.image.sampler,
+                              args.seed, args.overrides)
+    if args.backend == "mitsuba":  # what rendered it, and the sampler it used
+        from .backends import MITSUBA_SAMPLER
+
+        metadata.update(sampler=MITSUBA_SAMPLER, backend="mitsuba")
+    write_image(args.output, result.image, args.encoding, metadata=metadata)
     if not args.quiet:
         h, w = result.image.shape[:2]
         print(f"renderer: wrote {args.output} ({w}x{h}, {time.perf_counter() - start:.1f} s)", file=sys.stderr)

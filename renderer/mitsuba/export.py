@@ -13,7 +13,8 @@ What carries over (exactly, up to tessellation where noted):
 - materials: Lambert with reflectance diffuse · colour, or diffuse · a checker texture, made two-sided as
   the renderer shades both sides of every surface.
 What does not: specular, mirror and refractive terms, ambient lights, image textures, the background
-colour (Mitsuba would light the scene with it), layers, and the other cameras; `to_mitsuba` says which
+colour (Mitsuba would light the scene with it), layers, the lens distortion (neither Mitsuba's sensors nor
+ours apply it), and the other cameras; `to_mitsuba` says which
 it dropped in the returned `dropped` list, and raises NotImplementedError for a camera it cannot express.
 
 Frames. Mitsuba's camera looks along its local +z with +x to the left and +y up in the image; ours looks
@@ -245,6 +246,9 @@ def to_mitsuba(scene, spp: int | None = None, integrator: dict | None = None, *,
         "integrator": integrator or {"type": "direct", "emitter_samples": 1, "bsdf_samples": 0},
         "sensor": _sensor(mi, scene.camera, scene.image.spp if spp is None else spp, plugin_sensor),
     }
+    distortion = scene.camera.distortion
+    if distortion is not None and not distortion.is_identity:
+        dropped.append("camera.distortion (brown_conrady) not applied")
     if any(scene.image.background):
         dropped.append("image.background (Mitsuba would light the scene with it)")
     if scene.layers:

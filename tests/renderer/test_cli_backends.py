@@ -47,3 +47,85 @@ def test_unreachable_cluster_is_a_one_line_error(tmp_path, capsys):
     assert rc == 2, f"exit status {rc}"
     assert "--cluster 127.0.0.1:9: cannot reach" in err and err.count("\n") == 1, f"stderr: {err!r}"
     assert not out.exists(), "no output file on error"
+
+
+DISTORTED = ["--set", 'camera.distortion={"model": "brown_conrady", "coefficients": [-0.3, 0.1, 0, 0, 0]}']
+TINY = ["--set", "image.width=32", "--set", "image.height=24", "--spp", "1"]
+
+
+def _mitsuba_line(err: str) -> str:
+    lines = [line for line in err.splitlines() if line.startswith("renderer: mitsuba")]
+    assert len(lines) == 1, f"expected one 'renderer: mitsuba' line on stderr, got {err!r}"
+    return lines[0]
+
+
+def test_export_names_a_distortion_and_only_a_real_one():
+    """to_mitsuba lists a non-zero camera.distortion as dropped (Mitsuba's sensors and ours ignore it); an
+    all-zero one or none adds nothing, so the speed scene still carries over with nothing dropped."""
+    from renderer.mitsuba import to_mitsuba
+
+    zero = ['camera.distortion={"model": "brown_conrady", "coefficients": [0, 0, 0, 0, 0]}']
+    for overrides, expected in ((DISTORTED[1::2], ["camera.distortion (brown_conrady) not applied"]),
+                                (zero, []), ([], [])):
+        _, dropped = to_mitsuba(load_scene(SCENE, ["image.width=8", "image.height=8", *overrides]), 1)
+        assert dropped == expected, f"overrides {overrides}: dropped {dropped}, expected {expected}"
+
+
+def test_mitsuba_line_names_distortion_sampler_and_ignored_options(tmp_path, capsys):
+    """A distorted camera, the scene-default sobol sampler and --intersector/--compile given: all named in
+    the one line (even with --quiet), and the image records the sampler Mitsuba used."""
+    from renderer.io import image_metadata
+
+    out = str(tmp_path / "m.exr")
+    rc = main(["render", SCENE, "-o", out, "--backend", "mitsuba", "--quiet", "--intersector", "torch", "--compile",
+               *TINY, *DISTORTED])
+    assert rc == 0, f"exit status {rc}"
+    err = capsys.readouterr().err
+    line = _mitsuba_line(err)
+    assert err.count("\n") == 1, f"--quiet: only the one line expected, got {err!r}"
+    for item in ("camera.distortion (brown_conrady) not applied", "sampler sobol (Mitsuba's independent sampler used)",
+                 "--intersector torch ignored", "--compile ignored"):
+        assert item in line, f"{item!r} missing from {line!r}"
+    meta = image_metadata(out)
+    assert (meta.get("sampler"), meta.get("backend")) == ("independent", "mitsuba"), f"metadata {meta}"
+
+
+def test_mitsuba_line_lists_nothing_for_an_exact_scene(tmp_path, capsys):
+    """Undistorted camera, --sampler independent, no torch-only options: 'not mapped: nothing', and with
+    --quiet not even that."""
+    out = str(tmp_path / "m.exr")
+    rc = main(["render", SCENE, "-o", out, "--backend", "mitsuba", "--sampler", "independent", *TINY])
+    assert rc == 0, f"exit status {rc}"
+    line = _mitsuba_line(capsys.readouterr().err)
+    assert line.endswith("not mapped: nothing"), f"stderr line {line!r}"
+    rc = main(["render", SCENE, "-o", out, "--backend", "mitsuba", "--sampler", "independent", "--quiet", *TINY])
+    err = capsys.readouterr().err
+    assert rc == 0 and err == "", f"exit status {rc}, stderr {err!r} (expected silence)"
+
+
+def test_compile_with_cluster_is_named(monkeypatch, tmp_path, capsys):
+    """--compile with --cluster: the cluster traces uncompiled, and one stderr line says so."""
+    import renderer.distributed as distributed
+
+    seen = {}
+
+    def fake_render_on_ray(scene, spp, sampler, **kw):
+        seen["called"] = True
+        return render(scene, spp=1)
+
+    monkeypatch.setattr(distributed, "render_on_ray", fake_render_on_ray)
+    rc = main(["render", SCENE, "-o", str(tmp_path / "c.exr"), "--cluster", "auto", "--compile", "--quiet", *TINY])
+    err = capsys.readouterr().err
+    assert rc == 0 and seen.get("called"), f"exit status {rc}, render_on_ray called: {seen}"
+    assert err == "renderer: --compile ignored with --cluster (the workers trace uncompiled)\n", f"stderr {err!r}"
+
+
+def test_device_with_mitsuba_is_named(capsys):
+    """Mitsuba renders on its own (CPU) variant: a --device other than cpu is named as ignored."""
+    from renderer.backends import render_with
+
+    scene = load_scene(SCENE, ["image.width=8", "image.height=8"])
+    result = render_with("mitsuba", None, scene, 1, "independent", device="cuda", seed=0, progress=False)
+    line = _mitsuba_line(capsys.readouterr().err)
+    assert result.image.shape == (8, 8, 3), f"image shape {tuple(result.image.shape)}"
+    assert line.endswith("not mapped: --device cuda ignored"), f"stderr line {line!r}"

@@ -244,9 +244,17 @@ def _spawn_safe() -> bool:
     frame = sys._getframe(1)
     while frame is not None:
         if frame.f_globals is vars(main) and frame.f_code.co_name == "<module>":
-            return any(a <= frame.f_lineno <= b for a, b in _main_guards(path, os.path.getmtime(path)))
+            guards = _GUARDS.get(path)
+            if guards is None:
+                guards = _GUARDS[path] = _main_guards(path, os.path.getmtime(path))
+            return any(a <= frame.f_lineno <= b for a, b in guards)
         frame = frame.f_back
     return True
+
+
+# Main script -> its guards as first read in this process: a script edited while it runs (its lines moving
+# under the running frame) keeps its workers (a benchmark edited mid-run fell back to one process).
+_GUARDS: dict = {}
 
 
 @functools.lru_cache(maxsize=4)

@@ -211,6 +211,33 @@ def test_spawn_safe_reads_the_main_guard(tmp_path):
     assert RENDER._main_guards(str(script), 1.0) == [(3, 5)], "the guard spans lines 3-5"
 
 
+EDITED = """
+import os, sys
+import renderer.render  # noqa: F401
+render_module = sys.modules["renderer.render"]
+
+
+def safe():
+    return render_module._spawn_safe()
+
+
+if __name__ == "__main__":
+    before = safe()
+    with open(__file__) as f:
+        text = f.read()
+    with open(__file__, "w") as f:  # the script edited while it runs: its guard moves 40 lines down
+        f.write("\\n" * 40 + text)
+    os.utime(__file__, (0, 10**9))
+    print("SAFE", before, safe())
+"""
+
+
+def test_spawn_safe_keeps_its_answer_when_the_script_is_edited(tmp_path):
+    out = _run(tmp_path, EDITED)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "SAFE True True" in out.stdout, f"a render under the guard should stay spawn-safe after an edit: {out.stdout}"
+
+
 @pytest.mark.slow
 def test_an_unguarded_script_renders_in_its_own_process(tmp_path):
     """spawn runs the main script again in each worker: from a script's unguarded top level, workers=None

@@ -67,6 +67,10 @@ class Sampler:
         if spp < 1:
             raise ValueError(f"spp: expected a positive integer, got {spp}")
         self.name, self.spp, self.seed = name, spp, seed
+        # The seed's first links of the key chains, as 0-dim tensors: the same numbers as the ints (the chain
+        # keeps the low 32 bits), but a compiled caller (`renderer.fused`) takes them as inputs instead of
+        # constants, so a new seed does not compile its stages again.
+        self._keys = [torch.tensor(_chain(0, seed + offset), dtype=torch.int64) for offset in (0, 1, 7919)]
         if name == "sobol":
             engine = torch.quasirandom.SobolEngine(4, scramble=True, seed=seed)
             self._points = engine.draw(spp, dtype=torch.float64)
@@ -104,16 +108,16 @@ class Sampler:
         dims = torch.arange(4, device=pixel.device)
         sample = torch.arange(spp, device=pixel.device)
         if self.name == "sobol":
-            h = _chain(_chain(0, self.seed + 7919), pixel)  # (n,)
+            h = _chain(self._keys[2].to(pixel.device), pixel)  # (n,)
             shift = _unit(_chain(h, dims[:, None]))  # (4, n)
             v = self._points.to(pixel.device).T[:, None, :] + shift[:, :, None]  # in [0, 2)
             return v.frac_()  # v − 1 where v >= 1 (exact): torch.remainder(v, 1.0) of `pixel_samples`
-        h = _chain(_chain(_chain(0, self.seed), pixel[:, None]), sample)  # (n, spp)
+        h = _chain(_chain(self._keys[0].to(pixel.device), pixel[:, None]), sample)  # (n, spp)
         jitter = _unit(_chain(h, dims[:, None, None]))
         if self.name == "independent":
             return jitter
         nx, ny = _grid(spp)
-        lens_stratum = permute(sample, spp, _chain(_chain(0, self.seed + 1), pixel[:, None]))
+        lens_stratum = permute(sample, spp, _chain(self._keys[1].to(pixel.device), pixel[:, None]))
         return torch.stack([(sample % nx + jitter[0]) / nx, (sample // nx + jitter[1]) / ny,
                             (lens_stratum % nx + jitter[2]) / nx, (lens_stratum // nx + jitter[3]) / ny])
 

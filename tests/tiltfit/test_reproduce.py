@@ -202,6 +202,9 @@ def test_set_value_stages_run_and_write_outputs(tmp_path, monkeypatch):
     assert record["truth"]["lens_states"]["b"]["theta_L_deg"] == pytest.approx(SimulatedCamera().theta_L_deg(5.0))
     text = (tmp_path / "table2.md").read_text()
     assert "noise floor" in text and "| set |" in text
+    run_line = (tmp_path / "report.md").read_text().splitlines()[2]
+    assert run_line.startswith("Run: boxes images 1/96, target photographs 1/8,"), f"report: {run_line!r}"
+    assert record["target_image_size_px"] == [684, 456], f"run.json: {record['target_image_size_px']}"
 
 
 def test_png_of_a_photograph_holds_its_exact_grey_levels(tmp_path):

@@ -6,7 +6,7 @@
                       [--distortion auto|none|k1|k1k2|opencv5|rational] [--held-out K]
     tiltfit export CALIB.json --to opencv -o camera.yml
     tiltfit report CALIB.json -o DIR
-    tiltfit reproduce [--quick] [--scale N] [--device cpu|cuda] [-o DIR]
+    tiltfit reproduce [--quick] [--scale N] [--target-scale N] [--device cpu|cuda] [-o DIR]
     tiltfit stability [--quick] [-o DIR]
     tiltfit target design|print ...   (tiltfit.target_cli: the target designer and the printable)
 

@@ -82,7 +82,8 @@ class RunConfig:
         step_px: spacing of the profile samples along the lines, pixels.
         seed: base seed of every render and noise draw.
         sampler: the renderer's sample pattern.
-        target_downscale: pixel binning of the target photographs (detection wants more pixels).
+        target_downscale: pixel binning of the target photographs (detection wants more pixels; 8: 684 x 456,
+            1: the paper's 5472 x 3648).
         target_views: target views per lens state (the first of TARGET_VIEWS).
         target_method: how `tiltfit.synth` renders the target (`analytic` or `renderer`).
         photometric_pixels, photometric_lens_samples: pixels per view and fixed lens samples of the
@@ -774,8 +775,10 @@ def _run(out_dir, quick, progress, config, camera, set_values) -> ReproduceResul
     torch_threads = torch.get_num_threads()
     width, height, _ = camera.sensor.downscaled(cfg.downscale)
     lines = profile_lines(width, height)
+    target_w, target_h, _ = camera.sensor.downscaled(cfg.target_downscale)
     log(f"(a) simulated camera: w {camera.w_mm} mm, U {camera.U0_mm} mm, d {camera.d_mm} mm (f "
-        f"{camera.f_mm:.2f} mm); boxes images {width}x{height} (1/{cfg.downscale}), {torch_threads} threads")
+        f"{camera.f_mm:.2f} mm); boxes images {width}x{height} (1/{cfg.downscale}), target photographs "
+        f"{target_w}x{target_h} (1/{cfg.target_downscale}), {torch_threads} threads")
 
     pending = []
     targets = stage_targets(camera, set_values, cfg, out_dir, log)    # (b)
@@ -810,7 +813,7 @@ def _run(out_dir, quick, progress, config, camera, set_values) -> ReproduceResul
         "set_values": {s.label: _lens_record(set_values.lens(s.theta_L_set_deg)) for s in LENS_STATES},
         "calibration": calibration["records"], "calibration_errors": calibration["errors"],
         "target_photographs": targets["files"] if targets else None,
-        "image_size_px": [width, height],
+        "image_size_px": [width, height], "target_image_size_px": [target_w, target_h],
     }
     record["truth"]["sensor"] = asdict(camera.sensor)
     with open(os.path.join(out_dir, "run.json"), "w", encoding="utf-8") as f:
@@ -858,7 +861,8 @@ def true_lens_sentence(table2: list[dict]) -> str:
 def write_report(out_dir, table1, table_s1, table2, speed, files, pending, cfg, runtime) -> str:
     """report.md: the tables and the figures in one page."""
     parts = ["# Tilt-lens paper, reproduced on a simulated camera\n",
-             f"Run: downscale 1/{cfg.downscale}, {cfg.spp_capture} spp photographs, {cfg.spp_cg} spp CG, "
+             f"Run: boxes images 1/{cfg.downscale}, target photographs 1/{cfg.target_downscale}, "
+             f"{cfg.spp_capture} spp photographs, {cfg.spp_cg} spp CG, "
              f"{runtime:.0f} s.\n"]
     if pending:
         parts.append("**Pending:** " + "; ".join(pending) + ".\n")
@@ -881,18 +885,23 @@ def write_report(out_dir, table1, table_s1, table2, speed, files, pending, cfg, 
 
 
 def main(argv=None) -> int:
-    """`tiltfit reproduce [--quick] [--scale N] [--device cpu|cuda] [-o DIR]` (also
+    """`tiltfit reproduce [--quick] [--scale N] [--target-scale N] [--device cpu|cuda] [-o DIR]` (also
     `python -m tiltfit.reproduce`)."""
     ap = argparse.ArgumentParser(prog="tiltfit reproduce", description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small images and few samples (about a minute)")
     ap.add_argument("-o", "--output", default="reproduce_out", help="output folder [reproduce_out]")
     ap.add_argument("--threads", type=int, default=1, help="torch threads [1]; 0 keeps torch's default")
     ap.add_argument("--scale", type=int, default=None,
-                    help="pixel binning of the boxes images: 1 is the paper's 5472x3648 [16; --quick 32]")
+                    help="pixel binning of the boxes images only (the target photographs: --target-scale): "
+                         "1 is the paper's 5472x3648 [16; --quick 32]")
+    ap.add_argument("--target-scale", type=int, default=None,
+                    help="pixel binning of the calibration target photographs: 1 is the paper's 5472x3648 [8]")
     ap.add_argument("--device", default="cpu", help="torch device of the boxes renders: cpu, cuda or cuda:N [cpu]")
     args = ap.parse_args(argv)
     if args.scale is not None and not 1 <= args.scale <= 256:
         ap.error(f"--scale: expected an integer from 1 to 256, got {args.scale}")
+    if args.target_scale is not None and not 1 <= args.target_scale <= 256:
+        ap.error(f"--target-scale: expected an integer from 1 to 256, got {args.target_scale}")
     from renderer.cli import UsageError, parse_device
 
     try:
@@ -900,11 +909,12 @@ def main(argv=None) -> int:
     except UsageError as e:
         ap.error(str(e))
     cfg = RunConfig.quick() if args.quick else RunConfig.full()
-    cfg = replace(cfg, device=args.device, **({} if args.scale is None else {"downscale": args.scale}))
+    cfg = replace(cfg, device=args.device, **({} if args.scale is None else {"downscale": args.scale}),
+                  **({} if args.target_scale is None else {"target_downscale": args.target_scale}))
     t0 = time.perf_counter()
     run(args.output, quick=args.quick, threads=args.threads or None, config=cfg)
-    print(f"reproduce: {time.perf_counter() - t0:.1f} s in all (boxes images 1/{cfg.downscale}, {cfg.device})",
-          file=sys.stderr)
+    print(f"reproduce: {time.perf_counter() - t0:.1f} s in all (boxes images 1/{cfg.downscale}, targets "
+          f"1/{cfg.target_downscale}, {cfg.device})", file=sys.stderr)
     return 0
 
 

@@ -2,6 +2,7 @@
 import csv
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -201,6 +202,9 @@ def test_set_value_stages_run_and_write_outputs(tmp_path, monkeypatch):
     assert record["truth"]["lens_states"]["b"]["theta_L_deg"] == pytest.approx(SimulatedCamera().theta_L_deg(5.0))
     text = (tmp_path / "table2.md").read_text()
     assert "noise floor" in text and "| set |" in text
+    run_line = (tmp_path / "report.md").read_text().splitlines()[2]
+    assert run_line.startswith("Run: boxes images 1/96, target photographs 1/8,"), f"report: {run_line!r}"
+    assert record["target_image_size_px"] == [684, 456], f"run.json: {record['target_image_size_px']}"
 
 
 def test_png_of_a_photograph_holds_its_exact_grey_levels(tmp_path):
@@ -213,3 +217,49 @@ def test_png_of_a_photograph_holds_its_exact_grey_levels(tmp_path):
     reproduce._save_png(str(tmp_path / "p.png"), img)
     np.testing.assert_array_equal(grey_levels(read_image(str(tmp_path / "p.png"))), img,
                                   err_msg="8-bit sRGB written and read back unchanged")
+
+
+def test_cli_rejects_a_target_scale_out_of_range(capsys):
+    for bad in ("0", "257"):
+        with pytest.raises(SystemExit) as e:
+            reproduce.main(["--target-scale", bad])
+        assert e.value.code == 2, f"--target-scale {bad}: exit {e.value.code}, expected argparse's 2"
+        err = capsys.readouterr().err.strip().splitlines()[-1]
+        assert "--target-scale" in err and "1 to 256" in err, f"--target-scale {bad}: one-line error, got {err!r}"
+
+
+def test_cli_scales_reach_the_run_config(tmp_path, monkeypatch, capsys):
+    """--scale bins the boxes images, --target-scale the target photographs; neither moves the other, and the
+    defaults stay the config's (nothing heavy runs: `run` is replaced)."""
+    seen = []
+    monkeypatch.setattr(reproduce, "run", lambda out_dir, **kw: seen.append(kw["config"]))
+    out = str(tmp_path / "o")
+    for argv, boxes, targets in ((["--target-scale", "1"], 16, 1), (["--scale", "4"], 4, 8),
+                                 (["--quick", "--target-scale", "16"], 32, 16), ([], 16, 8)):
+        assert reproduce.main(["-o", out, *argv]) == 0
+        cfg = seen[-1]
+        assert (cfg.downscale, cfg.target_downscale) == (boxes, targets), \
+            f"{argv}: boxes 1/{cfg.downscale}, targets 1/{cfg.target_downscale}; expected 1/{boxes}, 1/{targets}"
+        summary = capsys.readouterr().err.strip().splitlines()[-1]
+        assert f"boxes images 1/{boxes}, targets 1/{targets}," in summary, f"{argv}: summary line {summary!r}"
+    assert seen[-1] == replace(RunConfig.full(), device="cpu"), "no option given: the full run's config unchanged"
+
+
+def test_target_photographs_come_out_at_the_target_scale(tmp_path):
+    """Stage (b) on a tiny run: the photographs (PNG and the detector's input) are 5472/32 x 3648/32."""
+    if not reproduce.calibration_modules_available():
+        pytest.skip("tiltfit.synth / tiltfit.detect / tiltfit.blur not all present")
+    from renderer import read_image
+
+    (tmp_path / "images").mkdir()
+    cfg = RunConfig(target_views=1, target_method="analytic", target_downscale=32)
+    out = reproduce.stage_targets(SimulatedCamera(), SetValues(), cfg, str(tmp_path), lambda msg: None)
+    assert out["image_size_px"] == (5472 // 32, 3648 // 32), f"image size {out['image_size_px']}"
+    assert out["pixel_pitch_mm"] == pytest.approx(EOS_6D.pixel_pitch_mm * 32), "binned pixel pitch"
+    files = [f for state in LENS_STATES for f in out["files"][state.label]]
+    assert len(files) == len(LENS_STATES), f"one view per lens state, got {files}"
+    for name in files:
+        shape = read_image(str(tmp_path / name)).shape
+        assert shape[:2] == (3648 // 32, 5472 // 32), f"{name}: {shape}"
+        assert out["linear"][name].shape == (3648 // 32, 5472 // 32), \
+            f"{name}: detector input {out['linear'][name].shape}"

@@ -90,8 +90,6 @@ class Mitsuba:
         spp = spp or self.spp
         if (spp, sampler) not in self.dicts:
             scene_dict, dropped = to_mitsuba(self.scene, spp)
-            # The exporter names our Sobol sampler, which Mitsuba does not have; everything else carries over.
-            dropped = [x for x in dropped if "sampler" not in x]
             assert not dropped, f"the speed scene should carry over exactly, dropped {dropped}"
             scene_dict["sensor"]["sampler"]["type"] = sampler
             self.dicts[spp, sampler] = self.mi.load_dict(scene_dict)

@@ -383,26 +383,46 @@ def _select_pixels(image: np.ndarray, predicted: np.ndarray, usable: np.ndarray,
     return np.sort(np.concatenate(pick))
 
 
+# Pixels whose rays `_usable_mask` generates at once (about 2 KB each with its ring of lens samples and the
+# intermediates): at 5472×3648 all pixels at once took more than 17 GB (`tiltfit reproduce --target-scale 1`
+# was killed); 684×456 images stay one chunk.
+MASK_CHUNK_PIXELS = 1 << 19
+# Candidate pixels whose brightness is predicted before picking the pixels to fit (`_select_pixels`): above it
+# a regular subset of the usable pixels (every k-th); images up to 2^19 pixels keep them all.
+MAX_CANDIDATE_PIXELS = 1 << 19
+
+
 def _usable_mask(target: Target, sensor: SensorGeometry, glob: torch.Tensor, view: torch.Tensor,
                  lens_uv: torch.Tensor) -> np.ndarray:
-    """(H, W) pixels whose every lens sample lands on the board, margin included, away from its outer edge."""
+    """(H, W) pixels whose every lens sample lands on the board, margin included, away from its outer edge.
+    Two passes over chunks of MASK_CHUNK_PIXELS pixels: the margin (two pixels, mm) needs the largest ray
+    length over the whole image first."""
     W, H = sensor.width_px, sensor.height_px
-    yy, xx = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64),
-                            indexing="ij")
-    uv = torch.stack([xx.reshape(-1), yy.reshape(-1)], -1)
+    x0, y0, x1, y1 = target.extent_mm
     with torch.no_grad():
         cam = lens_camera(sensor, glob[0], glob[1], glob[2], glob[3], view[0:3], view[3:6])
         ring = lens_uv[:: max(1, lens_uv.shape[0] // 16)]
         ring = torch.cat([ring, torch.tensor([[0.0, 0.5], [1.0, 0.5], [0.5, 0.0], [0.5, 1.0]], dtype=ring.dtype)])
-        n, s = uv.shape[0], ring.shape[0]
-        rays = cam.generate_rays(uv[:, None, :].expand(n, s, 2), ring[None].expand(n, s, 2))
-        t = -rays.origin[..., 2] / rays.direction[..., 2]
-        hit = rays.origin + t[..., None] * rays.direction
-        x0, y0, x1, y1 = target.extent_mm
-        guard = 2.0 * float(cam.screen.pitch[0]) * float(t.abs().max()) / float(glob[0])  # two pixels, mm
-        ok = (t > 0) & (hit[..., 0] > x0 + guard) & (hit[..., 0] < x1 - guard) & \
-             (hit[..., 1] > y0 + guard) & (hit[..., 1] < y1 - guard)
-    return ok.all(-1).reshape(H, W).numpy()
+
+        def hits(a: int):
+            flat = torch.arange(a, min(a + MASK_CHUNK_PIXELS, H * W))
+            uv = torch.stack([(flat % W).to(torch.float64), (flat // W).to(torch.float64)], -1)
+            n, s = uv.shape[0], ring.shape[0]
+            rays = cam.generate_rays(uv[:, None, :].expand(n, s, 2), ring[None].expand(n, s, 2))
+            t = -rays.origin[..., 2] / rays.direction[..., 2]
+            return t, rays.origin + t[..., None] * rays.direction
+
+        starts = range(0, H * W, MASK_CHUNK_PIXELS)
+        first = hits(0)  # kept for the second pass where it is the only chunk (images up to 2^19 pixels)
+        t_max = max([float(first[0].abs().max())] + [float(hits(a)[0].abs().max()) for a in starts[1:]])
+        guard = 2.0 * float(cam.screen.pitch[0]) * t_max / float(glob[0])
+        ok = np.empty(H * W, dtype=bool)
+        for a in starts:
+            t, hit = first if a == 0 and len(starts) == 1 else hits(a)
+            inside = (t > 0) & (hit[..., 0] > x0 + guard) & (hit[..., 0] < x1 - guard) & \
+                     (hit[..., 1] > y0 + guard) & (hit[..., 1] < y1 - guard)
+            ok[a:a + t.shape[0]] = inside.all(-1).numpy()
+    return ok.reshape(H, W)
 
 
 def _initial_levels(image: np.ndarray, usable: np.ndarray) -> tuple[float, float]:
@@ -471,6 +491,10 @@ def refine_photometric(images, target: Target, init: dict, pixel_pitch_mm: float
         usable = _usable_mask(target, sensor, glob, vp, lens_uv)
         white, black = _initial_levels(im, usable)
         vp[6], vp[7] = white, black
+        if usable.sum() > MAX_CANDIDATE_PIXELS:  # a regular subset: predicting all of a 20 MP photo is slow
+            keep = np.flatnonzero(usable)
+            usable = np.zeros_like(usable)
+            usable.reshape(-1)[keep[::-(-keep.size // MAX_CANDIDATE_PIXELS)]] = True
         yy, xx = np.nonzero(usable)
         uv_all = torch.tensor(np.stack([xx, yy], -1), dtype=torch.float64)
         with torch.no_grad():

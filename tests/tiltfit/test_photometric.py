@@ -338,3 +338,26 @@ def test_photometric_fit_does_not_depend_on_the_jacobian_block(monkeypatch):
         assert a.values[key] == pytest.approx(b.values[key], rel=1e-9, abs=1e-9), \
             f"{key}: {a.values[key]} in one block, {b.values[key]} in blocks of 97"
     assert a.iterations == b.iterations and abs(a.rms - b.rms) < 1e-12
+
+
+def test_usable_mask_in_chunks_and_thinned_candidates(monkeypatch):
+    """Full-resolution photographs (20 MP) go through the usable-pixel mask in chunks and predict a regular
+    subset of candidate pixels: the mask in chunks of 997 pixels gives the same fit as in one chunk, and
+    thinning the candidates to 5,000 a view still lands on the same lens (within the fits' own σ)."""
+    from tiltfit import photometric
+
+    images, poses, truth = _captures(U0_mm=560.0, spp=16, downscale=32)
+    init = _perturbed_init(poses, truth)
+    runs = {}
+    for name, chunk, candidates in (("one chunk", 1 << 19, 1 << 19), ("chunks", 997, 1 << 19),
+                                    ("thinned", 1 << 19, 5000)):
+        monkeypatch.setattr(photometric, "MASK_CHUNK_PIXELS", chunk)
+        monkeypatch.setattr(photometric, "MAX_CANDIDATE_PIXELS", candidates)
+        runs[name] = refine_photometric(images, BOARD, init, truth["pitch"], PhotometricOptions(max_pixels=400))
+    a, b, c = runs["one chunk"], runs["chunks"], runs["thinned"]
+    for key in ("theta_L_deg", "U_mm", "d_mm", "w_mm"):
+        assert a.values[key] == b.values[key], f"{key}: {a.values[key]} in one chunk, {b.values[key]} in chunks"
+        tol = 4 * math.hypot(a.sigma[key], c.sigma[key])
+        assert abs(a.values[key] - c.values[key]) <= tol, \
+            f"{key}: {a.values[key]} with every candidate, {c.values[key]} thinned (tolerance {tol:.3g})"
+    assert a.values != c.values, "thinning to 5,000 candidates should pick other pixels"

@@ -24,7 +24,6 @@ import time
 import torch
 
 from renderer import render
-from renderer.sampling import Sampler  # noqa: F401  (the workers unpickle the scene's sampler settings)
 from renderer.scenefile import load_scene
 from results_io import add_output_options, markdown_only, save
 
@@ -49,8 +48,7 @@ def _jobs_as_workers_see_them(scene, spp: int, workers: int) -> dict:
     digest = hashlib.sha1(blob).hexdigest()
     pool = render_mod._pool(workers)
     chunk = render_mod.EMBREE_CHUNK_RAYS
-    W, H = scene.camera.width, scene.camera.height
-    job_rays = max(chunk, min(render_mod.MAX_JOB_RAYS, -(-W * H * spp // (render_mod.JOBS_PER_WORKER * workers))))
+    job_rays = render_mod._job_rays(scene, spp, workers, chunk)
     t0 = time.perf_counter()
     futures = [pool.submit(timed_job, digest, blob, pixel, n, spp, scene.image.sampler, 0, options, torch.float32,
                            None, chunk, True)

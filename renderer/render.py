@@ -177,6 +177,12 @@ JOBS_PER_WORKER = 4
 MAX_JOB_RAYS = 1 << 20
 
 
+def _job_rays(scene, spp: int, workers: int, chunk_rays: int) -> int:
+    """Camera rays per worker job: JOBS_PER_WORKER jobs a worker, at most MAX_JOB_RAYS, at least a batch."""
+    rays = scene.camera.width * scene.camera.height * spp
+    return max(chunk_rays, min(MAX_JOB_RAYS, -(-rays // (JOBS_PER_WORKER * workers))))
+
+
 def _worker_start():
     # One thread per process: the processes share the cores instead of torch's threads.
     torch.set_num_threads(1)
@@ -244,22 +250,16 @@ def _spawn_safe() -> bool:
     frame = sys._getframe(1)
     while frame is not None:
         if frame.f_globals is vars(main) and frame.f_code.co_name == "<module>":
-            guards = _GUARDS.get(path)
-            if guards is None:
-                guards = _GUARDS[path] = _main_guards(path, os.path.getmtime(path))
-            return any(a <= frame.f_lineno <= b for a, b in guards)
+            return any(a <= frame.f_lineno <= b for a, b in _main_guards(path))
         frame = frame.f_back
     return True
 
 
-# Main script -> its guards as first read in this process: a script edited while it runs (its lines moving
-# under the running frame) keeps its workers (a benchmark edited mid-run fell back to one process).
-_GUARDS: dict = {}
-
-
-@functools.lru_cache(maxsize=4)
-def _main_guards(path: str, mtime: float) -> list[tuple[int, int]]:
-    """(first, last) lines of the top-level `if __name__ == "__main__":` blocks of the Python file `path`."""
+@functools.lru_cache(maxsize=None)
+def _main_guards(path: str) -> list[tuple[int, int]]:
+    """(first, last) lines of the top-level `if __name__ == "__main__":` blocks of the Python file `path`, as
+    first read in this process: a script edited while it runs (its lines moving under the running frame)
+    keeps its workers (a benchmark edited mid-run had fallen back to one process)."""
     import ast
 
     try:
@@ -454,8 +454,7 @@ def _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device
         pool = _pool(workers)
         digest = hashlib.sha1(blob).hexdigest()
         jit_runs = options.intersector == "mitsuba" and llvm_available()
-        job_rays = max(chunk_rays, min(MAX_JOB_RAYS, -(-scene.camera.width * scene.camera.height * spp
-                                                       // (JOBS_PER_WORKER * workers))))
+        job_rays = _job_rays(scene, spp, workers, chunk_rays)
         jobs = {pool.submit(_worker_render, digest, blob, pixel, n, spp, sampler, seed, options, dtype, max_depth,
                             chunk_rays, jit_runs): (pixel, n) for pixel, n in _chunks(scene, spp, options, job_rays)}
 

@@ -204,11 +204,11 @@ def _run(tmp_path, text):
 
 
 def test_spawn_safe_reads_the_main_guard(tmp_path):
-    lines = RENDER._main_guards(__file__, 0.0)
+    lines = RENDER._main_guards(__file__)
     assert lines == [], f"this test file has no main guard, found {lines}"
     script = tmp_path / "guarded.py"
     script.write_text("import os\nx = 1\nif __name__ == '__main__':\n    y = 2\n    z = 3\nw = 4\n")
-    assert RENDER._main_guards(str(script), 1.0) == [(3, 5)], "the guard spans lines 3-5"
+    assert RENDER._main_guards(str(script)) == [(3, 5)], "the guard spans lines 3-5"
 
 
 EDITED = """

@@ -27,6 +27,7 @@ Mitsuba is an optional extra (`pip install -e '.[test]'` or `'.[bench]'`); it is
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 
@@ -38,11 +39,23 @@ _PROBE = ("import drjit as dr, mitsuba as mi; mi.set_variant({v!r}); "
           "x = dr.maximum(mi.Float([1, 2]), mi.Float([2, 1])); dr.eval(x); print(x)")
 
 
+#: Set (to anything but "" or "0") to hide Mitsuba's JIT variants, as on a machine without libLLVM >= 16: CI runs
+#: the suite once this way so the pure-torch fallback of `intersector="auto"` stays tested.
+HIDE_JIT_ENV = "RENDERER_HIDE_MITSUBA_JIT"
+
+
+def jit_hidden() -> bool:
+    """Whether `HIDE_JIT_ENV` hides Mitsuba's JIT variants in this process."""
+    return os.environ.get(HIDE_JIT_ENV, "") not in ("", "0")
+
+
 def jit_variant_runs(variant: str) -> bool:
     """Whether a JIT variant (llvm_*, cuda_*) runs here, probed in a child process: Dr.Jit needs LLVM >= 16,
-    and with an older libLLVM the first kernel aborts the whole process."""
+    and with an older libLLVM the first kernel aborts the whole process. False whenever `HIDE_JIT_ENV` is set."""
     if variant.startswith("scalar"):
         return True
+    if jit_hidden():
+        return False
     if variant not in _LLVM_RUNS:
         import subprocess
         import sys

@@ -51,6 +51,36 @@ def _llvm_runs() -> bool:
 needs_llvm = pytest.mark.skipif(not _llvm_runs(), reason="mitsuba's llvm_ad_rgb variant does not run here")
 
 
+def fresh_process_variant(monkeypatch):
+    """Make an already imported Mitsuba look as in a fresh process (no variant set), so `auto` probes instead of
+    leaving another test's variant alone; the real variant stays as it was."""
+    mi = sys.modules.get("mitsuba")
+    if mi is None:
+        return
+    monkeypatch.setattr(mi, "variant", lambda: None)
+    monkeypatch.setattr(mi, "set_variant", lambda v: None)  # the probe's scalar fallback must not stick
+
+
+def test_hiding_the_jit_variants_makes_auto_use_our_tracer(monkeypatch):
+    """RENDERER_HIDE_MITSUBA_JIT (how CI runs the suite a second time, as on a machine without libLLVM >= 16)
+    hides the llvm variant from the probe, so auto traces with our own code; unset, the probe answers again."""
+    from renderer.mitsuba import export
+
+    pytest.importorskip("mitsuba")  # imported before fresh_process_variant, so the probe cannot set a variant
+    monkeypatch.setattr(export, "_LLVM_RUNS", {})
+    monkeypatch.setenv(export.HIDE_JIT_ENV, "1")
+    assert not export.jit_variant_runs("llvm_ad_rgb"), "a hidden llvm variant should not run"
+    assert export.jit_variant_runs("scalar_rgb"), "scalar variants are never hidden"
+    monkeypatch.setattr(mi_intersect, "_LLVM", [])
+    monkeypatch.setattr(mi_intersect, "_ENGINES", {})
+    fresh_process_variant(monkeypatch)
+    scene = load_scene(CFG)
+    assert mi_intersect.auto_engine(scene, "cpu", torch.float32) is None, "auto should not take Embree when hidden"
+    assert mi_intersect._LLVM == [False], f"the probe should say no: {mi_intersect._LLVM}"
+    monkeypatch.setenv(export.HIDE_JIT_ENV, "0")
+    assert not export.jit_hidden(), "0 should mean not hidden"
+
+
 @pytest.mark.parametrize("failure", ["not installed", "scalar only"])
 def test_auto_falls_back_to_our_tracer_where_mitsuba_does_not_load(monkeypatch, failure):
     def missing(variant):
@@ -63,6 +93,7 @@ def test_auto_falls_back_to_our_tracer_where_mitsuba_does_not_load(monkeypatch, 
 
     monkeypatch.setattr(mi_intersect, "load_mitsuba", missing if failure == "not installed" else lambda v: ScalarOnly)
     monkeypatch.setattr(mi_intersect, "_LLVM", [])  # probe again, through the broken loader
+    fresh_process_variant(monkeypatch)
     monkeypatch.setattr(mi_intersect, "_ENGINES", {})
     scene = load_scene(CFG)
     auto = render(scene, seed=2).image

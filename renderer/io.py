@@ -29,9 +29,7 @@ import tempfile
 
 import numpy as np
 
-
-class ImageIOError(ValueError):
-    """An image that cannot be read or written; one-line message naming the file."""
+from .errors import ImageIOError  # noqa: F401 - raised here, and importable from here as before
 
 
 SRGB_SPACE = "srgb_rec709_scene"

@@ -20,6 +20,7 @@ import math
 
 import torch
 
+from .rays import component_rows
 from .scene import Scene, TraceOptions
 
 
@@ -38,11 +39,6 @@ def applies(scene: Scene, options: TraceOptions, table) -> bool:
     if any(light.type not in ("point", "ambient") for light in scene.lights):
         return False
     return not bool(((table.reflect > 0) | (table.transmit > 0) | (table.specular > 0)).any())
-
-
-def _rows(x: torch.Tensor) -> torch.Tensor:
-    """(N, 3) -> (3, N) contiguous rows (free where x is already a transposed view of such rows)."""
-    return x.T if x.T.is_contiguous() else torch.stack(x.unbind(-1))
 
 
 # Local outward normals of the box faces 0..5 (−x, +x, −y, +y, −z, +z), as (3, 6) columns.
@@ -124,7 +120,7 @@ def trace_direct(scene: Scene, o: torch.Tensor, d: torch.Tensor, first_hit_objec
                  options: TraceOptions):
     """Radiance (N, 3) and found (N,) for rays o, d (N, 3), as `integrator.trace` returns them (the radiance
     as a transposed view of (3, N) rows)."""
-    o_s, d_s = _rows(o), _rows(d)
+    o_s, d_s = component_rows(o), component_rows(d)
     hit = scene.intersect_rows(o_s, d_s, first_hit_objects, options=options)
     lit = shade_hits(scene, table, _tables(scene, table, o_s), o_s, d_s, hit.t, hit.object_id, hit.aux)
     leaving, vis = None, []

@@ -22,7 +22,7 @@ import torch
 
 from .cameras.base import Camera
 from .materials import Material, MaterialTable
-from .rays import Hit
+from .rays import Hit, component_rows
 from .shapes.base import Shape, geometry_key
 
 # Above this fraction of candidate packets, testing every ray in place is cheaper than gathering.
@@ -340,6 +340,8 @@ class Scene:
             and plan = [(k, sel)] for every object k to test, sel the (m,) packet indices or None for all
             packets.
         """
+        if not options.compile and not rows:  # eager tracing works on (3, N) rows: see `Shape.intersect_soa`
+            o, d, rows = component_rows(o), component_rows(d), True
         n = o.shape[1] if rows else o.shape[0]
         P = max(1, int(options.packet_size)) if options.culling else 1
         pad = (-n) % P
@@ -357,10 +359,8 @@ class Scene:
         t_p = None if t_max is None else t_max.view(-1, P)
         if options.compile:
             o_p, d_p = o.reshape(-1, P, 3), d.reshape(-1, P, 3)
-        elif rows:
+        else:
             o_p, d_p = o.view(3, -1, P), d.view(3, -1, P)
-        else:  # (3, B, P) component rows: see `Shape.intersect_soa`
-            o_p, d_p = _components(o).view(3, -1, P), _components(d).view(3, -1, P)
         n_packets = o_p.shape[0 if options.compile else 1]
         wanted = [k for k in range(len(self.objects)) if object_mask is None or object_mask[k]]
         if P == 1:
@@ -409,23 +409,21 @@ class Scene:
             options: how to trace [self.options]; the result does not depend on it beyond float rounding.
         """
         options = self.options if options is None else options
+        if not options.compile:  # eager tracing: one path, on (3, N) rows
+            return self.intersect_rows(component_rows(o), component_rows(d), object_mask, options=options)
         external = self._external(options, object_mask, o, d)
         if external is not None:
-            return Hit(*external.nearest(_components(o), _components(d), self.ray_epsilon))
+            return Hit(*external.nearest(component_rows(o), component_rows(d), self.ray_epsilon))
         n = o.shape[0]
         o_p, d_p, _, plan = self._packets(o, d, None, options, object_mask)
-        rows_shape = o_p.shape[:2] if options.compile else o_p.shape[1:]
-        t_best = torch.full(rows_shape, float("inf"), dtype=o.dtype, device=o.device)
-        obj = torch.full(rows_shape, -1, dtype=torch.long, device=o.device)
-        aux = torch.zeros(rows_shape, dtype=torch.long, device=o.device)
-        if options.compile:  # one graph per shape class: gather every packet rather than none
-            plan = [(k, self._all_packets(o_p) if sel is None else sel) for k, sel in plan]
+        t_best = torch.full(o_p.shape[:2], float("inf"), dtype=o.dtype, device=o.device)
+        obj = torch.full(o_p.shape[:2], -1, dtype=torch.long, device=o.device)
+        aux = torch.zeros(o_p.shape[:2], dtype=torch.long, device=o.device)
+        # One graph per shape class: gather every packet rather than none.
+        plan = [(k, self._all_packets(o_p) if sel is None else sel) for k, sel in plan]
         for k, sel in plan:
-            if not options.compile:
-                rows = _nearest_eager(self.objects[k].shape, o_p, d_p, sel, self.ray_epsilon, t_best, obj, aux, k)
-            else:
-                rows = self._compiled(k, _nearest, options, (o_p, d_p, sel, self.ray_epsilon, t_best, obj, aux,
-                                                             torch.tensor(k, device=o.device)))
+            rows = self._compiled(k, _nearest, options, (o_p, d_p, sel, self.ray_epsilon, t_best, obj, aux,
+                                                         torch.tensor(k, device=o.device)))
             t_best, obj, aux = _merged((t_best, obj, aux), rows, sel)
         return Hit(t_best.view(-1)[:n], obj.view(-1)[:n], aux.view(-1)[:n])
 
@@ -486,7 +484,7 @@ class Scene:
         opaque = not bool(table.shadow_transmittance.any())
         external = self._external(options, None, o, d, t_max) if opaque else None
         if external is not None:
-            return external.visible(_components(o), _components(d), t_max, self.ray_epsilon)[:, None]
+            return external.visible(component_rows(o), component_rows(d), t_max, self.ray_epsilon)[:, None]
         n = o.shape[0]
         o_p, d_p, t_p, plan = self._packets(o, d, t_max, options, None, leaving)
         rows_shape = o_p.shape[:2] if options.compile else o_p.shape[1:]
@@ -508,12 +506,6 @@ class Scene:
             else:
                 trans.index_copy_(0, sel, rows)
         return trans.reshape(-1, 1)[:n] if opaque else trans.reshape(-1, 3)[:n]
-
-
-def _components(x: torch.Tensor) -> torch.Tensor:
-    """(N, 3) -> (3, N) contiguous component rows (the layout of `Shape.intersect_soa`); stacking the three
-    strided columns is several times faster than `x.T.contiguous()` in eager torch."""
-    return torch.stack(x.unbind(-1))
 
 
 def _merged(state: tuple, rows: tuple, sel):

@@ -246,20 +246,16 @@ class Scene:
         self.refresh()
 
     def refresh(self) -> None:
-        """Recompute what the scene derives from its objects (culling spheres, extent, material tables) if an
-        object, shape or material was replaced or a shape's tensor edited in place since it was last computed
-        (`renderer.shapes.base.geometry_key`). `render` calls it once per render; a caller tracing rays
-        through `intersect`/`shadow` itself after moving a shape calls it first.
-
-        `geometry` is then a new object (the key): caches built elsewhere from the scene's shapes (the Embree
-        scene, `renderer.direct`'s normal tables, `renderer.fused`'s tables) keep the one they were built
-        for and rebuild when it is no longer `geometry`, without computing the key again per batch."""
+        """Recompute what the scene derives from its objects (culling spheres, extent, and everything kept by
+        `derived`) if an object, shape or material was replaced or a shape's tensor edited in place since it
+        was last computed (`renderer.shapes.base.geometry_key`, kept as `geometry`). `render` calls it once
+        per render; a caller tracing rays through `intersect`/`shadow` itself after moving a shape calls it
+        first."""
         key = geometry_key(self)
         if key == self.geometry:
             return
         self.geometry = key
-        self._tables: dict = {}
-        self._warm: set = set()
+        self._derived: dict = {}
         names = [o.name for o in self.objects]
         self.index_of = {n: i for i, n in enumerate(names)}
         bounded = [o.shape.bounding_sphere() for o in self.objects]
@@ -283,24 +279,32 @@ class Scene:
         """Offset for secondary-ray origins and the minimum hit distance, relative to the scene size."""
         return 1e-5 * self.extent
 
+    def derived(self, key, build):
+        """What `build()` makes from the scene's objects (a material table, the Embree scene, normal tables),
+        made on first use and kept under `key` (hashable; name the owner, e.g. ("direct.normals", device,
+        dtype)) until `refresh` sees an object, shape or material change. Not pickled: a scene sent to a
+        worker process builds its own."""
+        if key not in self._derived:
+            self._derived[key] = build()
+        return self._derived[key]
+
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state["_derived"] = {}  # Dr.Jit scenes do not pickle, and a worker builds what it needs
+        return state
+
     def materials(self, like: torch.Tensor) -> MaterialTable:
-        key = (like.device, like.dtype)
-        if key not in self._tables:
-            self._tables[key] = MaterialTable([o.material for o in self.objects], like.device, like.dtype)
-        return self._tables[key]
+        """The objects' materials stacked as tensors on `like`'s device and in its dtype."""
+        return self.derived(("materials", like.device, like.dtype),
+                            lambda: MaterialTable([o.material for o in self.objects], like.device, like.dtype))
 
     def _compiled(self, k: int, fn, options: TraceOptions, args):
         """fn(shape_k, *args), compiled per shape class when options.compile is set (see `compiled_call`)."""
         shape = self.objects[k].shape
         if not options.compile or shape.type_name in _EAGER_ONLY:
             return fn(shape, *args)
-        key = (k, args[0].device, args[0].dtype)
-        if key not in self._warm:
-            # Fill the shape's parameter cache eagerly first, so that compiled graphs see it filled.
-            p = torch.zeros(2, 3, dtype=args[0].dtype, device=args[0].device)
-            shape.intersect(p, p, 0.0)
-            shape.surface(p, torch.zeros(2, dtype=torch.long, device=p.device))
-            self._warm.add(key)
+        # Fill the shape's parameter cache eagerly first, so that compiled graphs see it filled.
+        self.derived(("compile.warm", k, args[0].device, args[0].dtype), lambda: _warm_up(shape, args[0]))
         return compiled_call(True, per_class(fn, type(shape)), shape, *args)
 
     def _external(self, options: TraceOptions, object_mask, *rays: torch.Tensor):
@@ -516,6 +520,15 @@ def _merged(state: tuple, rows: tuple, sel):
     for dst, src in zip(state, rows):
         dst.index_copy_(0, sel, src)
     return state
+
+
+def _warm_up(shape, like: torch.Tensor) -> bool:
+    """Run the shape's intersection and surface eagerly once on like's device and dtype (fills its parameter
+    cache, `Shape._param`); True."""
+    p = torch.zeros(2, 3, dtype=like.dtype, device=like.device)
+    shape.intersect(p, p, 0.0)
+    shape.surface(p, torch.zeros(2, dtype=torch.long, device=p.device))
+    return True
 
 
 def _surface_of(shape, p, aux):

@@ -24,6 +24,7 @@ import contextlib
 import datetime
 import functools
 import os
+import shutil
 import sys
 import tempfile
 
@@ -269,11 +270,20 @@ def atomic_output(path: str):
         finally:
             os.close(fd)
         return
+    with _hidden_file(folder, hidden, path) as (tmp_fd, tmp):
+        os.close(tmp_fd)
+        yield tmp
+
+
+@contextlib.contextmanager
+def _hidden_file(folder: str, hidden: str, path: str):
+    """Yield (fd, name) of a new hidden temporary file in `folder` (mode 0666 minus the umask), renamed over
+    `path` on a clean exit and removed on any exception: the writer where `O_TMPFILE` is missing or its
+    inode cannot be linked. The caller closes fd."""
     fd, tmp = tempfile.mkstemp(prefix=hidden, suffix=".tmp", dir=folder)
-    os.close(fd)
     try:
         os.chmod(tmp, 0o666 & ~_umask())
-        yield tmp
+        yield fd, tmp
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
@@ -308,16 +318,9 @@ def _publish_tmpfile(fd: int, folder: str, hidden: str, path: str) -> None:
 
 def _publish_copy(fd: int, folder: str, hidden: str, path: str) -> None:
     """Copy the anonymous inode `fd` to a hidden temporary file, then rename it over `path`."""
-    tmp_fd, tmp = tempfile.mkstemp(prefix=hidden, suffix=".tmp", dir=folder)
-    try:
-        with open(f"/proc/self/fd/{fd}", "rb") as src, os.fdopen(tmp_fd, "wb") as dst:
-            while chunk := src.read(1 << 20):
-                dst.write(chunk)
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    with _hidden_file(folder, hidden, path) as (tmp_fd, _):
+        with os.fdopen(tmp_fd, "wb") as dst, open(f"/proc/self/fd/{fd}", "rb") as src:
+            shutil.copyfileobj(src, dst, 1 << 20)
 
 
 def write_text(path: str, text: str) -> None:

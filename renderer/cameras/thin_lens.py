@@ -43,9 +43,9 @@ from ..blend import carries_derivative, selector
 from ..params import Param, SceneError
 from ..rays import Rays, normalize_rows_, unit_vectors_from_rows, vectors_from_rows
 from ..transforms import CameraTransform
-from . import register_camera
 from .base import Camera, Screen
 from .distortion import BrownConrady
+from .registry import register_camera
 
 THIN_LENS_PARAMS = [
     Param("w", "float", doc="lens centre to sensor (effective focal length), scene units"),

@@ -31,9 +31,8 @@ from .scene import Scene, TraceOptions
 
 _KINDS = {"sphere", "box", "rectangle", "plane"}
 # Rays a batch by default: with the stages fused, per-call costs (Python, torch.compile's guards, Dr.Jit) are a
-# larger share, so larger batches pay: on the issue-11 speed scene, one process, 2^19 took 0.85-0.88x the time
-# of 2^17 (2^16 1.07-1.09x, 2^18 0.95-1.02x; benchmarks/results/fused_embree.md). 2^20 was 0.93x of 2^19 but
-# leaves two workers only two jobs each on that scene (`render.MAX_JOB_RAYS`).
+# larger share, so larger batches pay; 2^20 was faster still but leaves two workers only two jobs each on the
+# speed scene (`render.MAX_JOB_RAYS`; docs/speed.md, "Defaults and where they come from").
 CHUNK_RAYS = 1 << 19
 
 

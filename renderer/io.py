@@ -194,8 +194,8 @@ def write_image(path: str, image, encoding: str | None = None, metadata: dict | 
     spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], arr.shape[2], fmt)
     spec.attribute("oiio:ColorSpace", SRGB_SPACE if enc == "srgb" else LINEAR_SPACE)
     if ext == ".png":
-        # zlib level 3 instead of OpenImageIO's 6: a 5472 x 3648 photo-like image took 2.5 s instead of 6.2 s
-        # for a 3 % larger file (benchmarks/results/batch_io.md).
+        # zlib level 3 instead of OpenImageIO's 6: less than half the time for a few per cent larger files
+        # (docs/speed.md).
         spec.attribute("png:compressionLevel", PNG_COMPRESSION_LEVEL)
     spec.attribute("Software", software_version())
     spec.attribute("DateTime", datetime.datetime.now().strftime("%Y:%m:%d %H:%M:%S"))

@@ -293,6 +293,13 @@ class Scene:
         state["_derived"] = {}  # Dr.Jit scenes do not pickle, and a worker builds what it needs
         return state
 
+    def __copy__(self):
+        """A shallow copy shares the objects, so it shares what is derived from them too (until one of the two
+        sees a change in `refresh`, which gives that one a new cache)."""
+        copy = object.__new__(type(self))
+        copy.__dict__.update(self.__dict__)
+        return copy
+
     def materials(self, like: torch.Tensor) -> MaterialTable:
         """The objects' materials stacked as tensors on `like`'s device and in its dtype."""
         return self.derived(("materials", like.device, like.dtype),

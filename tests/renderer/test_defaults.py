@@ -176,8 +176,9 @@ def test_renders_follow_a_moved_shape():
 
 def test_scene_derived_data_follows_the_geometry_and_stays_out_of_pickles():
     """`Scene.derived` (the one cache of what is built from a scene's objects: material tables, the Embree
-    scene, the fast paths' tables) keeps a value until `refresh` sees an object change, and a pickled scene
-    (what worker processes get) carries none of it."""
+    scene, the fast paths' tables) keeps a value until `refresh` sees an object change; a pickled scene
+    (what worker processes get) carries none of it, a shallow copy (same objects) shares it."""
+    import copy
     import pickle
 
     from renderer.shapes.sphere import Sphere
@@ -189,14 +190,18 @@ def test_scene_derived_data_follows_the_geometry_and_stays_out_of_pickles():
     scene.refresh()
     assert scene.derived("test", lambda: built.append(1) or object()) is first, "refresh without a change keeps it"
     table = scene.materials(torch.zeros(1))
-    copy = pickle.loads(pickle.dumps(scene))
-    assert copy._derived == {}, f"a pickled scene should carry no derived data: {sorted(copy._derived)}"
-    assert torch.equal(copy.materials(torch.zeros(1)).color, table.color), "the copy rebuilds its material table"
+    unpickled = pickle.loads(pickle.dumps(scene))
+    assert unpickled._derived == {}, f"a pickled scene should carry no derived data: {sorted(unpickled._derived)}"
+    assert torch.equal(unpickled.materials(torch.zeros(1)).color, table.color), "it rebuilds its material table"
+    shallow = copy.copy(scene)  # shares the objects (render_accumulation's passes): shares what is derived
+    assert shallow.materials(torch.zeros(1)) is table, "a shallow copy should share the material tables"
     scene.objects[0].shape = Sphere([0.5, 0.0, 0.0], 1.0)
     scene.refresh()
     again = scene.derived("test", lambda: built.append(1) or object())
     assert again is not first and built == [1, 1], "a replaced shape should rebuild what was derived"
     assert scene.materials(torch.zeros(1)) is not table, "and the material tables with it"
+    shallow.refresh()  # its object list is the scene's: it sees the new ball too
+    assert shallow.materials(torch.zeros(1)) is not table, "the shallow copy should rebuild after its refresh"
 
 
 def test_auto_workers_only_for_large_float32_cpu_renders(monkeypatch):

@@ -31,6 +31,8 @@ import os
 
 import numpy as np
 
+from ..transforms import world_from_local_4x4 as _matrix
+
 DEFAULT_VARIANT = "llvm_ad_rgb"
 
 
@@ -94,14 +96,6 @@ def load_mitsuba(variant: str | None = DEFAULT_VARIANT):
     except (ImportError, AttributeError):
         mi.set_variant("scalar_rgb")
     return mi
-
-
-def _matrix(R, t, scale=(1.0, 1.0, 1.0)):
-    """4×4 world_from_local = [R · diag(scale) | t] as nested lists."""
-    M = np.eye(4)
-    M[:3, :3] = np.asarray(R, dtype=np.float64) * np.asarray(scale, dtype=np.float64)[None, :]
-    M[:3, 3] = np.asarray(t, dtype=np.float64)
-    return M.tolist()
 
 
 def _cone_triangles(shape, segments: int):

@@ -72,7 +72,6 @@ def test_hiding_the_jit_variants_makes_auto_use_our_tracer(monkeypatch):
     assert not export.jit_variant_runs("llvm_ad_rgb"), "a hidden llvm variant should not run"
     assert export.jit_variant_runs("scalar_rgb"), "scalar variants are never hidden"
     monkeypatch.setattr(mi_intersect, "_LLVM", [])
-    monkeypatch.setattr(mi_intersect, "_ENGINES", {})
     fresh_process_variant(monkeypatch)
     scene = load_scene(CFG)
     assert mi_intersect.auto_engine(scene, "cpu", torch.float32) is None, "auto should not take Embree when hidden"
@@ -94,7 +93,6 @@ def test_auto_falls_back_to_our_tracer_where_mitsuba_does_not_load(monkeypatch, 
     monkeypatch.setattr(mi_intersect, "load_mitsuba", missing if failure == "not installed" else lambda v: ScalarOnly)
     monkeypatch.setattr(mi_intersect, "_LLVM", [])  # probe again, through the broken loader
     fresh_process_variant(monkeypatch)
-    monkeypatch.setattr(mi_intersect, "_ENGINES", {})
     scene = load_scene(CFG)
     auto = render(scene, seed=2).image
     ours = render(scene, seed=2, intersector="torch").image
@@ -174,6 +172,36 @@ def test_renders_follow_a_moved_shape():
     for i in ("torch", "mitsuba"):
         got = render(edited, seed=4, intersector=i).image
         assert torch.equal(got, fresh[i]), f"{i}: the ball edited in place, {float((got - fresh[i]).abs().max()):.3g} off"
+
+
+def test_scene_derived_data_follows_the_geometry_and_stays_out_of_pickles():
+    """`Scene.derived` (the one cache of what is built from a scene's objects: material tables, the Embree
+    scene, the fast paths' tables) keeps a value until `refresh` sees an object change; a pickled scene
+    (what worker processes get) carries none of it, a shallow copy (same objects) shares it."""
+    import copy
+    import pickle
+
+    from renderer.shapes.sphere import Sphere
+
+    scene = load_scene(CFG)
+    built = []
+    first = scene.derived("test", lambda: built.append(1) or object())
+    assert scene.derived("test", lambda: built.append(1) or object()) is first and built == [1], "kept while unchanged"
+    scene.refresh()
+    assert scene.derived("test", lambda: built.append(1) or object()) is first, "refresh without a change keeps it"
+    table = scene.materials(torch.zeros(1))
+    unpickled = pickle.loads(pickle.dumps(scene))
+    assert unpickled._derived == {}, f"a pickled scene should carry no derived data: {sorted(unpickled._derived)}"
+    assert torch.equal(unpickled.materials(torch.zeros(1)).color, table.color), "it rebuilds its material table"
+    shallow = copy.copy(scene)  # shares the objects (render_accumulation's passes): shares what is derived
+    assert shallow.materials(torch.zeros(1)) is table, "a shallow copy should share the material tables"
+    scene.objects[0].shape = Sphere([0.5, 0.0, 0.0], 1.0)
+    scene.refresh()
+    again = scene.derived("test", lambda: built.append(1) or object())
+    assert again is not first and built == [1, 1], "a replaced shape should rebuild what was derived"
+    assert scene.materials(torch.zeros(1)) is not table, "and the material tables with it"
+    shallow.refresh()  # its object list is the scene's: it sees the new ball too
+    assert shallow.materials(torch.zeros(1)) is not table, "the shallow copy should rebuild after its refresh"
 
 
 def test_auto_workers_only_for_large_float32_cpu_renders(monkeypatch):

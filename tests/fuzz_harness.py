@@ -197,9 +197,10 @@ def tally(cases: list[dict], results: list[Result]) -> dict:
     return table
 
 
-def interrupt_after_progress(argv: list[str], sig, marker: str, timeout_s: float = 60) -> tuple[int, list[str]]:
+def interrupt_after_progress(argv: list[str], sig, marker: str, timeout_s: float = 300) -> tuple[int, list[str]]:
     """Run `python -m ...argv` in a subprocess, send `sig` once a stderr line contains `marker`; returns
-    (exit status, stderr lines)."""
+    (exit status, stderr lines). timeout_s only guards against a hang (a loaded 2-core machine can take minutes
+    to start a render and wind its workers down): the process is killed and the test fails past it."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p), "OMP_NUM_THREADS": "1"}
     # A command started in the background by a non-interactive shell (as CI may start the suite) inherits an
     # ignored SIGINT; give the child the default disposition, as a terminal would.
@@ -219,7 +220,12 @@ def interrupt_after_progress(argv: list[str], sig, marker: str, timeout_s: float
     seen.wait(timeout_s)
     time.sleep(0.3)
     proc.send_signal(sig)
-    proc.wait(timeout=timeout_s)
+    try:
+        proc.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+        raise AssertionError(f"{argv[0]} did not end within {timeout_s} s of {sig!r}: {lines[-3:]}") from None
     t.join(timeout=5)
     return proc.returncode, lines
 

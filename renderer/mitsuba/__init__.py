@@ -2,4 +2,4 @@
 sensor plugins (`sensors`). Mitsuba is optional (`pip install -e '.[test]'` or `'.[bench]'`) and imported
 on first use.
 """
-from .export import load_mitsuba, to_mitsuba  # noqa: F401
+from .export import develop, load_mitsuba, to_mitsuba  # noqa: F401

@@ -103,7 +103,9 @@ def register(mi) -> None:
 
 
 def sensor_dict(mi, camera, spp: int, sampler: str = "independent") -> dict:
-    """Mitsuba sensor dict for our `thin_lens` or `inverted_perspective` camera (box filter, RGB film).
+    """Mitsuba sensor dict for our `thin_lens`, `inverted_perspective`, `pinhole` or `orthographic` camera (box
+    filter, RGB film); the last two as the inverted perspective at α = 0 and α = 1 with p3 = q3 (eq. (1)-(3):
+    the rays of a pinhole through the origin, of the orthographic camera parallel from its screen points).
 
     Raises NotImplementedError for other camera types.
     """
@@ -128,4 +130,8 @@ def sensor_dict(mi, camera, spp: int, sampler: str = "independent") -> dict:
     if kind == "InvertedPerspectiveCamera":
         return {"type": "inverted_perspective", "alpha": camera.alpha, "p3": camera.pseudo_screen_distance,
                 "q3": float(screen.distance), **common}
+    if kind in ("PinholeCamera", "OrthographicCamera"):  # the inverted perspective at α = 0 and α = 1, p3 = q3
+        q3 = float(screen.distance)
+        return {"type": "inverted_perspective", "alpha": float(kind == "OrthographicCamera"), "p3": q3, "q3": q3,
+                **common}
     raise NotImplementedError(f"camera {kind} has no Mitsuba sensor plugin")

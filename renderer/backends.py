@@ -17,8 +17,8 @@ def render_mitsuba(scene, spp: int | None = None, sampler: str | None = None, *,
     """Render `scene` in Mitsuba 3 with our camera (renderer.mitsuba): `direct` integrator, one emitter
     sample, box pixel filter, Mitsuba's own `MITSUBA_SAMPLER` (`sampler`, else the scene's image.sampler,
     is named when it differs). Prints one line naming what could not be mapped, and the options in `ignored`
-    (strings such as "--compile"). variant: Mitsuba variant [llvm_ad_rgb where it runs, else scalar_rgb].
-    Coverage is 1 everywhere (our cameras give every pixel a ray)."""
+    (strings such as "--compile"); the result's `not_mapped` lists the same. variant: Mitsuba variant
+    [llvm_ad_rgb where it runs, else scalar_rgb]. Coverage is 1 everywhere (our cameras give every pixel a ray)."""
     try:
         from .mitsuba import develop, load_mitsuba, to_mitsuba
         mi = load_mitsuba(variant or "llvm_ad_rgb")
@@ -38,7 +38,7 @@ def render_mitsuba(scene, spp: int | None = None, sampler: str | None = None, *,
         print(f"renderer: mitsuba {mi.variant()}; not mapped: {'; '.join(notes) if notes else 'nothing'}",
               file=sys.stderr)
     image = torch.from_numpy(develop(scene, mi.render(mi.load_dict(scene_dict), seed=seed)))
-    return RenderResult(image, torch.ones(image.shape[:2], dtype=image.dtype))
+    return RenderResult(image, torch.ones(image.shape[:2], dtype=image.dtype), tuple(notes))
 
 
 def render_with(backend: str, cluster: str | None, scene, spp, sampler, *, device, seed: int,

@@ -14,7 +14,7 @@ What carries over (exactly, up to tessellation where noted):
 - shapes: `sphere`, `cylinder` (Mitsuba's open cylinder plus two disc caps), `rectangle`, `box`,
   `polyhedron` and `mesh` (their exact triangles), `csg` (the triangles of its boundary: each leaf's faces
   cut by the other leaves' planes, kept where the solid changes across them), `plane` (a square covering
-  what the camera sees of the plane and the feet of the lights and objects on it, see `plane_square`),
+  what the camera sees of the plane and the feet of the lights and objects on it, see `plane_pieces`),
   `cone` (triangles, `segments` around the axis, smooth side normals);
 - materials: Lambert with reflectance (1 − reflect − transmit) · diffuse · albedo, two-sided as the
   renderer shades both sides of every surface, where the albedo is the colour, a checker texture (Mitsuba's
@@ -99,11 +99,15 @@ def load_mitsuba(variant: str | None = DEFAULT_VARIANT):
 
 
 
-# Rays nearly parallel to a plane meet it very far away: `plane_square` stops them at this many times the
+# Rays nearly parallel to a plane meet it very far away: `plane_pieces` stops them at this many times the
 # camera's height above the plane (at least the scene's extent), where what is left of the plane up to the
 # horizon subtends less than 1e-5 rad (a hundredth of a pixel of a 1000-pixel, 60° view).
 PLANE_REACH = 1e5
-# Pixel positions per image side, and lens points, whose rays `plane_square` follows to the plane.
+# `plane_pieces`: the first square holds the hits within this many times the camera's height; each ring of
+# rectangles around it reaches this many times farther than the last.
+PLANE_NEAR = 100.0
+PLANE_RING = 10.0
+# Pixel positions per image side, and lens points, whose rays `plane_pieces` follows to the plane.
 PLANE_GRID = 33
 _LENS_RIM = [(a, b) for a in (0.0, 0.5, 1 - 1e-9) for b in (0.0, 0.5, 1 - 1e-9)]
 
@@ -284,24 +288,30 @@ def _triangle_mesh(mi, name, tri, normals=None, bsdf=None, texcoords=None):
     mesh = mi.Mesh(name, tri.shape[0], tri.shape[0] // 3, props, has_vertex_normals=normals is not None,
                    has_vertex_texcoords=texcoords is not None)
     params = mi.traverse(mesh)
-    params["vertex_positions"] = mi.Float(tri.ravel())
-    params["faces"] = mi.UInt32(np.arange(tri.shape[0], dtype=np.uint32))
+    floats = type(params["vertex_positions"])  # mi.Float in JIT variants, a dynamic array in scalar ones
+    params["vertex_positions"] = floats(tri.ravel())
+    params["faces"] = type(params["faces"])(np.arange(tri.shape[0], dtype=np.uint32))
     if normals is not None:
-        n = np.ascontiguousarray(normals, dtype=np.float32).reshape(-1, 3)
-        params["vertex_normals"] = mi.Float(n.ravel())
+        params["vertex_normals"] = floats(np.ascontiguousarray(normals, dtype=np.float32).ravel())
     if texcoords is not None:
-        uv = np.ascontiguousarray(texcoords, dtype=np.float32).reshape(-1, 2)
-        params["vertex_texcoords"] = mi.Float(uv.ravel())
+        params["vertex_texcoords"] = floats(np.ascontiguousarray(texcoords, dtype=np.float32).ravel())
     params.update()
     return mesh
 
 
-def plane_square(scene, shape):
-    """Centre (3,) and half side (scene units) of the square, in the plane's tangent frame, that stands in
-    for the infinite `shape` (a Plane): it holds every point where a camera ray meets the plane (rays from
-    a `PLANE_GRID`² grid over the image, through the lens centre and eight points of its rim; stopped at
-    `PLANE_REACH` times the camera's height), the camera's, lights' and objects' feet on it (so a shadow ray
-    between two such points crosses the plane inside the square), and the objects' bounding spheres."""
+def plane_pieces(scene, shape):
+    """Rectangles standing in for the infinite `shape` (a Plane): [(centre (2,), half sizes (2,))] in the
+    plane's tangent coordinates (along tangent_u, tangent_v) about the camera's foot on the plane (3,), also
+    returned.
+
+    Together they cover every point where a camera ray meets the plane (rays from a `PLANE_GRID`² grid over
+    the image, through the lens centre and eight points of its rim; stopped at `PLANE_REACH` times the
+    camera's height, the reach of every ray where the horizon is in view), and the camera's, lights' and objects' feet on it with the objects' bounding spheres
+    (so a shadow ray between two such points crosses the plane where it is). The first is a square holding
+    the feet and the hits within `PLANE_NEAR` times the camera's height (at least the scene's extent); rings
+    of four rectangles, each `PLANE_RING` times wider than the last, reach out to the farthest hit. Mitsuba
+    computes a rectangle's uv in float32 relative to its size, so one square reaching the horizon (10⁵ times
+    the height) would move the checker cells near the camera by a few per cent of their size."""
     n, q = shape.normal.numpy(), shape.point.numpy()
     u, v = shape.tangent_u.numpy(), shape.tangent_v.numpy()
     camera = scene.camera
@@ -314,24 +324,38 @@ def plane_square(scene, shape):
         rays = camera.generate_rays(torch.as_tensor(pixels.reshape(-1, 2)), torch.as_tensor(lens.reshape(-1, 2)))
     o, d = rays.origin.double().numpy(), rays.direction.double().numpy()
     position = camera.transform.position.double().numpy()
-    reach = PLANE_REACH * max(abs(float((position - q) @ n)), scene.extent)
+    scale = max(abs(float((position - q) @ n)), scene.extent)
     along = d @ n
     t = np.where(along != 0, ((q - o) @ n) / np.where(along != 0, along, 1.0), np.inf)
     seen = rays.valid.numpy() & (t > 0)
-    p = o[seen] + np.minimum(t[seen], reach)[:, None] * d[seen]
-    feet = [p, position[None]]
-    feet += [np.asarray(light.position, dtype=np.float64)[None] for light in scene.lights if light.position is not None]
-    radii = [0.0] * sum(len(f) for f in feet)
+    hits = o[seen] + np.minimum(t[seen], PLANE_REACH * scale)[:, None] * d[seen]
+    feet = [position[None]] + [np.asarray(light.position, dtype=np.float64)[None]
+                               for light in scene.lights if light.position is not None]
+    radii = [0.0] * len(feet)
     for obj in scene.objects:
         sphere = obj.shape.bounding_sphere()
         if sphere is not None:
             feet.append(np.asarray(sphere[0], dtype=np.float64).reshape(1, 3))
             radii.append(float(sphere[1]))
-    feet = np.concatenate(feet)
     centre = position - ((position - q) @ n) * n
-    rel = feet - centre
-    half = np.maximum(np.abs(rel @ u), np.abs(rel @ v)) + np.asarray(radii)
-    return centre, 1.01 * max(float(half.max()), scene.extent)
+
+    def reach(points, margin=0.0):  # half side of the square about `centre` holding the points' feet
+        rel = points - centre
+        return np.maximum(np.abs(rel @ u), np.abs(rel @ v)) + margin
+
+    near = np.concatenate([reach(np.concatenate(feet), np.asarray(radii)), [scene.extent]])
+    far = reach(hits) if len(hits) else np.zeros(1)
+    if seen.any() and (rays.valid.numpy() & ~seen).any():  # the horizon is in view: rays come arbitrarily close
+        far = np.append(far, PLANE_REACH * scale)
+    h = 1.01 * max(near.max(), far[far <= PLANE_NEAR * scale].max(initial=0.0))
+    pieces = [((0.0, 0.0), (h, h))]
+    while h < far.max():
+        outer = min(PLANE_RING * h, 1.01 * far.max())
+        mid, width = (h + outer) / 2, (outer - h) / 2 * (1 + 1e-6)  # overlapping a little: no seams
+        pieces += [((0.0, -mid), (outer, width)), ((0.0, mid), (outer, width)),
+                   ((-mid, 0.0), (width, h)), ((mid, 0.0), (width, h))]
+        h = outer
+    return centre, pieces
 
 
 # ------------------------------------------------------------------------------------------------ materials
@@ -427,7 +451,7 @@ def to_mitsuba(scene, spp: int | None = None, integrator: dict | None = None, *,
         integrator: Mitsuba integrator dict [direct lighting, one emitter sample, no BSDF samples]; wrapped in
             an `aov` integrator adding the albedo where the scene has ambient light.
         plane_size: side of the square standing in for an infinite plane, scene units, centred on the
-            plane's point [None: sized and placed by `plane_square`].
+            plane's point [None: rectangles sized and placed by `plane_pieces`].
         segments: facets around the axis of a cone (and of a textured cylinder's caps).
         variant: Mitsuba variant to set [None: the current one, else the default, see `load_mitsuba`].
         plugin_sensor: use our sensor plugin even where Mitsuba's own sensor matches (pinhole excepted).
@@ -515,13 +539,17 @@ def shape_dicts(mi, scene, dropped: list[str] | None = None, *, plane_size: floa
         elif kind == "plane":
             R = np.stack([shape.tangent_u.numpy(), shape.tangent_v.numpy(), shape.normal.numpy()], axis=1)
             if plane_size is None:
-                centre, h = plane_square(scene, shape)
+                centre, pieces = plane_pieces(scene, shape)
             else:
-                centre, h = shape.point.numpy(), plane_size / 2
-            # ours: u = (x − point)·tangent_u = h · (2 u' − 1) + (centre − point)·tangent_u, likewise v.
-            shift = (centre - shape.point.numpy()) @ R[:, :2]
-            out[key] = {"type": "rectangle", "to_world": T(_matrix(R, centre, [h, h, 1.0])),
-                        "bsdf": bsdf(((2 * h, 2 * h), (shift[0] - h, shift[1] - h)))}
+                centre, pieces = shape.point.numpy(), [((0.0, 0.0), (plane_size / 2, plane_size / 2))]
+            shift = (centre - shape.point.numpy()) @ R[:, :2]  # the centre in our uv (from the plane's point)
+            for j, (middle, half) in enumerate(pieces):
+                # ours: u = (x − point)·tangent_u = shift + middle + half · (2 u' − 1), likewise v.
+                offset = [shift[k] + middle[k] - half[k] for k in range(2)]
+                out[key if j == 0 else f"{key}_{j}"] = {
+                    "type": "rectangle", "to_world": T(_matrix(R, centre + R[:, :2] @ middle, [*half, 1.0])),
+                    "bsdf": _bsdf(mi, material, ((2 * half[0], 2 * half[1]), offset), dropped if j == 0 else None,
+                                  obj.name)}
         elif kind == "cylinder":
             # Mitsuba's open cylinder: uv = (φ / 2π in [0, 2π), z / height) in its local frame; ours: (r · φ,
             # z) with φ = atan2(y, x) in (−π, π]. Local axes (−x, −y, z) give φ' = φ + π.

@@ -219,7 +219,8 @@ def _csg_triangles(shape):
 
 
 def _box_triangles(shape):
-    """World-space triangles (12, 3, 3) of a box and their face index (12,) (our aux: 2·axis + side)."""
+    """World-space triangles (12, 3, 3) of a box, outward normals by the right-hand rule (as Mitsuba's `cube`,
+    and as `renderer.mitsuba.intersect` reads the faces), and their face index (12,) (our aux: 2·axis + side)."""
     R, o, half = shape.world_from_local.numpy(), shape.origin.numpy(), shape.half.numpy()
     tri, aux = [], []
     for axis in range(3):
@@ -230,6 +231,8 @@ def _box_triangles(shape):
             corners[:, a] = [-1, 1, 1, -1]
             corners[:, b] = [-1, -1, 1, 1]
             p = (corners * half) @ R.T + o
+            if np.cross(np.eye(3)[a], np.eye(3)[b])[axis] != 2 * side - 1:  # wind counter-clockwise seen from outside
+                p = p[::-1]
             tri += [p[[0, 1, 2]], p[[0, 2, 3]]]
             aux += [2 * axis + side] * 2
     return np.stack(tri), np.asarray(aux)

@@ -98,7 +98,6 @@ def load_mitsuba(variant: str | None = DEFAULT_VARIANT):
     return mi
 
 
-
 # Rays nearly parallel to a plane meet it very far away: `plane_pieces` stops them at this many times the
 # camera's height above the plane (at least the scene's extent), where what is left of the plane up to the
 # horizon subtends less than 1e-5 rad (a hundredth of a pixel of a 1000-pixel, 60° view).
@@ -308,13 +307,14 @@ def plane_pieces(scene, shape):
     returned.
 
     Together they cover every point where a camera ray meets the plane (rays from a `PLANE_GRID`² grid over
-    the image, through the lens centre and eight points of its rim; stopped at `PLANE_REACH` times the
-    camera's height, the reach of every ray where the horizon is in view), and the camera's, lights' and objects' feet on it with the objects' bounding spheres
-    (so a shadow ray between two such points crosses the plane where it is). The first is a square holding
-    the feet and the hits within `PLANE_NEAR` times the camera's height (at least the scene's extent); rings
-    of four rectangles, each `PLANE_RING` times wider than the last, reach out to the farthest hit. Mitsuba
-    computes a rectangle's uv in float32 relative to its size, so one square reaching the horizon (10⁵ times
-    the height) would move the checker cells near the camera by a few per cent of their size."""
+    the image, through the lens centre and eight points of its rim, stopped at `PLANE_REACH` times the
+    camera's height or the scene's extent, whichever is larger; every ray reaches that far where the
+    horizon is in view), and the camera's, lights' and objects' feet on it with the objects' bounding
+    spheres (so a shadow ray between two such points crosses the plane where it is). The first is a square
+    holding the feet and the hits within `PLANE_NEAR` times that length; rings of four rectangles, each
+    `PLANE_RING` times wider than the last, reach out to the farthest hit. Mitsuba computes a rectangle's uv
+    in float32 relative to its size, so one square reaching the horizon would move the checker cells near
+    the camera by a few per cent of their size."""
     n, q = shape.normal.numpy(), shape.point.numpy()
     u, v = shape.tangent_u.numpy(), shape.tangent_v.numpy()
     camera = scene.camera
@@ -527,8 +527,8 @@ def shape_dicts(mi, scene, dropped: list[str] | None = None, *, plane_size: floa
             return _bsdf(mi, material, uv_map, dropped, obj.name)
 
         if kind == "sphere":
-            # Mitsuba: φ = atan2(y, x) in [0, 2π), θ = acos(z) in its local frame; ours: φ = atan2(x, z) in
-            # (−π, π], θ = acos(y) in the world's, uv = r · (φ, θ). Local axes (−z, −x, y) give φ' = φ + π.
+            # Mitsuba: φ = atan2(y, x) in [0, 2π), θ = acos(z) in its local frame; ours: φ = atan2(x, z)
+            # in (−π, π], θ = acos(y) in the world's, uv = r · (φ, θ). Local axes (−z, −x, y): φ' = φ + π.
             r = shape.radius
             R = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0]])
             out[key] = {"type": "sphere", "to_world": T(_matrix(R, shape.center.numpy(), [r, r, r])),

@@ -182,7 +182,8 @@ def _textured_scene(texture_file: str) -> dict:
 
 CAMERAS = {  # native perspective; pinhole with non-square pixels and orthographic through our plugin
     "pinhole": None,
-    "pinhole_nonsquare": {"type": "pinhole", "position": [0, -1.5, -1], "look_at": [0, 0, 4], "screen_size": [1.2, 1.0]},
+    "pinhole_nonsquare": {"type": "pinhole", "position": [0, -1.5, -1], "look_at": [0, 0, 4],
+                          "screen_size": [1.2, 1.0]},
     "orthographic": {"type": "orthographic", "position": [0, -1.5, -1], "look_at": [0, 0, 4], "screen_size": [6, 4.5]},
 }
 
@@ -208,7 +209,8 @@ def test_every_shape_and_texture_lines_up(mi, tmp_path, camera):
     theirs = result.image.numpy()
     assert result.not_mapped == (), f"{camera}: not mapped {result.not_mapped}"
     rel = theirs.mean() / ours.mean() - 1
-    assert abs(rel) < MEAN_TOL, f"{camera}: mean Mitsuba {theirs.mean():.5f} vs ours {ours.mean():.5f} ({100 * rel:+.2f} %)"
+    assert abs(rel) < MEAN_TOL, (f"{camera}: mean Mitsuba {theirs.mean():.5f} vs ours {ours.mean():.5f} "
+                                 f"({100 * rel:+.2f} %)")
     for obj in cfg["objects"]:
         texture = obj["material"]["texture"]
         if texture["type"] == "checker":
@@ -236,4 +238,5 @@ def test_issue_case_in_the_scalar_variant(mi):
         load_mitsuba()  # back to the default variant for the other tests
     ours = render(scene, spp=SPP, intersector="torch").image.numpy()
     rel = theirs.mean() / ours.mean() - 1
-    assert abs(rel) < MEAN_TOL, f"scalar_rgb: mean Mitsuba {theirs.mean():.5f} vs ours {ours.mean():.5f} ({100 * rel:+.2f} %)"
+    assert abs(rel) < MEAN_TOL, (f"scalar_rgb: mean Mitsuba {theirs.mean():.5f} vs ours {ours.mean():.5f} "
+                                 f"({100 * rel:+.2f} %)")

@@ -87,4 +87,5 @@ def test_unmappable_parts_are_named(scalar):
                                'lights=[{"type": "ambient", "intensity": [0.1, 0.1, 0.1]}]',
                                "objects.sphere_top.material.specular=0.5", "objects.sphere_left.material.diffuse=0.5"])
     _, dropped = to_mitsuba(scene, spp=1)
-    assert dropped == ["sphere_left: ambient light (scaled by diffuse 0.5)", "sphere_top: specular"], f"dropped {dropped}"
+    expected = ["sphere_left: ambient light (scaled by diffuse 0.5)", "sphere_top: specular"]
+    assert dropped == expected, f"dropped {dropped}, expected {expected}"

@@ -7,8 +7,8 @@ sobol samples; Mitsuba: `renderer.backends.render_mitsuba`, independent samples)
 - as is: the scene file unchanged; Mitsuba's list of what it did not map is recorded, and the list this
   module expects from the scene file itself (`expected_not_mapped`, written from the file, not from the
   exporter) beside it;
-- mapped part: the same scene with each element in that list neutralised (`neutral_overrides`: the Phong,
-  mirror and refraction weights set to 0, layers removed, ...), so what remains is what the exporter claims
+- mapped part: the same scene with each element in that list neutralised (`neutral_overrides`: the mirror
+  and refraction weights set to 0, layers removed, ...), so what remains is what the exporter claims
   to map, and the two images should agree to sampling noise.
 The difference is Mitsuba's mean over ours, minus 1. `--before OLD.json` adds the as-is column of a run of
 this script on the exporter before issue 20 (its `dropped` list came from `to_mitsuba` alone; where that
@@ -74,14 +74,10 @@ def small(cfg: dict, side: int) -> list[str]:
     return [f"image.width={max(1, round(w * k))}", f"image.height={max(1, round(h * k))}"]
 
 
-def _ambient(cfg) -> bool:
-    return any(light["type"] == "ambient" and any(light["intensity"]) for light in cfg.get("lights", []))
-
-
 def expected_not_mapped(cfg: dict) -> list[str]:
     """What Mitsuba cannot reproduce of a scene, read off the scene file (the exporter's `dropped` list should
-    name exactly these): per object its Phong specular, mirror and refraction terms, the ambient light on a
-    surface whose diffuse weight is not 1; layers; a lens distortion with a non-zero coefficient."""
+    name exactly these): per object its mirror and refraction terms; layers; a lens distortion with a
+    non-zero coefficient."""
     out = []
     camera = cfg["camera"]
     if any((camera.get("distortion") or {}).get("coefficients", [])):
@@ -90,9 +86,7 @@ def expected_not_mapped(cfg: dict) -> list[str]:
         out.append("layers")
     for obj in cfg.get("objects", []):
         material = obj.get("material", {})
-        if _ambient(cfg) and material.get("diffuse", 1.0) != 1:
-            out.append(f"{obj['name']}: ambient light (scaled by diffuse {material['diffuse']:g})")
-        out += [f"{obj['name']}: {key}" for key in ("specular", "reflect", "transmit") if material.get(key, 0) > 0]
+        out += [f"{obj['name']}: {key}" for key in ("reflect", "transmit") if material.get(key, 0) > 0]
     return out
 
 
@@ -105,9 +99,7 @@ def neutral_overrides(cfg: dict) -> list[str]:
         out.append("layers=[]")
     for obj in cfg.get("objects", []):
         material = obj.get("material", {})
-        if _ambient(cfg) and material.get("diffuse", 1.0) != 1:
-            out.append(f"objects.{obj['name']}.material.diffuse=1")
-        out += [f"objects.{obj['name']}.material.{key}=0" for key in ("specular", "reflect", "transmit")
+        out += [f"objects.{obj['name']}.material.{key}=0" for key in ("reflect", "transmit")
                 if material.get(key, 0) > 0]
     return out
 

@@ -17,17 +17,17 @@ What carries over (exactly, up to tessellation where noted):
   what the camera sees of the plane and the feet of the lights and objects on it, see `plane_pieces`),
   `cone` (triangles, `segments` around the axis, smooth side normals);
 - materials: Lambert with reflectance (1 − reflect − transmit) · diffuse · albedo, two-sided as the
-  renderer shades both sides of every surface, where the albedo is the colour, a checker texture (Mitsuba's
-  `checkerboard`) or an image texture (Mitsuba's `bitmap`, bilinear, repeated, linear values): each shape's
-  Mitsuba uv is mapped onto our texture coordinates (an affine `to_uv`; the sphere and cylinder turned so
-  that their seams fall where ours do; triangle meshes carry our uv at their vertices), so checker cells
-  and image texels land where ours do.
-What does not: the Phong specular term (Mitsuba 3 has no Phong BSDF), mirror reflection and refraction
-(the `direct` integrator follows no secondary rays; the local term keeps its weight 1 − reflect −
-transmit, so only the reflected and refracted light is missing, and a transparent object casts a full
-shadow), the ambient light on a surface whose `diffuse` is not 1 (the albedo AOV includes it), layers and
-the lens distortion (neither Mitsuba's sensors nor ours apply it); `to_mitsuba` names what it dropped in
-the returned `dropped` list, and raises NotImplementedError for a camera it cannot express.
+  renderer shades both sides of every surface; with a Phong highlight (which Mitsuba 3 lacks), or a diffuse
+  weight other than 1 under ambient light, our `renderer_phong` plugin (`renderer.mitsuba.bsdfs`). The
+  albedo is the colour, a checker texture (Mitsuba's `checkerboard`) or an image texture (Mitsuba's
+  `bitmap`, bilinear, repeated, linear values): each shape's Mitsuba uv is mapped onto our texture
+  coordinates (an affine `to_uv`; the sphere and cylinder turned so that their seams fall where ours do;
+  triangle meshes carry our uv at their vertices), so checker cells and image texels land where ours do.
+What does not: mirror reflection and refraction (the `direct` integrator follows no secondary rays; the
+local term keeps its weight 1 − reflect − transmit, so only the reflected and refracted light is missing,
+and a transparent object casts a full shadow), layers and the lens distortion (neither Mitsuba's sensors
+nor ours apply it); `to_mitsuba` names what it dropped in the returned `dropped` list, and raises
+NotImplementedError for a camera it cannot express.
 
 Frames. Mitsuba's camera looks along its local +z with +x to the left and +y up in the image; ours looks
 along +z with x right and y down (OpenCV). So the sensor's to_world has columns (−x_cam, −y_cam, z_cam,
@@ -393,14 +393,22 @@ def _reflectance(mi, material, weight: float, uv_map):
     return {"type": "rgb", "value": [weight * c for c in material.color]}
 
 
-def _bsdf(mi, material, uv_map=((1.0, 1.0), (0.0, 0.0)), dropped=None, name=""):
+def _bsdf(mi, material, uv_map=((1.0, 1.0), (0.0, 0.0)), dropped=None, name="", ambient=False):
     """Two-sided Lambert with reflectance (1 − reflect − transmit) · diffuse · albedo (see `_reflectance` for
-    uv_map; the default: the shape's Mitsuba uv are ours); the terms it cannot express go to `dropped`."""
-    weight = max(1.0 - material.reflect - material.transmit, 0.0) * material.diffuse
+    uv_map; the default: the shape's Mitsuba uv are ours), or our `renderer_phong` plugin where the material
+    has a Phong highlight or, under `ambient` light, a diffuse weight other than 1 (`renderer.mitsuba.bsdfs`);
+    the terms it cannot express go to `dropped`."""
+    weight = max(1.0 - material.reflect - material.transmit, 0.0)
     if dropped is not None:
-        dropped += [f"{name}: {key}" for key in ("specular", "reflect", "transmit") if getattr(material, key) > 0]
-    return {"type": "twosided",
-            "material": {"type": "diffuse", "reflectance": _reflectance(mi, material, weight, uv_map)}}
+        dropped += [f"{name}: {key}" for key in ("reflect", "transmit") if getattr(material, key) > 0]
+    if material.specular > 0 or (ambient and material.diffuse != 1):
+        from .bsdfs import register
+
+        register(mi)
+        return {"type": "renderer_phong", "reflectance": _reflectance(mi, material, weight, uv_map), "weight": weight,
+                "diffuse": material.diffuse, "specular": material.specular, "shininess": material.shininess}
+    return {"type": "twosided", "material": {
+        "type": "diffuse", "reflectance": _reflectance(mi, material, weight * material.diffuse, uv_map)}}
 
 
 def _native_lens(camera) -> bool:
@@ -488,9 +496,6 @@ def to_mitsuba(scene, spp: int | None = None, integrator: dict | None = None, *,
                                  "intensity": {"type": "rgb", "value": list(light.intensity)}}
         elif light.type != "ambient":
             dropped.append(f"lights[{i}]: type {light.type}")
-    if ambient:
-        dropped += [f"{obj.name}: ambient light (scaled by diffuse {obj.material.diffuse:g})"
-                    for obj in scene.objects if obj.material.diffuse != 1]
     out.update(shape_dicts(mi, scene, dropped, plane_size=plane_size, segments=segments, tessellate=True))
     return out, dropped
 
@@ -517,14 +522,15 @@ def shape_dicts(mi, scene, dropped: list[str] | None = None, *, plane_size: floa
     `segments` facets carrying our uv (Mitsuba's disc has polar uv), else exact discs. See `to_mitsuba` for
     the other arguments."""
     T = mi.ScalarTransform4f
+    ambient = any(light.type == "ambient" and any(light.intensity) for light in scene.lights)
     out: dict = {}
     for i, obj in enumerate(scene.objects):
         if only is not None and i not in only:
             continue
         shape, kind, key, material = obj.shape, obj.shape.type_name, f"object_{i}", obj.material
 
-        def bsdf(uv_map=((1.0, 1.0), (0.0, 0.0))):
-            return _bsdf(mi, material, uv_map, dropped, obj.name)
+        def bsdf(uv_map=((1.0, 1.0), (0.0, 0.0)), note=True):
+            return _bsdf(mi, material, uv_map, dropped if note else None, obj.name, ambient)
 
         if kind == "sphere":
             # Mitsuba: φ = atan2(y, x) in [0, 2π), θ = acos(z) in its local frame; ours: φ = atan2(x, z)
@@ -551,8 +557,7 @@ def shape_dicts(mi, scene, dropped: list[str] | None = None, *, plane_size: floa
                 offset = [shift[k] + middle[k] - half[k] for k in range(2)]
                 out[key if j == 0 else f"{key}_{j}"] = {
                     "type": "rectangle", "to_world": T(_matrix(R, centre + R[:, :2] @ middle, [*half, 1.0])),
-                    "bsdf": _bsdf(mi, material, ((2 * half[0], 2 * half[1]), offset), dropped if j == 0 else None,
-                                  obj.name)}
+                    "bsdf": bsdf(((2 * half[0], 2 * half[1]), offset), note=j == 0)}
         elif kind == "cylinder":
             # Mitsuba's open cylinder: uv = (φ / 2π in [0, 2π), z / height) in its local frame; ours: (r · φ,
             # z) with φ = atan2(y, x) in (−π, π]. Local axes (−x, −y, z) give φ' = φ + π.
@@ -563,12 +568,12 @@ def shape_dicts(mi, scene, dropped: list[str] | None = None, *, plane_size: floa
                         "to_world": T(_matrix(R * [-1.0, -1.0, 1.0], o)), "bsdf": side}
             caps = {"_base": o, "_top": o + h * R[:, 2]}
             if tessellate and material.texture is not None:
-                cap = mi.load_dict(_bsdf(mi, material))
+                cap = mi.load_dict(bsdf(note=False))
                 for part, centre in caps.items():
                     tri, uv = _disc_triangles(R, centre, r, segments)
                     out[key + part] = _triangle_mesh(mi, key + part, tri, None, cap, uv)
             else:
-                cap = _bsdf(mi, material)
+                cap = bsdf(note=False)
                 for part, centre in caps.items():
                     out[key + part] = {"type": "disk", "to_world": T(_matrix(R, centre, [r, r, 1.0])), "bsdf": cap}
         elif kind in ("box", "cone", "polyhedron", "mesh", "csg"):

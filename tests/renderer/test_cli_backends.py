@@ -14,6 +14,7 @@ SCENE = os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks", "scene
 SMALL = ["--set", "image.width=24", "--set", "image.height=24", "--set", "camera.theta_F_deg=15"]
 
 
+@pytest.mark.slow  # about 8 s in Mitsuba's scalar variant (the tilted lens is a Python plugin there)
 def test_backend_mitsuba_renders_our_image(tmp_path, capsys):
     """The Mitsuba render of the tilted-lens scene with an ambient light and a background has our mean
     intensity (within 1 % at 256 spp: both are composited from Mitsuba's albedo and alpha), and the one-line

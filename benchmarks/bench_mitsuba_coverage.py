@@ -76,12 +76,8 @@ def small(cfg: dict, side: int) -> list[str]:
 
 def expected_not_mapped(cfg: dict) -> list[str]:
     """What Mitsuba cannot reproduce of a scene, read off the scene file (the exporter's `dropped` list should
-    name exactly these): per object its mirror and refraction terms; layers; a lens distortion with a
-    non-zero coefficient."""
+    name exactly these): per object its mirror and refraction terms, and layers."""
     out = []
-    camera = cfg["camera"]
-    if any((camera.get("distortion") or {}).get("coefficients", [])):
-        out.append("camera.distortion (brown_conrady) not applied")
     if cfg.get("layers"):
         out.append("layers")
     for obj in cfg.get("objects", []):
@@ -93,8 +89,6 @@ def expected_not_mapped(cfg: dict) -> list[str]:
 def neutral_overrides(cfg: dict) -> list[str]:
     """`--set` overrides removing what `expected_not_mapped` names, leaving what the exporter maps."""
     out = []
-    if any((cfg["camera"].get("distortion") or {}).get("coefficients", [])):
-        out.append("camera.distortion=null")
     if cfg.get("layers"):
         out.append("layers=[]")
     for obj in cfg.get("objects", []):

@@ -5,8 +5,9 @@ What carries over (exactly, up to tessellation where noted):
   `perspective` sensor with a box pixel filter, so pixel (x, y) of both images covers the same solid angle;
   an untilted `thin_lens` with square pixels and centred principal point as Mitsuba's `thinlens`
   (aperture_radius d/2, focus_distance U); a tilted thin lens (or any thin lens), the `inverted_perspective`
-  camera, and the `orthographic` camera and any other pinhole (its α = 1 and α = 0 cases) through our
-  sensor plugins (`renderer.mitsuba.sensors`);
+  camera, the `orthographic` camera and any other pinhole (its α = 1 and α = 0 cases), and any camera with
+  a lens distortion (each pixel traced through its undistorted position) through our sensor plugins
+  (`renderer.mitsuba.sensors`);
 - lights: `point` (radiant intensity, 1/r² fall-off in both); `ambient` (intensity · albedo, no shadows)
   added after the render from Mitsuba's albedo AOV of the first hit (`develop`);
 - the background colour: composited after the render where Mitsuba's alpha says the camera ray missed
@@ -25,9 +26,8 @@ What carries over (exactly, up to tessellation where noted):
   triangle meshes carry our uv at their vertices), so checker cells and image texels land where ours do.
 What does not: mirror reflection and refraction (the `direct` integrator follows no secondary rays; the
 local term keeps its weight 1 − reflect − transmit, so only the reflected and refracted light is missing,
-and a transparent object casts a full shadow), layers and the lens distortion (neither Mitsuba's sensors
-nor ours apply it); `to_mitsuba` names what it dropped in the returned `dropped` list, and raises
-NotImplementedError for a camera it cannot express.
+and a transparent object casts a full shadow), and layers; `to_mitsuba` names what it dropped in the
+returned `dropped` list, and raises NotImplementedError for a camera it cannot express.
 
 Frames. Mitsuba's camera looks along its local +z with +x to the left and +y up in the image; ours looks
 along +z with x right and y down (OpenCV). So the sensor's to_world has columns (−x_cam, −y_cam, z_cam,
@@ -413,13 +413,15 @@ def _bsdf(mi, material, uv_map=((1.0, 1.0), (0.0, 0.0)), dropped=None, name="", 
 
 def _native_lens(camera) -> bool:
     """Whether Mitsuba's own `perspective` / `thinlens` sensor reproduces the camera (square pixels, centred
-    principal point, untilted)."""
+    principal point, untilted, no lens distortion)."""
     kind = type(camera).__name__
     if kind not in ("PinholeCamera", "ThinLensCamera"):
         return False
     (px, py), screen = camera.screen.pitch, camera.screen
     square = abs(px - py) <= 1e-9 * max(px, py)
-    return square and screen.principal_point_px is None and (kind == "PinholeCamera" or camera.theta_F == 0)
+    undistorted = camera.distortion is None or camera.distortion.is_identity
+    return (square and undistorted and screen.principal_point_px is None
+            and (kind == "PinholeCamera" or camera.theta_F == 0))
 
 
 def _sensor(mi, camera, spp: int, plugin: bool = False):
@@ -485,9 +487,9 @@ def to_mitsuba(scene, spp: int | None = None, integrator: dict | None = None, *,
     if ambient or any(scene.image.background):  # the alpha channel tells where the camera ray hit nothing
         sensor["film"]["pixel_format"] = "rgba"
     out = {"type": "scene", "integrator": integrator, "sensor": sensor}
-    distortion = scene.camera.distortion
-    if distortion is not None and not distortion.is_identity:
-        dropped.append("camera.distortion (brown_conrady) not applied")
+    if not _distortion_inverts(scene.camera):
+        dropped.append("camera.distortion beyond its invertible zone (ours averages a pixel's valid samples, "
+                       "Mitsuba counts the others black)")
     if scene.layers:
         dropped.append("layers")
     for i, light in enumerate(scene.lights):
@@ -498,6 +500,23 @@ def to_mitsuba(scene, spp: int | None = None, integrator: dict | None = None, *,
             dropped.append(f"lights[{i}]: type {light.type}")
     out.update(shape_dicts(mi, scene, dropped, plane_size=plane_size, segments=segments, tessellate=True))
     return out, dropped
+
+
+def _distortion_inverts(camera, step_px: float = 0.25) -> bool:
+    """Whether the camera's lens distortion (if any) inverts at every point of the image's border, sampled
+    every `step_px` pixels: where it does not (beyond the zone where the model is monotonic, which grows from
+    the centre), our camera gives a sample no ray and the pixel the mean of the others, and Mitsuba's film
+    counts it as black."""
+    if camera.distortion is None or camera.distortion.is_identity:
+        return True
+    x0, y0, x1, y1 = -0.5, -0.5, camera.width - 0.5, camera.height - 0.5
+    xs = np.arange(x0, x1 + step_px, step_px).clip(max=x1)
+    ys = np.arange(y0, y1 + step_px, step_px).clip(max=y1)
+    border = np.concatenate([np.stack([xs, np.full_like(xs, y0)], -1), np.stack([xs, np.full_like(xs, y1)], -1),
+                             np.stack([np.full_like(ys, x0), ys], -1), np.stack([np.full_like(ys, x1), ys], -1)])
+    with torch.no_grad():
+        _, ok = camera.undistort_pixels(torch.as_tensor(border))
+    return bool(ok.all())
 
 
 def develop(scene, raw) -> np.ndarray:
@@ -534,7 +553,8 @@ def shape_dicts(mi, scene, dropped: list[str] | None = None, *, plane_size: floa
 
         if kind == "sphere":
             # Mitsuba: φ = atan2(y, x) in [0, 2π), θ = acos(z) in its local frame; ours: φ = atan2(x, z)
-            # in (−π, π], θ = acos(y) in the world's, uv = r · (φ, θ). Local axes (−z, −x, y): φ' = φ + π.
+            # in (−π, π], θ = acos(y) in the world's, uv = r · (φ, θ). Local axes (−z, −x, y): φ' = φ + π,
+            # so ours = r · (2π u' − π, π v').
             r = shape.radius
             R = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0]])
             out[key] = {"type": "sphere", "to_world": T(_matrix(R, shape.center.numpy(), [r, r, r])),

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import sys
 
-import numpy as np
 import torch
 
 from .errors import UsageError
@@ -18,10 +17,10 @@ def render_mitsuba(scene, spp: int | None = None, sampler: str | None = None, *,
     """Render `scene` in Mitsuba 3 with our camera (renderer.mitsuba): `direct` integrator, one emitter
     sample, box pixel filter, Mitsuba's own `MITSUBA_SAMPLER` (`sampler`, else the scene's image.sampler,
     is named when it differs). Prints one line naming what could not be mapped, and the options in `ignored`
-    (strings such as "--compile"). variant: Mitsuba variant [llvm_ad_rgb where it runs, else scalar_rgb].
-    Coverage is 1 everywhere (our cameras give every pixel a ray)."""
+    (strings such as "--compile"); the result's `not_mapped` lists the same. variant: Mitsuba variant
+    [llvm_ad_rgb where it runs, else scalar_rgb]. Coverage is 1 everywhere (our cameras give every pixel a ray)."""
     try:
-        from .mitsuba import load_mitsuba, to_mitsuba
+        from .mitsuba import develop, load_mitsuba, to_mitsuba
         mi = load_mitsuba(variant or "llvm_ad_rgb")
     except ImportError as e:
         raise UsageError(f"--backend mitsuba: {e}") from None
@@ -38,9 +37,8 @@ def render_mitsuba(scene, spp: int | None = None, sampler: str | None = None, *,
     if progress or notes:
         print(f"renderer: mitsuba {mi.variant()}; not mapped: {'; '.join(notes) if notes else 'nothing'}",
               file=sys.stderr)
-    image = np.array(mi.render(mi.load_dict(scene_dict), seed=seed), dtype=np.float32)[..., :3]
-    image = torch.from_numpy(np.ascontiguousarray(image))
-    return RenderResult(image, torch.ones(image.shape[:2], dtype=image.dtype))
+    image = torch.from_numpy(develop(scene, mi.render(mi.load_dict(scene_dict), seed=seed)))
+    return RenderResult(image, torch.ones(image.shape[:2], dtype=image.dtype), tuple(notes))
 
 
 def render_with(backend: str, cluster: str | None, scene, spp, sampler, *, device, seed: int,

@@ -229,7 +229,8 @@ def cmd_render(args, device) -> int:
     if args.backend == "mitsuba":  # what rendered it, and the sampler it used
         from .backends import MITSUBA_SAMPLER
 
-        metadata.update(sampler=MITSUBA_SAMPLER, backend="mitsuba")
+        metadata.update(sampler=MITSUBA_SAMPLER, backend="mitsuba",
+                        not_mapped=", ".join(result.not_mapped) if result.not_mapped else "nothing")
     write_image(args.output, result.image, args.encoding, metadata=metadata)
     if not args.quiet:
         h, w = result.image.shape[:2]

@@ -32,10 +32,12 @@ TILE = 8
 
 @dataclass
 class RenderResult:
-    """image: (H, W, 3) linear RGB; coverage: (H, W) fraction of a pixel's samples that had a valid ray."""
+    """image: (H, W, 3) linear RGB; coverage: (H, W) fraction of a pixel's samples that had a valid ray;
+    not_mapped: what another renderer (`--backend mitsuba`) could not reproduce of the scene or options."""
 
     image: torch.Tensor
     coverage: torch.Tensor
+    not_mapped: tuple[str, ...] = ()
 
 
 def render_passes(scene: Scene):

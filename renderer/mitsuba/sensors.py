@@ -11,9 +11,15 @@ covers [x − 0.5, x + 0.5] around its centre, so uv_px = position_sample · (W,
 Lens samples: Mitsuba's `aperture_sample` through the same concentric disc map as ours (same distribution;
 the sample-to-point map may differ, which changes no expectation). Rays carry weight 1, as ours do.
 
+Lens distortion (renderer/cameras/distortion.py): a pixel is traced through its ideal position, the
+Brown–Conrady model inverted by the same damped Newton steps (`undistort`); where they do not converge the
+sample has weight 0, as our camera gives it no ray.
+
 Properties (all floats unless noted; scene units, radians):
 - common: `width_px`, `height_px` (ints, must match the film), `size_x`, `size_y` (screen or sensor extent),
-  `cx`, `cy` (principal point, pixels), `to_world` (our camera pose);
+  `cx`, `cy` (principal point, pixels), `to_world` (our camera pose), `distance` (screen distance, the
+  focal length of the normalised coordinates), `k1`, `k2`, `p1`, `p2`, `k3`, `k4`, `k5`, `k6` (the lens
+  distortion in OpenCV's order [0]);
 - `tilted_thinlens`: `w`, `U`, `d`, `theta_F`, `theta_L`;
 - `inverted_perspective`: `alpha`, `p3` (pseudo-screen distance), `q3` (screen distance).
 
@@ -27,6 +33,44 @@ import math
 from ..transforms import world_from_local_4x4
 
 _REGISTERED: set = set()
+COEFFICIENT_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")  # OpenCV's order, as the scene file's
+# Newton steps of `undistort`, and its convergence test: within 256 float32 ulps (renderer/cameras/distortion.py).
+UNDISTORT_ITERATIONS = 20
+UNDISTORT_TOL = 256 * 2.0**-23
+
+
+def undistort(dr, k, xd, yd):
+    """renderer/cameras/distortion.py's `undistort` in Dr.Jit arithmetic: Brown–Conrady distorted normalised
+    coordinates (xd, yd) -> ideal ones (x, y) by damped Newton steps, and where they converged (ok)."""
+    k1, k2, p1, p2, k3, k4, k5, k6 = k
+
+    def model(x, y):  # distort(x, y) and its Jacobian (jxx, jxy = jyx, jyy)
+        r2 = x * x + y * y
+        a, b = 1 + r2 * (k1 + r2 * (k2 + r2 * k3)), 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+        da, db = k1 + r2 * (2 * k2 + 3 * r2 * k3), k4 + r2 * (2 * k5 + 3 * r2 * k6)
+        s, ds = a / b, (da * b - a * db) / (b * b)
+        fx = x * s + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        fy = y * s + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        jxx = s + 2 * x * x * ds + 2 * p1 * y + 6 * p2 * x
+        jxy = 2 * x * y * ds + 2 * p1 * x + 2 * p2 * y
+        jyy = s + 2 * y * y * ds + 6 * p1 * y + 2 * p2 * x
+        return fx, fy, jxx, jxy, jyy
+
+    x, y = xd, yd
+    for _ in range(UNDISTORT_ITERATIONS):
+        fx, fy, jxx, jxy, jyy = model(x, y)
+        ex, ey = fx - xd, fy - yd
+        det = jxx * jyy - jxy * jxy
+        det = dr.select(det == 0, 1e-30, det)
+        sx, sy = (jyy * ex - jxy * ey) / det, (jxx * ey - jxy * ex) / det
+        # Steps limited to half the current radius plus a little, as ours: Newton stays where it inverts.
+        limit = 0.5 * dr.sqrt(x * x + y * y) + 0.05
+        scale = dr.minimum(limit / dr.maximum(dr.sqrt(sx * sx + sy * sy), 1e-30), 1.0)
+        x, y = x - sx * scale, y - sy * scale
+    fx, fy, jxx, jxy, jyy = model(x, y)
+    residual = dr.sqrt((fx - xd) * (fx - xd) + (fy - yd) * (fy - yd))
+    ok = (residual <= UNDISTORT_TOL * (1 + dr.sqrt(xd * xd + yd * yd))) & (jxx * jyy - jxy * jxy > 0)
+    return x, y, ok
 
 
 def _classes(mi):
@@ -38,17 +82,25 @@ def _classes(mi):
             self.size_px = (props.get("width_px"), props.get("height_px"))
             self.pitch = (props.get("size_x") / self.size_px[0], props.get("size_y") / self.size_px[1])
             self.center_px = (props.get("cx"), props.get("cy"))
+            self.distance = props.get("distance", 1.0)
+            self.k = tuple(props.get(name, 0.0) for name in COEFFICIENT_NAMES)
 
         def _screen(self, position_sample):
-            """Film position -> (x, y) on our screen plane, camera frame, scene units."""
+            """Film position -> (x, y) on our screen plane, camera frame, scene units, and whether the pixel has
+            a ray: with a lens distortion, the ideal (undistorted) position the pixel is traced through."""
             u = position_sample.x * self.size_px[0] - 0.5
             v = position_sample.y * self.size_px[1] - 0.5
-            return (u - self.center_px[0]) * self.pitch[0], (v - self.center_px[1]) * self.pitch[1]
+            xs, ys = (u - self.center_px[0]) * self.pitch[0], (v - self.center_px[1]) * self.pitch[1]
+            if not any(self.k):
+                return xs, ys, True
+            x, y, ok = undistort(dr, self.k, xs / self.distance, ys / self.distance)
+            return x * self.distance, y * self.distance, ok
 
         def sample_ray(self, time, wavelength_sample, position_sample, aperture_sample, active=True):
-            o, d = self.camera_ray(position_sample, aperture_sample)
+            xs, ys, ok = self._screen(position_sample)
+            o, d = self.camera_ray(xs, ys, aperture_sample)
             ray = mi.Ray3f(o, dr.normalize(d), time, mi.Color0f())
-            return self.world_transform() @ ray, mi.Spectrum(1.0)
+            return self.world_transform() @ ray, mi.Spectrum(dr.select(ok, 1.0, 0.0))
 
         def sample_ray_differential(self, time, wavelength_sample, position_sample, aperture_sample, active=True):
             ray, weight = self.sample_ray(time, wavelength_sample, position_sample, aperture_sample, active)
@@ -68,8 +120,7 @@ def _classes(mi):
             self.cos_L, self.sin_L = math.cos(props.get("theta_L")), math.sin(props.get("theta_L"))
             self.m_needs_sample_3 = self.d > 0
 
-        def camera_ray(self, position_sample, aperture_sample):
-            xs, ys = self._screen(position_sample)
+        def camera_ray(self, xs, ys, aperture_sample):
             disc = mi.warp.square_to_uniform_disk_concentric(aperture_sample) * (self.d / 2)
             s = mi.Vector3f(disc.x, disc.y * self.cos_L, disc.y * self.sin_L)
             focus = (self.w - ys * self.tan_F) / self.U
@@ -84,8 +135,7 @@ def _classes(mi):
             self.alpha, self.p3, self.q3 = props.get("alpha"), props.get("p3"), props.get("q3")
             self.m_needs_sample_3 = False
 
-        def camera_ray(self, position_sample, aperture_sample):
-            xs, ys = self._screen(position_sample)
+        def camera_ray(self, xs, ys, aperture_sample):
             k = self.p3 / self.q3
             p1, p2 = xs * k, ys * k
             origin = mi.Point3f(self.alpha * p1, self.alpha * p2, 0.0)
@@ -104,8 +154,18 @@ def register(mi) -> None:
     _REGISTERED.add(variant)
 
 
+def _coefficients(camera) -> dict:
+    """The camera's lens distortion as sensor properties {k1: ..., p1: ...}, {} without one."""
+    distortion = camera.distortion
+    if distortion is None or distortion.is_identity:
+        return {}
+    return {name: float(v) for name, v in zip(COEFFICIENT_NAMES, distortion.coefficients)}
+
+
 def sensor_dict(mi, camera, spp: int, sampler: str = "independent") -> dict:
-    """Mitsuba sensor dict for our `thin_lens` or `inverted_perspective` camera (box filter, RGB film).
+    """Mitsuba sensor dict for our `thin_lens`, `inverted_perspective`, `pinhole` or `orthographic` camera (box
+    filter, RGB film); the last two as the inverted perspective at α = 0 and α = 1 with p3 = q3 (eq. (1)-(3):
+    the rays of a pinhole through the origin, of the orthographic camera parallel from its screen points).
 
     Raises NotImplementedError for other camera types.
     """
@@ -117,6 +177,7 @@ def sensor_dict(mi, camera, spp: int, sampler: str = "independent") -> dict:
     M = world_from_local_4x4(camera.transform.world_from_camera.numpy(), camera.transform.position.numpy())
     common = {"width_px": W, "height_px": H, "size_x": float(screen.size[0]), "size_y": float(screen.size[1]),
               "cx": float(cx), "cy": float(cy), "to_world": mi.ScalarTransform4f(M),
+              "distance": float(screen.distance), **_coefficients(camera),
               "film": {"type": "hdrfilm", "width": W, "height": H, "rfilter": {"type": "box"},
                        "pixel_format": "rgb", "component_format": "float32"},
               "sampler": {"type": sampler, "sample_count": int(spp)}}
@@ -126,4 +187,8 @@ def sensor_dict(mi, camera, spp: int, sampler: str = "independent") -> dict:
     if kind == "InvertedPerspectiveCamera":
         return {"type": "inverted_perspective", "alpha": camera.alpha, "p3": camera.pseudo_screen_distance,
                 "q3": float(screen.distance), **common}
+    if kind in ("PinholeCamera", "OrthographicCamera"):  # the inverted perspective at α = 0 and α = 1, p3 = q3
+        q3 = float(screen.distance)
+        return {"type": "inverted_perspective", "alpha": float(kind == "OrthographicCamera"), "p3": q3, "q3": q3,
+                **common}
     raise NotImplementedError(f"camera {kind} has no Mitsuba sensor plugin")

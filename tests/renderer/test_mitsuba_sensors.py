@@ -81,11 +81,12 @@ def test_exported_scene_renders_our_image(scalar, case):
 
 
 def test_unmappable_parts_are_named(scalar):
-    """What Mitsuba cannot express is listed (ambient light, specular term, background), not silently lost."""
+    """What Mitsuba cannot express is listed (mirror reflection, refraction), not silently lost; the
+    background, the ambient light and a Phong highlight carry over."""
     scene = load_scene(SCENE, ["image.width=8", "image.height=8", "image.background=[0.1,0.1,0.1]",
                                'lights=[{"type": "ambient", "intensity": [0.1, 0.1, 0.1]}]',
-                               "objects.sphere_top.material.specular=0.5"])
+                               "objects.sphere_top.material.specular=0.5", "objects.sphere_left.material.reflect=0.5",
+                               "objects.sphere_right.material.transmit=0.2"])
     _, dropped = to_mitsuba(scene, spp=1)
-    text = " ".join(dropped)
-    for what in ("background", "ambient", "sphere_top: specular"):
-        assert what in text, f"{what!r} missing from dropped: {dropped}"
+    expected = ["sphere_left: reflect", "sphere_right: transmit"]
+    assert dropped == expected, f"dropped {dropped}, expected {expected}"

@@ -500,11 +500,10 @@ def start_blur(cam: TiltLensCamera, obs: Observations, mode: str, init: TiltLens
 def _group_sigma(prob: _Problem, r_raw: torch.Tensor, normal, robust: str | None) -> tuple[float, float]:
     """Variance components: σ_g² = Σ_g r² / (n_g − tr_g(hat matrix)) (MAD-based under a robust loss); the
     hat matrix's diagonal from the normal equations' blocks (`normal.leverages`)."""
-    A = normal.dense()
     try:
-        Ainv = torch.linalg.inv(A)
+        Ainv = normal.inverse()
     except RuntimeError:
-        Ainv = torch.linalg.pinv(A)
+        Ainv = torch.linalg.pinv(normal.dense())
     lev = normal.leverages(Ainv)
     out = []
     for rows, n in ((prob.corner_rows, prob.n_corner), (prob.blur_rows, prob.n_blur)):

@@ -170,6 +170,10 @@ class DenseNormal:
         """(P, P) A."""
         return self.A
 
+    def inverse(self) -> torch.Tensor:
+        """(P, P) A⁻¹ (raises RuntimeError where A is singular)."""
+        return torch.linalg.inv(self.A)
+
     def leverages(self, Ainv: torch.Tensor) -> torch.Tensor:
         """(M,) diagonal of the hat matrix W J A⁻¹ Jᵀ (each residual's share of the fitted parameters)."""
         return ((self.Jw @ Ainv) * self.J).sum(-1)
@@ -242,6 +246,28 @@ class SchurNormal:
         A[s[None, :, None], p[:, None, :]] = self.A_sp
         A[p[:, :, None], s[None, None, :]] = self.A_sp.transpose(1, 2)
         return A
+
+    def inverse(self) -> torch.Tensor:
+        """(P, P) A⁻¹ by blocks: with Y_v = A_vv⁻¹ A_vs and S = A_ss − Σ_v A_sv Y_v,
+        (A⁻¹)_ss = S⁻¹, (A⁻¹)_sv = −S⁻¹ Y_vᵀ, (A⁻¹)_vu = δ_vu A_vv⁻¹ + Y_v S⁻¹ Y_uᵀ; O(P² S) instead of
+        O(P³). Raises RuntimeError where A is singular."""
+        bj = self.bj
+        App_inv = torch.linalg.inv(self.A_pp)                          # (V, K, K)
+        Y = App_inv @ self.A_sp.transpose(1, 2)                        # (V, K, S)
+        S_inv = torch.linalg.inv(self.A_ss - (self.A_sp @ Y).sum(0))
+        V, K, n_s = Y.shape
+        Yf = Y.reshape(V * K, n_s)
+        C_pp = Yf @ S_inv @ Yf.T                                       # (V K, V K)
+        C_pp = C_pp.reshape(V, K, V, K)
+        C_pp[torch.arange(V), :, torch.arange(V), :] += App_inv
+        C_sp = -(S_inv @ Yf.T)                                         # (S, V K)
+        out = S_inv.new_zeros(bj.n_params, bj.n_params)
+        s, p = bj.s_idx, bj.p_idx.reshape(-1)
+        out[s[:, None], s[None, :]] = S_inv
+        out[s[:, None], p[None, :]] = C_sp
+        out[p[:, None], s[None, :]] = C_sp.T
+        out[p[:, None], p[None, :]] = C_pp.reshape(V * K, V * K)
+        return out
 
     def leverages(self, Ainv: torch.Tensor) -> torch.Tensor:
         """(M,) diagonal of the hat matrix W J A⁻¹ Jᵀ, from the blocks of A⁻¹ that each row touches:

@@ -191,7 +191,7 @@ def covariance(result: LMResult, variance_factor: float = 1.0) -> torch.Tensor:
             determine).
     """
     try:
-        Ainv = torch.linalg.inv(result.normal.dense())
+        Ainv = result.normal.inverse()
     except RuntimeError:
         raise SolverError("the free parameters are not all determined by the data") from None
     if not torch.isfinite(Ainv).all() or (torch.diagonal(Ainv) <= 0).any():

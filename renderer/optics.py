@@ -322,7 +322,7 @@ def _unit_derivatives(like: torch.Tensor):
 
 def blur_diameter_jacobian(p_cam, w, U, d, theta_F=0.0, blur_model: str = "ellipse"):
     """The blur diameter (`blur_diameter`) and its derivatives with respect to the point and the lens, in closed
-    form (the chain rule written out, no autodiff; checked against autograd in tests/renderer/test_optics.py).
+    form (the chain rule written out, no autodiff; checked against autograd in tests/renderer/test_jacobians.py).
 
     Args:
         p_cam: (..., 3) camera-frame points, lengths; w, U, d lengths and theta_F radians, numbers or 0-dim

@@ -295,7 +295,7 @@ class LensCamera(torch.nn.Module):
         `distortion.distort_jacobian` and `distort_coefficient_jacobian`, the blur by
         `optics.blur_diameter_jacobian`, each divided by the stored parametrisation (log w, 1/U in dioptres,
         d in cm, T in `length_scale_mm`, principal point in `pixel_scale_px`). Checked against autograd in
-        tests/renderer/test_lens_model_jacobian.py.
+        tests/renderer/test_jacobians.py.
 
         Args:
             X_world: (N, 3) world points, mm.

@@ -51,7 +51,8 @@ import torch
 BLUR_MODELS = ("ellipse", "first_order", "paper")
 
 __all__ = [
-    "BLUR_JACOBIAN_ARGS", "BLUR_MODELS", "blur_diameter", "blur_diameter_exact", "blur_diameter_jacobian", "blur_diameter_first_order", "blur_diameter_paper",
+    "BLUR_JACOBIAN_ARGS", "BLUR_MODELS", "blur_diameter", "blur_diameter_exact", "blur_diameter_jacobian",
+    "blur_diameter_first_order", "blur_diameter_paper",
     "blur_ellipse", "blur_width",
     "focal_length", "focus_depth", "focus_distance_tilted", "hinge_line_y", "scheimpflug_line_y",
     "theta_F_from_theta_L", "theta_F_from_theta_L_f", "theta_L_from_theta_F", "theta_L_from_theta_F_f",

@@ -629,10 +629,7 @@ def _uncertainties(prob: _Problem, res: LMResult, scale: torch.Tensor, init_sigm
     sigma["principal_point_px"] = [float(sig[7]), float(sig[8])]
     # Per-view pose σ, if the poses are free.
     view_sig = []
-    offsets, i = {}, 0
-    for nme, size in zip(prob.names, prob.sizes):
-        offsets[nme] = (i, size)
-        i += size
+    offsets = layout.offsets
     sigma["distortion"] = [math.sqrt(float(C[offsets[n][0], offsets[n][0]])) if n in offsets else 0.0
                            for n in TiltLensCamera.parameter_names("distortion")]
     if "inv_U_per_m" in offsets:
@@ -651,16 +648,6 @@ def _uncertainties(prob: _Problem, res: LMResult, scale: torch.Tensor, init_sigm
             entry["sigma_T_mm"] = [math.sqrt(float(C[o + k, o + k])) * cam.length_scale_mm for k in range(3)]
         view_sig.append(entry)
     return C, sigma, view_sig, s2
-
-
-def _flat_names(prob: _Problem) -> list[str]:
-    out = []
-    for n, shape in zip(prob.names, prob.shapes):
-        if len(shape) == 0:
-            out.append(n)
-        else:
-            out += [f"{n}[{','.join(map(str, idx))}]" for idx in np.ndindex(*shape)]
-    return out
 
 
 def _set_free(camera: TiltLensCamera, mode: str, free_pp: bool):
@@ -703,7 +690,7 @@ def _fit_camera(camera: TiltLensCamera, obs: Observations, options: FitOptions, 
     return FitResult(
         mode=mode, camera=camera, values=values, sigma=sig, views=views,
         noise={"sigma_corner_px": sc, "sigma_blur_px": sb, "variance_factor": s2},
-        parameter_names=_flat_names(prob), covariance=C, chi2=2.0 * res.cost,
+        parameter_names=res.layout.flat_names(), covariance=C, chi2=2.0 * res.cost,
         n_residuals=prob.n_corner + prob.n_blur, n_parameters=res.x_flat.numel(), iterations=res.iterations,
         runtime_s=time.perf_counter() - t0, rss=_group_rss(prob, res, scale))
 

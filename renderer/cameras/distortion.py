@@ -100,7 +100,8 @@ def distort_coefficient_jacobian(xy: torch.Tensor, coefficients) -> torch.Tensor
     k4, k5, k6 = k[..., 5], k[..., 6], k[..., 7]
     b = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
     s, _ = _radial(r2, k)
-    radial = torch.stack([r2 / b, r4 / b, r6 / b, -s * r2 / b, -s * r4 / b, -s * r6 / b], -1)  # ∂s/∂(k1 k2 k3 k4 k5 k6)
+    # ∂s/∂(k1, k2, k3, k4, k5, k6)
+    radial = torch.stack([r2 / b, r4 / b, r6 / b, -s * r2 / b, -s * r4 / b, -s * r6 / b], -1)
     xy2 = 2 * x * y
     jx = torch.stack([x * radial[..., 0], x * radial[..., 1], xy2, r2 + 2 * x * x, x * radial[..., 2],
                       x * radial[..., 3], x * radial[..., 4], x * radial[..., 5]], -1)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 
@@ -75,7 +76,8 @@ class Layout:
         self.n_params = i
         V = self.n_views
         self.s_idx = torch.cat([torch.arange(self.offsets[b.name][0], sum(self.offsets[b.name]))
-                                for b in self.global_blocks]) if self.global_blocks else torch.zeros(0, dtype=torch.long)
+                                for b in self.global_blocks]) if self.global_blocks \
+            else torch.zeros(0, dtype=torch.long)
         self.p_idx = torch.cat([self.offsets[b.name][0] + b.size * torch.arange(V)[:, None] + torch.arange(b.size)
                                 for b in self.view_blocks], 1) if self.view_blocks else None
 
@@ -94,7 +96,7 @@ class Layout:
             if len(b.shape) == 0:
                 out.append(b.name)
             else:
-                out += [f"{b.name}[{','.join(map(str, idx))}]" for idx in _ndindex(b.shape)]
+                out += [f"{b.name}[{','.join(map(str, idx))}]" for idx in np.ndindex(*b.shape)]
         return out
 
     def jacobian(self, jac: dict) -> "BlockJacobian | torch.Tensor":
@@ -107,12 +109,6 @@ class Layout:
         if Js is None:
             Js = Jp.new_zeros(Jp.shape[0], 0)
         return BlockJacobian(Js, Jp, self.view_rows, self.s_idx, self.p_idx, self.n_params)
-
-
-def _ndindex(shape):
-    import numpy as np
-
-    return np.ndindex(*shape)
 
 
 @dataclass
@@ -183,7 +179,8 @@ class SchurNormal:
     """Normal equations of a `BlockJacobian`, solved by the Schur complement of the per-view blocks.
 
     With A = [[A_ss, A_sp], [A_ps, A_pp]] where A_pp is block diagonal (one K×K block per view), the damped
-    system is reduced to the global parameters: (A_ss − Σ_v A_sv A_vv⁻¹ A_vs) δ_s = g_s − Σ_v A_sv A_vv⁻¹ g_v,
+    system is reduced to the global parameters:
+        (A_ss − Σ_v A_sv A_vv⁻¹ A_vs) δ_s = g_s − Σ_v A_sv A_vv⁻¹ g_v,
     then δ_v = A_vv⁻¹ (g_v − A_vs δ_s).
     """
 
@@ -249,8 +246,8 @@ class SchurNormal:
 
     def inverse(self) -> torch.Tensor:
         """(P, P) A⁻¹ by blocks: with Y_v = A_vv⁻¹ A_vs and S = A_ss − Σ_v A_sv Y_v,
-        (A⁻¹)_ss = S⁻¹, (A⁻¹)_sv = −S⁻¹ Y_vᵀ, (A⁻¹)_vu = δ_vu A_vv⁻¹ + Y_v S⁻¹ Y_uᵀ; O(P² S) instead of
-        O(P³). Raises RuntimeError where A is singular."""
+        (A⁻¹)_ss = S⁻¹, (A⁻¹)_sv = −S⁻¹ Y_vᵀ, (A⁻¹)_vu = δ_vu A_vv⁻¹ + Y_v S⁻¹ Y_uᵀ;
+        O(P² S) instead of O(P³). Raises RuntimeError where A is singular."""
         bj = self.bj
         App_inv = torch.linalg.inv(self.A_pp)                          # (V, K, K)
         Y = App_inv @ self.A_sp.transpose(1, 2)                        # (V, K, S)

@@ -79,10 +79,15 @@ def axis_angle_left_jacobian(rvec: torch.Tensor) -> torch.Tensor:
     return eye + a * K + b * (K @ K)
 
 
-def rotated_point_jacobian(rvec: torch.Tensor, p_rot: torch.Tensor) -> torch.Tensor:
+def rotated_point_jacobian(rvec: torch.Tensor, p_rot: torch.Tensor, rows: torch.Tensor | None = None) -> torch.Tensor:
     """∂(R(r) X)/∂r = −[R X]× J_l(r): (..., 3) axis-angle vectors and (..., 3) rotated points R X (broadcast)
-    -> (..., 3, 3), row i the derivative of coordinate i of R X with respect to r."""
-    return -_skew(p_rot) @ axis_angle_left_jacobian(rvec)
+    -> (..., 3, 3), row i the derivative of coordinate i of R X with respect to r.
+
+    With `rows` (..., m, 3), the derivatives ∂f/∂(R X) of some f, returns the chain rule's (..., m, 3) ∂f/∂r
+    = rows · (−[R X]×) · J_l directly: a row a times −[p]× is the cross product p × a."""
+    if rows is None:
+        return -_skew(p_rot) @ axis_angle_left_jacobian(rvec)
+    return torch.linalg.cross(p_rot[..., None, :].expand_as(rows), rows, dim=-1) @ axis_angle_left_jacobian(rvec)
 
 
 def matrix_to_axis_angle(R) -> torch.Tensor:

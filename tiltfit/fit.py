@@ -186,7 +186,11 @@ class _Problem:
         self.shapes = [params[n].shape for n in self.names]
         self.sizes = [int(np.prod(s)) if len(s) else 1 for s in self.shapes]
         self.held = {n: p.detach() for n, p in params.items() if n not in self.names}
+        # columns per parameter in a residual row (a pose's: its own view's 3)
+        self._sizes = {n: (p.shape[-1] if n in self.POSE else p.numel()) for n, p in params.items()}
         self.work = camera.copy().requires_grad_(False)  # evaluated at trial parameters, never autograd
+        self._work_params = dict(self.work.named_parameters())
+        self._overridden = set()  # held parameters `_load` replaced (restored on the next call)
         self.points = obs.points_mm.to(torch.float64)
         self.cmask = obs.corner_mask
         self.bmask = obs.blur_mask
@@ -215,12 +219,18 @@ class _Problem:
         return {**(held if held is not None else self.held), **x}
 
     def _load(self, x: dict, held: dict | None = None):
+        """Put x (and `held` in place of the held values) into the working camera."""
+        wp = self._work_params
         with torch.no_grad():
-            for n, p in self.work.named_parameters():
-                src = x.get(n)
-                if src is None and held is not None:
-                    src = held.get(n)
-                p.copy_(src if src is not None else self.held[n])
+            for n in self._overridden:
+                wp[n].copy_(self.held[n])
+            self._overridden = set()
+            for n, v in x.items():
+                wp[n].copy_(v)
+            for n, v in (held or {}).items():
+                if n not in x:
+                    wp[n].copy_(v)
+                    self._overridden.add(n)
 
     def _flat(self, uv: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         rc = torch.where(self.cmask[..., None], uv - self.corners, torch.zeros_like(uv)).reshape(-1)
@@ -237,25 +247,28 @@ class _Problem:
     def raw_jacobian(self, x: dict, names, held: dict | None = None) -> tuple[torch.Tensor, dict]:
         """`raw(x)` and its derivatives {name: (M, size)} with respect to the named stored parameters (free or
         held; a pose's row i with respect to the pose of row i's view)."""
+        J, r = self._raw_jacobian_matrix(x, names, held)
+        return r, dict(zip(names, torch.split(J, [self._sizes[n] for n in names], 1)))
+
+    def _raw_jacobian_matrix(self, x: dict, names, held: dict | None = None):
+        """((M, Σ sizes) derivatives of `raw` by the named parameters side by side, raw(x))."""
         self._load(x, held)
-        uv, b, jac = self.work.jacobian(self.points, with_blur=self.n_blur > 0, with_distortion=self.with_distortion)
-        cm = self.cmask[..., None, None]
-        bm = self.bmask[..., None]
-        out = {}
-        for n in names:
-            j = jac[n]
-            jc = torch.where(cm, j[..., :2, :], torch.zeros_like(j[..., :2, :])).reshape(-1, j.shape[-1])
-            jb = torch.where(bm, j[..., 2, :], torch.zeros_like(j[..., 2, :])).reshape(-1, j.shape[-1])
-            out[n] = torch.cat([jc, jb])
-        return self._flat(uv, b), out
+        uv, b, jac = self.work.jacobian(self.points, with_blur=self.n_blur > 0, with_distortion=self.with_distortion,
+                                        names=names)
+        j = torch.cat([jac[n] for n in names], -1)                          # (V, N, 3, P)
+        jc = torch.where(self.cmask[..., None, None], j[..., :2, :], 0.0).reshape(-1, j.shape[-1])
+        jb = torch.where(self.bmask[..., None], j[..., 2, :], 0.0).reshape(-1, j.shape[-1])
+        return torch.cat([jc, jb]), self._flat(uv, b)
 
     def evaluate(self, scale: torch.Tensor):
         """The `tiltfit.solve.levenberg_marquardt` callback of the residuals `raw(x) * scale`."""
+        sizes = [self._sizes[n] for n in self.names]
+
         def evaluate(x: dict, with_jacobian: bool):
             if not with_jacobian:
                 return self.raw(x) * scale, None
-            r, jac = self.raw_jacobian(x, self.names)
-            return r * scale, {n: j * scale[:, None] for n, j in jac.items()}
+            J, r = self._raw_jacobian_matrix(x, self.names)
+            return r * scale, dict(zip(self.names, torch.split(J * scale[:, None], sizes, 1)))
 
         return evaluate
 
@@ -532,6 +545,7 @@ def _solve(camera: TiltLensCamera, obs: Observations, options: FitOptions, sigma
     sb = options.sigma_blur_px or (sigma[1] if sigma else 1.0)
     estimate = options.sigma_corner_px is None or options.sigma_blur_px is None
     lm_options = _robust_options(options.robust, options.robust_scale, options.max_iterations)
+    one_group = (prob.n_corner == 0 or prob.n_blur == 0) and options.robust in (None, "none")
     x, total_it = prob.x0(), 0
     for outer in range(options.noise_iterations + 1):
         scale = prob.scale(sc, sb)
@@ -547,6 +561,11 @@ def _solve(camera: TiltLensCamera, obs: Observations, options: FitOptions, sigma
             say(f"  pass {outer + 1}: cost {res.cost:.6g} after {res.iterations} iterations; "
                 f"σ_corner {new_sc:.4g} px, σ_blur {new_sb:.4g} px")
         if not changed:
+            break
+        if one_group:
+            # One σ scales every residual alike: the minimiser stays, and the estimate is final.
+            res = res.scaled(sc / new_sc if prob.n_corner else sb / new_sb)
+            sc, sb = new_sc, new_sb
             break
         sc, sb = new_sc, new_sb
     res.iterations = total_it

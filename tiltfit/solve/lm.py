@@ -31,12 +31,12 @@ No decreasing step for any damping up to `MAX_DAMPING` means a stationary point 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import torch
 
-from .blocks import Block, Layout, normal_equations
+from .blocks import Block, BlockJacobian, Layout, normal_equations
 
 #: Smallest factor λ is multiplied by after a successful step (Nielsen's rule has 1/3).
 DAMPING_DECREASE_FLOOR = 0.1
@@ -98,6 +98,15 @@ class LMResult:
     stop: str
     layout: Layout
 
+    def scaled(self, factor: float) -> "LMResult":
+        """The result for the residuals multiplied by a constant `factor` (a new σ for all of them): the
+        minimiser of ½ Σ r² does not move, so no re-solve is needed. Without a robust loss only (its
+        weights depend on the scale)."""
+        J = self.jacobian
+        J = replace(J, Js=J.Js * factor, Jp=J.Jp * factor) if isinstance(J, BlockJacobian) else J * factor
+        return replace(self, cost=self.cost * factor**2, r=self.r * factor, jacobian=J,
+                       normal=normal_equations(J, self.weights))
+
 
 def levenberg_marquardt(evaluate, x0: dict, blocks, view_rows: torch.Tensor | None = None,
                         options: LMOptions = LMOptions()) -> LMResult:
@@ -152,13 +161,23 @@ def levenberg_marquardt(evaluate, x0: dict, blocks, view_rows: torch.Tensor | No
             return done(it, "decrement", ne)
         if it == options.max_iterations:
             break
+        first_trial = True
         while True:
             try:
                 step = -ne.solve(lam * scaling, g)
             except RuntimeError:
                 step = torch.full_like(g, math.nan)
             ok = bool(torch.isfinite(step).all())
-            r_new = evaluate(layout.unflatten(x + step), False)[0].detach() if ok else None
+            # The first trial of an iteration gets its Jacobian with its residuals (one call costs less than
+            # residuals now and the Jacobian after, and most first trials are accepted); later ones, after a
+            # rejection, residuals only.
+            if not ok:
+                r_new, J_new = None, None
+            elif first_trial:
+                r_new, J_new = linearise(x + step)
+            else:
+                r_new, J_new = evaluate(layout.unflatten(x + step), False)[0].detach(), None
+            first_trial = False
             cost_new = cost_of(r_new) if ok and torch.isfinite(r_new).all() else math.inf
             predicted = float(-(g @ step) - 0.5 * step @ ne.matvec(step)) if ok else 0.0
             gain = (cost - cost_new) / predicted if predicted > 0 else -1.0
@@ -172,8 +191,7 @@ def levenberg_marquardt(evaluate, x0: dict, blocks, view_rows: torch.Tensor | No
         x = x + step
         lam *= max(DAMPING_DECREASE_FLOOR, 1.0 - (2.0 * gain - 1.0) ** 3)
         nu = 2.0
-        r, J = linearise(x)
-        cost = cost_of(r)
+        r, J, cost = (r_new, J_new, cost_new) if J_new is not None else (*linearise(x), cost_new)
         wts = weight(r * r)
         if small_decrease:
             return done(it + 1, "ftol", normal_equations(J, wts))

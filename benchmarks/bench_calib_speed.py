@@ -20,7 +20,7 @@ Ratios are ours / OpenCV in the same process. "Before": the same measurements wi
 `main`, extracted by `git archive` into a temporary folder) in a child process of the same run.
 
 Writes benchmarks/results/calib_speed.{json,md}. Usage:
-    python benchmarks/bench_calib_speed.py [--repeats 5] [--default-repeats 3] [--base main|none]
+    python benchmarks/bench_calib_speed.py [--repeats 5] [--default-repeats 3] [--base main|none] [--quick]
 """
 from __future__ import annotations
 
@@ -239,11 +239,42 @@ def measure(sets: dict, repeats: int, default_repeats: int) -> dict:
             "with_blur": {**blr, "time_s": t_blur, "wall_s": w_blur, "times_s": all_blur, "ratio": t_blur / t_cv,
                           "wall_ratio": w_blur / w_cv},
             "default": {**dflt, "time_s": t_default, "wall_s": w_default, "times_s": all_default,
-                        "ratio": t_default / t_cv, "process_s": cpu_process, "process_wall_s": t_process},
+                        "ratio": t_default / t_cv, "process_s": cpu_process, "process_wall_s": t_process,
+                        "calib_file": calib},
         }
         log(f"{name}: CPU s: OpenCV {t_cv:.3f}, geometric {t_geo:.3f} ({t_geo / t_cv:.1f}×), with blur {t_blur:.3f}, "
             f"default {t_default:.2f} (process {cpu_process:.2f}, wall {t_process:.2f})")
     return out
+
+
+def calib_difference(after_file: str, before_file: str) -> dict:
+    """Largest |after − before| / σ (σ from `after_file`) over w, U, d, θF, the principal point, the distortion
+    coefficients and the views' translations of two CALIB.json files, and where it is."""
+    with open(after_file) as f:
+        a = json.load(f)
+    with open(before_file) as f:
+        b = json.load(f)
+    diffs = []
+    for k in ("w_mm", "U_mm", "d_mm", "theta_F_deg", "blur_offset_px"):
+        s = a["sigma"].get(k)
+        if isinstance(s, (int, float)) and s > 0 and a.get(k) is not None and b.get(k) is not None:
+            diffs.append((abs(a[k] - b[k]) / s, k))
+    for i, s in enumerate(a["sigma"].get("principal_point_px") or []):
+        if s:
+            diffs.append((abs(a["principal_point_px"][i] - b["principal_point_px"][i]) / s, f"principal_point[{i}]"))
+    for i, s in enumerate(a["sigma"].get("distortion") or []):
+        if s:
+            diffs.append((abs(a["distortion"]["coefficients"][i] - b["distortion"]["coefficients"][i]) / s,
+                          f"distortion[{i}]"))
+    for va, vb in zip(a["views"], b["views"]):
+        for i, s in enumerate(va.get("sigma_T_mm") or []):
+            if s:
+                diffs.append((abs(va["T_mm"][i] - vb["T_mm"][i]) / s, "T_mm"))
+    worst = max(diffs)
+    return {"max_delta_over_sigma": worst[0], "at": worst[1], "same_distortion_model":
+            a.get("distortion_model") == b.get("distortion_model"),
+            "same_model_selection": {k: v.get("justified") for k, v in (a.get("model_selection") or {}).items()}
+            == {k: v.get("justified") for k, v in (b.get("model_selection") or {}).items()}}
 
 
 def _base_checkout(ref: str) -> str:
@@ -271,8 +302,10 @@ def write_markdown(path: str, res: dict) -> None:
         f"- after: this checkout (`{res['commit']}`)" + (f"; before: `{res['base']}` ({res['base_commit'][:10]}), "
                                                           "same script, a child process of the same run"
                                                           if before else ""),
-        f"- medians of {res['repeats']} runs (default command: {res['default_repeats']}); ratio = ours / OpenCV "
-        "measured in the same process", "",
+        f"- CPU seconds (`time.process_time`; the 2 cores are shared with other jobs, whose load stretches wall "
+        f"time, not CPU time), medians of {res['repeats']} runs (default command: {res['default_repeats']}); "
+        "ratio = ours / OpenCV measured in the same process; wall-clock medians and ratios are in the JSON; "
+        "fresh process: CPU of the child (wall in brackets), Python's start and imports included", "",
         "| set | views / corners | model | OpenCV | geometric (ratio) | with blur (ratio) | default command "
         "(in process) | default (fresh process) |",
         "|---|---|---|---|---|---|---|---|",
@@ -285,10 +318,12 @@ def write_markdown(path: str, res: dict) -> None:
                 f"| {name} ({label}) | {s['views']} / {s['corners']} | {s['model']} | {_fmt_s(s['opencv']['time_s'])} | "
                 f"{_fmt_s(s['geometric']['time_s'])} ({s['geometric']['ratio']:.1f}×) | "
                 f"{_fmt_s(s['with_blur']['time_s'])} ({s['with_blur']['ratio']:.1f}×) | "
-                f"{_fmt_s(s['default']['time_s'])} | {_fmt_s(s['default']['process_wall_s'])} |")
+                f"{_fmt_s(s['default']['time_s'])} | {_fmt_s(s['default']['process_s'])} "
+                f"({_fmt_s(s['default']['process_wall_s'])}) |")
     if before:
         lines += ["", "## Before / after (same run)", "",
-                  "| set | geometric | with blur | default command | Δf (after − before) / σ_f | Δc / σ_c |",
+                  "| set | geometric | with blur | default command | geometric: Δf / σ_f, Δc / σ_c | default "
+                  "command: largest Δ / σ (where); same choices |",
                   "|---|---|---|---|---|---|"]
         for name, a in after["sets"].items():
             b = before["sets"].get(name)
@@ -297,9 +332,12 @@ def write_markdown(path: str, res: dict) -> None:
             df = (a["geometric"]["f_px"] - b["geometric"]["f_px"]) / a["geometric"]["sigma_f_px"]
             dc = max(abs(a["geometric"]["c_px"][i] - b["geometric"]["c_px"][i]) / a["geometric"]["sigma_c_px"][i]
                      for i in range(2))
+            vb = a["default"].get("versus_before") or {}
+            same = "yes" if vb.get("same_distortion_model") and vb.get("same_model_selection") else "no"
             lines.append(f"| {name} | {b['geometric']['time_s'] / a['geometric']['time_s']:.1f}× faster | "
                          f"{b['with_blur']['time_s'] / a['with_blur']['time_s']:.1f}× faster | "
-                         f"{b['default']['time_s'] / a['default']['time_s']:.1f}× faster | {df:+.1e} | {dc:.1e} |")
+                         f"{b['default']['time_s'] / a['default']['time_s']:.1f}× faster | {df:+.1e}, {dc:.1e} | "
+                         f"{vb.get('max_delta_over_sigma', math.nan):.1e} ({vb.get('at', '–')}); {same} |")
     lines += ["", "## Results (after)", "",
               "| set | f ours ± σ | f OpenCV | RMS ours / OpenCV (px per corner) | with blur: U ± σ, d ± σ | "
               "default: model, RMS, held-out |", "|---|---|---|---|---|---|"]
@@ -336,12 +374,15 @@ def main(argv=None) -> int:
                     help="runs of the default command with the base code (it takes minutes) [1]")
     ap.add_argument("--cache", default=os.path.join(tempfile.gettempdir(), "tiltfit_bench_calib_speed"),
                     help="folder of the cached DET files")
+    ap.add_argument("--quick", action="store_true", help="smoke run: 1 repeat, no base, to OUT_quick")
     ap.add_argument("--measure-only", metavar="JSON", help=argparse.SUPPRESS)  # the child process of --base
     ap.add_argument("--sets", metavar="JSON", help=argparse.SUPPRESS)
     add_output_options(ap, "calib_speed")
     args = ap.parse_args(argv)
     if markdown_only(args, write_markdown):
         return 0
+    if args.quick:
+        args.repeats, args.default_repeats, args.base, args.out = 1, 1, "none", args.out + "_quick"
     if args.measure_only:
         with open(args.sets) as f:
             sets = json.load(f)
@@ -363,6 +404,10 @@ def main(argv=None) -> int:
                        env={**os.environ, "PYTHONPATH": base, "OMP_NUM_THREADS": "1"}, check=True, cwd=base)
         with open(result_file) as f:
             before = json.load(f)
+        for name, s in after["sets"].items():
+            if name in before["sets"]:
+                s["default"]["versus_before"] = calib_difference(s["default"]["calib_file"],
+                                                                 before["sets"][name]["default"]["calib_file"])
     commit = subprocess.run(["git", "-C", ROOT, "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
     res = {
         "machine": f"{platform.node() or 'vm'} {platform.machine()} ({os.cpu_count()} CPUs), Python "

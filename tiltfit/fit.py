@@ -346,8 +346,9 @@ def focal_from_homographies(obs: Observations, principal_point_px=None) -> float
     if np.ptp(pts[:, 2]) > 1e-9:
         return None
     rows_a, rows_c = [], []
+    mask = obs.corner_mask.numpy()  # once: the property checks every view's corners
     for v in range(obs.n_views):
-        m = obs.corner_mask[v].numpy()
+        m = mask[v]
         if m.sum() < 4:
             continue
         Hm, _ = cv2.findHomography(pts[m, :2] / s, (obs.corners_px[v].numpy()[m] - c) / s, 0)
@@ -379,8 +380,9 @@ def poses_from_pnp(obs: Observations, focal_px: float, principal_point_px,
         np.array([float(v) for v in distortion], dtype=np.float64)
     pts = obs.points_mm.numpy()
     rv, tv = [], []
+    mask = obs.corner_mask.numpy()  # once: the property checks every view's corners
     for v in range(obs.n_views):
-        m = obs.corner_mask[v].numpy()
+        m = mask[v]
         if m.sum() < 4:
             raise FitError(f"{obs.names[v]}: only {int(m.sum())} corners detected, at least 4 are needed")
         planar = np.ptp(pts[m, 2]) < 1e-9
@@ -700,11 +702,12 @@ def _fit_camera(camera: TiltLensCamera, obs: Observations, options: FitOptions, 
     views = []
     R = camera.R.detach()
     T = camera.T_mm.detach()
+    n_points = obs.corner_mask.sum(-1).tolist()
     for v in range(obs.n_views):
         views.append({
             "image": obs.names[v], "R": R[v].tolist(), "T_mm": T[v].tolist(),
             "rms_reprojection_px": float(rc[v]), "rms_blur_px": float(rb[v]),
-            "n_points": int(obs.corner_mask[v].sum()), **view_sig[v],
+            "n_points": int(n_points[v]), **view_sig[v],
         })
     return FitResult(
         mode=mode, camera=camera, values=values, sigma=sig, views=views,

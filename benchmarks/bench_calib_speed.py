@@ -315,7 +315,8 @@ def write_markdown(path: str, res: dict) -> None:
             continue
         for name, s in r["sets"].items():
             lines.append(
-                f"| {name} ({label}) | {s['views']} / {s['corners']} | {s['model']} | {_fmt_s(s['opencv']['time_s'])} | "
+                f"| {name} ({label}) | {s['views']} / {s['corners']} | {s['model']} | "
+                f"{_fmt_s(s['opencv']['time_s'])} | "
                 f"{_fmt_s(s['geometric']['time_s'])} ({s['geometric']['ratio']:.1f}×) | "
                 f"{_fmt_s(s['with_blur']['time_s'])} ({s['with_blur']['ratio']:.1f}×) | "
                 f"{_fmt_s(s['default']['time_s'])} | {_fmt_s(s['default']['process_s'])} "

@@ -168,8 +168,8 @@ class FitResult:
 class _Problem:
     """The calibration as a least-squares problem over a camera's free parameters (`tiltfit.solve` blocks).
 
-    Residuals, flat: corners (V·N·2, pixels) then blur widths (V·N, pixels), model − observation, 0 where
-    unobserved, each divided by its group's σ (`scale`). Parameters: the camera's free stored parameters by
+    Residuals, flat: corners (V·N·2, pixels) then blur widths (V·N, pixels; none when no width was measured),
+    model − observation, 0 where unobserved, each divided by its group's σ (`scale`). Parameters: the camera's free stored parameters by
     name (`LensCamera.named_parameters` order); the poses (`rvec`, `T_scaled`) are per-view blocks. The
     Jacobian is the camera's closed form (`LensCamera.jacobian`).
     """
@@ -184,7 +184,6 @@ class _Problem:
             raise FitError("no free parameters to fit")
         params = dict(camera.named_parameters())
         self.shapes = [params[n].shape for n in self.names]
-        self.sizes = [int(np.prod(s)) if len(s) else 1 for s in self.shapes]
         self.held = {n: p.detach() for n, p in params.items() if n not in self.names}
         # columns per parameter in a residual row (a pose's: its own view's 3)
         self._sizes = {n: (p.shape[-1] if n in self.POSE else p.numel()) for n, p in params.items()}
@@ -200,16 +199,21 @@ class _Problem:
         self.with_distortion = any(n in self.names or bool(self.held[n] != 0) for n in dist_names)
         self.n_corner = int(self.cmask.sum()) * 2
         self.n_blur = int(self.bmask.sum())
+        # Without blur widths (a geometric fit) the residual vector has no blur rows at all.
+        self.blur_rows_kept = self.n_blur > 0
         nc = self.cmask.numel() * 2
-        self.corner_rows = torch.zeros(nc + self.bmask.numel(), dtype=torch.bool)
+        nb = self.bmask.numel() if self.blur_rows_kept else 0
+        self.corner_rows = torch.zeros(nc + nb, dtype=torch.bool)
         self.corner_rows[:nc] = self.cmask[..., None].expand(-1, -1, 2).reshape(-1)
         self.blur_rows = torch.zeros_like(self.corner_rows)
-        self.blur_rows[nc:] = self.bmask.reshape(-1)
+        self.blur_rows[nc:] = self.bmask.reshape(-1) if nb else False
         V, N = self.cmask.shape
         self.blocks = [Block(n, tuple(shape), per_view=n in self.POSE) for n, shape in zip(self.names, self.shapes)]
-        # rows of view v: its 2N corner entries and its N blur entries
-        self.view_rows = torch.cat([2 * N * torch.arange(V)[:, None] + torch.arange(2 * N)[None],
-                                    2 * V * N + N * torch.arange(V)[:, None] + torch.arange(N)[None]], 1)
+        # rows of view v: its 2N corner entries (and its N blur entries)
+        self.view_rows = 2 * N * torch.arange(V)[:, None] + torch.arange(2 * N)[None]
+        if nb:
+            self.view_rows = torch.cat([self.view_rows, 2 * V * N + N * torch.arange(V)[:, None]
+                                        + torch.arange(N)[None]], 1)
 
     def x0(self) -> dict:
         params = dict(self.camera.named_parameters())
@@ -234,11 +238,14 @@ class _Problem:
 
     def _flat(self, uv: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         rc = torch.where(self.cmask[..., None], uv - self.corners, torch.zeros_like(uv)).reshape(-1)
+        if not self.blur_rows_kept:
+            return rc
         rb = torch.where(self.bmask, b - self.blur, torch.zeros_like(b)).reshape(-1)
         return torch.cat([rc, rb])
 
     def raw(self, x: dict, held: dict | None = None) -> torch.Tensor:
-        """Model − observation, flat: corners (V·N·2, pixels) then blur (V·N, pixels); 0 where unobserved."""
+        """Model − observation, flat: corners (V·N·2, pixels) then blur (V·N, pixels, if kept); 0 where
+        unobserved."""
         self._load(x, held)
         with torch.no_grad():
             uv, b = self.work(self.points, with_blur=self.n_blur > 0, with_distortion=self.with_distortion)
@@ -257,6 +264,8 @@ class _Problem:
                                         names=names)
         j = torch.cat([jac[n] for n in names], -1)                          # (V, N, 3, P)
         jc = torch.where(self.cmask[..., None, None], j[..., :2, :], 0.0).reshape(-1, j.shape[-1])
+        if not self.blur_rows_kept:
+            return jc, self._flat(uv, b)
         jb = torch.where(self.bmask[..., None], j[..., 2, :], 0.0).reshape(-1, j.shape[-1])
         return torch.cat([jc, jb]), self._flat(uv, b)
 
@@ -273,6 +282,7 @@ class _Problem:
         return evaluate
 
     def scale(self, sigma_c: float, sigma_b: float) -> torch.Tensor:
+        """(M,) 1/σ of each residual row."""
         nc = self.cmask.numel() * 2
         s = torch.full((self.corner_rows.numel(),), 1.0 / sigma_c, dtype=torch.float64)
         s[nc:] = 1.0 / sigma_b

@@ -4,11 +4,22 @@
 PY := .venv/bin/python
 OUT ?= out
 
+# Mitsuba's fast CPU variant (llvm_ad_rgb: Embree hits behind the renderer's default `intersector="auto"`) needs
+# libLLVM >= 16; Debian 12 ships 14 and 15 by default and 19 as libllvm19. As root with apt-get it is installed;
+# otherwise one line says what to install and what is lost without it.
+LLVM_PROBE := from renderer.mitsuba.export import jit_variant_runs as r; raise SystemExit(not r('llvm_ad_rgb'))
+LLVM_LINE := renderer: Mitsuba's llvm variant does not run here (it needs libLLVM >= 16, e.g. apt-get install libllvm19): renders use the pure-torch tracer, about 2-3x slower; everything else works
+
 .venv/.installed: pyproject.toml
 	python3 -m venv .venv
 	.venv/bin/pip install -q --upgrade pip
 	.venv/bin/pip install -q torch==2.13.0
 	.venv/bin/pip install -q -e '.[test]'
+	@$(PY) -c "$(LLVM_PROBE)" || ! [ "$$(id -u)" = 0 ] || ! command -v apt-get >/dev/null || { \
+	  echo "installing Debian's libllvm19 for Mitsuba's llvm variant"; \
+	  apt-get install -y -q libllvm19 >/dev/null 2>&1 || { apt-get update -q >/dev/null 2>&1 && \
+	  apt-get install -y -q libllvm19 >/dev/null 2>&1; } || true; }
+	@$(PY) -c "$(LLVM_PROBE)" || echo "$(LLVM_LINE)"
 	touch $@
 
 install: .venv/.installed
@@ -20,8 +31,6 @@ test: .venv/.installed
 	$(PY) -m pytest -n 2 --durations=15 tests
 
 bench: .venv/.installed
-	# Mitsuba's CPU (LLVM) backend needs a newer libLLVM than Debian 12's default; it finds libllvm19 itself.
-	-command -v apt-get >/dev/null && apt-get install -y -q libllvm19 >/dev/null
 	.venv/bin/pip install -q -e '.[bench]'
 	$(PY) benchmarks/run_all.py
 

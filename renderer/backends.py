@@ -6,7 +6,7 @@ import sys
 import numpy as np
 import torch
 
-from .cli import UsageError
+from .errors import UsageError
 from .render import RenderResult
 
 

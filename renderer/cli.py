@@ -24,17 +24,13 @@ import textwrap
 import time
 import warnings
 
-from .io import ImageIOError, atomic_output, linear_to_srgb, write_image
-from .params import SceneError
+from .errors import ImageIOError, SceneError, UsageError  # UsageError: importable from here as before
+from .io import atomic_output, linear_to_srgb, write_image
 from .validation import read_json
 
 SCENES_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "scenes")
 GALLERY_MANIFEST = os.path.join(SCENES_DIR, "gallery.json")
 EXIT_USAGE = 2
-
-
-class UsageError(Exception):
-    """A bad command-line value that argparse cannot check by itself (one-line message)."""
 
 
 def _positive_int(text: str) -> int:

@@ -20,6 +20,7 @@ import math
 
 import torch
 
+from .rays import component_rows
 from .scene import Scene, TraceOptions
 
 
@@ -38,11 +39,6 @@ def applies(scene: Scene, options: TraceOptions, table) -> bool:
     if any(light.type not in ("point", "ambient") for light in scene.lights):
         return False
     return not bool(((table.reflect > 0) | (table.transmit > 0) | (table.specular > 0)).any())
-
-
-def _rows(x: torch.Tensor) -> torch.Tensor:
-    """(N, 3) -> (3, N) contiguous rows (free where x is already a transposed view of such rows)."""
-    return x.T if x.T.is_contiguous() else torch.stack(x.unbind(-1))
 
 
 # Local outward normals of the box faces 0..5 (−x, +x, −y, +y, −z, +z), as (3, 6) columns.
@@ -106,25 +102,16 @@ def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return (a[0] * b[0]).addcmul_(a[1], b[1]).addcmul_(a[2], b[2])
 
 
-_TABLES: dict = {}  # (id(scene), device, dtype) -> (scene, its geometry stamp, NormalTables); the scene kept so its
-# id stays unique, the stamp (`Scene.geometry`, new after `Scene.refresh` saw a shape move) so a move rebuilds them
-
-
 def _tables(scene: Scene, table, like: torch.Tensor) -> NormalTables:
-    key = (id(scene), like.device, like.dtype)
-    cached = _TABLES.get(key)
-    if cached is None or cached[0] is not scene or cached[1] is not scene.geometry:
-        if len(_TABLES) > 16:
-            _TABLES.clear()
-        _TABLES[key] = cached = (scene, scene.geometry, NormalTables(scene, table, like))
-    return cached[2]
+    """The scene's `NormalTables` on like's device and in its dtype (`Scene.derived`: rebuilt after a move)."""
+    return scene.derived(("direct.normals", like.device, like.dtype), lambda: NormalTables(scene, table, like))
 
 
 def trace_direct(scene: Scene, o: torch.Tensor, d: torch.Tensor, first_hit_objects, table,
                  options: TraceOptions):
     """Radiance (N, 3) and found (N,) for rays o, d (N, 3), as `integrator.trace` returns them (the radiance
     as a transposed view of (3, N) rows)."""
-    o_s, d_s = _rows(o), _rows(d)
+    o_s, d_s = component_rows(o), component_rows(d)
     hit = scene.intersect_rows(o_s, d_s, first_hit_objects, options=options)
     lit = shade_hits(scene, table, _tables(scene, table, o_s), o_s, d_s, hit.t, hit.object_id, hit.aux)
     leaving, vis = None, []
@@ -156,22 +143,21 @@ def shade_hits(scene: Scene, table, tables: NormalTables, o_s, d_s, t, obj, aux)
     normal = tables.normals(scene, p, aux, safe_obj, found)
     # Albedo and kd: one gather each by slot = object + 1 from tables whose slot 0 (a miss) is zero, so misses
     # get no light and end up exactly 0 (the background is added in `add_light`). The colour table is extended
-    # by the two colours of each checker texture: a checker's hits index its colours instead of their object's.
+    # by the palette of each texture that has one (a checker's two colours) on a shape with `uv_rows`: its hits
+    # index its palette instead of their object's colour.
     slot = obj + 1
     colors = [torch.zeros(3, 1, dtype=dtype, device=device), table.color.T]
     albedo_index = slot
     others = []
     for k in tables.textured:
         shape, texture = scene.objects[k].shape, table.textures[k]
-        if checker_rows(shape, texture):
-            # Rows all through: the checker of `CheckerTexture.evaluate` on every ray, kept where it hit k.
+        if texture.palette is not None and hasattr(shape, "uv_rows"):
+            # Rows all through: the texture's palette index on every ray, kept where it hit k.
             uv = shape.uv_rows(p, aux)
-            cell = torch.floor(uv[0] / texture.size) + torch.floor(uv[1] / texture.size)
-            half = cell * 0.5  # odd cells: half an integer (exact: |cell| < 2^24)
             first = sum(c.shape[1] for c in colors)
-            colors.append(torch.tensor(texture.colors, dtype=dtype, device=device).T)
-            # Hits on k (slot k + 1) move to slot first + odd: integer arithmetic, no select.
-            albedo_index = albedo_index + (obj == k) * torch.add(half != half.floor(), first - (k + 1))
+            colors.append(torch.tensor(texture.palette, dtype=dtype, device=device).T)
+            # Hits on k (slot k + 1) move to slot first + index: integer arithmetic, no select.
+            albedo_index = albedo_index + (obj == k) * (texture.palette_index(uv[0], uv[1]) + (first - (k + 1)))
         else:
             others.append(k)
     albedo = NormalTables._gather(torch.cat(colors, 1).unbind(0), albedo_index)  # (3, N)
@@ -218,7 +204,3 @@ def add_light(scene: Scene, lit, vis: list[torch.Tensor]) -> torch.Tensor:
         radiance = radiance + background * ~found
     return radiance
 
-
-def checker_rows(shape, texture) -> bool:
-    """Whether `shade_hits` computes this texture on (3, N) rows (a checker on a shape with `uv_rows`)."""
-    return hasattr(shape, "uv_rows") and type(texture).__name__ == "CheckerTexture"

@@ -14,10 +14,10 @@ a render compiles each stage for at most a few sizes (`torch.compile(dynamic=Fal
 
 Applies (`applies`) where `renderer.direct` would (direct light only: Lambert, point and ambient lights),
 with the thin-lens camera with plain-number parameters and no distortion, no layers, every shape a sphere,
-box, rectangle or plane traced by Embree, textures only checkers on rectangles, CPU float32. Same formulas
-as `renderer.direct.shade_hits` / `add_light` and `ThinLensCamera._rays_in_place`; images agree with the
-eager path to float rounding (Inductor may contract or reorder float operations), and a ray grazing an
-edge may then change its hit (tests/renderer/test_fused.py).
+box, rectangle or plane traced by Embree, textures only ones with a palette (checkers) on rectangles, CPU
+float32. Same formulas as `renderer.direct.shade_hits` / `add_light` and `ThinLensCamera._rays_in_place`;
+images agree with the eager path to float rounding (Inductor may contract or reorder float operations), and
+a ray grazing an edge may then change its hit (tests/renderer/test_fused.py).
 """
 from __future__ import annotations
 
@@ -31,9 +31,8 @@ from .scene import Scene, TraceOptions
 
 _KINDS = {"sphere", "box", "rectangle", "plane"}
 # Rays a batch by default: with the stages fused, per-call costs (Python, torch.compile's guards, Dr.Jit) are a
-# larger share, so larger batches pay: on the issue-11 speed scene, one process, 2^19 took 0.85-0.88x the time
-# of 2^17 (2^16 1.07-1.09x, 2^18 0.95-1.02x; benchmarks/results/fused_embree.md). 2^20 was 0.93x of 2^19 but
-# leaves two workers only two jobs each on that scene (`render.MAX_JOB_RAYS`).
+# larger share, so larger batches pay; 2^20 was faster still but leaves two workers only two jobs each on the
+# speed scene (`render.MAX_JOB_RAYS`; docs/speed.md, "Defaults and where they come from").
 CHUNK_RAYS = 1 << 19
 
 
@@ -54,7 +53,7 @@ def applies(scene: Scene, options: TraceOptions, device, dtype) -> bool:
     table = scene.materials(torch.zeros(0, dtype=dtype, device=device))
     if not direct_applies(scene, TraceOptions(), table):
         return False
-    return all(scene.objects[k].shape.type_name == "rectangle" and type(tex).__name__ == "CheckerTexture"
+    return all(scene.objects[k].shape.type_name == "rectangle" and tex.palette is not None
                for k, tex in table.textures.items())
 
 
@@ -70,14 +69,15 @@ class _Tables:
         self.faces, self.center, self.inv_r = nt.faces, nt.center, nt.inv_r
         f32 = dict(dtype=torch.float32)
         colors = [torch.zeros(3, 1, **f32), table.color.T.to(**f32)]
-        self.checkers = []  # (object, first colour slot, size, origin (3 floats), rows of local_from_world, half)
+        # (object, texture, first palette slot, origin (3 floats), rows of local_from_world, half) per textured
+        # rectangle
+        self.textured = []
         for k in sorted(table.textures):
             shape, tex = scene.objects[k].shape, table.textures[k]
             first = sum(c.shape[1] for c in colors)
-            colors.append(torch.tensor(tex.colors, **f32).T)
+            colors.append(torch.tensor(tex.palette, **f32).T)
             R = shape.local_from_world.tolist() if not shape.axis_aligned else None
-            self.checkers.append((k, first, float(tex.size), [float(v) for v in shape.origin],
-                                  R, [float(v) for v in shape.half]))
+            self.textured.append((k, tex, first, [float(v) for v in shape.origin], R, [float(v) for v in shape.half]))
         self.colors = torch.cat(colors, 1).contiguous().unbind(0)
         self.kd = torch.cat([torch.zeros(1, **f32), table.diffuse.to(**f32)])
         self.eps = float(scene.ray_epsilon)
@@ -123,15 +123,13 @@ def _shade(o, d, t, obj, aux, faces, center, inv_r, colors, kd, tb: _Tables):
     n = [faces[i][face] + (p[i] - center[i][safe]) * inv_r[safe] for i in range(3)]
     slot = obj + 1
     index = slot
-    for k, first, size, origin, R, half in tb.checkers:
+    for k, tex, first, origin, R, half in tb.textured:  # the rectangle's `uv_rows`, then the texture's index
         q = [p[i] - origin[i] for i in range(3)]
         if R is None:
             u, v = q[0], q[1]
         else:
             u, v = (R[j][0] * q[0] + R[j][1] * q[1] + R[j][2] * q[2] for j in range(2))
-        cell = torch.floor((u + half[0]) / size) + torch.floor((v + half[1]) / size)
-        h = cell * 0.5
-        index = index + (obj == k) * ((h != h.floor()).long() + (first - (k + 1)))
+        index = index + (obj == k) * (tex.palette_index(u + half[0], v + half[1]) + (first - (k + 1)))
     albedo = [colors[i][index] for i in range(3)]
     entering = n[0] * d[0] + n[1] * d[1] + n[2] * d[2] < 0
     sign = entering.to(t.dtype) * 2 - 1
@@ -185,10 +183,6 @@ def _compiled(fn):
     return _COMPILED[fn]
 
 
-_STATE: dict = {}  # id(scene) -> (scene, geometry stamp, lights and background, _Tables); the scene kept so
-# its id stays unique
-
-
 def _camera_constants(cam) -> tuple:
     """The thin lens's numbers as `_camera_rays` takes them (read on every batch: a camera changed between
     renders is seen; torch.compile then recompiles for its new constants). Trigonometry in float32 as the
@@ -203,17 +197,13 @@ def _camera_constants(cam) -> tuple:
 
 
 def _state(scene: Scene):
-    """The scene's `_Tables` (rebuilt when `Scene.refresh` saw a shape move, or a light or the background
-    changed) and camera constants."""
+    """The scene's `_Tables` (`Scene.derived`: rebuilt after a move, and for other lights or background) and
+    camera constants."""
     key = (tuple(scene.image.background),
            tuple((l.type, tuple(l.intensity), tuple(getattr(l, "position", None) or ())) for l in scene.lights))
-    cached = _STATE.get(id(scene))
-    if cached is None or cached[0] is not scene or cached[1] is not scene.geometry or cached[2] != key:
-        if len(_STATE) > 8:
-            _STATE.clear()
-        table = scene.materials(torch.zeros(0, dtype=torch.float32))
-        _STATE[id(scene)] = cached = (scene, scene.geometry, key, _Tables(scene, table))
-    return cached[3], _camera_constants(scene.camera)
+    tables = scene.derived(("fused.tables", key),
+                           lambda: _Tables(scene, scene.materials(torch.zeros(0, dtype=torch.float32))))
+    return tables, _camera_constants(scene.camera)
 
 
 def _padded(pixel: torch.Tensor) -> torch.Tensor:

@@ -27,6 +27,19 @@ class CheckerTexture:
         cols = torch.tensor(self.colors, dtype=uv.dtype, device=uv.device)
         return cols[cell]
 
+    @property
+    def palette(self) -> tuple[tuple[float, float, float], ...]:
+        """The colours `palette_index` picks from: the two of the checker."""
+        return self.colors
+
+    def palette_index(self, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        """`evaluate` on component rows: (N,) long index into `palette` of the points with texture coordinates
+        u, v ((N,) each). Float arithmetic only, no integer casts (one fused loop under torch.compile); the
+        same cells as `evaluate` while |cell| < 2^24."""
+        cell = torch.floor(u / self.size) + torch.floor(v / self.size)
+        half = cell * 0.5  # odd cells: half an integer (exact)
+        return (half != half.floor()).long()
+
 
 @dataclass(frozen=True)
 class ImageTexture:
@@ -38,6 +51,8 @@ class ImageTexture:
     file: str
     size: tuple[float, float]
     pixels: np.ndarray = field(repr=False, compare=False, default=None)  # (H, W, 3) linear float32
+    # No few colours to index (`CheckerTexture.palette`): the fast paths shade its hits with `evaluate`.
+    palette = None
 
     def evaluate(self, uv: torch.Tensor) -> torch.Tensor:
         """(N, 2) uv -> (N, 3) linear RGB, bilinear between texel centres and wrapping at the tile edges.

@@ -9,13 +9,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from .errors import SceneError  # noqa: F401 - raised here, and importable from here as before
 from .validation import describe, is_finite_number, is_number
 
 REQUIRED = object()
-
-
-class SceneError(ValueError):
-    """A bad scene description; the message is one line naming the field."""
 
 
 @dataclass(frozen=True)

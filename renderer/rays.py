@@ -6,9 +6,6 @@ from dataclasses import dataclass
 import torch
 
 
-_EYE = torch.eye(3)
-
-
 @dataclass
 class Rays:
     """A batch of rays in the world frame.
@@ -38,12 +35,8 @@ class Rays:
         )
 
     def transformed(self, world_from_local: torch.Tensor, local_origin_in_world: torch.Tensor) -> "Rays":
-        """Rays given in a local frame moved to the world: x_world = R x_local + t."""
-        if (not torch.compiler.is_compiling() and world_from_local.shape == (3, 3)
-                and bool((world_from_local == _EYE.to(world_from_local)).all())):
-            # The identity rotation (a camera looking along +z): skip two (N, 3) x (3, 3) products (eager
-            # only: the check is data-dependent, a graph break for torch.compile).
-            return Rays(self.origin + local_origin_in_world, self.direction, self.valid, self.weight)
+        """Rays given in a local frame moved to the world: x_world = R x_local + t. No test of R's values per
+        batch: for the identity the products give x + t exactly (finite rays)."""
         o, d = self.origin, self.direction
         o_rows, d_rows = o.movedim(-1, 0), d.movedim(-1, 0)
         if world_from_local.shape == (3, 3) and o_rows.is_contiguous() and d_rows.is_contiguous():
@@ -78,6 +71,15 @@ class Hit:
     @property
     def found(self) -> torch.Tensor:
         return self.object_id >= 0
+
+
+def component_rows(x: torch.Tensor) -> torch.Tensor:
+    """(N, 3) vectors -> (3, N) contiguous component rows, the layout of the tracer's row code
+    (`Shape.intersect_soa`, `Scene.intersect_rows`, `renderer.direct`): the transposed view where x already is
+    a view of such rows (free; `vectors_from_rows` makes them), else a stack of its three columns (several
+    times faster than `x.T.contiguous()` in eager torch)."""
+    rows = x.T
+    return rows if rows.is_contiguous() else torch.stack(x.unbind(-1))
 
 
 def vectors_from_rows(x, y, z) -> torch.Tensor:

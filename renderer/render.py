@@ -116,8 +116,7 @@ def _render_pixels(scene: Scene, pixel: torch.Tensor, sampler: Sampler, options:
             return fused.render_pixels(scene, pixel, sampler, options)
     background = torch.tensor(scene.image.background, dtype=dtype, device=device)
     # Samples are made where they are traced: integer hashing and exact float steps give the same values on
-    # every device, and on a GPU this saves the host-side sampling and its copy (0.058 -> 0.044 s a warm
-    # render on an H100: benchmarks/results/profile_gpu_h100_samples_on_host.md, profile_gpu_h100.md).
+    # every device, and on a GPU this saves the host-side sampling and its copy (docs/speed.md).
     uv_px, lens_uv = _camera_samples(sampler, pixel.to(device), W, dtype)
     color = weight = valid = None
     all_valid = False
@@ -167,13 +166,10 @@ def _pixels_per_chunk(options: TraceOptions, spp: int, chunk_rays: int) -> int:
 _POOL: dict = {}  # number of workers -> ProcessPoolExecutor, kept for later renders
 # Jobs per worker process in a render: each job ships the pickled scene and returns its pixels, so jobs are
 # few and large (a worker traces its job in chunk_rays batches); several per worker keep the cores busy to the
-# end. On the issue-11 speed scene two workers took 0.51 s against 0.89 s in one process with these jobs
-# (benchmarks/results/speed_thin_lens.md before issue 11's defaults); with 2^15-ray jobs they had taken 0.78 s (10.4x Mitsuba there:
-# that file as committed in 079e97e).
+# end (docs/speed.md, "Defaults and where they come from").
 JOBS_PER_WORKER = 4
 # ... and at most this many rays a job (8 batches of 2^17), so that big renders show progress and stop on an
-# interrupt within about a second a job (a 1024×1024, 64-spp render in 8 jobs took 10.7 s to its first
-# progress line and interrupt in tests/renderer/test_fuzz.py, against 3.7 s in one process).
+# interrupt within about a second a job.
 MAX_JOB_RAYS = 1 << 20
 
 
@@ -318,15 +314,12 @@ def _pool(workers: int):
     return _POOL[workers]
 
 
-# CPU: 2^17 rays a batch. Since the tracer works on (3, N) rows throughout, larger batches pay Python's per-
-# operation cost less often: on the issue-11 speed scene 2^17 took 0.74x the CPU time of 2^15 (2^16 0.80x,
-# 2^18 0.76x; benchmarks/results/batch_io.md), and 0.75x in both same-run speed benchmarks
-# (speed_thin_lens_embree.md, "ours chunk 2^17"); 2^15 had been 10 % faster before the row code.
+# Rays a batch: on the CPU, larger batches pay Python's per-operation cost less often; on a GPU, kernel
+# launches are paid per batch; with Embree (`intersector="mitsuba"`), Dr.Jit's per-call costs (tracing its IR,
+# handing arrays over). Each the fastest measured on the speed scene (docs/speed.md, "Defaults and where they
+# come from").
 CPU_CHUNK_RAYS, GPU_CHUNK_RAYS = 1 << 17, 1 << 22
 MIN_GPU_CHUNK_RAYS = 1 << 15
-# With `intersector="mitsuba"` (CPU only): larger batches pay Dr.Jit's per-call costs (tracing its IR, handing
-# arrays over) less often; 2^17 took 0.51-0.56x our default's time against 0.65-0.71x at 2^15 on the issue-11
-# speed scene (benchmarks/results/speed_thin_lens_embree.md).
 EMBREE_CHUNK_RAYS = 1 << 17
 BYTES_PER_RAY = 2048  # twice the measured ~1 KB a ray (float32, depth 5); the batch takes at most half the
                      # free memory: room for float64 and for torch's cached blocks
@@ -352,37 +345,34 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
 
     Args:
         spp: samples per pixel [scene.image.spp]; sampler: `independent`, `stratified`, `sobol` or
-            `center` [scene.image.sampler].
+            `center` [scene.image.sampler]; seed: of the samples (the same seed, the same image) [0].
         device, dtype: where and in what precision to trace (float32 for speed, float64 for checks).
         chunk_rays: camera samples traced at once (rounded to whole pixels); bounds memory (about 1 KB per
-            ray at depth 5). The image does not depend on it. Default on the CPU 2^17: 0.75x the time of 2^15
-            on the issue-11 speed scene (fewer Python calls per ray; see CPU_CHUNK_RAYS). Default on a GPU
-            2^22, fewer if its free memory is short: with 2^15 an H100 waited on kernel launches (1.6 s, no
-            faster than one CPU thread), with 2^22 it took 0.032 s (benchmarks/results/speed_gpu_h100.md,
-            profile_gpu_h100.md). With `intersector="mitsuba"` 2^17 (`EMBREE_CHUNK_RAYS`).
-        culling, compile, intersector: override scene.options (see `renderer.scene.TraceOptions`); speed only
-            (`intersector="mitsuba"`: hits and shadow rays by Embree through Mitsuba 3, `renderer.mitsuba.intersect`;
-            the default `auto` takes it for float32 CPU renders where Mitsuba's llvm variant loads and every
-            shape is one it has, ours otherwise; `torch`: always ours). Float32 images of the two agree to
-            about 1e-7 (a few pixels in 10^5 by more than 1e-3; benchmarks/results/speed_thin_lens_embree.md).
+            ray at depth 5). The image does not depend on it. [`default_chunk_rays`: `CPU_CHUNK_RAYS` on the
+            CPU, `GPU_CHUNK_RAYS` on a GPU or fewer where its free memory is short; `EMBREE_CHUNK_RAYS` with
+            `intersector="mitsuba"`, `fused.CHUNK_RAYS` on the fused path]
+        progress: print the progress on stderr [False]; max_depth: bounces [scene.image.max_depth].
+        culling, compile, intersector: override scene.options (see `renderer.scene.TraceOptions`); speed only.
+            `intersector="mitsuba"`: hits and shadow rays by Embree through Mitsuba 3
+            (`renderer.mitsuba.intersect`), float32 images the same as ours to float rounding (a ray grazing
+            an edge may change its hit); the default `auto` takes it for float32 CPU renders where Mitsuba's
+            llvm variant loads and every shape is one it has, ours otherwise; `torch`: always ours.
             `compile=True` with `intersector="mitsuba"`: where `renderer.fused.applies` (direct light, thin
-            lens, CPU float32), the work between the Embree calls runs as three compiled stages in 2^19-ray
-            batches (the fastest setting measured; a few seconds of compilation per process and batch size).
+            lens, CPU float32), the work between the Embree calls runs as three compiled stages (seconds of
+            compilation per process and batch size).
         workers: CPU only: trace chunks in this many worker processes with one torch thread each (they
             are started on first use and kept for later calls; each unpickles the scene once per render).
             The image does not depend on it. None (the default): `auto_workers`, i.e. the available cores
-            for float32 CPU renders of at least 2^20 camera rays without gradients, else 1. Processes are
-            started with `spawn`, which runs the main script again in each worker, so a script's renders
-            get workers only from inside `if __name__ == "__main__":` (a render at a script's unguarded
-            top level traces in its own process); where workers still fail to start, `render` warns once
-            and traces in this process from then on.
+            for float32 CPU renders of at least `AUTO_WORKERS_MIN_RAYS` camera rays without gradients, else
+            1. Processes are started with `spawn`, which runs the main script again in each worker, so a
+            script's renders get workers only from inside `if __name__ == "__main__":` (a render at a
+            script's unguarded top level traces in its own process); where workers still fail to start,
+            `render` warns once and traces in this process from then on.
         threads: torch threads while tracing on the CPU in this process, restored afterwards [1; None:
-            torch's own setting]. Eager tracing is a chain of small memory-bound operations: a second
-            thread gained little on these 2 cores, and torch's OpenMP barriers made 2 threads up to 15x
-            slower while other programs shared the cores (benchmarks/results/speed_thin_lens.md); use
-            `workers` for the other cores. With `intersector="mitsuba"` Dr.Jit's thread pool gets the same
-            number of threads while tracing (its default, all cores, was up to 3x slower under load:
-            benchmarks/results/speed_thin_lens_embree.md).
+            torch's own setting]; with `intersector="mitsuba"` Dr.Jit's thread pool gets the same number
+            while tracing. Eager tracing is a chain of small memory-bound operations, and threads of one
+            process wait on each other where other programs share the cores: use `workers` for more cores
+            (measurements in docs/speed.md).
     Returns:
         RenderResult with the (H, W, 3) image and the (H, W) coverage; pixels without any valid ray keep
         the background colour.

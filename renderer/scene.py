@@ -22,7 +22,7 @@ import torch
 
 from .cameras.base import Camera
 from .materials import Material, MaterialTable
-from .rays import Hit
+from .rays import Hit, component_rows
 from .shapes.base import Shape, geometry_key
 
 # Above this fraction of candidate packets, testing every ray in place is cheaper than gathering.
@@ -246,20 +246,16 @@ class Scene:
         self.refresh()
 
     def refresh(self) -> None:
-        """Recompute what the scene derives from its objects (culling spheres, extent, material tables) if an
-        object, shape or material was replaced or a shape's tensor edited in place since it was last computed
-        (`renderer.shapes.base.geometry_key`). `render` calls it once per render; a caller tracing rays
-        through `intersect`/`shadow` itself after moving a shape calls it first.
-
-        `geometry` is then a new object (the key): caches built elsewhere from the scene's shapes (the Embree
-        scene, `renderer.direct`'s normal tables, `renderer.fused`'s tables) keep the one they were built
-        for and rebuild when it is no longer `geometry`, without computing the key again per batch."""
+        """Recompute what the scene derives from its objects (culling spheres, extent, and everything kept by
+        `derived`) if an object, shape or material was replaced or a shape's tensor edited in place since it
+        was last computed (`renderer.shapes.base.geometry_key`, kept as `geometry`). `render` calls it once
+        per render; a caller tracing rays through `intersect`/`shadow` itself after moving a shape calls it
+        first."""
         key = geometry_key(self)
         if key == self.geometry:
             return
         self.geometry = key
-        self._tables: dict = {}
-        self._warm: set = set()
+        self._derived: dict = {}
         names = [o.name for o in self.objects]
         self.index_of = {n: i for i, n in enumerate(names)}
         bounded = [o.shape.bounding_sphere() for o in self.objects]
@@ -283,24 +279,39 @@ class Scene:
         """Offset for secondary-ray origins and the minimum hit distance, relative to the scene size."""
         return 1e-5 * self.extent
 
+    def derived(self, key, build):
+        """What `build()` makes from the scene's objects (a material table, the Embree scene, normal tables),
+        made on first use and kept under `key` (hashable; name the owner, e.g. ("direct.normals", device,
+        dtype)) until `refresh` sees an object, shape or material change. Not pickled: a scene sent to a
+        worker process builds its own."""
+        if key not in self._derived:
+            self._derived[key] = build()
+        return self._derived[key]
+
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state["_derived"] = {}  # Dr.Jit scenes do not pickle, and a worker builds what it needs
+        return state
+
+    def __copy__(self):
+        """A shallow copy shares the objects, so it shares what is derived from them too (until one of the two
+        sees a change in `refresh`, which gives that one a new cache)."""
+        copy = object.__new__(type(self))
+        copy.__dict__.update(self.__dict__)
+        return copy
+
     def materials(self, like: torch.Tensor) -> MaterialTable:
-        key = (like.device, like.dtype)
-        if key not in self._tables:
-            self._tables[key] = MaterialTable([o.material for o in self.objects], like.device, like.dtype)
-        return self._tables[key]
+        """The objects' materials stacked as tensors on `like`'s device and in its dtype."""
+        return self.derived(("materials", like.device, like.dtype),
+                            lambda: MaterialTable([o.material for o in self.objects], like.device, like.dtype))
 
     def _compiled(self, k: int, fn, options: TraceOptions, args):
         """fn(shape_k, *args), compiled per shape class when options.compile is set (see `compiled_call`)."""
         shape = self.objects[k].shape
         if not options.compile or shape.type_name in _EAGER_ONLY:
             return fn(shape, *args)
-        key = (k, args[0].device, args[0].dtype)
-        if key not in self._warm:
-            # Fill the shape's parameter cache eagerly first, so that compiled graphs see it filled.
-            p = torch.zeros(2, 3, dtype=args[0].dtype, device=args[0].device)
-            shape.intersect(p, p, 0.0)
-            shape.surface(p, torch.zeros(2, dtype=torch.long, device=p.device))
-            self._warm.add(key)
+        # Fill the shape's parameter cache eagerly first, so that compiled graphs see it filled.
+        self.derived(("compile.warm", k, args[0].device, args[0].dtype), lambda: _warm_up(shape, args[0]))
         return compiled_call(True, per_class(fn, type(shape)), shape, *args)
 
     def _external(self, options: TraceOptions, object_mask, *rays: torch.Tensor):
@@ -340,6 +351,8 @@ class Scene:
             and plan = [(k, sel)] for every object k to test, sel the (m,) packet indices or None for all
             packets.
         """
+        if not options.compile and not rows:  # eager tracing works on (3, N) rows: see `Shape.intersect_soa`
+            o, d, rows = component_rows(o), component_rows(d), True
         n = o.shape[1] if rows else o.shape[0]
         P = max(1, int(options.packet_size)) if options.culling else 1
         pad = (-n) % P
@@ -357,10 +370,8 @@ class Scene:
         t_p = None if t_max is None else t_max.view(-1, P)
         if options.compile:
             o_p, d_p = o.reshape(-1, P, 3), d.reshape(-1, P, 3)
-        elif rows:
+        else:
             o_p, d_p = o.view(3, -1, P), d.view(3, -1, P)
-        else:  # (3, B, P) component rows: see `Shape.intersect_soa`
-            o_p, d_p = _components(o).view(3, -1, P), _components(d).view(3, -1, P)
         n_packets = o_p.shape[0 if options.compile else 1]
         wanted = [k for k in range(len(self.objects)) if object_mask is None or object_mask[k]]
         if P == 1:
@@ -409,23 +420,21 @@ class Scene:
             options: how to trace [self.options]; the result does not depend on it beyond float rounding.
         """
         options = self.options if options is None else options
+        if not options.compile:  # eager tracing: one path, on (3, N) rows
+            return self.intersect_rows(component_rows(o), component_rows(d), object_mask, options=options)
         external = self._external(options, object_mask, o, d)
         if external is not None:
-            return Hit(*external.nearest(_components(o), _components(d), self.ray_epsilon))
+            return Hit(*external.nearest(component_rows(o), component_rows(d), self.ray_epsilon))
         n = o.shape[0]
         o_p, d_p, _, plan = self._packets(o, d, None, options, object_mask)
-        rows_shape = o_p.shape[:2] if options.compile else o_p.shape[1:]
-        t_best = torch.full(rows_shape, float("inf"), dtype=o.dtype, device=o.device)
-        obj = torch.full(rows_shape, -1, dtype=torch.long, device=o.device)
-        aux = torch.zeros(rows_shape, dtype=torch.long, device=o.device)
-        if options.compile:  # one graph per shape class: gather every packet rather than none
-            plan = [(k, self._all_packets(o_p) if sel is None else sel) for k, sel in plan]
+        t_best = torch.full(o_p.shape[:2], float("inf"), dtype=o.dtype, device=o.device)
+        obj = torch.full(o_p.shape[:2], -1, dtype=torch.long, device=o.device)
+        aux = torch.zeros(o_p.shape[:2], dtype=torch.long, device=o.device)
+        # One graph per shape class: gather every packet rather than none.
+        plan = [(k, self._all_packets(o_p) if sel is None else sel) for k, sel in plan]
         for k, sel in plan:
-            if not options.compile:
-                rows = _nearest_eager(self.objects[k].shape, o_p, d_p, sel, self.ray_epsilon, t_best, obj, aux, k)
-            else:
-                rows = self._compiled(k, _nearest, options, (o_p, d_p, sel, self.ray_epsilon, t_best, obj, aux,
-                                                             torch.tensor(k, device=o.device)))
+            rows = self._compiled(k, _nearest, options, (o_p, d_p, sel, self.ray_epsilon, t_best, obj, aux,
+                                                         torch.tensor(k, device=o.device)))
             t_best, obj, aux = _merged((t_best, obj, aux), rows, sel)
         return Hit(t_best.view(-1)[:n], obj.view(-1)[:n], aux.view(-1)[:n])
 
@@ -486,7 +495,7 @@ class Scene:
         opaque = not bool(table.shadow_transmittance.any())
         external = self._external(options, None, o, d, t_max) if opaque else None
         if external is not None:
-            return external.visible(_components(o), _components(d), t_max, self.ray_epsilon)[:, None]
+            return external.visible(component_rows(o), component_rows(d), t_max, self.ray_epsilon)[:, None]
         n = o.shape[0]
         o_p, d_p, t_p, plan = self._packets(o, d, t_max, options, None, leaving)
         rows_shape = o_p.shape[:2] if options.compile else o_p.shape[1:]
@@ -510,12 +519,6 @@ class Scene:
         return trans.reshape(-1, 1)[:n] if opaque else trans.reshape(-1, 3)[:n]
 
 
-def _components(x: torch.Tensor) -> torch.Tensor:
-    """(N, 3) -> (3, N) contiguous component rows (the layout of `Shape.intersect_soa`); stacking the three
-    strided columns is several times faster than `x.T.contiguous()` in eager torch."""
-    return torch.stack(x.unbind(-1))
-
-
 def _merged(state: tuple, rows: tuple, sel):
     """A shape's per-packet results written into the running state: all packets (sel None) replace it,
     selected packets are copied into their rows."""
@@ -524,6 +527,15 @@ def _merged(state: tuple, rows: tuple, sel):
     for dst, src in zip(state, rows):
         dst.index_copy_(0, sel, src)
     return state
+
+
+def _warm_up(shape, like: torch.Tensor) -> bool:
+    """Run the shape's intersection and surface eagerly once on like's device and dtype (fills its parameter
+    cache, `Shape._param`); True."""
+    p = torch.zeros(2, 3, dtype=like.dtype, device=like.device)
+    shape.intersect(p, p, 0.0)
+    shape.surface(p, torch.zeros(2, dtype=torch.long, device=p.device))
+    return True
 
 
 def _surface_of(shape, p, aux):

@@ -14,9 +14,8 @@ the photometric fit, so a capture and its re-rendering age the same way:
 The falloff works on numpy arrays and on torch tensors alike (the photometric fit differentiates through it).
 `SensorResponse.expose` also takes a torch tensor, and then works where the tensor lives: a 20-Mpx render made
 on a GPU is exposed there (noise from a `torch.Generator`) instead of being copied back for single-threaded
-numpy (3 s a 5472 x 3648 photo on these cores, benchmarks/results/batch_io.md; on one CPU thread the tensor
-path is slower, so CPU renders keep numpy). sRGB's transfer functions are `renderer.io.linear_to_srgb` /
-`srgb_to_linear`.
+numpy (on one CPU thread the tensor path is the slower, so CPU renders keep numpy; docs/speed.md). sRGB's
+transfer functions are `renderer.io.linear_to_srgb` / `srgb_to_linear`.
 """
 from __future__ import annotations
 

@@ -1,14 +1,16 @@
 """Rigid transforms and camera poses (the transform kept apart from the projection, as in pbrt).
 
 The one owner of rotations in both packages: look-at (`look_at_rotation`), axis-angle ↔ matrix (Rodrigues,
-`axis_angle_to_matrix` / `matrix_to_axis_angle`) and the camera pose (`CameraTransform`, with
-`from_extrinsics` for tiltfit's X_cam = R X_world + T).
+`axis_angle_to_matrix` / `matrix_to_axis_angle`), the camera pose (`CameraTransform`, with
+`from_extrinsics` for tiltfit's X_cam = R X_world + T) and 4×4 placements for exporters
+(`world_from_local_4x4`).
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from .rays import Rays, normalize
@@ -31,6 +33,16 @@ def look_at_rotation(position, look_at, up) -> torch.Tensor:
         raise ValueError("camera.up is parallel to the viewing direction")
     x = torch.linalg.cross(y, z)
     return torch.stack([x, y, z], dim=1)
+
+
+def world_from_local_4x4(R, t, scale=(1.0, 1.0, 1.0)) -> list[list[float]]:
+    """The 4×4 world_from_local = [R · diag(scale) | t; 0 0 0 1] as nested lists of floats (float64), e.g. a
+    Mitsuba `to_world`. R: (3, 3) rotation, columns the local axes in the world; t: (3,) local origin in the
+    world; scale: (3,) stretch along the local axes. Arrays or tensors without gradients."""
+    M = np.eye(4)
+    M[:3, :3] = np.asarray(R, dtype=np.float64) * np.asarray(scale, dtype=np.float64)[None, :]
+    M[:3, 3] = np.asarray(t, dtype=np.float64)
+    return M.tolist()
 
 
 def _skew(v: torch.Tensor) -> torch.Tensor:

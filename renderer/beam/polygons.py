@@ -64,6 +64,20 @@ def plane_frame(n: np.ndarray, c: float, near: np.ndarray) -> tuple[np.ndarray, 
     return o, u, np.cross(n, u)
 
 
+def pyramid(apex: np.ndarray, edges: np.ndarray) -> list[tuple[np.ndarray, float]]:
+    """Half-spaces a·x ≤ b (world) whose intersection is the pyramid from `apex` along the edge directions
+    `edges` (K, 3), given in order around it: one plane through the apex and each pair of neighbouring edges,
+    facing away from the sum of the edges (a direction inside)."""
+    inside = edges.sum(0)
+    planes = []
+    for e0, e1 in zip(edges, np.roll(edges, -1, axis=0)):
+        a = np.cross(e0, e1)
+        if a @ inside > 0:
+            a = -a
+        planes.append((a, float(a @ apex)))
+    return planes
+
+
 def clip_halfplane(poly, a: float, b: float, h: float):
     """The part of a shapely geometry (2D) where a·s + b·t ≤ h ((a, b) need not be unit)."""
     if poly.is_empty:

@@ -33,7 +33,7 @@ import shapely
 from shapely.geometry import Polygon, box
 
 from ..cameras.projection import project_pinhole
-from .polygons import MIN_AREA, areal, clip_halfspace, polygons_of
+from .polygons import MIN_AREA, areal, clip_halfspace, polygons_of, pyramid
 
 # The integrator drops paths whose throughput falls to this; the segmentation stops recursing there too.
 MIN_THROUGHPUT = 1e-4
@@ -98,15 +98,7 @@ class ScreenCamera:
         x0, y0, x1, y1 = bounds
         px = np.array([[x0 - pad_px, y0 - pad_px], [x1 + pad_px, y0 - pad_px], [x1 + pad_px, y1 + pad_px],
                        [x0 - pad_px, y1 + pad_px]])
-        d = self.directions(px)
-        center = d.sum(0)
-        planes = []
-        for d0, d1 in zip(d, np.roll(d, -1, axis=0)):
-            a = np.cross(d0, d1)
-            if a @ center > 0:
-                a = -a
-            planes.append((a, float(a @ self.eye)))
-        return planes
+        return pyramid(self.eye, self.directions(px))
 
     def directions(self, xy_px: np.ndarray) -> np.ndarray:
         """(N, 2) pixels -> (N, 3) unit world directions of the rays from the eye through them."""

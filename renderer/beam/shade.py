@@ -22,7 +22,7 @@ import shapely
 import torch
 
 from ..shapes.polyhedron import coordinates_across
-from .polygons import EMPTY, areal, clip_halfspace
+from .polygons import EMPTY, areal, clip_halfspace, pyramid
 
 # Shadow polygons are combined on this grid (scene units, in each face's plane): fixed-precision overlay
 # is robust where the projected polygons nearly share edges.
@@ -85,14 +85,7 @@ def _pyramid(face, light: np.ndarray) -> list[tuple[np.ndarray, float]]:
     pad = 1e-6 * (1.0 + max(s1 - s0, t1 - t0))
     corners = [face.o + s * face.u + t * face.v for s, t in ((s0 - pad, t0 - pad), (s1 + pad, t0 - pad),
                                                             (s1 + pad, t1 + pad), (s0 - pad, t1 + pad))]
-    center = sum(corners) / 4
-    planes = []
-    for q0, q1 in zip(corners, corners[1:] + corners[:1]):
-        a = np.cross(q0 - light, q1 - light)
-        if a @ center > a @ light:
-            a = -a
-        planes.append((a, float(a @ light)))
-    return planes
+    return pyramid(light, np.stack([q - light for q in corners]))
 
 
 def shade_local(face, material, x: np.ndarray, d: np.ndarray, lights, lit: list, eps: float = 0.0) -> np.ndarray:

@@ -2,7 +2,8 @@
 
 Each camera module declares its parameters (`PARAMS`, a list of `renderer.params.Param`) and a builder
 `from_config(cfg, transform, width, height) -> Camera`, and registers them with `register_camera`.
-`build_camera(path, cfg, width, height)` validates a dict and builds the camera it names.
+`build_camera(path, cfg, width, height)` validates a dict and builds the camera it names (both in
+`registry`, which the camera modules import: they never import this package).
 
 Public API (what `tiltfit` and users import from here): the camera classes, `LensCamera` (the one fitted and
 rendered camera model: pose, lens, distortion and sensor as a torch module over V views; `lens_model`),
@@ -11,61 +12,16 @@ to the aperture disc) and the registry (`CAMERAS`, `build_camera`).
 """
 from __future__ import annotations
 
-from ..params import Param, SceneError, parse_params
-from ..transforms import CameraTransform
 from .base import Camera, Screen, screen_from_config  # noqa: F401  (re-exported)
-
-CAMERAS: dict[str, tuple[list[Param], object]] = {}
-
-POSE_PARAMS = [
-    Param("position", "vec3", (0.0, 0.0, 0.0), "viewpoint, scene units"),
-    Param("look_at", "vec3", (0.0, 0.0, 1.0), "point the optical axis passes through"),
-    Param("up", "vec3", (0.0, -1.0, 0.0), "world direction shown upwards in the image"),
-]
-
-SCREEN_PARAMS = [
-    Param("screen_distance", "float", 1.0, "q3: screen distance from the viewpoint, scene units"),
-    Param("screen_size", "vec2", None, "[width, height] of the screen, scene units"),
-    Param("fov_deg", "float", None, "horizontal field of view (instead of screen_size), degrees"),
-]
-
-
-def register_camera(name: str, params: list[Param]):
-    """Class decorator: register a camera class (with a `from_config` classmethod) under `name`."""
-
-    def deco(cls):
-        CAMERAS[name] = (params, cls)
-        return cls
-
-    return deco
-
-
-def build_camera(path: str, cfg: dict, width: int, height: int) -> Camera:
-    """Validate the `camera` section and build the camera it names (`type`)."""
-    if not isinstance(cfg, dict):
-        raise SceneError(f"{path}: expected an object, got {cfg!r}")
-    kind = cfg.get("type", "pinhole")
-    if kind not in CAMERAS:
-        raise SceneError(f"{path}.type: unknown camera {kind!r} (expected one of: {', '.join(sorted(CAMERAS))})")
-    params, cls = CAMERAS[kind]
-    parsed = parse_params(path, cfg, POSE_PARAMS + params, ignore=("type",))
-    if parsed["position"] == parsed["look_at"]:
-        raise SceneError(f"{path}.look_at: equals camera.position {list(parsed['position'])}, so there is no "
-                         "viewing direction")
-    try:
-        transform = CameraTransform.look_at(parsed["position"], parsed["look_at"], parsed["up"])
-    except ValueError as e:
-        raise SceneError(f"{path}: {e}") from None
-    return cls.from_config(path, parsed, transform, width, height)
-
+from .registry import CAMERAS, POSE_PARAMS, SCREEN_PARAMS, build_camera, register_camera  # noqa: F401
 
 # Registration happens on import of each camera module.
-from . import pinhole  # noqa: E402,F401
-from . import orthographic  # noqa: E402,F401
-from . import inverted_perspective  # noqa: E402,F401
-from . import thin_lens  # noqa: E402,F401
-from . import accumulation  # noqa: E402,F401
+from . import pinhole  # noqa: F401
+from . import orthographic  # noqa: F401
+from . import inverted_perspective  # noqa: F401
+from . import thin_lens  # noqa: F401
+from . import accumulation  # noqa: F401
 
-from .lens_model import APERTURE_SCALE_MM, LensCamera, distortion_parameter_names  # noqa: E402,F401
-from .projection import normalised_from_pixels, pixels_from_normalised, project_pinhole  # noqa: E402,F401
-from .thin_lens import ThinLensCamera, concentric_disk  # noqa: E402,F401
+from .lens_model import APERTURE_SCALE_MM, LensCamera, distortion_parameter_names  # noqa: F401
+from .projection import normalised_from_pixels, pixels_from_normalised, project_pinhole  # noqa: F401
+from .thin_lens import ThinLensCamera, concentric_disk  # noqa: F401

@@ -19,7 +19,7 @@ import copy
 import torch
 
 from ..rays import Rays, normalize
-from . import register_camera
+from .registry import register_camera
 from .thin_lens import THIN_LENS_PARAMS, ThinLensCamera
 
 

@@ -31,8 +31,8 @@ import torch
 from ..params import Param, SceneError
 from ..rays import Rays, normalize
 from ..transforms import CameraTransform
-from . import SCREEN_PARAMS, register_camera, screen_from_config
-from .base import Camera, Screen
+from .base import Camera, Screen, screen_from_config
+from .registry import SCREEN_PARAMS, register_camera
 
 PARAMS = SCREEN_PARAMS + [
     Param("alpha", "float", doc="α, the inverted-perspective parameter (0 = perspective, 1 = parallel)"),

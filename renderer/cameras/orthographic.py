@@ -15,8 +15,8 @@ import torch
 
 from ..params import Param
 from ..rays import Rays
-from . import register_camera
 from .base import Camera
+from .registry import register_camera
 
 PARAMS = [
     Param("screen_size", "vec2", doc="[width, height] of the view window, scene units"),

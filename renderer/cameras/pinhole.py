@@ -10,8 +10,8 @@ from __future__ import annotations
 import torch
 
 from ..rays import Rays, unit_vectors_from_rows, vectors_from_rows
-from . import SCREEN_PARAMS, register_camera
 from .base import Camera
+from .registry import SCREEN_PARAMS, register_camera
 
 
 @register_camera("pinhole", SCREEN_PARAMS)

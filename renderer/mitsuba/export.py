@@ -27,8 +27,11 @@ Mitsuba is an optional extra (`pip install -e '.[test]'` or `'.[bench]'`); it is
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
+
+from ..transforms import world_from_local_4x4 as _matrix
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
 
@@ -38,11 +41,23 @@ _PROBE = ("import drjit as dr, mitsuba as mi; mi.set_variant({v!r}); "
           "x = dr.maximum(mi.Float([1, 2]), mi.Float([2, 1])); dr.eval(x); print(x)")
 
 
+#: Set (to anything but "" or "0") to hide Mitsuba's JIT variants, as on a machine without libLLVM >= 16: CI runs
+#: the suite once this way so the pure-torch fallback of `intersector="auto"` stays tested.
+HIDE_JIT_ENV = "RENDERER_HIDE_MITSUBA_JIT"
+
+
+def jit_hidden() -> bool:
+    """Whether `HIDE_JIT_ENV` hides Mitsuba's JIT variants in this process."""
+    return os.environ.get(HIDE_JIT_ENV, "") not in ("", "0")
+
+
 def jit_variant_runs(variant: str) -> bool:
     """Whether a JIT variant (llvm_*, cuda_*) runs here, probed in a child process: Dr.Jit needs LLVM >= 16,
-    and with an older libLLVM the first kernel aborts the whole process."""
+    and with an older libLLVM the first kernel aborts the whole process. False whenever `HIDE_JIT_ENV` is set."""
     if variant.startswith("scalar"):
         return True
+    if jit_hidden():
+        return False
     if variant not in _LLVM_RUNS:
         import subprocess
         import sys
@@ -81,14 +96,6 @@ def load_mitsuba(variant: str | None = DEFAULT_VARIANT):
     except (ImportError, AttributeError):
         mi.set_variant("scalar_rgb")
     return mi
-
-
-def _matrix(R, t, scale=(1.0, 1.0, 1.0)):
-    """4×4 world_from_local = [R · diag(scale) | t] as nested lists."""
-    M = np.eye(4)
-    M[:3, :3] = np.asarray(R, dtype=np.float64) * np.asarray(scale, dtype=np.float64)[None, :]
-    M[:3, 3] = np.asarray(t, dtype=np.float64)
-    return M.tolist()
 
 
 def _cone_triangles(shape, segments: int):

@@ -186,22 +186,19 @@ def _f32(x: torch.Tensor) -> torch.Tensor:
     return x.to(torch.float32).contiguous()
 
 
-_ENGINES: dict = {}  # id(scene) -> (scene, geometry stamp, MitsubaIntersector); the scene kept so its id stays unique
-
-
 def engine(scene) -> MitsubaIntersector:
-    """The scene's `MitsubaIntersector`, built on first use and cached (a few scenes at a time); rebuilt when
-    `Scene.refresh` saw a shape move since (a new `Scene.geometry` stamp)."""
-    key = id(scene)
-    cached = _ENGINES.get(key)
-    if cached is None or cached[0] is not scene or cached[1] is not scene.geometry:
-        if len(_ENGINES) > 8:
-            _ENGINES.clear()
-        _ENGINES[key] = cached = (scene, scene.geometry, MitsubaIntersector(scene))
-    return cached[2]
+    """The scene's `MitsubaIntersector`, built on first use and kept by the scene (`Scene.derived`: rebuilt
+    after `Scene.refresh` saw a shape move)."""
+    return scene.derived("mitsuba.engine", lambda: MitsubaIntersector(scene))
 
 
-_UNBUILT: dict = {}  # id(scene) -> scene, for scenes `auto_engine` failed to build (not tried again)
+def _engine_or_none(scene) -> MitsubaIntersector | None:
+    try:
+        return engine(scene)
+    except Exception:  # noqa: BLE001 - a scene Mitsuba cannot build is traced by ours
+        return None
+
+
 _LLVM: list = []  # [whether Mitsuba's LLVM variant loads here], probed once per process
 
 
@@ -231,15 +228,9 @@ def auto_engine(scene, device, dtype) -> MitsubaIntersector | None:
         return None
     if any(obj.shape.type_name not in EXACT for obj in scene.objects) or scene.requires_grad():
         return None
-    if not llvm_available() or _UNBUILT.get(id(scene)) is scene:
+    if not llvm_available():
         return None
-    try:
-        return engine(scene)
-    except Exception:  # noqa: BLE001 - a scene Mitsuba cannot build is traced by ours
-        if len(_UNBUILT) > 8:
-            _UNBUILT.clear()
-        _UNBUILT[id(scene)] = scene
-        return None
+    return scene.derived("mitsuba.auto_engine", lambda: _engine_or_none(scene))  # a failure is not tried again
 
 
 def set_jit_threads(n: int) -> int:

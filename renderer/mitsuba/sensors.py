@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import math
 
+from ..transforms import world_from_local_4x4
+
 _REGISTERED: set = set()
 
 
@@ -107,18 +109,14 @@ def sensor_dict(mi, camera, spp: int, sampler: str = "independent") -> dict:
 
     Raises NotImplementedError for other camera types.
     """
-    import numpy as np
-
     register(mi)
     kind = type(camera).__name__
     screen = camera.screen
     W, H = screen.width_px, screen.height_px
     (cx, cy) = screen.center_px
-    M = np.eye(4)
-    M[:3, :3] = camera.transform.world_from_camera.numpy()
-    M[:3, 3] = camera.transform.position.numpy()
+    M = world_from_local_4x4(camera.transform.world_from_camera.numpy(), camera.transform.position.numpy())
     common = {"width_px": W, "height_px": H, "size_x": float(screen.size[0]), "size_y": float(screen.size[1]),
-              "cx": float(cx), "cy": float(cy), "to_world": mi.ScalarTransform4f(M.tolist()),
+              "cx": float(cx), "cy": float(cy), "to_world": mi.ScalarTransform4f(M),
               "film": {"type": "hdrfilm", "width": W, "height": H, "rfilter": {"type": "box"},
                        "pixel_format": "rgb", "component_format": "float32"},
               "sampler": {"type": sampler, "sample_count": int(spp)}}

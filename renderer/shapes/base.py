@@ -24,6 +24,8 @@ import math
 
 import torch
 
+from ..rays import component_rows
+
 INF = float("inf")
 
 
@@ -67,7 +69,7 @@ class Shape:
 
     def intersect(self, o: torch.Tensor, d: torch.Tensor, t_min: float) -> tuple[torch.Tensor, torch.Tensor]:
         if self.soa_native:  # one implementation, so both layouts give the same bits
-            return self.intersect_soa(torch.stack(o.unbind(-1)), torch.stack(d.unbind(-1)), t_min)
+            return self.intersect_soa(component_rows(o), component_rows(d), t_min)
         raise NotImplementedError
 
     def surface(self, p: torch.Tensor, aux: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

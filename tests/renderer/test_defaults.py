@@ -51,6 +51,35 @@ def _llvm_runs() -> bool:
 needs_llvm = pytest.mark.skipif(not _llvm_runs(), reason="mitsuba's llvm_ad_rgb variant does not run here")
 
 
+def fresh_process_variant(monkeypatch):
+    """Make an already imported Mitsuba look as in a fresh process (no variant set), so `auto` probes instead of
+    leaving another test's variant alone; the real variant stays as it was."""
+    mi = sys.modules.get("mitsuba")
+    if mi is None:
+        return
+    monkeypatch.setattr(mi, "variant", lambda: None)
+    monkeypatch.setattr(mi, "set_variant", lambda v: None)  # the probe's scalar fallback must not stick
+
+
+def test_hiding_the_jit_variants_makes_auto_use_our_tracer(monkeypatch):
+    """RENDERER_HIDE_MITSUBA_JIT (how CI runs the suite a second time, as on a machine without libLLVM >= 16)
+    hides the llvm variant from the probe, so auto traces with our own code; unset, the probe answers again."""
+    from renderer.mitsuba import export
+
+    pytest.importorskip("mitsuba")  # imported before fresh_process_variant, so the probe cannot set a variant
+    monkeypatch.setattr(export, "_LLVM_RUNS", {})
+    monkeypatch.setenv(export.HIDE_JIT_ENV, "1")
+    assert not export.jit_variant_runs("llvm_ad_rgb"), "a hidden llvm variant should not run"
+    assert export.jit_variant_runs("scalar_rgb"), "scalar variants are never hidden"
+    monkeypatch.setattr(mi_intersect, "_LLVM", [])
+    fresh_process_variant(monkeypatch)
+    scene = load_scene(CFG)
+    assert mi_intersect.auto_engine(scene, "cpu", torch.float32) is None, "auto should not take Embree when hidden"
+    assert mi_intersect._LLVM == [False], f"the probe should say no: {mi_intersect._LLVM}"
+    monkeypatch.setenv(export.HIDE_JIT_ENV, "0")
+    assert not export.jit_hidden(), "0 should mean not hidden"
+
+
 @pytest.mark.parametrize("failure", ["not installed", "scalar only"])
 def test_auto_falls_back_to_our_tracer_where_mitsuba_does_not_load(monkeypatch, failure):
     def missing(variant):
@@ -63,7 +92,7 @@ def test_auto_falls_back_to_our_tracer_where_mitsuba_does_not_load(monkeypatch, 
 
     monkeypatch.setattr(mi_intersect, "load_mitsuba", missing if failure == "not installed" else lambda v: ScalarOnly)
     monkeypatch.setattr(mi_intersect, "_LLVM", [])  # probe again, through the broken loader
-    monkeypatch.setattr(mi_intersect, "_ENGINES", {})
+    fresh_process_variant(monkeypatch)
     scene = load_scene(CFG)
     auto = render(scene, seed=2).image
     ours = render(scene, seed=2, intersector="torch").image
@@ -143,6 +172,36 @@ def test_renders_follow_a_moved_shape():
     for i in ("torch", "mitsuba"):
         got = render(edited, seed=4, intersector=i).image
         assert torch.equal(got, fresh[i]), f"{i}: the ball edited in place, {float((got - fresh[i]).abs().max()):.3g} off"
+
+
+def test_scene_derived_data_follows_the_geometry_and_stays_out_of_pickles():
+    """`Scene.derived` (the one cache of what is built from a scene's objects: material tables, the Embree
+    scene, the fast paths' tables) keeps a value until `refresh` sees an object change; a pickled scene
+    (what worker processes get) carries none of it, a shallow copy (same objects) shares it."""
+    import copy
+    import pickle
+
+    from renderer.shapes.sphere import Sphere
+
+    scene = load_scene(CFG)
+    built = []
+    first = scene.derived("test", lambda: built.append(1) or object())
+    assert scene.derived("test", lambda: built.append(1) or object()) is first and built == [1], "kept while unchanged"
+    scene.refresh()
+    assert scene.derived("test", lambda: built.append(1) or object()) is first, "refresh without a change keeps it"
+    table = scene.materials(torch.zeros(1))
+    unpickled = pickle.loads(pickle.dumps(scene))
+    assert unpickled._derived == {}, f"a pickled scene should carry no derived data: {sorted(unpickled._derived)}"
+    assert torch.equal(unpickled.materials(torch.zeros(1)).color, table.color), "it rebuilds its material table"
+    shallow = copy.copy(scene)  # shares the objects (render_accumulation's passes): shares what is derived
+    assert shallow.materials(torch.zeros(1)) is table, "a shallow copy should share the material tables"
+    scene.objects[0].shape = Sphere([0.5, 0.0, 0.0], 1.0)
+    scene.refresh()
+    again = scene.derived("test", lambda: built.append(1) or object())
+    assert again is not first and built == [1, 1], "a replaced shape should rebuild what was derived"
+    assert scene.materials(torch.zeros(1)) is not table, "and the material tables with it"
+    shallow.refresh()  # its object list is the scene's: it sees the new ball too
+    assert shallow.materials(torch.zeros(1)) is not table, "the shallow copy should rebuild after its refresh"
 
 
 def test_auto_workers_only_for_large_float32_cpu_renders(monkeypatch):

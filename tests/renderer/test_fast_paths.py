@@ -78,6 +78,24 @@ def test_rows_normals_and_uv_match_surface(name):
         assert torch.allclose(uv.T, uv_ref, atol=1e-12), f"{name}: uv_rows differs from surface"
 
 
+def test_checker_palette_index_is_evaluate_on_rows():
+    """The checker's row form (what the fast paths gather colours with) picks the colour `evaluate` gives, on
+    both sides of cell borders and of the origin (negative cells), in float32 and float64."""
+    from renderer.materials import CheckerTexture, ImageTexture
+
+    tex = CheckerTexture(0.25, ((0.9, 0.1, 0.2), (0.1, 0.8, 0.3)))
+    for dtype in (torch.float32, torch.float64):
+        g = torch.Generator().manual_seed(5)
+        uv = (torch.rand(4000, 2, generator=g, dtype=torch.float64) * 8 - 4).to(dtype)
+        uv[:8] = torch.tensor([[0.0, 0.0], [-0.0, 0.25], [0.25, -0.25], [-1e-7, 0.1], [0.2499999, 0.0],
+                               [-0.25, -0.25], [3.75, -3.75], [1e-9, -1e-9]], dtype=dtype)
+        index = tex.palette_index(uv[:, 0].contiguous(), uv[:, 1].contiguous())
+        assert index.dtype == torch.long and set(index.unique().tolist()) == {0, 1}, f"{dtype}: indices {index.unique()}"
+        got = torch.tensor(tex.palette, dtype=dtype)[index]
+        assert torch.equal(got, tex.evaluate(uv)), f"{dtype}: {int((got != tex.evaluate(uv)).any(-1).sum())} points differ"
+    assert ImageTexture("x.png", (1.0, 1.0)).palette is None, "an image texture has no palette (shaded by evaluate)"
+
+
 CASES = {
     "defaults": [],
     "tilted, ambient, background": ["camera.theta_F_deg=25", "image.background=[0.2,0.3,0.4]",

@@ -1,5 +1,5 @@
-"""tiltfit's layers, read from the source with `ast` (nothing is imported): no import cycles, the library never
-imports the experiments, and `renderer` never imports `tiltfit`.
+"""tiltfit's layers, read from the source with `ast` (nothing is imported; tests/import_graph.py): no import
+cycles, the library never imports the experiments, and tiltfit uses only renderer's public API.
 
 Every import statement counts, at module level or inside a function (a function-level import that only hides
 a cycle is still a cycle). Layers, bottom to top:
@@ -13,111 +13,26 @@ experiments  reproduce (the paper's experiment), scenes (its boxes scene), stabi
              (tiltfit/stability/): built on the library, may import anything below them.
 front end    cli, __main__, __init__: may import every layer; nothing imports them.
 
-`tiltfit` builds on `renderer`; `renderer` must never import `tiltfit`.
+`tiltfit` builds on `renderer` through its public API; that `renderer` never imports `tiltfit` is checked
+with renderer's layers (tests/renderer/test_package_layers.py).
 """
 import ast
 import os
+import sys
 
-ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from import_graph import ROOT  # noqa: E402  (the graph helpers are shared with tests/renderer/test_package_layers.py)
+from import_graph import describe as _describe  # noqa: E402
+from import_graph import find_cycle as _find_cycle  # noqa: E402
+from import_graph import graph as _graph  # noqa: E402
+from import_graph import imports as _imports  # noqa: E402
+from import_graph import inside as _in  # noqa: E402
+from import_graph import modules as _modules  # noqa: E402
 
 #: Experiment modules (a package name covers its submodules).
 EXPERIMENTS = ("tiltfit.reproduce", "tiltfit.scenes", "tiltfit.stability")
 #: Command-line front ends.
 FRONT_ENDS = ("tiltfit", "tiltfit.cli", "tiltfit.__main__")
-
-
-def _modules(package: str) -> dict[str, str]:
-    """{dotted module name: file path} of every .py file of `package` (a package's __init__ is its name)."""
-    out = {}
-    top = os.path.join(ROOT, package)
-    for folder, dirs, files in os.walk(top):
-        dirs[:] = sorted(d for d in dirs if d != "__pycache__")
-        for name in sorted(files):
-            if not name.endswith(".py"):
-                continue
-            parts = os.path.relpath(os.path.join(folder, name), ROOT)[:-3].split(os.sep)
-            if parts[-1] == "__init__":
-                parts = parts[:-1]
-            out[".".join(parts)] = os.path.join(folder, name)
-    return out
-
-
-def _imports(module: str, path: str, known: set) -> list[tuple[str, int]]:
-    """(imported module, line) for every import in the file, module or function level, resolved to `known`
-    names: `from .x import y` gives x, and x.y when y is a module too; `import a.b.c` the longest known prefix."""
-    with open(path, encoding="utf-8") as f:
-        tree = ast.parse(f.read(), path)
-    is_package = os.path.basename(path) == "__init__.py"
-    out = []
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Import):
-            for alias in node.names:
-                parts = alias.name.split(".")
-                for k in range(len(parts), 0, -1):
-                    if ".".join(parts[:k]) in known:
-                        out.append((".".join(parts[:k]), node.lineno))
-                        break
-        elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = module.split(".") if is_package else module.split(".")[:-1]
-                base = base[:len(base) - (node.level - 1)]
-                target = ".".join(base + ([node.module] if node.module else []))
-            else:
-                target = node.module or ""
-            subs = [f"{target}.{a.name}" for a in node.names if f"{target}.{a.name}" in known]
-            out += [(s, node.lineno) for s in subs]
-            if target in known and (node.module or len(subs) < len(node.names)):
-                out.append((target, node.lineno))
-    return out
-
-
-def _graph(package: str) -> tuple[dict, dict]:
-    """({module: {imported module: first line}}, {module: path}) over `package`'s own modules."""
-    mods = _modules(package)
-    graph = {}
-    for m, p in mods.items():
-        edges = {}
-        for dst, line in _imports(m, p, set(mods)):
-            if dst != m:
-                edges.setdefault(dst, line)
-        graph[m] = edges
-    return graph, mods
-
-
-def _find_cycle(graph: dict) -> list | None:
-    """One import cycle [a, b, ..., a] of the graph, or None (depth-first search, three colours)."""
-    colour = dict.fromkeys(graph, 0)
-    stack = []
-
-    def visit(m):
-        colour[m] = 1
-        stack.append(m)
-        for n in sorted(graph[m]):
-            if colour.get(n, 2) == 1:
-                return stack[stack.index(n):] + [n]
-            if colour.get(n) == 0:
-                found = visit(n)
-                if found:
-                    return found
-        stack.pop()
-        colour[m] = 2
-        return None
-
-    for m in sorted(graph):
-        if colour[m] == 0:
-            found = visit(m)
-            if found:
-                return found
-    return None
-
-
-def _in(module: str, names) -> bool:
-    return any(module == n or module.startswith(n + ".") for n in names)
-
-
-def _describe(cycle, graph, mods) -> str:
-    return " -> ".join(f"{a} ({os.path.relpath(mods[a], ROOT)}:{graph[a][b]})" for a, b in zip(cycle, cycle[1:])) \
-        + f" -> {cycle[-1]}"
 
 
 def test_find_cycle_finds_a_planted_cycle():
@@ -157,14 +72,6 @@ def test_library_never_imports_experiments_or_front_ends():
            for m, edges in graph.items() if m not in FRONT_ENDS
            for dst, line in edges.items() if dst in FRONT_ENDS]
     assert not bad, "modules import the command-line front end: " + "; ".join(bad)
-
-
-def test_renderer_never_imports_tiltfit():
-    mods = _modules("renderer")
-    assert len(mods) > 10, f"found the renderer modules ({len(mods)})"
-    bad = [f"{os.path.relpath(p, ROOT)}:{line}" for m, p in mods.items()
-           for dst, line in _imports(m, p, {"tiltfit"} | set(_modules("tiltfit"))) if _in(dst, ("tiltfit",))]
-    assert not bad, "renderer imports tiltfit (tiltfit builds on renderer, never the reverse): " + ", ".join(bad)
 
 
 #: `renderer`'s public API, the only renderer modules tiltfit may import: the package itself (`renderer.__all__`:

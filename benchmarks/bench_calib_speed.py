@@ -352,7 +352,7 @@ def write_markdown(path: str, res: dict) -> None:
                      f"{d['rms_px']:.4f}, {held} |")
     lines += ["", "Geometric and with-blur fits: `calibrate(..., FitOptions(distortion=model, "
               "free_principal_point=True, model_selection=False))`; the default command adds distortion "
-              "auto (five candidate fits), the θF and principal-point tests and the 5-fold held-out error. "
+              "auto (candidate fits while the tests justify them, up to five), the θF and principal-point tests and the 5-fold held-out error. "
               "Detection is not timed (DET files from `tiltfit detect`, cached).", ""]
     with open(path, "w") as f:
         f.write("\n".join(lines))

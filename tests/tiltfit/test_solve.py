@@ -140,3 +140,42 @@ def test_huber_loss_down_weights_an_outlier():
     err_plain = abs(float(plain.x["rate"]) + 1.5)
     err_robust = abs(float(robust.x["rate"]) + 1.5)
     assert err_robust < 0.2 * err_plain, f"rate error robust {err_robust:.3g} vs plain {err_plain:.3g}"
+
+
+def test_calibration_problem_jacobian_equals_autograd_of_its_residuals():
+    """The fit's problem (masks, σ scaling, per-view pose blocks) assembles the closed-form Jacobian into the
+    same matrix autograd gives for its residual vector, with corners and blur widths missing here and there."""
+    from torch.func import functional_call
+
+    from tiltfit.fit import _Problem
+    from tiltfit.model import TiltLensCamera, board_points_mm, random_poses, synthesize_observations
+
+    rvec, T = random_poses(3, seed=7)
+    cam = TiltLensCamera(3, (1368, 912), 0.026, 55.0, 640.0, 18.0, 0.3, rvec=rvec, T_mm=T,
+                         distortion=[0.05, -0.02, 0.001, 0.002, 0.01, 0.0, 0.0, 0.0])
+    obs = synthesize_observations(cam, board_points_mm(5, 3, 25.0), 0.1, 0.1, seed=3)
+    obs.corners_px[1, 3] = math.nan
+    obs.blur_px[2, 5:8] = math.nan
+    cam.free("all", "principal_point", "blur_offset", "k1", "k2", "p1", "p2", "k3")
+    with torch.no_grad():
+        cam.log_w_mm.add_(0.01)
+        cam.rvec.add_(0.01)
+    prob = _Problem(cam, obs)
+    scale = prob.scale(0.3, 1.7)
+    x0 = prob.x0()
+    r, jac = prob.evaluate(scale)(x0, True)
+    layout = Layout(prob.blocks, prob.view_rows)
+    ours = layout.jacobian(jac).dense()
+
+    def residuals(v):
+        params = {**prob.held, **layout.unflatten(v)}
+        uv, b = functional_call(cam, params, (prob.points,))
+        rc = torch.where(prob.cmask[..., None], uv - prob.corners, torch.zeros_like(uv)).reshape(-1)
+        rb = torch.where(prob.bmask, b - prob.blur, torch.zeros_like(b)).reshape(-1)
+        return torch.cat([rc, rb]) * scale
+
+    v0 = layout.flatten(x0)
+    assert torch.allclose(r, residuals(v0), rtol=0, atol=1e-10), "residuals"
+    auto = torch.autograd.functional.jacobian(residuals, v0)
+    err = float((ours - auto).abs().max() / auto.abs().max())
+    assert ours.shape == auto.shape and err < 1e-9, f"problem Jacobian vs autograd: {err:.2e}"

@@ -14,7 +14,8 @@ import sys
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 BENCHMARKS = ["bench_fig6_mitsuba.py", "bench_speed_mitsuba.py", "bench_thin_lens.py", "bench_detect_opencv.py",
-              "bench_beam.py", "bench_real_detect.py", "bench_photometric.py", "bench_cluster.py"]
+              "bench_beam.py", "bench_real_detect.py", "bench_photometric.py", "bench_cluster.py",
+              "bench_calib_speed.py"]
 
 
 def main(argv=None) -> int:

@@ -51,7 +51,8 @@ import torch
 BLUR_MODELS = ("ellipse", "first_order", "paper")
 
 __all__ = [
-    "BLUR_MODELS", "blur_diameter", "blur_diameter_exact", "blur_diameter_first_order", "blur_diameter_paper",
+    "BLUR_JACOBIAN_ARGS", "BLUR_MODELS", "blur_diameter", "blur_diameter_exact", "blur_diameter_jacobian",
+    "blur_diameter_first_order", "blur_diameter_paper",
     "blur_ellipse", "blur_width",
     "focal_length", "focus_depth", "focus_distance_tilted", "hinge_line_y", "scheimpflug_line_y",
     "theta_F_from_theta_L", "theta_F_from_theta_L_f", "theta_L_from_theta_F", "theta_L_from_theta_F_f",
@@ -306,3 +307,90 @@ def blur_diameter(p_cam, w, U, d, theta_F=0.0, blur_model: str = "ellipse") -> t
     if blur_model == "paper":
         return blur_diameter_paper(p_cam[..., 1], p_cam[..., 2], w, U, d, theta_F)
     raise ValueError(f"blur_model: expected one of {BLUR_MODELS}, got {blur_model!r}")
+
+
+# --- Jacobians of the blur closed forms ----------------------------------------------------------------
+
+#: Order of the columns of `blur_diameter_jacobian`: the point (camera frame) and the lens.
+BLUR_JACOBIAN_ARGS = ("x", "y", "z", "w", "U", "d", "theta_F")
+
+
+def _unit_derivatives(like: torch.Tensor):
+    """d(x), d(y), …, d(θF) as (…, 7) rows of the identity, broadcastable against `like`."""
+    eye = torch.eye(7, dtype=like.dtype, device=like.device)
+    return [eye[i] for i in range(7)]
+
+
+def blur_diameter_jacobian(p_cam, w, U, d, theta_F=0.0, blur_model: str = "ellipse"):
+    """The blur diameter (`blur_diameter`) and its derivatives with respect to the point and the lens, in closed
+    form (the chain rule written out, no autodiff; checked against autograd in tests/renderer/test_jacobians.py).
+
+    Args:
+        p_cam: (..., 3) camera-frame points, lengths; w, U, d lengths and theta_F radians, numbers or 0-dim
+            tensors (one lens); blur_model as in `blur_diameter`.
+    Returns:
+        b: (...,) diameter on the sensor (as `blur_diameter`);
+        J: (..., 7) ∂b/∂(x, y, z, w, U, d, θF) (`BLUR_JACOBIAN_ARGS`). Where |·| has a kink (a point on the
+        plane of focus) the derivative takes sign 0, as autograd does; where the spot is unbounded (b = inf)
+        J is NaN.
+    """
+    p_cam, w, U, d, theta_F = _tensors(p_cam, w, U, d, theta_F)
+    x, y, z = p_cam.unbind(-1)
+    dx, dy, dz, dw, dU, dd, dth = _unit_derivatives(p_cam)
+    x, y, z = x[..., None], y[..., None], z[..., None]  # trailing axis broadcasts against the 7 derivatives
+    tF = torch.tan(theta_F)
+    dtF = (1.0 + tF * tF) * dth
+    if blur_model == "paper":
+        zf = U + y * tF                                     # focus depth at the point's height
+        a = 1.0 / zf - 1.0 / z
+        s = torch.sign(a)
+        da = -(dU + tF * dy + y * dtF) / (zf * zf) + dz / (z * z)
+        b = w * d * a.abs()
+        J = d * a.abs() * dw + w * a.abs() * dd + w * d * s * da
+        return b[..., 0], J
+    if blur_model == "first_order":
+        n = U + y * tF - z
+        s = torch.sign(n)
+        uz = U * z
+        dn = dU + tF * dy + y * dtF - dz
+        duz = z * dU + U * dz
+        q = n.abs() / uz
+        dq = s * dn / uz - n.abs() * duz / (uz * uz)
+        return (w * d * q)[..., 0], d * q * dw + w * q * dd + w * d * dq
+    if blur_model != "ellipse":
+        raise ValueError(f"blur_model: expected one of {BLUR_MODELS}, got {blur_model!r}")
+    # θL = atan(w tan θF / (U + w)) (exact Scheimpflug)
+    tL = w * tF / (U + w)
+    dtL = (tF * dw + w * dtF) / (U + w) - w * tF * (dU + dw) / (U + w) ** 2
+    theta_L = torch.atan(tL)
+    dthL = dtL / (1.0 + tL * tL)
+    sF, cF = torch.sin(theta_F), torch.cos(theta_F)
+    sL, cL = torch.sin(theta_L), torch.cos(theta_L)
+    dsF, dcF = cF * dth, -sF * dth
+    dsL, dcL = cL * dthL, -sL * dthL
+    r, dr = d / 2, dd / 2
+    h = U * cF
+    dh = cF * dU + U * dcF
+    k = h - (cF * z - sF * y)
+    dk = dh - (z * dcF + cF * dz - y * dsF - sF * dy)
+    gy = cL - y * sL / z
+    dgy = dcL - (sL * dy + y * dsL) / z + y * sL * dz / (z * z)
+    sLF = torch.sin(theta_L - theta_F)
+    m = z * sLF + k * sL
+    dm = sLF * dz + z * torch.cos(theta_L - theta_F) * (dthL - dth) + sL * dk + k * dsL
+    hz = h * z
+    dhz = z * dh + h * dz
+    delta = hz * hz - (r * m) ** 2
+    ddelta = 2 * hz * dhz - 2 * r * m * m * dr - 2 * r * r * m * dm
+    bounded = delta > 0
+    delta = torch.where(bounded, delta, torch.ones_like(delta))
+    # b = 2 |q| E with q = r w k and E = sqrt(|h z| |g_y|) Δ^(−3/4) (`blur_diameter_exact`)
+    q = r * w * k
+    dq = w * k * dr + r * k * dw + r * w * dk
+    E = torch.sqrt(hz.abs() * gy.abs()) * delta ** -0.75
+    dE = E * (0.5 * torch.sign(hz) * dhz / hz.abs() + 0.5 * torch.sign(gy) * dgy / gy.abs() - 0.75 * ddelta / delta)
+    b = 2 * q.abs() * E
+    J = 2 * torch.sign(q) * E * dq + 2 * q.abs() * dE
+    b = torch.where(bounded, b, torch.full_like(b, float("inf")))
+    J = torch.where(bounded, J, torch.full_like(J, float("nan")))
+    return b[..., 0], J

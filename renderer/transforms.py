@@ -70,6 +70,38 @@ def axis_angle_to_matrix(rvec: torch.Tensor) -> torch.Tensor:
     return eye + a * K + b * (K @ K)
 
 
+def axis_angle_left_jacobian(rvec: torch.Tensor) -> torch.Tensor:
+    """(..., 3) axis-angle vectors -> (..., 3, 3) left Jacobian J_l of the rotation exponential (smooth at 0).
+
+    A change δr of the axis-angle vector turns R(r) by the small rotation J_l(r) δr applied on the left:
+    R(r + δr) ≈ exp([J_l δr]×) R(r), so a rotated point moves by ∂(R X)/∂r = −[R X]× J_l(r). In closed form
+    (Barfoot, "State Estimation for Robotics", 2017, eq. 7.86)
+        J_l = I + ((1 − cos θ) / θ²) K + ((θ − sin θ) / θ³) K²,  K = [r]×, θ = |r|,
+    with the Taylor series near θ = 0. Device and dtype follow `rvec`.
+    """
+    rvec = torch.as_tensor(rvec)
+    theta2 = (rvec * rvec).sum(-1)[..., None, None]
+    small = theta2 < 1e-6
+    safe = torch.where(small, torch.ones_like(theta2), theta2)
+    theta = torch.sqrt(safe)
+    a = torch.where(small, 0.5 - theta2 / 24.0, (1.0 - torch.cos(theta)) / safe)
+    b = torch.where(small, 1.0 / 6.0 - theta2 / 120.0, (theta - torch.sin(theta)) / (safe * theta))
+    K = _skew(rvec)
+    eye = torch.eye(3, dtype=rvec.dtype, device=rvec.device).expand(K.shape)
+    return eye + a * K + b * (K @ K)
+
+
+def rotated_point_jacobian(rvec: torch.Tensor, p_rot: torch.Tensor, rows: torch.Tensor | None = None) -> torch.Tensor:
+    """∂(R(r) X)/∂r = −[R X]× J_l(r): (..., 3) axis-angle vectors and (..., 3) rotated points R X (broadcast)
+    -> (..., 3, 3), row i the derivative of coordinate i of R X with respect to r.
+
+    With `rows` (..., m, 3), the derivatives ∂f/∂(R X) of some f, returns the chain rule's (..., m, 3) ∂f/∂r
+    = rows · (−[R X]×) · J_l directly: a row a times −[p]× is the cross product p × a."""
+    if rows is None:
+        return -_skew(p_rot) @ axis_angle_left_jacobian(rvec)
+    return torch.linalg.cross(p_rot[..., None, :].expand_as(rows), rows, dim=-1) @ axis_angle_left_jacobian(rvec)
+
+
 def matrix_to_axis_angle(R) -> torch.Tensor:
     """(..., 3, 3) rotation matrices -> (..., 3) axis-angle vectors, radians, float64 (via quaternions, kornia;
     not differentiable: for initial values)."""

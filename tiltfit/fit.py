@@ -13,7 +13,8 @@ Objective: ½ Σ ρ((r_i / σ_g)²) over reprojection residuals (group g = corne
 (g = blur, pixels); ρ is quadratic, Huber or Cauchy. The noise levels σ_g are estimated from the residuals
 (variance components, with the degrees of freedom each group uses) unless given. Minimised by
 Levenberg–Marquardt with Marquardt's diagonal scaling on the free parameters of `TiltLensCamera`, its
-Jacobian from torch forward-mode autodiff (`torch.func.jacfwd`), robust losses by iterative reweighting.
+Jacobian in closed form (`LensCamera.jacobian`), solved by `tiltfit.solve` (Schur complement of the per-view
+poses), robust losses by iterative reweighting.
 
 Uncertainties: C = s² (Jᵀ W J)⁻¹ on the free parameters (s² the residual variance factor), propagated to
 w, U, d, θF, θL (exact Scheimpflug), θL of the paper's eq (1) and f by the Jacobian of those functions. In
@@ -33,12 +34,14 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
-from torch.func import functional_call, jacfwd
 
 from renderer.cameras.distortion import MODEL_TERMS, MODELS as DISTORTION_MODELS
 
 from .model import (APERTURE_SCALE_MM, BLUR_MODELS, ROBUST_LOSSES, Observations, TiltLensCamera,
                     distortion_parameter_names, residuals, robust_rho, robust_weight)
+from .solve import Block, LMOptions, LMResult, SolverError
+from .solve import covariance as solve_covariance
+from .solve import levenberg_marquardt as solve_lm
 from .stats import nested_test
 
 MODES = ("unified", "tilt", "joint")
@@ -163,7 +166,15 @@ class FitResult:
 # ---------------------------------------------------------------------------------------------------------
 
 class _Problem:
-    """Flat vector x of a camera's free parameters and the normalised residual vector r(x)."""
+    """The calibration as a least-squares problem over a camera's free parameters (`tiltfit.solve` blocks).
+
+    Residuals, flat: corners (V·N·2, pixels) then blur widths (V·N, pixels; none when no width was measured),
+    model − observation, 0 where unobserved, each divided by its group's σ (`scale`). Parameters: the camera's free stored parameters by
+    name (`LensCamera.named_parameters` order); the poses (`rvec`, `T_scaled`) are per-view blocks. The
+    Jacobian is the camera's closed form (`LensCamera.jacobian`).
+    """
+
+    POSE = ("rvec", "T_scaled")
 
     def __init__(self, camera: TiltLensCamera, obs: Observations, names: list[str] | None = None):
         self.camera = camera
@@ -173,8 +184,12 @@ class _Problem:
             raise FitError("no free parameters to fit")
         params = dict(camera.named_parameters())
         self.shapes = [params[n].shape for n in self.names]
-        self.sizes = [int(np.prod(s)) if len(s) else 1 for s in self.shapes]
         self.held = {n: p.detach() for n, p in params.items() if n not in self.names}
+        # columns per parameter in a residual row (a pose's: its own view's 3)
+        self._sizes = {n: (p.shape[-1] if n in self.POSE else p.numel()) for n, p in params.items()}
+        self.work = camera.copy().requires_grad_(False)  # evaluated at trial parameters, never autograd
+        self._work_params = dict(self.work.named_parameters())
+        self._overridden = set()  # held parameters `_load` replaced (restored on the next call)
         self.points = obs.points_mm.to(torch.float64)
         self.cmask = obs.corner_mask
         self.bmask = obs.blur_mask
@@ -184,293 +199,141 @@ class _Problem:
         self.with_distortion = any(n in self.names or bool(self.held[n] != 0) for n in dist_names)
         self.n_corner = int(self.cmask.sum()) * 2
         self.n_blur = int(self.bmask.sum())
+        # Without blur widths (a geometric fit) the residual vector has no blur rows at all.
+        self.blur_rows_kept = self.n_blur > 0
         nc = self.cmask.numel() * 2
-        self.corner_rows = torch.zeros(nc + self.bmask.numel(), dtype=torch.bool)
+        nb = self.bmask.numel() if self.blur_rows_kept else 0
+        self.corner_rows = torch.zeros(nc + nb, dtype=torch.bool)
         self.corner_rows[:nc] = self.cmask[..., None].expand(-1, -1, 2).reshape(-1)
         self.blur_rows = torch.zeros_like(self.corner_rows)
-        self.blur_rows[nc:] = self.bmask.reshape(-1)
+        self.blur_rows[nc:] = self.bmask.reshape(-1) if nb else False
+        V, N = self.cmask.shape
+        self.blocks = [Block(n, tuple(shape), per_view=n in self.POSE) for n, shape in zip(self.names, self.shapes)]
+        # rows of view v: its 2N corner entries (and its N blur entries)
+        self.view_rows = 2 * N * torch.arange(V)[:, None] + torch.arange(2 * N)[None]
+        if nb:
+            self.view_rows = torch.cat([self.view_rows, 2 * V * N + N * torch.arange(V)[:, None]
+                                        + torch.arange(N)[None]], 1)
 
-    def x0(self) -> torch.Tensor:
+    def x0(self) -> dict:
         params = dict(self.camera.named_parameters())
-        return torch.cat([params[n].detach().reshape(-1) for n in self.names]).to(torch.float64)
+        return {n: params[n].detach().to(torch.float64).clone() for n in self.names}
 
-    def unflatten(self, x: torch.Tensor) -> dict:
-        out, i = {}, 0
-        for n, shape, size in zip(self.names, self.shapes, self.sizes):
-            out[n] = x[i:i + size].reshape(shape)
-            i += size
-        return out
+    def params(self, x: dict, held: dict | None = None) -> dict:
+        return {**(held if held is not None else self.held), **x}
 
-    def params(self, x: torch.Tensor, held: dict | None = None) -> dict:
-        return {**(held if held is not None else self.held), **self.unflatten(x)}
+    def _load(self, x: dict, held: dict | None = None):
+        """Put x (and `held` in place of the held values) into the working camera."""
+        wp = self._work_params
+        with torch.no_grad():
+            for n in self._overridden:
+                wp[n].copy_(self.held[n])
+            self._overridden = set()
+            for n, v in x.items():
+                wp[n].copy_(v)
+            for n, v in (held or {}).items():
+                if n not in x:
+                    wp[n].copy_(v)
+                    self._overridden.add(n)
 
-    def raw(self, x: torch.Tensor, held: dict | None = None) -> torch.Tensor:
-        """Model − observation, flat: corners (V·N·2, pixels) then blur (V·N, pixels); 0 where unobserved."""
-        uv, b = functional_call(self.camera, self.params(x, held), (self.points,),
-                                {"with_blur": self.n_blur > 0, "with_distortion": self.with_distortion})
+    def _flat(self, uv: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         rc = torch.where(self.cmask[..., None], uv - self.corners, torch.zeros_like(uv)).reshape(-1)
+        if not self.blur_rows_kept:
+            return rc
         rb = torch.where(self.bmask, b - self.blur, torch.zeros_like(b)).reshape(-1)
         return torch.cat([rc, rb])
 
-    def jacobian_fn(self, scale: torch.Tensor):
-        """The Jacobian of `raw(x) * scale` as a `BlockJacobian` when poses are free (else None: use jacfwd).
+    def raw(self, x: dict, held: dict | None = None) -> torch.Tensor:
+        """Model − observation, flat: corners (V·N·2, pixels) then blur (V·N, pixels, if kept); 0 where
+        unobserved."""
+        self._load(x, held)
+        with torch.no_grad():
+            uv, b = self.work(self.points, with_blur=self.n_blur > 0, with_distortion=self.with_distortion)
+        return self._flat(uv, b)
 
-        Every view's pose is perturbed by the same (K,) vector at once: since view v's rows depend only on its
-        own pose, the (M, K) Jacobian of that common perturbation holds each row's pose derivatives. So one
-        forward-mode pass per shared parameter plus K (≤ 6), whatever the number of views.
-        """
-        pose_names = [n for n in ("rvec", "T_scaled") if n in self.names]
-        if not pose_names:
-            return None
-        V, N = self.cmask.shape
-        offsets, i = {}, 0
-        for n, size in zip(self.names, self.sizes):
-            offsets[n] = (i, size)
-            i += size
-        P = i
-        shared = [n for n in self.names if n not in pose_names]
-        s_idx = torch.cat([torch.arange(offsets[n][0], offsets[n][0] + offsets[n][1]) for n in shared]) \
-            if shared else torch.zeros(0, dtype=torch.long)
-        p_idx = torch.cat([offsets[n][0] + 3 * torch.arange(V)[:, None] + torch.arange(3)[None]
-                           for n in pose_names], 1)
-        rows = torch.cat([2 * N * torch.arange(V)[:, None] + torch.arange(2 * N)[None],
-                          2 * V * N + N * torch.arange(V)[:, None] + torch.arange(N)[None]], 1)
-        K = 3 * len(pose_names)
+    def raw_jacobian(self, x: dict, names, held: dict | None = None) -> tuple[torch.Tensor, dict]:
+        """`raw(x)` and its derivatives {name: (M, size)} with respect to the named stored parameters (free or
+        held; a pose's row i with respect to the pose of row i's view)."""
+        J, r = self._raw_jacobian_matrix(x, names, held)
+        return r, dict(zip(names, torch.split(J, [self._sizes[n] for n in names], 1)))
 
-        def jac(x: torch.Tensor) -> BlockJacobian:
-            x = x.detach()
-            z0 = torch.cat([x[s_idx], x.new_zeros(K)])
+    def _raw_jacobian_matrix(self, x: dict, names, held: dict | None = None):
+        """((M, Σ sizes) derivatives of `raw` by the named parameters side by side, raw(x))."""
+        self._load(x, held)
+        uv, b, jac = self.work.jacobian(self.points, with_blur=self.n_blur > 0, with_distortion=self.with_distortion,
+                                        names=names)
+        j = torch.cat([jac[n] for n in names], -1)                          # (V, N, 3, P)
+        jc = torch.where(self.cmask[..., None, None], j[..., :2, :], 0.0).reshape(-1, j.shape[-1])
+        if not self.blur_rows_kept:
+            return jc, self._flat(uv, b)
+        jb = torch.where(self.bmask[..., None], j[..., 2, :], 0.0).reshape(-1, j.shape[-1])
+        return torch.cat([jc, jb]), self._flat(uv, b)
 
-            def g(z):
-                xz = x.clone()
-                xz = xz.index_copy(0, s_idx, z[:len(s_idx)]) if len(s_idx) else xz
-                q = z[len(s_idx):]
-                for j, _ in enumerate(pose_names):
-                    xz = xz.index_add(0, p_idx[:, 3 * j:3 * j + 3].reshape(-1), q[3 * j:3 * j + 3].repeat(V))
-                return self.raw(xz) * scale
+    def evaluate(self, scale: torch.Tensor):
+        """The `tiltfit.solve.levenberg_marquardt` callback of the residuals `raw(x) * scale`."""
+        sizes = [self._sizes[n] for n in self.names]
 
-            Jc = jacfwd(g)(z0).detach()
-            return BlockJacobian(Jc[:, :len(s_idx)], Jc[:, len(s_idx):], rows, s_idx, p_idx, P)
+        def evaluate(x: dict, with_jacobian: bool):
+            if not with_jacobian:
+                return self.raw(x) * scale, None
+            J, r = self._raw_jacobian_matrix(x, self.names)
+            return r * scale, dict(zip(self.names, torch.split(J * scale[:, None], sizes, 1)))
 
-        return jac
+        return evaluate
 
     def scale(self, sigma_c: float, sigma_b: float) -> torch.Tensor:
+        """(M,) 1/σ of each residual row."""
         nc = self.cmask.numel() * 2
         s = torch.full((self.corner_rows.numel(),), 1.0 / sigma_c, dtype=torch.float64)
         s[nc:] = 1.0 / sigma_b
         return s
 
-    def write_back(self, x: torch.Tensor):
+    def write_back(self, x: dict):
         with torch.no_grad():
             params = dict(self.camera.named_parameters())
-            for n, v in self.unflatten(x).items():
+            for n, v in x.items():
                 params[n].copy_(v)
 
 
-class DenseNormal:
-    """Normal equations A = Jᵀ W J of a dense Jacobian (M, P)."""
-
-    def __init__(self, J: torch.Tensor, wts: torch.Tensor):
-        self.J = J
-        self.Jw = J * wts[:, None]
-        self.A = J.T @ self.Jw
-
-    def gradient(self, r: torch.Tensor) -> torch.Tensor:
-        return self.Jw.T @ r
-
-    def diag(self) -> torch.Tensor:
-        return torch.diagonal(self.A)
-
-    def matvec(self, v: torch.Tensor) -> torch.Tensor:
-        return self.A @ v
-
-    def solve(self, damping: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
-        """(A + diag(damping))⁻¹ rhs."""
-        return torch.linalg.solve(self.A + torch.diag(damping), rhs)
+def _robust_options(robust: str | None, scale: float, max_iterations: int) -> LMOptions:
+    """`LMOptions` with the robust loss of `tiltfit.model` (ρ and its IRLS weight)."""
+    if robust in (None, "none"):
+        return LMOptions(max_iterations=max_iterations)
+    return LMOptions(max_iterations=max_iterations, rho=lambda s2: robust_rho(s2, robust, scale),
+                     weight=lambda s2: robust_weight(s2, robust, scale))
 
 
-@dataclass
-class BlockJacobian:
-    """A Jacobian with the multi-view block structure: each view's pose touches only its own residual rows.
-
-    Attributes:
-        Js: (M, S) columns of the shared (lens) parameters.
-        Jp: (M, K) columns of the pose parameters: row i holds the derivatives with respect to the pose of the
-            view that row i belongs to (computed for all views at once by perturbing every pose together).
-        rows: (V, R) long, the residual rows of each view.
-        s_idx: (S,) long, positions of the shared parameters in the flat parameter vector.
-        p_idx: (V, K) long, positions of each view's pose parameters.
-        n_params: P = S + V·K.
-    """
-
-    Js: torch.Tensor
-    Jp: torch.Tensor
-    rows: torch.Tensor
-    s_idx: torch.Tensor
-    p_idx: torch.Tensor
-    n_params: int
-
-    def detach(self) -> "BlockJacobian":
-        return self
-
-    def dense(self) -> torch.Tensor:
-        """(M, P) the full Jacobian (for covariances)."""
-        J = self.Js.new_zeros(self.Js.shape[0], self.n_params)
-        J[:, self.s_idx] = self.Js
-        J[self.rows[:, :, None], self.p_idx[:, None, :]] = self.Jp[self.rows]
-        return J
-
-
-class BlockNormal:
-    """Normal equations of a `BlockJacobian`, solved by the Schur complement of the pose blocks.
-
-    With A = [[A_ss, A_sp], [A_ps, A_pp]] where A_pp is block diagonal (one K×K block per view), the damped
-    system is reduced to the shared parameters: (A_ss − Σ_v A_sv A_vv⁻¹ A_vs) δ_s = g_s − Σ_v A_sv A_vv⁻¹ g_v,
-    then δ_v = A_vv⁻¹ (g_v − A_vs δ_s). Cost O(M (S + K)² + V K³ + S³) instead of O(M P² + P³).
-    """
-
-    def __init__(self, bj: BlockJacobian, wts: torch.Tensor):
-        self.bj = bj
-        self.w = wts
-        self.Jsw = bj.Js * wts[:, None]
-        self.A_ss = bj.Js.T @ self.Jsw
-        self.Jp_v = bj.Jp[bj.rows]                       # (V, R, K)
-        self.w_v = wts[bj.rows]                          # (V, R)
-        Js_v = bj.Js[bj.rows]                            # (V, R, S)
-        Jpw_v = self.Jp_v * self.w_v[..., None]
-        self.A_pp = Jpw_v.transpose(1, 2) @ self.Jp_v    # (V, K, K)
-        self.A_sp = Js_v.transpose(1, 2) @ Jpw_v         # (V, S, K)
-
-    def _split(self, v: torch.Tensor):
-        return v[self.bj.s_idx], v[self.bj.p_idx]
-
-    def _join(self, vs: torch.Tensor, vp: torch.Tensor) -> torch.Tensor:
-        out = vs.new_zeros(self.bj.n_params)
-        out[self.bj.s_idx] = vs
-        out[self.bj.p_idx] = vp
-        return out
-
-    def gradient(self, r: torch.Tensor) -> torch.Tensor:
-        gs = self.Jsw.T @ r
-        gp = ((self.Jp_v * (self.w_v * r[self.bj.rows])[..., None]).sum(1))
-        return self._join(gs, gp)
-
-    def diag(self) -> torch.Tensor:
-        return self._join(torch.diagonal(self.A_ss), torch.diagonal(self.A_pp, dim1=-2, dim2=-1))
-
-    def matvec(self, v: torch.Tensor) -> torch.Tensor:
-        vs, vp = self._split(v)
-        out_s = self.A_ss @ vs + (self.A_sp @ vp[..., None]).squeeze(-1).sum(0)
-        out_p = torch.einsum("vsk,s->vk", self.A_sp, vs) + (self.A_pp @ vp[..., None]).squeeze(-1)
-        return self._join(out_s, out_p)
-
-    def solve(self, damping: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
-        ds, dp = self._split(damping)
-        gs, gp = self._split(rhs)
-        App = self.A_pp + torch.diag_embed(dp)
-        App_inv = torch.linalg.inv(App)                              # (V, K, K)
-        B = self.A_sp                                                # (V, S, K)
-        BAi = B @ App_inv                                            # (V, S, K)
-        S = self.A_ss + torch.diag(ds) - (BAi @ B.transpose(1, 2)).sum(0)
-        rhs_s = gs - (BAi @ gp[..., None]).squeeze(-1).sum(0)
-        xs = torch.linalg.solve(S, rhs_s)
-        xp = (App_inv @ (gp - torch.einsum("vsk,s->vk", B, xs))[..., None]).squeeze(-1)
-        return self._join(xs, xp)
-
-
-def _normal_equations(J, wts):
-    return BlockNormal(J, wts) if isinstance(J, BlockJacobian) else DenseNormal(J, wts)
-
-
-def dense_jacobian(J) -> torch.Tensor:
-    """The (M, P) matrix of a dense or block Jacobian."""
-    return J.dense() if isinstance(J, BlockJacobian) else J
-
-
-@dataclass
-class _LMResult:
-    x: torch.Tensor
-    cost: float
-    iterations: int
-    J: torch.Tensor
-    r: torch.Tensor
-    weights: torch.Tensor
+def _lm(evaluate, x0: dict, blocks, view_rows, options: LMOptions) -> LMResult:
+    try:
+        return solve_lm(evaluate, x0, blocks, view_rows, options)
+    except SolverError as e:
+        raise FitError(str(e)) from None
 
 
 def levenberg_marquardt(residual_fn, x0: torch.Tensor, robust: str | None = None, robust_scale: float = 3.0,
-                        max_iterations: int = 200, decrement_tol: float = 1e-9, xtol: float = 1e-12,
-                        jacobian_fn=None) -> _LMResult:
-    """Minimise ½ Σ ρ(r_i(x)²) by Levenberg–Marquardt with Marquardt scaling and IRLS robust weights.
-
-    Converged when the Gauss–Newton decrement ½ gᵀ (JᵀWJ)⁻¹ g (the cost a full Newton step would still
-    gain) is below `decrement_tol`: with residuals in units of their σ that means the parameters are within
-    a tiny fraction of their standard deviation of the minimum. Also stops on steps below `xtol`.
+                        max_iterations: int = 200, jacobian_fn=None) -> LMResult:
+    """Minimise ½ Σ ρ(r_i(x)²) over one dense parameter vector (`tiltfit.solve.levenberg_marquardt` with a
+    single block "x"; the result's `x` is the vector).
 
     Args:
         residual_fn: (P,) -> (M,) float64 residuals, already divided by their σ.
         x0: (P,) start.
-        jacobian_fn: (P,) -> (M, P) tensor or `BlockJacobian` (then the normal equations are solved by the
-            Schur complement of the per-view pose blocks); default `torch.func.jacfwd(residual_fn)`.
-    Returns:
-        _LMResult with the solution, cost, iterations, and J (as `jacobian_fn` gives it), r, IRLS weights.
+        jacobian_fn: (P,) -> (M, P); default `torch.func.jacfwd(residual_fn)`.
     Raises:
         FitError: non-finite residuals at the start, or no convergence within max_iterations.
     """
+    from torch.func import jacfwd
+
     jac = jacobian_fn or jacfwd(residual_fn)
-    x = x0.detach().clone()
-    r = residual_fn(x).detach()
-    if not torch.isfinite(r).all():
-        raise FitError("the model is undefined at the starting point (a point behind the camera?)")
 
-    def cost_of(res):
-        return 0.5 * float(robust_rho(res * res, robust, robust_scale).sum())
+    def evaluate(x: dict, with_jacobian: bool):
+        v = x["x"]
+        return residual_fn(v).detach(), ({"x": jac(v).detach()} if with_jacobian else None)
 
-    cost = cost_of(r)
-    J = jac(x).detach()
-    wts = robust_weight(r * r, robust, robust_scale)
-    lam, nu, diag_max = 1e-6, 2.0, None
-    for it in range(max_iterations + 1):
-        ne = _normal_equations(J, wts)
-        g = ne.gradient(r)
-        d = ne.diag().clamp(min=1e-300)
-        diag_max = d if diag_max is None else torch.maximum(diag_max, d)
-        try:
-            gn = ne.solve(1e-12 * diag_max, g)
-            decrement = 0.5 * float(g @ gn)
-            if not math.isfinite(decrement):
-                decrement = math.inf
-        except RuntimeError:
-            decrement = math.inf
-        if decrement < decrement_tol:
-            return _LMResult(x, cost, it, J, r, wts)
-        if it == max_iterations:
-            break
-        while True:
-            try:
-                step = -ne.solve(lam * diag_max, g)
-            except RuntimeError:
-                step = torch.full_like(g, float("nan"))
-            ok = bool(torch.isfinite(step).all())
-            r_new = residual_fn(x + step).detach() if ok else None
-            cost_new = cost_of(r_new) if ok and torch.isfinite(r_new).all() else math.inf
-            predicted = float(-(g @ step) - 0.5 * step @ ne.matvec(step)) if ok else 0.0
-            rho = (cost - cost_new) / predicted if predicted > 0 else -1.0
-            if rho > 0:
-                break
-            lam *= nu
-            nu *= 2.0
-            if lam > 1e16:
-                # No damped step decreases the cost: x is a stationary point to working precision.
-                return _LMResult(x, cost, it, J, r, wts)
-        x, r, cost = x + step, r_new, cost_new
-        lam *= max(0.1, 1.0 - (2.0 * rho - 1.0) ** 3)
-        nu = 2.0
-        J = jac(x).detach()
-        wts = robust_weight(r * r, robust, robust_scale)
-        if float(step.abs().max()) <= xtol * (float(x.abs().max()) + xtol):
-            return _LMResult(x, cost, it + 1, J, r, wts)
-    raise FitError(f"the fit did not converge in {max_iterations} iterations (cost {cost:.6g}, "
-                   f"still decreasing by about {decrement:.3g})")
+    res = _lm(evaluate, {"x": x0.detach().to(torch.float64)}, [Block("x", tuple(x0.shape))], None,
+              _robust_options(robust, robust_scale, max_iterations))
+    res.x = res.x_flat
+    return res
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -493,8 +356,9 @@ def focal_from_homographies(obs: Observations, principal_point_px=None) -> float
     if np.ptp(pts[:, 2]) > 1e-9:
         return None
     rows_a, rows_c = [], []
+    mask = obs.corner_mask.numpy()  # once: the property checks every view's corners
     for v in range(obs.n_views):
-        m = obs.corner_mask[v].numpy()
+        m = mask[v]
         if m.sum() < 4:
             continue
         Hm, _ = cv2.findHomography(pts[m, :2] / s, (obs.corners_px[v].numpy()[m] - c) / s, 0)
@@ -526,8 +390,9 @@ def poses_from_pnp(obs: Observations, focal_px: float, principal_point_px,
         np.array([float(v) for v in distortion], dtype=np.float64)
     pts = obs.points_mm.numpy()
     rv, tv = [], []
+    mask = obs.corner_mask.numpy()  # once: the property checks every view's corners
     for v in range(obs.n_views):
-        m = obs.corner_mask[v].numpy()
+        m = mask[v]
         if m.sum() < 4:
             raise FitError(f"{obs.names[v]}: only {int(m.sum())} corners detected, at least 4 are needed")
         planar = np.ptp(pts[m, 2]) < 1e-9
@@ -657,22 +522,20 @@ def start_blur(cam: TiltLensCamera, obs: Observations, mode: str, init: TiltLens
 # The fit
 # ---------------------------------------------------------------------------------------------------------
 
-def _group_sigma(prob: _Problem, r_raw: torch.Tensor, J: torch.Tensor, wts: torch.Tensor,
-                 robust: str | None) -> tuple[float, float]:
-    """Variance components: σ_g² = Σ_g r² / (n_g − tr_g(hat matrix)) (MAD-based under a robust loss)."""
-    Js = J * wts[:, None]
-    A = J.T @ Js
+def _group_sigma(prob: _Problem, r_raw: torch.Tensor, normal, robust: str | None) -> tuple[float, float]:
+    """Variance components: σ_g² = Σ_g r² / (n_g − tr_g(hat matrix)) (MAD-based under a robust loss); the
+    hat matrix's diagonal from the normal equations' blocks (`normal.leverages`)."""
     try:
-        Ainv = torch.linalg.inv(A)
+        Ainv = normal.inverse()
     except RuntimeError:
-        Ainv = torch.linalg.pinv(A)
+        Ainv = torch.linalg.pinv(normal.dense())
+    lev = normal.leverages(Ainv)
     out = []
     for rows, n in ((prob.corner_rows, prob.n_corner), (prob.blur_rows, prob.n_blur)):
         if n == 0:
             out.append(1.0)
             continue
-        Jg = J[rows]
-        used = float(torch.einsum("ij,jk,ik->", Jg * wts[rows][:, None], Ainv, Jg))
+        used = float(lev[rows].sum())
         dof = max(n - used, 1.0)
         rg = r_raw[rows]
         if robust in (None, "none"):
@@ -693,15 +556,16 @@ def _solve(camera: TiltLensCamera, obs: Observations, options: FitOptions, sigma
     sc = options.sigma_corner_px or (sigma[0] if sigma else 1.0)
     sb = options.sigma_blur_px or (sigma[1] if sigma else 1.0)
     estimate = options.sigma_corner_px is None or options.sigma_blur_px is None
+    lm_options = _robust_options(options.robust, options.robust_scale, options.max_iterations)
+    one_group = (prob.n_corner == 0 or prob.n_blur == 0) and options.robust in (None, "none")
     x, total_it = prob.x0(), 0
     for outer in range(options.noise_iterations + 1):
         scale = prob.scale(sc, sb)
-        res = levenberg_marquardt(lambda v: prob.raw(v) * scale, x, options.robust, options.robust_scale,
-                                  options.max_iterations, jacobian_fn=prob.jacobian_fn(scale))
+        res = _lm(prob.evaluate(scale), x, prob.blocks, prob.view_rows, lm_options)
         x, total_it = res.x, total_it + res.iterations
         if not estimate or outer == options.noise_iterations:
             break
-        new_sc, new_sb = _group_sigma(prob, res.r / scale, dense_jacobian(res.J), res.weights, options.robust)
+        new_sc, new_sb = _group_sigma(prob, res.r / scale, res.normal, options.robust)
         new_sc = options.sigma_corner_px or new_sc
         new_sb = options.sigma_blur_px or new_sb
         changed = abs(new_sc / sc - 1) > 1e-3 or abs(new_sb / sb - 1) > 1e-3
@@ -709,6 +573,11 @@ def _solve(camera: TiltLensCamera, obs: Observations, options: FitOptions, sigma
             say(f"  pass {outer + 1}: cost {res.cost:.6g} after {res.iterations} iterations; "
                 f"σ_corner {new_sc:.4g} px, σ_blur {new_sb:.4g} px")
         if not changed:
+            break
+        if one_group:
+            # One σ scales every residual alike: the minimiser stays, and the estimate is final.
+            res = res.scaled(sc / new_sc if prob.n_corner else sb / new_sb)
+            sc, sb = new_sc, new_sb
             break
         sc, sb = new_sc, new_sb
     res.iterations = total_it
@@ -748,23 +617,23 @@ def _held_sigma(init_sigma: dict | None, camera: TiltLensCamera, names: list[str
     return out
 
 
-def _uncertainties(prob: _Problem, res: _LMResult, scale: torch.Tensor, init_sigma: dict | None):
+def _jacobian_of(f, x: torch.Tensor) -> torch.Tensor:
+    """(m, n) Jacobian of a small function (m, n ≲ 10) by reverse-mode autograd."""
+    return torch.autograd.functional.jacobian(f, x.detach())
+
+
+def _uncertainties(prob: _Problem, res: LMResult, scale: torch.Tensor, init_sigma: dict | None):
     """Covariance of the free parameters and σ of the derived quantities and per-view poses."""
     cam = prob.camera
-    J = dense_jacobian(res.J)
-    Jw = J * res.weights[:, None]
-    A = J.T @ Jw
     n = prob.n_corner + prob.n_blur
-    p = res.x.numel()
+    p = res.x_flat.numel()
     s2 = float((res.weights * res.r * res.r).sum()) / max(n - p, 1)
     try:
-        Ainv = torch.linalg.inv(A)
-    except RuntimeError:
+        C = solve_covariance(res, s2)
+    except SolverError:
         raise FitError("the fit is degenerate: the free parameters are not all determined by the data") from None
-    if not torch.isfinite(Ainv).all() or (torch.diagonal(Ainv) <= 0).any():
-        raise FitError("the fit is degenerate: the free parameters are not all determined by the data")
-    C = s2 * Ainv
-    G = jacfwd(lambda v: _derived(cam, prob.params(v)))(res.x)
+    layout = res.layout
+    G = _jacobian_of(lambda v: _derived(cam, prob.params(layout.unflatten(v))), res.x_flat)
     cov_d = G @ C @ G.T
     # Held lens parameters with known uncertainty: total derivative through the re-fitted free parameters.
     held_sig = _held_sigma(init_sigma, cam, list(prob.held))
@@ -778,9 +647,12 @@ def _uncertainties(prob: _Problem, res: _LMResult, scale: torch.Tensor, init_sig
                 held[k] = hv[i]
             return held
 
-        Jh = jacfwd(lambda hv: prob.raw(res.x, with_h(hv)) * scale)(h0)
-        dx_dh = -torch.linalg.solve(A, Jw.T @ Jh)
-        Gh = jacfwd(lambda hv: _derived(cam, prob.params(res.x, with_h(hv))))(h0) + G @ dx_dh
+        _, jh = prob.raw_jacobian(res.x, hnames)
+        Jh = torch.cat([jh[k] for k in hnames], 1) * scale[:, None]
+        # dx/dh = −(JᵀWJ)⁻¹ JᵀW J_h; JᵀW v is the normal equations' gradient of v
+        JtWJh = torch.stack([res.normal.gradient(Jh[:, i]) for i in range(len(hnames))], 1)
+        dx_dh = -(C / s2) @ JtWJh
+        Gh = _jacobian_of(lambda hv: _derived(cam, prob.params(res.x, with_h(hv))), h0) + G @ dx_dh
         Sh = torch.diag(torch.tensor([held_sig[k] ** 2 for k in hnames], dtype=torch.float64))
         cov_d = cov_d + Gh @ Sh @ Gh.T
     sig = torch.sqrt(torch.clamp(torch.diagonal(cov_d), min=0.0))
@@ -788,10 +660,7 @@ def _uncertainties(prob: _Problem, res: _LMResult, scale: torch.Tensor, init_sig
     sigma["principal_point_px"] = [float(sig[7]), float(sig[8])]
     # Per-view pose σ, if the poses are free.
     view_sig = []
-    offsets, i = {}, 0
-    for nme, size in zip(prob.names, prob.sizes):
-        offsets[nme] = (i, size)
-        i += size
+    offsets = layout.offsets
     sigma["distortion"] = [math.sqrt(float(C[offsets[n][0], offsets[n][0]])) if n in offsets else 0.0
                            for n in TiltLensCamera.parameter_names("distortion")]
     if "inv_U_per_m" in offsets:
@@ -812,16 +681,6 @@ def _uncertainties(prob: _Problem, res: _LMResult, scale: torch.Tensor, init_sig
     return C, sigma, view_sig, s2
 
 
-def _flat_names(prob: _Problem) -> list[str]:
-    out = []
-    for n, shape in zip(prob.names, prob.shapes):
-        if len(shape) == 0:
-            out.append(n)
-        else:
-            out += [f"{n}[{','.join(map(str, idx))}]" for idx in np.ndindex(*shape)]
-    return out
-
-
 def _set_free(camera: TiltLensCamera, mode: str, free_pp: bool):
     camera.freeze("all")
     camera.free(*_MODE_FREE[mode])
@@ -832,7 +691,7 @@ def _set_free(camera: TiltLensCamera, mode: str, free_pp: bool):
             camera.theta_F.zero_()
 
 
-def _group_rss(prob: _Problem, res: _LMResult, scale: torch.Tensor) -> dict:
+def _group_rss(prob: _Problem, res: LMResult, scale: torch.Tensor) -> dict:
     raw = res.r / scale
     return {"corners": float((raw[prob.corner_rows] ** 2).sum()), "blur": float((raw[prob.blur_rows] ** 2).sum()),
             "n_corners": prob.n_corner, "n_blur": prob.n_blur}
@@ -853,17 +712,18 @@ def _fit_camera(camera: TiltLensCamera, obs: Observations, options: FitOptions, 
     views = []
     R = camera.R.detach()
     T = camera.T_mm.detach()
+    n_points = obs.corner_mask.sum(-1).tolist()
     for v in range(obs.n_views):
         views.append({
             "image": obs.names[v], "R": R[v].tolist(), "T_mm": T[v].tolist(),
             "rms_reprojection_px": float(rc[v]), "rms_blur_px": float(rb[v]),
-            "n_points": int(obs.corner_mask[v].sum()), **view_sig[v],
+            "n_points": int(n_points[v]), **view_sig[v],
         })
     return FitResult(
         mode=mode, camera=camera, values=values, sigma=sig, views=views,
         noise={"sigma_corner_px": sc, "sigma_blur_px": sb, "variance_factor": s2},
-        parameter_names=_flat_names(prob), covariance=C, chi2=2.0 * res.cost,
-        n_residuals=prob.n_corner + prob.n_blur, n_parameters=res.x.numel(), iterations=res.iterations,
+        parameter_names=res.layout.flat_names(), covariance=C, chi2=2.0 * res.cost,
+        n_residuals=prob.n_corner + prob.n_blur, n_parameters=res.x_flat.numel(), iterations=res.iterations,
         runtime_s=time.perf_counter() - t0, rss=_group_rss(prob, res, scale))
 
 

@@ -89,6 +89,27 @@ def distort_jacobian(xy: torch.Tensor, coefficients) -> torch.Tensor:
     return torch.stack([torch.stack([dxx, dxy], -1), torch.stack([dxy, dyy], -1)], -2)
 
 
+def distort_coefficient_jacobian(xy: torch.Tensor, coefficients) -> torch.Tensor:
+    """(..., 2, 8) Jacobian ∂(x_d, y_d)/∂(k1, k2, p1, p2, k3, k4, k5, k6) of `distort` (columns in OpenCV's
+    order; the rational terms through s = a / b: ∂s/∂k4 = −s r² / b, and so on)."""
+    k = _padded(coefficients, xy)
+    x, y = xy[..., 0], xy[..., 1]
+    r2 = x * x + y * y
+    r4 = r2 * r2
+    r6 = r4 * r2
+    k4, k5, k6 = k[..., 5], k[..., 6], k[..., 7]
+    b = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    s, _ = _radial(r2, k)
+    # ∂s/∂(k1, k2, k3, k4, k5, k6)
+    radial = torch.stack([r2 / b, r4 / b, r6 / b, -s * r2 / b, -s * r4 / b, -s * r6 / b], -1)
+    xy2 = 2 * x * y
+    jx = torch.stack([x * radial[..., 0], x * radial[..., 1], xy2, r2 + 2 * x * x, x * radial[..., 2],
+                      x * radial[..., 3], x * radial[..., 4], x * radial[..., 5]], -1)
+    jy = torch.stack([y * radial[..., 0], y * radial[..., 1], r2 + 2 * y * y, xy2, y * radial[..., 2],
+                      y * radial[..., 3], y * radial[..., 4], y * radial[..., 5]], -1)
+    return torch.stack([jx, jy], -2)
+
+
 def undistort(xy_d: torch.Tensor, coefficients, iterations: int = 20) -> torch.Tensor:
     """Distorted normalised coordinates -> ideal ones: the inverse of `distort`, by Newton's method.
 

@@ -46,8 +46,9 @@ import torch
 
 from .. import optics
 from ..optics import BLUR_MODELS
-from ..transforms import axis_angle_to_matrix, matrix_to_axis_angle
-from .distortion import COEFFICIENT_NAMES, MODEL_TERMS, BrownConrady
+from ..transforms import axis_angle_to_matrix, matrix_to_axis_angle, rotated_point_jacobian
+from .distortion import (COEFFICIENT_NAMES, MODEL_TERMS, BrownConrady, distort, distort_coefficient_jacobian,
+                         distort_jacobian)
 from .projection import project_pinhole
 from .thin_lens import ThinLensCamera
 
@@ -285,6 +286,98 @@ class LensCamera(torch.nn.Module):
         p_cam = self.to_camera(X_world)
         uv = self.project_camera(p_cam, with_distortion)
         return uv, (self.blur_camera(p_cam) if with_blur else torch.zeros_like(p_cam[..., 0]))
+
+    def jacobian(self, X_world: torch.Tensor, with_blur: bool = True, with_distortion: bool = True,
+                 names=None):
+        """`forward` and its derivatives with respect to the stored parameters, in closed form (no autodiff).
+
+        The chain rule of uv = c + (w / p) D(x / z, y / z) and b = blur(p_cam; w, U, d, θF) / p + offset with
+        p_cam = R(rvec) X + T: the pose by `transforms.rotated_point_jacobian`, the distortion by
+        `distortion.distort_jacobian` and `distort_coefficient_jacobian`, the blur by
+        `optics.blur_diameter_jacobian`, each divided by the stored parametrisation (log w, 1/U in dioptres,
+        d in cm, T in `length_scale_mm`, principal point in `pixel_scale_px`). Checked against autograd in
+        tests/renderer/test_jacobians.py.
+
+        Args:
+            X_world: (N, 3) world points, mm.
+            with_blur, with_distortion: as in `forward` (without blur, b and its rows are 0).
+            names: stored parameter names to differentiate by (None: all of them, free or not).
+        Returns:
+            uv: (V, N, 2) pixels; b: (V, N) blur diameters, pixels;
+            jac: {stored name: (V, N, 3, size)} derivatives of (u, v, b) with respect to the parameter; for
+            `rvec` and `T_scaled` (size 3) those of view v's own pose (the other views' rows do not depend
+            on it).
+        """
+        names = tuple(n for n, _ in self.named_parameters()) if names is None else tuple(names)
+        with torch.no_grad():
+            dt, dev = self.rvec.dtype, self.rvec.device
+            X = torch.as_tensor(X_world, dtype=dt, device=dev)
+            rvec = self.rvec.detach()
+            p_rot = torch.einsum("vij,nj->vni", axis_angle_to_matrix(rvec), X)   # (V, N, 3)
+            p_cam = p_rot + self.T_mm.detach()[:, None, :]
+            x, y, z = p_cam.unbind(-1)
+            iz = 1.0 / z
+            xn = p_cam[..., :2] * iz[..., None]
+            zero = torch.zeros_like(z)
+            dxn_dp = torch.stack([iz, zero, -xn[..., 0] * iz, zero, iz, -xn[..., 1] * iz], -1).reshape(z.shape + (2, 3))
+            k = self.distortion.detach()
+            F = float(self.focal_px.detach())
+            dist_names = [n for n in _DIST if n in names]
+            if with_distortion:
+                xd = distort(xn, k)
+                dxd_dp = distort_jacobian(xn, k) @ dxn_dp
+            else:
+                xd, dxd_dp = xn, dxn_dp
+            uv = self.principal_point_px.detach() + F * xd
+            pitch = self.pixel_pitch_mm
+            pose = any(n in names for n in ("rvec", "T_scaled"))
+            lens_names = [n for n in ("log_w_mm", "inv_U_per_m", "d_scaled", "theta_F") if n in names]
+            if with_blur:
+                b_mm, Jb = optics.blur_diameter_jacobian(p_cam, self.w_mm.detach(), self.U_mm.detach(),
+                                                         self.d_mm.detach(), self.theta_F.detach(), self.blur_model)
+                b = b_mm / pitch + self.blur_offset_px.detach()
+                rows = torch.cat([F * dxd_dp, Jb[..., None, :3] / pitch], -2)    # ∂(u, v, b)/∂p_cam
+            else:
+                b = zero
+                rows = torch.cat([F * dxd_dp, torch.zeros_like(dxd_dp[..., :1, :])], -2)
+            jac = {}
+            if lens_names:
+                # ∂/∂(w, U, d, θF), then by the stored parametrisation w = exp(log_w), U = 1000 / inv_U,
+                # d = 10 |d_scaled|
+                w, U = self.w_mm.detach(), self.U_mm.detach()
+                lens = torch.zeros(z.shape + (3, 4), dtype=dt, device=dev)
+                lens[..., :2, 0] = xd / pitch
+                if with_blur:
+                    lens[..., 2, :] = Jb[..., 3:] / pitch
+                chain = torch.stack([w, -U * U / 1000.0, APERTURE_SCALE_MM * torch.sign(self.d_scaled.detach()),
+                                     torch.ones_like(w)])
+                lens = lens * chain
+                for i, n in enumerate(("log_w_mm", "inv_U_per_m", "d_scaled", "theta_F")):
+                    if n in names:
+                        jac[n] = lens[..., i:i + 1]
+            if pose:
+                if "rvec" in names:
+                    jac["rvec"] = rotated_point_jacobian(rvec[:, None, :], p_rot, rows)
+                if "T_scaled" in names:
+                    jac["T_scaled"] = rows * self.length_scale_mm
+            if "pp_scaled" in names:
+                pp = torch.zeros(z.shape + (3, 2), dtype=dt, device=dev)
+                pp[..., 0, 0] = self.pixel_scale_px
+                pp[..., 1, 1] = self.pixel_scale_px
+                jac["pp_scaled"] = pp
+            if "blur_offset_px" in names:
+                off = torch.zeros(z.shape + (3, 1), dtype=dt, device=dev)
+                if with_blur:
+                    off[..., 2, 0] = 1.0
+                jac["blur_offset_px"] = off
+            if dist_names:
+                dk = torch.zeros(z.shape + (3, 8), dtype=dt, device=dev)
+                if with_distortion:
+                    dk[..., :2, :] = F * distort_coefficient_jacobian(xn, k)
+                for n in dist_names:
+                    i = _DIST.index(n)
+                    jac[n] = dk[..., i:i + 1]
+        return uv, b, jac
 
     # --- rendering -----------------------------------------------------------------------------------------
     def view_camera(self, view: int) -> ThinLensCamera:

@@ -1,0 +1,181 @@
+"""tiltfit.solve: Levenberg–Marquardt over named blocks on problems with a known minimum; the Schur complement of
+per-view blocks against the dense normal equations; the Gauss–Newton covariance against linear regression."""
+import math
+
+import pytest
+import torch
+
+from tiltfit.solve import Block, LMOptions, SolverError, covariance, levenberg_marquardt
+from tiltfit.solve.blocks import DenseNormal, Layout, SchurNormal
+
+F64 = torch.float64
+
+
+def _exponential():
+    t = torch.linspace(0, 1, 20, dtype=F64)
+    y = 2.0 * torch.exp(-1.5 * t) + 0.3
+
+    def evaluate(x, with_jacobian):
+        a, k, c = x["amplitude"], x["rate"], x["offset"]
+        e = torch.exp(k * t)
+        r = a * e + c - y
+        jac = {"amplitude": e[:, None], "rate": (a * t * e)[:, None], "offset": torch.ones(20, 1, dtype=F64)}
+        return r, (jac if with_jacobian else None)
+
+    blocks = [Block("amplitude", ()), Block("rate", ()), Block("offset", ())]
+    x0 = {"amplitude": torch.tensor(1.0, dtype=F64), "rate": torch.tensor(0.0, dtype=F64),
+          "offset": torch.tensor(0.0, dtype=F64)}
+    return evaluate, blocks, x0
+
+
+def test_recovers_a_known_minimum_by_name():
+    evaluate, blocks, x0 = _exponential()
+    # The decrement test is absolute (residuals in units of their σ): 1e-9 leaves the parameters within
+    # ~sqrt(2e-9) / sensitivity of the minimum; a tighter one reaches it to rounding.
+    for tol, atol in ((1e-9, 1e-5), (1e-24, 1e-10)):
+        res = levenberg_marquardt(evaluate, x0, blocks, options=LMOptions(decrement_tol=tol))
+        for name, true in (("amplitude", 2.0), ("rate", -1.5), ("offset", 0.3)):
+            assert abs(float(res.x[name]) - true) < atol, f"{name}: {float(res.x[name])} vs {true} (tol {tol})"
+        assert res.stop in ("decrement", "ftol", "xtol"), f"converged, stopped by {res.stop}"
+        assert 2 <= res.iterations < 30, f"iterations {res.iterations}"
+    assert res.cost < 1e-20, f"zero-residual problem, cost {res.cost}"
+
+
+def test_non_finite_start_and_no_convergence_are_errors():
+    evaluate, blocks, x0 = _exponential()
+    with pytest.raises(SolverError, match="undefined at the starting point"):
+        levenberg_marquardt(lambda x, j: (evaluate(x, j)[0] / 0.0 * 0.0, evaluate(x, j)[1]), x0, blocks)
+    with pytest.raises(SolverError, match="did not converge in 1 iterations"):
+        levenberg_marquardt(evaluate, x0, blocks, options=LMOptions(max_iterations=1))
+
+
+def test_linear_problem_gives_the_regression_covariance():
+    """For r = X β − y the minimum is the least-squares solution and s² (XᵀX)⁻¹ its covariance, exactly."""
+    gen = torch.Generator().manual_seed(0)
+    X = torch.randn(50, 3, generator=gen, dtype=F64)
+    y = X @ torch.tensor([1.0, -2.0, 0.5], dtype=F64) + 0.1 * torch.randn(50, generator=gen, dtype=F64)
+
+    def evaluate(x, with_jacobian):
+        return X @ x["beta"] - y, ({"beta": X} if with_jacobian else None)
+
+    res = levenberg_marquardt(evaluate, {"beta": torch.zeros(3, dtype=F64)}, [Block("beta", (3,))])
+    beta = torch.linalg.lstsq(X, y[:, None]).solution[:, 0]
+    assert torch.allclose(res.x["beta"], beta, atol=1e-10), f"{res.x['beta'].tolist()} vs {beta.tolist()}"
+    s2 = float((res.r ** 2).sum()) / (50 - 3)
+    C = covariance(res, s2)
+    expected = s2 * torch.linalg.inv(X.T @ X)
+    assert torch.allclose(C, expected, rtol=1e-10, atol=0), "Gauss–Newton covariance s² (XᵀX)⁻¹"
+
+
+def _circles(n_views=6, n_points=9, seed=3):
+    """Points on V circles with one shared radius and per-view centres: a problem with per-view blocks."""
+    gen = torch.Generator().manual_seed(seed)
+    centres = 5 * torch.randn(n_views, 2, generator=gen, dtype=F64)
+    radius, squash = 3.0, 0.8
+    phi = 2 * math.pi * torch.rand(n_views, n_points, generator=gen, dtype=F64)
+    pts = centres[:, None, :] + torch.stack([radius * torch.cos(phi), squash * radius * torch.sin(phi)], -1)
+    pts = pts + 0.01 * torch.randn(pts.shape, generator=gen, dtype=F64)
+
+    def evaluate(x, with_jacobian):
+        d = pts - x["centre"][:, None, :]                                  # (V, N, 2)
+        q = torch.stack([d[..., 0], d[..., 1] / x["squash"]], -1)
+        n = q.norm(dim=-1)
+        r = (n - x["radius"]).reshape(-1)                                   # view v's rows: v N … v N + N − 1
+        if not with_jacobian:
+            return r, None
+        dn_dc = -torch.stack([q[..., 0], q[..., 1] / x["squash"]], -1) / n[..., None]
+        dn_ds = -(q[..., 1] ** 2 / x["squash"]) / n
+        jac = {"radius": -torch.ones(r.shape[0], 1, dtype=F64), "squash": dn_ds.reshape(-1, 1),
+               "centre": dn_dc.reshape(-1, 2)}
+        return r, jac
+
+    blocks = [Block("radius", ()), Block("centre", (n_views, 2), per_view=True), Block("squash", ())]
+    view_rows = torch.arange(n_views * n_points).reshape(n_views, n_points)
+    x0 = {"radius": torch.tensor(2.0, dtype=F64), "centre": centres + 0.3, "squash": torch.tensor(1.0, dtype=F64)}
+    return evaluate, blocks, view_rows, x0, (radius, squash, centres)
+
+
+def test_per_view_blocks_by_schur_complement_match_the_dense_solve():
+    evaluate, blocks, view_rows, x0, (radius, squash, centres) = _circles()
+    res = levenberg_marquardt(evaluate, x0, blocks, view_rows)
+    assert isinstance(res.normal, SchurNormal), "per-view blocks use the Schur complement"
+    assert abs(float(res.x["radius"]) - radius) < 0.01 and abs(float(res.x["squash"]) - squash) < 0.01, \
+        f"radius {float(res.x['radius'])}, squash {float(res.x['squash'])}"
+    assert float((res.x["centre"] - centres).abs().max()) < 0.02, "centres recovered"
+    # The same problem as one dense block: same minimum, same covariance.
+    layout = Layout(blocks, view_rows)
+
+    def dense_eval(x, with_jacobian):
+        r, jac = evaluate(layout.unflatten(x["all"]), with_jacobian)
+        return r, ({"all": layout.jacobian(jac).dense()} if with_jacobian else None)
+
+    dense = levenberg_marquardt(dense_eval, {"all": layout.flatten(x0)}, [Block("all", (layout.n_params,))])
+    assert isinstance(dense.normal, DenseNormal)
+    assert torch.allclose(res.x_flat, dense.x_flat, atol=1e-9), "Schur and dense solves agree"
+    C_schur, C_dense = covariance(res), covariance(dense)
+    assert torch.allclose(C_schur, C_dense, rtol=1e-8, atol=1e-14), "block inverse equals the dense inverse"
+    lev = res.normal.leverages(C_schur)
+    assert abs(float(lev.sum()) - layout.n_params) < 1e-8, \
+        f"the hat matrix's trace is the number of parameters: {float(lev.sum())} vs {layout.n_params}"
+    assert layout.flat_names()[:3] == ["radius", "centre[0,0]", "centre[0,1]"], layout.flat_names()[:3]
+
+
+def test_huber_loss_down_weights_an_outlier():
+    evaluate, blocks, x0 = _exponential()
+
+    def with_outlier(x, with_jacobian):
+        r, jac = evaluate(x, with_jacobian)
+        return r + torch.nn.functional.one_hot(torch.tensor(5), 20).to(F64) * 5.0, jac
+
+    k = 0.01
+
+    def rho(s2):
+        return torch.where(s2 <= k * k, s2, 2 * k * s2.sqrt() - k * k)
+
+    def weight(s2):
+        return torch.where(s2 <= k * k, torch.ones_like(s2), k / s2.clamp(min=k * k).sqrt())
+
+    plain = levenberg_marquardt(with_outlier, x0, blocks)
+    robust = levenberg_marquardt(with_outlier, x0, blocks, options=LMOptions(rho=rho, weight=weight))
+    err_plain = abs(float(plain.x["rate"]) + 1.5)
+    err_robust = abs(float(robust.x["rate"]) + 1.5)
+    assert err_robust < 0.2 * err_plain, f"rate error robust {err_robust:.3g} vs plain {err_plain:.3g}"
+
+
+def test_calibration_problem_jacobian_equals_autograd_of_its_residuals():
+    """The fit's problem (masks, σ scaling, per-view pose blocks) assembles the closed-form Jacobian into the
+    same matrix autograd gives for its residual vector, with corners and blur widths missing here and there."""
+    from torch.func import functional_call
+
+    from tiltfit.fit import _Problem
+    from tiltfit.model import TiltLensCamera, board_points_mm, random_poses, synthesize_observations
+
+    rvec, T = random_poses(3, seed=7)
+    cam = TiltLensCamera(3, (1368, 912), 0.026, 55.0, 640.0, 18.0, 0.3, rvec=rvec, T_mm=T,
+                         distortion=[0.05, -0.02, 0.001, 0.002, 0.01, 0.0, 0.0, 0.0])
+    obs = synthesize_observations(cam, board_points_mm(5, 3, 25.0), 0.1, 0.1, seed=3)
+    obs.corners_px[1, 3] = math.nan
+    obs.blur_px[2, 5:8] = math.nan
+    cam.free("all", "principal_point", "blur_offset", "k1", "k2", "p1", "p2", "k3")
+    with torch.no_grad():
+        cam.log_w_mm.add_(0.01)
+        cam.rvec.add_(0.01)
+    prob = _Problem(cam, obs)
+    scale = prob.scale(0.3, 1.7)
+    x0 = prob.x0()
+    r, jac = prob.evaluate(scale)(x0, True)
+    layout = Layout(prob.blocks, prob.view_rows)
+    ours = layout.jacobian(jac).dense()
+
+    def residuals(v):
+        params = {**prob.held, **layout.unflatten(v)}
+        uv, b = functional_call(cam, params, (prob.points,))
+        rc = torch.where(prob.cmask[..., None], uv - prob.corners, torch.zeros_like(uv)).reshape(-1)
+        rb = torch.where(prob.bmask, b - prob.blur, torch.zeros_like(b)).reshape(-1)
+        return torch.cat([rc, rb]) * scale
+
+    v0 = layout.flatten(x0)
+    assert torch.allclose(r, residuals(v0), rtol=0, atol=1e-10), "residuals"
+    auto = torch.autograd.functional.jacobian(residuals, v0)
+    err = float((ours - auto).abs().max() / auto.abs().max())
+    assert ours.shape == auto.shape and err < 1e-9, f"problem Jacobian vs autograd: {err:.2e}"

@@ -1,0 +1,291 @@
+"""Named parameter blocks, the flat vector they form, and the normal equations of their Jacobian.
+
+A least-squares problem's parameters are named blocks (`Block`): a global block is shared by every residual
+(a lens's focal length, its distortion coefficients); a per-view block holds one small vector per view (a
+pose), and view v's residual rows depend only on view v's vector. The flat parameter vector is the blocks in
+the order given, each flattened row-major, so a per-view block of shape (V, K) is view-major, as
+`torch.nn.Parameter`s of the same shapes flatten (`Layout`).
+
+With per-view blocks the normal equations A = Jᵀ W J have the arrow structure of bundle adjustment: the
+per-view part is block diagonal (one K×K block per view) and is eliminated by the Schur complement
+(Triggs et al., "Bundle adjustment — a modern synthesis", 2000, §6.1), so a solve costs
+O(M (S + K)² + V K³ + S³) instead of O(M P² + P³) for M residuals, S global and P = S + V K parameters
+(`SchurNormal`; `DenseNormal` without per-view blocks).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+
+@dataclass(frozen=True)
+class Block:
+    """A named block of parameters.
+
+    Attributes:
+        name: the block's name (the key of the state dict and of the Jacobian dict).
+        shape: the block's tensor shape; for a per-view block (V, K).
+        per_view: each view has its own row of the block, and only that view's residuals depend on it.
+    """
+
+    name: str
+    shape: tuple
+    per_view: bool = False
+
+    @property
+    def size(self) -> int:
+        """Numbers per instance: K for a per-view block, all of them for a global one."""
+        dims = self.shape[1:] if self.per_view else self.shape
+        return int(math.prod(dims))
+
+
+class Layout:
+    """The flat parameter vector of named blocks, and which residual rows belong to which view.
+
+    Args:
+        blocks: the blocks, in flat order.
+        view_rows: (V, R) long, the residual rows of each view (needed when a block is per view).
+    """
+
+    def __init__(self, blocks, view_rows: torch.Tensor | None = None):
+        self.blocks = tuple(blocks)
+        if not self.blocks:
+            raise ValueError("blocks: expected at least one parameter block")
+        names = [b.name for b in self.blocks]
+        if len(set(names)) != len(names):
+            raise ValueError(f"blocks: duplicate names in {names}")
+        self.view_blocks = tuple(b for b in self.blocks if b.per_view)
+        self.global_blocks = tuple(b for b in self.blocks if not b.per_view)
+        if self.view_blocks and view_rows is None:
+            raise ValueError("view_rows: needed for per-view blocks")
+        n_views = {b.shape[0] for b in self.view_blocks}
+        if len(n_views) > 1:
+            raise ValueError(f"per-view blocks disagree on the number of views: {sorted(n_views)}")
+        self.n_views = n_views.pop() if n_views else 0
+        if self.view_blocks and view_rows.shape[0] != self.n_views:
+            raise ValueError(f"view_rows: expected {self.n_views} views, got {view_rows.shape[0]}")
+        self.view_rows = view_rows
+        self.offsets, i = {}, 0
+        for b in self.blocks:
+            n = int(math.prod(b.shape))
+            self.offsets[b.name] = (i, n)
+            i += n
+        self.n_params = i
+        V = self.n_views
+        self.s_idx = torch.cat([torch.arange(self.offsets[b.name][0], sum(self.offsets[b.name]))
+                                for b in self.global_blocks]) if self.global_blocks \
+            else torch.zeros(0, dtype=torch.long)
+        self.p_idx = torch.cat([self.offsets[b.name][0] + b.size * torch.arange(V)[:, None] + torch.arange(b.size)
+                                for b in self.view_blocks], 1) if self.view_blocks else None
+
+    def flatten(self, x: dict) -> torch.Tensor:
+        """{name: tensor} -> (P,) flat vector."""
+        return torch.cat([x[b.name].reshape(-1) for b in self.blocks])
+
+    def unflatten(self, v: torch.Tensor) -> dict:
+        """(P,) flat vector -> {name: tensor of the block's shape} (views into `v`)."""
+        return {b.name: v[self.offsets[b.name][0]:sum(self.offsets[b.name])].reshape(b.shape) for b in self.blocks}
+
+    def flat_names(self) -> list[str]:
+        """Names of the flat vector's entries: `name` for a scalar block, `name[i,j]` otherwise."""
+        out = []
+        for b in self.blocks:
+            if len(b.shape) == 0:
+                out.append(b.name)
+            else:
+                out += [f"{b.name}[{','.join(map(str, idx))}]" for idx in np.ndindex(*b.shape)]
+        return out
+
+    def jacobian(self, jac: dict) -> "BlockJacobian | torch.Tensor":
+        """Assemble a callback's Jacobian {name: (M, size)} into a `BlockJacobian` (per-view blocks: row i
+        holds the derivatives with respect to the block of row i's view) or a dense (M, P) tensor."""
+        Js = torch.cat([jac[b.name] for b in self.global_blocks], 1) if self.global_blocks else None
+        if not self.view_blocks:
+            return Js
+        Jp = torch.cat([jac[b.name] for b in self.view_blocks], 1)
+        if Js is None:
+            Js = Jp.new_zeros(Jp.shape[0], 0)
+        return BlockJacobian(Js, Jp, self.view_rows, self.s_idx, self.p_idx, self.n_params)
+
+
+@dataclass
+class BlockJacobian:
+    """A Jacobian with the multi-view block structure: each view's block touches only its own residual rows.
+
+    Attributes:
+        Js: (M, S) columns of the global parameters.
+        Jp: (M, K) columns of the per-view parameters: row i holds the derivatives with respect to the block of
+            the view that row i belongs to.
+        rows: (V, R) long, the residual rows of each view.
+        s_idx: (S,) long, positions of the global parameters in the flat parameter vector.
+        p_idx: (V, K) long, positions of each view's parameters.
+        n_params: P = S + V·K.
+    """
+
+    Js: torch.Tensor
+    Jp: torch.Tensor
+    rows: torch.Tensor
+    s_idx: torch.Tensor
+    p_idx: torch.Tensor
+    n_params: int
+
+    def dense(self) -> torch.Tensor:
+        """(M, P) the full Jacobian."""
+        J = self.Js.new_zeros(self.Js.shape[0], self.n_params)
+        J[:, self.s_idx] = self.Js
+        J[self.rows[:, :, None], self.p_idx[:, None, :]] = self.Jp[self.rows]
+        return J
+
+
+class DenseNormal:
+    """Normal equations A = Jᵀ W J of a dense Jacobian (M, P); W = diag(wts)."""
+
+    def __init__(self, J: torch.Tensor, wts: torch.Tensor):
+        self.J = J
+        self.Jw = J * wts[:, None]
+        self.A = J.T @ self.Jw
+
+    def gradient(self, r: torch.Tensor) -> torch.Tensor:
+        """Jᵀ W r."""
+        return self.Jw.T @ r
+
+    def diag(self) -> torch.Tensor:
+        return torch.diagonal(self.A)
+
+    def matvec(self, v: torch.Tensor) -> torch.Tensor:
+        return self.A @ v
+
+    def solve(self, damping: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
+        """(A + diag(damping))⁻¹ rhs."""
+        return torch.linalg.solve(self.A + torch.diag(damping), rhs)
+
+    def dense(self) -> torch.Tensor:
+        """(P, P) A."""
+        return self.A
+
+    def inverse(self) -> torch.Tensor:
+        """(P, P) A⁻¹ (raises RuntimeError where A is singular)."""
+        return torch.linalg.inv(self.A)
+
+    def leverages(self, Ainv: torch.Tensor) -> torch.Tensor:
+        """(M,) diagonal of the hat matrix W J A⁻¹ Jᵀ (each residual's share of the fitted parameters)."""
+        return ((self.Jw @ Ainv) * self.J).sum(-1)
+
+
+class SchurNormal:
+    """Normal equations of a `BlockJacobian`, solved by the Schur complement of the per-view blocks.
+
+    With A = [[A_ss, A_sp], [A_ps, A_pp]] where A_pp is block diagonal (one K×K block per view), the damped
+    system is reduced to the global parameters:
+        (A_ss − Σ_v A_sv A_vv⁻¹ A_vs) δ_s = g_s − Σ_v A_sv A_vv⁻¹ g_v,
+    then δ_v = A_vv⁻¹ (g_v − A_vs δ_s).
+    """
+
+    def __init__(self, bj: BlockJacobian, wts: torch.Tensor):
+        self.bj = bj
+        self.w = wts
+        self.Jsw = bj.Js * wts[:, None]
+        self.A_ss = bj.Js.T @ self.Jsw
+        self.Jp_v = bj.Jp[bj.rows]                       # (V, R, K)
+        self.w_v = wts[bj.rows]                          # (V, R)
+        self.Js_v = bj.Js[bj.rows]                       # (V, R, S)
+        Jpw_v = self.Jp_v * self.w_v[..., None]
+        self.A_pp = Jpw_v.transpose(1, 2) @ self.Jp_v    # (V, K, K)
+        self.A_sp = self.Js_v.transpose(1, 2) @ Jpw_v    # (V, S, K)
+
+    def _split(self, v: torch.Tensor):
+        return v[self.bj.s_idx], v[self.bj.p_idx]
+
+    def _join(self, vs: torch.Tensor, vp: torch.Tensor) -> torch.Tensor:
+        out = vs.new_zeros(self.bj.n_params)
+        out[self.bj.s_idx] = vs
+        out[self.bj.p_idx] = vp
+        return out
+
+    def gradient(self, r: torch.Tensor) -> torch.Tensor:
+        """Jᵀ W r."""
+        gs = self.Jsw.T @ r
+        gp = (self.Jp_v * (self.w_v * r[self.bj.rows])[..., None]).sum(1)
+        return self._join(gs, gp)
+
+    def diag(self) -> torch.Tensor:
+        return self._join(torch.diagonal(self.A_ss), torch.diagonal(self.A_pp, dim1=-2, dim2=-1))
+
+    def matvec(self, v: torch.Tensor) -> torch.Tensor:
+        vs, vp = self._split(v)
+        out_s = self.A_ss @ vs + (self.A_sp @ vp[..., None]).squeeze(-1).sum(0)
+        out_p = torch.einsum("vsk,s->vk", self.A_sp, vs) + (self.A_pp @ vp[..., None]).squeeze(-1)
+        return self._join(out_s, out_p)
+
+    def solve(self, damping: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
+        """(A + diag(damping))⁻¹ rhs by the Schur complement."""
+        ds, dp = self._split(damping)
+        gs, gp = self._split(rhs)
+        App_inv = torch.linalg.inv(self.A_pp + torch.diag_embed(dp))   # (V, K, K)
+        B = self.A_sp                                                  # (V, S, K)
+        BAi = B @ App_inv                                              # (V, S, K)
+        S = self.A_ss + torch.diag(ds) - (BAi @ B.transpose(1, 2)).sum(0)
+        rhs_s = gs - (BAi @ gp[..., None]).squeeze(-1).sum(0)
+        xs = torch.linalg.solve(S, rhs_s)
+        xp = (App_inv @ (gp - torch.einsum("vsk,s->vk", B, xs))[..., None]).squeeze(-1)
+        return self._join(xs, xp)
+
+    def dense(self) -> torch.Tensor:
+        """(P, P) A, assembled from its blocks (P² memory; never the (M, P) Jacobian)."""
+        bj = self.bj
+        A = self.A_ss.new_zeros(bj.n_params, bj.n_params)
+        s, p = bj.s_idx, bj.p_idx
+        A[s[:, None], s[None, :]] = self.A_ss
+        A[p[:, :, None], p[:, None, :]] = self.A_pp
+        A[s[None, :, None], p[:, None, :]] = self.A_sp
+        A[p[:, :, None], s[None, None, :]] = self.A_sp.transpose(1, 2)
+        return A
+
+    def inverse(self) -> torch.Tensor:
+        """(P, P) A⁻¹ by blocks: with Y_v = A_vv⁻¹ A_vs and S = A_ss − Σ_v A_sv Y_v,
+        (A⁻¹)_ss = S⁻¹, (A⁻¹)_sv = −S⁻¹ Y_vᵀ, (A⁻¹)_vu = δ_vu A_vv⁻¹ + Y_v S⁻¹ Y_uᵀ;
+        O(P² S) instead of O(P³). Raises RuntimeError where A is singular."""
+        bj = self.bj
+        App_inv = torch.linalg.inv(self.A_pp)                          # (V, K, K)
+        Y = App_inv @ self.A_sp.transpose(1, 2)                        # (V, K, S)
+        S_inv = torch.linalg.inv(self.A_ss - (self.A_sp @ Y).sum(0))
+        V, K, n_s = Y.shape
+        Yf = Y.reshape(V * K, n_s)
+        C_pp = Yf @ S_inv @ Yf.T                                       # (V K, V K)
+        C_pp = C_pp.reshape(V, K, V, K)
+        C_pp[torch.arange(V), :, torch.arange(V), :] += App_inv
+        C_sp = -(S_inv @ Yf.T)                                         # (S, V K)
+        out = S_inv.new_zeros(bj.n_params, bj.n_params)
+        s, p = bj.s_idx, bj.p_idx.reshape(-1)
+        out[s[:, None], s[None, :]] = S_inv
+        out[s[:, None], p[None, :]] = C_sp
+        out[p[:, None], s[None, :]] = C_sp.T
+        out[p[:, None], p[None, :]] = C_pp.reshape(V * K, V * K)
+        return out
+
+    def leverages(self, Ainv: torch.Tensor) -> torch.Tensor:
+        """(M,) diagonal of the hat matrix W J A⁻¹ Jᵀ, from the blocks of A⁻¹ that each row touches:
+        row i of view v has w_i (j_s C_ss j_sᵀ + 2 j_s C_sv j_pᵀ + j_p C_vv j_pᵀ)."""
+        bj = self.bj
+        s, p = bj.s_idx, bj.p_idx
+        C_ss = Ainv[s[:, None], s[None, :]]                             # (S, S)
+        C_sv = Ainv[s[None, :, None], p[:, None, :]]                    # (V, S, K)
+        C_vv = Ainv[p[:, :, None], p[:, None, :]]                       # (V, K, K)
+        js, jp = self.Js_v, self.Jp_v                                   # (V, R, S), (V, R, K)
+        q = (js @ C_ss * js).sum(-1) + 2 * (js @ C_sv * jp).sum(-1) + (jp @ C_vv * jp).sum(-1)
+        out = torch.zeros_like(self.w)
+        out[bj.rows] = self.w_v * q
+        return out
+
+
+def normal_equations(J, wts: torch.Tensor):
+    """`SchurNormal` of a `BlockJacobian`, `DenseNormal` of a dense (M, P) tensor."""
+    return SchurNormal(J, wts) if isinstance(J, BlockJacobian) else DenseNormal(J, wts)
+
+
+def dense_jacobian(J) -> torch.Tensor:
+    """The (M, P) matrix of a dense or block Jacobian."""
+    return J.dense() if isinstance(J, BlockJacobian) else J

@@ -1,0 +1,220 @@
+"""Levenberg–Marquardt over named parameter blocks, with Gauss–Newton covariances.
+
+    levenberg_marquardt(evaluate, x0, blocks, view_rows=None, options=LMOptions()) -> LMResult
+    covariance(result) -> (P, P)
+
+`evaluate(x, with_jacobian)` gets the state as {block name: tensor} and returns (r, jac): r the (M,) residuals,
+already divided by their standard deviations, and jac {block name: (M, size)} (None when not asked for): for a
+per-view block (`Block.per_view`), row i holds the derivatives with respect to the block of row i's view
+(`blocks.Layout`). Every residual row belongs to one view (`view_rows`) when there are per-view blocks; their
+normal equations are then solved by the Schur complement (`blocks.SchurNormal`).
+
+Minimises ½ Σ ρ(r_i²) (ρ(s) = s unless `LMOptions.rho`), robust losses by iteratively reweighted least
+squares (weights ρ'(r_i²), `LMOptions.weight`), each step solving (JᵀWJ + λ D) δ = −JᵀW r:
+- scaling D: the running maximum of diag(JᵀWJ) over the iterations (Marquardt's scaling, kept monotone as in
+  Moré, "The Levenberg–Marquardt algorithm: implementation and theory", 1978, eq. 6.3), so the damping is
+  invariant to the units of each parameter;
+- damping update: the gain ratio ρ_g = (actual cost decrease) / (decrease predicted by the quadratic model);
+  a step is accepted when ρ_g > 0, then λ ← λ · max(`DAMPING_DECREASE_FLOOR`, 1 − (2ρ_g − 1)³) and ν ← 2;
+  a rejected step gives λ ← λ ν, ν ← 2ν (Nielsen, "Damping parameter in Marquardt's method", IMM-REP-1999-05;
+  Madsen, Nielsen & Tingleff, "Methods for non-linear least squares problems", 2004, eq. 3.16; Nielsen's
+  floor is 1/3, this one lets λ fall faster on the well-conditioned problems of calibration).
+Converged when, at the current point:
+- the Gauss–Newton decrement ½ gᵀ (JᵀWJ)⁻¹ g (the cost a full Gauss–Newton step would still gain) is below
+  `decrement_tol`: with residuals in units of their σ the parameters are then within about
+  sqrt(2 · decrement_tol) of their standard deviations of the minimum; or
+- an accepted step decreased the cost by less than `ftol` relative to it, in fact and as predicted
+  (MINPACK's test, Moré, Garbow & Hillstrom, "User guide for MINPACK-1", 1980, §2.3); or
+- the step was below `xtol` relative to the largest parameter.
+No decreasing step for any damping up to `MAX_DAMPING` means a stationary point to working precision.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Callable
+
+import torch
+
+from .blocks import Block, BlockJacobian, Layout, normal_equations
+
+#: Smallest factor λ is multiplied by after a successful step (Nielsen's rule has 1/3).
+DAMPING_DECREASE_FLOOR = 0.1
+#: λ at the start, relative to the scaling D.
+INITIAL_DAMPING = 1e-6
+#: λ above which no step can decrease the cost (steps of relative size below 1e-16).
+MAX_DAMPING = 1e16
+#: Tikhonov damping of the Gauss–Newton solve that measures the decrement (keeps it finite on flat directions).
+DECREMENT_DAMPING = 1e-12
+
+
+class SolverError(RuntimeError):
+    """The solve cannot start (non-finite residuals) or did not converge; the message is one line."""
+
+
+@dataclass(frozen=True)
+class LMOptions:
+    """Settings of `levenberg_marquardt` (defaults in brackets).
+
+    Attributes:
+        max_iterations: accepted steps at most [200].
+        decrement_tol: Gauss–Newton decrement below which the solve has converged [1e-9].
+        ftol: relative cost decrease (actual and predicted) of a step below which it has converged [1e-15].
+        xtol: step size, relative to the largest parameter, below which it has converged [1e-12].
+        rho: robust cost ρ(s²) of squared residuals (None: ρ(s²) = s²) [None].
+        weight: its derivative ρ'(s²), the IRLS weights (None: 1) [None].
+    """
+
+    max_iterations: int = 200
+    decrement_tol: float = 1e-9
+    ftol: float = 1e-15
+    xtol: float = 1e-12
+    rho: Callable | None = None
+    weight: Callable | None = None
+
+
+@dataclass
+class LMResult:
+    """A solve's outcome.
+
+    Attributes:
+        x: {block name: tensor} the solution; x_flat: (P,) the same as one vector (`layout`'s order).
+        cost: ½ Σ ρ(r²) at x; iterations: accepted steps.
+        r: (M,) residuals at x; weights: (M,) IRLS weights at x.
+        jacobian: the Jacobian at x (`blocks.BlockJacobian` or a dense (M, P) tensor); normal: its normal
+            equations (`blocks.SchurNormal` or `blocks.DenseNormal`) with the weights.
+        stop: why the solve ended: "decrement", "ftol", "xtol" or "stationary".
+        layout: the `blocks.Layout` of the parameters.
+    """
+
+    x: dict
+    x_flat: torch.Tensor
+    cost: float
+    iterations: int
+    r: torch.Tensor
+    weights: torch.Tensor
+    jacobian: object
+    normal: object
+    stop: str
+    layout: Layout
+
+    def scaled(self, factor: float) -> "LMResult":
+        """The result for the residuals multiplied by a constant `factor` (a new σ for all of them): the
+        minimiser of ½ Σ r² does not move, so no re-solve is needed. Without a robust loss only (its
+        weights depend on the scale)."""
+        J = self.jacobian
+        J = replace(J, Js=J.Js * factor, Jp=J.Jp * factor) if isinstance(J, BlockJacobian) else J * factor
+        return replace(self, cost=self.cost * factor**2, r=self.r * factor, jacobian=J,
+                       normal=normal_equations(J, self.weights))
+
+
+def levenberg_marquardt(evaluate, x0: dict, blocks, view_rows: torch.Tensor | None = None,
+                        options: LMOptions = LMOptions()) -> LMResult:
+    """Minimise ½ Σ ρ(r_i(x)²) over the named blocks (module docstring).
+
+    Args:
+        evaluate: (x: {name: tensor}, with_jacobian: bool) -> (r (M,), {name: (M, size)} or None).
+        x0: {name: tensor} the start, each of its block's shape (float64).
+        blocks: the `Block`s in flat order.
+        view_rows: (V, R) long, each view's residual rows (when a block is per view).
+        options: `LMOptions`.
+    Returns:
+        LMResult.
+    Raises:
+        SolverError: non-finite residuals at the start, or no convergence within `options.max_iterations`.
+    """
+    layout = Layout(blocks, view_rows)
+    rho = options.rho or (lambda s2: s2)
+    weight = options.weight or torch.ones_like
+
+    def cost_of(res: torch.Tensor) -> float:
+        return 0.5 * float(rho(res * res).sum())
+
+    def linearise(v: torch.Tensor):
+        r_v, jac = evaluate(layout.unflatten(v), True)
+        return r_v.detach(), layout.jacobian(jac)
+
+    x = layout.flatten(x0).detach().clone()
+    r, J = linearise(x)
+    if not torch.isfinite(r).all():
+        raise SolverError("the model is undefined at the starting point (a point behind the camera?)")
+    cost = cost_of(r)
+    wts = weight(r * r)
+    lam, nu, scaling = INITIAL_DAMPING, 2.0, None
+
+    def done(it: int, stop: str, ne) -> LMResult:
+        return LMResult(layout.unflatten(x), x, cost, it, r, wts, J, ne, stop, layout)
+
+    decrement = math.inf
+    for it in range(options.max_iterations + 1):
+        ne = normal_equations(J, wts)
+        g = ne.gradient(r)
+        d = ne.diag().clamp(min=1e-300)
+        scaling = d if scaling is None else torch.maximum(scaling, d)
+        try:
+            decrement = 0.5 * float(g @ ne.solve(DECREMENT_DAMPING * scaling, g))
+            if not math.isfinite(decrement):
+                decrement = math.inf
+        except RuntimeError:
+            decrement = math.inf
+        if decrement < options.decrement_tol:
+            return done(it, "decrement", ne)
+        if it == options.max_iterations:
+            break
+        first_trial = True
+        while True:
+            try:
+                step = -ne.solve(lam * scaling, g)
+            except RuntimeError:
+                step = torch.full_like(g, math.nan)
+            ok = bool(torch.isfinite(step).all())
+            # The first trial of an iteration gets its Jacobian with its residuals (one call costs less than
+            # residuals now and the Jacobian after, and most first trials are accepted); later ones, after a
+            # rejection, residuals only.
+            if not ok:
+                r_new, J_new = None, None
+            elif first_trial:
+                r_new, J_new = linearise(x + step)
+            else:
+                r_new, J_new = evaluate(layout.unflatten(x + step), False)[0].detach(), None
+            first_trial = False
+            cost_new = cost_of(r_new) if ok and torch.isfinite(r_new).all() else math.inf
+            predicted = float(-(g @ step) - 0.5 * step @ ne.matvec(step)) if ok else 0.0
+            gain = (cost - cost_new) / predicted if predicted > 0 else -1.0
+            if gain > 0:
+                break
+            lam *= nu
+            nu *= 2.0
+            if lam > MAX_DAMPING:
+                return done(it, "stationary", ne)
+        small_decrease = cost - cost_new <= options.ftol * cost and predicted <= options.ftol * cost
+        x = x + step
+        lam *= max(DAMPING_DECREASE_FLOOR, 1.0 - (2.0 * gain - 1.0) ** 3)
+        nu = 2.0
+        r, J, cost = (r_new, J_new, cost_new) if J_new is not None else (*linearise(x), cost_new)
+        wts = weight(r * r)
+        if small_decrease:
+            return done(it + 1, "ftol", normal_equations(J, wts))
+        if float(step.abs().max()) <= options.xtol * (float(x.abs().max()) + options.xtol):
+            return done(it + 1, "xtol", normal_equations(J, wts))
+    raise SolverError(f"the fit did not converge in {options.max_iterations} iterations (cost {cost:.6g}, "
+                      f"still decreasing by about {decrement:.3g})")
+
+
+def covariance(result: LMResult, variance_factor: float = 1.0) -> torch.Tensor:
+    """Gauss–Newton covariance s² (JᵀWJ)⁻¹ of the flat parameters at the solution, (P, P) (`layout` order).
+
+    Raises:
+        SolverError: the normal matrix is singular or not positive definite (parameters the data do not
+            determine).
+    """
+    try:
+        Ainv = result.normal.inverse()
+    except RuntimeError:
+        raise SolverError("the free parameters are not all determined by the data") from None
+    if not torch.isfinite(Ainv).all() or (torch.diagonal(Ainv) <= 0).any():
+        raise SolverError("the free parameters are not all determined by the data")
+    return variance_factor * Ainv
+
+
+__all__ = ["Block", "LMOptions", "LMResult", "SolverError", "covariance", "levenberg_marquardt"]

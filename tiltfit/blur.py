@@ -37,19 +37,26 @@ from .target import Target
 
 def _G(u: torch.Tensor) -> torch.Tensor:
     """G(u) = ∫_{−1}^{u} F: antiderivative of the disc edge spread function (radius units); G(u ≥ 1) = u."""
-    uc = u.clamp(-1.0, 1.0)
-    s = torch.sqrt(1 - uc * uc)
-    return 0.5 * uc + (uc * torch.asin(uc) + s * (1 - s * s / 3.0)) / math.pi + (u - 1).clamp_min(0.0)
+    return _G_and_G2(u, with_G=True)[0]
 
 
 def _G2(u: torch.Tensor) -> torch.Tensor:
     """G2(u) = ∫_{−1}^{u} G, closed form; G2(u ≥ 1) = 5/8 + (u² − 1)/2."""
+    return _G_and_G2(u, with_G=False)[1]
+
+
+def _G_and_G2(u: torch.Tensor, with_G: bool = True):
+    """(G(u) or None, G2(u)), sharing the square root and arcsine (the costly part of the pixel ESF)."""
     uc = u.clamp(-1.0, 1.0)
     s = torch.sqrt(1 - uc * uc)
-    inner = (0.25 * uc * uc + 1.0 / 16
-             + (torch.asin(uc) * (0.5 * uc * uc + 0.125) + uc * s * (0.625 - s * s / 12)) / math.pi)
+    a = torch.asin(uc)
     over = (u - 1).clamp_min(0.0)
-    return inner + over * (1 + 0.5 * over)  # (u² − 1)/2 = over + over²/2 for u = 1 + over
+    inner = (0.25 * uc * uc + 1.0 / 16 + (a * (0.5 * uc * uc + 0.125) + uc * s * (0.625 - s * s / 12)) / math.pi)
+    G2 = inner + over * (1 + 0.5 * over)  # (u² − 1)/2 = over + over²/2 for u = 1 + over
+    if not with_G:
+        return None, G2
+    G = 0.5 * uc + (uc * a + s * (1 - s * s / 3.0)) / math.pi + over
+    return G, G2
 
 
 def pixel_esf(d: torch.Tensor, r: torch.Tensor, wa: torch.Tensor, wb: torch.Tensor, with_derivatives: bool = False):
@@ -73,11 +80,12 @@ def pixel_esf(d: torch.Tensor, r: torch.Tensor, wa: torch.Tensor, wb: torch.Tens
     u = torch.stack([d + hp, d + hm, d - hm, d - hp], -1) / r[..., None]
     sgn = torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=d.dtype)
     norm = r * r / (wa * wb)
-    G2u = (_G2(u) * sgn).sum(-1)
+    G, G2 = _G_and_G2(u, with_G=with_derivatives)
+    G2u = (G2 * sgn).sum(-1)
     E = G2u * norm
     if not with_derivatives:
         return E
-    Gu = _G(u) * sgn
+    Gu = G * sgn
     dE_dd = Gu.sum(-1) * norm / r
     dE_dr = (2 * G2u - (u * Gu).sum(-1)) * norm / r
     return E, dE_dd, dE_dr
@@ -258,49 +266,63 @@ def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, itera
     d0_t = torch.from_numpy(d0.clip(-1e4, 1e4)).to(f32)
     dlo_t, dhi_t = torch.from_numpy(dlo), torch.from_numpy(dhi)
     # far lines: only the entries within reach are evaluated, elsewhere the step is 0 or 1
-    near_lo = torch.nonzero((dlo_t.abs() < 1.3 * lim).reshape(-1)).squeeze(1)
-    near_hi = torch.nonzero((dhi_t.abs() < 1.3 * lim).reshape(-1)).squeeze(1)
-    step_lo = (dlo_t > 0).to(f32).reshape(-1)
-    step_hi = (dhi_t > 0).to(f32).reshape(-1)
-    dlo_n, dhi_n = dlo_t.reshape(-1)[near_lo].to(f32), dhi_t.reshape(-1)[near_hi].to(f32)
+    far = [((dlo_t.abs() < 1.3 * lim), (dlo_t > 0).to(f32), dlo_t.to(f32)),
+           ((dhi_t.abs() < 1.3 * lim), (dhi_t > 0).to(f32), dhi_t.to(f32))]
     kap_t = torch.from_numpy(kap).to(f32)
     c_lo, c_0, c_hi = (kap_t[..., 1] - kap_t[..., 0]), (kap_t[..., 2] - kap_t[..., 1]), (kap_t[..., 3] - kap_t[..., 2])
     wa_t = torch.from_numpy(wa).to(f32)[..., None].expand(C, B, n)
     wb_t = torch.from_numpy(wb).to(f32)[..., None].expand(C, B, n)
 
-    def far_term(d_n, idx, steps, r):
-        e = steps.clone()
-        e_r = torch.zeros_like(steps)
-        if idx.numel():
-            ev, _, evr = pixel_esf(d_n, r.reshape(-1)[idx], wa_t.reshape(-1)[idx], wb_t.reshape(-1)[idx], True)
-            e[idx] = ev
-            e_r[idx] = evr
-        return e.reshape(C, B, n), e_r.reshape(C, B, n)
-
-    def model(theta, deriv=True):
+    def model(theta, idx, deriv=True):
+        """Model values f (k, B, n) at the corners idx (k,) and, with deriv, the six non-zero columns of the
+        Jacobian per pixel (k, B, n, 6): a pixel of band e depends on the point's (β, gx, gy) and on band e's
+        (dark level, contrast, edge offset) only."""
         th = theta.to(f32)
         beta, gx, gy = th[:, 0], th[:, 1], th[:, 2]
-        o, c, delta = th[:, 3::3], th[:, 4::3], th[:, 5::3]  # (C, B)
-        sb = beta[:, None, None] + gx[:, None, None] * dxy_t[..., 0] + gy[:, None, None] * dxy_t[..., 1]
+        o, c, delta = th[:, 3::3], th[:, 4::3], th[:, 5::3]  # (k, B)
+        dxy_k, wa_k, wb_k = dxy_t[idx], wa_t[idx], wb_t[idx]
+        sb = beta[:, None, None] + gx[:, None, None] * dxy_k[..., 0] + gy[:, None, None] * dxy_k[..., 1]
         r = (0.5 * sb.abs()).clamp_min(1e-3)
-        e0, e0_d, e0_r = pixel_esf(d0_t - delta[..., None], r, wa_t, wb_t, True)
-        elo, elo_r = far_term(dlo_n, near_lo, step_lo, r)
-        ehi, ehi_r = far_term(dhi_n, near_hi, step_hi, r)
-        gsum = kap_t[..., 0:1] + c_lo[..., None] * elo + c_0[..., None] * e0 + c_hi[..., None] * ehi
+        out = pixel_esf(d0_t[idx] - delta[..., None], r, wa_k, wb_k, deriv)
+        e0, e0_d, e0_r = out if deriv else (out, None, None)
+        terms = []
+        for near, step, dist in far:
+            e, e_r = step[idx], torch.zeros_like(r) if deriv else None
+            sel = near[idx]
+            if bool(sel.any()):
+                out = pixel_esf(dist[idx][sel], r[sel], wa_k[sel], wb_k[sel], deriv)
+                e[sel] = out[0] if deriv else out
+                if deriv:
+                    e_r[sel] = out[2]
+            terms.append((e, e_r))
+        (elo, elo_r), (ehi, ehi_r) = terms
+        cl, c0, ch = c_lo[idx][..., None], c_0[idx][..., None], c_hi[idx][..., None]
+        gsum = kap_t[idx][..., 0:1] + cl * elo + c0 * e0 + ch * ehi
         f = o[..., None] + c[..., None] * gsum
         if not deriv:
             return f.double(), None
-        dr = c[..., None] * (c_lo[..., None] * elo_r + c_0[..., None] * e0_r + c_hi[..., None] * ehi_r) \
-            * 0.5 * torch.sign(sb)
-        J = torch.zeros(C, B, n, P, dtype=f32)
-        J[..., 0], J[..., 1], J[..., 2] = dr, dr * dxy_t[..., 0], dr * dxy_t[..., 1]
-        eye = torch.eye(B, dtype=f32)[None, :, None, :]  # band e's own parameters
-        J[..., 3::3] = eye.expand(C, B, n, B)
-        J[..., 4::3] = eye * gsum[..., None]
-        J[..., 5::3] = eye * (-c[..., None] * c_0[..., None] * e0_d)[..., None]
-        return f.double(), J.double()
+        dr = c[..., None] * (cl * elo_r + c0 * e0_r + ch * ehi_r) * 0.5 * torch.sign(sb)
+        K = torch.stack([dr, dr * dxy_k[..., 0], dr * dxy_k[..., 1], torch.ones_like(dr), gsum,
+                         -c[..., None] * c0 * e0_d], -1)
+        return f.double(), K
+
+    def normal_equations(K, res, idx):
+        """JᵀJ (k, P, P) and Jᵀ res (k, P) from the six non-zero Jacobian columns K (k, B, n, 6) per pixel."""
+        k = K.shape[0]
+        Km = K.double() * mask[idx][..., None]
+        M = Km.transpose(-1, -2) @ Km  # (k, B, 6, 6)
+        v = (Km.transpose(-1, -2) @ res[..., None])[..., 0]  # (k, B, 6)
+        A = torch.zeros(k, P, P, dtype=f64)
+        A[:, :3, :3] = M[:, :, :3, :3].sum(1)
+        for e in range(B):
+            sl = slice(3 + 3 * e, 6 + 3 * e)
+            A[:, :3, sl] = M[:, e, :3, 3:]
+            A[:, sl, :3] = M[:, e, 3:, :3]
+            A[:, sl, sl] = M[:, e, 3:, 3:]
+        return A, torch.cat([v[:, :, :3].sum(1), v[:, :, 3:].reshape(k, 3 * B)], 1)
 
     # start: scan β from 4 % to 200 % of 2 r0 (g = 0) with the levels of each band solved linearly
+    every = torch.arange(C)
     npix = mask.sum(-1)
     best = torch.full((C,), float("inf"), dtype=f64)
     theta = torch.zeros(C, P, dtype=f64)
@@ -308,7 +330,7 @@ def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, itera
         trial = torch.zeros(C, P, dtype=f64)
         trial[:, 0] = (2 * r0 * frac).clamp_min(0.1)  # β is a diameter
         trial[:, 4::3] = 1.0
-        gg = model(trial, deriv=False)[0] * mask
+        gg = model(trial, every, deriv=False)[0] * mask
         sg, sI = gg.sum(-1), (I * mask).sum(-1)
         sgg, sgI = (gg * gg).sum(-1), (gg * I * mask).sum(-1)
         det = npix * sgg - sg * sg
@@ -323,43 +345,47 @@ def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, itera
     # weak prior on g (1 % per pixel) keeps points with few bands well posed
     prior = 1e-2 * torch.sqrt(npix.sum(-1)) * theta[:, 4::3].abs().mean(-1).clamp_min(1e-6)
 
-    def total(th, f):
-        res = (I - f) * mask
-        return res, (res * res).sum((-1, -2)) + ((prior[:, None] * th[:, 1:3]) ** 2).sum(-1)
+    def evaluate(th, idx):
+        """(cost, JᵀJ, Jᵀ res) at parameters th (k, P) of the corners idx."""
+        f, K = model(th, idx)
+        res = (I[idx] - f) * mask[idx]
+        cost = (res * res).sum((-1, -2)) + ((prior[idx, None] * th[:, 1:3]) ** 2).sum(-1)
+        return (cost, *normal_equations(K, res, idx))
 
-    f, J = model(theta)
-    res, cost = total(theta, f)
+    cost, JtJ, Jtr = evaluate(theta, every)
+    active = every
     for _ in range(iterations):
-        Jm = (J * mask[..., None]).reshape(C, B * n, P)
-        A = Jm.transpose(1, 2) @ Jm
-        A[:, 1, 1] += prior ** 2
-        A[:, 2, 2] += prior ** 2
-        gvec = (Jm * res.reshape(C, B * n, 1)).sum(1)
-        gvec[:, 1:3] -= prior[:, None] ** 2 * theta[:, 1:3]
+        # a corner whose step has become negligible is done and leaves the batch (it would hardly move
+        # again: < 0.01 σ of its blur on the shipped real photos), so the work follows the slow corners
+        a = active
+        A = JtJ[a].clone()
+        A[:, 1, 1] += prior[a] ** 2
+        A[:, 2, 2] += prior[a] ** 2
+        gvec = Jtr[a].clone()
+        gvec[:, 1:3] -= prior[a, None] ** 2 * theta[a, 1:3]
         diag = torch.diagonal(A, dim1=1, dim2=2)
-        A_d = A + lam[:, None, None] * torch.diag_embed(diag + 1e-9)
+        A_d = A + lam[a, None, None] * torch.diag_embed(diag + 1e-9)
         step = torch.linalg.solve(A_d, gvec[..., None])[..., 0]
-        new = theta + step
-        new[:, 0] = new[:, 0].clamp(-2 * r_cap, 2 * r_cap)
-        f2, J2 = model(new)
-        res2, cost2 = total(new, f2)
-        better = cost2 < cost
-        theta = torch.where(better[:, None], new, theta)
-        res = torch.where(better[:, None, None], res2, res)
-        J = torch.where(better[:, None, None, None], J2, J)
-        cost = torch.where(better, cost2, cost)
-        lam = torch.where(better, lam * 0.3, lam * 10.0).clamp(1e-9, 1e9)
+        new = theta[a] + step
+        new[:, 0] = new[:, 0].clamp(-2 * r_cap[a], 2 * r_cap[a])
+        cost2, JtJ2, Jtr2 = evaluate(new, a)
+        better = cost2 < cost[a]
+        theta[a] = torch.where(better[:, None], new, theta[a])
+        JtJ[a] = torch.where(better[:, None, None], JtJ2, JtJ[a])
+        Jtr[a] = torch.where(better[:, None], Jtr2, Jtr[a])
+        cost[a] = torch.where(better, cost2, cost[a])
+        lam[a] = torch.where(better, lam[a] * 0.3, lam[a] * 10.0).clamp(1e-9, 1e9)
         # converged: the diameter moves by < 1e-4 of itself (+1e-4 px) and the cost no longer drops
-        small = (step[:, 0].abs() < 1e-4 * (theta[:, 0].abs() + 1)) & (step[:, 1:3].abs().max(1).values < 1e-5)
-        if bool((small | (lam > 1e6)).all()):
+        small = (step[:, 0].abs() < 1e-4 * (theta[a, 0].abs() + 1)) & (step[:, 1:3].abs().max(1).values < 1e-5)
+        active = a[~(small | (lam[a] > 1e6))]
+        if active.numel() == 0:
             break
     dof = (npix.sum(-1) - (3 + 3 * has_band.sum(-1))).clamp_min(1)
     contrast = theta[:, 4::3].abs().max(-1).values
     # a floor of 0.1 % of the contrast keeps noise-free fits honest where b is not identifiable (a sharp
     # edge almost parallel to the pixel grid samples its profile at one phase only)
     s2 = torch.maximum(cost / dof, (1e-3 * contrast) ** 2)
-    Jm = (J * mask[..., None]).reshape(C, B * n, P)
-    A = Jm.transpose(1, 2) @ Jm
+    A = JtJ.clone()
     A[:, 1, 1] += prior ** 2
     A[:, 2, 2] += prior ** 2
     keep = torch.cat([torch.ones(C, 3, dtype=torch.bool), has_band.repeat_interleave(3, dim=1)], 1)

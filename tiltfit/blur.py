@@ -30,7 +30,7 @@ import math
 import numpy as np
 import torch
 
-from .imaging import apply_homography, build_pyramid, homography_dlt, torch_threads
+from .imaging import apply_homography, build_pyramid, homography_dlt_batch, torch_threads
 from .target import Target
 
 
@@ -95,25 +95,33 @@ def _local_homographies(target: Target, corners_px: np.ndarray, found: np.ndarra
     """Per found corner, the homography target (X, Y) -> pixels fitted on found corners within 2 indices."""
     ny, nx = target.grid_shape
     pts = target.feature_points()[:, :2]
-    out = {}
-    for k in np.nonzero(found)[0]:
-        j, i = divmod(int(k), nx)
-        ii, jj = np.meshgrid(np.arange(max(0, i - 2), min(nx, i + 3)), np.arange(max(0, j - 2), min(ny, j + 3)))
-        kk = (jj * nx + ii).ravel()
-        kk = kk[found[kk]]
-        if kk.size < 4:
-            continue
-        Hm = homography_dlt(pts[kk], corners_px[kk])
-        if Hm is not None and np.isfinite(Hm).all():
-            out[int(k)] = Hm
-    return out
+    ks = np.nonzero(found)[0]
+    if ks.size == 0:
+        return {}
+    dj, di = np.meshgrid(np.arange(-2, 3), np.arange(-2, 3), indexing="ij")
+    jj = ks[:, None] // nx + dj.ravel()[None]
+    ii = ks[:, None] % nx + di.ravel()[None]
+    inside = (jj >= 0) & (jj < ny) & (ii >= 0) & (ii < nx)
+    kk = np.where(inside, jj * nx + ii, 0)
+    valid = inside & found[kk]
+    Hs = homography_dlt_batch(pts[kk], np.where(valid[..., None], corners_px[kk], 0.0), valid)
+    return {int(k): Hm for k, Hm in zip(ks, Hs) if np.isfinite(Hm).all()}
 
 
-def _line_px(Hm: np.ndarray, axis: int, value: float) -> np.ndarray:
-    """Image line (a, b, c), a² + b² = 1, of the target line X = value (axis 0) or Y = value (axis 1)."""
+def _line_px(Hm: np.ndarray, axis: int, value: float, Hm_inv_T: np.ndarray | None = None) -> np.ndarray:
+    """Image line (a, b, c), a² + b² = 1, of the target line X = value (axis 0) or Y = value (axis 1).
+
+    Hm_inv_T: inv(Hm)ᵀ, when the caller maps several lines through the same homography.
+    """
     lt = np.array([1.0, 0.0, -value]) if axis == 0 else np.array([0.0, 1.0, -value])
-    li = np.linalg.inv(Hm).T @ lt
-    return li / np.hypot(li[0], li[1])
+    li = (np.linalg.inv(Hm).T if Hm_inv_T is None else Hm_inv_T) @ lt
+    return li / math.hypot(li[0], li[1])
+
+
+def _map_point(Hm: np.ndarray, x: float, y: float) -> np.ndarray:
+    """One point mapped by the homography Hm (`apply_homography` without the array overhead)."""
+    q = Hm @ np.array([x, y, 1.0])
+    return q[:2] / q[2]
 
 
 def _half_edges(target: Target, k: int, Hm: np.ndarray, r_est: float, image_shape, max_pixels: int,
@@ -143,7 +151,8 @@ def _half_edges(target: Target, k: int, Hm: np.ndarray, r_est: float, image_shap
         specs.append((1, ye[j + 1], 0, xe[i + 1], xe[i + 1 + sgn], col, j))  # horizontal edge
         row = j + 1 if sgn > 0 else j
         specs.append((0, xe[i + 1], 1, ye[j + 1], ye[j + 1 + sgn], row, i))  # vertical edge
-    centre = apply_homography(Hm, np.array([[xe[i + 1], ye[j + 1]]]))[0]
+    centre = _map_point(Hm, xe[i + 1], ye[j + 1])
+    HiT = np.linalg.inv(Hm).T
     for axis, value, along_axis, a_near, a_far, lane, idx in specs:
         # cells across the edge: along the normal (target axis `axis`), indices idx−1, idx (before), idx+1,
         # idx+2 (after); for a horizontal edge at ye[j+1] the rows are j−1, j | j+1, j+2
@@ -157,22 +166,22 @@ def _half_edges(target: Target, k: int, Hm: np.ndarray, r_est: float, image_shap
         else:
             dark = [bool(target.is_dark(c, lane)) for c in cells]
         kappa = [0.0 if dk else 1.0 for dk in dark]
-        L0 = _line_px(Hm, axis, value)
-        P_near = _line_px(Hm, along_axis, a_near)
-        P_far = _line_px(Hm, along_axis, a_far)
-        L_lo = _line_px(Hm, axis, far_lo) if far_lo is not None else None
-        L_hi = _line_px(Hm, axis, far_hi) if far_hi is not None else None
+        L0 = _line_px(Hm, axis, value, HiT)
+        P_near = _line_px(Hm, along_axis, a_near, HiT)
+        P_far = _line_px(Hm, along_axis, a_far, HiT)
+        L_lo = _line_px(Hm, axis, far_lo, HiT) if far_lo is not None else None
+        L_hi = _line_px(Hm, axis, far_hi, HiT) if far_hi is not None else None
         # orient: L0 positive towards the "after" cells (larger target coordinate)
         probe_after = np.zeros(2)
         probe_after[axis] = value + 0.25 * ((far_hi if far_hi is not None else value + 1.0) - value)
         probe_after[along_axis] = 0.5 * (a_near + a_far)
-        pa = apply_homography(Hm, probe_after[None])[0]
+        pa = _map_point(Hm, *probe_after)
         if L0[:2] @ pa + L0[2] < 0:
             L0 = -L0
         mid = np.zeros(2)
         mid[axis] = value
         mid[along_axis] = 0.5 * (a_near + a_far)
-        pm = apply_homography(Hm, mid[None])[0]
+        pm = _map_point(Hm, *mid)
         if P_near[:2] @ pm + P_near[2] < 0:
             P_near = -P_near
         if P_far[:2] @ pm + P_far[2] < 0:

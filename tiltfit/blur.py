@@ -93,6 +93,37 @@ def pixel_esf(d: torch.Tensor, r: torch.Tensor, wa: torch.Tensor, wb: torch.Tens
     return E, dE_dd, dE_dr
 
 
+def _pixel_esf_on_edges(d: torch.Tensor, r: torch.Tensor, wa: torch.Tensor, wb: torch.Tensor, deriv: bool,
+                        where: torch.Tensor | None = None):
+    """`pixel_esf` evaluated only at the pixels the blurred edge reaches; elsewhere E is exactly 0 or 1.
+
+    Most pixels of a band lie inside the cells, beyond the blur disc and the pixel's own width from the
+    edge (|d| >= r + (wa + wb)/2), where E is 1 (d > 0) or 0 with zero derivatives: the closed form is
+    evaluated on the rest only (typically 5–15 % of a band).
+
+    Args:
+        d, r: (...) distances and radii, pixels; wa, wb: broadcastable to d; where: (...) bool, the pixels
+        that may be evaluated (others take the step value).
+    Returns:
+        E, ∂E/∂d, ∂E/∂r (...); the derivatives None without deriv.
+    """
+    reach = r + 0.5 * (wa + wb.clamp_min(0.02)) + 1e-3
+    sel = d.abs() < reach
+    if where is not None:
+        sel &= where
+    E = (d > 0).to(d.dtype)
+    E_d = torch.zeros_like(d) if deriv else None
+    E_r = torch.zeros_like(d) if deriv else None
+    if not bool(sel.any()):
+        return E, E_d, E_r
+    out = pixel_esf(d[sel], r[sel], wa.expand_as(d)[sel], wb.expand_as(d)[sel], deriv)
+    if not deriv:
+        E[sel] = out
+        return E, None, None
+    E[sel], E_d[sel], E_r[sel] = out
+    return E, E_d, E_r
+
+
 def _local_homographies(target: Target, corners_px: np.ndarray, found: np.ndarray):
     """Per found corner, the homography target (X, Y) -> pixels fitted on found corners within 2 indices."""
     ny, nx = target.grid_shape
@@ -278,12 +309,11 @@ def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, itera
     d0_t = torch.from_numpy(d0.clip(-1e4, 1e4)).to(f32)
     dlo_t, dhi_t = torch.from_numpy(dlo), torch.from_numpy(dhi)
     # far lines: only the entries within reach are evaluated, elsewhere the step is 0 or 1
-    far = [((dlo_t.abs() < 1.3 * lim), (dlo_t > 0).to(f32), dlo_t.to(f32)),
-           ((dhi_t.abs() < 1.3 * lim), (dhi_t > 0).to(f32), dhi_t.to(f32))]
+    far = [((dlo_t.abs() < 1.3 * lim), dlo_t.to(f32)), ((dhi_t.abs() < 1.3 * lim), dhi_t.to(f32))]
     kap_t = torch.from_numpy(kap).to(f32)
     c_lo, c_0, c_hi = (kap_t[..., 1] - kap_t[..., 0]), (kap_t[..., 2] - kap_t[..., 1]), (kap_t[..., 3] - kap_t[..., 2])
-    wa_t = torch.from_numpy(wa).to(f32)[..., None].expand(C, B, n)
-    wb_t = torch.from_numpy(wb).to(f32)[..., None].expand(C, B, n)
+    wa_t = torch.from_numpy(wa).to(f32)[..., None]
+    wb_t = torch.from_numpy(wb).to(f32)[..., None]
 
     def model(theta, idx, deriv=True):
         """Model values f (k, B, n) at the corners idx (k,) and, with deriv, the six non-zero columns of the
@@ -295,18 +325,8 @@ def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, itera
         dxy_k, wa_k, wb_k = dxy_t[idx], wa_t[idx], wb_t[idx]
         sb = beta[:, None, None] + gx[:, None, None] * dxy_k[..., 0] + gy[:, None, None] * dxy_k[..., 1]
         r = (0.5 * sb.abs()).clamp_min(1e-3)
-        out = pixel_esf(d0_t[idx] - delta[..., None], r, wa_k, wb_k, deriv)
-        e0, e0_d, e0_r = out if deriv else (out, None, None)
-        terms = []
-        for near, step, dist in far:
-            e, e_r = step[idx], torch.zeros_like(r) if deriv else None
-            sel = near[idx]
-            if bool(sel.any()):
-                out = pixel_esf(dist[idx][sel], r[sel], wa_k[sel], wb_k[sel], deriv)
-                e[sel] = out[0] if deriv else out
-                if deriv:
-                    e_r[sel] = out[2]
-            terms.append((e, e_r))
+        e0, e0_d, e0_r = _pixel_esf_on_edges(d0_t[idx] - delta[..., None], r, wa_k, wb_k, deriv)
+        terms = [_pixel_esf_on_edges(dist[idx], r, wa_k, wb_k, deriv, near[idx])[::2] for near, dist in far]
         (elo, elo_r), (ehi, ehi_r) = terms
         cl, c0, ch = c_lo[idx][..., None], c_0[idx][..., None], c_hi[idx][..., None]
         gsum = kap_t[idx][..., 0:1] + cl * elo + c0 * e0 + ch * ehi

@@ -102,25 +102,26 @@ def _pixel_esf_on_edges(d: torch.Tensor, r: torch.Tensor, wa: torch.Tensor, wb: 
     evaluated on the rest only (typically 5–15 % of a band).
 
     Args:
-        d, r: (...) distances and radii, pixels; wa, wb: broadcastable to d; where: (...) bool, the pixels
-        that may be evaluated (others take the step value).
+        d, r: (..., n) distances and radii, pixels; wa, wb: (..., 1) projected pixel widths per band;
+        where: (..., n) bool, the pixels that may be evaluated (others take the step value).
     Returns:
-        E, ∂E/∂d, ∂E/∂r (...); the derivatives None without deriv.
+        E, ∂E/∂d, ∂E/∂r (..., n); the derivatives None without deriv.
     """
-    reach = r + 0.5 * (wa + wb.clamp_min(0.02)) + 1e-3
-    sel = d.abs() < reach
-    if where is not None:
-        sel &= where
     E = (d > 0).to(d.dtype)
     E_d = torch.zeros_like(d) if deriv else None
     E_r = torch.zeros_like(d) if deriv else None
-    if not bool(sel.any()):
+    if where is not None and not bool(where.any()):
         return E, E_d, E_r
-    out = pixel_esf(d[sel], r[sel], wa.expand_as(d)[sel], wb.expand_as(d)[sel], deriv)
-    if not deriv:
-        E[sel] = out
-        return E, None, None
-    E[sel], E_d[sel], E_r[sel] = out
+    sel = d.abs() < r + (0.5 * (wa + wb.clamp_min(0.02)) + 1e-3)
+    if where is not None:
+        sel &= where
+    at = sel.reshape(-1).nonzero().squeeze(1)
+    if at.numel() == 0:
+        return E, E_d, E_r
+    band = at // d.shape[-1]
+    out = pixel_esf(d.reshape(-1)[at], r.reshape(-1)[at], wa.reshape(-1)[band], wb.reshape(-1)[band], deriv)
+    for full, part in zip((E, E_d, E_r), out if deriv else (out,)):
+        full.view(-1).index_copy_(0, at, part)
     return E, E_d, E_r
 
 

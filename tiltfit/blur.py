@@ -194,12 +194,9 @@ def _half_edges(target: Target, k: int, Hm: np.ndarray, r_est: float, image_shap
         e0 = idx + 1  # index of the edge line in edges_t
         far_lo = edges_t[e0 - 1] if e0 - 1 >= 0 else None
         far_hi = edges_t[e0 + 1] if e0 + 1 < len(edges_t) else None
-        cells = [idx - 1, idx, idx + 1, idx + 2]
-        if axis == 1:
-            dark = [bool(target.is_dark(lane, c)) for c in cells]
-        else:
-            dark = [bool(target.is_dark(c, lane)) for c in cells]
-        kappa = [0.0 if dk else 1.0 for dk in dark]
+        cells = np.arange(idx - 1, idx + 3)
+        dark = target.is_dark(lane, cells) if axis == 1 else target.is_dark(cells, lane)
+        kappa = [0.0 if dk else 1.0 for dk in dark.tolist()]
         L0 = _line_px(Hm, axis, value, HiT)
         P_near = _line_px(Hm, along_axis, a_near, HiT)
         P_far = _line_px(Hm, along_axis, a_far, HiT)
@@ -242,16 +239,15 @@ def _half_edges(target: Target, k: int, Hm: np.ndarray, r_est: float, image_shap
         x1, y1 = min(x1, W_img - 1), min(y1, H_img - 1)
         if x1 <= x0 or y1 <= y0:
             continue
-        yy, xx = np.mgrid[y0:y1 + 1, x0:x1 + 1]
-        P = np.stack([xx.ravel(), yy.ravel()], -1).astype(np.float64)
-        d0 = P @ L0[:2] + L0[2]
-        dn = P @ P_near[:2] + P_near[2]
-        dfar = P @ P_far[:2] + P_far[2]
-        keep = (np.abs(d0) <= s_max) & (dn >= margin) & (dfar >= margin) & (dn <= reach)
-        # both far lines are oriented positive towards the central edge; missing ones are far away
-        d_lo = P @ L_lo[:2] + L_lo[2] if L_lo is not None else np.full(len(P), 1e6)
-        d_hi = P @ L_hi[:2] + L_hi[2] if L_hi is not None else np.full(len(P), 1e6)
-        keep &= (d_lo >= 0) & (d_hi >= 0)
+        P = np.empty(((y1 - y0 + 1) * (x1 - x0 + 1), 2))
+        P.reshape(y1 - y0 + 1, x1 - x0 + 1, 2)[..., 0] = np.arange(x0, x1 + 1)
+        P.reshape(y1 - y0 + 1, x1 - x0 + 1, 2)[..., 1] = np.arange(y0, y1 + 1)[:, None]
+        # signed distances to the edge, the two lines closing the band, and the next parallel edges (both far
+        # lines oriented positive towards the central edge; missing ones are far away)
+        lines = np.stack([L0, P_near, P_far] + [np.array([0.0, 0.0, 1e6]) if L is None else L for L in (L_lo, L_hi)])
+        dist = P @ lines[:, :2].T + lines[:, 2]
+        d0, dn, dfar, d_lo, d_hi = dist.T
+        keep = (np.abs(d0) <= s_max) & (dn >= margin) & (dfar >= margin) & (dn <= reach) & (d_lo >= 0) & (d_hi >= 0)
         idx_keep = np.nonzero(keep)[0]
         if idx_keep.size < 12:
             continue

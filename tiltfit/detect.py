@@ -543,14 +543,15 @@ def refine_symmetric(gray: np.ndarray, xy: np.ndarray, radius: np.ndarray, itera
     c0[:, 1] = np.clip(c0[:, 1], 0, H - 1)
     ys = np.clip(c0[:, 1, None] + np.arange(-P, P + 1)[None], 0, H - 1)
     xs = np.clip(c0[:, 0, None] + np.arange(-P, P + 1)[None], 0, W - 1)
-    t = torch.from_numpy(gray[ys[:, :, None], xs[:, None, :]].astype(np.float64))[:, None]  # (N, 1, S, S)
+    # float32: the patches, weights and Gauss-Newton sums (errors ~1e-5 px); the positions accumulate in float64
+    t = torch.from_numpy(gray[ys[:, :, None], xs[:, None, :]].astype(np.float32))[:, None]  # (N, 1, S, S)
     if presmooth > 0:
         import kornia
 
         t = kornia.filters.gaussian_blur2d(t, (2 * ks + 1, 2 * ks + 1), (presmooth, presmooth),
                                            border_type="replicate")
     t = t[:, 0]
-    wgt = torch.clamp(1 - (torch.from_numpy(rr)[None] / torch.from_numpy(R)[:, None]) ** 2, min=0.0) ** 2
+    wgt = (torch.clamp(1 - (torch.from_numpy(rr)[None] / torch.from_numpy(R)[:, None]) ** 2, min=0.0) ** 2).float()
     offt = torch.from_numpy(off).long()
     loc = torch.from_numpy(xy - c0 + P)
     M = off.shape[0]
@@ -558,7 +559,7 @@ def refine_symmetric(gray: np.ndarray, xy: np.ndarray, radius: np.ndarray, itera
 
     def residuals(loc, with_jacobian=True):
         base = torch.floor(loc)
-        frac = loc - base
+        frac = (loc - base).float()
         v, gx, gy = _shift_patches(t, frac)
         # shifted entry [y, x] is the interpolant at (x + 1 + fx, y + 1 + fy): p + v sits at base + v − 1
         b = base.long() - 1
@@ -581,7 +582,7 @@ def refine_symmetric(gray: np.ndarray, xy: np.ndarray, radius: np.ndarray, itera
         step = -torch.linalg.solve(A, (Jw * r[:, None]).sum(-1))
         n = torch.linalg.vector_norm(step, dim=1, keepdim=True)
         step = torch.where(n > 1.0, step / n, step)
-        loc = loc + step
+        loc = loc + step.double()
         if float(n.max()) < 1e-4:
             break
     v, _ = residuals(loc, with_jacobian=False)

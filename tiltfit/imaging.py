@@ -93,7 +93,9 @@ def homography_dlt_batch(src: np.ndarray, dst: np.ndarray, valid: np.ndarray | N
     rows = np.stack([np.stack([-x, -y, -one, zero, zero, zero, u * x, u * y, u], -1),
                      np.stack([zero, zero, zero, -x, -y, -one, v * x, v * y, v], -1)], 2)  # (K, M, 2, 9)
     rows = (rows * w[..., None, None]).reshape(K, 2 * M, 9)  # a point left out gives zero rows
-    _, _, vt = np.linalg.svd(rows)
+    if 2 * M < 9:  # the thin SVD below needs 9 rows for the null vector; zero rows change nothing
+        rows = np.concatenate([rows, np.zeros((K, 9 - 2 * M, 9))], 1)
+    _, _, vt = np.linalg.svd(rows, full_matrices=False)  # (not the 2M × 2M left factor)
     Hn = vt[:, -1].reshape(K, 3, 3)
     Hm = np.linalg.inv(Td) @ Hn @ Ts
     h22 = Hm[:, 2, 2]

@@ -142,122 +142,117 @@ def _local_homographies(target: Target, corners_px: np.ndarray, found: np.ndarra
     return {int(k): Hm for k, Hm in zip(ks, Hs) if np.isfinite(Hm).all()}
 
 
-def _line_px(Hm: np.ndarray, axis: int, value: float, Hm_inv_T: np.ndarray | None = None) -> np.ndarray:
-    """Image line (a, b, c), a² + b² = 1, of the target line X = value (axis 0) or Y = value (axis 1).
+def _half_edges(target: Target, ks: np.ndarray, Hms: np.ndarray, r_est: np.ndarray, image_shape, max_pixels: int,
+                first_pass: bool = False, grads: np.ndarray | None = None) -> list[list[dict]]:
+    """Pixel bands of the up-to-four half-edges at feature points ks, with their profile geometry.
 
-    Hm_inv_T: inv(Hm)ᵀ, when the caller maps several lines through the same homography.
-    """
-    lt = np.array([1.0, 0.0, -value]) if axis == 0 else np.array([0.0, 1.0, -value])
-    li = (np.linalg.inv(Hm).T if Hm_inv_T is None else Hm_inv_T) @ lt
-    return li / math.hypot(li[0], li[1])
-
-
-def _map_point(Hm: np.ndarray, x: float, y: float) -> np.ndarray:
-    """One point mapped by the homography Hm (`apply_homography` without the array overhead)."""
-    q = Hm @ np.array([x, y, 1.0])
-    return q[:2] / q[2]
-
-
-def _half_edges(target: Target, k: int, Hm: np.ndarray, r_est: float, image_shape, max_pixels: int,
-                first_pass: bool = False, grad: np.ndarray | None = None):
-    """Pixel bands of the up-to-four half-edges at feature point k, with their profile geometry.
+    The geometry (edge lines, band limits, bounding boxes) is computed for all points at once; only the
+    pixel selection runs per band.
 
     Args:
-        Hm: homography target -> pixels of the image the bands are cut from.
-        r_est: blur radius expected at the point, pixels; grad: expected gradient of the diameter, per pixel.
+        ks: (K,) feature-point indices; Hms: (K, 3, 3) homographies target -> pixels of the image the bands
+            are cut from; r_est: (K,) blur radius expected at each point, pixels; grads: (K, 2) expected
+            gradient of the diameter, per pixel, or None.
         first_pass: allow bands nearer the point (to 0.3 of the edge) when r_est is only an upper bound.
     Returns:
-        list of dicts: px (n, 2) pixel positions, dxy (n, 2) offsets from the point, d0 / d_lo / d_hi signed
-        distances to the edge and the next parallel edges (positive towards larger target coordinates),
-        kappa (4,) white (1) or dark (0) for the cells crossed, wa, wb the pixel's projected widths.
+        per point, a list of dicts: px (n, 2) pixel positions, dxy (n, 2) offsets from the point, d0 / d_lo /
+        d_hi signed distances to the edge and the next parallel edges (positive towards larger target
+        coordinates), kappa (4,) white (1) or dark (0) for the cells crossed, wa, wb the pixel's projected
+        widths.
     """
-    gnorm = 0.0 if grad is None else float(np.hypot(*grad))
+    K = len(ks)
     ny, nx = target.grid_shape
-    j, i = divmod(k, nx)
-    xe, ye = target.x_edges, target.y_edges
+    xe, ye = np.asarray(target.x_edges), np.asarray(target.y_edges)
     H_img, W_img = image_shape
-    bands = []
-    # (axis of the edge line, its coordinate, along-axis direction sign, cells either side)
-    # A horizontal edge Y = ye[j+1] leaving the corner towards +X lies along cell column i+1; towards −X, column i.
-    specs = []
-    for sgn in (1, -1):
-        col = i + 1 if sgn > 0 else i
-        specs.append((1, ye[j + 1], 0, xe[i + 1], xe[i + 1 + sgn], col, j))  # horizontal edge
-        row = j + 1 if sgn > 0 else j
-        specs.append((0, xe[i + 1], 1, ye[j + 1], ye[j + 1 + sgn], row, i))  # vertical edge
-    centre = _map_point(Hm, xe[i + 1], ye[j + 1])
-    HiT = np.linalg.inv(Hm).T
-    for axis, value, along_axis, a_near, a_far, lane, idx in specs:
-        # cells across the edge: along the normal (target axis `axis`), indices idx−1, idx (before), idx+1,
-        # idx+2 (after); for a horizontal edge at ye[j+1] the rows are j−1, j | j+1, j+2
-        edges_t = ye if axis == 1 else xe
-        e0 = idx + 1  # index of the edge line in edges_t
-        far_lo = edges_t[e0 - 1] if e0 - 1 >= 0 else None
-        far_hi = edges_t[e0 + 1] if e0 + 1 < len(edges_t) else None
-        cells = np.arange(idx - 1, idx + 3)
-        dark = target.is_dark(lane, cells) if axis == 1 else target.is_dark(cells, lane)
-        kappa = [0.0 if dk else 1.0 for dk in dark.tolist()]
-        L0 = _line_px(Hm, axis, value, HiT)
-        P_near = _line_px(Hm, along_axis, a_near, HiT)
-        P_far = _line_px(Hm, along_axis, a_far, HiT)
-        L_lo = _line_px(Hm, axis, far_lo, HiT) if far_lo is not None else None
-        L_hi = _line_px(Hm, axis, far_hi, HiT) if far_hi is not None else None
-        # orient: L0 positive towards the "after" cells (larger target coordinate)
-        probe_after = np.zeros(2)
-        probe_after[axis] = value + 0.25 * ((far_hi if far_hi is not None else value + 1.0) - value)
-        probe_after[along_axis] = 0.5 * (a_near + a_far)
-        pa = _map_point(Hm, *probe_after)
-        if L0[:2] @ pa + L0[2] < 0:
-            L0 = -L0
-        mid = np.zeros(2)
-        mid[axis] = value
-        mid[along_axis] = 0.5 * (a_near + a_far)
-        pm = _map_point(Hm, *mid)
-        if P_near[:2] @ pm + P_near[2] < 0:
-            P_near = -P_near
-        if P_far[:2] @ pm + P_far[2] < 0:
-            P_far = -P_far
-        if L_lo is not None and L_lo[:2] @ pm + L_lo[2] < 0:
-            L_lo = -L_lo  # positive towards the central edge
-        if L_hi is not None and L_hi[:2] @ pm + L_hi[2] < 0:
-            L_hi = -L_hi
-        seg = np.hypot(*(pm - centre)) * 2.0  # image length of the whole edge segment (approx.)
-        r_far = r_est + 0.5 * gnorm * seg  # the blur may grow along the band
-        margin = min(r_est + 1.5, 0.3 * seg) if first_pass else max(r_est, min(r_far, 0.45 * seg)) + 1.5
-        reach = max(0.5 * seg, margin + max(3.0, 0.1 * seg))  # the near half, or a short band past it
-        if seg - 2 * margin < 3.0:
-            continue
-        s_max = 1.3 * max(r_est, min(r_far, 0.45 * seg)) + 4.0
-        # bounding box of the band
-        n = L0[:2]
-        p_end = centre + (pm - centre) * min(2.0, reach / (0.5 * seg))
-        corners = [centre + s * n for s in (-s_max, s_max)] + [p_end + s * n for s in (-s_max, s_max)]
-        bb = np.array(corners)
-        x0, y0 = np.floor(bb.min(0)).astype(int)
-        x1, y1 = np.ceil(bb.max(0)).astype(int)
-        x0, y0 = max(x0, 0), max(y0, 0)
-        x1, y1 = min(x1, W_img - 1), min(y1, H_img - 1)
-        if x1 <= x0 or y1 <= y0:
-            continue
-        P = np.empty(((y1 - y0 + 1) * (x1 - x0 + 1), 2))
-        P.reshape(y1 - y0 + 1, x1 - x0 + 1, 2)[..., 0] = np.arange(x0, x1 + 1)
-        P.reshape(y1 - y0 + 1, x1 - x0 + 1, 2)[..., 1] = np.arange(y0, y1 + 1)[:, None]
-        # signed distances to the edge, the two lines closing the band, and the next parallel edges (both far
-        # lines oriented positive towards the central edge; missing ones are far away)
-        lines = np.stack([L0, P_near, P_far] + [np.array([0.0, 0.0, 1e6]) if L is None else L for L in (L_lo, L_hi)])
-        dist = P @ lines[:, :2].T + lines[:, 2]
-        d0, dn, dfar, d_lo, d_hi = dist.T
-        keep = (np.abs(d0) <= s_max) & (dn >= margin) & (dfar >= margin) & (dn <= reach) & (d_lo >= 0) & (d_hi >= 0)
-        idx_keep = np.nonzero(keep)[0]
-        if idx_keep.size < 12:
-            continue
-        if idx_keep.size > max_pixels:
-            idx_keep = idx_keep[np.linspace(0, idx_keep.size - 1, max_pixels).astype(int)]
-        alpha = math.atan2(L0[1], L0[0])
-        wa, wb = max(abs(math.cos(alpha)), abs(math.sin(alpha))), min(abs(math.cos(alpha)), abs(math.sin(alpha)))
-        bands.append(dict(px=P[idx_keep].astype(int), dxy=P[idx_keep] - centre, d0=d0[idx_keep],
-                          d_lo=d_lo[idx_keep], d_hi=-d_hi[idx_keep], kappa=kappa, wa=wa, wb=wb))
-    return bands
+    r_est = np.asarray(r_est, dtype=np.float64)[:, None]  # (K, 1)
+    gnorm = np.zeros((K, 1)) if grads is None else np.hypot(grads[:, 0], grads[:, 1])[:, None]
+    j, i = np.divmod(np.asarray(ks), nx)
+    j, i = j[:, None], i[:, None]
+    # the four half-edges, in the order (horizontal, vertical) towards +, then towards −. A horizontal edge
+    # Y = ye[j+1] lies along the line `axis` = 1; leaving the corner towards +X it borders cell column i+1,
+    # towards −X column i. `idx` is the cell index across the edge just before it.
+    horizontal = np.array([True, False, True, False])
+    sgn = np.array([1, 1, -1, -1])
+    value = np.where(horizontal, ye[j + 1], xe[i + 1])  # (K, 4) the edge line's coordinate
+    a_near = np.where(horizontal, xe[i + 1], ye[j + 1])
+    a_far = np.where(horizontal, xe[i + 1 + sgn], ye[j + 1 + sgn])
+    lane = np.where(horizontal, np.where(sgn > 0, i + 1, i), np.where(sgn > 0, j + 1, j))
+    idx = np.where(horizontal, j, i)
+    far_lo = np.where(horizontal, ye[j], xe[i])  # the parallel edges before and after (always inside)
+    far_hi = np.where(horizontal, ye[j + 2], xe[i + 2])
+    cells = idx[..., None] + np.arange(-1, 3)  # (K, 4, 4) cells across the edge
+    dark = np.where(horizontal[:, None], target.is_dark(lane[..., None], cells), target.is_dark(cells, lane[..., None]))
+    kappa = np.where(dark, 0.0, 1.0)
+
+    HiT = np.linalg.inv(Hms).transpose(0, 2, 1)
+
+    def line(on_x, v):
+        """Image lines (K, 4, 3), a² + b² = 1, of the target lines X = v (on_x) or Y = v."""
+        lt = np.stack([np.where(on_x, 1.0, 0.0) + 0 * v, np.where(on_x, 0.0, 1.0) + 0 * v, -v], -1)
+        li = np.einsum("kij,ksj->ksi", HiT, lt)
+        return li / np.hypot(li[..., 0], li[..., 1])[..., None]
+
+    def point(x, y):
+        q = np.einsum("kij,ksj->ksi", Hms, np.stack([x, y, np.ones_like(x)], -1))
+        return q[..., :2] / q[..., 2:]
+
+    def oriented(L, p):
+        """L flipped where needed so that it is positive at the points p (K, 4, 2)."""
+        return np.where(((L[..., :2] * p).sum(-1) + L[..., 2] < 0)[..., None], -L, L)
+
+    vertical_line = ~horizontal  # X = const: the edge line of a vertical edge
+    L0 = line(vertical_line, value)
+    P_near, P_far = line(horizontal, a_near), line(horizontal, a_far)
+    L_lo, L_hi = line(vertical_line, far_lo), line(vertical_line, far_hi)
+    along_mid = 0.5 * (a_near + a_far)
+    after = value + 0.25 * (far_hi - value)
+    pa = point(np.where(horizontal, along_mid, after), np.where(horizontal, after, along_mid))
+    pm = point(np.where(horizontal, along_mid, value), np.where(horizontal, value, along_mid))
+    L0 = oriented(L0, pa)  # positive towards the "after" cells (larger target coordinate)
+    P_near, P_far = oriented(P_near, pm), oriented(P_far, pm)
+    L_lo, L_hi = oriented(L_lo, pm), oriented(L_hi, pm)  # positive towards the central edge
+    centre = point(xe[i + 1] + 0 * value, ye[j + 1] + 0 * value)  # (K, 4, 2), the same for the 4 edges
+    seg = 2.0 * np.hypot(*(pm - centre).transpose(2, 0, 1))  # image length of the whole edge segment (approx.)
+    r_far = r_est + 0.5 * gnorm * seg  # the blur may grow along the band
+    core = np.maximum(r_est, np.minimum(r_far, 0.45 * seg))
+    margin = np.minimum(r_est + 1.5, 0.3 * seg) if first_pass else core + 1.5
+    reach = np.maximum(0.5 * seg, margin + np.maximum(3.0, 0.1 * seg))  # the near half, or a short band past it
+    s_max = 1.3 * core + 4.0
+    n_px = L0[..., :2]
+    p_end = centre + (pm - centre) * np.minimum(2.0, reach / (0.5 * seg))[..., None]
+    ends = np.stack([centre - s_max[..., None] * n_px, centre + s_max[..., None] * n_px,
+                     p_end - s_max[..., None] * n_px, p_end + s_max[..., None] * n_px], -2)  # (K, 4, 4, 2)
+    lo = np.maximum(np.floor(ends.min(-2)).astype(int), 0)
+    hi = np.minimum(np.ceil(ends.max(-2)).astype(int), [W_img - 1, H_img - 1])
+    alpha = np.arctan2(L0[..., 1], L0[..., 0])
+    wa = np.maximum(np.abs(np.cos(alpha)), np.abs(np.sin(alpha)))
+    wb = np.minimum(np.abs(np.cos(alpha)), np.abs(np.sin(alpha)))
+    use = (seg - 2 * margin >= 3.0) & (hi > lo).all(-1)
+    lines = np.stack([L0, P_near, P_far, L_lo, L_hi], -2)  # (K, 4, 5, 3)
+
+    out = []
+    for c in range(K):
+        bands = []
+        for e in np.nonzero(use[c])[0]:
+            (x0, y0), (x1, y1) = lo[c, e], hi[c, e]
+            P = np.empty(((y1 - y0 + 1) * (x1 - x0 + 1), 2))
+            P.reshape(y1 - y0 + 1, x1 - x0 + 1, 2)[..., 0] = np.arange(x0, x1 + 1)
+            P.reshape(y1 - y0 + 1, x1 - x0 + 1, 2)[..., 1] = np.arange(y0, y1 + 1)[:, None]
+            # signed distances to the edge, the two lines closing the band, and the next parallel edges
+            d0, dn, dfar, d_lo, d_hi = (P @ lines[c, e, :, :2].T + lines[c, e, :, 2]).T
+            mg, rc = margin[c, e], reach[c, e]
+            keep = ((np.abs(d0) <= s_max[c, e]) & (dn >= mg) & (dfar >= mg) & (dn <= rc) & (d_lo >= 0)
+                    & (d_hi >= 0))
+            idx_keep = np.nonzero(keep)[0]
+            if idx_keep.size < 12:
+                continue
+            if idx_keep.size > max_pixels:
+                idx_keep = idx_keep[np.linspace(0, idx_keep.size - 1, max_pixels).astype(int)]
+            bands.append(dict(px=P[idx_keep].astype(int), dxy=P[idx_keep] - centre[c, e], d0=d0[idx_keep],
+                              d_lo=d_lo[idx_keep], d_hi=-d_hi[idx_keep], kappa=kappa[c, e].tolist(),
+                              wa=float(wa[c, e]), wb=float(wb[c, e])))
+        out.append(bands)
+    return out
 
 
 def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, iterations: int = 30):
@@ -493,15 +488,17 @@ def _measure_blur(gray, target, corners_px, levels, max_passes, max_pixels, leve
         results = {}
         for f in sorted({p[0] for p in plan.values()}):
             keys, groups = [], []
-            for k, (fk, r_l, g_l, first) in plan.items():
-                if fk != f:
+            for first in (True, False):
+                ks = [k for k, p in plan.items() if p[0] == f and p[3] == first]
+                if not ks:
                     continue
+                grads = None if first else np.array([plan[k][2] for k in ks])
                 # the first pass only has to find the blur to within ~10 %: fewer pixels, fewer iterations
-                bk = _half_edges(target, k, _level_homography(Hs[k], f), r_l, levels[f].shape,
-                                 max_pixels // 3 if first else max_pixels, first_pass=first, grad=g_l)
-                if bk:
-                    keys.append(k)
-                    groups.append(bk)
+                bands = _half_edges(target, np.array(ks), np.stack([_level_homography(Hs[k], f) for k in ks]),
+                                    np.array([plan[k][1] for k in ks]), levels[f].shape,
+                                    max_pixels // 3 if first else max_pixels, first_pass=first, grads=grads)
+                keys += [k for k, bk in zip(ks, bands) if bk]
+                groups += [bk for bk in bands if bk]
             if not groups:
                 continue
             r0 = np.array([max(plan[k][1], 0.3) for k in keys])

@@ -333,10 +333,9 @@ def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, itera
     def normal_equations(K, res, idx):
         """JᵀJ (k, P, P) and Jᵀ res (k, P) from the six non-zero Jacobian columns K (k, B, n, 6) per pixel."""
         k = K.shape[0]
-        # float32 sums over a band (<= a few hundred pixels) are exact to ~1e-6, well inside what LM needs
-        KmT = (K * mask_f[idx][..., None]).transpose(-1, -2)
-        M = (KmT @ KmT.transpose(-1, -2)).double()  # (k, B, 6, 6)
-        v = (KmT @ res.to(f32)[..., None])[..., 0].double()  # (k, B, 6)
+        KmT = (K.double() * mask[idx][..., None]).transpose(-1, -2)
+        M = KmT @ KmT.transpose(-1, -2)  # (k, B, 6, 6)
+        v = (KmT @ res[..., None])[..., 0]  # (k, B, 6)
         A = torch.zeros(k, P, P, dtype=f64)
         A[:, :3, :3] = M[:, :, :3, :3].sum(1)
         for e in range(B):

@@ -48,7 +48,7 @@ def _G2(u: torch.Tensor) -> torch.Tensor:
 def _G_and_G2(u: torch.Tensor, with_G: bool = True):
     """(G(u) or None, G2(u)), sharing the square root and arcsine (the costly part of the pixel ESF)."""
     uc = u.clamp(-1.0, 1.0)
-    # floored: a square root of exact zeros (every |u| >= 1) takes a slow path on some CPUs (x10 here), and
+    # floored: the square root of exact zeros (every |u| >= 1) is slow on some CPUs' vector units, and
     # √1e-30 = 1e-15 changes G and G2 by far less than float32 resolves
     s = torch.sqrt((1 - uc * uc).clamp_min_(1e-30))
     a = torch.asin(uc)

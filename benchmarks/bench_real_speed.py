@@ -231,15 +231,16 @@ def write_markdown(path: str, res: dict) -> None:
     for name, s in ((k, v["summary"]) for k, v in res["sets"].items()):
         t, r = s["time_median"], s["ratio"]
         md += [f"## {name} ({s['images']} images, {s['pattern'][0]} × {s['pattern'][1]} corners)", "",
-               "| method | boards found | time / image, wall | CPU | / SB (wall, CPU) | / SB + cornerSubPix (wall, CPU) |",
+               "| method | boards found | time / image, wall | CPU | / SB (wall, CPU) "
+               "| / SB + cornerSubPix (wall, CPU) |",
                "|---|---|---|---|---|---|"]
 
         def line(label, m, found):
             if not t[m]["wall_s"]:
                 return
-            cells = [f"{r.get(f'{m}/{p} (wall)', 1.0 if m == p else '')}, {r.get(f'{m}/{p} (cpu)', 1.0 if m == p else '')}"
-                     for p in ("sb", "sb_subpix")]
-            md.append(f"| {label} | {found} | {t[m]['wall_s']:.3f} s | {t[m]['cpu_s']:.3f} s | {cells[0]} | {cells[1]} |")
+            cells = [f"{r.get(f'{m}/{p} (wall)', '')}, {r.get(f'{m}/{p} (cpu)', '')}" for p in ("sb", "sb_subpix")]
+            md.append(f"| {label} | {found} | {t[m]['wall_s']:.3f} s | {t[m]['cpu_s']:.3f} s | {cells[0]} "
+                      f"| {cells[1]} |")
 
         n = s["images"]
         line("ours: `detect` (corners + blur widths)", "ours", f"{s['found']['ours']} / {n}")
@@ -248,7 +249,8 @@ def write_markdown(path: str, res: dict) -> None:
             line(f"tiltfit {base}: `detect` (corners + blur widths)", "base", f"{s['found']['base']} / {n}")
         md.append(f"| OpenCV `findChessboardCornersSB` | {s['found']['sb']} / {n} | {t['sb']['wall_s']:.3f} s | "
                   f"{t['sb']['cpu_s']:.3f} s | 1, 1 | |")
-        md.append(f"| OpenCV SB + `cornerSubPix` (5 × 5) | {s['found']['sb']} / {n} | {t['sb_subpix']['wall_s']:.3f} s | "
+        md.append(f"| OpenCV SB + `cornerSubPix` (5 × 5) | {s['found']['sb']} / {n} | "
+                  f"{t['sb_subpix']['wall_s']:.3f} s | "
                   f"{t['sb_subpix']['cpu_s']:.3f} s | | 1, 1 |")
         a = s["agreement_sb_subpix_px"]
         md += ["", f"Ours against SB + cornerSubPix on the {s['views_both_sb']} views both find ({a.get('n', 0)} "
@@ -259,9 +261,9 @@ def write_markdown(path: str, res: dict) -> None:
             c, z, bp = v["corner_diff_px"], v["blur_diff_over_sigma"], v["blur_diff_px"]
             moved = "less than 1e-4" if c.get("max", 0) < 1e-4 else f"at most {c.get('max')}"
             md += ["", f"Against tiltfit {base}: {r.get('base/ours (wall)')}× faster wall-clock, "
-                       f"{r.get('base/ours (cpu)')}× in CPU time; the same boards: {v['same_boards']}; the same corners "
-                       f"found: {v['same_corners_found']}; corners move by {moved} px; blur widths measured at the "
-                       f"same points: {v['same_blur_measured']}, changed by a median {z.get('median')} σ (σ: the "
+                       f"{r.get('base/ours (cpu)')}× in CPU time; the same boards: {v['same_boards']}; the same "
+                       f"corners found: {v['same_corners_found']}; corners move by {moved} px; blur widths measured "
+                       f"at the same points: {v['same_blur_measured']}, changed by a median {z.get('median')} σ (σ: the "
                        f"revision's uncertainty), 99 % within {z.get('p99')} σ; {v['blur_points_over_1_sigma']} of "
                        f"{z.get('n')} points by more than 1 σ, {v['blur_points_over_3_sigma']} by more than 3 σ, the "
                        f"largest change {bp.get('max')} px. (The revision's own blur widths move as much under a "

@@ -4,8 +4,8 @@ For each image (every `--every`-th of a set), on the corners of the current `det
 `tiltfit.blur.measure_blur` are computed three ways:
 - `rev`: the code at git revision REV (`--rev`, extracted with `git archive`);
 - `rev_reordered`: the same code with one sum in `pixel_esf` evaluated in another order,
-  (G2₁ + G2₄) − (G2₂ + G2₃) instead of G2₁ − G2₂ − G2₃ + G2₄: mathematically identical, only the rounding
-  differs;
+  (G2₁ + G2₄) − (G2₂ + G2₃) instead of G2₁ − G2₂ − G2₃ + G2₄: mathematically identical, only the
+  rounding differs;
 - `current`: the working tree's code.
 Counted: points whose width moves from `rev`'s by more than 1 and 3 of `rev`'s standard deviations. Where
 `rev_reordered` already moves many points, the measurement is not reproducible at that level and the same
@@ -116,7 +116,8 @@ def main(argv=None):
         s = {"images": len(paths), "points": int(sum(v.size for v in z["current"]))}
         for key, v in z.items():
             v = np.concatenate(v)
-            s[key] = {"over_1": int((v > 1).sum()), "over_3": int((v > 3).sum()), "median": round(float(np.median(v)), 4)}
+            s[key] = {"over_1": int((v > 1).sum()), "over_3": int((v > 3).sum()),
+                      "median": round(float(np.median(v)), 4)}
         res["sets"][name] = s
     save(args.out, res, write_markdown)
 

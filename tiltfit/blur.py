@@ -30,26 +30,35 @@ import math
 import numpy as np
 import torch
 
-from .imaging import apply_homography, build_pyramid, homography_dlt, torch_threads
+from .imaging import apply_homography, build_pyramid, homography_dlt_batch, torch_threads
 from .target import Target
 
 
 
 def _G(u: torch.Tensor) -> torch.Tensor:
     """G(u) = ∫_{−1}^{u} F: antiderivative of the disc edge spread function (radius units); G(u ≥ 1) = u."""
-    uc = u.clamp(-1.0, 1.0)
-    s = torch.sqrt(1 - uc * uc)
-    return 0.5 * uc + (uc * torch.asin(uc) + s * (1 - s * s / 3.0)) / math.pi + (u - 1).clamp_min(0.0)
+    return _G_and_G2(u, with_G=True)[0]
 
 
 def _G2(u: torch.Tensor) -> torch.Tensor:
     """G2(u) = ∫_{−1}^{u} G, closed form; G2(u ≥ 1) = 5/8 + (u² − 1)/2."""
+    return _G_and_G2(u, with_G=False)[1]
+
+
+def _G_and_G2(u: torch.Tensor, with_G: bool = True):
+    """(G(u) or None, G2(u)), sharing the square root and arcsine (the costly part of the pixel ESF)."""
     uc = u.clamp(-1.0, 1.0)
-    s = torch.sqrt(1 - uc * uc)
-    inner = (0.25 * uc * uc + 1.0 / 16
-             + (torch.asin(uc) * (0.5 * uc * uc + 0.125) + uc * s * (0.625 - s * s / 12)) / math.pi)
+    # floored: the square root of exact zeros (every |u| >= 1) is slow on some CPUs' vector units, and
+    # √1e-30 = 1e-15 changes G and G2 by far less than float32 resolves
+    s = torch.sqrt((1 - uc * uc).clamp_min_(1e-30))
+    a = torch.asin(uc)
     over = (u - 1).clamp_min(0.0)
-    return inner + over * (1 + 0.5 * over)  # (u² − 1)/2 = over + over²/2 for u = 1 + over
+    inner = (0.25 * uc * uc + 1.0 / 16 + (a * (0.5 * uc * uc + 0.125) + uc * s * (0.625 - s * s / 12)) / math.pi)
+    G2 = inner + over * (1 + 0.5 * over)  # (u² − 1)/2 = over + over²/2 for u = 1 + over
+    if not with_G:
+        return None, G2
+    G = 0.5 * uc + (uc * a + s * (1 - s * s / 3.0)) / math.pi + over
+    return G, G2
 
 
 def pixel_esf(d: torch.Tensor, r: torch.Tensor, wa: torch.Tensor, wb: torch.Tensor, with_derivatives: bool = False):
@@ -70,147 +79,180 @@ def pixel_esf(d: torch.Tensor, r: torch.Tensor, wa: torch.Tensor, wb: torch.Tens
     reach = r + 0.5 * (wa + wb) + 1e-3
     d = torch.maximum(torch.minimum(d, reach), -reach)  # E is exactly 0 or 1 beyond; keeps G2 small
     hp, hm = 0.5 * (wa + wb), 0.5 * (wa - wb)
-    u = torch.stack([d + hp, d + hm, d - hm, d - hp], -1) / r[..., None]
-    sgn = torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=d.dtype)
+    # the four abscissae lead (not trail), so the second differences are plain sums of whole arrays
+    u = torch.stack(torch.broadcast_tensors(d + hp, d + hm, d - hm, d - hp)) / r
     norm = r * r / (wa * wb)
-    G2u = (_G2(u) * sgn).sum(-1)
+    G, G2 = _G_and_G2(u, with_G=with_derivatives)
+    G2u = (G2[0] + G2[3]) - (G2[1] + G2[2])
     E = G2u * norm
     if not with_derivatives:
         return E
-    Gu = _G(u) * sgn
-    dE_dd = Gu.sum(-1) * norm / r
-    dE_dr = (2 * G2u - (u * Gu).sum(-1)) * norm / r
+    uG = u * G
+    dE_dd = ((G[0] + G[3]) - (G[1] + G[2])) * norm / r
+    dE_dr = (2 * G2u - ((uG[0] + uG[3]) - (uG[1] + uG[2]))) * norm / r
     return E, dE_dd, dE_dr
+
+
+def _pixel_esf_on_edges(d: torch.Tensor, r: torch.Tensor, wa: torch.Tensor, wb: torch.Tensor, deriv: bool,
+                        where: torch.Tensor | None = None):
+    """`pixel_esf` evaluated only at the pixels the blurred edge reaches; elsewhere E is exactly 0 or 1.
+
+    Most pixels of a band lie inside the cells, beyond the blur disc and the pixel's own width from the
+    edge (|d| >= r + (wa + wb)/2), where E is 1 (d > 0) or 0 with zero derivatives: the closed form is
+    evaluated on the rest only (typically 5–15 % of a band).
+
+    Args:
+        d, r: (..., n) distances and radii, pixels; wa, wb: (..., 1) projected pixel widths per band;
+        where: (..., n) bool, the pixels that may be evaluated (others take the step value).
+    Returns:
+        E, ∂E/∂d, ∂E/∂r (..., n); the derivatives None without deriv.
+    """
+    E = (d > 0).to(d.dtype)
+    E_d = torch.zeros_like(d) if deriv else None
+    E_r = torch.zeros_like(d) if deriv else None
+    if where is not None and not bool(where.any()):
+        return E, E_d, E_r
+    sel = d.abs() < r + (0.5 * (wa + wb.clamp_min(0.02)) + 1e-3)
+    if where is not None:
+        sel &= where
+    at = sel.reshape(-1).nonzero().squeeze(1)
+    if at.numel() == 0:
+        return E, E_d, E_r
+    band = at // d.shape[-1]
+    out = pixel_esf(d.reshape(-1)[at], r.reshape(-1)[at], wa.reshape(-1)[band], wb.reshape(-1)[band], deriv)
+    for full, part in zip((E, E_d, E_r), out if deriv else (out,)):
+        full.view(-1).index_copy_(0, at, part)
+    return E, E_d, E_r
 
 
 def _local_homographies(target: Target, corners_px: np.ndarray, found: np.ndarray):
     """Per found corner, the homography target (X, Y) -> pixels fitted on found corners within 2 indices."""
     ny, nx = target.grid_shape
     pts = target.feature_points()[:, :2]
-    out = {}
-    for k in np.nonzero(found)[0]:
-        j, i = divmod(int(k), nx)
-        ii, jj = np.meshgrid(np.arange(max(0, i - 2), min(nx, i + 3)), np.arange(max(0, j - 2), min(ny, j + 3)))
-        kk = (jj * nx + ii).ravel()
-        kk = kk[found[kk]]
-        if kk.size < 4:
-            continue
-        Hm = homography_dlt(pts[kk], corners_px[kk])
-        if Hm is not None and np.isfinite(Hm).all():
-            out[int(k)] = Hm
-    return out
+    ks = np.nonzero(found)[0]
+    if ks.size == 0:
+        return {}
+    dj, di = np.meshgrid(np.arange(-2, 3), np.arange(-2, 3), indexing="ij")
+    jj = ks[:, None] // nx + dj.ravel()[None]
+    ii = ks[:, None] % nx + di.ravel()[None]
+    inside = (jj >= 0) & (jj < ny) & (ii >= 0) & (ii < nx)
+    kk = np.where(inside, jj * nx + ii, 0)
+    valid = inside & found[kk]
+    Hs = homography_dlt_batch(pts[kk], np.where(valid[..., None], corners_px[kk], 0.0), valid)
+    return {int(k): Hm for k, Hm in zip(ks, Hs) if np.isfinite(Hm).all()}
 
 
-def _line_px(Hm: np.ndarray, axis: int, value: float) -> np.ndarray:
-    """Image line (a, b, c), a² + b² = 1, of the target line X = value (axis 0) or Y = value (axis 1)."""
-    lt = np.array([1.0, 0.0, -value]) if axis == 0 else np.array([0.0, 1.0, -value])
-    li = np.linalg.inv(Hm).T @ lt
-    return li / np.hypot(li[0], li[1])
+def _half_edges(target: Target, ks: np.ndarray, Hms: np.ndarray, r_est: np.ndarray, image_shape, max_pixels: int,
+                first_pass: bool = False, grads: np.ndarray | None = None) -> list[list[dict]]:
+    """Pixel bands of the up-to-four half-edges at feature points ks, with their profile geometry.
 
-
-def _half_edges(target: Target, k: int, Hm: np.ndarray, r_est: float, image_shape, max_pixels: int,
-                first_pass: bool = False, grad: np.ndarray | None = None):
-    """Pixel bands of the up-to-four half-edges at feature point k, with their profile geometry.
+    The geometry (edge lines, band limits, bounding boxes) is computed for all points at once; only the
+    pixel selection runs per band.
 
     Args:
-        Hm: homography target -> pixels of the image the bands are cut from.
-        r_est: blur radius expected at the point, pixels; grad: expected gradient of the diameter, per pixel.
+        ks: (K,) feature-point indices; Hms: (K, 3, 3) homographies target -> pixels of the image the bands
+            are cut from; r_est: (K,) blur radius expected at each point, pixels; grads: (K, 2) expected
+            gradient of the diameter, per pixel, or None.
         first_pass: allow bands nearer the point (to 0.3 of the edge) when r_est is only an upper bound.
     Returns:
-        list of dicts: px (n, 2) pixel positions, dxy (n, 2) offsets from the point, d0 / d_lo / d_hi signed
-        distances to the edge and the next parallel edges (positive towards larger target coordinates),
-        kappa (4,) white (1) or dark (0) for the cells crossed, wa, wb the pixel's projected widths.
+        per point, a list of dicts: px (n, 2) pixel positions, dxy (n, 2) offsets from the point, d0 / d_lo /
+        d_hi signed distances to the edge and the next parallel edges (positive towards larger target
+        coordinates), kappa (4,) white (1) or dark (0) for the cells crossed, wa, wb the pixel's projected
+        widths.
     """
-    gnorm = 0.0 if grad is None else float(np.hypot(*grad))
+    K = len(ks)
     ny, nx = target.grid_shape
-    j, i = divmod(k, nx)
-    xe, ye = target.x_edges, target.y_edges
+    xe, ye = np.asarray(target.x_edges), np.asarray(target.y_edges)
     H_img, W_img = image_shape
-    bands = []
-    # (axis of the edge line, its coordinate, along-axis direction sign, cells either side)
-    # A horizontal edge Y = ye[j+1] leaving the corner towards +X lies along cell column i+1; towards −X, column i.
-    specs = []
-    for sgn in (1, -1):
-        col = i + 1 if sgn > 0 else i
-        specs.append((1, ye[j + 1], 0, xe[i + 1], xe[i + 1 + sgn], col, j))  # horizontal edge
-        row = j + 1 if sgn > 0 else j
-        specs.append((0, xe[i + 1], 1, ye[j + 1], ye[j + 1 + sgn], row, i))  # vertical edge
-    centre = apply_homography(Hm, np.array([[xe[i + 1], ye[j + 1]]]))[0]
-    for axis, value, along_axis, a_near, a_far, lane, idx in specs:
-        # cells across the edge: along the normal (target axis `axis`), indices idx−1, idx (before), idx+1,
-        # idx+2 (after); for a horizontal edge at ye[j+1] the rows are j−1, j | j+1, j+2
-        edges_t = ye if axis == 1 else xe
-        e0 = idx + 1  # index of the edge line in edges_t
-        far_lo = edges_t[e0 - 1] if e0 - 1 >= 0 else None
-        far_hi = edges_t[e0 + 1] if e0 + 1 < len(edges_t) else None
-        cells = [idx - 1, idx, idx + 1, idx + 2]
-        if axis == 1:
-            dark = [bool(target.is_dark(lane, c)) for c in cells]
-        else:
-            dark = [bool(target.is_dark(c, lane)) for c in cells]
-        kappa = [0.0 if dk else 1.0 for dk in dark]
-        L0 = _line_px(Hm, axis, value)
-        P_near = _line_px(Hm, along_axis, a_near)
-        P_far = _line_px(Hm, along_axis, a_far)
-        L_lo = _line_px(Hm, axis, far_lo) if far_lo is not None else None
-        L_hi = _line_px(Hm, axis, far_hi) if far_hi is not None else None
-        # orient: L0 positive towards the "after" cells (larger target coordinate)
-        probe_after = np.zeros(2)
-        probe_after[axis] = value + 0.25 * ((far_hi if far_hi is not None else value + 1.0) - value)
-        probe_after[along_axis] = 0.5 * (a_near + a_far)
-        pa = apply_homography(Hm, probe_after[None])[0]
-        if L0[:2] @ pa + L0[2] < 0:
-            L0 = -L0
-        mid = np.zeros(2)
-        mid[axis] = value
-        mid[along_axis] = 0.5 * (a_near + a_far)
-        pm = apply_homography(Hm, mid[None])[0]
-        if P_near[:2] @ pm + P_near[2] < 0:
-            P_near = -P_near
-        if P_far[:2] @ pm + P_far[2] < 0:
-            P_far = -P_far
-        if L_lo is not None and L_lo[:2] @ pm + L_lo[2] < 0:
-            L_lo = -L_lo  # positive towards the central edge
-        if L_hi is not None and L_hi[:2] @ pm + L_hi[2] < 0:
-            L_hi = -L_hi
-        seg = np.hypot(*(pm - centre)) * 2.0  # image length of the whole edge segment (approx.)
-        r_far = r_est + 0.5 * gnorm * seg  # the blur may grow along the band
-        margin = min(r_est + 1.5, 0.3 * seg) if first_pass else max(r_est, min(r_far, 0.45 * seg)) + 1.5
-        reach = max(0.5 * seg, margin + max(3.0, 0.1 * seg))  # the near half, or a short band past it
-        if seg - 2 * margin < 3.0:
-            continue
-        s_max = 1.3 * max(r_est, min(r_far, 0.45 * seg)) + 4.0
-        # bounding box of the band
-        n = L0[:2]
-        p_end = centre + (pm - centre) * min(2.0, reach / (0.5 * seg))
-        corners = [centre + s * n for s in (-s_max, s_max)] + [p_end + s * n for s in (-s_max, s_max)]
-        bb = np.array(corners)
-        x0, y0 = np.floor(bb.min(0)).astype(int)
-        x1, y1 = np.ceil(bb.max(0)).astype(int)
-        x0, y0 = max(x0, 0), max(y0, 0)
-        x1, y1 = min(x1, W_img - 1), min(y1, H_img - 1)
-        if x1 <= x0 or y1 <= y0:
-            continue
-        yy, xx = np.mgrid[y0:y1 + 1, x0:x1 + 1]
-        P = np.stack([xx.ravel(), yy.ravel()], -1).astype(np.float64)
-        d0 = P @ L0[:2] + L0[2]
-        dn = P @ P_near[:2] + P_near[2]
-        dfar = P @ P_far[:2] + P_far[2]
-        keep = (np.abs(d0) <= s_max) & (dn >= margin) & (dfar >= margin) & (dn <= reach)
-        # both far lines are oriented positive towards the central edge; missing ones are far away
-        d_lo = P @ L_lo[:2] + L_lo[2] if L_lo is not None else np.full(len(P), 1e6)
-        d_hi = P @ L_hi[:2] + L_hi[2] if L_hi is not None else np.full(len(P), 1e6)
-        keep &= (d_lo >= 0) & (d_hi >= 0)
-        idx_keep = np.nonzero(keep)[0]
-        if idx_keep.size < 12:
-            continue
-        if idx_keep.size > max_pixels:
-            idx_keep = idx_keep[np.linspace(0, idx_keep.size - 1, max_pixels).astype(int)]
-        alpha = math.atan2(L0[1], L0[0])
-        wa, wb = max(abs(math.cos(alpha)), abs(math.sin(alpha))), min(abs(math.cos(alpha)), abs(math.sin(alpha)))
-        bands.append(dict(px=P[idx_keep].astype(int), dxy=P[idx_keep] - centre, d0=d0[idx_keep],
-                          d_lo=d_lo[idx_keep], d_hi=-d_hi[idx_keep], kappa=kappa, wa=wa, wb=wb))
-    return bands
+    r_est = np.asarray(r_est, dtype=np.float64)[:, None]  # (K, 1)
+    gnorm = np.zeros((K, 1)) if grads is None else np.hypot(grads[:, 0], grads[:, 1])[:, None]
+    j, i = np.divmod(np.asarray(ks), nx)
+    j, i = j[:, None], i[:, None]
+    # the four half-edges, in the order (horizontal, vertical) towards +, then towards −. A horizontal edge
+    # Y = ye[j+1] lies along the line `axis` = 1; leaving the corner towards +X it borders cell column i+1,
+    # towards −X column i. `idx` is the cell index across the edge just before it.
+    horizontal = np.array([True, False, True, False])
+    sgn = np.array([1, 1, -1, -1])
+    value = np.where(horizontal, ye[j + 1], xe[i + 1])  # (K, 4) the edge line's coordinate
+    a_near = np.where(horizontal, xe[i + 1], ye[j + 1])
+    a_far = np.where(horizontal, xe[i + 1 + sgn], ye[j + 1 + sgn])
+    lane = np.where(horizontal, np.where(sgn > 0, i + 1, i), np.where(sgn > 0, j + 1, j))
+    idx = np.where(horizontal, j, i)
+    far_lo = np.where(horizontal, ye[j], xe[i])  # the parallel edges before and after (always inside)
+    far_hi = np.where(horizontal, ye[j + 2], xe[i + 2])
+    cells = idx[..., None] + np.arange(-1, 3)  # (K, 4, 4) cells across the edge
+    dark = np.where(horizontal[:, None], target.is_dark(lane[..., None], cells), target.is_dark(cells, lane[..., None]))
+    kappa = np.where(dark, 0.0, 1.0)
+
+    HiT = np.linalg.inv(Hms).transpose(0, 2, 1)
+
+    def line(on_x, v):
+        """Image lines (K, 4, 3), a² + b² = 1, of the target lines X = v (on_x) or Y = v."""
+        lt = np.stack([np.where(on_x, 1.0, 0.0) + 0 * v, np.where(on_x, 0.0, 1.0) + 0 * v, -v], -1)
+        li = np.einsum("kij,ksj->ksi", HiT, lt)
+        return li / np.hypot(li[..., 0], li[..., 1])[..., None]
+
+    def point(x, y):
+        q = np.einsum("kij,ksj->ksi", Hms, np.stack([x, y, np.ones_like(x)], -1))
+        return q[..., :2] / q[..., 2:]
+
+    def oriented(L, p):
+        """L flipped where needed so that it is positive at the points p (K, 4, 2)."""
+        return np.where(((L[..., :2] * p).sum(-1) + L[..., 2] < 0)[..., None], -L, L)
+
+    vertical_line = ~horizontal  # X = const: the edge line of a vertical edge
+    L0 = line(vertical_line, value)
+    P_near, P_far = line(horizontal, a_near), line(horizontal, a_far)
+    L_lo, L_hi = line(vertical_line, far_lo), line(vertical_line, far_hi)
+    along_mid = 0.5 * (a_near + a_far)
+    after = value + 0.25 * (far_hi - value)
+    pa = point(np.where(horizontal, along_mid, after), np.where(horizontal, after, along_mid))
+    pm = point(np.where(horizontal, along_mid, value), np.where(horizontal, value, along_mid))
+    L0 = oriented(L0, pa)  # positive towards the "after" cells (larger target coordinate)
+    P_near, P_far = oriented(P_near, pm), oriented(P_far, pm)
+    L_lo, L_hi = oriented(L_lo, pm), oriented(L_hi, pm)  # positive towards the central edge
+    centre = point(xe[i + 1] + 0 * value, ye[j + 1] + 0 * value)  # (K, 4, 2), the same for the 4 edges
+    seg = 2.0 * np.hypot(*(pm - centre).transpose(2, 0, 1))  # image length of the whole edge segment (approx.)
+    r_far = r_est + 0.5 * gnorm * seg  # the blur may grow along the band
+    core = np.maximum(r_est, np.minimum(r_far, 0.45 * seg))
+    margin = np.minimum(r_est + 1.5, 0.3 * seg) if first_pass else core + 1.5
+    reach = np.maximum(0.5 * seg, margin + np.maximum(3.0, 0.1 * seg))  # the near half, or a short band past it
+    s_max = 1.3 * core + 4.0
+    n_px = L0[..., :2]
+    p_end = centre + (pm - centre) * np.minimum(2.0, reach / (0.5 * seg))[..., None]
+    ends = np.stack([centre - s_max[..., None] * n_px, centre + s_max[..., None] * n_px,
+                     p_end - s_max[..., None] * n_px, p_end + s_max[..., None] * n_px], -2)  # (K, 4, 4, 2)
+    lo = np.maximum(np.floor(ends.min(-2)).astype(int), 0)
+    hi = np.minimum(np.ceil(ends.max(-2)).astype(int), [W_img - 1, H_img - 1])
+    alpha = np.arctan2(L0[..., 1], L0[..., 0])
+    wa = np.maximum(np.abs(np.cos(alpha)), np.abs(np.sin(alpha)))
+    wb = np.minimum(np.abs(np.cos(alpha)), np.abs(np.sin(alpha)))
+    use = (seg - 2 * margin >= 3.0) & (hi > lo).all(-1)
+    lines = np.stack([L0, P_near, P_far, L_lo, L_hi], -2)  # (K, 4, 5, 3)
+
+    out = []
+    for c in range(K):
+        bands = []
+        for e in np.nonzero(use[c])[0]:
+            (x0, y0), (x1, y1) = lo[c, e], hi[c, e]
+            P = np.empty(((y1 - y0 + 1) * (x1 - x0 + 1), 2))
+            P.reshape(y1 - y0 + 1, x1 - x0 + 1, 2)[..., 0] = np.arange(x0, x1 + 1)
+            P.reshape(y1 - y0 + 1, x1 - x0 + 1, 2)[..., 1] = np.arange(y0, y1 + 1)[:, None]
+            # signed distances to the edge, the two lines closing the band, and the next parallel edges
+            d0, dn, dfar, d_lo, d_hi = (P @ lines[c, e, :, :2].T + lines[c, e, :, 2]).T
+            mg, rc = margin[c, e], reach[c, e]
+            keep = ((np.abs(d0) <= s_max[c, e]) & (dn >= mg) & (dfar >= mg) & (dn <= rc) & (d_lo >= 0)
+                    & (d_hi >= 0))
+            idx_keep = np.nonzero(keep)[0]
+            if idx_keep.size < 12:
+                continue
+            if idx_keep.size > max_pixels:
+                idx_keep = idx_keep[np.linspace(0, idx_keep.size - 1, max_pixels).astype(int)]
+            bands.append(dict(px=P[idx_keep].astype(int), dxy=P[idx_keep] - centre[c, e], d0=d0[idx_keep],
+                              d_lo=d_lo[idx_keep], d_hi=-d_hi[idx_keep], kappa=kappa[c, e].tolist(),
+                              wa=float(wa[c, e]), wb=float(wb[c, e])))
+        out.append(bands)
+    return out
 
 
 def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, iterations: int = 30):
@@ -251,6 +293,7 @@ def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, itera
             kap[c, e], wa[c, e], wb[c, e] = b["kappa"], b["wa"], b["wb"]
     has_band = torch.from_numpy(mask.any(-1))
     mask, I = torch.from_numpy(mask), torch.from_numpy(vals)
+    mask_f = mask.to(f32)
     r0 = torch.as_tensor(np.asarray(r0, dtype=np.float64))
     r_cap = 1.5 * r0 + 1.0
     lim = (r_cap + 2.0)[:, None, None] + 0.0
@@ -258,49 +301,52 @@ def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, itera
     d0_t = torch.from_numpy(d0.clip(-1e4, 1e4)).to(f32)
     dlo_t, dhi_t = torch.from_numpy(dlo), torch.from_numpy(dhi)
     # far lines: only the entries within reach are evaluated, elsewhere the step is 0 or 1
-    near_lo = torch.nonzero((dlo_t.abs() < 1.3 * lim).reshape(-1)).squeeze(1)
-    near_hi = torch.nonzero((dhi_t.abs() < 1.3 * lim).reshape(-1)).squeeze(1)
-    step_lo = (dlo_t > 0).to(f32).reshape(-1)
-    step_hi = (dhi_t > 0).to(f32).reshape(-1)
-    dlo_n, dhi_n = dlo_t.reshape(-1)[near_lo].to(f32), dhi_t.reshape(-1)[near_hi].to(f32)
+    far = [((dlo_t.abs() < 1.3 * lim), dlo_t.to(f32)), ((dhi_t.abs() < 1.3 * lim), dhi_t.to(f32))]
     kap_t = torch.from_numpy(kap).to(f32)
     c_lo, c_0, c_hi = (kap_t[..., 1] - kap_t[..., 0]), (kap_t[..., 2] - kap_t[..., 1]), (kap_t[..., 3] - kap_t[..., 2])
-    wa_t = torch.from_numpy(wa).to(f32)[..., None].expand(C, B, n)
-    wb_t = torch.from_numpy(wb).to(f32)[..., None].expand(C, B, n)
+    wa_t = torch.from_numpy(wa).to(f32)[..., None]
+    wb_t = torch.from_numpy(wb).to(f32)[..., None]
 
-    def far_term(d_n, idx, steps, r):
-        e = steps.clone()
-        e_r = torch.zeros_like(steps)
-        if idx.numel():
-            ev, _, evr = pixel_esf(d_n, r.reshape(-1)[idx], wa_t.reshape(-1)[idx], wb_t.reshape(-1)[idx], True)
-            e[idx] = ev
-            e_r[idx] = evr
-        return e.reshape(C, B, n), e_r.reshape(C, B, n)
-
-    def model(theta, deriv=True):
+    def model(theta, idx, deriv=True):
+        """Model values f (k, B, n) at the corners idx (k,) and, with deriv, the six non-zero columns of the
+        Jacobian per pixel (k, B, n, 6): a pixel of band e depends on the point's (β, gx, gy) and on band e's
+        (dark level, contrast, edge offset) only."""
         th = theta.to(f32)
         beta, gx, gy = th[:, 0], th[:, 1], th[:, 2]
-        o, c, delta = th[:, 3::3], th[:, 4::3], th[:, 5::3]  # (C, B)
-        sb = beta[:, None, None] + gx[:, None, None] * dxy_t[..., 0] + gy[:, None, None] * dxy_t[..., 1]
+        o, c, delta = th[:, 3::3], th[:, 4::3], th[:, 5::3]  # (k, B)
+        dxy_k, wa_k, wb_k = dxy_t[idx], wa_t[idx], wb_t[idx]
+        sb = beta[:, None, None] + gx[:, None, None] * dxy_k[..., 0] + gy[:, None, None] * dxy_k[..., 1]
         r = (0.5 * sb.abs()).clamp_min(1e-3)
-        e0, e0_d, e0_r = pixel_esf(d0_t - delta[..., None], r, wa_t, wb_t, True)
-        elo, elo_r = far_term(dlo_n, near_lo, step_lo, r)
-        ehi, ehi_r = far_term(dhi_n, near_hi, step_hi, r)
-        gsum = kap_t[..., 0:1] + c_lo[..., None] * elo + c_0[..., None] * e0 + c_hi[..., None] * ehi
+        e0, e0_d, e0_r = _pixel_esf_on_edges(d0_t[idx] - delta[..., None], r, wa_k, wb_k, deriv)
+        terms = [_pixel_esf_on_edges(dist[idx], r, wa_k, wb_k, deriv, near[idx])[::2] for near, dist in far]
+        (elo, elo_r), (ehi, ehi_r) = terms
+        cl, c0, ch = c_lo[idx][..., None], c_0[idx][..., None], c_hi[idx][..., None]
+        gsum = kap_t[idx][..., 0:1] + cl * elo + c0 * e0 + ch * ehi
         f = o[..., None] + c[..., None] * gsum
         if not deriv:
             return f.double(), None
-        dr = c[..., None] * (c_lo[..., None] * elo_r + c_0[..., None] * e0_r + c_hi[..., None] * ehi_r) \
-            * 0.5 * torch.sign(sb)
-        J = torch.zeros(C, B, n, P, dtype=f32)
-        J[..., 0], J[..., 1], J[..., 2] = dr, dr * dxy_t[..., 0], dr * dxy_t[..., 1]
-        eye = torch.eye(B, dtype=f32)[None, :, None, :]  # band e's own parameters
-        J[..., 3::3] = eye.expand(C, B, n, B)
-        J[..., 4::3] = eye * gsum[..., None]
-        J[..., 5::3] = eye * (-c[..., None] * c_0[..., None] * e0_d)[..., None]
-        return f.double(), J.double()
+        dr = c[..., None] * (cl * elo_r + c0 * e0_r + ch * ehi_r) * 0.5 * torch.sign(sb)
+        K = torch.stack([dr, dr * dxy_k[..., 0], dr * dxy_k[..., 1], torch.ones_like(dr), gsum,
+                         -c[..., None] * c0 * e0_d], -1)
+        return f.double(), K
+
+    def normal_equations(K, res, idx):
+        """JᵀJ (k, P, P) and Jᵀ res (k, P) from the six non-zero Jacobian columns K (k, B, n, 6) per pixel."""
+        k = K.shape[0]
+        KmT = (K.double() * mask[idx][..., None]).transpose(-1, -2)
+        M = KmT @ KmT.transpose(-1, -2)  # (k, B, 6, 6)
+        v = (KmT @ res[..., None])[..., 0]  # (k, B, 6)
+        A = torch.zeros(k, P, P, dtype=f64)
+        A[:, :3, :3] = M[:, :, :3, :3].sum(1)
+        for e in range(B):
+            sl = slice(3 + 3 * e, 6 + 3 * e)
+            A[:, :3, sl] = M[:, e, :3, 3:]
+            A[:, sl, :3] = M[:, e, 3:, :3]
+            A[:, sl, sl] = M[:, e, 3:, 3:]
+        return A, torch.cat([v[:, :, :3].sum(1), v[:, :, 3:].reshape(k, 3 * B)], 1)
 
     # start: scan β from 4 % to 200 % of 2 r0 (g = 0) with the levels of each band solved linearly
+    every = torch.arange(C)
     npix = mask.sum(-1)
     best = torch.full((C,), float("inf"), dtype=f64)
     theta = torch.zeros(C, P, dtype=f64)
@@ -308,7 +354,7 @@ def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, itera
         trial = torch.zeros(C, P, dtype=f64)
         trial[:, 0] = (2 * r0 * frac).clamp_min(0.1)  # β is a diameter
         trial[:, 4::3] = 1.0
-        gg = model(trial, deriv=False)[0] * mask
+        gg = model(trial, every, deriv=False)[0] * mask
         sg, sI = gg.sum(-1), (I * mask).sum(-1)
         sgg, sgI = (gg * gg).sum(-1), (gg * I * mask).sum(-1)
         det = npix * sgg - sg * sg
@@ -323,43 +369,47 @@ def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, itera
     # weak prior on g (1 % per pixel) keeps points with few bands well posed
     prior = 1e-2 * torch.sqrt(npix.sum(-1)) * theta[:, 4::3].abs().mean(-1).clamp_min(1e-6)
 
-    def total(th, f):
-        res = (I - f) * mask
-        return res, (res * res).sum((-1, -2)) + ((prior[:, None] * th[:, 1:3]) ** 2).sum(-1)
+    def evaluate(th, idx):
+        """(cost, JᵀJ, Jᵀ res) at parameters th (k, P) of the corners idx."""
+        f, K = model(th, idx)
+        res = (I[idx] - f) * mask[idx]
+        cost = (res * res).sum((-1, -2)) + ((prior[idx, None] * th[:, 1:3]) ** 2).sum(-1)
+        return (cost, *normal_equations(K, res, idx))
 
-    f, J = model(theta)
-    res, cost = total(theta, f)
+    cost, JtJ, Jtr = evaluate(theta, every)
+    active = every
     for _ in range(iterations):
-        Jm = (J * mask[..., None]).reshape(C, B * n, P)
-        A = Jm.transpose(1, 2) @ Jm
-        A[:, 1, 1] += prior ** 2
-        A[:, 2, 2] += prior ** 2
-        gvec = (Jm * res.reshape(C, B * n, 1)).sum(1)
-        gvec[:, 1:3] -= prior[:, None] ** 2 * theta[:, 1:3]
+        # a corner whose step has become negligible is done and leaves the batch (it would hardly move
+        # again: < 0.01 σ of its blur on the shipped real photos), so the work follows the slow corners
+        a = active
+        A = JtJ[a].clone()
+        A[:, 1, 1] += prior[a] ** 2
+        A[:, 2, 2] += prior[a] ** 2
+        gvec = Jtr[a].clone()
+        gvec[:, 1:3] -= prior[a, None] ** 2 * theta[a, 1:3]
         diag = torch.diagonal(A, dim1=1, dim2=2)
-        A_d = A + lam[:, None, None] * torch.diag_embed(diag + 1e-9)
+        A_d = A + lam[a, None, None] * torch.diag_embed(diag + 1e-9)
         step = torch.linalg.solve(A_d, gvec[..., None])[..., 0]
-        new = theta + step
-        new[:, 0] = new[:, 0].clamp(-2 * r_cap, 2 * r_cap)
-        f2, J2 = model(new)
-        res2, cost2 = total(new, f2)
-        better = cost2 < cost
-        theta = torch.where(better[:, None], new, theta)
-        res = torch.where(better[:, None, None], res2, res)
-        J = torch.where(better[:, None, None, None], J2, J)
-        cost = torch.where(better, cost2, cost)
-        lam = torch.where(better, lam * 0.3, lam * 10.0).clamp(1e-9, 1e9)
+        new = theta[a] + step
+        new[:, 0] = new[:, 0].clamp(-2 * r_cap[a], 2 * r_cap[a])
+        cost2, JtJ2, Jtr2 = evaluate(new, a)
+        better = cost2 < cost[a]
+        theta[a] = torch.where(better[:, None], new, theta[a])
+        JtJ[a] = torch.where(better[:, None, None], JtJ2, JtJ[a])
+        Jtr[a] = torch.where(better[:, None], Jtr2, Jtr[a])
+        cost[a] = torch.where(better, cost2, cost[a])
+        lam[a] = torch.where(better, lam[a] * 0.3, lam[a] * 10.0).clamp(1e-9, 1e9)
         # converged: the diameter moves by < 1e-4 of itself (+1e-4 px) and the cost no longer drops
-        small = (step[:, 0].abs() < 1e-4 * (theta[:, 0].abs() + 1)) & (step[:, 1:3].abs().max(1).values < 1e-5)
-        if bool((small | (lam > 1e6)).all()):
+        small = (step[:, 0].abs() < 1e-4 * (theta[a, 0].abs() + 1)) & (step[:, 1:3].abs().max(1).values < 1e-5)
+        active = a[~(small | (lam[a] > 1e6))]
+        if active.numel() == 0:
             break
     dof = (npix.sum(-1) - (3 + 3 * has_band.sum(-1))).clamp_min(1)
     contrast = theta[:, 4::3].abs().max(-1).values
     # a floor of 0.1 % of the contrast keeps noise-free fits honest where b is not identifiable (a sharp
     # edge almost parallel to the pixel grid samples its profile at one phase only)
     s2 = torch.maximum(cost / dof, (1e-3 * contrast) ** 2)
-    Jm = (J * mask[..., None]).reshape(C, B * n, P)
-    A = Jm.transpose(1, 2) @ Jm
+    A = JtJ.clone()
     A[:, 1, 1] += prior ** 2
     A[:, 2, 2] += prior ** 2
     keep = torch.cat([torch.ones(C, 3, dtype=torch.bool), has_band.repeat_interleave(3, dim=1)], 1)
@@ -437,15 +487,17 @@ def _measure_blur(gray, target, corners_px, levels, max_passes, max_pixels, leve
         results = {}
         for f in sorted({p[0] for p in plan.values()}):
             keys, groups = [], []
-            for k, (fk, r_l, g_l, first) in plan.items():
-                if fk != f:
+            for first in (True, False):
+                ks = [k for k, p in plan.items() if p[0] == f and p[3] == first]
+                if not ks:
                     continue
+                grads = None if first else np.array([plan[k][2] for k in ks])
                 # the first pass only has to find the blur to within ~10 %: fewer pixels, fewer iterations
-                bk = _half_edges(target, k, _level_homography(Hs[k], f), r_l, levels[f].shape,
-                                 max_pixels // 3 if first else max_pixels, first_pass=first, grad=g_l)
-                if bk:
-                    keys.append(k)
-                    groups.append(bk)
+                bands = _half_edges(target, np.array(ks), np.stack([_level_homography(Hs[k], f) for k in ks]),
+                                    np.array([plan[k][1] for k in ks]), levels[f].shape,
+                                    max_pixels // 3 if first else max_pixels, first_pass=first, grads=grads)
+                keys += [k for k, bk in zip(ks, bands) if bk]
+                groups += [bk for bk in bands if bk]
             if not groups:
                 continue
             r0 = np.array([max(plan[k][1], 0.3) for k in keys])

@@ -52,7 +52,7 @@ import torch
 import torch.nn.functional as F
 
 from .blur import measure_blur as _measure_blur
-from .imaging import apply_homography, build_pyramid, homography_dlt, to_full, torch_threads
+from .imaging import apply_homography, build_pyramid, homography_dlt, homography_dlt_batch, to_full, torch_threads
 from .target import Target
 
 
@@ -543,14 +543,15 @@ def refine_symmetric(gray: np.ndarray, xy: np.ndarray, radius: np.ndarray, itera
     c0[:, 1] = np.clip(c0[:, 1], 0, H - 1)
     ys = np.clip(c0[:, 1, None] + np.arange(-P, P + 1)[None], 0, H - 1)
     xs = np.clip(c0[:, 0, None] + np.arange(-P, P + 1)[None], 0, W - 1)
-    t = torch.from_numpy(gray[ys[:, :, None], xs[:, None, :]].astype(np.float64))[:, None]  # (N, 1, S, S)
+    # float32: the patches, weights and Gauss-Newton sums (errors ~1e-5 px); the positions accumulate in float64
+    t = torch.from_numpy(gray[ys[:, :, None], xs[:, None, :]].astype(np.float32))[:, None]  # (N, 1, S, S)
     if presmooth > 0:
         import kornia
 
         t = kornia.filters.gaussian_blur2d(t, (2 * ks + 1, 2 * ks + 1), (presmooth, presmooth),
                                            border_type="replicate")
     t = t[:, 0]
-    wgt = torch.clamp(1 - (torch.from_numpy(rr)[None] / torch.from_numpy(R)[:, None]) ** 2, min=0.0) ** 2
+    wgt = (torch.clamp(1 - (torch.from_numpy(rr)[None] / torch.from_numpy(R)[:, None]) ** 2, min=0.0) ** 2).float()
     offt = torch.from_numpy(off).long()
     loc = torch.from_numpy(xy - c0 + P)
     M = off.shape[0]
@@ -558,7 +559,7 @@ def refine_symmetric(gray: np.ndarray, xy: np.ndarray, radius: np.ndarray, itera
 
     def residuals(loc, with_jacobian=True):
         base = torch.floor(loc)
-        frac = loc - base
+        frac = (loc - base).float()
         v, gx, gy = _shift_patches(t, frac)
         # shifted entry [y, x] is the interpolant at (x + 1 + fx, y + 1 + fy): p + v sits at base + v − 1
         b = base.long() - 1
@@ -581,7 +582,7 @@ def refine_symmetric(gray: np.ndarray, xy: np.ndarray, radius: np.ndarray, itera
         step = -torch.linalg.solve(A, (Jw * r[:, None]).sum(-1))
         n = torch.linalg.vector_norm(step, dim=1, keepdim=True)
         step = torch.where(n > 1.0, step / n, step)
-        loc = loc + step
+        loc = loc + step.double()
         if float(n.max()) < 1e-4:
             break
     v, _ = residuals(loc, with_jacobian=False)
@@ -613,6 +614,65 @@ class IndexResult:
     scores: list = field(default_factory=list)
 
 
+def _cell_probes(nodes: np.ndarray, xy: np.ndarray, shape) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Image positions of the cell centres near the lattice nodes, for reading the cells' colours.
+
+    A cell (a, b) spans nodes a..a+1, b..b+1; it is probed when a node lies within its 4 × 4 neighbourhood
+    (nodes a−1..a+2, b−1..b+2), at the centre (a + ½, b + ½) mapped by a homography fitted on the nodes within
+    2.6 of it (an affine fit when fewer than 6; skipped when fewer than 4 or collinear, or outside the image).
+
+    Args:
+        nodes: (n, 2) integer lattice coordinates; xy: (n, 2) their positions, pixels; shape: (h, w) image.
+    Returns:
+        probe_xy (m, 2) positions, probe_ab (m, 2) cells, interior (m,) bool: all four corners are nodes.
+    """
+    h, w = shape
+    amin, bmin = nodes.min(0)
+    amax, bmax = nodes.max(0)
+    # occupancy grid over the nodes' bounding box with a margin of 4, indexed [a − amin + 4, b − bmin + 4]
+    occ = np.zeros((amax - amin + 9, bmax - bmin + 9), bool)
+    occ[nodes[:, 0] - amin + 4, nodes[:, 1] - bmin + 4] = True
+    index = np.full(occ.shape, -1)
+    index[nodes[:, 0] - amin + 4, nodes[:, 1] - bmin + 4] = np.arange(len(nodes))
+    A, Bc = np.meshgrid(np.arange(amin - 2, amax + 2), np.arange(bmin - 2, bmax + 2), indexing="ij")
+    A, Bc = A.ravel(), Bc.ravel()
+    ia, ib = A - amin + 4, Bc - bmin + 4
+    near = np.zeros(A.shape, bool)
+    for da in range(-1, 3):
+        for db in range(-1, 3):
+            near |= occ[ia + da, ib + db]
+    known = occ[ia, ib].astype(int) + occ[ia + 1, ib] + occ[ia, ib + 1] + occ[ia + 1, ib + 1]
+    A, Bc, ia, ib, known = A[near], Bc[near], ia[near], ib[near], known[near]
+    # the nodes within 2.6 of a centre (a + ½, b + ½) are those of indices a−2..a+3, b−2..b+3
+    off = np.arange(-2, 4)
+    oa, ob = np.meshgrid(off, off, indexing="ij")
+    nb_idx = index[ia[:, None] + oa.ravel()[None], ib[:, None] + ob.ravel()[None]]  # (m, 36), −1: no node
+    valid = nb_idx >= 0
+    count = valid.sum(1)
+    src = np.stack([A[:, None] + oa.ravel()[None], Bc[:, None] + ob.ravel()[None]], -1).astype(np.float64)
+    dst = np.where(valid[..., None], xy[np.maximum(nb_idx, 0)], 0.0)
+    centre = np.stack([A + 0.5, Bc + 0.5], -1)
+    Hs = homography_dlt_batch(src, dst, valid & (count >= 6)[:, None])
+    c = np.full((len(A), 2), np.nan)
+    use_h = (count >= 6) & np.isfinite(Hs).all((1, 2))
+    if use_h.any():
+        q = np.einsum("mij,mj->mi", Hs[use_h], np.c_[centre[use_h], np.ones(use_h.sum())])
+        c[use_h] = q[:, :2] / q[:, 2:]
+    # affine fit (weighted least squares with 0/1 weights) where the homography is not used
+    wv = valid.astype(np.float64)[..., None]
+    D = np.concatenate([src - centre[:, None], np.ones(src.shape[:2] + (1,))], -1) * wv  # (m, 36, 3)
+    G = D.transpose(0, 2, 1) @ D
+    full_rank = (count >= 4) & (np.linalg.matrix_rank(G[:, :2, :2]) >= 2)
+    aff = ~use_h & full_rank
+    if aff.any():
+        coef = np.linalg.solve(G[aff], D[aff].transpose(0, 2, 1) @ (dst[aff] * wv[aff]))
+        c[aff] = coef[:, 2]
+    # where a homography was possible but failed, the original falls back to the affine fit too
+    ok = np.isfinite(c).all(1) & full_rank
+    ok &= (c[:, 0] >= 1) & (c[:, 0] <= w - 2) & (c[:, 1] >= 1) & (c[:, 1] <= h - 2)
+    return c[ok], np.stack([A, Bc], -1)[ok], (known == 4)[ok]
+
+
 def resolve_indices(nodes: np.ndarray, xy_level: np.ndarray, xy_full: np.ndarray, smooth: np.ndarray,
                     target: Target) -> IndexResult:
     """Map lattice nodes (a, b) to target corners (i, j) from the colours around them (see module docs).
@@ -624,48 +684,11 @@ def resolve_indices(nodes: np.ndarray, xy_level: np.ndarray, xy_full: np.ndarray
         smooth: the smoothed level image.
     """
     ny, nx = target.grid_shape
-    node_set = {tuple(n) for n in nodes.tolist()}
-    pos = {tuple(n): p for n, p in zip(nodes.tolist(), xy_level)}
-    h, w = smooth.shape
-
-    # Probes: cell centres (half-integer lattice points) inside and up to two rings around the nodes.
-    amin, bmin = nodes.min(0)
-    amax, bmax = nodes.max(0)
-    cells = []
-    for a in range(amin - 2, amax + 2):
-        for b in range(bmin - 2, bmax + 2):
-            corners = [(a, b), (a + 1, b), (a, b + 1), (a + 1, b + 1)]
-            known = sum(c in node_set for c in corners)
-            near = any((a + da, b + db) in node_set for da in range(-1, 3) for db in range(-1, 3))
-            if near:
-                cells.append(((a, b), known))
-    probe_xy, probe_ab, interior = [], [], []
-    for (a, b), known in cells:
-        centre = np.array([a + 0.5, b + 0.5])
-        nb = [(k, p) for k, p in pos.items() if abs(k[0] - centre[0]) <= 2.6 and abs(k[1] - centre[1]) <= 2.6]
-        if len(nb) < 4:
-            continue
-        src = np.array([k for k, _ in nb], dtype=np.float64)
-        dst = np.array([p for _, p in nb])
-        A = np.c_[src - centre, np.ones(len(src))]
-        if np.linalg.matrix_rank(A[:, :2]) < 2:
-            continue
-        Hm = homography_dlt(src, dst) if len(nb) >= 6 else None
-        if Hm is not None:
-            c = apply_homography(Hm, centre[None])[0]
-        else:
-            coef, *_ = np.linalg.lstsq(A, dst, rcond=None)
-            c = coef[2]
-        if not (1 <= c[0] <= w - 2 and 1 <= c[1] <= h - 2):
-            continue
-        probe_xy.append(c)
-        probe_ab.append((a, b))
-        interior.append(known == 4)
-    if not probe_xy:
+    # Probes: cell centres (half-integer lattice points) inside and up to two rings around the nodes, each
+    # placed by a homography (an affine fit with fewer than 6) of the nodes within 2.6 of it.
+    probe_xy, probe_ab, interior = _cell_probes(nodes, xy_level, smooth.shape)
+    if not len(probe_xy):
         return IndexResult(None, "no cells to read colours from")
-    probe_xy = np.array(probe_xy)
-    probe_ab = np.array(probe_ab)
-    interior = np.array(interior)
     val = _bilinear(smooth, probe_xy)
     ref = val[interior] if interior.sum() >= 2 else val
     lo, hi = np.percentile(ref, 10), np.percentile(ref, 90)

@@ -133,7 +133,7 @@ def main(argv=None) -> int:
         F = float(cam.focal_px.detach())
         sF = res.sigma["w_mm"] / obs.pixel_pitch_mm
         ho = held_out_rms(obs, FitOptions(free_principal_point=True), folds=5, distortion=model)
-        ho_ours = ho["rms_px"] * math.sqrt(2)  # per-coordinate -> per-corner (OpenCV's definition)
+        ho_ours = ho["rms_px"]  # per corner, OpenCV's definition
         ho_cv = opencv_held_out(obs, model)
         rms_cv_default = opencv_calibrate(obs, model, fix_aspect=False)[0]
         row = {
@@ -187,10 +187,11 @@ def main(argv=None) -> int:
     lines += ["", f"`--distortion auto` chooses **{auto.distortion_model}** (all five candidate fits and tests: "
                   f"{t_auto:.2f} s):", ""]
     for e in auto.distortion_selection:
-        lines.append(f"- {e['model']}: RMS {e.get('rms_px', float('nan')):.4f} px (per coordinate), "
-                     + ("start" if "lr_statistic" not in e else
-                        f"Λ = {e['lr_statistic']:.1f}, p = {e['p_value']:.2g}, ΔBIC = {e['delta_bic']:.1f}")
-                     + f" → {'justified' if e['justified'] else 'not justified'}")
+        lines.append(f"- {e['model']}: RMS {e.get('rms_px', float('nan')):.4f} px (per corner), "
+                     + (f"held-out {e['held_out_rms_px']:.4f} px" if "held_out_rms_px" in e else
+                        f"refused: {e['refused']}" if "refused" in e else
+                        f"held-out not computed ({e.get('held_out_skipped')})")
+                     + (" → chosen" if e.get("chosen") else ""))
     with open(os.path.join(args.out, "real_calib.md"), "w", encoding="utf-8") as f:
         f.write("\n".join(lines) + "\n")
     print("\n".join(lines))

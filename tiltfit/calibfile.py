@@ -14,7 +14,8 @@ Since the real-photos work (format_version 2): `format_version`, `created` (UTC,
 target file's content), `distortion` ({model: "brown_conrady", coefficients: [k1, k2, p1, p2, k3, k4, k5,
 k6]}, OpenCV's order), `distortion_model` (the terms fitted) and `distortion_selection` (the `auto` tests),
 `sigma.distortion`, `undetermined` (keys the data cannot determine; their values are null), `skipped`
-([{image, reason}]), `notes`, `rms_reprojection_px` (all views, per coordinate), `held_out` (see
+([{image, reason}]), `notes`, `warnings`, `principal_point_fitted`, `rms_reprojection_px` (all views, per
+corner as OpenCV's calibrateCamera: sqrt(mean(dx² + dy²)), like every reprojection RMS here), `held_out` (see
 `tiltfit.validate`), and per view `corners_px` (detected, null where missing), `residuals_px` (model −
 detected), `blur_px`, `blur_residuals_px`, `depth_mm` (camera-frame z of each feature point) and `outlier`
 — what `tiltfit report` draws.
@@ -106,6 +107,15 @@ def calib_dict(result, runtime_s: float | None = None, obs=None, target: dict | 
     for k in undetermined:
         v[k] = None
         s[k] = None
+    for k in ("w_mm", "U_mm", "d_mm", "f_mm"):  # never a number outside its physical range (w, U, f > 0, d ≥ 0)
+        x = v.get(k)
+        if x is not None and not (math.isfinite(x) and (x >= 0 if k == "d_mm" else x > 0)):
+            v[k] = s[k] = None
+            if k != "f_mm" and k not in undetermined:
+                undetermined.append(k)
+    if v.get("theta_F_deg") is not None and not abs(v["theta_F_deg"]) < 90:
+        v["theta_F_deg"] = s["theta_F_deg"] = None
+        undetermined.append("theta_F_deg")
     if "U_mm" in undetermined:  # f = U w / (U + w) needs U
         v["f_mm"] = s["f_mm"] = None
     if "theta_F_deg" in undetermined:
@@ -139,7 +149,9 @@ def calib_dict(result, runtime_s: float | None = None, obs=None, target: dict | 
         "undetermined": undetermined,
         "skipped": list(getattr(result, "skipped", []) or []),
         "notes": list(getattr(result, "notes", []) or []),
-        "rms_reprojection_px": math.sqrt(result.rss["corners"] / n_rows) if n_rows else None,
+        "rms_reprojection_px": math.sqrt(result.rss["corners"] / (n_rows / 2)) if n_rows else None,  # per corner
+        "warnings": list(getattr(result, "warnings", []) or []),
+        "principal_point_fitted": bool(getattr(result, "free_principal_point", False)),
         "blur_offset_px": v.get("blur_offset_px"),
     }
     out["sigma"]["blur_offset_px"] = s.get("blur_offset_px")

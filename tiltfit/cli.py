@@ -4,6 +4,7 @@
     tiltfit calibrate IMAGE... --target T.json --pixel-pitch-mm P [--fit unified|tilt|joint]
                       [--init CALIB.json] [--encoding srgb|linear] -o CALIB.json
                       [--distortion auto|none|k1|k1k2|opencv5|rational] [--held-out K]
+                      [--free-principal-point | --fixed-principal-point]
     tiltfit export CALIB.json --to opencv -o camera.yml
     tiltfit report CALIB.json -o DIR
     tiltfit reproduce [--quick] [--scale N] [--target-scale N] [--device cpu|cuda] [-o DIR]
@@ -29,6 +30,7 @@ import signal
 import sys
 import time
 import warnings
+from dataclasses import replace
 
 from renderer.cli import interrupt_on_sigterm
 from renderer.io import quiet_c_stderr as _quiet_c_stderr
@@ -279,7 +281,8 @@ def cmd_calibrate(args) -> int:
         raise CliError(args.init, f"image_size_px {list(init.image_size_px)} differs from the images' "
                                   f"{list(obs.image_size_px)}")
     blur_model = args.blur_model or (init.blur_model if init is not None else "ellipse")
-    options = FitOptions(robust=args.robust, free_principal_point=args.free_principal_point,
+    options = FitOptions(robust=args.robust, free_principal_point=args.principal_point,
+                         held_out_folds=args.held_out or FitOptions.held_out_folds,
                          blur_model=blur_model, nominal_focal_mm=args.focal_mm,
                          max_iterations=args.max_iterations, model_selection=not args.no_model_selection,
                          progress=say, distortion=args.distortion)
@@ -294,16 +297,19 @@ def cmd_calibrate(args) -> int:
             say(note)  # the choice is progress; what the data cannot determine is worth a line even with -q
         else:
             print(f"tiltfit: note: {note}", file=sys.stderr, flush=True)
+    for warning in result.warnings:
+        print(f"tiltfit: warning: {warning}", file=sys.stderr, flush=True)
     held_out = None
     used = obs.subset([obs.names.index(v["image"]) for v in result.views])
     if args.held_out and used.n_views >= max(3, args.held_out):
         from .validate import held_out_rms
 
         try:
-            held_out = held_out_rms(used, options, folds=args.held_out,
-                                    distortion=result.distortion_model)
-            fit_rms = math.sqrt(result.rss["corners"] / max(result.rss["n_corners"], 1))
-            say(f"reprojection RMS {fit_rms:.4f} px (fit), {held_out['rms_px']:.4f} px (held out, "
+            held_out = result.held_out if (result.held_out or {}).get("folds") == args.held_out else \
+                held_out_rms(used, replace(options, free_principal_point=result.free_principal_point),
+                             folds=args.held_out, distortion=result.distortion_model, start=result.camera)
+            fit_rms = math.sqrt(result.rss["corners"] / max(result.rss["n_corners"] // 2, 1))
+            say(f"reprojection RMS {fit_rms:.4f} px per corner (fit), {held_out['rms_px']:.4f} px (held out, "
                 f"{held_out['folds']}-fold)")
         except FitError as e:
             say(f"held-out error not computed: {e}")
@@ -472,13 +478,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--focal-mm", type=float, help="nominal focal length to start w from (default: estimated "
                                                   "from the views)")
     p.add_argument("--robust", choices=("huber", "cauchy"), help="robust loss (threshold 3σ)")
-    p.add_argument("--free-principal-point", action="store_true", help="fit the principal point too")
+    pp = p.add_mutually_exclusive_group()
+    pp.add_argument("--free-principal-point", dest="principal_point", action="store_const", const=True,
+                    help="always fit the principal point (default: fitted where a likelihood-ratio test on the "
+                         "corners justifies it)")
+    pp.add_argument("--fixed-principal-point", dest="principal_point", action="store_const", const=False,
+                    help="hold the principal point at the image centre (or --init's)")
     p.add_argument("--blur-model", choices=("ellipse", "first_order", "paper"),
                    help="blur model: exact spot (ellipse, default), first order, or the paper's eq (4)")
     p.add_argument("--max-iterations", type=int, default=200, help="Levenberg–Marquardt iterations [200]")
-    p.add_argument("--no-model-selection", action="store_true", help="skip the θF / principal-point tests")
+    p.add_argument("--no-model-selection", action="store_true",
+                   help="skip the θF / principal-point tests (the principal point is then held unless "
+                        "--free-principal-point)")
     p.add_argument("--distortion", choices=("auto", "none", "k1", "k1k2", "opencv5", "rational"), default="auto",
-                   help="lens distortion terms (OpenCV's order); auto frees them while the data justify them "
+                   help="lens distortion terms (OpenCV's order); auto: the model with the smallest K-fold "
+                        "held-out error (--held-out K, 5 if 0) whose radial mapping is one-to-one over the image "
                         "[auto]")
     p.add_argument("--refine", choices=("none", "photometric"), default="none",
                    help="photometric: after the corner-and-blur fit, fit the photos' pixels by rendering the "
@@ -487,7 +501,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="blur kernel of --refine photometric: the lens's disc, the disc convolved with a fitted "
                         "Gaussian, or auto (the Gaussian where a likelihood-ratio test justifies it) [disc]")
     p.add_argument("--held-out", type=int, default=5, metavar="K",
-                   help="K-fold held-out reprojection error beside the fit RMS (0: skip) [5]")
+                   help="K-fold held-out reprojection error (RMS per corner) beside the fit RMS (0: skip) [5]")
     p.add_argument("-o", "--output", required=True, metavar="CALIB.json")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=cmd_calibrate)

@@ -58,7 +58,8 @@ def write_opencv(calib: dict, path: str) -> None:
     """Write an OpenCV FileStorage (YAML/XML/JSON by extension) of a CALIB.json dict.
 
     Nodes: camera_matrix (3×3), distortion_coefficients (1×5 or 1×8), image_width, image_height, rvecs and
-    tvecs (V×3, one row per view, tvec in mm), image names, rms_reprojection_px, tiltfit_note.
+    tvecs (V×3, one row per view, tvec in mm), image names, rms_reprojection_px (per corner, OpenCV's
+    definition), tiltfit_note.
     """
     import cv2
 

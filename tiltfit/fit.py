@@ -7,7 +7,9 @@ Modes (the paper's two stages, and one fit of everything):
     tilt     stage 2, eq (4): w, U, d held at `init`'s values; fits θF and every view's R, T. Because the
              lens tilts about its centre, the true U moves with the tilt (hinge rule); holding U biases θF.
     joint    w, U, d, θF and the poses together; `init` (if any) is only the starting point.
-The principal point is held at the image centre (or `init`'s) unless `FitOptions.free_principal_point`.
+The principal point is fitted where the views support it (a likelihood-ratio test on the corners; held at the
+image centre, or `init`'s, otherwise), or as `FitOptions.free_principal_point` forces. Distortion terms are
+chosen by their held-out error (`tiltfit.validate.select_distortion`).
 
 Objective: ½ Σ ρ((r_i / σ_g)²) over reprojection residuals (group g = corners, pixels) and blur residuals
 (g = blur, pixels); ρ is quadratic, Huber or Cauchy. The noise levels σ_g are estimated from the residuals
@@ -21,7 +23,8 @@ w, U, d, θF, θL (exact Scheimpflug), θL of the paper's eq (1) and f by the Ja
 `tilt` mode the held w, U, d carry the uncertainties `init` gives for them (through the fit's implicit
 dependence on them), but not the bias of holding U.
 
-Model selection: the fit is repeated with θF (and the principal point) switched to the other state; the
+Model selection: the fit is repeated with θF (and the principal point) switched to the other state (θF only
+where the thin-lens blur model describes the blur widths, `blur_misfit`); the
 likelihood-ratio statistic Λ = Σ_g n_g ln(RSS_g,restricted / RSS_g,full) (Gaussian, each group's variance
 profiled out) is compared with χ²(k), and AIC/BIC differences are reported. A parameter is "justified"
 when the test rejects the restricted model at level `alpha` and BIC prefers the larger one.
@@ -35,7 +38,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from renderer.cameras.distortion import MODEL_TERMS, MODELS as DISTORTION_MODELS
+from renderer.cameras.distortion import MODELS as DISTORTION_MODELS
 
 from .model import (APERTURE_SCALE_MM, BLUR_MODELS, ROBUST_LOSSES, Observations, TiltLensCamera,
                     distortion_parameter_names, residuals, robust_rho, robust_weight)
@@ -45,7 +48,8 @@ from .solve import levenberg_marquardt as solve_lm
 from .stats import nested_test
 
 MODES = ("unified", "tilt", "joint")
-MAX_RMS_REPROJECTION_PX = 5.0  # a calibrated view reprojecting worse than this means mismatched data
+# A calibrated view reprojecting worse than this (RMS per corner; 5 px per coordinate) means mismatched data.
+MAX_RMS_REPROJECTION_PX = 7.0
 
 _MODE_FREE = {
     "unified": ("lens", "pose"),
@@ -64,7 +68,12 @@ class FitOptions:
 
     Attributes:
         robust: None, "huber" or "cauchy" [None]; `robust_scale` is the threshold in σ [3.0].
-        free_principal_point: fit the principal point too [False].
+        free_principal_point: True fits the principal point, False holds it (at the image centre or `init`'s);
+            None fits it where the views support it: free unless the likelihood-ratio test on the corners
+            (`_geometry_with_principal_point`) finds it not justified; held when `model_selection` is off [None].
+        held_out_folds: K of the K-fold held-out error that chooses the distortion model under "auto" [5].
+        uncertainties: compute the covariance and σ (False: only the fitted camera is wanted, as in the held-out
+            folds; a fit whose parameters are not all determined is then no error) [True].
         sigma_corner_px, sigma_blur_px: noise levels; None estimates them from the residuals [None].
         blur_model: the camera's blur model ("ellipse", "first_order", "paper") ["ellipse"].
         nominal_focal_mm: starting w when no `init` gives one; None estimates it from homographies [None].
@@ -73,9 +82,10 @@ class FitOptions:
         model_selection: run the θF / principal-point tests [True].
         alpha: significance level of the tests [0.01].
         progress: callable(str) for progress lines, or None [None].
-        distortion: "none", "k1", "k1k2", "opencv5", "rational" or "auto" (free terms in that order while the
-            likelihood-ratio test and BIC justify them, on the corners alone) ["none"].
-        max_rms_px: a view reprojecting worse than this is an error (mismatched data); None: no check [5.0].
+        distortion: "none", "k1", "k1k2", "opencv5", "rational" or "auto" (the model with the smallest
+            held-out error whose radial mapping is one-to-one over the image, `tiltfit.validate`) ["none"].
+        max_rms_px: a view reprojecting worse than this (RMS per corner) is an error (mismatched data); None: no
+            check [7.0].
         min_corners: views with fewer detected corners are skipped (listed in `FitResult.skipped`) [6].
         blur_floor_px: blur widths all below this carry no information on U and d (sharp images): the fit is
             geometric and U, d are reported undetermined [1.0].
@@ -89,7 +99,8 @@ class FitOptions:
 
     robust: str | None = None
     robust_scale: float = 3.0
-    free_principal_point: bool = False
+    free_principal_point: bool | None = None
+    held_out_folds: int = 5
     sigma_corner_px: float | None = None
     sigma_blur_px: float | None = None
     blur_model: str = "ellipse"
@@ -105,6 +116,7 @@ class FitOptions:
     blur_floor_px: float = 1.0
     outlier_factor: float = 3.0
     blur_offset: bool = True
+    uncertainties: bool = True
 
     def __post_init__(self):
         if self.robust not in ROBUST_LOSSES:
@@ -136,7 +148,11 @@ class FitResult:
             chose them under `distortion="auto"` (one entry per candidate).
         undetermined: keys the data cannot determine (e.g. "U_mm", "d_mm" from sharp images); their values
             are not meaningful and CALIB.json writes null.
-        skipped: views left out, [{image, reason}]; notes: one-line remarks for the user (stderr).
+        skipped: views left out, [{image, reason}]; notes: one-line remarks for the user (stderr); warnings:
+            one-line warnings (the blur model does not describe the lens).
+        held_out: the K-fold held-out error of the chosen distortion model with the final principal-point state
+            when the selection computed it (`tiltfit.validate.held_out_rms`), else None.
+        free_principal_point: whether the principal point was fitted.
     """
 
     mode: str
@@ -159,6 +175,9 @@ class FitResult:
     undetermined: list = field(default_factory=list)
     skipped: list = field(default_factory=list)
     notes: list = field(default_factory=list)
+    warnings: list = field(default_factory=list)
+    held_out: dict | None = None
+    free_principal_point: bool = False
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -702,7 +721,13 @@ def _fit_camera(camera: TiltLensCamera, obs: Observations, options: FitOptions, 
     t0 = time.perf_counter()
     prob, res, sc, sb = _solve(camera, obs, options, sigma, say)
     scale = prob.scale(sc, sb)
-    C, sig, view_sig, s2 = _uncertainties(prob, res, scale, init_sigma)
+    if options.uncertainties:
+        C, sig, view_sig, s2 = _uncertainties(prob, res, scale, init_sigma)
+    else:  # only the fitted camera is wanted (held-out folds): σ unknown, and a near-degenerate fit is no error
+        n = res.x.numel()
+        C, view_sig, s2 = torch.full((n, n), math.nan, dtype=torch.float64), [{}] * obs.n_views, math.nan
+        sig = {k: math.nan for k in _DERIVED_KEYS} | {"principal_point_px": [math.nan, math.nan],
+                                                       "distortion": [math.nan] * 8}
     with torch.no_grad():
         vals = _derived(camera, dict(camera.named_parameters()))
         rc, rb = residuals(camera, obs).rms_per_view()
@@ -739,7 +764,7 @@ def likelihood_ratio(restricted: FitResult, full: FitResult, k: int, alpha: floa
 
 
 def _model_selection(base: FitResult, obs: Observations, mode: str, options: FitOptions, say=None,
-                     test_theta_F: bool = True) -> dict:
+                     test_theta_F: bool = True, test_principal_point: bool = True) -> dict:
     """Re-fit with θF (and the principal point) switched and test which state the data support."""
     out = {}
     quiet = replace(options, model_selection=False)
@@ -747,7 +772,8 @@ def _model_selection(base: FitResult, obs: Observations, mode: str, options: Fit
     if base.rss.get("n_blur", 0) == 0:
         obs = without_blur(obs)
     tests = [("theta_F", ("theta_F",), 1)] if test_theta_F else []
-    tests.append(("principal_point", ("principal_point",), 2))
+    if test_principal_point:
+        tests.append(("principal_point", ("principal_point",), 2))
     for label, names, k in tests:
         cam = base.camera.copy()
         stored = cam.parameter_names(*names)
@@ -846,50 +872,62 @@ def _set_free_geometry(camera: TiltLensCamera, mode: str, free_pp: bool, distort
 
 def fit_geometry(camera: TiltLensCamera, obs: Observations, options: FitOptions, mode: str = "unified",
                  say=None, hold_distortion: bool = False) -> FitResult:
-    """Fit w (unless `mode` is "tilt"), the poses, the principal point if asked and the distortion on the
-    corners alone (blur widths ignored; U, d, θF held). `options.distortion` "auto" picks the terms.
+    """Fit w (unless `mode` is "tilt"), the poses, the principal point if `options.free_principal_point` is
+    True and the distortion on the corners alone (blur widths ignored; U, d, θF held).
 
-    Distortion models are tried in the order none, k1, k1k2, opencv5, rational, each starting from the
-    previous fit; a model is kept while the likelihood-ratio test against the previous one rejects it at
-    `options.alpha` and BIC prefers it (`likelihood_ratio`), so terms are freed only while the data justify
-    them. The tests are in `FitResult.distortion_selection`. Terms outside the model are set to 0, except
-    with `hold_distortion`, which keeps the camera's coefficients fixed as they are.
+    `options.distortion` names the terms to free (the others are set to 0, except with `hold_distortion`, which
+    keeps the camera's coefficients fixed as they are); "auto" chooses them by their held-out error
+    (`tiltfit.validate.select_distortion`; the choice is in `FitResult.distortion_selection`).
     """
-    obs = without_blur(obs)
+    if options.distortion == "auto" and not hold_distortion:
+        from .validate import select_distortion  # built on this module's fits
+
+        return select_distortion(camera, obs, options, mode, say, folds=options.held_out_folds)
     quiet = replace(options, model_selection=False, progress=None)
-    models = DISTORTION_MODELS if options.distortion == "auto" else (options.distortion,)
-    best, selection = None, []
-    for m in models:
-        cam = (best.camera if best is not None else camera).copy()
-        _set_free_geometry(cam, mode, options.free_principal_point, None if hold_distortion else m)
-        try:
-            fit = _fit_camera(cam, obs, quiet, mode=mode)
-        except FitError as e:
-            if best is None:
-                raise
-            selection.append({"model": m, "error": str(e), "justified": False})
-            if say:
-                say(f"distortion {m}: not fitted ({e})")
-            break
-        fit.distortion_model = m
-        rms = math.sqrt(fit.rss["corners"] / max(fit.rss["n_corners"], 1))
-        entry = {"model": m, "rms_px": rms, "n_terms": len(MODEL_TERMS[m])}
-        if best is not None:
-            k = len(MODEL_TERMS[m]) - len(MODEL_TERMS[best.distortion_model])
-            entry.update(likelihood_ratio(best, fit, k, options.alpha))
-        else:
-            entry["justified"] = True
-        selection.append(entry)
-        if say and options.distortion == "auto":
-            why = "" if best is None else (f" (Λ = {entry['lr_statistic']:.3g}, p = {entry['p_value']:.2g}, "
-                                           f"ΔBIC = {entry['delta_bic']:.3g} against {best.distortion_model})")
-            say(f"distortion {m}: RMS {rms:.3f} px, {'justified' if entry['justified'] else 'not justified'}"
-                f"{why}")
-        if not entry["justified"]:
-            break
-        best = fit
-    best.distortion_selection = selection
-    return best
+    cam = camera.copy()
+    _set_free_geometry(cam, mode, bool(options.free_principal_point), None if hold_distortion else options.distortion)
+    fit = _fit_camera(cam, without_blur(obs), quiet, mode=mode)
+    fit.distortion_model = "none" if hold_distortion else options.distortion
+    return fit
+
+
+def _geometry_with_principal_point(camera: TiltLensCamera, obs: Observations, options: FitOptions, mode: str,
+                                   say=None) -> tuple[FitResult, dict | None]:
+    """The geometric fit, with the principal point free where the views support it.
+
+    `options.free_principal_point` True or False: as given (no test). None: fitted free (held if that fit
+    fails: views that cannot locate it), then tested against the same fit with it held at the image centre
+    (`likelihood_ratio`, 2 degrees of freedom, on the corners); kept free only when the test justifies it.
+    Returns (fit, test entry or None).
+    """
+    if options.free_principal_point is not None:
+        return fit_geometry(camera, obs, options, mode, say), None
+    try:
+        free = fit_geometry(camera, obs, replace(options, free_principal_point=True), mode, say)
+    except FitError as e:
+        if say:
+            say(f"principal point held at the image centre (fitting it failed: {e})")
+        fit = fit_geometry(camera, obs, replace(options, free_principal_point=False), mode, say)
+        return fit, {"error": str(e), "justified": None, "fitted": False}
+    cam = free.camera.copy()
+    with torch.no_grad():
+        cam.pp_scaled.zero_()
+    held_opts = replace(options, free_principal_point=False, distortion=free.distortion_model)
+    try:
+        held = fit_geometry(cam, obs, held_opts, mode)
+    except FitError as e:
+        return free, {"error": str(e), "justified": True, "fitted": True}
+    entry = likelihood_ratio(held, free, 2, options.alpha)
+    entry["principal_point_px_full"] = free.values["principal_point_px"]
+    entry["fitted"] = entry["justified"]
+    if say:
+        say(f"model selection: freeing principal_point is {'justified' if entry['justified'] else 'not justified'} "
+            f"(Λ = {entry['lr_statistic']:.3g}, p = {entry['p_value']:.3g}, ΔBIC = {entry['delta_bic']:.3g}): "
+            + ("fitted" if entry["justified"] else "held at the image centre"))
+    if entry["justified"]:
+        return free, entry
+    held.distortion_selection = free.distortion_selection
+    return held, entry
 
 
 MAX_OFFSET_CORRELATION = 0.99  # |multiple correlation| of the blur offset with (1/U, d) above which it is held
@@ -924,7 +962,7 @@ def _flag_outliers(result: FitResult, factor: float) -> list:
     out = []
     for v in result.views:
         v["outlier"] = bool(math.isfinite(v["rms_reprojection_px"]) and v["rms_reprojection_px"] > factor * med
-                            and v["rms_reprojection_px"] > 0.5)
+                            and v["rms_reprojection_px"] > 0.7)
         if v["outlier"]:
             out.append(v["image"])
     return out
@@ -936,7 +974,8 @@ def _undetermined_focus(result: FitResult) -> list:
     out = []
     cam = result.camera
     s_inv = result.sigma.get("inv_U_per_m")
-    if s_inv is not None and not abs(float(cam.inv_U_per_m.detach())) > 2.0 * s_inv:
+    # 1/U at or below 0 (focus beyond infinity) is as undetermined as 1/U within 2σ of 0.
+    if s_inv is not None and not float(cam.inv_U_per_m.detach()) > 2.0 * s_inv:
         out.append("U_mm")
     s_d = result.sigma.get("d_mm")
     if "d_scaled" in result.parameter_names and s_d is not None and not float(cam.d_mm.detach()) > 2.0 * s_d:
@@ -970,6 +1009,8 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
         raise ValueError(f"mode: expected one of {MODES}, got {mode!r}")
     if mode == "tilt" and init is None:
         raise FitError("the tilt fit (stage 2) needs the stage-1 calibration as init")
+    if options.free_principal_point is None and not options.model_selection:
+        options = replace(options, free_principal_point=False)  # no test, no reason to free it
     t0 = time.perf_counter()
     say = options.progress
     n_all = obs.n_views
@@ -980,53 +1021,40 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
         say(f"{mode} fit of {obs.n_views} views, {int(obs.corner_mask.sum())} corners, "
             f"{int(obs.blur_mask.sum())} blur widths")
     blur_ok = blur_is_informative(obs, options.blur_floor_px)
-    # With distortion to fit, the geometric fit comes first and the blur start is made after it (below).
-    cam = initialize(obs, mode, init, options, blur=blur_ok and options.distortion == "none")
-    notes, undetermined = [], []
-    geometry = None
+    # The geometric fit (distortion, principal point) comes first where there is anything to choose; the blur
+    # start is made after it (below).
+    needs_geometry = not blur_ok or options.distortion != "none" or options.free_principal_point is None
+    cam = initialize(obs, mode, init, options, blur=blur_ok and not needs_geometry)
+    notes, warnings, undetermined = [], [], []
+    geometry = pp_test = None
     distortion = options.distortion
-    if not blur_ok or distortion != "none":
-        geometry = fit_geometry(cam, obs, options, mode, say)
+    free_pp = bool(options.free_principal_point)
+    if needs_geometry:
+        geometry, pp_test = _geometry_with_principal_point(cam, obs, options, mode, say)
         distortion = geometry.distortion_model
+        free_pp = pp_test["fitted"] if pp_test is not None else free_pp
         cam = geometry.camera.copy()
+    options = replace(options, free_principal_point=free_pp)
     result = None
+    misfit = None
     if blur_ok:
-        if geometry is not None:
-            start_blur(cam, obs, mode, init)
-        if say:
-            s = cam.summary()
-            say(f"start: w {s['w_mm']:.3f} mm, U {s['U_mm']:.1f} mm, d {s['d_mm']:.2f} mm, "
-                f"θF {s['theta_F_deg']:.2f}°")
-        _set_free(cam, mode, options.free_principal_point)
-        cam.free(*distortion_parameter_names(distortion))
-        start = cam.copy()
-        try:
-            if options.blur_offset and mode != "tilt":
-                cam.free("blur_offset")
-                try:
-                    result = _fit_camera(cam, obs, options, init_sigma if mode == "tilt" else None, say, mode=mode)
-                    if _offset_correlation(result) > MAX_OFFSET_CORRELATION:
-                        raise FitError("the blur offset is not separable from U and d: the depths do not "
-                                       "straddle the plane of focus")
-                except FitError as e:
-                    if say:
-                        say(f"blur offset held at 0 ({e})")
-                    cam = start.copy()
-                    result = None
-            if result is None:
-                result = _fit_camera(cam, obs, options, init_sigma if mode == "tilt" else None, say, mode=mode)
-            undetermined = _undetermined_focus(result)
-        except FitError as e:
-            if geometry is None:
-                # No geometric fit to fall back on (no distortion fitted): make one where the widths say
-                # nothing about focus (the same blur at every depth: a soft lens, detector blur); widths
-                # that vary with depth should have fitted, and the tilt stage fits the blur alone.
-                if mode == "tilt" or blur_depends_on_depth(start, obs):
-                    raise
-                geometry = fit_geometry(start.copy(), obs, options, mode, say)
-            result = None
-            undetermined = ["U_mm", "d_mm"]
-            notes.append(f"U and d undetermined: the blur fit failed ({e}); the calibration is geometric")
+        result, undetermined, note = _fit_blur(cam, obs, mode, init, init_sigma, options, distortion, geometry,
+                                               say)
+        if note:
+            notes.append(note)
+        # The tilt stage holds stage 1's U and d, which the lens's tilt moves (hinge rule): its residuals judge
+        # that approximation, not the thin-lens model.
+        if result is not None and mode != "tilt":
+            misfit = blur_misfit(result, obs)
+            if misfit and mode == "unified" and options.model_selection:
+                misfit = _misfit_with_tilt(result, obs, options)  # a tilted lens is a thin lens too
+            if misfit:
+                warnings.append(f"the thin-lens blur model does not describe this lens: {misfit}; U and d are "
+                                f"not reported and the tilt is not tested (calibration from the corners only)")
+                undetermined = ["U_mm", "d_mm"] + (["theta_F_deg"] if mode != "unified" else [])
+                if geometry is None:
+                    geometry = fit_geometry(cam, obs, replace(options, distortion=distortion), mode, say)
+                result = None
         if undetermined and geometry is not None and result is not None and len(undetermined) == 2:
             result = None  # neither focus parameter determined: report the geometric fit
     else:
@@ -1045,32 +1073,46 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
     result.distortion_model = distortion
     if geometry is not None:
         result.distortion_selection = geometry.distortion_selection
+        result.held_out = geometry.held_out  # computed with the principal point as decided (geometry only)
+    result.free_principal_point = free_pp
+    undetermined += [k for k in _out_of_range(result) if k not in undetermined]
     result.undetermined = undetermined
     if options.distortion == "auto" and result.distortion_selection:
-        last = result.distortion_selection[-1]
-        why = "every model tried was justified" if last["justified"] else (
-            f"{last['model']} not justified: " + (last.get("error") or f"p = {last['p_value']:.2g}, ΔBIC = "
-                                                  f"{last['delta_bic']:.3g}"))
-        notes.append(f"distortion auto: {distortion} ({why})")
-    if undetermined and blur_ok and not any("undetermined" in n for n in notes):
+        from .validate import describe_choice
+
+        notes.append(f"distortion auto: {describe_choice(result.distortion_selection)}")
+    elif distortion != "none":
+        from .validate import radial_fold
+
+        fold = radial_fold(result.camera, obs)
+        if fold:
+            warnings.append(f"distortion {distortion}: {fold}; undistorting the photos folds over near their border "
+                            f"(the automatic choice refuses such a model)")
+    if undetermined and blur_ok and not misfit and not any("undetermined" in n for n in notes):
         notes.append(f"{' and '.join(k.split('_')[0] for k in undetermined)} undetermined: the blur widths "
-                     f"do not constrain them (1/U or d within 2σ of 0)")
-    worst = max((v["rms_reprojection_px"] for v in result.views if math.isfinite(v["rms_reprojection_px"])),
-                default=0.0)
-    if options.max_rms_px is not None and worst > options.max_rms_px:
-        bad = max(result.views, key=lambda v: v["rms_reprojection_px"] if math.isfinite(v["rms_reprojection_px"])
-                  else 0.0)
-        hint = "" if distortion != "none" else "; a lens with distortion needs --distortion auto"
-        raise FitError(f"the fit found no consistent solution: {bad['image']} reprojects with an RMS of "
-                       f"{worst:.3g} px (the target file or the detections do not match{hint})")
+                     f"do not constrain them (1/U or d within 2σ of 0, or outside their physical range)")
+    _check_rms(result, options, distortion)
     outliers = _flag_outliers(result, options.outlier_factor)
     if outliers:
         notes.append(f"outlier views (RMS above {options.outlier_factor:g}× the median): {', '.join(outliers)}")
     if options.model_selection:
-        result.model_selection = _model_selection(result, obs, mode, options, say,
-                                                  test_theta_F="theta_F_deg" not in undetermined and blur_ok)
+        result.model_selection = _model_selection(
+            result, obs, mode, options, say, test_theta_F="theta_F_deg" not in undetermined and blur_ok and not misfit,
+            test_principal_point=pp_test is None)
+        if pp_test is not None:
+            result.model_selection["principal_point"] = pp_test
+    if options.distortion == "auto" and result.distortion_selection:
+        from .validate import HELD_OUT_TOLERANCE, describe_choice
+
+        scored = "held_out_rms_px" in next(e for e in result.distortion_selection if e.get("chosen"))
+        result.model_selection["distortion"] = {
+            "chosen": distortion, "why": describe_choice(result.distortion_selection),
+            "criterion": (f"smallest {options.held_out_folds}-fold held-out error (fewest terms within "
+                          f"{100 * HELD_OUT_TOLERANCE:g} %)" if scored else "smallest BIC (fewer than 3 views)")
+            + ", radial mapping one-to-one over the image"}
     result.skipped = skipped
     result.notes = notes
+    result.warnings = warnings
     result.runtime_s = time.perf_counter() - t0
     if say:
         v, s = result.values, result.sigma
@@ -1078,6 +1120,153 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
         say(f"done in {result.runtime_s:.2f} s: w {v['w_mm']:.4f} ± {s['w_mm']:.2g} mm"
             + (f", {focus}" if focus else "")
             + (f", θF {v['theta_F_deg']:.3f} ± {s['theta_F_deg']:.2g}°, θL {v['theta_L_deg']:.3f} ± "
-               f"{s['theta_L_deg']:.2g}° (paper's (1): {v['theta_L_paper_deg']:.3f}°)" if blur_ok else "")
+               f"{s['theta_L_deg']:.2g}° (paper's (1): {v['theta_L_paper_deg']:.3f}°)"
+               if blur_ok and not misfit else "")
             + f", distortion {distortion}")
     return result
+
+
+def _misfit_with_tilt(base: FitResult, obs: Observations, options: FitOptions) -> str | None:
+    """`blur_misfit` of the fit with θF freed as well (the θF test's alternative): a capture through a tilted
+    lens misfits the untilted model, which the θF test is there to find, not to be warned about."""
+    cam = base.camera.copy()
+    cam.free("theta_F")
+    try:
+        alt = _fit_camera(cam, obs, replace(options, model_selection=False, progress=None), mode="joint")
+    except FitError:
+        return blur_misfit(base, obs)
+    return blur_misfit(alt, obs)
+
+
+def _fit_blur(cam: TiltLensCamera, obs: Observations, mode: str, init, init_sigma, options: FitOptions,
+              distortion: str, geometry: FitResult | None, say=None):
+    """The corner-and-blur fit from `cam` (distortion terms `distortion` free); returns (result or None,
+    undetermined keys, note or None). None where the blur fit failed and there is a geometric fit to report
+    instead (made here if needed); raises where the widths vary with depth and still did not fit."""
+    if geometry is not None:
+        start_blur(cam, obs, mode, init)
+    if say:
+        s = cam.summary()
+        say(f"start: w {s['w_mm']:.3f} mm, U {s['U_mm']:.1f} mm, d {s['d_mm']:.2f} mm, θF {s['theta_F_deg']:.2f}°")
+    _set_free(cam, mode, bool(options.free_principal_point))
+    cam.free(*distortion_parameter_names(distortion))
+    start = cam.copy()
+    sigma_init = init_sigma if mode == "tilt" else None
+    result = None
+    try:
+        if options.blur_offset and mode != "tilt":
+            cam.free("blur_offset")
+            try:
+                result = _fit_camera(cam, obs, options, sigma_init, say, mode=mode)
+                if _offset_correlation(result) > MAX_OFFSET_CORRELATION:
+                    raise FitError("the blur offset is not separable from U and d: the depths do not "
+                                   "straddle the plane of focus")
+            except FitError as e:
+                if say:
+                    say(f"blur offset held at 0 ({e})")
+                cam = start.copy()
+                result = None
+        if result is None:
+            result = _fit_camera(cam, obs, options, sigma_init, say, mode=mode)
+        return result, _undetermined_focus(result), None
+    except FitError as e:
+        if geometry is None:
+            # No geometric fit to fall back on: make one where the widths say nothing about focus (the same
+            # blur at every depth: a soft lens, detector blur); widths that vary with depth should have
+            # fitted, and the tilt stage fits the blur alone.
+            if mode == "tilt" or blur_depends_on_depth(start, obs):
+                raise
+        return None, ["U_mm", "d_mm"], f"U and d undetermined: the blur fit failed ({e}); the calibration is geometric"
+
+
+def _check_rms(result: FitResult, options: FitOptions, distortion: str):
+    """A view reprojecting worse than `options.max_rms_px` means mismatched data: FitError."""
+    worst = max((v["rms_reprojection_px"] for v in result.views if math.isfinite(v["rms_reprojection_px"])),
+                default=0.0)
+    if options.max_rms_px is not None and worst > options.max_rms_px:
+        bad = max(result.views, key=lambda v: v["rms_reprojection_px"] if math.isfinite(v["rms_reprojection_px"])
+                  else 0.0)
+        hint = "" if distortion != "none" else "; a lens with distortion needs the distortion model auto"
+        raise FitError(f"the fit found no consistent solution: {bad['image']} reprojects with an RMS of "
+                       f"{worst:.3g} px (the target file or the detections do not match{hint})")
+
+
+# Physical ranges of the lens values (`_out_of_range`): a value outside is not a measurement of this lens.
+PHYSICAL_RANGES = {"w_mm": (0.0, math.inf), "U_mm": (0.0, math.inf), "d_mm": (0.0, math.inf),
+                   "f_mm": (0.0, math.inf)}
+
+
+def _out_of_range(result: FitResult) -> list:
+    """Keys whose fitted value is not finite or outside its physical range (w, U, f > 0, d ≥ 0): the fit's
+    number for them is not a measurement, so they are reported undetermined (null)."""
+    out = []
+    for k, (lo, hi) in PHYSICAL_RANGES.items():
+        v = result.values.get(k)
+        if v is None:
+            continue
+        ok = math.isfinite(v) and (v >= lo if k == "d_mm" else v > lo) and v < hi
+        if not ok:
+            out.append(k)
+    return out
+
+
+# When the thin-lens blur model is refused (`blur_misfit`); see docs/real_cameras.md. Measured (blur noise from
+# second differences): a rendered capture through a lens tilted by 5° leaves residuals 1.1× the noise and
+# explains widths varying 13× the noise; the untilted GoPro set's fit leaves 1.15× and explains 0.6×.
+BLUR_MISFIT_RESIDUAL_RATIO = 3.0  # residual σ above this many noise σ: structure the model cannot explain
+BLUR_MIN_SIGNAL_RATIO = 1.0  # explained variation below this many noise σ: the widths carry no resolvable defocus
+
+
+def blur_noise_px(obs: Observations) -> float:
+    """The blur widths' measurement noise (pixels), without a blur model, from second differences along the
+    target's rows and columns (Rice 1984; Gasser, Sroka and Jennen-Steinmetz 1986).
+
+    Three consecutive corners on the target lie at nearly the same depth and the blur changes nearly linearly
+    across them whatever the lens (tilted or not), so b_(i−1) − 2 b_i + b_(i+1) is noise with variance 6 σ²
+    plus a curvature term that only makes the estimate err large. NaN with fewer than 10 triples."""
+    pts = obs.points_mm.numpy()
+    triples = []
+    for axis in (0, 1):
+        other = 1 - axis
+        for line in np.unique(np.round(pts[:, other], 6)):
+            idx = np.flatnonzero(np.abs(pts[:, other] - line) < 1e-6)
+            idx = idx[np.argsort(pts[idx, axis])]
+            triples += list(zip(idx[:-2], idx[1:-1], idx[2:]))
+    if not triples:
+        return math.nan
+    i, j, k = (torch.as_tensor(np.array(v)) for v in zip(*triples))
+    m = obs.blur_mask
+    ok = m[:, i] & m[:, j] & m[:, k]
+    if int(ok.sum()) < 10:
+        return math.nan
+    d2 = (obs.blur_px[:, i] - 2 * obs.blur_px[:, j] + obs.blur_px[:, k])[ok].double()
+    return math.sqrt(float((d2 * d2).mean()) / 6.0)
+
+
+def blur_misfit(result: FitResult, obs: Observations) -> str | None:
+    """Why the fitted thin-lens blur model does not describe the lens's blur widths, or None.
+
+    Against the widths' measurement noise σ_n (`blur_noise_px`, found without a blur model): the model does not
+    describe them when its residuals' σ exceeds `BLUR_MISFIT_RESIDUAL_RATIO` σ_n (it leaves structure it
+    cannot explain), or when the widths it predicts vary across the corners (their standard deviation) by less
+    than `BLUR_MIN_SIGNAL_RATIO` σ_n: every width is then more noise than defocus, and U and d rest on the
+    average of many noisy widths, where a systematic error of the widths (edges curved by distortion, JPEG
+    compression, sharpening) weighs as much as defocus. The fitted U, d and a θF test then describe the
+    model's compromise, not the lens (an untilted action camera's θF came out "justified" at −19°)."""
+    m = obs.blur_mask
+    if result.rss.get("n_blur", 0) < 10:
+        return None
+    noise = blur_noise_px(obs)
+    if not (math.isfinite(noise) and noise > 0):
+        return None
+    with torch.no_grad():
+        r = residuals(result.camera, obs).blur_px[m]
+    resid = float(r.pow(2).mean().sqrt())
+    explained = float((obs.blur_px[m] + r).std())
+    if resid > BLUR_MISFIT_RESIDUAL_RATIO * noise:
+        return (f"its blur residuals (RMS {resid:.3g} px) are {resid / noise:.1f}× the widths' noise ({noise:.3g} "
+                f"px, from neighbouring corners)")
+    if explained < BLUR_MIN_SIGNAL_RATIO * noise:
+        return (f"the blur it explains varies by {explained:.3g} px across the corners, less than the widths' noise "
+                f"({noise:.3g} px, from neighbouring corners)")
+    return None

@@ -70,6 +70,15 @@ def calibration_reference() -> str:
         + ", ".join(f"`{k}`" for k in calibfile.VIEW_KEYS) + "; `sigma`: "
         + ", ".join(f"`{k}`" for k in calibfile.SIGMA_KEYS) + " (one standard deviation). Lengths in mm, angles in "
         "degrees, pixels as in the DET file. Non-finite values are written as null.", "",
+        "Reprojection RMS (`rms_reprojection_px` of each view and of all views, `held_out.rms_px`, and what stderr, "
+        "`tiltfit report` and `tiltfit export` show) is per corner, OpenCV's definition (the value "
+        "`cv2.calibrateCamera` returns): sqrt(mean over corners of dx² + dy²), √2 times an RMS per coordinate.", "",
+        "Values are never written outside their physical range: `w_mm` > 0; `U_mm` > 0 or null; `d_mm` ≥ 0 or null; "
+        "a key the data cannot determine, or whose fit left its range (U ≤ 0: focus beyond infinity), is null and "
+        "listed in `undetermined`. `tiltfit export` accepts every file `tiltfit calibrate` writes. Also written: "
+        "`warnings` (e.g. that the thin-lens blur model does not describe the lens), `principal_point_fitted`, "
+        "`model_selection.principal_point` (`justified`, `fitted`) and `distortion_selection` (per model: fit "
+        "`rms_px`, `held_out_rms_px` or why it was `refused`, `chosen`).", "",
         "Checks when reading (`--init`): `pixel_pitch_mm`, `w_mm`, `U_mm`, `d_mm` positive and at most "
         f"{calibfile.MAX_LENGTH_MM:g} mm; `image_size_px` two integers 1 to {detfile.MAX_IMAGE_SIDE}; `principal_point_px` within one "
         "image size of the image; `|theta_F_deg| < 90`; each view's `R` a rotation (orthonormal, determinant +1, "

@@ -110,10 +110,13 @@ class Residuals:
     blur_mask: torch.Tensor
 
     def rms_per_view(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """((V,) reprojection RMS over both coordinates, (V,) blur RMS), pixels; NaN for empty views."""
+        """((V,) reprojection RMS per corner, (V,) blur RMS), pixels; NaN for empty views.
+
+        The reprojection RMS is OpenCV's (`cv2.calibrateCamera`'s return value): sqrt(mean over corners of
+        dx² + dy²), √2 times the RMS per coordinate."""
         nc = self.corner_mask.sum(-1)
         nb = self.blur_mask.sum(-1)
-        rc = torch.sqrt((self.corners_px ** 2).sum((-1, -2)) / (2 * nc))
+        rc = torch.sqrt((self.corners_px ** 2).sum((-1, -2)) / nc)
         rb = torch.sqrt((self.blur_px ** 2).sum(-1) / nb)
         return rc, rb
 

@@ -62,7 +62,7 @@ def write_report(calib: dict, out_dir: str) -> list:
     ax.bar(range(len(views)), rms, color=np.where(out, "tab:red", "tab:blue"))
     ax.axhline(np.nanmedian(rms), color="k", lw=0.8, ls="--", label="median")
     ax.set_xticks(range(len(views)), names, rotation=90, fontsize=6)
-    ax.set_ylabel("RMS per coordinate (px)")
+    ax.set_ylabel("RMS per corner (px)")
     ax.set_title("Reprojection RMS per view (red: outlier)")
     ax.legend()
     save(fig, "per_view_rms.png")
@@ -143,7 +143,7 @@ def write_report(calib: dict, out_dir: str) -> list:
     lines = ["# Calibration report", ""]
     rms_all = calib.get("rms_reprojection_px")
     ho = calib.get("held_out") or {}
-    lines.append(f"- reprojection RMS (per coordinate): {rms_all if rms_all is None else f'{rms_all:.4f}'} px"
+    lines.append(f"- reprojection RMS (per corner, as OpenCV): {rms_all if rms_all is None else f'{rms_all:.4f}'} px"
                  + (f"; held out ({ho.get('folds')}-fold): {ho['rms_px']:.4f} px" if ho.get("rms_px") else ""))
     F = calib["w_mm"] / calib["pixel_pitch_mm"]
     lines.append(f"- focal length {F:.2f} px, principal point {calib.get('principal_point_px')}, distortion "

@@ -1,12 +1,15 @@
-"""Held-out reprojection error: how well a calibration predicts views it was not fitted on.
+"""Held-out reprojection error, and the distortion model it chooses.
 
 The fit RMS measures how well the model explains the corners it was fitted to; with many parameters
 (distortion terms) it always drops. The held-out error is the honest one: split the views into K folds;
 for each fold fit the lens (w, principal point, distortion, as the full fit did) on the other views, then
 hold that lens fixed and fit only each held-out view's pose; the RMS of those views' residuals is what the
-lens predicts. Blur widths are not used (geometry only).
+lens predicts. Blur widths are not used (geometry only). RMS per corner, OpenCV's definition:
+sqrt(mean(dx² + dy²)).
 
-    held_out_rms(obs, options, folds=5) -> {"rms_px", "per_view_px", "folds"}
+    held_out_rms(obs, options, folds=5) -> {"rms_px", "per_view_px", "folds", "median_view_px"}
+    select_distortion(camera, obs, options, mode) -> FitResult      (`FitOptions.distortion` "auto")
+    radial_fold(camera, obs) -> None | str                          (a radial mapping that folds in the image)
 """
 from __future__ import annotations
 
@@ -14,9 +17,17 @@ import math
 from dataclasses import replace
 
 import numpy as np
+import torch
 
-from .fit import FitError, FitOptions, fit_geometry, initialize, without_blur
-from .model import Observations
+from renderer.cameras.distortion import MODEL_TERMS, MODELS as DISTORTION_MODELS
+
+from .fit import FitError, FitOptions, FitResult, fit_geometry, initialize, without_blur
+from .model import Observations, TiltLensCamera
+
+# Models whose held-out errors lie within this fraction of the best are not told apart by K-fold validation
+# on a few dozen views (its fold-to-fold scatter is of this order); the one with the fewest terms is chosen.
+HELD_OUT_TOLERANCE = 0.01
+MAX_UNDISTORTED_RADIUS = 60.0  # tan of 89°: the radial mapping is checked up to rays 89° off the axis
 
 
 def predict_views(camera, obs: Observations, options: FitOptions = FitOptions()):
@@ -29,35 +40,175 @@ def predict_views(camera, obs: Observations, options: FitOptions = FitOptions())
 
 
 def held_out_rms(obs: Observations, options: FitOptions = FitOptions(), folds: int = 5,
-                 distortion: str | None = None) -> dict:
-    """K-fold held-out reprojection RMS (pixels) of a geometric calibration with `options`' settings.
+                 distortion: str | None = None, start: TiltLensCamera | None = None) -> dict:
+    """K-fold held-out reprojection RMS (pixels per corner) of a geometric calibration with `options`' settings.
 
     Args:
         obs: all views (views with too few corners should already be removed).
-        options: the fit's settings (distortion model, principal point); "auto" is resolved once per fold.
+        options: the fit's settings (distortion model, principal point: free only when True).
         folds: K (views are dealt round-robin into folds; at most one fold per view).
-        distortion: overrides options.distortion (e.g. the model the full fit chose).
+        distortion: overrides options.distortion (a model name, not "auto").
+        start: a camera whose lens (w, principal point, distortion) starts each fold's fit (e.g. the fit on all
+            views); None starts from the homographies without distortion.
     Returns:
-        {"rms_px": RMS over all held-out corners, "per_view_px": [...] in obs order, "folds": K}.
+        {"rms_px": RMS over all held-out corners, "per_view_px": [...] in obs order, "folds": K,
+        "median_view_px"}.
     """
     V = obs.n_views
     K = max(2, min(int(folds), V))
     if V < 3:
         raise FitError(f"held-out error needs at least 3 views, got {V}")
-    opts = replace(options, model_selection=False, progress=None, max_rms_px=None,
+    opts = replace(options, model_selection=False, progress=None, max_rms_px=None, uncertainties=False,
+                   free_principal_point=bool(options.free_principal_point),
                    distortion=distortion or options.distortion)
+    if opts.distortion == "auto":
+        raise ValueError("held_out_rms: give the distortion model (not auto)")
     per_view = [math.nan] * V
     sq, n = 0.0, 0
     for k in range(K):
         test = [v for v in range(V) if v % K == k]
         train = [v for v in range(V) if v % K != k]
         tr = obs.subset(train)
-        cam = initialize(tr, "unified", options=opts, blur=False)  # geometry only: the lens mode does not enter
+        cam = initialize(tr, "unified", init=start, options=opts, blur=False)  # geometry only
         fit = fit_geometry(cam, tr, opts, mode="unified")
         pred = predict_views(fit.camera, obs.subset(test), opts)
         sq += pred.rss["corners"]
-        n += pred.rss["n_corners"]
+        n += pred.rss["n_corners"] // 2
         for v, view in zip(test, pred.views):
             per_view[v] = view["rms_reprojection_px"]
     return {"rms_px": math.sqrt(sq / max(n, 1)), "per_view_px": per_view, "folds": K,
             "median_view_px": float(np.nanmedian(per_view))}
+
+
+def radial_fold(camera: TiltLensCamera, obs: Observations) -> str | None:
+    """Where the camera's radial distortion stops being one-to-one on the image, or None.
+
+    The radial mapping r ↦ r_d = r (1 + k1 r² + k2 r⁴ + k3 r⁶) / (1 + k4 r² + k5 r⁴ + k6 r⁶) (normalised radii
+    about the principal point) must increase from the axis over the image's undistorted radii: up to the image
+    corner's radius (what undistorting the photo with its own camera matrix samples, as `cv2.undistort` does)
+    and up to every fitted corner's undistorted radius (a corner beyond the fold is imaged by the mapping's
+    falling branch, where two directions share one pixel). Otherwise the undistorted photo folds over near its
+    border and the lens beyond the board is wrong, although the corners fit (OpenCV users meet this as
+    opencv/opencv#15992). Returns None, or why the mapping is refused (one line).
+    """
+    k = [float(c) for c in camera.distortion.detach()]
+    k1, k2, k3, k4, k5, k6 = k[0], k[1], k[4], k[5], k[6], k[7]
+    W, H = camera.image_size_px
+    F = float(camera.focal_px.detach())
+    cx, cy = (float(c) for c in camera.principal_point_px.detach())
+    r_image = max(math.hypot(x - cx, y - cy) for x in (-0.5, W - 0.5) for y in (-0.5, H - 0.5)) / F
+    with torch.no_grad():
+        p = camera.to_camera(obs.points_mm.to(camera.rvec.dtype))[obs.corner_mask]
+    r_obs = float(torch.sqrt(p[:, 0] ** 2 + p[:, 1] ** 2).div(p[:, 2].clamp_min(1e-12)).max()) if len(p) else 0.0
+    r_max = min(max(r_image, r_obs), MAX_UNDISTORTED_RADIUS)
+    r = np.linspace(0.0, r_max, 200001)
+    r2 = r * r
+    a = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    b = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    with np.errstate(all="ignore"):
+        bad = ~(b > 0) | ~(np.diff(r * a / b, prepend=-1.0) > 0)
+    if not bad.any():
+        return None
+    r_fold = float(r[int(np.argmax(bad))])
+    where = (f"a fitted corner's ({math.degrees(math.atan(r_obs)):.1f}°)" if r_obs > r_image else
+             f"the image corner's ({math.degrees(math.atan(r_image)):.1f}°)")
+    return f"the radial mapping folds back at {math.degrees(math.atan(r_fold)):.1f}° off the axis, inside {where}"
+
+
+def _per_corner_rms(fit: FitResult) -> float:
+    return math.sqrt(fit.rss["corners"] / max(fit.rss["n_corners"] // 2, 1))
+
+
+def select_distortion(camera: TiltLensCamera, obs: Observations, options: FitOptions, mode: str = "unified",
+                      say=None, folds: int = 5) -> FitResult:
+    """Fit every distortion model on the corners and keep the one that predicts held-out views best.
+
+    Models none, k1, k1k2, opencv5, rational are fitted in turn on all views (each starting from the previous
+    fit); a model whose radial mapping folds inside the image (`radial_fold`) or whose fit fails is refused;
+    the others are scored by their K-fold held-out error (`held_out_rms`, the lens of each fold started from
+    the model's fit on all views; not computed for a model whose fit RMS already exceeds the best held-out
+    error, which it cannot beat). The chosen model is the one with the fewest terms whose held-out error is
+    within `HELD_OUT_TOLERANCE` of the smallest. With fewer than 3 views (no held-out error) the score is
+    BIC on the fitted corners. Returns that model's fit; `distortion_selection` holds one entry per model
+    ({model, n_terms, rms_px, held_out_rms_px | bic, refused?, chosen}); `held_out` the chosen one's
+    held-out result. The principal point is free when `options.free_principal_point` is True.
+    """
+    obs = without_blur(obs)
+    fixed = replace(options, progress=None, model_selection=False, free_principal_point=bool(
+        options.free_principal_point))
+    use_held_out = obs.n_views >= 3
+    fits, entries, held, prev = {}, [], {}, None
+    for m in DISTORTION_MODELS:
+        entry = {"model": m, "n_terms": len(MODEL_TERMS[m])}
+        entries.append(entry)
+        try:
+            fit = fit_geometry((prev.camera if prev is not None else camera).copy(), obs,
+                               replace(fixed, distortion=m), mode)
+        except FitError as e:
+            entry["refused"] = f"not fitted ({e})"
+            continue
+        prev = fit
+        entry["rms_px"] = _per_corner_rms(fit)
+        fold = radial_fold(fit.camera, obs)
+        if fold:
+            entry["refused"] = fold
+        else:
+            fits[m] = fit
+            n = fit.rss["n_corners"]
+            entry["bic"] = n * math.log(max(fit.rss["corners"], 1e-300) / n) + fit.n_parameters * math.log(n)
+    # Held-out errors, best-fitting model first. A model whose fit RMS already exceeds the best held-out error
+    # found (with the tolerance) is not scored: its held-out error is at least its fit RMS (a fit explains
+    # the views it was fitted to better than new ones), so it cannot be chosen.
+    for m in sorted(fits, key=lambda m: fits[m].rss["corners"]) if use_held_out else []:
+        entry = entries[DISTORTION_MODELS.index(m)]
+        best = min((h["rms_px"] for h in held.values()), default=math.inf)
+        if entry["rms_px"] > (1 + HELD_OUT_TOLERANCE) * best:
+            entry["held_out_skipped"] = "its fit RMS exceeds the best held-out error"
+            continue
+        try:
+            held[m] = held_out_rms(obs, replace(fixed, distortion=m), folds, start=fits[m].camera)
+            entry["held_out_rms_px"] = held[m]["rms_px"]
+        except FitError as e:
+            entry["refused"] = f"held-out error not computed ({e})"
+    if use_held_out:
+        fits = {m: f for m, f in fits.items() if m in held}
+    for entry in entries if say else []:
+        score = (f"held-out {entry['held_out_rms_px']:.4f} px" if "held_out_rms_px" in entry else
+                 f"refused: {entry['refused']}" if "refused" in entry else
+                 f"held-out not computed ({entry['held_out_skipped']})" if "held_out_skipped" in entry else
+                 f"BIC {entry['bic']:.1f}")
+        say(f"distortion {entry['model']}: " + (f"RMS {entry['rms_px']:.4f} px per corner, " if "rms_px" in entry
+                                                else "") + score)
+    if not fits:
+        raise FitError("no distortion model could be fitted: " + "; ".join(
+            f"{e['model']}: {e.get('refused')}" for e in entries))
+    key = "held_out_rms_px" if use_held_out else "bic"
+    scores = {e["model"]: e[key] for e in entries if e["model"] in fits and key in e}
+    best = min(scores.values())
+    if use_held_out:
+        chosen = next(m for m in DISTORTION_MODELS if m in scores and scores[m] <= (1 + HELD_OUT_TOLERANCE) * best)
+    else:
+        chosen = min(scores, key=scores.get)
+    for e in entries:
+        e["chosen"] = e["model"] == chosen
+    result = fits[chosen]
+    result.distortion_model = chosen
+    result.distortion_selection = entries
+    result.held_out = held.get(chosen)
+    return result
+
+
+def describe_choice(selection: list) -> str:
+    """One line: which distortion model `select_distortion` chose and why."""
+    chosen = next((e for e in selection if e.get("chosen")), None)
+    if chosen is None:
+        return "no model chosen"
+    if "held_out_rms_px" in chosen:
+        best = min((e for e in selection if "held_out_rms_px" in e), key=lambda e: e["held_out_rms_px"])
+        why = (f"smallest held-out error, {chosen['held_out_rms_px']:.4f} px per corner" if best is chosen else
+               f"held-out {chosen['held_out_rms_px']:.4f} px per corner, within {100 * HELD_OUT_TOLERANCE:g} % of "
+               f"{best['model']}'s {best['held_out_rms_px']:.4f} px with fewer terms")
+    else:
+        why = "smallest BIC (too few views for a held-out error)"
+    refused = [f"{e['model']} ({e['refused']})" for e in selection if e.get("refused")]
+    return f"{chosen['model']}: {why}" + (f"; refused: {'; '.join(refused)}" if refused else "")

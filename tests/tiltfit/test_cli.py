@@ -119,6 +119,38 @@ def test_calibrate_unified_then_tilt_writes_the_contract(files, capfd):
         "CALIB.json round-trips into a camera"
 
 
+def test_tilted_capture_with_the_defaults_suggests_the_tilt_without_a_blur_warning(files, capfd):
+    """The untilted model misfits a tilted lens's blur; that is for the θF test to find, not a warning that the
+    thin-lens blur model does not describe the lens (it does, with θF free)."""
+    folder, target, _, tilted = files
+    out = folder / "tilted_defaults.json"
+    rc, _, err = run_cli(["calibrate", *tilted, "--target", target, "--pixel-pitch-mm", PITCH, "-o", out], capfd)
+    assert rc == 0, err
+    assert "warning" not in err, f"no warning on a tilted capture: {err}"
+    calib = read_calib(str(out))
+    assert calib["model_selection"]["theta_F"]["justified"] is True, "the tilt is suggested"
+    assert calib["U_mm"] is not None and calib["warnings"] == [], "the blur model is kept"
+
+
+def test_principal_point_can_be_forced_free_or_fixed(files, capfd):
+    folder, target, untilted, _ = files
+    W, H = PAPER_SENSOR["image_size_px"]
+    for flag, fitted in (("--free-principal-point", True), ("--fixed-principal-point", False)):
+        out = folder / f"pp{fitted}.json"
+        rc, _, err = run_cli(["calibrate", *untilted, "--target", target, "--pixel-pitch-mm", PITCH, "--distortion",
+                              "none", "--held-out", "0", flag, "-q", "-o", out], capfd)
+        assert rc == 0, err
+        calib = read_calib(str(out))
+        assert calib["principal_point_fitted"] is fitted, f"{flag}: {calib['model_selection']['principal_point']}"
+        if not fitted:
+            assert calib["principal_point_px"] == [(W - 1) / 2, (H - 1) / 2], "held at the image centre"
+    with pytest.raises(SystemExit) as exc:  # argparse's usage error
+        main(["calibrate", *untilted, "--target", target, "--pixel-pitch-mm", str(PITCH), "--free-principal-point",
+              "--fixed-principal-point", "-o", str(folder / "never.json")])
+    err = capfd.readouterr().err
+    assert exc.value.code == 2 and "not allowed with" in err, f"the two flags exclude each other: {err}"
+
+
 # --- errors --------------------------------------------------------------------------------------------------
 
 def test_missing_image(files, capfd):

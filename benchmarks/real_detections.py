@@ -1,0 +1,85 @@
+"""tiltfit's own detections (corners and blur widths) of the shipped real photo sets, cached beside the photos.
+
+    python benchmarks/real_detections.py [SET ...]      (default: every folder under data/real/)
+
+Writes data/real/SET/detections_tiltfit.json: {image basename: DET.json dict | {"no_board": reason}}, one image
+per line. `tiltfit calibrate` run on the photos detects exactly these (tests check one image against a fresh
+detection); tests and benchmarks/bench_real_calib.py read the cache instead of detecting again (about 3 s per
+photo).
+"""
+from __future__ import annotations
+
+import glob
+import json
+import os
+import sys
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+REAL = os.path.join(ROOT, "data", "real")
+CACHE_NAME = "detections_tiltfit.json"
+
+
+def photos(folder: str) -> list[str]:
+    """The photo files of a set (JPEG or PNG), sorted."""
+    return sorted(p for p in glob.glob(os.path.join(folder, "*")) if p.lower().endswith((".jpg", ".jpeg", ".png")))
+
+
+def detect_one(path: str, target) -> dict:
+    """The DET.json dict `tiltfit detect` would write for `path`, or {"no_board": reason}."""
+    from tiltfit import cli
+
+    try:
+        return cli._detect_image(path, target, None)
+    except cli.CliError as e:
+        if not e.problem.startswith("no board found"):
+            raise
+        return {"no_board": e.problem}
+
+
+def read_cache(folder: str) -> dict:
+    with open(os.path.join(folder, CACHE_NAME), encoding="utf-8") as f:
+        return json.load(f)
+
+
+def write_cache(folder: str, say=print) -> dict:
+    from tiltfit.target import load_target
+
+    target = load_target(os.path.join(folder, "target.json"))
+    out = {}
+    for p in photos(folder):
+        out[os.path.basename(p)] = det = detect_one(p, target)
+        say(f"{os.path.basename(p)}: " + ("no board" if "no_board" in det else
+                                          f"{sum(c is not None for c in det['corners_px'])} corners"))
+    with open(os.path.join(folder, CACHE_NAME), "w", encoding="utf-8") as f:
+        f.write("{\n" + ",\n".join(f"{json.dumps(k)}: {json.dumps(v)}" for k, v in sorted(out.items())) + "\n}\n")
+    return out
+
+
+def main(argv=None) -> int:
+    sets = (argv if argv is not None else sys.argv[1:]) or sorted(
+        d for d in os.listdir(REAL) if os.path.isfile(os.path.join(REAL, d, "target.json")))
+    for s in sets:
+        write_cache(os.path.join(REAL, s), say=lambda m, s=s: print(f"[{s}] {m}", file=sys.stderr, flush=True))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
+
+
+def observations(folder: str, pixel_pitch_mm: float):
+    """(Observations of the photos with a board from the cache, names of those without)."""
+    import numpy as np
+
+    from tiltfit.model import Observations
+    from tiltfit.target import load_target
+
+    target = load_target(os.path.join(folder, "target.json"))
+    cache = read_cache(folder)
+    names = [n for n in sorted(cache) if "no_board" not in cache[n]]
+    corners = np.array([[c if c is not None else [np.nan, np.nan] for c in cache[n]["corners_px"]] for n in names],
+                       dtype=np.float64)
+    blur = np.array([[b if b is not None else np.nan for b in cache[n]["blur_px"]] for n in names], dtype=np.float64)
+    size = tuple(cache[names[0]]["image_size_px"])
+    return (Observations(target.feature_points(), corners, blur, size, pixel_pitch_mm, names),
+            [n for n in sorted(cache) if "no_board" in cache[n]])

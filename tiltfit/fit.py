@@ -724,7 +724,7 @@ def _fit_camera(camera: TiltLensCamera, obs: Observations, options: FitOptions, 
     if options.uncertainties:
         C, sig, view_sig, s2 = _uncertainties(prob, res, scale, init_sigma)
     else:  # only the fitted camera is wanted (held-out folds): σ unknown, and a near-degenerate fit is no error
-        n = res.x.numel()
+        n = res.x_flat.numel()
         C, view_sig, s2 = torch.full((n, n), math.nan, dtype=torch.float64), [{}] * obs.n_views, math.nan
         sig = {k: math.nan for k in _DERIVED_KEYS} | {"principal_point_px": [math.nan, math.nan],
                                                        "distortion": [math.nan] * 8}

@@ -23,7 +23,8 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from bench_calib_opencv import CAMERA, TARGET, capture  # noqa: E402
 
 from tiltfit.detect import detect  # noqa: E402
-from tiltfit.fit import FitOptions, calibrate  # noqa: E402
+from tiltfit.fit import FitOptions  # noqa: E402
+from tiltfit.calibration import calibrate  # noqa: E402
 from tiltfit.model import Observations  # noqa: E402
 
 

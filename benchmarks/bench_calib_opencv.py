@@ -41,7 +41,8 @@ from renderer import optics
 from tiltfit import reproduce, synth
 from tiltfit.detect import detect
 from tiltfit.evaluate import linear_from_grey_levels
-from tiltfit.fit import FitError, FitOptions, calibrate
+from tiltfit.fit import FitError, FitOptions
+from tiltfit.calibration import calibrate
 from tiltfit.model import Observations
 
 TILTS_DEG = (0.0, 5.0, -5.0)

@@ -164,7 +164,9 @@ def opencv_calibrate(obs, model: str):
 
 
 def ours(obs, model: str, blur: bool):
-    from tiltfit.fit import FitOptions, calibrate, without_blur
+    from tiltfit.fit import FitOptions, without_blur
+
+    from tiltfit.calibration import calibrate
 
     opts = FitOptions(distortion=model, free_principal_point=True, max_rms_px=None, model_selection=False)
     res = calibrate(obs if blur else without_blur(obs), "unified", options=opts)

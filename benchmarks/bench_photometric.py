@@ -40,7 +40,8 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from renderer import optics  # noqa: E402
 from tiltfit import reproduce, synth  # noqa: E402
 from tiltfit.detect import detect  # noqa: E402
-from tiltfit.fit import FitError, FitOptions, calibrate  # noqa: E402
+from tiltfit.fit import FitError, FitOptions  # noqa: E402
+from tiltfit.calibration import calibrate  # noqa: E402
 from tiltfit.model import Observations  # noqa: E402
 from tiltfit.photometric import PhotometricOptions, refine_photometric  # noqa: E402
 from tiltfit.target import Target  # noqa: E402

@@ -31,7 +31,8 @@ import numpy as np
 import torch
 
 from renderer.cameras.distortion import MODELS
-from tiltfit.fit import FitOptions, calibrate
+from tiltfit.fit import FitOptions
+from tiltfit.calibration import calibrate
 from tiltfit.model import Observations
 from tiltfit.opencv_corners import opencv_detections
 from tiltfit.target import load_target

@@ -2,7 +2,7 @@
 
 Uses only tiltfit's public API: `TiltLensCamera` (an nn.Module whose parameters are the lens and the poses),
 `synthesize_observations`, `loss`, `tiltfit.fit.initialize` (PnP poses, homography focal length, linear blur
-scan) and, for comparison, `tiltfit.fit.calibrate` (Levenberg–Marquardt).
+scan) and, for comparison, `tiltfit.calibration.calibrate` (Levenberg–Marquardt).
 
     python examples/train_calibration.py [--config examples/calib_config.json] [--resume] [--out DIR]
 
@@ -25,7 +25,8 @@ import time
 
 import torch
 
-from tiltfit.fit import FitOptions, calibrate, initialize
+from tiltfit.fit import FitOptions, initialize
+from tiltfit.calibration import calibrate
 from tiltfit.model import TiltLensCamera, board_points_mm, loss, random_poses, synthesize_observations
 
 HERE = os.path.dirname(os.path.abspath(__file__))

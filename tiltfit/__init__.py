@@ -2,10 +2,22 @@
 
 Layers (bottom to top; `tests/tiltfit/test_layers.py` checks them, and that nothing forms an import cycle):
 - library: `target` (the board), `imaging` (pyramid, homography), `blur`, `detect`, `model`, `fit`, `validate`,
-  `photometric`, the file formats (`calibfile`, `detfile`, `formats`, `export`), `report`, `evaluate` (photo
+  `photos` (calibration from photographs, the Python entry point), `photometric`, the file formats (`calibfile`, `detfile`, `formats`, `export`), `report`, `evaluate` (photo
   against rendering), `synth` (synthetic observations and images), `opencv_corners`, `runlog`, `target_cli`;
 - experiments built on the library: `reproduce` (the paper's experiment) with `scenes`, and `stability/`
   (where each method fails, one module per study); the library never imports them;
 - front end: `cli` (`tiltfit ...`, also `python -m tiltfit`).
 `tiltfit` builds on `renderer`'s public API; `renderer` never imports `tiltfit`.
 """
+
+__all__ = ["Calibration", "calibrate_photos"]
+
+
+def __getattr__(name: str):
+    """`tiltfit.calibrate_photos` and `tiltfit.Calibration` (`tiltfit.photos`), imported on first use so that
+    `import tiltfit` stays light."""
+    if name in __all__:
+        from . import photos
+
+        return getattr(photos, name)
+    raise AttributeError(f"module 'tiltfit' has no attribute {name!r}")

@@ -30,7 +30,6 @@ import signal
 import sys
 import time
 import warnings
-from dataclasses import replace
 
 from renderer.cli import interrupt_on_sigterm
 from renderer.io import quiet_c_stderr as _quiet_c_stderr
@@ -244,7 +243,8 @@ def _check_range(option: str, value, low_exclusive: float, high: float, what: st
 
 def cmd_calibrate(args) -> int:
     from .calibfile import calib_dict, camera_from_calib, read_calib, sigma_from_calib, validate_calib, write_calib
-    from .fit import FitError, FitOptions, calibrate
+    from .fit import FitError, FitOptions
+    from .photos import fit_with_held_out
 
     say = _say(args.quiet)
     t0 = time.perf_counter()
@@ -288,7 +288,8 @@ def cmd_calibrate(args) -> int:
                          progress=say, distortion=args.distortion)
     label = args.inputs[0] if len(args.inputs) == 1 else f"{args.inputs[0]} (+{len(args.inputs) - 1} more)"
     try:
-        result = calibrate(obs, args.fit, init=init, options=options, init_sigma=init_sigma)
+        result, used, held_out = fit_with_held_out(obs, args.fit, init=init, options=options, init_sigma=init_sigma,
+                                                   held_out_folds=args.held_out, say=say)
     except FitError as e:
         raise CliError(label, str(e)) from None
     result.skipped = list(obs.skipped) + list(result.skipped)
@@ -299,20 +300,6 @@ def cmd_calibrate(args) -> int:
             print(f"tiltfit: note: {note}", file=sys.stderr, flush=True)
     for warning in result.warnings:
         print(f"tiltfit: warning: {warning}", file=sys.stderr, flush=True)
-    held_out = None
-    used = obs.subset([obs.names.index(v["image"]) for v in result.views])
-    if args.held_out and used.n_views >= max(3, args.held_out):
-        from .validate import held_out_rms
-
-        try:
-            held_out = result.held_out if (result.held_out or {}).get("folds") == args.held_out else \
-                held_out_rms(used, replace(options, free_principal_point=result.free_principal_point),
-                             folds=args.held_out, distortion=result.distortion_model, start=result.camera)
-            fit_rms = math.sqrt(result.rss["corners"] / max(result.rss["n_corners"] // 2, 1))
-            say(f"reprojection RMS {fit_rms:.4f} px per corner (fit), {held_out['rms_px']:.4f} px (held out, "
-                f"{held_out['folds']}-fold)")
-        except FitError as e:
-            say(f"held-out error not computed: {e}")
     photometric = _refine_photometric(result, used, target, args, say, images) if args.refine == "photometric" else None
     data = calib_dict(result, runtime_s=time.perf_counter() - t0, obs=used, target=target.to_dict(),
                       held_out=held_out)

@@ -424,7 +424,9 @@ def stage_calibrate(targets: dict | None, set_values: SetValues, cfg: RunConfig,
     if targets is None:
         log("(c) calibration: PENDING (needs stage (b))")
         return out
-    from .fit import FitError, FitOptions, calibrate
+    from .fit import FitError, FitOptions
+
+    from .calibration import calibrate
 
     quiet = FitOptions(model_selection=False, nominal_focal_mm=set_values.w_mm)
     obs_a = observations(targets, "a")

@@ -13,7 +13,8 @@ import torch
 
 from tiltfit import cli
 from tiltfit.calibfile import calib_dict
-from tiltfit.fit import FitOptions, calibrate
+from tiltfit.fit import FitOptions
+from tiltfit.calibration import calibrate
 from tiltfit.model import PAPER_LENS, PAPER_SENSOR, Observations, TiltLensCamera, random_poses
 from tiltfit.target import Target
 

@@ -9,7 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from tiltfit.fit import FitOptions, calibrate, fit_geometry, initialize, without_blur
+from tiltfit.fit import FitOptions, fit_geometry, initialize, without_blur
+from tiltfit.calibration import calibrate
 from tiltfit.model import Observations
 from tiltfit.target import load_target
 

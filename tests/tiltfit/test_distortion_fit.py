@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from tiltfit import cli
-from tiltfit.fit import FitOptions, calibrate
+from tiltfit.fit import FitOptions
+from tiltfit.calibration import calibrate
 from tiltfit.model import Observations, board_points_mm, random_poses
 
 W, H, F_PX, PITCH = 1280, 960, 560.0, 0.00155

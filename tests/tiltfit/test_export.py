@@ -10,7 +10,8 @@ import torch
 from tiltfit import cli
 from tiltfit.calibfile import calib_dict, camera_from_calib, read_calib
 from tiltfit.export import ExportError, kornia_camera, read_opencv, write_opencv
-from tiltfit.fit import FitOptions, calibrate
+from tiltfit.fit import FitOptions
+from tiltfit.calibration import calibrate
 from tiltfit.model import Observations
 from tiltfit.target import load_target
 

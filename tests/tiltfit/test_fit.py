@@ -12,7 +12,8 @@ import pytest
 import torch
 
 from renderer import optics
-from tiltfit.fit import (FitError, FitOptions, calibrate, focal_from_homographies, levenberg_marquardt)
+from tiltfit.fit import FitError, FitOptions, focal_from_homographies, levenberg_marquardt
+from tiltfit.calibration import calibrate
 from tiltfit.model import (PAPER_LENS, PAPER_SENSOR, TiltLensCamera, board_points_mm, random_poses,
                            synthesize_observations)
 

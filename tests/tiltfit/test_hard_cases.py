@@ -16,7 +16,8 @@ import torch
 
 from renderer import optics, write_image
 from tiltfit import reproduce, synth
-from tiltfit.fit import FitOptions, calibrate
+from tiltfit.fit import FitOptions
+from tiltfit.calibration import calibrate
 from tiltfit.model import Observations, TiltLensCamera, synthesize_observations
 
 W_MM, U0_MM, D_MM = 55.39, 618.4, 18.81

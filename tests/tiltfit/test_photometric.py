@@ -121,7 +121,8 @@ def _perturbed_init(poses, truth, seed=1, d_mm=D_MM, scale=1.0, theta_L_deg=THET
 def _corner_fit(images, board: Target, pitch: float):
     """The corner-and-blur calibration (`tiltfit.detect`, then the joint fit) on the same photographs."""
     from tiltfit.detect import detect
-    from tiltfit.fit import FitOptions, calibrate
+    from tiltfit.fit import FitOptions
+    from tiltfit.calibration import calibrate
     from tiltfit.model import Observations
 
     dets = [detect(im, board) for im in images]

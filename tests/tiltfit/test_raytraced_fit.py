@@ -10,7 +10,8 @@ import torch
 
 from renderer import optics
 from tiltfit import reproduce, synth
-from tiltfit.fit import FitOptions, calibrate
+from tiltfit.fit import FitOptions
+from tiltfit.calibration import calibrate
 from tiltfit.model import Observations
 
 THETA_L_DEG = 5.0

@@ -11,7 +11,8 @@ import cv2
 import numpy as np
 import pytest
 
-from tiltfit.fit import FitOptions, calibrate
+from tiltfit.fit import FitOptions
+from tiltfit.calibration import calibrate
 from tiltfit.model import Observations
 from tiltfit.target import load_target
 

@@ -9,7 +9,8 @@ import torch
 
 from renderer import load_scene, render
 from tiltfit import stability as st
-from tiltfit.fit import FitOptions, calibrate
+from tiltfit.fit import FitOptions
+from tiltfit.calibration import calibrate
 from tiltfit.stability import coverage, gamma_noise, singular, two_stage
 
 torch.set_num_threads(1)

@@ -57,7 +57,8 @@ def _calibrate_photos(photos8, decode: bool, target, size, pitch):
     from renderer.io import srgb_to_linear
 
     from ..detect import detect
-    from ..fit import FitError, FitOptions, calibrate
+    from ..fit import FitError, FitOptions
+    from ..calibration import calibrate
     from ..model import Observations
     from ..reproduce import MIN_CORNER_FRACTION
 

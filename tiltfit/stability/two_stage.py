@@ -52,7 +52,9 @@ def tilt_observations(theta_L: float, cfg: StabilityConfig, seed: int):
 
 def study_two_stage(cfg: StabilityConfig, log) -> Study:
     """(b) θL error of the paper's two stages and of the joint fit as the tilt grows."""
-    from ..fit import FitError, FitOptions, calibrate
+    from ..fit import FitError, FitOptions
+
+    from ..calibration import calibrate
 
     t0 = time.perf_counter()
     opts = FitOptions(model_selection=False, nominal_focal_mm=55.0)

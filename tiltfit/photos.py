@@ -60,8 +60,8 @@ def fit_with_held_out(obs: Observations, mode: str = "unified", init=None, optio
                       init_sigma: dict | None = None, held_out_folds: int = 5, say=None):
     """`tiltfit.calibration.calibrate`, then the k-fold held-out reprojection error of the views it used.
 
-    Returns (result, views used: Observations, held_out dict or None). The held-out error is skipped (None,
-    and said through `say`) with fewer than max(3, folds) views or where a fold's fit fails.
+    Returns (result, views used: Observations, held_out dict or None). The held-out error is skipped (None)
+    with fewer than max(3, folds) views, and where a fold's fit fails (then with a line in `result.notes`).
     Raises:
         FitError: the calibration itself failed.
     """
@@ -81,9 +81,8 @@ def fit_with_held_out(obs: Observations, mode: str = "unified", init=None, optio
                 fit_rms = math.sqrt(result.rss["corners"] / max(result.rss["n_corners"] // 2, 1))
                 say(f"reprojection RMS {fit_rms:.4f} px per corner (fit), {held_out['rms_px']:.4f} px (held out, "
                     f"{held_out['folds']}-fold)")
-        except FitError as e:
-            if say:
-                say(f"held-out error not computed: {e}")
+        except FitError as e:  # a note, not progress: CALIB.json then has no held-out error, and the user is told
+            result.notes.append(f"held-out error not computed: {e}")
     return result, used, held_out
 
 

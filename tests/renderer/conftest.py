@@ -1,3 +1,5 @@
+import sys
+
 import pytest
 
 
@@ -16,3 +18,18 @@ def calls(monkeypatch):
 
         monkeypatch.setattr(mi_intersect.MitsubaIntersector, name, counted)
     return count
+
+
+@pytest.fixture(scope="module")
+def restore_mitsuba_variant():
+    """Set Mitsuba's variant back after a module that switches it: as a fresh process would have it (the llvm
+    variant where it runs) when none was set before. A variant left behind would turn `intersector="auto"`
+    away from Embree in every later test of the same worker process."""
+    yield
+    mi = sys.modules.get("mitsuba")
+    if mi is None:
+        return
+    from renderer.mitsuba.export import DEFAULT_VARIANT, load_mitsuba
+
+    if mi.variant() != DEFAULT_VARIANT:
+        load_mitsuba(DEFAULT_VARIANT)

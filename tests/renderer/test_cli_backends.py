@@ -11,6 +11,8 @@ from renderer.cli import main  # noqa: E402
 from renderer.io import read_image  # noqa: E402
 from renderer.scenefile import load_scene  # noqa: E402
 
+pytestmark = pytest.mark.usefixtures("restore_mitsuba_variant")  # conftest: no variant left behind
+
 SCENE = os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks", "scenes", "speed_thin_lens.json")
 SMALL = ["--set", "image.width=24", "--set", "image.height=24", "--set", "camera.theta_F_deg=15"]
 

@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 import torch
 
+pytestmark = pytest.mark.usefixtures("restore_mitsuba_variant")  # conftest: no variant left behind
+
 ROOT = Path(__file__).resolve().parents[2]
 SIDE, SPP = 24, 64  # image size (longer side, pixels) and samples per pixel of the comparisons
 MEAN_TOL = 0.02  # |Mitsuba's mean / ours − 1| allowed (sampling noise at this size is about 0.3 %)

@@ -10,6 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.usefixtures("restore_mitsuba_variant")  # conftest: no variant left behind
+
 mi = pytest.importorskip("mitsuba")
 
 

@@ -16,6 +16,8 @@ from renderer.mitsuba import load_mitsuba, to_mitsuba  # noqa: E402
 from renderer.mitsuba.sensors import register, sensor_dict  # noqa: E402
 from renderer.scenefile import load_scene  # noqa: E402
 
+pytestmark = pytest.mark.usefixtures("restore_mitsuba_variant")  # conftest: no variant left behind
+
 SCENE = os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks", "scenes", "speed_thin_lens.json")
 INVERTED = {"type": "inverted_perspective", "alpha": 2.0, "pseudo_screen_distance": 4.0, "screen_distance": 1.0,
             "screen_size": [1.2, 1.2]}

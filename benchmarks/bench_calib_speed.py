@@ -166,7 +166,10 @@ def opencv_calibrate(obs, model: str):
 def ours(obs, model: str, blur: bool):
     from tiltfit.fit import FitOptions, without_blur
 
-    from tiltfit.calibration import calibrate
+    try:
+        from tiltfit.calibration import calibrate
+    except ImportError:  # --base code from before tiltfit.calibration existed
+        from tiltfit.fit import calibrate
 
     opts = FitOptions(distortion=model, free_principal_point=True, max_rms_px=None, model_selection=False)
     res = calibrate(obs if blur else without_blur(obs), "unified", options=opts)

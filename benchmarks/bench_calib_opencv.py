@@ -5,7 +5,7 @@ through the lens centre onto the untilted sensor (NOTES.md §2). So OpenCV's CAL
 *sensor*) should return τ ≈ 0 on images taken with a tilted lens, while the blur the lens tilt causes gives
 our fit θL.
 
-Captures (same for every method): `tiltfit.reproduce`'s designed target and TARGET_VIEWS, rendered by
+Captures (same for every method): `tiltfit.experiments.reproduce`'s designed target and TARGET_VIEWS, rendered by
 `tiltfit.synth` (analytic, exact blur spot) through the simulated camera's true lens (w = 55.39, d = 18.81 mm,
 f from U0 = 618.4 mm) tilted by exactly θL ∈ {0, +5°, −5°} about its centre (U from the hinge rule, θF from the
 exact Scheimpflug rule), exposed by `reproduce.SimulatedCamera.expose` (vignetting, shot + read noise, 8-bit
@@ -38,7 +38,8 @@ import numpy as np
 import torch
 
 from renderer import optics
-from tiltfit import reproduce, synth
+from tiltfit import synth
+from tiltfit.experiments import reproduce
 from tiltfit.detect import detect
 from tiltfit.evaluate import linear_from_grey_levels
 from tiltfit.fit import FitError, FitOptions

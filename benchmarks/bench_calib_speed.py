@@ -94,7 +94,10 @@ def _detect_real(name: str, spec: dict, cache: str) -> tuple[list, str]:
 
 def _synthetic(cache: str) -> tuple[list, str]:
     """DET files of the synthetic tilted capture (written once, seeded) and its target file."""
-    from tiltfit import reproduce
+    try:
+        from tiltfit.experiments import reproduce
+    except ImportError:  # --base code from before tiltfit/experiments/
+        from tiltfit import reproduce
     from tiltfit.model import TiltLensCamera, random_poses, synthesize_observations
     from tiltfit.target import design_centre_mm
 

@@ -38,7 +38,8 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from renderer import optics  # noqa: E402
-from tiltfit import reproduce, synth  # noqa: E402
+from tiltfit import synth  # noqa: E402
+from tiltfit.experiments import reproduce  # noqa: E402
 from tiltfit.detect import detect  # noqa: E402
 from tiltfit.fit import FitError, FitOptions  # noqa: E402
 from tiltfit.calibration import calibrate  # noqa: E402

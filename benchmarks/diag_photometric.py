@@ -30,7 +30,8 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from bench_photometric import BOARD, D_MM, W_MM, rough_start  # noqa: E402
-from tiltfit import reproduce, synth  # noqa: E402
+from tiltfit import synth  # noqa: E402
+from tiltfit.experiments import reproduce  # noqa: E402
 from tiltfit import photometric as P  # noqa: E402
 
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")

@@ -21,7 +21,7 @@ give the results back in input order, or run them here one after another when no
 a session started for the call is shut down after it, one the caller holds is left running. Users:
 this render (unordered, tiles written as they come), `renderer animate --cluster` (a task per frame, or a
 contiguous run of frames per CPU for beam tracing; `renderer.animate`) and `tiltfit stability --cluster`
-(a task per study; `tiltfit.cluster`). Costs per task, for shipping and for gathering: docs/speed.md.
+(a task per study; `tiltfit.experiments.cluster`). Costs per task, for shipping and for gathering: docs/speed.md.
 """
 from __future__ import annotations
 

@@ -72,7 +72,7 @@ def test_cuda_thin_lens_gradients_equal_cpu():
 
 
 def test_cuda_photometric_target_render_equals_cpu():
-    from tiltfit import reproduce
+    from tiltfit.experiments import reproduce
     from tiltfit.photometric import SensorGeometry, hammersley_disc_samples, render_target
     from tiltfit.target import Target
 

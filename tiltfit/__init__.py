@@ -4,8 +4,8 @@ Layers (bottom to top; `tests/tiltfit/test_layers.py` checks them, and that noth
 - library: `target` (the board), `imaging` (pyramid, homography), `blur`, `detect`, `model`, `fit`, `validate`,
   `photos` (calibration from photographs, the Python entry point), `photometric`, the file formats (`calibfile`, `detfile`, `formats`, `export`), `report`, `evaluate` (photo
   against rendering), `synth` (synthetic observations and images), `opencv_corners`, `runlog`, `target_cli`;
-- experiments built on the library: `reproduce` (the paper's experiment) with `scenes`, and `stability/`
-  (where each method fails, one module per study); the library never imports them;
+- experiments built on the library, in `experiments/`: `reproduce` (the paper's experiment) with `scenes`,
+  `stability/` (where each method fails, one module per study) and `cluster`; the library never imports them;
 - front end: `cli` (`tiltfit ...`, also `python -m tiltfit`).
 `tiltfit` builds on `renderer`'s public API; `renderer` never imports `tiltfit`.
 """

@@ -426,15 +426,15 @@ def cmd_report(args) -> int:
 
 
 def cmd_reproduce(argv) -> int:
-    """`tiltfit reproduce ...` is `tiltfit.reproduce.main` (its own options and help)."""
-    from . import reproduce
+    """`tiltfit reproduce ...` is `tiltfit.experiments.reproduce.main` (its own options and help)."""
+    from .experiments import reproduce
 
     return int(reproduce.main(list(argv)) or 0)
 
 
 def cmd_stability(argv) -> int:
-    """`tiltfit stability ...` is `tiltfit.stability.main` (its own options and help)."""
-    from . import stability
+    """`tiltfit stability ...` is `tiltfit.experiments.stability.main` (its own options and help)."""
+    from .experiments import stability
 
     return int(stability.main(list(argv)) or 0)
 
@@ -506,7 +506,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=cmd_report)
 
-    # Listed for --help; its arguments are parsed by tiltfit.reproduce itself (see main).
+    # Listed for --help; its arguments are parsed by tiltfit.experiments.reproduce itself (see main).
     sub.add_parser("reproduce", help="the paper's experiment end to end on a simulated camera", add_help=False)
     sub.add_parser("stability", help="where each method fails, and how ours behaves there", add_help=False)
     sub.add_parser("target", help="design a target (design) or print it at true size (print)", add_help=False)

@@ -24,7 +24,7 @@ Model of one photograph (linear intensities, image (H, W)):
 where D(u) ∈ [0, 1] is the dark fraction of the board seen by pixel u (average over the lens samples of the
 antialiased checker), white_k and black_k the view's radiance of white paper and dark cells, v the lens's
 vignetting and ρ the distance from the image centre, 1 at the corners: the fall-off of the one sensor model,
-`renderer.sensor` (`radial_falloff`), which `tiltfit.synth` and the simulated camera of `tiltfit.reproduce`
+`renderer.sensor` (`radial_falloff`), which `tiltfit.synth` and the simulated camera of `tiltfit.experiments.reproduce`
 expose their captures with.
 
 Antialiased checker: for a hit (X, Y) on the board with pixel footprint σ (mm), per axis the nearest cell edge

@@ -88,7 +88,8 @@ def test_noisy_sensor_needs_an_rng():
 def test_capture_simulations_use_the_sensor_model():
     """tiltfit's simulated camera and synthetic views expose through this model: the same numbers for the
     same settings and noise draws."""
-    from tiltfit import reproduce, synth
+    from tiltfit import synth
+    from tiltfit.experiments import reproduce
     from tiltfit.target import Target
 
     cam = reproduce.SimulatedCamera()

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from renderer.cameras import ThinLensCamera
-from tiltfit import reproduce
+from tiltfit.experiments import reproduce
 from tiltfit.aperture import checker_dark_fraction_disc, disc_halfplane_fraction, disc_wedge_fraction, lines_cut
 from tiltfit.photometric import SensorGeometry, render_target_disc
 from tiltfit.target import Target

@@ -15,7 +15,8 @@ import pytest
 import torch
 
 from renderer import optics, write_image
-from tiltfit import reproduce, synth
+from tiltfit import synth
+from tiltfit.experiments import reproduce
 from tiltfit.fit import FitOptions
 from tiltfit.calibration import calibrate
 from tiltfit.model import Observations, TiltLensCamera, synthesize_observations

@@ -9,8 +9,8 @@ library      everything not listed below: target, imaging (pyramid, homography),
              rendering profiles), photometric, synth (synthetic observations and images: public API, used by
              tests and benchmarks as much as by the experiments), runlog (progress lines), target_cli
              (`tiltfit target ...`). A new module is library unless it is added to EXPERIMENTS.
-experiments  reproduce (the paper's experiment), scenes (its boxes scene), stability and its studies
-             (tiltfit/stability/): built on the library, may import anything below them.
+experiments  tiltfit/experiments/: reproduce (the paper's experiment), scenes (its boxes scene), stability and
+             its studies, cluster (studies as Ray tasks): built on the library, may import anything below them.
 front end    cli, __main__, __init__: may import every layer; nothing imports them.
 
 `tiltfit` builds on `renderer` through its public API; that `renderer` never imports `tiltfit` is checked
@@ -30,7 +30,7 @@ from import_graph import inside as _in  # noqa: E402
 from import_graph import modules as _modules  # noqa: E402
 
 #: Experiment modules (a package name covers its submodules).
-EXPERIMENTS = ("tiltfit.reproduce", "tiltfit.scenes", "tiltfit.stability")
+EXPERIMENTS = ("tiltfit.experiments",)
 #: Command-line front ends.
 FRONT_ENDS = ("tiltfit", "tiltfit.cli", "tiltfit.__main__")
 
@@ -48,9 +48,10 @@ def test_resolves_relative_and_function_level_imports(tmp_path):
     got = sorted(m for m, _ in _imports("tiltfit.x", str(src), known))
     assert got == ["tiltfit.blur", "tiltfit.detect"], f"function-level relative imports resolved, got {got}"
     src.write_text("from .. import reproduce\nfrom ..stability.common import Study\n")
-    known |= {"tiltfit.reproduce", "tiltfit.stability", "tiltfit.stability.common", "tiltfit.stability.d"}
-    got = sorted(m for m, _ in _imports("tiltfit.stability.d", str(src), known))
-    assert got == ["tiltfit.reproduce", "tiltfit.stability.common"], f"two-dot imports resolved, got {got}"
+    known |= {"tiltfit.experiments.reproduce", "tiltfit.experiments.stability", "tiltfit.experiments.stability.common",
+              "tiltfit.experiments.stability.d"}
+    got = sorted(m for m, _ in _imports("tiltfit.experiments.stability.d", str(src), known))
+    assert got == ["tiltfit.experiments.reproduce", "tiltfit.experiments.stability.common"], f"two-dot imports resolved, got {got}"
 
 
 def test_tiltfit_has_no_import_cycle():

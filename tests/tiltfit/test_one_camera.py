@@ -52,7 +52,7 @@ def test_photometric_camera_is_the_lens_cameras_view():
 
 
 def test_lens_params_keys_build_the_same_lens():
-    from tiltfit.scenes import LensParams, boxes_scene
+    from tiltfit.experiments.scenes import LensParams, boxes_scene
 
     lens = LensParams(55.0, 640.0, 18.0, theta_L_deg=5.0)
     cam = boxes_scene(lens, downscale=64).camera

@@ -13,7 +13,8 @@ import pytest
 import torch
 
 from renderer import optics
-from tiltfit import reproduce, synth
+from tiltfit import synth
+from tiltfit.experiments import reproduce
 from tiltfit.photometric import (PhotometricOptions, SensorGeometry, checker_dark_fraction,
                                  hammersley_disc_samples, refine_photometric, render_target)
 from tiltfit.target import Target

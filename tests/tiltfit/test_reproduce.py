@@ -1,4 +1,4 @@
-"""tiltfit.scenes and tiltfit.reproduce: the boxes scene, the simulated camera, and the experiment end to end."""
+"""tiltfit.experiments.scenes and tiltfit.experiments.reproduce: the boxes scene, the simulated camera, and the experiment end to end."""
 import csv
 import json
 import math
@@ -7,9 +7,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from tiltfit import reproduce
-from tiltfit.reproduce import LENS_STATES, NOISE_FLOOR, TRUE_LENS, RunConfig, SetValues, SimulatedCamera
-from tiltfit.scenes import (EOS_6D, FOCUS_DISTANCE_MM, LensParams, boxes_scene_dict, camera_pose, profile_lines,
+from tiltfit.experiments import reproduce
+from tiltfit.experiments.reproduce import LENS_STATES, NOISE_FLOOR, TRUE_LENS, RunConfig, SetValues, SimulatedCamera
+from tiltfit.experiments.scenes import (EOS_6D, FOCUS_DISTANCE_MM, LensParams, boxes_scene_dict, camera_pose, profile_lines,
                             scene_objects)
 
 

@@ -1,4 +1,4 @@
-"""tiltfit.stability: the closed forms behind each sweep, checked against the cameras and fits they describe."""
+"""tiltfit.experiments.stability: the closed forms behind each sweep, checked against the cameras and fits they describe."""
 import json
 import math
 from dataclasses import replace
@@ -8,10 +8,10 @@ import pytest
 import torch
 
 from renderer import load_scene, render
-from tiltfit import stability as st
+from tiltfit.experiments import stability as st
 from tiltfit.fit import FitOptions
 from tiltfit.calibration import calibrate
-from tiltfit.stability import coverage, gamma_noise, singular, two_stage
+from tiltfit.experiments.stability import coverage, gamma_noise, singular, two_stage
 
 torch.set_num_threads(1)
 

@@ -5,7 +5,7 @@ import pytest
 
 ray = pytest.importorskip("ray")
 
-from tiltfit import stability as st  # noqa: E402
+from tiltfit.experiments import stability as st  # noqa: E402
 
 ONLY = ["two_stage", "singular", "coverage"]  # the quickest studies; two_stage fits seeded noisy observations
 

@@ -1,6 +1,6 @@
 """Independent studies of a sweep run as Ray tasks (`tiltfit stability --cluster auto|ADDRESS`).
 
-Each study of `tiltfit.stability` is a function `study(cfg, log) -> Study` whose every noise draw is seeded
+Each study of `tiltfit.experiments.stability` is a function `study(cfg, log) -> Study` whose every noise draw is seeded
 from `cfg.seed`, so it gives the same rows, findings and figure wherever it runs. `run_studies` runs them
 here one after another, or as one Ray task each through `renderer.distributed.imap_on_cluster` (the
 configuration shipped once), and hands them back in the order asked for, each as soon as it and all
@@ -19,7 +19,7 @@ import pickle
 
 import torch
 
-from .runlog import RunLog
+from ..runlog import RunLog
 
 
 def run_studies(studies: dict, names, cfg, log, cluster: str | None = None):

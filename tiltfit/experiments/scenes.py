@@ -168,7 +168,7 @@ def boxes_scene_dict(lens: LensParams, sensor: Sensor = EOS_6D, downscale: int =
     width, height, size_mm = sensor.downscaled(downscale)
     camera = {"type": "thin_lens", **camera_pose(), **lens.camera_keys(), "sensor_size": list(size_mm)}
     return {
-        "description": "Boxes on a checkered floor (tilt-lens paper, Sec. 4.2), mm; tiltfit.scenes.",
+        "description": "Boxes on a checkered floor (tilt-lens paper, Sec. 4.2), mm; tiltfit.experiments.scenes.",
         "image": {"width": width, "height": height, "spp": spp, "max_depth": 1, "sampler": sampler},
         "camera": camera,
         "lights": scene_lights(),

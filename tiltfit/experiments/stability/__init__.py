@@ -34,7 +34,7 @@ a few minutes. Progress goes to stderr, the findings to stdout.
 Layout: `common` (StabilityConfig, the simulated lens, the Study record), `closed_forms` (the predictions),
 one module per study (`detectors`, `two_stage`, `coverage`, `singular`, `gamma_noise`, each with its
 `study_*` function), and this module: the run, the output files and the command line (also
-`python -m tiltfit.stability`). An experiment built on the library (see tests/tiltfit/test_layers.py).
+`python -m tiltfit.experiments.stability`). An experiment built on the library (see tests/tiltfit/test_layers.py).
 """
 from __future__ import annotations
 
@@ -48,8 +48,8 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
-from ..evaluate import markdown_table, save_figure, write_csv
-from ..runlog import RunLog
+from ...evaluate import markdown_table, save_figure, write_csv
+from ...runlog import RunLog
 from .closed_forms import (coverage_closed_form, first_row_lost_theta_F, inverted_magnification, singular_depth,
                            srgb_blur_bias, two_stage_prediction)
 from .common import D_MM, F_MM, U0_MM, W_MM, StabilityConfig, Study
@@ -116,7 +116,7 @@ def run(out_dir: str, quick: bool = False, progress: bool = True, config: Stabil
         config: override the run size.
         only: names of STUDIES to run [all].
         threads: torch (and OpenCV) threads for the run, restored afterwards; None keeps the settings [1].
-        cluster: None, or `auto` / a Ray address: the studies run as Ray tasks (`tiltfit.cluster`), same outputs.
+        cluster: None, or `auto` / a Ray address: the studies run as Ray tasks (`tiltfit.experiments.cluster`), same outputs.
     Returns:
         StabilityResult.
     """
@@ -202,7 +202,7 @@ def write_summary(out_dir: str, studies: dict, cfg: StabilityConfig, quick: bool
     parts = ["# Where each method fails, and how ours behaves there\n",
              f"Command: `tiltfit stability{' --quick' if quick else ''} -o {folder}`"
              f"; {runtime:.0f} s, {torch.get_num_threads()} torch thread(s). Every number below is computed by the "
-             f"run; the closed forms are in `tiltfit/stability/closed_forms.py`.\n", summary_text(studies), "# Tables\n"]
+             f"run; the closed forms are in `tiltfit/experiments/stability/closed_forms.py`.\n", summary_text(studies), "# Tables\n"]
     for s in studies.values():
         parts.append(f"## {s.title}\n")
         parts.append(f"![{s.name}]({s.name}.png)\n" if s.figure is not None else "")
@@ -216,7 +216,7 @@ def write_summary(out_dir: str, studies: dict, cfg: StabilityConfig, quick: bool
 
 
 def main(argv=None) -> int:
-    """`tiltfit stability [--quick] [-o DIR] [--only NAME ...]` (also `python -m tiltfit.stability`)."""
+    """`tiltfit stability [--quick] [-o DIR] [--only NAME ...]` (also `python -m tiltfit.experiments.stability`)."""
     ap = argparse.ArgumentParser(prog="tiltfit stability", description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="a few points per sweep (about a minute)")
     ap.add_argument("-o", "--output", default="stability_out", help="output folder [stability_out]")

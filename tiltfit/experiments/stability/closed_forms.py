@@ -124,7 +124,7 @@ def srgb_blur_bias(b_px: float, dark: float = 0.05, white: float = 0.8, angle_de
     """
     from renderer.io import linear_to_srgb
 
-    from ..blur import pixel_esf
+    from ...blur import pixel_esf
 
     if not b_px > 0:
         raise ValueError(f"b_px: expected a positive blur diameter, got {b_px}")

@@ -61,7 +61,7 @@ class StabilityConfig:
                                noise_views=3, noise_downscale=16)
 
 
-#: The simulated camera's lens (the paper's stage-1 values, as `tiltfit.reproduce.SimulatedCamera`), mm.
+#: The simulated camera's lens (the paper's stage-1 values, as `tiltfit.experiments.reproduce.SimulatedCamera`), mm.
 W_MM, U0_MM, D_MM = 55.39, 618.4, 18.81
 F_MM = float(optics.focal_length(W_MM, U0_MM))
 

@@ -15,8 +15,8 @@ def srgb_bias_rows(cfg: StabilityConfig, log) -> list[dict]:
     """Blur measured on decoded (linear) and on encoded (sRGB) values, true corners, against the truth."""
     from renderer.io import srgb_to_linear
 
-    from ..blur import measure_blur
-    from ..synth import PAPER_CAMERA, look_at_pose, render_view, with_blur_ratio
+    from ...blur import measure_blur
+    from ...synth import PAPER_CAMERA, look_at_pose, render_view, with_blur_ratio
 
     target = detector_target()
     base = PAPER_CAMERA.scaled(12)
@@ -56,10 +56,10 @@ def _calibrate_photos(photos8, decode: bool, target, size, pitch):
     Returns (FitResult or None, views used, message)."""
     from renderer.io import srgb_to_linear
 
-    from ..detect import detect
-    from ..fit import FitError, FitOptions
-    from ..calibration import calibrate
-    from ..model import Observations
+    from ...detect import detect
+    from ...fit import FitError, FitOptions
+    from ...calibration import calibrate
+    from ...model import Observations
     from ..reproduce import MIN_CORNER_FRACTION
 
     corners, blur = [], []
@@ -85,7 +85,7 @@ def _noise_rows(cfg: StabilityConfig, log) -> list[dict]:
     """Stage-1 calibration error against image noise (and with blur read off sRGB values, at one level)."""
     from .. import reproduce
     from ..scenes import EOS_6D
-    from ..synth import SynthCamera, render_view
+    from ...synth import SynthCamera, render_view
 
     target = reproduce.calibration_target(reproduce.SetValues())
     width, height, _ = EOS_6D.downscaled(cfg.noise_downscale)

@@ -49,10 +49,10 @@ from renderer import optics, render, write_image
 from renderer.transforms import euler_xyz_deg
 from renderer.sensor import SensorResponse
 
-from .evaluate import (compare_profiles, linear_from_grey_levels, plot_images, plot_profiles,
+from ..evaluate import (compare_profiles, linear_from_grey_levels, plot_images, plot_profiles,
                        save_figure, write_csv, write_markdown, markdown_table)
 from .scenes import EOS_6D, LensParams, Sensor, boxes_scene, boxes_scene_dict, profile_lines
-from .runlog import RunLog
+from ..runlog import RunLog
 
 PENDING = "pending"
 
@@ -284,7 +284,7 @@ def calibration_modules_available() -> bool:
 def calibration_target(set_values: SetValues):
     """The paper's kind of target (Fig. 4): a checkerboard whose row spacing makes the rows project evenly for
     an inclined view, designed with the set values (the designer does not know the true lens)."""
-    from .target import design_target
+    from ..target import design_target
 
     return design_target(9, 6, 25.0, w_mm=set_values.w_mm, distance_mm=set_values.U_mm, inclination_deg=30.0)
 
@@ -292,7 +292,7 @@ def calibration_target(set_values: SetValues):
 def target_pose(target, rot_x_deg: float, rot_y_deg: float, distance_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """(R, T), X_cam = R X_target + T: the board's design centre on the optical axis at `distance_mm`, the
     board turned by rot_x then rot_y about the camera axes."""
-    from .target import design_centre_mm
+    from ..target import design_centre_mm
 
     R = euler_xyz_deg((rot_x_deg, rot_y_deg, 0.0)).numpy()  # Ry · Rx
     xc, yc = design_centre_mm(target)
@@ -316,8 +316,8 @@ def stage_targets(camera: SimulatedCamera, set_values: SetValues, cfg: RunConfig
     if not calibration_modules_available():
         log("(b) target photographs: PENDING (tiltfit.synth / tiltfit.detect / tiltfit.blur not all available)")
         return None
-    from . import synth
-    from .detect import detect
+    from .. import synth
+    from ..detect import detect
 
     target = calibration_target(set_values)
     k = cfg.target_downscale
@@ -359,7 +359,7 @@ def stage_targets(camera: SimulatedCamera, set_values: SetValues, cfg: RunConfig
 def observations(targets: dict, label: str):
     """`tiltfit.model.Observations` of one lens state's target photographs; views where the board was not found,
     or less than MIN_CORNER_FRACTION of it, are left out. None when no view is left."""
-    from .model import Observations
+    from ..model import Observations
 
     target = targets["target"]
     dets = [(d, f) for d, f in zip(targets["detections"][label], targets["files"][label])
@@ -375,7 +375,7 @@ def _photometric(targets: dict, result, cfg: RunConfig, log, label: str) -> dict
     """Photometric refinement (`tiltfit.photometric`) of a corner-and-blur fit on the same photographs."""
     if not cfg.photometric_pixels:
         return None
-    from .photometric import PhotometricError, PhotometricOptions, refine_photometric
+    from ..photometric import PhotometricError, PhotometricOptions, refine_photometric
 
     v = result.values
     init = {"w_mm": v["w_mm"], "U_mm": v["U_mm"], "d_mm": v["d_mm"], "theta_F_deg": v["theta_F_deg"],
@@ -424,9 +424,9 @@ def stage_calibrate(targets: dict | None, set_values: SetValues, cfg: RunConfig,
     if targets is None:
         log("(c) calibration: PENDING (needs stage (b))")
         return out
-    from .fit import FitError, FitOptions
+    from ..fit import FitError, FitOptions
 
-    from .calibration import calibrate
+    from ..calibration import calibrate
 
     quiet = FitOptions(model_selection=False, nominal_focal_mm=set_values.w_mm)
     obs_a = observations(targets, "a")
@@ -888,7 +888,7 @@ def write_report(out_dir, table1, table_s1, table2, speed, files, pending, cfg, 
 
 def main(argv=None) -> int:
     """`tiltfit reproduce [--quick] [--scale N] [--target-scale N] [--device cpu|cuda] [-o DIR]` (also
-    `python -m tiltfit.reproduce`)."""
+    `python -m tiltfit.experiments.reproduce`)."""
     ap = argparse.ArgumentParser(prog="tiltfit reproduce", description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small images and few samples (about a minute)")
     ap.add_argument("-o", "--output", default="reproduce_out", help="output folder [reproduce_out]")

@@ -14,7 +14,7 @@ from .closed_forms import coverage_closed_form, first_row_lost_theta_F
 from .common import D_MM, U0_MM, W_MM, StabilityConfig, Study, subplots_row
 
 def coverage_scene(theta_F_deg: float, camera_type: str, cfg: StabilityConfig) -> dict:
-    """The boxes scene (`tiltfit.scenes`) seen through the simulated lens with the plane of focus tilted by θF
+    """The boxes scene (`tiltfit.experiments.scenes`) seen through the simulated lens with the plane of focus tilted by θF
     (U held at U0), by the `thin_lens` camera or the accumulation-buffer camera `thin_lens_accumulation`."""
     from ..scenes import LensParams, boxes_scene_dict
 

@@ -5,16 +5,18 @@ refused in one warning line; what it writes is in range and exported.
 The corners and blur widths are tiltfit's own detections, cached in data/real/gopro_wide/detections_tiltfit.json
 (benchmarks/real_detections.py); one photo is detected again here to check the cache is current.
 """
-import contextlib
-import io
 import json
 import os
+import sys
 
 import cv2
 import numpy as np
 import pytest
 
 from tiltfit import cli
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+import fuzz_harness  # noqa: E402  (tests/fuzz_harness.py: run a command's main in-process)
 
 DATA = os.path.join(os.path.dirname(__file__), "..", "..", "data", "real", "gopro_wide")
 TARGET = os.path.join(DATA, "target.json")
@@ -39,10 +41,10 @@ def write_dets(cache, folder):
 
 
 def run(args):
-    err = io.StringIO()
-    with contextlib.redirect_stderr(err):
-        rc = cli.main([str(a) for a in args])
-    return rc, err.getvalue()
+    """`tiltfit ARGS` in this process through the fuzz harness's runner: (exit status, stderr)."""
+    rc, err, tb, hung = fuzz_harness.run_main(cli.main, [str(a) for a in args], timeout_s=900)
+    assert tb is None and not hung, f"tiltfit {args[0]}: " + ("no exit within 900 s" if hung else tb)
+    return rc, err
 
 
 def opencv_on(paths):

@@ -2,11 +2,10 @@
 d ≥ 0), and `tiltfit export` accepts every CALIB.json it writes: a sharp set (U, d undetermined), blur that
 grows towards the camera as if focused beyond infinity (a fit with U < 0 on main), and a file doctored with
 U < 0."""
-import contextlib
-import io
 import json
 import math
 import os
+import sys
 
 import pytest
 import torch
@@ -17,6 +16,9 @@ from tiltfit.fit import FitOptions
 from tiltfit.calibration import calibrate
 from tiltfit.model import PAPER_LENS, PAPER_SENSOR, Observations, TiltLensCamera, random_poses
 from tiltfit.target import Target
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+import fuzz_harness  # noqa: E402  (tests/fuzz_harness.py: run a command's main in-process)
 
 TARGET = Target(tuple(25.0 * i for i in range(10)), tuple(25.0 * j for j in range(7)))  # 9 × 6 cells
 PITCH = PAPER_SENSOR["pixel_pitch_mm"]
@@ -48,10 +50,10 @@ def write_dets(obs, folder):
 
 
 def run(args):
-    err = io.StringIO()
-    with contextlib.redirect_stderr(err):
-        rc = cli.main([str(a) for a in args])
-    return rc, err.getvalue()
+    """`tiltfit ARGS` in this process through the fuzz harness's runner: (exit status, stderr)."""
+    rc, err, tb, hung = fuzz_harness.run_main(cli.main, [str(a) for a in args], timeout_s=900)
+    assert tb is None and not hung, f"tiltfit {args[0]}: " + ("no exit within 900 s" if hung else tb)
+    return rc, err
 
 
 def calibrate_and_export(obs, tmp_path):

@@ -48,6 +48,14 @@ class Result:
     seconds: float
 
 
+def run_command(main, args, timeout_s: float = 900) -> tuple[int, str]:
+    """A command's `main(args)` in this process, for tests of what it does: (exit status, stderr); a traceback
+    or no exit within timeout_s fails the calling test."""
+    rc, err, tb, hung = run_main(main, [str(a) for a in args], timeout_s)
+    assert tb is None and not hung, f"{args[0]}: " + (f"no exit within {timeout_s} s" if hung else tb)
+    return rc, err
+
+
 def _alarm(signum, frame):
     raise Hang
 

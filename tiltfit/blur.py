@@ -293,7 +293,6 @@ def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, itera
             kap[c, e], wa[c, e], wb[c, e] = b["kappa"], b["wa"], b["wb"]
     has_band = torch.from_numpy(mask.any(-1))
     mask, I = torch.from_numpy(mask), torch.from_numpy(vals)
-    mask_f = mask.to(f32)
     r0 = torch.as_tensor(np.asarray(r0, dtype=np.float64))
     r_cap = 1.5 * r0 + 1.0
     lim = (r_cap + 2.0)[:, None, None] + 0.0

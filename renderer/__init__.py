@@ -15,7 +15,7 @@ from .memory import tune_allocator
 
 tune_allocator()
 
-from .cameras import LensCamera, ThinLensCamera, project_pinhole
+from .cameras import Lens, LensCamera, Sensor, ThinLensCamera, project_pinhole
 from .io import read_image, write_image
 from .materials import CheckerTexture, ImageTexture, Material
 from .params import SceneError
@@ -26,7 +26,7 @@ from .scenefile import load_scene
 from .transforms import CameraTransform, axis_angle_to_matrix, matrix_to_axis_angle
 
 __all__ = [
-    "CameraTransform", "CheckerTexture", "Hit", "ImageSettings", "ImageTexture", "LensCamera", "Light", "Material",
-    "Rays", "RenderResult", "Scene", "SceneError", "SceneObject", "ThinLensCamera", "axis_angle_to_matrix",
+    "CameraTransform", "CheckerTexture", "Hit", "ImageSettings", "ImageTexture", "Lens", "LensCamera", "Light", "Material",
+    "Rays", "RenderResult", "Scene", "SceneError", "SceneObject", "Sensor", "ThinLensCamera", "axis_angle_to_matrix",
     "load_scene", "matrix_to_axis_angle", "project_pinhole", "read_image", "render", "write_image",
 ]

@@ -46,7 +46,8 @@ def applies(scene: Scene, options: TraceOptions, device, dtype) -> bool:
         return False
     if cam.distortion is not None and not cam.distortion.is_identity:
         return False
-    if any(isinstance(v, torch.Tensor) for v in (cam.w, cam.U, cam.d, cam.theta_F, cam.screen.distance)):
+    lens = cam.lens
+    if any(isinstance(v, torch.Tensor) for v in (lens.w, lens.U, lens.d, lens.theta_F, cam.screen.distance)):
         return False
     if scene.requires_grad() or not all(o.shape.type_name in _KINDS for o in scene.objects):
         return False
@@ -191,8 +192,9 @@ def _camera_constants(cam) -> tuple:
     trig = lambda fn, angle: f32(fn(torch.tensor(float(angle), dtype=torch.float32)))  # noqa: E731
     R = cam.transform.world_from_camera.to(torch.float64)
     eye = bool((R == torch.eye(3, dtype=R.dtype)).all())
-    return (*cam.screen.center_px, *cam.screen.pitch, cam.screen.distance, cam.d / 2,
-            trig(torch.cos, cam.theta_L), trig(torch.sin, cam.theta_L), trig(torch.tan, cam.theta_F), cam.U,
+    lens = cam.lens
+    return (*cam.screen.center_px, *cam.screen.pitch, cam.screen.distance, lens.d / 2,
+            trig(torch.cos, lens.theta_L), trig(torch.sin, lens.theta_L), trig(torch.tan, lens.theta_F), lens.U,
             None if eye else R.tolist(), [float(v) for v in cam.transform.position])
 
 

@@ -22,6 +22,7 @@ from . import inverted_perspective  # noqa: F401
 from . import thin_lens  # noqa: F401
 from . import accumulation  # noqa: F401
 
+from .lens import EOS_6D, Lens, Sensor  # noqa: F401
 from .lens_model import APERTURE_SCALE_MM, LensCamera, distortion_parameter_names  # noqa: F401
 from .projection import normalised_from_pixels, pixels_from_normalised, project_pinhole  # noqa: F401
 from .thin_lens import ThinLensCamera, concentric_disk  # noqa: F401

@@ -49,6 +49,7 @@ from ..optics import BLUR_MODELS
 from ..transforms import axis_angle_to_matrix, matrix_to_axis_angle, rotated_point_jacobian
 from .distortion import (COEFFICIENT_NAMES, MODEL_TERMS, BrownConrady, distort, distort_coefficient_jacobian,
                          distort_jacobian)
+from .lens import Lens, Sensor
 from .projection import project_pinhole
 from .thin_lens import ThinLensCamera
 
@@ -241,6 +242,18 @@ class LensCamera(torch.nn.Module):
     def focal_px(self) -> torch.Tensor:
         return self.w_mm / self.pixel_pitch_mm
 
+    @property
+    def sensor(self) -> Sensor:
+        """The sensor: `image_size_px` pixels of pitch `pixel_pitch_mm`."""
+        return Sensor(*self.image_size_px, self.pixel_pitch_mm)
+
+    @property
+    def lens(self) -> Lens:
+        """The lens as the one lens type, of this module's tensors (w, U, d, θF, principal point, distortion:
+        gradients reach the parameters through it)."""
+        return Lens(self.w_mm, self.U_mm, self.d_mm, self.theta_F, self.sensor, self.principal_point_px,
+                    self.distortion)
+
     # --- the two calls -----------------------------------------------------------------------------------
     def to_camera(self, X_world: torch.Tensor, view=None) -> torch.Tensor:
         """World points to the camera frame: X_cam = R X_world + T.
@@ -397,9 +410,7 @@ class LensCamera(torch.nn.Module):
         """
         if not -self.n_views <= int(view) < self.n_views:
             raise IndexError(f"view: expected 0 <= view < {self.n_views}, got {view}")
-        return ThinLensCamera.from_calibration(self.image_size_px, self.pixel_pitch_mm, self.w_mm, self.U_mm,
-                                               self.d_mm, self.theta_F, self.R[view], self.T_mm[view],
-                                               self.principal_point_px, self.distortion)
+        return ThinLensCamera.from_calibration(self.lens, self.R[view], self.T_mm[view])
 
     # --- convenience -------------------------------------------------------------------------------------
     def copy(self) -> "LensCamera":
@@ -420,13 +431,21 @@ class LensCamera(torch.nn.Module):
             }
 
     @classmethod
+    def from_lens(cls, lens: Lens, n_views: int, **kwargs) -> "LensCamera":
+        """The fitted module of a `Lens` (with its sensor), V views; `kwargs` as the constructor's (R, T_mm,
+        rvec, blur_model, dtype …). The lens's principal point and distortion become the module's."""
+        if lens.sensor is None:
+            raise ValueError("lens.sensor: a fitted camera needs the lens's sensor (Sensor(W, H, pitch))")
+        kwargs.setdefault("principal_point_px", lens.principal_point_px)
+        kwargs.setdefault("distortion", lens.distortion)
+        return cls(n_views, lens.sensor.size_px, lens.sensor.pixel_pitch, float(lens.w), float(lens.U),
+                   float(lens.d), float(lens.theta_F), **kwargs)
+
+    @classmethod
     def from_tilted_lens(cls, n_views: int, image_size_px, pixel_pitch_mm: float, w_mm: float, f_mm: float,
                          d_mm: float, theta_L: float, **kwargs) -> "LensCamera":
-        """A camera whose thin lens (focal f, sensor at w) is tilted by θL about its centre.
-
-        U and θF follow from the exact relations (hinge rule and Scheimpflug), so U moves with the tilt.
-        """
-        U = optics.focus_distance_tilted(w_mm, f_mm, theta_L)
-        theta_F = optics.theta_F_from_theta_L(theta_L, w_mm, U)
-        return cls(n_views, image_size_px, pixel_pitch_mm, w_mm, float(U), d_mm, float(theta_F), **kwargs)
+        """A camera whose thin lens (focal f, sensor at w) is tilted by θL about its centre (`Lens.from_tilt`:
+        U and θF follow from the hinge and Scheimpflug rules, so U moves with the tilt)."""
+        sensor = Sensor(int(image_size_px[0]), int(image_size_px[1]), float(pixel_pitch_mm))
+        return cls.from_lens(Lens.from_tilt(w_mm, f_mm, theta_L, d_mm, sensor=sensor), n_views, **kwargs)
 

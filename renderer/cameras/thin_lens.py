@@ -45,6 +45,7 @@ from ..rays import Rays, normalize_rows_, unit_vectors_from_rows, vectors_from_r
 from ..transforms import CameraTransform
 from .base import Camera, Screen
 from .distortion import BrownConrady
+from .lens import Lens
 from .registry import register_camera
 
 THIN_LENS_PARAMS = [
@@ -57,13 +58,6 @@ THIN_LENS_PARAMS = [
     Param("theta_L_deg", "float", None, "lens tilt instead of theta_F_deg (exact conversion), degrees"),
     Param("principal_point_px", "vec2", None, "(cx, cy) principal point, pixels [image centre]"),
 ]
-
-
-def _same_kind(value: torch.Tensor, *params):
-    """`value` as a Python float when every parameter is a plain number, else the tensor (keeps its graph)."""
-    if any(isinstance(p, torch.Tensor) for p in params):
-        return value
-    return float(value)
 
 
 def _like(value, like: torch.Tensor) -> torch.Tensor:
@@ -97,8 +91,8 @@ def concentric_disk_xy(lens_uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
     return r * torch.cos(phi), r * torch.sin(phi)
 
 
-def parse_lens(path: str, cfg: dict) -> dict:
-    """Validate the thin-lens keys and resolve U, θF, θL (radians) exactly. Messages name the field."""
+def parse_lens(path: str, cfg: dict) -> Lens:
+    """Validate the thin-lens keys and resolve the `Lens` (U, θF exactly). Messages name the field."""
     w, d = cfg["w"], cfg["d"]
     if w <= 0:
         raise SceneError(f"{path}.w: expected a positive distance, got {w}")
@@ -119,12 +113,8 @@ def parse_lens(path: str, cfg: dict) -> dict:
         if U <= 0:
             raise SceneError(f"{path}.U: expected a positive distance, got {U}")
         if cfg.get("theta_L_deg") is not None:
-            theta_L = math.radians(cfg["theta_L_deg"])
-            theta_F = float(optics.theta_F_from_theta_L(theta_L, w, U))
-        else:
-            theta_F = math.radians(cfg.get("theta_F_deg") or 0.0)
-            theta_L = float(optics.theta_L_from_theta_F(theta_F, w, U))
-        return dict(w=w, U=U, d=d, theta_F=theta_F, theta_L=theta_L)
+            return Lens.from_theta_L(w, U, d, math.radians(cfg["theta_L_deg"]))
+        return Lens(w, U, d, math.radians(cfg.get("theta_F_deg") or 0.0))
     f = cfg["f"]
     if cfg.get("theta_L_deg") is not None:
         theta_L = math.radians(cfg["theta_L_deg"])
@@ -136,65 +126,49 @@ def parse_lens(path: str, cfg: dict) -> dict:
     if not 0 < f < w * math.cos(theta_L):
         raise SceneError(f"{path}.f: expected 0 < f < w cos(theta_L) = {w * math.cos(theta_L):.6g} "
                          f"for a real plane of focus, got {f}")
-    U = float(optics.focus_distance_tilted(w, f, theta_L))
-    theta_F = float(optics.theta_F_from_theta_L(theta_L, w, U))
-    return dict(w=w, U=U, d=d, theta_F=theta_F, theta_L=theta_L)
+    return Lens.from_tilt(w, f, theta_L, d)
 
 
 @register_camera("thin_lens", THIN_LENS_PARAMS)
 class ThinLensCamera(Camera):
     """Thin lens of aperture d, sensor at w, plane of focus z = U + y tan θF (distributed ray tracing).
 
-    Attributes (scene units, radians): w, U, d, theta_F, theta_L; f = U w cos θL / (U + w).
+    Its lens is `lens` (a `renderer.cameras.lens.Lens`: w, U, d, θF, and θL, f derived; scene units, radians).
+    The lens's numbers may be Python floats or 0-dim tensors: with tensors that require grad, gradients reach
+    them through every ray. θL and f are derived on every call, never cached, so a lens replaced after
+    construction (`cam.lens = cam.lens.with_(U=...)`) changes them too.
     """
 
     uses_lens_samples = True
 
-    def __init__(self, transform, screen: Screen, w, U, d, theta_F=0.0, theta_L=None):
+    def __init__(self, transform, screen: Screen, lens: Lens):
         super().__init__(transform, screen)
-        # w, U, d, θF may be Python floats or (0-dim) tensors: with tensors that require grad, gradients
-        # reach them through every ray. θL and f are derived on every call, never cached, so a parameter
-        # changed after construction changes them too.
-        if theta_L is not None and not isinstance(theta_F, torch.Tensor) and theta_F == 0.0:
-            theta_F = optics.theta_F_from_theta_L(theta_L, w, U)
-            theta_F = theta_F if isinstance(theta_L, torch.Tensor) else float(theta_F)
-        self.w, self.U, self.d, self.theta_F = w, U, d, theta_F
-
-    @property
-    def theta_L(self):
-        """Exact lens tilt, radians (tan θL = w tan θF / (U + w)); a float when the parameters are floats."""
-        return _same_kind(optics.theta_L_from_theta_F(self.theta_F, self.w, self.U), self.w, self.U, self.theta_F)
-
-    @property
-    def f(self):
-        """Focal length of the thin lens in this state, f = U w cos θL / (U + w) (hinge rule)."""
-        return _same_kind(optics.focal_length(self.w, self.U, self.theta_L), self.w, self.U, self.theta_F)
+        if not isinstance(lens, Lens):
+            raise TypeError(f"lens: expected a renderer.cameras.lens.Lens, got {type(lens).__name__}")
+        self.lens = lens
 
     @classmethod
     def from_config(cls, path, cfg, transform, width, height):
         lens = parse_lens(path, cfg)
         pp = cfg.get("principal_point_px")
-        screen = Screen(width, height, tuple(cfg["sensor_size"]), lens["w"], pp)
-        return cls(transform, screen, **lens)
+        screen = Screen(width, height, tuple(cfg["sensor_size"]), lens.w, pp)
+        return cls(transform, screen, lens)
 
     @classmethod
-    def from_calibration(cls, image_size_px, pixel_pitch, w, U, d, theta_F, R, T, principal_point_px=None,
-                         distortion=None) -> "ThinLensCamera":
-        """The camera of a calibration's parametrisation (tiltfit's; `LensCamera.view_camera` builds its views
-        with it): a sensor of W x H pixels of pitch p at w, pose X_cam = R X_world + T.
+    def from_calibration(cls, lens: Lens, R, T) -> "ThinLensCamera":
+        """The camera of a calibrated lens (tiltfit's; `LensCamera.view_camera` builds its views with it): the
+        lens's sensor of W x H pixels of pitch p at w, its principal point and distortion, pose
+        X_cam = R X_world + T.
 
         Args:
-            image_size_px: (W, H); pixel_pitch: p, scene units (mm for a real camera).
-            w, U, d, theta_F: lens state (scene units, radians); floats or 0-dim tensors (gradients reach them).
+            lens: the `Lens`, with its sensor (numbers or 0-dim tensors: gradients reach them).
             R: (3, 3) rotation camera_from_world; T: (3,) translation.
-            principal_point_px: (cx, cy), a pair or a (2,) tensor [image centre].
-            distortion: None or up to 8 Brown–Conrady coefficients (sequence or tensor).
         """
-        W, H = int(image_size_px[0]), int(image_size_px[1])
-        screen = Screen(W, H, (W * pixel_pitch, H * pixel_pitch), w, principal_point_px)
-        cam = cls(CameraTransform.from_extrinsics(R, T), screen, w, U, d, theta_F)
-        if distortion is not None:
-            cam.distortion = BrownConrady(distortion)
+        W, H = lens.sensor.size_px
+        screen = Screen(W, H, lens.sensor.size, lens.w, lens.principal_point_px)
+        cam = cls(CameraTransform.from_extrinsics(R, T), screen, lens)
+        if lens.distortion is not None:
+            cam.distortion = BrownConrady(lens.distortion)
         return cam
 
     def lens_points(self, lens_uv: torch.Tensor) -> torch.Tensor:
@@ -204,9 +178,9 @@ class ThinLensCamera(Camera):
     def lens_rows(self, lens_uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """`lens_points` as its three (...,) components."""
         lx, ly = concentric_disk_xy(lens_uv)
-        r = self.d / 2
+        r = self.lens.d / 2
         sx, sy = lx * r, ly * r
-        theta_L = _like(self.theta_L, sx)
+        theta_L = _like(self.lens.theta_L, sx)
         return sx, sy * torch.cos(theta_L), sy * torch.sin(theta_L)
 
     def focus_weight(self, c: torch.Tensor) -> torch.Tensor:
@@ -214,7 +188,7 @@ class ThinLensCamera(Camera):
         return self._focus_weight(c[..., 1], c[..., 2])
 
     def _focus_weight(self, y: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        return (z - y * torch.tan(_like(self.theta_F, y))) / self.U
+        return (z - y * torch.tan(_like(self.lens.theta_F, y))) / self.lens.U
 
     def rays_in_camera(self, uv_px: torch.Tensor, lens_uv: torch.Tensor) -> Rays:
         # Per component (x, y, z rows), without (..., 3) intermediates, whose length-3 last axis is slow in
@@ -233,7 +207,8 @@ class ThinLensCamera(Camera):
         """Whether `_rays_in_place` may answer: lens and screen parameters plain numbers (the principal point
         and pitch too), inputs of one shape that carry no derivative of any kind (reverse or forward mode,
         torch.func), eager tracing."""
-        params = (self.w, self.U, self.d, self.theta_F, self.screen.distance, *self.screen.center_px,
+        lens = self.lens
+        params = (lens.w, lens.U, lens.d, lens.theta_F, self.screen.distance, *self.screen.center_px,
                   *self.screen.pitch)
         return (not any(isinstance(p, torch.Tensor) for p in params) and uv_px.shape == lens_uv.shape
                 and not carries_derivative(uv_px) and not carries_derivative(lens_uv)
@@ -247,9 +222,9 @@ class ThinLensCamera(Camera):
         z = self.screen.distance  # a number: rounded to x's dtype in each operation, as a filled row would be
         lx, ly = concentric_disk_xy(lens_uv.to(x))
         origin = torch.empty((3, *x.shape), dtype=x.dtype, device=x.device)
-        torch.mul(lx, self.d / 2, out=origin[0])
-        sy = ly.mul_(self.d / 2)
-        theta_L = _like(self.theta_L, x)
+        torch.mul(lx, self.lens.d / 2, out=origin[0])
+        sy = ly.mul_(self.lens.d / 2)
+        theta_L = _like(self.lens.theta_L, x)
         torch.mul(sy, torch.cos(theta_L), out=origin[1])
         torch.mul(sy, torch.sin(theta_L), out=origin[2])
         weight = self._focus_weight(y, z)

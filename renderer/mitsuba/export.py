@@ -428,7 +428,7 @@ def _native_lens(camera) -> bool:
     square = abs(px - py) <= 1e-9 * max(px, py)
     undistorted = camera.distortion is None or camera.distortion.is_identity
     return (square and undistorted and screen.principal_point_px is None
-            and (kind == "PinholeCamera" or camera.theta_F == 0))
+            and (kind == "PinholeCamera" or camera.lens.theta_F == 0))
 
 
 def _sensor(mi, camera, spp: int, plugin: bool = False):
@@ -446,8 +446,8 @@ def _sensor(mi, camera, spp: int, plugin: bool = False):
     t = camera.transform.position.numpy()
     to_world = _matrix(np.stack([-R[:, 0], -R[:, 1], R[:, 2]], axis=1), t)
     lens = {"type": "perspective"}
-    if kind == "ThinLensCamera" and camera.d > 0:
-        lens = {"type": "thinlens", "aperture_radius": camera.d / 2, "focus_distance": camera.U}
+    if kind == "ThinLensCamera" and camera.lens.d > 0:
+        lens = {"type": "thinlens", "aperture_radius": camera.lens.d / 2, "focus_distance": camera.lens.U}
     return {
         **lens,
         "fov_axis": "x",

@@ -20,7 +20,7 @@ Properties (all floats unless noted; scene units, radians):
   `cx`, `cy` (principal point, pixels), `to_world` (our camera pose), `distance` (screen distance, the
   focal length of the normalised coordinates), `k1`, `k2`, `p1`, `p2`, `k3`, `k4`, `k5`, `k6` (the lens
   distortion in OpenCV's order [0]);
-- `tilted_thinlens`: `w`, `U`, `d`, `theta_F`, `theta_L`;
+- `tilted_thinlens`: `w`, `U`, `d`, `theta_F` (θL derived by `Lens`);
 - `inverted_perspective`: `alpha`, `p3` (pseudo-screen distance), `q3` (screen distance).
 
 Call `register(mi)` after choosing a variant (registration is per variant); `sensor_dict(camera, ...)`
@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 
+from ..cameras.lens import Lens
 from ..transforms import world_from_local_4x4
 
 _REGISTERED: set = set()
@@ -115,16 +116,17 @@ def _classes(mi):
 
         def __init__(self, props):
             _OurSensor.__init__(self, props)
-            self.w, self.U, self.d = props.get("w"), props.get("U"), props.get("d")
-            self.tan_F = math.tan(props.get("theta_F"))
-            self.cos_L, self.sin_L = math.cos(props.get("theta_L")), math.sin(props.get("theta_L"))
-            self.m_needs_sample_3 = self.d > 0
+            self.lens = Lens(props.get("w"), props.get("U"), props.get("d"), props.get("theta_F"))
+            self.tan_F = math.tan(self.lens.theta_F)
+            self.cos_L, self.sin_L = math.cos(self.lens.theta_L), math.sin(self.lens.theta_L)
+            self.m_needs_sample_3 = self.lens.d > 0
 
         def camera_ray(self, xs, ys, aperture_sample):
-            disc = mi.warp.square_to_uniform_disk_concentric(aperture_sample) * (self.d / 2)
+            lens = self.lens
+            disc = mi.warp.square_to_uniform_disk_concentric(aperture_sample) * (lens.d / 2)
             s = mi.Vector3f(disc.x, disc.y * self.cos_L, disc.y * self.sin_L)
-            focus = (self.w - ys * self.tan_F) / self.U
-            return mi.Point3f(s), mi.Vector3f(xs, ys, self.w) - focus * s
+            focus = (lens.w - ys * self.tan_F) / lens.U
+            return mi.Point3f(s), mi.Vector3f(xs, ys, lens.w) - focus * s
 
     class InvertedPerspective(_OurSensor):
         """renderer/cameras/inverted_perspective.py, eq. (1)-(3): p = (q1, q2, q3)·p3/q3 on the pseudo-screen,
@@ -182,8 +184,9 @@ def sensor_dict(mi, camera, spp: int, sampler: str = "independent") -> dict:
                        "pixel_format": "rgb", "component_format": "float32"},
               "sampler": {"type": sampler, "sample_count": int(spp)}}
     if kind == "ThinLensCamera":
-        return {"type": "tilted_thinlens", "w": camera.w, "U": camera.U, "d": camera.d,
-                "theta_F": camera.theta_F, "theta_L": camera.theta_L, **common}
+        lens = camera.lens
+        return {"type": "tilted_thinlens", "w": float(lens.w), "U": float(lens.U), "d": float(lens.d),
+                "theta_F": float(lens.theta_F), **common}
     if kind == "InvertedPerspectiveCamera":
         return {"type": "inverted_perspective", "alpha": camera.alpha, "p3": camera.pseudo_screen_distance,
                 "q3": float(screen.distance), **common}

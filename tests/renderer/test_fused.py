@@ -102,7 +102,7 @@ def test_camera_and_lights_read_afresh():
     """A camera or light changed between renders is seen (the constants the compiled stages take)."""
     scene = _speed()
     tables, before = fused._state(scene)
-    scene.camera.U = 5.0
+    scene.camera.lens = scene.camera.lens.with_(U=5.0)
     scene.lights[0] = type(scene.lights[0])(type="point", position=(1.0, 2.0, 3.0), intensity=(1.0, 1.0, 1.0))
     tables_after, after = fused._state(scene)
     assert before[9] == 4.0 and after[9] == 5.0, f"focus distance U not read afresh: {before[9]} -> {after[9]}"

@@ -18,6 +18,7 @@ import torch
 
 from renderer import CameraTransform, load_scene, write_image
 from renderer.cameras.base import Screen
+from renderer.cameras.lens import Lens
 from renderer.cameras.thin_lens import ThinLensCamera
 from renderer.integrator import trace
 
@@ -34,7 +35,7 @@ def _skew(v):
 def _camera(w, U, d, theta_F, rvec, position):
     R = torch.linalg.matrix_exp(_skew(rvec))
     screen = Screen(W_PX, H_PX, (W_PX * PITCH, H_PX * PITCH), w)
-    return ThinLensCamera(CameraTransform(R, position), screen, w, U, d, theta_F)
+    return ThinLensCamera(CameraTransform(R, position), screen, Lens(w, U, d, theta_F))
 
 
 def _samples(n=12, seed=3):
@@ -66,11 +67,11 @@ def test_thin_lens_rays_gradcheck():
 def test_tilt_follows_a_replaced_focus_distance():
     """θL is derived from (θF, w, U) on every call: replacing U by a tensor moves θL (no stale float)."""
     cam = _camera(*[p.detach() for p in _params()])
-    before = float(cam.theta_L)
-    cam.U = torch.tensor(300.0, dtype=torch.float64)
+    before = float(cam.lens.theta_L)
+    cam.lens = cam.lens.with_(U=torch.tensor(300.0, dtype=torch.float64))
     expected = math.atan(50.0 * math.tan(math.radians(30.0)) / (300.0 + 50.0))
-    assert float(cam.theta_L) == pytest.approx(expected, abs=1e-12), "tan θL = w tan θF / (U + w)"
-    assert abs(float(cam.theta_L) - before) > 1e-3, "θL moved with U"
+    assert float(cam.lens.theta_L) == pytest.approx(expected, abs=1e-12), "tan θL = w tan θF / (U + w)"
+    assert abs(float(cam.lens.theta_L) - before) > 1e-3, "θL moved with U"
 
 
 @pytest.fixture(scope="module")

@@ -73,8 +73,9 @@ def test_view_camera_projects_like_the_module_and_its_chief_rays_hit_the_points(
 def test_view_camera_carries_the_lens_state():
     cam = _random_camera(3).requires_grad_(False)
     view = cam.view_camera(1)
-    checks = {"w": (view.w, cam.w_mm), "U": (view.U, cam.U_mm), "d": (view.d, cam.d_mm),
-              "theta_F": (view.theta_F, cam.theta_F), "theta_L": (view.theta_L, cam.theta_L), "f": (view.f, cam.f_mm)}
+    lens = view.lens
+    checks = {"w": (lens.w, cam.w_mm), "U": (lens.U, cam.U_mm), "d": (lens.d, cam.d_mm),
+              "theta_F": (lens.theta_F, cam.theta_F), "theta_L": (lens.theta_L, cam.theta_L), "f": (lens.f, cam.f_mm)}
     for name, (a, b) in checks.items():
         assert float(a) == pytest.approx(float(b), rel=1e-14), f"{name}: view {float(a)} vs module {float(b)}"
     assert tuple(float(c) for c in view.screen.center_px) == pytest.approx(

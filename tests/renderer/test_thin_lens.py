@@ -12,6 +12,7 @@ from renderer.cameras import build_camera
 from renderer.cameras.accumulation import AccumulationBufferCamera, render_accumulation
 from renderer.cameras.base import Screen
 from renderer.cameras.pinhole import PinholeCamera
+from renderer.cameras.lens import Lens
 from renderer.cameras.thin_lens import ThinLensCamera, concentric_disk
 from renderer.materials import CheckerTexture
 from renderer.shapes.plane import Plane
@@ -23,7 +24,7 @@ W, U, D = 50.0, 1000.0, 20.0  # scene units (mm): sensor distance, focus distanc
 
 def _lens(theta_F_deg=0.0, size=(36.0, 36.0), px=(9, 9), d=D, pp=None, transform=None, cls=ThinLensCamera):
     screen = Screen(px[0], px[1], size, W, pp)
-    return cls(transform or CameraTransform.identity(), screen, W, U, d, theta_F_deg * DEG)
+    return cls(transform or CameraTransform.identity(), screen, Lens(W, U, d, theta_F_deg * DEG))
 
 
 def _random_samples(n, cam, seed=0, dtype=torch.float64):
@@ -35,7 +36,7 @@ def _random_samples(n, cam, seed=0, dtype=torch.float64):
 def _focus_point(cam, uv):
     """Independent: the chief ray (x_s, y_s, w)·t meets z = U + y tan θF at t = U / (w − y_s tan θF)."""
     c = cam.screen.to_plane(uv)
-    t = U / (W - c[:, 1] * math.tan(cam.theta_F))
+    t = U / (W - c[:, 1] * math.tan(cam.lens.theta_F))
     return c * t[:, None], t
 
 
@@ -44,13 +45,13 @@ def _focus_point(cam, uv):
 def test_config_keys_conversions_and_errors():
     base = {"type": "thin_lens", "w": 55.39, "d": 18.81, "sensor_size": [36.0, 24.0]}
     cam = build_camera("camera", {**base, "U": 648.4, "theta_L_deg": 5.0}, 30, 20)
-    assert abs(cam.theta_F / DEG - 48.03) < 0.01, f"theta_L_deg converts exactly to theta_F: {cam.theta_F / DEG}"
+    assert abs(cam.lens.theta_F / DEG - 48.03) < 0.01, f"theta_L_deg converts exactly to theta_F: {cam.lens.theta_F / DEG}"
     cam_f = build_camera("camera", {**base, "f": float(optics.focal_length(55.39, 618.4)), "theta_L_deg": 5.0}, 30, 20)
-    assert abs(cam_f.U - 648.4) < 0.05, f"f + theta_L place U by the hinge rule: {cam_f.U}"
+    assert abs(cam_f.lens.U - 648.4) < 0.05, f"f + theta_L place U by the hinge rule: {cam_f.lens.U}"
     cam_F = build_camera("camera", {**base, "U": 618.4, "theta_F_deg": 30.0, "principal_point_px": [14.0, 9.0]}, 30, 20)
-    assert abs(cam_F.theta_L - float(optics.theta_L_from_theta_F(30 * DEG, 55.39, 618.4))) < 1e-15
+    assert abs(cam_F.lens.theta_L - float(optics.theta_L_from_theta_F(30 * DEG, 55.39, 618.4))) < 1e-15
     assert cam_F.screen.center_px == (14.0, 9.0) and cam_F.screen.distance == 55.39, "sensor at distance w"
-    assert build_camera("camera", {**base, "U": 618.4}, 30, 20).theta_F == 0.0, "theta_F_deg defaults to 0"
+    assert build_camera("camera", {**base, "U": 618.4}, 30, 20).lens.theta_F == 0.0, "theta_F_deg defaults to 0"
     bad = [({**base, "U": 600, "theta_F_deg": 10, "theta_L_deg": 2}, "not both"),
            ({**base}, "exactly one of U"),
            ({**base, "U": 600, "f": 50}, "exactly one of U"),
@@ -82,7 +83,7 @@ def test_concentric_disk_is_uniform_on_the_disc():
 def test_zero_aperture_is_exactly_the_pinhole(dtype):
     pose = CameraTransform.look_at((10.0, -20.0, 5.0), (30.0, 40.0, 900.0), (0.0, -1.0, 0.0))
     screen = Screen(7, 5, (36.0, 24.0), W, (3.3, 1.7))  # odd, non-square, off-centre principal point
-    lens = ThinLensCamera(pose, screen, W, U, 0.0, 40 * DEG)
+    lens = ThinLensCamera(pose, screen, Lens(W, U, 0.0, 40 * DEG))
     pin = PinholeCamera(pose, screen)
     uv, lens_uv = _random_samples(200, lens, dtype=dtype)
     a, b = lens.generate_rays(uv, lens_uv), pin.generate_rays(uv, lens_uv)
@@ -120,7 +121,7 @@ def test_all_lens_samples_pass_through_the_focus_point(theta_F_deg):
     assert bool((torch.sign(along) == torch.sign(t)).all()), "eq. (5) for P_f in front, eq. (6) behind"
     if theta_F_deg == 75.0:
         assert bool((t < 0).any()) and bool((t > 0).any()), "the test must cover pixels without finite focus"
-    lens_normal = torch.tensor([0.0, -math.sin(cam.theta_L), math.cos(cam.theta_L)], dtype=torch.float64)
+    lens_normal = torch.tensor([0.0, -math.sin(cam.lens.theta_L), math.cos(cam.lens.theta_L)], dtype=torch.float64)
     assert float((rays.origin @ lens_normal).abs().max()) < 1e-12, "origins lie in the tilted lens plane"
     assert float(rays.origin.norm(dim=-1).max()) <= D / 2 + 1e-12, "origins lie on the aperture disc"
     assert bool((rays.direction @ lens_normal > 0).all()), "rays leave the lens forwards"
@@ -131,8 +132,8 @@ def test_rays_are_the_thin_lens_refraction():
     cam = _lens(50.0, px=(15, 11))
     uv, lens_uv = _random_samples(1000, cam, seed=2)
     rays = cam.rays_in_camera(uv, lens_uv)
-    n = torch.tensor([0.0, -math.sin(cam.theta_L), math.cos(cam.theta_L)], dtype=torch.float64)
-    f = float(optics.focal_length(W, U, cam.theta_L))
+    n = torch.tensor([0.0, -math.sin(cam.lens.theta_L), math.cos(cam.lens.theta_L)], dtype=torch.float64)
+    f = float(optics.focal_length(W, U, cam.lens.theta_L))
     p_sensor = -cam.screen.to_plane(uv)  # the image is inverted behind the lens
     s = rays.origin
     v = s - p_sensor
@@ -253,7 +254,7 @@ def _rendered_spot(p, theta_F, spp=256, rho_px=1.5):
     center, shape = optics.blur_ellipse(p, W, U, D, theta_F)
     n = int(1.4 * 2 * math.sqrt(float(shape.diagonal().max())) / PITCH) + 8
     pp = ((n - 1) / 2 - float(center[0]) / PITCH, (n - 1) / 2 - float(center[1]) / PITCH)
-    cam = ThinLensCamera(CameraTransform.identity(), Screen(n, n, (n * PITCH, n * PITCH), W, pp), W, U, D, theta_F)
+    cam = ThinLensCamera(CameraTransform.identity(), Screen(n, n, (n * PITCH, n * PITCH), W, pp), Lens(W, U, D, theta_F))
     rho = rho_px * PITCH * float(p.norm()) / W
     obj = SceneObject("dot", Sphere(p.tolist(), rho), Material(color=(1.0, 1.0, 1.0)))
     img = render(_scene(cam, [obj], spp=spp), dtype=torch.float64).image[..., 0]

@@ -57,5 +57,5 @@ def test_lens_params_keys_build_the_same_lens():
     lens = LensParams(55.0, 640.0, 18.0, theta_L_deg=5.0)
     cam = boxes_scene(lens, downscale=64).camera
     tan_F = (640.0 + 55.0) * math.tan(math.radians(5.0)) / 55.0  # Scheimpflug, exact
-    assert (cam.w, cam.U, cam.d) == (55.0, 640.0, 18.0), "w, U, d as given"
-    assert math.tan(cam.theta_F) == pytest.approx(tan_F, rel=1e-12), "θF from θL by the exact Scheimpflug rule"
+    assert (cam.lens.w, cam.lens.U, cam.lens.d) == (55.0, 640.0, 18.0), "w, U, d as given"
+    assert math.tan(cam.lens.theta_F) == pytest.approx(tan_F, rel=1e-12), "θF from θL by the exact Scheimpflug rule"

@@ -1,0 +1,231 @@
+"""The one thin lens: its state (w, U, d, θF), its sensor, principal point and distortion, in one value.
+
+    Lens(w, U, d, theta_F=0, sensor=None, principal_point_px=None, distortion=None)
+    Lens.from_tilt(w, f, theta_L, d)        the hinge rule: a lens of focal length f tilted by θL about its centre
+    Lens.from_theta_L(w, U, d, theta_L)     U kept, θF from the exact Scheimpflug rule
+    Lens.paper()                            the tilt-lens paper's camera (EOS 6D, TS-E 45 mm, stage-1 values)
+
+Every camera that has a thin lens takes one: the renderer's `ThinLensCamera` (distributed ray tracing), the
+fitted `LensCamera` (its `lens` is a `Lens` of its tensors, so gradients reach them), the Mitsuba sensor, the
+fused path, tiltfit's synthetic captures, the experiments and the photometric fit. Only this class holds the
+lens parameters; the others hold a `Lens` (tests/test_one_lens.py).
+
+Conventions (docs/conventions.md): camera frame x right, y down, z forward, lens centre at the origin; the
+sensor at z = −w; the plane of focus z = U + y tan θF (U = math.inf: focus at infinity, θF about the camera x
+axis, |θF| < 90°); lengths in scene units (mm for a real camera), angles in radians. w, U, d, θF may be Python
+floats or 0-dim tensors (tensors keep their graph; only numbers are checked).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+import torch
+
+from .. import optics
+
+#: The paper's camera: Canon EOS 6D (5472 × 3648, 6.54 µm pixels) with the TS-E 45 mm at f/2.8, stage-1 estimates.
+PAPER_W_MM, PAPER_U_MM, PAPER_D_MM = 55.39, 618.4, 18.81
+
+
+@dataclass(frozen=True)
+class Sensor:
+    """A sensor of W × H pixels of pitch p (scene units; mm for a real camera).
+
+    Pixel (0, 0) is the centre of the top-left pixel, so the image centre is ((W − 1)/2, (H − 1)/2).
+    """
+
+    width_px: int
+    height_px: int
+    pixel_pitch: float
+
+    def __post_init__(self):
+        for name in ("width_px", "height_px"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 1):
+                raise ValueError(f"{name}: expected a positive whole number of pixels, got {v!r}")
+        if not (math.isfinite(float(self.pixel_pitch)) and float(self.pixel_pitch) > 0):
+            raise ValueError(f"pixel_pitch: expected a positive length, got {self.pixel_pitch!r}")
+
+    @property
+    def size_px(self) -> tuple[int, int]:
+        return int(self.width_px), int(self.height_px)
+
+    @property
+    def size(self) -> tuple[float, float]:
+        """(width, height) of the sensor, scene units."""
+        return self.width_px * self.pixel_pitch, self.height_px * self.pixel_pitch
+
+    @property
+    def center_px(self) -> tuple[float, float]:
+        """The image centre ((W − 1)/2, (H − 1)/2), pixels: the default principal point."""
+        return (self.width_px - 1) / 2.0, (self.height_px - 1) / 2.0
+
+    def binned(self, factor: int) -> "Sensor":
+        """The sensor read out with `factor` × `factor` pixels binned, cropped to whole binned pixels."""
+        if not (isinstance(factor, int) and factor >= 1):
+            raise ValueError(f"factor: expected a positive integer, got {factor!r}")
+        w, h = self.width_px // factor, self.height_px // factor
+        if w < 2 or h < 2:
+            raise ValueError(f"factor: binning by {factor} leaves a {w}x{h} image")
+        return Sensor(w, h, self.pixel_pitch * factor)
+
+
+#: Canon EOS 6D: full frame, 5472 × 3648, 6.54 µm pixels.
+EOS_6D = Sensor(5472, 3648, 0.00654)
+
+
+def _number(v) -> bool:
+    return not isinstance(v, torch.Tensor)
+
+
+@dataclass(frozen=True)
+class Lens:
+    """A thin lens with a (possibly) tilted plane of focus, its sensor, principal point and distortion.
+
+    Attributes:
+        w: lens centre to sensor (effective focal length).
+        U: lens centre to the plane of focus along the optical axis (math.inf: focus at infinity).
+        d: effective aperture diameter (0: a pinhole).
+        theta_F: tilt of the plane of focus z = U + y tan θF about the camera x axis, radians.
+        sensor: the `Sensor` (None for a scene-file camera, whose screen is given in scene units).
+        principal_point_px: (cx, cy) where the optical axis meets the image [the sensor's centre].
+        distortion: None or up to 8 Brown–Conrady coefficients in OpenCV's order (k1, k2, p1, p2, k3, k4, k5,
+            k6), about the principal point.
+    """
+
+    w: float
+    U: float
+    d: float
+    theta_F: float = 0.0
+    sensor: Sensor | None = None
+    principal_point_px: tuple[float, float] | None = None
+    distortion: tuple[float, ...] | None = None
+
+    def __post_init__(self):
+        if _number(self.w) and not (math.isfinite(self.w) and self.w > 0):
+            raise ValueError(f"w: expected a positive finite length, got {self.w!r}")
+        if _number(self.U) and not (self.U > 0):
+            raise ValueError(f"U: expected a positive length or inf, got {self.U!r}")
+        if _number(self.d) and not (math.isfinite(self.d) and self.d >= 0):
+            raise ValueError(f"d: expected an aperture diameter >= 0, got {self.d!r}")
+        if _number(self.theta_F) and not abs(self.theta_F) < math.pi / 2:
+            raise ValueError(f"theta_F: expected |θF| < 90°, got {math.degrees(self.theta_F)!r}°")
+
+    # ------------------------------------------------------------------ constructors
+
+    @classmethod
+    def from_theta_L(cls, w, U, d, theta_L, **kw) -> "Lens":
+        """The lens of focus distance U tilted by θL (radians): θF from the exact Scheimpflug rule
+        tan θF = (U + w) tan θL / w."""
+        theta_F = optics.theta_F_from_theta_L(theta_L, w, U)
+        return cls(w, U, d, _same_kind(theta_F, w, U, theta_L), **kw)
+
+    @classmethod
+    def from_tilt(cls, w, f, theta_L, d, **kw) -> "Lens":
+        """A lens of focal length f with the sensor at w, tilted by θL about its centre (radians): the hinge
+        rule U = f w / (w cos θL − f) places the plane of focus, the Scheimpflug rule tilts it."""
+        if all(_number(v) for v in (w, f, theta_L)) and not 0 < f < w * math.cos(theta_L):
+            raise ValueError(f"f: expected 0 < f < w cos θL = {w * math.cos(theta_L):.6g} for a real plane of "
+                             f"focus, got {f!r}")
+        U = _same_kind(optics.focus_distance_tilted(w, f, theta_L), w, f, theta_L)
+        return cls.from_theta_L(w, U, d, theta_L, **kw)
+
+    @classmethod
+    def paper(cls, sensor: Sensor | None = EOS_6D) -> "Lens":
+        """The tilt-lens paper's camera: Canon EOS 6D with the TS-E 45 mm at f/2.8, stage-1 estimates
+        w = 55.39, U = 618.4, d = 18.81 mm, untilted."""
+        return cls(PAPER_W_MM, PAPER_U_MM, PAPER_D_MM, 0.0, sensor)
+
+    def with_(self, **changes) -> "Lens":
+        """A copy with some fields changed (`dataclasses.replace`)."""
+        return replace(self, **changes)
+
+    # ------------------------------------------------------------------ derived values
+
+    @property
+    def inv_U(self):
+        """1 / U (0 for focus at infinity)."""
+        return 1.0 / self.U if _number(self.U) else torch.reciprocal(self.U)
+
+    @property
+    def theta_L(self):
+        """Exact lens tilt, radians (tan θL = w tan θF / (U + w)); a float when the parameters are floats."""
+        return _same_kind(optics.theta_L_from_theta_F(self.theta_F, self.w, self.U), self.w, self.U, self.theta_F)
+
+    @property
+    def f(self):
+        """Focal length of the thin lens in this state, f = U w cos θL / (U + w) (hinge rule)."""
+        return _same_kind(optics.focal_length(self.w, self.U, self.theta_L), self.w, self.U, self.theta_F)
+
+    @property
+    def center_px(self) -> tuple[float, float]:
+        """The principal point (cx, cy), pixels: given, else the sensor's centre."""
+        if self.principal_point_px is not None:
+            return self.principal_point_px
+        return self._sensor("center_px").center_px
+
+    @property
+    def focal_px(self):
+        """w / p: the focal length in pixels."""
+        return self.w / self._sensor("focal_px").pixel_pitch
+
+    @property
+    def K(self) -> np.ndarray:
+        """(3, 3) pixel-from-normalised-coordinates matrix [[w/p, 0, cx], [0, w/p, cy], [0, 0, 1]]."""
+        f = float(self.focal_px)
+        cx, cy = (float(c) for c in self.center_px)
+        return np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+
+    def binned(self, factor: int) -> "Lens":
+        """The same optics read out with `factor` × `factor` pixels binned (image `factor` times smaller)."""
+        pp = self.principal_point_px
+        if pp is not None:
+            pp = tuple((c + 0.5) / factor - 0.5 for c in pp)
+        return replace(self, sensor=self._sensor("binned").binned(factor), principal_point_px=pp)
+
+    # ------------------------------------------------------------------ closed forms
+
+    def project(self, p_cam):
+        """(..., 3) camera-frame points -> (..., 2) pixels: the chief ray's pinhole projection at w, then the
+        distortion (`renderer.cameras.projection.project_pinhole`). numpy in, numpy out; tensors keep their
+        graph."""
+        from .projection import project_pinhole
+
+        if self.distortion is not None and any(float(k) != 0 for k in self.distortion):
+            from .distortion import distort
+
+            tensor = isinstance(p_cam, torch.Tensor)
+            p = p_cam if tensor else torch.as_tensor(np.asarray(p_cam, dtype=np.float64))
+            xy = distort(p[..., :2] / p[..., 2:3], torch.as_tensor(self.distortion, dtype=p.dtype))
+            uv = xy * self.focal_px + torch.as_tensor(self.center_px, dtype=p.dtype)
+            return uv if tensor else uv.numpy()
+        if isinstance(p_cam, torch.Tensor):
+            return project_pinhole(p_cam, self.focal_px, self.center_px)
+        return project_pinhole(np.asarray(p_cam, dtype=np.float64), float(self.focal_px), self.center_px)
+
+    def blur_px(self, p_cam) -> np.ndarray:
+        """(..., 3) camera-frame points -> (...,) blur-disc diameters, pixels: the exact thin-lens value for a lens
+        tilted about its centre (`renderer.optics.blur_diameter_exact`, the equivalent-area diameter of the
+        blur ellipse); for θF = 0 it is the paper's eq (2)."""
+        p = torch.as_tensor(np.asarray(p_cam, dtype=np.float64))
+        b = optics.blur_diameter_exact(p, self.w, self.U, self.d, self.theta_F)
+        return b.numpy() / self._sensor("blur_px").pixel_pitch
+
+    def record(self) -> dict:
+        """w, U, d, θL and θF (degrees) as plain numbers: for tables and run records."""
+        return {"w_mm": float(self.w), "U_mm": float(self.U), "d_mm": float(self.d),
+                "theta_L_deg": math.degrees(float(self.theta_L)), "theta_F_deg": math.degrees(float(self.theta_F))}
+
+    def _sensor(self, what: str) -> Sensor:
+        if self.sensor is None:
+            raise ValueError(f"Lens.{what}: this lens has no sensor (give Lens(..., sensor=Sensor(W, H, p)))")
+        return self.sensor
+
+
+def _same_kind(value, *params):
+    """`value` as a Python float when every parameter is a plain number, else the tensor (keeps its graph)."""
+    if any(isinstance(p, torch.Tensor) for p in params):
+        return value
+    return float(value)

@@ -55,8 +55,8 @@ def main(argv=None) -> int:
         if m.any():
             bins.append({"blur_px": [lo, hi], "n": int(m.sum()), "mean_error_px": float(err[m].mean()),
                          "std_error_px": float(err[m].std()), "median_reported_sigma_px": float(np.median(S[m]))})
-    obs = Observations(TARGET.feature_points(), C, B, (cam.width_px, cam.height_px), cam.pixel_pitch_mm)
-    truth = {"w_mm": CAMERA.w_mm, "U_mm": cam.U_mm, "d_mm": CAMERA.d_mm}
+    obs = Observations(TARGET.feature_points(), C, B, cam.sensor.size_px, cam.sensor.pixel_pitch)
+    truth = {"w_mm": CAMERA.untilted.w, "U_mm": cam.U, "d_mm": CAMERA.untilted.d}
     fits = {}
     for label, offset in (("offset held at 0 (before)", False), ("offset free (now)", True)):
         res = calibrate(obs, "unified", options=FitOptions(model_selection=False, blur_offset=offset))

@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 import torch
 
-from renderer import optics
+from renderer import Lens
 from tiltfit import synth
 from tiltfit.experiments import reproduce
 from tiltfit.detect import detect
@@ -62,13 +62,10 @@ def log(msg: str) -> None:
     print(f"[bench_calib_opencv {time.perf_counter() - T0:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
 
-def true_camera(theta_L_deg: float, downscale: int) -> synth.SynthCamera:
+def true_camera(theta_L_deg: float, downscale: int) -> Lens:
     """The simulated lens tilted by exactly θL about its centre (hinge-rule U, exact Scheimpflug θF)."""
-    w, h, _ = CAMERA.sensor.downscaled(downscale)
-    tl = math.radians(theta_L_deg)
-    U = float(optics.focus_distance_tilted(CAMERA.w_mm, CAMERA.f_mm, tl))
-    tf = float(optics.theta_F_from_theta_L(tl, CAMERA.w_mm, U))
-    return synth.SynthCamera(CAMERA.w_mm, U, CAMERA.d_mm, CAMERA.sensor.pixel_pitch_mm * downscale, w, h, tf)
+    true = CAMERA.untilted
+    return Lens.from_tilt(true.w, true.f, math.radians(theta_L_deg), true.d, sensor=true.sensor.binned(downscale))
 
 
 def capture(theta_L_deg: float, view: int, downscale: int, seed: int):
@@ -122,8 +119,8 @@ def fit_record(res):
 def run(quick: bool) -> dict:
     n_views = 3 if quick else len(reproduce.TARGET_VIEWS)
     k = 4
-    w, h, _ = CAMERA.sensor.downscaled(k)
-    pitch = CAMERA.sensor.pixel_pitch_mm * k
+    w, h = CAMERA.sensor.binned(k).size_px
+    pitch = CAMERA.sensor.pixel_pitch * k
     states, t_corner, t_blur, t_fit = {}, [], [], []
     dets_by = {}
     for tl in TILTS_DEG:
@@ -140,8 +137,8 @@ def run(quick: bool) -> dict:
             log(f"θL {tl:+g}°: view {v + 1}/{n_views}: {int(ok.sum())}/{TARGET.n_points} corners, "
                 f"corner RMS vs truth {errs[-1]:.3f} px, {tm['total']:.2f} s")
         dets_by[tl] = dets
-        states[tl] = {"theta_L_true_deg": tl, "U_true_mm": cam.U_mm,
-                      "theta_F_true_deg": math.degrees(cam.theta_F_rad), "f_true_px": CAMERA.w_mm / pitch,
+        states[tl] = {"theta_L_true_deg": tl, "U_true_mm": cam.U,
+                      "theta_F_true_deg": math.degrees(cam.theta_F), "f_true_px": CAMERA.untilted.w / pitch,
                       "corner_rms_vs_truth_px": errs, "opencv": {}}
         for name, flags in OPENCV_VARIANTS.items():
             try:
@@ -184,7 +181,7 @@ def run(quick: bool) -> dict:
         t_render = time.perf_counter() - t
         det = detect(img, TARGET)
         tm = det.timings_s
-        full = {"image_size_px": list(CAMERA.sensor.downscaled(1)[:2]), "n_images": 1, "render_s": t_render,
+        full = {"image_size_px": list(CAMERA.sensor.binned(1).size_px), "n_images": 1, "render_s": t_render,
                 "n_found": int(det.found.sum()), "detect_corners_s": tm["total"] - tm.get("blur", 0.0),
                 "measure_blur_s": tm.get("blur"), "timings_s": tm}
         log(f"5472×3648: detect {full['detect_corners_s']:.2f} s, blur {full['measure_blur_s']:.2f} s")

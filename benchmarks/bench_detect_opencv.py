@@ -262,7 +262,7 @@ def main(argv=None):
     log = lambda s: print(s, flush=True)  # noqa: E731
     ratios = [0.0, 0.2, 0.5, 0.8] if args.quick else [0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0]
     poses = POSES[:1] if args.quick else POSES
-    sweep_cam = PAPER_CAMERA.scaled(8 if args.quick else 4)
+    sweep_cam = PAPER_CAMERA.binned(8 if args.quick else 4)
     meta = {"machine": f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.python_version()}, torch "
                        f"{torch.__version__}, OpenCV {cv2.__version__}",
             "loadavg": [round(v, 2) for v in os.getloadavg()], "torch_threads": torch.get_num_threads(),
@@ -278,7 +278,7 @@ def main(argv=None):
         rows = sweep(sweep_cam, ratios, poses, 0.004, log)
     summary = summarize(rows, ratios)
     write_outputs(args.out, summary, rows, [], meta)  # the sweep is safe on disk before the long timings
-    timings = [timing(PAPER_CAMERA.scaled(4), 0.15, args.repeats, log, "1368×912", 3, args.opencv_limit_s)]
+    timings = [timing(PAPER_CAMERA.binned(4), 0.15, args.repeats, log, "1368×912", 3, args.opencv_limit_s)]
     if not args.quick:
         timings.append(timing(PAPER_CAMERA, 0.15, max(3, args.repeats // 2), log, "5472×3648", 1,
                               args.opencv_limit_s))

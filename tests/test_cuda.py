@@ -78,8 +78,8 @@ def test_cuda_photometric_target_render_equals_cpu():
     from tiltfit.target import Target
 
     board = Target(tuple(50.0 * i for i in range(7)), tuple(50.0 * j for j in range(5)), (0, 0), 25.0)
-    w, h, _ = reproduce.EOS_6D.downscaled(16)
-    sensor = SensorGeometry(w, h, reproduce.EOS_6D.pixel_pitch_mm * 16, ((w - 1) / 2, (h - 1) / 2))
+    w, h = reproduce.EOS_6D.binned(16).size_px
+    sensor = SensorGeometry(w, h, reproduce.EOS_6D.pixel_pitch * 16, ((w - 1) / 2, (h - 1) / 2))
     R, T = reproduce.target_pose(board, 30.0, 5.0, 600.0)
     import cv2
 

@@ -15,7 +15,7 @@ import math
 from dataclasses import dataclass
 
 import torch
-from renderer import axis_angle_to_matrix, matrix_to_axis_angle  # noqa: F401  (re-exported)
+from renderer import Lens, axis_angle_to_matrix, matrix_to_axis_angle  # noqa: F401  (re-exported)
 from renderer.cameras import APERTURE_SCALE_MM, LensCamera, distortion_parameter_names  # noqa: F401
 from renderer.optics import BLUR_MODELS  # noqa: F401  (re-exported)
 from renderer.optics import blur_diameter as blur_diameter_mm  # noqa: F401  (re-exported)
@@ -231,9 +231,10 @@ def board_points_mm(nx: int = 8, ny: int = 5, pitch_mm: float = 25.0, centred: b
     return torch.stack([X.reshape(-1), Y.reshape(-1), torch.zeros(nx * ny, dtype=torch.float64)], -1)
 
 
-# The paper's camera (Canon EOS 6D, TS-E 45 mm at f/2.8; stage-1 values of the paper's experiment).
-PAPER_SENSOR = {"image_size_px": (5472, 3648), "pixel_pitch_mm": 0.00654}
-PAPER_LENS = {"w_mm": 55.39, "U_mm": 618.4, "d_mm": 18.81}
+# The paper's camera (`renderer.Lens.paper()`: Canon EOS 6D, TS-E 45 mm at f/2.8; stage-1 values of the paper's
+# experiment) as `TiltLensCamera`'s keyword arguments.
+PAPER_SENSOR = {"image_size_px": Lens.paper().sensor.size_px, "pixel_pitch_mm": Lens.paper().sensor.pixel_pitch}
+PAPER_LENS = {"w_mm": Lens.paper().w, "U_mm": Lens.paper().U, "d_mm": Lens.paper().d}
 
 
 def random_poses(n_views: int, seed: int = 0, distance_mm=(520.0, 720.0), max_angle_deg: float = 17.0,

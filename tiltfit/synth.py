@@ -24,83 +24,22 @@ Then optional vignetting, Gaussian read noise and shot noise, and 8-bit sRGB qua
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
-from renderer import axis_angle_to_matrix, optics, project_pinhole
+from renderer import Lens, axis_angle_to_matrix
 from renderer.sensor import SensorResponse
 from renderer.transforms import euler_xyz_deg, look_at_rotation
 
 from .target import Target
 
 
-@dataclass(frozen=True)
-class SynthCamera:
-    """A thin-lens camera with a (possibly) tilted plane of focus z = U + y tan θF: the plain-number record the
-    synthetic images are made from. Its projection and blur are the renderer's (`renderer.project_pinhole`,
-    `renderer.optics.blur_diameter_exact`), the same code as `renderer.LensCamera`'s.
-
-    Attributes:
-        w_mm: lens centre to sensor (effective focal length), mm.
-        U_mm: lens centre to the plane of focus along the axis, mm.
-        d_mm: effective aperture diameter, mm.
-        pixel_pitch_mm: pixel size, mm.
-        width_px, height_px: image size.
-        theta_F_rad: tilt of the plane of focus about the camera x axis, radians [0].
-        principal_point_px: (cx, cy) [image centre].
-    """
-
-    w_mm: float
-    U_mm: float
-    d_mm: float
-    pixel_pitch_mm: float
-    width_px: int
-    height_px: int
-    theta_F_rad: float = 0.0
-    principal_point_px: tuple[float, float] | None = None
-
-    @property
-    def center_px(self) -> tuple[float, float]:
-        if self.principal_point_px is not None:
-            return self.principal_point_px
-        return (self.width_px - 1) / 2.0, (self.height_px - 1) / 2.0
-
-    @property
-    def K(self) -> np.ndarray:
-        """(3, 3) pixel-from-normalised-coordinates matrix (focal length w / pitch in pixels)."""
-        f = self.w_mm / self.pixel_pitch_mm
-        cx, cy = self.center_px
-        return np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
-
-    def scaled(self, factor: int) -> "SynthCamera":
-        """The same optics with pixels `factor` times larger (image `factor` times smaller per axis)."""
-        pp = None
-        if self.principal_point_px is not None:
-            pp = tuple((c + 0.5) / factor - 0.5 for c in self.principal_point_px)
-        return replace(self, pixel_pitch_mm=self.pixel_pitch_mm * factor, width_px=self.width_px // factor,
-                       height_px=self.height_px // factor, principal_point_px=pp)
-
-    def project(self, p_cam: np.ndarray) -> np.ndarray:
-        """(..., 3) camera-frame points, mm -> (..., 2) pixels (`renderer.project_pinhole`, no distortion)."""
-        return project_pinhole(np.asarray(p_cam, dtype=np.float64), self.w_mm / self.pixel_pitch_mm, self.center_px)
-
-    def blur_px(self, p_cam: np.ndarray) -> np.ndarray:
-        """(..., 3) camera-frame points, mm -> (...,) blur-disc diameters, pixels.
-
-        The exact thin-lens value for a lens tilted about its centre (`renderer.optics.blur_diameter_exact`,
-        the equivalent-area diameter of the blur ellipse), not the paper's approximate (4): simulated truth
-        must not carry the approximation a fit is meant to be judged against. For θF = 0 both are (2).
-        """
-        p = torch.as_tensor(np.asarray(p_cam, dtype=np.float64))
-        b_mm = optics.blur_diameter_exact(p, self.w_mm, self.U_mm, self.d_mm, self.theta_F_rad)
-        return b_mm.numpy() / self.pixel_pitch_mm
-
-
-#: The paper's camera (Canon EOS 6D, TS-E 45 mm at f/2.8, stage-1 estimates): 5472 × 3648, 6.54 µm pixels.
-PAPER_CAMERA = SynthCamera(w_mm=55.39, U_mm=618.4, d_mm=18.81, pixel_pitch_mm=0.00654, width_px=5472,
-                           height_px=3648)
+#: The paper's camera (Canon EOS 6D, TS-E 45 mm at f/2.8, stage-1 estimates): 5472 × 3648, 6.54 µm pixels. The
+#: synthetic captures take any `renderer.Lens` with a sensor; its projection and blur are the renderer's
+#: (`Lens.project`, `Lens.blur_px`), the same code as `renderer.LensCamera`'s.
+PAPER_CAMERA = Lens.paper()
 
 
 @dataclass(frozen=True)
@@ -141,18 +80,18 @@ def look_at_pose(target: Target, camera_position_mm, look_at_mm=None, roll_deg: 
     return R, -R @ c
 
 
-def observe(target: Target, camera: SynthCamera, R, T, border_px: float = 0.0) -> Observation:
+def observe(target: Target, camera: Lens, R, T, border_px: float = 0.0) -> Observation:
     """Truth corners and blur of the target's feature points for pose (R, T) (X_cam = R X + T)."""
     R, T = np.asarray(R, dtype=np.float64), np.asarray(T, dtype=np.float64)
     p_cam = target.feature_points() @ R.T + T
     uv = camera.project(p_cam)
-    inside = ((uv[:, 0] >= -0.5 + border_px) & (uv[:, 0] <= camera.width_px - 0.5 - border_px)
-              & (uv[:, 1] >= -0.5 + border_px) & (uv[:, 1] <= camera.height_px - 0.5 - border_px)
+    inside = ((uv[:, 0] >= -0.5 + border_px) & (uv[:, 0] <= camera.sensor.width_px - 0.5 - border_px)
+              & (uv[:, 1] >= -0.5 + border_px) & (uv[:, 1] <= camera.sensor.height_px - 0.5 - border_px)
               & (p_cam[:, 2] > 0))
     return Observation(uv, camera.blur_px(p_cam), p_cam, inside)
 
 
-def projected_square_px(target: Target, camera: SynthCamera, R, T) -> np.ndarray:
+def projected_square_px(target: Target, camera: Lens, R, T) -> np.ndarray:
     """(N,) smallest distance from each feature point to its grid neighbours in the image, pixels."""
     uv = observe(target, camera, R, T).corners_px.reshape(*target.grid_shape, 2)
     d = np.full(target.grid_shape, np.inf)
@@ -165,13 +104,13 @@ def projected_square_px(target: Target, camera: SynthCamera, R, T) -> np.ndarray
     return d.ravel()
 
 
-def with_blur_ratio(camera: SynthCamera, target: Target, R, T, ratio: float,
-                    U_mm: float | None = None) -> SynthCamera:
+def with_blur_ratio(camera: Lens, target: Target, R, T, ratio: float,
+                    U_mm: float | None = None) -> Lens:
     """The camera with the aperture d set so the median blur of the feature points is `ratio` × the median
     projected square (a synthetic knob: d may be unphysically large). `U_mm` moves the focus first."""
-    cam = camera if U_mm is None else replace(camera, U_mm=U_mm)
-    ob = observe(target, replace(cam, d_mm=1.0), R, T)
-    return replace(cam, d_mm=ratio * float(np.median(projected_square_px(target, cam, R, T)))
+    cam = camera if U_mm is None else camera.with_(U=U_mm)
+    ob = observe(target, cam.with_(d=1.0), R, T)
+    return cam.with_(d=ratio * float(np.median(projected_square_px(target, cam, R, T)))
                    / float(np.median(ob.blur_px)))
 
 
@@ -193,7 +132,7 @@ class SynthView:
     truth: Observation = field(repr=False)
 
 
-def render_view(target: Target, camera: SynthCamera, R, T, *, dark: float = 0.05, white: float = 0.8,
+def render_view(target: Target, camera: Lens, R, T, *, dark: float = 0.05, white: float = 0.8,
                 background: float = 0.3, noise_sigma: float = 0.0, shot_noise: float = 0.0,
                 vignetting: float = 0.0, srgb8: bool = False, seed: int = 0, method: str = "analytic",
                 spp: int = 64) -> SynthView:
@@ -227,7 +166,7 @@ def render_view(target: Target, camera: SynthCamera, R, T, *, dark: float = 0.05
 
 
 # --- analytic renderer -------------------------------------------------------------------------------------
-def plane_homography(camera: SynthCamera, R: np.ndarray, T: np.ndarray) -> np.ndarray:
+def plane_homography(camera: Lens, R: np.ndarray, T: np.ndarray) -> np.ndarray:
     """(3, 3) homography from target-plane (X, Y, 1) to homogeneous pixels: K [r1 r2 T]."""
     return camera.K @ np.stack([R[:, 0], R[:, 1], T], axis=1)
 
@@ -263,10 +202,10 @@ def _disc_polygon_area(c: np.ndarray, r: np.ndarray, verts: np.ndarray) -> np.nd
     return per_edge.sum(-1)
 
 
-def render_analytic(target: Target, camera: SynthCamera, R: np.ndarray, T: np.ndarray, dark: float = 0.05,
+def render_analytic(target: Target, camera: Lens, R: np.ndarray, T: np.ndarray, dark: float = 0.05,
                     white: float = 0.8, background: float = 0.3, chunk: int = 1 << 15) -> np.ndarray:
     """(H, W) float64 noise-free linear image by the exact disc-gather model (see the module docs)."""
-    W, H = camera.width_px, camera.height_px
+    W, H = camera.sensor.size_px
     Hm = plane_homography(camera, R, T)
     Hinv = np.linalg.inv(Hm)
     xe, ye = np.asarray(target.x_edges), np.asarray(target.y_edges)
@@ -383,19 +322,6 @@ def _pixels_value(flat_idx, W, sub, radius, c_lo, r_lo, kc, kr, near_outer, insi
     return value.mean(-1)
 
 
-def tilted_lens_camera(w_mm: float, U0_mm: float, d_mm: float, theta_L_deg: float, pixel_pitch_mm: float,
-                       width_px: int, height_px: int) -> SynthCamera:
-    """The camera whose thin lens (sensor at w, focused at U0 when untilted) is tilted by θL about its centre:
-    U from the hinge rule U = f w / (w cos θL − f), θF from the exact Scheimpflug relation."""
-    from renderer import optics
-
-    theta_L = math.radians(theta_L_deg)
-    f = float(optics.focal_length(w_mm, U0_mm))
-    U = float(optics.focus_distance_tilted(w_mm, f, theta_L))
-    theta_F = float(optics.theta_F_from_theta_L(theta_L, w_mm, U))
-    return SynthCamera(w_mm, U, d_mm, pixel_pitch_mm, width_px, height_px, theta_F)
-
-
 # --- the ray tracer ----------------------------------------------------------------------------------------
 def renderer_available() -> bool:
     """Whether the renderer has the `thin_lens` camera and the `rectangle` shape this module needs."""
@@ -407,7 +333,7 @@ def renderer_available() -> bool:
     return "thin_lens" in CAMERAS and "rectangle" in SHAPES
 
 
-def renderer_scene(target: Target, camera: SynthCamera, R, T, texture_file: str, spp: int = 64) -> dict:
+def renderer_scene(target: Target, camera: Lens, R, T, texture_file: str, spp: int = 64) -> dict:
     """The scene dict (contract's scene-file format) showing the target as `render_analytic` does.
 
     The world frame is the target frame; the camera sits at C = −Rᵀ T looking along Rᵀ (0, 0, 1) with
@@ -418,14 +344,12 @@ def renderer_scene(target: Target, camera: SynthCamera, R, T, texture_file: str,
     R, T = np.asarray(R, dtype=np.float64), np.asarray(T, dtype=np.float64)
     C = -R.T @ T
     x0, y0, x1, y1 = target.extent_mm
-    sw, sh = camera.width_px * camera.pixel_pitch_mm, camera.height_px * camera.pixel_pitch_mm
+    W, H = camera.sensor.size_px
     return {
-        "image": {"width": camera.width_px, "height": camera.height_px, "spp": spp, "max_depth": 1,
-                  "background": [0.0, 0.0, 0.0], "sampler": "sobol"},
-        "camera": {"type": "thin_lens", "position": C.tolist(), "look_at": (C + R.T @ [0, 0, 1.0]).tolist(),
-                   "up": (R.T @ [0, -1.0, 0]).tolist(), "w": camera.w_mm, "U": camera.U_mm, "d": camera.d_mm,
-                   "sensor_size": [sw, sh], "theta_F_deg": math.degrees(camera.theta_F_rad),
-                   **({"principal_point_px": list(camera.principal_point_px)} if camera.principal_point_px else {})},
+        "image": {"width": W, "height": H, "spp": spp, "max_depth": 1, "background": [0.0, 0.0, 0.0],
+                  "sampler": "sobol"},
+        "camera": {"position": C.tolist(), "look_at": (C + R.T @ [0, 0, 1.0]).tolist(),
+                   "up": (R.T @ [0, -1.0, 0]).tolist(), **camera.scene_keys()},
         "lights": [{"type": "ambient", "intensity": [1.0, 1.0, 1.0]}],
         "objects": [{"name": "target",
                      "shape": {"type": "rectangle", "center": [(x0 + x1) / 2, (y0 + y1) / 2, 0.0],
@@ -435,7 +359,7 @@ def renderer_scene(target: Target, camera: SynthCamera, R, T, texture_file: str,
     }
 
 
-def render_with_renderer(target: Target, camera: SynthCamera, R, T, dark: float, white: float, background: float,
+def render_with_renderer(target: Target, camera: Lens, R, T, dark: float, white: float, background: float,
                          spp: int = 64, seed: int = 0, px_per_mm: float = 10.0) -> np.ndarray:
     """(H, W) linear image from the ray tracer (thin-lens camera, textured rectangle); see `renderer_scene`.
 

@@ -213,6 +213,17 @@ class Lens:
         b = optics.blur_diameter_exact(p, self.w, self.U, self.d, self.theta_F)
         return b.numpy() / self._sensor("blur_px").pixel_pitch
 
+    def scene_keys(self) -> dict:
+        """The scene file's `thin_lens` camera keys of this lens (docs/scene_format.md): w, U, d, theta_F_deg,
+        and sensor_size and principal_point_px when it has a sensor / principal point; numbers as plain floats."""
+        keys = {"type": "thin_lens", "w": float(self.w), "U": float(self.U), "d": float(self.d),
+                "theta_F_deg": math.degrees(float(self.theta_F))}
+        if self.sensor is not None:
+            keys["sensor_size"] = list(self.sensor.size)
+        if self.principal_point_px is not None:
+            keys["principal_point_px"] = [float(c) for c in self.principal_point_px]
+        return keys
+
     def record(self) -> dict:
         """w, U, d, θL and θF (degrees) as plain numbers: for tables and run records."""
         return {"w_mm": float(self.w), "U_mm": float(self.U), "d_mm": float(self.d),

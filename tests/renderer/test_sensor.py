@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from renderer import Lens, Sensor
 from renderer.sensor import SensorResponse, decode_srgb8, encode_srgb8, radial_falloff
 
 
@@ -99,7 +100,7 @@ def test_capture_simulations_use_the_sensor_model():
     assert np.array_equal(cam.expose(rad, np.random.default_rng(7)), want), "reproduce's photos"
 
     target = Target(tuple(20.0 * i for i in range(5)), tuple(20.0 * j for j in range(4)))
-    sc = synth.SynthCamera(w_mm=35, U_mm=900, d_mm=8, pixel_pitch_mm=0.05, width_px=64, height_px=48)
+    sc = Lens(35, 900, 8, sensor=Sensor(64, 48, 0.05))
     R, T = synth.look_at_pose(target, (40.0, 30.0, -600.0))
     view = synth.render_view(target, sc, R, T, vignetting=0.2, noise_sigma=0.01, srgb8=True, seed=4)
     s = SensorResponse(vignetting=0.2, read_noise=0.01, encoding="srgb8")

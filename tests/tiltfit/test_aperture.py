@@ -100,8 +100,8 @@ def test_wedge_against_monte_carlo():
 # ------------------------------------------------------------------------------------------ the thin lens
 
 def _camera(theta_F_deg=40.0, U=700.0, d=30.0, downscale=16):
-    w_px, h_px, _ = reproduce.EOS_6D.downscaled(downscale)
-    pitch = reproduce.EOS_6D.pixel_pitch_mm * downscale
+    w_px, h_px = reproduce.EOS_6D.binned(downscale).size_px
+    pitch = reproduce.EOS_6D.pixel_pitch * downscale
     R, T = reproduce.target_pose(BOARD, 30.0, 5.0, 600.0)
     cam = ThinLensCamera.from_calibration((w_px, h_px), pitch, 55.0, U, d, math.radians(theta_F_deg),
                                           torch.tensor(R, **f64), torch.tensor(T, **f64))
@@ -163,8 +163,8 @@ def test_closed_form_equals_the_mean_over_traced_lens_samples(theta_F_deg, U, d,
 
 
 def test_render_target_disc_gradcheck():
-    w_px, h_px, _ = reproduce.EOS_6D.downscaled(16)
-    pitch = reproduce.EOS_6D.pixel_pitch_mm * 16
+    w_px, h_px = reproduce.EOS_6D.binned(16).size_px
+    pitch = reproduce.EOS_6D.pixel_pitch * 16
     sensor = SensorGeometry(w_px, h_px, pitch, ((w_px - 1) / 2, (h_px - 1) / 2))
     R, T = reproduce.target_pose(BOARD, 30.0, 5.0, 600.0)
     import cv2

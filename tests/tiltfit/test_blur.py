@@ -7,12 +7,13 @@ import torch
 
 from renderer.io import srgb_to_linear
 from tiltfit.blur import measure_blur, pixel_esf
-from tiltfit.synth import PAPER_CAMERA, SynthCamera, look_at_pose, projected_square_px, render_view, with_blur_ratio
+
+from tiltfit.synth import PAPER_CAMERA, look_at_pose, projected_square_px, render_view, with_blur_ratio
 from tiltfit.target import design_target
 
 torch.set_num_threads(1)
 
-CAM = PAPER_CAMERA.scaled(12)  # 456 × 304 px
+CAM = PAPER_CAMERA.binned(12)  # 456 × 304 px
 TARGET = design_target(9, 6, 20.0, w_mm=55.39, distance_mm=650.0, inclination_deg=20.0)
 POSE = look_at_pose(TARGET, (40.0, -30.0, -650.0), roll_deg=10.0)  # edges slanted: sub-pixel phases vary
 
@@ -76,7 +77,7 @@ def test_blur_within_5_percent_or_03_px(ratio, noise):
 
 def test_blur_across_the_plane_of_focus():
     R, T = look_at_pose(TARGET, (60.0, -400.0, -450.0), roll_deg=8.0)
-    cam = SynthCamera(**{**CAM.__dict__, "d_mm": 50.0})
+    cam = CAM.with_(d=50.0)
     v = render_view(TARGET, cam, R, T, noise_sigma=0.004, srgb8=True, seed=2)
     b, _ = measure_blur(v.image[..., 0], TARGET, v.truth.corners_px)
     err = np.abs(b - v.truth.blur_px)

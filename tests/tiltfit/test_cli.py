@@ -258,7 +258,7 @@ def test_end_to_end_on_rendered_images(tmp_path, capfd):
     target = design_target(9, 6, 25.0, w_mm=W_MM, distance_mm=600.0, inclination_deg=15.0)
     target_file = str(tmp_path / "T.json")
     target.save(target_file)
-    cam = PAPER_CAMERA.scaled(8)  # 684 × 456 pixels of 52.3 µm: the paper's optics, a small image
+    cam = PAPER_CAMERA.binned(8)  # 684 × 456 pixels of 52.3 µm: the paper's optics, a small image
     rvec, T = random_poses(5, seed=23, board_centre_mm=(112.5, 0.5 * target.y_edges[-1]))
     images = []
     for v in range(5):

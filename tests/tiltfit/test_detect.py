@@ -8,13 +8,14 @@ import torch
 
 from tiltfit.detect import (Detection, detect, read_detection_json, refine_symmetric, to_gray,
                             write_detection_json)
-from tiltfit.synth import (PAPER_CAMERA, SynthCamera, look_at_pose, observe, projected_square_px, render_view,
+from renderer import Lens, Sensor
+from tiltfit.synth import (PAPER_CAMERA, look_at_pose, observe, projected_square_px, render_view,
                            with_blur_ratio)
 from tiltfit.target import Target, design_target
 
 torch.set_num_threads(1)
 
-CAM = PAPER_CAMERA.scaled(12)  # 456 × 304 px of 78.5 µm: the paper's camera, 12× coarser
+CAM = PAPER_CAMERA.binned(12)  # 456 × 304 px of 78.5 µm: the paper's camera, 12× coarser
 TARGET = design_target(9, 6, 20.0, w_mm=55.39, distance_mm=650.0, inclination_deg=20.0)  # 9 + 6 odd
 
 
@@ -49,7 +50,7 @@ def test_corners_within_005_px_over_the_papers_blur_range(ratio):
 def test_corners_across_the_plane_of_focus():
     """The paper's focus (U = 618.4 mm) inside the board: blur from 0 to several pixels in one image."""
     R, T = look_at_pose(TARGET, (60.0, -400.0, -450.0), roll_deg=8.0)
-    cam = SynthCamera(**{**CAM.__dict__, "d_mm": 50.0})  # a wider aperture than the paper's f/2.8
+    cam = CAM.with_(d=50.0)  # a wider aperture than the paper's f/2.8
     v = render_view(TARGET, cam, R, T, noise_sigma=0.004, srgb8=True, seed=2)
     b = v.truth.blur_px
     assert b.min() < 0.5 < 2.0 < b.max(), f"the view should cross the plane of focus, blur {b.min():.2f}..{b.max():.2f}"
@@ -124,7 +125,7 @@ def test_no_board_in_noise():
 
 def test_pixel_convention_on_odd_non_square_image():
     """(0, 0) is the centre of the top-left pixel on a 301 × 203 image with its principal point off-centre."""
-    cam = SynthCamera(w_mm=50.0, U_mm=400.0, d_mm=2.0, pixel_pitch_mm=0.09, width_px=301, height_px=203,
+    cam = Lens(50.0, 400.0, 2.0, sensor=Sensor(301, 203, 0.09),
                       principal_point_px=(140.3, 108.6))
     R, T = look_at_pose(TARGET, (90.0, 60.0, -900.0), roll_deg=5.0)
     v = render_view(TARGET, cam, R, T, noise_sigma=0.002, srgb8=True, seed=7)
@@ -136,7 +137,7 @@ def test_pixel_convention_on_odd_non_square_image():
 
 @pytest.mark.parametrize("blur_px", [0.0, 1.0, 4.0])
 def test_symmetric_refinement_is_unbiased_across_subpixel_phase(blur_px):
-    cam0 = SynthCamera(w_mm=50.0, U_mm=500.0, d_mm=1.0, pixel_pitch_mm=0.05, width_px=96, height_px=72)
+    cam0 = Lens(50.0, 500.0, 1.0, sensor=Sensor(96, 72, 0.05))
     cam = cam0 if blur_px == 0 else with_blur_ratio(cam0, TARGET, np.eye(3), np.array([-90.0, -60.0, 600.0]),
                                                     blur_px / 33.3)
     worst = 0.0
@@ -176,7 +177,7 @@ def test_analytic_rendering_equals_brute_force_disc_convolution():
     from tiltfit.target import rasterise
 
     t = Target(tuple(np.arange(0, 81, 10.0)), tuple(np.arange(0, 61, 10.0)), (0, 0), 10.0)
-    cam = SynthCamera(w_mm=50.0, U_mm=500.0, d_mm=10.0, pixel_pitch_mm=0.05, width_px=64, height_px=48)
+    cam = Lens(50.0, 500.0, 10.0, sensor=Sensor(64, 48, 0.05))
     z, T = 600.0, np.array([-40.3, -30.2, 600.0])
     img = render_analytic(t, cam, np.eye(3), T, 0.05, 0.8, 0.3)
     f = cam.w_mm / cam.pixel_pitch_mm / z  # px per mm
@@ -211,7 +212,7 @@ def test_ray_tracer_agrees_with_the_analytic_rendering():
 
     if not renderer_available():
         pytest.skip("renderer has no thin_lens camera / rectangle shape")
-    cam = PAPER_CAMERA.scaled(16)
+    cam = PAPER_CAMERA.binned(16)
     R, T = look_at_pose(TARGET, (40.0, -30.0, -650.0), roll_deg=10.0)
     cam = with_blur_ratio(cam, TARGET, R, T, 0.2, U_mm=400.0)
     va = render_view(TARGET, cam, R, T)

@@ -12,7 +12,8 @@ import torch
 from renderer.io import linear_to_srgb, srgb_to_linear
 from tiltfit.detect import DetectionError, detect, detect_files
 from tiltfit.opencv_corners import match_labelling, sb_corners
-from tiltfit.synth import SynthCamera, look_at_pose, observe, render_view
+from renderer import Lens, Sensor
+from tiltfit.synth import look_at_pose, observe, render_view
 from tiltfit.target import Target, load_target
 
 torch.set_num_threads(1)
@@ -113,10 +114,10 @@ def test_absurd_target_is_refused_at_once():
 # --- synthetic: symmetric board, border, dim + noisy + JPEG + barrel distortion ------------------------------
 SYMMETRIC = Target(tuple(np.arange(0, 226, 25.0)), tuple(np.arange(0, 176, 25.0)), (0, 0), 15.0)  # 9 × 7 cells
 ASYMMETRIC = Target(tuple(np.arange(0, 226, 25.0)), tuple(np.arange(0, 151, 25.0)), (0, 0), 15.0)  # 9 × 6 cells
-CAM = SynthCamera(w_mm=4.0, U_mm=1e5, d_mm=0.3, pixel_pitch_mm=0.006, width_px=640, height_px=480)
+CAM = Lens(4.0, 1e5, 0.3, sensor=Sensor(640, 480, 0.006))
 
 
-WIDE = SynthCamera(w_mm=4.0, U_mm=1e5, d_mm=0.3, pixel_pitch_mm=0.006, width_px=960, height_px=720)  # CAM's
+WIDE = Lens(4.0, 1e5, 0.3, sensor=Sensor(960, 720, 0.006))  # CAM's
 # lens on a 1.5× larger sensor: the source for barrel-distorted 640 × 480 images (a 0.4 barrel reaches 1.4×)
 
 

@@ -10,12 +10,13 @@ import pytest
 from tiltfit.calibfile import read_calib, write_calib
 from tiltfit.cli import _write_json_atomic, main
 from tiltfit.detfile import DET_FORMAT_VERSION, DetFileError, check_view, check_views, describe_detection, read_det
-from tiltfit.synth import SynthCamera, look_at_pose, observe
+from renderer import Lens, Sensor
+from tiltfit.synth import look_at_pose, observe
 from tiltfit.target import target_from_dict
 
 TARGET = target_from_dict({"type": "checkerboard", "x_edges": [0, 25, 50, 75, 100, 125], "y_edges": [0, 30, 55, 75,
                                                                                                        90]})
-CAMERA = SynthCamera(w_mm=35, U_mm=700, d_mm=6, pixel_pitch_mm=0.02, width_px=640, height_px=480)
+CAMERA = Lens(35, 700, 6, sensor=Sensor(640, 480, 0.02))
 
 
 def _view(position=(60, 45, -700)):

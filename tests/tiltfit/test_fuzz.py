@@ -34,11 +34,12 @@ MORE_POSES = POSES + tuple((100 + 60 * k, 75 - 40 * k, -900 - 10 * k) for k in r
 
 def _views(poses=POSES) -> list[dict]:
     """Four DET dicts of the target seen by a synthetic thin-lens camera (w 35 mm, U 900 mm, d 8 mm)."""
-    from tiltfit.synth import SynthCamera, look_at_pose, observe
+    from renderer import Lens, Sensor
+    from tiltfit.synth import look_at_pose, observe
     from tiltfit.target import target_from_dict
 
     t = target_from_dict(TARGET)
-    cam = SynthCamera(w_mm=35, U_mm=900, d_mm=8, pixel_pitch_mm=0.02, width_px=640, height_px=480)
+    cam = Lens(35, 900, 8, sensor=Sensor(640, 480, 0.02))
     out = []
     for pos in poses:
         R, T = look_at_pose(t, pos)
@@ -103,11 +104,12 @@ def _board_png(mirror: bool = False) -> bytes:
         import tempfile
 
         import OpenImageIO as oiio
-        from tiltfit.synth import SynthCamera, look_at_pose, render_view
+        from renderer import Lens, Sensor
+        from tiltfit.synth import look_at_pose, render_view
         from tiltfit.target import target_from_dict
 
         t = target_from_dict(BOARD_TARGET)
-        cam = SynthCamera(w_mm=35, U_mm=900, d_mm=8, pixel_pitch_mm=0.02, width_px=640, height_px=480)
+        cam = Lens(35, 900, 8, sensor=Sensor(640, 480, 0.02))
         R, T = look_at_pose(t, POSES[0])
         view = render_view(t, cam, R, T, noise_sigma=0.002, srgb8=True, seed=0)
         with tempfile.TemporaryDirectory() as d:

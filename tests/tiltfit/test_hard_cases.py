@@ -8,7 +8,6 @@ import math
 import os
 import subprocess
 import sys
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -69,7 +68,7 @@ def test_heavy_blur_rendered_images_calibrate_stage1():
     torch.set_num_threads(1)
     from tiltfit.detect import detect
 
-    cam = replace(synth.PAPER_CAMERA, d_mm=D_HEAVY_MM).scaled(4)
+    cam = synth.PAPER_CAMERA.with_(d=D_HEAVY_MM).binned(4)
     corners, blur = [], []
     for v in range(3):
         R, T = POSES[v]

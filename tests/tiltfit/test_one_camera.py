@@ -9,6 +9,7 @@ import pytest
 import torch
 
 import renderer
+from renderer import Lens, Sensor
 from tiltfit import photometric, synth
 from tiltfit.model import TiltLensCamera
 
@@ -18,18 +19,17 @@ def test_the_calibration_camera_is_the_renderers():
 
 
 def test_synth_camera_projects_and_blurs_as_the_lens_camera():
-    sc = synth.SynthCamera(w_mm=50.0, U_mm=700.0, d_mm=12.0, pixel_pitch_mm=0.01, width_px=801, height_px=533,
-                           theta_F_rad=math.radians(25.0), principal_point_px=(410.5, 260.25))
+    sc = Lens(50.0, 700.0, 12.0, sensor=Sensor(801, 533, 0.01),
+             theta_F=math.radians(25.0), principal_point_px=(410.5, 260.25))
     R, T = synth.pose_from_axis_angle([0.2, -0.15, 0.05], [10.0, -5.0, 650.0])
-    lc = TiltLensCamera(1, (sc.width_px, sc.height_px), sc.pixel_pitch_mm, sc.w_mm, sc.U_mm, sc.d_mm,
-                        sc.theta_F_rad, R=R[None], T_mm=T[None], principal_point_px=sc.principal_point_px)
+    lc = TiltLensCamera.from_lens(sc, 1, R=R[None], T_mm=T[None])
     X = np.random.default_rng(2).uniform(-60, 60, (40, 3)) * np.array([1, 1, 0])
     p_cam = X @ R.T + T
     with torch.no_grad():
         uv_lens = lc.project(torch.tensor(X), 0).numpy()
         b_lens = lc.blur(torch.tensor(X), 0).numpy()
-    assert np.abs(sc.project(p_cam) - uv_lens).max() < 1e-9, "SynthCamera.project = LensCamera.project"
-    assert np.abs(sc.blur_px(p_cam) - b_lens).max() < 1e-9, "SynthCamera.blur_px = LensCamera.blur (ellipse)"
+    assert np.abs(sc.project(p_cam) - uv_lens).max() < 1e-9, "Lens.project = LensCamera.project"
+    assert np.abs(sc.blur_px(p_cam) - b_lens).max() < 1e-9, "Lens.blur_px = LensCamera.blur (ellipse)"
     # pose_from_axis_angle is the renderer's Rodrigues (checked against OpenCV in tests/renderer).
     assert np.allclose(R, lc.R[0].detach().numpy(), atol=1e-12), "one Rodrigues"
 

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from renderer import Lens, Sensor
 from renderer import optics
 from tiltfit import synth
 from tiltfit.experiments import reproduce
@@ -54,8 +55,8 @@ def test_dark_fraction_closed_forms():
 
 
 def _sensor():
-    w, h, _ = reproduce.EOS_6D.downscaled(DOWNSCALE)
-    return SensorGeometry(w, h, reproduce.EOS_6D.pixel_pitch_mm * DOWNSCALE, ((w - 1) / 2, (h - 1) / 2))
+    w, h = reproduce.EOS_6D.binned(DOWNSCALE).size_px
+    return SensorGeometry(w, h, reproduce.EOS_6D.pixel_pitch * DOWNSCALE, ((w - 1) / 2, (h - 1) / 2))
 
 
 def test_render_target_gradcheck():
@@ -89,9 +90,9 @@ VIEWS = (0, 1, 2)  # reproduce.TARGET_VIEWS at 560, 480 and 700 mm: a spread of 
 def _captures(U0_mm: float, spp: int = 64, board: Target = BOARD, d_mm: float = D_MM, views=VIEWS,
               theta_L_deg: float = THETA_L_DEG, downscale: int = DOWNSCALE, seed: int = 0):
     """Ray-traced photographs of `board` through a lens tilted by θL (focus U0 when untilted)."""
-    w_px, h_px, _ = reproduce.EOS_6D.downscaled(downscale)
-    pitch = reproduce.EOS_6D.pixel_pitch_mm * downscale
-    cam = synth.tilted_lens_camera(W_MM, U0_mm, d_mm, theta_L_deg, pitch, w_px, h_px)
+    w_px, h_px = reproduce.EOS_6D.binned(downscale).size_px
+    pitch = reproduce.EOS_6D.pixel_pitch * downscale
+    cam = Lens.from_tilt(W_MM, float(optics.focal_length(W_MM, U0_mm)), math.radians(theta_L_deg), d_mm, sensor=Sensor(w_px, h_px, pitch))
     U, theta_F = cam.U_mm, cam.theta_F_rad
     images, poses, blur, ratio = [], [], [], []
     for k, (rx, ry, dist) in enumerate(reproduce.TARGET_VIEWS[i] for i in views):
@@ -240,10 +241,10 @@ def test_calibrate_refine_photometric_on_the_command_line(tmp_path):
     from renderer import write_image
     from tiltfit import cli
 
-    w_px, h_px, _ = reproduce.EOS_6D.downscaled(DOWNSCALE)
-    pitch = reproduce.EOS_6D.pixel_pitch_mm * DOWNSCALE
+    w_px, h_px = reproduce.EOS_6D.binned(DOWNSCALE).size_px
+    pitch = reproduce.EOS_6D.pixel_pitch * DOWNSCALE
     U, d = 700.0, 30.0
-    cam = synth.SynthCamera(W_MM, U, d, pitch, w_px, h_px, 0.0)
+    cam = Lens(W_MM, U, d, 0.0, Sensor(w_px, h_px, pitch))
     paths = []
     for k, i in enumerate((0, 1, 2)):
         R, T = reproduce.target_pose(BOARD, *reproduce.TARGET_VIEWS[i])

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from renderer import optics
+from renderer import Lens
 from tiltfit import synth
 from tiltfit.experiments import reproduce
 from tiltfit.fit import FitOptions
@@ -23,13 +23,9 @@ DOWNSCALE = 8
 def test_joint_fit_on_ray_traced_tilted_images():
     detect = pytest.importorskip("tiltfit.detect").detect
     torch.manual_seed(0)
-    cam0 = reproduce.SimulatedCamera()
-    W, H, _ = cam0.sensor.downscaled(DOWNSCALE)
-    pitch = cam0.sensor.pixel_pitch_mm * DOWNSCALE
-    tl = math.radians(THETA_L_DEG)
-    U = float(optics.focus_distance_tilted(cam0.w_mm, cam0.f_mm, tl))
-    tf = float(optics.theta_F_from_theta_L(tl, cam0.w_mm, U))
-    cam = synth.SynthCamera(cam0.w_mm, U, cam0.d_mm, pitch, W, H, tf)
+    cam0 = reproduce.SimulatedCamera().untilted
+    cam = Lens.from_tilt(cam0.w, cam0.f, math.radians(THETA_L_DEG), cam0.d, sensor=cam0.sensor.binned(DOWNSCALE))
+    U = cam.U
     target = reproduce.calibration_target(reproduce.SetValues())
     C, B = [], []
     for v, pose in enumerate(reproduce.TARGET_VIEWS):
@@ -38,15 +34,15 @@ def test_joint_fit_on_ray_traced_tilted_images():
         det = detect(view.image, target)
         C.append(det.corners_px)
         B.append(det.blur_px)
-    obs = Observations(target.feature_points(), np.array(C), np.array(B), (W, H), pitch)
+    obs = Observations(target.feature_points(), np.array(C), np.array(B), cam.sensor.size_px, cam.sensor.pixel_pitch)
     assert int(obs.corner_mask.sum()) >= 0.9 * obs.corner_mask.numel(), "the detector finds the corners"
     res = calibrate(obs, "joint", options=FitOptions(model_selection=False))
     v, s = res.values, res.sigma
     msg = {k: (round(v[k], 4), round(s[k], 4)) for k in ("w_mm", "U_mm", "d_mm", "theta_L_deg")}
     assert res.undetermined == [], f"blurred images determine U and d: {res.undetermined}"
     assert abs(v["theta_L_deg"] - THETA_L_DEG) < 0.15, f"θL {msg}"
-    assert abs(v["w_mm"] / cam0.w_mm - 1) < 0.003, f"w {msg}"
+    assert abs(v["w_mm"] / cam0.w - 1) < 0.003, f"w {msg}"
     assert abs(v["U_mm"] / U - 1) < 0.005, f"U {msg} (true {U:.2f})"
-    assert abs(v["d_mm"] / cam0.d_mm - 1) < 0.01, f"d {msg}"
-    for key, true in (("theta_L_deg", THETA_L_DEG), ("U_mm", U), ("d_mm", cam0.d_mm), ("w_mm", cam0.w_mm)):
+    assert abs(v["d_mm"] / cam0.d - 1) < 0.01, f"d {msg}"
+    for key, true in (("theta_L_deg", THETA_L_DEG), ("U_mm", U), ("d_mm", cam0.d), ("w_mm", cam0.w)):
         assert abs(v[key] - true) < 5 * s[key], f"{key}: error {v[key] - true:+.4g} beyond 5σ ({s[key]:.3g})"

@@ -9,22 +9,22 @@ import pytest
 
 from tiltfit.experiments import reproduce
 from tiltfit.experiments.reproduce import LENS_STATES, NOISE_FLOOR, TRUE_LENS, RunConfig, SetValues, SimulatedCamera
-from tiltfit.experiments.scenes import (EOS_6D, FOCUS_DISTANCE_MM, LensParams, boxes_scene_dict, camera_pose, profile_lines,
+from tiltfit.experiments.scenes import (EOS_6D, FOCUS_DISTANCE_MM, Lens, boxes_scene_dict, camera_pose, profile_lines,
                             scene_objects)
 
 
 # ------------------------------------------------------------------------------------------- scenes
 
-def test_sensor_downscale_keeps_the_field_of_view():
-    assert EOS_6D.size_mm == pytest.approx((35.7869, 23.8579), abs=1e-4), "5472 x 3648 at 6.54 µm"
+def test_sensor_binning_keeps_the_field_of_view():
+    assert EOS_6D.size == pytest.approx((35.7869, 23.8579), abs=1e-4), "5472 x 3648 at 6.54 µm"
     for k in (1, 16, 32):
-        w, h, size = EOS_6D.downscaled(k)
-        assert (w, h) == (5472 // k, 3648 // k)
-        assert size == pytest.approx(EOS_6D.size_mm), f"1/{k}: 5472 and 3648 are multiples of {k}"
-    with pytest.raises(ValueError, match="downscale"):
-        EOS_6D.downscaled(0)
-    with pytest.raises(ValueError, match="downscale"):
-        EOS_6D.downscaled(3000)
+        binned = EOS_6D.binned(k)
+        assert binned.size_px == (5472 // k, 3648 // k)
+        assert binned.size == pytest.approx(EOS_6D.size), f"1/{k}: 5472 and 3648 are multiples of {k}"
+    with pytest.raises(ValueError, match="factor"):
+        EOS_6D.binned(0)
+    with pytest.raises(ValueError, match="factor"):
+        EOS_6D.binned(3000)
 
 
 def test_camera_axis_meets_the_floor_at_the_focus_distance():
@@ -47,16 +47,16 @@ def test_boxes_stand_on_the_floor_in_front_of_the_camera():
 
 
 def test_scene_dict_camera_keys():
-    cfg = boxes_scene_dict(LensParams(55.39, 618.4, 18.81, theta_L_deg=5.0), downscale=32, spp=3)
+    lens = Lens.from_theta_L(55.39, 618.4, 18.81, math.radians(5.0))
+    cfg = boxes_scene_dict(lens, downscale=32, spp=3)
     cam = cfg["camera"]
-    assert cam["type"] == "thin_lens" and cam["theta_L_deg"] == 5.0 and "theta_F_deg" not in cam
+    assert cam["type"] == "thin_lens" and cam["theta_F_deg"] == pytest.approx(math.degrees(lens.theta_F))
+    assert cam["theta_F_deg"] > 40, "θL = 5° tilts the plane of focus by about 48° (exact Scheimpflug)"
     assert (cfg["image"]["width"], cfg["image"]["height"], cfg["image"]["spp"]) == (171, 114, 3)
-    assert cam["sensor_size"] == pytest.approx(list(EOS_6D.size_mm))
+    assert cam["sensor_size"] == pytest.approx(list(EOS_6D.size))
     json.dumps(cfg)  # a scene file
-    with pytest.raises(ValueError, match="exactly one"):
-        LensParams(55.0, 600.0, 18.0)
-    with pytest.raises(ValueError, match="U_mm"):
-        LensParams(55.0, -1.0, 18.0, theta_F_deg=0.0)
+    with pytest.raises(ValueError, match="U"):
+        Lens(55.0, -1.0, 18.0)
 
 
 def test_profile_lines_scale_with_the_pixel_convention():
@@ -76,23 +76,24 @@ def test_profile_lines_scale_with_the_pixel_convention():
 
 def test_true_lens_follows_the_hinge_rule():
     cam = SimulatedCamera()
-    f = cam.w_mm * cam.U0_mm / (cam.w_mm + cam.U0_mm)
+    w, U0 = cam.untilted.w, cam.untilted.U
+    f = w * U0 / (w + U0)
     assert cam.f_mm == pytest.approx(f), "1/f = 1/w + 1/U0"
-    assert cam.lens(0.0).U_mm == pytest.approx(cam.U0_mm) and cam.lens(0.0).theta_L_deg == 0.0
+    assert cam.lens(0.0).U == pytest.approx(U0) and cam.lens(0.0).theta_L == 0.0
     for s in (5.0, -5.0):
         lens = cam.lens(s)
-        tl = math.radians(lens.theta_L_deg)
-        assert lens.U_mm == pytest.approx(f * cam.w_mm / (cam.w_mm * math.cos(tl) - f)), "hinge rule"
-        assert lens.U_mm > cam.U0_mm + 20, "tilting about the lens centre moves the focus out"
-        assert lens.theta_L_deg != s and abs(lens.theta_L_deg - s) < 0.5, "the tilt scale is slightly off"
+        tl = lens.theta_L
+        assert lens.U == pytest.approx(f * w / (w * math.cos(tl) - f)), "hinge rule"
+        assert lens.U > U0 + 20, "tilting about the lens centre moves the focus out"
+        assert math.degrees(tl) != s and abs(math.degrees(tl) - s) < 0.5, "the tilt scale is slightly off"
 
 
 def test_set_values_are_not_the_truth():
     cam, sv = SimulatedCamera(), SetValues()
     for s in LENS_STATES:
         t, v = cam.lens(s.theta_L_set_deg), sv.lens(s.theta_L_set_deg)
-        assert (t.w_mm, t.U_mm, t.d_mm) != (v.w_mm, v.U_mm, v.d_mm), "the set values are a slight misfocus"
-        assert v.theta_L_deg == s.theta_L_set_deg
+        assert (t.w, t.U, t.d) != (v.w, v.U, v.d), "the set values are a slight misfocus"
+        assert math.degrees(v.theta_L) == pytest.approx(s.theta_L_set_deg, abs=1e-12)
 
 
 def test_expose_noise_vignetting_and_8bit():
@@ -255,7 +256,7 @@ def test_target_photographs_come_out_at_the_target_scale(tmp_path):
     cfg = RunConfig(target_views=1, target_method="analytic", target_downscale=32)
     out = reproduce.stage_targets(SimulatedCamera(), SetValues(), cfg, str(tmp_path), lambda msg: None)
     assert out["image_size_px"] == (5472 // 32, 3648 // 32), f"image size {out['image_size_px']}"
-    assert out["pixel_pitch_mm"] == pytest.approx(EOS_6D.pixel_pitch_mm * 32), "binned pixel pitch"
+    assert out["pixel_pitch_mm"] == pytest.approx(EOS_6D.pixel_pitch * 32), "binned pixel pitch"
     files = [f for state in LENS_STATES for f in out["files"][state.label]]
     assert len(files) == len(LENS_STATES), f"one view per lens state, got {files}"
     for name in files:

@@ -45,13 +45,13 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 import torch
-from renderer import optics, render, write_image
+from renderer import render, write_image
 from renderer.transforms import euler_xyz_deg
 from renderer.sensor import SensorResponse
 
 from ..evaluate import (compare_profiles, linear_from_grey_levels, plot_images, plot_profiles,
                        save_figure, write_csv, write_markdown, markdown_table)
-from .scenes import EOS_6D, LensParams, Sensor, boxes_scene, boxes_scene_dict, profile_lines
+from .scenes import Lens, Sensor, boxes_scene, boxes_scene_dict, profile_lines
 from ..runlog import RunLog
 
 PENDING = "pending"
@@ -128,9 +128,8 @@ class SimulatedCamera:
     """The simulated camera: its true lens and what its sensor does to an image. Never shown to the fit.
 
     Attributes:
-        sensor: the sensor (EOS 6D).
-        w_mm, U0_mm, d_mm: true lens-to-sensor distance, focus distance with the lens untilted and
-            aperture diameter, mm (the paper's stage-1 values).
+        untilted: the true lens untilted, with its sensor (`renderer.Lens.paper()`: the paper's stage-1 values
+            on an EOS 6D).
         tilt_gain, tilt_offset_deg: the true tilt for a set tilt θs ≠ 0 is gain · θs + offset (a tilt scale
             that is slightly off); the 0 detent is exact.
         full_well: photo-electrons at linear value 1 per output pixel (shot noise, Poisson as Gaussian).
@@ -138,10 +137,7 @@ class SimulatedCamera:
         vignetting: fall-off 1 − v r² with r the distance from the image centre, 1 at the corners.
     """
 
-    sensor: Sensor = EOS_6D
-    w_mm: float = 55.39
-    U0_mm: float = 618.4
-    d_mm: float = 18.81
+    untilted: Lens = Lens.paper()
     tilt_gain: float = 0.98
     tilt_offset_deg: float = -0.25
     full_well: float = 4000.0
@@ -149,9 +145,13 @@ class SimulatedCamera:
     vignetting: float = 0.05
 
     @property
+    def sensor(self) -> Sensor:
+        return self.untilted.sensor
+
+    @property
     def f_mm(self) -> float:
         """Focal length of the true thin lens (1/f = 1/w + 1/U0)."""
-        return float(optics.focal_length(self.w_mm, self.U0_mm))
+        return self.untilted.f
 
     def theta_L_deg(self, theta_L_set_deg: float) -> float:
         """The true lens tilt for a tilt set on the lens scale, degrees."""
@@ -159,12 +159,12 @@ class SimulatedCamera:
             return 0.0
         return self.tilt_gain * theta_L_set_deg + self.tilt_offset_deg
 
-    def lens(self, theta_L_set_deg: float) -> LensParams:
+    def lens(self, theta_L_set_deg: float) -> Lens:
         """The true lens state: the lens (focal length f, sensor at w) tilted about its centre, so the
-        focus distance follows the hinge rule U = f w / (w cos θL − f)."""
-        theta_L = self.theta_L_deg(theta_L_set_deg)
-        U = float(optics.focus_distance_tilted(self.w_mm, self.f_mm, math.radians(theta_L)))
-        return LensParams(self.w_mm, U, self.d_mm, theta_L_deg=theta_L)
+        focus distance follows the hinge rule U = f w / (w cos θL − f) (`Lens.from_tilt`)."""
+        lens = self.untilted
+        return Lens.from_tilt(lens.w, self.f_mm, math.radians(self.theta_L_deg(theta_L_set_deg)), lens.d,
+                              sensor=lens.sensor)
 
     @property
     def response(self) -> SensorResponse:
@@ -191,21 +191,19 @@ class SimulatedCamera:
 
 @dataclass(frozen=True)
 class SetValues:
-    """What the photographer knows without calibrating the blur, mm and degrees.
+    """What the photographer knows without calibrating the blur.
 
     Attributes:
-        w_mm: lens-to-sensor distance from a geometry-only calibration, rounded [55.0].
-        U_mm: the focus distance read off the focus scale [600].
-        d_mm: the nominal aperture, focal length / f-number = 45 mm / 2.8 [16.07].
+        nominal: w from a geometry-only calibration, rounded (55 mm); U read off the focus scale (600 mm); d the
+            nominal aperture, focal length / f-number = 45 mm / 2.8 (16.07 mm).
     The tilt is the one set on the tilt scale, and U is taken to stay put when the lens is tilted.
     """
 
-    w_mm: float = 55.0
-    U_mm: float = 600.0
-    d_mm: float = 45.0 / 2.8
+    nominal: Lens = Lens(55.0, 600.0, 45.0 / 2.8)
 
-    def lens(self, theta_L_set_deg: float) -> LensParams:
-        return LensParams(self.w_mm, self.U_mm, self.d_mm, theta_L_deg=theta_L_set_deg)
+    def lens(self, theta_L_set_deg: float) -> Lens:
+        n = self.nominal
+        return Lens.from_theta_L(n.w, n.U, n.d, math.radians(theta_L_set_deg))
 
 
 # ------------------------------------------------------------------------------------------ plumbing
@@ -214,18 +212,12 @@ def _Log(enabled: bool = True) -> RunLog:
     return RunLog("reproduce", enabled)
 
 
-def _lens_record(lens: LensParams) -> dict:
-    """w, U, d, θL and θF (exact Scheimpflug) of a lens state, for tables and the run record."""
-    if lens.theta_L_deg is not None:
-        tl = lens.theta_L_deg
-        tf = math.degrees(float(optics.theta_F_from_theta_L(math.radians(tl), lens.w_mm, lens.U_mm)))
-    else:
-        tf = lens.theta_F_deg
-        tl = math.degrees(float(optics.theta_L_from_theta_F(math.radians(tf), lens.w_mm, lens.U_mm)))
-    return {"w_mm": lens.w_mm, "U_mm": lens.U_mm, "d_mm": lens.d_mm, "theta_L_deg": tl, "theta_F_deg": tf}
+def lens_record(lens: Lens) -> dict:
+    """w, U, d, θL and θF (degrees) of a lens state, for tables and the run record."""
+    return lens.record()
 
 
-def render_boxes(lens: LensParams, cfg: RunConfig, spp: int, seed: int):
+def render_boxes(lens: Lens, cfg: RunConfig, spp: int, seed: int):
     """Render the boxes scene through `lens`; returns the (H, W, 3) linear image and the render time, s.
 
     The image is a numpy array from a CPU render, and a tensor left on the device from a GPU render: the
@@ -286,7 +278,7 @@ def calibration_target(set_values: SetValues):
     an inclined view, designed with the set values (the designer does not know the true lens)."""
     from ..target import design_target
 
-    return design_target(9, 6, 25.0, w_mm=set_values.w_mm, distance_mm=set_values.U_mm, inclination_deg=30.0)
+    return design_target(9, 6, 25.0, w_mm=set_values.nominal.w, distance_mm=set_values.nominal.U, inclination_deg=30.0)
 
 
 def target_pose(target, rot_x_deg: float, rot_y_deg: float, distance_mm: float) -> tuple[np.ndarray, np.ndarray]:
@@ -321,15 +313,12 @@ def stage_targets(camera: SimulatedCamera, set_values: SetValues, cfg: RunConfig
 
     target = calibration_target(set_values)
     k = cfg.target_downscale
-    width, height, _ = camera.sensor.downscaled(k)
-    pitch = camera.sensor.pixel_pitch_mm * k
-    out = {"target": target, "image_size_px": (width, height), "pixel_pitch_mm": pitch, "detections": {},
+    sensor = camera.sensor.binned(k)
+    out = {"target": target, "image_size_px": sensor.size_px, "pixel_pitch_mm": sensor.pixel_pitch, "detections": {},
            "files": {}, "linear": {}}
     target.save(os.path.join(out_dir, "target.json"))
     for state in LENS_STATES:
-        lens = camera.lens(state.theta_L_set_deg)
-        theta_F = float(optics.theta_F_from_theta_L(math.radians(lens.theta_L_deg), lens.w_mm, lens.U_mm))
-        synth_cam = synth.SynthCamera(lens.w_mm, lens.U_mm, lens.d_mm, pitch, width, height, theta_F)
+        synth_cam = camera.lens(state.theta_L_set_deg).with_(sensor=sensor)
         dets, files = [], []
         for v, (ax, ay, dist) in enumerate(TARGET_VIEWS[:cfg.target_views]):
             R, T = target_pose(target, ax, ay, dist)
@@ -347,7 +336,7 @@ def stage_targets(camera: SimulatedCamera, set_values: SetValues, cfg: RunConfig
             files.append(f"images/{name}")
             out["linear"][f"images/{name}"] = linear.mean(-1)
             log(f"(b) ({state.label}) θL set {state.theta_L_set_deg:+g}°: target view {v + 1}/{cfg.target_views}, "
-                f"{width}x{height}, rendered {t1 - t0:.1f} s, detected {int(det.found.sum())}/{target.n_points} "
+                f"{sensor.width_px}x{sensor.height_px}, rendered {t1 - t0:.1f} s, detected {int(det.found.sum())}/{target.n_points} "
                 f"corners in {time.perf_counter() - t1:.1f} s{'' if det.grid_found else ': ' + det.message}")
         out["detections"][state.label] = dets
         out["files"][state.label] = files
@@ -417,7 +406,7 @@ def stage_calibrate(targets: dict | None, set_values: SetValues, cfg: RunConfig,
     - joint: each tilted state's views with w, U, d, θF free, started from stage 1 (exact blur model).
     The CG lens for state (a) is stage 1 in both parameter sets.
     Returns:
-        {"lenses": {"calibrated (paper)": {label: LensParams}, "calibrated (joint)": {...}},
+        {"lenses": {"calibrated (paper)": {label: Lens}, "calibrated (joint)": {...}},
          "records": {"stage1": {...}, label: {...}}, "errors": [...]}; empty while PENDING.
     """
     out = {"lenses": {}, "records": {}, "errors": []}
@@ -428,7 +417,7 @@ def stage_calibrate(targets: dict | None, set_values: SetValues, cfg: RunConfig,
 
     from ..calibration import calibrate
 
-    quiet = FitOptions(model_selection=False, nominal_focal_mm=set_values.w_mm)
+    quiet = FitOptions(model_selection=False, nominal_focal_mm=set_values.nominal.w)
     obs_a = observations(targets, "a")
     try:
         if obs_a is None:
@@ -442,12 +431,12 @@ def stage_calibrate(targets: dict | None, set_values: SetValues, cfg: RunConfig,
     out["records"]["stage1"] = s1
     log(f"(c) stage 1 ({s1['n_views']} views): w {s1['w_mm']:.3f}, U {s1['U_mm']:.1f}, d {s1['d_mm']:.3f} mm "
         f"({stage1.runtime_s:.1f} s)")
-    lens1 = LensParams(s1["w_mm"], s1["U_mm"], s1["d_mm"], theta_F_deg=0.0)
+    lens1 = Lens(s1["w_mm"], s1["U_mm"], s1["d_mm"], math.radians(0.0))
     paper, joint, photometric = {"a": lens1}, {"a": lens1}, {}
     ph = _photometric(targets, stage1, cfg, log, "a")
     if ph is not None:
         out["records"]["stage1"]["photometric"] = ph
-        photometric["a"] = LensParams(ph["w_mm"], ph["U_mm"], ph["d_mm"], theta_F_deg=ph["theta_F_deg"])
+        photometric["a"] = Lens(ph["w_mm"], ph["U_mm"], ph["d_mm"], math.radians(ph["theta_F_deg"]))
     for state in LENS_STATES:
         if state.label == "a":
             continue
@@ -459,17 +448,17 @@ def stage_calibrate(targets: dict | None, set_values: SetValues, cfg: RunConfig,
             st2 = calibrate(obs, "tilt", init=stage1.camera, init_sigma=stage1.sigma,
                             options=replace(quiet, blur_model="paper"))
             rec["stage2"] = _fit_record(st2)
-            paper[state.label] = LensParams(s1["w_mm"], s1["U_mm"], s1["d_mm"],
-                                            theta_F_deg=rec["stage2"]["theta_F_deg"])
+            paper[state.label] = Lens(s1["w_mm"], s1["U_mm"], s1["d_mm"],
+                                      math.radians(rec["stage2"]["theta_F_deg"]))
             jt = calibrate(obs, "joint", init=stage1.camera, options=quiet)
             rec["joint"] = _fit_record(jt)
             j = rec["joint"]
-            joint[state.label] = LensParams(j["w_mm"], j["U_mm"], j["d_mm"], theta_F_deg=j["theta_F_deg"])
+            joint[state.label] = Lens(j["w_mm"], j["U_mm"], j["d_mm"], math.radians(j["theta_F_deg"]))
             ph = _photometric(targets, jt, cfg, log, state.label)
             if ph is not None:
                 rec["photometric"] = ph
-                photometric[state.label] = LensParams(ph["w_mm"], ph["U_mm"], ph["d_mm"],
-                                                      theta_F_deg=ph["theta_F_deg"])
+                photometric[state.label] = Lens(ph["w_mm"], ph["U_mm"], ph["d_mm"],
+                                                math.radians(ph["theta_F_deg"]))
             log(f"(c) ({state.label}) stage 2: θF {rec['stage2']['theta_F_deg']:+.3f}°, θL (1) "
                 f"{rec['stage2']['theta_L_paper_deg']:+.3f}°, exact {rec['stage2']['theta_L_deg']:+.3f}°; joint: "
                 f"θL {j['theta_L_deg']:+.3f}°, U {j['U_mm']:.1f} mm")
@@ -524,8 +513,8 @@ def stage1_rows(camera: SimulatedCamera, set_values: SetValues, calibration: dic
     s1 = calibration.get("records", {}).get("stage1")
     rows = []
     for key in ("w_mm", "U_mm", "d_mm"):
-        true = {"w_mm": camera.w_mm, "U_mm": camera.U0_mm, "d_mm": camera.d_mm}[key]
-        rows.append({"parameter": key, "true": true, "set": getattr(set_values, key),
+        true = camera.untilted.record()[key]
+        rows.append({"parameter": key, "true": true, "set": set_values.nominal.record()[key],
                      "stage1": s1[key] if s1 else PENDING,
                      "stage1_sigma": s1["sigma"][key] if s1 else PENDING,
                      "stage1_error": s1[key] - true if s1 else PENDING})
@@ -539,10 +528,10 @@ class StateResult:
     """Everything stage (d) made for one lens state (images uint8 sRGB, profiles per line)."""
 
     state: LensState
-    true_lens: LensParams
+    true_lens: Lens
     captures: list                       # two independent photographs, (H, W, 3) uint8
     cg: dict = field(default_factory=dict)        # param-set name -> (H, W, 3) uint8
-    lenses: dict = field(default_factory=dict)    # param-set name -> LensParams
+    lenses: dict = field(default_factory=dict)    # param-set name -> Lens
     rows: list = field(default_factory=list)      # Table 2 rows
     profiles: dict = field(default_factory=dict)  # line -> {label: Profile}
     render_s: dict = field(default_factory=dict)
@@ -552,9 +541,9 @@ NOISE_FLOOR = "noise floor (photo vs photo)"
 TRUE_LENS = "true lens"  # CG with the simulation's own lens: what a perfect calibration would score
 
 
-def _table2_row(state: LensState, name: str, lens: LensParams | None, rows: list[dict], render_s=None) -> dict:
+def _table2_row(state: LensState, name: str, lens: Lens | None, rows: list[dict], render_s=None) -> dict:
     row = {"state": f"({state.label})", "theta_L_set_deg": state.theta_L_set_deg, "parameters": name}
-    rec = _lens_record(lens) if lens is not None else {}
+    rec = lens_record(lens) if lens is not None else {}
     row["theta_L_deg"] = rec.get("theta_L_deg")
     row["theta_F_deg"] = rec.get("theta_F_deg")
     row["U_mm"] = rec.get("U_mm")
@@ -572,7 +561,7 @@ def stage_boxes(camera: SimulatedCamera, param_sets: dict, cfg: RunConfig, lines
     """(d) Photograph the boxes with the true lens, re-render with each parameter set, compare profiles.
 
     Args:
-        param_sets: {name: {state label: LensParams}}, e.g. {"set": ..., "calibrated (joint)": ...}.
+        param_sets: {name: {state label: Lens}}, e.g. {"set": ..., "calibrated (joint)": ...}.
         lines: {line name: (K, 2) polyline, pixels}.
     """
     results = []
@@ -618,7 +607,7 @@ def _slug(name: str) -> str:
     return "".join(c if c.isalnum() else "_" for c in name).strip("_").replace("__", "_")
 
 
-def _write_scene(out_dir: str, stem: str, lens: LensParams, cfg: RunConfig, spp: int) -> None:
+def _write_scene(out_dir: str, stem: str, lens: Lens, cfg: RunConfig, spp: int) -> None:
     """The scene file of a render, so `renderer render` can redo it."""
     path = os.path.join(out_dir, "scenes", f"{stem}.json")
     os.makedirs(os.path.dirname(path), exist_ok=True)
@@ -670,7 +659,7 @@ def plot_all(results: list[StateResult], speed_rows: list[dict], lines: dict, ou
         s = res.state
         images[f"({s.label}) photo, θL set {s.theta_L_set_deg:+g}°"] = res.captures[0]
         for name, img in res.cg.items():
-            tl = _lens_record(res.lenses[name])["theta_L_deg"]
+            tl = lens_record(res.lenses[name])["theta_L_deg"]
             images[f"({s.label}) CG, {name}: θL {tl:+.2f}°"] = img
     fig = plot_images(images, lines, ncols=1 + len(results[0].cg))
     files["images"] = "fig11_12_photos_and_cg.png"
@@ -775,10 +764,11 @@ def _run(out_dir, quick, progress, config, camera, set_values) -> ReproduceResul
     log = _Log(progress)
     os.makedirs(out_dir, exist_ok=True)
     torch_threads = torch.get_num_threads()
-    width, height, _ = camera.sensor.downscaled(cfg.downscale)
+    width, height = camera.sensor.binned(cfg.downscale).size_px
     lines = profile_lines(width, height)
-    target_w, target_h, _ = camera.sensor.downscaled(cfg.target_downscale)
-    log(f"(a) simulated camera: w {camera.w_mm} mm, U {camera.U0_mm} mm, d {camera.d_mm} mm (f "
+    target_w, target_h = camera.sensor.binned(cfg.target_downscale).size_px
+    true = camera.untilted
+    log(f"(a) simulated camera: w {true.w} mm, U {true.U} mm, d {true.d} mm (f "
         f"{camera.f_mm:.2f} mm); boxes images {width}x{height} (1/{cfg.downscale}), target photographs "
         f"{target_w}x{target_h} (1/{cfg.target_downscale}), {torch_threads} threads")
 
@@ -810,9 +800,9 @@ def _run(out_dir, quick, progress, config, camera, set_values) -> ReproduceResul
     runtime = log.elapsed
     record = {
         "config": asdict(cfg), "quick": quick, "runtime_s": runtime, "pending": pending,
-        "truth": {**asdict(camera), "f_mm": camera.f_mm,
-                  "lens_states": {s.label: _lens_record(camera.lens(s.theta_L_set_deg)) for s in LENS_STATES}},
-        "set_values": {s.label: _lens_record(set_values.lens(s.theta_L_set_deg)) for s in LENS_STATES},
+        "truth": {**asdict(camera), **camera.untilted.record(), "U0_mm": camera.untilted.U, "f_mm": camera.f_mm,
+                  "lens_states": {s.label: lens_record(camera.lens(s.theta_L_set_deg)) for s in LENS_STATES}},
+        "set_values": {s.label: lens_record(set_values.lens(s.theta_L_set_deg)) for s in LENS_STATES},
         "calibration": calibration["records"], "calibration_errors": calibration["errors"],
         "target_photographs": targets["files"] if targets else None,
         "image_size_px": [width, height], "target_image_size_px": [target_w, target_h],

@@ -23,88 +23,18 @@ be written to JSON and rendered again from the command line, and loaded with `re
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
-from renderer import load_scene
+from renderer import Lens, Sensor, load_scene
+from renderer.cameras.lens import EOS_6D
 
 # Where the scene sits relative to the camera (see the module docstring).
-FOCUS_DISTANCE_MM = 618.4       # stage-1 U of the paper: the optical axis meets the floor this far away
+FOCUS_DISTANCE_MM = Lens.paper().U  # stage-1 U of the paper: the optical axis meets the floor this far away
 CAMERA_DEPRESSION_DEG = 30.0    # the optical axis points this far below the horizontal
 
 
-@dataclass(frozen=True)
-class Sensor:
-    """A camera's sensor: full-resolution size in pixels and pixel pitch.
-
-    Attributes:
-        width_px, height_px: full-resolution image size, pixels.
-        pixel_pitch_mm: distance between pixel centres, mm.
-    """
-
-    width_px: int = 5472
-    height_px: int = 3648
-    pixel_pitch_mm: float = 0.00654
-
-    @property
-    def size_mm(self) -> tuple[float, float]:
-        """(width, height) of the sensor, mm."""
-        return self.width_px * self.pixel_pitch_mm, self.height_px * self.pixel_pitch_mm
-
-    def downscaled(self, downscale: int) -> tuple[int, int, tuple[float, float]]:
-        """Image size (W, H) in pixels and the sensor size it covers (mm) when pixels are binned by
-        `downscale`; the sensor is cropped to a whole number of binned pixels."""
-        if not (isinstance(downscale, int) and downscale >= 1):
-            raise ValueError(f"downscale: expected a positive integer, got {downscale!r}")
-        w, h = self.width_px // downscale, self.height_px // downscale
-        if w < 2 or h < 2:
-            raise ValueError(f"downscale: {downscale} leaves a {w}x{h} image")
-        p = self.pixel_pitch_mm * downscale
-        return w, h, (w * p, h * p)
-
-
-EOS_6D = Sensor()  # Canon EOS 6D: full frame, 5472 x 3648, 6.54 µm pixels
-
-
-@dataclass(frozen=True)
-class LensParams:
-    """Unified thin-lens parameters of one lens state (the paper's Fig. 3), as the renderer's `thin_lens`.
-
-    A scene-file record (the `thin_lens` keys of one boxes scene, read from a calibration's w, U, d, θF or set
-    by hand), not a camera model: the camera is the renderer's (`thin_lens` in the scene file; the fitted,
-    differentiable one is `renderer.LensCamera`).
-
-    Attributes:
-        w_mm: lens centre to sensor (effective focal length), mm.
-        U_mm: lens centre to the plane of focus along the optical axis, mm.
-        d_mm: effective aperture diameter, mm.
-        theta_L_deg: lens tilt about the camera x axis, degrees; or give
-        theta_F_deg: tilt of the plane of focus z = U + y tan θF, degrees (exactly one of the two).
-    """
-
-    w_mm: float
-    U_mm: float
-    d_mm: float
-    theta_L_deg: float | None = None
-    theta_F_deg: float | None = None
-
-    def __post_init__(self):
-        for name in ("w_mm", "U_mm", "d_mm"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0):
-                raise ValueError(f"{name}: expected a positive length in mm, got {v!r}")
-        if (self.theta_L_deg is None) == (self.theta_F_deg is None):
-            raise ValueError(f"give exactly one of theta_L_deg and theta_F_deg, got {self.theta_L_deg!r} "
-                             f"and {self.theta_F_deg!r}")
-
-    def camera_keys(self) -> dict:
-        """The `thin_lens` scene-file keys for these parameters."""
-        keys = {"w": self.w_mm, "U": self.U_mm, "d": self.d_mm}
-        if self.theta_L_deg is not None:
-            keys["theta_L_deg"] = self.theta_L_deg
-        else:
-            keys["theta_F_deg"] = self.theta_F_deg
-        return keys
+# The paper's camera's sensor is `EOS_6D` (Canon EOS 6D: 5472 × 3648, 6.54 µm pixels); lens states are `renderer.Lens`.
+__all__ = ["EOS_6D", "Lens", "Sensor", "boxes_scene", "boxes_scene_dict", "camera_pose", "profile_lines"]
 
 
 def camera_pose() -> dict:
@@ -152,12 +82,12 @@ def scene_lights() -> list[dict]:
             {"type": "ambient", "intensity": [0.04, 0.04, 0.045]}]
 
 
-def boxes_scene_dict(lens: LensParams, sensor: Sensor = EOS_6D, downscale: int = 16, spp: int = 16,
+def boxes_scene_dict(lens: Lens, sensor: Sensor = EOS_6D, downscale: int = 16, spp: int = 16,
                      sampler: str = "sobol") -> dict:
     """The boxes scene seen through a (tilted) thin lens, as a scene-file dict.
 
     Args:
-        lens: w, U, d and θL or θF of the lens state.
+        lens: the lens state (w, U, d, θF; its own sensor, if any, is not used).
         sensor: the camera's sensor [EOS 6D].
         downscale: pixel binning; the image is (W // k) x (H // k) pixels covering the same sensor (the
             blur in pixels shrinks by k) [16: 342 x 228].
@@ -165,18 +95,19 @@ def boxes_scene_dict(lens: LensParams, sensor: Sensor = EOS_6D, downscale: int =
     Returns:
         dict with `description`, `image`, `camera` (type `thin_lens`), `lights`, `objects`.
     """
-    width, height, size_mm = sensor.downscaled(downscale)
-    camera = {"type": "thin_lens", **camera_pose(), **lens.camera_keys(), "sensor_size": list(size_mm)}
+    binned = sensor.binned(downscale)
+    keys = {k: v for k, v in lens.scene_keys().items() if k not in ("sensor_size", "principal_point_px")}
+    camera = {**keys, **camera_pose(), "sensor_size": list(binned.size)}
     return {
         "description": "Boxes on a checkered floor (tilt-lens paper, Sec. 4.2), mm; tiltfit.experiments.scenes.",
-        "image": {"width": width, "height": height, "spp": spp, "max_depth": 1, "sampler": sampler},
+        "image": {"width": binned.width_px, "height": binned.height_px, "spp": spp, "max_depth": 1, "sampler": sampler},
         "camera": camera,
         "lights": scene_lights(),
         "objects": scene_objects(),
     }
 
 
-def boxes_scene(lens: LensParams, sensor: Sensor = EOS_6D, downscale: int = 16, spp: int = 16,
+def boxes_scene(lens: Lens, sensor: Sensor = EOS_6D, downscale: int = 16, spp: int = 16,
                 sampler: str = "sobol"):
     """The boxes scene as a `renderer.Scene` (see `boxes_scene_dict` for the arguments)."""
     return load_scene(boxes_scene_dict(lens, sensor, downscale, spp, sampler))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from renderer import optics
+from renderer import Lens
 
 @dataclass(frozen=True)
 class StabilityConfig:
@@ -61,9 +61,9 @@ class StabilityConfig:
                                noise_views=3, noise_downscale=16)
 
 
-#: The simulated camera's lens (the paper's stage-1 values, as `tiltfit.experiments.reproduce.SimulatedCamera`), mm.
-W_MM, U0_MM, D_MM = 55.39, 618.4, 18.81
-F_MM = float(optics.focal_length(W_MM, U0_MM))
+#: The simulated camera's lens (`renderer.Lens.paper()`, as `tiltfit.experiments.reproduce.SimulatedCamera`), mm.
+W_MM, U0_MM, D_MM = Lens.paper().w, Lens.paper().U, Lens.paper().d
+F_MM = Lens.paper().f
 
 
 @dataclass

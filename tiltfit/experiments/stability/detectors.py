@@ -68,7 +68,7 @@ def study_detectors(cfg: StabilityConfig, log) -> Study:
     target = detector_target()
     ny, nx = target.grid_shape
     methods = {"ours": None, **_opencv_detectors((nx, ny))}
-    base = PAPER_CAMERA.scaled(cfg.detector_downscale)
+    base = PAPER_CAMERA.binned(cfg.detector_downscale)
     images = []
     for ratio in cfg.detector_ratios:
         for k, (pos, roll) in enumerate(DETECTOR_POSES[:cfg.detector_poses]):

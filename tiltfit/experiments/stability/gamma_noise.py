@@ -19,7 +19,7 @@ def srgb_bias_rows(cfg: StabilityConfig, log) -> list[dict]:
     from ...synth import PAPER_CAMERA, look_at_pose, render_view, with_blur_ratio
 
     target = detector_target()
-    base = PAPER_CAMERA.scaled(12)
+    base = PAPER_CAMERA.binned(12)
     pos, roll = DETECTOR_POSES[0]
     R, T = look_at_pose(target, pos, roll_deg=roll)
     rows = []
@@ -84,13 +84,12 @@ def _calibrate_photos(photos8, decode: bool, target, size, pitch):
 def _noise_rows(cfg: StabilityConfig, log) -> list[dict]:
     """Stage-1 calibration error against image noise (and with blur read off sRGB values, at one level)."""
     from .. import reproduce
-    from ..scenes import EOS_6D
-    from ...synth import SynthCamera, render_view
+    from renderer import Lens
+
+    from ...synth import render_view
 
     target = reproduce.calibration_target(reproduce.SetValues())
-    width, height, _ = EOS_6D.downscaled(cfg.noise_downscale)
-    pitch = EOS_6D.pixel_pitch_mm * cfg.noise_downscale
-    cam = SynthCamera(W_MM, U0_MM, D_MM, pitch, width, height, 0.0)
+    cam = Lens.paper().binned(cfg.noise_downscale)
     clean = []
     for v in reproduce.TARGET_VIEWS[:cfg.noise_views]:
         R, T = reproduce.target_pose(target, *v)
@@ -102,7 +101,7 @@ def _noise_rows(cfg: StabilityConfig, log) -> list[dict]:
         rng = np.random.default_rng(cfg.seed + 1000 + cfg.noise_levels.index(sigma))
         photos = [_expose(c, sigma, rng) for c in clean]
         t = time.perf_counter()
-        res, n_views, msg = _calibrate_photos(photos, decode, target, (width, height), pitch)
+        res, n_views, msg = _calibrate_photos(photos, decode, target, cam.sensor.size_px, cam.sensor.pixel_pitch)
         row = {"noise_sigma": sigma, "blur_read_on": "linear" if decode else "sRGB values (mistake)",
                "contrast_to_noise": (0.8 - 0.05) / sigma if sigma > 0 else None, "views_used": n_views}
         if res is None:
@@ -212,5 +211,5 @@ def _sensor_px(downscale: int) -> str:
     """'W×H px' of the EOS 6D sensor binned by `downscale`."""
     from ..scenes import EOS_6D
 
-    w, h, _ = EOS_6D.downscaled(downscale)
+    w, h = EOS_6D.binned(downscale).size_px
     return f"{w}×{h} px"

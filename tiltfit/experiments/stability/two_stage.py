@@ -31,8 +31,8 @@ def _tilt_setup(cfg: StabilityConfig):
 
     target = reproduce.calibration_target(reproduce.SetValues())
     poses = [reproduce.target_pose(target, *v) for v in reproduce.TARGET_VIEWS]
-    width, height, _ = EOS_6D.downscaled(cfg.tilt_downscale)
-    return target, poses, (width, height), EOS_6D.pixel_pitch_mm * cfg.tilt_downscale
+    sensor = EOS_6D.binned(cfg.tilt_downscale)
+    return target, poses, sensor.size_px, sensor.pixel_pitch
 
 
 def tilt_observations(theta_L: float, cfg: StabilityConfig, seed: int):

@@ -149,10 +149,10 @@ def timing(camera, ratio, repeats, log, label, opencv_repeats, limit_s):
     cam = with_blur_ratio(camera, TARGET, R, T, ratio, U_mm=400.0)
     t0 = time.perf_counter()
     v = render_view(TARGET, cam, R, T, noise_sigma=0.004, srgb8=True, seed=11)
-    log(f"{label}: rendered {camera.width_px}×{camera.height_px} in {time.perf_counter() - t0:.1f} s")
+    log(f"{label}: rendered {camera.sensor.width_px}×{camera.sensor.height_px} in {time.perf_counter() - t0:.1f} s")
     gray8 = v.image_srgb8[..., 0]
     detect(v.image, TARGET)  # warm-up (imports, kernels)
-    res = {"image_px": [camera.width_px, camera.height_px], "blur_px_median": float(np.median(v.truth.blur_px)),
+    res = {"image_px": [camera.sensor.width_px, camera.sensor.height_px], "blur_px_median": float(np.median(v.truth.blur_px)),
            "square_px": float(np.median(projected_square_px(TARGET, cam, R, T))), "opencv_limit_s": limit_s}
     times = {"ours_total": [], "ours_corners": [], "ours_blur": [], "sb": [], "classic": []}
     for _ in range(repeats):
@@ -267,7 +267,7 @@ def main(argv=None):
                        f"{torch.__version__}, OpenCV {cv2.__version__}",
             "loadavg": [round(v, 2) for v in os.getloadavg()], "torch_threads": torch.get_num_threads(),
             "cv2_threads": cv2.getNumThreads(), "command": "python benchmarks/bench_detect_opencv.py"
-            + (" --quick" if args.quick else ""), "sweep_image_px": [sweep_cam.width_px, sweep_cam.height_px],
+            + (" --quick" if args.quick else ""), "sweep_image_px": [sweep_cam.sensor.width_px, sweep_cam.sensor.height_px],
             "poses": len(poses), "noise_linear": 0.004, "target": TARGET.to_dict()}
     if args.skip_sweep:
         with open(json_path) as f:

@@ -76,7 +76,7 @@ def captures(U0_mm: float, board: Target, d_mm: float, theta_L_deg: float, views
         poses.append((R, T))
         blur.append(view.truth.blur_px)
         ratio.append(float(np.median(view.truth.blur_px) / np.median(synth.projected_square_px(board, cam, R, T))))
-    truth = {"U_mm": cam.U_mm, "theta_F_deg": math.degrees(cam.theta_F_rad), "theta_L_deg": theta_L_deg,
+    truth = {"U_mm": cam.U, "theta_F_deg": math.degrees(cam.theta_F), "theta_L_deg": theta_L_deg,
              "d_mm": d_mm, "pitch": pitch, "size": (w_px, h_px), "blur_px": float(np.median(np.concatenate(blur))),
              "blur_over_square": float(np.median(ratio))}
     return images, poses, truth

@@ -61,8 +61,8 @@ def captures(method: str, samples: int, noise: float, seed: int):
             yy, xx = np.mgrid[0:h_px, 0:w_px]
             uv = torch.tensor(np.stack([xx.ravel(), yy.ravel()], -1), dtype=torch.float64)
             t = lambda x: torch.tensor(float(x), dtype=torch.float64)  # noqa: E731
-            args = (P.hammersley_disc_samples(samples), t(W_MM), t(1000.0 / cam.U_mm), t(D_MM),
-                    t(cam.theta_F_rad), P.matrix_to_axis_angle(R).reshape(3), torch.tensor(T, dtype=torch.float64),
+            args = (P.hammersley_disc_samples(samples), t(W_MM), t(1000.0 / cam.U), t(D_MM),
+                    t(cam.theta_F), P.matrix_to_axis_angle(R).reshape(3), torch.tensor(T, dtype=torch.float64),
                     t(0.8), t(0.05), t(0.0))
             with torch.no_grad():
                 img = torch.cat([P.render_target(BOARD, sensor, uv[a:a + 4096], *args)
@@ -73,7 +73,7 @@ def captures(method: str, samples: int, noise: float, seed: int):
                                      seed=1000 * seed + k)
             images.append(view.image[..., 0].astype(np.float64))
         poses.append((R, T))
-    truth = {"U_mm": cam.U_mm, "theta_L_deg": THETA_L_DEG, "d_mm": D_MM}
+    truth = {"U_mm": cam.U, "theta_L_deg": THETA_L_DEG, "d_mm": D_MM}
     return images, poses, truth, pitch
 
 

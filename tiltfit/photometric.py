@@ -49,7 +49,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from renderer.cameras import ThinLensCamera, concentric_disk
+from renderer.cameras import Lens, Sensor, ThinLensCamera, concentric_disk
 from renderer.optics import blur_diameter_first_order, blur_diameter_paper, theta_L_from_theta_F
 from renderer.sensor import radial_falloff
 
@@ -284,9 +284,10 @@ def lens_camera(sensor: SensorGeometry, w_mm, inv_U_per_m, d_mm, theta_F, rvec, 
     The sensor's distortion (held, not fitted) is the renderer's: pixels are traced through their ideal,
     undistorted positions. Built as `renderer.LensCamera.view_camera` builds a view (one construction path).
     """
-    return ThinLensCamera.from_calibration((sensor.width_px, sensor.height_px), sensor.pixel_pitch, w_mm,
-                                           1000.0 / inv_U_per_m, d_mm, theta_F, axis_angle_to_matrix(rvec), T_mm,
-                                           sensor.principal_point_px, sensor.distortion)
+    lens = Lens(w_mm, 1000.0 / inv_U_per_m, d_mm, theta_F,
+                Sensor(sensor.width_px, sensor.height_px, sensor.pixel_pitch_mm), sensor.principal_point_px,
+                sensor.distortion)
+    return ThinLensCamera.from_calibration(lens, axis_angle_to_matrix(rvec), T_mm)
 
 
 def render_target(target: Target, sensor: SensorGeometry, uv_px: torch.Tensor, lens_uv: torch.Tensor,
@@ -694,7 +695,7 @@ def _view_blur_px(glob, view, sensor: SensorGeometry, target: Target) -> float:
     R = axis_angle_to_matrix(view[0:3]).detach()
     p = R @ torch.tensor([(x0 + x1) / 2, (y0 + y1) / 2, 0.0], dtype=R.dtype) + view[3:6].detach()
     w, inv_U, d, theta_F = (float(x) for x in glob[:4])
-    return float(blur_diameter_paper(p[1], p[2], w, 1000.0 / inv_U, d, theta_F)) / sensor.pixel_pitch
+    return float(blur_diameter_paper(p[1], p[2], w, 1000.0 / inv_U, d, theta_F)) / sensor.pixel_pitch_mm
 
 
 def _pixel_blur_px(cam: ThinLensCamera, uv: torch.Tensor, sensor: SensorGeometry) -> torch.Tensor:
@@ -702,7 +703,8 @@ def _pixel_blur_px(cam: ThinLensCamera, uv: torch.Tensor, sensor: SensorGeometry
     z_f where that ray meets the plane of focus (`optics.blur_diameter_first_order`)."""
     with torch.no_grad():
         p_cam = cam.transform.points_to_camera(_on_board(cam.generate_rays(uv)))
-        return blur_diameter_first_order(p_cam, cam.w, cam.U, cam.d, cam.theta_F) / sensor.pixel_pitch
+        lens = cam.lens
+        return blur_diameter_first_order(p_cam, lens.w, lens.U, lens.d, lens.theta_F) / sensor.pixel_pitch_mm
 
 
 def _cluster_sandwich(glob, views_p, free_g, jac, r, wts, JTJ, data, sensor: SensorGeometry,

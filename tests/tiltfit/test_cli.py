@@ -269,7 +269,7 @@ def test_end_to_end_on_rendered_images(tmp_path, capfd):
         write_image(path, srgb_to_linear(view.image_srgb8 / 255.0))
         images.append(path)
     out = tmp_path / "calib.json"
-    rc, _, err = run_cli(["calibrate", *images, "--target", target_file, "--pixel-pitch-mm", cam.pixel_pitch_mm,
+    rc, _, err = run_cli(["calibrate", *images, "--target", target_file, "--pixel-pitch-mm", cam.sensor.pixel_pitch,
                           "-o", out], capfd)
     assert rc == 0, f"end-to-end calibration failed: {err}"
     calib = read_calib(str(out))

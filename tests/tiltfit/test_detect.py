@@ -160,7 +160,7 @@ def test_detection_json_contract(tmp_path):
     path = tmp_path / "det.json"
     write_detection_json(det, str(path))
     d = json.loads(path.read_text())
-    assert d["image_size_px"] == [CAM.width_px, CAM.height_px], f"image_size_px is [W, H], got {d['image_size_px']}"
+    assert d["image_size_px"] == list(CAM.sensor.size_px), f"image_size_px is [W, H], got {d['image_size_px']}"
     assert len(d["corners_px"]) == TARGET.n_points and len(d["blur_px"]) == TARGET.n_points, "one entry per point"
     assert d["corners_px"][3] is None and d["blur_px"][3] is None, "missing points are null"
     assert d["grid_found"] is True and all(len(c) == 2 for c in d["corners_px"] if c is not None)
@@ -180,8 +180,8 @@ def test_analytic_rendering_equals_brute_force_disc_convolution():
     cam = Lens(50.0, 500.0, 10.0, sensor=Sensor(64, 48, 0.05))
     z, T = 600.0, np.array([-40.3, -30.2, 600.0])
     img = render_analytic(t, cam, np.eye(3), T, 0.05, 0.8, 0.3)
-    f = cam.w_mm / cam.pixel_pitch_mm / z  # px per mm
-    (cx, cy), s, (W, H) = cam.center_px, 16, (cam.width_px, cam.height_px)
+    f = cam.w / cam.sensor.pixel_pitch / z  # px per mm
+    (cx, cy), s, (W, H) = cam.center_px, 16, (cam.sensor.width_px, cam.sensor.height_px)
     xr = ((-0.5 - cx) / f - T[0], (W - 0.5 - cx) / f - T[0])
     yr = ((-0.5 - cy) / f - T[1], (H - 0.5 - cy) / f - T[1])
     hi = rasterise(t, xr, yr, W * s, H * s, 0.05, 0.8).astype(np.float64)

@@ -78,9 +78,9 @@ def test_heavy_blur_rendered_images_calibrate_stage1():
         assert np.nanmax(np.hypot(*(det.corners_px - sv.truth.corners_px).T)) < 0.5
         corners.append(det.corners_px)
         blur.append(det.blur_px)
-    obs = Observations(TARGET.feature_points(), np.stack(corners), np.stack(blur), SIZE, cam.pixel_pitch_mm)
+    obs = Observations(TARGET.feature_points(), np.stack(corners), np.stack(blur), SIZE, cam.sensor.pixel_pitch)
     res = calibrate(obs, "unified", options=FitOptions(nominal_focal_mm=55.0, model_selection=False))
-    for key, true in (("w_mm", cam.w_mm), ("U_mm", cam.U_mm), ("d_mm", D_HEAVY_MM)):
+    for key, true in (("w_mm", cam.w), ("U_mm", cam.U), ("d_mm", D_HEAVY_MM)):
         assert 0 < res.sigma[key] and abs(res.values[key] - true) < 3 * res.sigma[key], (key, res.values[key],
                                                                                           res.sigma[key], true)
 

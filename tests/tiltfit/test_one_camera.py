@@ -51,10 +51,10 @@ def test_photometric_camera_is_the_lens_cameras_view():
         assert err < 1e-12, f"photometric.lens_camera and LensCamera.view_camera: ray {name}s differ by {err:.3g}"
 
 
-def test_lens_params_keys_build_the_same_lens():
-    from tiltfit.experiments.scenes import LensParams, boxes_scene
+def test_scene_keys_build_the_same_lens():
+    from tiltfit.experiments.scenes import boxes_scene
 
-    lens = LensParams(55.0, 640.0, 18.0, theta_L_deg=5.0)
+    lens = Lens.from_theta_L(55.0, 640.0, 18.0, math.radians(5.0))
     cam = boxes_scene(lens, downscale=64).camera
     tan_F = (640.0 + 55.0) * math.tan(math.radians(5.0)) / 55.0  # Scheimpflug, exact
     assert (cam.lens.w, cam.lens.U, cam.lens.d) == (55.0, 640.0, 18.0), "w, U, d as given"

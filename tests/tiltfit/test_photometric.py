@@ -93,7 +93,7 @@ def _captures(U0_mm: float, spp: int = 64, board: Target = BOARD, d_mm: float = 
     w_px, h_px = reproduce.EOS_6D.binned(downscale).size_px
     pitch = reproduce.EOS_6D.pixel_pitch * downscale
     cam = Lens.from_tilt(W_MM, float(optics.focal_length(W_MM, U0_mm)), math.radians(theta_L_deg), d_mm, sensor=Sensor(w_px, h_px, pitch))
-    U, theta_F = cam.U_mm, cam.theta_F_rad
+    U, theta_F = cam.U, cam.theta_F
     images, poses, blur, ratio = [], [], [], []
     for k, (rx, ry, dist) in enumerate(reproduce.TARGET_VIEWS[i] for i in views):
         R, T = reproduce.target_pose(board, rx, ry, dist)

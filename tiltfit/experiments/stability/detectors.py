@@ -145,8 +145,8 @@ def study_detectors(cfg: StabilityConfig, log) -> Study:
     ax2.set_yscale("log")
     for ax in (ax1, ax2):
         ax.grid(alpha=0.3)
-    fig.suptitle(f"(a) detectors vs blur: {base.width_px}×{base.height_px} px, "
+    fig.suptitle(f"(a) detectors vs blur: {base.sensor.width_px}×{base.sensor.height_px} px, "
                  f"{min(cfg.detector_poses, len(DETECTOR_POSES))} pose(s) per blur", fontsize="medium")
     return Study("detectors", "(a) Corner detectors against blur", rows, findings,
-                 {"limits": limits, "images": images, "image_px": [base.width_px, base.height_px],
+                 {"limits": limits, "images": images, "image_px": [base.sensor.width_px, base.sensor.height_px],
                   "noise_linear": DETECTOR_NOISE, "target": target.to_dict()}, fig, time.perf_counter() - t0)

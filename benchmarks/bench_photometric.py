@@ -37,6 +37,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+from renderer.cameras.lens import EOS_6D
 from renderer import Lens, Sensor
 from renderer import optics  # noqa: E402
 from tiltfit import synth  # noqa: E402
@@ -65,8 +66,8 @@ RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
 
 def captures(U0_mm: float, board: Target, d_mm: float, theta_L_deg: float, views, downscale: int, spp: int):
     """Ray-traced photographs and the truth for one blur level and tilt."""
-    w_px, h_px = reproduce.EOS_6D.binned(downscale).size_px
-    pitch = reproduce.EOS_6D.pixel_pitch * downscale
+    w_px, h_px = EOS_6D.binned(downscale).size_px
+    pitch = EOS_6D.pixel_pitch * downscale
     cam = Lens.from_tilt(W_MM, float(optics.focal_length(W_MM, U0_mm)), math.radians(theta_L_deg), d_mm, sensor=Sensor(w_px, h_px, pitch))
     images, poses, blur, ratio = [], [], [], []
     for k, i in enumerate(views):
@@ -236,7 +237,7 @@ def main(argv=None) -> int:
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     if args.table_from:
         wall, load = float("nan"), float("nan")
-    meta = {"size_px": {str(c["downscale"]): list(reproduce.EOS_6D.binned(c["downscale"]).size_px) for c in cases},
+    meta = {"size_px": {str(c["downscale"]): list(EOS_6D.binned(c["downscale"]).size_px) for c in cases},
             "spp": spp, "pixels_per_view": pixels, "lens_samples": lens_samples,
             "true": {"w_mm": W_MM, "d_mm": D_MM}, "tilts_deg": list(tilts), "load_average": load,
             "wall_s": wall, "workers": args.workers, "quick": args.quick, "targets": TARGETS, "cpu": _cpu_name(),

@@ -31,6 +31,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from bench_photometric import BOARD, D_MM, W_MM, rough_start  # noqa: E402
+from renderer.cameras.lens import EOS_6D  # noqa: E402
 from renderer import Lens, Sensor, optics  # noqa: E402
 from tiltfit import synth  # noqa: E402
 from tiltfit.experiments import reproduce  # noqa: E402
@@ -50,8 +51,8 @@ def captures(method: str, samples: int, noise: float, seed: int):
     """Three views of the board: (images, poses, truth)."""
     import torch
 
-    w_px, h_px = reproduce.EOS_6D.binned(DOWNSCALE).size_px
-    pitch = reproduce.EOS_6D.pixel_pitch * DOWNSCALE
+    w_px, h_px = EOS_6D.binned(DOWNSCALE).size_px
+    pitch = EOS_6D.pixel_pitch * DOWNSCALE
     cam = Lens.from_tilt(W_MM, float(optics.focal_length(W_MM, U0_MM)), math.radians(THETA_L_DEG), D_MM, sensor=Sensor(w_px, h_px, pitch))
     sensor = P.SensorGeometry(w_px, h_px, pitch, ((w_px - 1) / 2, (h_px - 1) / 2))
     images, poses = [], []

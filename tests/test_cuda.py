@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 
+from renderer.cameras.lens import EOS_6D
 from renderer import load_scene, render
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
@@ -78,8 +79,8 @@ def test_cuda_photometric_target_render_equals_cpu():
     from tiltfit.target import Target
 
     board = Target(tuple(50.0 * i for i in range(7)), tuple(50.0 * j for j in range(5)), (0, 0), 25.0)
-    w, h = reproduce.EOS_6D.binned(16).size_px
-    sensor = SensorGeometry(w, h, reproduce.EOS_6D.pixel_pitch * 16, ((w - 1) / 2, (h - 1) / 2))
+    w, h = EOS_6D.binned(16).size_px
+    sensor = SensorGeometry(w, h, EOS_6D.pixel_pitch * 16, ((w - 1) / 2, (h - 1) / 2))
     R, T = reproduce.target_pose(board, 30.0, 5.0, 600.0)
     import cv2
 

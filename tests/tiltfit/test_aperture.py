@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from renderer.cameras.lens import EOS_6D, Lens
 from renderer.cameras import ThinLensCamera
 from tiltfit.experiments import reproduce
 from tiltfit.aperture import checker_dark_fraction_disc, disc_halfplane_fraction, disc_wedge_fraction, lines_cut
@@ -100,12 +101,10 @@ def test_wedge_against_monte_carlo():
 # ------------------------------------------------------------------------------------------ the thin lens
 
 def _camera(theta_F_deg=40.0, U=700.0, d=30.0, downscale=16):
-    w_px, h_px = reproduce.EOS_6D.binned(downscale).size_px
-    pitch = reproduce.EOS_6D.pixel_pitch * downscale
     R, T = reproduce.target_pose(BOARD, 30.0, 5.0, 600.0)
-    cam = ThinLensCamera.from_calibration((w_px, h_px), pitch, 55.0, U, d, math.radians(theta_F_deg),
-                                          torch.tensor(R, **f64), torch.tensor(T, **f64))
-    return cam, (w_px, h_px, pitch, R, T)
+    lens = Lens(55.0, U, d, math.radians(theta_F_deg), EOS_6D.binned(downscale))
+    cam = ThinLensCamera.from_calibration(lens, torch.tensor(R, **f64), torch.tensor(T, **f64))
+    return cam, (*lens.sensor.size_px, lens.sensor.pixel_pitch, R, T)
 
 
 @pytest.mark.parametrize("theta_F_deg", [40.0, 0.0, -80.0])
@@ -163,8 +162,8 @@ def test_closed_form_equals_the_mean_over_traced_lens_samples(theta_F_deg, U, d,
 
 
 def test_render_target_disc_gradcheck():
-    w_px, h_px = reproduce.EOS_6D.binned(16).size_px
-    pitch = reproduce.EOS_6D.pixel_pitch * 16
+    w_px, h_px = EOS_6D.binned(16).size_px
+    pitch = EOS_6D.pixel_pitch * 16
     sensor = SensorGeometry(w_px, h_px, pitch, ((w_px - 1) / 2, (h_px - 1) / 2))
     R, T = reproduce.target_pose(BOARD, 30.0, 5.0, 600.0)
     import cv2

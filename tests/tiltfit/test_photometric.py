@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from renderer.cameras.lens import EOS_6D
 from renderer import Lens, Sensor
 from renderer import optics
 from tiltfit import synth
@@ -55,8 +56,8 @@ def test_dark_fraction_closed_forms():
 
 
 def _sensor():
-    w, h = reproduce.EOS_6D.binned(DOWNSCALE).size_px
-    return SensorGeometry(w, h, reproduce.EOS_6D.pixel_pitch * DOWNSCALE, ((w - 1) / 2, (h - 1) / 2))
+    w, h = EOS_6D.binned(DOWNSCALE).size_px
+    return SensorGeometry(w, h, EOS_6D.pixel_pitch * DOWNSCALE, ((w - 1) / 2, (h - 1) / 2))
 
 
 def test_render_target_gradcheck():
@@ -90,8 +91,8 @@ VIEWS = (0, 1, 2)  # reproduce.TARGET_VIEWS at 560, 480 and 700 mm: a spread of 
 def _captures(U0_mm: float, spp: int = 64, board: Target = BOARD, d_mm: float = D_MM, views=VIEWS,
               theta_L_deg: float = THETA_L_DEG, downscale: int = DOWNSCALE, seed: int = 0):
     """Ray-traced photographs of `board` through a lens tilted by θL (focus U0 when untilted)."""
-    w_px, h_px = reproduce.EOS_6D.binned(downscale).size_px
-    pitch = reproduce.EOS_6D.pixel_pitch * downscale
+    w_px, h_px = EOS_6D.binned(downscale).size_px
+    pitch = EOS_6D.pixel_pitch * downscale
     cam = Lens.from_tilt(W_MM, float(optics.focal_length(W_MM, U0_mm)), math.radians(theta_L_deg), d_mm, sensor=Sensor(w_px, h_px, pitch))
     U, theta_F = cam.U, cam.theta_F
     images, poses, blur, ratio = [], [], [], []
@@ -241,8 +242,8 @@ def test_calibrate_refine_photometric_on_the_command_line(tmp_path):
     from renderer import write_image
     from tiltfit import cli
 
-    w_px, h_px = reproduce.EOS_6D.binned(DOWNSCALE).size_px
-    pitch = reproduce.EOS_6D.pixel_pitch * DOWNSCALE
+    w_px, h_px = EOS_6D.binned(DOWNSCALE).size_px
+    pitch = EOS_6D.pixel_pitch * DOWNSCALE
     U, d = 700.0, 30.0
     cam = Lens(W_MM, U, d, 0.0, Sensor(w_px, h_px, pitch))
     paths = []

@@ -16,9 +16,9 @@ from .common import D_MM, U0_MM, W_MM, StabilityConfig, Study, subplots_row
 def coverage_scene(theta_F_deg: float, camera_type: str, cfg: StabilityConfig) -> dict:
     """The boxes scene (`tiltfit.experiments.scenes`) seen through the simulated lens with the plane of focus tilted by θF
     (U held at U0), by the `thin_lens` camera or the accumulation-buffer camera `thin_lens_accumulation`."""
-    from ..scenes import LensParams, boxes_scene_dict
+    from ..scenes import Lens, boxes_scene_dict
 
-    d = boxes_scene_dict(LensParams(W_MM, U0_MM, D_MM, theta_F_deg=theta_F_deg), downscale=cfg.coverage_downscale,
+    d = boxes_scene_dict(Lens(W_MM, U0_MM, D_MM, math.radians(theta_F_deg)), downscale=cfg.coverage_downscale,
                          spp=cfg.coverage_spp)
     d["camera"]["type"] = camera_type
     return d

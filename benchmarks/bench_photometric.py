@@ -37,7 +37,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from renderer.cameras.lens import EOS_6D
+from renderer.cameras import EOS_6D
 from renderer import Lens, Sensor
 from renderer import optics  # noqa: E402
 from tiltfit import synth  # noqa: E402

@@ -31,7 +31,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from bench_photometric import BOARD, D_MM, W_MM, rough_start  # noqa: E402
-from renderer.cameras.lens import EOS_6D  # noqa: E402
+from renderer.cameras import EOS_6D  # noqa: E402
 from renderer import Lens, Sensor, optics  # noqa: E402
 from tiltfit import synth  # noqa: E402
 from tiltfit.experiments import reproduce  # noqa: E402

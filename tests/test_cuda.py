@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from renderer.cameras.lens import EOS_6D
+from renderer.cameras import EOS_6D
 from renderer import load_scene, render
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
@@ -52,7 +52,7 @@ def test_cuda_float32_and_compile_paths(dtype):
 def test_cuda_thin_lens_gradients_equal_cpu():
     from renderer import CameraTransform
     from renderer.cameras.base import Screen
-    from renderer.cameras.lens import Lens
+    from renderer.cameras import Lens
     from renderer.cameras.thin_lens import ThinLensCamera
 
     def grads(device):

@@ -18,7 +18,7 @@ import torch
 
 from renderer import CameraTransform, load_scene, write_image
 from renderer.cameras.base import Screen
-from renderer.cameras.lens import Lens
+from renderer.cameras import Lens
 from renderer.cameras.thin_lens import ThinLensCamera
 from renderer.integrator import trace
 

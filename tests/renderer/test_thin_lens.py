@@ -12,7 +12,7 @@ from renderer.cameras import build_camera
 from renderer.cameras.accumulation import AccumulationBufferCamera, render_accumulation
 from renderer.cameras.base import Screen
 from renderer.cameras.pinhole import PinholeCamera
-from renderer.cameras.lens import Lens
+from renderer.cameras import Lens
 from renderer.cameras.thin_lens import ThinLensCamera, concentric_disk
 from renderer.materials import CheckerTexture
 from renderer.shapes.plane import Plane

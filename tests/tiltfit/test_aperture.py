@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from renderer.cameras.lens import EOS_6D, Lens
+from renderer.cameras import EOS_6D, Lens
 from renderer.cameras import ThinLensCamera
 from tiltfit.experiments import reproduce
 from tiltfit.aperture import checker_dark_fraction_disc, disc_halfplane_fraction, disc_wedge_fraction, lines_cut

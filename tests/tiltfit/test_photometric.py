@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from renderer.cameras.lens import EOS_6D
+from renderer.cameras import EOS_6D
 from renderer import Lens, Sensor
 from renderer import optics
 from tiltfit import synth

@@ -26,7 +26,7 @@ import math
 
 import numpy as np
 from renderer import Lens, Sensor, load_scene
-from renderer.cameras.lens import EOS_6D
+from renderer.cameras import EOS_6D
 
 # Where the scene sits relative to the camera (see the module docstring).
 FOCUS_DISTANCE_MM = Lens.paper().U  # stage-1 U of the paper: the optical axis meets the floor this far away

@@ -42,15 +42,9 @@ import cv2
 import numpy as np
 import torch
 
+from bench_real_calib import OPENCV_FLAGS
 from results_io import ROOT, add_output_options, markdown_only, save
 
-OPENCV_FLAGS = {
-    "none": cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST,
-    "k1": cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST,
-    "k1k2": cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST,
-    "opencv5": 0,
-    "rational": cv2.CALIB_RATIONAL_MODEL,
-}
 #: The sets: folder (or "synthetic"), image glob, pixel pitch (mm; intrinsics in pixels do not depend on it),
 #: and the distortion model of the geometric comparison.
 SETS = {

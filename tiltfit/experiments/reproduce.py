@@ -278,7 +278,8 @@ def calibration_target(set_values: SetValues):
     an inclined view, designed with the set values (the designer does not know the true lens)."""
     from ..target import design_target
 
-    return design_target(9, 6, 25.0, w_mm=set_values.nominal.w, distance_mm=set_values.nominal.U, inclination_deg=30.0)
+    nominal = set_values.nominal
+    return design_target(9, 6, 25.0, w_mm=nominal.w, distance_mm=nominal.U, inclination_deg=30.0)
 
 
 def target_pose(target, rot_x_deg: float, rot_y_deg: float, distance_mm: float) -> tuple[np.ndarray, np.ndarray]:
@@ -503,7 +504,7 @@ def table1_rows(camera: SimulatedCamera, calibration: dict) -> list[dict]:
         ph = records.get("stage1", {}).get("photometric") if state.label == "a" else rec.get("photometric")
         row["photometric_deg"] = PENDING if pending else (ph or {}).get("theta_L_deg")
         row["photometric_sigma_deg"] = PENDING if pending else (ph or {}).get("sigma", {}).get("theta_L_deg")
-        row["true_U_mm"] = camera.lens(state.theta_L_set_deg).U_mm
+        row["true_U_mm"] = camera.lens(state.theta_L_set_deg).U
         rows.append(row)
     return rows
 
@@ -574,8 +575,8 @@ def stage_boxes(camera: SimulatedCamera, param_sets: dict, cfg: RunConfig, lines
             res.captures.append(camera.expose(radiance, _noise_source(radiance, _seed(cfg, "noise", state.label, k))))
             _save_png(os.path.join(out_dir, "images", f"photo_{state.label}{'' if k == 0 else '_2'}.png"),
                       res.captures[-1])
-            log(f"(d) {tag}: photograph {k + 1}/2 with the true lens (θL {true_lens.theta_L_deg:+.3f}°, "
-                f"U {true_lens.U_mm:.1f} mm), {cfg.spp_capture} spp, {dt:.1f} s")
+            log(f"(d) {tag}: photograph {k + 1}/2 with the true lens (θL {math.degrees(true_lens.theta_L):+.3f}°, "
+                f"U {true_lens.U:.1f} mm), {cfg.spp_capture} spp, {dt:.1f} s")
         _write_scene(out_dir, f"photo_{state.label}", true_lens, cfg, cfg.spp_capture)
         floor_rows, floor_prof = compare_profiles(res.captures[0], res.captures[1], lines, cfg.step_px)
         res.rows.append(_table2_row(state, NOISE_FLOOR, None, floor_rows))

@@ -22,9 +22,7 @@ import json
 import math
 import os
 import platform
-import statistics
 import sys
-import time
 
 import cv2
 import numpy as np
@@ -37,6 +35,8 @@ from tiltfit.model import Observations
 from tiltfit.opencv_corners import opencv_detections
 from tiltfit.target import load_target
 from tiltfit.validate import held_out_rms
+
+from results_io import timed
 
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
 DATA = os.path.join(ROOT, "data", "real", "gopro_wide")
@@ -107,15 +107,6 @@ def per_corner_rms(result) -> float:
     return math.sqrt(result.rss["corners"] / (result.rss["n_corners"] / 2))
 
 
-def timed(fn, repeats: int):
-    times, out = [], None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return out, statistics.median(times)
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=5)
@@ -128,8 +119,8 @@ def main(argv=None) -> int:
     ours(obs, "opencv5")  # warm-up: lazy imports
     rows = []
     for model in MODELS:
-        (rms_cv, K, dist, _, _), t_cv = timed(lambda: opencv_calibrate(obs, model), args.repeats)
-        res, t_ours = timed(lambda: ours(obs, model), args.repeats)
+        (rms_cv, K, dist, _, _), t_cv = timed(lambda: opencv_calibrate(obs, model), args.repeats)[:2]
+        res, t_ours = timed(lambda: ours(obs, model), args.repeats)[:2]
         cam = res.camera
         F = float(cam.focal_px.detach())
         sF = res.sigma["w_mm"] / obs.pixel_pitch_mm
@@ -154,7 +145,7 @@ def main(argv=None) -> int:
             f"{ho_ours:.4f} / {ho_cv:.4f} px; f {F:.2f} ± {sF:.2f} / {K[0, 0]:.2f} px; time {t_ours:.3f} / "
             f"{t_cv:.3f} s")
     auto, t_auto = timed(lambda: calibrate(obs, "unified", options=FitOptions(
-        distortion="auto", free_principal_point=True, model_selection=False)), args.repeats)
+        distortion="auto", free_principal_point=True, model_selection=False)), args.repeats)[:2]
     out = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
            "machine": platform.platform(), "torch_threads": torch.get_num_threads(), "opencv": cv2.__version__,
            "photos": n_photos, "boards_found": obs.n_views, "missing": missing, "repeats": args.repeats,

@@ -37,6 +37,8 @@ from tiltfit.imaging import build_pyramid
 from tiltfit.opencv_corners import match_labelling, sb_corners
 from tiltfit.target import load_target
 
+from results_io import timed
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DATA = os.path.join(ROOT, "data", "real", "gopro_wide")
 PATTERN = (8, 6)
@@ -52,15 +54,6 @@ def opencv_classic(gray8):
         return None
     crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 1e-3)
     return cv2.cornerSubPix(gray8, c, (11, 11), (-1, -1), crit).reshape(-1, 2).astype(np.float64)
-
-
-def timed(fn, arg, repeats):
-    out, times = None, []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn(arg)
-        times.append(time.perf_counter() - t0)
-    return out, statistics.median(times)
 
 
 def agreement(ours, theirs):
@@ -93,9 +86,9 @@ def main(argv=None):
     for path in paths:
         linear = read_image(path)
         gray8 = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
-        det, t_ours = timed(lambda im: detect(im, target, measure_blur=False), linear, args.repeats)
-        sb, t_sb = timed(opencv_sb, gray8, args.repeats)
-        cl, t_cl = timed(opencv_classic, gray8, args.repeats)
+        det, t_ours = timed(lambda: detect(linear, target, measure_blur=False), args.repeats)[:2]
+        sb, t_sb = timed(lambda: opencv_sb(gray8), args.repeats)[:2]
+        cl, t_cl = timed(lambda: opencv_classic(gray8), args.repeats)[:2]
         row = {"image": os.path.basename(path), "ours_found": bool(det.grid_found),
                "ours_corners": int(det.found.sum()), "sb_found": sb is not None, "classic_found": cl is not None,
                "ours_s": round(t_ours, 4), "sb_s": round(t_sb, 4), "classic_s": round(t_cl, 4)}

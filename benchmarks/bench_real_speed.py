@@ -30,13 +30,12 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import time
 
 import cv2
 import numpy as np
 import torch
 
-from results_io import add_output_options, markdown_only, save
+from results_io import add_output_options, markdown_only, save, timed
 from renderer.io import read_image
 from tiltfit.detect import detect
 from tiltfit.opencv_corners import match_labelling
@@ -96,17 +95,6 @@ class Baseline:
         self.proc.stdin.close()
         self.proc.wait()
         shutil.rmtree(self.dir, ignore_errors=True)
-
-
-def timed(fn, repeats: int):
-    """(last result, median wall-clock s, median process CPU s) of `repeats` calls of fn()."""
-    out, wall, cpu = None, [], []
-    for _ in range(repeats):
-        t0, c0 = time.perf_counter(), time.process_time()
-        out = fn()
-        wall.append(time.perf_counter() - t0)
-        cpu.append(time.process_time() - c0)
-    return out, statistics.median(wall), statistics.median(cpu)
 
 
 def sb(gray8, pattern):

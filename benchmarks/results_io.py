@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import json
 import os
+import statistics
+import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -35,3 +37,15 @@ def save(out: str, res: dict, write_markdown) -> None:
     write_markdown(out + ".md", res)
     with open(out + ".md") as f:
         print(f.read())
+
+
+def timed(fn, repeats: int):
+    """(last result, median wall-clock s, median process CPU s) of `repeats` calls of fn(): medians, because
+    timings on a shared 2-core machine are noisy."""
+    out, wall, cpu = None, [], []
+    for _ in range(repeats):
+        t0, c0 = time.perf_counter(), time.process_time()
+        out = fn()
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    return out, statistics.median(wall), statistics.median(cpu)

@@ -25,7 +25,7 @@ import time
 import warnings
 
 from .errors import ImageIOError, SceneError, UsageError  # UsageError: importable from here as before
-from .io import atomic_output, linear_to_srgb, write_image
+from .io import atomic_output, linear_to_srgb, output_problem, write_image
 from .validation import read_json
 
 SCENES_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "scenes")
@@ -288,21 +288,10 @@ def _removed_on_failure(folder: str):
 
 
 def _check_output(path: str, extensions: tuple[str, ...]) -> None:
-    """Fail before any work when the output is a folder, its format is wrong, or its folder cannot be
-    created or written."""
-    if os.path.isdir(path):
-        raise UsageError(f"{path}: is a folder; give an output file name")
-    ext = os.path.splitext(path)[1].lower()
-    if ext not in extensions:
-        raise UsageError(f"{path}: unsupported output format {ext or '(none)'} (use {', '.join(extensions)})")
-    folder = os.path.dirname(os.path.abspath(path))
-    existing = folder
-    while not os.path.exists(existing) and os.path.dirname(existing) != existing:
-        existing = os.path.dirname(existing)
-    if not os.path.isdir(existing):
-        raise UsageError(f"{path}: {existing} is not a folder")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise UsageError(f"{path}: cannot write in {existing} (permission denied)")
+    """Fail before any work when the output cannot be written (`renderer.io.output_problem`)."""
+    problem = output_problem(path, extensions)
+    if problem:
+        raise UsageError(f"{path}: {problem}")
 
 
 def check_finite_image(scene_file: str, image) -> None:

@@ -323,6 +323,25 @@ def _publish_copy(fd: int, folder: str, hidden: str, path: str) -> None:
             shutil.copyfileobj(src, dst, 1 << 20)
 
 
+def output_problem(path: str, extensions: tuple[str, ...] | None = None) -> str | None:
+    """Why `path` cannot be an output file, checked before any work, or None: it is a folder, its extension is
+    not one of `extensions` (when given), or its folder cannot be created or written. The commands of both
+    packages raise it as their one-line error."""
+    if os.path.isdir(path):
+        return "is a folder; give an output file name"
+    ext = os.path.splitext(path)[1].lower()
+    if extensions is not None and ext not in extensions:
+        return f"unsupported output format {ext or '(none)'} (use {', '.join(extensions)})"
+    existing = os.path.dirname(os.path.abspath(path))
+    while not os.path.exists(existing) and os.path.dirname(existing) != existing:
+        existing = os.path.dirname(existing)
+    if not os.path.isdir(existing):
+        return f"{existing} is not a folder"
+    if not os.access(existing, os.W_OK | os.X_OK):
+        return f"cannot write in {existing} (permission denied)"
+    return None
+
+
 def write_text(path: str, text: str) -> None:
     """Write a text file (UTF-8) atomically with umask-respecting permissions (see `atomic_output`)."""
     with atomic_output(path) as tmp:

@@ -32,6 +32,7 @@ import time
 import warnings
 
 from renderer.cli import interrupt_on_sigterm
+from renderer.io import output_problem
 from renderer.io import quiet_c_stderr as _quiet_c_stderr
 
 EXIT_ERROR = 2
@@ -144,14 +145,10 @@ def _is_det_file(path: str) -> bool:
 # --- commands ----------------------------------------------------------------------------------------------
 
 def _check_output(path: str) -> None:
-    """Refuse, before any work, an output path that is a folder or lies under a file."""
-    if os.path.isdir(path):
-        raise CliError(path, "is a folder; give an output file name")
-    folder = os.path.dirname(os.path.abspath(path))
-    while not os.path.exists(folder) and os.path.dirname(folder) != folder:
-        folder = os.path.dirname(folder)
-    if not os.path.isdir(folder):
-        raise CliError(path, f"{folder} is not a folder")
+    """Refuse, before any work, an output path that cannot be written (`renderer.io.output_problem`)."""
+    problem = output_problem(path)
+    if problem:
+        raise CliError(path, problem)
 
 
 def cmd_detect(args) -> int:

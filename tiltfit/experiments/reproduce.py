@@ -26,15 +26,13 @@ camera is simulated, so every estimate can be checked against the truth:
                the data of every figure and a run record, all in DIR; the two tables on stdout, progress
                on stderr.
 
-Stages (b) and (c) need tiltfit.synth, tiltfit.detect, tiltfit.blur and tiltfit.fit; while one is missing
-they are reported PENDING: Table 1 shows the set and true tilts with the estimates marked pending and
-Table 2 has no calibrated rows. A fit that fails is reported, not papered over. Nothing is filled in by
-hand: every number in the outputs is computed by the run.
+`RunConfig.calibrate` False skips stages (b) and (c) (a look at the set values alone): Table 1 then marks
+the estimates "not run" and Table 2 has no calibrated rows. A fit that fails is reported, not papered over.
+Nothing is filled in by hand: every number in the outputs is computed by the run.
 """
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import math
 import os
@@ -54,7 +52,7 @@ from ..evaluate import (compare_profiles, linear_from_grey_levels, plot_images, 
 from .scenes import Lens, Sensor, boxes_scene, boxes_scene_dict, profile_lines
 from ..runlog import RunLog
 
-PENDING = "pending"
+NOT_RUN = "not run"  # a table cell of a stage that was skipped (RunConfig.calibrate False) or failed
 
 
 # ------------------------------------------------------------------------------------------ configuration
@@ -89,6 +87,7 @@ class RunConfig:
         photometric_pixels, photometric_lens_samples: pixels per view and fixed lens samples of the
             photometric refinement (0 pixels: skip it).
         device: torch device of the boxes renders (`cpu` or `cuda`); the fits run on the CPU.
+        calibrate: False skips the target photographs and the calibration, stages (b) and (c).
     """
 
     downscale: int = 16
@@ -104,6 +103,7 @@ class RunConfig:
     photometric_pixels: int = 2000
     photometric_lens_samples: int = 64
     device: str = "cpu"
+    calibrate: bool = True
 
     @staticmethod
     def full() -> "RunConfig":
@@ -266,13 +266,6 @@ TARGET_VIEWS = ((40.0, 0.0, 560.0), (-25.0, 0.0, 480.0), (45.0, 0.0, 700.0), (-4
 MIN_CORNER_FRACTION = 0.75
 
 
-def calibration_modules_available() -> bool:
-    """Whether the modules of stages (b) and (c) exist: tiltfit.synth (target images), tiltfit.detect and
-    tiltfit.blur (corners and blur widths) and tiltfit.fit (the calibration)."""
-    return all(importlib.util.find_spec(m) is not None
-               for m in ("tiltfit.synth", "tiltfit.detect", "tiltfit.blur", "tiltfit.fit"))
-
-
 def calibration_target(set_values: SetValues):
     """The paper's kind of target (Fig. 4): a checkerboard whose row spacing makes the rows project evenly for
     an inclined view, designed with the set values (the designer does not know the true lens)."""
@@ -304,10 +297,10 @@ def stage_targets(camera: SimulatedCamera, set_values: SetValues, cfg: RunConfig
     sRGB; `tiltfit.detect.detect` reads them back like any photograph.
     Returns:
         {"target", "image_size_px", "pixel_pitch_mm", "detections": {state: [Detection]}, "files"}, or None
-        while the modules are missing (PENDING).
+        when `cfg.calibrate` is False.
     """
-    if not calibration_modules_available():
-        log("(b) target photographs: PENDING (tiltfit.synth / tiltfit.detect / tiltfit.blur not all available)")
+    if not cfg.calibrate:
+        log("(b) target photographs: skipped (calibrate off)")
         return None
     from .. import synth
     from ..detect import detect
@@ -408,11 +401,11 @@ def stage_calibrate(targets: dict | None, set_values: SetValues, cfg: RunConfig,
     The CG lens for state (a) is stage 1 in both parameter sets.
     Returns:
         {"lenses": {"calibrated (paper)": {label: Lens}, "calibrated (joint)": {...}},
-         "records": {"stage1": {...}, label: {...}}, "errors": [...]}; empty while PENDING.
+         "records": {"stage1": {...}, label: {...}}, "errors": [...]}; empty when skipped.
     """
     out = {"lenses": {}, "records": {}, "errors": []}
     if targets is None:
-        log("(c) calibration: PENDING (needs stage (b))")
+        log("(c) calibration: skipped (calibrate off)")
         return out
     from ..fit import FitError, FitOptions
 
@@ -480,11 +473,11 @@ def table1_rows(camera: SimulatedCamera, calibration: dict) -> list[dict]:
     """Table 1: lens tilt set → estimated (the paper's), with the simulated truth beside it, degrees.
 
     Estimates: stage 2 through the paper's eq. (1) and through the exact Scheimpflug relation, and the joint
-    fit (exact) and its photometric refinement, each with its one-σ; `pending` until stage (c) has run, empty
+    fit (exact) and its photometric refinement, each with its one-σ; "not run" when stage (c) did not run, empty
     where it failed.
     """
     records = calibration.get("records", {})
-    pending = not records
+    not_run = not records
     rows = []
     for state in LENS_STATES:
         row = {"state": f"({state.label})", "theta_L_set_deg": state.theta_L_set_deg,
@@ -495,15 +488,15 @@ def table1_rows(camera: SimulatedCamera, calibration: dict) -> list[dict]:
             rec = {"stage2": {"theta_L_paper_deg": 0.0, "theta_L_deg": 0.0, "sigma": {}},
                    "joint": {"theta_L_deg": 0.0, "sigma": {}, "U_mm": records["stage1"]["U_mm"]}}
         st2, jt = rec.get("stage2"), rec.get("joint")
-        row["stage2_paper_eq1_deg"] = PENDING if pending else (st2 or {}).get("theta_L_paper_deg")
-        row["stage2_exact_deg"] = PENDING if pending else (st2 or {}).get("theta_L_deg")
-        row["stage2_sigma_deg"] = PENDING if pending else (st2 or {}).get("sigma", {}).get("theta_L_deg")
-        row["joint_deg"] = PENDING if pending else (jt or {}).get("theta_L_deg")
-        row["joint_sigma_deg"] = PENDING if pending else (jt or {}).get("sigma", {}).get("theta_L_deg")
-        row["joint_U_mm"] = PENDING if pending else (jt or {}).get("U_mm")
+        row["stage2_paper_eq1_deg"] = NOT_RUN if not_run else (st2 or {}).get("theta_L_paper_deg")
+        row["stage2_exact_deg"] = NOT_RUN if not_run else (st2 or {}).get("theta_L_deg")
+        row["stage2_sigma_deg"] = NOT_RUN if not_run else (st2 or {}).get("sigma", {}).get("theta_L_deg")
+        row["joint_deg"] = NOT_RUN if not_run else (jt or {}).get("theta_L_deg")
+        row["joint_sigma_deg"] = NOT_RUN if not_run else (jt or {}).get("sigma", {}).get("theta_L_deg")
+        row["joint_U_mm"] = NOT_RUN if not_run else (jt or {}).get("U_mm")
         ph = records.get("stage1", {}).get("photometric") if state.label == "a" else rec.get("photometric")
-        row["photometric_deg"] = PENDING if pending else (ph or {}).get("theta_L_deg")
-        row["photometric_sigma_deg"] = PENDING if pending else (ph or {}).get("sigma", {}).get("theta_L_deg")
+        row["photometric_deg"] = NOT_RUN if not_run else (ph or {}).get("theta_L_deg")
+        row["photometric_sigma_deg"] = NOT_RUN if not_run else (ph or {}).get("sigma", {}).get("theta_L_deg")
         row["true_U_mm"] = camera.lens(state.theta_L_set_deg).U
         rows.append(row)
     return rows
@@ -516,9 +509,9 @@ def stage1_rows(camera: SimulatedCamera, set_values: SetValues, calibration: dic
     for key in ("w_mm", "U_mm", "d_mm"):
         true = camera.untilted.record()[key]
         rows.append({"parameter": key, "true": true, "set": set_values.nominal.record()[key],
-                     "stage1": s1[key] if s1 else PENDING,
-                     "stage1_sigma": s1["sigma"][key] if s1 else PENDING,
-                     "stage1_error": s1[key] - true if s1 else PENDING})
+                     "stage1": s1[key] if s1 else NOT_RUN,
+                     "stage1_sigma": s1["sigma"][key] if s1 else NOT_RUN,
+                     "stage1_error": s1[key] - true if s1 else NOT_RUN})
     return rows
 
 
@@ -723,13 +716,13 @@ TABLE2_COLUMNS = ["state", "theta_L_set_deg", "parameters", "theta_L_deg", "red"
 
 @dataclass
 class ReproduceResult:
-    """What `run` returns: the tables as rows, the files written and whether stages are pending."""
+    """What `run` returns: the tables as rows, the files written and the stages skipped."""
 
     table1: list
     table2: list
     speed: list
     files: dict
-    pending: list
+    skipped: list
     runtime_s: float
 
 
@@ -773,11 +766,9 @@ def _run(out_dir, quick, progress, config, camera, set_values) -> ReproduceResul
         f"{camera.f_mm:.2f} mm); boxes images {width}x{height} (1/{cfg.downscale}), target photographs "
         f"{target_w}x{target_h} (1/{cfg.target_downscale}), {torch_threads} threads")
 
-    pending = []
+    skipped = [] if cfg.calibrate else ["(b) target photographs", "(c) calibration"]
     targets = stage_targets(camera, set_values, cfg, out_dir, log)    # (b)
     calibration = stage_calibrate(targets, set_values, cfg, log)      # (c)
-    if targets is None:
-        pending += ["(b) target photographs", "(c) calibration"]
     table1 = table1_rows(camera, calibration)
     table_s1 = stage1_rows(camera, set_values, calibration)
 
@@ -800,7 +791,7 @@ def _run(out_dir, quick, progress, config, camera, set_values) -> ReproduceResul
     files["figures"] = "figures.json"
     runtime = log.elapsed
     record = {
-        "config": asdict(cfg), "quick": quick, "runtime_s": runtime, "pending": pending,
+        "config": asdict(cfg), "quick": quick, "runtime_s": runtime, "skipped": skipped,
         "truth": {**asdict(camera), **camera.untilted.record(), "U0_mm": camera.untilted.U, "f_mm": camera.f_mm,
                   "lens_states": {s.label: lens_record(camera.lens(s.theta_L_set_deg)) for s in LENS_STATES}},
         "set_values": {s.label: lens_record(set_values.lens(s.theta_L_set_deg)) for s in LENS_STATES},
@@ -812,17 +803,17 @@ def _run(out_dir, quick, progress, config, camera, set_values) -> ReproduceResul
     with open(os.path.join(out_dir, "run.json"), "w", encoding="utf-8") as f:
         json.dump(record, f, indent=1)
     files["run"] = "run.json"
-    files["report"] = write_report(out_dir, table1, table_s1, table2, speed, files, pending, cfg, runtime)
+    files["report"] = write_report(out_dir, table1, table_s1, table2, speed, files, skipped, cfg, runtime)
     print("Stage 1: w, U, d (mm)\n")
     print(markdown_table(table_s1))
     print("Table 1: lens tilt, set -> estimated (degrees)\n")
     print(markdown_table(table1))
     print("Table 2: average brightness error along the lines (0-255 grey levels)\n")
     print(markdown_table(table2, TABLE2_COLUMNS, floatfmt=".3f"))
-    if pending:
-        print("Pending: " + "; ".join(pending))
+    if skipped:
+        print("Skipped: " + "; ".join(skipped))
     log(f"done: outputs in {out_dir}")
-    return ReproduceResult(table1, table2, speed, files, pending, runtime)
+    return ReproduceResult(table1, table2, speed, files, skipped, runtime)
 
 
 def write_tables(out_dir: str, table1, table_s1, table2, speed) -> dict:
@@ -851,14 +842,14 @@ def true_lens_sentence(table2: list[dict]) -> str:
             f"(true lens − floor from {min(diffs):+.2f} to {max(diffs):+.2f} grey levels).")
 
 
-def write_report(out_dir, table1, table_s1, table2, speed, files, pending, cfg, runtime) -> str:
+def write_report(out_dir, table1, table_s1, table2, speed, files, skipped, cfg, runtime) -> str:
     """report.md: the tables and the figures in one page."""
     parts = ["# Tilt-lens paper, reproduced on a simulated camera\n",
              f"Run: boxes images 1/{cfg.downscale}, target photographs 1/{cfg.target_downscale}, "
              f"{cfg.spp_capture} spp photographs, {cfg.spp_cg} spp CG, "
              f"{runtime:.0f} s.\n"]
-    if pending:
-        parts.append("**Pending:** " + "; ".join(pending) + ".\n")
+    if skipped:
+        parts.append("**Skipped:** " + "; ".join(skipped) + ".\n")
     parts += ["## Stage 1: w, U, d (mm)\n", markdown_table(table_s1),
               "\n## Table 1: lens tilt, set -> estimated (degrees)\n", markdown_table(table1),
               "\n## Table 2: average brightness error (0-255 grey levels)\n",

@@ -330,32 +330,6 @@ def _lm(evaluate, x0: dict, blocks, view_rows, options: LMOptions) -> LMResult:
         raise FitError(str(e)) from None
 
 
-def levenberg_marquardt(residual_fn, x0: torch.Tensor, robust: str | None = None, robust_scale: float = 3.0,
-                        max_iterations: int = 200, jacobian_fn=None) -> LMResult:
-    """Minimise ½ Σ ρ(r_i(x)²) over one dense parameter vector (`tiltfit.solve.levenberg_marquardt` with a
-    single block "x"; the result's `x` is the vector).
-
-    Args:
-        residual_fn: (P,) -> (M,) float64 residuals, already divided by their σ.
-        x0: (P,) start.
-        jacobian_fn: (P,) -> (M, P); default `torch.func.jacfwd(residual_fn)`.
-    Raises:
-        FitError: non-finite residuals at the start, or no convergence within max_iterations.
-    """
-    from torch.func import jacfwd
-
-    jac = jacobian_fn or jacfwd(residual_fn)
-
-    def evaluate(x: dict, with_jacobian: bool):
-        v = x["x"]
-        return residual_fn(v).detach(), ({"x": jac(v).detach()} if with_jacobian else None)
-
-    res = _lm(evaluate, {"x": x0.detach().to(torch.float64)}, [Block("x", tuple(x0.shape))], None,
-              _robust_options(robust, robust_scale, max_iterations))
-    res.x = res.x_flat
-    return res
-
-
 # ---------------------------------------------------------------------------------------------------------
 # Initialisation
 # ---------------------------------------------------------------------------------------------------------

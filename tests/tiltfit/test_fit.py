@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from renderer import optics
-from tiltfit.fit import FitError, FitOptions, focal_from_homographies, levenberg_marquardt
+from tiltfit.fit import FitError, FitOptions, focal_from_homographies
 from tiltfit.calibration import calibrate
 from tiltfit.model import (PAPER_LENS, PAPER_SENSOR, TiltLensCamera, board_points_mm, random_poses,
                            synthesize_observations)
@@ -286,19 +286,6 @@ def test_focal_length_from_homographies():
     assert focal_from_homographies(fronto) is None, "fronto-parallel views cannot give a focal length"
     with pytest.raises(FitError, match="nominal focal length"):
         calibrate(fronto, "unified", options=QUIET)
-
-
-def test_levenberg_marquardt_on_a_small_problem():
-    t = torch.linspace(0, 1, 20, dtype=torch.float64)
-    y = 2.0 * torch.exp(-1.5 * t) + 0.3
-
-    def r(x):
-        return x[0] * torch.exp(x[1] * t) + x[2] - y
-
-    res = levenberg_marquardt(r, torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
-    assert torch.allclose(res.x, torch.tensor([2.0, -1.5, 0.3], dtype=torch.float64), atol=1e-6), \
-        f"LM should recover (2, -1.5, 0.3), got {res.x.tolist()}"
-    assert res.iterations < 30, f"converges quickly, took {res.iterations}"
 
 
 def test_mismatched_target_is_an_error():

@@ -1,6 +1,7 @@
 """Levenberg–Marquardt over named parameter blocks, with Gauss–Newton covariances.
 
     levenberg_marquardt(evaluate, x0, blocks, view_rows=None, options=LMOptions()) -> LMResult
+    least_squares(residual_fn, x0, options=LMOptions(), jacobian_fn=None) -> LMResult   (one dense vector)
     covariance(result) -> (P, P)
 
 `evaluate(x, with_jacobian)` gets the state as {block name: tensor} and returns (r, jac): r the (M,) residuals,
@@ -226,4 +227,30 @@ def covariance(result: LMResult, variance_factor: float = 1.0) -> torch.Tensor:
     return variance_factor * Ainv
 
 
-__all__ = ["Block", "LMOptions", "LMResult", "SolverError", "covariance", "levenberg_marquardt"]
+def least_squares(residual_fn, x0: torch.Tensor, options: LMOptions = LMOptions(), jacobian_fn=None) -> LMResult:
+    """Minimise ½ Σ ρ(r_i(x)²) over one dense parameter vector: `levenberg_marquardt` with a single block
+    "x"; the result's `x` is the vector.
+
+    Args:
+        residual_fn: (P,) -> (M,) float64 residuals, already divided by their σ.
+        x0: (P,) start.
+        options: `LMOptions`.
+        jacobian_fn: (P,) -> (M, P); default `torch.func.jacfwd(residual_fn)`.
+    Raises:
+        SolverError: non-finite residuals at the start, or no convergence within `options.max_iterations`.
+    """
+    from torch.func import jacfwd
+
+    jac = jacobian_fn or jacfwd(residual_fn)
+
+    def evaluate(x: dict, with_jacobian: bool):
+        v = x["x"]
+        return residual_fn(v).detach(), ({"x": jac(v).detach()} if with_jacobian else None)
+
+    res = levenberg_marquardt(evaluate, {"x": x0.detach().to(torch.float64)}, [Block("x", tuple(x0.shape))],
+                              None, options)
+    res.x = res.x_flat
+    return res
+
+
+__all__ = ["Block", "LMOptions", "LMResult", "SolverError", "covariance", "least_squares", "levenberg_marquardt"]

@@ -12,10 +12,11 @@ import pytest
 import torch
 
 from renderer import optics
-from tiltfit.fit import FitError, FitOptions, focal_from_homographies
 from tiltfit.calibration import calibrate
+from tiltfit.fit import FitError, FitOptions
 from tiltfit.model import (PAPER_LENS, PAPER_SENSOR, TiltLensCamera, board_points_mm, random_poses,
                            synthesize_observations)
+from tiltfit.start import focal_from_homographies
 
 W_MM, U_MM, D_MM = PAPER_LENS["w_mm"], PAPER_LENS["U_mm"], PAPER_LENS["d_mm"]
 F_MM = W_MM * U_MM / (W_MM + U_MM)
@@ -300,7 +301,7 @@ def test_blur_scan_on_non_finite_geometry_raises_fit_error_not_type_error():
     """A NaN starting pose (seen from solvePnP on degenerate views) must end in a clear FitError."""
     import pytest as _pytest
 
-    from tiltfit.fit import FitError, blur_from_scan
+    from tiltfit.start import blur_from_scan
 
     p_cam = torch.full((1, 6, 3), float("nan"), dtype=torch.float64)
     blur = torch.ones(1, 6, dtype=torch.float64)

@@ -85,11 +85,12 @@ def _offset_correlation(result: FitResult) -> float:
     idx = [names.index(n) for n in ("inv_U_per_m", "d_scaled") if n in names]
     if not idx:
         return 0.0
-    o = names.index("blur_offset_px")
-    C = result.covariance
-    c_oo = float(C[o, o])
-    c_ol = C[o, idx]
-    C_ll = C[idx][:, idx]
+    if result.covariance is None:  # not computed (`FitOptions.uncertainties` off)
+        return math.nan
+    C = result.covariance.submatrix([names.index("blur_offset_px")] + idx)
+    c_oo = float(C[0, 0])
+    c_ol = C[0, 1:]
+    C_ll = C[1:, 1:]
     try:
         r2 = float(c_ol @ torch.linalg.solve(C_ll, c_ol)) / c_oo
     except RuntimeError:

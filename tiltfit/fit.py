@@ -41,6 +41,7 @@ from renderer.cameras.distortion import MODELS as DISTORTION_MODELS
 from .model import (APERTURE_SCALE_MM, BLUR_MODELS, ROBUST_LOSSES, Observations, TiltLensCamera,
                     distortion_parameter_names, residuals, robust_rho, robust_weight)
 from .solve import Block, LMOptions, LMResult, SolverError
+from .solve.blocks import DenseCovariance
 from .solve import covariance as solve_covariance
 from .solve import levenberg_marquardt as solve_lm
 
@@ -138,7 +139,9 @@ class FitResult:
         views: per view: image, R, T_mm, rms_reprojection_px, rms_blur_px, n_points, sigma_rvec_deg,
             sigma_T_mm.
         noise: estimated (or given) sigma_corner_px, sigma_blur_px.
-        parameter_names, covariance: the free parameters (stored units of the camera) and their covariance.
+        parameter_names, covariance: the free parameters (stored units of the camera, flat order) and their
+            covariance (`tiltfit.solve.covariance`: `.dense()` the matrix, `.diagonal()`, `.submatrix(idx)`;
+            by blocks, so thousands of views need no (P, P) matrix); None when `FitOptions.uncertainties` is off.
         chi2: Σ ρ((r/σ)²) at the solution; n_residuals, n_parameters; iterations; runtime_s.
         model_selection: per tested parameter, the test's numbers and a verdict (see the module docstring).
         distortion_model: the distortion terms fitted ("none", "k1", …); distortion_selection: the tests that
@@ -159,7 +162,7 @@ class FitResult:
     views: list
     noise: dict
     parameter_names: list
-    covariance: torch.Tensor
+    covariance: object
     chi2: float
     n_residuals: int
     n_parameters: int
@@ -334,10 +337,10 @@ def _group_sigma(prob: _Problem, r_raw: torch.Tensor, normal, robust: str | None
     """Variance components: σ_g² = Σ_g r² / (n_g − tr_g(hat matrix)) (MAD-based under a robust loss); the
     hat matrix's diagonal from the normal equations' blocks (`normal.leverages`)."""
     try:
-        Ainv = normal.inverse()
+        cov = normal.covariance()
     except RuntimeError:
-        Ainv = torch.linalg.pinv(normal.dense())
-    lev = normal.leverages(Ainv)
+        cov = DenseCovariance(torch.linalg.pinv(normal.dense()))
+    lev = normal.leverages(cov)
     out = []
     for rows, n in ((prob.corner_rows, prob.n_corner), (prob.blur_rows, prob.n_blur)):
         if n == 0:
@@ -442,7 +445,7 @@ def _uncertainties(prob: _Problem, res: LMResult, scale: torch.Tensor, init_sigm
         raise FitError("the fit is degenerate: the free parameters are not all determined by the data") from None
     layout = res.layout
     G = _jacobian_of(lambda v: _derived(cam, prob.params(layout.unflatten(v))), res.x_flat)
-    cov_d = G @ C @ G.T
+    cov_d = G @ C.matmul(G.T)
     # Held lens parameters with known uncertainty: total derivative through the re-fitted free parameters.
     held_sig = _held_sigma(init_sigma, cam, list(prob.held))
     if held_sig:
@@ -459,7 +462,7 @@ def _uncertainties(prob: _Problem, res: LMResult, scale: torch.Tensor, init_sigm
         Jh = torch.cat([jh[k] for k in hnames], 1) * scale[:, None]
         # dx/dh = −(JᵀWJ)⁻¹ JᵀW J_h; JᵀW v is the normal equations' gradient of v
         JtWJh = torch.stack([res.normal.gradient(Jh[:, i]) for i in range(len(hnames))], 1)
-        dx_dh = -(C / s2) @ JtWJh
+        dx_dh = -C.matmul(JtWJh) / s2
         Gh = _jacobian_of(lambda hv: _derived(cam, prob.params(res.x, with_h(hv))), h0) + G @ dx_dh
         Sh = torch.diag(torch.tensor([held_sig[k] ** 2 for k in hnames], dtype=torch.float64))
         cov_d = cov_d + Gh @ Sh @ Gh.T
@@ -469,22 +472,21 @@ def _uncertainties(prob: _Problem, res: LMResult, scale: torch.Tensor, init_sigm
     # Per-view pose σ, if the poses are free.
     view_sig = []
     offsets = layout.offsets
-    sigma["distortion"] = [math.sqrt(float(C[offsets[n][0], offsets[n][0]])) if n in offsets else 0.0
+    sd = C.diagonal().clamp_min(0).sqrt().tolist()
+    sigma["distortion"] = [sd[offsets[n][0]] if n in offsets else 0.0
                            for n in TiltLensCamera.parameter_names("distortion")]
     if "inv_U_per_m" in offsets:
-        o = offsets["inv_U_per_m"][0]
-        sigma["inv_U_per_m"] = math.sqrt(float(C[o, o]))
+        sigma["inv_U_per_m"] = sd[offsets["inv_U_per_m"][0]]
     if "blur_offset_px" in offsets:
-        o = offsets["blur_offset_px"][0]
-        sigma["blur_offset_px"] = math.sqrt(float(C[o, o]))
+        sigma["blur_offset_px"] = sd[offsets["blur_offset_px"][0]]
     for v in range(cam.n_views):
         entry = {}
         if "rvec" in offsets:
             o = offsets["rvec"][0] + 3 * v
-            entry["sigma_rvec_deg"] = [math.degrees(math.sqrt(float(C[o + k, o + k]))) for k in range(3)]
+            entry["sigma_rvec_deg"] = [math.degrees(sd[o + k]) for k in range(3)]
         if "T_scaled" in offsets:
             o = offsets["T_scaled"][0] + 3 * v
-            entry["sigma_T_mm"] = [math.sqrt(float(C[o + k, o + k])) * cam.length_scale_mm for k in range(3)]
+            entry["sigma_T_mm"] = [sd[o + k] * cam.length_scale_mm for k in range(3)]
         view_sig.append(entry)
     return C, sigma, view_sig, s2
 
@@ -513,8 +515,7 @@ def _fit_camera(camera: TiltLensCamera, obs: Observations, options: FitOptions, 
     if options.uncertainties:
         C, sig, view_sig, s2 = _uncertainties(prob, res, scale, init_sigma)
     else:  # only the fitted camera is wanted (held-out folds): σ unknown, and a near-degenerate fit is no error
-        n = res.x_flat.numel()
-        C, view_sig, s2 = torch.full((n, n), math.nan, dtype=torch.float64), [{}] * obs.n_views, math.nan
+        C, view_sig, s2 = None, [{}] * obs.n_views, math.nan
         sig = {k: math.nan for k in _DERIVED_KEYS} | {"principal_point_px": [math.nan, math.nan],
                                                        "distortion": [math.nan] * 8}
     with torch.no_grad():

@@ -62,7 +62,7 @@ def test_linear_problem_gives_the_regression_covariance():
     beta = torch.linalg.lstsq(X, y[:, None]).solution[:, 0]
     assert torch.allclose(res.x["beta"], beta, atol=1e-10), f"{res.x['beta'].tolist()} vs {beta.tolist()}"
     s2 = float((res.r ** 2).sum()) / (50 - 3)
-    C = covariance(res, s2)
+    C = covariance(res, s2).dense()
     expected = s2 * torch.linalg.inv(X.T @ X)
     assert torch.allclose(C, expected, rtol=1e-10, atol=0), "Gauss–Newton covariance s² (XᵀX)⁻¹"
 
@@ -112,9 +112,15 @@ def test_per_view_blocks_by_schur_complement_match_the_dense_solve():
     dense = levenberg_marquardt(dense_eval, {"all": layout.flatten(x0)}, [Block("all", (layout.n_params,))])
     assert isinstance(dense.normal, DenseNormal)
     assert torch.allclose(res.x_flat, dense.x_flat, atol=1e-9), "Schur and dense solves agree"
-    C_schur, C_dense = covariance(res), covariance(dense)
+    C_schur, C_dense = covariance(res).dense(), covariance(dense).dense()
     assert torch.allclose(C_schur, C_dense, rtol=1e-8, atol=1e-14), "block inverse equals the dense inverse"
-    lev = res.normal.leverages(C_schur)
+    cov = covariance(res)
+    lev = res.normal.leverages(cov)
+    assert torch.allclose(cov.diagonal(), torch.diagonal(C_dense), rtol=1e-8, atol=1e-14), "block variances"
+    X = torch.randn(layout.n_params, 4, dtype=F64, generator=torch.Generator().manual_seed(0))
+    assert torch.allclose(cov.matmul(X), C_dense @ X, rtol=1e-8, atol=1e-12), "block product A⁻¹ X"
+    assert torch.allclose(cov.submatrix([5, 0, 2]), C_dense[[5, 0, 2]][:, [5, 0, 2]], rtol=1e-8, atol=1e-14), \
+        "entries of chosen positions"
     assert abs(float(lev.sum()) - layout.n_params) < 1e-8, \
         f"the hat matrix's trace is the number of parameters: {float(lev.sum())} vs {layout.n_params}"
     assert layout.flat_names()[:3] == ["radius", "centre[0,0]", "centre[0,1]"], layout.flat_names()[:3]

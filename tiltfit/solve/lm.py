@@ -2,7 +2,7 @@
 
     levenberg_marquardt(evaluate, x0, blocks, view_rows=None, options=LMOptions()) -> LMResult
     least_squares(residual_fn, x0, options=LMOptions(), jacobian_fn=None) -> LMResult   (one dense vector)
-    covariance(result) -> (P, P)
+    covariance(result) -> the (P, P) covariance, by blocks
 
 `evaluate(x, with_jacobian)` gets the state as {block name: tensor} and returns (r, jac): r the (M,) residuals,
 already divided by their standard deviations, and jac {block name: (M, size)} (None when not asked for): for a
@@ -211,20 +211,23 @@ def levenberg_marquardt(evaluate, x0: dict, blocks, view_rows: torch.Tensor | No
                       f"still decreasing by about {decrement:.3g})")
 
 
-def covariance(result: LMResult, variance_factor: float = 1.0) -> torch.Tensor:
-    """Gauss–Newton covariance s² (JᵀWJ)⁻¹ of the flat parameters at the solution, (P, P) (`layout` order).
+def covariance(result: LMResult, variance_factor: float = 1.0):
+    """Gauss–Newton covariance s² (JᵀWJ)⁻¹ of the flat parameters at the solution (`layout` order), as a
+    `blocks.SchurCovariance` (per-view blocks: never a (P, P) matrix) or `blocks.DenseCovariance`; `.dense()`
+    gives the matrix, `.diagonal()` the variances, `.matmul(X)` the product with (P, n).
 
     Raises:
         SolverError: the normal matrix is singular or not positive definite (parameters the data do not
             determine).
     """
     try:
-        Ainv = result.normal.inverse()
+        cov = result.normal.covariance()
     except RuntimeError:
         raise SolverError("the free parameters are not all determined by the data") from None
-    if not torch.isfinite(Ainv).all() or (torch.diagonal(Ainv) <= 0).any():
+    d = cov.diagonal()
+    if not torch.isfinite(d).all() or (d <= 0).any():
         raise SolverError("the free parameters are not all determined by the data")
-    return variance_factor * Ainv
+    return cov.scaled(variance_factor)
 
 
 def least_squares(residual_fn, x0: torch.Tensor, options: LMOptions = LMOptions(), jacobian_fn=None) -> LMResult:

@@ -17,6 +17,9 @@ import torch
 from .fit import FitError, FitOptions
 from .model import APERTURE_SCALE_MM, Observations, TiltLensCamera
 
+#: Entries (candidates × widths) of one block of `blur_from_scan`'s table: 2M float64, 16 MB per temporary.
+SCAN_ENTRIES = 1 << 21
+
 
 def focal_from_homographies(obs: Observations, principal_point_px=None) -> float | None:
     """Focal length in pixels from the board homographies, principal point known and square pixels.
@@ -113,13 +116,16 @@ def blur_from_scan(p_cam: torch.Tensor, blur_px: torch.Tensor, mask: torch.Tenso
     tans = torch.tan(torch.deg2rad(torch.arange(-80.0, 80.5, 1.0, dtype=torch.float64))) if fit_tilt \
         else torch.zeros(1, dtype=torch.float64)
     best = (math.inf, None, None, None)
+    # candidates U in chunks: a (241, n) table of thousands of views' widths would take a GB per temporary
+    chunk = max(1, SCAN_ENTRIES // max(b.numel(), 1))
     for t in tans:
-        m = torch.abs(U[:, None] + y[None] * t - z[None]) / (U[:, None] * z[None])  # (nU, n)
-        c = (m @ b) / (m * m).sum(-1).clamp(min=1e-300)
-        rss = ((c[:, None] * m - b[None]) ** 2).sum(-1)
-        i = int(torch.argmin(rss))
-        if float(rss[i]) < best[0]:
-            best = (float(rss[i]), float(U[i]), float(c[i]), float(torch.atan(t)))
+        for Uc in U.split(chunk):
+            m = torch.abs(Uc[:, None] + y[None] * t - z[None]) / (Uc[:, None] * z[None])  # (chunk, n)
+            c = (m @ b) / (m * m).sum(-1).clamp(min=1e-300)
+            rss = ((c[:, None] * m - b[None]) ** 2).sum(-1)
+            i = int(torch.argmin(rss))
+            if float(rss[i]) < best[0]:
+                best = (float(rss[i]), float(Uc[i]), float(c[i]), float(torch.atan(t)))
     _, U0, wd, th = best
     if wd is None or not wd > 0:
         raise FitError("cannot start the blur parameters: the blur widths show no defocus")

@@ -13,7 +13,8 @@ Each measurement runs in a fresh child process (so its peak RSS is its own):
 - OpenCV: cv2.calibrateCamera on the same corners (one focal length, free principal point, k1 k2 p1 p2 k3,
   200 iterations / 1e-12).
 Peak RSS is the child's ru_maxrss, its baseline the RSS after the imports (Python, torch, cv2), before reading
-the DET files. Wall times are medians over --repeats at the sizes up to --repeat-max-views, one run above.
+the DET files. CPU time (user + system of the child, all threads) and wall time are medians over --repeats at the
+sizes up to --repeat-max-views, one run above; CPU time is the figure to compare on a loaded machine.
 
 Writes benchmarks/results/calib_scale.{json,md}. Usage:
     python benchmarks/bench_calib_scale.py [--sizes 50,200,500,1000,2000] [--repeats 3] [--repeat-max-views 200]
@@ -38,6 +39,12 @@ from results_io import ROOT, add_output_options, markdown_only, save
 
 PITCH_MM = 0.00654 * 4
 SIZE_PX = (1368, 912)
+
+
+def _cpu_s() -> float:
+    """CPU time of this process so far (user + system, all threads), seconds."""
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
 
 
 def _rss_mb() -> float:
@@ -88,11 +95,11 @@ def child_tiltfit(folder: str) -> dict:
     base = _rss_mb()
     dets = sorted(glob.glob(os.path.join(folder, "view*.json")))
     out = os.path.join(tempfile.mkdtemp(), "calib.json")
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), _cpu_s()
     rc = cli.main(["calibrate", *dets, "--target", os.path.join(folder, "target.json"), "--pixel-pitch-mm",
                    str(PITCH_MM), "-q", "-o", out])
-    wall = time.perf_counter() - t0
-    res = {"rc": rc, "wall_s": wall, "baseline_rss_mb": base,
+    wall, cpu = time.perf_counter() - t0, _cpu_s() - c0
+    res = {"rc": rc, "wall_s": wall, "cpu_s": cpu, "baseline_rss_mb": base,
            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
     if rc == 0:
         with open(out) as f:
@@ -111,7 +118,7 @@ def child_opencv(folder: str) -> dict:
 
     base = _rss_mb()
     pts = np.asarray(load_target(os.path.join(folder, "target.json")).feature_points(), dtype=np.float32)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), _cpu_s()
     obj, img = [], []
     for p in sorted(glob.glob(os.path.join(folder, "view*.json"))):
         with open(p) as f:
@@ -124,8 +131,8 @@ def child_opencv(folder: str) -> dict:
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)
     rms, K, dist, _, _ = cv2.calibrateCamera(obj, img, (W, H), K0, None, flags=cv2.CALIB_FIX_ASPECT_RATIO,
                                              criteria=crit)
-    wall = time.perf_counter() - t0
-    return {"rc": 0, "wall_s": wall, "baseline_rss_mb": base, "f_px": float(K[0, 0]), "rms_px": float(rms),
+    wall, cpu = time.perf_counter() - t0, _cpu_s() - c0
+    return {"rc": 0, "wall_s": wall, "cpu_s": cpu, "baseline_rss_mb": base, "f_px": float(K[0, 0]), "rms_px": float(rms),
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
@@ -149,19 +156,21 @@ def write_markdown(path: str, res: dict) -> None:
              f"--sizes {','.join(str(r['views']) for r in res['rows'])}`. Synthetic views of the paper's target "
              "(40 corners, blur widths), `tiltfit calibrate` with its defaults (distortion auto with the 5-fold "
              "held-out error, model selection, uncertainties) and cv2.calibrateCamera (k1 k2 p1 p2 k3) on the same "
-             "corners, each in a fresh process. Wall: median of the repeats (n). Peak RSS: the process's maximum "
-             "resident memory (baseline: after the imports).", "",
-             "| views | tiltfit wall (s) | n | OpenCV wall (s) | ratio | tiltfit peak RSS (MB) | baseline (MB) | "
-             "OpenCV peak RSS (MB) | f tiltfit / OpenCV (px) | RMS tiltfit / OpenCV (px) |",
-             "|---:|---:|---:|---:|---:|---:|---:|---:|---|---|"]
+             "corners, each in a fresh process. CPU: the process's user + system time for the calibration (its "
+             "threads together; robust to other load on the machine), wall beside it; medians of the repeats (n). "
+             f"Load average at the start: {res.get('load', '?')}. Peak RSS: the process's maximum resident memory "
+             "(baseline: after the imports).", "",
+             "| views | tiltfit CPU (s) | wall (s) | n | OpenCV CPU (s) | ratio (CPU) | tiltfit peak RSS (MB) | "
+             "baseline (MB) | OpenCV peak RSS (MB) | f tiltfit / OpenCV (px) | RMS tiltfit / OpenCV (px) |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|"]
     for r in res["rows"]:
         t, o = r["tiltfit"], r["opencv"]
         if t.get("rc") != 0:
-            lines.append(f"| {r['views']} | failed: {t.get('error', t.get('rc'))} | | {o.get('wall_s', 0):.2f} | | | | "
+            lines.append(f"| {r['views']} | failed: {t.get('error', t.get('rc'))} | | | {o.get('cpu_s', 0):.2f} | | | | "
                          f"{o.get('peak_rss_mb', 0):.0f} | | |")
             continue
-        lines.append(f"| {r['views']} | {t['wall_s']:.1f} | {r['repeats']} | {o['wall_s']:.2f} | "
-                     f"{t['wall_s'] / o['wall_s']:.0f} | {t['peak_rss_mb']:.0f} | {t['baseline_rss_mb']:.0f} | "
+        lines.append(f"| {r['views']} | {t['cpu_s']:.1f} | {t['wall_s']:.1f} | {r['repeats']} | {o['cpu_s']:.2f} | "
+                     f"{t['cpu_s'] / o['cpu_s']:.0f} | {t['peak_rss_mb']:.0f} | {t['baseline_rss_mb']:.0f} | "
                      f"{o['peak_rss_mb']:.0f} | {t['f_px']:.2f} / {o['f_px']:.2f} | "
                      f"{t['rms_px']:.4f} / {o['rms_px']:.4f} |")
     lines += ["", "OpenCV fits one model once; `tiltfit calibrate` fits five distortion models on five held-out "
@@ -189,6 +198,7 @@ def main(argv=None) -> int:
     if markdown_only(args, write_markdown):
         return 0
     sys.path.insert(0, ROOT)
+    res_load = " / ".join(f"{x:.1f}" for x in os.getloadavg())
     rows = []
     for n in [int(s) for s in args.sizes.split(",")]:
         folder = os.path.join(args.cache, f"views{n}")
@@ -206,6 +216,7 @@ def main(argv=None) -> int:
                 row[kind] = rs[-1]
                 continue
             row[kind] = dict(ok[-1], wall_s=statistics.median(r["wall_s"] for r in ok),
+                             cpu_s=statistics.median(r["cpu_s"] for r in ok),
                              peak_rss_mb=max(r["peak_rss_mb"] for r in ok), walls_s=[r["wall_s"] for r in ok])
         rows.append(row)
     import cv2
@@ -214,7 +225,7 @@ def main(argv=None) -> int:
     res = {"date": datetime.date.today().isoformat(),
            "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, "
                       f"torch {torch.__version__} ({torch.get_num_threads()} threads), OpenCV {cv2.__version__}",
-           "rows": rows}
+           "load": res_load, "rows": rows}
     save(args.out, res, write_markdown)
     return 0
 

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from tiltfit.solve import Block, LMOptions, SolverError, covariance, least_squares, levenberg_marquardt
-from tiltfit.solve.blocks import DenseNormal, Layout, SchurNormal
+from tiltfit.solve.blocks import DenseNormal, Layout, SchurCovariance, SchurNormal
 
 F64 = torch.float64
 
@@ -115,6 +115,7 @@ def test_per_view_blocks_by_schur_complement_match_the_dense_solve():
     C_schur, C_dense = covariance(res).dense(), covariance(dense).dense()
     assert torch.allclose(C_schur, C_dense, rtol=1e-8, atol=1e-14), "block inverse equals the dense inverse"
     cov = covariance(res)
+    assert isinstance(cov, SchurCovariance), "per-view blocks keep the covariance by blocks (no (P, P) matrix)"
     lev = res.normal.leverages(cov)
     assert torch.allclose(cov.diagonal(), torch.diagonal(C_dense), rtol=1e-8, atol=1e-14), "block variances"
     X = torch.randn(layout.n_params, 4, dtype=F64, generator=torch.Generator().manual_seed(0))

@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from .imaging import apply_homography, build_pyramid, homography_dlt_batch, torch_threads
+from .solve.batched import BatchedOptions, Normal, batched_levenberg_marquardt
 from .target import Target
 
 
@@ -364,53 +365,40 @@ def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, itera
         trial[:, 3::3], trial[:, 4::3] = oo, torch.where(has_band, cc, torch.ones_like(cc))
         theta = torch.where(better[:, None], trial, theta)
         best = torch.where(better, cost, best)
-    lam = torch.full((C,), 1e-3, dtype=f64)
-    # weak prior on g (1 % per pixel) keeps points with few bands well posed
+    # weak prior on g (1 % per pixel) keeps points with few bands well posed: residuals prior · (gx, gy)
     prior = 1e-2 * torch.sqrt(npix.sum(-1)) * theta[:, 4::3].abs().mean(-1).clamp_min(1e-6)
 
     def evaluate(th, idx):
-        """(cost, JᵀJ, Jᵀ res) at parameters th (k, P) of the corners idx."""
+        """`tiltfit.solve.Normal` (cost, JᵀJ, Jᵀr) of the corners idx at parameters th (k, P), r model − data,
+        the prior included."""
         f, K = model(th, idx)
         res = (I[idx] - f) * mask[idx]
         cost = (res * res).sum((-1, -2)) + ((prior[idx, None] * th[:, 1:3]) ** 2).sum(-1)
-        return (cost, *normal_equations(K, res, idx))
+        A, Kr = normal_equations(K, res, idx)
+        A[:, 1, 1] += prior[idx] ** 2
+        A[:, 2, 2] += prior[idx] ** 2
+        g = -Kr
+        g[:, 1:3] += prior[idx, None] ** 2 * th[:, 1:3]
+        return Normal(cost, A, g)
 
-    cost, JtJ, Jtr = evaluate(theta, every)
-    active = every
-    for _ in range(iterations):
-        # a corner whose step has become negligible is done and leaves the batch (it would hardly move
-        # again: < 0.01 σ of its blur on the shipped real photos), so the work follows the slow corners
-        a = active
-        A = JtJ[a].clone()
-        A[:, 1, 1] += prior[a] ** 2
-        A[:, 2, 2] += prior[a] ** 2
-        gvec = Jtr[a].clone()
-        gvec[:, 1:3] -= prior[a, None] ** 2 * theta[a, 1:3]
-        diag = torch.diagonal(A, dim1=1, dim2=2)
-        A_d = A + lam[a, None, None] * torch.diag_embed(diag + 1e-9)
-        step = torch.linalg.solve(A_d, gvec[..., None])[..., 0]
-        new = theta[a] + step
-        new[:, 0] = new[:, 0].clamp(-2 * r_cap[a], 2 * r_cap[a])
-        cost2, JtJ2, Jtr2 = evaluate(new, a)
-        better = cost2 < cost[a]
-        theta[a] = torch.where(better[:, None], new, theta[a])
-        JtJ[a] = torch.where(better[:, None, None], JtJ2, JtJ[a])
-        Jtr[a] = torch.where(better[:, None], Jtr2, Jtr[a])
-        cost[a] = torch.where(better, cost2, cost[a])
-        lam[a] = torch.where(better, lam[a] * 0.3, lam[a] * 10.0).clamp(1e-9, 1e9)
-        # converged: the diameter moves by < 1e-4 of itself (+1e-4 px) and the cost no longer drops
-        small = (step[:, 0].abs() < 1e-4 * (theta[a, 0].abs() + 1)) & (step[:, 1:3].abs().max(1).values < 1e-5)
-        active = a[~(small | (lam[a] > 1e6))]
-        if active.numel() == 0:
-            break
+    def small_step(step, th, idx):
+        # converged: the diameter moves by < 1e-4 of itself (+1e-4 px) and the gradient by < 1e-5 (a corner
+        # whose step is this small would hardly move again: < 0.01 σ of its blur on the shipped real photos)
+        return (step[:, 0].abs() < 1e-4 * (th[:, 0].abs() + 1)) & (step[:, 1:3].abs().max(1).values < 1e-5)
+
+    def within_cap(th, idx):
+        th[:, 0] = th[:, 0].clamp(-2 * r_cap[idx], 2 * r_cap[idx])
+        return th
+
+    sol = batched_levenberg_marquardt(evaluate, theta, BatchedOptions(max_iterations=iterations),
+                                      small_step=small_step, project=within_cap)
+    theta, cost = sol.x, sol.cost
     dof = (npix.sum(-1) - (3 + 3 * has_band.sum(-1))).clamp_min(1)
     contrast = theta[:, 4::3].abs().max(-1).values
     # a floor of 0.1 % of the contrast keeps noise-free fits honest where b is not identifiable (a sharp
     # edge almost parallel to the pixel grid samples its profile at one phase only)
     s2 = torch.maximum(cost / dof, (1e-3 * contrast) ** 2)
-    A = JtJ.clone()
-    A[:, 1, 1] += prior ** 2
-    A[:, 2, 2] += prior ** 2
+    A = sol.A
     keep = torch.cat([torch.ones(C, 3, dtype=torch.bool), has_band.repeat_interleave(3, dim=1)], 1)
     A = torch.where(keep[:, :, None] & keep[:, None, :], A, torch.diag_embed(torch.ones(C, P, dtype=f64)))
     cov = torch.linalg.pinv(A) * s2[:, None, None]

@@ -1,7 +1,8 @@
 """The calibration flow: the geometric fit with the principal point and distortion chosen on the data, then the
 blur fit and its checks (focus undetermined, physical ranges, a blur model that does not describe the lens).
 
-Built on the fits of `tiltfit.fit` and the held-out validation of `tiltfit.validate`:
+Built on the fit of `tiltfit.fit`, its start (`tiltfit.start`), the nested-model tests of `tiltfit.selection` and
+the held-out validation of `tiltfit.validate`:
 
     calibrate(obs, mode, init, options, init_sigma) -> FitResult
     fit_geometry(camera, obs, options, mode)         -> FitResult   (corners only; distortion "auto" chosen by
@@ -17,9 +18,10 @@ import numpy as np
 import torch
 
 from . import fit as _core
-from .fit import (MODES, FitError, FitOptions, FitResult, _fit_camera, _model_selection, _set_free, _usable_views,
-                  blur_depends_on_depth, blur_is_informative, initialize, likelihood_ratio, start_blur)
+from .fit import MODES, FitError, FitOptions, FitResult, _fit_camera, _set_free
 from .model import Observations, TiltLensCamera, distortion_parameter_names, residuals
+from .selection import blur_depends_on_depth, blur_is_informative, likelihood_ratio, nested_model_tests, usable_views
+from .start import initialize, start_blur
 from .validate import select_distortion
 
 
@@ -83,11 +85,12 @@ def _offset_correlation(result: FitResult) -> float:
     idx = [names.index(n) for n in ("inv_U_per_m", "d_scaled") if n in names]
     if not idx:
         return 0.0
-    o = names.index("blur_offset_px")
-    C = result.covariance
-    c_oo = float(C[o, o])
-    c_ol = C[o, idx]
-    C_ll = C[idx][:, idx]
+    if result.covariance is None:  # not computed (`FitOptions.uncertainties` off)
+        return math.nan
+    C = result.covariance.submatrix([names.index("blur_offset_px")] + idx)
+    c_oo = float(C[0, 0])
+    c_ol = C[0, 1:]
+    C_ll = C[1:, 1:]
     try:
         r2 = float(c_ol @ torch.linalg.solve(C_ll, c_ol)) / c_oo
     except RuntimeError:
@@ -155,7 +158,7 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
     t0 = time.perf_counter()
     say = options.progress
     n_all = obs.n_views
-    obs, skipped = _usable_views(obs, options.min_corners, say)
+    obs, skipped = usable_views(obs, options.min_corners, say)
     if obs.n_views == 0:
         raise FitError(f"none of the {n_all} views has a board with at least {options.min_corners} corners")
     if say:
@@ -237,7 +240,7 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
     if outliers:
         notes.append(f"outlier views (RMS above {options.outlier_factor:g}× the median): {', '.join(outliers)}")
     if options.model_selection:
-        result.model_selection = _model_selection(
+        result.model_selection = nested_model_tests(
             result, obs, mode, options, say, test_theta_F="theta_F_deg" not in undetermined and blur_ok and not misfit,
             test_principal_point=pp_test is None)
         if pp_test is not None:

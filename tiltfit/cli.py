@@ -53,9 +53,21 @@ class CliError(Exception):
         self.file, self.problem = file, problem
 
 
+#: The library's names for what the command line calls an option (library messages speak in API terms).
+_API_TO_OPTION = {"the pixel_pitch_mm argument": "--pixel-pitch-mm"}
+
+
+def _in_cli_terms(msg: str) -> str:
+    """A library message with its API names replaced by the command-line options they come from."""
+    for api, option in _API_TO_OPTION.items():
+        msg = msg.replace(api, option)
+    return msg
+
+
 def _as_cli_error(file: str, err: Exception) -> CliError:
-    """Wrap an exception whose message may already start with the file name (one line)."""
-    msg = "; ".join(line.strip() for line in str(err).strip().splitlines()) or type(err).__name__
+    """Wrap an exception whose message may already start with the file name (one line, in command-line
+    terms)."""
+    msg = _in_cli_terms("; ".join(line.strip() for line in str(err).strip().splitlines()) or type(err).__name__)
     prefix = f"{file}: "
     return CliError(file, msg[len(prefix):] if msg.startswith(prefix) else msg)
 

@@ -15,7 +15,7 @@ Pipeline (`detect`):
    a local saddle search). Each accepted corner must look like an X-junction: the four cell centres around
    it alternate (diagonal pairs equal, pairs different), which rejects the board's outer L-corners.
 4. Sub-pixel refinement at full resolution: a checker corner under any point-symmetric blur (disc, pixel
-   box, Gaussian) is a centre of point symmetry, I(p + v) = I(p − v). Gauss–Newton on p minimises
+   box, Gaussian) is a centre of point symmetry, I(p + v) = I(p − v). Levenberg–Marquardt on p minimises
    Σ_v w(v) [I(p + v) − I(p − v)]² over a window of 0.4 of the local square (at most 20 px), on patches
    smoothed by a 1.4 px Gaussian (symmetric, so the optimum stays put; it damps aliasing of sharp edges)
    and interpolated with Keys' cubic, all corners batched. No edge or blur model, so no bias from the blur
@@ -53,6 +53,7 @@ import torch.nn.functional as F
 
 from .blur import measure_blur as _measure_blur
 from .imaging import apply_homography, build_pyramid, homography_dlt, homography_dlt_batch, to_full, torch_threads
+from .solve.batched import BatchedOptions, batched_levenberg_marquardt, normal_from_residuals
 from .target import Target
 
 
@@ -507,8 +508,8 @@ def refine_symmetric(gray: np.ndarray, xy: np.ndarray, radius: np.ndarray, itera
                      presmooth: float = 1.4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Point-symmetry refinement of corners at full resolution.
 
-    Minimises Σ_v w(v) [I(p + v) − I(p − v)]² over p by Gauss–Newton, v over a half-disc of `radius`
-    (integer offsets, weights (1 − |v|²/R²)²). I is the patch smoothed by a Gaussian of `presmooth` px
+    Minimises Σ_v w(v) [I(p + v) − I(p − v)]² over p (`tiltfit.solve.batched_levenberg_marquardt`, all
+    corners at once), v over a half-disc of `radius` (integer offsets, weights (1 − |v|²/R²)²). I is the patch smoothed by a Gaussian of `presmooth` px
     (symmetric, so the optimum is unchanged; it damps the aliasing of sharp edges) and interpolated with
     Keys' cubic (a = −1/2), whose exact derivative gives the Jacobian. On synthetic disc-blurred corners
     the bias is under 0.015 px for blur ≥ 1 px and under 0.035 px for perfectly sharp edges.
@@ -543,7 +544,7 @@ def refine_symmetric(gray: np.ndarray, xy: np.ndarray, radius: np.ndarray, itera
     c0[:, 1] = np.clip(c0[:, 1], 0, H - 1)
     ys = np.clip(c0[:, 1, None] + np.arange(-P, P + 1)[None], 0, H - 1)
     xs = np.clip(c0[:, 0, None] + np.arange(-P, P + 1)[None], 0, W - 1)
-    # float32: the patches, weights and Gauss-Newton sums (errors ~1e-5 px); the positions accumulate in float64
+    # float32: the patches, weights and normal equations (errors ~1e-5 px); the positions accumulate in float64
     t = torch.from_numpy(gray[ys[:, :, None], xs[:, None, :]].astype(np.float32))[:, None]  # (N, 1, S, S)
     if presmooth > 0:
         import kornia
@@ -557,35 +558,37 @@ def refine_symmetric(gray: np.ndarray, xy: np.ndarray, radius: np.ndarray, itera
     M = off.shape[0]
     Sr = S - 3
 
-    def residuals(loc, with_jacobian=True):
+    def residuals(loc, idx, with_jacobian=True):
+        """Values at p ± v of the patches idx (k, 2M) and, with_jacobian, the derivatives of
+        I(p + v) − I(p − v) by p (k, M, 2)."""
         base = torch.floor(loc)
         frac = (loc - base).float()
-        v, gx, gy = _shift_patches(t, frac)
+        v, gx, gy = _shift_patches(t[idx], frac)
         # shifted entry [y, x] is the interpolant at (x + 1 + fx, y + 1 + fy): p + v sits at base + v − 1
         b = base.long() - 1
         ip = (b[:, None, 1] + offt[None, :, 1]) * Sr + (b[:, None, 0] + offt[None, :, 0])
         im = (b[:, None, 1] - offt[None, :, 1]) * Sr + (b[:, None, 0] - offt[None, :, 0])
-        idx = torch.cat([ip, im], 1).clamp(0, Sr * Sr - 1)
-        vv = torch.gather(v.reshape(N, -1), 1, idx)
+        ix = torch.cat([ip, im], 1).clamp(0, Sr * Sr - 1)
+        k = idx.numel()
+        vv = torch.gather(v.reshape(k, -1), 1, ix)
         if not with_jacobian:
             return vv, None
-        gxx = torch.gather(gx.reshape(N, -1), 1, idx)
-        gyy = torch.gather(gy.reshape(N, -1), 1, idx)
-        J = torch.stack([gxx[:, :M] - gxx[:, M:], gyy[:, :M] - gyy[:, M:]], 1)  # (N, 2, M)
+        gxx = torch.gather(gx.reshape(k, -1), 1, ix)
+        gyy = torch.gather(gy.reshape(k, -1), 1, ix)
+        J = torch.stack([gxx[:, :M] - gxx[:, M:], gyy[:, :M] - gyy[:, M:]], -1)  # (k, M, 2)
         return vv, J
 
-    for _ in range(iterations):
-        vv, J = residuals(loc)
-        r = vv[:, :M] - vv[:, M:]
-        Jw = J * wgt[:, None]
-        A = Jw @ J.transpose(1, 2) + 1e-12 * torch.eye(2, dtype=J.dtype)
-        step = -torch.linalg.solve(A, (Jw * r[:, None]).sum(-1))
-        n = torch.linalg.vector_norm(step, dim=1, keepdim=True)
-        step = torch.where(n > 1.0, step / n, step)
-        loc = loc + step.double()
-        if float(n.max()) < 1e-4:
-            break
-    v, _ = residuals(loc, with_jacobian=False)
+    def evaluate(loc, idx):
+        vv, J = residuals(loc, idx)
+        return normal_from_residuals(vv[:, :M] - vv[:, M:], J, wgt[idx])
+
+    # Levenberg–Marquardt (Gauss–Newton's steps once the damping has fallen), steps capped at 1 px so a corner
+    # cannot jump to a neighbouring junction; done when a corner moves by < 1e-4 px
+    sol = batched_levenberg_marquardt(
+        evaluate, loc, BatchedOptions(max_iterations=iterations, max_step=1.0),
+        small_step=lambda step, x, idx: torch.linalg.vector_norm(step, dim=1) < 1e-4)
+    loc = sol.x
+    v, _ = residuals(loc, torch.arange(N), with_jacobian=False)
     r = v[:, :M] - v[:, M:]
     wt2 = torch.cat([wgt, wgt], 1)
     mean = (v * wt2).sum(1, keepdim=True) / wt2.sum(1, keepdim=True)

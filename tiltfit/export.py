@@ -1,7 +1,7 @@
 """A calibration in other libraries' terms: OpenCV FileStorage files and kornia's PinholeCamera.
 
     write_opencv(calib, path)            CALIB.json dict -> camera.yml (cv2.FileStorage)
-    read_opencv(path, pixel_pitch_mm)    camera.yml -> CALIB.json-like dict (to start a fit with --init)
+    read_opencv(path, pixel_pitch_mm)    camera.yml -> CALIB.json-like dict (the start of a fit)
     kornia_camera(calib)                 CALIB.json dict -> kornia.geometry.camera.PinholeCamera (all views)
 
 OpenCV's camera: K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx = fy = w / p (pixels), the distortion
@@ -88,7 +88,7 @@ def write_opencv(calib: dict, path: str) -> None:
 
 
 def read_opencv(path: str, pixel_pitch_mm: float | None = None) -> dict:
-    """Read an OpenCV FileStorage camera file into a CALIB.json-like dict (for `--init`).
+    """Read an OpenCV FileStorage camera file into a CALIB.json-like dict (the start of a calibration).
 
     Needs camera_matrix and image_width/image_height; distortion_coefficients optional. fx and fy must agree
     within 1 % (our pixels are square; their mean is used). The pixel pitch comes from the file
@@ -127,7 +127,7 @@ def read_opencv(path: str, pixel_pitch_mm: float | None = None) -> dict:
     finally:
         fs.release()
     if not pitch or not pitch > 0:
-        raise ExportError(f"{path}: pixel_pitch_mm: not in the file; give --pixel-pitch-mm")
+        raise ExportError(f"{path}: pixel_pitch_mm: not in the file; give it as the pixel_pitch_mm argument")
     fx, fy = float(K[0, 0]), float(K[1, 1])
     if not (fx > 0 and fy > 0) or abs(fx / fy - 1) > 0.01:
         raise ExportError(f"{path}: camera_matrix: fx = {fx:g} and fy = {fy:g} differ by more than 1 % "

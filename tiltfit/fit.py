@@ -1,7 +1,11 @@
-"""The fits of a tilt-lens camera: initialisation, Levenberg–Marquardt, uncertainties, nested-model tests. The
-calibration flow built on them (which terms to free, the checks after the fit) is `tiltfit.calibration`:
+"""The least-squares fit of a tilt-lens camera: the problem over its free parameters, the solve with the noise
+levels estimated, and the uncertainties. The starting camera is `tiltfit.start`'s, the nested-model tests
+`tiltfit.selection`'s, and the calibration flow built on them (which terms to free, the checks after the fit)
+`tiltfit.calibration`'s:
 
     calibrate(obs, mode="unified" | "tilt" | "joint", init=None, options=FitOptions()) -> FitResult
+                                                                        (tiltfit.calibration)
+    fit_geometry(camera, obs, options, mode)                            -> FitResult   (corners only)
 
 Modes (the paper's two stages, and one fit of everything):
     unified  stage 1, eq (3): θF = 0; fits w, U, d and every view's R, T from corners and blur.
@@ -23,12 +27,6 @@ Uncertainties: C = s² (Jᵀ W J)⁻¹ on the free parameters (s² the residual 
 w, U, d, θF, θL (exact Scheimpflug), θL of the paper's eq (1) and f by the Jacobian of those functions. In
 `tilt` mode the held w, U, d carry the uncertainties `init` gives for them (through the fit's implicit
 dependence on them), but not the bias of holding U.
-
-Model selection: the fit is repeated with θF (and the principal point) switched to the other state (θF only
-where the thin-lens blur model describes the blur widths, `tiltfit.calibration.blur_misfit`); the
-likelihood-ratio statistic Λ = Σ_g n_g ln(RSS_g,restricted / RSS_g,full) (Gaussian, each group's variance
-profiled out) is compared with χ²(k), and AIC/BIC differences are reported. A parameter is "justified"
-when the test rejects the restricted model at level `alpha` and BIC prefers the larger one.
 """
 from __future__ import annotations
 
@@ -36,7 +34,6 @@ import math
 import time
 from dataclasses import dataclass, field, replace
 
-import numpy as np
 import torch
 
 from renderer.cameras.distortion import MODELS as DISTORTION_MODELS
@@ -44,9 +41,9 @@ from renderer.cameras.distortion import MODELS as DISTORTION_MODELS
 from .model import (APERTURE_SCALE_MM, BLUR_MODELS, ROBUST_LOSSES, Observations, TiltLensCamera,
                     distortion_parameter_names, residuals, robust_rho, robust_weight)
 from .solve import Block, LMOptions, LMResult, SolverError
+from .solve.blocks import DenseCovariance
 from .solve import covariance as solve_covariance
 from .solve import levenberg_marquardt as solve_lm
-from .stats import nested_test
 
 MODES = ("unified", "tilt", "joint")
 # A calibrated view reprojecting worse than this (RMS per corner; 5 px per coordinate) means mismatched data.
@@ -142,7 +139,9 @@ class FitResult:
         views: per view: image, R, T_mm, rms_reprojection_px, rms_blur_px, n_points, sigma_rvec_deg,
             sigma_T_mm.
         noise: estimated (or given) sigma_corner_px, sigma_blur_px.
-        parameter_names, covariance: the free parameters (stored units of the camera) and their covariance.
+        parameter_names, covariance: the free parameters (stored units of the camera, flat order) and their
+            covariance (`tiltfit.solve.covariance`: `.dense()` the matrix, `.diagonal()`, `.submatrix(idx)`;
+            by blocks, so thousands of views need no (P, P) matrix); None when `FitOptions.uncertainties` is off.
         chi2: Σ ρ((r/σ)²) at the solution; n_residuals, n_parameters; iterations; runtime_s.
         model_selection: per tested parameter, the test's numbers and a verdict (see the module docstring).
         distortion_model: the distortion terms fitted ("none", "k1", …); distortion_selection: the tests that
@@ -163,7 +162,7 @@ class FitResult:
     views: list
     noise: dict
     parameter_names: list
-    covariance: torch.Tensor
+    covariance: object
     chi2: float
     n_residuals: int
     n_parameters: int
@@ -330,226 +329,18 @@ def _lm(evaluate, x0: dict, blocks, view_rows, options: LMOptions) -> LMResult:
         raise FitError(str(e)) from None
 
 
-def levenberg_marquardt(residual_fn, x0: torch.Tensor, robust: str | None = None, robust_scale: float = 3.0,
-                        max_iterations: int = 200, jacobian_fn=None) -> LMResult:
-    """Minimise ½ Σ ρ(r_i(x)²) over one dense parameter vector (`tiltfit.solve.levenberg_marquardt` with a
-    single block "x"; the result's `x` is the vector).
-
-    Args:
-        residual_fn: (P,) -> (M,) float64 residuals, already divided by their σ.
-        x0: (P,) start.
-        jacobian_fn: (P,) -> (M, P); default `torch.func.jacfwd(residual_fn)`.
-    Raises:
-        FitError: non-finite residuals at the start, or no convergence within max_iterations.
-    """
-    from torch.func import jacfwd
-
-    jac = jacobian_fn or jacfwd(residual_fn)
-
-    def evaluate(x: dict, with_jacobian: bool):
-        v = x["x"]
-        return residual_fn(v).detach(), ({"x": jac(v).detach()} if with_jacobian else None)
-
-    res = _lm(evaluate, {"x": x0.detach().to(torch.float64)}, [Block("x", tuple(x0.shape))], None,
-              _robust_options(robust, robust_scale, max_iterations))
-    res.x = res.x_flat
-    return res
-
-
 # ---------------------------------------------------------------------------------------------------------
-# Initialisation
-# ---------------------------------------------------------------------------------------------------------
-
-def focal_from_homographies(obs: Observations, principal_point_px=None) -> float | None:
-    """Focal length in pixels from the board homographies, principal point known and square pixels.
-
-    Each homography H ~ K [r1 r2 t] gives two linear equations in 1/F² (r1 ⟂ r2, |r1| = |r2|); they are
-    solved together in the least-squares sense (Zhang's method with the principal point fixed). Returns
-    None for a planar target seen only fronto-parallel (no solution) or a non-planar target.
-    """
-    import cv2
-
-    W, H = obs.image_size_px
-    c = np.array(principal_point_px if principal_point_px is not None else ((W - 1) / 2, (H - 1) / 2))
-    s = float(max(W, H))  # pixel coordinates in units of the image size keep the equations O(1)
-    pts = obs.points_mm.numpy()
-    if np.ptp(pts[:, 2]) > 1e-9:
-        return None
-    rows_a, rows_c = [], []
-    mask = obs.corner_mask.numpy()  # once: the property checks every view's corners
-    for v in range(obs.n_views):
-        m = mask[v]
-        if m.sum() < 4:
-            continue
-        Hm, _ = cv2.findHomography(pts[m, :2] / s, (obs.corners_px[v].numpy()[m] - c) / s, 0)
-        if Hm is None:
-            continue
-        Hm = Hm / np.linalg.norm(Hm)
-        h1, h2 = Hm[:, 0], Hm[:, 1]
-        rows_a += [h1[0] * h2[0] + h1[1] * h2[1], h1[0] ** 2 + h1[1] ** 2 - h2[0] ** 2 - h2[1] ** 2]
-        rows_c += [h1[2] * h2[2], h1[2] ** 2 - h2[2] ** 2]
-    a, cc = np.array(rows_a), np.array(rows_c)
-    if len(a) == 0 or float(a @ a) <= 0:
-        return None
-    inv_f2 = -float(a @ cc) / float(a @ a)
-    if not inv_f2 > 0:
-        return None
-    F = s / math.sqrt(inv_f2)
-    return F if 0.05 * s < F < 50 * s else None
-
-
-def poses_from_pnp(obs: Observations, focal_px: float, principal_point_px,
-                   distortion=None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-view rvec (V, 3) and T (V, 3, mm) by OpenCV's solvePnP on the detected corners.
-
-    `distortion`: None or up to 8 Brown–Conrady coefficients in OpenCV's order."""
-    import cv2
-
-    K = np.array([[focal_px, 0, principal_point_px[0]], [0, focal_px, principal_point_px[1]], [0, 0, 1.0]])
-    dist = None if distortion is None or not any(float(v) for v in distortion) else \
-        np.array([float(v) for v in distortion], dtype=np.float64)
-    pts = obs.points_mm.numpy()
-    rv, tv = [], []
-    mask = obs.corner_mask.numpy()  # once: the property checks every view's corners
-    for v in range(obs.n_views):
-        m = mask[v]
-        if m.sum() < 4:
-            raise FitError(f"{obs.names[v]}: only {int(m.sum())} corners detected, at least 4 are needed")
-        planar = np.ptp(pts[m, 2]) < 1e-9
-        # IPPE for a flat board; SQPnP where it fails (a board exactly facing the camera gave IPPE NaNs with
-        # opencv-python-headless 5.0.0 on a GPU machine), then the iterative method.
-        for flags in ([cv2.SOLVEPNP_IPPE] if planar else []) + [cv2.SOLVEPNP_SQPNP, cv2.SOLVEPNP_ITERATIVE]:
-            ok, r, t = cv2.solvePnP(pts[m], obs.corners_px[v].numpy()[m], K, dist, flags=flags)
-            if ok and np.isfinite(r).all() and np.isfinite(t).all():
-                break
-        else:
-            raise FitError(f"{obs.names[v]}: cannot find the board's pose")
-        # The iterative refinement only polishes the first pose (the joint fit refines it again); some OpenCV
-        # builds refuse it where the first pose is fine (seen with opencv-python-headless 5.0.0 on a GPU
-        # machine), so its failure keeps the first pose instead of failing the calibration.
-        ok2, r2, t2 = cv2.solvePnP(pts[m], obs.corners_px[v].numpy()[m], K, dist, r.copy(), t.copy(), True,
-                                   cv2.SOLVEPNP_ITERATIVE)
-        if ok2 and np.isfinite(r2).all() and np.isfinite(t2).all():
-            r, t = r2, t2
-        if not (np.isfinite(r).all() and np.isfinite(t).all()):
-            raise FitError(f"{obs.names[v]}: cannot find the board's pose (degenerate corner layout)")
-        rv.append(r.ravel())
-        tv.append(t.ravel())
-    return torch.tensor(np.array(rv)), torch.tensor(np.array(tv))
-
-
-def blur_from_scan(p_cam: torch.Tensor, blur_px: torch.Tensor, mask: torch.Tensor, w_mm: float,
-                   pixel_pitch_mm: float, fit_tilt: bool) -> tuple[float, float, float]:
-    """Starting U, d (mm) and θF (rad) by a scan: for each candidate U (and tan θF) the blur model is linear in
-    the scale w·d, solved in closed form; the candidate with the least squared error wins.
-
-    Uses b = w d |U + y tan θF − z| / (U z) (the first-order model, eq (2) for θF = 0).
-    """
-    y = p_cam[..., 1][mask].double()
-    z = p_cam[..., 2][mask].double()
-    b = blur_px[mask].double() * pixel_pitch_mm
-    if b.numel() < 3:
-        raise FitError(f"only {b.numel()} blur measurements, at least 3 are needed")
-    zmin, zmax = float(z.min()), float(z.max())
-    U = torch.exp(torch.linspace(math.log(0.3 * zmin), math.log(3.0 * zmax), 241, dtype=torch.float64))
-    tans = torch.tan(torch.deg2rad(torch.arange(-80.0, 80.5, 1.0, dtype=torch.float64))) if fit_tilt \
-        else torch.zeros(1, dtype=torch.float64)
-    best = (math.inf, None, None, None)
-    for t in tans:
-        m = torch.abs(U[:, None] + y[None] * t - z[None]) / (U[:, None] * z[None])  # (nU, n)
-        c = (m @ b) / (m * m).sum(-1).clamp(min=1e-300)
-        rss = ((c[:, None] * m - b[None]) ** 2).sum(-1)
-        i = int(torch.argmin(rss))
-        if float(rss[i]) < best[0]:
-            best = (float(rss[i]), float(U[i]), float(c[i]), float(torch.atan(t)))
-    _, U0, wd, th = best
-    if wd is None or not wd > 0:
-        raise FitError("cannot start the blur parameters: the blur widths show no defocus")
-    return U0, wd / w_mm, th
-
-
-def _blur_rss(cam: TiltLensCamera, obs: Observations, U_mm: float, d_mm: float, theta_F: float) -> float:
-    with torch.no_grad():
-        cam.inv_U_per_m.fill_(1000.0 / U_mm)
-        cam.d_scaled.fill_(d_mm / APERTURE_SCALE_MM)
-        cam.theta_F.fill_(theta_F)
-        b = cam.blur(obs.points_mm)
-        r = torch.where(obs.blur_mask, b - torch.nan_to_num(obs.blur_px), torch.zeros_like(b))
-        rss = float((r * r).sum())
-    return rss if math.isfinite(rss) else math.inf
-
-
-def initialize(obs: Observations, mode: str = "unified", init: TiltLensCamera | None = None,
-               options: FitOptions = FitOptions(), blur: bool = True) -> TiltLensCamera:
-    """A starting camera for `calibrate`.
-
-    Poses from PnP with w from `init`, else the nominal focal length, else the homographies. The blur
-    parameters are the best (least squared blur error) of: `init`'s U, d, θF; the linear scan
-    (`blur_from_scan`, θF scanned too in `joint` mode) unless `tilt` mode holds U and d; and, in `tilt` mode,
-    a scan of θF over ±80° with `init`'s U and d. With `blur` False the blur parameters are `init`'s (or
-    U = 600 mm, d = 10 mm) and θF = 0: they are not fitted then. `init`'s distortion is kept.
-    """
-    W, H = obs.image_size_px
-    dist = None
-    if init is not None:
-        init = init.copy().requires_grad_(False)
-        pp = [float(v) for v in init.principal_point_px]
-        w_mm = float(init.w_mm)
-        dist = [float(v) for v in init.distortion]
-    else:
-        pp = [(W - 1) / 2.0, (H - 1) / 2.0]
-        if options.nominal_focal_mm is not None:
-            w_mm = float(options.nominal_focal_mm)
-        else:
-            F = focal_from_homographies(obs, pp)
-            if F is None:
-                raise FitError("cannot estimate the focal length from these views (too fronto-parallel, or the "
-                               "target does not match the detections); give a nominal focal length")
-            w_mm = F * obs.pixel_pitch_mm
-    rvec, T = poses_from_pnp(obs, w_mm / obs.pixel_pitch_mm, pp, dist)
-    U0, d0 = (float(init.U_mm), float(init.d_mm)) if init is not None else (600.0, 10.0)
-    cam = TiltLensCamera(obs.n_views, obs.image_size_px, obs.pixel_pitch_mm, w_mm, U0, d0, rvec=rvec,
-                         T_mm=T, principal_point_px=pp, blur_model=options.blur_model, distortion=dist)
-    if init is not None:
-        with torch.no_grad():
-            cam.blur_offset_px.copy_(init.blur_offset_px)
-    if blur:
-        start_blur(cam, obs, mode, init)
-    return cam
-
-
-def start_blur(cam: TiltLensCamera, obs: Observations, mode: str, init: TiltLensCamera | None = None):
-    """Set cam's U, d, θF to the best start (see `initialize`) for its current poses; returns cam."""
-    w_mm = float(cam.w_mm.detach())
-    candidates = []
-    if init is not None:
-        th = float(init.theta_F.detach()) if mode != "unified" else 0.0
-        candidates.append((float(init.U_mm.detach()), float(init.d_mm.detach()), th))
-    if mode == "tilt":
-        U0, d0 = float(init.U_mm.detach()), float(init.d_mm.detach())
-        candidates += [(U0, d0, math.radians(a)) for a in np.arange(-80.0, 80.5, 1.0)]
-    else:
-        with torch.no_grad():
-            p_cam = cam.to_camera(obs.points_mm)
-        candidates.append(blur_from_scan(p_cam, obs.blur_px, obs.blur_mask, w_mm, obs.pixel_pitch_mm,
-                                         fit_tilt=(mode == "joint")))
-    best = min(candidates, key=lambda c: _blur_rss(cam, obs, *c))
-    _blur_rss(cam, obs, *best)
-    return cam
-
-
-# ---------------------------------------------------------------------------------------------------------
-# The fit
+# The solve and the uncertainties
 # ---------------------------------------------------------------------------------------------------------
 
 def _group_sigma(prob: _Problem, r_raw: torch.Tensor, normal, robust: str | None) -> tuple[float, float]:
     """Variance components: σ_g² = Σ_g r² / (n_g − tr_g(hat matrix)) (MAD-based under a robust loss); the
     hat matrix's diagonal from the normal equations' blocks (`normal.leverages`)."""
     try:
-        Ainv = normal.inverse()
+        cov = normal.covariance()
     except RuntimeError:
-        Ainv = torch.linalg.pinv(normal.dense())
-    lev = normal.leverages(Ainv)
+        cov = DenseCovariance(torch.linalg.pinv(normal.dense()))
+    lev = normal.leverages(cov)
     out = []
     for rows, n in ((prob.corner_rows, prob.n_corner), (prob.blur_rows, prob.n_blur)):
         if n == 0:
@@ -654,7 +445,7 @@ def _uncertainties(prob: _Problem, res: LMResult, scale: torch.Tensor, init_sigm
         raise FitError("the fit is degenerate: the free parameters are not all determined by the data") from None
     layout = res.layout
     G = _jacobian_of(lambda v: _derived(cam, prob.params(layout.unflatten(v))), res.x_flat)
-    cov_d = G @ C @ G.T
+    cov_d = G @ C.matmul(G.T)
     # Held lens parameters with known uncertainty: total derivative through the re-fitted free parameters.
     held_sig = _held_sigma(init_sigma, cam, list(prob.held))
     if held_sig:
@@ -671,7 +462,7 @@ def _uncertainties(prob: _Problem, res: LMResult, scale: torch.Tensor, init_sigm
         Jh = torch.cat([jh[k] for k in hnames], 1) * scale[:, None]
         # dx/dh = −(JᵀWJ)⁻¹ JᵀW J_h; JᵀW v is the normal equations' gradient of v
         JtWJh = torch.stack([res.normal.gradient(Jh[:, i]) for i in range(len(hnames))], 1)
-        dx_dh = -(C / s2) @ JtWJh
+        dx_dh = -C.matmul(JtWJh) / s2
         Gh = _jacobian_of(lambda hv: _derived(cam, prob.params(res.x, with_h(hv))), h0) + G @ dx_dh
         Sh = torch.diag(torch.tensor([held_sig[k] ** 2 for k in hnames], dtype=torch.float64))
         cov_d = cov_d + Gh @ Sh @ Gh.T
@@ -681,22 +472,21 @@ def _uncertainties(prob: _Problem, res: LMResult, scale: torch.Tensor, init_sigm
     # Per-view pose σ, if the poses are free.
     view_sig = []
     offsets = layout.offsets
-    sigma["distortion"] = [math.sqrt(float(C[offsets[n][0], offsets[n][0]])) if n in offsets else 0.0
+    sd = C.diagonal().clamp_min(0).sqrt().tolist()
+    sigma["distortion"] = [sd[offsets[n][0]] if n in offsets else 0.0
                            for n in TiltLensCamera.parameter_names("distortion")]
     if "inv_U_per_m" in offsets:
-        o = offsets["inv_U_per_m"][0]
-        sigma["inv_U_per_m"] = math.sqrt(float(C[o, o]))
+        sigma["inv_U_per_m"] = sd[offsets["inv_U_per_m"][0]]
     if "blur_offset_px" in offsets:
-        o = offsets["blur_offset_px"][0]
-        sigma["blur_offset_px"] = math.sqrt(float(C[o, o]))
+        sigma["blur_offset_px"] = sd[offsets["blur_offset_px"][0]]
     for v in range(cam.n_views):
         entry = {}
         if "rvec" in offsets:
             o = offsets["rvec"][0] + 3 * v
-            entry["sigma_rvec_deg"] = [math.degrees(math.sqrt(float(C[o + k, o + k]))) for k in range(3)]
+            entry["sigma_rvec_deg"] = [math.degrees(sd[o + k]) for k in range(3)]
         if "T_scaled" in offsets:
             o = offsets["T_scaled"][0] + 3 * v
-            entry["sigma_T_mm"] = [math.sqrt(float(C[o + k, o + k])) * cam.length_scale_mm for k in range(3)]
+            entry["sigma_T_mm"] = [sd[o + k] * cam.length_scale_mm for k in range(3)]
         view_sig.append(entry)
     return C, sigma, view_sig, s2
 
@@ -725,8 +515,7 @@ def _fit_camera(camera: TiltLensCamera, obs: Observations, options: FitOptions, 
     if options.uncertainties:
         C, sig, view_sig, s2 = _uncertainties(prob, res, scale, init_sigma)
     else:  # only the fitted camera is wanted (held-out folds): σ unknown, and a near-degenerate fit is no error
-        n = res.x_flat.numel()
-        C, view_sig, s2 = torch.full((n, n), math.nan, dtype=torch.float64), [{}] * obs.n_views, math.nan
+        C, view_sig, s2 = None, [{}] * obs.n_views, math.nan
         sig = {k: math.nan for k in _DERIVED_KEYS} | {"principal_point_px": [math.nan, math.nan],
                                                        "distortion": [math.nan] * 8}
     with torch.no_grad():
@@ -751,100 +540,6 @@ def _fit_camera(camera: TiltLensCamera, obs: Observations, options: FitOptions, 
         parameter_names=res.layout.flat_names(), covariance=C, chi2=2.0 * res.cost,
         n_residuals=prob.n_corner + prob.n_blur, n_parameters=res.x_flat.numel(), iterations=res.iterations,
         runtime_s=time.perf_counter() - t0, rss=_group_rss(prob, res, scale))
-
-
-def likelihood_ratio(restricted: FitResult, full: FitResult, k: int, alpha: float = 0.01) -> dict:
-    """Test a restricted fit against a fuller one (k extra parameters) over the corner and blur groups
-    (`tiltfit.stats.nested_test`). ΔBIC uses all of the fit's residuals."""
-    groups = [(full.rss[f"n_{g}"], restricted.rss[g], full.rss[g]) for g in ("corners", "blur")]
-    out = nested_test(groups, k, alpha)
-    # The fit's residual count (corners and blur widths with their own σ) sets the BIC penalty.
-    out["delta_bic"] = out["lr_statistic"] - k * math.log(full.n_residuals)
-    out["justified"] = bool(out["p_value"] < alpha and out["delta_bic"] > 0)
-    return out
-
-
-def _model_selection(base: FitResult, obs: Observations, mode: str, options: FitOptions, say=None,
-                     test_theta_F: bool = True, test_principal_point: bool = True) -> dict:
-    """Re-fit with θF (and the principal point) switched and test which state the data support."""
-    out = {}
-    quiet = replace(options, model_selection=False)
-    sigma = (base.noise["sigma_corner_px"], base.noise["sigma_blur_px"])
-    if base.rss.get("n_blur", 0) == 0:
-        obs = without_blur(obs)
-    tests = [("theta_F", ("theta_F",), 1)] if test_theta_F else []
-    if test_principal_point:
-        tests.append(("principal_point", ("principal_point",), 2))
-    for label, names, k in tests:
-        cam = base.camera.copy()
-        stored = cam.parameter_names(*names)
-        is_free = all(getattr(cam, s).requires_grad for s in stored)
-        if is_free:
-            cam.freeze(*names)
-            with torch.no_grad():
-                for s in stored:
-                    getattr(cam, s).zero_()
-        else:
-            cam.free(*names)
-        try:
-            alt = _fit_camera(cam, obs, quiet, sigma=sigma, mode=mode)
-        except FitError as e:
-            out[label] = {"error": str(e), "justified": None}
-            continue
-        full, restricted = (base, alt) if is_free else (alt, base)
-        entry = likelihood_ratio(restricted, full, k, options.alpha)
-        entry["fitted"] = is_free
-        if label == "theta_F":
-            entry["theta_F_deg_full"] = full.values["theta_F_deg"]
-        else:
-            entry["principal_point_px_full"] = full.values["principal_point_px"]
-        out[label] = entry
-        if say:
-            verdict = "justified" if entry["justified"] else "not justified"
-            say(f"model selection: freeing {label} is {verdict} (Λ = {entry['lr_statistic']:.3g}, "
-                f"p = {entry['p_value']:.3g}, ΔBIC = {entry['delta_bic']:.3g})")
-    return out
-
-
-def _usable_views(obs: Observations, min_corners: int, say=None) -> tuple[Observations, list]:
-    """Drop views with fewer than `min_corners` corners; returns (observations kept, [{image, reason}])."""
-    n = obs.corner_mask.sum(-1)
-    keep = [v for v in range(obs.n_views) if int(n[v]) >= min_corners]
-    skipped = [{"image": obs.names[v], "reason": f"{int(n[v])} corners found, at least {min_corners} needed"}
-               for v in range(obs.n_views) if int(n[v]) < min_corners]
-    for sk in skipped:
-        if say:
-            say(f"warning: skipping {sk['image']}: {sk['reason']}")
-    return (obs if len(keep) == obs.n_views else obs.subset(keep)), skipped
-
-
-def blur_is_informative(obs: Observations, floor_px: float = 1.0) -> bool:
-    """Whether the blur widths can say anything about U and d: at least 3 of them, and some above `floor_px`
-    (below it a detector's width is its own resolution, not defocus)."""
-    b = obs.blur_px[obs.blur_mask]
-    return b.numel() >= 3 and float(b.max()) >= floor_px
-
-
-def blur_depends_on_depth(camera: TiltLensCamera, obs: Observations, alpha: float = 1e-3) -> bool:
-    """Whether the blur widths vary with the corners' place in the camera frame beyond their scatter: a
-    likelihood-ratio test (χ², 4 degrees of freedom) of widths regressed on (1, 1/z, 1/z², x/z, y/z)
-    (defocus on either side of a plane of focus, tilted or not) against a constant, at level `alpha`, with
-    `camera`'s poses. Widths the same at every depth (a soft lens, detector blur) say nothing about U and d."""
-    m = obs.blur_mask
-    b = obs.blur_px[m].double()
-    if b.numel() < 10:
-        return False
-    with torch.no_grad():
-        X = camera.to_camera(obs.points_mm.to(camera.rvec.dtype))[m]
-    iz = 1.0 / X[:, 2].clamp_min(1e-9)
-    iz = iz / iz.mean()
-    A = torch.stack([torch.ones_like(iz), iz, iz**2, X[:, 0] / X[:, 2], X[:, 1] / X[:, 2]], -1).double()
-    coef = torch.linalg.lstsq(A, b[:, None]).solution
-    rss1 = float(((A @ coef)[:, 0] - b).pow(2).sum())
-    rss0 = float((b - b.mean()).pow(2).sum())
-    if rss1 <= 0:
-        return rss0 > 0
-    return nested_test([(b.numel(), rss0, rss1)], A.shape[1] - 1, alpha)["p_value"] < alpha
 
 
 def without_blur(obs: Observations) -> Observations:

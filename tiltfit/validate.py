@@ -21,7 +21,8 @@ import torch
 
 from renderer.cameras.distortion import MODEL_TERMS, MODELS as DISTORTION_MODELS
 
-from .fit import FitError, FitOptions, FitResult, fit_geometry, initialize, without_blur
+from .fit import FitError, FitOptions, FitResult, fit_geometry, without_blur
+from .start import initialize
 from .model import Observations, TiltLensCamera
 
 # Models whose held-out errors lie within this fraction of the best are not told apart by K-fold validation

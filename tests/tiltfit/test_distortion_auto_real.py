@@ -9,7 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from tiltfit.fit import FitOptions, fit_geometry, initialize, without_blur
+from tiltfit.fit import FitOptions, fit_geometry, without_blur
+from tiltfit.start import initialize
 from tiltfit.calibration import calibrate
 from tiltfit.model import Observations
 from tiltfit.target import load_target

@@ -12,10 +12,11 @@ import pytest
 import torch
 
 from renderer import optics
-from tiltfit.fit import FitError, FitOptions, focal_from_homographies, levenberg_marquardt
 from tiltfit.calibration import calibrate
+from tiltfit.fit import FitError, FitOptions
 from tiltfit.model import (PAPER_LENS, PAPER_SENSOR, TiltLensCamera, board_points_mm, random_poses,
                            synthesize_observations)
+from tiltfit.start import focal_from_homographies
 
 W_MM, U_MM, D_MM = PAPER_LENS["w_mm"], PAPER_LENS["U_mm"], PAPER_LENS["d_mm"]
 F_MM = W_MM * U_MM / (W_MM + U_MM)
@@ -288,19 +289,6 @@ def test_focal_length_from_homographies():
         calibrate(fronto, "unified", options=QUIET)
 
 
-def test_levenberg_marquardt_on_a_small_problem():
-    t = torch.linspace(0, 1, 20, dtype=torch.float64)
-    y = 2.0 * torch.exp(-1.5 * t) + 0.3
-
-    def r(x):
-        return x[0] * torch.exp(x[1] * t) + x[2] - y
-
-    res = levenberg_marquardt(r, torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
-    assert torch.allclose(res.x, torch.tensor([2.0, -1.5, 0.3], dtype=torch.float64), atol=1e-6), \
-        f"LM should recover (2, -1.5, 0.3), got {res.x.tolist()}"
-    assert res.iterations < 30, f"converges quickly, took {res.iterations}"
-
-
 def test_mismatched_target_is_an_error():
     truth = truth_camera(4, seed=13)
     obs, _ = observe(truth, seed=1313)
@@ -313,7 +301,7 @@ def test_blur_scan_on_non_finite_geometry_raises_fit_error_not_type_error():
     """A NaN starting pose (seen from solvePnP on degenerate views) must end in a clear FitError."""
     import pytest as _pytest
 
-    from tiltfit.fit import FitError, blur_from_scan
+    from tiltfit.start import blur_from_scan
 
     p_cam = torch.full((1, 6, 3), float("nan"), dtype=torch.float64)
     blur = torch.ones(1, 6, dtype=torch.float64)

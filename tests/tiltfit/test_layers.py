@@ -4,11 +4,13 @@ cycles, the library never imports the experiments, and tiltfit uses only rendere
 Every import statement counts, at module level or inside a function (a function-level import that only hides
 a cycle is still a cycle). Layers, bottom to top:
 
-library      everything not listed below: target, imaging (pyramid, homography), blur, detect, model, fit,
-             validate, calibfile, detfile, formats, export, opencv_corners, report, evaluate (photo vs
-             rendering profiles), photometric, synth (synthetic observations and images: public API, used by
-             tests and benchmarks as much as by the experiments), runlog (progress lines), target_cli
-             (`tiltfit target ...`). A new module is library unless it is added to EXPERIMENTS.
+library      everything not listed below: target, imaging (pyramid, homography), solve (the least-squares
+             solvers), blur, detect, model, fit (the problem and its solve), start (the starting camera),
+             selection (nested-model tests), calibration (the flow), validate, calibfile, detfile, formats,
+             export, opencv_corners, report, evaluate (photo vs rendering profiles), photometric, synth
+             (synthetic observations and images: public API, used by tests and benchmarks as much as by the
+             experiments), runlog (progress lines), target_cli (`tiltfit target ...`). A new module is library
+             unless it is added to EXPERIMENTS.
 experiments  tiltfit/experiments/: reproduce (the paper's experiment), scenes (its boxes scene), stability and
              its studies, cluster (studies as Ray tasks): built on the library, may import anything below them.
 front end    cli, __main__, __init__: may import every layer; nothing imports them.

@@ -5,8 +5,8 @@ import math
 import pytest
 import torch
 
-from tiltfit.solve import Block, LMOptions, SolverError, covariance, levenberg_marquardt
-from tiltfit.solve.blocks import DenseNormal, Layout, SchurNormal
+from tiltfit.solve import Block, LMOptions, SolverError, covariance, least_squares, levenberg_marquardt
+from tiltfit.solve.blocks import DenseNormal, Layout, SchurCovariance, SchurNormal
 
 F64 = torch.float64
 
@@ -62,7 +62,7 @@ def test_linear_problem_gives_the_regression_covariance():
     beta = torch.linalg.lstsq(X, y[:, None]).solution[:, 0]
     assert torch.allclose(res.x["beta"], beta, atol=1e-10), f"{res.x['beta'].tolist()} vs {beta.tolist()}"
     s2 = float((res.r ** 2).sum()) / (50 - 3)
-    C = covariance(res, s2)
+    C = covariance(res, s2).dense()
     expected = s2 * torch.linalg.inv(X.T @ X)
     assert torch.allclose(C, expected, rtol=1e-10, atol=0), "Gauss–Newton covariance s² (XᵀX)⁻¹"
 
@@ -112,9 +112,16 @@ def test_per_view_blocks_by_schur_complement_match_the_dense_solve():
     dense = levenberg_marquardt(dense_eval, {"all": layout.flatten(x0)}, [Block("all", (layout.n_params,))])
     assert isinstance(dense.normal, DenseNormal)
     assert torch.allclose(res.x_flat, dense.x_flat, atol=1e-9), "Schur and dense solves agree"
-    C_schur, C_dense = covariance(res), covariance(dense)
+    C_schur, C_dense = covariance(res).dense(), covariance(dense).dense()
     assert torch.allclose(C_schur, C_dense, rtol=1e-8, atol=1e-14), "block inverse equals the dense inverse"
-    lev = res.normal.leverages(C_schur)
+    cov = covariance(res)
+    assert isinstance(cov, SchurCovariance), "per-view blocks keep the covariance by blocks (no (P, P) matrix)"
+    lev = res.normal.leverages(cov)
+    assert torch.allclose(cov.diagonal(), torch.diagonal(C_dense), rtol=1e-8, atol=1e-14), "block variances"
+    X = torch.randn(layout.n_params, 4, dtype=F64, generator=torch.Generator().manual_seed(0))
+    assert torch.allclose(cov.matmul(X), C_dense @ X, rtol=1e-8, atol=1e-12), "block product A⁻¹ X"
+    assert torch.allclose(cov.submatrix([5, 0, 2]), C_dense[[5, 0, 2]][:, [5, 0, 2]], rtol=1e-8, atol=1e-14), \
+        "entries of chosen positions"
     assert abs(float(lev.sum()) - layout.n_params) < 1e-8, \
         f"the hat matrix's trace is the number of parameters: {float(lev.sum())} vs {layout.n_params}"
     assert layout.flat_names()[:3] == ["radius", "centre[0,0]", "centre[0,1]"], layout.flat_names()[:3]
@@ -179,3 +186,55 @@ def test_calibration_problem_jacobian_equals_autograd_of_its_residuals():
     auto = torch.autograd.functional.jacobian(residuals, v0)
     err = float((ours - auto).abs().max() / auto.abs().max())
     assert ours.shape == auto.shape and err < 1e-9, f"problem Jacobian vs autograd: {err:.2e}"
+
+
+def test_least_squares_on_a_small_dense_problem():
+    t = torch.linspace(0, 1, 20, dtype=torch.float64)
+    y = 2.0 * torch.exp(-1.5 * t) + 0.3
+
+    def r(x):
+        return x[0] * torch.exp(x[1] * t) + x[2] - y
+
+    res = least_squares(r, torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
+    assert torch.allclose(res.x, torch.tensor([2.0, -1.5, 0.3], dtype=torch.float64), atol=1e-6), \
+        f"LM should recover (2, -1.5, 0.3), got {res.x.tolist()}"
+    assert res.iterations < 30, f"converges quickly, took {res.iterations}"
+
+
+def test_batched_solves_each_problem_as_the_single_solver_does():
+    from tiltfit.solve import BatchedOptions, Normal, batched_levenberg_marquardt
+
+    gen = torch.Generator().manual_seed(3)
+    t = torch.linspace(0, 1, 30, dtype=F64)
+    truth = torch.stack([1 + torch.rand(40, generator=gen, dtype=F64), -1 - 2 * torch.rand(40, generator=gen, dtype=F64),
+                         torch.rand(40, generator=gen, dtype=F64) - 0.5], 1)           # (B, 3)
+    y = truth[:, :1] * torch.exp(truth[:, 1:2] * t) + truth[:, 2:] + 1e-3 * torch.randn(40, 30, generator=gen,
+                                                                                          dtype=F64)
+
+    def evaluate(x, idx):
+        e = torch.exp(x[:, 1:2] * t)
+        r = x[:, :1] * e + x[:, 2:] - y[idx]
+        return r, torch.stack([e, x[:, :1] * t * e, torch.ones_like(e)], -1)
+
+    x0 = torch.tensor([1.0, 0.0, 0.0], dtype=F64).expand(40, 3)
+    sol = batched_levenberg_marquardt(evaluate, x0, BatchedOptions(max_iterations=100))
+    assert bool(sol.converged.all()), f"{int((~sol.converged).sum())} of 40 problems did not converge"
+    for b in (0, 17, 39):
+        one = least_squares(lambda v: (v[0] * torch.exp(v[1] * t) + v[2] - y[b]) / 1e-3, x0[b])  # in units of σ
+        assert torch.allclose(sol.x[b], one.x, atol=1e-6), \
+            f"problem {b}: batched {sol.x[b].tolist()} vs the single solver's {one.x.tolist()}"
+    err = (sol.x - truth).abs().max(0).values
+    assert bool((err < torch.tensor([0.02, 0.1, 0.02], dtype=F64)).all()), f"recovered parameters off by {err.tolist()}"
+    # the same through the normal-equations form, with the first parameter bounded and steps capped
+    def normal(x, idx):
+        r, J = evaluate(x, idx)
+        return Normal(0.5 * (r * r).sum(-1), J.transpose(1, 2) @ J, (J * r[..., None]).sum(1))
+
+    def bound(x, idx):
+        x[:, 0] = x[:, 0].clamp(max=1.5)
+        return x
+
+    capped = batched_levenberg_marquardt(normal, x0, BatchedOptions(max_iterations=200, max_step=0.1), project=bound)
+    assert float(capped.x[:, 0].max()) <= 1.5, "the bound holds"
+    free = truth[:, 0] < 1.45
+    assert torch.allclose(capped.x[free], sol.x[free], atol=1e-5), "where the bound is not active the minimum is the same"

@@ -46,7 +46,7 @@ def run_studies(studies: dict, names, cfg, log, cluster: str | None = None):
     threads = torch.get_num_threads()
     jobs = [studies[name] for name in names]
     with cluster_session(cluster):
-        log(f"{', '.join(names)}: started as Ray tasks (--cluster {cluster})")
+        log(f"{', '.join(names)}: started as Ray tasks (cluster {cluster})")
         for i, study in imap_on_cluster(_study_task, jobs, cluster, shared=(cfg, threads), threads=threads):
             yield names[i], pickle.loads(study)
 

@@ -1,11 +1,17 @@
-"""Least-squares solvers shared by the calibration's fits.
+"""Least-squares solvers shared by the calibration's fits (the project's only Levenberg–Marquardt loops;
+tests/test_one_solver.py keeps it so).
 
-    lm.py      Levenberg–Marquardt over named parameter blocks; Gauss–Newton covariance
-    blocks.py  parameter blocks (global and per view), their flat vector, and the normal equations
-               (dense, or the Schur complement of the per-view blocks)
+    lm.py       Levenberg–Marquardt over named parameter blocks (one large problem: the corner fit, the blur
+                fit); `least_squares` for one dense vector; Gauss–Newton covariance
+    blocks.py   parameter blocks (global and per view), their flat vector, and the normal equations
+                (dense, or the Schur complement of the per-view blocks)
+    batched.py  Levenberg–Marquardt on many small independent problems at once (the detector's and the blur
+                measurement's per-corner fits)
 """
+from .batched import BatchedOptions, BatchedResult, Normal, batched_levenberg_marquardt, normal_from_residuals
 from .blocks import Block, BlockJacobian, Layout, dense_jacobian, normal_equations
-from .lm import LMOptions, LMResult, SolverError, covariance, levenberg_marquardt
+from .lm import LMOptions, LMResult, SolverError, covariance, least_squares, levenberg_marquardt
 
-__all__ = ["Block", "BlockJacobian", "LMOptions", "LMResult", "Layout", "SolverError", "covariance",
-           "dense_jacobian", "levenberg_marquardt", "normal_equations"]
+__all__ = ["BatchedOptions", "BatchedResult", "Block", "BlockJacobian", "LMOptions", "LMResult", "Layout", "Normal",
+           "SolverError", "batched_levenberg_marquardt", "covariance", "dense_jacobian", "least_squares",
+           "levenberg_marquardt", "normal_equations", "normal_from_residuals"]

@@ -166,13 +166,13 @@ class DenseNormal:
         """(P, P) A."""
         return self.A
 
-    def inverse(self) -> torch.Tensor:
-        """(P, P) A⁻¹ (raises RuntimeError where A is singular)."""
-        return torch.linalg.inv(self.A)
+    def covariance(self) -> "DenseCovariance":
+        """A⁻¹ (raises RuntimeError where A is singular)."""
+        return DenseCovariance(torch.linalg.inv(self.A))
 
-    def leverages(self, Ainv: torch.Tensor) -> torch.Tensor:
+    def leverages(self, cov: "DenseCovariance") -> torch.Tensor:
         """(M,) diagonal of the hat matrix W J A⁻¹ Jᵀ (each residual's share of the fitted parameters)."""
-        return ((self.Jw @ Ainv) * self.J).sum(-1)
+        return ((self.Jw @ cov.dense()) * self.J).sum(-1)
 
 
 class SchurNormal:
@@ -244,41 +244,108 @@ class SchurNormal:
         A[p[:, :, None], s[None, None, :]] = self.A_sp.transpose(1, 2)
         return A
 
-    def inverse(self) -> torch.Tensor:
-        """(P, P) A⁻¹ by blocks: with Y_v = A_vv⁻¹ A_vs and S = A_ss − Σ_v A_sv Y_v,
-        (A⁻¹)_ss = S⁻¹, (A⁻¹)_sv = −S⁻¹ Y_vᵀ, (A⁻¹)_vu = δ_vu A_vv⁻¹ + Y_v S⁻¹ Y_uᵀ;
-        O(P² S) instead of O(P³). Raises RuntimeError where A is singular."""
-        bj = self.bj
+    def covariance(self) -> "SchurCovariance":
+        """A⁻¹ by its blocks, never as a (P, P) matrix (`SchurCovariance`). Raises RuntimeError where A is
+        singular."""
         App_inv = torch.linalg.inv(self.A_pp)                          # (V, K, K)
         Y = App_inv @ self.A_sp.transpose(1, 2)                        # (V, K, S)
         S_inv = torch.linalg.inv(self.A_ss - (self.A_sp @ Y).sum(0))
-        V, K, n_s = Y.shape
-        Yf = Y.reshape(V * K, n_s)
-        C_pp = Yf @ S_inv @ Yf.T                                       # (V K, V K)
-        C_pp = C_pp.reshape(V, K, V, K)
-        C_pp[torch.arange(V), :, torch.arange(V), :] += App_inv
-        C_sp = -(S_inv @ Yf.T)                                         # (S, V K)
-        out = S_inv.new_zeros(bj.n_params, bj.n_params)
-        s, p = bj.s_idx, bj.p_idx.reshape(-1)
-        out[s[:, None], s[None, :]] = S_inv
-        out[s[:, None], p[None, :]] = C_sp
-        out[p[:, None], s[None, :]] = C_sp.T
-        out[p[:, None], p[None, :]] = C_pp.reshape(V * K, V * K)
-        return out
+        return SchurCovariance(S_inv, App_inv, Y, self.bj.s_idx, self.bj.p_idx, self.bj.n_params)
 
-    def leverages(self, Ainv: torch.Tensor) -> torch.Tensor:
+    def leverages(self, cov) -> torch.Tensor:
         """(M,) diagonal of the hat matrix W J A⁻¹ Jᵀ, from the blocks of A⁻¹ that each row touches:
         row i of view v has w_i (j_s C_ss j_sᵀ + 2 j_s C_sv j_pᵀ + j_p C_vv j_pᵀ)."""
-        bj = self.bj
-        s, p = bj.s_idx, bj.p_idx
-        C_ss = Ainv[s[:, None], s[None, :]]                             # (S, S)
-        C_sv = Ainv[s[None, :, None], p[:, None, :]]                    # (V, S, K)
-        C_vv = Ainv[p[:, :, None], p[:, None, :]]                       # (V, K, K)
+        C_ss, C_sv, C_vv = cov.blocks(self.bj.s_idx, self.bj.p_idx)
         js, jp = self.Js_v, self.Jp_v                                   # (V, R, S), (V, R, K)
         q = (js @ C_ss * js).sum(-1) + 2 * (js @ C_sv * jp).sum(-1) + (jp @ C_vv * jp).sum(-1)
         out = torch.zeros_like(self.w)
-        out[bj.rows] = self.w_v * q
+        out[self.bj.rows] = self.w_v * q
         return out
+
+
+class DenseCovariance:
+    """A covariance held as its (P, P) matrix (problems without per-view blocks, or small ones).
+
+    Methods as `SchurCovariance`: diagonal, matmul, submatrix, blocks, dense, scaled."""
+
+    def __init__(self, C: torch.Tensor):
+        self.C = C
+
+    def diagonal(self) -> torch.Tensor:
+        return torch.diagonal(self.C)
+
+    def matmul(self, X: torch.Tensor) -> torch.Tensor:
+        return self.C @ X
+
+    def submatrix(self, idx) -> torch.Tensor:
+        idx = torch.as_tensor(idx, dtype=torch.long)
+        return self.C[idx[:, None], idx[None, :]]
+
+    def blocks(self, s_idx: torch.Tensor, p_idx: torch.Tensor):
+        C = self.C
+        return (C[s_idx[:, None], s_idx[None, :]], C[s_idx[None, :, None], p_idx[:, None, :]],
+                C[p_idx[:, :, None], p_idx[:, None, :]])
+
+    def dense(self) -> torch.Tensor:
+        return self.C
+
+    def scaled(self, factor: float) -> "DenseCovariance":
+        return DenseCovariance(self.C * factor)
+
+
+class SchurCovariance:
+    """A⁻¹ of arrow-structured normal equations, kept as the blocks that define it: with Y_v = A_vv⁻¹ A_vs and
+    S = A_ss − Σ_v A_sv Y_v,
+        (A⁻¹)_ss = S⁻¹,  (A⁻¹)_sv = −S⁻¹ Y_vᵀ,  (A⁻¹)_vu = δ_vu A_vv⁻¹ + Y_v S⁻¹ Y_uᵀ.
+    Memory O(V K S + S²) instead of O(P²): the (P, P) matrix of 2,000 views (P ≈ 12,000) alone is 1.2 GB, and
+    a calibration needs it several times (noise levels, uncertainties, model selection, held-out folds).
+
+    Attributes:
+        S_inv: (S, S); App_inv: (V, K, K) the per-view blocks A_vv⁻¹; Y: (V, K, S); s_idx (S,), p_idx (V, K):
+        positions in the flat vector; n_params: P.
+    """
+
+    def __init__(self, S_inv, App_inv, Y, s_idx, p_idx, n_params: int):
+        self.S_inv, self.App_inv, self.Y = S_inv, App_inv, Y
+        self.s_idx, self.p_idx, self.n_params = s_idx, p_idx, n_params
+
+    def diagonal(self) -> torch.Tensor:
+        """(P,) the variances."""
+        out = self.S_inv.new_zeros(self.n_params)
+        out[self.s_idx] = torch.diagonal(self.S_inv)
+        YS = self.Y @ self.S_inv                                        # (V, K, S)
+        out[self.p_idx] = torch.diagonal(self.App_inv, dim1=-2, dim2=-1) + (YS * self.Y).sum(-1)
+        return out
+
+    def matmul(self, X: torch.Tensor) -> torch.Tensor:
+        """A⁻¹ X for X (P, n): t = S⁻¹ (X_s − Σ_v Y_vᵀ X_v), then (A⁻¹X)_s = t, (A⁻¹X)_v = A_vv⁻¹ X_v − Y_v t."""
+        xs, xp = X[self.s_idx], X[self.p_idx]                          # (S, n), (V, K, n)
+        t = self.S_inv @ (xs - torch.einsum("vks,vkn->sn", self.Y, xp))
+        out = X.new_zeros(self.n_params, X.shape[1])
+        out[self.s_idx] = t
+        out[self.p_idx] = self.App_inv @ xp - torch.einsum("vks,sn->vkn", self.Y, t)
+        return out
+
+    def submatrix(self, idx) -> torch.Tensor:
+        """(n, n) the entries of the flat positions idx."""
+        idx = torch.as_tensor(idx, dtype=torch.long)
+        E = self.S_inv.new_zeros(self.n_params, idx.numel())
+        E[idx, torch.arange(idx.numel())] = 1.0
+        return self.matmul(E)[idx]
+
+    def blocks(self, s_idx=None, p_idx=None):
+        """(C_ss (S, S), C_sv (V, S, K), C_vv (V, K, K)): the blocks a view's rows touch."""
+        YS = self.Y @ self.S_inv                                        # (V, K, S)
+        return self.S_inv, -YS.transpose(1, 2), self.App_inv + YS @ self.Y.transpose(1, 2)
+
+    def dense(self) -> torch.Tensor:
+        """(P, P) A⁻¹ (P² memory: tests and small problems)."""
+        return self.matmul(torch.eye(self.n_params, dtype=self.S_inv.dtype))
+
+    def scaled(self, factor: float) -> "SchurCovariance":
+        """factor · A⁻¹ (Y does not change)."""
+        return SchurCovariance(self.S_inv * factor, self.App_inv * factor, self.Y, self.s_idx, self.p_idx,
+                               self.n_params)
 
 
 def normal_equations(J, wts: torch.Tensor):

@@ -1,7 +1,8 @@
 """Levenberg–Marquardt over named parameter blocks, with Gauss–Newton covariances.
 
     levenberg_marquardt(evaluate, x0, blocks, view_rows=None, options=LMOptions()) -> LMResult
-    covariance(result) -> (P, P)
+    least_squares(residual_fn, x0, options=LMOptions(), jacobian_fn=None) -> LMResult   (one dense vector)
+    covariance(result) -> the (P, P) covariance, by blocks
 
 `evaluate(x, with_jacobian)` gets the state as {block name: tensor} and returns (r, jac): r the (M,) residuals,
 already divided by their standard deviations, and jac {block name: (M, size)} (None when not asked for): for a
@@ -210,20 +211,49 @@ def levenberg_marquardt(evaluate, x0: dict, blocks, view_rows: torch.Tensor | No
                       f"still decreasing by about {decrement:.3g})")
 
 
-def covariance(result: LMResult, variance_factor: float = 1.0) -> torch.Tensor:
-    """Gauss–Newton covariance s² (JᵀWJ)⁻¹ of the flat parameters at the solution, (P, P) (`layout` order).
+def covariance(result: LMResult, variance_factor: float = 1.0):
+    """Gauss–Newton covariance s² (JᵀWJ)⁻¹ of the flat parameters at the solution (`layout` order), as a
+    `blocks.SchurCovariance` (per-view blocks: never a (P, P) matrix) or `blocks.DenseCovariance`; `.dense()`
+    gives the matrix, `.diagonal()` the variances, `.matmul(X)` the product with (P, n).
 
     Raises:
         SolverError: the normal matrix is singular or not positive definite (parameters the data do not
             determine).
     """
     try:
-        Ainv = result.normal.inverse()
+        cov = result.normal.covariance()
     except RuntimeError:
         raise SolverError("the free parameters are not all determined by the data") from None
-    if not torch.isfinite(Ainv).all() or (torch.diagonal(Ainv) <= 0).any():
+    d = cov.diagonal()
+    if not torch.isfinite(d).all() or (d <= 0).any():
         raise SolverError("the free parameters are not all determined by the data")
-    return variance_factor * Ainv
+    return cov.scaled(variance_factor)
 
 
-__all__ = ["Block", "LMOptions", "LMResult", "SolverError", "covariance", "levenberg_marquardt"]
+def least_squares(residual_fn, x0: torch.Tensor, options: LMOptions = LMOptions(), jacobian_fn=None) -> LMResult:
+    """Minimise ½ Σ ρ(r_i(x)²) over one dense parameter vector: `levenberg_marquardt` with a single block
+    "x"; the result's `x` is the vector.
+
+    Args:
+        residual_fn: (P,) -> (M,) float64 residuals, already divided by their σ.
+        x0: (P,) start.
+        options: `LMOptions`.
+        jacobian_fn: (P,) -> (M, P); default `torch.func.jacfwd(residual_fn)`.
+    Raises:
+        SolverError: non-finite residuals at the start, or no convergence within `options.max_iterations`.
+    """
+    from torch.func import jacfwd
+
+    jac = jacobian_fn or jacfwd(residual_fn)
+
+    def evaluate(x: dict, with_jacobian: bool):
+        v = x["x"]
+        return residual_fn(v).detach(), ({"x": jac(v).detach()} if with_jacobian else None)
+
+    res = levenberg_marquardt(evaluate, {"x": x0.detach().to(torch.float64)}, [Block("x", tuple(x0.shape))],
+                              None, options)
+    res.x = res.x_flat
+    return res
+
+
+__all__ = ["Block", "LMOptions", "LMResult", "SolverError", "covariance", "least_squares", "levenberg_marquardt"]

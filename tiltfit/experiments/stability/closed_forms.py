@@ -125,6 +125,7 @@ def srgb_blur_bias(b_px: float, dark: float = 0.05, white: float = 0.8, angle_de
     from renderer.io import linear_to_srgb
 
     from ...blur import pixel_esf
+    from ...solve import LMOptions, least_squares
 
     if not b_px > 0:
         raise ValueError(f"b_px: expected a positive blur diameter, got {b_px}")
@@ -140,25 +141,14 @@ def srgb_blur_bias(b_px: float, dark: float = 0.05, white: float = 0.8, angle_de
     lo, hi = float(y.min()), float(y.max())
     theta = torch.tensor([lo, hi - lo, 0.0, r], dtype=torch.float64)
 
-    def model(th):
-        e, de_dd, de_dr = pixel_esf(d - th[2], th[3].clamp_min(1e-3), wa, wb, with_derivatives=True)
-        res = th[0] + th[1] * e - y
-        J = torch.stack([torch.ones_like(e), e, -th[1] * de_dd, th[1] * de_dr], -1)
-        return res, J
+    def residuals(th):
+        return th[0] + th[1] * pixel_esf(d - th[2], th[3].clamp_min(1e-3), wa, wb) - y
 
-    lam = 1e-3
-    res, J = model(theta)
-    cost = float(res @ res)
-    for _ in range(100):
-        A = J.T @ J
-        step = torch.linalg.solve(A + lam * torch.diag(torch.diag(A)), -J.T @ res)
-        trial = theta + step
-        res_t, J_t = model(trial)
-        cost_t = float(res_t @ res_t)
-        if cost_t < cost:
-            theta, res, J, cost, lam = trial, res_t, J_t, cost_t, lam * 0.3
-            if float(step[3].abs()) < 1e-9 * r:
-                break
-        else:
-            lam *= 10.0
+    def jacobian(th):
+        e, de_dd, de_dr = pixel_esf(d - th[2], th[3].clamp_min(1e-3), wa, wb, with_derivatives=True)
+        return torch.stack([torch.ones_like(e), e, -th[1] * de_dd, th[1] * de_dr], -1)
+
+    # noise-free residuals: converge on the step (xtol), not on a decrement scaled for residuals in units of σ
+    fit = least_squares(residuals, theta, LMOptions(decrement_tol=0.0, ftol=1e-15, xtol=1e-12), jacobian)
+    theta = fit.x
     return float(theta[3]) / r - 1.0

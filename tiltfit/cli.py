@@ -389,16 +389,10 @@ def cmd_export(args) -> int:
         data = read_calib(args.calib)
     except ValueError as e:
         raise _as_cli_error(args.calib, e) from None
-    tmp = os.path.join(os.path.dirname(os.path.abspath(args.output)),
-                       f".tiltfit-export-{os.getpid()}{os.path.splitext(args.output)[1] or '.yml'}")
     try:
-        write_opencv(data, tmp)
-        os.replace(tmp, args.output)
+        write_opencv(data, args.output)
     except (ExportError, OSError) as e:
         raise _as_cli_error(args.output, e) from None
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
     _say(args.quiet)(f"wrote {args.output}")
     return 0
 

@@ -41,7 +41,7 @@ import numpy as np
 from .distributed import imap_on_cluster
 from .io import write_image
 from .params import SceneError
-from .scenefile import load_scene, parse_animation, read_scene_json
+from .scenefile import load_scene, parse_animation, read_scene_json, require_objects
 
 METHODS = ("beam", "trace")
 COLUMNS = ("frame", "seconds", "regions", "redetermined", "segment_seconds")
@@ -74,6 +74,7 @@ def animate(path: str, method: str, frames: int, step: float, out_dir: str, over
     if method not in METHODS:
         raise SceneError(f"--method: expected one of {', '.join(METHODS)}, got {method!r}")
     scene = load_scene(path, overrides)
+    require_objects(path, scene)
     os.makedirs(out_dir, exist_ok=True)
     if method == "beam":
         from .beam import BeamTracer

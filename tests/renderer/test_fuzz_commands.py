@@ -150,3 +150,69 @@ def test_cluster_port_that_is_not_ray_fails_fast_with_one_line(tmp_path, monkeyp
     assert rc == 2 and len(lines) == 1 and "--cluster" in lines[0] and "Ray" in lines[0], f"exit {rc}: {err!r}"
     assert time.perf_counter() - t0 < 10, f"took {time.perf_counter() - t0:.1f} s to refuse"
     assert sorted(os.listdir(tmp_path)) == ["scene.json"], f"left: {os.listdir(tmp_path)}"
+
+
+def _children(pid: int) -> set[int]:
+    out = set()
+    try:
+        for task in os.listdir(f"/proc/{pid}/task"):
+            with open(f"/proc/{pid}/task/{task}/children") as f:
+                out |= {int(x) for x in f.read().split()}
+    except OSError:
+        pass
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(")")[-1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="reads the process tree from /proc")
+def test_workers_end_when_renderer_render_is_killed(tmp_path):
+    """SIGKILL of `renderer render` (which cannot be caught): its worker processes end by themselves within a
+    few seconds instead of living on as orphans."""
+    import signal
+    import subprocess
+    import time
+
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("one core: renders run without worker processes")
+    # Between two mirrors every ray bounces max_depth times: each worker job runs for many seconds, so a worker
+    # that only ends when it next talks to its parent would outlive it.
+    mirror = {"color": [0.9, 0.9, 0.9], "reflect": 1.0}
+    scene = json.loads(_scene(objects=[
+        {"name": "a", "shape": {"type": "plane", "point": [0, 0, 2], "normal": [0, 0, -1]}, "material": mirror},
+        {"name": "b", "shape": {"type": "plane", "point": [0, 0, -8], "normal": [0, 0, 1]}, "material": mirror}]))
+    scene["image"].update(width=512, height=512, spp=64, max_depth=64)  # 2^24 rays, jobs of 2^20
+    (tmp_path / "scene.json").write_text(json.dumps(scene))
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+    proc = subprocess.Popen([sys.executable, "-m", "renderer", "render", str(tmp_path / "scene.json"), "-o",
+                             str(tmp_path / "out.exr"), "--quiet"], env=env, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+    try:
+        deadline, workers = time.time() + 120, set()
+        while time.time() < deadline and len(workers) < 2 and proc.poll() is None:
+            time.sleep(0.2)
+            workers = {c for c in _children(proc.pid) if "spawn_main" in open(f"/proc/{c}/cmdline").read()}
+        if not workers:
+            pytest.skip("the render finished or started no workers before it could be killed")
+        time.sleep(0.5)
+        proc.kill()
+        proc.wait()
+        deadline = time.time() + 5
+        while time.time() < deadline and any(_alive(w) for w in workers):
+            time.sleep(0.2)
+        alive = [w for w in workers if _alive(w)]
+        for w in alive:
+            os.kill(w, signal.SIGKILL)
+        assert not alive, f"worker processes {alive} outlived their killed parent by 5 s"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert not [n for n in os.listdir(tmp_path) if n != "scene.json"], f"left: {os.listdir(tmp_path)}"

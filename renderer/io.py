@@ -101,12 +101,14 @@ def quiet_c_stderr():
         os.close(saved)
 
 
-def read_image(path: str, encoding: str | None = None) -> np.ndarray:
+def read_image(path: str, encoding: str | None = None, max_pixels: int | None = None) -> np.ndarray:
     """Read an image as linear float32 (H, W, C).
 
     Args:
         encoding: `srgb` or `linear`; by default the file's recorded colour space, else 8-bit files are
             sRGB and 16-bit/float files linear.
+        max_pixels: refuse (ImageIOError naming the file) an image of more pixels, from its header, before
+            any pixel is decoded (a small file can declare a huge image: a decompression bomb).
     """
     import OpenImageIO as oiio
 
@@ -122,6 +124,9 @@ def read_image(path: str, encoding: str | None = None) -> np.ndarray:
             spec = inp.spec()
             is_8bit = spec.format == oiio.UINT8
             pixels = None
+            if max_pixels is not None and spec.width * spec.height > max_pixels:
+                raise ImageIOError(f"{path}: a {spec.width}x{spec.height} image ({spec.width * spec.height / 1e6:.0f} "
+                                   f"megapixels); at most {max_pixels / 1e6:.0f} megapixels are read here")
             if spec.width * spec.height * spec.nchannels * 4 <= _available_bytes():
                 pixels = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
             else:

@@ -229,8 +229,76 @@ def _target_cases() -> list[dict]:
     return out
 
 
+# 8 columns, 7 non-uniform rows (cols + rows odd): the colours and the geometry each fix the labelling.
+BOARD = {**TARGET, "y_edges": [0, 18, 38, 60, 84, 110, 138, 168]}
+_PNG: dict = {}
+
+
+def _png(pixels) -> bytes:
+    import tempfile
+
+    import OpenImageIO as oiio
+
+    with tempfile.TemporaryDirectory() as d:
+        p = os.path.join(d, "b.png")
+        out = oiio.ImageOutput.create(p)
+        out.open(p, oiio.ImageSpec(pixels.shape[1], pixels.shape[0], pixels.shape[2], oiio.UINT8))
+        out.write_image(np.ascontiguousarray(pixels))
+        out.close()
+        return open(p, "rb").read()
+
+
+def _board_png(kind: str) -> bytes:
+    """An 8-bit photo of BOARD (tiltfit.synth's renderer): as printed, with dark and light swapped, or
+    mirrored; cached."""
+    if kind not in _PNG:
+        from tiltfit.synth import SynthCamera, look_at_pose, render_view
+        from tiltfit.target import target_from_dict
+
+        t = target_from_dict(BOARD)
+        cam = SynthCamera(w_mm=35, U_mm=900, d_mm=8, pixel_pitch_mm=0.02, width_px=640, height_px=480)
+        view = render_view(t, cam, *look_at_pose(t, (100, 75, -950)), noise_sigma=0.002, srgb8=True, seed=0)
+        px = view.image_srgb8
+        px = {"board": px, "swapped": 255 - px, "mirrored": px[:, ::-1]}[kind]
+        _PNG[kind] = _png(px)
+    return _PNG[kind]
+
+
+def _detection_cases() -> list[dict]:
+    def detect(image, target, name, expect="refuse", fields=("img.png", "contradicts")):
+        return {"name": f"detect/{name}", "category": "detection", "expect": expect, "fields": fields,
+                "files": {"img.png": _board_png(image), "T.json": json.dumps(target)}, "output": "D.json",
+                "argv": ["detect", "{d}/img.png", "--target", "{d}/T.json", "-o", "{d}/D.json", "-q"]}
+
+    transposed = {**BOARD, "x_edges": BOARD["y_edges"], "y_edges": BOARD["x_edges"]}
+    return [detect("board", BOARD, "ok", expect="ok", fields=()),
+            detect("board", {**BOARD, "dark_cell": [1, 0]}, "dark-cell-parity"),
+            detect("swapped", BOARD, "dark-light-swapped"),
+            detect("mirrored", BOARD, "mirrored", fields=("img.png",)),
+            detect("board", transposed, "transposed-target")]
+
+
+def _bomb_cases() -> list[dict]:
+    """A valid 20,000 × 20,000 PNG of a few hundred kB (a decompression bomb): refused naming the file."""
+    import zlib
+
+    def chunk(kind, data):
+        return len(data).to_bytes(4, "big") + kind + data + zlib.crc32(kind + data).to_bytes(4, "big")
+
+    side = 20000
+    z = zlib.compressobj(9)
+    row = b"\0" * (side + 1)  # filter byte and one grey byte a pixel
+    raw = b"".join(z.compress(row) for _ in range(side)) + z.flush()
+    png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", side.to_bytes(4, "big") * 2 + bytes([8, 0, 0, 0, 0]))
+           + chunk(b"IDAT", raw) + chunk(b"IEND", b""))
+    return [{"name": "detect/decompression-bomb", "category": "limits", "expect": "refuse",
+             "fields": ("img.png",), "files": {"img.png": png, "T.json": json.dumps(TARGET)}, "output": "D.json",
+             "argv": ["detect", "{d}/img.png", "--target", "{d}/T.json", "-o", "{d}/D.json", "-q"]}]
+
+
 def cases() -> list[dict]:
-    return fuzz_harness.unique(_report_cases() + _export_cases() + _init_cases() + _target_cases())
+    return fuzz_harness.unique(_report_cases() + _export_cases() + _init_cases() + _target_cases()
+                               + _detection_cases() + _bomb_cases())
 
 
 CASES = cases()

@@ -76,6 +76,15 @@ def _cases() -> list[dict]:
                            name=f"distortion-{name}", fields=("scene.json", "distortion")))
     out.append(_render(_scene(camera__distortion={"model": "brown_conrady", "coefficients": [-0.1, 0.01, 0, 0, 0]}),
                        name="distortion-ok", expect="ok", fields=()))
+    animated = _scene(animation={"frames": 2, "step": 0.1})
+    for step, expect in (("1e30", "refuse"), ("1e7", "refuse"), ("-1e30", "refuse"), ("0.5", "ok")):
+        out.append(_animate(animated, "--step", step, name=f"step={step}", expect=expect,
+                            fields=("--step",) if expect == "refuse" else ()))
+    # A light whose float32 radiance overflows near the surface: refused or finite, by either backend.
+    hot = _scene(lights__0__intensity=[3e38] * 3, lights__0__position=[0, 0, -1.2])
+    out.append(_render(hot, name="light-3e38-torch", expect="either", fields=("scene.json",)))
+    out.append(_render(hot, "--backend", "mitsuba", name="light-3e38-mitsuba", expect="either",
+                       fields=("scene.json",)))
     for host in ("a" * 40, "a" * 300, "[::1", "host:99999", "host:port", ":"):
         out.append(_render(_scene(), "--cluster", host, name=f"cluster={host[:5]}-{len(host)}", fields=("--cluster",)))
     return out

@@ -396,3 +396,19 @@ def test_leftover_of_a_killed_writer_is_removed_by_the_next_run(tmp_path):
     assert not stale.exists() and not stale_dir.exists(), "a dead writer's temporary files were not removed"
     assert live.exists(), "a live process's temporary file was removed"
     assert len(os.listdir(tmp_path / "rep")) == 6, f"report files: {os.listdir(tmp_path / 'rep')}"
+
+
+@pytest.mark.parametrize("argv, where", [
+    (["design", "--cols", "nine", "--rows", "6"], "--cols"),
+    (["design", "--cols", "9", "--rows", "6", "--square-mm", "25", "--distance-mm", "900"], "--w-mm"),
+    (["print", "T.json", "--dpi", "abc"], "--dpi"),
+    (["frobnicate"], "frobnicate"),
+])
+def test_target_usage_errors_are_one_line(tmp_path, argv, where):
+    """argparse's usage errors of `tiltfit target` (a word for a number, a missing option) as one line, exit 2."""
+    from tiltfit.cli import main
+
+    rc, err = fuzz_harness.run_command(main, ["target", *argv, "-o", tmp_path / "x.json"])
+    lines = err.strip().splitlines()
+    assert rc == 2 and len(lines) == 1 and lines[0].startswith("tiltfit: ") and where in lines[0], \
+        f"exit {rc}: {err!r}"

@@ -412,3 +412,52 @@ def test_target_usage_errors_are_one_line(tmp_path, argv, where):
     lines = err.strip().splitlines()
     assert rc == 2 and len(lines) == 1 and lines[0].startswith("tiltfit: ") and where in lines[0], \
         f"exit {rc}: {err!r}"
+
+
+def _interrupting_atomic_output(monkeypatch):
+    """renderer.io.atomic_output that lets the writer start, then raises KeyboardInterrupt (Ctrl-C mid-write)."""
+    import contextlib
+
+    from renderer import io
+
+    real = io.atomic_output
+
+    @contextlib.contextmanager
+    def interrupted(path):
+        with real(path) as tmp:
+            yield tmp
+            with open(tmp, "ab") as f:
+                f.write(b"partial")
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(io, "atomic_output", interrupted)
+
+
+@pytest.mark.parametrize("command", ["export", "render", "design"])
+def test_interrupt_in_the_atomic_writer_leaves_the_old_output(tmp_path, monkeypatch, command):
+    """Ctrl-C while `tiltfit export`, `renderer render` or `tiltfit target design` writes: one line, exit 130,
+    the previous output unchanged and no temporary file."""
+    (tmp_path / "I.json").write_text(json.dumps(CALIB))
+    scene = {"image": {"width": 4, "height": 3}, "camera": {"type": "pinhole", "position": [0, 0, -5],
+                                                           "fov_deg": 40},
+             "lights": [{"type": "point", "position": [0, 0, -5], "intensity": [5, 5, 5]}],
+             "objects": [{"name": "b", "shape": {"type": "sphere", "center": [0, 0, 0], "radius": 1}}]}
+    (tmp_path / "s.json").write_text(json.dumps(scene))
+    out = tmp_path / {"export": "cam.yml", "render": "out.exr", "design": "T.json"}[command]
+    out.write_bytes(b"previous")
+    _interrupting_atomic_output(monkeypatch)
+    if command == "render":
+        from renderer.cli import main
+
+        argv, prefix = ["render", tmp_path / "s.json", "-o", out, "--quiet"], "renderer"
+    else:
+        from tiltfit.cli import main
+
+        prefix = "tiltfit"
+        argv = (["export", tmp_path / "I.json", "-o", out, "-q"] if command == "export" else
+                ["target", "design", "--cols", "9", "--rows", "6", "--square-mm", "25", "--w-mm", "35",
+                 "--distance-mm", "900", "-o", out, "-q"])
+    rc, err = fuzz_harness.run_command(main, argv)
+    assert rc == 130 and err.strip() == f"{prefix}: interrupted", f"exit {rc}: {err!r}"
+    assert out.read_bytes() == b"previous", "the previous output was changed"
+    assert sorted(os.listdir(tmp_path)) == sorted(["I.json", "s.json", out.name]), f"left: {os.listdir(tmp_path)}"

@@ -41,7 +41,7 @@ import numpy as np
 from .distributed import imap_on_cluster
 from .io import write_image
 from .params import SceneError
-from .scenefile import load_scene, parse_animation, read_scene_json
+from .scenefile import load_scene, parse_animation, read_scene_json, require_objects
 
 METHODS = ("beam", "trace")
 COLUMNS = ("frame", "seconds", "regions", "redetermined", "segment_seconds")
@@ -74,6 +74,8 @@ def animate(path: str, method: str, frames: int, step: float, out_dir: str, over
     if method not in METHODS:
         raise SceneError(f"--method: expected one of {', '.join(METHODS)}, got {method!r}")
     scene = load_scene(path, overrides)
+    require_objects(path, scene)
+    _check_travel(scene, frames, step)
     os.makedirs(out_dir, exist_ok=True)
     if method == "beam":
         from .beam import BeamTracer
@@ -112,6 +114,22 @@ def animate(path: str, method: str, frames: int, step: float, out_dir: str, over
             w.writerow(["" if r[c] is None else (f"{r[c]:.6f}" if isinstance(r[c], float) else r[c])
                         for c in COLUMNS])
     return rows
+
+
+def _check_travel(scene, frames: int, step: float) -> None:
+    """Refuse a step that moves the camera where float32 (the tracer's precision) no longer tells its
+    position from a point one unit further along its view direction."""
+    position = scene.camera.transform.position.detach().double().cpu().numpy()
+    last = position + (frames - 1) * step * scene.camera.transform.world_from_camera[:, 2].detach().double().cpu().numpy()
+    far = float(np.abs(last).max())
+    if not far * FLOAT32_EPS * 4 < 1.0:
+        raise SceneError(f"--step (animation.step): {step:g} moves the camera to {far:.3g} scene units from the "
+                         f"origin by frame "
+                         f"{frames - 1}, beyond float32's resolution of a unit step (at most about "
+                         f"{1 / (4 * FLOAT32_EPS):.3g})")
+
+
+FLOAT32_EPS = 2.0 ** -23
 
 
 def contiguous_runs(frames: int, workers: int) -> list[tuple[int, int]]:

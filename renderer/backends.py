@@ -34,10 +34,11 @@ def render_mitsuba(scene, spp: int | None = None, sampler: str | None = None, *,
     if sampler != MITSUBA_SAMPLER:
         notes.append(f"sampler {sampler} (Mitsuba's {MITSUBA_SAMPLER} sampler used)")
     notes += [f"{option} ignored" for option in ignored]
-    if progress or notes:
+    image = torch.from_numpy(develop(scene, mi.render(mi.load_dict(scene_dict), seed=seed)))
+    # Said once the image is there and finite: a render the caller refuses (float32 overflow) ends with one line.
+    if (progress or notes) and bool(torch.isfinite(image).all()):
         print(f"renderer: mitsuba {mi.variant()}; not mapped: {'; '.join(notes) if notes else 'nothing'}",
               file=sys.stderr)
-    image = torch.from_numpy(develop(scene, mi.render(mi.load_dict(scene_dict), seed=seed)))
     return RenderResult(image, torch.ones(image.shape[:2], dtype=image.dtype), tuple(notes))
 
 

@@ -202,11 +202,12 @@ def resolve_scene(name: str) -> str:
 
 def cmd_render(args, device) -> int:
     from .render import render
-    from .scenefile import load_scene
+    from .scenefile import load_scene, require_objects
 
     _check_output(args.output, (".exr", ".png", ".tif", ".tiff"))
     scene_file = resolve_scene(args.scene)
     scene = load_scene(scene_file, args.overrides)
+    require_objects(scene_file, scene)
     if args.intersector != "auto" and args.backend != "mitsuba":  # auto: the scene's own default
         from .mitsuba.intersect import use_intersector
 

@@ -158,18 +158,37 @@ def map_on_cluster(fn, items, cluster: str | None = None, *, shared=None, thread
     return [result for _, result in imap_on_cluster(fn, items, cluster, shared=shared, threads=threads)]
 
 
+# HTTP/2's client preface and an empty SETTINGS frame: a Ray head (GCS or Ray Client, both gRPC) answers
+# with its own SETTINGS frame (type 4, the fourth byte of the frame header; RFC 9113 §3.4, §6.5).
+_HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + b"\x00\x00\x00\x04\x00\x00\x00\x00\x00"
+_HTTP2_SETTINGS = 4
+
+
 def _check_reachable(address: str, timeout: float = 5.0) -> None:
-    """ConnectionError naming the address when nothing listens there (Ray itself retries for minutes)."""
+    """ConnectionError naming the address, within `timeout` seconds, when nothing listens there or what
+    answers does not speak gRPC as a Ray head does (Ray itself retries for minutes, or waits forever)."""
     import socket
 
     hostport = address.split("://", 1)[-1]
     host, _, port = hostport.rpartition(":")
-    if not host or not port.isdigit():
-        raise ConnectionError(f"--cluster {address}: expected auto or HOST:PORT (or ray://HOST:PORT)")
+    host = host.strip("[]")
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ConnectionError(f"--cluster {address[:80]}: expected auto or HOST:PORT (or ray://HOST:PORT), "
+                              "PORT in 1..65535")
     try:
-        socket.create_connection((host, int(port)), timeout=timeout).close()
+        with socket.create_connection((host, int(port)), timeout=timeout) as sock:
+            sock.sendall(_HTTP2_PREFACE)
+            reply = sock.recv(9)
+    except (UnicodeError, ValueError):  # a host name the resolver cannot encode (a label over 63 letters)
+        raise ConnectionError(f"--cluster {address[:80]}: not a valid host name") from None
+    except socket.timeout:
+        raise ConnectionError(f"--cluster {address[:80]}: {host}:{port} does not answer as a Ray cluster "
+                              f"(no reply within {timeout:g} s)") from None
     except OSError as e:
-        raise ConnectionError(f"--cluster {address}: cannot reach {host}:{port} ({e.strerror or e})") from None
+        raise ConnectionError(f"--cluster {address[:80]}: cannot reach {host}:{port} ({e.strerror or e})") from None
+    if len(reply) < 4 or reply[3] != _HTTP2_SETTINGS:
+        raise ConnectionError(f"--cluster {address[:80]}: {host}:{port} answers, but not as a Ray cluster "
+                              "(no gRPC reply)")
 
 
 def _trace_chunks(job, chunks):

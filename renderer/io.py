@@ -16,7 +16,12 @@ the final path holds either the old file or the complete new one. On Linux the d
 `O_TMPFILE` inode in the output's folder, which the kernel frees if the process dies at any point before
 publication, SIGKILL included; it is linked under a hidden name and renamed over the output in two system
 calls. Elsewhere a hidden temporary file is used and removed on every exit path Python can catch. New files
-get mode 0666 minus the umask, as `open()` would give them.
+get mode 0666 minus the umask, as `open()` would give them. Hidden names carry the writer's process id
+(`.NAME.PID.N.tmp`, a set of files `.NAME.PID.tmp/`): what a SIGKILL leaves between link and rename is removed
+by the next write to the same path once that process is gone (`remove_stale`).
+
+A set of files (`atomic_folder`, e.g. a report's plots) is written into a hidden sibling folder and moved
+into place only when every file is complete: an error or interrupt leaves the target folder as it was.
 """
 from __future__ import annotations
 
@@ -96,12 +101,14 @@ def quiet_c_stderr():
         os.close(saved)
 
 
-def read_image(path: str, encoding: str | None = None) -> np.ndarray:
+def read_image(path: str, encoding: str | None = None, max_pixels: int | None = None) -> np.ndarray:
     """Read an image as linear float32 (H, W, C).
 
     Args:
         encoding: `srgb` or `linear`; by default the file's recorded colour space, else 8-bit files are
             sRGB and 16-bit/float files linear.
+        max_pixels: refuse (ImageIOError naming the file) an image of more pixels, from its header, before
+            any pixel is decoded (a small file can declare a huge image: a decompression bomb).
     """
     import OpenImageIO as oiio
 
@@ -117,6 +124,9 @@ def read_image(path: str, encoding: str | None = None) -> np.ndarray:
             spec = inp.spec()
             is_8bit = spec.format == oiio.UINT8
             pixels = None
+            if max_pixels is not None and spec.width * spec.height > max_pixels:
+                raise ImageIOError(f"{path}: a {spec.width}x{spec.height} image ({spec.width * spec.height / 1e6:.0f} "
+                                   f"megapixels); at most {max_pixels / 1e6:.0f} megapixels are read here")
             if spec.width * spec.height * spec.nchannels * 4 <= _available_bytes():
                 pixels = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
             else:
@@ -257,6 +267,7 @@ def atomic_output(path: str):
     folder = os.path.dirname(os.path.abspath(path))
     os.makedirs(folder, exist_ok=True)
     hidden = f".{os.path.basename(path)}."
+    remove_stale(folder, hidden)
     fd = -1
     if _tmpfile_supported(folder):
         try:
@@ -280,7 +291,7 @@ def _hidden_file(folder: str, hidden: str, path: str):
     """Yield (fd, name) of a new hidden temporary file in `folder` (mode 0666 minus the umask), renamed over
     `path` on a clean exit and removed on any exception: the writer where `O_TMPFILE` is missing or its
     inode cannot be linked. The caller closes fd."""
-    fd, tmp = tempfile.mkstemp(prefix=hidden, suffix=".tmp", dir=folder)
+    fd, tmp = tempfile.mkstemp(prefix=f"{hidden}{os.getpid()}.", suffix=".tmp", dir=folder)
     try:
         os.chmod(tmp, 0o666 & ~_umask())
         yield fd, tmp
@@ -340,6 +351,70 @@ def output_problem(path: str, extensions: tuple[str, ...] | None = None) -> str 
     if not os.access(existing, os.W_OK | os.X_OK):
         return f"cannot write in {existing} (permission denied)"
     return None
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # PermissionError: another user's live process
+        return True
+    return True
+
+
+def remove_stale(folder: str, hidden: str) -> list:
+    """Remove `hidden` + `PID.…tmp` entries in `folder` (this module's temporary names for one output) whose
+    writing process no longer exists, e.g. after a SIGKILL; returns the names removed."""
+    removed = []
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return removed
+    for name in names:
+        if not (name.startswith(hidden) and name.endswith(".tmp")):
+            continue
+        pid = name[len(hidden):].split(".", 1)[0]
+        if not pid.isdigit() or int(pid) == os.getpid() or _pid_alive(int(pid)):
+            continue
+        full = os.path.join(folder, name)
+        with contextlib.suppress(OSError):
+            if os.path.isdir(full) and not os.path.islink(full):
+                shutil.rmtree(full)
+            else:
+                os.remove(full)
+            removed.append(name)
+    return removed
+
+
+@contextlib.contextmanager
+def atomic_folder(path: str):
+    """Context manager yielding a hidden staging folder beside `path` (a folder); on a clean exit every file
+    written there is moved into `path` (created if missing: then in one rename), on any exception or interrupt
+    the staging folder is removed and `path` is left as it was.
+
+    Raises OSError when `path` is a file or the parent folder cannot be written.
+    """
+    path = os.path.abspath(os.fspath(path))
+    if os.path.exists(path) and not os.path.isdir(path):
+        raise NotADirectoryError(20, "not a folder", path)
+    parent = os.path.dirname(path)
+    os.makedirs(parent, exist_ok=True)
+    hidden = f".{os.path.basename(path)}."
+    remove_stale(parent, hidden)
+    staging = os.path.join(parent, f"{hidden}{os.getpid()}.tmp")
+    shutil.rmtree(staging, ignore_errors=True)
+    os.mkdir(staging)
+    try:
+        os.chmod(staging, 0o777 & ~_umask())
+        yield staging
+        if not os.path.exists(path):
+            os.rename(staging, path)
+            return
+        for name in sorted(os.listdir(staging)):
+            os.replace(os.path.join(staging, name), os.path.join(path, name))
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
 
 
 def write_text(path: str, text: str) -> None:

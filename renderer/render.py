@@ -15,7 +15,10 @@ import math
 import multiprocessing
 import os
 import pickle
+import signal
 import sys
+import threading
+import time
 import warnings
 from dataclasses import dataclass, replace
 
@@ -181,9 +184,27 @@ def _job_rays(scene, spp: int, workers: int, chunk_rays: int) -> int:
     return max(chunk_rays, min(MAX_JOB_RAYS, -(-rays // (JOBS_PER_WORKER * workers))))
 
 
-def _worker_start():
+# How often a worker process checks that its parent still runs (seconds).
+PARENT_CHECK_S = 1.0
+
+
+def _worker_start(parent_pid: int | None = None):
     # One thread per process: the processes share the cores instead of torch's threads.
     torch.set_num_threads(1)
+    # Ctrl-C reaches the whole process group: the parent reports it and ends the workers; a worker keeps quiet
+    # (an idle worker would otherwise print a KeyboardInterrupt traceback of its queue read).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if parent_pid is not None:
+        threading.Thread(target=_exit_with_parent, args=(parent_pid,), daemon=True, name="parent-watch").start()
+
+
+def _exit_with_parent(parent_pid: int) -> None:
+    """A worker's watchdog: end this process once its parent is gone (a SIGKILLed `renderer render` would
+    otherwise leave its workers running, each holding its scene, until ended by hand)."""
+    while True:
+        if os.getppid() != parent_pid:
+            os._exit(1)
+        time.sleep(PARENT_CHECK_S)
 
 
 _WORKER_SCENE: dict = {}  # in a worker: digest of the pickled scene -> the scene, kept while it is reused
@@ -312,7 +333,8 @@ def _pool(workers: int):
     if workers not in _POOL:
         context = multiprocessing.get_context("spawn")  # forking a process with torch's threads can hang
         _POOL[workers] = concurrent.futures.ProcessPoolExecutor(workers, mp_context=context,
-                                                                initializer=_worker_start)
+                                                                initializer=_worker_start,
+                                                                initargs=(os.getpid(),))
     return _POOL[workers]
 
 

@@ -104,9 +104,37 @@ def parse_animation(cfg) -> dict:
     if cfg.get("animation") is None:
         return {}
     p = parse_params("animation", cfg["animation"], ANIMATION_PARAMS)
-    if p["frames"] < 1:
-        raise SceneError(f"animation.frames: expected an integer >= 1, got {p['frames']}")
+    if not 1 <= p["frames"] <= MAX_ANIMATION_FRAMES:
+        raise SceneError(f"animation.frames: expected an integer in 1..{MAX_ANIMATION_FRAMES}, got {p['frames']}")
     return p
+
+
+def _check_distortion_inverse(camera, width: int, height: int, grid: int = 33) -> None:
+    """Refuse a lens distortion under which no pixel has an undistorted direction (the image would be all
+    background): rays are generated on a grid of up to grid × grid pixel centres."""
+    import torch
+
+    if camera.distortion is None or camera.distortion.is_identity:
+        return
+    xs = torch.linspace(0, width - 1, min(width, grid), dtype=torch.float64)
+    ys = torch.linspace(0, height - 1, min(height, grid), dtype=torch.float64)
+    uv = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), dim=-1).reshape(-1, 2)
+    with torch.no_grad():
+        rays = camera.generate_rays(uv)
+        ok = rays.valid & torch.isfinite(rays.direction).all(-1)
+    if not bool(ok.any()):
+        raise SceneError("camera.distortion: no pixel of the image has an undistorted direction (the distortion "
+                         "has no inverse there; check the coefficients' size and sign)")
+
+
+def require_objects(path: str, scene) -> None:
+    """Refuse to render a scene without objects (`build_scene` accepts one, for its camera alone)."""
+    if not scene.objects:
+        raise SceneError(f"{path}: objects: the scene has no objects; add at least one to render it")
+
+
+# The most frames one animation renders (the command line's limit on counts, renderer.cli.MAX_COUNT).
+MAX_ANIMATION_FRAMES = 1 << 16
 
 
 OBJECT_PARAMS = [
@@ -272,6 +300,7 @@ def build_scene(cfg: dict, base_dir: str = ".") -> Scene:
         from .cameras.distortion import distortion_from_config
 
         camera.distortion = distortion_from_config("camera.distortion", distortion)
+        _check_distortion_inverse(camera, image.width, image.height)
     lights = [_light(f"lights[{i}]", c) for i, c in enumerate(_list(cfg, "lights"))]
     objects = []
     first_use: dict[str, int] = {}

@@ -257,8 +257,89 @@ def validate_calib(path: str, data) -> dict:
             raise CalibFileError(f"{path}: views[{i}].T_mm: expected coordinates within ±{MAX_LENGTH_MM:g} mm, got {T}")
     sigma = data.get("sigma", {})
     if not isinstance(sigma, dict):
-        raise CalibFileError(f"{path}: sigma: expected an object, got {sigma!r}")
+        raise CalibFileError(f"{path}: sigma: expected an object, got {describe(sigma)}")
+    _check_extras(path, data)
     return data
+
+
+# A calibration with more views than this is not one `tiltfit calibrate` writes (docs/file_formats.md).
+MAX_VIEWS = 100_000
+
+
+def _optional_number(path, key, value, nonnegative=False):
+    if value is None:
+        return None
+    x = _number(path, key, value)
+    if nonnegative and x < 0:
+        raise CalibFileError(f"{path}: {key}: expected a non-negative number or null, got {describe(value)}")
+    return x
+
+
+def _list_of(path, key, value, kind, what):
+    if not isinstance(value, list) or not all(isinstance(x, kind) for x in value):
+        raise CalibFileError(f"{path}: {key}: expected a list of {what}, got {describe(value)}")
+    return value
+
+
+def _point_list(path, key, value, width, first=None):
+    """A per-feature-point list ([x, y] | null when width 2, number | null when width 1) as long as the
+    `first` such list (its (key, length)); returns (key, length)."""
+    if not isinstance(value, list):
+        raise CalibFileError(f"{path}: {key}: expected a list, got {describe(value)}")
+    if first is not None and len(value) != first[1]:
+        raise CalibFileError(f"{path}: {key}: {len(value)} entries, but {first[0]} has {first[1]} (expected one "
+                             "per feature point in every list)")
+    for j, x in enumerate(value):
+        if x is None:
+            continue
+        if width == 1:
+            _number(path, f"{key}[{j}]", x)
+        else:
+            _vector(path, f"{key}[{j}]", x, width)
+    return first or (key, len(value))
+
+
+def _check_extras(path: str, data: dict) -> None:
+    """The optional keys `tiltfit report` and `tiltfit export` read (each checked where present): types, the
+    per-view lists' common length, and every number finite."""
+    views = data.get("views", [])
+    if len(views) > MAX_VIEWS:
+        raise CalibFileError(f"{path}: views: expected at most {MAX_VIEWS} views, got {len(views)}")
+    _optional_number(path, "rms_reprojection_px", data.get("rms_reprojection_px"), nonnegative=True)
+    for key in ("undetermined", "notes", "warnings"):
+        if data.get(key) is not None:
+            _list_of(path, key, data[key], str, "strings")
+    if data.get("skipped") is not None:
+        skipped = _list_of(path, "skipped", data["skipped"], dict, "objects ({image, reason})")
+        for i, s in enumerate(skipped):
+            if not isinstance(s.get("image", ""), str):
+                raise CalibFileError(f"{path}: skipped[{i}].image: expected a file name, got {describe(s['image'])}")
+    held = data.get("held_out")
+    if held is not None:
+        if not isinstance(held, dict):
+            raise CalibFileError(f"{path}: held_out: expected an object or null, got {describe(held)}")
+        _optional_number(path, "held_out.rms_px", held.get("rms_px"), nonnegative=True)
+        folds = held.get("folds")
+        if folds is not None and not (is_finite_number(folds) and folds == int(folds) and folds >= 0):
+            raise CalibFileError(f"{path}: held_out.folds: expected a count, got {describe(folds)}")
+    for key in ("distortion_model", "fit", "blur_model"):
+        if data.get(key) is not None and not isinstance(data[key], str):
+            raise CalibFileError(f"{path}: {key}: expected a name, got {describe(data[key])}")
+    first = None
+    for i, view in enumerate(views):
+        if not isinstance(view.get("image", ""), str):
+            raise CalibFileError(f"{path}: views[{i}].image: expected a file name, got {describe(view['image'])}")
+        for key in ("rms_reprojection_px", "rms_blur_px"):
+            _optional_number(path, f"views[{i}].{key}", view.get(key), nonnegative=True)
+        npts = view.get("n_points")
+        if npts is not None and not (is_finite_number(npts) and npts == int(npts) and npts >= 0):
+            raise CalibFileError(f"{path}: views[{i}].n_points: expected a count, got {describe(npts)}")
+        if not isinstance(view.get("outlier", False), bool):
+            raise CalibFileError(f"{path}: views[{i}].outlier: expected true or false, got {describe(view['outlier'])}")
+        for key, width in (("corners_px", 2), ("residuals_px", 2), ("blur_px", 1), ("blur_residuals_px", 1),
+                           ("depth_mm", 1)):
+            if view.get(key) is not None:
+                first = _point_list(path, f"views[{i}].{key}", view[key], width, first)
 
 
 def camera_from_calib(data: dict, blur_model: str | None = None) -> TiltLensCamera:

@@ -96,11 +96,15 @@ def _detect_image(path: str, target, encoding: str | None, keep: dict | None = N
     `keep`: where given, the image read is stored there under its path (for `--refine photometric`)."""
     from renderer import read_image
 
+    from .detect import MAX_IMAGE_PIXELS
+
     try:
         with _quiet_c_stderr():
-            image = read_image(path, encoding)
+            image = read_image(path, encoding, MAX_IMAGE_PIXELS)
     except (ValueError, OSError) as e:
         raise _as_cli_error(path, e) from None
+    except MemoryError:
+        raise CliError(path, "out of memory reading the image") from None
     if keep is not None:
         keep[path] = image
     try:
@@ -111,6 +115,9 @@ def _detect_image(path: str, target, encoding: str | None, keep: dict | None = N
         found = detect(image, target)
     except (ValueError, RuntimeError, ImportError) as e:
         raise _as_cli_error(path, e) from None
+    except MemoryError:
+        raise CliError(path, f"out of memory detecting the board in this {image.shape[1]}x{image.shape[0]} "
+                             "image") from None
     if hasattr(found, "to_json_dict"):
         det = found.to_json_dict()
     else:
@@ -118,6 +125,10 @@ def _detect_image(path: str, target, encoding: str | None, keep: dict | None = N
         det = _det_dict(image.shape[1], image.shape[0], corners, blur)
     if not det.get("grid_found") or not any(c is not None for c in det["corners_px"]):
         why = getattr(found, "message", "") or ""
+        from .detect import CONTRADICTS
+
+        if why.startswith(CONTRADICTS):  # a board was found, and the target file does not describe it
+            raise CliError(path, why)
         raise CliError(path, "no board found" + (f" ({why})" if why else ""))
     return det
 
@@ -398,16 +409,10 @@ def cmd_export(args) -> int:
         data = read_calib(args.calib)
     except ValueError as e:
         raise _as_cli_error(args.calib, e) from None
-    tmp = os.path.join(os.path.dirname(os.path.abspath(args.output)),
-                       f".tiltfit-export-{os.getpid()}{os.path.splitext(args.output)[1] or '.yml'}")
     try:
-        write_opencv(data, tmp)
-        os.replace(tmp, args.output)
+        write_opencv(data, args.output)
     except (ExportError, OSError) as e:
         raise _as_cli_error(args.output, e) from None
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
     _say(args.quiet)(f"wrote {args.output}")
     return 0
 

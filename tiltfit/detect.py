@@ -929,11 +929,18 @@ def _min_neighbour_distance(nodes: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(out), out, fallback)
 
 
+# The largest photo detection reads (pixels): above the largest camera sensors (about 150 megapixels); the
+# pyramid and saddle maps need tens of bytes a pixel, so larger files (or decompression bombs) are refused
+# from their header.
+MAX_IMAGE_PIXELS = 200_000_000
+
+
 def detect_file(path: str, target: Target, encoding: str | None = None, **options) -> Detection:
-    """`detect` on an image file read through `renderer.io.read_image` (8-bit files decoded from sRGB)."""
+    """`detect` on an image file read through `renderer.io.read_image` (8-bit files decoded from sRGB; at
+    most MAX_IMAGE_PIXELS)."""
     from renderer.io import read_image
 
-    return detect(read_image(path, encoding), target, **options)
+    return detect(read_image(path, encoding, MAX_IMAGE_PIXELS), target, **options)
 
 
 def detect_files(paths, target: Target, *, encoding: str | None = None, measure_blur: bool = True,
@@ -1001,6 +1008,74 @@ def check_target_size(target: Target) -> None:
                              f"{MAX_FEATURE_POINTS} (200 × 200)")
 
 
+# A labelling is contradicted when another labelling of the same corners fits the target's geometry (a plane
+# homography) this many times better in RMS, and its own RMS exceeds MIN_CONTRADICTION_PX (lens distortion
+# alone leaves a pixel or two); the factor is that of `tiltfit.detfile.mirrored`.
+CONTRADICTION_FACTOR = 5.0
+MIN_CONTRADICTION_PX = 1.0
+# ... or when no labelling fits: the homography RMS above this fraction of the median corner spacing.
+MAX_UNFIT_SPACING = 0.25
+CONTRADICTS = "the photo contradicts the target file"
+
+
+def _alternative_labellings(target: Target) -> dict:
+    """{name: permutation} of the feature points under the target's symmetries that the colour reading can
+    confuse: the half turn and the two mirror images (index arrays into feature order)."""
+    ny, nx = target.grid_shape
+    j, i = np.divmod(np.arange(nx * ny), nx)
+    return {"turned by 180°": (ny - 1 - j) * nx + (nx - 1 - i),
+            "mirrored left-right": j * nx + (nx - 1 - i),
+            "mirrored top-bottom": (ny - 1 - j) * nx + i}
+
+
+def labelling_problem(corners_px: np.ndarray, target: Target) -> str:
+    """Why the labelled corners (N, 2, feature order, NaN where missing) contradict the target's geometry,
+    or '' when they do not.
+
+    The cell colours choose the labelling; the corner positions must then be a projective view of the
+    target's feature points. A target file whose dark_cell parity (or dark and light) does not match the
+    board, a mirrored photo, or a target with its rows and columns swapped gives a labelling that a plane
+    homography does not fit, while (for the first two) a turned or mirrored labelling fits
+    CONTRADICTION_FACTOR times better. A board that looks alike under the symmetry (uniform rows and
+    columns) cannot be told apart and is not flagged.
+    """
+    from .detfile import _homography_rms
+
+    found = np.isfinite(corners_px).all(-1)
+    if found.sum() < 8:
+        return ""
+    XY = target.feature_points()[:, :2]
+    rms = _homography_rms(XY[found], corners_px[found])
+    if not rms > MIN_CONTRADICTION_PX:
+        return ""
+    alternatives = {name: _homography_rms(XY[perm][found], corners_px[found])
+                    for name, perm in _alternative_labellings(target).items()}
+    name = min(alternatives, key=alternatives.get)
+    if alternatives[name] * CONTRADICTION_FACTOR < rms:
+        # The fitting labelling's handedness: target X, Y seen from the printed side map to image x right,
+        # y down (det > 0, as in `tiltfit.detfile.mirrored`); det < 0 is a mirror image.
+        P = XY[_alternative_labellings(target)[name]][found]
+        A = np.linalg.lstsq(np.column_stack([P, np.ones(len(P))]), corners_px[found], rcond=None)[0][:2].T
+        if np.linalg.det(A) < 0:
+            why = ("a mirror image of the board: a mirrored photo, or a target file with x_edges/y_edges swapped "
+                   "or reversed")
+        else:
+            why = ("the board turned by 180° with the other colour parity: dark_cell (or dark and light) swapped, or "
+                   "a photo mirrored across uniform columns or rows")
+        return (f"{CONTRADICTS}: the corners fit {why} (homography RMS {alternatives[name]:.2g} px), not the "
+                f"labelling the cell colours give (RMS {rms:.2g} px)")
+    ny, nx = target.grid_shape
+    grid = corners_px.reshape(ny, nx, 2)
+    steps = np.concatenate([np.linalg.norm(np.diff(grid, axis=1), axis=-1).ravel(),
+                            np.linalg.norm(np.diff(grid, axis=0), axis=-1).ravel()])
+    spacing = float(np.nanmedian(steps)) if np.isfinite(steps).any() else math.inf
+    if rms > MAX_UNFIT_SPACING * spacing:
+        return (f"{CONTRADICTS}: no projective view of its {nx}×{ny} corners fits the photo's (homography RMS "
+                f"{rms:.3g} px at a corner spacing of {spacing:.3g} px): a different board, or x_edges and "
+                "y_edges swapped")
+    return ""
+
+
 def _detect(image, target, measure_blur, options) -> Detection:
     check_target_size(target)
     timings: dict = {}
@@ -1009,6 +1084,9 @@ def _detect(image, target, measure_blur, options) -> Detection:
     H, W = gray.shape
     levels = build_pyramid(gray)
     corners, found, message, level = detect_corners(gray, target, timings=timings, levels=levels, **options)
+    problem = labelling_problem(corners, target) if found else ""
+    if problem:
+        corners, found, message = np.full_like(corners, np.nan), False, problem
     N = target.n_points
     blur, sigma = np.full(N, np.nan), np.full(N, np.nan)
     if found and measure_blur:

@@ -1,7 +1,7 @@
 """A calibration in other libraries' terms: OpenCV FileStorage files and kornia's PinholeCamera.
 
     write_opencv(calib, path)            CALIB.json dict -> camera.yml (cv2.FileStorage)
-    read_opencv(path, pixel_pitch_mm)    camera.yml -> CALIB.json-like dict (the start of a fit)
+    read_opencv(path, pixel_pitch_mm)    camera.yml -> CALIB.json-like dict (to start a fit with --init)
     kornia_camera(calib)                 CALIB.json dict -> kornia.geometry.camera.PinholeCamera (all views)
 
 OpenCV's camera: K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx = fy = w / p (pixels), the distortion
@@ -54,18 +54,29 @@ def opencv_note(calib: dict) -> str:
     return "; ".join(parts)
 
 
-def write_opencv(calib: dict, path: str) -> None:
-    """Write an OpenCV FileStorage (YAML/XML/JSON by extension) of a CALIB.json dict.
+# FileStorage formats by file name ending; `.gz` after any of them compresses the file.
+OPENCV_EXTENSIONS = (".yml", ".yaml", ".xml", ".json")
+# The largest image side an OpenCV camera file may state (as tiltfit.detfile.MAX_IMAGE_SIDE).
+MAX_IMAGE_SIDE = 1 << 17
+
+
+def _format_name(path: str) -> str:
+    """`path`'s FileStorage format as a dummy file name (".yml", ".xml" or ".json"); YAML by default."""
+    name = path.lower().removesuffix(".gz")
+    ext = os.path.splitext(name)[1]
+    return {".yaml": ".yml", ".xml": ".xml", ".json": ".json"}.get(ext, ".yml")
+
+
+def opencv_text(calib: dict, format_name: str = ".yml") -> str:
+    """The OpenCV FileStorage text (YAML, XML or JSON by `format_name`'s extension) of a CALIB.json dict.
 
     Nodes: camera_matrix (3×3), distortion_coefficients (1×5 or 1×8), image_width, image_height, rvecs and
-    tvecs (V×3, one row per view, tvec in mm), image names, rms_reprojection_px (per corner, OpenCV's
-    definition), tiltfit_note.
+    tvecs (V×3, one row per view, tvec in mm), images (a sequence of the views' file names),
+    rms_reprojection_px (per corner, OpenCV's definition), pixel_pitch_mm, tiltfit_note.
     """
     import cv2
 
-    fs = cv2.FileStorage(path, cv2.FILE_STORAGE_WRITE)
-    if not fs.isOpened():
-        raise ExportError(f"{path}: cannot write")
+    fs = cv2.FileStorage(format_name, cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
     try:
         W, H = calib["image_size_px"]
         fs.write("image_width", int(W))
@@ -78,43 +89,123 @@ def write_opencv(calib: dict, path: str) -> None:
             tv = np.array([v["T_mm"] for v in views], dtype=np.float64)
             fs.write("rvecs", rv)
             fs.write("tvecs", tv)
-            fs.write("images", "; ".join(os.path.basename(str(v.get("image", ""))) for v in views))
+            fs.startWriteStruct("images", cv2.FileNode_SEQ)  # one string per view: no length limit
+            for v in views:
+                fs.write("", os.path.basename(str(v.get("image", ""))))
+            fs.endWriteStruct()
         if calib.get("rms_reprojection_px") is not None:
             fs.write("rms_reprojection_px", float(calib["rms_reprojection_px"]))
         fs.write("pixel_pitch_mm", float(calib["pixel_pitch_mm"]))
         fs.write("tiltfit_note", opencv_note(calib) or "the calibration is fully represented")
-    finally:
+        return fs.releaseAndGetString()
+    except cv2.error as e:
         fs.release()
+        raise ExportError(f"cannot write in OpenCV's format ({' '.join(str(e).split())[-160:]})") from None
 
 
-def read_opencv(path: str, pixel_pitch_mm: float | None = None) -> dict:
-    """Read an OpenCV FileStorage camera file into a CALIB.json-like dict (the start of a calibration).
+def write_opencv(calib: dict, path: str) -> None:
+    """Write an OpenCV FileStorage of a CALIB.json dict (`opencv_text`; YAML/XML/JSON by extension, gzip
+    compressed when the name ends in .gz) atomically (`renderer.io.atomic_output`)."""
+    import gzip
 
-    Needs camera_matrix and image_width/image_height; distortion_coefficients optional. fx and fy must agree
-    within 1 % (our pixels are square; their mean is used). The pixel pitch comes from the file
-    (`pixel_pitch_mm`, written by `write_opencv`) or the argument.
+    from renderer.io import atomic_output
 
-    Raises:
-        ExportError: naming the file and the missing or malformed node.
-    """
+    text = opencv_text(calib, _format_name(path))
+    data = text.encode("utf-8")
+    if path.lower().endswith(".gz"):
+        data = gzip.compress(data, mtime=0)
+    with atomic_output(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(data)
+
+
+def _matrix(path: str, fs, key: str, shapes: tuple, required: bool):
+    """A FileStorage node as a finite float64 array of one of `shapes` (None when absent and optional)."""
     import cv2
 
-    if not os.path.isfile(path):
-        raise ExportError(f"{path}: no such file")
+    node = fs.getNode(key)
+    if node.empty() or node.isNone():
+        if required:
+            raise ExportError(f"{path}: {key}: missing")
+        return None
     try:
-        fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
+        m = node.mat() if node.isMap() else None
+    except (cv2.error, SystemError):
+        m = None
+    if m is None and node.isSeq():
+        try:
+            m = np.array([node.at(i).real() for i in range(node.size())], dtype=np.float64)
+        except (cv2.error, SystemError):
+            m = None
+    if m is None:
+        raise ExportError(f"{path}: {key}: expected a matrix (!!opencv-matrix with rows, cols, dt, data)")
+    m = np.asarray(m, dtype=np.float64)
+    if not any(m.shape == s or (s[0] is None and m.ndim == 2 and m.shape[1:] == s[1:]) for s in shapes):
+        want = " or ".join("×".join("N" if d is None else str(d) for d in s) for s in shapes)
+        raise ExportError(f"{path}: {key}: expected {want}, got shape {'×'.join(map(str, m.shape)) or 'scalar'}")
+    if not np.isfinite(m).all():
+        raise ExportError(f"{path}: {key}: expected finite numbers")
+    return m
+
+
+def _integer(path: str, fs, key: str) -> int:
+    node = fs.getNode(key)
+    if node.empty() or node.isNone():
+        raise ExportError(f"{path}: {key}: missing")
+    if not node.isInt() and not node.isReal():
+        raise ExportError(f"{path}: {key}: expected an integer number of pixels")
+    v = node.real()
+    if not (np.isfinite(v) and v == int(v) and 1 <= v <= MAX_IMAGE_SIDE):
+        raise ExportError(f"{path}: {key}: expected an integer in 1..{MAX_IMAGE_SIDE}, got {v:g}")
+    return int(v)
+
+
+def _open_storage(path: str):
+    """A cv2.FileStorage open for reading (a .gz file is decompressed by OpenCV itself)."""
+    import cv2
+
+    from renderer.io import quiet_c_stderr
+
+    try:
+        with quiet_c_stderr():  # OpenCV's parser prints its complaints before raising
+            fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
     except (cv2.error, SystemError):  # a parse error surfaces as either
         raise ExportError(f"{path}: not an OpenCV FileStorage file") from None
     if not fs.isOpened():
         raise ExportError(f"{path}: not an OpenCV FileStorage file")
+    return fs
+
+
+def read_opencv(path: str, pixel_pitch_mm: float | None = None) -> dict:
+    """Read an OpenCV FileStorage camera file (YAML, XML or JSON, optionally .gz) into a CALIB.json-like dict
+    (for `--init`).
+
+    Needs camera_matrix (3×3) and image_width/image_height (integers); distortion_coefficients optional
+    (Brown–Conrady; a fisheye file is refused). fx and fy must agree within 1 % (our pixels are square;
+    their mean is used). The pixel pitch comes from the file (`pixel_pitch_mm`, written by `write_opencv`)
+    or the argument.
+
+    Raises:
+        ExportError: naming the file and the missing or malformed node.
+    """
+    if not os.path.isfile(path):
+        raise ExportError(f"{path}: {'is a folder' if os.path.isdir(path) else 'no such file'}")
+    fs = _open_storage(path)
     try:
-        K = fs.getNode("camera_matrix").mat()
-        if K is None or K.shape != (3, 3):
-            raise ExportError(f"{path}: camera_matrix: missing or not 3×3")
-        size = [fs.getNode("image_width").real(), fs.getNode("image_height").real()]
-        if not all(s > 0 for s in size):
-            raise ExportError(f"{path}: image_width, image_height: missing")
-        d = fs.getNode("distortion_coefficients").mat()
+        for key in ("fisheye_model", "fisheye"):
+            node = fs.getNode(key)
+            if not node.empty() and not node.isNone() and (not (node.isInt() or node.isReal()) or node.real() != 0):
+                raise ExportError(f"{path}: {key}: a fisheye camera file; tiltfit models Brown–Conrady lenses "
+                                  "(convert with cv2.fisheye or calibrate without --init)")
+        model = fs.getNode("distortion_model")
+        if model.isString() and "fisheye" in model.string().lower():
+            raise ExportError(f"{path}: distortion_model: a fisheye camera file; tiltfit models Brown–Conrady "
+                              "lenses")
+        K = _matrix(path, fs, "camera_matrix", ((3, 3),), required=True)
+        size = [_integer(path, fs, "image_width"), _integer(path, fs, "image_height")]
+        d = _matrix(path, fs, "distortion_coefficients",
+                    tuple((1, n) for n in (4, 5, 8, 12, 14)) + tuple((n, 1) for n in (4, 5, 8, 12, 14))
+                    + tuple((n,) for n in (4, 5, 8, 12, 14)), required=False)
         d = [] if d is None else [float(v) for v in d.ravel()]
         if len(d) > 8:
             if any(d[8:]):
@@ -122,38 +213,53 @@ def read_opencv(path: str, pixel_pitch_mm: float | None = None) -> dict:
                                   "tau) are not supported")
             d = d[:8]
         p_node = fs.getNode("pixel_pitch_mm")
-        pitch = p_node.real() if not p_node.empty() else pixel_pitch_mm
-        rv, tv = fs.getNode("rvecs").mat(), fs.getNode("tvecs").mat()
+        pitch = pixel_pitch_mm
+        if not p_node.empty() and not p_node.isNone():
+            if not (p_node.isReal() or p_node.isInt()):
+                raise ExportError(f"{path}: pixel_pitch_mm: expected a number")
+            pitch = p_node.real()
+        rv = _matrix(path, fs, "rvecs", ((None, 3), (3,)), required=False)
+        tv = _matrix(path, fs, "tvecs", ((None, 3), (3,)), required=False)
     finally:
         fs.release()
-    if not pitch or not pitch > 0:
-        raise ExportError(f"{path}: pixel_pitch_mm: not in the file; give it as the pixel_pitch_mm argument")
+    if pitch is None or not (np.isfinite(pitch) and pitch > 0):
+        raise ExportError(f"{path}: pixel_pitch_mm: not in the file (or not a positive number); give the "
+                          "sensor's pixel pitch")
     fx, fy = float(K[0, 0]), float(K[1, 1])
     if not (fx > 0 and fy > 0) or abs(fx / fy - 1) > 0.01:
         raise ExportError(f"{path}: camera_matrix: fx = {fx:g} and fy = {fy:g} differ by more than 1 % "
                           "(tiltfit models square pixels)")
-    out = {"pixel_pitch_mm": float(pitch), "image_size_px": [int(size[0]), int(size[1])],
+    out = {"pixel_pitch_mm": float(pitch), "image_size_px": size,
            "principal_point_px": [float(K[0, 2]), float(K[1, 2])], "w_mm": 0.5 * (fx + fy) * float(pitch),
            "U_mm": None, "d_mm": None, "theta_F_deg": 0.0,
            "distortion": {"model": "brown_conrady", "coefficients": d or [0.0]},
            "undetermined": ["U_mm", "d_mm"], "source": os.path.abspath(path)}
-    if rv is not None and tv is not None and rv.shape[0] == tv.shape[0] and rv.size and rv.shape[-1] == 3:
+    if rv is not None and tv is not None:
+        rv, tv = rv.reshape(-1, 3), tv.reshape(-1, 3)
+        if rv.shape[0] != tv.shape[0]:
+            raise ExportError(f"{path}: rvecs, tvecs: {rv.shape[0]} and {tv.shape[0]} rows; expected one per view")
         out["views"] = [{"R": axis_angle_to_matrix(torch.tensor(r, dtype=torch.float64)).tolist(),
-                         "T_mm": [float(x) for x in t.ravel()]} for r, t in zip(rv.reshape(-1, 3), tv.reshape(-1, 3))]
+                         "T_mm": [float(x) for x in t]} for r, t in zip(rv, tv)]
     return out
 
 
 def is_opencv_file(path: str) -> bool:
-    """True for .yml/.yaml/.xml files, or a file that starts like an OpenCV FileStorage."""
-    ext = os.path.splitext(path)[1].lower()
+    """True for .yml/.yaml/.xml files (optionally .gz), .json files in OpenCV's JSON FileStorage layout (an
+    `opencv-matrix` camera_matrix, as `write_opencv` writes), or a file that starts like a FileStorage."""
+    low = path.lower()
+    ext = os.path.splitext(low.removesuffix(".gz"))[1]
     if ext in (".yml", ".yaml", ".xml"):
+        return True
+    if low.endswith(".gz") and ext == ".json":
         return True
     try:
         with open(path, "rb") as f:
-            head = f.read(64)
+            head = f.read(4096)
     except OSError:
         return False
-    return head.startswith(b"%YAML") or head.startswith(b"<?xml")
+    if head.startswith(b"%YAML") or head.startswith(b"<?xml"):
+        return True
+    return ext == ".json" and b'"camera_matrix"' in head and b'"opencv-matrix"' in head
 
 
 def kornia_camera(calib: dict, allow_distortion: bool = False):

@@ -26,6 +26,8 @@ def _views(calib: dict) -> list:
     views = calib.get("views") or []
     if not views or not any("residuals_px" in v for v in views):
         raise ValueError("views[].residuals_px: missing (calibrate with this version of tiltfit to get a report)")
+    if not any(r is not None for v in views for r in v.get("residuals_px") or []):
+        raise ValueError("views[].residuals_px: no view has a residual to draw")
     return views
 
 
@@ -35,14 +37,25 @@ def _arr(values, width: int) -> np.ndarray:
 
 
 def write_report(calib: dict, out_dir: str) -> list:
-    """Write the report's PNG plots and report.md into `out_dir`; returns the paths written."""
+    """Write the report's PNG plots and report.md into `out_dir`; returns the paths written.
+
+    `calib` is a CALIB dict checked by `tiltfit.calibfile.validate_calib`. The files are written as a set
+    (`renderer.io.atomic_folder`): on an error or interrupt none of them reaches `out_dir`.
+    """
+    from renderer.io import atomic_folder
+
+    views = _views(calib)
+    with atomic_folder(out_dir) as staging:
+        names = _write_plots(calib, views, staging)
+    return [os.path.join(out_dir, name) for name in names]
+
+
+def _write_plots(calib: dict, views: list, out_dir: str) -> list:
+    """The report's files written into `out_dir`; returns their names."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    views = _views(calib)
-    os.makedirs(out_dir, exist_ok=True)
     W, H = calib["image_size_px"]
     names = [os.path.basename(str(v.get("image", f"view{i}"))) for i, v in enumerate(views)]
     C = [_arr(v.get("corners_px", []), 2) for v in views]
@@ -51,9 +64,11 @@ def write_report(calib: dict, out_dir: str) -> list:
 
     def save(fig, name):
         path = os.path.join(out_dir, name)
-        fig.savefig(path, dpi=110, bbox_inches="tight")
-        plt.close(fig)
-        files.append(path)
+        try:
+            fig.savefig(path, dpi=110, bbox_inches="tight")
+        finally:
+            plt.close(fig)
+        files.append(name)
 
     # Per-view RMS.
     rms = np.array([v.get("rms_reprojection_px") or np.nan for v in views], dtype=np.float64)
@@ -161,5 +176,5 @@ def write_report(calib: dict, out_dir: str) -> list:
     path = os.path.join(out_dir, "report.md")
     with open(path, "w", encoding="utf-8") as f:
         f.write("\n".join(lines) + "\n")
-    files.append(path)
+    files.append("report.md")
     return files

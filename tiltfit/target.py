@@ -350,9 +350,18 @@ def write_printable(target: Target, png_path: str | None, pdf_path: str | None, 
     """
     x0, y0, x1, y1 = target.extent_mm
     width, strip = x1 - x0, 15.0
+    if not (math.isfinite(dpi) and MIN_PRINT_DPI <= dpi <= MAX_PRINT_DPI):
+        raise TargetError(f"dpi: expected {MIN_PRINT_DPI:g} to {MAX_PRINT_DPI:g} dots per inch, got {dpi:g}")
+    if max(width, y1 + strip - y0) > MAX_PRINT_MM:
+        raise TargetError(f"margin: the page would be {width / 1000:.3g} × {(y1 + strip - y0) / 1000:.3g} m "
+                          f"(at most {MAX_PRINT_MM / 1000:g} m a side); use a smaller margin or board")
     if scale_bar_mm is None:
         fits = [v for v in (10.0, 20.0, 50.0, 100.0, 200.0) if v <= 0.8 * width]
         scale_bar_mm = fits[-1] if fits else 0.5 * width
+    bar_room = x1 - _bar_geometry(target, strip, 0.0)[0]
+    if not (math.isfinite(scale_bar_mm) and 0 < scale_bar_mm <= bar_room):
+        raise TargetError(f"scale_bar_mm: expected a length in (0, {bar_room:.4g}] mm (the bar fits on the page), "
+                          f"got {scale_bar_mm:g}")
     caption = (f"{target.n_cols}x{target.n_rows} cells, board {target.x_edges[-1] - target.x_edges[0]:.1f} x "
                f"{target.y_edges[-1] - target.y_edges[0]:.1f} mm, margin {target.margin:g} mm; "
                f"bar = {scale_bar_mm:g} mm")
@@ -369,6 +378,10 @@ def write_printable(target: Target, png_path: str | None, pdf_path: str | None, 
 
 # the largest PNG `write_printable` writes (a poster of 1.2 × 0.85 m at 600 dpi)
 MAX_PRINT_PIXELS = 400e6
+# Print resolutions: below 10 dpi a square is a few pixels; above 10,000 no printer resolves it.
+MIN_PRINT_DPI, MAX_PRINT_DPI = 10.0, 10000.0
+# The largest page side, mm (a 10 m banner); larger is a unit mistake in the margin or edges.
+MAX_PRINT_MM = 10000.0
 
 
 def _bar_geometry(target, strip, bar_mm):
@@ -403,9 +416,16 @@ def _write_png(target, path, dpi, strip, bar_mm, caption):
     fig.figimage(srgb, cmap="gray", vmin=0.0, vmax=1.0, origin="upper", resize=False)
     # the caption 2 mm below the bar, 6 pt as in the PDF (figure coordinates: y up from the bottom)
     fig.text(c(bx0) / W, 1.0 - r(by0 + t + 2.0) / H, caption, fontsize=6, va="top", ha="left", color="black")
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fig.savefig(path, dpi=dpi, format="png")
+    _save_atomic(fig, path, "png", dpi=dpi)
+
+
+def _save_atomic(fig, path: str, fmt: str, **kwargs) -> None:
+    """`fig.savefig` through `renderer.io.atomic_output`: nothing partial at `path` on an error or signal."""
+    from renderer.io import atomic_output
+
+    with atomic_output(path) as tmp:
+        with open(tmp, "wb") as f:
+            fig.savefig(f, format=fmt, **kwargs)
 
 
 def _write_pdf(target, path, strip, bar_mm, caption):
@@ -431,6 +451,4 @@ def _write_pdf(target, path, strip, bar_mm, caption):
     for k in range(int(L // 10) + 1):
         ax.plot([bx0 + 10.0 * k] * 2, [by0 - 1.5, by0 + t], color="black", linewidth=0.5)
     ax.text(bx0, by0 + t + 2.0, caption, fontsize=6, va="top", ha="left")
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fig.savefig(path, format="pdf")
+    _save_atomic(fig, path, "pdf")

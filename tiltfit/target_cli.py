@@ -19,8 +19,20 @@ import sys
 EXIT_ERROR = 2
 
 
+class _OneLineParser(argparse.ArgumentParser):
+    """argparse with its usage errors as one line `tiltfit: <option>: <problem>` (exit 2)."""
+
+    def error(self, message):
+        msg = " ".join(message.split())
+        if msg.startswith("argument "):
+            where, _, problem = msg[len("argument "):].partition(": ")
+            msg = f"{where.split('/')[-1]}: {problem}"
+        self.exit(EXIT_ERROR, f"tiltfit: {msg} (see tiltfit target {self.prog.split()[-1]} --help)\n"
+                  if self.prog.split()[-1] in ("design", "print") else f"tiltfit: {msg}\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="tiltfit target", description="Design a target and print it at true size.")
+    ap = _OneLineParser(prog="tiltfit target", description="Design a target and print it at true size.")
     sub = ap.add_subparsers(dest="action", required=True, metavar="ACTION")
 
     p = sub.add_parser("design", help="a target whose rows project equally spaced for a design view")
@@ -55,7 +67,7 @@ class _Fail(Exception):
 
 def _design(args, say) -> None:
     from .detect import MAX_FEATURE_POINTS
-    from .target import TargetError, design_target
+    from .target import MAX_EDGES, MAX_MM, TargetError, design_target, target_from_dict
 
     for name in ("cols", "rows"):
         v = getattr(args, name)
@@ -72,12 +84,19 @@ def _design(args, say) -> None:
         raise _Fail("--square-mm", "give --square-mm, or --square-px with --pixel-pitch-mm")
     if args.square_px is not None and args.pixel_pitch_mm is None:
         raise _Fail("--pixel-pitch-mm", "--square-px needs the sensor's pixel pitch")
+    for name in ("cols", "rows"):
+        if getattr(args, name) + 1 > MAX_EDGES:
+            raise _Fail(f"--{name}", f"expected at most {MAX_EDGES - 1} cells (the target format's limit), got "
+                                     f"{getattr(args, name)}")
+    if args.margin_mm > MAX_MM:
+        raise _Fail("--margin-mm", f"expected at most {MAX_MM:g} mm, got {args.margin_mm:g}")
     try:
         target = design_target(args.cols, args.rows, args.square_mm, w_mm=args.w_mm, distance_mm=args.distance_mm,
                                inclination_deg=args.inclination_deg, pixel_pitch_mm=args.pixel_pitch_mm,
                                square_px=args.square_px, margin_mm=args.margin_mm)
+        target_from_dict(target.to_dict(), args.output)  # what the target format reads back
     except TargetError as e:
-        raise _Fail(args.output, str(e)) from None
+        raise _Fail(args.output, str(e).removeprefix(f"{args.output}: ")) from None
     if (args.cols + args.rows) % 2 == 0:
         say(f"{args.output}: note: {args.cols} + {args.rows} cells is even, so the board looks alike turned by "
             f"180° unless its rows differ; detection then labels it by image geometry (any labelling is a "
@@ -94,12 +113,12 @@ def _design(args, say) -> None:
 
 
 def _print(args, say) -> None:
-    from .target import TargetError, load_target, write_printable
+    from .target import MAX_PRINT_DPI, MIN_PRINT_DPI, TargetError, load_target, write_printable
 
     if not args.png and not args.pdf:
         raise _Fail("--png", "give --png OUT.png and/or --pdf OUT.pdf")
-    if not (math.isfinite(args.dpi) and args.dpi > 0):
-        raise _Fail("--dpi", f"expected a positive resolution, got {args.dpi}")
+    if not (math.isfinite(args.dpi) and MIN_PRINT_DPI <= args.dpi <= MAX_PRINT_DPI):
+        raise _Fail("--dpi", f"expected {MIN_PRINT_DPI:g} to {MAX_PRINT_DPI:g} dots per inch, got {args.dpi:g}")
     if args.scale_bar_mm is not None and not (math.isfinite(args.scale_bar_mm) and args.scale_bar_mm > 0):
         raise _Fail("--scale-bar-mm", f"expected a positive length, got {args.scale_bar_mm}")
     try:
@@ -109,6 +128,9 @@ def _print(args, say) -> None:
     try:
         write_printable(target, args.png, args.pdf, dpi=args.dpi, scale_bar_mm=args.scale_bar_mm)
     except TargetError as e:
+        field = str(e).split(":", 1)[0]
+        if field in ("dpi", "scale_bar_mm"):
+            raise _Fail("--" + field.replace("_", "-"), str(e).split(": ", 1)[1]) from None
         raise _Fail(args.target, str(e)) from None
     except OSError as e:
         raise _Fail(args.png or args.pdf, f"cannot write ({e.strerror or e})") from None

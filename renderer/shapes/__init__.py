@@ -132,5 +132,10 @@ from .csg import OPS as _CSG_OPS, CSG  # noqa: E402
                               choices=_CSG_OPS),
                         Param("children", "list", doc="shapes: polyhedron (the leaf) or csg")])
 def _csg(path, cfg, base_dir):
+    from .csg import MAX_LEAVES, count_leaves
+
+    if count_leaves(cfg) > MAX_LEAVES:  # before any leaf is built
+        raise SceneError(f"{path}.children: expected at most {MAX_LEAVES} polyhedron leaves in one CSG tree, got "
+                         f"{count_leaves(cfg)} (memory grows with the square of the leaves)")
     children = [build_shape(f"{path}.children[{i}]", c, base_dir) for i, c in enumerate(cfg["children"])]
     return CSG(cfg["op"], children)

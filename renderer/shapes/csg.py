@@ -23,6 +23,9 @@ from .base import INF, ParameterError, Shape
 from .polyhedron import Polyhedron, coordinates_across, slab_interval
 
 OPS = ("intersection", "union", "difference")
+# Leaves of one CSG tree: `intersect` evaluates the tree between every pair of interval ends, (rays, 2L + 1, L)
+# booleans, so a batch of 2^17 rays needs about 2^18 · L² bytes (1 GiB at this limit).
+MAX_LEAVES = 64
 
 
 class CSG(Shape):
@@ -49,6 +52,9 @@ class CSG(Shape):
         self.op = op
         self.leaves: list[Polyhedron] = []
         self.tree = self._flatten(op, children)
+        if len(self.leaves) > MAX_LEAVES:
+            raise ParameterError("children", f"expected at most {MAX_LEAVES} polyhedron leaves in one CSG tree, got "
+                                             f"{len(self.leaves)} (memory grows with the square of the leaves)")
         k_max = max(leaf.normals.shape[0] for leaf in self.leaves)
         n_leaves = len(self.leaves)
         # Padding planes 0·x <= 1 hold everywhere, so they never bound a leaf's interval.
@@ -133,6 +139,19 @@ class CSG(Shape):
 
     def bounding_sphere(self):
         return self._center, self._radius
+
+
+def count_leaves(cfg) -> int:
+    """Polyhedron leaves of a CSG scene-file entry (its nested `children`), counted without building any."""
+    n, stack = 0, [cfg]
+    while stack:
+        c = stack.pop()
+        children = c.get("children") if isinstance(c, dict) and c.get("type") == "csg" else None
+        if isinstance(children, list):
+            stack.extend(children)
+        else:
+            n += 1
+    return n
 
 
 def _shift(node, offset: int):

@@ -120,6 +120,11 @@ def coordinates_across(p: torch.Tensor, axis: torch.Tensor) -> torch.Tensor:
     return torch.cat([p.gather(-1, u_axis), p.gather(-1, v_axis)], -1)
 
 
+# Half-spaces of one polyhedron: its vertices are solved for over all K-choose-3 triples of planes (341,376
+# small solves at this limit, well under a second); 600 half-spaces would need 36 million.
+MAX_HALFSPACES = 128
+
+
 class Polyhedron(Shape):
     """The convex solid {x : n_k·x ≤ c_k for all k}, scene units.
 
@@ -132,6 +137,9 @@ class Polyhedron(Shape):
     def __init__(self, halfspaces):
         super().__init__()
         rows = halfspaces.tolist() if isinstance(halfspaces, torch.Tensor) else list(halfspaces)
+        if len(rows) > MAX_HALFSPACES:
+            raise ParameterError("halfspaces", f"expected at most {MAX_HALFSPACES} half-spaces, got {len(rows)} "
+                                               "(the vertices are found over all triples of planes)")
         for i, row in enumerate(rows):
             numbers = isinstance(row, (list, tuple)) and all(
                 isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in row)

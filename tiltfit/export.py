@@ -196,7 +196,7 @@ def read_opencv(path: str, pixel_pitch_mm: float | None = None) -> dict:
             node = fs.getNode(key)
             if not node.empty() and not node.isNone() and (not (node.isInt() or node.isReal()) or node.real() != 0):
                 raise ExportError(f"{path}: {key}: a fisheye camera file; tiltfit models Brown–Conrady lenses "
-                                  "(convert with cv2.fisheye or calibrate without --init)")
+                                  "(convert with cv2.fisheye, or calibrate without this file as the start)")
         model = fs.getNode("distortion_model")
         if model.isString() and "fisheye" in model.string().lower():
             raise ExportError(f"{path}: distortion_model: a fisheye camera file; tiltfit models Brown–Conrady "
@@ -223,8 +223,8 @@ def read_opencv(path: str, pixel_pitch_mm: float | None = None) -> dict:
     finally:
         fs.release()
     if pitch is None or not (np.isfinite(pitch) and pitch > 0):
-        raise ExportError(f"{path}: pixel_pitch_mm: not in the file (or not a positive number); give the "
-                          "sensor's pixel pitch")
+        raise ExportError(f"{path}: pixel_pitch_mm: not in the file (or not a positive number); give it as "
+                          "the pixel_pitch_mm argument")
     fx, fy = float(K[0, 0]), float(K[1, 1])
     if not (fx > 0 and fy > 0) or abs(fx / fy - 1) > 0.01:
         raise ExportError(f"{path}: camera_matrix: fx = {fx:g} and fy = {fy:g} differ by more than 1 % "

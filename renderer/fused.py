@@ -47,7 +47,9 @@ def applies(scene: Scene, options: TraceOptions, device, dtype) -> bool:
     if cam.distortion is not None and not cam.distortion.is_identity:
         return False
     lens = cam.lens
-    if any(isinstance(v, torch.Tensor) for v in (lens.w, lens.U, lens.d, lens.theta_F, cam.screen.distance)):
+    if any(isinstance(v, torch.Tensor) for v in (lens.w, lens.U, lens.d, lens.theta_F, lens.phi, cam.screen.distance)):
+        return False
+    if lens.phi != 0:  # its compiled rays take the tilt about x only
         return False
     if scene.requires_grad() or not all(o.shape.type_name in _KINDS for o in scene.objects):
         return False

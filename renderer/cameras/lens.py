@@ -1,6 +1,6 @@
 """The one thin lens: its state (w, U, d, θF), its sensor, principal point and distortion, in one value.
 
-    Lens(w, U, d, theta_F=0, sensor=None, principal_point_px=None, distortion=None)
+    Lens(w, U, d, theta_F=0, sensor=None, principal_point_px=None, distortion=None, phi=0)
     Lens.from_tilt(w, f, theta_L, d)        the hinge rule: a lens of focal length f tilted by θL about its centre
     Lens.from_theta_L(w, U, d, theta_L)     U kept, θF from the exact Scheimpflug rule
     Lens.paper()                            the tilt-lens paper's camera (EOS 6D, TS-E 45 mm, stage-1 values)
@@ -11,8 +11,11 @@ fused path, tiltfit's synthetic captures, the experiments and the photometric fi
 lens parameters; the others hold a `Lens` (tests/test_one_lens.py).
 
 Conventions (docs/conventions.md): camera frame x right, y down, z forward, lens centre at the origin; the
-sensor at z = −w; the plane of focus z = U + y tan θF (U = math.inf: focus at infinity, θF about the camera x
-axis, |θF| < 90°); lengths in scene units (mm for a real camera), angles in radians. w, U, d, θF may be Python
+sensor at z = −w; the plane of focus z = U + y_φ tan θF with y_φ = y cos φ − x sin φ (U = math.inf: focus at
+infinity, |θF| < 90°): the lens and the plane of focus tilt about the axis (cos φ, sin φ, 0) of the lens plane,
+φ = 0 the camera x axis (the papers' and OpenCV's only case), φ = 90° the y axis (a tilt-shift lens's
+rotation ring turned by a quarter). Every relation of a tilt about x holds in the frame turned by φ about the
+optical axis. Lengths in scene units (mm for a real camera), angles in radians. w, U, d, θF may be Python
 floats or 0-dim tensors (tensors keep their graph; only numbers are checked).
 """
 from __future__ import annotations
@@ -57,6 +60,18 @@ class Sensor:
         """(width, height) of the sensor, scene units."""
         return self.width_px * self.pixel_pitch, self.height_px * self.pixel_pitch
 
+    def to_tilt_frame(self, p_cam):
+        """(..., 3) camera-frame points in the frame turned by φ about the optical axis, where the tilt is about
+        x: (x cos φ + y sin φ, y_φ, z) with y_φ = y cos φ − x sin φ (the identity for φ = 0; tensors keep
+        their graph)."""
+        if _number(self.phi) and self.phi == 0:
+            return p_cam
+        p = torch.as_tensor(p_cam)
+        phi = torch.as_tensor(self.phi, dtype=p.dtype, device=p.device)
+        c, s = torch.cos(phi), torch.sin(phi)
+        x, y, z = p.unbind(-1)
+        return torch.stack([x * c + y * s, y * c - x * s, z], -1)
+
     @property
     def center_px(self) -> tuple[float, float]:
         """The image centre ((W − 1)/2, (H − 1)/2), pixels: the default principal point."""
@@ -93,6 +108,7 @@ class Lens:
         principal_point_px: (cx, cy) where the optical axis meets the image [the sensor's centre].
         distortion: None or up to 8 Brown–Conrady coefficients in OpenCV's order (k1, k2, p1, p2, k3, k4, k5,
             k6), about the principal point.
+        phi: direction of the tilt axis in the lens plane, radians from the camera x axis towards y [0].
     """
 
     w: float
@@ -102,6 +118,7 @@ class Lens:
     sensor: Sensor | None = None
     principal_point_px: tuple[float, float] | None = None
     distortion: tuple[float, ...] | None = None
+    phi: float = 0.0
 
     def __post_init__(self):
         if _number(self.w) and not (math.isfinite(self.w) and self.w > 0):
@@ -112,6 +129,8 @@ class Lens:
             raise ValueError(f"d: expected an aperture diameter >= 0, got {self.d!r}")
         if _number(self.theta_F) and not abs(self.theta_F) < math.pi / 2:
             raise ValueError(f"theta_F: expected |θF| < 90°, got {math.degrees(self.theta_F)!r}°")
+        if _number(self.phi) and not math.isfinite(self.phi):
+            raise ValueError(f"phi: expected a finite angle, got {self.phi!r}")
 
     # ------------------------------------------------------------------ constructors
 
@@ -158,6 +177,18 @@ class Lens:
     def f(self):
         """Focal length of the thin lens in this state, f = U w cos θL / (U + w) (hinge rule)."""
         return _same_kind(optics.focal_length(self.w, self.U, self.theta_L), self.w, self.U, self.theta_F)
+
+    def to_tilt_frame(self, p_cam):
+        """(..., 3) camera-frame points in the frame turned by φ about the optical axis, where the tilt is about
+        x: (x cos φ + y sin φ, y_φ, z) with y_φ = y cos φ − x sin φ (the identity for φ = 0; tensors keep
+        their graph)."""
+        if _number(self.phi) and self.phi == 0:
+            return p_cam
+        p = torch.as_tensor(p_cam)
+        phi = torch.as_tensor(self.phi, dtype=p.dtype, device=p.device)
+        c, s = torch.cos(phi), torch.sin(phi)
+        x, y, z = p.unbind(-1)
+        return torch.stack([x * c + y * s, y * c - x * s, z], -1)
 
     @property
     def center_px(self) -> tuple[float, float]:
@@ -209,7 +240,7 @@ class Lens:
         """(..., 3) camera-frame points -> (...,) blur-disc diameters, pixels: the exact thin-lens value for a lens
         tilted about its centre (`renderer.optics.blur_diameter_exact`, the equivalent-area diameter of the
         blur ellipse); for θF = 0 it is the paper's eq (2)."""
-        p = torch.as_tensor(np.asarray(p_cam, dtype=np.float64))
+        p = self.to_tilt_frame(torch.as_tensor(np.asarray(p_cam, dtype=np.float64)))
         b = optics.blur_diameter_exact(p, self.w, self.U, self.d, self.theta_F)
         return b.numpy() / self._sensor("blur_px").pixel_pitch
 
@@ -218,6 +249,8 @@ class Lens:
         and sensor_size and principal_point_px when it has a sensor / principal point; numbers as plain floats."""
         keys = {"type": "thin_lens", "w": float(self.w), "U": float(self.U), "d": float(self.d),
                 "theta_F_deg": math.degrees(float(self.theta_F))}
+        if float(self.phi) != 0:
+            keys["tilt_axis_deg"] = math.degrees(float(self.phi))
         if self.sensor is not None:
             keys["sensor_size"] = list(self.sensor.size)
         if self.principal_point_px is not None:
@@ -227,7 +260,8 @@ class Lens:
     def record(self) -> dict:
         """w, U, d, θL and θF (degrees) as plain numbers: for tables and run records."""
         return {"w_mm": float(self.w), "U_mm": float(self.U), "d_mm": float(self.d),
-                "theta_L_deg": math.degrees(float(self.theta_L)), "theta_F_deg": math.degrees(float(self.theta_F))}
+                "theta_L_deg": math.degrees(float(self.theta_L)), "theta_F_deg": math.degrees(float(self.theta_F)),
+                "tilt_axis_deg": math.degrees(float(self.phi))}
 
     def _sensor(self, what: str) -> Sensor:
         if self.sensor is None:

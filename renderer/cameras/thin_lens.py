@@ -10,6 +10,7 @@
 | `theta_F_deg` | degrees | 0 | tilt of the plane of focus z = U + y tan θF about the camera x axis, \\|θF\\| < 90 |
 | `theta_L_deg` | degrees | — | lens tilt instead of `theta_F_deg`, converted exactly (`renderer.optics`) |
 | `principal_point_px` | pixels | centre | (cx, cy) where the optical axis meets the image |
+| `tilt_axis_deg` | degrees | 0 | direction φ of the tilt axis from the camera x axis (a tilt-shift lens's rotation) |
 
 Geometry (camera frame x right, y down, z forward; lens centre at the origin):
 - The sensor is at z = −w behind the lens. The image is read out upright: pixel (x, y) maps through
@@ -28,6 +29,10 @@ Geometry (camera frame x right, y down, z forward; lens centre at the origin):
   finite for every pixel and every |θF| < 90°. It is exactly the thin-lens refraction of the ray from P
   through S for a lens of focal length f = U w cos θL / (U + w) (see tests).
 - d = 0 gives S = 0 and the direction c: bit for bit the pinhole. θF = 0 gives the plain thin lens.
+- A tilt axis turned by φ (`tilt_axis_deg`; the rotation of a tilt-shift lens) is the same geometry in the
+  frame turned by φ about the optical axis: y becomes y_φ = y cos φ − x sin φ in the plane of focus and D,
+  and the disc's point is s_x a + s_y (b cos θL + ẑ sin θL) with a = (cos φ, sin φ, 0),
+  b = (−sin φ, cos φ, 0).
 Rays are valid everywhere and carry weight 1 (no cos⁴ vignetting). Pixels beyond the Scheimpflug line
 (y_s > w / tan θL, only for extreme tilts) would put the sensor in front of the lens plane; the formula
 extends smoothly there.
@@ -57,6 +62,7 @@ THIN_LENS_PARAMS = [
     Param("theta_F_deg", "float", None, "tilt of the plane of focus about the camera x axis, degrees [0]"),
     Param("theta_L_deg", "float", None, "lens tilt instead of theta_F_deg (exact conversion), degrees"),
     Param("principal_point_px", "vec2", None, "(cx, cy) principal point, pixels [image centre]"),
+    Param("tilt_axis_deg", "float", None, "direction of the tilt axis from the camera x axis, degrees [0]"),
 ]
 
 
@@ -93,6 +99,13 @@ def concentric_disk_xy(lens_uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
 
 def parse_lens(path: str, cfg: dict) -> Lens:
     """Validate the thin-lens keys and resolve the `Lens` (U, θF exactly). Messages name the field."""
+    phi = cfg.get("tilt_axis_deg")
+    if phi is not None and not math.isfinite(phi):
+        raise SceneError(f"{path}.tilt_axis_deg: expected a finite angle, got {phi}")
+    return _parse_lens(path, cfg).with_(phi=math.radians(phi or 0.0))
+
+
+def _parse_lens(path: str, cfg: dict) -> Lens:
     w, d = cfg["w"], cfg["d"]
     if w <= 0:
         raise SceneError(f"{path}.w: expected a positive distance, got {w}")
@@ -176,18 +189,33 @@ class ThinLensCamera(Camera):
         return torch.stack(self.lens_rows(lens_uv), -1)
 
     def lens_rows(self, lens_uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """`lens_points` as its three (...,) components."""
+        """`lens_points` as its three (...,) components: the disc's point (s_a, s_b) on the tilt axis
+        a = (cos φ, sin φ, 0) and across it, b cos θL + ẑ sin θL with b = (−sin φ, cos φ, 0)."""
         lx, ly = concentric_disk_xy(lens_uv)
         r = self.lens.d / 2
         sx, sy = lx * r, ly * r
         theta_L = _like(self.lens.theta_L, sx)
-        return sx, sy * torch.cos(theta_L), sy * torch.sin(theta_L)
+        across, sz = sy * torch.cos(theta_L), sy * torch.sin(theta_L)
+        if self._untwisted():
+            return sx, across, sz
+        phi = _like(self.lens.phi, sx)
+        c, s = torch.cos(phi), torch.sin(phi)
+        return sx * c - across * s, sx * s + across * c, sz
+
+    def _untwisted(self) -> bool:
+        """Whether the tilt axis is the camera x axis (φ = 0 as a plain number)."""
+        return not isinstance(self.lens.phi, torch.Tensor) and self.lens.phi == 0
 
     def focus_weight(self, c: torch.Tensor) -> torch.Tensor:
         """D / U = 1 / t for chief directions c = (x_s, y_s, w): the pixel's focus point is P_f = c · U / D."""
-        return self._focus_weight(c[..., 1], c[..., 2])
+        return self._focus_weight(c[..., 0], c[..., 1], c[..., 2])
 
-    def _focus_weight(self, y: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    def _focus_weight(self, x: torch.Tensor, y: torch.Tensor, z) -> torch.Tensor:
+        """(z − y_φ tan θF) / U with y_φ = y cos φ − x sin φ: where the chief ray (x, y, z) meets the plane of
+        focus."""
+        if not self._untwisted():
+            phi = _like(self.lens.phi, y)
+            y = y * torch.cos(phi) - x * torch.sin(phi)
         return (z - y * torch.tan(_like(self.lens.theta_F, y))) / self.lens.U
 
     def rays_in_camera(self, uv_px: torch.Tensor, lens_uv: torch.Tensor) -> Rays:
@@ -198,7 +226,7 @@ class ThinLensCamera(Camera):
             return self._rays_in_place(uv_px, lens_uv)
         x, y, z = self.screen.plane_rows(uv_px)
         sx, sy, sz = self.lens_rows(lens_uv.to(x))
-        weight = self._focus_weight(y, z)
+        weight = self._focus_weight(x, y, z)
         dx, dy, dz = x - weight * sx, y - weight * sy, z - weight * sz
         valid = torch.ones(x.shape, dtype=torch.bool, device=x.device)
         return Rays(vectors_from_rows(sx, sy, sz), unit_vectors_from_rows(dx, dy, dz), valid, torch.ones_like(x))
@@ -210,7 +238,8 @@ class ThinLensCamera(Camera):
         lens = self.lens
         params = (lens.w, lens.U, lens.d, lens.theta_F, self.screen.distance, *self.screen.center_px,
                   *self.screen.pitch)
-        return (not any(isinstance(p, torch.Tensor) for p in params) and uv_px.shape == lens_uv.shape
+        return (not any(isinstance(p, torch.Tensor) for p in params) and self._untwisted()
+                and uv_px.shape == lens_uv.shape
                 and not carries_derivative(uv_px) and not carries_derivative(lens_uv)
                 and not torch.compiler.is_compiling())
 
@@ -227,7 +256,7 @@ class ThinLensCamera(Camera):
         theta_L = _like(self.lens.theta_L, x)
         torch.mul(sy, torch.cos(theta_L), out=origin[1])
         torch.mul(sy, torch.sin(theta_L), out=origin[2])
-        weight = self._focus_weight(y, z)
+        weight = self._focus_weight(x, y, z)
         d = torch.mul(origin, weight)  # weight · S, then P − weight · S row by row
         torch.sub(x, d[0], out=d[0])
         torch.sub(y, d[1], out=d[1])
@@ -256,7 +285,7 @@ class ThinLensCamera(Camera):
         """
         ideal_px, valid = self.undistort_pixels(uv_px)
         x, y, z = self.screen.plane_rows(ideal_px)
-        weight = self._focus_weight(y, z)
+        weight = self._focus_weight(x, y, z)
         R = self.transform.world_from_camera.to(x)
         t = self.transform.position.to(x)
         c = torch.stack([x, y, z], -1)

@@ -20,7 +20,7 @@ Properties (all floats unless noted; scene units, radians):
   `cx`, `cy` (principal point, pixels), `to_world` (our camera pose), `distance` (screen distance, the
   focal length of the normalised coordinates), `k1`, `k2`, `p1`, `p2`, `k3`, `k4`, `k5`, `k6` (the lens
   distortion in OpenCV's order [0]);
-- `tilted_thinlens`: `w`, `U`, `d`, `theta_F` (θL derived by `Lens`);
+- `tilted_thinlens`: `w`, `U`, `d`, `theta_F`, `phi` (the tilt axis's direction; θL derived by `Lens`);
 - `inverted_perspective`: `alpha`, `p3` (pseudo-screen distance), `q3` (screen distance).
 
 Call `register(mi)` after choosing a variant (registration is per variant); `sensor_dict(camera, ...)`
@@ -116,16 +116,19 @@ def _classes(mi):
 
         def __init__(self, props):
             _OurSensor.__init__(self, props)
-            self.lens = Lens(props.get("w"), props.get("U"), props.get("d"), props.get("theta_F"))
+            self.lens = Lens(props.get("w"), props.get("U"), props.get("d"), props.get("theta_F"),
+                             phi=props.get("phi", 0.0))
             self.tan_F = math.tan(self.lens.theta_F)
             self.cos_L, self.sin_L = math.cos(self.lens.theta_L), math.sin(self.lens.theta_L)
+            self.cos_phi, self.sin_phi = math.cos(self.lens.phi), math.sin(self.lens.phi)
             self.m_needs_sample_3 = self.lens.d > 0
 
         def camera_ray(self, xs, ys, aperture_sample):
-            lens = self.lens
+            lens, c, s_ = self.lens, self.cos_phi, self.sin_phi
             disc = mi.warp.square_to_uniform_disk_concentric(aperture_sample) * (lens.d / 2)
-            s = mi.Vector3f(disc.x, disc.y * self.cos_L, disc.y * self.sin_L)
-            focus = (lens.w - ys * self.tan_F) / lens.U
+            across = disc.y * self.cos_L  # the disc's point along the tilt axis (cos φ, sin φ) and across it
+            s = mi.Vector3f(disc.x * c - across * s_, disc.x * s_ + across * c, disc.y * self.sin_L)
+            focus = (lens.w - (ys * c - xs * s_) * self.tan_F) / lens.U
             return mi.Point3f(s), mi.Vector3f(xs, ys, lens.w) - focus * s
 
     class InvertedPerspective(_OurSensor):
@@ -186,7 +189,7 @@ def sensor_dict(mi, camera, spp: int, sampler: str = "independent") -> dict:
     if kind == "ThinLensCamera":
         lens = camera.lens
         return {"type": "tilted_thinlens", "w": float(lens.w), "U": float(lens.U), "d": float(lens.d),
-                "theta_F": float(lens.theta_F), **common}
+                "theta_F": float(lens.theta_F), "phi": float(lens.phi), **common}
     if kind == "InvertedPerspectiveCamera":
         return {"type": "inverted_perspective", "alpha": camera.alpha, "p3": camera.pseudo_screen_distance,
                 "q3": float(screen.distance), **common}

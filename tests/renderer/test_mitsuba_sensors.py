@@ -22,6 +22,7 @@ SCENE = os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks", "scene
 INVERTED = {"type": "inverted_perspective", "alpha": 2.0, "pseudo_screen_distance": 4.0, "screen_distance": 1.0,
             "screen_size": [1.2, 1.2]}
 CASES = {"untilted": [], "tilted": ["camera.theta_F_deg=25", "camera.d=0.15"],
+         "tilt axis turned": ["camera.theta_F_deg=25", "camera.d=0.15", "camera.tilt_axis_deg=60"],
          "inverted": ["camera=" + json.dumps(INVERTED)]}
 
 

@@ -336,3 +336,29 @@ def test_in_place_rays_keep_every_kind_of_derivative():
     # Lens samples of another shape than the pixels: the general formulas' broadcasting error, not (4, 3) rays.
     with pytest.raises(RuntimeError):
         cam.generate_rays(uv[:4], lens[:50])
+
+
+@pytest.mark.parametrize("phi_deg", [0.0, 35.0, 90.0, -120.0])
+def test_a_turned_tilt_axis_focuses_on_its_plane(phi_deg):
+    """Tilt axis turned by φ (a tilt-shift lens's rotation): every ray of a pixel leaves the lens disc in the plane
+    z = y_φ tan θL and passes through the point where the pixel's chief ray meets z = U + y_φ tan θF,
+    y_φ = y cos φ − x sin φ (closed forms written here, not the camera's)."""
+    phi, theta_F = math.radians(phi_deg), math.radians(30.0)
+    lens = Lens(W, U, D, theta_F, phi=phi)
+    cam = ThinLensCamera(CameraTransform.identity(), Screen(11, 7, (36.0, 24.0), W), lens)
+    g = torch.Generator().manual_seed(5)
+    uv = torch.rand(40, 2, generator=g, dtype=torch.float64) * torch.tensor([11.0, 7.0]) - 0.5
+    lens_uv = torch.rand(40, 2, generator=g, dtype=torch.float64)
+    rays = cam.generate_rays(uv, lens_uv)
+    chief = cam.generate_rays(uv, torch.full_like(lens_uv, 0.5)).direction
+    c, s = math.cos(phi), math.sin(phi)
+    y_phi = lambda p: p[:, 1] * c - p[:, 0] * s  # noqa: E731
+    t = U / (chief[:, 2] - y_phi(chief) * math.tan(theta_F))
+    focus = chief * t[:, None]
+    o = rays.origin
+    tan_L = W * math.tan(theta_F) / (U + W)  # exact Scheimpflug
+    assert torch.allclose(o[:, 2], y_phi(o) * tan_L, atol=1e-9), "lens points lie in the tilted lens plane"
+    assert float(o[:, :2].norm(dim=-1).max()) > 0.3 * D, "samples spread over the disc"
+    to_focus = focus - o
+    cross = torch.linalg.cross(to_focus, rays.direction)
+    assert float((cross.norm(dim=-1) / to_focus.norm(dim=-1)).max()) < 1e-9, "each ray passes through the focus"

@@ -66,11 +66,7 @@ class Sensor:
         their graph)."""
         if _number(self.phi) and self.phi == 0:
             return p_cam
-        p = torch.as_tensor(p_cam)
-        phi = torch.as_tensor(self.phi, dtype=p.dtype, device=p.device)
-        c, s = torch.cos(phi), torch.sin(phi)
-        x, y, z = p.unbind(-1)
-        return torch.stack([x * c + y * s, y * c - x * s, z], -1)
+        return tilt_frame(torch.as_tensor(p_cam), self.phi)
 
     @property
     def center_px(self) -> tuple[float, float]:
@@ -184,11 +180,7 @@ class Lens:
         their graph)."""
         if _number(self.phi) and self.phi == 0:
             return p_cam
-        p = torch.as_tensor(p_cam)
-        phi = torch.as_tensor(self.phi, dtype=p.dtype, device=p.device)
-        c, s = torch.cos(phi), torch.sin(phi)
-        x, y, z = p.unbind(-1)
-        return torch.stack([x * c + y * s, y * c - x * s, z], -1)
+        return tilt_frame(torch.as_tensor(p_cam), self.phi)
 
     @property
     def center_px(self) -> tuple[float, float]:
@@ -267,6 +259,15 @@ class Lens:
         if self.sensor is None:
             raise ValueError(f"Lens.{what}: this lens has no sensor (give Lens(..., sensor=Sensor(W, H, p)))")
         return self.sensor
+
+
+def tilt_frame(p_cam: torch.Tensor, phi) -> torch.Tensor:
+    """(..., 3) camera-frame points turned by −φ about the optical axis: (x cos φ + y sin φ, y_φ, z) with
+    y_φ = y cos φ − x sin φ, the frame in which a tilt about the axis (cos φ, sin φ, 0) is a tilt about x."""
+    phi = torch.as_tensor(phi, dtype=p_cam.dtype, device=p_cam.device)
+    c, s = torch.cos(phi), torch.sin(phi)
+    x, y, z = p_cam.unbind(-1)
+    return torch.stack([x * c + y * s, y * c - x * s, z], -1)
 
 
 def _same_kind(value, *params):

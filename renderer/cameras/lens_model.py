@@ -12,7 +12,8 @@ chief-ray projection), the blur `renderer.optics.blur_diameter`, rotations `rend
 
 Conventions (docs/conventions.md): camera frame x right, y down, z forward; X_cam = R X_world + T;
 pixel (0, 0) is the centre of the top-left pixel and the principal point defaults to ((W−1)/2, (H−1)/2);
-the plane of focus is z = U + y tan θF in the camera frame; lengths in mm (the scene unit of a real camera),
+the plane of focus is z = U + y_φ tan θF in the camera frame, y_φ = y cos φ − x sin φ (φ: the tilt axis's
+direction, 0 unless freed: the camera x axis); lengths in mm (the scene unit of a real camera),
 angles in radians.
 D is the lens's Brown–Conrady distortion in OpenCV's order and normalisation
 (`renderer.cameras.distortion`, coefficients k1, k2, p1, p2, k3, k4, k5, k6; identity when all are 0), so an
@@ -49,7 +50,7 @@ from ..optics import BLUR_MODELS
 from ..transforms import axis_angle_to_matrix, matrix_to_axis_angle, rotated_point_jacobian
 from .distortion import (COEFFICIENT_NAMES, MODEL_TERMS, BrownConrady, distort, distort_coefficient_jacobian,
                          distort_jacobian)
-from .lens import Lens, Sensor
+from .lens import Lens, Sensor, tilt_frame
 from .projection import project_pinhole
 from .thin_lens import ThinLensCamera
 
@@ -61,6 +62,7 @@ _GROUPS = {
     "U": ("inv_U_per_m",),
     "d": ("d_scaled",),
     "theta_F": ("theta_F",),
+    "phi": ("phi",),
     "rvec": ("rvec",),
     "R": ("rvec",),
     "T": ("T_scaled",),
@@ -70,7 +72,8 @@ _GROUPS = {
     "pose": ("rvec", "T_scaled"),
     **{k: (f"dist_{k}",) for k in COEFFICIENT_NAMES},
     "distortion": _DIST,
-    "all": ("log_w_mm", "inv_U_per_m", "d_scaled", "theta_F", "rvec", "T_scaled", "pp_scaled", "blur_offset_px")
+    "all": ("log_w_mm", "inv_U_per_m", "d_scaled", "theta_F", "phi", "rvec", "T_scaled", "pp_scaled",
+            "blur_offset_px")
     + _DIST,
 }
 
@@ -95,7 +98,8 @@ class LensCamera(torch.nn.Module):
         d_mm: effective aperture diameter, mm.
         distortion: up to 8 Brown–Conrady coefficients (k1, k2, p1, p2, k3, k4, k5, k6) [zeros]; frozen
             unless freed (`free("k1")`, `free(*distortion_parameter_names("opencv5"))`).
-        theta_F: tilt of the plane of focus about the camera x axis, radians [0].
+        theta_F: tilt of the plane of focus about the tilt axis, radians [0].
+        phi: the tilt axis's direction from the camera x axis, radians [0]; frozen unless freed (`free("phi")`).
         R: (V, 3, 3) rotations camera_from_world [identity]; or `rvec` (V, 3) axis-angle.
         T_mm: (V, 3) translations, mm [(0, 0, 600)].
         principal_point_px: (cx, cy) [image centre]; frozen unless freed.
@@ -108,7 +112,7 @@ class LensCamera(torch.nn.Module):
     def __init__(self, n_views: int, image_size_px, pixel_pitch_mm: float, w_mm: float, U_mm: float,
                  d_mm: float, theta_F: float = 0.0, R=None, T_mm=None, rvec=None, principal_point_px=None,
                  blur_model: str = "ellipse", length_scale_mm: float = 100.0, pixel_scale_px: float = 100.0,
-                 dtype=torch.float64, distortion=None):
+                 dtype=torch.float64, distortion=None, phi: float = 0.0):
         super().__init__()
         if blur_model not in BLUR_MODELS:
             raise ValueError(f"blur_model: expected one of {BLUR_MODELS}, got {blur_model!r}")
@@ -136,6 +140,7 @@ class LensCamera(torch.nn.Module):
         # d = 0 exactly would be a stationary point of |d_scaled| (zero gradient): start a hair above it.
         self.d_scaled = P(torch.tensor(max(float(d_mm), 1e-6) / APERTURE_SCALE_MM, dtype=dtype))
         self.theta_F = P(torch.tensor(float(theta_F), dtype=dtype))
+        self.phi = P(torch.tensor(float(phi), dtype=dtype))
         self.rvec = P(rvec.clone())
         self.T_scaled = P(T_mm / self.length_scale_mm)
         W, H = self.image_size_px
@@ -149,7 +154,7 @@ class LensCamera(torch.nn.Module):
         # A constant added to every measured blur width: a blur detector's bias (e.g. from its edge model),
         # not optics. Frozen at 0 unless freed; the fit frees it so the bias does not leak into d and U.
         self.blur_offset_px = P(torch.tensor(0.0, dtype=dtype))
-        self.freeze("principal_point", "distortion", "blur_offset")
+        self.freeze("principal_point", "distortion", "blur_offset", "phi")
 
     # --- freeing and freezing --------------------------------------------------------------------------
     @staticmethod
@@ -252,7 +257,7 @@ class LensCamera(torch.nn.Module):
         """The lens as the one lens type, of this module's tensors (w, U, d, θF, principal point, distortion:
         gradients reach the parameters through it)."""
         return Lens(self.w_mm, self.U_mm, self.d_mm, self.theta_F, self.sensor, self.principal_point_px,
-                    self.distortion)
+                    self.distortion, self.phi)
 
     # --- the two calls -----------------------------------------------------------------------------------
     def to_camera(self, X_world: torch.Tensor, view=None) -> torch.Tensor:
@@ -282,7 +287,8 @@ class LensCamera(torch.nn.Module):
 
     def blur_camera(self, p_cam: torch.Tensor) -> torch.Tensor:
         """(..., 3) camera-frame points -> (...,) blur diameters in pixels (eq (2)/(4), `blur_model`)."""
-        b_mm = optics.blur_diameter(p_cam, self.w_mm, self.U_mm, self.d_mm, self.theta_F, self.blur_model)
+        p_tilt = tilt_frame(p_cam, self.phi)
+        b_mm = optics.blur_diameter(p_tilt, self.w_mm, self.U_mm, self.d_mm, self.theta_F, self.blur_model)
         return b_mm / self.pixel_pitch_mm + self.blur_offset_px
 
     def project(self, X_world: torch.Tensor, view=None) -> torch.Tensor:
@@ -346,10 +352,17 @@ class LensCamera(torch.nn.Module):
             pose = any(n in names for n in ("rvec", "T_scaled"))
             lens_names = [n for n in ("log_w_mm", "inv_U_per_m", "d_scaled", "theta_F") if n in names]
             if with_blur:
-                b_mm, Jb = optics.blur_diameter_jacobian(p_cam, self.w_mm.detach(), self.U_mm.detach(),
+                phi = self.phi.detach()
+                p_tilt = tilt_frame(p_cam, phi)  # the blur is a tilt about x in the frame turned by φ
+                b_mm, Jb = optics.blur_diameter_jacobian(p_tilt, self.w_mm.detach(), self.U_mm.detach(),
                                                          self.d_mm.detach(), self.theta_F.detach(), self.blur_model)
                 b = b_mm / pitch + self.blur_offset_px.detach()
-                rows = torch.cat([F * dxd_dp, Jb[..., None, :3] / pitch], -2)    # ∂(u, v, b)/∂p_cam
+                c, sn = torch.cos(phi), torch.sin(phi)
+                jt = Jb[..., :3]  # ∂b/∂p_tilt; p_tilt = M p_cam, M = [[c, s, 0], [−s, c, 0], [0, 0, 1]]
+                db_dp = torch.stack([jt[..., 0] * c - jt[..., 1] * sn, jt[..., 0] * sn + jt[..., 1] * c,
+                                     jt[..., 2]], -1)
+                db_dphi = jt[..., 0] * p_tilt[..., 1] - jt[..., 1] * p_tilt[..., 0]  # ∂p_tilt/∂φ = (y_t, −x_t, 0)
+                rows = torch.cat([F * dxd_dp, db_dp[..., None, :] / pitch], -2)    # ∂(u, v, b)/∂p_cam
             else:
                 b = zero
                 rows = torch.cat([F * dxd_dp, torch.zeros_like(dxd_dp[..., :1, :])], -2)
@@ -378,6 +391,11 @@ class LensCamera(torch.nn.Module):
                 pp[..., 0, 0] = self.pixel_scale_px
                 pp[..., 1, 1] = self.pixel_scale_px
                 jac["pp_scaled"] = pp
+            if "phi" in names:
+                dphi = torch.zeros(z.shape + (3, 1), dtype=dt, device=dev)
+                if with_blur:
+                    dphi[..., 2, 0] = db_dphi / pitch
+                jac["phi"] = dphi
             if "blur_offset_px" in names:
                 off = torch.zeros(z.shape + (3, 1), dtype=dt, device=dev)
                 if with_blur:
@@ -423,6 +441,7 @@ class LensCamera(torch.nn.Module):
             return {
                 "w_mm": float(self.w_mm), "U_mm": float(self.U_mm), "d_mm": float(self.d_mm),
                 "f_mm": float(self.f_mm), "theta_F_deg": math.degrees(float(self.theta_F)),
+                "tilt_axis_deg": math.degrees(float(self.phi)),
                 "theta_L_deg": math.degrees(float(self.theta_L)),
                 "theta_L_paper_deg": math.degrees(float(self.theta_L_paper)),
                 "principal_point_px": [float(v) for v in self.principal_point_px],
@@ -438,6 +457,7 @@ class LensCamera(torch.nn.Module):
             raise ValueError("lens.sensor: a fitted camera needs the lens's sensor (Sensor(W, H, pitch))")
         kwargs.setdefault("principal_point_px", lens.principal_point_px)
         kwargs.setdefault("distortion", lens.distortion)
+        kwargs.setdefault("phi", float(lens.phi))
         return cls(n_views, lens.sensor.size_px, lens.sensor.pixel_pitch, float(lens.w), float(lens.U),
                    float(lens.d), float(lens.theta_F), **kwargs)
 

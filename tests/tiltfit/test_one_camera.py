@@ -18,9 +18,10 @@ def test_the_calibration_camera_is_the_renderers():
     assert TiltLensCamera is renderer.LensCamera, "one class, two names"
 
 
-def test_synth_camera_projects_and_blurs_as_the_lens_camera():
-    sc = Lens(50.0, 700.0, 12.0, sensor=Sensor(801, 533, 0.01),
-             theta_F=math.radians(25.0), principal_point_px=(410.5, 260.25))
+@pytest.mark.parametrize("phi_deg", [0.0, 40.0])
+def test_synth_camera_projects_and_blurs_as_the_lens_camera(phi_deg):
+    sc = Lens(50.0, 700.0, 12.0, sensor=Sensor(801, 533, 0.01), theta_F=math.radians(25.0),
+              principal_point_px=(410.5, 260.25), phi=math.radians(phi_deg))
     R, T = synth.pose_from_axis_angle([0.2, -0.15, 0.05], [10.0, -5.0, 650.0])
     lc = TiltLensCamera.from_lens(sc, 1, R=R[None], T_mm=T[None])
     X = np.random.default_rng(2).uniform(-60, 60, (40, 3)) * np.array([1, 1, 0])

@@ -5,7 +5,8 @@ theta_F_deg, theta_L_deg (exact thin-lens relation), theta_L_paper_deg (the pape
 views [{image, R (3×3, camera_from_target), T_mm, rms_reprojection_px, rms_blur_px, n_points}],
 sigma {w_mm, U_mm, d_mm, theta_F_deg, theta_L_deg} (one standard deviation), runtime_s.
 
-Extras (readers must ignore keys they do not know): fit (mode), blur_model, noise {sigma_corner_px,
+Extras (readers must ignore keys they do not know): tilt_axis_deg (φ, the tilt axis's direction from the camera x
+axis, 0 unless the data justify turning it), fit (mode), blur_model, noise {sigma_corner_px,
 sigma_blur_px, variance_factor}, sigma.{f_mm, theta_L_paper_deg, principal_point_px}, views[].{sigma_rvec_deg,
 sigma_T_mm}, model_selection {theta_F: {...,justified}, principal_point: {...}}, iterations, n_residuals,
 n_parameters, software.
@@ -119,7 +120,7 @@ def calib_dict(result, runtime_s: float | None = None, obs=None, target: dict | 
     if "U_mm" in undetermined:  # f = U w / (U + w) needs U
         v["f_mm"] = s["f_mm"] = None
     if "theta_F_deg" in undetermined:
-        for k in ("theta_L_deg", "theta_L_paper_deg"):
+        for k in ("theta_L_deg", "theta_L_paper_deg", "tilt_axis_deg"):
             v[k] = s[k] = None
     n_rows = result.rss.get("n_corners", 0)
     out = {
@@ -129,8 +130,10 @@ def calib_dict(result, runtime_s: float | None = None, obs=None, target: dict | 
         "w_mm": v["w_mm"], "U_mm": v["U_mm"], "d_mm": v["d_mm"], "f_mm": v["f_mm"],
         "theta_F_deg": v["theta_F_deg"], "theta_L_deg": v["theta_L_deg"],
         "theta_L_paper_deg": v["theta_L_paper_deg"],
+        "tilt_axis_deg": v.get("tilt_axis_deg", 0.0),
         "views": [dict(view) for view in result.views],
         "sigma": {k: s[k] for k in SIGMA_KEYS} | {"f_mm": s["f_mm"], "theta_L_paper_deg": s["theta_L_paper_deg"],
+                                                   "tilt_axis_deg": s.get("tilt_axis_deg", 0.0),
                                                    "principal_point_px": s["principal_point_px"]},
         "runtime_s": result.runtime_s if runtime_s is None else runtime_s,
         "fit": result.mode,
@@ -235,6 +238,8 @@ def validate_calib(path: str, data) -> dict:
     if data.get("theta_F_deg") is not None:
         if abs(_number(path, "theta_F_deg", data["theta_F_deg"])) >= 90:
             raise CalibFileError(f"{path}: theta_F_deg: expected |θF| < 90, got {data['theta_F_deg']!r}")
+    if data.get("tilt_axis_deg") is not None and abs(_number(path, "tilt_axis_deg", data["tilt_axis_deg"])) > 360:
+        raise CalibFileError(f"{path}: tilt_axis_deg: expected an angle within ±360°, got {data['tilt_axis_deg']!r}")
     views = data.get("views", [])
     if not isinstance(views, list):
         raise CalibFileError(f"{path}: views: expected a list, got {views!r}")
@@ -354,7 +359,8 @@ def camera_from_calib(data: dict, blur_model: str | None = None) -> TiltLensCame
         data["U_mm"] if data["U_mm"] is not None else 600.0, data["d_mm"] if data["d_mm"] is not None else 10.0,
         math.radians(data.get("theta_F_deg") or 0.0), R=R, T_mm=T,
         principal_point_px=data.get("principal_point_px"),
-        blur_model=blur_model or data.get("blur_model") or "ellipse", distortion=dist)
+        blur_model=blur_model or data.get("blur_model") or "ellipse", distortion=dist,
+        phi=math.radians(data.get("tilt_axis_deg") or 0.0))
     if isinstance(data.get("blur_offset_px"), (int, float)) and math.isfinite(data["blur_offset_px"]):
         with torch.no_grad():
             cam.blur_offset_px.fill_(float(data["blur_offset_px"]))

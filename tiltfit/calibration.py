@@ -180,7 +180,7 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
         cam = geometry.camera.copy()
     options = replace(options, free_principal_point=free_pp)
     result = None
-    misfit = None
+    misfit = axis_test = None
     if blur_ok:
         result, undetermined, note = _fit_blur(cam, obs, mode, init, init_sigma, options, distortion, geometry,
                                                say)
@@ -199,6 +199,8 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
                 if geometry is None:
                     geometry = fit_geometry(cam, obs, replace(options, distortion=distortion), mode, say)
                 result = None
+        if result is not None and mode != "unified" and not misfit and options.model_selection:
+            result, axis_test = _with_tilt_axis(result, obs, mode, options, init_sigma, say)
         if undetermined and geometry is not None and result is not None and len(undetermined) == 2:
             result = None  # neither focus parameter determined: report the geometric fit
     else:
@@ -245,6 +247,8 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
             test_principal_point=pp_test is None)
         if pp_test is not None:
             result.model_selection["principal_point"] = pp_test
+        if axis_test is not None:
+            result.model_selection["tilt_axis"] = axis_test
     if options.distortion == "auto" and result.distortion_selection:
         from .validate import HELD_OUT_TOLERANCE, describe_choice
 
@@ -268,6 +272,28 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
                if blur_ok and not misfit else "")
             + f", distortion {distortion}")
     return result
+
+
+def _with_tilt_axis(base: FitResult, obs: Observations, mode: str, options: FitOptions, init_sigma, say=None):
+    """The tilt axis's direction φ freed (a tilt-shift lens's rotation) and tested against `base`, the tilt about
+    the camera x axis (`likelihood_ratio`, 1 degree of freedom): the freed fit replaces `base` only where the
+    test justifies it. Returns (fit, test entry)."""
+    cam = base.camera.copy()
+    cam.free("phi")
+    try:
+        alt = _fit_camera(cam, obs, replace(options, model_selection=False, progress=None), init_sigma, mode=mode)
+    except FitError as e:
+        return base, {"error": str(e), "justified": None, "fitted": False}
+    entry = likelihood_ratio(base, alt, 1, options.alpha)
+    entry["tilt_axis_deg_full"] = alt.values["tilt_axis_deg"]
+    entry["fitted"] = entry["justified"]
+    if say:
+        verdict = "justified" if entry["justified"] else "not justified"
+        say(f"model selection: freeing the tilt axis's direction is {verdict} "
+            f"(Λ = {entry['lr_statistic']:.3g}, p = {entry['p_value']:.3g}): "
+            + (f"φ = {alt.values['tilt_axis_deg']:.2f} ± {alt.sigma['tilt_axis_deg']:.2g}°" if entry["justified"]
+               else "held at 0 (tilt about the camera x axis)"))
+    return (alt if entry["justified"] else base), entry
 
 
 def _misfit_with_tilt(base: FitResult, obs: Observations, options: FitOptions) -> str | None:

@@ -134,7 +134,8 @@ class FitResult:
     Attributes:
         mode: "unified", "tilt" or "joint".
         camera: the fitted camera (float64; free/frozen state as fitted).
-        values: w_mm, U_mm, d_mm, f_mm, theta_F_deg, theta_L_deg, theta_L_paper_deg, principal_point_px.
+        values: w_mm, U_mm, d_mm, f_mm, theta_F_deg, theta_L_deg, theta_L_paper_deg, tilt_axis_deg (φ, the tilt
+            axis's direction: 0 unless the tilt-axis test freed it), principal_point_px.
         sigma: one-σ uncertainties of the same keys (0 for held ones without an `init` sigma).
         views: per view: image, R, T_mm, rms_reprojection_px, rms_blur_px, n_points, sigma_rvec_deg,
             sigma_T_mm.
@@ -397,7 +398,7 @@ def _solve(camera: TiltLensCamera, obs: Observations, options: FitOptions, sigma
 
 
 def _derived(camera: TiltLensCamera, params: dict) -> torch.Tensor:
-    """(w, U, d, f, θF°, θL°, θL_paper°, cx, cy) as functions of the stored parameters."""
+    """(w, U, d, f, θF°, θL°, θL_paper°, φ°, cx, cy) as functions of the stored parameters."""
     from renderer import optics
 
     w, d = torch.exp(params["log_w_mm"]), params["d_scaled"].abs() * APERTURE_SCALE_MM
@@ -408,10 +409,11 @@ def _derived(camera: TiltLensCamera, params: dict) -> torch.Tensor:
     thLp = optics.theta_L_paper(thF, f, U)
     pp = camera.image_centre_px + params["pp_scaled"] * camera.pixel_scale_px
     deg = 180.0 / math.pi
-    return torch.stack([w, U, d, f, thF * deg, thL * deg, thLp * deg, pp[0], pp[1]])
+    return torch.stack([w, U, d, f, thF * deg, thL * deg, thLp * deg, params["phi"] * deg, pp[0], pp[1]])
 
 
-_DERIVED_KEYS = ("w_mm", "U_mm", "d_mm", "f_mm", "theta_F_deg", "theta_L_deg", "theta_L_paper_deg")
+_DERIVED_KEYS = ("w_mm", "U_mm", "d_mm", "f_mm", "theta_F_deg", "theta_L_deg", "theta_L_paper_deg",
+                 "tilt_axis_deg")
 
 
 def _held_sigma(init_sigma: dict | None, camera: TiltLensCamera, names: list[str]) -> dict:
@@ -468,7 +470,7 @@ def _uncertainties(prob: _Problem, res: LMResult, scale: torch.Tensor, init_sigm
         cov_d = cov_d + Gh @ Sh @ Gh.T
     sig = torch.sqrt(torch.clamp(torch.diagonal(cov_d), min=0.0))
     sigma = {k: float(sig[i]) for i, k in enumerate(_DERIVED_KEYS)}
-    sigma["principal_point_px"] = [float(sig[7]), float(sig[8])]
+    sigma["principal_point_px"] = [float(sig[8]), float(sig[9])]
     # Per-view pose σ, if the poses are free.
     view_sig = []
     offsets = layout.offsets
@@ -522,7 +524,7 @@ def _fit_camera(camera: TiltLensCamera, obs: Observations, options: FitOptions, 
         vals = _derived(camera, dict(camera.named_parameters()))
         rc, rb = residuals(camera, obs).rms_per_view()
     values = {k: float(vals[i]) for i, k in enumerate(_DERIVED_KEYS)}
-    values["principal_point_px"] = [float(vals[7]), float(vals[8])]
+    values["principal_point_px"] = [float(vals[8]), float(vals[9])]
     values["blur_offset_px"] = float(camera.blur_offset_px.detach())
     views = []
     R = camera.R.detach()

@@ -186,6 +186,9 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
                                                say)
         if note:
             notes.append(note)
+        if result is not None and mode != "unified" and options.model_selection:
+            # A lens tilted about a turned axis misfits the tilt about x: test the axis before judging the model.
+            result, axis_test = _with_tilt_axis(result, obs, mode, options, init_sigma, say)
         # The tilt stage holds stage 1's U and d, which the lens's tilt moves (hinge rule): its residuals judge
         # that approximation, not the thin-lens model.
         if result is not None and mode != "tilt":
@@ -199,8 +202,6 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
                 if geometry is None:
                     geometry = fit_geometry(cam, obs, replace(options, distortion=distortion), mode, say)
                 result = None
-        if result is not None and mode != "unified" and not misfit and options.model_selection:
-            result, axis_test = _with_tilt_axis(result, obs, mode, options, init_sigma, say)
         if undetermined and geometry is not None and result is not None and len(undetermined) == 2:
             result = None  # neither focus parameter determined: report the geometric fit
     else:

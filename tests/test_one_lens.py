@@ -11,6 +11,7 @@ import ast
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -118,3 +119,58 @@ def test_fitted_module_round_trips_its_lens_with_gradients():
     uv = cam.project(torch.tensor([[10.0, -20.0, 0.0]], dtype=torch.float64), view=0).detach()
     p_cam = cam.to_camera(torch.tensor([[10.0, -20.0, 0.0]], dtype=torch.float64), view=0).detach()
     assert torch.allclose(torch.as_tensor(lens.project(p_cam.numpy())), uv, atol=1e-9), "Lens.project = module's"
+
+
+# ------------------------------------------------------------------------------------ focus through three points
+
+POINTS = np.array([[-120.0, 40.0, 560.0], [150.0, -30.0, 700.0], [20.0, 110.0, 640.0]])
+
+
+@pytest.mark.parametrize("given", ["w", "f"])
+def test_focus_through_three_points_puts_them_in_focus(given):
+    """The plane of focus of Lens.focus_through holds the three points: each lies on z = U + y_φ tan θF and its
+    blur spot (the exact thin-lens formula, `Lens.blur_px`) has zero size; given f, the lens has that f."""
+    sensor = Sensor(1368, 912, 0.026)
+    kw = {"w": 55.39} if given == "w" else {"f": 50.0}
+    lens = Lens.focus_through(POINTS, 18.81, sensor=sensor, **kw)
+    c, s = math.cos(lens.phi), math.sin(lens.phi)
+    y_phi = POINTS[:, 1] * c - POINTS[:, 0] * s
+    assert np.allclose(POINTS[:, 2], lens.U + y_phi * math.tan(lens.theta_F), atol=1e-9), "points on the plane"
+    assert np.abs(lens.blur_px(POINTS)).max() < 1e-6, f"in focus: blur {lens.blur_px(POINTS)} px"
+    off = POINTS + np.array([0.0, 0.0, 40.0])
+    assert lens.blur_px(off).min() > 1.0, "points 40 mm behind the plane are blurred"
+    assert abs(lens.phi) <= math.pi / 2 and abs(lens.theta_F) > 0.1 and abs(lens.phi) > 0.1, "a turned tilt"
+    if given == "f":
+        assert lens.f == pytest.approx(50.0, rel=1e-9), "the hinge rule gives the lens its focal length"
+    else:
+        assert lens.w == 55.39
+
+
+@pytest.mark.parametrize("points, match", [
+    ([[0, 0, 500], [10, 10, 600], [20, 20, 700]], "collinear"),
+    ([[0, 0, 0], [100, 0, 500], [0, 100, 500]], "through or behind"),
+    ([[50, 0, 400], [50, 100, 800], [50, -60, 500]], "parallel to the optical axis"),
+    ([[0, 0, 500], [10, 10, 600]], "three finite points"),
+])
+def test_focus_through_refuses_impossible_points(points, match):
+    with pytest.raises(ValueError, match=match):
+        Lens.focus_through(points, 10.0, w=50.0)
+
+
+def test_scene_file_focus_points():
+    """A thin_lens camera with `focus_points` (world frame) focuses on them; conflicts and bad points are
+    refused naming the field."""
+    from renderer import SceneError
+    from renderer.cameras import build_camera
+
+    base = {"type": "thin_lens", "w": 55.39, "d": 18.81, "sensor_size": [36.0, 24.0],
+            "position": [10.0, -200.0, -50.0], "look_at": [0.0, 0.0, 600.0]}
+    world = [[-100.0, 0.0, 500.0], [120.0, 20.0, 650.0], [0.0, 90.0, 700.0]]
+    cam = build_camera("camera", {**base, "focus_points": world}, 36, 24)
+    p_cam = cam.transform.points_to_camera(torch.tensor(world, dtype=torch.float64)).numpy()
+    lens = cam.lens.with_(sensor=Sensor(36, 24, 1.0))
+    assert np.abs(lens.blur_px(p_cam)).max() < 1e-6, "the three world points are in focus"
+    with pytest.raises(SceneError, match="camera: give focus_points or U"):
+        build_camera("camera", {**base, "focus_points": world, "U": 600.0}, 36, 24)
+    with pytest.raises(SceneError, match="camera.focus_points: .*collinear"):
+        build_camera("camera", {**base, "focus_points": [[0, 0, 500], [1, 1, 600], [2, 2, 700]]}, 36, 24)

@@ -4,6 +4,7 @@
     Lens.from_tilt(w, f, theta_L, d)        the hinge rule: a lens of focal length f tilted by θL about its centre
     Lens.from_theta_L(w, U, d, theta_L)     U kept, θF from the exact Scheimpflug rule
     Lens.paper()                            the tilt-lens paper's camera (EOS 6D, TS-E 45 mm, stage-1 values)
+    Lens.focus_through(points, w=… or f=…, d=…)  the lens setting that focuses on three points (U, θF, φ)
 
 Every camera that has a thin lens takes one: the renderer's `ThinLensCamera` (distributed ray tracing), the
 fitted `LensCamera` (its `lens` is a `Lens` of its tensors, so gradients reach them), the Mitsuba sensor, the
@@ -148,6 +149,48 @@ class Lens:
         return cls.from_theta_L(w, U, d, theta_L, **kw)
 
     @classmethod
+    def focus_through(cls, points_cam, d, *, w=None, f=None, **kw) -> "Lens":
+        """The lens whose plane of focus passes through three points (camera frame), as a photographer sets a
+        tilt-shift lens (RenderMan's PxrCamera focuses the same way): U, θF and the tilt axis φ from the plane
+        z = U + g_x x + g_y y through the points (tan θF = |g|, φ = atan2(−g_x, g_y), θF signed so that
+        |φ| ≤ 90°), θL by the exact Scheimpflug rule.
+
+        Give the sensor distance `w`, or the focal length `f` (then w is the one where the hinge rule
+        U = f w / (w cos θL − f) holds for this plane: focusing moves the lens).
+
+        Raises:
+            ValueError naming `points` when no lens setting can: the points are collinear (no single plane), the
+            plane is parallel to the optical axis or passes through or behind the lens centre (U ≤ 0); naming
+            `f` when no sensor distance gives that focal length.
+        """
+        p = np.asarray(points_cam, dtype=np.float64)
+        if p.shape != (3, 3) or not np.isfinite(p).all():
+            raise ValueError(f"points: expected three finite points (x, y, z), got shape {p.shape}")
+        if (w is None) == (f is None):
+            raise ValueError("focus_through: give exactly one of w (sensor distance) and f (focal length)")
+        n = np.cross(p[1] - p[0], p[2] - p[0])
+        size = max(np.linalg.norm(p[1] - p[0]), np.linalg.norm(p[2] - p[0]), 1e-300)
+        if np.linalg.norm(n) <= 1e-9 * size * size:
+            raise ValueError("points: the three points are collinear; no single plane of focus passes through them")
+        n = n / np.linalg.norm(n)
+        if abs(n[2]) < 1e-9:
+            raise ValueError("points: their plane is parallel to the optical axis; no plane of focus can hold it")
+        U = float(n @ p[0] / n[2])
+        if not U > 0:
+            raise ValueError(f"points: their plane meets the optical axis at z = {U:.6g}, through or behind the lens "
+                             "centre; a plane of focus lies in front of it")
+        gx, gy = -n[0] / n[2], -n[1] / n[2]
+        tan_F, phi = math.hypot(gx, gy), math.atan2(-gx, gy)
+        if phi > math.pi / 2 or phi <= -math.pi / 2:  # the same plane with the opposite tilt about a turned axis
+            phi, tan_F = phi - math.copysign(math.pi, phi), -tan_F
+        if tan_F == 0:
+            phi = 0.0
+        theta_F = math.atan(tan_F)
+        if w is None:
+            w = _sensor_distance_for(f, U, theta_F)
+        return cls(float(w), U, d, theta_F, phi=phi, **kw)
+
+    @classmethod
     def paper(cls, sensor: Sensor | None = EOS_6D) -> "Lens":
         """The tilt-lens paper's camera: Canon EOS 6D with the TS-E 45 mm at f/2.8, stage-1 estimates
         w = 55.39, U = 618.4, d = 18.81 mm, untilted."""
@@ -268,6 +311,28 @@ def tilt_frame(p_cam: torch.Tensor, phi) -> torch.Tensor:
     c, s = torch.cos(phi), torch.sin(phi)
     x, y, z = p_cam.unbind(-1)
     return torch.stack([x * c + y * s, y * c - x * s, z], -1)
+
+
+def _sensor_distance_for(f: float, U: float, theta_F: float) -> float:
+    """The sensor distance w at which a lens of focal length f focuses on the plane (U, θF): the root of
+    U w cos θL / (U + w) = f with tan θL = w tan θF / (U + w) (hinge and Scheimpflug rules), by bisection (the
+    left side grows with w from 0 towards U cos θF)."""
+    if not (math.isfinite(f) and f > 0):
+        raise ValueError(f"f: expected a positive focal length, got {f!r}")
+
+    def focal(w):
+        return float(optics.focal_length(w, U, optics.theta_L_from_theta_F(theta_F, w, U)))
+
+    lo, hi = 0.0, max(f, 1.0)
+    while focal(hi) < f:
+        hi *= 2
+        if hi > 1e12 * max(f, U):
+            raise ValueError(f"f: a lens of focal length {f:g} cannot focus on this plane (U = {U:.6g}); "
+                             "it needs f < U cos θF")
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if focal(mid) < f else (lo, mid)
+    return 0.5 * (lo + hi)
 
 
 def _same_kind(value, *params):

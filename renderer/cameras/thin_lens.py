@@ -11,6 +11,7 @@
 | `theta_L_deg` | degrees | — | lens tilt instead of `theta_F_deg`, converted exactly (`renderer.optics`) |
 | `principal_point_px` | pixels | centre | (cx, cy) where the optical axis meets the image |
 | `tilt_axis_deg` | degrees | 0 | direction φ of the tilt axis from the camera x axis (a tilt-shift lens's rotation) |
+| `focus_points` | scene | — | three world points the plane of focus passes through, instead of U/f and the tilts |
 
 Geometry (camera frame x right, y down, z forward; lens centre at the origin):
 - The sensor is at z = −w behind the lens. The image is read out upright: pixel (x, y) maps through
@@ -63,6 +64,8 @@ THIN_LENS_PARAMS = [
     Param("theta_L_deg", "float", None, "lens tilt instead of theta_F_deg (exact conversion), degrees"),
     Param("principal_point_px", "vec2", None, "(cx, cy) principal point, pixels [image centre]"),
     Param("tilt_axis_deg", "float", None, "direction of the tilt axis from the camera x axis, degrees [0]"),
+    Param("focus_points", "list", None, "three world points to focus on, instead of U/f and the tilts "
+          "(U, theta_F and the tilt axis follow)"),
 ]
 
 
@@ -95,6 +98,29 @@ def concentric_disk_xy(lens_uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
     q = (math.pi / 4) * (other / (r + (r == 0)))
     phi = pick(q, math.pi / 2 - q)
     return r * torch.cos(phi), r * torch.sin(phi)
+
+
+def focus_lens(path: str, cfg: dict, transform: CameraTransform) -> Lens:
+    """The lens of a `focus_points` camera: the plane of focus through three world points (`Lens.focus_through`
+    in the camera frame of `transform`). Messages name the field."""
+    for key in ("U", "f", "theta_F_deg", "theta_L_deg", "tilt_axis_deg"):
+        if cfg.get(key) is not None:
+            raise SceneError(f"{path}: give focus_points or {key}, not both (the points set U and the tilts)")
+    pts = cfg["focus_points"]
+    if not (len(pts) == 3 and all(isinstance(q, (list, tuple)) and len(q) == 3 for q in pts)
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                    for q in pts for v in q)):
+        raise SceneError(f"{path}.focus_points: expected three points [x, y, z] of finite numbers, got {pts!r}")
+    if cfg["w"] <= 0:
+        raise SceneError(f"{path}.w: expected a positive distance, got {cfg['w']}")
+    if cfg["d"] < 0:
+        raise SceneError(f"{path}.d: expected a diameter >= 0, got {cfg['d']}")
+    world = torch.tensor(pts, dtype=torch.float64)
+    cam = transform.points_to_camera(world).numpy()
+    try:
+        return Lens.focus_through(cam, cfg["d"], w=cfg["w"])
+    except ValueError as e:
+        raise SceneError(f"{path}.focus_points: {str(e).removeprefix('points: ')}") from None
 
 
 def parse_lens(path: str, cfg: dict) -> Lens:
@@ -162,7 +188,10 @@ class ThinLensCamera(Camera):
 
     @classmethod
     def from_config(cls, path, cfg, transform, width, height):
-        lens = parse_lens(path, cfg)
+        if cfg.get("focus_points") is not None:
+            lens = focus_lens(path, cfg, transform)
+        else:
+            lens = parse_lens(path, cfg)
         pp = cfg.get("principal_point_px")
         screen = Screen(width, height, tuple(cfg["sensor_size"]), lens.w, pp)
         return cls(transform, screen, lens)

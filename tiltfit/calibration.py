@@ -259,6 +259,14 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
             "criterion": (f"smallest {options.held_out_folds}-fold held-out error (fewest terms within "
                           f"{100 * HELD_OUT_TOLERANCE:g} %)" if scored else "smallest BIC (fewer than 3 views)")
             + ", radial mapping one-to-one over the image"}
+    if blur_ok and "U_mm" not in undetermined and "theta_F_deg" not in undetermined:
+        pts = obs.points_mm.numpy()
+        extent = (pts[:, 0].min(), pts[:, 1].min(), pts[:, 0].max(), pts[:, 1].max())
+        with torch.no_grad():
+            lens = result.camera.lens
+            R, T = result.camera.R.numpy(), result.camera.T_mm.numpy()
+        for v, view in enumerate(result.views):
+            view["sharp_line_board_mm"] = sharp_line(lens, R[v], T[v], extent)
     result.skipped = skipped
     result.notes = notes
     result.warnings = warnings
@@ -273,6 +281,26 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
                if blur_ok and not misfit else "")
             + f", distortion {distortion}")
     return result
+
+
+def sharp_line(lens, R, T, extent_mm) -> list | None:
+    """Where a view is sharp: the plane of focus met with the board (z = 0 in board coordinates), as the two
+    end points [[X, Y], [X, Y]] (mm) of that line within the board's extent (x0, y0, x1, y1); None when the
+    plane of focus misses the board there (or holds it whole: the board parallel to it)."""
+    m, U = lens.focus_plane()
+    R, T = np.asarray(R, dtype=np.float64), np.asarray(T, dtype=np.float64)
+    a, b = R.T @ m, U - m @ T  # m · (R X + T) = U on the board: a_x X + a_y Y = b
+    x0, y0, x1, y1 = extent_mm
+    ends = []
+    if abs(a[1]) > 1e-12:
+        ends += [(x, (b - a[0] * x) / a[1]) for x in (x0, x1)]
+    if abs(a[0]) > 1e-12:
+        ends += [((b - a[1] * y) / a[0], y) for y in (y0, y1)]
+    inside = sorted({(round(x, 9), round(y, 9)) for x, y in ends
+                     if x0 - 1e-9 <= x <= x1 + 1e-9 and y0 - 1e-9 <= y <= y1 + 1e-9})
+    if len(inside) < 2:
+        return None
+    return [list(inside[0]), list(inside[-1])]
 
 
 def _with_tilt_axis(base: FitResult, obs: Observations, mode: str, options: FitOptions, init_sigma, say=None):

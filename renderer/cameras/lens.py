@@ -61,14 +61,6 @@ class Sensor:
         """(width, height) of the sensor, scene units."""
         return self.width_px * self.pixel_pitch, self.height_px * self.pixel_pitch
 
-    def to_tilt_frame(self, p_cam):
-        """(..., 3) camera-frame points in the frame turned by φ about the optical axis, where the tilt is about
-        x: (x cos φ + y sin φ, y_φ, z) with y_φ = y cos φ − x sin φ (the identity for φ = 0; tensors keep
-        their graph)."""
-        if _number(self.phi) and self.phi == 0:
-            return p_cam
-        return tilt_frame(torch.as_tensor(p_cam), self.phi)
-
     @property
     def center_px(self) -> tuple[float, float]:
         """The image centre ((W − 1)/2, (H − 1)/2), pixels: the default principal point."""
@@ -90,6 +82,11 @@ EOS_6D = Sensor(5472, 3648, 0.00654)
 
 def _number(v) -> bool:
     return not isinstance(v, torch.Tensor)
+
+
+def _float(v) -> float:
+    """A number or a 0-dim tensor (graph or not) as a Python float."""
+    return float(v.detach()) if isinstance(v, torch.Tensor) else float(v)
 
 
 @dataclass(frozen=True)
@@ -225,6 +222,12 @@ class Lens:
             return p_cam
         return tilt_frame(torch.as_tensor(p_cam), self.phi)
 
+    def focus_plane(self) -> tuple[np.ndarray, float]:
+        """The plane of focus as (m, U) with m · p = U for its points p (camera frame): m = (−g_x, −g_y, 1),
+        z = U + g_x x + g_y y, g_x = −tan θF sin φ, g_y = tan θF cos φ."""
+        t, phi = math.tan(_float(self.theta_F)), _float(self.phi)
+        return np.array([t * math.sin(phi), -t * math.cos(phi), 1.0]), _float(self.U)
+
     @property
     def center_px(self) -> tuple[float, float]:
         """The principal point (cx, cy), pixels: given, else the sensor's centre."""
@@ -240,8 +243,8 @@ class Lens:
     @property
     def K(self) -> np.ndarray:
         """(3, 3) pixel-from-normalised-coordinates matrix [[w/p, 0, cx], [0, w/p, cy], [0, 0, 1]]."""
-        f = float(self.focal_px)
-        cx, cy = (float(c) for c in self.center_px)
+        f = _float(self.focal_px)
+        cx, cy = (_float(c) for c in self.center_px)
         return np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
 
     def binned(self, factor: int) -> "Lens":
@@ -282,21 +285,21 @@ class Lens:
     def scene_keys(self) -> dict:
         """The scene file's `thin_lens` camera keys of this lens (docs/scene_format.md): w, U, d, theta_F_deg,
         and sensor_size and principal_point_px when it has a sensor / principal point; numbers as plain floats."""
-        keys = {"type": "thin_lens", "w": float(self.w), "U": float(self.U), "d": float(self.d),
-                "theta_F_deg": math.degrees(float(self.theta_F))}
-        if float(self.phi) != 0:
-            keys["tilt_axis_deg"] = math.degrees(float(self.phi))
+        keys = {"type": "thin_lens", "w": _float(self.w), "U": _float(self.U), "d": _float(self.d),
+                "theta_F_deg": math.degrees(_float(self.theta_F))}
+        if _float(self.phi) != 0:
+            keys["tilt_axis_deg"] = math.degrees(_float(self.phi))
         if self.sensor is not None:
             keys["sensor_size"] = list(self.sensor.size)
         if self.principal_point_px is not None:
-            keys["principal_point_px"] = [float(c) for c in self.principal_point_px]
+            keys["principal_point_px"] = [_float(c) for c in self.principal_point_px]
         return keys
 
     def record(self) -> dict:
         """w, U, d, θL and θF (degrees) as plain numbers: for tables and run records."""
-        return {"w_mm": float(self.w), "U_mm": float(self.U), "d_mm": float(self.d),
-                "theta_L_deg": math.degrees(float(self.theta_L)), "theta_F_deg": math.degrees(float(self.theta_F)),
-                "tilt_axis_deg": math.degrees(float(self.phi))}
+        return {"w_mm": _float(self.w), "U_mm": _float(self.U), "d_mm": _float(self.d),
+                "theta_L_deg": math.degrees(_float(self.theta_L)), "theta_F_deg": math.degrees(_float(self.theta_F)),
+                "tilt_axis_deg": math.degrees(_float(self.phi))}
 
     def _sensor(self, what: str) -> Sensor:
         if self.sensor is None:

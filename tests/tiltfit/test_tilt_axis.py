@@ -82,3 +82,23 @@ def test_an_x_axis_fit_of_a_turned_tilt_is_refused_and_the_freed_one_fits(stage1
     rb = float(np.median([x["rms_blur_px"] for x in freed.views]))
     assert rb < 1.5 * NOISE_BLUR_PX, f"the freed fit reaches the noise: blur RMS {rb:.3f} px"
     assert abs(freed.values["tilt_axis_deg"] - 60.0) < 0.5, f"φ {freed.values['tilt_axis_deg']:.3f}°"
+
+
+def test_sharp_line_is_where_the_blur_vanishes():
+    """`sharp_line`: the board points it reports lie on the plane of focus (zero blur), for a turned tilt."""
+    from tiltfit.calibration import sharp_line
+
+    true = Lens.paper()
+    lens = Lens.from_tilt(true.w, true.f, math.radians(5.0), true.d, sensor=SENSOR, phi=math.radians(35.0))
+    target = reproduce.calibration_target(reproduce.SetValues())
+    R, T = reproduce.target_pose(target, 30.0, 10.0, lens.U)  # the board's centre on the plane of focus
+    pts = target.feature_points()
+    extent = (pts[:, 0].min(), pts[:, 1].min(), pts[:, 0].max(), pts[:, 1].max())
+    line = sharp_line(lens, R, T, extent)
+    assert line is not None, "the plane of focus crosses this board"
+    ends = np.array([[x, y, 0.0] for x, y in line])
+    assert np.linalg.norm(ends[1] - ends[0]) > 50, "a line across the board"
+    for X in (ends[0], ends[1], 0.3 * ends[0] + 0.7 * ends[1]):
+        assert lens.blur_px((R @ X + T)[None])[0] < 1e-6, f"sharp at {X}"
+    far = sharp_line(lens, R, T + np.array([0.0, 0.0, 400.0]), extent)
+    assert far is None, "a board far behind the plane of focus has no sharp line"

@@ -5,7 +5,7 @@
                       [--init CALIB.json] [--encoding srgb|linear] -o CALIB.json
                       [--distortion auto|none|k1|k1k2|opencv5|rational] [--held-out K]
                       [--free-principal-point | --fixed-principal-point]
-    tiltfit export CALIB.json --to opencv -o camera.yml
+    tiltfit export CALIB.json --to opencv|mrcal -o camera.yml|camera.cameramodel
     tiltfit report CALIB.json -o DIR
     tiltfit reproduce [--quick] [--scale N] [--target-scale N] [--device cpu|cuda] [-o DIR]
     tiltfit stability [--quick] [-o DIR]
@@ -13,7 +13,8 @@
 
 `calibrate` also accepts DET.json files (written by `tiltfit detect`) in place of images; an image where no
 board is found is skipped with a warning (listed under `skipped` in CALIB.json). `--init` accepts a CALIB.json
-or an OpenCV camera file (`tiltfit export`'s, or any FileStorage with camera_matrix and image size).
+or an OpenCV camera file (`tiltfit export`'s, or any FileStorage with camera_matrix and image size), or an
+mrcal .cameramodel (LENSMODEL_PINHOLE or OPENCV4/5/8).
 Errors (bad or missing file, missing key, no board found, truncated image, a fit that does not converge)
 print one line `tiltfit: <file>: <problem>` on stderr and exit with status 2, leaving no output file; an
 interrupt (Ctrl-C, SIGTERM) prints `tiltfit: interrupted` and exits with 130. Input files are checked by
@@ -280,10 +281,12 @@ def cmd_calibrate(args) -> int:
         raise CliError("--init", "the tilt fit (stage 2) needs the stage-1 CALIB.json as --init")
     init = init_sigma = None
     if args.init:
-        from .export import is_opencv_file, read_opencv
+        from .export import is_mrcal_file, is_opencv_file, read_mrcal, read_opencv
 
         try:
-            if is_opencv_file(args.init):
+            if is_mrcal_file(args.init):
+                data = validate_calib(args.init, read_mrcal(args.init, args.pixel_pitch_mm))
+            elif is_opencv_file(args.init):
                 with _quiet_c_stderr():  # OpenCV's parser prints its complaints before raising
                     data = validate_calib(args.init, read_opencv(args.init, args.pixel_pitch_mm))
             else:
@@ -402,15 +405,18 @@ def _refine_photometric(result, obs, target, args, say, photos: dict | None = No
 
 def cmd_export(args) -> int:
     from .calibfile import read_calib
-    from .export import ExportError, write_opencv
+    from .export import MRCAL_EXTENSION, ExportError, write_mrcal, write_opencv
 
     _check_output(args.output)
+    if (args.to == "mrcal") != args.output.lower().endswith(MRCAL_EXTENSION):
+        raise CliError(args.output, f"--to {args.to}: expected "
+                       + (f"a {MRCAL_EXTENSION} file" if args.to == "mrcal" else "a .yml, .xml or .json file"))
     try:
         data = read_calib(args.calib)
     except ValueError as e:
         raise _as_cli_error(args.calib, e) from None
     try:
-        write_opencv(data, args.output)
+        (write_mrcal if args.to == "mrcal" else write_opencv)(data, args.output)
     except (ExportError, OSError) as e:
         raise _as_cli_error(args.output, e) from None
     _say(args.quiet)(f"wrote {args.output}")
@@ -507,10 +513,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=cmd_calibrate)
 
-    p = sub.add_parser("export", help="write a calibration for another library (OpenCV FileStorage)")
+    p = sub.add_parser("export", help="write a calibration for another library (OpenCV FileStorage, mrcal)")
     p.add_argument("calib", metavar="CALIB.json")
-    p.add_argument("--to", choices=("opencv",), default="opencv", help="format [opencv]")
-    p.add_argument("-o", "--output", required=True, metavar="camera.yml")
+    p.add_argument("--to", choices=("opencv", "mrcal"), default="opencv",
+                   help="format: opencv (FileStorage .yml/.xml/.json) or mrcal (.cameramodel) [opencv]")
+    p.add_argument("-o", "--output", required=True, metavar="camera.yml|camera.cameramodel")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=cmd_export)
 

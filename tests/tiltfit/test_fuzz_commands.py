@@ -24,11 +24,12 @@ TARGET = {"type": "checkerboard", "units": "mm", "x_edges": [0, 25, 50, 75, 100,
 
 def _dets() -> dict:
     """Four DET.json files of TARGET seen by a synthetic thin-lens camera (w 35 mm, U 900 mm, d 8 mm)."""
-    from tiltfit.synth import SynthCamera, look_at_pose, observe
+    from renderer import Lens, Sensor
+    from tiltfit.synth import look_at_pose, observe
     from tiltfit.target import target_from_dict
 
     t = target_from_dict(TARGET)
-    cam = SynthCamera(w_mm=35, U_mm=900, d_mm=8, pixel_pitch_mm=0.02, width_px=640, height_px=480)
+    cam = Lens(35, 900, 8, sensor=Sensor(640, 480, 0.02))
     out = {}
     for i, pos in enumerate(((100, 75, -950), (-150, 20, -900), (330, 160, -880), (120, -200, -900))):
         o = observe(t, cam, *look_at_pose(t, pos))
@@ -252,11 +253,12 @@ def _board_png(kind: str) -> bytes:
     """An 8-bit photo of BOARD (tiltfit.synth's renderer): as printed, with dark and light swapped, or
     mirrored; cached."""
     if not _PNG:
-        from tiltfit.synth import SynthCamera, look_at_pose, render_view
+        from renderer import Lens, Sensor
+        from tiltfit.synth import look_at_pose, render_view
         from tiltfit.target import target_from_dict
 
         t = target_from_dict(BOARD)
-        cam = SynthCamera(w_mm=35, U_mm=900, d_mm=8, pixel_pitch_mm=0.02, width_px=640, height_px=480)
+        cam = Lens(35, 900, 8, sensor=Sensor(640, 480, 0.02))
         px = render_view(t, cam, *look_at_pose(t, (100, 75, -950)), noise_sigma=0.002, srgb8=True,
                          seed=0).image_srgb8
         _PNG.update(board=_png(px), swapped=_png(255 - px), mirrored=_png(px[:, ::-1]))

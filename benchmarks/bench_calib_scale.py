@@ -18,6 +18,7 @@ sizes up to --repeat-max-views, one run above; CPU time is the figure to compare
 
 Writes benchmarks/results/calib_scale.{json,md}. Usage:
     python benchmarks/bench_calib_scale.py [--sizes 50,200,500,1000,2000] [--repeats 3] [--repeat-max-views 200]
+                                           [--threads 1] [--base REV --base-sizes 1000,2000]
 """
 from __future__ import annotations
 
@@ -136,8 +137,11 @@ def child_opencv(folder: str) -> dict:
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
-def run_child(kind: str, folder: str, timeout_s: float) -> dict:
-    env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+def run_child(kind: str, folder: str, timeout_s: float, threads: int, code: str = ROOT) -> dict:
+    """Run a measurement in a fresh process with the package of `code` (a checkout's root) first on the path."""
+    env = dict(os.environ, PYTHONPATH=code + os.pathsep + os.environ.get("PYTHONPATH", ""), PYTHONDONTWRITEBYTECODE="1")
+    if threads:
+        env.update(OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
     cmd = [sys.executable, os.path.abspath(__file__), "--child", kind, "--folder", folder]
     try:
         p = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout_s)
@@ -150,15 +154,25 @@ def run_child(kind: str, folder: str, timeout_s: float) -> dict:
 
 # --------------------------------------------------------------------------------------------- the table
 
+def extract(rev: str) -> str:
+    """The code of git revision `rev`, extracted into a temporary folder (`git archive`)."""
+    out = tempfile.mkdtemp(prefix="bench_calib_scale_base_")
+    archive = subprocess.run(["git", "-C", ROOT, "archive", rev], capture_output=True, check=True).stdout
+    subprocess.run(["tar", "-x", "-C", out], input=archive, check=True)
+    return out
+
+
 def write_markdown(path: str, res: dict) -> None:
     lines = ["# Calibration at scale: time and memory against the number of views", "",
              f"{res['date']}, {res['machine']}; `python benchmarks/bench_calib_scale.py "
-             f"--sizes {','.join(str(r['views']) for r in res['rows'])}`. Synthetic views of the paper's target "
+             f"--sizes {','.join(str(r['views']) for r in res['rows'])}"
+             f"{' --base ' + res['base']['rev'] if res.get('base') else ''}`. Synthetic views of the paper's target "
              "(40 corners, blur widths), `tiltfit calibrate` with its defaults (distortion auto with the 5-fold "
              "held-out error, model selection, uncertainties) and cv2.calibrateCamera (k1 k2 p1 p2 k3) on the same "
              "corners, each in a fresh process. CPU: the process's user + system time for the calibration (its "
              "threads together; robust to other load on the machine), wall beside it; medians of the repeats (n). "
-             f"Load average at the start: {res.get('load', '?')}. Peak RSS: the process's maximum resident memory "
+             f"Load average at the start: {res.get('load', '?')}; OMP/MKL threads per process: "
+             f"{res.get('threads') or 'default'}. Peak RSS: the process's maximum resident memory "
              "(baseline: after the imports).", "",
              "| views | tiltfit CPU (s) | wall (s) | n | OpenCV CPU (s) | ratio (CPU) | tiltfit peak RSS (MB) | "
              "baseline (MB) | OpenCV peak RSS (MB) | f tiltfit / OpenCV (px) | RMS tiltfit / OpenCV (px) |",
@@ -173,6 +187,21 @@ def write_markdown(path: str, res: dict) -> None:
                      f"{t['cpu_s'] / o['cpu_s']:.0f} | {t['peak_rss_mb']:.0f} | {t['baseline_rss_mb']:.0f} | "
                      f"{o['peak_rss_mb']:.0f} | {t['f_px']:.2f} / {o['f_px']:.2f} | "
                      f"{t['rms_px']:.4f} / {o['rms_px']:.4f} |")
+    if res.get("base"):
+        lines += ["", f"Before ({res['base']['rev']}: the covariance as a (P, P) matrix, the blur scan's whole table), "
+                  "the same child on the same DET files in the same run:", "",
+                  "| views | CPU (s) before → now | peak RSS (MB) before → now | same f and RMS |", "|---:|---|---|---|"]
+        now = {r["views"]: r["tiltfit"] for r in res["rows"]}
+        for n, b in sorted(res["base"]["rows"].items(), key=lambda kv: int(kv[0])):
+            t = now.get(int(n), {})
+            if b.get("rc") != 0:
+                lines.append(f"| {n} | failed ({b.get('error', b.get('rc'))}) → {t.get('cpu_s', 0):.1f} | → "
+                             f"{t.get('peak_rss_mb', 0):.0f} | |")
+                continue
+            same = "yes" if (abs(b["f_px"] - t.get("f_px", math.inf)) < 1e-6
+                             and abs(b["rms_px"] - t.get("rms_px", math.inf)) < 1e-9) else "no"
+            lines.append(f"| {n} | {b['cpu_s']:.1f} → {t.get('cpu_s', 0):.1f} | {b['peak_rss_mb']:.0f} → "
+                         f"{t.get('peak_rss_mb', 0):.0f} | {same} |")
     lines += ["", "OpenCV fits one model once; `tiltfit calibrate` fits five distortion models on five held-out "
               "folds each, then the chosen model with and without the principal point and θF, with blur widths and "
               "uncertainties, so the ratio is the price of those defaults, not of one solve.", ""]
@@ -188,6 +217,11 @@ def main(argv=None) -> int:
     ap.add_argument("--cache", default=os.path.join(tempfile.gettempdir(), "bench_calib_scale"),
                     help="where the synthetic DET files are kept")
     ap.add_argument("--timeout-s", type=float, default=3600.0, help="per child process [3600]")
+    ap.add_argument("--threads", type=int, default=1,
+                    help="OMP/MKL threads of the children [1]; 0 keeps the defaults (on a loaded machine torch's "
+                         "spinning threads then cost more than they give: 14.6 s of CPU at 50 views instead of 1.3)")
+    ap.add_argument("--base", help="git revision whose code is measured too, at --base-sizes (before/after)")
+    ap.add_argument("--base-sizes", default="1000,2000", help="view counts of the --base runs [1000,2000]")
     ap.add_argument("--child", choices=("tiltfit", "opencv"), help=argparse.SUPPRESS)
     ap.add_argument("--folder", help=argparse.SUPPRESS)
     add_output_options(ap, "calib_scale")
@@ -207,7 +241,7 @@ def main(argv=None) -> int:
         runs = {"tiltfit": [], "opencv": []}
         for _ in range(reps):
             for kind in ("opencv", "tiltfit"):
-                runs[kind].append(run_child(kind, folder, args.timeout_s))
+                runs[kind].append(run_child(kind, folder, args.timeout_s, args.threads))
                 print(f"[bench_calib_scale] {n} views, {kind}: {runs[kind][-1]}", file=sys.stderr, flush=True)
         row = {"views": n, "repeats": reps}
         for kind, rs in runs.items():
@@ -219,13 +253,21 @@ def main(argv=None) -> int:
                              cpu_s=statistics.median(r["cpu_s"] for r in ok),
                              peak_rss_mb=max(r["peak_rss_mb"] for r in ok), walls_s=[r["wall_s"] for r in ok])
         rows.append(row)
+    base = None
+    if args.base:
+        code = extract(args.base)
+        base = {"rev": args.base, "rows": {}}
+        for n in [int(s) for s in args.base_sizes.split(",")]:
+            base["rows"][str(n)] = r = run_child("tiltfit", os.path.join(args.cache, f"views{n}"), args.timeout_s,
+                                                 args.threads, code)
+            print(f"[bench_calib_scale] {n} views, tiltfit at {args.base}: {r}", file=sys.stderr, flush=True)
     import cv2
     import torch
 
     res = {"date": datetime.date.today().isoformat(),
            "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, "
-                      f"torch {torch.__version__} ({torch.get_num_threads()} threads), OpenCV {cv2.__version__}",
-           "load": res_load, "rows": rows}
+                      f"torch {torch.__version__}, OpenCV {cv2.__version__}",
+           "load": res_load, "threads": args.threads, "rows": rows, "base": base}
     save(args.out, res, write_markdown)
     return 0
 

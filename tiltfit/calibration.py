@@ -19,6 +19,7 @@ import torch
 
 from . import fit as _core
 from .fit import MODES, FitError, FitOptions, FitResult, _fit_camera, _set_free
+from .imaging import torch_threads
 from .model import Observations, TiltLensCamera, distortion_parameter_names, residuals
 from .selection import blur_depends_on_depth, blur_is_informative, likelihood_ratio, nested_model_tests, usable_views
 from .start import initialize, start_blur
@@ -149,6 +150,15 @@ def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | N
     Raises:
         FitError: too few observations, no convergence, or a degenerate problem (one-line message).
     """
+    # One torch thread: the fit's tensors are small (tens of thousands of rows, a few columns), and on a busy
+    # machine OpenMP's spinning threads cost more than they give (`tiltfit.imaging.torch_threads`): 14.6 s of
+    # CPU instead of 1.3 s for 50 views with two threads under load (benchmarks/results/calib_scale.md).
+    with torch_threads(1):
+        return _calibrate(obs, mode, init, options, init_sigma)
+
+
+def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, options: FitOptions,
+               init_sigma: dict | None) -> FitResult:
     if mode not in MODES:
         raise ValueError(f"mode: expected one of {MODES}, got {mode!r}")
     if mode == "tilt" and init is None:

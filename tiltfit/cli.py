@@ -55,7 +55,7 @@ class CliError(Exception):
 
 
 #: The library's names for what the command line calls an option (library messages speak in API terms).
-_API_TO_OPTION = {"the pixel_pitch_mm argument": "--pixel-pitch-mm"}
+_API_TO_OPTION = {"as the pixel_pitch_mm argument": "as --pixel-pitch-mm"}
 
 
 def _in_cli_terms(msg: str) -> str:

@@ -66,6 +66,7 @@ def fit_with_held_out(obs: Observations, mode: str = "unified", init=None, optio
         FitError: the calibration itself failed.
     """
     from .fit import FitError
+    from .imaging import torch_threads
     from .validate import held_out_rms
 
     options = options or FitOptions()
@@ -74,9 +75,10 @@ def fit_with_held_out(obs: Observations, mode: str = "unified", init=None, optio
     held_out = None
     if held_out_folds and used.n_views >= max(3, held_out_folds):
         try:
-            held_out = result.held_out if (result.held_out or {}).get("folds") == held_out_folds else \
-                held_out_rms(used, replace(options, free_principal_point=result.free_principal_point),
-                             folds=held_out_folds, distortion=result.distortion_model, start=result.camera)
+            with torch_threads(1):  # small tensors, as in `calibrate`
+                held_out = result.held_out if (result.held_out or {}).get("folds") == held_out_folds else \
+                    held_out_rms(used, replace(options, free_principal_point=result.free_principal_point),
+                                 folds=held_out_folds, distortion=result.distortion_model, start=result.camera)
             if say:
                 fit_rms = math.sqrt(result.rss["corners"] / max(result.rss["n_corners"] // 2, 1))
                 say(f"reprojection RMS {fit_rms:.4f} px per corner (fit), {held_out['rms_px']:.4f} px (held out, "

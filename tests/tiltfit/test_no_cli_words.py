@@ -71,3 +71,11 @@ def test_library_messages_name_no_command_line_option():
             bad += option_strings(path, rel)
     assert not bad, ("library strings name command-line options (say the API's argument or option name; the "
                      "front end translates): " + "; ".join(bad))
+
+
+def test_the_command_line_translates_api_names_back():
+    from tiltfit import cli
+
+    msg = "cam.yml: pixel_pitch_mm: not in the file; give it as the pixel_pitch_mm argument"
+    assert cli._in_cli_terms(msg) == "cam.yml: pixel_pitch_mm: not in the file; give it as --pixel-pitch-mm", \
+        f"the front end names the option: {cli._in_cli_terms(msg)!r}"

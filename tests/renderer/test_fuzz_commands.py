@@ -225,3 +225,4 @@ def test_workers_end_when_renderer_render_is_killed(tmp_path):
             proc.kill()
             proc.wait()
     assert not [n for n in os.listdir(tmp_path) if n != "scene.json"], f"left: {os.listdir(tmp_path)}"
+

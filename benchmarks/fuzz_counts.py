@@ -1,4 +1,4 @@
-"""Run the fuzz corpora of tests/renderer/test_fuzz.py and tests/tiltfit/test_fuzz.py against whichever
+"""Run the fuzz corpora of tests/{renderer,tiltfit}/test_fuzz.py and test_fuzz_commands.py against whichever
 `renderer`/`tiltfit` PYTHONPATH points at, and write the outcome counts per category.
 
     PYTHONPATH=/work/main python benchmarks/fuzz_counts.py --label before -o benchmarks/results/fuzz_before.json
@@ -35,7 +35,7 @@ def compare(before_file: str, after_file: str) -> str:
     rows = ["| suite | category | cases | tracebacks | hangs | NaN/Inf outputs (exit 0) | leftovers | bad messages "
             "| wrongly accepted | other failures |", "|---|---|---|---|---|---|---|---|---|---|"]
     for suite, r in after["suites"].items():
-        b_counts = before["suites"][suite]["counts"]
+        b_counts = before["suites"].get(suite, {"counts": {}})["counts"]
         for cat, counts in r["counts"].items():
             bc = b_counts.get(cat, {})
             cell = lambda k: f"{bc.get(k, 0)} → {counts.get(k, 0)}"  # noqa: E731
@@ -60,15 +60,19 @@ def main(argv=None) -> int:
     import fuzz_harness
 
     report = {"label": args.label, "code": os.environ.get("PYTHONPATH", ""), "suites": {}}
-    for suite in ("renderer", "tiltfit"):
-        if args.only and suite != args.only:
+    # suite name -> (package, corpus file): the first corpora and those of the newer commands (issue 24)
+    suites = {"renderer": ("renderer", "test_fuzz.py"), "tiltfit": ("tiltfit", "test_fuzz.py"),
+              "renderer-commands": ("renderer", "test_fuzz_commands.py"),
+              "tiltfit-commands": ("tiltfit", "test_fuzz_commands.py")}
+    for suite, (package, corpus) in suites.items():
+        if args.only and package != args.only:
             continue
-        mod = _load(os.path.join(TESTS, suite, "test_fuzz.py"), f"fuzz_{suite}")
+        mod = _load(os.path.join(TESTS, package, corpus), f"fuzz_{suite.replace('-', '_')}")
         cases = mod.CASES
         results, t0 = [], time.perf_counter()
         failures = []
         for k, case in enumerate(cases):
-            res = fuzz_harness.classify(case, importlib.import_module(f"{suite}.cli").main, suite, args.timeout)
+            res = fuzz_harness.classify(case, importlib.import_module(f"{package}.cli").main, package, args.timeout)
             results.append(res)
             if res.outcome in fuzz_harness.FAILURES:
                 failures.append({"case": case["name"], "outcome": res.outcome, "detail": res.detail[:300]})

@@ -15,7 +15,6 @@ import math
 import multiprocessing
 import os
 import pickle
-import signal
 import sys
 import threading
 import time
@@ -184,16 +183,14 @@ def _job_rays(scene, spp: int, workers: int, chunk_rays: int) -> int:
     return max(chunk_rays, min(MAX_JOB_RAYS, -(-rays // (JOBS_PER_WORKER * workers))))
 
 
-# How often a worker process checks that its parent still runs (seconds).
+# How often a worker process checks that its parent still runs, and the parent waiting for the workers wakes
+# to act on a SIGINT or SIGTERM sent to it alone (seconds; otherwise it is acted on when a job finishes).
 PARENT_CHECK_S = 1.0
 
 
 def _worker_start(parent_pid: int | None = None):
     # One thread per process: the processes share the cores instead of torch's threads.
     torch.set_num_threads(1)
-    # Ctrl-C reaches the whole process group: the parent reports it and ends the workers; a worker keeps quiet
-    # (an idle worker would otherwise print a KeyboardInterrupt traceback of its queue read).
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
     if parent_pid is not None:
         threading.Thread(target=_exit_with_parent, args=(parent_pid,), daemon=True, name="parent-watch").start()
 
@@ -478,8 +475,12 @@ def _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device
             bar.update(n * spp)
 
         try:
-            for job in concurrent.futures.as_completed(jobs):
-                done(*jobs[job], *job.result())
+            pending = set(jobs)
+            while pending:  # woken at least every PARENT_CHECK_S, so a Ctrl-C is acted on within that time
+                finished, pending = concurrent.futures.wait(pending, timeout=PARENT_CHECK_S,
+                                                            return_when=concurrent.futures.FIRST_COMPLETED)
+                for job in finished:
+                    done(*jobs[job], *job.result())
         except concurrent.futures.process.BrokenProcessPool as e:
             if not auto:
                 raise

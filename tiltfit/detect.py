@@ -1076,6 +1076,23 @@ def labelling_problem(corners_px: np.ndarray, target: Target) -> str:
     return ""
 
 
+def labelling_note(corners_px: np.ndarray, target: Target) -> str:
+    """A note saying how the labelled corners (N, 2, feature order) lie when the target's columns (its X
+    axis) run closer to the image's vertical than its horizontal: a board turned by 90° in the photo, or a
+    target file with x_edges and y_edges swapped (on a board with uniform rows and columns both label the
+    corners consistently, so only the note can tell); '' otherwise."""
+    found = np.isfinite(corners_px).all(-1)
+    if found.sum() < 3:
+        return ""
+    XY = target.feature_points()[found, :2]
+    A = np.linalg.lstsq(np.column_stack([XY, np.ones(len(XY))]), corners_px[found], rcond=None)[0][:2].T
+    if abs(A[1, 0]) <= abs(A[0, 0]):
+        return ""
+    ny, nx = target.grid_shape
+    return (f"labelled with the target's {nx} corners a row (x_edges) running along the image's vertical: the "
+            "board is turned by 90° in the photo, or the target file's x_edges and y_edges are swapped")
+
+
 def _detect(image, target, measure_blur, options) -> Detection:
     check_target_size(target)
     timings: dict = {}
@@ -1087,6 +1104,8 @@ def _detect(image, target, measure_blur, options) -> Detection:
     problem = labelling_problem(corners, target) if found else ""
     if problem:
         corners, found, message = np.full_like(corners, np.nan), False, problem
+    elif found:
+        message = "; ".join(m for m in (message, labelling_note(corners, target)) if m)
     N = target.n_points
     blur, sigma = np.full(N, np.nan), np.full(N, np.nan)
     if found and measure_blur:

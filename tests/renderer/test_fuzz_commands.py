@@ -85,7 +85,7 @@ def _cases() -> list[dict]:
     out.append(_render(hot, name="light-3e38-torch", expect="either", fields=("scene.json",)))
     out.append(_render(hot, "--backend", "mitsuba", name="light-3e38-mitsuba", expect="either",
                        fields=("scene.json",)))
-    for host in ("a" * 40, "a" * 300, "[::1", "host:99999", "host:port", ":"):
+    for host in ("a" * 40, "a" * 300, "a" * 70 + ":6379", "[::1", "host:99999", "host:port", ":"):
         out.append(_render(_scene(), "--cluster", host, name=f"cluster={host[:5]}-{len(host)}", fields=("--cluster",)))
     return out
 
@@ -225,3 +225,4 @@ def test_workers_end_when_renderer_render_is_killed(tmp_path):
             proc.kill()
             proc.wait()
     assert not [n for n in os.listdir(tmp_path) if n != "scene.json"], f"left: {os.listdir(tmp_path)}"
+

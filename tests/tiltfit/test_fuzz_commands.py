@@ -463,3 +463,26 @@ def test_interrupt_in_the_atomic_writer_leaves_the_old_output(tmp_path, monkeypa
     assert rc == 130 and err.strip() == f"{prefix}: interrupted", f"exit {rc}: {err!r}"
     assert out.read_bytes() == b"previous", "the previous output was changed"
     assert sorted(os.listdir(tmp_path)) == sorted(["I.json", "s.json", out.name]), f"left: {os.listdir(tmp_path)}"
+
+
+def test_transposed_target_on_a_uniform_board_is_labelled_and_said(tmp_path):
+    """A uniform board with a target file of its rows and columns swapped is a valid view of the board turned
+    by 90° (no contradiction to refuse): detection labels it and says so; the matching file gets no such note."""
+    from tiltfit.cli import main
+    from tiltfit.synth import SynthCamera, look_at_pose, render_view
+    from tiltfit.target import target_from_dict
+
+    t = target_from_dict(TARGET)
+    cam = SynthCamera(w_mm=35, U_mm=900, d_mm=8, pixel_pitch_mm=0.02, width_px=640, height_px=480)
+    px = render_view(t, cam, *look_at_pose(t, (100, 75, -950)), noise_sigma=0.002, srgb8=True, seed=0).image_srgb8
+    (tmp_path / "img.png").write_bytes(_png(px))
+    notes = {}
+    for name, target in (("same", TARGET), ("swapped", {**TARGET, "x_edges": TARGET["y_edges"],
+                                                        "y_edges": TARGET["x_edges"]})):
+        (tmp_path / f"{name}.json").write_text(json.dumps(target))
+        rc, err = fuzz_harness.run_command(main, ["detect", tmp_path / "img.png", "--target", tmp_path / f"{name}.json",
+                                                  "-o", tmp_path / f"{name}-D.json"])
+        assert rc == 0, f"{name}: exit {rc}: {err}"
+        notes[name] = err
+    assert "x_edges and y_edges are swapped" in notes["swapped"], f"no note on the labelling: {notes['swapped']!r}"
+    assert "x_edges and y_edges" not in notes["same"], f"a note where the target matches: {notes['same']!r}"

@@ -15,8 +15,10 @@ import torch
 from renderer import optics
 from tiltfit import synth
 from tiltfit.experiments import reproduce
-from tiltfit.photometric import (PhotometricOptions, SensorGeometry, checker_dark_fraction,
-                                 hammersley_disc_samples, refine_photometric, render_target)
+from renderer import ThinLensCamera, axis_angle_to_matrix
+from tiltfit.model import TiltLensCamera
+from tiltfit.photometric import (PhotometricOptions, checker_dark_fraction, hammersley_disc_samples,
+                                 refine_photometric, render_target)
 from tiltfit.target import Target
 
 # A coarse board (6 x 4 cells of 50 mm) so heavy blur still leaves structure at 1/16 of the EOS 6D.
@@ -53,13 +55,18 @@ def test_dark_fraction_closed_forms():
     assert got == pytest.approx(0.5, abs=1e-12), "interior corner"
 
 
-def _sensor():
-    w, h, _ = reproduce.EOS_6D.downscaled(DOWNSCALE)
-    return SensorGeometry(w, h, reproduce.EOS_6D.pixel_pitch_mm * DOWNSCALE, ((w - 1) / 2, (h - 1) / 2))
+def _camera(start: dict, images, pitch: float) -> TiltLensCamera:
+    """The calibration's camera of a start given as w, U, d, θF and per-view R, T (what a corner fit returns)."""
+    h, w = images[0].shape[:2]
+    return TiltLensCamera(len(start["views"]), (w, h), pitch, start["w_mm"], start["U_mm"], start["d_mm"],
+                          math.radians(start["theta_F_deg"]), R=np.stack([v["R"] for v in start["views"]]),
+                          T_mm=np.stack([v["T_mm"] for v in start["views"]]),
+                          principal_point_px=start.get("principal_point_px"))
 
 
 def test_render_target_gradcheck():
-    sensor = _sensor()
+    width, height, _ = reproduce.EOS_6D.downscaled(DOWNSCALE)
+    pitch = reproduce.EOS_6D.pixel_pitch_mm * DOWNSCALE
     R, T = reproduce.target_pose(BOARD, 30.0, 5.0, 600.0)
     import cv2
 
@@ -73,7 +80,9 @@ def test_render_target_gradcheck():
     lens = hammersley_disc_samples(8)
 
     def model(w, inv_U, d, theta_F, white, black, vig, psf, rvec, T_mm):
-        return render_target(BOARD, sensor, uv, lens, w, inv_U, d, theta_F, rvec, T_mm, white, black, vig, psf)
+        cam = ThinLensCamera.from_calibration((width, height), pitch, w, 1000.0 / inv_U, d, theta_F,
+                                              axis_angle_to_matrix(rvec), T_mm)
+        return render_target(BOARD, cam, uv, lens, white, black, vig, psf)
 
     inputs = (*scalars, rvec, T_mm)
     value = model(*inputs)
@@ -150,9 +159,7 @@ def test_photometric_fit_meets_the_targets_where_corners_are_biased(theta_L):
     blur = float(np.median(truth["blur_px"]))
     assert 15 <= blur < 30, f"median blur {blur:.1f} px"
     corners = _corner_fit(images, BOARD, truth["pitch"])
-    start = {**{k: corners.values[k] for k in ("w_mm", "U_mm", "d_mm", "theta_F_deg", "principal_point_px")},
-             "views": [{"R": v["R"], "T_mm": v["T_mm"]} for v in corners.views]}
-    res = refine_photometric(images, BOARD, start, truth["pitch"], PhotometricOptions(max_pixels=20000))
+    res = refine_photometric(images, BOARD, corners.camera, PhotometricOptions(max_pixels=20000))
     assert res.values["aperture"] in ("closed_form", "mixed") and res.values["closed_form_pixels"] > 50000, \
         f"aperture {res.values['aperture']}, {res.values['closed_form_pixels']} of 60000 pixels in closed form"
     true = {"theta_L_deg": theta_L, "U_mm": truth["U_mm"], "d_mm": D_MM}
@@ -191,7 +198,7 @@ def test_photometric_fit_converges_where_blur_exceeds_the_square():
     assert max(found) < 4, f"the corner detector must find no board here, found {found} corners"
     # Start far off (θL +0.3°, U +3 %, d −9 %, w +0.9 %).
     start = _perturbed_init(poses, truth, d_mm=d_mm, scale=3.0)
-    res = refine_photometric(images, SMALL_BOARD, start, truth["pitch"],
+    res = refine_photometric(images, SMALL_BOARD, _camera(start, images, truth["pitch"]),
                              PhotometricOptions(lens_samples=64, max_pixels=1200))
     v, sg = res.values, res.sigma
     start_L = math.degrees(float(optics.theta_L_from_theta_F(math.radians(start["theta_F_deg"]), start["w_mm"],
@@ -215,7 +222,8 @@ def test_photometric_sigma_covers_the_error_over_noise_draws():
     z, ratio = {}, []
     for seed in range(3):
         images, poses, truth = _captures(U0_mm=1000.0, spp=32, downscale=32, seed=seed)
-        res = refine_photometric(images, BOARD, _perturbed_init(poses, truth, seed=seed + 1), truth["pitch"],
+        res = refine_photometric(images, BOARD, _camera(_perturbed_init(poses, truth, seed=seed + 1), images,
+                                                        truth["pitch"]),
                                  PhotometricOptions(lens_samples=64, max_pixels=500, seed=seed))
         for key, true in (("theta_L_deg", THETA_L_DEG), ("U_mm", truth["U_mm"]), ("d_mm", D_MM)):
             z[f"{key} seed {seed}"] = (res.values[key] - true) / res.sigma[key]
@@ -283,18 +291,18 @@ def test_kernel_selection_finds_a_gaussian_where_there_is_one():
     import cv2
 
     images, poses, truth = _captures(U0_mm=700.0, views=(0, 1))
-    start = _perturbed_init(poses, truth, scale=0.5)
+    start = _camera(_perturbed_init(poses, truth, scale=0.5), images, truth["pitch"])
     opts = PhotometricOptions(kernel="auto", lens_samples=128, max_pixels=700)
     psf = 1.2
     blurred = [cv2.GaussianBlur(im, (0, 0), psf, borderType=cv2.BORDER_REFLECT) for im in images]
-    auto = refine_photometric(blurred, BOARD, start, truth["pitch"], opts)
+    auto = refine_photometric(blurred, BOARD, start, opts)
     sel = auto.kernel_selection
     assert auto.values["kernel"] == "disc_gaussian", f"the Gaussian should be justified: {sel}"
     s, ss = auto.values["psf_sigma_px"], auto.sigma["psf_sigma_px"]
     assert abs(s - psf) < max(3 * ss, 0.2), f"Gaussian σ {s:.3f} ± {ss:.3f} px, true {psf}"
     err_auto, err_disc = abs(auto.values["d_mm"] - D_MM), abs(sel["disc_fit"]["d_mm"] - D_MM)
     assert err_auto < err_disc, f"d error with the Gaussian {err_auto:.3f} mm, disc alone {err_disc:.3f} mm"
-    plain = refine_photometric(images, BOARD, start, truth["pitch"], opts)
+    plain = refine_photometric(images, BOARD, start, opts)
     assert plain.values["kernel"] == "disc" and plain.values["psf_sigma_px"] == 0, \
         f"no Gaussian in the plain ray-traced captures: {plain.kernel_selection}"
 
@@ -323,16 +331,16 @@ def test_auto_kernel_needs_enough_lens_samples():
 def test_photometric_fit_does_not_depend_on_the_jacobian_block(monkeypatch):
     """The Jacobian is formed in blocks of pixels (memory); a view split into many blocks, with the closed-form
     and the lens-sample pixels in different blocks, gives the same fit as one block per view."""
-    from tiltfit import photometric
+    from tiltfit.photometric import refine as photometric
 
     # Focused near the boards: about a third of the pixels are sharper than 3 px (lens samples), the rest in
     # closed form, so blocks of 97 split both kinds.
     images, poses, truth = _captures(U0_mm=560.0, spp=16, downscale=32)
-    init = _perturbed_init(poses, truth)
+    init = _camera(_perturbed_init(poses, truth), images, truth["pitch"])
     results = []
     for block in (4096, 97):
         monkeypatch.setattr(photometric, "JACOBIAN_BLOCK", block)
-        results.append(refine_photometric(images, BOARD, init, truth["pitch"], PhotometricOptions(max_pixels=400)))
+        results.append(refine_photometric(images, BOARD, init, PhotometricOptions(max_pixels=400)))
     a, b = results
     assert a.values["aperture"] == "mixed" and 200 < a.values["closed_form_pixels"] < 1000, \
         f"aperture {a.values['aperture']}, {a.values['closed_form_pixels']} of 1200 pixels in closed form"
@@ -346,16 +354,16 @@ def test_usable_mask_in_chunks_and_thinned_candidates(monkeypatch):
     """Full-resolution photographs (20 MP) go through the usable-pixel mask in chunks and predict a regular
     subset of candidate pixels: the mask in chunks of 997 pixels gives the same fit as in one chunk, and
     thinning the candidates to 5,000 a view still lands on the same lens (within the fits' own σ)."""
-    from tiltfit import photometric
+    from tiltfit.photometric import refine, render
 
     images, poses, truth = _captures(U0_mm=560.0, spp=16, downscale=32)
-    init = _perturbed_init(poses, truth)
+    init = _camera(_perturbed_init(poses, truth), images, truth["pitch"])
     runs = {}
     for name, chunk, candidates in (("one chunk", 1 << 19, 1 << 19), ("chunks", 997, 1 << 19),
                                     ("thinned", 1 << 19, 5000)):
-        monkeypatch.setattr(photometric, "MASK_CHUNK_PIXELS", chunk)
-        monkeypatch.setattr(photometric, "MAX_CANDIDATE_PIXELS", candidates)
-        runs[name] = refine_photometric(images, BOARD, init, truth["pitch"], PhotometricOptions(max_pixels=400))
+        monkeypatch.setattr(render, "MASK_CHUNK_PIXELS", chunk)
+        monkeypatch.setattr(refine, "MAX_CANDIDATE_PIXELS", candidates)
+        runs[name] = refine_photometric(images, BOARD, init, PhotometricOptions(max_pixels=400))
     a, b, c = runs["one chunk"], runs["chunks"], runs["thinned"]
     for key in ("theta_L_deg", "U_mm", "d_mm", "w_mm"):
         assert a.values[key] == b.values[key], f"{key}: {a.values[key]} in one chunk, {b.values[key]} in chunks"

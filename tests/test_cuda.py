@@ -73,12 +73,13 @@ def test_cuda_thin_lens_gradients_equal_cpu():
 
 def test_cuda_photometric_target_render_equals_cpu():
     from tiltfit.experiments import reproduce
-    from tiltfit.photometric import SensorGeometry, hammersley_disc_samples, render_target
+    from renderer import ThinLensCamera, axis_angle_to_matrix
+    from tiltfit.photometric import hammersley_disc_samples, render_target
     from tiltfit.target import Target
 
     board = Target(tuple(50.0 * i for i in range(7)), tuple(50.0 * j for j in range(5)), (0, 0), 25.0)
     w, h, _ = reproduce.EOS_6D.downscaled(16)
-    sensor = SensorGeometry(w, h, reproduce.EOS_6D.pixel_pitch_mm * 16, ((w - 1) / 2, (h - 1) / 2))
+    pitch = reproduce.EOS_6D.pixel_pitch_mm * 16
     R, T = reproduce.target_pose(board, 30.0, 5.0, 600.0)
     import cv2
 
@@ -88,8 +89,9 @@ def test_cuda_photometric_target_render_equals_cpu():
                                         indexing="xy"), -1).reshape(-1, 2).to(device, torch.float64)
         lens = hammersley_disc_samples(16).to(device)
         rvec = t(cv2.Rodrigues(R)[0].reshape(3))
-        return render_target(board, sensor, uv, lens, t(55.0), t(1.4), t(30.0), t(math.radians(40)), rvec, t(T),
-                             t(0.8), t(0.06), t(0.05))
+        cam = ThinLensCamera.from_calibration((w, h), pitch, t(55.0), 1000.0 / t(1.4), t(30.0), t(math.radians(40)),
+                                              axis_angle_to_matrix(rvec), t(T))
+        return render_target(board, cam, uv, lens, t(0.8), t(0.06), t(0.05))
 
     cpu, gpu = run("cpu"), run("cuda")
     assert gpu.device.type == "cuda"

@@ -371,3 +371,98 @@ def test_usable_mask_in_chunks_and_thinned_candidates(monkeypatch):
         assert abs(a.values[key] - c.values[key]) <= tol, \
             f"{key}: {a.values[key]} with every candidate, {c.values[key]} thinned (tolerance {tol:.3g})"
     assert a.values != c.values, "thinning to 5,000 candidates should pick other pixels"
+
+
+# ------------------------------------------------------------------------------------------ own model
+
+@pytest.fixture(scope="module")
+def own_model():
+    """Noise-free captures by the fit's own closed-form model (171 x 114, 3 views, θL 4.65°, blur about 5 px)
+    and a start off like a corner fit's."""
+    from tiltfit.photometric.render import dark_fraction_disc, shade
+
+    w_px, h_px, _ = reproduce.EOS_6D.downscaled(32)
+    pitch = reproduce.EOS_6D.pixel_pitch_mm * 32
+    truth_cam = synth.tilted_lens_camera(W_MM, 1000.0, D_MM, THETA_L_DEG, pitch, w_px, h_px)
+    poses = [reproduce.target_pose(BOARD, *reproduce.TARGET_VIEWS[i]) for i in VIEWS]
+    truth = {"U_mm": truth_cam.U_mm, "theta_F": truth_cam.theta_F_rad, "pitch": pitch}
+    start = {"w_mm": W_MM, "U_mm": truth["U_mm"], "d_mm": D_MM, "theta_F_deg": math.degrees(truth["theta_F"]),
+             "views": [{"R": R, "T_mm": T} for R, T in poses]}
+    images = [np.zeros((h_px, w_px))] * len(VIEWS)
+    camera = _camera(start, images, pitch)
+    yy, xx = np.mgrid[0:h_px, 0:w_px]
+    uv = torch.tensor(np.stack([xx.ravel(), yy.ravel()], -1), dtype=torch.float64)
+    with torch.no_grad():
+        images = [shade(dark_fraction_disc(BOARD, camera.view_camera(v), uv, 7), uv, (w_px, h_px), 0.8 - 0.05 * v,
+                        0.06, 0.05).reshape(h_px, w_px).numpy() for v in range(len(VIEWS))]
+    return images, camera, _camera(_perturbed_init(poses, truth), images, pitch)
+
+
+def test_photometric_fit_recovers_its_own_model_exactly(own_model):
+    """On noise-free captures of its own model the fit lands on the truth (lens, poses, exposure) in a few
+    iterations, returns a refined TiltLensCamera and leaves the start's camera alone."""
+    images, truth, start = own_model
+    before = {k: float(getattr(start, k).detach()) for k in ("log_w_mm", "inv_U_per_m", "d_scaled", "theta_F")}
+    res = refine_photometric(images, BOARD, start, PhotometricOptions(max_pixels=300, aperture="closed_form"))
+    assert isinstance(res.camera, TiltLensCamera) and res.camera is not start, "returns a new TiltLensCamera"
+    assert {k: float(getattr(start, k).detach()) for k in before} == before, "the start's camera is not modified"
+    want = truth.summary()
+    got = res.camera.summary()
+    for key, tol in (("w_mm", 1e-5), ("U_mm", 1e-3), ("d_mm", 1e-5), ("theta_L_deg", 1e-6)):
+        assert abs(got[key] - want[key]) < tol, f"{key}: {got[key]} vs truth {want[key]} (start {before})"
+    assert torch.allclose(res.camera.T_mm, truth.T_mm, atol=1e-4), "poses recovered"
+    levels = res.exposure.levels.detach()
+    assert torch.allclose(levels[:, 0], torch.tensor([0.8, 0.75, 0.7], dtype=torch.float64), atol=1e-7), \
+        f"white levels {levels[:, 0].tolist()}"
+    assert abs(float(res.exposure.vignetting.detach()) - 0.05) < 1e-6, "vignetting recovered"
+    assert res.rms < 1e-7 and res.iterations <= 12, f"RMS {res.rms:.3g} after {res.iterations} iterations"
+
+
+@pytest.mark.parametrize("path", ["closed_form", "samples"])
+def test_photometric_jacobian_matches_finite_differences(own_model, path):
+    """The fit's Jacobian (reverse mode through the aperture integral chained with forward mode through the
+    focus geometry, the exposure in closed form) against central differences of its own residuals, both the
+    closed-form and the lens-sample pixels."""
+    from tiltfit.photometric import refine
+
+    images, _, start = own_model
+    opts = PhotometricOptions(max_pixels=60, aperture="closed_form") if path == "closed_form" else \
+        PhotometricOptions(max_pixels=60, aperture="samples", kernel="disc_gaussian", lens_samples=16)
+    seen = {}
+
+    def spy(problem, x0, blocks, view_rows, options, history):
+        seen.update(problem=problem, x0=x0)
+        raise refine.PhotometricError("stop")
+
+    mp = pytest.MonkeyPatch()
+    mp.setattr(refine, "_solve", spy)
+    try:
+        with pytest.raises(refine.PhotometricError, match="stop"):
+            refine_photometric(images, BOARD, start, opts)
+    finally:
+        mp.undo()
+    problem, x0 = seen["problem"], seen["x0"]
+    n_closed = problem.data[0].n_closed_form
+    assert n_closed == (problem.data[0].uv.shape[0] if path == "closed_form" else 0), f"{n_closed} closed-form pixels"
+    r, jac = problem.evaluate(x0, True)
+    for name, x in x0.items():
+        flat = x.reshape(-1)
+        for i in range(flat.numel()):
+            h = 1e-7 * max(1.0, abs(float(flat[i])))
+            plus = {k: v.clone() for k, v in x0.items()}
+            minus = {k: v.clone() for k, v in x0.items()}
+            plus[name].reshape(-1)[i] += h
+            minus[name].reshape(-1)[i] -= h
+            fd = (problem.evaluate(plus, False)[0] - problem.evaluate(minus, False)[0]) / (2 * h)
+            col = jac[name][:, i % jac[name].shape[1]]
+            if x.dim() == 2:   # per view: only that view's rows depend on it
+                v = i // x.shape[1]
+                rows = problem.data[0].uv.shape[0]
+                fd, col = fd[v * rows:(v + 1) * rows], col[v * rows:(v + 1) * rows]
+            # A sub-point whose disc a cell edge just touches is a kink of the dark fraction (the segment's
+            # sqrt(1 − h²)): central differences are off there, so a few rows may differ by more.
+            err = (fd - col).abs()
+            scale = float(fd.abs().max()) + 1e-9
+            close = float((err <= 1e-5 * scale + 1e-7).double().mean())
+            assert close >= 0.97 and float(err.max()) <= 1e-2 * scale, \
+                f"{name}[{i}]: Jacobian off by up to {float(err.max()):.3g} (of {scale:.3g}), {close:.0%} of rows agree"

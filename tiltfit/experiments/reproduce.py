@@ -377,13 +377,9 @@ def _photometric(targets: dict, result, cfg: RunConfig, log, label: str) -> dict
         return None
     from ..photometric import PhotometricError, PhotometricOptions, refine_photometric
 
-    v = result.values
-    init = {"w_mm": v["w_mm"], "U_mm": v["U_mm"], "d_mm": v["d_mm"], "theta_F_deg": v["theta_F_deg"],
-            "principal_point_px": v.get("principal_point_px"),
-            "views": [{"R": view["R"], "T_mm": view["T_mm"]} for view in result.views]}
     images = [targets["linear"][view["image"]] for view in result.views]
     try:
-        res = refine_photometric(images, targets["target"], init, targets["pixel_pitch_mm"],
+        res = refine_photometric(images, targets["target"], result.camera,
                                  PhotometricOptions(lens_samples=cfg.photometric_lens_samples,
                                                     max_pixels=cfg.photometric_pixels))
     except PhotometricError as e:

@@ -16,6 +16,7 @@ from renderer import optics
 from tiltfit import synth
 from tiltfit.experiments import reproduce
 from renderer import ThinLensCamera, axis_angle_to_matrix
+from tiltfit.calibfile import camera_from_calib
 from tiltfit.model import TiltLensCamera
 from tiltfit.photometric import (PhotometricOptions, checker_dark_fraction, hammersley_disc_samples,
                                  refine_photometric, render_target)
@@ -58,10 +59,7 @@ def test_dark_fraction_closed_forms():
 def _camera(start: dict, images, pitch: float) -> TiltLensCamera:
     """The calibration's camera of a start given as w, U, d, θF and per-view R, T (what a corner fit returns)."""
     h, w = images[0].shape[:2]
-    return TiltLensCamera(len(start["views"]), (w, h), pitch, start["w_mm"], start["U_mm"], start["d_mm"],
-                          math.radians(start["theta_F_deg"]), R=np.stack([v["R"] for v in start["views"]]),
-                          T_mm=np.stack([v["T_mm"] for v in start["views"]]),
-                          principal_point_px=start.get("principal_point_px"))
+    return camera_from_calib({**start, "image_size_px": (w, h), "pixel_pitch_mm": pitch})
 
 
 def test_render_target_gradcheck():

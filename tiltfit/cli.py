@@ -350,6 +350,13 @@ def _refine_photometric(result, obs, target, args, say, photos: dict | None = No
     except PhotometricError as e:
         raise CliError(args.inputs[0], f"photometric refinement: {e}") from None
     v, sg, cam = res.values, res.sigma, result.camera
+    block.update(kept=res.kept, held_out=res.held_out, refined={k: v[k] for k in keys},
+                 refined_sigma={k: sg[k] for k in keys})
+    if res.kept != "photometric":
+        say(f"photometric refinement: not kept (held-out pixels: cost {res.held_out['refined']:.4g} refined, "
+            f"{res.held_out['start']:.4g} for the corner fit); CALIB.json keeps the corner fit")
+        block.update(rms_linear=res.rms, iterations=res.iterations, runtime_s=res.runtime_s)
+        return block
     with torch.no_grad():
         cam.load_state_dict(res.camera.state_dict())   # the refined lens and poses, in the fit's own module
         r = residuals(cam, obs)

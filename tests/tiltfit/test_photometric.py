@@ -414,6 +414,35 @@ def test_photometric_fit_recovers_its_own_model_exactly(own_model):
         f"white levels {levels[:, 0].tolist()}"
     assert abs(float(res.exposure.vignetting.detach()) - 0.05) < 1e-6, "vignetting recovered"
     assert res.rms < 1e-7 and res.iterations <= 12, f"RMS {res.rms:.3g} after {res.iterations} iterations"
+    # Held-out pixels: the refinement predicts them (to rounding), the start's lens does not.
+    h = res.held_out
+    assert res.kept == "photometric" and h["pixels"] == 3 * 300, f"kept {res.kept}, held out {h}"
+    assert h["refined"] < 1e-6 * h["start"], f"held-out costs {h} (residuals in units of the fit's robust σ)"
+    assert res.chosen_camera is res.camera, "the chosen camera is the refined one"
+
+
+def test_photometric_keeps_the_start_where_the_held_out_pixels_say_so(own_model, monkeypatch):
+    """Where the refinement predicts the held-out pixels worse than the start (here: the start is the truth
+    and the fit is stopped after one step of a damped solve from a displaced lens), the start is kept."""
+    from tiltfit.photometric import refine
+
+    images, truth, start = own_model
+    real = refine._solve
+
+    def one_bad_step(problem, x0, blocks, view_rows, opts, history):
+        res, it = real(problem, x0, blocks, view_rows, opts, history)
+        res.x["lens"] = res.x["lens"] + torch.tensor([0.002, 0.0, 0.0, 0.0], dtype=torch.float64)  # w +0.2 %
+        return res, it
+
+    monkeypatch.setattr(refine, "_solve", one_bad_step)
+    res = refine_photometric(images, BOARD, truth, PhotometricOptions(max_pixels=300, aperture="closed_form"))
+    h = res.held_out
+    assert res.kept == "corner fit" and h["start"] < h["refined"], f"kept {res.kept}: held out {h}"
+    assert res.chosen_camera is res.start_camera and float(res.start_camera.log_w_mm) == float(truth.log_w_mm), \
+        "the start's camera is the chosen one"
+    plain = refine_photometric(images, BOARD, truth, PhotometricOptions(max_pixels=300, aperture="closed_form",
+                                                                        held_out_pixels=0))
+    assert plain.kept == "photometric" and plain.held_out is None, "held_out_pixels=0: always kept"
 
 
 @pytest.mark.parametrize("path", ["closed_form", "samples"])

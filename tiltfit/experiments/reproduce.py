@@ -386,7 +386,8 @@ def _photometric(targets: dict, result, cfg: RunConfig, log, label: str) -> dict
         log(f"(c) ({label}) photometric refinement failed: {e}")
         return None
     rec = {k: res.values[k] for k in ("w_mm", "U_mm", "d_mm", "theta_F_deg", "theta_L_deg", "vignetting")}
-    rec.update(sigma=dict(res.sigma), rms_linear=res.rms, iterations=res.iterations, runtime_s=res.runtime_s)
+    rec.update(sigma=dict(res.sigma), rms_linear=res.rms, iterations=res.iterations, runtime_s=res.runtime_s,
+               kept=res.kept, held_out=res.held_out)
     log(f"(c) ({label}) photometric: θL {rec['theta_L_deg']:+.3f} ± {res.sigma['theta_L_deg']:.3f}°, "
         f"U {rec['U_mm']:.1f}, d {rec['d_mm']:.3f} mm, RMS {res.rms:.4f} ({res.runtime_s:.1f} s)")
     return rec

@@ -90,6 +90,9 @@ class PhotometricOptions:
             (disc kernel only), `samples` by the fixed lens samples, `auto` the closed form for the pixels whose
             blur disc at the start is at least CLOSED_FORM_MIN_BLUR_PX (with the disc kernel), the samples for
             the others.
+        held_out_pixels: pixels per view kept out of the fit [300], chosen as the fitted ones are; the refinement
+            is kept only where it predicts them better than the start's lens and poses do (with the exposure
+            fitted to the same pixels as the refinement's); 0: always kept.
     """
 
     lens_samples: int = 64
@@ -101,8 +104,11 @@ class PhotometricOptions:
     alpha: float = 0.01
     seed: int = 0
     aperture: str = "auto"
+    held_out_pixels: int = 300
 
     def __post_init__(self):
+        if self.held_out_pixels < 0:
+            raise ValueError(f"held_out_pixels: expected 0 or a positive count, got {self.held_out_pixels}")
         if self.lens_samples < 0:
             raise ValueError(f"lens_samples: expected 0 (auto) or a positive count, got {self.lens_samples}")
         if self.kernel not in KERNELS:
@@ -148,6 +154,11 @@ class PhotometricResult:
         iterations, runtime_s, history: LM iterations, wall time, cost of each solve (½ Σ ρ of residuals in
             units of their robust σ).
         kernel_selection: under kernel `auto`, the test that chose the kernel (Λ, p, ΔBIC, costs).
+        kept: "photometric" where the refinement predicts the held-out pixels better than the start did, else
+            "corner fit" (`PhotometricOptions.held_out_pixels`); `chosen_camera` is that camera.
+        held_out: pixels, and mean Huber cost of their residuals (in units of the fit's robust σ) for the
+            refinement and for the start (its lens and poses, the exposure fitted with them held).
+        start_camera: the camera the refinement started from (a copy).
     """
 
     camera: TiltLensCamera
@@ -161,6 +172,14 @@ class PhotometricResult:
     history: list = field(default_factory=list)
     kernel_selection: dict | None = None
     sigma_gauss_newton: dict | None = None
+    kept: str = "photometric"
+    held_out: dict | None = None
+    start_camera: TiltLensCamera | None = None
+
+    @property
+    def chosen_camera(self) -> TiltLensCamera:
+        """The refined camera where the held-out pixels kept it, else the start's (`kept`)."""
+        return self.camera if self.kept == "photometric" else self.start_camera
 
 
 @dataclass
@@ -216,6 +235,8 @@ class _Problem:
         self.scale = 1.0
         self.psf_fixed = 0.0
         self.say, self.t0, self.n_jacobians = say, time.perf_counter(), 0
+        self.fixed = {}        # blocks held at these values (`evaluate` gets the free ones only)
+        self._held_dark = {}   # dark fractions per view while the geometry is held
 
     # --- the camera of a state -----------------------------------------------------------------------------
     def _params(self, v: int, lens: torch.Tensor, pose: torch.Tensor) -> dict:
@@ -288,6 +309,9 @@ class _Problem:
 
     # --- the solver's callback -------------------------------------------------------------------------------
     def evaluate(self, x: dict, with_jacobian: bool):
+        free = tuple(x)
+        x = {**self.fixed, **x}
+        geometric = any(k in free for k in ("lens", "pose", "psf"))
         lens, pose, levels = x["lens"], x["pose"], x["levels"]
         vig = x["vignetting"][0] if "vignetting" in x else torch.zeros((), dtype=torch.float64)
         psf = x["psf"][0] if "psf" in x else torch.tensor(self.psf_fixed, dtype=torch.float64)
@@ -298,30 +322,39 @@ class _Problem:
             return nan, ({k: nan[:, None].expand(M, sizes[k]) for k in x} if with_jacobian else None)
         rs, jac = [], {k: [] for k in x}
         for v, dv in enumerate(self.data):
-            D, dD = self._dark(v, torch.cat([lens, pose[v]]), psf, with_jacobian)
+            if geometric:
+                D, dD = self._dark(v, torch.cat([lens, pose[v]]), psf, with_jacobian)
+            else:   # the geometry is held: its dark fractions once
+                if v not in self._held_dark:
+                    self._held_dark[v] = self._dark(v, torch.cat([lens, pose[v]]), psf, False)[0]
+                D, dD = self._held_dark[v], None
             falloff = 1.0 - vig * dv.rho2
             white, black = levels[v, 0], levels[v, 1]
             shade = white - (white - black) * D
             rs.append((falloff * shade - dv.observed) / self.scale)
             if with_jacobian:
-                Jg = (-falloff * (white - black) / self.scale)[:, None] * dD
-                jac["lens"].append(Jg[:, :4])
-                jac["pose"].append(Jg[:, 4:10])
+                if geometric:
+                    Jg = (-falloff * (white - black) / self.scale)[:, None] * dD
+                    jac["lens"].append(Jg[:, :4])
+                    jac["pose"].append(Jg[:, 4:10])
                 jac["levels"].append(torch.stack([falloff * (1 - D), falloff * D], 1) / self.scale)
                 if "vignetting" in jac:
                     jac["vignetting"].append((-dv.rho2 * shade / self.scale)[:, None])
-                if "psf" in jac:
+                if "psf" in free:
                     jac["psf"].append(Jg[:, 10:11])
         r = torch.cat(rs)
         if not with_jacobian:
             return r, None
+        jac = {k: torch.cat(jac[k]) for k in free}
+        if not geometric:
+            return r, jac
         self.n_jacobians += 1
         if self.say:
             cost = 0.5 * float((r * r).sum())
             self.say(f"photometric: linearisation {self.n_jacobians}, cost {cost:.6g}, θF "
                      f"{math.degrees(float(lens[3])):+.4f}°, U {1000.0 / float(lens[1]):.2f} mm, d "
                      f"{APERTURE_SCALE_MM * float(lens[2]):.4f} mm ({time.perf_counter() - self.t0:.1f} s)")
-        return r, {k: torch.cat(v) for k, v in jac.items()}
+        return r, jac
 
     def residuals(self, x: dict) -> torch.Tensor:
         """(M,) residuals in linear intensity units."""
@@ -457,7 +490,8 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
         n_samples = auto_lens_samples(CLOSED_FORM_MIN_BLUR_PX)   # for the sharper pixels only
     lens_uv = hammersley_disc_samples(n_samples)
     rng = np.random.default_rng(opts.seed)
-    picks, levels = [], []
+    rng_held = np.random.default_rng([opts.seed, 1])   # its own stream: the fitted pixels do not depend on it
+    picks, held, levels = [], [], []
     for k, (im, vc) in enumerate(zip(imgs, views)):
         if im.shape != (H, W):
             raise PhotometricError(f"view {k}: image is {im.shape[1]}x{im.shape[0]}, expected {W}x{H}")
@@ -476,13 +510,17 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
         pred_img = np.full((H, W), np.nan)
         pred_img[yy, xx] = pred
         picks.append(_select_pixels(pred_img.reshape(-1), usable.reshape(-1), white, black, opts.max_pixels, rng))
+        rest = usable.reshape(-1).copy()
+        rest[picks[-1]] = False
+        held.append(_select_pixels(pred_img.reshape(-1), rest, white, black, opts.held_out_pixels, rng_held)
+                    if opts.held_out_pixels else picks[-1][:0])
         levels.append((white, black))
     # The solver's per-view blocks need the same number of pixels in every view.
     n_rows = min(p.size for p in picks)
     picks = [p if p.size == n_rows else np.sort(rng.choice(p, n_rows, replace=False)) for p in picks]
-    data = []
     hx, hy = (W - 1) / 2, (H - 1) / 2
-    for im, vc, pick in zip(imgs, views, picks):
+
+    def view_data(im, vc, pick) -> _View:
         uv = torch.tensor(np.stack([pick % W, pick // W], -1), dtype=torch.float64)
         observed = torch.tensor(im.reshape(-1)[pick], dtype=torch.float64)
         if opts.aperture == "closed_form":
@@ -494,7 +532,10 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
         order = torch.argsort((~closed).to(torch.int8), stable=True)     # closed-form pixels first
         uv = uv[order]
         rho2 = ((uv[:, 0] - hx) ** 2 + (uv[:, 1] - hy) ** 2) / (hx ** 2 + hy ** 2)
-        data.append(_View(uv, observed[order], int(closed.sum()), rho2))
+        return _View(uv, observed[order], int(closed.sum()), rho2)
+
+    data = [view_data(im, vc, pick) for im, vc, pick in zip(imgs, views, picks)]
+    held_data = [view_data(im, vc, pick) for im, vc, pick in zip(imgs, views, held)]
     n_closed = sum(d.n_closed_form for d in data)
     n_pixels = sum(int(d.uv.shape[0]) for d in data)
     aperture = "closed_form" if n_closed == n_pixels else "samples" if n_closed == 0 else "mixed"
@@ -554,6 +595,14 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
         cov_gn = covariance(res, (s_final / scale) ** 2)
     except SolverError:
         cov_gn = torch.full_like(cov_sandwich, math.nan)
+    kept, held_out = "photometric", None
+    if opts.held_out_pixels:
+        held_out = _held_out_costs(problem, held_data, res.x, x0, blocks, view_rows, opts, scale)
+        kept = "photometric" if held_out["refined"] <= held_out["start"] else "corner fit"
+        if say:
+            say(f"photometric: held-out pixels ({held_out['pixels']}) cost {held_out['refined']:.4g} refined, "
+                f"{held_out['start']:.4g} from the start: keeping the "
+                + ("refinement" if kept == "photometric" else "start (the corner fit)"))
     refined = _camera_of(camera.copy(), res.x)
     exposure = Exposure(res.x["levels"], float(res.x["vignetting"][0]) if "vignetting" in res.x else 0.0)
     values = {**_lens_values(res.x["lens"]), "inv_U_per_m": float(res.x["lens"][1]),
@@ -569,7 +618,36 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
                               "rms": float(torch.sqrt((rv * rv).mean())), "n_pixels": n_rows})
     return PhotometricResult(refined, exposure, values, _sigma_dict(res, cov_sandwich), out_views,
                              float(torch.sqrt((r * r).mean())), iterations, time.perf_counter() - t0, history,
-                             selection, _sigma_dict(res, cov_gn))
+                             selection, _sigma_dict(res, cov_gn), kept, held_out, camera.copy())
+
+
+def _held_out_costs(problem: _Problem, held_data: list, x: dict, x0: dict, blocks: list, view_rows, opts,
+                    scale: float) -> dict:
+    """Mean Huber cost (residuals in units of `scale`) of the held-out pixels for the refined state `x` and for
+    the start `x0`'s lens and poses with the exposure fitted to the fit's pixels (geometry held)."""
+    k = opts.huber_scale
+    lm = LMOptions(max_iterations=opts.iterations, rho=lambda s2: robust_rho(s2, "huber", k),
+                   weight=lambda s2: robust_weight(s2, "huber", k))
+    problem.scale = scale
+    problem.fixed = {"lens": x0["lens"], "pose": x0["pose"], **({"psf": x0["psf"]} if "psf" in x0 else {})}
+    exposure = [b for b in blocks if b.name in ("levels", "vignetting")]
+    try:
+        start = levenberg_marquardt(problem.evaluate, {b.name: x0[b.name] for b in exposure}, exposure, view_rows,
+                                    lm).x
+    except SolverError as e:
+        raise PhotometricError(f"the start's exposure: {e}") from None
+    finally:
+        problem.fixed, problem._held_dark = {}, {}
+    check = _Problem(problem.camera, problem.target, held_data, problem.lens_uv)
+    check.near, check.scale, check.psf_fixed = problem.near, scale, problem.psf_fixed
+
+    def cost(state):
+        with torch.no_grad():
+            r = check.evaluate(state, False)[0]
+        return float(robust_rho(r * r, "huber", k).mean())
+
+    return {"pixels": sum(int(d.uv.shape[0]) for d in held_data), "refined": cost(x),
+            "start": cost({**x0, **start})}
 
 
 def _camera_of(camera: TiltLensCamera, x: dict) -> TiltLensCamera:

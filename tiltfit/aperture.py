@@ -186,3 +186,16 @@ def lines_cut(q_h: torch.Tensor, centre: torch.Tensor, axes: torch.Tensor, targe
             h = _edge_lines(q_h, centre, axes, e, k)[2]
             counts.append(int((h.abs() < 1).sum(-1).max()) if h.numel() else 0)
     return max(counts)
+
+
+def disc_within(q_h: torch.Tensor, centre: torch.Tensor, axes: torch.Tensor, x_range, y_range) -> torch.Tensor:
+    """(...,) True where every ray through the focus point `q_h` from the aperture disc meets the board plane
+    inside the rectangle x_range × y_range (mm): each of its four sides is a line on the aperture, and the disc
+    is inside where it lies wholly on the inner side of all four (signed distance at least its radius)."""
+    out = None
+    for k, (lo, hi) in enumerate((x_range, y_range)):
+        e = torch.tensor([float(lo), float(hi)], dtype=q_h.dtype, device=q_h.device)
+        h = _edge_lines(q_h, centre, axes, e, k)[2]
+        inside = (h[..., 0] >= 1) & (h[..., 1] <= -1)
+        out = inside if out is None else out & inside
+    return out

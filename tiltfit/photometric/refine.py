@@ -495,7 +495,7 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
     for k, (im, vc) in enumerate(zip(imgs, views)):
         if im.shape != (H, W):
             raise PhotometricError(f"view {k}: image is {im.shape[1]}x{im.shape[0]}, expected {W}x{H}")
-        usable = usable_mask(target, vc, lens_uv)
+        usable = usable_mask(target, vc)
         white, black = _initial_levels(im, usable)
         if usable.sum() > MAX_CANDIDATE_PIXELS:  # a regular subset: predicting all of a 20 MP photo is slow
             keep = np.flatnonzero(usable)
@@ -515,6 +515,9 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
         held.append(_select_pixels(pred_img.reshape(-1), rest, white, black, opts.held_out_pixels, rng_held)
                     if opts.held_out_pixels else picks[-1][:0])
         levels.append((white, black))
+        if say:
+            say(f"photometric: view {k + 1} of {len(imgs)}: {int(usable.sum())} usable pixels, {picks[-1].size} "
+                f"chosen ({time.perf_counter() - t0:.1f} s)")
     # The solver's per-view blocks need the same number of pixels in every view.
     n_rows = min(p.size for p in picks)
     picks = [p if p.size == n_rows else np.sort(rng.choice(p, n_rows, replace=False)) for p in picks]

@@ -41,7 +41,7 @@ from renderer.cameras import ThinLensCamera, concentric_disk
 from renderer.optics import blur_diameter_first_order, blur_diameter_paper
 from renderer.sensor import radial_falloff
 
-from ..aperture import checker_dark_fraction_disc
+from ..aperture import checker_dark_fraction_disc, disc_within
 from ..target import Target
 
 #: Sensor points per pixel side of the closed-form aperture (`dark_fraction_disc`).
@@ -49,8 +49,7 @@ SUBPIXELS = 4
 #: `lens_samples=0` (auto) takes 64 · (b / 10 px)² samples for the start's largest blur disc b at the board's
 #: centre, in multiples of 16, from 64 to this many (`auto_lens_samples`).
 AUTO_LENS_SAMPLES_MAX = 256
-#: Pixels whose rays `usable_mask` generates at once (about 2 KB each with its ring of lens samples and the
-#: intermediates): at 5472×3648 all pixels at once took more than 17 GB; 684×456 images stay one chunk.
+#: Pixels `usable_mask` takes at once (bounds its memory; 684×456 images stay one chunk).
 MASK_CHUNK_PIXELS = 1 << 19
 
 
@@ -238,32 +237,28 @@ def board_blur_px(cam: ThinLensCamera, target: Target) -> float:
                                          float(cam.theta_F))) / float(cam.screen.pitch[0])
 
 
-def usable_mask(target: Target, cam: ThinLensCamera, lens_uv: torch.Tensor) -> np.ndarray:
-    """(H, W) pixels whose every lens sample lands on the board, margin included, away from its outer edge.
-    Two passes over chunks of MASK_CHUNK_PIXELS pixels: the margin (two pixels, mm) needs the largest ray
-    length over the whole image first."""
+def usable_mask(target: Target, cam: ThinLensCamera) -> np.ndarray:
+    """(H, W) pixels whose whole blur disc lands on the board, margin included, at least two pixels' footprint
+    (at the longest chief ray) inside its outer edge: exact for the thin lens's disc (`aperture.disc_within`),
+    one focus point per pixel, in chunks of MASK_CHUNK_PIXELS pixels."""
     W, H = cam.width, cam.height
     x0, y0, x1, y1 = target.extent_mm
+
+    def pixels(a: int) -> torch.Tensor:
+        flat = torch.arange(a, min(a + MASK_CHUNK_PIXELS, H * W))
+        return torch.stack([(flat % W).to(torch.float64), (flat // W).to(torch.float64)], -1)
+
     with torch.no_grad():
-        ring = lens_uv[:: max(1, lens_uv.shape[0] // 16)]
-        ring = torch.cat([ring, torch.tensor([[0.0, 0.5], [1.0, 0.5], [0.5, 0.0], [0.5, 1.0]], dtype=ring.dtype)])
-
-        def hits(a: int):
-            flat = torch.arange(a, min(a + MASK_CHUNK_PIXELS, H * W))
-            uv = torch.stack([(flat % W).to(torch.float64), (flat // W).to(torch.float64)], -1)
-            n, s = uv.shape[0], ring.shape[0]
-            rays = cam.generate_rays(uv[:, None, :].expand(n, s, 2), ring[None].expand(n, s, 2))
-            t = -rays.origin[..., 2] / rays.direction[..., 2]
-            return t, rays.origin + t[..., None] * rays.direction
-
         starts = range(0, H * W, MASK_CHUNK_PIXELS)
-        first = hits(0)  # kept for the second pass where it is the only chunk (images up to 2^19 pixels)
-        t_max = max([float(first[0].abs().max())] + [float(hits(a)[0].abs().max()) for a in starts[1:]])
+        t_chief = []
+        for a in starts:
+            rays = cam.generate_rays(pixels(a))
+            t_chief.append(-rays.origin[..., 2] / rays.direction[..., 2])
+        t_max = max(float(t.abs().max()) for t in t_chief)
         guard = 2.0 * float(cam.screen.pitch[0]) * t_max / float(cam.w)
         ok = np.empty(H * W, dtype=bool)
-        for a in starts:
-            t, hit = first if a == 0 and len(starts) == 1 else hits(a)
-            inside = (t > 0) & (hit[..., 0] > x0 + guard) & (hit[..., 0] < x1 - guard) & \
-                     (hit[..., 1] > y0 + guard) & (hit[..., 1] < y1 - guard)
-            ok[a:a + t.shape[0]] = inside.all(-1).numpy()
+        for a, t in zip(starts, t_chief):
+            q_h, centre, axes, valid = cam.focus_geometry(pixels(a))
+            inside = disc_within(q_h, centre, axes, (x0 + guard, x1 - guard), (y0 + guard, y1 - guard))
+            ok[a:a + t.shape[0]] = (inside & valid & (t > 0)).numpy()
     return ok.reshape(H, W)

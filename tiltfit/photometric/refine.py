@@ -235,8 +235,6 @@ class _Problem:
         self.scale = 1.0
         self.psf_fixed = 0.0
         self.say, self.t0, self.n_jacobians = say, time.perf_counter(), 0
-        self.fixed = {}        # blocks held at these values (`evaluate` gets the free ones only)
-        self._held_dark = {}   # dark fractions per view while the geometry is held
 
     # --- the camera of a state -----------------------------------------------------------------------------
     def _params(self, v: int, lens: torch.Tensor, pose: torch.Tensor) -> dict:
@@ -309,9 +307,6 @@ class _Problem:
 
     # --- the solver's callback -------------------------------------------------------------------------------
     def evaluate(self, x: dict, with_jacobian: bool):
-        free = tuple(x)
-        x = {**self.fixed, **x}
-        geometric = any(k in free for k in ("lens", "pose", "psf"))
         lens, pose, levels = x["lens"], x["pose"], x["levels"]
         vig = x["vignetting"][0] if "vignetting" in x else torch.zeros((), dtype=torch.float64)
         psf = x["psf"][0] if "psf" in x else torch.tensor(self.psf_fixed, dtype=torch.float64)
@@ -322,32 +317,24 @@ class _Problem:
             return nan, ({k: nan[:, None].expand(M, sizes[k]) for k in x} if with_jacobian else None)
         rs, jac = [], {k: [] for k in x}
         for v, dv in enumerate(self.data):
-            if geometric:
-                D, dD = self._dark(v, torch.cat([lens, pose[v]]), psf, with_jacobian)
-            else:   # the geometry is held: its dark fractions once
-                if v not in self._held_dark:
-                    self._held_dark[v] = self._dark(v, torch.cat([lens, pose[v]]), psf, False)[0]
-                D, dD = self._held_dark[v], None
+            D, dD = self._dark(v, torch.cat([lens, pose[v]]), psf, with_jacobian)
             falloff = 1.0 - vig * dv.rho2
             white, black = levels[v, 0], levels[v, 1]
             shade = white - (white - black) * D
             rs.append((falloff * shade - dv.observed) / self.scale)
             if with_jacobian:
-                if geometric:
-                    Jg = (-falloff * (white - black) / self.scale)[:, None] * dD
-                    jac["lens"].append(Jg[:, :4])
-                    jac["pose"].append(Jg[:, 4:10])
+                Jg = (-falloff * (white - black) / self.scale)[:, None] * dD
+                jac["lens"].append(Jg[:, :4])
+                jac["pose"].append(Jg[:, 4:10])
                 jac["levels"].append(torch.stack([falloff * (1 - D), falloff * D], 1) / self.scale)
                 if "vignetting" in jac:
                     jac["vignetting"].append((-dv.rho2 * shade / self.scale)[:, None])
-                if "psf" in free:
+                if "psf" in jac:
                     jac["psf"].append(Jg[:, 10:11])
         r = torch.cat(rs)
         if not with_jacobian:
             return r, None
-        jac = {k: torch.cat(jac[k]) for k in free}
-        if not geometric:
-            return r, jac
+        jac = {k: torch.cat(v) for k, v in jac.items()}
         self.n_jacobians += 1
         if self.say:
             cost = 0.5 * float((r * r).sum())
@@ -489,6 +476,80 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
     elif n_samples == 0:
         n_samples = auto_lens_samples(CLOSED_FORM_MIN_BLUR_PX)   # for the sharper pixels only
     lens_uv = hammersley_disc_samples(n_samples)
+    data, held_data, levels = _choose_pixels(imgs, views, target, opts, disc_only, say, t0)
+    n_rows = int(data[0].uv.shape[0])
+    n_closed = sum(d.n_closed_form for d in data)
+    n_pixels = sum(int(d.uv.shape[0]) for d in data)
+    aperture = "closed_form" if n_closed == n_pixels else "samples" if n_closed == 0 else "mixed"
+    if say:
+        say(f"photometric: {len(imgs)} views, {n_pixels} pixels, aperture "
+            + {"closed_form": "in closed form (4x4 points per pixel)",
+               "samples": f"by {n_samples} lens samples per pixel",
+               "mixed": f"in closed form for {n_closed} pixels (blur from {CLOSED_FORM_MIN_BLUR_PX:g} px), "
+                        f"by {n_samples} lens samples for the other {n_pixels - n_closed}"}[aperture])
+
+    problem = _Problem(cam, target, data, lens_uv, say)
+    problem.camera_of = lambda x, v: _camera_of(cam.copy(), x).view_camera(v)
+    V = len(imgs)
+    x0 = {"lens": torch.stack([getattr(cam, n).detach() for n in LENS_PARAMETERS]),
+          "pose": torch.cat([cam.rvec.detach(), cam.T_scaled.detach()], 1),
+          "levels": torch.tensor(levels, dtype=torch.float64)}
+    blocks = [Block("lens", (4,)), Block("pose", (V, 6), per_view=True), Block("levels", (V, 2), per_view=True)]
+    if opts.fit_vignetting:
+        x0["vignetting"] = torch.zeros(1, dtype=torch.float64)
+        blocks.append(Block("vignetting", (1,)))
+    problem.psf_fixed = psf0
+    if opts.kernel == "disc_gaussian":
+        x0["psf"] = torch.tensor([psf0], dtype=torch.float64)
+        blocks.append(Block("psf", (1,)))
+    view_rows = torch.arange(V * n_rows).reshape(V, n_rows)
+    history = []
+    res, iterations = _solve(problem, x0, blocks, view_rows, opts, history)
+    scale = problem.scale
+    selection = None
+    if opts.kernel == "auto":
+        res, iterations, scale, selection = _select_kernel(problem, res, iterations, blocks, view_rows, opts,
+                                                           history, say)
+    kernel = "disc_gaussian" if "psf" in res.x else "disc"
+    cov_sandwich = _cluster_sandwich(res, problem)
+    r = res.r * scale
+    s_final = _robust_sigma(r)
+    try:
+        cov_gn = covariance(res, (s_final / scale) ** 2)
+    except SolverError:
+        cov_gn = torch.full_like(cov_sandwich, math.nan)
+    kept, held_out = "photometric", None
+    if opts.held_out_pixels:
+        held_out = _held_out_costs(problem, held_data, res.x, x0, opts, scale)
+        kept = "photometric" if held_out["refined"] <= held_out["start"] else "corner fit"
+        if say:
+            say(f"photometric: held-out pixels ({held_out['pixels']}) cost {held_out['refined']:.4g} refined, "
+                f"{held_out['start']:.4g} from the start: keeping the "
+                + ("refinement" if kept == "photometric" else "start (the corner fit)"))
+    refined = _camera_of(camera.copy(), res.x)
+    exposure = Exposure(res.x["levels"], float(res.x["vignetting"][0]) if "vignetting" in res.x else 0.0)
+    values = {**_lens_values(res.x["lens"]), "inv_U_per_m": float(res.x["lens"][1]),
+              "vignetting": float(exposure.vignetting.detach()), "psf_sigma_px": abs(float(res.x["psf"][0])) if "psf" in res.x
+              else 0.0, "kernel": kernel, "lens_samples": n_samples if aperture != "closed_form" else 0,
+              "aperture": aperture, "closed_form_pixels": n_closed}
+    out_views = []
+    with torch.no_grad():
+        for v in range(V):
+            rv = r[view_rows[v]]
+            out_views.append({"R": refined.R[v].numpy().copy(), "T_mm": refined.T_mm[v].numpy().copy(),
+                              "white": float(res.x["levels"][v, 0]), "black": float(res.x["levels"][v, 1]),
+                              "rms": float(torch.sqrt((rv * rv).mean())), "n_pixels": n_rows})
+    return PhotometricResult(refined, exposure, values, _sigma_dict(res, cov_sandwich), out_views,
+                             float(torch.sqrt((r * r).mean())), iterations, time.perf_counter() - t0, history,
+                             selection, _sigma_dict(res, cov_gn), kept, held_out, camera.copy())
+
+
+def _choose_pixels(imgs: list, views: list, target: Target, opts: PhotometricOptions, disc_only: bool, say,
+                   t0: float):
+    """Per view the pixels to fit (the same count in every view) and the held-out ones, where the start's
+    prediction is between the levels (edges, blur) or flat; and the start's levels. Returns (data, held_data,
+    levels): `_View`s, closed-form pixels first."""
+    W, H = views[0].width, views[0].height
     rng = np.random.default_rng(opts.seed)
     rng_held = np.random.default_rng([opts.seed, 1])   # its own stream: the fitted pixels do not depend on it
     picks, held, levels = [], [], []
@@ -539,108 +600,58 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
 
     data = [view_data(im, vc, pick) for im, vc, pick in zip(imgs, views, picks)]
     held_data = [view_data(im, vc, pick) for im, vc, pick in zip(imgs, views, held)]
-    n_closed = sum(d.n_closed_form for d in data)
-    n_pixels = sum(int(d.uv.shape[0]) for d in data)
-    aperture = "closed_form" if n_closed == n_pixels else "samples" if n_closed == 0 else "mixed"
-    if say:
-        say(f"photometric: {len(imgs)} views, {n_pixels} pixels, aperture "
-            + {"closed_form": "in closed form (4x4 points per pixel)",
-               "samples": f"by {n_samples} lens samples per pixel",
-               "mixed": f"in closed form for {n_closed} pixels (blur from {CLOSED_FORM_MIN_BLUR_PX:g} px), "
-                        f"by {n_samples} lens samples for the other {n_pixels - n_closed}"}[aperture])
+    return data, held_data, levels
 
-    problem = _Problem(cam, target, data, lens_uv, say)
-    problem.camera_of = lambda x, v: _camera_of(cam.copy(), x).view_camera(v)
-    V = len(imgs)
-    x0 = {"lens": torch.stack([getattr(cam, n).detach() for n in LENS_PARAMETERS]),
-          "pose": torch.cat([cam.rvec.detach(), cam.T_scaled.detach()], 1),
-          "levels": torch.tensor(levels, dtype=torch.float64)}
-    blocks = [Block("lens", (4,)), Block("pose", (V, 6), per_view=True), Block("levels", (V, 2), per_view=True)]
-    if opts.fit_vignetting:
-        x0["vignetting"] = torch.zeros(1, dtype=torch.float64)
-        blocks.append(Block("vignetting", (1,)))
-    problem.psf_fixed = psf0
-    if opts.kernel == "disc_gaussian":
-        x0["psf"] = torch.tensor([psf0], dtype=torch.float64)
-        blocks.append(Block("psf", (1,)))
-    view_rows = torch.arange(V * n_rows).reshape(V, n_rows)
-    history = []
-    res, iterations = _solve(problem, x0, blocks, view_rows, opts, history)
+
+def _select_kernel(problem: _Problem, res, iterations: int, blocks: list, view_rows, opts: PhotometricOptions,
+                   history: list, say):
+    """Kernel `auto`: the Gaussian part freed from the disc's solution on the same pixels and weights, kept where
+    the likelihood-ratio test and its width justify it. Returns (LMResult, iterations, scale, selection)."""
     scale = problem.scale
-    selection = None
-    if opts.kernel == "auto":
-        # The Gaussian part, freed from the disc's solution on the same pixels and weights.
-        w0, r0 = res.weights, res.r * scale
-        rss0 = float((w0 * r0 * r0).sum())
-        x1 = {**res.x, "psf": torch.tensor([PSF_START_PX], dtype=torch.float64)}
-        res1, it1 = _solve(problem, x1, blocks + [Block("psf", (1,))], view_rows, opts, history)
-        r1 = res1.r * problem.scale
-        rss1 = float((w0 * r1 * r1).sum())
-        test = nested_test([(int(r0.numel()), rss0, rss1)], 1, opts.alpha)
-        psf = abs(float(res1.x["psf"][0]))
-        justified = test["justified"] and psf >= PSF_EVIDENCE_PX
-        selection = {"kernel": "disc_gaussian" if justified else "disc", "lr_statistic": test["lr_statistic"],
-                     "disc_fit": _lens_values(res.x["lens"]), "p_value": test["p_value"],
-                     "delta_bic": test["delta_bic"], "rss_disc": rss0, "rss_disc_gaussian": rss1,
-                     "psf_sigma_px": psf}
-        if say:
-            say(f"photometric: kernel {selection['kernel']} (Gaussian σ {psf:.3f} px, Λ = {test['lr_statistic']:.3g}, "
-                f"p = {test['p_value']:.2g}, ΔBIC = {test['delta_bic']:.3g})")
-        if justified:
-            res, iterations, scale = res1, iterations + it1, problem.scale
-        else:
-            problem.scale = scale
-    kernel = "disc_gaussian" if "psf" in res.x else "disc"
-    cov_sandwich = _cluster_sandwich(res, problem)
-    r = res.r * scale
-    s_final = _robust_sigma(r)
-    try:
-        cov_gn = covariance(res, (s_final / scale) ** 2)
-    except SolverError:
-        cov_gn = torch.full_like(cov_sandwich, math.nan)
-    kept, held_out = "photometric", None
-    if opts.held_out_pixels:
-        held_out = _held_out_costs(problem, held_data, res.x, x0, blocks, view_rows, opts, scale)
-        kept = "photometric" if held_out["refined"] <= held_out["start"] else "corner fit"
-        if say:
-            say(f"photometric: held-out pixels ({held_out['pixels']}) cost {held_out['refined']:.4g} refined, "
-                f"{held_out['start']:.4g} from the start: keeping the "
-                + ("refinement" if kept == "photometric" else "start (the corner fit)"))
-    refined = _camera_of(camera.copy(), res.x)
-    exposure = Exposure(res.x["levels"], float(res.x["vignetting"][0]) if "vignetting" in res.x else 0.0)
-    values = {**_lens_values(res.x["lens"]), "inv_U_per_m": float(res.x["lens"][1]),
-              "vignetting": float(exposure.vignetting.detach()), "psf_sigma_px": abs(float(res.x["psf"][0])) if "psf" in res.x
-              else 0.0, "kernel": kernel, "lens_samples": n_samples if aperture != "closed_form" else 0,
-              "aperture": aperture, "closed_form_pixels": n_closed}
-    out_views = []
-    with torch.no_grad():
-        for v in range(V):
-            rv = r[view_rows[v]]
-            out_views.append({"R": refined.R[v].numpy().copy(), "T_mm": refined.T_mm[v].numpy().copy(),
-                              "white": float(res.x["levels"][v, 0]), "black": float(res.x["levels"][v, 1]),
-                              "rms": float(torch.sqrt((rv * rv).mean())), "n_pixels": n_rows})
-    return PhotometricResult(refined, exposure, values, _sigma_dict(res, cov_sandwich), out_views,
-                             float(torch.sqrt((r * r).mean())), iterations, time.perf_counter() - t0, history,
-                             selection, _sigma_dict(res, cov_gn), kept, held_out, camera.copy())
+    w0, r0 = res.weights, res.r * scale
+    rss0 = float((w0 * r0 * r0).sum())
+    x1 = {**res.x, "psf": torch.tensor([PSF_START_PX], dtype=torch.float64)}
+    res1, it1 = _solve(problem, x1, blocks + [Block("psf", (1,))], view_rows, opts, history)
+    r1 = res1.r * problem.scale
+    rss1 = float((w0 * r1 * r1).sum())
+    test = nested_test([(int(r0.numel()), rss0, rss1)], 1, opts.alpha)
+    psf = abs(float(res1.x["psf"][0]))
+    justified = test["justified"] and psf >= PSF_EVIDENCE_PX
+    selection = {"kernel": "disc_gaussian" if justified else "disc", "lr_statistic": test["lr_statistic"],
+                 "disc_fit": _lens_values(res.x["lens"]), "p_value": test["p_value"],
+                 "delta_bic": test["delta_bic"], "rss_disc": rss0, "rss_disc_gaussian": rss1,
+                 "psf_sigma_px": psf}
+    if say:
+        say(f"photometric: kernel {selection['kernel']} (Gaussian σ {psf:.3f} px, Λ = {test['lr_statistic']:.3g}, "
+            f"p = {test['p_value']:.2g}, ΔBIC = {test['delta_bic']:.3g})")
+    if justified:
+        res, iterations, scale = res1, iterations + it1, problem.scale
+    else:
+        problem.scale = scale
+    return res, iterations, scale, selection
 
 
-def _held_out_costs(problem: _Problem, held_data: list, x: dict, x0: dict, blocks: list, view_rows, opts,
+def _held_out_costs(problem: _Problem, held_data: list, x: dict, x0: dict, opts: PhotometricOptions,
                     scale: float) -> dict:
     """Mean Huber cost (residuals in units of `scale`) of the held-out pixels for the refined state `x` and for
-    the start `x0`'s lens and poses with the exposure fitted to the fit's pixels (geometry held)."""
+    the start `x0`'s lens and poses with the exposure fitted to the fit's pixels (geometry held: per view the
+    levels by robust linear least squares, the vignetting the refinement's)."""
     k = opts.huber_scale
-    lm = LMOptions(max_iterations=opts.iterations, rho=lambda s2: robust_rho(s2, "huber", k),
-                   weight=lambda s2: robust_weight(s2, "huber", k))
-    problem.scale = scale
-    problem.fixed = {"lens": x0["lens"], "pose": x0["pose"], **({"psf": x0["psf"]} if "psf" in x0 else {})}
-    exposure = [b for b in blocks if b.name in ("levels", "vignetting")]
-    try:
-        start = levenberg_marquardt(problem.evaluate, {b.name: x0[b.name] for b in exposure}, exposure, view_rows,
-                                    lm).x
-    except SolverError as e:
-        raise PhotometricError(f"the start's exposure: {e}") from None
-    finally:
-        problem.fixed, problem._held_dark = {}, {}
+    vig = x["vignetting"] if "vignetting" in x else torch.zeros(1, dtype=torch.float64)
+    psf = x0["psf"][0] if "psf" in x0 else torch.tensor(problem.psf_fixed, dtype=torch.float64)
+    levels = []
+    for v, dv in enumerate(problem.data):
+        D = problem._dark(v, torch.cat([x0["lens"], x0["pose"][v]]), psf, False)[0]
+        f = 1.0 - vig[0] * dv.rho2
+        A = torch.stack([f * (1 - D), f * D], 1)
+        w = torch.ones_like(D)
+        for _ in range(5):   # Huber by reweighting
+            sw = w.sqrt()[:, None]
+            sol = torch.linalg.lstsq(A * sw, dv.observed[:, None] * sw).solution[:, 0]
+            r = (A @ sol - dv.observed) / scale
+            w = robust_weight(r * r, "huber", k)
+        levels.append(sol)
+    start = {**x0, "levels": torch.stack(levels), "vignetting": vig}
     check = _Problem(problem.camera, problem.target, held_data, problem.lens_uv)
     check.near, check.scale, check.psf_fixed = problem.near, scale, problem.psf_fixed
 
@@ -649,8 +660,7 @@ def _held_out_costs(problem: _Problem, held_data: list, x: dict, x0: dict, block
             r = check.evaluate(state, False)[0]
         return float(robust_rho(r * r, "huber", k).mean())
 
-    return {"pixels": sum(int(d.uv.shape[0]) for d in held_data), "refined": cost(x),
-            "start": cost({**x0, **start})}
+    return {"pixels": sum(int(d.uv.shape[0]) for d in held_data), "refined": cost(x), "start": cost(start)}
 
 
 def _camera_of(camera: TiltLensCamera, x: dict) -> TiltLensCamera:

@@ -39,9 +39,9 @@ sys.path.append("tests/tiltfit")
 import test_photometric as tp
 from tiltfit.photometric import PhotometricOptions, refine_photometric
 images, poses, truth = tp._captures(U0_mm=700.0, spp=16, views=(0, 1))
-start = tp._perturbed_init(poses, truth, scale=0.5)
+start = tp._camera(tp._perturbed_init(poses, truth, scale=0.5), images, truth["pitch"])
 t = time.perf_counter()
-refine_photometric(images, tp.BOARD, start, truth["pitch"], PhotometricOptions(lens_samples=32, max_pixels=600))
+refine_photometric(images, tp.BOARD, start, PhotometricOptions(lens_samples=32, max_pixels=600))
 print(time.perf_counter() - t)
 """
 

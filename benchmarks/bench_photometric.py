@@ -46,6 +46,7 @@ from tiltfit.detect import detect  # noqa: E402
 from tiltfit.fit import FitError, FitOptions  # noqa: E402
 from tiltfit.calibration import calibrate  # noqa: E402
 from tiltfit.model import Observations  # noqa: E402
+from tiltfit.calibfile import camera_from_calib  # noqa: E402
 from tiltfit.photometric import PhotometricOptions, refine_photometric  # noqa: E402
 from tiltfit.target import Target  # noqa: E402
 
@@ -126,7 +127,9 @@ def corner_fit(images, board, truth):
 
 def photometric_row(images, board, start, truth, base, start_name, t_corner, options, label):
     t0 = time.process_time()
-    ph = refine_photometric(images, board, start, truth["pitch"], options)
+    h, w = images[0].shape[:2]
+    camera = camera_from_calib({**start, "image_size_px": (w, h), "pixel_pitch_mm": truth["pitch"]})
+    ph = refine_photometric(images, board, camera, options)
     t_ph = time.process_time() - t0
     gn = errors(ph.values, ph.sigma_gauss_newton, truth)
     if ph.values["aperture"] == "mixed":

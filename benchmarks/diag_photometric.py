@@ -21,9 +21,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
-import math
 import time
 
 import numpy as np
@@ -31,11 +31,12 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from bench_photometric import BOARD, D_MM, W_MM, rough_start  # noqa: E402
-from renderer.cameras import EOS_6D  # noqa: E402
 from renderer import Lens, Sensor, optics  # noqa: E402
+from renderer.cameras import EOS_6D  # noqa: E402
 from tiltfit import synth  # noqa: E402
 from tiltfit.experiments import reproduce  # noqa: E402
 from tiltfit import photometric as P  # noqa: E402
+from tiltfit.calibfile import camera_from_calib  # noqa: E402
 
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
 THETA_L_DEG, U0_MM, DOWNSCALE, VIEWS = 4.65, 1000.0, 16, (0, 1, 2)
@@ -54,19 +55,18 @@ def captures(method: str, samples: int, noise: float, seed: int):
     w_px, h_px = EOS_6D.binned(DOWNSCALE).size_px
     pitch = EOS_6D.pixel_pitch * DOWNSCALE
     cam = Lens.from_tilt(W_MM, float(optics.focal_length(W_MM, U0_MM)), math.radians(THETA_L_DEG), D_MM, sensor=Sensor(w_px, h_px, pitch))
-    sensor = P.SensorGeometry(w_px, h_px, pitch, ((w_px - 1) / 2, (h_px - 1) / 2))
     images, poses = [], []
     for k, i in enumerate(VIEWS):
         R, T = reproduce.target_pose(BOARD, *reproduce.TARGET_VIEWS[i])
         if method == "model":
             yy, xx = np.mgrid[0:h_px, 0:w_px]
             uv = torch.tensor(np.stack([xx.ravel(), yy.ravel()], -1), dtype=torch.float64)
-            t = lambda x: torch.tensor(float(x), dtype=torch.float64)  # noqa: E731
-            args = (P.hammersley_disc_samples(samples), t(W_MM), t(1000.0 / cam.U), t(D_MM),
-                    t(cam.theta_F), P.matrix_to_axis_angle(R).reshape(3), torch.tensor(T, dtype=torch.float64),
-                    t(0.8), t(0.05), t(0.0))
+            view_cam = camera_from_calib({"image_size_px": (w_px, h_px), "pixel_pitch_mm": pitch, "w_mm": W_MM,
+                                          "U_mm": cam.U, "d_mm": D_MM, "theta_F_deg": math.degrees(cam.theta_F),
+                                          "views": [{"R": R, "T_mm": T}]}).view_camera(0)
+            lens = P.hammersley_disc_samples(samples)
             with torch.no_grad():
-                img = torch.cat([P.render_target(BOARD, sensor, uv[a:a + 4096], *args)
+                img = torch.cat([P.render_target(BOARD, view_cam, uv[a:a + 4096], lens, 0.8, 0.05, 0.0)
                                  for a in range(0, uv.shape[0], 4096)]).numpy().reshape(h_px, w_px)
             images.append(img + np.random.default_rng(1000 * seed + k).normal(0, noise, img.shape))
         else:
@@ -84,7 +84,9 @@ def run(job: dict) -> dict:
     torch.set_num_threads(1)
     images, poses, truth, pitch = captures(job["method"], job["samples"], job["noise"], job["seed"])
     start = rough_start(poses, truth, seed=job["seed"] + 1)
-    res = P.refine_photometric(images, BOARD, start, pitch,
+    h, w = images[0].shape
+    camera = camera_from_calib({**start, "image_size_px": (w, h), "pixel_pitch_mm": pitch})
+    res = P.refine_photometric(images, BOARD, camera,
                                P.PhotometricOptions(lens_samples=job["lens_samples"], max_pixels=1000,
                                                     seed=job["seed"]))
     v, s, gn = res.values, res.sigma, res.sigma_gauss_newton

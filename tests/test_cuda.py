@@ -75,12 +75,12 @@ def test_cuda_thin_lens_gradients_equal_cpu():
 
 def test_cuda_photometric_target_render_equals_cpu():
     from tiltfit.experiments import reproduce
-    from tiltfit.photometric import SensorGeometry, hammersley_disc_samples, render_target
+    from renderer import Lens, ThinLensCamera, axis_angle_to_matrix
+    from tiltfit.photometric import hammersley_disc_samples, render_target
     from tiltfit.target import Target
 
     board = Target(tuple(50.0 * i for i in range(7)), tuple(50.0 * j for j in range(5)), (0, 0), 25.0)
-    w, h = EOS_6D.binned(16).size_px
-    sensor = SensorGeometry(w, h, EOS_6D.pixel_pitch * 16, ((w - 1) / 2, (h - 1) / 2))
+    sensor = EOS_6D.binned(16)
     R, T = reproduce.target_pose(board, 30.0, 5.0, 600.0)
     import cv2
 
@@ -90,8 +90,9 @@ def test_cuda_photometric_target_render_equals_cpu():
                                         indexing="xy"), -1).reshape(-1, 2).to(device, torch.float64)
         lens = hammersley_disc_samples(16).to(device)
         rvec = t(cv2.Rodrigues(R)[0].reshape(3))
-        return render_target(board, sensor, uv, lens, t(55.0), t(1.4), t(30.0), t(math.radians(40)), rvec, t(T),
-                             t(0.8), t(0.06), t(0.05))
+        lens = Lens(t(55.0), 1000.0 / t(1.4), t(30.0), t(math.radians(40)), sensor)
+        cam = ThinLensCamera.from_calibration(lens, axis_angle_to_matrix(rvec), t(T))
+        return render_target(board, cam, uv, lens, t(0.8), t(0.06), t(0.05))
 
     cpu, gpu = run("cpu"), run("cuda")
     assert gpu.device.type == "cuda"

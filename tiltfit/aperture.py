@@ -106,10 +106,13 @@ def _edge_lines(q_h, centre, axes, edges, k: int):
     e = edges
     # g(a, b) = L_z (q_k − e s) − q_z (L_k − e), L = C + a A₁ + b A₂; X_k − e = g / (L_z s − q_z).
     m = qk - e * s
-    gamma = centre[2] * m - qz * (centre[k] - e)
-    alpha = axes[0, 2] * m - qz * axes[0, k]
-    beta = axes[1, 2] * m - qz * axes[1, k]
-    side = torch.where(centre[2] * s - qz >= 0, 1.0, -1.0).to(m.dtype)
+    # centre (3,) and axes (2, 3) are one lens's, or (..., 3) and (..., 2, 3) one per point (the fit's Jacobian
+    # differentiates each point's dark fraction with respect to its own copy).
+    cz, ck = centre[..., 2, None], centre[..., k, None]
+    gamma = cz * m - qz * (ck - e)
+    alpha = axes[..., 0, 2, None] * m - qz * axes[..., 0, k, None]
+    beta = axes[..., 1, 2, None] * m - qz * axes[..., 1, k, None]
+    side = torch.where(cz * s - qz >= 0, 1.0, -1.0).to(m.dtype)
     norm = torch.sqrt(alpha * alpha + beta * beta).clamp_min(torch.finfo(alpha.dtype).tiny)
     f = side / norm
     return alpha * f, beta * f, gamma * f
@@ -138,7 +141,7 @@ def checker_dark_fraction_disc(q_h: torch.Tensor, centre: torch.Tensor, axes: to
     Args:
         q_h: (..., 4) homogeneous focus points, target frame (board plane Z = 0), as
             `ThinLensCamera.focus_geometry` returns them; centre: (3,) lens centre; axes: (2, 3) the aperture's
-            half-diameter vectors.
+            half-diameter vectors (or (..., 3) and (..., 2, 3), one copy per point).
         target: the board (cell edges `x_edges`, `y_edges`, mm; `dark_cell`).
         near: lines of each family given an exact two-line term: at least the number one blur disc can cut
             (`lines_cut` counts them for given points); more only costs time.
@@ -183,3 +186,16 @@ def lines_cut(q_h: torch.Tensor, centre: torch.Tensor, axes: torch.Tensor, targe
             h = _edge_lines(q_h, centre, axes, e, k)[2]
             counts.append(int((h.abs() < 1).sum(-1).max()) if h.numel() else 0)
     return max(counts)
+
+
+def disc_within(q_h: torch.Tensor, centre: torch.Tensor, axes: torch.Tensor, x_range, y_range) -> torch.Tensor:
+    """(...,) True where every ray through the focus point `q_h` from the aperture disc meets the board plane
+    inside the rectangle x_range × y_range (mm): each of its four sides is a line on the aperture, and the disc
+    is inside where it lies wholly on the inner side of all four (signed distance at least its radius)."""
+    out = None
+    for k, (lo, hi) in enumerate((x_range, y_range)):
+        e = torch.tensor([float(lo), float(hi)], dtype=q_h.dtype, device=q_h.device)
+        h = _edge_lines(q_h, centre, axes, e, k)[2]
+        inside = (h[..., 0] >= 1) & (h[..., 1] <= -1)
+        out = inside if out is None else out & inside
+    return out

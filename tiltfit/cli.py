@@ -349,8 +349,7 @@ def _refine_photometric(result, obs, target, args, say, photos: dict | None = No
     from renderer import read_image
     from renderer.io import ImageIOError
 
-    from .calibfile import calib_dict
-    from .model import APERTURE_SCALE_MM, matrix_to_axis_angle, residuals
+    from .model import residuals
     from .photometric import PhotometricError, PhotometricOptions, refine_photometric
 
     images = []
@@ -368,19 +367,21 @@ def _refine_photometric(result, obs, target, args, say, photos: dict | None = No
     block = {"corner_fit": {k: result.values.get(k) for k in keys},
              "corner_fit_sigma": {k: result.sigma.get(k) for k in keys}}
     try:
-        res = refine_photometric(images, target, calib_dict(result), args.pixel_pitch_mm,
+        res = refine_photometric(images, target, result.camera,
                                  PhotometricOptions(kernel=args.psf, lens_samples=0),  # 0: from the blur
                                  say=say)
     except PhotometricError as e:
         raise CliError(args.inputs[0], f"photometric refinement: {e}") from None
     v, sg, cam = res.values, res.sigma, result.camera
+    block.update(kept=res.kept, held_out=res.held_out, refined={k: v[k] for k in keys},
+                 refined_sigma={k: sg[k] for k in keys})
+    if res.kept != "photometric":
+        say(f"photometric refinement: not kept (held-out pixels: cost {res.held_out['refined']:.4g} refined, "
+            f"{res.held_out['start']:.4g} for the corner fit); CALIB.json keeps the corner fit")
+        block.update(rms_linear=res.rms, iterations=res.iterations, runtime_s=res.runtime_s)
+        return block
     with torch.no_grad():
-        cam.log_w_mm.fill_(math.log(v["w_mm"]))
-        cam.inv_U_per_m.fill_(v["inv_U_per_m"])
-        cam.d_scaled.fill_(v["d_mm"] / APERTURE_SCALE_MM)
-        cam.theta_F.fill_(math.radians(v["theta_F_deg"]))
-        cam.rvec.copy_(matrix_to_axis_angle(np.stack([x["R"] for x in res.views])))
-        cam.T_scaled.copy_(torch.as_tensor(np.stack([x["T_mm"] for x in res.views])) / cam.length_scale_mm)
+        cam.load_state_dict(res.camera.state_dict())   # the refined lens and poses, in the fit's own module
         r = residuals(cam, obs)
         rms_corners, rms_blur = r.rms_per_view()
     result.values.update({k: x for k, x in cam.summary().items() if k in result.values})

@@ -92,7 +92,11 @@ def calibration_reference() -> str:
         "`samples` or `mixed`, with the count `closed_form_pixels` and the fixed `lens_samples` per pixel of the "
         "others (chosen from the start's blur; 0 when every pixel is in closed form), and under "
         "`--psf auto` the `kernel_selection` test (`lr_statistic`, `p_value`, `delta_bic`, the disc-only fit's "
-        "lens values); the top-level lens values and σ are then the photometric fit's.", "",
+        "lens values); `held_out` (pixels kept out of the fit, the mean Huber cost of their residuals for the "
+        "refinement and for the corner fit's lens and poses) and `kept`: `photometric` where the refinement "
+        "predicts them better, then the top-level lens values and σ are the photometric fit's; `corner fit` "
+        "otherwise, then they stay the corner fit's and the refinement's values are in `refined` and "
+        "`refined_sigma`.", "",
         "## Every JSON file", "",
         f"UTF-8 (UTF-16/32, other encodings and image bytes are refused by name), nested at most {MAX_JSON_DEPTH} "
         "levels, numbers finite. Each refusal is one line `tiltfit: <file>: <field>: <problem>`, exit status 2; "

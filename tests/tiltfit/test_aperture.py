@@ -8,11 +8,13 @@ import numpy as np
 import pytest
 import torch
 
+import renderer
 from renderer.cameras import EOS_6D, Lens
 from renderer.cameras import ThinLensCamera
 from tiltfit.experiments import reproduce
 from tiltfit.aperture import checker_dark_fraction_disc, disc_halfplane_fraction, disc_wedge_fraction, lines_cut
-from tiltfit.photometric import SensorGeometry, render_target_disc
+from tiltfit.photometric import render_target_disc
+from tiltfit.photometric.render import on_board, pixel_blur_px
 from tiltfit.target import Target
 
 BOARD = Target(tuple(50.0 * i for i in range(7)), tuple(50.0 * j for j in range(5)), (0, 0), 25.0)
@@ -162,9 +164,7 @@ def test_closed_form_equals_the_mean_over_traced_lens_samples(theta_F_deg, U, d,
 
 
 def test_render_target_disc_gradcheck():
-    w_px, h_px = EOS_6D.binned(16).size_px
-    pitch = EOS_6D.pixel_pitch * 16
-    sensor = SensorGeometry(w_px, h_px, pitch, ((w_px - 1) / 2, (h_px - 1) / 2))
+    sensor = EOS_6D.binned(16)
     R, T = reproduce.target_pose(BOARD, 30.0, 5.0, 600.0)
     import cv2
 
@@ -175,8 +175,9 @@ def test_render_target_disc_gradcheck():
     uv = torch.tensor([[171.0, 114.0], [150.3, 100.7], [190.2, 130.1], [130.0, 120.0], [205.5, 95.5]], **f64)
 
     def model(w, inv_U, d, theta_F, white, black, vig, rvec, T_mm):
-        return render_target_disc(BOARD, sensor, uv, 2, w, inv_U, d, theta_F, rvec, T_mm, white, black, vig,
-                                  subpixels=2)
+        cam = ThinLensCamera.from_calibration(Lens(w, 1000.0 / inv_U, d, theta_F, sensor),
+                                              renderer.axis_angle_to_matrix(rvec), T_mm)
+        return render_target_disc(BOARD, cam, uv, 2, white, black, vig, subpixels=2)
 
     inputs = (*scalars, rvec, T_mm)
     value = model(*inputs)
@@ -201,16 +202,14 @@ def test_lines_cut_counts_the_edges_a_disc_spans():
 
 
 def test_pixel_blur_is_the_blur_disc_of_paper_4():
-    """`_pixel_blur_px` against paper (4), w d |1/z_f − 1/z| / p, with z the depth of
+    """`pixel_blur_px` against paper (4), w d |1/z_f − 1/z| / p, with z the depth of
     the board point the chief ray meets and z_f the depth where it meets the plane of focus z = U + y tan θF
     (camera frame; the paper takes y at the board point instead, a few percent off here)."""
-    from tiltfit.photometric import _on_board, _pixel_blur_px
-
     theta_F, U, d, w = math.radians(40.0), 700.0, 30.0, 55.0
     cam, (w_px, h_px, pitch, R, T) = _camera(40.0, U, d)
     uv = torch.tensor([[w_px * 0.3, h_px * 0.4], [w_px / 2, h_px / 2], [w_px * 0.7, h_px * 0.6]], **f64)
-    got = _pixel_blur_px(cam, uv, SensorGeometry(w_px, h_px, pitch, ((w_px - 1) / 2, (h_px - 1) / 2)))
-    p = _on_board(cam.generate_rays(uv)) @ torch.tensor(R, **f64).T + torch.tensor(T, **f64)
+    got = pixel_blur_px(cam, uv)
+    p = on_board(cam.generate_rays(uv)) @ torch.tensor(R, **f64).T + torch.tensor(T, **f64)
     slope = p[:, 1] / p[:, 2]                              # chief ray: y = slope · z
     z_f = U / (1 - slope * math.tan(theta_F))
     want = w * d * (1 / z_f - 1 / p[:, 2]).abs() / pitch

@@ -1,5 +1,6 @@
 """tiltfit's cameras are the renderer's one camera model: the calibration's TiltLensCamera is renderer.LensCamera,
-the synthetic camera's projection and blur agree with it, and the photometric fit's camera is its view camera."""
+the synthetic camera's projection and blur agree with it.
+(The photometric fit renders through `TiltLensCamera.view_camera` itself: tests/tiltfit/test_photometric.py.)"""
 from __future__ import annotations
 
 import math
@@ -10,7 +11,7 @@ import torch
 
 import renderer
 from renderer import Lens, Sensor
-from tiltfit import photometric, synth
+from tiltfit import synth
 from tiltfit.model import TiltLensCamera
 
 
@@ -33,23 +34,6 @@ def test_synth_camera_projects_and_blurs_as_the_lens_camera(phi_deg):
     assert np.abs(sc.blur_px(p_cam) - b_lens).max() < 1e-9, "Lens.blur_px = LensCamera.blur (ellipse)"
     # pose_from_axis_angle is the renderer's Rodrigues (checked against OpenCV in tests/renderer).
     assert np.allclose(R, lc.R[0].detach().numpy(), atol=1e-12), "one Rodrigues"
-
-
-def test_photometric_camera_is_the_lens_cameras_view():
-    lc = TiltLensCamera(2, (64, 48), 0.05, 30.0, 500.0, 4.0, math.radians(-20.0),
-                        rvec=[[0.1, 0.2, -0.1], [0.0, -0.1, 0.05]], T_mm=[[3.0, 2.0, 480.0], [-4.0, 1.0, 520.0]],
-                        principal_point_px=(33.0, 22.5), distortion=(-0.1, 0.02))
-    sensor = photometric.SensorGeometry(64, 48, 0.05, (33.0, 22.5), tuple(float(k) for k in lc.distortion))
-    with torch.no_grad():
-        cam = photometric.lens_camera(sensor, lc.w_mm, lc.inv_U_per_m, lc.d_mm, lc.theta_F, lc.rvec[1],
-                                      lc.T_mm[1])
-        view = lc.view_camera(1)
-        uv = torch.tensor([[3.0, 4.0], [40.2, 30.7], [63.0, 47.0]], dtype=torch.float64)
-        lens = torch.tensor([[0.2, 0.7], [0.5, 0.5], [0.9, 0.1]], dtype=torch.float64)
-        a, b = cam.generate_rays(uv, lens), view.generate_rays(uv, lens)
-    for name in ("origin", "direction"):
-        err = float((getattr(a, name) - getattr(b, name)).abs().max())
-        assert err < 1e-12, f"photometric.lens_camera and LensCamera.view_camera: ray {name}s differ by {err:.3g}"
 
 
 def test_scene_keys_build_the_same_lens():

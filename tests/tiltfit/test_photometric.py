@@ -12,13 +12,15 @@ import numpy as np
 import pytest
 import torch
 
+from renderer import Lens, Sensor, optics
 from renderer.cameras import EOS_6D
-from renderer import Lens, Sensor
-from renderer import optics
 from tiltfit import synth
 from tiltfit.experiments import reproduce
-from tiltfit.photometric import (PhotometricOptions, SensorGeometry, checker_dark_fraction,
-                                 hammersley_disc_samples, refine_photometric, render_target)
+from renderer import ThinLensCamera, axis_angle_to_matrix
+from tiltfit.calibfile import camera_from_calib
+from tiltfit.model import TiltLensCamera
+from tiltfit.photometric import (PhotometricOptions, checker_dark_fraction, hammersley_disc_samples,
+                                 refine_photometric, render_target)
 from tiltfit.target import Target
 
 # A coarse board (6 x 4 cells of 50 mm) so heavy blur still leaves structure at 1/16 of the EOS 6D.
@@ -55,13 +57,14 @@ def test_dark_fraction_closed_forms():
     assert got == pytest.approx(0.5, abs=1e-12), "interior corner"
 
 
-def _sensor():
-    w, h = EOS_6D.binned(DOWNSCALE).size_px
-    return SensorGeometry(w, h, EOS_6D.pixel_pitch * DOWNSCALE, ((w - 1) / 2, (h - 1) / 2))
+def _camera(start: dict, images, pitch: float) -> TiltLensCamera:
+    """The calibration's camera of a start given as w, U, d, θF and per-view R, T (what a corner fit returns)."""
+    h, w = images[0].shape[:2]
+    return camera_from_calib({**start, "image_size_px": (w, h), "pixel_pitch_mm": pitch})
 
 
 def test_render_target_gradcheck():
-    sensor = _sensor()
+    sensor = EOS_6D.binned(DOWNSCALE)
     R, T = reproduce.target_pose(BOARD, 30.0, 5.0, 600.0)
     import cv2
 
@@ -75,7 +78,9 @@ def test_render_target_gradcheck():
     lens = hammersley_disc_samples(8)
 
     def model(w, inv_U, d, theta_F, white, black, vig, psf, rvec, T_mm):
-        return render_target(BOARD, sensor, uv, lens, w, inv_U, d, theta_F, rvec, T_mm, white, black, vig, psf)
+        cam = ThinLensCamera.from_calibration(Lens(w, 1000.0 / inv_U, d, theta_F, sensor),
+                                              axis_angle_to_matrix(rvec), T_mm)
+        return render_target(BOARD, cam, uv, lens, white, black, vig, psf)
 
     inputs = (*scalars, rvec, T_mm)
     value = model(*inputs)
@@ -152,9 +157,7 @@ def test_photometric_fit_meets_the_targets_where_corners_are_biased(theta_L):
     blur = float(np.median(truth["blur_px"]))
     assert 15 <= blur < 30, f"median blur {blur:.1f} px"
     corners = _corner_fit(images, BOARD, truth["pitch"])
-    start = {**{k: corners.values[k] for k in ("w_mm", "U_mm", "d_mm", "theta_F_deg", "principal_point_px")},
-             "views": [{"R": v["R"], "T_mm": v["T_mm"]} for v in corners.views]}
-    res = refine_photometric(images, BOARD, start, truth["pitch"], PhotometricOptions(max_pixels=20000))
+    res = refine_photometric(images, BOARD, corners.camera, PhotometricOptions(max_pixels=20000))
     assert res.values["aperture"] in ("closed_form", "mixed") and res.values["closed_form_pixels"] > 50000, \
         f"aperture {res.values['aperture']}, {res.values['closed_form_pixels']} of 60000 pixels in closed form"
     true = {"theta_L_deg": theta_L, "U_mm": truth["U_mm"], "d_mm": D_MM}
@@ -193,7 +196,7 @@ def test_photometric_fit_converges_where_blur_exceeds_the_square():
     assert max(found) < 4, f"the corner detector must find no board here, found {found} corners"
     # Start far off (θL +0.3°, U +3 %, d −9 %, w +0.9 %).
     start = _perturbed_init(poses, truth, d_mm=d_mm, scale=3.0)
-    res = refine_photometric(images, SMALL_BOARD, start, truth["pitch"],
+    res = refine_photometric(images, SMALL_BOARD, _camera(start, images, truth["pitch"]),
                              PhotometricOptions(lens_samples=64, max_pixels=1200))
     v, sg = res.values, res.sigma
     start_L = math.degrees(float(optics.theta_L_from_theta_F(math.radians(start["theta_F_deg"]), start["w_mm"],
@@ -217,7 +220,8 @@ def test_photometric_sigma_covers_the_error_over_noise_draws():
     z, ratio = {}, []
     for seed in range(3):
         images, poses, truth = _captures(U0_mm=1000.0, spp=32, downscale=32, seed=seed)
-        res = refine_photometric(images, BOARD, _perturbed_init(poses, truth, seed=seed + 1), truth["pitch"],
+        res = refine_photometric(images, BOARD, _camera(_perturbed_init(poses, truth, seed=seed + 1), images,
+                                                        truth["pitch"]),
                                  PhotometricOptions(lens_samples=64, max_pixels=500, seed=seed))
         for key, true in (("theta_L_deg", THETA_L_DEG), ("U_mm", truth["U_mm"]), ("d_mm", D_MM)):
             z[f"{key} seed {seed}"] = (res.values[key] - true) / res.sigma[key]
@@ -285,18 +289,18 @@ def test_kernel_selection_finds_a_gaussian_where_there_is_one():
     import cv2
 
     images, poses, truth = _captures(U0_mm=700.0, views=(0, 1))
-    start = _perturbed_init(poses, truth, scale=0.5)
+    start = _camera(_perturbed_init(poses, truth, scale=0.5), images, truth["pitch"])
     opts = PhotometricOptions(kernel="auto", lens_samples=128, max_pixels=700)
     psf = 1.2
     blurred = [cv2.GaussianBlur(im, (0, 0), psf, borderType=cv2.BORDER_REFLECT) for im in images]
-    auto = refine_photometric(blurred, BOARD, start, truth["pitch"], opts)
+    auto = refine_photometric(blurred, BOARD, start, opts)
     sel = auto.kernel_selection
     assert auto.values["kernel"] == "disc_gaussian", f"the Gaussian should be justified: {sel}"
     s, ss = auto.values["psf_sigma_px"], auto.sigma["psf_sigma_px"]
     assert abs(s - psf) < max(3 * ss, 0.2), f"Gaussian σ {s:.3f} ± {ss:.3f} px, true {psf}"
     err_auto, err_disc = abs(auto.values["d_mm"] - D_MM), abs(sel["disc_fit"]["d_mm"] - D_MM)
     assert err_auto < err_disc, f"d error with the Gaussian {err_auto:.3f} mm, disc alone {err_disc:.3f} mm"
-    plain = refine_photometric(images, BOARD, start, truth["pitch"], opts)
+    plain = refine_photometric(images, BOARD, start, opts)
     assert plain.values["kernel"] == "disc" and plain.values["psf_sigma_px"] == 0, \
         f"no Gaussian in the plain ray-traced captures: {plain.kernel_selection}"
 
@@ -325,16 +329,16 @@ def test_auto_kernel_needs_enough_lens_samples():
 def test_photometric_fit_does_not_depend_on_the_jacobian_block(monkeypatch):
     """The Jacobian is formed in blocks of pixels (memory); a view split into many blocks, with the closed-form
     and the lens-sample pixels in different blocks, gives the same fit as one block per view."""
-    from tiltfit import photometric
+    from tiltfit.photometric import refine as photometric
 
     # Focused near the boards: about a third of the pixels are sharper than 3 px (lens samples), the rest in
     # closed form, so blocks of 97 split both kinds.
     images, poses, truth = _captures(U0_mm=560.0, spp=16, downscale=32)
-    init = _perturbed_init(poses, truth)
+    init = _camera(_perturbed_init(poses, truth), images, truth["pitch"])
     results = []
     for block in (4096, 97):
         monkeypatch.setattr(photometric, "JACOBIAN_BLOCK", block)
-        results.append(refine_photometric(images, BOARD, init, truth["pitch"], PhotometricOptions(max_pixels=400)))
+        results.append(refine_photometric(images, BOARD, init, PhotometricOptions(max_pixels=400)))
     a, b = results
     assert a.values["aperture"] == "mixed" and 200 < a.values["closed_form_pixels"] < 1000, \
         f"aperture {a.values['aperture']}, {a.values['closed_form_pixels']} of 1200 pixels in closed form"
@@ -348,16 +352,16 @@ def test_usable_mask_in_chunks_and_thinned_candidates(monkeypatch):
     """Full-resolution photographs (20 MP) go through the usable-pixel mask in chunks and predict a regular
     subset of candidate pixels: the mask in chunks of 997 pixels gives the same fit as in one chunk, and
     thinning the candidates to 5,000 a view still lands on the same lens (within the fits' own σ)."""
-    from tiltfit import photometric
+    from tiltfit.photometric import refine, render
 
     images, poses, truth = _captures(U0_mm=560.0, spp=16, downscale=32)
-    init = _perturbed_init(poses, truth)
+    init = _camera(_perturbed_init(poses, truth), images, truth["pitch"])
     runs = {}
     for name, chunk, candidates in (("one chunk", 1 << 19, 1 << 19), ("chunks", 997, 1 << 19),
                                     ("thinned", 1 << 19, 5000)):
-        monkeypatch.setattr(photometric, "MASK_CHUNK_PIXELS", chunk)
-        monkeypatch.setattr(photometric, "MAX_CANDIDATE_PIXELS", candidates)
-        runs[name] = refine_photometric(images, BOARD, init, truth["pitch"], PhotometricOptions(max_pixels=400))
+        monkeypatch.setattr(render, "MASK_CHUNK_PIXELS", chunk)
+        monkeypatch.setattr(refine, "MAX_CANDIDATE_PIXELS", candidates)
+        runs[name] = refine_photometric(images, BOARD, init, PhotometricOptions(max_pixels=400))
     a, b, c = runs["one chunk"], runs["chunks"], runs["thinned"]
     for key in ("theta_L_deg", "U_mm", "d_mm", "w_mm"):
         assert a.values[key] == b.values[key], f"{key}: {a.values[key]} in one chunk, {b.values[key]} in chunks"
@@ -365,3 +369,127 @@ def test_usable_mask_in_chunks_and_thinned_candidates(monkeypatch):
         assert abs(a.values[key] - c.values[key]) <= tol, \
             f"{key}: {a.values[key]} with every candidate, {c.values[key]} thinned (tolerance {tol:.3g})"
     assert a.values != c.values, "thinning to 5,000 candidates should pick other pixels"
+
+
+# ------------------------------------------------------------------------------------------ own model
+
+@pytest.fixture(scope="module")
+def own_model():
+    """Noise-free captures by the fit's own closed-form model (171 x 114, 3 views, θL 4.65°, blur about 5 px)
+    and a start off like a corner fit's."""
+    from tiltfit.photometric.render import dark_fraction_disc, shade
+
+    w_px, h_px = EOS_6D.binned(32).size_px
+    pitch = EOS_6D.pixel_pitch * 32
+    truth_cam = Lens.from_tilt(W_MM, float(optics.focal_length(W_MM, 1000.0)), math.radians(THETA_L_DEG), D_MM, sensor=Sensor(w_px, h_px, pitch))
+    poses = [reproduce.target_pose(BOARD, *reproduce.TARGET_VIEWS[i]) for i in VIEWS]
+    truth = {"U_mm": truth_cam.U, "theta_F": truth_cam.theta_F, "pitch": pitch}
+    start = {"w_mm": W_MM, "U_mm": truth["U_mm"], "d_mm": D_MM, "theta_F_deg": math.degrees(truth["theta_F"]),
+             "views": [{"R": R, "T_mm": T} for R, T in poses]}
+    images = [np.zeros((h_px, w_px))] * len(VIEWS)
+    camera = _camera(start, images, pitch)
+    yy, xx = np.mgrid[0:h_px, 0:w_px]
+    uv = torch.tensor(np.stack([xx.ravel(), yy.ravel()], -1), dtype=torch.float64)
+    with torch.no_grad():
+        images = [shade(dark_fraction_disc(BOARD, camera.view_camera(v), uv, 7), uv, (w_px, h_px), 0.8 - 0.05 * v,
+                        0.06, 0.05).reshape(h_px, w_px).numpy() for v in range(len(VIEWS))]
+    return images, camera, _camera(_perturbed_init(poses, truth), images, pitch)
+
+
+def test_photometric_fit_recovers_its_own_model_exactly(own_model):
+    """On noise-free captures of its own model the fit lands on the truth (lens, poses, exposure) in a few
+    iterations, returns a refined TiltLensCamera and leaves the start's camera alone."""
+    images, truth, start = own_model
+    before = {k: float(getattr(start, k).detach()) for k in ("log_w_mm", "inv_U_per_m", "d_scaled", "theta_F")}
+    res = refine_photometric(images, BOARD, start, PhotometricOptions(max_pixels=300, aperture="closed_form"))
+    assert isinstance(res.camera, TiltLensCamera) and res.camera is not start, "returns a new TiltLensCamera"
+    assert {k: float(getattr(start, k).detach()) for k in before} == before, "the start's camera is not modified"
+    want = truth.summary()
+    got = res.camera.summary()
+    for key, tol in (("w_mm", 1e-5), ("U_mm", 1e-3), ("d_mm", 1e-5), ("theta_L_deg", 1e-6)):
+        assert abs(got[key] - want[key]) < tol, f"{key}: {got[key]} vs truth {want[key]} (start {before})"
+    assert torch.allclose(res.camera.T_mm, truth.T_mm, atol=1e-4), "poses recovered"
+    levels = res.exposure.levels.detach()
+    assert torch.allclose(levels[:, 0], torch.tensor([0.8, 0.75, 0.7], dtype=torch.float64), atol=1e-7), \
+        f"white levels {levels[:, 0].tolist()}"
+    assert abs(float(res.exposure.vignetting.detach()) - 0.05) < 1e-6, "vignetting recovered"
+    assert res.rms < 1e-7 and res.iterations <= 12, f"RMS {res.rms:.3g} after {res.iterations} iterations"
+    # Held-out pixels: the refinement predicts them (to rounding), the start's lens does not.
+    h = res.held_out
+    assert res.kept == "photometric" and h["pixels"] == 3 * 300, f"kept {res.kept}, held out {h}"
+    assert h["refined"] < 1e-6 * h["start"], f"held-out costs {h} (residuals in units of the fit's robust σ)"
+    assert res.chosen_camera is res.camera, "the chosen camera is the refined one"
+
+
+def test_photometric_keeps_the_start_where_the_held_out_pixels_say_so(own_model, monkeypatch):
+    """Where the refinement predicts the held-out pixels worse than the start (here: the start is the truth
+    and the fit is stopped after one step of a damped solve from a displaced lens), the start is kept."""
+    from tiltfit.photometric import refine
+
+    images, truth, start = own_model
+    real = refine._solve
+
+    def one_bad_step(problem, x0, blocks, view_rows, opts, history):
+        res, it = real(problem, x0, blocks, view_rows, opts, history)
+        res.x["lens"] = res.x["lens"] + torch.tensor([0.002, 0.0, 0.0, 0.0], dtype=torch.float64)  # w +0.2 %
+        return res, it
+
+    monkeypatch.setattr(refine, "_solve", one_bad_step)
+    res = refine_photometric(images, BOARD, truth, PhotometricOptions(max_pixels=300, aperture="closed_form"))
+    h = res.held_out
+    assert res.kept == "corner fit" and h["start"] < h["refined"], f"kept {res.kept}: held out {h}"
+    assert res.chosen_camera is res.start_camera and float(res.start_camera.log_w_mm) == float(truth.log_w_mm), \
+        "the start's camera is the chosen one"
+    plain = refine_photometric(images, BOARD, truth, PhotometricOptions(max_pixels=300, aperture="closed_form",
+                                                                        held_out_pixels=0))
+    assert plain.kept == "photometric" and plain.held_out is None, "held_out_pixels=0: always kept"
+
+
+@pytest.mark.parametrize("path", ["closed_form", "samples"])
+def test_photometric_jacobian_matches_finite_differences(own_model, path):
+    """The fit's Jacobian (reverse mode through the aperture integral chained with forward mode through the
+    focus geometry, the exposure in closed form) against central differences of its own residuals, both the
+    closed-form and the lens-sample pixels."""
+    from tiltfit.photometric import refine
+
+    images, _, start = own_model
+    opts = PhotometricOptions(max_pixels=60, aperture="closed_form") if path == "closed_form" else \
+        PhotometricOptions(max_pixels=60, aperture="samples", kernel="disc_gaussian", lens_samples=16)
+    seen = {}
+
+    def spy(problem, x0, blocks, view_rows, options, history):
+        seen.update(problem=problem, x0=x0)
+        raise refine.PhotometricError("stop")
+
+    mp = pytest.MonkeyPatch()
+    mp.setattr(refine, "_solve", spy)
+    try:
+        with pytest.raises(refine.PhotometricError, match="stop"):
+            refine_photometric(images, BOARD, start, opts)
+    finally:
+        mp.undo()
+    problem, x0 = seen["problem"], seen["x0"]
+    n_closed = problem.data[0].n_closed_form
+    assert n_closed == (problem.data[0].uv.shape[0] if path == "closed_form" else 0), f"{n_closed} closed-form pixels"
+    r, jac = problem.evaluate(x0, True)
+    for name, x in x0.items():
+        flat = x.reshape(-1)
+        for i in range(flat.numel()):
+            h = 1e-7 * max(1.0, abs(float(flat[i])))
+            plus = {k: v.clone() for k, v in x0.items()}
+            minus = {k: v.clone() for k, v in x0.items()}
+            plus[name].reshape(-1)[i] += h
+            minus[name].reshape(-1)[i] -= h
+            fd = (problem.evaluate(plus, False)[0] - problem.evaluate(minus, False)[0]) / (2 * h)
+            col = jac[name][:, i % jac[name].shape[1]]
+            if x.dim() == 2:   # per view: only that view's rows depend on it
+                v = i // x.shape[1]
+                rows = problem.data[0].uv.shape[0]
+                fd, col = fd[v * rows:(v + 1) * rows], col[v * rows:(v + 1) * rows]
+            # A sub-point whose disc a cell edge just touches is a kink of the dark fraction (the segment's
+            # sqrt(1 − h²)): central differences are off there, so a few rows may differ by more.
+            err = (fd - col).abs()
+            scale = float(fd.abs().max()) + 1e-9
+            close = float((err <= 1e-5 * scale + 1e-7).double().mean())
+            assert close >= 0.97 and float(err.max()) <= 1e-2 * scale, \
+                f"{name}[{i}]: Jacobian off by up to {float(err.max()):.3g} (of {scale:.3g}), {close:.0%} of rows agree"

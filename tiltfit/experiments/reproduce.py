@@ -360,20 +360,17 @@ def _photometric(targets: dict, result, cfg: RunConfig, log, label: str) -> dict
         return None
     from ..photometric import PhotometricError, PhotometricOptions, refine_photometric
 
-    v = result.values
-    init = {"w_mm": v["w_mm"], "U_mm": v["U_mm"], "d_mm": v["d_mm"], "theta_F_deg": v["theta_F_deg"],
-            "principal_point_px": v.get("principal_point_px"),
-            "views": [{"R": view["R"], "T_mm": view["T_mm"]} for view in result.views]}
     images = [targets["linear"][view["image"]] for view in result.views]
     try:
-        res = refine_photometric(images, targets["target"], init, targets["pixel_pitch_mm"],
+        res = refine_photometric(images, targets["target"], result.camera,
                                  PhotometricOptions(lens_samples=cfg.photometric_lens_samples,
                                                     max_pixels=cfg.photometric_pixels))
     except PhotometricError as e:
         log(f"(c) ({label}) photometric refinement failed: {e}")
         return None
     rec = {k: res.values[k] for k in ("w_mm", "U_mm", "d_mm", "theta_F_deg", "theta_L_deg", "vignetting")}
-    rec.update(sigma=dict(res.sigma), rms_linear=res.rms, iterations=res.iterations, runtime_s=res.runtime_s)
+    rec.update(sigma=dict(res.sigma), rms_linear=res.rms, iterations=res.iterations, runtime_s=res.runtime_s,
+               kept=res.kept, held_out=res.held_out)
     log(f"(c) ({label}) photometric: θL {rec['theta_L_deg']:+.3f} ± {res.sigma['theta_L_deg']:.3f}°, "
         f"U {rec['U_mm']:.1f}, d {rec['d_mm']:.3f} mm, RMS {res.rms:.4f} ({res.runtime_s:.1f} s)")
     return rec

@@ -1,0 +1,681 @@
+"""Photometric refinement: fit the calibration's camera and an exposure to the photographs' pixels.
+
+This is the analysis-by-synthesis step. Starting from a corner-and-blur calibration (its `TiltLensCamera`), every
+photograph is re-rendered from the current parameters (`render`: the target seen through the camera's thin lens)
+and compared with the photo pixel by pixel; the parameters move to make the two agree. Corners are only a
+starting point, so their bias under heavy blur and lens tilt does not reach the result, and boards too blurred
+for any corner detector can still be fitted.
+
+What is fitted is the corner fit's own camera module: its lens (stored log w, 1/U, d/10 mm, θF) and each view's
+pose (axis-angle, T / length scale), plus an `Exposure` (per-view white and black levels, the lens's
+vignetting) and, with a Gaussian kernel, the Gaussian's σ. The principal point, the distortion and the pixel
+pitch are held. The solver is `tiltfit.solve.levenberg_marquardt` with named blocks (lens, vignetting, psf
+global; pose and levels per view, eliminated by the Schur complement), Huber weights on residuals in units of
+their robust σ (re-estimated once the fit has moved, and the fit resumed when it changed).
+
+The Jacobian: the exposure enters in closed form; the dark fraction D of a closed-form pixel depends on the
+geometry only through each sub-point's focus point and the lens's centre and aperture axes
+(`ThinLensCamera.focus_geometry`), so D is differentiated with respect to those per-point inputs by one
+reverse pass (the aperture integral is elementwise in the points) and chained with the forward-mode Jacobian
+of `focus_geometry` (10 tangents through cheap geometry). Lens-sample pixels take forward mode through their
+rays (benchmarks/results/photometric_profile.md: forward mode through the aperture integral was 78 % of the
+time before).
+
+σ: the cluster-robust sandwich A⁻¹ B A⁻¹ of the Huber fit (clusters: square tiles as wide as the view's blur
+disc), with the textbook Gauss–Newton σ beside it.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from renderer.optics import theta_L_from_theta_F
+
+from ..aperture import checker_dark_fraction_disc, lines_cut
+from ..model import APERTURE_SCALE_MM, TiltLensCamera, axis_angle_to_matrix, robust_rho, robust_weight
+from ..solve import Block, LMOptions, SolverError, covariance, dense_jacobian, levenberg_marquardt
+from ..stats import nested_test
+from ..target import Target
+from .render import (auto_lens_samples, board_blur_px, dark_fraction_samples, hammersley_disc_samples,
+                     pixel_blur_px, predicted_dark_fraction, sub_points, usable_mask)
+
+#: Blur kernels: the lens's disc alone, or the disc convolved with a Gaussian (diffraction, aberrations,
+#: the sensor's own spread) of std psf_sigma_px in pixels (stored signed, squared in the model, so it has no
+#: bound to stall on); `auto` frees the Gaussian where the data justify it (likelihood-ratio test and BIC on
+#: the same pixels) and it is at least PSF_EVIDENCE_PX wide.
+KERNELS = ("disc", "disc_gaussian", "auto")
+AUTO_KERNEL_LENS_SAMPLES = 128
+PSF_EVIDENCE_PX = 0.5    # narrower Gaussians `auto` rejects: the fixed lens samples' own coarseness
+PSF_START_PX = 0.5       # where a freed Gaussian starts (σ = 0 is a stationary point of σ²)
+#: `aperture="auto"` integrates the disc in closed form from this blur-disc diameter (px) at the start on;
+#: below it the pixel's box matters more than the disc and the fixed lens samples' Gaussian footprints model it.
+CLOSED_FORM_MIN_BLUR_PX = 3.0
+APERTURES = ("auto", "closed_form", "samples")
+#: Pixels per block of the Jacobian (bounds its memory; results do not depend on it).
+JACOBIAN_BLOCK = 2048
+#: Candidate pixels whose brightness is predicted before picking the pixels to fit: above it a regular subset
+#: of the usable pixels (every k-th); images up to 2^19 pixels keep them all.
+MAX_CANDIDATE_PIXELS = 1 << 19
+#: The camera's stored lens parameters the fit moves, in the order of the `lens` block.
+LENS_PARAMETERS = ("log_w_mm", "inv_U_per_m", "d_scaled", "theta_F")
+#: A fit whose robust residual σ moved by more than this fraction resumes with the new σ (the Huber weights).
+SCALE_TOLERANCE = 0.05
+
+
+class PhotometricError(RuntimeError):
+    """The photometric fit cannot run or did not converge (one-line message)."""
+
+
+@dataclass(frozen=True)
+class PhotometricOptions:
+    """How the refinement runs.
+
+    Attributes:
+        lens_samples: fixed lens samples per pixel [64] (a whitened Hammersley set), each traced from the
+            pixel's 4 sub-pixel centres; 0: from the start's blur (`render.auto_lens_samples`).
+        max_pixels: pixels used per view [2000], chosen where the image carries information (edges), plus
+            a share of flat pixels for the exposure levels.
+        iterations: Levenberg–Marquardt iterations at most [30].
+        huber_scale: Huber threshold in units of the residuals' robust σ [3].
+        fit_vignetting: fit the vignetting coefficient [True].
+        kernel: blur kernel, one of KERNELS [disc]. `auto` needs at least AUTO_KERNEL_LENS_SAMPLES lens
+            samples and a Gaussian of at least PSF_EVIDENCE_PX (docs/photometric.md).
+        alpha: level of the kernel's likelihood-ratio test under `auto` [0.01].
+        seed: seed of the pixel selection [0].
+        aperture: how each pixel integrates the lens's disc, one of APERTURES [auto]: `closed_form` exactly
+            (disc kernel only), `samples` by the fixed lens samples, `auto` the closed form for the pixels whose
+            blur disc at the start is at least CLOSED_FORM_MIN_BLUR_PX (with the disc kernel), the samples for
+            the others.
+        held_out_pixels: pixels per view kept out of the fit [300], chosen as the fitted ones are; the refinement
+            is kept only where it predicts them better than the start's lens and poses do (with the exposure
+            fitted to the same pixels as the refinement's); 0: always kept.
+    """
+
+    lens_samples: int = 64
+    max_pixels: int = 2000
+    iterations: int = 30
+    huber_scale: float = 3.0
+    fit_vignetting: bool = True
+    kernel: str = "disc"
+    alpha: float = 0.01
+    seed: int = 0
+    aperture: str = "auto"
+    held_out_pixels: int = 300
+
+    def __post_init__(self):
+        if self.held_out_pixels < 0:
+            raise ValueError(f"held_out_pixels: expected 0 or a positive count, got {self.held_out_pixels}")
+        if self.lens_samples < 0:
+            raise ValueError(f"lens_samples: expected 0 (auto) or a positive count, got {self.lens_samples}")
+        if self.kernel not in KERNELS:
+            raise ValueError(f"kernel: expected one of {', '.join(KERNELS)}, got {self.kernel!r}")
+        if self.aperture not in APERTURES:
+            raise ValueError(f"aperture: expected one of {', '.join(APERTURES)}, got {self.aperture!r}")
+        if self.aperture == "closed_form" and self.kernel != "disc":
+            raise ValueError(f"aperture closed_form: integrates the disc kernel only, got kernel {self.kernel!r}")
+        if self.kernel == "auto" and 0 < self.lens_samples < AUTO_KERNEL_LENS_SAMPLES:
+            raise ValueError(f"kernel auto: needs at least {AUTO_KERNEL_LENS_SAMPLES} lens samples (got "
+                             f"{self.lens_samples}); fewer make the disc itself look Gaussian-blurred")
+
+
+class Exposure(torch.nn.Module):
+    """How the board's dark fraction D becomes a photograph's linear intensity:
+    I = (1 − v ρ²) · (white_k − (white_k − black_k) · D) (`render.shade`).
+
+    Attributes:
+        levels: (V, 2) per view the radiance of white paper and of the dark cells (linear units).
+        vignetting: () v, the lens's fall-off at the image corners.
+    """
+
+    def __init__(self, levels, vignetting: float = 0.0):
+        super().__init__()
+        self.levels = torch.nn.Parameter(torch.as_tensor(levels, dtype=torch.float64).reshape(-1, 2).clone())
+        self.vignetting = torch.nn.Parameter(torch.tensor(float(vignetting), dtype=torch.float64))
+
+
+@dataclass
+class PhotometricResult:
+    """What `refine_photometric` found.
+
+    Attributes:
+        camera: the refined `TiltLensCamera` (a copy of the start's, lens and poses moved).
+        exposure: the fitted `Exposure`.
+        values: w_mm, U_mm (inf when 1/U = 0), inv_U_per_m, d_mm, theta_F_deg, theta_L_deg, vignetting,
+            psf_sigma_px (σ of the Gaussian part of the kernel, 0 for the disc alone), kernel, lens_samples,
+            aperture, closed_form_pixels.
+        sigma: one-σ of the same keys from the cluster-robust sandwich covariance.
+        sigma_gauss_newton: the textbook σ, (JᵀWJ)⁻¹ scaled by the residuals' robust σ (kept for comparison).
+        views: per view: R (3×3), T_mm, white, black, rms (linear units), n_pixels.
+        rms: RMS photometric residual over all views (linear intensity units).
+        iterations, runtime_s, history: LM iterations, wall time, cost of each solve (½ Σ ρ of residuals in
+            units of their robust σ).
+        kernel_selection: under kernel `auto`, the test that chose the kernel (Λ, p, ΔBIC, costs).
+        kept: "photometric" where the refinement predicts the held-out pixels better than the start did, else
+            "corner fit" (`PhotometricOptions.held_out_pixels`); `chosen_camera` is that camera.
+        held_out: pixels, and mean Huber cost of their residuals (in units of the fit's robust σ) for the
+            refinement and for the start (its lens and poses, the exposure fitted with them held).
+        start_camera: the camera the refinement started from (a copy).
+    """
+
+    camera: TiltLensCamera
+    exposure: Exposure
+    values: dict
+    sigma: dict
+    views: list
+    rms: float
+    iterations: int
+    runtime_s: float
+    history: list = field(default_factory=list)
+    kernel_selection: dict | None = None
+    sigma_gauss_newton: dict | None = None
+    kept: str = "photometric"
+    held_out: dict | None = None
+    start_camera: TiltLensCamera | None = None
+
+    @property
+    def chosen_camera(self) -> TiltLensCamera:
+        """The refined camera where the held-out pixels kept it, else the start's (`kept`)."""
+        return self.camera if self.kept == "photometric" else self.start_camera
+
+
+@dataclass
+class _View:
+    uv: torch.Tensor          # (N, 2) pixels used
+    observed: torch.Tensor    # (N,) linear intensities
+    n_closed_form: int        # the first n_closed_form pixels integrate the aperture in closed form
+    rho2: torch.Tensor        # (N,) squared distance from the image centre, 1 at the corners
+
+
+class _ViewGeometry(torch.nn.Module):
+    """The camera under `torch.func.functional_call`: `fn(camera.view_camera(view))` with substituted tensors."""
+
+    def __init__(self, camera: TiltLensCamera):
+        super().__init__()
+        self.camera = camera
+
+    def forward(self, view: int, fn):
+        return fn(self.camera.view_camera(view))
+
+
+def _select_pixels(predicted: np.ndarray, usable: np.ndarray, white: float, black: float, max_pixels: int,
+                   rng: np.random.Generator) -> np.ndarray:
+    """Indices (flat) of the pixels to fit: mostly transitions (edges, blur), some flat ones for the levels."""
+    span = max(white - black, 1e-6)
+    frac = (white - predicted) / span
+    edge = usable & (frac > 0.03) & (frac < 0.97)
+    flat = usable & ~edge
+    idx_edge, idx_flat = np.flatnonzero(edge), np.flatnonzero(flat)
+    n_edge = min(idx_edge.size, int(0.8 * max_pixels))
+    n_flat = min(idx_flat.size, max_pixels - n_edge)
+    pick = [rng.choice(idx_edge, n_edge, replace=False) if n_edge else idx_edge[:0],
+            rng.choice(idx_flat, n_flat, replace=False) if n_flat else idx_flat[:0]]
+    return np.sort(np.concatenate(pick))
+
+
+def _initial_levels(image: np.ndarray, usable: np.ndarray) -> tuple[float, float]:
+    vals = image[usable]
+    if vals.size < 100:
+        raise PhotometricError("the board covers fewer than 100 usable pixels in a view")
+    return float(np.percentile(vals, 97)), float(np.percentile(vals, 3))
+
+
+class _Problem:
+    """The photometric least-squares problem: pixels of every view, the camera they are rendered with, and
+    `evaluate` in the solver's form (residuals in units of `scale`, Jacobians by block)."""
+
+    def __init__(self, camera: TiltLensCamera, target: Target, data: list, lens_uv: torch.Tensor, say=None):
+        self.camera, self.target, self.data, self.lens_uv = camera, target, data, lens_uv
+        self.geometry = _ViewGeometry(camera)
+        self.near = 1
+        self.n_edges = max(len(target.x_edges), len(target.y_edges))
+        self.scale = 1.0
+        self.psf_fixed = 0.0
+        self.say, self.t0, self.n_jacobians = say, time.perf_counter(), 0
+
+    # --- the camera of a state -----------------------------------------------------------------------------
+    def _params(self, v: int, lens: torch.Tensor, pose: torch.Tensor) -> dict:
+        rv, Ts = self.camera.rvec.detach(), self.camera.T_scaled.detach()
+        out = {f"camera.{n}": lens[i] for i, n in enumerate(LENS_PARAMETERS)}
+        out["camera.rvec"] = torch.cat([rv[:v], pose[None, :3], rv[v + 1:]])
+        out["camera.T_scaled"] = torch.cat([Ts[:v], pose[None, 3:6], Ts[v + 1:]])
+        return out
+
+    def _call(self, v: int, geo: torch.Tensor, fn):
+        """fn(view camera of view v) with lens = geo[:4], pose = geo[4:10]."""
+        return torch.func.functional_call(self.geometry, self._params(v, geo[:4], geo[4:10]), (v, fn))
+
+    # --- dark fractions and their Jacobians ------------------------------------------------------------------
+    def _closed(self, v: int, geo: torch.Tensor, uv: torch.Tensor, jacobian: bool):
+        pts = sub_points(uv)
+        if not jacobian:
+            with torch.no_grad():
+                q, c, a = self._call(v, geo, lambda cam: cam.focus_geometry(pts)[:3])
+                return checker_dark_fraction_disc(q, c, a, self.target, self.near).mean(-1), None
+
+        def focus(g):
+            out = self._call(v, g, lambda cam: cam.focus_geometry(pts)[:3])
+            return out, tuple(o.detach() for o in out)
+
+        (dq, dc, da), (q, c, a) = torch.func.jacfwd(focus, has_aux=True)(geo)
+        self.near = min(self.n_edges, max(self.near, lines_cut(q, c, a, self.target) + 1))
+        n, s = pts.shape[:2]
+        with torch.enable_grad():
+            # Each point's own copy of the lens centre and axes: the gradient of the sum is every point's partials.
+            qq = q.clone().requires_grad_()
+            cc = c.expand(n, s, 3).clone().requires_grad_()
+            aa = a.expand(n, s, 2, 3).clone().requires_grad_()
+            dark = checker_dark_fraction_disc(qq, cc, aa, self.target, self.near)
+            grads = torch.autograd.grad(dark.sum(), (qq, cc, aa), allow_unused=True)
+        gq, gc, ga = (torch.zeros_like(t) if g is None else g for g, t in zip(grads, (qq, cc, aa)))
+        dD = (torch.einsum("nsk,nskp->np", gq, dq) + torch.einsum("nsk,kp->np", gc, dc)
+              + torch.einsum("nsij,ijp->np", ga, da)) / s
+        return dark.detach().mean(-1), dD
+
+    def _samples(self, v: int, geo: torch.Tensor, psf: torch.Tensor, uv: torch.Tensor, jacobian: bool):
+        def dark(g):
+            d = self._call(v, g[:10], lambda cam: dark_fraction_samples(self.target, cam, uv, self.lens_uv,
+                                                                         g[10] ** 2))
+            return d, d.detach()
+
+        g = torch.cat([geo, psf.reshape(1)])
+        if not jacobian:
+            with torch.no_grad():
+                return dark(g)[1], None
+        dD, D = torch.func.jacfwd(dark, has_aux=True)(g)
+        return D, dD
+
+    def _dark(self, v: int, geo: torch.Tensor, psf: torch.Tensor, jacobian: bool):
+        """(N,) dark fractions of view v's pixels and (N, 11) their derivatives by (lens, pose, psf)."""
+        dv = self.data[v]
+        Ds, dDs = [], []
+        for a in range(0, dv.uv.shape[0], JACOBIAN_BLOCK):
+            b = min(a + JACOBIAN_BLOCK, dv.uv.shape[0])
+            m = min(max(dv.n_closed_form - a, 0), b - a)
+            if m:
+                D, dD = self._closed(v, geo, dv.uv[a:a + m], jacobian)
+                Ds.append(D)
+                dDs.append(None if dD is None else torch.cat([dD, dD.new_zeros(m, 1)], 1))
+            if a + m < b:
+                D, dD = self._samples(v, geo, psf, dv.uv[a + m:b], jacobian)
+                Ds.append(D)
+                dDs.append(dD)
+        return torch.cat(Ds), (torch.cat(dDs) if jacobian else None)
+
+    # --- the solver's callback -------------------------------------------------------------------------------
+    def evaluate(self, x: dict, with_jacobian: bool):
+        lens, pose, levels = x["lens"], x["pose"], x["levels"]
+        vig = x["vignetting"][0] if "vignetting" in x else torch.zeros((), dtype=torch.float64)
+        psf = x["psf"][0] if "psf" in x else torch.tensor(self.psf_fixed, dtype=torch.float64)
+        M = sum(int(d.uv.shape[0]) for d in self.data)
+        if not (float(lens[1]) > 0 and float(lens[2]) > 0 and abs(float(lens[3])) < 1.5):
+            nan = torch.full((M,), math.nan, dtype=torch.float64)   # outside the lens's domain
+            sizes = {"lens": 4, "pose": 6, "levels": 2, "vignetting": 1, "psf": 1}
+            return nan, ({k: nan[:, None].expand(M, sizes[k]) for k in x} if with_jacobian else None)
+        rs, jac = [], {k: [] for k in x}
+        for v, dv in enumerate(self.data):
+            D, dD = self._dark(v, torch.cat([lens, pose[v]]), psf, with_jacobian)
+            falloff = 1.0 - vig * dv.rho2
+            white, black = levels[v, 0], levels[v, 1]
+            shade = white - (white - black) * D
+            rs.append((falloff * shade - dv.observed) / self.scale)
+            if with_jacobian:
+                Jg = (-falloff * (white - black) / self.scale)[:, None] * dD
+                jac["lens"].append(Jg[:, :4])
+                jac["pose"].append(Jg[:, 4:10])
+                jac["levels"].append(torch.stack([falloff * (1 - D), falloff * D], 1) / self.scale)
+                if "vignetting" in jac:
+                    jac["vignetting"].append((-dv.rho2 * shade / self.scale)[:, None])
+                if "psf" in jac:
+                    jac["psf"].append(Jg[:, 10:11])
+        r = torch.cat(rs)
+        if not with_jacobian:
+            return r, None
+        jac = {k: torch.cat(v) for k, v in jac.items()}
+        self.n_jacobians += 1
+        if self.say:
+            cost = 0.5 * float((r * r).sum())
+            self.say(f"photometric: linearisation {self.n_jacobians}, cost {cost:.6g}, θF "
+                     f"{math.degrees(float(lens[3])):+.4f}°, U {1000.0 / float(lens[1]):.2f} mm, d "
+                     f"{APERTURE_SCALE_MM * float(lens[2]):.4f} mm ({time.perf_counter() - self.t0:.1f} s)")
+        return r, jac
+
+    def residuals(self, x: dict) -> torch.Tensor:
+        """(M,) residuals in linear intensity units."""
+        with torch.no_grad():
+            return self.evaluate(x, False)[0] * self.scale
+
+
+def _robust_sigma(r: torch.Tensor) -> float:
+    return 1.4826 * float(torch.median(r.abs())) + 1e-12
+
+
+def _solve(problem: _Problem, x0: dict, blocks: list, view_rows: torch.Tensor, opts: PhotometricOptions,
+           history: list):
+    """Huber IRLS by `tiltfit.solve.levenberg_marquardt`, the residuals' robust σ re-estimated after each solve
+    until it holds (at most three solves). Returns (LMResult, iterations)."""
+    k = opts.huber_scale
+    lm = LMOptions(max_iterations=opts.iterations, rho=lambda s2: robust_rho(s2, "huber", k),
+                   weight=lambda s2: robust_weight(s2, "huber", k))
+    problem.scale = _robust_sigma(problem.residuals(x0))
+    x, iterations, res = x0, 0, None
+    for _ in range(3):
+        try:
+            res = levenberg_marquardt(problem.evaluate, x, blocks, view_rows, lm)
+        except SolverError as e:
+            raise PhotometricError(str(e)) from None
+        iterations += res.iterations
+        history.append(res.cost)
+        x = res.x
+        new = _robust_sigma(res.r * problem.scale)
+        if abs(new / problem.scale - 1) <= SCALE_TOLERANCE:
+            break
+        problem.scale = new
+    return res, iterations
+
+
+def _cluster_sandwich(res, problem: _Problem) -> torch.Tensor:
+    """Covariance (P, P) of the flat parameters by the cluster-robust sandwich A⁻¹ B A⁻¹ of the Huber fit.
+
+    A = Σ w J Jᵀ is the fit's own normal matrix; B = Σ_c g_c g_cᵀ sums the score g_c = Σ_{i ∈ c} w_i r_i J_i
+    of each cluster c: the pixels of one square tile of a view, as wide as that view's blur disc (at least
+    8 px). Residuals of neighbouring pixels share their errors (the same blurred edge mis-modelled, render and
+    shot noise largest on edges), so the textbook (JᵀWJ)⁻¹ s², which assumes independent residuals of one
+    variance, comes out too small. Scaled by C / (C − 1) for C clusters; invariant to the residuals' scale.
+    """
+    J = dense_jacobian(res.jacobian)
+    psi = (res.weights * res.r)[:, None] * J
+    scores, offset = [], 0
+    for v, dv in enumerate(problem.data):
+        n = dv.uv.shape[0]
+        side = max(8.0, board_blur_px(problem.camera_of(res.x, v), problem.target))
+        tile = torch.floor(dv.uv / side).to(torch.int64)
+        _, cluster = torch.unique(tile[:, 0] * 100003 + tile[:, 1], return_inverse=True)
+        scores.append(torch.zeros(int(cluster.max()) + 1, J.shape[1], dtype=J.dtype).index_add_(
+            0, cluster, psi[offset:offset + n]))
+        offset += n
+    G = torch.cat(scores)
+    C = G.shape[0]
+    B = G.T @ G * (C / max(C - 1, 1))
+    try:
+        A_inv = res.normal.inverse()
+    except RuntimeError:
+        return torch.full_like(B, math.nan)
+    return A_inv @ B @ A_inv
+
+
+def _lens_sigma(lens: torch.Tensor, cov_lens: torch.Tensor) -> dict:
+    """One-σ of w, 1/U, U, d, θF, θL (mm, 1/m, degrees) from the covariance of the stored lens block."""
+    def physical(p):
+        w, U = torch.exp(p[0]), 1000.0 / p[1]
+        return torch.stack([w, p[1], U, APERTURE_SCALE_MM * p[2].abs(), p[3], theta_L_from_theta_F(p[3], w, U)])
+
+    Jp = torch.func.jacrev(physical)(lens.detach())
+    var = torch.diagonal(Jp @ cov_lens @ Jp.T)
+    sd = [math.sqrt(max(float(x), 0.0)) if math.isfinite(float(x)) else math.nan for x in var]
+    return {"w_mm": sd[0], "inv_U_per_m": sd[1], "U_mm": sd[2], "d_mm": sd[3],
+            "theta_F_deg": math.degrees(sd[4]), "theta_L_deg": math.degrees(sd[5])}
+
+
+def _sigma_dict(res, cov: torch.Tensor) -> dict:
+    layout = res.layout
+
+    def block(name):
+        if name not in layout.offsets:
+            return None
+        a, n = layout.offsets[name]
+        return slice(a, a + n)
+
+    s = block("lens")
+    out = _lens_sigma(res.x["lens"], cov[s, s])
+    for name, key in (("vignetting", "vignetting"), ("psf", "psf_sigma_px")):
+        b = block(name)
+        out[key] = math.sqrt(max(float(cov[b, b][0, 0]), 0.0)) if b is not None else 0.0
+    return out
+
+
+def refine_photometric(images, target: Target, camera: TiltLensCamera, options: PhotometricOptions | None = None,
+                       say=None) -> PhotometricResult:
+    """Fit the camera's lens and poses, and an exposure, to the photographs by rendering the target.
+
+    Args:
+        images: list of (H, W) or (H, W, 3) linear images (decode sRGB first), one per view of `camera`.
+        target: the board.
+        camera: the start, a calibration's `TiltLensCamera` (its principal point and distortion are held);
+            not modified.
+        options: PhotometricOptions.
+        say: optional progress callback taking one line.
+    Returns:
+        PhotometricResult, with the refined camera.
+    """
+    opts = options or PhotometricOptions()
+    t0 = time.perf_counter()
+    imgs = [np.asarray(im, dtype=np.float64) for im in images]
+    imgs = [im.mean(-1) if im.ndim == 3 else im for im in imgs]
+    if not imgs:
+        raise PhotometricError("no images to refine")
+    if camera.n_views != len(imgs):
+        raise PhotometricError(f"the camera has {camera.n_views} views for {len(imgs)} images")
+    W, H = camera.image_size_px
+    cam = camera.copy().double()
+    for p in cam.parameters():
+        p.requires_grad_(False)
+    with torch.no_grad():   # a lens the photometric model can render: finite focus, a non-zero aperture
+        cam.inv_U_per_m.clamp_(min=1e-3)
+        cam.d_scaled.copy_(cam.d_scaled.abs().clamp(min=1e-4))
+    psf0 = PSF_START_PX if opts.kernel == "disc_gaussian" else 0.0
+    views = [cam.view_camera(v) for v in range(cam.n_views)]
+    blur = max(board_blur_px(vc, target) for vc in views)
+    disc_only = opts.kernel == "disc" and opts.aperture != "samples"
+    n_samples = opts.lens_samples
+    if not disc_only and n_samples == 0:
+        n_samples = auto_lens_samples(blur, AUTO_KERNEL_LENS_SAMPLES if opts.kernel == "auto" else 64)
+    elif n_samples == 0:
+        n_samples = auto_lens_samples(CLOSED_FORM_MIN_BLUR_PX)   # for the sharper pixels only
+    lens_uv = hammersley_disc_samples(n_samples)
+    data, held_data, levels = _choose_pixels(imgs, views, target, opts, disc_only, say, t0)
+    n_rows = int(data[0].uv.shape[0])
+    n_closed = sum(d.n_closed_form for d in data)
+    n_pixels = sum(int(d.uv.shape[0]) for d in data)
+    aperture = "closed_form" if n_closed == n_pixels else "samples" if n_closed == 0 else "mixed"
+    if say:
+        say(f"photometric: {len(imgs)} views, {n_pixels} pixels, aperture "
+            + {"closed_form": "in closed form (4x4 points per pixel)",
+               "samples": f"by {n_samples} lens samples per pixel",
+               "mixed": f"in closed form for {n_closed} pixels (blur from {CLOSED_FORM_MIN_BLUR_PX:g} px), "
+                        f"by {n_samples} lens samples for the other {n_pixels - n_closed}"}[aperture])
+
+    problem = _Problem(cam, target, data, lens_uv, say)
+    problem.camera_of = lambda x, v: _camera_of(cam.copy(), x).view_camera(v)
+    V = len(imgs)
+    x0 = {"lens": torch.stack([getattr(cam, n).detach() for n in LENS_PARAMETERS]),
+          "pose": torch.cat([cam.rvec.detach(), cam.T_scaled.detach()], 1),
+          "levels": torch.tensor(levels, dtype=torch.float64)}
+    blocks = [Block("lens", (4,)), Block("pose", (V, 6), per_view=True), Block("levels", (V, 2), per_view=True)]
+    if opts.fit_vignetting:
+        x0["vignetting"] = torch.zeros(1, dtype=torch.float64)
+        blocks.append(Block("vignetting", (1,)))
+    problem.psf_fixed = psf0
+    if opts.kernel == "disc_gaussian":
+        x0["psf"] = torch.tensor([psf0], dtype=torch.float64)
+        blocks.append(Block("psf", (1,)))
+    view_rows = torch.arange(V * n_rows).reshape(V, n_rows)
+    history = []
+    res, iterations = _solve(problem, x0, blocks, view_rows, opts, history)
+    scale = problem.scale
+    selection = None
+    if opts.kernel == "auto":
+        res, iterations, scale, selection = _select_kernel(problem, res, iterations, blocks, view_rows, opts,
+                                                           history, say)
+    kernel = "disc_gaussian" if "psf" in res.x else "disc"
+    cov_sandwich = _cluster_sandwich(res, problem)
+    r = res.r * scale
+    s_final = _robust_sigma(r)
+    try:
+        cov_gn = covariance(res, (s_final / scale) ** 2)
+    except SolverError:
+        cov_gn = torch.full_like(cov_sandwich, math.nan)
+    kept, held_out = "photometric", None
+    if opts.held_out_pixels:
+        held_out = _held_out_costs(problem, held_data, res.x, x0, opts, scale)
+        kept = "photometric" if held_out["refined"] <= held_out["start"] else "corner fit"
+        if say:
+            say(f"photometric: held-out pixels ({held_out['pixels']}) cost {held_out['refined']:.4g} refined, "
+                f"{held_out['start']:.4g} from the start: keeping the "
+                + ("refinement" if kept == "photometric" else "start (the corner fit)"))
+    refined = _camera_of(camera.copy(), res.x)
+    exposure = Exposure(res.x["levels"], float(res.x["vignetting"][0]) if "vignetting" in res.x else 0.0)
+    values = {**_lens_values(res.x["lens"]), "inv_U_per_m": float(res.x["lens"][1]),
+              "vignetting": float(exposure.vignetting.detach()), "psf_sigma_px": abs(float(res.x["psf"][0])) if "psf" in res.x
+              else 0.0, "kernel": kernel, "lens_samples": n_samples if aperture != "closed_form" else 0,
+              "aperture": aperture, "closed_form_pixels": n_closed}
+    out_views = []
+    with torch.no_grad():
+        for v in range(V):
+            rv = r[view_rows[v]]
+            out_views.append({"R": refined.R[v].numpy().copy(), "T_mm": refined.T_mm[v].numpy().copy(),
+                              "white": float(res.x["levels"][v, 0]), "black": float(res.x["levels"][v, 1]),
+                              "rms": float(torch.sqrt((rv * rv).mean())), "n_pixels": n_rows})
+    return PhotometricResult(refined, exposure, values, _sigma_dict(res, cov_sandwich), out_views,
+                             float(torch.sqrt((r * r).mean())), iterations, time.perf_counter() - t0, history,
+                             selection, _sigma_dict(res, cov_gn), kept, held_out, camera.copy())
+
+
+def _choose_pixels(imgs: list, views: list, target: Target, opts: PhotometricOptions, disc_only: bool, say,
+                   t0: float):
+    """Per view the pixels to fit (the same count in every view) and the held-out ones, where the start's
+    prediction is between the levels (edges, blur) or flat; and the start's levels. Returns (data, held_data,
+    levels): `_View`s, closed-form pixels first."""
+    W, H = views[0].width, views[0].height
+    rng = np.random.default_rng(opts.seed)
+    rng_held = np.random.default_rng([opts.seed, 1])   # its own stream: the fitted pixels do not depend on it
+    picks, held, levels = [], [], []
+    for k, (im, vc) in enumerate(zip(imgs, views)):
+        if im.shape != (H, W):
+            raise PhotometricError(f"view {k}: image is {im.shape[1]}x{im.shape[0]}, expected {W}x{H}")
+        usable = usable_mask(target, vc)
+        white, black = _initial_levels(im, usable)
+        if usable.sum() > MAX_CANDIDATE_PIXELS:  # a regular subset: predicting all of a 20 MP photo is slow
+            keep = np.flatnonzero(usable)
+            usable = np.zeros_like(usable)
+            usable.reshape(-1)[keep[::-(-keep.size // MAX_CANDIDATE_PIXELS)]] = True
+        yy, xx = np.nonzero(usable)
+        uv_all = torch.tensor(np.stack([xx, yy], -1), dtype=torch.float64)
+        pred = np.empty(uv_all.shape[0])
+        for a in range(0, uv_all.shape[0], 1 << 16):
+            dark = predicted_dark_fraction(target, vc, uv_all[a:a + (1 << 16)])
+            pred[a:a + (1 << 16)] = (white - (white - black) * dark).numpy()
+        pred_img = np.full((H, W), np.nan)
+        pred_img[yy, xx] = pred
+        picks.append(_select_pixels(pred_img.reshape(-1), usable.reshape(-1), white, black, opts.max_pixels, rng))
+        rest = usable.reshape(-1).copy()
+        rest[picks[-1]] = False
+        held.append(_select_pixels(pred_img.reshape(-1), rest, white, black, opts.held_out_pixels, rng_held)
+                    if opts.held_out_pixels else picks[-1][:0])
+        levels.append((white, black))
+        if say:
+            say(f"photometric: view {k + 1} of {len(imgs)}: {int(usable.sum())} usable pixels, {picks[-1].size} "
+                f"chosen ({time.perf_counter() - t0:.1f} s)")
+    # The solver's per-view blocks need the same number of pixels in every view.
+    n_rows = min(p.size for p in picks)
+    picks = [p if p.size == n_rows else np.sort(rng.choice(p, n_rows, replace=False)) for p in picks]
+    hx, hy = (W - 1) / 2, (H - 1) / 2
+
+    def view_data(im, vc, pick) -> _View:
+        uv = torch.tensor(np.stack([pick % W, pick // W], -1), dtype=torch.float64)
+        observed = torch.tensor(im.reshape(-1)[pick], dtype=torch.float64)
+        if opts.aperture == "closed_form":
+            closed = torch.ones(uv.shape[0], dtype=torch.bool)
+        elif disc_only:
+            closed = pixel_blur_px(vc, uv) >= CLOSED_FORM_MIN_BLUR_PX
+        else:
+            closed = torch.zeros(uv.shape[0], dtype=torch.bool)
+        order = torch.argsort((~closed).to(torch.int8), stable=True)     # closed-form pixels first
+        uv = uv[order]
+        rho2 = ((uv[:, 0] - hx) ** 2 + (uv[:, 1] - hy) ** 2) / (hx ** 2 + hy ** 2)
+        return _View(uv, observed[order], int(closed.sum()), rho2)
+
+    data = [view_data(im, vc, pick) for im, vc, pick in zip(imgs, views, picks)]
+    held_data = [view_data(im, vc, pick) for im, vc, pick in zip(imgs, views, held)]
+    return data, held_data, levels
+
+
+def _select_kernel(problem: _Problem, res, iterations: int, blocks: list, view_rows, opts: PhotometricOptions,
+                   history: list, say):
+    """Kernel `auto`: the Gaussian part freed from the disc's solution on the same pixels and weights, kept where
+    the likelihood-ratio test and its width justify it. Returns (LMResult, iterations, scale, selection)."""
+    scale = problem.scale
+    w0, r0 = res.weights, res.r * scale
+    rss0 = float((w0 * r0 * r0).sum())
+    x1 = {**res.x, "psf": torch.tensor([PSF_START_PX], dtype=torch.float64)}
+    res1, it1 = _solve(problem, x1, blocks + [Block("psf", (1,))], view_rows, opts, history)
+    r1 = res1.r * problem.scale
+    rss1 = float((w0 * r1 * r1).sum())
+    test = nested_test([(int(r0.numel()), rss0, rss1)], 1, opts.alpha)
+    psf = abs(float(res1.x["psf"][0]))
+    justified = test["justified"] and psf >= PSF_EVIDENCE_PX
+    selection = {"kernel": "disc_gaussian" if justified else "disc", "lr_statistic": test["lr_statistic"],
+                 "disc_fit": _lens_values(res.x["lens"]), "p_value": test["p_value"],
+                 "delta_bic": test["delta_bic"], "rss_disc": rss0, "rss_disc_gaussian": rss1,
+                 "psf_sigma_px": psf}
+    if say:
+        say(f"photometric: kernel {selection['kernel']} (Gaussian σ {psf:.3f} px, Λ = {test['lr_statistic']:.3g}, "
+            f"p = {test['p_value']:.2g}, ΔBIC = {test['delta_bic']:.3g})")
+    if justified:
+        res, iterations, scale = res1, iterations + it1, problem.scale
+    else:
+        problem.scale = scale
+    return res, iterations, scale, selection
+
+
+def _held_out_costs(problem: _Problem, held_data: list, x: dict, x0: dict, opts: PhotometricOptions,
+                    scale: float) -> dict:
+    """Mean Huber cost (residuals in units of `scale`) of the held-out pixels for the refined state `x` and for
+    the start `x0`'s lens and poses with the exposure fitted to the fit's pixels (geometry held: per view the
+    levels by robust linear least squares, the vignetting the refinement's)."""
+    k = opts.huber_scale
+    vig = x["vignetting"] if "vignetting" in x else torch.zeros(1, dtype=torch.float64)
+    psf = x0["psf"][0] if "psf" in x0 else torch.tensor(problem.psf_fixed, dtype=torch.float64)
+    levels = []
+    for v, dv in enumerate(problem.data):
+        D = problem._dark(v, torch.cat([x0["lens"], x0["pose"][v]]), psf, False)[0]
+        f = 1.0 - vig[0] * dv.rho2
+        A = torch.stack([f * (1 - D), f * D], 1)
+        w = torch.ones_like(D)
+        for _ in range(5):   # Huber by reweighting
+            sw = w.sqrt()[:, None]
+            sol = torch.linalg.lstsq(A * sw, dv.observed[:, None] * sw).solution[:, 0]
+            r = (A @ sol - dv.observed) / scale
+            w = robust_weight(r * r, "huber", k)
+        levels.append(sol)
+    start = {**x0, "levels": torch.stack(levels), "vignetting": vig}
+    check = _Problem(problem.camera, problem.target, held_data, problem.lens_uv)
+    check.near, check.scale, check.psf_fixed = problem.near, scale, problem.psf_fixed
+
+    def cost(state):
+        with torch.no_grad():
+            r = check.evaluate(state, False)[0]
+        return float(robust_rho(r * r, "huber", k).mean())
+
+    return {"pixels": sum(int(d.uv.shape[0]) for d in held_data), "refined": cost(x), "start": cost(start)}
+
+
+def _camera_of(camera: TiltLensCamera, x: dict) -> TiltLensCamera:
+    """`camera` (modified in place) holding the lens and poses of the solver's state `x`."""
+    with torch.no_grad():
+        for i, n in enumerate(LENS_PARAMETERS):
+            getattr(camera, n).copy_(x["lens"][i].to(getattr(camera, n)))
+        camera.rvec.copy_(x["pose"][:, :3].to(camera.rvec))
+        camera.T_scaled.copy_(x["pose"][:, 3:6].to(camera.T_scaled))
+    return camera
+
+
+def _lens_values(lens: torch.Tensor) -> dict:
+    """w, U, d, θF, θL of a stored lens block (mm, degrees)."""
+    w, inv_U, d, theta_F = math.exp(float(lens[0])), float(lens[1]), APERTURE_SCALE_MM * abs(float(lens[2])), float(lens[3])
+    U = 1000.0 / inv_U
+    return {"w_mm": w, "U_mm": U, "d_mm": d, "theta_F_deg": math.degrees(theta_F),
+            "theta_L_deg": math.degrees(float(theta_L_from_theta_F(theta_F, w, U)))}

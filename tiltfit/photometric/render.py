@@ -1,0 +1,264 @@
+"""The target renderer of the photometric fit: what a pixel of a thin-lens camera sees of the checkerboard.
+
+Every function takes the renderer's thin-lens camera of one view (`renderer.ThinLensCamera`, as
+`TiltLensCamera.view_camera(v)` builds it, tensor parameters with gradients) and returns the dark fraction D(u) ∈
+[0, 1] of the board a pixel u sees: the mean, over the pixel's area and the lens's aperture, of the checker's
+darkness (1 dark cell, 0 white cell or margin). No general tracer and no random numbers, so D is smooth and
+deterministic and its derivatives exact. The photograph's intensity is then the exposure's affine map of D
+(`render_target`; `refine.Exposure`):
+
+    I(u) = (1 − v ρ(u)²) · (white − (white − black) · D(u))
+
+with v the vignetting and ρ the distance from the image centre, 1 at the corners (`renderer.sensor.radial_falloff`,
+the one sensor model `tiltfit.synth` and `tiltfit.experiments.reproduce` expose their captures with).
+
+D is integrated over the aperture in one of two ways:
+- in closed form (`dark_fraction_disc`): each of 4 x 4 points of the pixel sees the aperture disc through its
+  focus point (`ThinLensCamera.focus_geometry`), on which the board's cell edges are straight lines, so D is a
+  sum of disc segments and wedges (`tiltfit.aperture`). Exact for the thin lens at any tilt and blur. The fit
+  uses it for pixels whose blur disc is at least CLOSED_FORM_MIN_BLUR_PX;
+- by fixed lens samples (`dark_fraction_samples`): rays for each pixel and sample, intersected with the board
+  plane Z = 0, the checker evaluated analytically and antialiased over the pixel's footprint (below). Sharp
+  boards need it: there the pixel's box matters more than the disc.
+
+Antialiased checker: for a hit (X, Y) on the board with pixel footprint σ (mm), per axis the nearest cell edge
+e_j and z = (X − e_j)/σ give A = E[inside] and B = E[inside · s] (s = ±1 the column's parity sign) under a
+Gaussian of standard deviation σ; the dark fraction is D = ½ (A_x A_y + p B_x B_y) with p the parity of
+`dark_cell`. σ along X and along Y match the variance of the pixel's box footprint on the board (from the
+local Jacobian of the chief-ray map), so the pixel's area adds the blur a box filter adds. The lens samples
+are a fixed Hammersley set whitened to the disc's second moment (`hammersley_disc_samples`), traced from 2 x 2
+sub-pixels. Their number must grow with the blur disc's area (`auto_lens_samples`; at 18 px, 64 samples gave
+θL +0.015° and d −0.3 % on average, 192 no bias beyond σ: docs/photometric.md).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from renderer.cameras import ThinLensCamera, concentric_disk
+from renderer.optics import blur_diameter_first_order, blur_diameter_paper
+from renderer.sensor import radial_falloff
+
+from ..aperture import checker_dark_fraction_disc, disc_within
+from ..target import Target
+
+#: Sensor points per pixel side of the closed-form aperture (`dark_fraction_disc`).
+SUBPIXELS = 4
+#: `lens_samples=0` (auto) takes 64 · (b / 10 px)² samples for the start's largest blur disc b at the board's
+#: centre, in multiples of 16, from 64 to this many (`auto_lens_samples`).
+AUTO_LENS_SAMPLES_MAX = 256
+#: Pixels `usable_mask` takes at once (bounds its memory; 684×456 images stay one chunk).
+MASK_CHUNK_PIXELS = 1 << 19
+
+
+def _inverse_concentric(xy: np.ndarray) -> np.ndarray:
+    """Points on the unit disc (..., 2) -> the [0, 1)² samples that `concentric_disk` maps to them."""
+    x, y = xy[..., 0], xy[..., 1]
+    r = np.hypot(x, y)
+    phi = np.mod(np.arctan2(y, x) + np.pi / 4, 2 * np.pi) - np.pi / 4   # in [−π/4, 7π/4)
+    a, b = np.empty_like(r), np.empty_like(r)
+    s0, s1, s2, s3 = ((phi < np.pi / 4), (phi >= np.pi / 4) & (phi < 3 * np.pi / 4),
+                      (phi >= 3 * np.pi / 4) & (phi < 5 * np.pi / 4), phi >= 5 * np.pi / 4)
+    a[s0], b[s0] = r[s0], r[s0] * phi[s0] * 4 / np.pi
+    b[s1], a[s1] = r[s1], r[s1] * (np.pi / 2 - phi[s1]) * 4 / np.pi
+    a[s2], b[s2] = -r[s2], -r[s2] * (phi[s2] - np.pi) * 4 / np.pi
+    b[s3], a[s3] = -r[s3], -r[s3] * (np.pi / 2 - (phi[s3] - np.pi)) * 4 / np.pi
+    return np.stack([(a + 1) / 2, (b + 1) / 2], -1)
+
+
+def auto_lens_samples(blur_px: float, minimum: int = 64) -> int:
+    """Fixed lens samples for a blur disc of `blur_px` px: 64 · (b / 10 px)², so the samples' spacing on the
+    image stays about 1.1 px, in multiples of 16, between `minimum` and AUTO_LENS_SAMPLES_MAX."""
+    n = 16 * math.ceil(64.0 * (max(float(blur_px), 0.0) / 10.0) ** 2 / 16)
+    return int(min(AUTO_LENS_SAMPLES_MAX, max(minimum, n)))
+
+
+def hammersley_disc_samples(n: int, dtype=torch.float64) -> torch.Tensor:
+    """(n, 2) fixed lens samples in [0, 1)²: a Hammersley set ((i + ½)/n, radical inverse of i) whose
+    points on the aperture are whitened to the disc's first and second moments (mean 0, covariance r²/4 · I),
+    then mapped back through the inverse of the renderer's concentric map.
+
+    Hammersley keeps n distinct radii and angles, so edge profiles are smooth; the whitening is a small
+    linear correction (the plain 64-point set has E xy = 0.026 r² and E r² 2.3 % low: an elliptical,
+    tilted aperture, which biased θF on sharp boards and d).
+    """
+    n = max(int(n), 1)
+    if n < 4:
+        return torch.full((1, 2), 0.5, dtype=dtype)
+    i = np.arange(n)
+    inv = np.zeros(n)
+    base, k = 0.5, i.copy()
+    while k.any():
+        inv += (k & 1) * base
+        k >>= 1
+        base /= 2
+    uv = np.stack([(i + 0.5) / n, (inv + 0.5 / n) % 1.0], -1)
+    xy = concentric_disk(torch.tensor(uv)).numpy()
+    xy = xy - xy.mean(0)
+    evals, evecs = np.linalg.eigh(xy.T @ xy / n)
+    xy = xy @ (evecs @ np.diag(np.sqrt(0.25 / evals)) @ evecs.T)
+    r = np.hypot(xy[:, 0], xy[:, 1])
+    xy = xy * np.minimum(1.0, (1 - 1e-12) / np.maximum(r, 1e-300))[:, None]
+    return torch.tensor(np.clip(_inverse_concentric(xy), 0.0, np.nextafter(1.0, 0.0)), dtype=dtype)
+
+
+def _axis_terms(coord: torch.Tensor, edges: torch.Tensor, sigma: torch.Tensor):
+    """A = E[inside], B = E[inside · s] along one axis for Gaussian footprints (see the module docstring)."""
+    n_cells = edges.shape[0] - 1
+    k = torch.searchsorted(edges, coord.detach().contiguous()).clamp(1, n_cells)
+    left, right = edges[k - 1], edges[k]
+    j = torch.where((coord - left) < (right - coord), k - 1, k)   # nearest edge index, 0..n_cells
+    z = (coord - edges[j]) / sigma
+    phi = 0.5 * (1 + torch.erf(z / math.sqrt(2)))
+    sign_right = 1.0 - 2.0 * (j % 2).to(coord.dtype)              # (−1)^j: parity sign of cell j
+    interior = (j > 0) & (j < n_cells)
+    a = torch.where(interior, torch.ones_like(z), torch.where(j == 0, phi, 1 - phi))
+    b_interior = sign_right * torch.erf(z / math.sqrt(2))
+    b_first = phi                                                  # cell 0 has sign +1
+    b_last = -sign_right * (1 - phi)                               # cell n−1 has sign −(−1)^n
+    b = torch.where(interior, b_interior, torch.where(j == 0, b_first, b_last))
+    return a, b
+
+
+def checker_dark_fraction(X: torch.Tensor, Y: torch.Tensor, sigma: torch.Tensor, target: Target,
+                          sigma_y: torch.Tensor | None = None) -> torch.Tensor:
+    """Dark fraction of the board seen through a Gaussian footprint of std `sigma` (mm) centred at (X, Y) mm.
+
+    Exact for a footprint whose X and Y are independent (the dark set is a sum of products of an X-only and
+    a Y-only indicator), up to the nearest-edge approximation (σ much smaller than a cell).
+
+    Args:
+        X, Y, sigma: (...) target-frame coordinates and footprint std along X, mm.
+        sigma_y: footprint std along Y [sigma].
+    Returns:
+        (...) in [0, 1]: 1 inside a dark cell, 0 on white cells and on the margin.
+    """
+    xe = torch.tensor(target.x_edges, dtype=X.dtype, device=X.device)
+    ye = torch.tensor(target.y_edges, dtype=X.dtype, device=X.device)
+    ax, bx = _axis_terms(X, xe, sigma)
+    ay, by = _axis_terms(Y, ye, sigma if sigma_y is None else sigma_y)
+    parity = 1.0 if (target.dark_cell[0] + target.dark_cell[1]) % 2 == 0 else -1.0
+    return 0.5 * (ax * ay + parity * bx * by)
+
+
+def on_board(rays) -> torch.Tensor:
+    """(..., 3) points where rays meet the board plane Z = 0 (target frame)."""
+    t = -rays.origin[..., 2] / rays.direction[..., 2]
+    return rays.origin + t[..., None] * rays.direction
+
+
+def sub_points(uv_px: torch.Tensor, subpixels: int = SUBPIXELS) -> torch.Tensor:
+    """(N, subpixels², 2) the midpoint-rule points of each pixel of `uv_px` (N, 2)."""
+    step = (torch.arange(subpixels, dtype=uv_px.dtype, device=uv_px.device) + 0.5) / subpixels - 0.5
+    sub = torch.stack(torch.meshgrid(step, step, indexing="xy"), -1).reshape(-1, 2)
+    return uv_px[:, None, :] + sub
+
+
+def dark_fraction_samples(target: Target, cam: ThinLensCamera, uv_px: torch.Tensor, lens_uv: torch.Tensor,
+                          psf_var_px2=0.0) -> torch.Tensor:
+    """(N,) dark fraction of pixels `uv_px` (N, 2), averaged over the fixed lens samples `lens_uv` (S, 2) in
+    [0, 1)² (their points on the aperture should have the disc's moments, as `hammersley_disc_samples`'s do, or
+    d comes out scaled). `psf_var_px2`: variance (px²) of a Gaussian convolved with the lens's disc [0]; it
+    widens each sub-pixel's Gaussian footprint on the board."""
+    n, s = uv_px.shape[0], lens_uv.shape[0]
+    # The pixel's area: every lens sample is traced from each of the 2 x 2 sub-pixel centres, and each
+    # sub-pixel's remaining box (half a pixel wide) is a Gaussian footprint on the board of the same
+    # variance, per board axis, from the chief rays of the pixel and of its right and lower neighbours
+    # (J = d(X, Y)/d(u, v)): (J_u² + J_v²) / (4 · 12). A single Gaussian for the whole pixel misses the
+    # box's shape, which matters where the blur is a pixel or two (it biased θF by 0.1° on sharp boards).
+    sub = torch.tensor([[-0.25, -0.25], [0.25, -0.25], [-0.25, 0.25], [0.25, 0.25]], dtype=uv_px.dtype,
+                       device=uv_px.device)
+    uv_s = (uv_px[:, None, None, :] + sub[None, :, None, :]).expand(n, 4, s, 2)
+    rays = cam.generate_rays(uv_s, lens_uv[None, None].expand(n, 4, s, 2))
+    hit = on_board(rays).reshape(n, 4 * s, 3)
+    steps = torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]], dtype=uv_px.dtype, device=uv_px.device)
+    chief = on_board(cam.generate_rays(uv_px[:, None, :] + steps,
+                                       torch.full((n, 3, 2), 0.5, dtype=uv_px.dtype, device=uv_px.device)))
+    J = chief[:, 1:, :2] - chief[:, :1, :2]              # (N, 2 (du, dv), 2 (X, Y))
+    sigma_xy = torch.sqrt((J**2).sum(1) * (1.0 / 48.0 + psf_var_px2))  # (N, 2)
+    return checker_dark_fraction(hit[..., 0], hit[..., 1], sigma_xy[:, None, 0], target,
+                                 sigma_y=sigma_xy[:, None, 1]).mean(-1)
+
+
+def dark_fraction_disc(target: Target, cam: ThinLensCamera, uv_px: torch.Tensor, near: int,
+                       subpixels: int = SUBPIXELS) -> torch.Tensor:
+    """(N,) dark fraction of pixels `uv_px` with the aperture integrated in closed form (`tiltfit.aperture`).
+
+    Each pixel is the mean of a `subpixels` x `subpixels` grid of sensor points (a box pixel by the midpoint
+    rule: fine once the blur disc spans a few pixels); each point's dark fraction is exact over the disc.
+    `near`: lines per family given the two-line term (`tiltfit.aperture.lines_cut` counts them)."""
+    q_h, centre, axes, _ = cam.focus_geometry(sub_points(uv_px, subpixels))
+    return checker_dark_fraction_disc(q_h, centre, axes, target, near).mean(-1)
+
+
+def shade(dark: torch.Tensor, uv_px: torch.Tensor, image_size_px, white, black, vignetting) -> torch.Tensor:
+    """The exposure of a dark fraction: (1 − v ρ²) · (white − (white − black) · D) (module docstring)."""
+    falloff = radial_falloff(uv_px[:, 0], uv_px[:, 1], image_size_px[0], image_size_px[1], vignetting)
+    return falloff * (white - (white - black) * dark)
+
+
+def render_target(target: Target, cam: ThinLensCamera, uv_px: torch.Tensor, lens_uv: torch.Tensor, white, black,
+                  vignetting, psf_var_px2=0.0) -> torch.Tensor:
+    """(N,) linear intensities of pixels `uv_px` by the fixed lens samples (`dark_fraction_samples`, `shade`)."""
+    return shade(dark_fraction_samples(target, cam, uv_px, lens_uv, psf_var_px2), uv_px,
+                 (cam.width, cam.height), white, black, vignetting)
+
+
+def render_target_disc(target: Target, cam: ThinLensCamera, uv_px: torch.Tensor, near: int, white, black,
+                       vignetting, subpixels: int = SUBPIXELS) -> torch.Tensor:
+    """(N,) linear intensities of pixels `uv_px` with the aperture in closed form (`dark_fraction_disc`)."""
+    return shade(dark_fraction_disc(target, cam, uv_px, near, subpixels), uv_px, (cam.width, cam.height),
+                 white, black, vignetting)
+
+
+def predicted_dark_fraction(target: Target, cam: ThinLensCamera, uv_px: torch.Tensor) -> torch.Tensor:
+    """(N,) a cheap prediction of the dark fraction, for choosing pixels: the aperture in closed form from 2 x 2
+    points of each pixel (every line a disc cuts gets its exact term)."""
+    with torch.no_grad():
+        return dark_fraction_disc(target, cam, uv_px, max(len(target.x_edges), len(target.y_edges)), subpixels=2)
+
+
+def pixel_blur_px(cam: ThinLensCamera, uv: torch.Tensor) -> torch.Tensor:
+    """(N,) blur-disc diameter (px) of each pixel at the board point its chief ray meets: w d |1/z_f − 1/z| with
+    z_f where that ray meets the plane of focus (`optics.blur_diameter_first_order`)."""
+    with torch.no_grad():
+        p_cam = cam.transform.points_to_camera(on_board(cam.generate_rays(uv)))
+        return blur_diameter_first_order(p_cam, cam.w, cam.U, cam.d, cam.theta_F) / cam.screen.pitch[0]
+
+
+def board_blur_px(cam: ThinLensCamera, target: Target) -> float:
+    """Blur-disc diameter (px) at the board's centre, paper (4) (`optics.blur_diameter_paper`)."""
+    x0, y0, x1, y1 = target.extent_mm
+    with torch.no_grad():
+        p = cam.transform.points_to_camera(torch.tensor([(x0 + x1) / 2, (y0 + y1) / 2, 0.0], dtype=torch.float64))
+        return float(blur_diameter_paper(p[1], p[2], float(cam.w), float(cam.U), float(cam.d),
+                                         float(cam.theta_F))) / float(cam.screen.pitch[0])
+
+
+def usable_mask(target: Target, cam: ThinLensCamera) -> np.ndarray:
+    """(H, W) pixels whose whole blur disc lands on the board, margin included, at least two pixels' footprint
+    (at the longest chief ray) inside its outer edge: exact for the thin lens's disc (`aperture.disc_within`),
+    one focus point per pixel, in chunks of MASK_CHUNK_PIXELS pixels."""
+    W, H = cam.width, cam.height
+    x0, y0, x1, y1 = target.extent_mm
+
+    def pixels(a: int) -> torch.Tensor:
+        flat = torch.arange(a, min(a + MASK_CHUNK_PIXELS, H * W))
+        return torch.stack([(flat % W).to(torch.float64), (flat // W).to(torch.float64)], -1)
+
+    with torch.no_grad():
+        starts = range(0, H * W, MASK_CHUNK_PIXELS)
+        t_chief = []
+        for a in starts:
+            rays = cam.generate_rays(pixels(a))
+            t_chief.append(-rays.origin[..., 2] / rays.direction[..., 2])
+        t_max = max(float(t.abs().max()) for t in t_chief)
+        guard = 2.0 * float(cam.screen.pitch[0]) * t_max / float(cam.w)
+        ok = np.empty(H * W, dtype=bool)
+        for a, t in zip(starts, t_chief):
+            q_h, centre, axes, valid = cam.focus_geometry(pixels(a))
+            inside = disc_within(q_h, centre, axes, (x0 + guard, x1 - guard), (y0 + guard, y1 - guard))
+            ok[a:a + t.shape[0]] = (inside & valid & (t > 0)).numpy()
+    return ok.reshape(H, W)

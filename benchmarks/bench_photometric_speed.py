@@ -53,9 +53,13 @@ def make_captures(path: str) -> None:
     from tiltfit.experiments import reproduce
 
     board = _board()
-    w_px, h_px, _ = reproduce.EOS_6D.downscaled(DOWNSCALE)
-    pitch = reproduce.EOS_6D.pixel_pitch_mm * DOWNSCALE
-    cam = synth.tilted_lens_camera(W_MM, U0_MM, D_MM, THETA_L_DEG, pitch, w_px, h_px)
+    from renderer import Lens
+    from renderer.cameras import EOS_6D
+
+    sensor = EOS_6D.binned(DOWNSCALE)
+    w_px, h_px, pitch = *sensor.size_px, sensor.pixel_pitch
+    f_mm = float(optics.focal_length(W_MM, U0_MM))
+    cam = Lens.from_tilt(W_MM, f_mm, math.radians(THETA_L_DEG), D_MM, sensor=sensor)
     images, poses = [], []
     for k, i in enumerate(VIEWS):
         R, T = reproduce.target_pose(board, *reproduce.TARGET_VIEWS[i])
@@ -63,13 +67,13 @@ def make_captures(path: str) -> None:
         images.append(view.image[..., 0].astype(np.float64))
         poses.append((R, T))
     rng = np.random.default_rng(1)
-    w, U = W_MM * 1.003, cam.U_mm * 1.01
+    w, U = W_MM * 1.003, cam.U * 1.01
     theta_F = optics.theta_F_from_theta_L(math.radians(THETA_L_DEG + 0.1), w, U)
     start = {"w_mm": w, "U_mm": U, "d_mm": D_MM * 0.97, "theta_F_deg": math.degrees(float(theta_F)),
              "views": [{"R": cv2.Rodrigues(rng.normal(0, math.radians(0.1), 3))[0] @ R,
                         "T_mm": T + rng.normal(0, 0.5, 3)} for R, T in poses]}
-    truth = {"w_mm": W_MM, "U_mm": cam.U_mm, "d_mm": D_MM, "theta_L_deg": THETA_L_DEG,
-             "theta_F_deg": math.degrees(cam.theta_F_rad)}
+    truth = {"w_mm": W_MM, "U_mm": cam.U, "d_mm": D_MM, "theta_L_deg": THETA_L_DEG,
+             "theta_F_deg": math.degrees(cam.theta_F)}
     with open(path, "wb") as f:
         pickle.dump({"images": images, "start": start, "truth": truth, "pitch": pitch, "size": (w_px, h_px)}, f)
 

@@ -18,8 +18,6 @@ SOLVER = os.path.join("tiltfit", "solve") + os.sep
 ALLOWED = {
     # Newton's method inverting the distortion (a fixed-point inversion of a closed form, not a least-squares fit)
     os.path.join("renderer", "cameras", "distortion.py"): "Newton inversion of the distortion",
-    # TEMPORARY: photometric moves onto tiltfit.solve (another change rewrites its refinement); remove then.
-    os.path.join("tiltfit", "photometric.py"): "photometric moves onto tiltfit.solve",
 }
 #: Calls that solve a linear system (the attribute name; on torch, torch.linalg, np.linalg, scipy.linalg ...).
 SOLVES = {"solve", "cholesky_solve", "lstsq", "solve_triangular", "lu_solve", "solve_ex", "pinv", "inv"}

@@ -469,11 +469,12 @@ def test_transposed_target_on_a_uniform_board_is_labelled_and_said(tmp_path):
     """A uniform board with a target file of its rows and columns swapped is a valid view of the board turned
     by 90° (no contradiction to refuse): detection labels it and says so; the matching file gets no such note."""
     from tiltfit.cli import main
-    from tiltfit.synth import SynthCamera, look_at_pose, render_view
+    from renderer import Lens, Sensor
+    from tiltfit.synth import look_at_pose, render_view
     from tiltfit.target import target_from_dict
 
     t = target_from_dict(TARGET)
-    cam = SynthCamera(w_mm=35, U_mm=900, d_mm=8, pixel_pitch_mm=0.02, width_px=640, height_px=480)
+    cam = Lens(35, 900, 8, sensor=Sensor(640, 480, 0.02))
     px = render_view(t, cam, *look_at_pose(t, (100, 75, -950)), noise_sigma=0.002, srgb8=True, seed=0).image_srgb8
     (tmp_path / "img.png").write_bytes(_png(px))
     notes = {}

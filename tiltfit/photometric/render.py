@@ -224,17 +224,20 @@ def pixel_blur_px(cam: ThinLensCamera, uv: torch.Tensor) -> torch.Tensor:
     """(N,) blur-disc diameter (px) of each pixel at the board point its chief ray meets: w d |1/z_f − 1/z| with
     z_f where that ray meets the plane of focus (`optics.blur_diameter_first_order`)."""
     with torch.no_grad():
-        p_cam = cam.transform.points_to_camera(on_board(cam.generate_rays(uv)))
-        return blur_diameter_first_order(p_cam, cam.w, cam.U, cam.d, cam.theta_F) / cam.screen.pitch[0]
+        lens = cam.lens
+        p_cam = lens.to_tilt_frame(cam.transform.points_to_camera(on_board(cam.generate_rays(uv))))
+        return blur_diameter_first_order(p_cam, lens.w, lens.U, lens.d, lens.theta_F) / cam.screen.pitch[0]
 
 
 def board_blur_px(cam: ThinLensCamera, target: Target) -> float:
     """Blur-disc diameter (px) at the board's centre, paper (4) (`optics.blur_diameter_paper`)."""
     x0, y0, x1, y1 = target.extent_mm
     with torch.no_grad():
+        lens = cam.lens
         p = cam.transform.points_to_camera(torch.tensor([(x0 + x1) / 2, (y0 + y1) / 2, 0.0], dtype=torch.float64))
-        return float(blur_diameter_paper(p[1], p[2], float(cam.w), float(cam.U), float(cam.d),
-                                         float(cam.theta_F))) / float(cam.screen.pitch[0])
+        p = lens.to_tilt_frame(p)
+        return float(blur_diameter_paper(p[1], p[2], float(lens.w), float(lens.U), float(lens.d),
+                                         float(lens.theta_F))) / float(cam.screen.pitch[0])
 
 
 def usable_mask(target: Target, cam: ThinLensCamera) -> np.ndarray:
@@ -255,7 +258,7 @@ def usable_mask(target: Target, cam: ThinLensCamera) -> np.ndarray:
             rays = cam.generate_rays(pixels(a))
             t_chief.append(-rays.origin[..., 2] / rays.direction[..., 2])
         t_max = max(float(t.abs().max()) for t in t_chief)
-        guard = 2.0 * float(cam.screen.pitch[0]) * t_max / float(cam.w)
+        guard = 2.0 * float(cam.screen.pitch[0]) * t_max / float(cam.lens.w)
         ok = np.empty(H * W, dtype=bool)
         for a, t in zip(starts, t_chief):
             q_h, centre, axes, valid = cam.focus_geometry(pixels(a))

@@ -196,8 +196,10 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
                                                say)
         if note:
             notes.append(note)
-        if result is not None and mode != "unified" and options.model_selection:
+        if result is not None and mode == "joint" and options.model_selection:
             # A lens tilted about a turned axis misfits the tilt about x: test the axis before judging the model.
+            # (Not in the tilt stage: its held stage-1 U and d misfit a tilted lens, which a free axis would
+            # absorb.)
             result, axis_test = _with_tilt_axis(result, obs, mode, options, init_sigma, say)
         # The tilt stage holds stage 1's U and d, which the lens's tilt moves (hinge rule): its residuals judge
         # that approximation, not the thin-lens model.

@@ -42,7 +42,9 @@ def nested_model_tests(base: FitResult, obs: Observations, mode: str, options: F
     sigma = (base.noise["sigma_corner_px"], base.noise["sigma_blur_px"])
     if base.rss.get("n_blur", 0) == 0:
         obs = without_blur(obs)
-    tests = [("theta_F", ("theta_F",), 1)] if test_theta_F else []
+    # With the tilt axis's direction freed (`calibration._with_tilt_axis`), no tilt leaves no axis: both go.
+    tilt = ("theta_F", "phi") if base.camera.phi.requires_grad else ("theta_F",)
+    tests = [("theta_F", tilt, len(tilt))] if test_theta_F else []
     if test_principal_point:
         tests.append(("principal_point", ("principal_point",), 2))
     for label, names, k in tests:

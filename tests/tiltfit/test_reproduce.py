@@ -245,8 +245,6 @@ def test_cli_scales_reach_the_run_config(tmp_path, monkeypatch, capsys):
 
 def test_target_photographs_come_out_at_the_target_scale(tmp_path):
     """Stage (b) on a tiny run: the photographs (PNG and the detector's input) are 5472/32 x 3648/32."""
-    if not reproduce.calibration_modules_available():
-        pytest.skip("tiltfit.synth / tiltfit.detect / tiltfit.blur not all present")
     from renderer import read_image
 
     (tmp_path / "images").mkdir()

@@ -401,7 +401,7 @@ def _cluster_sandwich(res, problem: _Problem) -> torch.Tensor:
     C = G.shape[0]
     B = G.T @ G * (C / max(C - 1, 1))
     try:
-        A_inv = res.normal.inverse()
+        A_inv = res.normal.covariance().dense()
     except RuntimeError:
         return torch.full_like(B, math.nan)
     return A_inv @ B @ A_inv
@@ -515,7 +515,7 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
     r = res.r * scale
     s_final = _robust_sigma(r)
     try:
-        cov_gn = covariance(res, (s_final / scale) ** 2)
+        cov_gn = covariance(res, (s_final / scale) ** 2).dense()
     except SolverError:
         cov_gn = torch.full_like(cov_sandwich, math.nan)
     kept, held_out = "photometric", None

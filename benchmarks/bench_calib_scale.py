@@ -54,36 +54,11 @@ def _rss_mb() -> float:
 
 
 def write_views(n: int, folder: str) -> tuple[list, str]:
-    """n synthetic DET files and their target file in `folder` (written once, seeded)."""
-    import numpy as np
-    import torch
+    """n synthetic DET files and their target file in `folder` (written once, seeded): bench_calib_speed's
+    synthetic tilted capture, n views."""
+    from bench_calib_speed import write_synthetic_views
 
-    from tiltfit.experiments import reproduce
-    from tiltfit.model import TiltLensCamera, random_poses, synthesize_observations
-    from tiltfit.target import design_centre_mm
-
-    target_file = os.path.join(folder, "target.json")
-    dets = [os.path.join(folder, f"view{v:05d}.json") for v in range(n)]
-    if all(os.path.exists(p) for p in dets + [target_file]):
-        return dets, target_file
-    os.makedirs(folder, exist_ok=True)
-    target = reproduce.calibration_target(reproduce.SetValues())
-    rvec, T = random_poses(n, seed=1, distance_mm=(480.0, 760.0), max_angle_deg=25.0,
-                           board_centre_mm=design_centre_mm(target))
-    cam = TiltLensCamera.from_tilted_lens(n, SIZE_PX, PITCH_MM, 55.39, 50.84, 18.81, math.radians(5.0), rvec=rvec,
-                                          T_mm=T)
-    obs = synthesize_observations(cam, torch.tensor(target.feature_points()), noise_px=0.05, noise_blur_px=0.1,
-                                  noise_blur_rel=0.03, seed=2, margin_px=5.0)
-    for v, path in enumerate(dets):
-        c, b = obs.corners_px[v].numpy(), obs.blur_px[v].numpy()
-        det = {"image_size_px": list(SIZE_PX), "grid_found": True,
-               "corners_px": [[float(p[0]), float(p[1])] if np.isfinite(p).all() else None for p in c],
-               "blur_px": [float(x) if np.isfinite(x) else None for x in b]}
-        with open(path, "w") as f:
-            json.dump(det, f)
-    with open(target_file, "w") as f:
-        json.dump(target.to_dict(), f)
-    return dets, target_file
+    return write_synthetic_views(n, folder, SIZE_PX)
 
 
 # --------------------------------------------------------------------------------------------- the children

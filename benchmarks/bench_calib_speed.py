@@ -88,6 +88,12 @@ def _detect_real(name: str, spec: dict, cache: str) -> tuple[list, str]:
 
 def _synthetic(cache: str) -> tuple[list, str]:
     """DET files of the synthetic tilted capture (written once, seeded) and its target file."""
+    return write_synthetic_views(SYNTH_VIEWS, os.path.join(cache, "synthetic_tilted_60"))
+
+
+def write_synthetic_views(n: int, out_dir: str, size=(1368, 912)) -> tuple[list, str]:
+    """DET files of n views of the designed target through the simulated lens tilted by θL = 5° (seeded: the
+    same files every time; kept when already there) and the target file."""
     try:
         from tiltfit.experiments import reproduce
     except ImportError:  # --base code from before tiltfit/experiments/
@@ -95,17 +101,15 @@ def _synthetic(cache: str) -> tuple[list, str]:
     from tiltfit.model import TiltLensCamera, random_poses, synthesize_observations
     from tiltfit.target import design_centre_mm
 
-    out_dir = os.path.join(cache, "synthetic_tilted_60")
     target_file = os.path.join(out_dir, "target.json")
-    dets = [os.path.join(out_dir, f"view{v:02d}.json") for v in range(SYNTH_VIEWS)]
+    dets = [os.path.join(out_dir, f"view{v:05d}.json") for v in range(n)]
     if all(os.path.exists(p) for p in dets + [target_file]):
         return dets, target_file
     os.makedirs(out_dir, exist_ok=True)
     target = reproduce.calibration_target(reproduce.SetValues())
-    rvec, T = random_poses(SYNTH_VIEWS, seed=1, distance_mm=(480.0, 760.0), max_angle_deg=25.0,
+    rvec, T = random_poses(n, seed=1, distance_mm=(480.0, 760.0), max_angle_deg=25.0,
                            board_centre_mm=design_centre_mm(target))
-    size = (1368, 912)
-    cam = TiltLensCamera.from_tilted_lens(SYNTH_VIEWS, size, SETS["synthetic_tilted_60"]["pitch_mm"], 55.39, 50.84,
+    cam = TiltLensCamera.from_tilted_lens(n, size, SETS["synthetic_tilted_60"]["pitch_mm"], 55.39, 50.84,
                                           18.81, math.radians(5.0), rvec=rvec, T_mm=T)
     obs = synthesize_observations(cam, torch.tensor(target.feature_points()), noise_px=0.05, noise_blur_px=0.1,
                                   noise_blur_rel=0.03, seed=2, margin_px=5.0)

@@ -64,10 +64,7 @@ def _geometry_with_principal_point(camera: TiltLensCamera, obs: Observations, op
     entry = likelihood_ratio(held, free, 2, options.alpha)
     entry["principal_point_px_full"] = free.values["principal_point_px"]
     entry["fitted"] = entry["justified"]
-    if say:
-        say(f"model selection: freeing principal_point is {'justified' if entry['justified'] else 'not justified'} "
-            f"(Λ = {entry['lr_statistic']:.3g}, p = {entry['p_value']:.3g}, ΔBIC = {entry['delta_bic']:.3g}): "
-            + ("fitted" if entry["justified"] else "held at the image centre"))
+    _say_test(say, "principal_point", entry, "fitted" if entry["justified"] else "held at the image centre")
     if entry["justified"]:
         return free, entry
     held.distortion_selection = free.distortion_selection
@@ -315,6 +312,14 @@ def sharp_line(lens, R, T, extent_mm) -> list | None:
     return [list(inside[0]), list(inside[-1])]
 
 
+def _say_test(say, label: str, entry: dict, outcome: str) -> None:
+    """The progress line of a likelihood-ratio test (`likelihood_ratio`'s entry) and what it decided."""
+    if say:
+        say(f"model selection: freeing {label} is {'justified' if entry['justified'] else 'not justified'} "
+            f"(Λ = {entry['lr_statistic']:.3g}, p = {entry['p_value']:.3g}, ΔBIC = {entry['delta_bic']:.3g}): "
+            + outcome)
+
+
 def _with_tilt_axis(base: FitResult, obs: Observations, mode: str, options: FitOptions, init_sigma, say=None):
     """The tilt axis's direction φ freed (a tilt-shift lens's rotation) and tested against `base`, the tilt about
     the camera x axis (`likelihood_ratio`, 1 degree of freedom): the freed fit replaces `base` only where the
@@ -328,12 +333,9 @@ def _with_tilt_axis(base: FitResult, obs: Observations, mode: str, options: FitO
     entry = likelihood_ratio(base, alt, 1, options.alpha)
     entry["tilt_axis_deg_full"] = alt.values["tilt_axis_deg"]
     entry["fitted"] = entry["justified"]
-    if say:
-        verdict = "justified" if entry["justified"] else "not justified"
-        say(f"model selection: freeing the tilt axis's direction is {verdict} "
-            f"(Λ = {entry['lr_statistic']:.3g}, p = {entry['p_value']:.3g}): "
-            + (f"φ = {alt.values['tilt_axis_deg']:.2f} ± {alt.sigma['tilt_axis_deg']:.2g}°" if entry["justified"]
-               else "held at 0 (tilt about the camera x axis)"))
+    _say_test(say, "the tilt axis's direction", entry,
+              f"φ = {alt.values['tilt_axis_deg']:.2f} ± {alt.sigma['tilt_axis_deg']:.2g}°" if entry["justified"]
+              else "held at 0 (tilt about the camera x axis)")
     return (alt if entry["justified"] else base), entry
 
 

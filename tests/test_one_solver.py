@@ -16,8 +16,6 @@ from import_graph import ROOT, modules  # noqa: E402
 SOLVER = os.path.join("tiltfit", "solve") + os.sep
 #: Files allowed a loop of linear solves outside it, and why.
 ALLOWED = {
-    # Newton's method inverting the distortion (a fixed-point inversion of a closed form, not a least-squares fit)
-    os.path.join("renderer", "cameras", "distortion.py"): "Newton inversion of the distortion",
 }
 #: Calls that solve a linear system (the attribute name; on torch, torch.linalg, np.linalg, scipy.linalg ...).
 SOLVES = {"solve", "cholesky_solve", "lstsq", "solve_triangular", "lu_solve", "solve_ex", "pinv", "inv"}

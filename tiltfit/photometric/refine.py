@@ -37,7 +37,8 @@ from renderer.optics import theta_L_from_theta_F
 
 from ..aperture import checker_dark_fraction_disc, lines_cut
 from ..model import APERTURE_SCALE_MM, TiltLensCamera, axis_angle_to_matrix, robust_rho, robust_weight
-from ..solve import Block, LMOptions, SolverError, covariance, dense_jacobian, levenberg_marquardt
+from ..solve import (Block, LMOptions, SolverError, covariance, dense_jacobian, least_squares,
+                     levenberg_marquardt)
 from ..stats import nested_test
 from ..target import Target
 from .render import (auto_lens_samples, board_blur_px, dark_fraction_samples, hammersley_disc_samples,
@@ -644,12 +645,14 @@ def _held_out_costs(problem: _Problem, held_data: list, x: dict, x0: dict, opts:
         D = problem._dark(v, torch.cat([x0["lens"], x0["pose"][v]]), psf, False)[0]
         f = 1.0 - vig[0] * dv.rho2
         A = torch.stack([f * (1 - D), f * D], 1)
-        w = torch.ones_like(D)
-        for _ in range(5):   # Huber by reweighting
-            sw = w.sqrt()[:, None]
-            sol = torch.linalg.lstsq(A * sw, dv.observed[:, None] * sw).solution[:, 0]
-            r = (A @ sol - dv.observed) / scale
-            w = robust_weight(r * r, "huber", k)
+        sol0 = x0["levels"][v].detach().to(torch.float64)  # the start's levels
+        huber = LMOptions(max_iterations=50, rho=lambda s2: robust_rho(s2, "huber", k),
+                          weight=lambda s2: robust_weight(s2, "huber", k))
+        try:
+            sol = least_squares(lambda lv: (A @ lv - dv.observed) / scale, sol0, huber,
+                                jacobian_fn=lambda lv: A / scale).x
+        except SolverError:  # creeping on (nearly) noise-free pixels: the start's levels
+            sol = sol0
         levels.append(sol)
     start = {**x0, "levels": torch.stack(levels), "vignetting": vig}
     check = _Problem(problem.camera, problem.target, held_data, problem.lens_uv)

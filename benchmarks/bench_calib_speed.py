@@ -32,7 +32,6 @@ import math
 import os
 import platform
 import resource
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -43,7 +42,7 @@ import numpy as np
 import torch
 
 from bench_real_calib import OPENCV_FLAGS
-from results_io import ROOT, add_output_options, markdown_only, save
+from results_io import ROOT, add_output_options, markdown_only, save, timed
 
 #: The sets: folder (or "synthetic"), image glob, pixel pitch (mm; intrinsics in pixels do not depend on it),
 #: and the distortion model of the geometric comparison.
@@ -198,17 +197,6 @@ def default_command(dets: list, target: str, pitch_mm: float, out: str) -> dict:
             "principal_point_px": d.get("principal_point_px"), "held_out_px": (d.get("held_out") or {}).get("rms_px")}
 
 
-def timed(fn, repeats: int):
-    """(last result, median CPU seconds, median wall seconds, all CPU seconds) of `repeats` calls."""
-    cpu, wall, out = [], [], None
-    for _ in range(repeats):
-        t0, c0 = time.perf_counter(), time.process_time()
-        out = fn()
-        cpu.append(time.process_time() - c0)
-        wall.append(time.perf_counter() - t0)
-    return out, statistics.median(cpu), statistics.median(wall), cpu
-
-
 def measure(sets: dict, repeats: int, default_repeats: int) -> dict:
     """Every timing of every set, in this process (whatever `tiltfit` is on the path)."""
     import tiltfit
@@ -221,12 +209,12 @@ def measure(sets: dict, repeats: int, default_repeats: int) -> dict:
         obs = observations(s["dets"], s["target"], s["pitch_mm"])
         model = s["model"]
         ours(obs, model, blur=False)  # warm-up: lazy imports, first-call costs
-        cv, t_cv, w_cv, all_cv = timed(lambda: opencv_calibrate(obs, model), repeats)
-        geo, t_geo, w_geo, all_geo = timed(lambda: ours(obs, model, blur=False), repeats)
-        blr, t_blur, w_blur, all_blur = timed(lambda: ours(obs, model, blur=True), repeats)
+        cv, w_cv, t_cv, all_cv = timed(lambda: opencv_calibrate(obs, model), repeats, samples=True)
+        geo, w_geo, t_geo, all_geo = timed(lambda: ours(obs, model, blur=False), repeats, samples=True)
+        blr, w_blur, t_blur, all_blur = timed(lambda: ours(obs, model, blur=True), repeats, samples=True)
         calib = os.path.join(tmp, f"{name}.json")
-        dflt, t_default, w_default, all_default = timed(
-            lambda: default_command(s["dets"], s["target"], s["pitch_mm"], calib), default_repeats)
+        dflt, w_default, t_default, all_default = timed(
+            lambda: default_command(s["dets"], s["target"], s["pitch_mm"], calib), default_repeats, samples=True)
         t0, c0 = time.perf_counter(), resource.getrusage(resource.RUSAGE_CHILDREN)
         proc = subprocess.run([sys.executable, "-m", "tiltfit", "calibrate", *s["dets"], "--target", s["target"],
                                "--pixel-pitch-mm", str(s["pitch_mm"]), "-q", "-o", calib],

@@ -39,13 +39,14 @@ def save(out: str, res: dict, write_markdown) -> None:
         print(f.read())
 
 
-def timed(fn, repeats: int):
+def timed(fn, repeats: int, samples: bool = False):
     """(last result, median wall-clock s, median process CPU s) of `repeats` calls of fn(): medians, because
-    timings on a shared 2-core machine are noisy."""
+    timings on a shared 2-core machine are noisy; with `samples`, the list of CPU seconds of every call too."""
     out, wall, cpu = None, [], []
     for _ in range(repeats):
         t0, c0 = time.perf_counter(), time.process_time()
         out = fn()
         wall.append(time.perf_counter() - t0)
         cpu.append(time.process_time() - c0)
-    return out, statistics.median(wall), statistics.median(cpu)
+    medians = (out, statistics.median(wall), statistics.median(cpu))
+    return (*medians, cpu) if samples else medians

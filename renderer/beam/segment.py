@@ -33,10 +33,15 @@ import shapely
 from shapely.geometry import Polygon, box
 
 from ..cameras.projection import project_pinhole
+from ..errors import SceneError
 from .polygons import MIN_AREA, areal, clip_halfspace, polygons_of, pyramid
 
 # The integrator drops paths whose throughput falls to this; the segmentation stops recursing there too.
 MIN_THROUGHPUT = 1e-4
+#: The most beams one segmentation may follow: lossless mirrors facing each other (a camera inside a box of
+#: mirrors) multiply the beams with every reflection up to image.max_depth, past any time (each beam costs a few
+#: milliseconds). The beam_fig2 scene makes at most 50 regions a frame.
+MAX_BEAMS = 2000
 # Screen-space clipping snaps to this grid (pixels): GEOS's fixed-precision overlay is robust, so regions
 # stay an exact partition; without it, slivers between edges that should coincide (projected from two
 # frames) left near-degenerate rings on which later overlays gave wrong areas.
@@ -369,7 +374,13 @@ class Segmenter:
         self.timing = Timing()
         regions: list[Region] = []
         stack = [((), cam.screen, 1.0, ((np.eye(3), np.zeros(3)),))]
+        beams = 0
         while stack:
+            beams += 1
+            if beams > MAX_BEAMS:
+                raise SceneError(f"image.max_depth: {self.max_depth} reflections make more than {MAX_BEAMS} beams "
+                                 "(mirrors that lose little light face each other); lower image.max_depth or the "
+                                 "mirrors' reflect")
             signature, area, throughput, transforms = stack.pop()
             t0 = time.perf_counter()
             node = self.node(signature, cam.eye)

@@ -276,3 +276,59 @@ def test_animate_errors_are_one_line_exit_2(tmp_path, capsys):
     assert "beam tracing handles" in err and "\n" == err[-1] and err.count("\n") == 1, f"message: {err!r}"
     with pytest.raises(SceneError, match="animation.step"):
         load_scene(SCENE, ["animation.step=fast"])
+
+
+def _mirror_box(max_depth: int) -> dict:
+    """A camera inside a closed box of lossless mirrors, looking at a diffuse cube."""
+    def wall(name, axis, sign):
+        hs = []
+        for a in range(3):
+            n = [0.0, 0.0, 0.0]
+            if a == axis:
+                n[a] = sign
+                hs.append(n[:] + [-1.0])        # the wall's inner face at ±1
+                n[a] = -sign
+                hs.append(n[:] + [1.1])         # its outer face at ±1.1
+            else:
+                for s in (1.0, -1.0):
+                    m = [0.0, 0.0, 0.0]
+                    m[a] = s
+                    hs.append(m + [1.1])
+        return {"name": name, "shape": {"type": "polyhedron", "halfspaces": hs},
+                "material": {"color": [0.9, 0.9, 0.9], "reflect": 1.0, "diffuse": 0.0}}
+
+    walls = [wall(f"wall{a}{'+' if s > 0 else '-'}", a, s) for a in range(3) for s in (1.0, -1.0)]
+    cube = {"name": "cube", "shape": {"type": "polyhedron", "halfspaces": [
+        [1, 0, 0, 0.2], [-1, 0, 0, 0.2], [0, 1, 0, 0.2], [0, -1, 0, 0.2], [0, 0, 1, 0.7], [0, 0, -1, -0.3]]},
+        "material": {"color": [0.8, 0.2, 0.2]}}
+    return {"image": {"width": 64, "height": 48, "spp": 1, "sampler": "center", "max_depth": max_depth,
+                      "background": [0, 0, 0]},
+            "camera": {"type": "pinhole", "position": [0.1, 0.05, -0.5], "look_at": [0, 0, 1], "fov_deg": 60},
+            "animation": {"frames": 2, "step": 0.05},
+            "lights": [{"type": "point", "position": [0, -0.5, 0], "intensity": [1, 1, 1]},
+                       {"type": "ambient", "intensity": [0.1, 0.1, 0.1]}],
+            "objects": walls + [cube]}
+
+
+@pytest.mark.slow
+def test_a_box_of_lossless_mirrors_is_refused_not_followed_forever(tmp_path):
+    """Inside a box of mirrors that lose no light the beams multiply with every reflection: at max_depth 64 the
+    segmentation stops at MAX_BEAMS with one line naming image.max_depth (it ran for hours before); at depth 2
+    the same box renders."""
+    import os
+    import sys
+
+    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    import fuzz_harness
+
+    deep = tmp_path / "deep.json"
+    deep.write_text(json.dumps(_mirror_box(64)))
+    rc, err = fuzz_harness.run_command(main, ["animate", deep, "--method", "beam", "-o", tmp_path / "deep"],
+                                       timeout_s=300)
+    assert rc == 2 and "image.max_depth" in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "deep").exists(), "nothing written"
+    shallow = tmp_path / "shallow.json"
+    shallow.write_text(json.dumps(_mirror_box(2)))
+    rc, err = fuzz_harness.run_command(main, ["animate", shallow, "--method", "beam", "-o", tmp_path / "shallow",
+                                              "--quiet"], timeout_s=300)
+    assert rc == 0 and len(list((tmp_path / "shallow").glob("frame_*.png"))) == 2, err

@@ -40,14 +40,15 @@ def _dist(calib: dict) -> np.ndarray:
     return np.array(BrownConrady(c).to_config()["coefficients"], dtype=np.float64)  # OpenCV's 5 or 8
 
 
-def opencv_note(calib: dict) -> str:
-    """What this calibration holds that OpenCV's camera model cannot represent ('' if nothing)."""
+def opencv_note(calib: dict, tool: str = "OpenCV") -> str:
+    """What this calibration holds that `tool`'s camera model (OpenCV's, or mrcal's OPENCV8, the same model)
+    cannot represent ('' if nothing)."""
     parts = []
     th = calib.get("theta_F_deg")
     if th is not None and abs(th) > 1e-9:
         parts.append(f"the lens is tilted (plane of focus tilted by theta_F = {th:.4g} deg, lens tilt theta_L = "
-                     f"{calib.get('theta_L_deg')} deg): OpenCV has no tilted-lens model (its tilted-sensor tau is "
-                     "a different geometry and is 0 here); the projection of corners is still exact, the "
+                     f"{calib.get('theta_L_deg')} deg): {tool} has no tilted-lens model (OpenCV's tilted-sensor "
+                     "tau is a different geometry and is 0 here); the projection of corners is still exact, the "
                      "tilted depth of field is not represented")
     if calib.get("U_mm") is not None or calib.get("d_mm") is not None:
         parts.append(f"the blur model (focus distance U = {calib.get('U_mm')} mm, aperture d = "
@@ -260,7 +261,7 @@ def mrcal_text(calib: dict) -> str:
     d[:coeffs.size] = coeffs
     W, H = (int(v) for v in calib["image_size_px"])
     intrinsics = [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), *(float(v) for v in d)]
-    note = opencv_note(calib).replace("OpenCV", "mrcal") or "the calibration is fully represented"
+    note = opencv_note(calib, "mrcal") or "the calibration is fully represented"
     return ("# tiltfit calibration as an mrcal camera model\n"
             f"# not represented: {note}\n"
             f"{_MRCAL_PITCH}{float(calib['pixel_pitch_mm'])!r}\n"

@@ -257,22 +257,19 @@ class Lens:
     # ------------------------------------------------------------------ closed forms
 
     def project(self, p_cam):
-        """(..., 3) camera-frame points -> (..., 2) pixels: the chief ray's pinhole projection at w, then the
+        """(..., 3) camera-frame points -> (..., 2) pixels: the chief ray's pinhole projection at w with the
         distortion (`renderer.cameras.projection.project_pinhole`). numpy in, numpy out; tensors keep their
         graph."""
         from .projection import project_pinhole
 
-        if self.distortion is not None and any(float(k) != 0 for k in self.distortion):
-            from .distortion import distort
-
-            tensor = isinstance(p_cam, torch.Tensor)
-            p = p_cam if tensor else torch.as_tensor(np.asarray(p_cam, dtype=np.float64))
-            xy = distort(p[..., :2] / p[..., 2:3], torch.as_tensor(self.distortion, dtype=p.dtype))
-            uv = xy * self.focal_px + torch.as_tensor(self.center_px, dtype=p.dtype)
-            return uv if tensor else uv.numpy()
+        if self.distortion is None or not any(_float(k) != 0 for k in self.distortion):
+            if isinstance(p_cam, torch.Tensor):
+                return project_pinhole(p_cam, self.focal_px, self.center_px)
+            return project_pinhole(np.asarray(p_cam, dtype=np.float64), _float(self.focal_px), self.center_px)
         if isinstance(p_cam, torch.Tensor):
-            return project_pinhole(p_cam, self.focal_px, self.center_px)
-        return project_pinhole(np.asarray(p_cam, dtype=np.float64), float(self.focal_px), self.center_px)
+            return project_pinhole(p_cam, self.focal_px, self.center_px, self.distortion)
+        p = torch.as_tensor(np.asarray(p_cam, dtype=np.float64))
+        return project_pinhole(p, self.focal_px, self.center_px, self.distortion).numpy()
 
     def blur_px(self, p_cam) -> np.ndarray:
         """(..., 3) camera-frame points -> (...,) blur-disc diameters, pixels: the exact thin-lens value for a lens

@@ -212,11 +212,6 @@ def _Log(enabled: bool = True) -> RunLog:
     return RunLog("reproduce", enabled)
 
 
-def lens_record(lens: Lens) -> dict:
-    """w, U, d, θL and θF (degrees) of a lens state, for tables and the run record."""
-    return lens.record()
-
-
 def render_boxes(lens: Lens, cfg: RunConfig, spp: int, seed: int):
     """Render the boxes scene through `lens`; returns the (H, W, 3) linear image and the render time, s.
 
@@ -534,7 +529,7 @@ TRUE_LENS = "true lens"  # CG with the simulation's own lens: what a perfect cal
 
 def _table2_row(state: LensState, name: str, lens: Lens | None, rows: list[dict], render_s=None) -> dict:
     row = {"state": f"({state.label})", "theta_L_set_deg": state.theta_L_set_deg, "parameters": name}
-    rec = lens_record(lens) if lens is not None else {}
+    rec = lens.record() if lens is not None else {}
     row["theta_L_deg"] = rec.get("theta_L_deg")
     row["theta_F_deg"] = rec.get("theta_F_deg")
     row["U_mm"] = rec.get("U_mm")
@@ -650,7 +645,7 @@ def plot_all(results: list[StateResult], speed_rows: list[dict], lines: dict, ou
         s = res.state
         images[f"({s.label}) photo, θL set {s.theta_L_set_deg:+g}°"] = res.captures[0]
         for name, img in res.cg.items():
-            tl = lens_record(res.lenses[name])["theta_L_deg"]
+            tl = res.lenses[name].record()["theta_L_deg"]
             images[f"({s.label}) CG, {name}: θL {tl:+.2f}°"] = img
     fig = plot_images(images, lines, ncols=1 + len(results[0].cg))
     files["images"] = "fig11_12_photos_and_cg.png"
@@ -790,8 +785,8 @@ def _run(out_dir, quick, progress, config, camera, set_values) -> ReproduceResul
     record = {
         "config": asdict(cfg), "quick": quick, "runtime_s": runtime, "skipped": skipped,
         "truth": {**asdict(camera), **camera.untilted.record(), "U0_mm": camera.untilted.U, "f_mm": camera.f_mm,
-                  "lens_states": {s.label: lens_record(camera.lens(s.theta_L_set_deg)) for s in LENS_STATES}},
-        "set_values": {s.label: lens_record(set_values.lens(s.theta_L_set_deg)) for s in LENS_STATES},
+                  "lens_states": {s.label: camera.lens(s.theta_L_set_deg).record() for s in LENS_STATES}},
+        "set_values": {s.label: set_values.lens(s.theta_L_set_deg).record() for s in LENS_STATES},
         "calibration": calibration["records"], "calibration_errors": calibration["errors"],
         "target_photographs": targets["files"] if targets else None,
         "image_size_px": [width, height], "target_image_size_px": [target_w, target_h],

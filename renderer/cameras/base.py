@@ -150,8 +150,10 @@ class Camera:
         """(..., 3) world points -> (..., 2) pixels by central projection through the camera centre onto the
         screen (the pinhole's projection, and a thin lens's chief ray): `projection.project_pinhole`."""
         p_cam = self.transform.points_to_camera(p_world)
-        k = None if self.distortion is None or self.distortion.is_identity else self.distortion.coefficients
-        return project_pinhole(p_cam, self.focal_px, self.screen.center_px, k)
+        if self.distortion is None or self.distortion.is_identity:
+            return project_pinhole(p_cam, self.focal_px, self.screen.center_px)
+        return project_pinhole(p_cam, self.focal_px, self.screen.center_px, self.distortion.coefficients,
+                               self.distortion.camera_from_lens)
 
     def rays_in_camera(self, uv_px: torch.Tensor, lens_uv: torch.Tensor) -> Rays:
         """Rays in the camera frame for pixels (..., 2) and lens samples (..., 2) in [0, 1)²."""

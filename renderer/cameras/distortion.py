@@ -14,6 +14,16 @@ calibration lines up with the photo); tiltfit's projection applies `distort`.
 
 Scene files: `camera.distortion = {model: "brown_conrady", coefficients: [k1, k2, p1, p2, k3 (, k4, k5, k6)]}`.
 
+About the lens axis (`distort_about_axis`, `undistort_about_axis`): a tilted lens's distortion is symmetric about
+its own optical axis, not about the perpendicular from its centre to the sensor. With R = camera_from_lens (the
+lens frame's axes in the camera frame, its z the lens axis) the ideal point goes into the lens frame, is
+distorted there and comes back along its chief ray:
+
+    q = Rᵀ (x, y, 1),  (x_l, y_l) = D(q_x / q_z, q_y / q_z),  s = R (x_l, y_l, 1),  (x_d, y_d) = (s_x / s_z, s_y / s_z)
+
+R = I is the plain model. This is OpenCV's tilted model (CALIB_TILTED_MODEL) seen from the sensor: OpenCV's
+camera frame is our lens frame and its tilt (τx, τy) is R (`renderer.cameras.lens.tilt_rotation`).
+
 Models by name (the terms tiltfit frees; `MODEL_TERMS`): none, k1, k1k2, opencv5 (k1 k2 p1 p2 k3),
 rational (all eight).
 """
@@ -156,6 +166,86 @@ def undistort(xy_d: torch.Tensor, coefficients, iterations: int = 20) -> torch.T
     return torch.where(bad[..., None], torch.full_like(out, math.nan), out)
 
 
+def _pi(v: torch.Tensor) -> torch.Tensor:
+    """(..., 3) -> (..., 2) central projection (v_x / v_z, v_y / v_z)."""
+    return v[..., :2] / v[..., 2:3]
+
+
+def _lifted(xy: torch.Tensor) -> torch.Tensor:
+    """(..., 2) normalised coordinates -> (..., 3) directions (x, y, 1)."""
+    return torch.cat([xy, torch.ones_like(xy[..., :1])], -1)
+
+
+def _rotated(v: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
+    """(..., 3) vectors times (3, 3) R: R v for each."""
+    return v @ torch.as_tensor(R).to(v).transpose(-1, -2)
+
+
+def distort_about_axis(xy: torch.Tensor, coefficients, camera_from_lens) -> torch.Tensor:
+    """Ideal normalised camera coordinates -> distorted ones, the distortion applied in the lens's frame (module
+    docstring): `distort` of the point's lens-frame coordinates, back along its chief ray.
+
+    Args:
+        xy: (..., 2) ideal normalised camera coordinates (X/Z, Y/Z).
+        coefficients: as in `distort`.
+        camera_from_lens: (3, 3) rotation, its columns the lens frame's axes in the camera frame (a tensor keeps
+            its graph), or None for the plain model.
+    Returns:
+        (..., 2) distorted normalised camera coordinates.
+    """
+    if camera_from_lens is None:
+        return distort(xy, coefficients)
+    R = torch.as_tensor(camera_from_lens).to(xy)
+    x_l = distort(_pi(_rotated(_lifted(xy), R.transpose(-1, -2))), coefficients)
+    return _pi(_rotated(_lifted(x_l), R))
+
+
+def undistort_about_axis(xy_d: torch.Tensor, coefficients, camera_from_lens, iterations: int = 20) -> torch.Tensor:
+    """The inverse of `distort_about_axis` (`undistort` in the lens frame); NaN where it does not converge."""
+    if camera_from_lens is None:
+        return undistort(xy_d, coefficients, iterations)
+    R = torch.as_tensor(camera_from_lens).to(xy_d)
+    x_l = undistort(_pi(_rotated(_lifted(xy_d), R.transpose(-1, -2))), coefficients, iterations)
+    return _pi(_rotated(_lifted(x_l), R))
+
+
+def _projection_jacobian(v: torch.Tensor) -> torch.Tensor:
+    """(..., 2, 3) ∂π(v)/∂v of the central projection π(v) = (v_x / v_z, v_y / v_z)."""
+    iz = 1.0 / v[..., 2]
+    x, y = v[..., 0] * iz, v[..., 1] * iz
+    zero = torch.zeros_like(iz)
+    return torch.stack([iz, zero, -x * iz, zero, iz, -y * iz], -1).reshape(v.shape[:-1] + (2, 3))
+
+
+def distort_about_axis_jacobians(xy: torch.Tensor, coefficients, camera_from_lens, d_camera_from_lens=()):
+    """`distort_about_axis` and its derivatives, in closed form (checked against autograd in the tests).
+
+    Args:
+        xy, coefficients, camera_from_lens: as in `distort_about_axis` ((3, 3) R, not None).
+        d_camera_from_lens: derivatives ∂R/∂a (each (3, 3)) for the angles a the frame depends on.
+    Returns:
+        (x_d (..., 2), ∂x_d/∂xy (..., 2, 2), ∂x_d/∂coefficients (..., 2, 8), [∂x_d/∂a (..., 2) for each a]).
+    """
+    R = torch.as_tensor(camera_from_lens).to(xy)
+    h = _lifted(xy)
+    q = _rotated(h, R.transpose(-1, -2))
+    x_n = _pi(q)
+    x_l = distort(x_n, coefficients)
+    s = _rotated(_lifted(x_l), R)
+    J_s = _projection_jacobian(s)                                   # ∂x_d/∂s
+    J_l = J_s @ R[:, :2]                                            # ∂x_d/∂x_l
+    J_q = distort_jacobian(x_n, coefficients) @ _projection_jacobian(q)  # ∂x_l/∂q
+    J_xy = J_l @ J_q @ R.transpose(-1, -2)[:, :2]
+    J_k = J_l @ distort_coefficient_jacobian(x_n, coefficients)
+    J_a = []
+    for dR in d_camera_from_lens:
+        dR = torch.as_tensor(dR).to(xy)
+        dq = _rotated(h, dR.transpose(-1, -2))
+        ds = _rotated(_lifted(x_l), dR) + (J_q @ dq[..., None])[..., 0] @ R[:, :2].transpose(-1, -2)
+        J_a.append((J_s @ ds[..., None])[..., 0])
+    return _pi(s), J_xy, J_k, J_a
+
+
 @dataclass(frozen=True)
 class BrownConrady:
     """A lens's distortion: coefficients (k1, k2, p1, p2, k3, k4, k5, k6) in OpenCV's order (zeros padded).
@@ -163,11 +253,20 @@ class BrownConrady:
     Attributes:
         coefficients: tuple of 8 floats, or a (8,) tensor (a fitted lens's coefficients, e.g. from
             `LensCamera.view_camera`: gradients then reach them through every ray and projection).
+        camera_from_lens: None (the distortion about the principal point), or the (3, 3) rotation of a tilted
+            lens's frame (`distort_about_axis`; `renderer.Lens.distortion_frame`) [None].
     """
 
     coefficients: tuple = (0.0,) * N_COEFFICIENTS
+    camera_from_lens: object = None
 
     def __post_init__(self):
+        R = self.camera_from_lens
+        if R is not None and not isinstance(R, torch.Tensor):  # numbers as a tuple of rows: comparable, hashable
+            R = tuple(tuple(float(v) for v in row) for row in R)
+            if len(R) != 3 or any(len(row) != 3 for row in R):
+                raise ValueError("distortion.camera_from_lens: expected a 3 x 3 rotation")
+            object.__setattr__(self, "camera_from_lens", R)
         c = self.coefficients
         if isinstance(c, torch.Tensor):
             if c.dim() != 1 or c.shape[0] > N_COEFFICIENTS:
@@ -188,10 +287,10 @@ class BrownConrady:
         return not any(c)
 
     def distort(self, xy: torch.Tensor) -> torch.Tensor:
-        return distort(xy, self.coefficients)
+        return distort_about_axis(xy, self.coefficients, self.camera_from_lens)
 
     def undistort(self, xy_d: torch.Tensor) -> torch.Tensor:
-        return undistort(xy_d, self.coefficients)
+        return undistort_about_axis(xy_d, self.coefficients, self.camera_from_lens)
 
     def to_config(self) -> dict:
         """The scene-file / CALIB.json form (trailing zero rational terms dropped)."""

@@ -1,6 +1,7 @@
 """The one thin lens: its state (w, U, d, θF), its sensor, principal point and distortion, in one value.
 
-    Lens(w, U, d, theta_F=0, sensor=None, principal_point_px=None, distortion=None, phi=0)
+    Lens(w, U, d, theta_F=0, sensor=None, principal_point_px=None, distortion=None, phi=0,
+         distortion_centre="sensor")
     Lens.from_tilt(w, f, theta_L, d)        the hinge rule: a lens of focal length f tilted by θL about its centre
     Lens.from_theta_L(w, U, d, theta_L)     U kept, θF from the exact Scheimpflug rule
     Lens.paper()                            the tilt-lens paper's camera (EOS 6D, TS-E 45 mm, stage-1 values)
@@ -16,7 +17,14 @@ sensor at z = −w; the plane of focus z = U + y_φ tan θF with y_φ = y cos φ
 infinity, |θF| < 90°): the lens and the plane of focus tilt about the axis (cos φ, sin φ, 0) of the lens plane,
 φ = 0 the camera x axis (the papers' and OpenCV's only case), φ = 90° the y axis (a tilt-shift lens's
 rotation ring turned by a quarter). Every relation of a tilt about x holds in the frame turned by φ about the
-optical axis. Lengths in scene units (mm for a real camera), angles in radians. w, U, d, θF may be Python
+optical axis.
+
+The distortion is centred on the principal point (`distortion_centre="sensor"`, the model of every calibration
+library for an untilted lens) or on the lens's own axis (`"lens_axis"`: a real lens's distortion is symmetric
+about its axis, which a tilt turns away from the perpendicular foot of the lens centre; it meets the sensor
+w tan θL from the principal point across the tilt axis). About the lens axis, D acts in the lens frame
+(`distortion_frame`, `renderer.cameras.distortion.distort_about_axis`): OpenCV's tilted model
+(CALIB_TILTED_MODEL) with τ from θL and φ (`opencv_tilt`). For θL = 0 both centres are the same model. Lengths in scene units (mm for a real camera), angles in radians. w, U, d, θF may be Python
 floats or 0-dim tensors (tensors keep their graph; only numbers are checked).
 """
 from __future__ import annotations
@@ -28,6 +36,9 @@ import numpy as np
 import torch
 
 from .. import optics
+
+#: Where a lens's distortion is centred (`Lens.distortion_centre`).
+DISTORTION_CENTRES = ("sensor", "lens_axis")
 
 #: The paper's camera: Canon EOS 6D (5472 × 3648, 6.54 µm pixels) with the TS-E 45 mm at f/2.8, stage-1 estimates.
 PAPER_W_MM, PAPER_U_MM, PAPER_D_MM = 55.39, 618.4, 18.81
@@ -103,6 +114,8 @@ class Lens:
         distortion: None or up to 8 Brown–Conrady coefficients in OpenCV's order (k1, k2, p1, p2, k3, k4, k5,
             k6), about the principal point.
         phi: direction of the tilt axis in the lens plane, radians from the camera x axis towards y [0].
+        distortion_centre: "sensor" (about the principal point) or "lens_axis" (in the lens's own frame, about
+            its axis; module docstring) ["sensor"].
     """
 
     w: float
@@ -113,6 +126,7 @@ class Lens:
     principal_point_px: tuple[float, float] | None = None
     distortion: tuple[float, ...] | None = None
     phi: float = 0.0
+    distortion_centre: str = "sensor"
 
     def __post_init__(self):
         if _number(self.w) and not (math.isfinite(self.w) and self.w > 0):
@@ -125,6 +139,8 @@ class Lens:
             raise ValueError(f"theta_F: expected |θF| < 90°, got {math.degrees(self.theta_F)!r}°")
         if _number(self.phi) and not math.isfinite(self.phi):
             raise ValueError(f"phi: expected a finite angle, got {self.phi!r}")
+        if self.distortion_centre not in DISTORTION_CENTRES:
+            raise ValueError(f"distortion_centre: expected one of {DISTORTION_CENTRES}, got {self.distortion_centre!r}")
 
     # ------------------------------------------------------------------ constructors
 
@@ -266,10 +282,38 @@ class Lens:
             if isinstance(p_cam, torch.Tensor):
                 return project_pinhole(p_cam, self.focal_px, self.center_px)
             return project_pinhole(np.asarray(p_cam, dtype=np.float64), _float(self.focal_px), self.center_px)
+        frame = self.distortion_frame
         if isinstance(p_cam, torch.Tensor):
-            return project_pinhole(p_cam, self.focal_px, self.center_px, self.distortion)
+            return project_pinhole(p_cam, self.focal_px, self.center_px, self.distortion, frame)
         p = torch.as_tensor(np.asarray(p_cam, dtype=np.float64))
-        return project_pinhole(p, self.focal_px, self.center_px, self.distortion).numpy()
+        return project_pinhole(p, self.focal_px, self.center_px, self.distortion, frame).numpy()
+
+    @property
+    def lens_axis(self):
+        """(3,) the lens axis, a unit vector in the camera frame pointing forward: the lens plane's normal
+        (sin θL sin φ, −sin θL cos φ, cos θL) (a tensor where θL or φ is one)."""
+        return lens_axis(self.theta_L, self.phi)
+
+    @property
+    def distortion_frame(self):
+        """The (3, 3) rotation camera_from_lens in which the distortion acts (`distortion.distort_about_axis`):
+        OpenCV's tilt R(τx, τy) of `opencv_tilt`, its z axis the lens axis; None when the distortion is
+        about the principal point (`distortion_centre` "sensor", or θL a plain 0)."""
+        if self.distortion_centre != "lens_axis":
+            return None
+        theta_L = self.theta_L
+        if _number(theta_L) and _number(self.phi) and theta_L == 0:
+            return None
+        return tilt_rotation(*opencv_tilt(theta_L, self.phi))
+
+    @property
+    def lens_axis_px(self) -> tuple[float, float]:
+        """Where the lens axis meets the image (pixels): the principal point moved by w tan θL across the
+        tilt axis, c + (w / p) (n_x / n_z, n_y / n_z); OpenCV's principal point for this lens."""
+        n = np.asarray([_float(v) for v in self.lens_axis])
+        f = _float(self.focal_px)
+        cx, cy = (_float(c) for c in self.center_px)
+        return cx + f * n[0] / n[2], cy + f * n[1] / n[2]
 
     def blur_px(self, p_cam) -> np.ndarray:
         """(..., 3) camera-frame points -> (...,) blur-disc diameters, pixels: the exact thin-lens value for a lens
@@ -302,6 +346,55 @@ class Lens:
         if self.sensor is None:
             raise ValueError(f"Lens.{what}: this lens has no sensor (give Lens(..., sensor=Sensor(W, H, p)))")
         return self.sensor
+
+
+def lens_axis(theta_L, phi):
+    """(3,) the axis of a lens tilted by θL about the axis at φ (camera frame, forward): the normal of its plane,
+    (sin θL sin φ, −sin θL cos φ, cos θL); numpy for numbers, a tensor (graph kept) where either is one."""
+    if _number(theta_L) and _number(phi):
+        return np.array([math.sin(theta_L) * math.sin(phi), -math.sin(theta_L) * math.cos(phi), math.cos(theta_L)])
+    t, p = (torch.as_tensor(v, dtype=torch.float64) if _number(v) else v for v in (theta_L, phi))
+    p = p.to(t)
+    return torch.stack([torch.sin(t) * torch.sin(p), -torch.sin(t) * torch.cos(p), torch.cos(t)])
+
+
+def opencv_tilt(theta_L, phi):
+    """OpenCV's tilt angles (τx, τy) of the tilted model (CALIB_TILTED_MODEL) for a lens tilted by θL about the
+    axis at φ: R(τx, τy) = R_y(τy) R_x(τx) turns the lens frame (OpenCV's camera frame, z the lens axis n)
+    into the sensor's, so its third column is n: τx = asin(n_y), τy = atan2(−n_x, n_z). Radians; tensors keep
+    their graph. φ = 0 gives (−θL, 0)."""
+    n = lens_axis(theta_L, phi)
+    if isinstance(n, np.ndarray):
+        return math.asin(n[1]), math.atan2(-n[0], n[2])
+    return torch.asin(n[1]), torch.atan2(-n[0], n[2])
+
+
+def lens_tilt_from_opencv(tau_x: float, tau_y: float) -> tuple[float, float]:
+    """(θL, φ), radians, of OpenCV's (τx, τy) (the inverse of `opencv_tilt`): n = R(τx, τy) ẑ =
+    (−sin τy cos τx, sin τx, cos τy cos τx), θL = acos(n_z) signed and φ chosen with |φ| ≤ 90° (as
+    `Lens.focus_through` does), φ = 0 for an untilted lens."""
+    n = tilt_rotation(tau_x, tau_y)[:, 2]
+    s = math.hypot(n[0], n[1])
+    if s == 0:
+        return 0.0, 0.0
+    theta_L, phi = math.atan2(s, n[2]), math.atan2(n[0], -n[1])
+    if phi > math.pi / 2 or phi <= -math.pi / 2:  # the same axis with the opposite tilt
+        phi, theta_L = phi - math.copysign(math.pi, phi), -theta_L
+    return theta_L, phi
+
+
+def tilt_rotation(tau_x, tau_y):
+    """OpenCV's tilt rotation R(τx, τy) = R_y(τy) R_x(τx) (calib3d's computeTiltProjectionMatrix, matRotXY),
+    (3, 3): numpy for numbers, a tensor (graph kept) where either angle is one."""
+    if _number(tau_x) and _number(tau_y):
+        cx, sx, cy, sy = math.cos(tau_x), math.sin(tau_x), math.cos(tau_y), math.sin(tau_y)
+        return np.array([[cy, sy * sx, -sy * cx], [0.0, cx, sx], [sy, -cy * sx, cy * cx]])
+    tx, ty = (torch.as_tensor(v, dtype=torch.float64) if _number(v) else v for v in (tau_x, tau_y))
+    ty = ty.to(tx)
+    cx, sx, cy, sy = torch.cos(tx), torch.sin(tx), torch.cos(ty), torch.sin(ty)
+    zero = torch.zeros_like(cx)
+    return torch.stack([torch.stack([cy, sy * sx, -sy * cx]), torch.stack([zero, cx, sx]),
+                        torch.stack([sy, -cy * sx, cy * cx])])
 
 
 def tilt_frame(p_cam: torch.Tensor, phi) -> torch.Tensor:

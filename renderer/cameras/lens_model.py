@@ -17,7 +17,10 @@ direction, 0 unless freed: the camera x axis); lengths in mm (the scene unit of 
 angles in radians.
 D is the lens's Brown–Conrady distortion in OpenCV's order and normalisation
 (`renderer.cameras.distortion`, coefficients k1, k2, p1, p2, k3, k4, k5, k6; identity when all are 0), so an
-untilted camera equals `cv2.projectPoints` with K = [[w/p, 0, cx], [0, w/p, cy], [0, 0, 1]].
+untilted camera equals `cv2.projectPoints` with K = [[w/p, 0, cx], [0, w/p, cy], [0, 0, 1]]. With
+`distortion_centre="lens_axis"` D acts in the lens's own frame, about its axis (`renderer.Lens.distortion_frame`,
+`distortion.distort_about_axis`): a tilted camera then equals OpenCV's tilted model (τx, τy; see
+tiltfit/export.py); for θL = 0 it is the same model.
 
 Blur models (`blur_model`; closed forms from `renderer.optics`, all equal to eq (2) when θF = 0):
     "ellipse" (default): equivalent-area diameter 2 sqrt(ab) of the exact blur ellipse of an ideal thin lens
@@ -50,7 +53,8 @@ from ..optics import BLUR_MODELS
 from ..transforms import axis_angle_to_matrix, matrix_to_axis_angle, rotated_point_jacobian
 from .distortion import (COEFFICIENT_NAMES, MODEL_TERMS, BrownConrady, distort, distort_coefficient_jacobian,
                          distort_jacobian)
-from .lens import Lens, Sensor, tilt_frame
+from .distortion import distort_about_axis_jacobians
+from .lens import DISTORTION_CENTRES, Lens, Sensor, opencv_tilt, tilt_frame, tilt_rotation
 from .projection import project_pinhole
 from .thin_lens import ThinLensCamera
 
@@ -104,6 +108,8 @@ class LensCamera(torch.nn.Module):
         T_mm: (V, 3) translations, mm [(0, 0, 600)].
         principal_point_px: (cx, cy) [image centre]; frozen unless freed.
         blur_model: "ellipse", "first_order" or "paper" (see the module docstring).
+        distortion_centre: "sensor" (D about the principal point) or "lens_axis" (D in the lens frame, about
+            the tilted lens's axis; `renderer.Lens`) ["sensor"]; a model choice, not a parameter.
         length_scale_mm, pixel_scale_px: units of the stored translation and principal-point parameters.
 
     By default every parameter is free except the principal point.
@@ -112,8 +118,11 @@ class LensCamera(torch.nn.Module):
     def __init__(self, n_views: int, image_size_px, pixel_pitch_mm: float, w_mm: float, U_mm: float,
                  d_mm: float, theta_F: float = 0.0, R=None, T_mm=None, rvec=None, principal_point_px=None,
                  blur_model: str = "ellipse", length_scale_mm: float = 100.0, pixel_scale_px: float = 100.0,
-                 dtype=torch.float64, distortion=None, phi: float = 0.0):
+                 dtype=torch.float64, distortion=None, phi: float = 0.0, distortion_centre: str = "sensor"):
         super().__init__()
+        if distortion_centre not in DISTORTION_CENTRES:
+            raise ValueError(f"distortion_centre: expected one of {DISTORTION_CENTRES}, got {distortion_centre!r}")
+        self.distortion_centre = distortion_centre
         if blur_model not in BLUR_MODELS:
             raise ValueError(f"blur_model: expected one of {BLUR_MODELS}, got {blur_model!r}")
         for name, v in (("pixel_pitch_mm", pixel_pitch_mm), ("w_mm", w_mm), ("d_mm", d_mm)):
@@ -257,7 +266,15 @@ class LensCamera(torch.nn.Module):
         """The lens as the one lens type, of this module's tensors (w, U, d, θF, principal point, distortion:
         gradients reach the parameters through it)."""
         return Lens(self.w_mm, self.U_mm, self.d_mm, self.theta_F, self.sensor, self.principal_point_px,
-                    self.distortion, self.phi)
+                    self.distortion, self.phi, self.distortion_centre)
+
+    @property
+    def distortion_frame(self) -> torch.Tensor | None:
+        """(3, 3) camera_from_lens in which D acts (about the lens axis: OpenCV's R(τx, τy) of θL and φ,
+        `renderer.cameras.lens.opencv_tilt`), or None for the distortion about the principal point."""
+        if self.distortion_centre != "lens_axis":
+            return None
+        return tilt_rotation(*opencv_tilt(self.theta_L, self.phi))
 
     # --- the two calls -----------------------------------------------------------------------------------
     def to_camera(self, X_world: torch.Tensor, view=None) -> torch.Tensor:
@@ -282,8 +299,9 @@ class LensCamera(torch.nn.Module):
         """(..., 3) camera-frame points -> (..., 2) pixels: uv = c + (w / p) D(x / z, y / z) (`project_pinhole`).
 
         `with_distortion` False skips D (callers that know all coefficients are held at 0 save its cost)."""
-        return project_pinhole(p_cam, self.focal_px, self.principal_point_px,
-                               self.distortion if with_distortion else None)
+        if not with_distortion:
+            return project_pinhole(p_cam, self.focal_px, self.principal_point_px)
+        return project_pinhole(p_cam, self.focal_px, self.principal_point_px, self.distortion, self.distortion_frame)
 
     def blur_camera(self, p_cam: torch.Tensor) -> torch.Tensor:
         """(..., 3) camera-frame points -> (...,) blur diameters in pixels (eq (2)/(4), `blur_model`)."""
@@ -342,7 +360,11 @@ class LensCamera(torch.nn.Module):
             k = self.distortion.detach()
             F = float(self.focal_px.detach())
             dist_names = [n for n in _DIST if n in names]
-            if with_distortion:
+            axis = with_distortion and self.distortion_centre == "lens_axis"
+            if axis:  # D about the lens axis: its frame turns with θL (so w, U, θF) and φ
+                xd, J_xy, J_k, J_angles, dthL = self._lens_axis_jacobians(xn, k)
+                dxd_dp = J_xy @ dxn_dp
+            elif with_distortion:
                 xd = distort(xn, k)
                 dxd_dp = distort_jacobian(xn, k) @ dxn_dp
             else:
@@ -378,6 +400,9 @@ class LensCamera(torch.nn.Module):
                 chain = torch.stack([w, -U * U / 1000.0, APERTURE_SCALE_MM * torch.sign(self.d_scaled.detach()),
                                      torch.ones_like(w)])
                 lens = lens * chain
+                if axis:  # through θL(w, 1/U, θF) of the distortion's frame, already by the stored parameters
+                    for i, g in zip((0, 1, 3), dthL):
+                        lens[..., :2, i] += F * J_angles[0] * g
                 for i, n in enumerate(("log_w_mm", "inv_U_per_m", "d_scaled", "theta_F")):
                     if n in names:
                         jac[n] = lens[..., i:i + 1]
@@ -395,6 +420,8 @@ class LensCamera(torch.nn.Module):
                 dphi = torch.zeros(z.shape + (3, 1), dtype=dt, device=dev)
                 if with_blur:
                     dphi[..., 2, 0] = db_dphi / pitch
+                if axis:
+                    dphi[..., :2, 0] = F * J_angles[1]
                 jac["phi"] = dphi
             if "blur_offset_px" in names:
                 off = torch.zeros(z.shape + (3, 1), dtype=dt, device=dev)
@@ -403,12 +430,31 @@ class LensCamera(torch.nn.Module):
                 jac["blur_offset_px"] = off
             if dist_names:
                 dk = torch.zeros(z.shape + (3, 8), dtype=dt, device=dev)
-                if with_distortion:
+                if axis:
+                    dk[..., :2, :] = F * J_k
+                elif with_distortion:
                     dk[..., :2, :] = F * distort_coefficient_jacobian(xn, k)
                 for n in dist_names:
                     i = _DIST.index(n)
                     jac[n] = dk[..., i:i + 1]
         return uv, b, jac
+
+    def _lens_axis_jacobians(self, xn: torch.Tensor, k: torch.Tensor):
+        """D about the lens axis at ideal normalised points xn with its derivatives (no autograd): x_d, ∂x_d/∂xn,
+        ∂x_d/∂k, [∂x_d/∂θL, ∂x_d/∂φ], and ∂θL/∂(log w, 1/U in dioptres, θF) (tan θL = w tan θF u / (1 + w u),
+        u = 1/U in 1/mm: finite at focus at infinity, where θL = 0)."""
+        theta_L, phi = self.theta_L.detach(), self.phi.detach()
+        R = tilt_rotation(*opencv_tilt(theta_L, phi))
+        dR = torch.func.jacfwd(lambda a, b: tilt_rotation(*opencv_tilt(a, b)), argnums=(0, 1))(theta_L, phi)
+        xd, J_xy, J_k, J_angles = distort_about_axis_jacobians(xn, k, R, dR)
+        w, u, tF = self.w_mm.detach(), self.inv_U_per_m.detach() / 1000.0, self.theta_F.detach()
+        den = 1 + w * u
+        t = w * torch.tan(tF) * u / den
+        c = 1 / (1 + t * t)
+        dthL = (c * torch.tan(tF) * u * w / (den * den),             # by log w (∂/∂w times w)
+                c * w * torch.tan(tF) / (den * den) / 1000.0,         # by 1/U in dioptres
+                c * w * u / (den * torch.cos(tF) ** 2))               # by θF
+        return xd, J_xy, J_k, J_angles, dthL
 
     # --- rendering -----------------------------------------------------------------------------------------
     def view_camera(self, view: int) -> ThinLensCamera:
@@ -446,6 +492,7 @@ class LensCamera(torch.nn.Module):
                 "theta_L_paper_deg": math.degrees(float(self.theta_L_paper)),
                 "principal_point_px": [float(v) for v in self.principal_point_px],
                 "distortion": [float(v) for v in self.distortion],
+                "distortion_centre": self.distortion_centre,
                 "blur_offset_px": float(self.blur_offset_px),
             }
 
@@ -458,6 +505,7 @@ class LensCamera(torch.nn.Module):
         kwargs.setdefault("principal_point_px", lens.principal_point_px)
         kwargs.setdefault("distortion", lens.distortion)
         kwargs.setdefault("phi", float(lens.phi))
+        kwargs.setdefault("distortion_centre", lens.distortion_centre)
         return cls(n_views, lens.sensor.size_px, lens.sensor.pixel_pitch, float(lens.w), float(lens.U),
                    float(lens.d), float(lens.theta_F), **kwargs)
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .distortion import distort
+from .distortion import distort_about_axis
 
 
 def _as_pair(v, like):
@@ -51,7 +51,8 @@ def normalised_from_pixels(uv_px: torch.Tensor, focal_px, principal_point_px) ->
     return (uv_px - _as_pair(principal_point_px, uv_px)) / _as_pair(focal_px, uv_px)
 
 
-def project_pinhole(p_cam: torch.Tensor, focal_px, principal_point_px, distortion=None) -> torch.Tensor:
+def project_pinhole(p_cam: torch.Tensor, focal_px, principal_point_px, distortion=None,
+                    camera_from_lens=None) -> torch.Tensor:
     """(..., 3) camera-frame points -> (..., 2) pixels: uv = c + f ⊙ D(x / z, y / z).
 
     Args:
@@ -60,11 +61,13 @@ def project_pinhole(p_cam: torch.Tensor, focal_px, principal_point_px, distortio
         focal_px, principal_point_px: as in `pixels_from_normalised`.
         distortion: None (no distortion) or up to 8 Brown–Conrady coefficients (k1, k2, p1, p2, k3, k4, k5, k6)
             as a sequence or a tensor (differentiable).
+        camera_from_lens: None (the distortion about the principal point) or the (3, 3) rotation of a tilted
+            lens's frame: D applied about the lens axis (`distortion.distort_about_axis`).
     Returns:
         (..., 2) pixels. Points with z = 0 give inf/NaN; points behind the camera (z < 0) project through
         the centre like any other (callers mask them).
     """
     xy = p_cam[..., :2] / p_cam[..., 2:3]
     if distortion is not None:
-        xy = distort(xy, distortion)
+        xy = distort_about_axis(xy, distortion, camera_from_lens)
     return pixels_from_normalised(xy, focal_px, principal_point_px)

@@ -199,7 +199,9 @@ class ThinLensCamera(Camera):
     @classmethod
     def from_calibration(cls, lens: Lens, R, T) -> "ThinLensCamera":
         """The camera of a calibrated lens (tiltfit's; `LensCamera.view_camera` builds its views with it): the
-        lens's sensor of W x H pixels of pitch p at w, its principal point and distortion, pose
+        lens's sensor of W x H pixels of pitch p at w, its principal point and distortion (about the lens axis
+        where `lens.distortion_centre` says so: rays of each pixel through its ideal position, undistorted in
+        the lens frame), pose
         X_cam = R X_world + T.
 
         Args:
@@ -210,7 +212,7 @@ class ThinLensCamera(Camera):
         screen = Screen(W, H, lens.sensor.size, lens.w, lens.principal_point_px)
         cam = cls(CameraTransform.from_extrinsics(R, T), screen, lens)
         if lens.distortion is not None:
-            cam.distortion = BrownConrady(lens.distortion)
+            cam.distortion = BrownConrady(lens.distortion, lens.distortion_frame)
         return cam
 
     def lens_points(self, lens_uv: torch.Tensor) -> torch.Tensor:

@@ -164,6 +164,9 @@ def _coefficients(camera) -> dict:
     distortion = camera.distortion
     if distortion is None or distortion.is_identity:
         return {}
+    if distortion.camera_from_lens is not None:
+        raise NotImplementedError("camera.distortion about a tilted lens's axis (distortion_centre lens_axis): the "
+                                  "Mitsuba sensors distort about the principal point only")
     return {name: float(v) for name, v in zip(COEFFICIENT_NAMES, distortion.coefficients)}
 
 

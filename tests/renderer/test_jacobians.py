@@ -81,7 +81,8 @@ def test_blur_diameter_jacobian_matches_finite_differences(points_cam):
         assert _rel_err(J[:, i], fd) < 1e-6, f"∂b/∂{optics.BLUR_JACOBIAN_ARGS[i]}: {_rel_err(J[:, i], fd):.2e}"
 
 
-def _camera(distortion_model: str, blur_model: str, theta_F: float, seed: int, phi: float = 0.0) -> LensCamera:
+def _camera(distortion_model: str, blur_model: str, theta_F: float, seed: int, phi: float = 0.0,
+            centre: str = "sensor") -> LensCamera:
     gen = torch.Generator().manual_seed(seed)
     u = lambda *s: 2 * torch.rand(*s, generator=gen, dtype=F64) - 1  # noqa: E731
     V = 3
@@ -90,21 +91,26 @@ def _camera(distortion_model: str, blur_model: str, theta_F: float, seed: int, p
     terms = MODEL_TERMS[distortion_model]
     coeff = [0.05 * float(u(1)) if name in terms else 0.0 for name in COEFFICIENT_NAMES]
     cam = LensCamera(V, (1368, 912), 0.026, 55.0, 620.0, 18.0, theta_F, rvec=rvec, T_mm=T, blur_model=blur_model,
-                     principal_point_px=(690.0, 449.0), distortion=coeff, phi=phi)
+                     principal_point_px=(690.0, 449.0), distortion=coeff, phi=phi, distortion_centre=centre)
     with torch.no_grad():
         cam.blur_offset_px.fill_(0.2)
     return cam
 
 
-CASES = [(m, b, th, 0.0) for m in MODEL_TERMS for b, th in (("ellipse", 0.0), ("ellipse", 0.7), ("first_order", -0.5),
+CASES = [(m, b, th, 0.0, "sensor") for m in MODEL_TERMS for b, th in (("ellipse", 0.0), ("ellipse", 0.7), ("first_order", -0.5),
                                                            ("paper", 0.4))]
 # The tilt axis turned by φ (Lens.phi): the blur rows go through the turned frame, and ∂/∂φ is a new row.
-CASES += [("k1k2", "ellipse", 0.7, 0.9), ("opencv5", "first_order", -0.5, -2.1), ("none", "paper", 0.4, 1.3)]
+CASES += [("k1k2", "ellipse", 0.7, 0.9, "sensor"), ("opencv5", "first_order", -0.5, -2.1, "sensor"),
+          ("none", "paper", 0.4, 1.3, "sensor")]
+# The distortion about the tilted lens's axis: its frame turns with θL (w, 1/U, θF) and φ.
+CASES += [("k1k2", "ellipse", 0.7, 0.9, "lens_axis"), ("rational", "first_order", -0.5, 0.0, "lens_axis"),
+          ("opencv5", "ellipse", 0.0, 0.0, "lens_axis"), ("opencv5", "paper", 0.4, -2.1, "lens_axis")]
 
 
-@pytest.mark.parametrize("distortion_model,blur_model,theta_F,phi", CASES)
-def test_lens_camera_jacobian_matches_autograd(distortion_model, blur_model, theta_F, phi):
-    cam = _camera(distortion_model, blur_model, theta_F, seed=len(distortion_model) + int(10 * theta_F) + 20, phi=phi)
+@pytest.mark.parametrize("distortion_model,blur_model,theta_F,phi,centre", CASES)
+def test_lens_camera_jacobian_matches_autograd(distortion_model, blur_model, theta_F, phi, centre):
+    cam = _camera(distortion_model, blur_model, theta_F, seed=len(distortion_model) + int(10 * theta_F) + 20, phi=phi,
+                  centre=centre)
     X = torch.stack(torch.meshgrid(torch.linspace(-100, 100, 5, dtype=F64), torch.linspace(-60, 60, 4, dtype=F64),
                                    indexing="xy"), -1).reshape(-1, 2)
     X = torch.cat([X, torch.zeros(X.shape[0], 1, dtype=F64)], -1)
@@ -130,7 +136,8 @@ def test_lens_camera_jacobian_matches_autograd(distortion_model, blur_model, the
         scale = max(float(a.abs().max()), 1e-300)
         err = float((ours[name] - a).abs().max()) / scale
         assert err < TOL or float(a.abs().max()) == 0 and float(ours[name].abs().max()) == 0, \
-            f"∂(u, v, b)/∂{name} ({distortion_model}, {blur_model}, θF {theta_F}, φ {phi}): relative error {err:.2e}"
+            f"∂(u, v, b)/∂{name} ({distortion_model}, {blur_model}, θF {theta_F}, φ {phi}, {centre}): relative error " \
+            f"{err:.2e}"
 
 
 def test_lens_camera_jacobian_without_blur_or_distortion_has_zero_rows():

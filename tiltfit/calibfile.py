@@ -6,7 +6,9 @@ views [{image, R (3×3, camera_from_target), T_mm, rms_reprojection_px, rms_blur
 sigma {w_mm, U_mm, d_mm, theta_F_deg, theta_L_deg} (one standard deviation), runtime_s.
 
 Extras (readers must ignore keys they do not know): tilt_axis_deg (φ, the tilt axis's direction from the camera x
-axis, 0 unless the data justify turning it), fit (mode), blur_model, noise {sigma_corner_px,
+axis, 0 unless the data justify turning it), distortion_centre ("sensor": the distortion about the principal
+point; "lens_axis": about the tilted lens's own axis, in its frame, as OpenCV's tilted model; `renderer.Lens`),
+fit (mode), blur_model, noise {sigma_corner_px,
 sigma_blur_px, variance_factor}, sigma.{f_mm, theta_L_paper_deg, principal_point_px}, views[].{sigma_rvec_deg,
 sigma_T_mm}, model_selection {theta_F: {...,justified}, principal_point: {...}}, iterations, n_residuals,
 n_parameters, software.
@@ -33,6 +35,7 @@ import os
 import numpy as np
 import torch
 
+from renderer.cameras import DISTORTION_CENTRES
 from renderer.io import write_text
 from renderer.validation import describe, is_finite_number, read_json
 
@@ -147,6 +150,7 @@ def calib_dict(result, runtime_s: float | None = None, obs=None, target: dict | 
         "format_version": FORMAT_VERSION,
         "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "distortion": {"model": "brown_conrady", "coefficients": [float(c) for c in cam.distortion.detach()]},
+        "distortion_centre": cam.distortion_centre,
         "distortion_model": getattr(result, "distortion_model", "none"),
         "distortion_selection": getattr(result, "distortion_selection", []),
         "undetermined": undetermined,
@@ -240,6 +244,12 @@ def validate_calib(path: str, data) -> dict:
             raise CalibFileError(f"{path}: theta_F_deg: expected |θF| < 90, got {data['theta_F_deg']!r}")
     if data.get("tilt_axis_deg") is not None and abs(_number(path, "tilt_axis_deg", data["tilt_axis_deg"])) > 360:
         raise CalibFileError(f"{path}: tilt_axis_deg: expected an angle within ±360°, got {data['tilt_axis_deg']!r}")
+    if data.get("theta_L_deg") is not None and abs(_number(path, "theta_L_deg", data["theta_L_deg"])) >= 90:
+        raise CalibFileError(f"{path}: theta_L_deg: expected |θL| < 90, got {data['theta_L_deg']!r}")
+    centre = data.get("distortion_centre", "sensor")
+    if centre not in DISTORTION_CENTRES:
+        raise CalibFileError(f"{path}: distortion_centre: expected one of {', '.join(DISTORTION_CENTRES)}, got "
+                             f"{describe(centre)}")
     views = data.get("views", [])
     if not isinstance(views, list):
         raise CalibFileError(f"{path}: views: expected a list, got {views!r}")
@@ -348,19 +358,29 @@ def _check_extras(path: str, data: dict) -> None:
 
 
 def camera_from_calib(data: dict, blur_model: str | None = None) -> TiltLensCamera:
-    """A TiltLensCamera with the file's lens state and views (one identity view if it has none)."""
+    """A TiltLensCamera with the file's lens state and views (one identity view if it has none).
+
+    U and d the file leaves undetermined start at 600 and 10 mm; a file that gives the lens tilt θL but not θF
+    (an OpenCV tilted-model file: `tiltfit.export.read_opencv`) gets the θF of that θL at this U."""
+    from renderer import optics
+
     views = data.get("views") or []
     n = max(len(views), 1)
     R = [v["R"] for v in views] if views else None
     T = [v["T_mm"] for v in views] if views else None
     dist = (data.get("distortion") or {}).get("coefficients")
+    U = data["U_mm"] if data["U_mm"] is not None else 600.0
+    theta_F = math.radians(data.get("theta_F_deg") or 0.0)
+    if data.get("theta_F_deg") is None and data.get("theta_L_deg"):
+        theta_F = float(optics.theta_F_from_theta_L(math.radians(data["theta_L_deg"]), data["w_mm"], U))
     cam = TiltLensCamera(
         n, tuple(int(s) for s in data["image_size_px"]), data["pixel_pitch_mm"], data["w_mm"],
-        data["U_mm"] if data["U_mm"] is not None else 600.0, data["d_mm"] if data["d_mm"] is not None else 10.0,
-        math.radians(data.get("theta_F_deg") or 0.0), R=R, T_mm=T,
+        U, data["d_mm"] if data["d_mm"] is not None else 10.0,
+        theta_F, R=R, T_mm=T,
         principal_point_px=data.get("principal_point_px"),
         blur_model=blur_model or data.get("blur_model") or "ellipse", distortion=dist,
-        phi=math.radians(data.get("tilt_axis_deg") or 0.0))
+        phi=math.radians(data.get("tilt_axis_deg") or 0.0),
+        distortion_centre=data.get("distortion_centre") or "sensor")
     if isinstance(data.get("blur_offset_px"), (int, float)) and math.isfinite(data["blur_offset_px"]):
         with torch.no_grad():
             cam.blur_offset_px.fill_(float(data["blur_offset_px"]))

@@ -187,7 +187,7 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
         cam = geometry.camera.copy()
     options = replace(options, free_principal_point=free_pp)
     result = None
-    misfit = axis_test = None
+    misfit = axis_test = centre_test = None
     if blur_ok:
         result, undetermined, note = _fit_blur(cam, obs, mode, init, init_sigma, options, distortion, geometry,
                                                say)
@@ -198,7 +198,11 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
             # (Not in the tilt stage: its held stage-1 U and d misfit a tilted lens, which a free axis would
             # absorb.)
             result, axis_test = _with_tilt_axis(result, obs, mode, options, init_sigma, say)
-        # The tilt stage holds stage 1's U and d, which the lens's tilt moves (hinge rule): its residuals judge
+            # A tilted lens's distortion may be about its own axis: test that centre (and, where it is chosen, the
+            # tilt axis again: the distortion's centre then says where the lens tilts).
+            result, centre_test = _with_distortion_centre(result, obs, mode, options, init_sigma, say)
+            if centre_test is not None and centre_test["fitted"] and not axis_test.get("fitted"):
+                result, axis_test = _with_tilt_axis(result, obs, mode, options, init_sigma, say)        # The tilt stage holds stage 1's U and d, which the lens's tilt moves (hinge rule): its residuals judge
         # that approximation, not the thin-lens model.
         if result is not None and mode != "tilt":
             misfit = blur_misfit(result, obs)
@@ -259,6 +263,8 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
             result.model_selection["principal_point"] = pp_test
         if axis_test is not None:
             result.model_selection["tilt_axis"] = axis_test
+        if centre_test is not None:
+            result.model_selection["distortion_centre"] = centre_test
     if options.distortion == "auto" and result.distortion_selection:
         from .validate import HELD_OUT_TOLERANCE, describe_choice
 
@@ -336,6 +342,32 @@ def _with_tilt_axis(base: FitResult, obs: Observations, mode: str, options: FitO
     _say_test(say, "the tilt axis's direction", entry,
               f"φ = {alt.values['tilt_axis_deg']:.2f} ± {alt.sigma['tilt_axis_deg']:.2g}°" if entry["justified"]
               else "held at 0 (tilt about the camera x axis)")
+    return (alt if entry["justified"] else base), entry
+
+
+def _with_distortion_centre(base: FitResult, obs: Observations, mode: str, options: FitOptions, init_sigma,
+                            say=None):
+    """The distortion about the lens's own axis (`renderer.Lens.distortion_centre` "lens_axis": in the tilted
+    lens's frame, as OpenCV's tilted model) tested against `base`'s, about the principal point. The two models
+    have the same parameters and coincide at θL = 0, so the comparison is not nested: the lens-axis model is
+    charged one parameter (the choice of centre) in `likelihood_ratio` (χ²(1) and BIC), so it replaces `base`
+    only where its fit is better by more than one free parameter would make it by chance; on an untilted
+    lens the simpler, usual model (about the principal point) stays. Returns (fit, test entry or None where
+    there is no distortion to centre)."""
+    cam = base.camera.copy()
+    if cam.distortion_centre == "lens_axis" or not bool(cam.distortion.detach().any()):
+        return base, None
+    cam.distortion_centre = "lens_axis"
+    try:
+        alt = _fit_camera(cam, obs, replace(options, model_selection=False, progress=None), init_sigma, mode=mode)
+    except FitError as e:
+        return base, {"error": str(e), "justified": None, "fitted": False, "chosen": "sensor"}
+    entry = likelihood_ratio(base, alt, 1, options.alpha)
+    entry["theta_L_deg_full"] = alt.values["theta_L_deg"]
+    entry["fitted"] = entry["justified"]
+    entry["chosen"] = "lens_axis" if entry["justified"] else "sensor"
+    _say_test(say, "the distortion's centre (the lens axis)", entry,
+              "distortion about the lens axis" if entry["justified"] else "distortion about the principal point")
     return (alt if entry["justified"] else base), entry
 
 

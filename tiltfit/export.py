@@ -8,9 +8,22 @@ OpenCV's camera: K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx = fy = w / p 
 coefficients (k1, k2, p1, p2, k3 [, k4, k5, k6]) in the same order and normalisation as ours, and per-view
 rvec (Rodrigues of R) and tvec (mm) with X_cam = R X_target + t — the same conventions as CALIB.json, so an
 untilted calibration projects identically through `cv2.projectPoints`. What OpenCV cannot represent is said
-in the file (`tiltfit_note`): the blur (U, d) and a tilted plane of focus (θF ≠ 0) — OpenCV's tilted-sensor
-model (τx, τy) describes a tilted sensor, not a tilted lens, and is left at 0. kornia's PinholeCamera has no
-distortion: `kornia_camera` refuses a calibration with distortion unless `allow_distortion`.
+in the file (`tiltfit_note`): the blur (U, d) and the tilted plane of focus.
+
+A tilted lens whose distortion is about its own axis (CALIB.json `distortion_centre` "lens_axis") is OpenCV's
+tilted model (CALIB_TILTED_MODEL), exactly: OpenCV's camera frame is the lens frame (its z the lens axis n),
+its tilt R(τx, τy) = R_y(τy) R_x(τx) has n as third column (`renderer.cameras.lens.opencv_tilt`), and with
+the sensor w from the lens centre along our optical axis
+
+    fx = fy = w / (p cos θL)   (n_z = cos θL: the lens centre to the sensor along the lens axis),
+    (cx, cy) = our principal point + fx (R₀₂, R₁₂)   (where the lens axis meets the sensor),
+    rvec, tvec = Rᵀ R_view, Rᵀ T_view          (the pose in the lens frame),
+
+with the 14 coefficients (k1, k2, p1, p2, k3, k4, k5, k6, s1..s4 = 0, τx, τy). (OpenCV's map after the
+distortion is u = fx (R₂₂ s_x / s_z − R₀₂) + cx with s = R (x'', y'', 1): our uv = c + (w / p) s_xy / s_z.)
+`read_opencv` inverts it. A tilted lens with the distortion about the principal point is OpenCV's plain model
+(τ = 0). kornia's PinholeCamera has no distortion: `kornia_camera` refuses a calibration with distortion unless
+`allow_distortion`.
 """
 from __future__ import annotations
 
@@ -33,6 +46,35 @@ def _K(calib: dict) -> np.ndarray:
     return np.array([[F, 0.0, cx], [0.0, F, cy], [0.0, 0.0, 1.0]])
 
 
+def _tilt(calib: dict) -> tuple[float, float] | None:
+    """OpenCV's (τx, τy) of a calibration whose distortion is about a tilted lens's axis, else None."""
+    theta_L = calib.get("theta_L_deg")
+    if calib.get("distortion_centre") != "lens_axis" or not theta_L:
+        return None
+    from renderer.cameras import opencv_tilt
+
+    return opencv_tilt(math.radians(theta_L), math.radians(calib.get("tilt_axis_deg") or 0.0))
+
+
+def opencv_camera(calib: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """OpenCV's camera of a CALIB.json dict: (K (3, 3), distortion coefficients (5, 8 or 14: with τx, τy when the
+    distortion is about a tilted lens's axis), camera_from_lens (3, 3): the rotation taking a view's pose into
+    OpenCV's frame, R_cv = Rᵀ R, t_cv = Rᵀ T; the identity without τ). Module docstring for the relation."""
+    from renderer.cameras import tilt_rotation
+
+    K, dist = _K(calib), _dist(calib)
+    tau = _tilt(calib)
+    if tau is None:
+        return K, dist, np.eye(3)
+    R = tilt_rotation(*tau)
+    f = K[0, 0] / R[2, 2]
+    K = np.array([[f, 0.0, K[0, 2] + f * R[0, 2]], [0.0, f, K[1, 2] + f * R[1, 2]], [0.0, 0.0, 1.0]])
+    d = np.zeros(14)
+    d[:dist.size] = dist
+    d[12:] = tau
+    return K, d, R
+
+
 def _dist(calib: dict) -> np.ndarray:
     from renderer.cameras.distortion import BrownConrady
 
@@ -45,7 +87,19 @@ def opencv_note(calib: dict, tool: str = "OpenCV") -> str:
     cannot represent ('' if nothing)."""
     parts = []
     th = calib.get("theta_F_deg")
-    if th is not None and abs(th) > 1e-9:
+    axis = calib.get("distortion_centre") == "lens_axis" and bool(calib.get("theta_L_deg"))
+    if axis and tool == "OpenCV":
+        parts.append(f"the lens is tilted (theta_L = {calib.get('theta_L_deg'):.6g} deg about the axis at "
+                     f"{calib.get('tilt_axis_deg') or 0.0:.6g} deg) with its distortion about its own axis: OpenCV's "
+                     "tilted model (tau_x, tau_y) holds that exactly (camera frame = the lens frame, principal point "
+                     "= where the lens axis meets the sensor); the tilted plane of focus (theta_F = "
+                     f"{'unknown' if th is None else format(th, '.6g')} deg) "
+                     "and its depth of field are not represented")
+    elif axis:
+        parts.append(f"the lens is tilted (theta_L = {calib.get('theta_L_deg'):.6g} deg) and its distortion is "
+                     f"about its own axis: {tool} has no tilted model, so this distortion about the principal point "
+                     "only approximates the projection; the tilted plane of focus is not represented")
+    elif th is not None and abs(th) > 1e-9:
         parts.append(f"the lens is tilted (plane of focus tilted by theta_F = {th:.4g} deg, lens tilt theta_L = "
                      f"{calib.get('theta_L_deg')} deg): {tool} has no tilted-lens model (OpenCV's tilted-sensor "
                      "tau is a different geometry and is 0 here); the projection of corners is still exact, the "
@@ -72,9 +126,10 @@ def _format_name(path: str) -> str:
 def opencv_text(calib: dict, format_name: str = ".yml") -> str:
     """The OpenCV FileStorage text (YAML, XML or JSON by `format_name`'s extension) of a CALIB.json dict.
 
-    Nodes: camera_matrix (3×3), distortion_coefficients (1×5 or 1×8), image_width, image_height, rvecs and
-    tvecs (V×3, one row per view, tvec in mm), images (a sequence of the views' file names),
-    rms_reprojection_px (per corner, OpenCV's definition), pixel_pitch_mm, tiltfit_note.
+    Nodes: camera_matrix (3×3), distortion_coefficients (1×5 or 1×8; 1×14 with τx, τy for a tilted lens's
+    distortion about its axis: `opencv_camera`), image_width, image_height, rvecs and tvecs (V×3, one row per
+    view, tvec in mm, OpenCV's frame), images (a sequence of the views' file names), rms_reprojection_px (per
+    corner, OpenCV's definition), pixel_pitch_mm, tiltfit_note.
     """
     import cv2
 
@@ -83,12 +138,14 @@ def opencv_text(calib: dict, format_name: str = ".yml") -> str:
         W, H = calib["image_size_px"]
         fs.write("image_width", int(W))
         fs.write("image_height", int(H))
-        fs.write("camera_matrix", _K(calib))
-        fs.write("distortion_coefficients", _dist(calib).reshape(1, -1))
+        K, dist, lens_from_camera = opencv_camera(calib)
+        lens_from_camera = lens_from_camera.T
+        fs.write("camera_matrix", K)
+        fs.write("distortion_coefficients", dist.reshape(1, -1))
         views = calib.get("views") or []
         if views:
-            rv = matrix_to_axis_angle(np.array([v["R"] for v in views], dtype=np.float64)).numpy()
-            tv = np.array([v["T_mm"] for v in views], dtype=np.float64)
+            rv = matrix_to_axis_angle(lens_from_camera @ np.array([v["R"] for v in views], dtype=np.float64)).numpy()
+            tv = np.array([v["T_mm"] for v in views], dtype=np.float64) @ lens_from_camera.T
             fs.write("rvecs", rv)
             fs.write("tvecs", tv)
             fs.startWriteStruct("images", cv2.FileNode_SEQ)  # one string per view: no length limit
@@ -183,8 +240,10 @@ def read_opencv(path: str, pixel_pitch_mm: float | None = None) -> dict:
     (for `--init`).
 
     Needs camera_matrix (3×3) and image_width/image_height (integers); distortion_coefficients optional
-    (Brown–Conrady; a fisheye file is refused). fx and fy must agree within 1 % (our pixels are square;
-    their mean is used). The pixel pitch comes from the file (`pixel_pitch_mm`, written by `write_opencv`)
+    (Brown–Conrady with 4, 5, 8, 12 or 14 coefficients; thin-prism terms s1..s4 must be 0; τx, τy are read as
+    a tilted lens with its distortion about its axis, the inverse of `opencv_camera`: θL, the tilt axis,
+    w = fx p cos θL, the principal point and the poses in our frame; a fisheye file is refused). fx and fy
+    must agree within 1 % (our pixels are square; their mean is used). The pixel pitch comes from the file (`pixel_pitch_mm`, written by `write_opencv`)
     or the argument.
 
     Raises:
@@ -209,10 +268,15 @@ def read_opencv(path: str, pixel_pitch_mm: float | None = None) -> dict:
                     tuple((1, n) for n in (4, 5, 8, 12, 14)) + tuple((n, 1) for n in (4, 5, 8, 12, 14))
                     + tuple((n,) for n in (4, 5, 8, 12, 14)), required=False)
         d = [] if d is None else [float(v) for v in d.ravel()]
+        tau = (0.0, 0.0)
         if len(d) > 8:
-            if any(d[8:]):
-                raise ExportError(f"{path}: distortion_coefficients: thin-prism or tilted-sensor terms (s1..s4, "
-                                  "tau) are not supported")
+            if any(d[8:12]):
+                raise ExportError(f"{path}: distortion_coefficients: thin-prism terms (s1..s4) are not supported")
+            if len(d) == 14:
+                tau = (d[12], d[13])
+                if not all(abs(t) < math.pi / 2 for t in tau):
+                    raise ExportError(f"{path}: distortion_coefficients: tau_x, tau_y: expected tilts within "
+                                      f"±90° (radians), got {tau[0]:g}, {tau[1]:g}")
             d = d[:8]
         p_node = fs.getNode("pixel_pitch_mm")
         pitch = pixel_pitch_mm
@@ -231,17 +295,26 @@ def read_opencv(path: str, pixel_pitch_mm: float | None = None) -> dict:
     if not (fx > 0 and fy > 0) or abs(fx / fy - 1) > 0.01:
         raise ExportError(f"{path}: camera_matrix: fx = {fx:g} and fy = {fy:g} differ by more than 1 % "
                           "(tiltfit models square pixels)")
+    from renderer.cameras import lens_tilt_from_opencv, tilt_rotation
+
+    f = 0.5 * (fx + fy)
+    R = tilt_rotation(*tau)  # camera_from_lens (the identity without τ)
+    theta_L, phi = lens_tilt_from_opencv(*tau)
     out = {"pixel_pitch_mm": float(pitch), "image_size_px": size,
-           "principal_point_px": [float(K[0, 2]), float(K[1, 2])], "w_mm": 0.5 * (fx + fy) * float(pitch),
-           "U_mm": None, "d_mm": None, "theta_F_deg": 0.0,
+           "principal_point_px": [float(K[0, 2]) - f * R[0, 2], float(K[1, 2]) - f * R[1, 2]],
+           "w_mm": f * R[2, 2] * float(pitch), "U_mm": None, "d_mm": None, "theta_F_deg": 0.0,
            "distortion": {"model": "brown_conrady", "coefficients": d or [0.0]},
            "undetermined": ["U_mm", "d_mm"], "source": os.path.abspath(path)}
+    if any(tau):
+        # θF needs U, which an OpenCV file does not hold: the lens tilt θL and its axis are what it says.
+        out.update(theta_F_deg=None, theta_L_deg=math.degrees(theta_L), tilt_axis_deg=math.degrees(phi),
+                   distortion_centre="lens_axis")
     if rv is not None and tv is not None:
         rv, tv = rv.reshape(-1, 3), tv.reshape(-1, 3)
         if rv.shape[0] != tv.shape[0]:
             raise ExportError(f"{path}: rvecs, tvecs: {rv.shape[0]} and {tv.shape[0]} rows; expected one per view")
-        out["views"] = [{"R": axis_angle_to_matrix(torch.tensor(r, dtype=torch.float64)).tolist(),
-                         "T_mm": [float(x) for x in t]} for r, t in zip(rv, tv)]
+        out["views"] = [{"R": (R @ axis_angle_to_matrix(torch.tensor(r, dtype=torch.float64)).numpy()).tolist(),
+                         "T_mm": [float(x) for x in R @ t]} for r, t in zip(rv, tv)]
     return out
 
 

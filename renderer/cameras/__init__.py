@@ -7,7 +7,9 @@ Each camera module declares its parameters (`PARAMS`, a list of `renderer.params
 
 Public API (what `tiltfit` and users import from here): the camera classes, `LensCamera` (the one fitted and
 rendered camera model: pose, lens, distortion and sensor as a torch module over V views; `lens_model`),
-`project_pinhole` and its inverse (the one pinhole projection; `projection`), `concentric_disk` (lens samples
+`project_pinhole` and its inverse (the one pinhole projection; `projection`), OpenCV's tilted model's angles
+(`opencv_tilt`, `lens_tilt_from_opencv`, `tilt_rotation`: the frame of a distortion about a tilted lens's axis),
+`concentric_disk` (lens samples
 to the aperture disc) and the registry (`CAMERAS`, `build_camera`).
 """
 from __future__ import annotations
@@ -22,7 +24,8 @@ from . import inverted_perspective  # noqa: F401
 from . import thin_lens  # noqa: F401
 from . import accumulation  # noqa: F401
 
-from .lens import EOS_6D, Lens, Sensor  # noqa: F401
+from .lens import (DISTORTION_CENTRES, EOS_6D, Lens, Sensor, lens_tilt_from_opencv, opencv_tilt,  # noqa: F401
+                   tilt_rotation)
 from .lens_model import APERTURE_SCALE_MM, LensCamera, distortion_parameter_names  # noqa: F401
 from .projection import normalised_from_pixels, pixels_from_normalised, project_pinhole  # noqa: F401
 from .thin_lens import ThinLensCamera, concentric_disk  # noqa: F401

@@ -200,7 +200,8 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
             result, axis_test = _with_tilt_axis(result, obs, mode, options, init_sigma, say)
             # A tilted lens's distortion may be about its own axis: test that centre (and, where it is chosen, the
             # tilt axis again: the distortion's centre then says where the lens tilts).
-            result, centre_test = _with_distortion_centre(result, obs, mode, options, init_sigma, say)
+            if options.distortion_centre == "auto":
+                result, centre_test = _with_distortion_centre(result, obs, mode, options, init_sigma, say)
             if centre_test is not None and centre_test["fitted"] and not axis_test.get("fitted"):
                 result, axis_test = _with_tilt_axis(result, obs, mode, options, init_sigma, say)        # The tilt stage holds stage 1's U and d, which the lens's tilt moves (hinge rule): its residuals judge
         # that approximation, not the thin-lens model.

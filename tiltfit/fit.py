@@ -93,6 +93,10 @@ class FitOptions:
             is too small: on rendered captures a −0.011 px bias put stage 1's d 8–12σ off. Held at 0 when the
             depths do not straddle the plane of focus (then it is not separable from U), and in "tilt" mode,
             which holds `init`'s offset with its w, U, d (the same detector's bias, calibrated in stage 1).
+        distortion_centre: where the distortion of a tilted lens is centred: "auto" tests the lens's own axis
+            against the principal point in the joint fit (`tiltfit.calibration._with_distortion_centre`) and
+            keeps the one the data support; "sensor" holds it at the principal point (the model before the
+            lens-axis centre, and every other library's untilted one) ["auto"].
     """
 
     robust: str | None = None
@@ -115,6 +119,7 @@ class FitOptions:
     outlier_factor: float = 3.0
     blur_offset: bool = True
     uncertainties: bool = True
+    distortion_centre: str = "auto"
 
     def __post_init__(self):
         if self.robust not in ROBUST_LOSSES:
@@ -123,6 +128,8 @@ class FitOptions:
             raise ValueError(f"blur_model: expected one of {BLUR_MODELS}, got {self.blur_model!r}")
         if self.max_iterations < 1:
             raise ValueError(f"max_iterations: expected at least 1, got {self.max_iterations}")
+        if self.distortion_centre not in ("auto", "sensor"):
+            raise ValueError(f"distortion_centre: expected 'auto' or 'sensor', got {self.distortion_centre!r}")
         if self.distortion not in DISTORTION_MODELS + ("auto",):
             raise ValueError(f"distortion: expected one of {DISTORTION_MODELS + ('auto',)}, got {self.distortion!r}")
 

@@ -13,6 +13,7 @@ import json
 import os
 import sys
 
+from renderer.cameras import DISTORTION_CENTRES
 from renderer.formats import SCHEMA_DIALECT, scene_reference, scene_schema
 from renderer.validation import MAX_JSON_DEPTH
 
@@ -79,6 +80,12 @@ def calibration_reference() -> str:
         "`warnings` (e.g. that the thin-lens blur model does not describe the lens), `principal_point_fitted`, "
         "`model_selection.principal_point` (`justified`, `fitted`) and `distortion_selection` (per model: fit "
         "`rms_px`, `held_out_rms_px` or why it was `refused`, `chosen`).", "",
+        "`distortion_centre` (default `\"sensor\"`): `\"sensor\"`, the distortion about the principal point, or "
+        "`\"lens_axis\"`, about the tilted lens's own axis (applied in the lens's frame, OpenCV's tilted model: "
+        "`tiltfit export --to opencv` then writes τx, τy); the joint fit chooses it by a likelihood-ratio test "
+        "(`model_selection.distortion_centre`: `lr_statistic`, `p_value`, `delta_bic`, `justified`, `chosen`). "
+        "Checked when reading: one of " + ", ".join(f"`{c}`" for c in DISTORTION_CENTRES) + "; `theta_L_deg`, "
+        "where given, |θL| < 90 (a file with θL but no θF, as read from an OpenCV τ file, starts θF from θL).", "",
         "Checks when reading (`--init`): `pixel_pitch_mm`, `w_mm`, `U_mm`, `d_mm` positive and at most "
         f"{calibfile.MAX_LENGTH_MM:g} mm; `image_size_px` two integers 1 to {detfile.MAX_IMAGE_SIDE}; `principal_point_px` within one "
         "image size of the image; `|theta_F_deg| < 90`; each view's `R` a rotation (orthonormal, determinant +1, "

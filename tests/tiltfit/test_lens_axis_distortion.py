@@ -246,3 +246,30 @@ def test_import_of_an_opencv_tau_file_projects_as_opencv(tmp_path):
     assert worst < 0.01, f"the imported τ camera differs from OpenCV's projection by {worst:.2g} px"
     back = _cv_projection(opencv_text({**data, "U_mm": None, "d_mm": None}), X)
     assert float(np.abs(back - theirs).max()) < 0.01, "exported again, OpenCV projects the same"
+
+
+def test_rendered_rays_follow_the_lens_axis_distortion():
+    """The renderer's camera of such a lens (`ThinLensCamera.from_calibration`) traces each pixel through its
+    ideal position, undistorted in the lens frame: the chief ray of the pixel a point projects to passes through
+    that point; θL = 0 gives the same rays as the distortion about the principal point."""
+    from renderer import ThinLensCamera
+
+    lens = _camera(5.0, 30.0).lens
+    with torch.no_grad():
+        lens = Lens(float(lens.w), float(lens.U), float(lens.d), float(lens.theta_F), SENSOR,
+                    tuple(float(c) for c in lens.principal_point_px), tuple(float(k) for k in lens.distortion),
+                    float(lens.phi), "lens_axis")
+    cam = ThinLensCamera.from_calibration(lens, torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64))
+    g = np.random.default_rng(5)
+    p = np.c_[g.uniform(-200, 200, 40), g.uniform(-130, 130, 40), g.uniform(450, 800, 40)]
+    uv = torch.as_tensor(lens.project(p))
+    rays = cam.generate_rays(uv)
+    assert bool(rays.valid.all()), "every pixel has an undistorted direction"
+    d = rays.direction.numpy()
+    off = np.linalg.norm(np.cross(d, p / np.linalg.norm(p, axis=1, keepdims=True)), axis=1).max()
+    assert off < 1e-7, f"the chief rays pass through the points (sine of the angle {off:.2g}; 1e-7 is 2e-4 px)"
+    flat = lens.with_(theta_F=0.0)
+    a = ThinLensCamera.from_calibration(flat, torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64))
+    b = ThinLensCamera.from_calibration(flat.with_(distortion_centre="sensor"), torch.eye(3, dtype=torch.float64),
+                                        torch.zeros(3, dtype=torch.float64))
+    assert torch.equal(a.generate_rays(uv).direction, b.generate_rays(uv).direction), "θL = 0: the same rays"

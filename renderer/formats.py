@@ -17,12 +17,14 @@ _NUMBER = {"type": "number", "minimum": -FLOAT32_MAX, "maximum": FLOAT32_MAX}
 
 
 def _distortion_schema() -> dict:
-    from .cameras.distortion import N_COEFFICIENTS
+    from .cameras.distortion import CENTRES, N_COEFFICIENTS
 
     return {"type": ["object", "null"], "description": "lens distortion, OpenCV's order and normalisation",
             "properties": {"model": {"const": "brown_conrady"},
                            "coefficients": {"type": "array", "items": _NUMBER, "minItems": 1,
-                                            "maxItems": N_COEFFICIENTS}},
+                                            "maxItems": N_COEFFICIENTS},
+                           "centre": {"enum": list(CENTRES), "description": "sensor: about the principal point "
+                                      "[default]; lens_axis: about a thin lens's own (tilted) axis"}},
             "additionalProperties": False}
 
 
@@ -114,7 +116,9 @@ def scene_reference() -> str:
            "### `image`", "", params_table(sf.IMAGE_PARAMS), "",
            "### `camera`", "", "Every camera takes the pose keys, and an optional `distortion`: `{model: "
            "\"brown_conrady\", coefficients: [k1, k2, p1, p2, k3 (, k4, k5, k6)]}` (OpenCV's order and "
-           "normalisation):", "", params_table(POSE_PARAMS), ""]
+           "normalisation), with `centre: \"lens_axis\"` on a `thin_lens` camera applied in the tilted lens's own "
+           "frame, about its axis (OpenCV's tilted model; `centre: \"sensor\"`, the default, is about the "
+           "principal point):", "", params_table(POSE_PARAMS), ""]
     for name, (params, _) in sorted(CAMERAS.items()):
         out += [f"#### `type: {name}`", "", params_table(params), ""]
     if hasattr(sf, "ANIMATION_PARAMS"):

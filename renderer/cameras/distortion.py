@@ -46,6 +46,9 @@ MODEL_TERMS = {
     "rational": COEFFICIENT_NAMES,
 }
 MODELS = tuple(MODEL_TERMS)
+#: A distortion's centre in scene files (`camera.distortion.centre`): the principal point, or a thin lens's own
+#: axis (`renderer.Lens.distortion_centre`; the same for an untilted lens and for cameras without a lens).
+CENTRES = ("sensor", "lens_axis")
 
 
 def _padded(coefficients, like: torch.Tensor) -> torch.Tensor:
@@ -300,7 +303,8 @@ class BrownConrady:
 
 
 def distortion_from_config(path: str, cfg) -> BrownConrady | None:
-    """Parse `{model: "brown_conrady", coefficients: [...]}` (None or null: no distortion).
+    """Parse `{model: "brown_conrady", coefficients: [...], centre: "sensor"|"lens_axis"}` (None or null: no
+    distortion). The centre is the caller's to apply (`renderer.scenefile`: a thin lens's frame).
 
     Raises:
         SceneError: naming `path` and the bad field.
@@ -310,8 +314,10 @@ def distortion_from_config(path: str, cfg) -> BrownConrady | None:
     if not isinstance(cfg, dict):
         raise SceneError(f"{path}: expected an object {{model, coefficients}}, got {cfg!r}")
     for key in cfg:
-        if key not in ("model", "coefficients"):
-            raise SceneError(f"{path}.{key}: unknown key (expected one of: coefficients, model)")
+        if key not in ("model", "coefficients", "centre"):
+            raise SceneError(f"{path}.{key}: unknown key (expected one of: centre, coefficients, model)")
+    if cfg.get("centre", "sensor") not in CENTRES:
+        raise SceneError(f"{path}.centre: expected one of {', '.join(CENTRES)}, got {cfg['centre']!r}")
     model = cfg.get("model", "brown_conrady")
     if model != "brown_conrady":
         raise SceneError(f"{path}.model: expected 'brown_conrady', got {model!r}")

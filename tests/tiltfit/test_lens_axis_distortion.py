@@ -273,3 +273,38 @@ def test_rendered_rays_follow_the_lens_axis_distortion():
     b = ThinLensCamera.from_calibration(flat.with_(distortion_centre="sensor"), torch.eye(3, dtype=torch.float64),
                                         torch.zeros(3, dtype=torch.float64))
     assert torch.equal(a.generate_rays(uv).direction, b.generate_rays(uv).direction), "θL = 0: the same rays"
+
+
+def test_scene_file_thin_lens_with_distortion_about_its_axis():
+    """A scene file's `camera.distortion.centre: "lens_axis"` on a tilted thin lens: the camera projects as OpenCV's
+    tilted model of that lens (built here from the lens's axis), and every lens sample's ray at the distorted pixel
+    of a point on the plane of focus passes through it; a wrong centre is refused by name."""
+    from renderer.params import SceneError
+    from renderer.scenefile import build_scene
+
+    W, H, pitch = SENSOR.width_px, SENSOR.height_px, SENSOR.pixel_pitch
+    theta_L, phi = math.radians(5.0), math.radians(30.0)
+    cfg = {"image": {"width": W, "height": H},
+           "camera": {"type": "thin_lens", "w": W_MM, "f": F_MM, "d": D_MM, "sensor_size": [W * pitch, H * pitch],
+                      "theta_L_deg": 5.0, "tilt_axis_deg": 30.0,
+                      "distortion": {"model": "brown_conrady", "coefficients": list(DISTORTION), "centre": "lens_axis"}},
+           "objects": []}
+    cam = build_scene(cfg).camera
+    m, U = cam.lens.focus_plane()
+    g = np.random.default_rng(8)
+    xy = g.uniform(-150, 150, (12, 2))
+    p = np.c_[xy, (U - m[0] * xy[:, 0] - m[1] * xy[:, 1]) / m[2]]       # on the plane of focus
+    uv = cam.project(torch.as_tensor(p)).to(torch.float64)
+    K, dist, R = _opencv_lens(theta_L, phi)
+    ref, _ = cv2.projectPoints(p @ R, np.zeros(3), np.zeros(3), K, dist)
+    assert np.abs(uv.numpy() - ref.reshape(-1, 2)).max() < 1e-4, \
+        "the chief ray projects as OpenCV's tilted model (to the scene camera's float32 pose)"
+    lens_uv = torch.rand(12, 64, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    rays = cam.generate_rays(uv[:, None].expand(12, 64, 2), lens_uv)
+    o, d = rays.origin.to(torch.float64), rays.direction.to(torch.float64)
+    pt = torch.as_tensor(p)[:, None]
+    miss = torch.linalg.cross(pt - o, d).norm(dim=-1).max()          # distance of each ray from its point
+    assert bool(rays.valid.all()) and miss < 1e-3, f"rays meet at the point: {miss:.2g} mm"
+    bad = dict(cfg, camera=dict(cfg["camera"], distortion={"coefficients": [-0.1], "centre": "axis"}))
+    with pytest.raises(SceneError, match="camera.distortion.centre"):
+        build_scene(bad)

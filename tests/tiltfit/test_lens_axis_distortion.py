@@ -198,6 +198,16 @@ def test_exported_tau_model_projects_as_ours(theta_L_deg, phi_deg):
         ours = cam(torch.as_tensor(X), with_blur=False)[0].numpy()
     worst = float(np.abs(_cv_projection(text, X) - ours).max())
     assert worst < 0.01, f"θL {theta_L_deg}°, φ {phi_deg}°: cv2.projectPoints differs by {worst:.2g} px"
+    fs = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
+    K = fs.getNode("camera_matrix").mat()
+    fs.release()
+    with torch.no_grad():
+        axis_px = cam.lens.lens_axis_px
+    assert np.allclose(K[:2, 2], axis_px, atol=1e-9), f"OpenCV's principal point {K[:2, 2]} is where the lens " \
+        f"axis meets the sensor {axis_px}"
+    shift = math.hypot(axis_px[0] - 690.3, axis_px[1] - 450.8) * SENSOR.pixel_pitch
+    assert shift == pytest.approx(W_MM * math.tan(math.radians(abs(theta_L_deg))), rel=1e-9), \
+        "w tan θL from the principal point"
     assert "tau" in text and "not represented" in text, "the file says what OpenCV cannot hold"
 
 

@@ -21,6 +21,7 @@ from . import fit as _core
 from .fit import MODES, FitError, FitOptions, FitResult, _fit_camera, _set_free
 from .imaging import torch_threads
 from .model import Observations, TiltLensCamera, distortion_parameter_names, residuals
+from .board import describe_board, select_board, with_points
 from .selection import blur_depends_on_depth, blur_is_informative, likelihood_ratio, nested_model_tests, usable_views
 from .start import initialize, start_blur
 from .validate import select_distortion
@@ -186,6 +187,15 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
         free_pp = pp_test["fitted"] if pp_test is not None else free_pp
         cam = geometry.camera.copy()
     options = replace(options, free_principal_point=free_pp)
+    board, board_selection, board_held_out = None, [], None
+    if options.board != "flat":
+        if geometry is None:
+            geometry = fit_geometry(cam, obs, replace(options, distortion=distortion), mode, say)
+        geometry, board_selection, board_held_out = _fit_board(geometry, obs, mode, options, distortion, say)
+        board = geometry.board
+        if board.model != "flat":  # the rest of the fit sees the target as fitted
+            obs = with_points(obs, board.points())
+        cam = geometry.camera.copy()
     result = None
     misfit = axis_test = None
     if blur_ok:
@@ -230,6 +240,11 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
     if geometry is not None:
         result.distortion_selection = geometry.distortion_selection
         result.held_out = geometry.held_out  # computed with the principal point as decided (geometry only)
+    if board is not None:
+        result.board, result.board_selection = board, board_selection
+        if board.model != "flat":
+            result.held_out = board_held_out  # the distortion test's held-out error had the flat board
+            notes.append(f"board {options.board}: {describe_board(board_selection)}" + _board_line(board))
     result.free_principal_point = free_pp
     undetermined += [k for k in _out_of_range(result) if k not in undetermined]
     result.undetermined = undetermined
@@ -290,6 +305,34 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
                if blur_ok and not misfit else "")
             + f", distortion {distortion}")
     return result
+
+
+def _fit_board(geometry: FitResult, obs: Observations, mode: str, options: FitOptions, distortion: str, say=None):
+    """The target's shape as `options.board` says (`tiltfit.board`): a named model fitted, or "auto" chosen by
+    the held-out error against the flat board's fit `geometry`. Returns (geometric fit with `board` set, the
+    selection's entries, the chosen model's held-out error or None)."""
+    opts = replace(options, distortion=distortion)
+    if options.board == "auto":
+        fit, entries = select_board(geometry.camera, obs, opts, mode, say=say, folds=options.held_out_folds,
+                                    flat=geometry)
+        held = next((e.get("held_out") for e in entries if e.get("chosen")), None)
+    else:
+        fit, entries = select_board(geometry.camera, obs, opts, mode, models=(options.board,), say=say)
+        held = None
+    fit.distortion_selection = geometry.distortion_selection
+    fit.held_out = geometry.held_out
+    return fit, entries, held
+
+
+def _board_line(board) -> str:
+    """', sag ... ± ...' of a fitted board for the notes (values rounded to their σ)."""
+    from .report import with_sigma
+
+    s = board.summary()
+    if board.model == "warp" and "sigma" in s:
+        return ": " + ", ".join(f"{k} {with_sigma(s['parameters'][k], s['sigma'][k])}" for k in s["parameters"])
+    return (f": points moved up to {s['max_offset_in_plane_mm']:.2g} mm in the board's plane and "
+            f"{s['max_offset_out_of_plane_mm']:.2g} mm out of it")
 
 
 def sharp_line(lens, R, T, extent_mm) -> list | None:

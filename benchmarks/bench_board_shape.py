@@ -136,10 +136,12 @@ def write_markdown(path: str, res: dict) -> None:
          "Held-out RMS: the other half's views predicted with camera and board held, only their poses fitted "
          "(OpenCV's solvePnP + LM for every method), per corner.", "",
          "## industrial_ds1 (15 views with all 160 corners, halves of 8 and 7 views)", "",
-         "| calibrate → score | method | board | RMS (px) | held-out RMS (px) | f (px) | cx (px) | cy (px) | CPU (s) |",
+         "| calibrate → score | method | board | RMS (px) | held-out RMS (px) | f (px) | cx (px) | cy (px) "
+         "| CPU (s) |",
          "|---|---|---|---|---|---|---|---|---|"]
     for r in res["industrial"]:
-        L.append(f"| {r['calibrate']} → {r['score']} | {r['method']} | {r.get('board', 'free' if 'RO' in r['method'] else 'flat')} | "
+        board = r.get("board", "free" if "RO" in r["method"] else "flat")
+        L.append(f"| {r['calibrate']} → {r['score']} | {r['method']} | {board} | "
                  f"{r['rms_px']:.4f} | {r['held_out_rms_px']:.4f} | {r['f_px']:.1f} | {r['cx_px']:.1f} | "
                  f"{r['cy_px']:.1f} | {r['cpu_s']:.1f} |")
     ratios = []

@@ -107,7 +107,8 @@ class Board:
         elif model == "free":
             pts = torch.as_tensor(entry["points_mm"], dtype=torch.float64)
             if pts.shape != b.nominal_mm.shape:
-                raise ValueError(f"board.points_mm: expected {tuple(b.nominal_mm.shape)} points, got {tuple(pts.shape)}")
+                raise ValueError(f"board.points_mm: expected {tuple(b.nominal_mm.shape)} points, "
+                                 f"got {tuple(pts.shape)}")
             b.params = (pts - b.nominal_mm).reshape(-1)[_free_index(b.nominal_mm)]
         return b
 

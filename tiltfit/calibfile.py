@@ -25,7 +25,7 @@ Since the board-shape work: `board` (the target as fitted, `tiltfit.board.Board.
 or "free"; for warp `parameters` {sag_x_mm, sag_y_mm, scale_y_minus_1} and their `sigma`; for free
 `points_mm` and `sigma_points_mm`; `max_offset_in_plane_mm`, `max_offset_out_of_plane_mm`), `board_selection`
 (per model: fit `rms_px`, `held_out_rms_px`, `chosen`) and, with a fitted shape, per view
-`residuals_flat_board_px` (the same camera with the target file's flat points).
+`residuals_flat_board_px` (the same lens with the target file's flat points, each view's pose refitted).
 
 Numbers that are not finite (e.g. the blur RMS of a view without blur widths) are written as null.
 The file is written atomically (temporary file in the same folder, then renamed).
@@ -86,10 +86,21 @@ def _per_view_data(result, obs) -> list:
     cam = result.camera
     board = getattr(result, "board", None)
     flat = None
+    if board is not None and board.model != "flat":
+        # The same lens with the target file's flat points, each view's pose refitted to them: what the fitted
+        # shape explains (the points' offsets include a gauge, a similarity that the poses absorb).
+        from .fit import FitError
+        from .validate import predict_views
+
+        try:
+            nominal = with_points(obs, board.nominal_mm)
+            flat_cam = predict_views(cam, nominal).camera
+            with torch.no_grad():
+                flat = residuals(flat_cam, nominal).corners_px
+        except FitError:
+            flat = None
+        obs = with_points(obs, board.points())
     with torch.no_grad():
-        if board is not None and board.model != "flat":
-            flat = residuals(cam, with_points(obs, board.nominal_mm)).corners_px
-            obs = with_points(obs, board.points())
         r = residuals(cam, obs)
         depth = cam.to_camera(obs.points_mm)[..., 2]
     out = []

@@ -331,8 +331,10 @@ def _board_line(board) -> str:
     s = board.summary()
     if board.model == "warp" and "sigma" in s:
         return ": " + ", ".join(f"{k} {with_sigma(s['parameters'][k], s['sigma'][k])}" for k in s["parameters"])
+    spread = (f" (median σ of a point's coordinates {float(board.sigma.median()):.2g} mm)"
+              if board.sigma is not None and len(board.sigma) else "")
     return (f": points moved up to {s['max_offset_in_plane_mm']:.2g} mm in the board's plane and "
-            f"{s['max_offset_out_of_plane_mm']:.2g} mm out of it")
+            f"{s['max_offset_out_of_plane_mm']:.2g} mm out of it{spread}")
 
 
 def sharp_line(lens, R, T, extent_mm) -> list | None:

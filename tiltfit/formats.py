@@ -88,7 +88,7 @@ def calibration_reference() -> str:
         "the gauge, as OpenCV's calibrateCameraRO), `max_offset_in_plane_mm`, `max_offset_out_of_plane_mm`; "
         "`board_selection` (per model: fit `rms_px`, K-fold `held_out_rms_px`, `chosen`: a richer model is chosen "
         "where it predicts held-out views better than every simpler one by 1 %), and per view "
-        "`residuals_flat_board_px` (the same camera with the flat points). Checked where present when reading; "
+        "`residuals_flat_board_px` (the same lens with the flat points, each view's pose refitted). Checked where present when reading; "
         "`--init` and `tiltfit export` use the camera and ignore the board.", "",
         "Checks when reading (`--init`): `pixel_pitch_mm`, `w_mm`, `U_mm`, `d_mm` positive and at most "
         f"{calibfile.MAX_LENGTH_MM:g} mm; `image_size_px` two integers 1 to {detfile.MAX_IMAGE_SIDE}; `principal_point_px` within one "

@@ -148,7 +148,8 @@ def _write_plots(calib: dict, views: list, out_dir: str) -> list:
                         f"with {what}"), "residual_vectors.png")
     if fitted_board:
         save(_vector_figure(plt, C, E_flat, names, out, (W, H), scale,
-                            f"Residual vectors, ×{scale:.0f}, with the target file's flat board (same camera)"),
+                            f"Residual vectors, ×{scale:.0f}, with the target file's flat board (same lens, poses "
+                            f"refitted)"),
              "residual_vectors_flat_board.png")
 
     # Histogram.

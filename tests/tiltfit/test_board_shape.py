@@ -14,8 +14,8 @@ import pytest
 import torch
 
 from tiltfit import cli
-from tiltfit.board import WARP_PARAMETERS, Board, fit_board, select_board, with_points
-from tiltfit.calibfile import calib_dict, read_calib, validate_calib
+from tiltfit.board import WARP_PARAMETERS, Board, fit_board
+from tiltfit.calibfile import calib_dict, camera_from_calib, read_calib
 from tiltfit.calibration import calibrate
 from tiltfit.fit import FitOptions, without_blur
 from tiltfit.model import Observations, board_points_mm
@@ -109,6 +109,7 @@ def test_fitted_board_has_sigma_and_survives_the_file(industrial, tmp_path):
     path = tmp_path / "calib.json"
     path.write_text(json.dumps(data))
     back = read_calib(str(path))
+    assert camera_from_calib(back).n_views == train.n_views, "the file starts another fit (--init)"
     again = Board.from_summary(train.points_mm, back["board"])
     assert torch.allclose(again.points(), b.points(), atol=1e-4), "the file's board points are the fitted ones"
     v0 = back["views"][0]

@@ -192,6 +192,7 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
         if geometry is None:
             geometry = fit_geometry(cam, obs, replace(options, distortion=distortion), mode, say)
         geometry, board_selection, board_held_out = _fit_board(geometry, obs, mode, options, distortion, say)
+        distortion = geometry.distortion_model
         board = geometry.board
         if board.model != "flat":  # the rest of the fit sees the target as fitted
             obs = with_points(obs, board.points())
@@ -321,7 +322,40 @@ def _fit_board(geometry: FitResult, obs: Observations, mode: str, options: FitOp
         held = None
     fit.distortion_selection = geometry.distortion_selection
     fit.held_out = geometry.held_out
+    fit.distortion_model = distortion
+    if options.distortion == "auto" and fit.board.model != "flat":
+        fit, held = _redistort(fit, obs, mode, opts, held, say)
     return fit, entries, held
+
+
+def _redistort(fit: FitResult, obs: Observations, mode: str, options: FitOptions, held, say=None):
+    """The distortion model chosen again with the board as fitted (a flat board's misfit had asked for terms the
+    fitted shape explains): `select_distortion` on the fitted points; where it changes the model, the board is
+    refitted with it and its held-out error recomputed. Returns (fit, held-out dict)."""
+    from .board import fit_board, held_out_rms
+
+    board = fit.board
+    try:
+        sel = select_distortion(fit.camera, with_points(obs, board.points()), options, mode, None,
+                                folds=options.held_out_folds)
+    except FitError:
+        return fit, held
+    new = sel.distortion_model
+    if new == fit.distortion_model:
+        fit.distortion_selection = sel.distortion_selection
+        return fit, held
+    opts = replace(options, distortion=new)
+    try:
+        refit = fit_board(sel.camera, obs, opts, board.model, mode, board=board)
+        held = held_out_rms(obs, replace(opts, progress=None, model_selection=False), board.model,
+                            options.held_out_folds, start=refit.camera, mode=mode)
+    except FitError:
+        return fit, held
+    if say:
+        say(f"distortion chosen again with the board as fitted: {new} (was {fit.distortion_model}); held-out "
+            f"{held['rms_px']:.4f} px per corner")
+    refit.distortion_model, refit.distortion_selection, refit.held_out = new, sel.distortion_selection, fit.held_out
+    return refit, held
 
 
 def _board_line(board) -> str:

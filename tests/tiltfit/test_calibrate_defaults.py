@@ -127,8 +127,11 @@ def test_auto_distortion_says_what_and_why(gopro):
     assert "folds back" in sel["rational"].get("refused", ""), \
         f"the rational fit folds before its outermost corner: {sel['rational']}"
     board = next(e for e in data["board_selection"] if e["chosen"])  # chosen after the distortion (tiltfit.board)
-    expected = sel[chosen[0]]["held_out_rms_px"] if board["model"] == "flat" else board["held_out_rms_px"]
-    assert data["held_out"]["rms_px"] == pytest.approx(expected), "held-out written"
+    if board["model"] == "flat":
+        assert data["held_out"]["rms_px"] == pytest.approx(sel[chosen[0]]["held_out_rms_px"]), "held-out written"
+    else:  # the distortion chosen again with the fitted board: its held-out error, no worse than the board test's
+        assert data["held_out"]["rms_px"] <= 1.01 * board["held_out_rms_px"], \
+            f"held-out written {data['held_out']['rms_px']:.4f} px, board selection {data['board_selection']}"
     ms = data["model_selection"]["distortion"]
     assert ms["chosen"] == chosen[0] and "held-out" in ms["criterion"] and chosen[0] in ms["why"], ms
 

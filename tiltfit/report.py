@@ -52,6 +52,11 @@ def coverage_fraction(corners_per_view, image_size_px, cell_px: int = COVERAGE_C
         corners_per_view: list of (N, 2) corner positions (px; NaN rows ignored), one per view.
         image_size_px: (W, H).
     """
+    return float(coverage_mask(corners_per_view, image_size_px, cell_px).mean())
+
+
+def coverage_mask(corners_per_view, image_size_px, cell_px: int = COVERAGE_CELL_PX) -> np.ndarray:
+    """(ceil(H / cell_px), ceil(W / cell_px)) uint8: 1 in cells inside some view's board (`coverage_fraction`)."""
     import cv2
 
     W, H = (int(v) for v in image_size_px)
@@ -65,7 +70,7 @@ def coverage_fraction(corners_per_view, image_size_px, cell_px: int = COVERAGE_C
         # pixel centres at integers: the image spans [-0.5, W - 0.5]; cell k covers [k, k + 1) · cell_px
         hull = cv2.convexHull(np.round((c + 0.5) / cell_px * 16).astype(np.int32))
         cv2.fillConvexPoly(mask, hull, 1, lineType=cv2.LINE_8, shift=4)
-    return float(mask.mean())
+    return mask
 
 
 def _short(name: str, n: int = 16) -> str:
@@ -192,7 +197,13 @@ def _write_plots(calib: dict, views: list, out_dir: str) -> list:
     ax.set_xlim(0, W)
     ax.set_ylim(H, 0)
     ax.set_aspect("equal")
-    covered = coverage_fraction(C, (W, H))
+    mask = coverage_mask(C, (W, H))
+    covered = float(mask.mean())
+    cell = COVERAGE_CELL_PX
+    ax.imshow(mask, cmap="Greys", vmin=0, vmax=4, interpolation="nearest",
+              extent=(-0.5, mask.shape[1] * cell - 0.5, mask.shape[0] * cell - 0.5, -0.5))
+    ax.set_xlim(-0.5, W - 0.5)
+    ax.set_ylim(H - 0.5, -0.5)
     ax.set_title(f"Corners of all views (colour = view); {100 * covered:.0f} % of the image inside a view's board",
                  fontsize=9)
     save(fig, "coverage.png")

@@ -245,7 +245,8 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
         result.board, result.board_selection = board, board_selection
         if board.model != "flat":
             result.held_out = board_held_out  # the distortion test's held-out error had the flat board
-            notes.append(f"board {options.board}: {describe_board(board_selection)}" + _board_line(board))
+            head = f"board auto: {describe_board(board_selection)}" if options.board == "auto" else f"board {board.model}"
+            notes.append(head + _board_line(board))
     result.free_principal_point = free_pp
     undetermined += [k for k in _out_of_range(result) if k not in undetermined]
     result.undetermined = undetermined

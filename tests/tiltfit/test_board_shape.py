@@ -212,3 +212,29 @@ def test_coverage_counts_a_bare_border():
     allc = np.concatenate(grid_views(80, 80, W - 80, H - 80))
     cells = {(int(x / W * 8), int(y / H * 6)) for x, y in allc}
     assert len(cells) == 48, "the old grid count calls this full coverage"
+
+
+def test_cli_board_option_writes_the_shape_with_sigma(tmp_path, capsys):
+    """`tiltfit calibrate --board warp` on DET files of a sagging board (projected by OpenCV): CALIB.json holds
+    the warp with σ and stderr says it in one line, numbers rounded to their σ."""
+    nominal = board_points_mm(16, 10, 15.0, centred=False)
+    obs = projected(Board(nominal, "warp", torch.tensor([0.5, 0.0, 0.0])).points().numpy(), seed=4)
+    target = tmp_path / "target.json"
+    target.write_text(json.dumps({"type": "checkerboard", "units": "mm", "x_edges": [15.0 * i for i in range(-1, 17)],
+                                  "y_edges": [15.0 * i for i in range(-1, 11)], "margin": 5}))
+    dets = []
+    for v in range(obs.n_views):
+        p = tmp_path / f"v{v}.json"
+        p.write_text(json.dumps({"image_size_px": list(obs.image_size_px), "corners_px": obs.corners_px[v].tolist(),
+                                 "blur_px": [None] * obs.corners_px.shape[1], "grid_found": True}))
+        dets.append(str(p))
+    out = tmp_path / "calib.json"
+    rc = cli.main(["calibrate", *dets, "--target", str(target), "--pixel-pitch-mm", "0.005", "--board", "warp",
+                   "--distortion", "k1k2", "--held-out", "0", "-q", "-o", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    board = json.loads(out.read_text())["board"]
+    sag, s = board["parameters"]["sag_x_mm"], board["sigma"]["sag_x_mm"]
+    assert board["model"] == "warp" and abs(sag - 0.5) < 3 * s and 0 < s < 0.05, board
+    line = next((x for x in err.splitlines() if "board warp:" in x), "")
+    assert f"sag_x_mm {with_sigma(sag, s)}" in line, f"stderr: {err}"

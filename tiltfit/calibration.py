@@ -189,14 +189,14 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
     options = replace(options, free_principal_point=free_pp)
     board, board_selection, board_held_out = None, [], None
     if options.board != "flat":
-        if geometry is None:
-            geometry = fit_geometry(cam, obs, replace(options, distortion=distortion), mode, say)
-        geometry, board_selection, board_held_out = _fit_board(geometry, obs, mode, options, distortion, say)
-        distortion = geometry.distortion_model
-        board = geometry.board
-        if board.model != "flat":  # the rest of the fit sees the target as fitted
+        base = geometry if geometry is not None else fit_geometry(cam, obs, replace(options, distortion=distortion),
+                                                                    mode, say)
+        fitted, board_selection, board_held_out = _fit_board(base, obs, mode, options, distortion, say)
+        board = fitted.board
+        if board.model != "flat":  # the rest of the fit sees the target as fitted; a flat board changes nothing
+            geometry, distortion = fitted, fitted.distortion_model
             obs = with_points(obs, board.points())
-        cam = geometry.camera.copy()
+            cam = geometry.camera.copy()
     result = None
     misfit = axis_test = None
     if blur_ok:

@@ -38,6 +38,7 @@ import torch
 
 from renderer.cameras.distortion import MODELS as DISTORTION_MODELS
 
+from .board import BOARD_MODELS
 from .model import (APERTURE_SCALE_MM, BLUR_MODELS, ROBUST_LOSSES, Observations, TiltLensCamera,
                     distortion_parameter_names, residuals, robust_rho, robust_weight)
 from .solve import Block, LMOptions, LMResult, SolverError
@@ -127,8 +128,8 @@ class FitOptions:
             raise ValueError(f"blur_model: expected one of {BLUR_MODELS}, got {self.blur_model!r}")
         if self.max_iterations < 1:
             raise ValueError(f"max_iterations: expected at least 1, got {self.max_iterations}")
-        if self.board not in ("flat", "warp", "free", "auto"):
-            raise ValueError(f"board: expected one of flat, warp, free, auto, got {self.board!r}")
+        if self.board not in BOARD_MODELS + ("auto",):
+            raise ValueError(f"board: expected one of {BOARD_MODELS + ('auto',)}, got {self.board!r}")
         if self.distortion not in DISTORTION_MODELS + ("auto",):
             raise ValueError(f"distortion: expected one of {DISTORTION_MODELS + ('auto',)}, got {self.distortion!r}")
 

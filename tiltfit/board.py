@@ -36,6 +36,9 @@ WARP_PARAMETERS = ("sag_x_mm", "sag_y_mm", "scale_y_minus_1")
 #: A richer board model must predict held-out views better than the simpler one by this fraction to be chosen:
 #: K-fold held-out errors on a few dozen views scatter by about 1 % (`tiltfit.validate.HELD_OUT_TOLERANCE`).
 BOARD_TOLERANCE = 0.01
+#: The board's Jacobian block is dense (V·N·3 rows by K parameters, a few copies of it in the solve): the free
+#: model (K ≈ 3N) is not tried beyond this many entries (1.6e8 bytes a copy; 20 views of 160 points: 4.5e6).
+MAX_BOARD_JACOBIAN_ENTRIES = 2e7
 
 
 class Board:
@@ -158,7 +161,7 @@ def with_points(obs: Observations, points_mm) -> Observations:
     return out
 
 
-def held_out_rms(obs: Observations, options, model: str, folds: int = 5, start=None, mode: str = "unified") -> dict:
+def held_out_rms(obs: Observations, options, model: str, folds: int = 5, start=None) -> dict:
     """K-fold held-out reprojection RMS (px per corner) of a geometric calibration that fits the board as `model`:
     each fold fits lens and board on the other views, then only the poses of its own views with both held
     (`tiltfit.validate.held_out_rms` with a board). Returns that function's dict plus the model."""
@@ -185,7 +188,9 @@ def select_board(camera, obs: Observations, options, mode: str = "unified", mode
     Each model in `models` is fitted on all views (distortion as `options.distortion` names it, principal point
     free when `options.free_principal_point` is True) and scored by its K-fold held-out error
     (`held_out_rms`): a richer model is chosen only where it predicts the held-out views better than every
-    simpler one by more than `BOARD_TOLERANCE`. With fewer than 3 views no richer model is tried.
+    simpler one by more than `BOARD_TOLERANCE`. With fewer than 3 views no held-out error is computed (and the
+    flat board is kept when it is among `models`); a model whose dense Jacobian block would exceed
+    `MAX_BOARD_JACOBIAN_ENTRIES` is refused.
 
     Args:
         camera: the starting camera (e.g. the flat geometric fit's).
@@ -196,14 +201,18 @@ def select_board(camera, obs: Observations, options, mode: str = "unified", mode
     """
     from .fit import FitError
 
-    obs_geo = obs
     entries, fits = [], {}
     quiet = replace(options, progress=None, model_selection=False)
     for m in models:
         entry = {"model": m, "n_params": Board(obs.points_mm, m).n_params}
         entries.append(entry)
+        size = obs.n_views * obs.points_mm.shape[0] * 3 * entry["n_params"]
+        if size > MAX_BOARD_JACOBIAN_ENTRIES:
+            entry["refused"] = (f"not fitted ({obs.n_views} views × {obs.points_mm.shape[0]} points × "
+                                f"{entry['n_params']} parameters: a dense block of {size:.2g} entries)")
+            continue
         try:
-            fit = flat if (m == "flat" and flat is not None) else fit_board(camera.copy(), obs_geo, quiet, m, mode)
+            fit = flat if (m == "flat" and flat is not None) else fit_board(camera.copy(), obs, quiet, m, mode)
             if fit.board is None:
                 fit.board = Board(obs.points_mm, "flat")
         except (FitError, ValueError) as e:
@@ -214,8 +223,8 @@ def select_board(camera, obs: Observations, options, mode: str = "unified", mode
         if obs.n_views >= 3 and len(models) > 1:
             try:
                 reuse = m == "flat" and flat is not None and (flat.held_out or {}).get("folds") == folds
-                entry["held_out"] = flat.held_out if reuse else held_out_rms(obs_geo, quiet, m, folds,
-                                                                             start=fit.camera, mode=mode)
+                entry["held_out"] = flat.held_out if reuse else held_out_rms(obs, quiet, m, folds,
+                                                                             start=fit.camera)
                 entry["held_out_rms_px"] = entry["held_out"]["rms_px"]
             except FitError as e:
                 entry["refused"] = f"held-out error not computed ({e})"

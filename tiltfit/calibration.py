@@ -349,7 +349,7 @@ def _redistort(fit: FitResult, obs: Observations, mode: str, options: FitOptions
     try:
         refit = fit_board(sel.camera, obs, opts, board.model, mode, board=board)
         held = held_out_rms(obs, replace(opts, progress=None, model_selection=False), board.model,
-                            options.held_out_folds, start=refit.camera, mode=mode)
+                            options.held_out_folds, start=refit.camera)
     except FitError:
         return fit, held
     if say:

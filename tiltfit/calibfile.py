@@ -23,6 +23,12 @@ corner as OpenCV's calibrateCamera: sqrt(mean(dx² + dy²)), like every reprojec
 detected), `blur_px`, `blur_residuals_px`, `depth_mm` (camera-frame z of each feature point) and `outlier`
 — what `tiltfit report` draws.
 
+Since the board-shape work: `board` (the target as fitted, `tiltfit.board.Board.summary`: `model` "flat", "warp"
+or "free"; for warp `parameters` {sag_x_mm, sag_y_mm, scale_y_minus_1} and their `sigma`; for free
+`points_mm` and `sigma_points_mm`; `max_offset_in_plane_mm`, `max_offset_out_of_plane_mm`), `board_selection`
+(per model: fit `rms_px`, `held_out_rms_px`, `chosen`) and, with a fitted shape, per view
+`residuals_flat_board_px` (the same lens with the target file's flat points, each view's pose refitted).
+
 Numbers that are not finite (e.g. the blur RMS of a view without blur widths) are written as null.
 The file is written atomically (temporary file in the same folder, then renamed).
 """
@@ -76,8 +82,27 @@ def _clean(v):
 
 
 def _per_view_data(result, obs) -> list:
-    """Per-view corners, residuals, blur and depths for the report (lists aligned with the feature points)."""
+    """Per-view corners, residuals, blur and depths for the report (lists aligned with the feature points);
+    with a fitted board, residuals of its points and, beside them, of the target file's flat points."""
+    from .board import with_points
+
     cam = result.camera
+    board = getattr(result, "board", None)
+    flat = None
+    if board is not None and board.model != "flat":
+        # The same lens with the target file's flat points, each view's pose refitted to them: what the fitted
+        # shape explains (the points' offsets include a gauge, a similarity that the poses absorb).
+        from .fit import FitError
+        from .validate import predict_views
+
+        try:
+            nominal = with_points(obs, board.nominal_mm)
+            flat_cam = predict_views(cam, nominal).camera
+            with torch.no_grad():
+                flat = residuals(flat_cam, nominal).corners_px
+        except FitError:
+            flat = None
+        obs = with_points(obs, board.points())
     with torch.no_grad():
         r = residuals(cam, obs)
         depth = cam.to_camera(obs.points_mm)[..., 2]
@@ -91,6 +116,8 @@ def _per_view_data(result, obs) -> list:
             "blur_residuals_px": [e if ok else None for e, ok in zip(r.blur_px[v].tolist(), bm)],
             "depth_mm": depth[v].tolist(),
         })
+        if flat is not None:
+            out[-1]["residuals_flat_board_px"] = [e if ok else None for e, ok in zip(flat[v].tolist(), cm)]
     return out
 
 
@@ -167,6 +194,11 @@ def calib_dict(result, runtime_s: float | None = None, obs=None, target: dict | 
         out["target"] = target
     if held_out is not None:
         out["held_out"] = held_out
+    board = getattr(result, "board", None)
+    if board is not None:
+        out["board"] = board.summary()
+        out["board_selection"] = [{k: e[k] for k in e if k != "held_out"}
+                                  for e in getattr(result, "board_selection", []) or []]
     if obs is not None:
         for view, extra in zip(out["views"], _per_view_data(result, obs)):
             view.update(extra)
@@ -340,6 +372,7 @@ def _check_extras(path: str, data: dict) -> None:
     for key in ("distortion_model", "fit", "blur_model"):
         if data.get(key) is not None and not isinstance(data[key], str):
             raise CalibFileError(f"{path}: {key}: expected a name, got {describe(data[key])}")
+    _check_board(path, data.get("board"))
     first = None
     for i, view in enumerate(views):
         if not isinstance(view.get("image", ""), str):
@@ -352,9 +385,43 @@ def _check_extras(path: str, data: dict) -> None:
         if not isinstance(view.get("outlier", False), bool):
             raise CalibFileError(f"{path}: views[{i}].outlier: expected true or false, got {describe(view['outlier'])}")
         for key, width in (("corners_px", 2), ("residuals_px", 2), ("blur_px", 1), ("blur_residuals_px", 1),
-                           ("depth_mm", 1)):
+                           ("depth_mm", 1), ("residuals_flat_board_px", 2)):
             if view.get(key) is not None:
                 first = _point_list(path, f"views[{i}].{key}", view[key], width, first)
+
+
+def _check_board(path: str, board) -> None:
+    """The `board` entry (`tiltfit.board.Board.summary`), where present: a known model, finite parameters and
+    σ, and for the free model one [X, Y, Z] per point."""
+    from .board import BOARD_MODELS, WARP_PARAMETERS
+
+    if board is None:
+        return
+    if not isinstance(board, dict):
+        raise CalibFileError(f"{path}: board: expected an object or null, got {describe(board)}")
+    model = board.get("model")
+    if model not in BOARD_MODELS:
+        raise CalibFileError(f"{path}: board.model: expected one of {', '.join(BOARD_MODELS)}, got {describe(model)}")
+    for key in ("max_offset_in_plane_mm", "max_offset_out_of_plane_mm"):
+        _optional_number(path, f"board.{key}", board.get(key), nonnegative=True)
+    if model == "warp":
+        for group in ("parameters", "sigma"):
+            entry = board.get(group)
+            if entry is None and group == "sigma":
+                continue
+            if not isinstance(entry, dict):
+                raise CalibFileError(f"{path}: board.{group}: expected an object, got {describe(entry)}")
+            for k in WARP_PARAMETERS:
+                if k not in entry and group == "parameters":
+                    raise CalibFileError(f"{path}: board.{group}.{k}: missing key")
+                _optional_number(path, f"board.{group}.{k}", entry.get(k), nonnegative=group == "sigma")
+    if model == "free":
+        if not isinstance(board.get("points_mm"), list):
+            raise CalibFileError(f"{path}: board.points_mm: expected a list of [X, Y, Z], got "
+                                 f"{describe(board.get('points_mm'))}")
+        for key in ("points_mm", "sigma_points_mm"):
+            if board.get(key) is not None:
+                _point_list(path, f"board.{key}", board[key], 3)
 
 
 def camera_from_calib(data: dict, blur_model: str | None = None) -> TiltLensCamera:

@@ -21,6 +21,7 @@ from . import fit as _core
 from .fit import MODES, FitError, FitOptions, FitResult, _fit_camera, _set_free
 from .imaging import torch_threads
 from .model import Observations, TiltLensCamera, distortion_parameter_names, residuals
+from .board import describe_board, select_board, with_points
 from .selection import blur_depends_on_depth, blur_is_informative, likelihood_ratio, nested_model_tests, usable_views
 from .start import initialize, start_blur
 from .validate import select_distortion
@@ -186,6 +187,16 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
         free_pp = pp_test["fitted"] if pp_test is not None else free_pp
         cam = geometry.camera.copy()
     options = replace(options, free_principal_point=free_pp)
+    board, board_selection, board_held_out = None, [], None
+    if options.board != "flat":
+        base = geometry if geometry is not None else fit_geometry(cam, obs, replace(options, distortion=distortion),
+                                                                    mode, say)
+        fitted, board_selection, board_held_out = _fit_board(base, obs, mode, options, distortion, say)
+        board = fitted.board
+        if board.model != "flat":  # the rest of the fit sees the target as fitted; a flat board changes nothing
+            geometry, distortion = fitted, fitted.distortion_model
+            obs = with_points(obs, board.points())
+            cam = geometry.camera.copy()
     result = None
     misfit = axis_test = centre_test = None
     if blur_ok:
@@ -235,6 +246,12 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
     if geometry is not None:
         result.distortion_selection = geometry.distortion_selection
         result.held_out = geometry.held_out  # computed with the principal point as decided (geometry only)
+    if board is not None:
+        result.board, result.board_selection = board, board_selection
+        if board.model != "flat":
+            result.held_out = board_held_out  # the distortion test's held-out error had the flat board
+            head = f"board auto: {describe_board(board_selection)}" if options.board == "auto" else f"board {board.model}"
+            notes.append(head + _board_line(board))
     result.free_principal_point = free_pp
     undetermined += [k for k in _out_of_range(result) if k not in undetermined]
     result.undetermined = undetermined
@@ -297,6 +314,69 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
                if blur_ok and not misfit else "")
             + f", distortion {distortion}")
     return result
+
+
+def _fit_board(geometry: FitResult, obs: Observations, mode: str, options: FitOptions, distortion: str, say=None):
+    """The target's shape as `options.board` says (`tiltfit.board`): a named model fitted, or "auto" chosen by
+    the held-out error against the flat board's fit `geometry`. Returns (geometric fit with `board` set, the
+    selection's entries, the chosen model's held-out error or None)."""
+    opts = replace(options, distortion=distortion)
+    if options.board == "auto":
+        fit, entries = select_board(geometry.camera, obs, opts, mode, say=say, folds=options.held_out_folds,
+                                    flat=geometry)
+        held = next((e.get("held_out") for e in entries if e.get("chosen")), None)
+    else:
+        fit, entries = select_board(geometry.camera, obs, opts, mode, models=(options.board,), say=say)
+        held = None
+    fit.distortion_selection = geometry.distortion_selection
+    fit.held_out = geometry.held_out
+    fit.distortion_model = distortion
+    if options.distortion == "auto" and fit.board.model != "flat":
+        fit, held = _redistort(fit, obs, mode, opts, held, say)
+    return fit, entries, held
+
+
+def _redistort(fit: FitResult, obs: Observations, mode: str, options: FitOptions, held, say=None):
+    """The distortion model chosen again with the board as fitted (a flat board's misfit had asked for terms the
+    fitted shape explains): `select_distortion` on the fitted points; where it changes the model, the board is
+    refitted with it and its held-out error recomputed. Returns (fit, held-out dict)."""
+    from .board import fit_board, held_out_rms
+
+    board = fit.board
+    try:
+        sel = select_distortion(fit.camera, with_points(obs, board.points()), options, mode, None,
+                                folds=options.held_out_folds)
+    except FitError:
+        return fit, held
+    new = sel.distortion_model
+    if new == fit.distortion_model:
+        fit.distortion_selection = sel.distortion_selection
+        return fit, held
+    opts = replace(options, distortion=new)
+    try:
+        refit = fit_board(sel.camera, obs, opts, board.model, mode, board=board)
+        held = held_out_rms(obs, replace(opts, progress=None, model_selection=False), board.model,
+                            options.held_out_folds, start=refit.camera)
+    except FitError:
+        return fit, held
+    if say:
+        say(f"distortion chosen again with the board as fitted: {new} (was {fit.distortion_model}); held-out "
+            f"{held['rms_px']:.4f} px per corner")
+    refit.distortion_model, refit.distortion_selection, refit.held_out = new, sel.distortion_selection, fit.held_out
+    return refit, held
+
+
+def _board_line(board) -> str:
+    """', sag ... ± ...' of a fitted board for the notes (values rounded to their σ)."""
+    from .report import with_sigma
+
+    s = board.summary()
+    if board.model == "warp" and "sigma" in s:
+        return ": " + ", ".join(f"{k} {with_sigma(s['parameters'][k], s['sigma'][k])}" for k in s["parameters"])
+    spread = (f" (median σ of a point's coordinates {float(board.sigma.median()):.2g} mm)"
+              if board.sigma is not None and len(board.sigma) else "")
+    return (f": points moved up to {s['max_offset_in_plane_mm']:.2g} mm in the board's plane and "
+            f"{s['max_offset_out_of_plane_mm']:.2g} mm out of it{spread}")
 
 
 def sharp_line(lens, R, T, extent_mm) -> list | None:

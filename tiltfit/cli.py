@@ -308,7 +308,8 @@ def cmd_calibrate(args) -> int:
                          held_out_folds=args.held_out or FitOptions.held_out_folds,
                          blur_model=blur_model, nominal_focal_mm=args.focal_mm,
                          max_iterations=args.max_iterations, model_selection=not args.no_model_selection,
-                         progress=say, distortion=args.distortion, distortion_centre=args.distortion_centre)
+                         progress=say, distortion=args.distortion, distortion_centre=args.distortion_centre,
+                         board=args.board)
     label = args.inputs[0] if len(args.inputs) == 1 else f"{args.inputs[0]} (+{len(args.inputs) - 1} more)"
     try:
         result, used, held_out = fit_with_held_out(obs, args.fit, init=init, options=options, init_sigma=init_sigma,
@@ -506,6 +507,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="where a tilted lens's distortion is centred: auto tests its own axis against the "
                         "principal point in the joint fit (CALIB.json distortion_centre); sensor holds it at the "
                         "principal point [auto]")
+    p.add_argument("--board", choices=("auto", "flat", "warp", "free"), default="auto",
+                   help="the target's shape: flat (the target file's points), warp (sag along X and Y and the "
+                        "print scale along Y), free (every point, as OpenCV's calibrateCameraRO), or auto (the "
+                        "simplest the K-fold held-out error supports) [auto]")
     p.add_argument("--refine", choices=("none", "photometric"), default="none",
                    help="photometric: after the corner-and-blur fit, fit the photos' pixels by rendering the "
                         "target (analysis by synthesis; needs the images, not DET files) [none]")

@@ -38,6 +38,7 @@ import torch
 
 from renderer.cameras.distortion import MODELS as DISTORTION_MODELS
 
+from .board import BOARD_MODELS
 from .model import (APERTURE_SCALE_MM, BLUR_MODELS, ROBUST_LOSSES, Observations, TiltLensCamera,
                     distortion_parameter_names, residuals, robust_rho, robust_weight)
 from .solve import Block, LMOptions, LMResult, SolverError
@@ -97,6 +98,9 @@ class FitOptions:
             against the principal point in the joint fit (`tiltfit.calibration._with_distortion_centre`) and
             keeps the one the data support; "sensor" holds it at the principal point (the model before the
             lens-axis centre, and every other library's untilted one) ["auto"].
+        board: the target's shape (`tiltfit.board.BOARD_MODELS`): "flat" (the target file's points as they are),
+            "warp" (sag and print scale), "free" (every point, OpenCV's release-object method) or "auto" (the
+            simplest the held-out views support, `tiltfit.board.select_board`) ["flat"].
     """
 
     robust: str | None = None
@@ -120,6 +124,7 @@ class FitOptions:
     blur_offset: bool = True
     uncertainties: bool = True
     distortion_centre: str = "auto"
+    board: str = "flat"
 
     def __post_init__(self):
         if self.robust not in ROBUST_LOSSES:
@@ -130,6 +135,8 @@ class FitOptions:
             raise ValueError(f"max_iterations: expected at least 1, got {self.max_iterations}")
         if self.distortion_centre not in ("auto", "sensor"):
             raise ValueError(f"distortion_centre: expected 'auto' or 'sensor', got {self.distortion_centre!r}")
+        if self.board not in BOARD_MODELS + ("auto",):
+            raise ValueError(f"board: expected one of {BOARD_MODELS + ('auto',)}, got {self.board!r}")
         if self.distortion not in DISTORTION_MODELS + ("auto",):
             raise ValueError(f"distortion: expected one of {DISTORTION_MODELS + ('auto',)}, got {self.distortion!r}")
 
@@ -161,6 +168,8 @@ class FitResult:
         held_out: the K-fold held-out error of the chosen distortion model with the final principal-point state
             when the selection computed it (`tiltfit.validate.held_out_rms`), else None.
         free_principal_point: whether the principal point was fitted.
+        board: the target's fitted shape (`tiltfit.board.Board`; None: the target file's points as they are);
+            board_selection: the held-out test that chose its model (`tiltfit.board.select_board`'s entries).
     """
 
     mode: str
@@ -186,6 +195,8 @@ class FitResult:
     warnings: list = field(default_factory=list)
     held_out: dict | None = None
     free_principal_point: bool = False
+    board: object = None
+    board_selection: list = field(default_factory=list)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -198,18 +209,26 @@ class _Problem:
     Residuals, flat: corners (V·N·2, pixels) then blur widths (V·N, pixels; none when no width was measured),
     model − observation, 0 where unobserved, each divided by its group's σ (`scale`). Parameters: the camera's free stored parameters by
     name (`LensCamera.named_parameters` order); the poses (`rvec`, `T_scaled`) are per-view blocks. The
-    Jacobian is the camera's closed form (`LensCamera.jacobian`).
+    Jacobian is the camera's closed form (`LensCamera.jacobian`). With a `board` (`tiltfit.board.Board`) that
+    has parameters, the target points are the board's and its parameters are one more global block, "board"
+    (∂uv/∂θ = ∂uv/∂p_cam · R_v · ∂X/∂θ).
     """
 
     POSE = ("rvec", "T_scaled")
+    BOARD = "board"
 
-    def __init__(self, camera: TiltLensCamera, obs: Observations, names: list[str] | None = None):
+    def __init__(self, camera: TiltLensCamera, obs: Observations, names: list[str] | None = None, board=None):
         self.camera = camera
         self.obs = obs
+        self.board = board if board is not None and board.n_params > 0 else None
         self.names = names if names is not None else camera.free_parameter_names()
+        if self.board is not None and self.BOARD not in self.names:
+            self.names = list(self.names) + [self.BOARD]
         if not self.names:
             raise FitError("no free parameters to fit")
         params = dict(camera.named_parameters())
+        if self.board is not None:
+            params[self.BOARD] = self.board.params
         self.shapes = [params[n].shape for n in self.names]
         self.held = {n: p.detach() for n, p in params.items() if n not in self.names}
         # columns per parameter in a residual row (a pose's: its own view's 3)
@@ -217,7 +236,7 @@ class _Problem:
         self.work = camera.copy().requires_grad_(False)  # evaluated at trial parameters, never autograd
         self._work_params = dict(self.work.named_parameters())
         self._overridden = set()  # held parameters `_load` replaced (restored on the next call)
-        self.points = obs.points_mm.to(torch.float64)
+        self.points = obs.points_mm.to(torch.float64) if self.board is None else self.board.points()
         self.cmask = obs.corner_mask
         self.bmask = obs.blur_mask
         self.corners = torch.nan_to_num(obs.corners_px)
@@ -244,6 +263,8 @@ class _Problem:
 
     def x0(self) -> dict:
         params = dict(self.camera.named_parameters())
+        if self.board is not None:
+            params[self.BOARD] = self.board.params
         return {n: params[n].detach().to(torch.float64).clone() for n in self.names}
 
     def params(self, x: dict, held: dict | None = None) -> dict:
@@ -257,6 +278,9 @@ class _Problem:
                 wp[n].copy_(self.held[n])
             self._overridden = set()
             for n, v in x.items():
+                if n == self.BOARD:
+                    self.points = self.board.points(v)
+                    continue
                 wp[n].copy_(v)
             for n, v in (held or {}).items():
                 if n not in x:
@@ -287,8 +311,15 @@ class _Problem:
     def _raw_jacobian_matrix(self, x: dict, names, held: dict | None = None):
         """((M, Σ sizes) derivatives of `raw` by the named parameters side by side, raw(x))."""
         self._load(x, held)
+        cam_names = [n for n in names if n != self.BOARD]
+        if self.BOARD in names and "T_scaled" not in cam_names:
+            cam_names.append("T_scaled")  # ∂/∂p_cam, for the board's chain rule
         uv, b, jac = self.work.jacobian(self.points, with_blur=self.n_blur > 0, with_distortion=self.with_distortion,
-                                        names=names)
+                                        names=cam_names)
+        if self.BOARD in names:
+            d_pcam = jac["T_scaled"] / self.work.length_scale_mm                # (V, N, 3, 3) ∂(u, v, b)/∂p_cam
+            d_world = d_pcam @ self.work.R.detach()[:, None]                    # ∂/∂X_world
+            jac[self.BOARD] = torch.einsum("vnij,njk->vnik", d_world, self.board.basis)
         j = torch.cat([jac[n] for n in names], -1)                          # (V, N, 3, P)
         jc = torch.where(self.cmask[..., None, None], j[..., :2, :], 0.0).reshape(-1, j.shape[-1])
         if not self.blur_rows_kept:
@@ -319,6 +350,9 @@ class _Problem:
         with torch.no_grad():
             params = dict(self.camera.named_parameters())
             for n, v in x.items():
+                if n == self.BOARD:
+                    self.board.params = v.detach().clone()
+                    continue
                 params[n].copy_(v)
 
 
@@ -365,13 +399,13 @@ def _group_sigma(prob: _Problem, r_raw: torch.Tensor, normal, robust: str | None
     return out[0], out[1]
 
 
-def _solve(camera: TiltLensCamera, obs: Observations, options: FitOptions, sigma=None, say=None):
+def _solve(camera: TiltLensCamera, obs: Observations, options: FitOptions, sigma=None, say=None, board=None):
     """Fit the camera's free parameters in place; returns (problem, LM result, σ_corner, σ_blur).
 
     Unless both σ are given, alternates solving with re-estimating them until they change by less than
     0.1 % (at most `noise_iterations` re-estimations), then solves once more with the final σ if needed.
     """
-    prob = _Problem(camera, obs)
+    prob = _Problem(camera, obs, board=board)
     sc = options.sigma_corner_px or (sigma[0] if sigma else 1.0)
     sb = options.sigma_blur_px or (sigma[1] if sigma else 1.0)
     estimate = options.sigma_corner_px is None or options.sigma_blur_px is None
@@ -488,6 +522,9 @@ def _uncertainties(prob: _Problem, res: LMResult, scale: torch.Tensor, init_sigm
         sigma["inv_U_per_m"] = sd[offsets["inv_U_per_m"][0]]
     if "blur_offset_px" in offsets:
         sigma["blur_offset_px"] = sd[offsets["blur_offset_px"][0]]
+    if _Problem.BOARD in offsets:
+        o, k = offsets[_Problem.BOARD]
+        sigma["board"] = sd[o:o + k]
     for v in range(cam.n_views):
         entry = {}
         if "rvec" in offsets:
@@ -517,9 +554,15 @@ def _group_rss(prob: _Problem, res: LMResult, scale: torch.Tensor) -> dict:
 
 
 def _fit_camera(camera: TiltLensCamera, obs: Observations, options: FitOptions, init_sigma=None, say=None,
-                sigma=None, mode: str = "joint"):
+                sigma=None, mode: str = "joint", board=None):
+    """Fit the camera's free parameters (and `board`'s, a `tiltfit.board.Board`, if given: fitted in place and
+    kept in the result's `board`, the observations then seen as its points)."""
     t0 = time.perf_counter()
-    prob, res, sc, sb = _solve(camera, obs, options, sigma, say)
+    prob, res, sc, sb = _solve(camera, obs, options, sigma, say, board)
+    if board is not None:
+        from .board import with_points
+
+        obs = with_points(obs, board.points())
     scale = prob.scale(sc, sb)
     if options.uncertainties:
         C, sig, view_sig, s2 = _uncertainties(prob, res, scale, init_sigma)
@@ -548,7 +591,16 @@ def _fit_camera(camera: TiltLensCamera, obs: Observations, options: FitOptions, 
         noise={"sigma_corner_px": sc, "sigma_blur_px": sb, "variance_factor": s2},
         parameter_names=res.layout.flat_names(), covariance=C, chi2=2.0 * res.cost,
         n_residuals=prob.n_corner + prob.n_blur, n_parameters=res.x_flat.numel(), iterations=res.iterations,
-        runtime_s=time.perf_counter() - t0, rss=_group_rss(prob, res, scale))
+        runtime_s=time.perf_counter() - t0, rss=_group_rss(prob, res, scale), board=_fitted_board(board, sig))
+
+
+def _fitted_board(board, sigma: dict):
+    """The fitted board with its parameters' σ (None without a board)."""
+    if board is None:
+        return None
+    if board.n_params and "board" in sigma:
+        board.sigma = torch.tensor(sigma["board"], dtype=torch.float64)
+    return board
 
 
 def without_blur(obs: Observations) -> Observations:
@@ -576,12 +628,13 @@ def _set_free_geometry(camera: TiltLensCamera, mode: str, free_pp: bool, distort
 
 
 def fit_geometry(camera: TiltLensCamera, obs: Observations, options: FitOptions, mode: str = "unified",
-                 say=None, hold_distortion: bool = False) -> FitResult:
+                 say=None, hold_distortion: bool = False, board=None) -> FitResult:
     """Fit w (unless `mode` is "tilt"), the poses, the principal point if `options.free_principal_point` is
     True and the distortion on the corners alone (blur widths ignored; U, d, θF held).
 
     `options.distortion` names the terms to free (the others are set to 0, except with `hold_distortion`, which
     keeps the camera's coefficients fixed as they are); "auto" is `tiltfit.calibration.fit_geometry`'s.
+    `board` (a `tiltfit.board.Board`) is fitted beside the camera, starting from its parameters.
     """
     if options.distortion == "auto" and not hold_distortion:
         raise ValueError("distortion: auto is chosen by held-out error in tiltfit.calibration.fit_geometry; "
@@ -589,6 +642,6 @@ def fit_geometry(camera: TiltLensCamera, obs: Observations, options: FitOptions,
     quiet = replace(options, model_selection=False, progress=None)
     cam = camera.copy()
     _set_free_geometry(cam, mode, bool(options.free_principal_point), None if hold_distortion else options.distortion)
-    fit = _fit_camera(cam, without_blur(obs), quiet, mode=mode)
+    fit = _fit_camera(cam, without_blur(obs), quiet, mode=mode, board=board)
     fit.distortion_model = "none" if hold_distortion else options.distortion
     return fit

@@ -86,6 +86,17 @@ def calibration_reference() -> str:
         "(`model_selection.distortion_centre`: `lr_statistic`, `p_value`, `delta_bic`, `justified`, `chosen`). "
         "Checked when reading: one of " + ", ".join(f"`{c}`" for c in DISTORTION_CENTRES) + "; `theta_L_deg`, "
         "where given, |θL| < 90 (a file with θL but no θF, as read from an OpenCV τ file, starts θF from θL).", "",
+        "The target as fitted (`--board auto|flat|warp|free`, `tiltfit.board`): `board` with `model` (`flat`: the "
+        "target file's points; `warp`: `parameters` `sag_x_mm`, `sag_y_mm` (the board's bow out of its plane at its "
+        "centre relative to its edges, along X and along Y, mm, +Z of the target frame) and `scale_y_minus_1` (the "
+        "print scale along Y relative to X; the scale along X is the target file's, since no corner fit sees the "
+        "board's overall size), with their `sigma`; `free`: every point's `points_mm` [X, Y, Z] and "
+        "`sigma_points_mm`, the first point, the last point of the first row and the Z of the last point held as "
+        "the gauge, as OpenCV's calibrateCameraRO), `max_offset_in_plane_mm`, `max_offset_out_of_plane_mm`; "
+        "`board_selection` (per model: fit `rms_px`, K-fold `held_out_rms_px`, `chosen`: a richer model is chosen "
+        "where it predicts held-out views better than every simpler one by 1 %), and per view "
+        "`residuals_flat_board_px` (the same lens with the flat points, each view's pose refitted). Checked where present when reading; "
+        "`--init` and `tiltfit export` use the camera and ignore the board.", "",
         "Checks when reading (`--init`): `pixel_pitch_mm`, `w_mm`, `U_mm`, `d_mm` positive and at most "
         f"{calibfile.MAX_LENGTH_MM:g} mm; `image_size_px` two integers 1 to {detfile.MAX_IMAGE_SIDE}; `principal_point_px` within one "
         "image size of the image; `|theta_F_deg| < 90`; each view's `R` a rotation (orthonormal, determinant +1, "

@@ -78,7 +78,8 @@ def fit_with_held_out(obs: Observations, mode: str = "unified", init=None, optio
             with torch_threads(1):  # small tensors, as in `calibrate`
                 held_out = result.held_out if (result.held_out or {}).get("folds") == held_out_folds else \
                     held_out_rms(used, replace(options, free_principal_point=result.free_principal_point),
-                                 folds=held_out_folds, distortion=result.distortion_model, start=result.camera)
+                                 folds=held_out_folds, distortion=result.distortion_model, start=result.camera,
+                                 board=result.board.model if result.board is not None else None)
             if say:
                 fit_rms = math.sqrt(result.rss["corners"] / max(result.rss["n_corners"] // 2, 1))
                 say(f"reprojection RMS {fit_rms:.4f} px per corner (fit), {held_out['rms_px']:.4f} px (held out, "
@@ -147,7 +148,7 @@ def calibrate_photos(photos, target, pixel_pitch_mm: float, mode: str = "unified
     if not isinstance(target, Target):
         target = load_target(os.fspath(target))
     obs = observations_from_photos(list(photos), target, pixel_pitch_mm, encoding, say)
-    options = options or FitOptions(distortion="auto", progress=say)  # as `tiltfit calibrate`'s defaults
+    options = options or FitOptions(distortion="auto", board="auto", progress=say)  # `tiltfit calibrate`'s defaults
     result, used, held_out = fit_with_held_out(obs, mode, options=options, held_out_folds=held_out_folds, say=say)
     result.skipped = list(obs.skipped) + list(result.skipped)
     data = calib_dict(result, runtime_s=time.perf_counter() - t0, obs=used, target=target.to_dict(),

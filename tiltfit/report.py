@@ -8,10 +8,13 @@ written by `tiltfit calibrate`). Files:
                             board shows up here first)
     residual_vectors.png    each view's residual vectors on the image (exaggerated): a pattern that repeats
                             across views (radial, one corner) is model error; random directions are noise
+    residual_vectors_flat_board.png  the same with the target file's flat board instead of the fitted one
+                            (only when the calibration fitted the board's shape: what that shape explains)
     residual_histogram.png  x and y residuals with the Gaussian of the fitted σ: heavy tails mean outliers
     blur_vs_depth.png       blur residual against depth (a trend means the focus or blur model is off)
-    coverage.png            where in the image the corners fell: empty regions (corners) leave the
-                            distortion there extrapolated
+    coverage.png            where in the image the corners fell, and the share of the image inside the union
+                            of the views' boards (`coverage_fraction`): empty regions (corners, a bare
+                            border) leave the distortion there extrapolated
     report.md               the numbers: RMS, held-out error, per-view table, undetermined and skipped
 """
 from __future__ import annotations
@@ -20,6 +23,59 @@ import math
 import os
 
 import numpy as np
+
+
+def with_sigma(value: float, sigma: float | None) -> str:
+    """"value ± σ" with σ to 2 significant digits and the value rounded to the same decimal place
+    (3041.27 ± 1.314 -> "3041.3 ± 1.3"); the value to 4 significant digits when σ is unknown or 0."""
+    if sigma is None or not math.isfinite(sigma) or sigma <= 0:
+        return f"{value:.4g}"
+    if not math.isfinite(value):
+        return f"{value} ± {sigma:.2g}"
+    place = math.floor(math.log10(sigma)) - 1          # the decimal place of σ's second significant digit
+    decimals = max(-place, 0)
+    q = 10.0 ** place
+    v, sg = round(value / q) * q, round(sigma / q) * q
+    return f"{v:.{decimals}f} ± {sg:.{decimals}f}"
+
+
+#: Cell size (px) of the raster that `coverage_fraction` measures the union of the views' boards on.
+COVERAGE_CELL_PX = 4
+
+
+def coverage_fraction(corners_per_view, image_size_px, cell_px: int = COVERAGE_CELL_PX) -> float:
+    """Share of the image (0–1) inside at least one view's board: the union of the convex hulls of each
+    view's detected corners, rasterised on cells of `cell_px` pixels. A board that never reaches the border
+    leaves the border bare, and the share says so (an 80 px bare border of a 1280×1024 image: 74 %).
+
+    Args:
+        corners_per_view: list of (N, 2) corner positions (px; NaN rows ignored), one per view.
+        image_size_px: (W, H).
+    """
+    return float(coverage_mask(corners_per_view, image_size_px, cell_px).mean())
+
+
+def coverage_mask(corners_per_view, image_size_px, cell_px: int = COVERAGE_CELL_PX) -> np.ndarray:
+    """(ceil(H / cell_px), ceil(W / cell_px)) uint8: 1 in cells inside some view's board (`coverage_fraction`)."""
+    import cv2
+
+    W, H = (int(v) for v in image_size_px)
+    gw, gh = max(1, math.ceil(W / cell_px)), max(1, math.ceil(H / cell_px))
+    mask = np.zeros((gh, gw), np.uint8)
+    for c in corners_per_view:
+        c = np.asarray(c, dtype=np.float64).reshape(-1, 2)
+        c = c[np.isfinite(c).all(1)]
+        if len(c) < 3:
+            continue
+        # pixel centres at integers: the image spans [-0.5, W - 0.5]; cell k covers [k, k + 1) · cell_px
+        hull = cv2.convexHull(np.round((c + 0.5) / cell_px * 16).astype(np.int32))
+        cv2.fillConvexPoly(mask, hull, 1, lineType=cv2.LINE_8, shift=4)
+    return mask
+
+
+def _short(name: str, n: int = 16) -> str:
+    """A file name cut to n characters in the middle (titles of small panels)."""
+    return name if len(name) <= n else name[: n // 2 - 1] + "…" + name[-(n - n // 2):]
 
 
 def _views(calib: dict) -> list:
@@ -82,29 +138,24 @@ def _write_plots(calib: dict, views: list, out_dir: str) -> list:
     ax.legend()
     save(fig, "per_view_rms.png")
 
-    # Residual vectors per view.
+    # Residual vectors per view: with the board as fitted, and (when its shape was fitted) with the flat board.
     n = len(views)
-    cols = int(math.ceil(math.sqrt(n * 4 / 3)))
-    rows = int(math.ceil(n / cols))
     allE = np.concatenate([e[np.isfinite(e).all(1)] for e in E]) if n else np.zeros((0, 2))
-    typical = float(np.percentile(np.hypot(allE[:, 0], allE[:, 1]), 90)) if len(allE) else 1.0
+    board = calib.get("board") or {}
+    E_flat = [_arr(v.get("residuals_flat_board_px", []), 2) for v in views]
+    fitted_board = board.get("model", "flat") != "flat" and all(len(e) for e in E_flat)
+    # One arrow scale for both figures, so that they compare: that of the larger (flat-board) residuals.
+    ref = np.concatenate([e[np.isfinite(e).all(1)] for e in E_flat]) if fitted_board else allE
+    typical = float(np.percentile(np.hypot(ref[:, 0], ref[:, 1]), 90)) if len(ref) else 1.0
     scale = 0.05 * max(W, H) / max(typical, 1e-9)
-    fig, axes = plt.subplots(rows, cols, figsize=(2.0 * cols, 1.6 * rows), squeeze=False)
-    for i, ax in enumerate(axes.ravel()):
-        ax.set_xticks([])
-        ax.set_yticks([])
-        if i >= n:
-            ax.axis("off")
-            continue
-        ok = np.isfinite(C[i]).all(1) & np.isfinite(E[i]).all(1)
-        ax.quiver(C[i][ok, 0], C[i][ok, 1], E[i][ok, 0] * scale, E[i][ok, 1] * scale, angles="xy",
-                  scale_units="xy", scale=1, width=0.006, color="tab:red" if out[i] else "tab:blue")
-        ax.set_xlim(0, W)
-        ax.set_ylim(H, 0)
-        ax.set_aspect("equal")
-        ax.set_title(f"{names[i]} {rms[i]:.2f}px", fontsize=6)
-    fig.suptitle(f"Residual vectors (model − detected), ×{scale:.0f}", fontsize=9)
-    save(fig, "residual_vectors.png")
+    what = f"the board as fitted ({board.get('model')})" if fitted_board else "the target file's board"
+    save(_vector_figure(plt, C, E, names, out, (W, H), scale, f"Residual vectors (model − detected), ×{scale:.0f}, "
+                        f"with {what}"), "residual_vectors.png")
+    if fitted_board:
+        save(_vector_figure(plt, C, E_flat, names, out, (W, H), scale,
+                            f"Residual vectors, ×{scale:.0f}, with the target file's flat board (same lens, poses "
+                            f"refitted)"),
+             "residual_vectors_flat_board.png")
 
     # Histogram.
     fig, ax = plt.subplots(figsize=(6, 3.5))
@@ -146,11 +197,14 @@ def _write_plots(calib: dict, views: list, out_dir: str) -> list:
     ax.set_xlim(0, W)
     ax.set_ylim(H, 0)
     ax.set_aspect("equal")
-    allC = np.concatenate([c[np.isfinite(c).all(1)] for c in C]) if n else np.zeros((0, 2))
-    gx = np.clip((allC[:, 0] / W * 8).astype(int), 0, 7)
-    gy = np.clip((allC[:, 1] / H * 6).astype(int), 0, 5)
-    covered = len(set(zip(gx.tolist(), gy.tolist()))) / 48.0
-    ax.set_title(f"Corners of all views (colour = view); {100 * covered:.0f} % of an 8×6 grid of the image covered",
+    mask = coverage_mask(C, (W, H))
+    covered = float(mask.mean())
+    cell = COVERAGE_CELL_PX
+    ax.imshow(mask, cmap="Greys", vmin=0, vmax=4, interpolation="nearest",
+              extent=(-0.5, mask.shape[1] * cell - 0.5, mask.shape[0] * cell - 0.5, -0.5))
+    ax.set_xlim(-0.5, W - 0.5)
+    ax.set_ylim(H - 0.5, -0.5)
+    ax.set_title(f"Corners of all views (colour = view); {100 * covered:.0f} % of the image inside a view's board",
                  fontsize=9)
     save(fig, "coverage.png")
 
@@ -160,12 +214,19 @@ def _write_plots(calib: dict, views: list, out_dir: str) -> list:
     ho = calib.get("held_out") or {}
     lines.append(f"- reprojection RMS (per corner, as OpenCV): {rms_all if rms_all is None else f'{rms_all:.4f}'} px"
                  + (f"; held out ({ho.get('folds')}-fold): {ho['rms_px']:.4f} px" if ho.get("rms_px") else ""))
-    F = calib["w_mm"] / calib["pixel_pitch_mm"]
-    lines.append(f"- focal length {F:.2f} px, principal point {calib.get('principal_point_px')}, distortion "
-                 f"{calib.get('distortion_model', 'none')}: {(calib.get('distortion') or {}).get('coefficients')}")
+    p = calib["pixel_pitch_mm"]
+    F = calib["w_mm"] / p
+    sig = calib.get("sigma") or {}
+    sF = sig.get("w_mm") / p if sig.get("w_mm") is not None else None
+    pp, spp = calib.get("principal_point_px") or [math.nan, math.nan], sig.get("principal_point_px") or [None, None]
+    lines.append(f"- focal length {with_sigma(F, sF)} px, principal point ({with_sigma(pp[0], spp[0])}, "
+                 f"{with_sigma(pp[1], spp[1])}) px, distortion {calib.get('distortion_model', 'none')}: "
+                 f"{_rounded_list((calib.get('distortion') or {}).get('coefficients'), sig.get('distortion'))}")
+    if board:
+        lines.append(f"- board: {_board_text(board)}")
     lines.append(f"- undetermined: {calib.get('undetermined') or 'none'}; skipped: "
                  f"{[s.get('image') for s in calib.get('skipped') or []] or 'none'}")
-    lines.append(f"- image coverage (8×6 cells with a corner): {100 * covered:.0f} %")
+    lines.append(f"- image coverage (share of the image inside a view's board): {100 * covered:.0f} %")
     for note in calib.get("notes") or []:
         lines.append(f"- note: {note}")
     lines += ["", "| view | RMS (px) | corners | outlier |", "|---|---|---|---|"]
@@ -178,3 +239,52 @@ def _write_plots(calib: dict, views: list, out_dir: str) -> list:
         f.write("\n".join(lines) + "\n")
     files.append("report.md")
     return files
+
+
+def _vector_figure(plt, C, E, names, out, size, scale, title):
+    """One panel per view of residual vectors ×`scale`; titles in two short lines so that neighbours do not
+    overlap."""
+    W, H = size
+    n = len(C)
+    cols = max(1, int(math.ceil(math.sqrt(n * 4 / 3))))
+    rows = max(1, int(math.ceil(n / cols)))
+    fig, axes = plt.subplots(rows, cols, figsize=(2.4 * cols, 2.4 * rows * H / W + 0.45 * rows + 0.5),
+                             squeeze=False)
+    for i, ax in enumerate(axes.ravel()):
+        ax.set_xticks([])
+        ax.set_yticks([])
+        if i >= n:
+            ax.axis("off")
+            continue
+        ok = np.isfinite(C[i]).all(1) & np.isfinite(E[i]).all(1)
+        ax.quiver(C[i][ok, 0], C[i][ok, 1], E[i][ok, 0] * scale, E[i][ok, 1] * scale, angles="xy",
+                  scale_units="xy", scale=1, width=0.006, color="tab:red" if out[i] else "tab:blue")
+        ax.set_xlim(0, W)
+        ax.set_ylim(H, 0)
+        ax.set_aspect("equal")
+        e = E[i][ok]
+        r = math.sqrt(float((e ** 2).sum(1).mean())) if len(e) else math.nan
+        ax.set_title(f"{i}: {_short(names[i])}\n{r:.2f} px", fontsize=6)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout(rect=(0, 0, 1, 0.97))
+    return fig
+
+
+def _rounded_list(values, sigmas) -> str:
+    """Coefficients rounded to their σ where known (`with_sigma`), else to 4 significant digits."""
+    if not values:
+        return "none"
+    sigmas = sigmas or [None] * len(values)
+    return "[" + ", ".join(with_sigma(v, s) if s else f"{v:.4g}" for v, s in zip(values, sigmas) if v != 0 or s) + "]"
+
+
+def _board_text(board: dict) -> str:
+    """The fitted board in one line, numbers rounded to their σ."""
+    model = board.get("model", "flat")
+    if model == "warp":
+        par, sig = board.get("parameters", {}), board.get("sigma", {})
+        return "warp: " + ", ".join(f"{k} {with_sigma(v, sig.get(k))}" for k, v in par.items())
+    if model == "free":
+        return (f"free (every point): moved up to {board.get('max_offset_in_plane_mm', 0):.2g} mm in the board's "
+                f"plane and {board.get('max_offset_out_of_plane_mm', 0):.2g} mm out of it")
+    return "flat (the target file's points)"

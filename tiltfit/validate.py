@@ -41,7 +41,7 @@ def predict_views(camera, obs: Observations, options: FitOptions = FitOptions())
 
 
 def held_out_rms(obs: Observations, options: FitOptions = FitOptions(), folds: int = 5,
-                 distortion: str | None = None, start: TiltLensCamera | None = None) -> dict:
+                 distortion: str | None = None, start: TiltLensCamera | None = None, board: str | None = None) -> dict:
     """K-fold held-out reprojection RMS (pixels per corner) of a geometric calibration with `options`' settings.
 
     Args:
@@ -51,6 +51,8 @@ def held_out_rms(obs: Observations, options: FitOptions = FitOptions(), folds: i
         distortion: overrides options.distortion (a model name, not "auto").
         start: a camera whose lens (w, principal point, distortion) starts each fold's fit (e.g. the fit on all
             views); None starts from the homographies without distortion.
+        board: a board model (`tiltfit.board.BOARD_MODELS`) fitted with the lens in each fold and held with it
+            when the fold's views are predicted; None: the target's points as they are.
     Returns:
         {"rms_px": RMS over all held-out corners, "per_view_px": [...] in obs order, "folds": K,
         "median_view_px"}.
@@ -71,8 +73,14 @@ def held_out_rms(obs: Observations, options: FitOptions = FitOptions(), folds: i
         train = [v for v in range(V) if v % K != k]
         tr = obs.subset(train)
         cam = initialize(tr, "unified", init=start, options=opts, blur=False)  # geometry only
-        fit = fit_geometry(cam, tr, opts, mode="unified")
-        pred = predict_views(fit.camera, obs.subset(test), opts)
+        if board is None:
+            fit = fit_geometry(cam, tr, opts, mode="unified")
+            pred = predict_views(fit.camera, obs.subset(test), opts)
+        else:
+            from .board import Board, with_points
+
+            fit = fit_geometry(cam, tr, opts, mode="unified", board=Board(tr.points_mm, board))
+            pred = predict_views(fit.camera, with_points(obs.subset(test), fit.board.points()), opts)
         sq += pred.rss["corners"]
         n += pred.rss["n_corners"] // 2
         for v, view in zip(test, pred.views):

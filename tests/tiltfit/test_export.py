@@ -76,7 +76,7 @@ def test_init_from_opencv_file(real_calib, tmp_path):
         dets.append(str(p))
     out = tmp_path / "calib.json"
     rc = cli.main(["calibrate", *dets, "--target", os.path.join(DATA, "target.json"), "--pixel-pitch-mm",
-                   "0.00155", "--init", path, "--distortion", "rational", "--free-principal-point", "--held-out",
+                   "0.00155", "--init", path, "--distortion", "rational", "--free-principal-point", "--board", "flat", "--held-out",
                    "0", "-q", "-o", str(out)])
     assert rc == 0, "calibrate --init camera.yml"
     new = read_calib(str(out))

@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import atexit
 import concurrent.futures
+import contextlib
 import functools
 import hashlib
 import math
 import multiprocessing
 import os
 import pickle
+import signal
 import sys
 import threading
 import time
@@ -324,6 +326,23 @@ def _shutdown_pools():
     _POOL.clear()
 
 
+@contextlib.contextmanager
+def _interrupts_held_from_workers():
+    """SIGINT blocked in this thread while it starts worker processes, which inherit the blocked signal: a
+    terminal's Ctrl-C reaches every process of the group, and a worker still importing torch or unpickling its
+    job would print its own KeyboardInterrupt traceback (issue 24). Only this process acts on the Ctrl-C: it
+    stops the workers (`_render_into`), and a worker whose parent is gone ends itself (`_exit_with_parent`).
+    A SIGINT that arrives meanwhile is delivered here when the block is lifted."""
+    if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+
 def _pool(workers: int):
     if not _POOL:
         atexit.register(_shutdown_pools)
@@ -466,8 +485,7 @@ def _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device
         digest = hashlib.sha1(blob).hexdigest()
         jit_runs = options.intersector == "mitsuba" and llvm_available()
         job_rays = _job_rays(scene, spp, workers, chunk_rays)
-        jobs = {pool.submit(_worker_render, digest, blob, pixel, n, spp, sampler, seed, options, dtype, max_depth,
-                            chunk_rays, jit_runs): (pixel, n) for pixel, n in _chunks(scene, spp, options, job_rays)}
+        jobs = {}
 
         def done(pixel, n, estimate, covered):
             image.index_copy_(0, pixel[:n], estimate)
@@ -475,6 +493,10 @@ def _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device
             bar.update(n * spp)
 
         try:
+            with _interrupts_held_from_workers():  # the first submits start the worker processes
+                for pixel, n in _chunks(scene, spp, options, job_rays):
+                    jobs[pool.submit(_worker_render, digest, blob, pixel, n, spp, sampler, seed, options, dtype,
+                                     max_depth, chunk_rays, jit_runs)] = (pixel, n)
             pending = set(jobs)
             while pending:  # woken at least every PARENT_CHECK_S, so a Ctrl-C is acted on within that time
                 finished, pending = concurrent.futures.wait(pending, timeout=PARENT_CHECK_S,

@@ -10,6 +10,7 @@ sqrt(mean(dx² + dy²)).
     held_out_rms(obs, options, folds=5) -> {"rms_px", "per_view_px", "folds", "median_view_px"}
     select_distortion(camera, obs, options, mode) -> FitResult      (`FitOptions.distortion` "auto")
     radial_fold(camera, obs) -> None | str                          (a radial mapping that folds in the image)
+    undetermined_distortion(fit, model) -> None | str               (coefficients the views do not determine)
 """
 from __future__ import annotations
 
@@ -29,6 +30,17 @@ from .model import Observations, TiltLensCamera
 # on a few dozen views (its fold-to-fold scatter is of this order); the one with the fewest terms is chosen.
 HELD_OUT_TOLERANCE = 0.01
 MAX_UNDISTORTED_RADIUS = 60.0  # tan of 89°: the radial mapping is checked up to rays 89° off the axis
+# A distortion model asked for by name is refused where its radial mapping at the image corner is uncertain by
+# more than this (pixels, 1σ from the fit's covariance): its coefficients are then not determined by the views.
+# GoPro views (data/real/gopro_wide), rational / opencv5: 1 view 24 / 31 px (coefficients meaningless, the
+# opencv5 mapping 100 px off the many-view one at the corner), 3 views 2.1 / 3.2 px, 10 views 0.6 px, 35 views
+# 0.27 px.
+MAX_MAPPING_SIGMA_PX = 5.0
+# The models so checked: the rational model's numerator and denominator terms trade against each other over
+# the radii one view covers (1 view: coefficients of ±1.5 σ; issue 24 found 3.6e5). Models with fewer terms
+# keep their fold warning: k1 / k1k2 from one GoPro view are uncertain by 11 / 6 px at the corner, a general
+# rule would refuse them too.
+CHECKED_MODELS = ("rational",)
 
 
 def predict_views(camera, obs: Observations, options: FitOptions = FitOptions()):
@@ -114,6 +126,49 @@ def radial_fold(camera: TiltLensCamera, obs: Observations) -> str | None:
     where = (f"a fitted corner's ({math.degrees(math.atan(r_obs)):.1f}°)" if r_obs > r_image else
              f"the image corner's ({math.degrees(math.atan(r_image)):.1f}°)")
     return f"the radial mapping folds back at {math.degrees(math.atan(r_fold)):.1f}° off the axis, inside {where}"
+
+
+def mapping_sigma_px(fit: FitResult) -> float:
+    """One-σ uncertainty (pixels) of the fitted radial mapping r ↦ r_d at the image corner farthest from the
+    principal point, propagated from the covariance of the radial coefficients (k1…k6); 0 without covariance
+    or free radial terms."""
+    names = list(fit.parameter_names or [])
+    radial = ("dist_k1", "dist_k2", "dist_k3", "dist_k4", "dist_k5", "dist_k6")
+    idx = [names.index(n) for n in radial if n in names]
+    if fit.covariance is None or not idx:
+        return 0.0
+    cam = fit.camera
+    k = [float(c) for c in cam.distortion.detach()]
+    k1, k2, k3, k4, k5, k6 = k[0], k[1], k[4], k[5], k[6], k[7]
+    W, H = cam.image_size_px
+    F = float(cam.focal_px.detach())
+    cx, cy = (float(c) for c in cam.principal_point_px.detach())
+    r = max(math.hypot(x - cx, y - cy) for x in (-0.5, W - 0.5) for y in (-0.5, H - 0.5)) / F
+    r2 = r * r
+    a = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    b = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    if b == 0:  # a pole at the corner (`radial_fold` says so); elsewhere a fold is no matter of uncertainty
+        return math.inf
+    grad = {"dist_k1": r * r2 / b, "dist_k2": r * r2 ** 2 / b, "dist_k3": r * r2 ** 3 / b,
+            "dist_k4": -r * a * r2 / b ** 2, "dist_k5": -r * a * r2 ** 2 / b ** 2, "dist_k6": -r * a * r2 ** 3 / b ** 2}
+    g = torch.tensor([grad[names[i]] for i in idx], dtype=torch.float64)
+    C = fit.covariance.submatrix(idx).to(torch.float64)
+    return F * math.sqrt(max(float(g @ C @ g), 0.0))
+
+
+def undetermined_distortion(fit: FitResult, model: str, n_views: int) -> str | None:
+    """Why the views do not determine the coefficients of the distortion `model` (one line), or None: for the
+    `CHECKED_MODELS`, its radial mapping at the image corner is uncertain by more than `MAX_MAPPING_SIGMA_PX` (a single view of
+    the board fits the rational model's eight coefficients to anything: issue 24 found 3.6e5)."""
+    if model not in CHECKED_MODELS:
+        return None
+    sigma = mapping_sigma_px(fit)
+    if sigma <= MAX_MAPPING_SIGMA_PX:
+        return None
+    return (f"distortion {model}: too few views ({n_views}) to determine its {len(MODEL_TERMS[model])} "
+            f"coefficients: the fitted mapping at the image corner is uncertain by ±{sigma:.3g} px (1σ; at most "
+            f"{MAX_MAPPING_SIGMA_PX:g} px accepted); calibrate from more views spread over the image, or a model "
+            f"with fewer terms")
 
 
 def _per_corner_rms(fit: FitResult) -> float:

@@ -159,17 +159,16 @@ def main(argv: list[str] | None = None) -> int:
             signal.signal(signal.SIGINT, previous_int)
 
 
-_INTERRUPTS: list = []  # SIGINTs this command received (`_remember_interrupts`)
-
-
 def _remember_interrupts():
     """SIGINT raises KeyboardInterrupt as by default and is remembered, so that one raised where a library
     drops it (a Ctrl-C to the process group while the render's worker processes started was once ignored, and
-    the image written with exit 0: issue 24) still ends the command (`_check_interrupts`); returns the old
-    handler, or None where it is not ours to set (not the main thread, or SIGINT ignored by our parent)."""
+    the image written with exit 0: issue 24) still ends the command (`renderer.render.INTERRUPTS`: at the
+    render's next wake, `_check_interrupts` before writing); returns the old handler, or None where it is not
+    ours to set (not the main thread, or SIGINT ignored by our parent)."""
+    from .render import INTERRUPTS
 
     def handler(signum, frame):
-        _INTERRUPTS.append(signum)
+        INTERRUPTS.append(signum)
         raise KeyboardInterrupt
 
     try:
@@ -182,7 +181,9 @@ def _remember_interrupts():
 
 def _check_interrupts() -> None:
     """Raise KeyboardInterrupt where a Ctrl-C reached this command but its exception was dropped on the way."""
-    if _INTERRUPTS:
+    from .render import INTERRUPTS
+
+    if INTERRUPTS:
         raise KeyboardInterrupt
 
 

@@ -188,6 +188,9 @@ def _job_rays(scene, spp: int, workers: int, chunk_rays: int) -> int:
 # How often a worker process checks that its parent still runs, and the parent waiting for the workers wakes
 # to act on a SIGINT or SIGTERM sent to it alone (seconds; otherwise it is acted on when a job finishes).
 PARENT_CHECK_S = 1.0
+# Interrupts recorded by a SIGINT handler (the `renderer` command's, `renderer.cli`): a render waiting on its
+# workers stops at its next wake even where the KeyboardInterrupt itself was dropped on the way (issue 24).
+INTERRUPTS: list = []
 
 
 def _worker_start(parent_pid: int | None = None):
@@ -499,6 +502,8 @@ def _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device
                                      max_depth, chunk_rays, jit_runs)] = (pixel, n)
             pending = set(jobs)
             while pending:  # woken at least every PARENT_CHECK_S, so a Ctrl-C is acted on within that time
+                if INTERRUPTS:
+                    raise KeyboardInterrupt
                 finished, pending = concurrent.futures.wait(pending, timeout=PARENT_CHECK_S,
                                                             return_when=concurrent.futures.FIRST_COMPLETED)
                 for job in finished:

@@ -162,10 +162,10 @@ def main(argv: list[str] | None = None) -> int:
 def _remember_interrupts():
     """SIGINT raises KeyboardInterrupt as by default and is remembered, so that one raised where a library
     drops it (a Ctrl-C to the process group while the render's worker processes started was once ignored, and
-    the image written with exit 0: issue 24) still ends the command (`renderer.render.INTERRUPTS`: at the
+    the image written with exit 0: issue 24) still ends the command (`renderer.interrupts.INTERRUPTS`: at the
     render's next wake, `_check_interrupts` before writing); returns the old handler, or None where it is not
     ours to set (not the main thread, or SIGINT ignored by our parent)."""
-    from .render import INTERRUPTS
+    from .interrupts import INTERRUPTS
 
     def handler(signum, frame):
         INTERRUPTS.append(signum)
@@ -181,7 +181,7 @@ def _remember_interrupts():
 
 def _check_interrupts() -> None:
     """Raise KeyboardInterrupt where a Ctrl-C reached this command but its exception was dropped on the way."""
-    from .render import INTERRUPTS
+    from .interrupts import INTERRUPTS
 
     if INTERRUPTS:
         raise KeyboardInterrupt

@@ -9,14 +9,12 @@ from __future__ import annotations
 
 import atexit
 import concurrent.futures
-import contextlib
 import functools
 import hashlib
 import math
 import multiprocessing
 import os
 import pickle
-import signal
 import sys
 import threading
 import time
@@ -26,6 +24,7 @@ from dataclasses import dataclass, replace
 import torch
 
 from .integrator import trace
+from .interrupts import INTERRUPTS, held
 from .progress import Progress
 from .sampling import Sampler
 from .scene import Scene, TraceOptions, compiled_call
@@ -188,9 +187,6 @@ def _job_rays(scene, spp: int, workers: int, chunk_rays: int) -> int:
 # How often a worker process checks that its parent still runs, and the parent waiting for the workers wakes
 # to act on a SIGINT or SIGTERM sent to it alone (seconds; otherwise it is acted on when a job finishes).
 PARENT_CHECK_S = 1.0
-# Interrupts recorded by a SIGINT handler (the `renderer` command's, `renderer.cli`): a render waiting on its
-# workers stops at its next wake even where the KeyboardInterrupt itself was dropped on the way (issue 24).
-INTERRUPTS: list = []
 
 
 def _worker_start(parent_pid: int | None = None):
@@ -327,23 +323,6 @@ def _shutdown_pools():
     for pool in _POOL.values():
         pool.shutdown(wait=True, cancel_futures=True)
     _POOL.clear()
-
-
-@contextlib.contextmanager
-def _interrupts_held_from_workers():
-    """SIGINT blocked in this thread while it starts worker processes, which inherit the blocked signal: a
-    terminal's Ctrl-C reaches every process of the group, and a worker still importing torch or unpickling its
-    job would print its own KeyboardInterrupt traceback (issue 24). Only this process acts on the Ctrl-C: it
-    stops the workers (`_render_into`), and a worker whose parent is gone ends itself (`_exit_with_parent`).
-    A SIGINT that arrives meanwhile is delivered here when the block is lifted."""
-    if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 def _pool(workers: int):
@@ -496,7 +475,7 @@ def _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device
             bar.update(n * spp)
 
         try:
-            with _interrupts_held_from_workers():  # the first submits start the worker processes
+            with held():  # the first submits start the workers: they inherit SIGINT blocked, only we act on it
                 for pixel, n in _chunks(scene, spp, options, job_rays):
                     jobs[pool.submit(_worker_render, digest, blob, pixel, n, spp, sampler, seed, options, dtype,
                                      max_depth, chunk_rays, jit_runs)] = (pixel, n)

@@ -1,12 +1,14 @@
 """Ctrl-C to the whole process group of `renderer render` while its worker processes start (issue 24).
 
 A terminal's Ctrl-C reaches every process of the group, the workers too. Each trial starts the speed scene at
-512 x 512, 64 spp (worker processes by default), waits until the first worker exists, waits `delay` more
-seconds and sends SIGINT to the group. Recorded per trial: the exit status, whether stderr holds a traceback,
-its number of lines, whether the render finished anyway (exit 0 or the image written: the Ctrl-C was lost),
-and the child processes still running 3 s after the command ended (orphaned workers).
+512 x 512, 64 spp (worker processes by default), waits until its first child process exists (the Mitsuba
+probe: then Mitsuba loads and the workers start; `--start worker`: until the first worker exists), waits
+`delay` more seconds and sends SIGINT to the group. Recorded per trial: the exit status, whether stderr holds
+a traceback, its number of lines, whether the render finished anyway (exit 0 or the image written: the Ctrl-C
+was lost), and the child processes still running 3 s after the command ended (orphaned workers).
 
-    python benchmarks/probe_group_interrupt.py [--label L] [--trials 24] [--step 0.1] [-o OUT.json]
+    python benchmarks/probe_group_interrupt.py [--label L] [--trials 24] [--step 0.1] [--start child|worker]
+                                               [--cwd CHECKOUT] [-o OUT.json]
 """
 from __future__ import annotations
 
@@ -29,6 +31,14 @@ def _children(pid: int) -> set[int]:
     return {int(x) for x in out.split()}
 
 
+def _is_worker(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            return b"spawn_main" in f.read()
+    except OSError:
+        return False
+
+
 def _running(pid: int) -> bool:
     """The process exists and is not a zombie."""
     try:
@@ -38,7 +48,7 @@ def _running(pid: int) -> bool:
         return False
 
 
-def trial(delay_s: float, out: str, cwd: str = ROOT) -> dict:
+def trial(delay_s: float, out: str, cwd: str = ROOT, start: str = "child") -> dict:
     p = subprocess.Popen([sys.executable, "-m", "renderer", "render", SCENE, "-o", out, "--spp", "64",
                           "--set", "image.width=512", "--set", "image.height=512"], stderr=subprocess.PIPE,
                          text=True, start_new_session=True, cwd=cwd,
@@ -48,7 +58,8 @@ def trial(delay_s: float, out: str, cwd: str = ROOT) -> dict:
     reader.start()
     seen: set[int] = set()
     t0 = time.time()
-    while time.time() - t0 < 120 and p.poll() is None and not seen:
+    while time.time() - t0 < 120 and p.poll() is None and not (
+            seen and (start == "child" or any(_is_worker(c) for c in seen))):
         seen |= _children(p.pid)
         time.sleep(0.05)
     t_first = time.time()
@@ -85,6 +96,9 @@ def main(argv=None) -> int:
     ap.add_argument("--trials", type=int, default=24)
     ap.add_argument("--step", type=float, default=0.1, help="delay added per trial, seconds [0.1]")
     ap.add_argument("--cwd", default=ROOT, help="checkout whose renderer runs [this one]")
+    ap.add_argument("--start", choices=("child", "worker"), default="child",
+                    help="delays count from the first child process (the Mitsuba probe: Mitsuba loads, then the "
+                         "workers start) or from the first worker process [child]")
     ap.add_argument("-o", "--output", default=None)
     args = ap.parse_args(argv)
     # A command started in the background of a non-interactive shell inherits SIGINT ignored, and so would the
@@ -94,10 +108,12 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         rows = []
         for k in range(args.trials):
-            rows.append(trial(args.step * (k % 12), os.path.join(tmp, f"t{k}.png"), os.path.abspath(args.cwd)))
+            rows.append(trial(args.step * (k % 12), os.path.join(tmp, f"t{k}.png"), os.path.abspath(args.cwd),
+                              args.start))
             print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
     sent = [r for r in rows if r["sigint_sent"]]
-    res = {"label": args.label, "checkout": os.path.abspath(args.cwd), "trials_run": len(rows),
+    res = {"label": args.label, "checkout": os.path.abspath(args.cwd), "delays_from": args.start,
+           "trials_run": len(rows),
            "sigint_sent": len(sent),
            "tracebacks": sum(r["traceback"] for r in sent),
            "not_exit_130": sum(r["exit"] != 130 for r in sent),

@@ -48,3 +48,20 @@ def test_rational_from_ten_views_is_fitted_and_determined(gopro):
     assert 0 < sigma < MAX_MAPPING_SIGMA_PX / 2, f"mapping at the image corner determined: ±{sigma:.3g} px"
     coeffs = np.abs(res.camera.distortion.detach().numpy())
     assert coeffs.max() < 10, f"coefficients of sane size from ten views: {coeffs}"
+
+
+def test_cli_rational_from_one_view_one_line_exit_2_nothing_written(tmp_path, capsys):
+    from tiltfit import cli
+
+    with open(os.path.join(DATA, "detections_tiltfit.json"), encoding="utf-8") as f:
+        dets = json.load(f)
+    name = sorted(k for k, v in dets.items() if "no_board" not in v)[0]
+    det = tmp_path / "one.det.json"
+    det.write_text(json.dumps(dets[name]))
+    out = tmp_path / "calib.json"
+    rc = cli.main(["calibrate", str(det), "--target", os.path.join(DATA, "target.json"), "--pixel-pitch-mm", "0.00155",
+                   "--distortion", "rational", "-q", "-o", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2, f"refused with exit 2, got {rc}: {err}"
+    assert len(err) == 1 and "distortion rational" in err[0] and "too few views (1)" in err[0], f"one line: {err}"
+    assert not out.exists(), "no CALIB.json written"

@@ -93,6 +93,20 @@ def held_out_rms(obs: Observations, options: FitOptions = FitOptions(), folds: i
             "median_view_px": float(np.nanmedian(per_view))}
 
 
+def _radial_coefficients(camera: TiltLensCamera) -> tuple[float, ...]:
+    """k1, k2, k3 (numerator) and k4, k5, k6 (denominator) of the camera's radial mapping."""
+    k = [float(c) for c in camera.distortion.detach()]
+    return k[0], k[1], k[4], k[5], k[6], k[7]
+
+
+def _corner_radius(camera: TiltLensCamera) -> float:
+    """Normalised radius of the image corner farthest from the principal point (what `cv2.undistort` samples)."""
+    W, H = camera.image_size_px
+    F = float(camera.focal_px.detach())
+    cx, cy = (float(c) for c in camera.principal_point_px.detach())
+    return max(math.hypot(x - cx, y - cy) for x in (-0.5, W - 0.5) for y in (-0.5, H - 0.5)) / F
+
+
 def radial_fold(camera: TiltLensCamera, obs: Observations) -> str | None:
     """Where the camera's radial distortion stops being one-to-one on the image, or None.
 
@@ -104,12 +118,8 @@ def radial_fold(camera: TiltLensCamera, obs: Observations) -> str | None:
     border and the lens beyond the board is wrong, although the corners fit (OpenCV users meet this as
     opencv/opencv#15992). Returns None, or why the mapping is refused (one line).
     """
-    k = [float(c) for c in camera.distortion.detach()]
-    k1, k2, k3, k4, k5, k6 = k[0], k[1], k[4], k[5], k[6], k[7]
-    W, H = camera.image_size_px
-    F = float(camera.focal_px.detach())
-    cx, cy = (float(c) for c in camera.principal_point_px.detach())
-    r_image = max(math.hypot(x - cx, y - cy) for x in (-0.5, W - 0.5) for y in (-0.5, H - 0.5)) / F
+    k1, k2, k3, k4, k5, k6 = _radial_coefficients(camera)
+    r_image = _corner_radius(camera)
     with torch.no_grad():
         p = camera.to_camera(obs.points_mm.to(camera.rvec.dtype))[obs.corner_mask]
     r_obs = float(torch.sqrt(p[:, 0] ** 2 + p[:, 1] ** 2).div(p[:, 2].clamp_min(1e-12)).max()) if len(p) else 0.0
@@ -137,13 +147,8 @@ def mapping_sigma_px(fit: FitResult) -> float:
     idx = [names.index(n) for n in radial if n in names]
     if fit.covariance is None or not idx:
         return 0.0
-    cam = fit.camera
-    k = [float(c) for c in cam.distortion.detach()]
-    k1, k2, k3, k4, k5, k6 = k[0], k[1], k[4], k[5], k[6], k[7]
-    W, H = cam.image_size_px
-    F = float(cam.focal_px.detach())
-    cx, cy = (float(c) for c in cam.principal_point_px.detach())
-    r = max(math.hypot(x - cx, y - cy) for x in (-0.5, W - 0.5) for y in (-0.5, H - 0.5)) / F
+    k1, k2, k3, k4, k5, k6 = _radial_coefficients(fit.camera)
+    r = _corner_radius(fit.camera)
     r2 = r * r
     a = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
     b = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
@@ -153,7 +158,7 @@ def mapping_sigma_px(fit: FitResult) -> float:
             "dist_k4": -r * a * r2 / b ** 2, "dist_k5": -r * a * r2 ** 2 / b ** 2, "dist_k6": -r * a * r2 ** 3 / b ** 2}
     g = torch.tensor([grad[names[i]] for i in idx], dtype=torch.float64)
     C = fit.covariance.submatrix(idx).to(torch.float64)
-    return F * math.sqrt(max(float(g @ C @ g), 0.0))
+    return float(fit.camera.focal_px.detach()) * math.sqrt(max(float(g @ C @ g), 0.0))
 
 
 def undetermined_distortion(fit: FitResult, model: str, n_views: int) -> str | None:

@@ -157,6 +157,9 @@ def main(argv: list[str] | None = None) -> int:
             signal.signal(signal.SIGTERM, previous)
         if previous_int is not None:
             signal.signal(signal.SIGINT, previous_int)
+        from .interrupts import INTERRUPTS
+
+        INTERRUPTS.clear()  # acted on: a later call in this process (tests, a library user) starts afresh
 
 
 def _remember_interrupts():

@@ -10,7 +10,7 @@ sqrt(mean(dx² + dy²)).
     held_out_rms(obs, options, folds=5) -> {"rms_px", "per_view_px", "folds", "median_view_px"}
     select_distortion(camera, obs, options, mode) -> FitResult      (`FitOptions.distortion` "auto")
     radial_fold(camera, obs) -> None | str                          (a radial mapping that folds in the image)
-    undetermined_distortion(fit, model) -> None | str               (coefficients the views do not determine)
+    undetermined_distortion(fit, model, n_views) -> None | str      (coefficients the views do not determine)
 """
 from __future__ import annotations
 
@@ -30,16 +30,16 @@ from .model import Observations, TiltLensCamera
 # on a few dozen views (its fold-to-fold scatter is of this order); the one with the fewest terms is chosen.
 HELD_OUT_TOLERANCE = 0.01
 MAX_UNDISTORTED_RADIUS = 60.0  # tan of 89°: the radial mapping is checked up to rays 89° off the axis
-# A distortion model asked for by name is refused where its radial mapping at the image corner is uncertain by
-# more than this (pixels, 1σ from the fit's covariance): its coefficients are then not determined by the views.
-# GoPro views (data/real/gopro_wide), rational / opencv5: 1 view 24 / 31 px (coefficients meaningless, the
-# opencv5 mapping 100 px off the many-view one at the corner), 3 views 2.1 / 3.2 px, 10 views 0.6 px, 35 views
-# 0.27 px.
+# A distortion model asked for by name (one of `CHECKED_MODELS`) is refused where its radial mapping at the
+# image corner is uncertain by more than this (pixels, 1σ from the fit's covariance): the views do not
+# determine its coefficients. GoPro views (data/real/gopro_wide, benchmarks/rational_views.py), rational: 1 view
+# ±24 px, 2 views ±19 px, 3 views ±2.1 px, 10 views ±0.6 px, 35 views ±0.27 px.
 MAX_MAPPING_SIGMA_PX = 5.0
 # The models so checked: the rational model's numerator and denominator terms trade against each other over
-# the radii one view covers (1 view: coefficients of ±1.5 σ; issue 24 found 3.6e5). Models with fewer terms
-# keep their fold warning: k1 / k1k2 from one GoPro view are uncertain by 11 / 6 px at the corner, a general
-# rule would refuse them too.
+# the radii one view covers (1 view: σ of 1.5-1.9 on coefficients of order 1; issue 24 found 3.6e5). Models
+# with fewer terms keep their fold warning only: opencv5 / k1k2 / k1 from one GoPro view are uncertain by
+# 31 / 6 / 11 px at the corner, and a general rule would refuse them too (k1 even from 35 views, which it
+# misfits).
 CHECKED_MODELS = ("rational",)
 
 

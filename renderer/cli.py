@@ -132,6 +132,7 @@ def _common(p: argparse.ArgumentParser) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     previous = interrupt_on_sigterm()
+    previous_int = _remember_interrupts()
     try:
         with warnings.catch_warnings():
             # numpy's floating-point warnings would print before the one-line error; failures are reported once.
@@ -154,6 +155,39 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+        if previous_int is not None:
+            signal.signal(signal.SIGINT, previous_int)
+        from .interrupts import INTERRUPTS
+
+        INTERRUPTS.clear()  # acted on: a later call in this process (tests, a library user) starts afresh
+
+
+def _remember_interrupts():
+    """SIGINT raises KeyboardInterrupt as by default and is remembered, so that one raised where a library
+    drops it (a Ctrl-C to the process group while the render's worker processes started was once ignored, and
+    the image written with exit 0: issue 24) still ends the command (`renderer.interrupts.INTERRUPTS`: at the
+    render's next wake, `_check_interrupts` before writing); returns the old handler, or None where it is not
+    ours to set (not the main thread, or SIGINT ignored by our parent)."""
+    from .interrupts import INTERRUPTS
+
+    def handler(signum, frame):
+        INTERRUPTS.append(signum)
+        raise KeyboardInterrupt
+
+    try:
+        if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+            return None
+        return signal.signal(signal.SIGINT, handler)
+    except ValueError:  # not the main thread
+        return None
+
+
+def _check_interrupts() -> None:
+    """Raise KeyboardInterrupt where a Ctrl-C reached this command but its exception was dropped on the way."""
+    from .interrupts import INTERRUPTS
+
+    if INTERRUPTS:
+        raise KeyboardInterrupt
 
 
 def interrupt_on_sigterm():
@@ -224,6 +258,7 @@ def cmd_render(args, device) -> int:
     else:
         result = render(scene, args.spp, args.sampler, device=device, seed=args.seed, progress=not args.quiet,
                         compile=args.compile or None)
+    _check_interrupts()  # nothing written after a Ctrl-C
     check_finite_image(scene_file, result.image)
     metadata = image_metadata(scene_file, scene, args.spp or scene.image.spp, args.sampler or scene.image.sampler,
                               args.seed, args.overrides)

@@ -24,6 +24,7 @@ from dataclasses import dataclass, replace
 import torch
 
 from .integrator import trace
+from .interrupts import INTERRUPTS, held
 from .progress import Progress
 from .sampling import Sampler
 from .scene import Scene, TraceOptions, compiled_call
@@ -466,8 +467,7 @@ def _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device
         digest = hashlib.sha1(blob).hexdigest()
         jit_runs = options.intersector == "mitsuba" and llvm_available()
         job_rays = _job_rays(scene, spp, workers, chunk_rays)
-        jobs = {pool.submit(_worker_render, digest, blob, pixel, n, spp, sampler, seed, options, dtype, max_depth,
-                            chunk_rays, jit_runs): (pixel, n) for pixel, n in _chunks(scene, spp, options, job_rays)}
+        jobs = {}
 
         def done(pixel, n, estimate, covered):
             image.index_copy_(0, pixel[:n], estimate)
@@ -475,8 +475,14 @@ def _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device
             bar.update(n * spp)
 
         try:
+            with held():  # the first submits start the workers: they inherit SIGINT blocked, only we act on it
+                for pixel, n in _chunks(scene, spp, options, job_rays):
+                    jobs[pool.submit(_worker_render, digest, blob, pixel, n, spp, sampler, seed, options, dtype,
+                                     max_depth, chunk_rays, jit_runs)] = (pixel, n)
             pending = set(jobs)
             while pending:  # woken at least every PARENT_CHECK_S, so a Ctrl-C is acted on within that time
+                if INTERRUPTS:
+                    raise KeyboardInterrupt
                 finished, pending = concurrent.futures.wait(pending, timeout=PARENT_CHECK_S,
                                                             return_when=concurrent.futures.FIRST_COMPLETED)
                 for job in finished:

@@ -262,6 +262,12 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
     elif distortion != "none":
         from .validate import radial_fold
 
+        if options.uncertainties:
+            from .validate import undetermined_distortion
+
+            undetermined_why = undetermined_distortion(result, distortion, obs.n_views)
+            if undetermined_why:
+                raise FitError(undetermined_why)
         fold = radial_fold(result.camera, obs)
         if fold:
             warnings.append(f"distortion {distortion}: {fold}; undistorting the photos folds over near their border "

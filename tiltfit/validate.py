@@ -10,6 +10,7 @@ sqrt(mean(dx² + dy²)).
     held_out_rms(obs, options, folds=5) -> {"rms_px", "per_view_px", "folds", "median_view_px"}
     select_distortion(camera, obs, options, mode) -> FitResult      (`FitOptions.distortion` "auto")
     radial_fold(camera, obs) -> None | str                          (a radial mapping that folds in the image)
+    undetermined_distortion(fit, model, n_views) -> None | str      (coefficients the views do not determine)
 """
 from __future__ import annotations
 
@@ -29,6 +30,17 @@ from .model import Observations, TiltLensCamera
 # on a few dozen views (its fold-to-fold scatter is of this order); the one with the fewest terms is chosen.
 HELD_OUT_TOLERANCE = 0.01
 MAX_UNDISTORTED_RADIUS = 60.0  # tan of 89°: the radial mapping is checked up to rays 89° off the axis
+# A distortion model asked for by name (one of `CHECKED_MODELS`) is refused where its radial mapping at the
+# image corner is uncertain by more than this (pixels, 1σ from the fit's covariance): the views do not
+# determine its coefficients. GoPro views (data/real/gopro_wide, benchmarks/rational_views.py), rational: 1 view
+# ±24 px, 2 views ±19 px, 3 views ±2.1 px, 10 views ±0.6 px, 35 views ±0.27 px.
+MAX_MAPPING_SIGMA_PX = 5.0
+# The models so checked: the rational model's numerator and denominator terms trade against each other over
+# the radii one view covers (1 view: σ of 1.5-1.9 on coefficients of order 1; issue 24 found 3.6e5). Models
+# with fewer terms keep their fold warning only: opencv5 / k1k2 / k1 from one GoPro view are uncertain by
+# 31 / 6 / 11 px at the corner, and a general rule would refuse them too (k1 even from 35 views, which it
+# misfits).
+CHECKED_MODELS = ("rational",)
 
 
 def predict_views(camera, obs: Observations, options: FitOptions = FitOptions()):
@@ -89,6 +101,20 @@ def held_out_rms(obs: Observations, options: FitOptions = FitOptions(), folds: i
             "median_view_px": float(np.nanmedian(per_view))}
 
 
+def _radial_coefficients(camera: TiltLensCamera) -> tuple[float, ...]:
+    """k1, k2, k3 (numerator) and k4, k5, k6 (denominator) of the camera's radial mapping."""
+    k = [float(c) for c in camera.distortion.detach()]
+    return k[0], k[1], k[4], k[5], k[6], k[7]
+
+
+def _corner_radius(camera: TiltLensCamera) -> float:
+    """Normalised radius of the image corner farthest from the principal point (what `cv2.undistort` samples)."""
+    W, H = camera.image_size_px
+    F = float(camera.focal_px.detach())
+    cx, cy = (float(c) for c in camera.principal_point_px.detach())
+    return max(math.hypot(x - cx, y - cy) for x in (-0.5, W - 0.5) for y in (-0.5, H - 0.5)) / F
+
+
 def radial_fold(camera: TiltLensCamera, obs: Observations) -> str | None:
     """Where the camera's radial distortion stops being one-to-one on the image, or None.
 
@@ -100,12 +126,8 @@ def radial_fold(camera: TiltLensCamera, obs: Observations) -> str | None:
     border and the lens beyond the board is wrong, although the corners fit (OpenCV users meet this as
     opencv/opencv#15992). Returns None, or why the mapping is refused (one line).
     """
-    k = [float(c) for c in camera.distortion.detach()]
-    k1, k2, k3, k4, k5, k6 = k[0], k[1], k[4], k[5], k[6], k[7]
-    W, H = camera.image_size_px
-    F = float(camera.focal_px.detach())
-    cx, cy = (float(c) for c in camera.principal_point_px.detach())
-    r_image = max(math.hypot(x - cx, y - cy) for x in (-0.5, W - 0.5) for y in (-0.5, H - 0.5)) / F
+    k1, k2, k3, k4, k5, k6 = _radial_coefficients(camera)
+    r_image = _corner_radius(camera)
     with torch.no_grad():
         p = camera.to_camera(obs.points_mm.to(camera.rvec.dtype))[obs.corner_mask]
     r_obs = float(torch.sqrt(p[:, 0] ** 2 + p[:, 1] ** 2).div(p[:, 2].clamp_min(1e-12)).max()) if len(p) else 0.0
@@ -122,6 +144,44 @@ def radial_fold(camera: TiltLensCamera, obs: Observations) -> str | None:
     where = (f"a fitted corner's ({math.degrees(math.atan(r_obs)):.1f}°)" if r_obs > r_image else
              f"the image corner's ({math.degrees(math.atan(r_image)):.1f}°)")
     return f"the radial mapping folds back at {math.degrees(math.atan(r_fold)):.1f}° off the axis, inside {where}"
+
+
+def mapping_sigma_px(fit: FitResult) -> float:
+    """One-σ uncertainty (pixels) of the fitted radial mapping r ↦ r_d at the image corner farthest from the
+    principal point, propagated from the covariance of the radial coefficients (k1…k6); 0 without covariance
+    or free radial terms."""
+    names = list(fit.parameter_names or [])
+    radial = ("dist_k1", "dist_k2", "dist_k3", "dist_k4", "dist_k5", "dist_k6")
+    idx = [names.index(n) for n in radial if n in names]
+    if fit.covariance is None or not idx:
+        return 0.0
+    k1, k2, k3, k4, k5, k6 = _radial_coefficients(fit.camera)
+    r = _corner_radius(fit.camera)
+    r2 = r * r
+    a = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    b = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    if b == 0:  # a pole at the corner (`radial_fold` says so); elsewhere a fold is no matter of uncertainty
+        return math.inf
+    grad = {"dist_k1": r * r2 / b, "dist_k2": r * r2 ** 2 / b, "dist_k3": r * r2 ** 3 / b,
+            "dist_k4": -r * a * r2 / b ** 2, "dist_k5": -r * a * r2 ** 2 / b ** 2, "dist_k6": -r * a * r2 ** 3 / b ** 2}
+    g = torch.tensor([grad[names[i]] for i in idx], dtype=torch.float64)
+    C = fit.covariance.submatrix(idx).to(torch.float64)
+    return float(fit.camera.focal_px.detach()) * math.sqrt(max(float(g @ C @ g), 0.0))
+
+
+def undetermined_distortion(fit: FitResult, model: str, n_views: int) -> str | None:
+    """Why the views do not determine the coefficients of the distortion `model` (one line), or None: for the
+    `CHECKED_MODELS`, its radial mapping at the image corner is uncertain by more than `MAX_MAPPING_SIGMA_PX` (a single view of
+    the board fits the rational model's eight coefficients to anything: issue 24 found 3.6e5)."""
+    if model not in CHECKED_MODELS:
+        return None
+    sigma = mapping_sigma_px(fit)
+    if sigma <= MAX_MAPPING_SIGMA_PX:
+        return None
+    return (f"distortion {model}: too few views ({n_views}) to determine its {len(MODEL_TERMS[model])} "
+            f"coefficients: the fitted mapping at the image corner is uncertain by ±{sigma:.3g} px (1σ; at most "
+            f"{MAX_MAPPING_SIGMA_PX:g} px accepted); calibrate from more views spread over the image, or a model "
+            f"with fewer terms")
 
 
 def _per_corner_rms(fit: FitResult) -> float:

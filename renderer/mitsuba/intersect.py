@@ -37,6 +37,7 @@ import sys
 import numpy as np
 import torch
 
+from ..interrupts import held
 from .export import load_mitsuba, shape_dicts
 
 # Shape types with an exact Mitsuba counterpart (see the module docstring).
@@ -206,10 +207,13 @@ def llvm_available() -> bool:
     """Whether Mitsuba imports and its LLVM variant (`DEFAULT_VARIANT`) runs here; probed once per process
     (`export.jit_variant_runs` tries a kernel in a child process), any failure meaning no."""
     if not _LLVM:
-        try:
-            _LLVM.append(load_mitsuba(DEFAULT_VARIANT).variant().startswith("llvm"))
-        except Exception:  # noqa: BLE001 - not installed, broken install, no libLLVM: all mean "use ours"
-            _LLVM.append(False)
+        # A Ctrl-C is held over the import and the probe: one inside the extension's import came back as an
+        # ImportError, read here as "no Mitsuba", and the render went on (renderer.interrupts).
+        with held():
+            try:
+                _LLVM.append(load_mitsuba(DEFAULT_VARIANT).variant().startswith("llvm"))
+            except Exception:  # noqa: BLE001 - not installed, broken install, no libLLVM: all mean "use ours"
+                _LLVM.append(False)
     return _LLVM[0]
 
 
@@ -230,7 +234,8 @@ def auto_engine(scene, device, dtype) -> MitsubaIntersector | None:
         return None
     if not llvm_available():
         return None
-    return scene.derived("mitsuba.auto_engine", lambda: _engine_or_none(scene))  # a failure is not tried again
+    with held():  # a Ctrl-C raised inside Mitsuba's scene build would read as a scene it cannot build
+        return scene.derived("mitsuba.auto_engine", lambda: _engine_or_none(scene))  # a failure is not tried again
 
 
 def set_jit_threads(n: int) -> int:

@@ -1,0 +1,67 @@
+"""A named distortion model the views do not determine is refused (issue 24: `--distortion rational` from one
+view wrote coefficients of 3.6e5): the rational model from one GoPro view is refused with one line naming the
+model and the view count; from ten views it is fitted, its mapping at the image corner determined to a pixel."""
+import json
+import os
+
+import numpy as np
+import pytest
+
+from tiltfit.calibration import calibrate
+from tiltfit.fit import FitError, FitOptions
+from tiltfit.model import Observations
+from tiltfit.target import load_target
+from tiltfit.validate import MAX_MAPPING_SIGMA_PX, mapping_sigma_px
+
+DATA = os.path.join(os.path.dirname(__file__), "..", "..", "data", "real", "gopro_wide")
+
+
+@pytest.fixture(scope="module")
+def gopro():
+    target = load_target(os.path.join(DATA, "target.json"))
+    with open(os.path.join(DATA, "detections_tiltfit.json"), encoding="utf-8") as f:
+        dets = json.load(f)
+    names = sorted(k for k, v in dets.items() if "no_board" not in v)
+
+    def views(n):
+        ns = names[:n]
+        C = np.array([[c if c is not None else [np.nan, np.nan] for c in dets[k]["corners_px"]] for k in ns], float)
+        B = np.array([[b if b is not None else np.nan for b in dets[k]["blur_px"]] for k in ns], float)
+        return Observations(target.feature_points(), C, B, tuple(dets[ns[0]]["image_size_px"]), 0.00155, ns)
+
+    return views
+
+
+def test_rational_from_one_view_is_refused(gopro):
+    with pytest.raises(FitError) as e:
+        calibrate(gopro(1), "unified", options=FitOptions(distortion="rational"))
+    msg = str(e.value)
+    assert "\n" not in msg, f"one line: {msg!r}"
+    assert "distortion rational" in msg and "too few views (1)" in msg, f"names the model and the views: {msg}"
+    assert "--" not in msg, f"a library message without command-line words: {msg}"
+
+
+def test_rational_from_ten_views_is_fitted_and_determined(gopro):
+    res = calibrate(gopro(10), "unified", options=FitOptions(distortion="rational"))
+    sigma = mapping_sigma_px(res)
+    assert res.distortion_model == "rational", f"the rational model was fitted, not {res.distortion_model}"
+    assert 0 < sigma < MAX_MAPPING_SIGMA_PX / 2, f"mapping at the image corner determined: ±{sigma:.3g} px"
+    coeffs = np.abs(res.camera.distortion.detach().numpy())
+    assert coeffs.max() < 10, f"coefficients of sane size from ten views: {coeffs}"
+
+
+def test_cli_rational_from_one_view_one_line_exit_2_nothing_written(tmp_path, capsys):
+    from tiltfit import cli
+
+    with open(os.path.join(DATA, "detections_tiltfit.json"), encoding="utf-8") as f:
+        dets = json.load(f)
+    name = sorted(k for k, v in dets.items() if "no_board" not in v)[0]
+    det = tmp_path / "one.det.json"
+    det.write_text(json.dumps(dets[name]))
+    out = tmp_path / "calib.json"
+    rc = cli.main(["calibrate", str(det), "--target", os.path.join(DATA, "target.json"), "--pixel-pitch-mm", "0.00155",
+                   "--distortion", "rational", "-q", "-o", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2, f"refused with exit 2, got {rc}: {err}"
+    assert len(err) == 1 and "distortion rational" in err[0] and "too few views (1)" in err[0], f"one line: {err}"
+    assert not out.exists(), "no CALIB.json written"

@@ -1,0 +1,285 @@
+"""Find a ChArUco board's corners, with their ids, in partial and blurred views.
+
+Pipeline (`detect_charuco`):
+1. Ids. Where the markers can be read, OpenCV's `cv2.aruco.CharucoDetector` names the corners it sees (corner
+   id k is feature point k of the `CharucoTarget`). Where they cannot (blur wider than a marker bit, about a
+   tenth of a square), the checker corners still are saddles: the saddle lattice of `tiltfit.detect` (grid
+   growth, no ids) is placed on the board by matching the image, resampled in lattice coordinates, against
+   the board's own picture (markers included) blurred by discs of 0 to 0.8 of a square, over every placement
+   (4 turns × shifts) that keeps the lattice on the board (`place_lattice`). The best placement must explain
+   the image clearly better than the next (`MIN_PLACEMENT_RATIO`), else the view is reported as ambiguous.
+2. Sub-pixel refinement: the point-symmetry refinement of the checkerboard path (`refine_symmetric`): at a
+   ChArUco corner the two markers touching it have black borders that are point images of each other, so the
+   neighbourhood is point-symmetric out to the markers' data bits, √2 (clear + bit) from the corner; the
+   window radius is that (`symmetric_radius`), at most 0.4 of the local square.
+3. Completion: corners neither step found, predicted by local homographies and refined the same way
+   (`tiltfit.detect.complete_corners` with the ChArUco window).
+4. Blur per corner (`tiltfit.blur.measure_blur`, its bands stopping at the markers' borders).
+
+Images are (H, W) or (H, W, C) linear float arrays; outputs in pixels (x = column, y = row, (0, 0) the centre of
+the top-left pixel), NaN where a corner was not found.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from .detect import (Detection, complete_corners, estimate_noise, find_grid, refine_symmetric, saddle_map,
+                     to_gray, _median_spacing, _min_neighbour_distance, _rot)
+from .imaging import build_pyramid, homography_dlt, homography_dlt_batch, to_full, torch_threads
+from .target import CharucoTarget, rasterise
+
+# A placement is accepted when the next best one leaves this many times its residual (sum of squares after a
+# fitted gain and offset): the markers' pattern must tell the placements apart, not noise.
+MIN_PLACEMENT_RATIO = 1.5
+# Disc blurs (diameters, squares) the board's picture is compared at when placing a lattice.
+PLACEMENT_BLURS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.65, 0.8)
+# Samples per square and axis when resampling the image in lattice coordinates (a marker bit is ~0.1 square).
+SAMPLES_PER_SQUARE = 12
+# Refined corners whose point-symmetry residual exceeds this (relative, as in `tiltfit.detect`) are dropped.
+MAX_ASYMMETRY = 0.35
+
+
+def symmetric_radius(target: CharucoTarget) -> float:
+    """Window radius for the point-symmetry refinement, in squares: up to the markers' data bits."""
+    n_bits = target.opencv_board().getDictionary().markerSize + 2
+    clear = target.white_cell_clear_mm / target.square_mm
+    bit = target.marker_mm / n_bits / target.square_mm
+    return min(0.4, math.sqrt(2.0) * (clear + bit))
+
+
+def _srgb8(gray: np.ndarray) -> np.ndarray:
+    """8-bit sRGB-encoded copy of a linear image (what OpenCV's detectors expect), scaled to its 99.9th percentile."""
+    from renderer.io import linear_to_srgb
+
+    top = float(np.percentile(gray, 99.9)) or 1.0
+    return np.clip(np.round(255 * linear_to_srgb(np.clip(gray / top, 0, 1))), 0, 255).astype(np.uint8)
+
+
+def opencv_corners(gray: np.ndarray, target: CharucoTarget, refine: bool = True) -> np.ndarray:
+    """(N, 2) corners named by OpenCV's `CharucoDetector` (its own sub-pixel step), NaN where none."""
+    import cv2
+
+    detector = cv2.aruco.CharucoDetector(target.opencv_board())
+    if not refine:
+        params = detector.getDetectorParameters()
+        params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_NONE
+        detector.setDetectorParameters(params)
+    cc, ids, _, _ = detector.detectBoard(_srgb8(gray))
+    corners = np.full((target.n_points, 2), np.nan)
+    if ids is not None and len(ids):
+        corners[ids.ravel()] = cc.reshape(-1, 2)
+    return corners
+
+
+# --- placing a lattice on the board ------------------------------------------------------------------------
+def _board_pictures(target: CharucoTarget, n: int) -> list[np.ndarray]:
+    """The board (checkered area) at n px per square, blurred by each of PLACEMENT_BLURS (discs), 1 px margin."""
+    import cv2
+
+    sx, sy = target.squares
+    s = target.square_mm
+    pad = 1
+    img = rasterise(target, (-pad * s / n, (sx * n + pad) * s / n), (-pad * s / n, (sy * n + pad) * s / n),
+                    sx * n + 2 * pad, sy * n + 2 * pad)
+    out = []
+    for b in PLACEMENT_BLURS:
+        r = 0.5 * b * n
+        if r < 0.5:
+            out.append(img)
+            continue
+        k = int(math.ceil(r))
+        yy, xx = np.mgrid[-k:k + 1, -k:k + 1]
+        disc = (xx * xx + yy * yy <= r * r).astype(np.float32)
+        out.append(cv2.filter2D(img, -1, disc / disc.sum(), borderType=cv2.BORDER_REPLICATE))
+    return out
+
+
+def place_lattice(gray: np.ndarray, nodes: np.ndarray, xy: np.ndarray, target: CharucoTarget):
+    """Which board corner (i, j) each lattice node (a, b) is, from the markers' pattern.
+
+    The cells whose four corners are nodes are resampled (SAMPLES_PER_SQUARE² points each, through a
+    homography fitted on the nodes within two cells) and compared with the board's picture, blurred by each
+    of PLACEMENT_BLURS, under every orientation-preserving placement (i, j) = rot_k(a, b) + shift that keeps
+    the nodes on the board: residual sum of squares after a least-squares gain and offset, best blur.
+
+    Args:
+        gray: (H, W) linear image; nodes: (n, 2) integer lattice coordinates; xy: (n, 2) positions, pixels.
+    Returns:
+        (ij (n, 2) or None, message).
+    """
+    import cv2
+
+    ny, nx = target.grid_shape
+    n = SAMPLES_PER_SQUARE
+    lut = {tuple(p): k for k, p in enumerate(nodes.tolist())}
+    cells = np.array([(a, b) for (a, b) in lut if (a + 1, b) in lut and (a, b + 1) in lut and (a + 1, b + 1) in lut])
+    if len(cells) < 2:
+        return None, "too few whole cells seen to read the markers"
+    # sample positions (u, v) in lattice units within each cell, then to pixels by local homographies
+    f = (np.arange(n) + 0.5) / n
+    fu, fv = np.meshgrid(f, f)
+    uv = cells[:, None, :] + np.stack([fu.ravel(), fv.ravel()], -1)[None]  # (C, n², 2)
+    off = np.arange(-1, 3)
+    oa, ob = np.meshgrid(off, off, indexing="ij")
+    near = cells[:, None, :] + np.stack([oa.ravel(), ob.ravel()], -1)[None]  # (C, 16, 2)
+    idx = np.array([[lut.get(tuple(p), -1) for p in row] for row in near.tolist()])
+    valid = idx >= 0
+    Hs = homography_dlt_batch(near.astype(np.float64), np.where(valid[..., None], xy[np.maximum(idx, 0)], 0.0), valid)
+    q = np.einsum("cij,csj->csi", Hs, np.concatenate([uv, np.ones(uv.shape[:2] + (1,))], -1))
+    px = (q[..., :2] / q[..., 2:]).astype(np.float32)
+    obs = cv2.remap(gray.astype(np.float32), px[..., 0], px[..., 1], cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE).astype(np.float64)  # (C, n²)
+    H_img, W_img = gray.shape
+    inside = ((px[..., 0] >= 0) & (px[..., 0] <= W_img - 1) & (px[..., 1] >= 0) & (px[..., 1] <= H_img - 1)).all(1)
+    if inside.sum() < 2:
+        return None, "too few whole cells inside the image to read the markers"
+    uv, obs = uv[inside], obs[inside]
+    pictures = _board_pictures(target, n)
+    o = obs.ravel()
+    o_c = o - o.mean()
+    scores = []
+    for k in range(4):
+        rn = _rot(k, nodes)
+        lo, hi = rn.min(0), rn.max(0)
+        # corner (i, j) = rot + shift, 0 <= i < nx, 0 <= j < ny; corner (i, j) sits at board (i + 1, j + 1) squares
+        for di in range(-lo[0], nx - hi[0]):
+            for dj in range(-lo[1], ny - hi[1]):
+                b_uv = _rot(k, uv) + np.array([di + 1, dj + 1])  # board position in squares
+                mx = (b_uv[..., 0] * n + 0.5).astype(np.float32)  # picture pixel (1 px pad, centres at +0.5)
+                my = (b_uv[..., 1] * n + 0.5).astype(np.float32)
+                best = math.inf
+                for pic in pictures:
+                    m = cv2.remap(pic, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()
+                    m_c = m - m.mean()
+                    denom = float(m_c @ m_c)
+                    if denom <= 0:
+                        continue
+                    rss = float(o_c @ o_c) - float(o_c @ m_c) ** 2 / denom
+                    if (o_c @ m_c) < 0:  # dark and light swapped: not this placement
+                        rss = float(o_c @ o_c)
+                    best = min(best, rss)
+                scores.append((best, k, di, dj))
+    scores.sort()
+    if not scores:
+        return None, "the lattice does not fit on the board"
+    best, k, di, dj = scores[0]
+    second = scores[1][0] if len(scores) > 1 else math.inf
+    if not second > MIN_PLACEMENT_RATIO * max(best, 1e-30):
+        return None, (f"the markers do not tell the board's placements apart (residuals {best:.3g} and {second:.3g}); "
+                      "the view is too blurred or too small")
+    return _rot(k, nodes) + np.array([di, dj]), ""
+
+
+def _lattice(gray: np.ndarray, levels: dict, coarse_max_size: int = 400, sigma: float = 1.5):
+    """The saddle lattice of `tiltfit.detect` (no ids): (nodes (n, 2), positions (n, 2) full-res pixels) or None."""
+    factors = sorted(levels)
+    start = [f for f in factors if max(levels[f].shape) <= coarse_max_size]
+    start_f = start[0] if start else factors[-1]
+    for f in [x for x in sorted(factors, reverse=True) if x <= start_f]:
+        img = levels[f]
+        noise = estimate_noise(img)
+        grid = find_grid(saddle_map(img, sigma, noise), noise)
+        if len(grid) < 4:
+            continue
+        nodes = np.array(list(grid.keys()))
+        xy_l = np.array([grid[tuple(p)] for p in nodes.tolist()])
+        if _median_spacing(nodes, xy_l) < 6 and f > 1:
+            continue
+        return nodes, to_full(xy_l, f)
+    return None
+
+
+def _local_square_px(target: CharucoTarget, corners: np.ndarray) -> np.ndarray:
+    """(N,) image size of a square at each found corner (distance to the nearest found grid neighbour)."""
+    ny, nx = target.grid_shape
+    g = corners.reshape(ny, nx, 2)
+    d = np.full((ny, nx), np.inf)
+    dx = np.hypot(*np.diff(g, axis=1).transpose(2, 0, 1))
+    dy = np.hypot(*np.diff(g, axis=0).transpose(2, 0, 1))
+    for a, sl in ((dx, (slice(None), slice(None, -1))), (dx, (slice(None), slice(1, None))),
+                  (dy, (slice(None, -1), slice(None))), (dy, (slice(1, None), slice(None)))):
+        d[sl] = np.fmin(d[sl], np.where(np.isfinite(a), a, np.inf))
+    d = d.ravel()
+    fallback = np.median(d[np.isfinite(d)]) if np.isfinite(d).any() else 10.0
+    return np.where(np.isfinite(d), d, fallback)
+
+
+def refine_charuco(gray: np.ndarray, target: CharucoTarget, corners: np.ndarray,
+                   refine_radius_max: float = 20.0) -> np.ndarray:
+    """Point-symmetry refinement of the found corners with the ChArUco window; failed ones become NaN."""
+    found = np.isfinite(corners).all(1)
+    out = np.full_like(corners, np.nan)
+    if not found.any():
+        return out
+    square = _local_square_px(target, corners)[found]
+    radius = np.clip(symmetric_radius(target) * square, 3.0, refine_radius_max)
+    xy, asym, ok = refine_symmetric(gray, corners[found], radius)
+    ok &= (asym < MAX_ASYMMETRY) & (np.hypot(*(xy - corners[found]).T) < 0.25 * square)
+    k = np.nonzero(found)[0]
+    out[k[ok]] = xy[ok]
+    return out
+
+
+def detect_charuco(image, target: CharucoTarget, *, measure_blur: bool = True, use_opencv: bool = True,
+                   refine_radius_max: float = 20.0) -> Detection:
+    """Find a ChArUco board's corners (with ids: the feature-point order) and their blur in a linear image.
+
+    Args:
+        image: (H, W) or (H, W, C) linear float image.
+        target: the CharucoTarget.
+        measure_blur: also measure the blur diameter per corner.
+        use_opencv: name the corners with OpenCV's marker reading where it works (else only the lattice
+            placement, which also works on sharp views).
+    Returns:
+        Detection (grid_found False and all NaN when no corner could be named).
+    """
+    with torch_threads(1):
+        return _detect_charuco(image, target, measure_blur, use_opencv, refine_radius_max)
+
+
+def _detect_charuco(image, target, measure_blur, use_opencv, refine_radius_max) -> Detection:
+    from .blur import measure_blur as _measure_blur
+
+    timings: dict = {}
+    t0 = time.perf_counter()
+    gray = to_gray(image)
+    H, W = gray.shape
+    levels = build_pyramid(gray)
+    N = target.n_points
+    corners = opencv_corners(gray, target) if use_opencv else np.full((N, 2), np.nan)
+    source = "markers read by OpenCV"
+    timings["opencv"] = time.perf_counter() - t0
+    if np.isfinite(corners).all(1).sum() < 4:
+        t1 = time.perf_counter()
+        lat = _lattice(gray, levels)
+        corners = np.full((N, 2), np.nan)
+        message = "no checker corners found"
+        if lat is not None:
+            nodes, xy = lat
+            radius = np.clip(0.4 * _min_neighbour_distance(nodes, xy), 3.0, refine_radius_max)
+            xy_r, _, ok = refine_symmetric(gray, xy, radius)
+            xy = np.where(ok[:, None], xy_r, xy)
+            ij, message = place_lattice(gray, nodes, xy, target)
+            if ij is not None:
+                corners[target.feature_index(ij[:, 0], ij[:, 1])] = xy
+        source = "lattice placed by the markers' pattern"
+        timings["lattice"] = time.perf_counter() - t1
+        if not np.isfinite(corners).all(1).any():
+            return Detection((W, H), corners, np.full(N, np.nan), np.full(N, np.nan), False, message, 0, timings)
+    t2 = time.perf_counter()
+    corners = refine_charuco(gray, target, corners, refine_radius_max)
+    if np.isfinite(corners).all(1).sum() >= 4:
+        complete_corners(gray, target, corners, refine_radius_max, window=symmetric_radius(target))
+    timings["refine"] = time.perf_counter() - t2
+    found = np.isfinite(corners).all(1)
+    blur, sigma = np.full(N, np.nan), np.full(N, np.nan)
+    if measure_blur and found.any():
+        t3 = time.perf_counter()
+        blur, sigma = _measure_blur(gray, target, corners, levels=levels)
+        timings["blur"] = time.perf_counter() - t3
+    timings["total"] = time.perf_counter() - t0
+    ok = bool(found.sum() >= 4)
+    return Detection((W, H), corners, blur, sigma, ok, f"{int(found.sum())} of {N} corners ({source})", 1, timings)

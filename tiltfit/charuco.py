@@ -38,6 +38,8 @@ MIN_PLACEMENT_RATIO = 1.5
 PLACEMENT_BLURS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.65, 0.8)
 # Samples per square and axis when resampling the image in lattice coordinates (a marker bit is ~0.1 square).
 SAMPLES_PER_SQUARE = 12
+# Rounds of completion (each reaches two corners further from the found ones; it stops when none is added).
+COMPLETION_ROUNDS = 20
 # Refined corners whose point-symmetry residual exceeds this (relative, as in `tiltfit.detect`) are dropped.
 MAX_ASYMMETRY = 0.35
 
@@ -173,23 +175,29 @@ def place_lattice(gray: np.ndarray, nodes: np.ndarray, xy: np.ndarray, target: C
     return _rot(k, nodes) + np.array([di, dj]), ""
 
 
-def _lattice(gray: np.ndarray, levels: dict, coarse_max_size: int = 400, sigma: float = 1.5):
-    """The saddle lattice of `tiltfit.detect` (no ids): (nodes (n, 2), positions (n, 2) full-res pixels) or None."""
-    factors = sorted(levels)
-    start = [f for f in factors if max(levels[f].shape) <= coarse_max_size]
-    start_f = start[0] if start else factors[-1]
-    for f in [x for x in sorted(factors, reverse=True) if x <= start_f]:
-        img = levels[f]
+# Smoothing scales (full-resolution pixels) the saddle lattice is looked for at: the markers' bits are saddles
+# too, so the scale must reach a fifth of a square or so, which is not known beforehand.
+LATTICE_SCALES_PX = (1.5, 3.0, 4.5, 6.0, 8.0, 12.0, 16.0)
+
+
+def _lattice(gray: np.ndarray, levels: dict):
+    """The largest saddle lattice of `tiltfit.detect` (no ids) over LATTICE_SCALES_PX: (nodes (n, 2), positions
+    (n, 2) full-resolution pixels) or None. A scale counts when the lattice's spacing is at least 2.5 × its sigma."""
+    best = None
+    for scale in LATTICE_SCALES_PX:
+        f = max([f for f in levels if scale / f >= 1.5 and min(levels[f].shape) >= 32] or [1])
+        img, sigma = levels[f], scale / f
         noise = estimate_noise(img)
         grid = find_grid(saddle_map(img, sigma, noise), noise)
         if len(grid) < 4:
             continue
         nodes = np.array(list(grid.keys()))
         xy_l = np.array([grid[tuple(p)] for p in nodes.tolist()])
-        if _median_spacing(nodes, xy_l) < 6 and f > 1:
+        if _median_spacing(nodes, xy_l) < 2.5 * sigma:
             continue
-        return nodes, to_full(xy_l, f)
-    return None
+        if best is None or len(nodes) > len(best[0]):
+            best = nodes, to_full(xy_l, f)
+    return best
 
 
 def _local_square_px(target: CharucoTarget, corners: np.ndarray) -> np.ndarray:
@@ -223,6 +231,64 @@ def refine_charuco(gray: np.ndarray, target: CharucoTarget, corners: np.ndarray,
     return out
 
 
+def _placed_lattice(gray, levels, target, refine_radius_max):
+    """(N, 2) corners from the saddle lattice placed by the markers' pattern (NaN elsewhere), and a message."""
+    N = target.n_points
+    corners = np.full((N, 2), np.nan)
+    lat = _lattice(gray, levels)
+    if lat is None:
+        return corners, "no checker corners found"
+    nodes, xy = lat
+    radius = np.clip(0.4 * _min_neighbour_distance(nodes, xy), 3.0, refine_radius_max)
+    xy_r, _, ok = refine_symmetric(gray, xy, radius)
+    xy = np.where(ok[:, None], xy_r, xy)
+    ij, message = place_lattice(gray, nodes, xy, target)
+    if ij is not None:
+        corners[target.feature_index(ij[:, 0], ij[:, 1])] = xy
+    return corners, message
+
+
+def drop_inconsistent(corners: np.ndarray, target: CharucoTarget, tolerance: float = 0.2) -> int:
+    """Drop corners that their neighbours (within two indices, at least 5) place elsewhere: further than
+    `tolerance` squares from the local homography of the others. Modifies `corners`; returns how many."""
+    ny, nx = target.grid_shape
+    pts = target.feature_points()[:, :2]
+    found = np.isfinite(corners).all(1)
+    square = _local_square_px(target, corners)
+    bad = []
+    for k in np.nonzero(found)[0]:
+        j, i = divmod(int(k), nx)
+        near = [jj * nx + ii for jj in range(max(0, j - 2), min(ny, j + 3)) for ii in range(max(0, i - 2), min(nx, i + 3))
+                if found[jj * nx + ii] and jj * nx + ii != k]
+        if len(near) < 5 or np.linalg.matrix_rank(pts[near] - pts[near].mean(0)) < 2:
+            continue
+        Hm = homography_dlt(pts[near], corners[near])
+        if Hm is None or not np.isfinite(Hm).all():
+            continue
+        q = Hm @ np.array([pts[k, 0], pts[k, 1], 1.0])
+        if np.hypot(*(q[:2] / q[2] - corners[k])) > tolerance * square[k]:
+            bad.append(k)
+    corners[bad] = np.nan
+    return len(bad)
+
+
+def _merge(opencv: np.ndarray, placed: np.ndarray, target: CharucoTarget):
+    """Union of OpenCV's named corners and the placed lattice's, and which named them (None: they disagree:
+    a corner both name lies more than a quarter of a square apart, or neither found 4)."""
+    fo, fp = np.isfinite(opencv).all(1), np.isfinite(placed).all(1)
+    if fo.sum() < 4 and fp.sum() < 4:
+        return np.full_like(opencv, np.nan), None
+    if fo.sum() < 4:
+        return placed, "lattice placed by the markers' pattern"
+    if fp.sum() < 4:
+        return opencv, "markers read by OpenCV"
+    both = fo & fp
+    square = np.median(_local_square_px(target, placed))
+    if both.any() and np.hypot(*(opencv[both] - placed[both]).T).max() > 0.25 * square:
+        return opencv, "markers read by OpenCV (the lattice placement disagreed and was dropped)"
+    return np.where(fo[:, None], opencv, placed), "markers read by OpenCV and the lattice placed by them"
+
+
 def detect_charuco(image, target: CharucoTarget, *, measure_blur: bool = True, use_opencv: bool = True,
                    refine_radius_max: float = 20.0) -> Detection:
     """Find a ChArUco board's corners (with ids: the feature-point order) and their blur in a linear image.
@@ -250,29 +316,21 @@ def _detect_charuco(image, target, measure_blur, use_opencv, refine_radius_max) 
     levels = build_pyramid(gray)
     N = target.n_points
     corners = opencv_corners(gray, target) if use_opencv else np.full((N, 2), np.nan)
-    source = "markers read by OpenCV"
     timings["opencv"] = time.perf_counter() - t0
-    if np.isfinite(corners).all(1).sum() < 4:
-        t1 = time.perf_counter()
-        lat = _lattice(gray, levels)
-        corners = np.full((N, 2), np.nan)
-        message = "no checker corners found"
-        if lat is not None:
-            nodes, xy = lat
-            radius = np.clip(0.4 * _min_neighbour_distance(nodes, xy), 3.0, refine_radius_max)
-            xy_r, _, ok = refine_symmetric(gray, xy, radius)
-            xy = np.where(ok[:, None], xy_r, xy)
-            ij, message = place_lattice(gray, nodes, xy, target)
-            if ij is not None:
-                corners[target.feature_index(ij[:, 0], ij[:, 1])] = xy
-        source = "lattice placed by the markers' pattern"
-        timings["lattice"] = time.perf_counter() - t1
-        if not np.isfinite(corners).all(1).any():
-            return Detection((W, H), corners, np.full(N, np.nan), np.full(N, np.nan), False, message, 0, timings)
+    n_opencv = int(np.isfinite(corners).all(1).sum())
+    t1 = time.perf_counter()
+    placed, message = _placed_lattice(gray, levels, target, refine_radius_max)
+    timings["lattice"] = time.perf_counter() - t1
+    corners, source = _merge(corners, placed, target)
+    if source is None:
+        return Detection((W, H), corners, np.full(N, np.nan), np.full(N, np.nan), False,
+                         message if n_opencv < 4 else "OpenCV's ids and the lattice placement disagree", 0, timings)
     t2 = time.perf_counter()
     corners = refine_charuco(gray, target, corners, refine_radius_max)
+    drop_inconsistent(corners, target)
     if np.isfinite(corners).all(1).sum() >= 4:
-        complete_corners(gray, target, corners, refine_radius_max, window=symmetric_radius(target))
+        complete_corners(gray, target, corners, refine_radius_max, rounds=COMPLETION_ROUNDS,
+                         window=symmetric_radius(target))
     timings["refine"] = time.perf_counter() - t2
     found = np.isfinite(corners).all(1)
     blur, sigma = np.full(N, np.nan), np.full(N, np.nan)

@@ -29,7 +29,7 @@ import numpy as np
 from .detect import (Detection, complete_corners, estimate_noise, find_grid, refine_symmetric, saddle_map,
                      to_gray, _median_spacing, _min_neighbour_distance, _rot)
 from .imaging import build_pyramid, homography_dlt, homography_dlt_batch, to_full, torch_threads
-from .target import CharucoTarget, rasterise
+from .target import CharucoTarget, Target, rasterise
 
 # A placement is accepted when the next best one leaves this many times its residual (sum of squares after a
 # fitted gain and offset): the markers' pattern must tell the placements apart, not noise.
@@ -38,6 +38,10 @@ MIN_PLACEMENT_RATIO = 1.5
 PLACEMENT_BLURS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.65, 0.8)
 # Samples per square and axis when resampling the image in lattice coordinates (a marker bit is ~0.1 square).
 SAMPLES_PER_SQUARE = 12
+# Above this median blur (diameter, squares) the corners are refined again on the image with the markers' data
+# bits painted out (`cancel_data_bits`): below it the window sees none of them (on renders, 0.1 square changes
+# nothing; 0.25 square halves the largest error).
+CANCEL_BITS_BLUR = 0.15
 # Rounds of completion (each reaches two corners further from the found ones; it stops when none is added).
 COMPLETION_ROUNDS = 20
 # Refined corners whose point-symmetry residual exceeds this (relative, as in `tiltfit.detect`) are dropped.
@@ -289,6 +293,98 @@ def _merge(opencv: np.ndarray, placed: np.ndarray, target: CharucoTarget):
     return np.where(fo[:, None], opencv, placed), "markers read by OpenCV and the lattice placed by them"
 
 
+def cancel_data_bits(gray: np.ndarray, target: CharucoTarget, corners: np.ndarray, blur_px: np.ndarray) -> np.ndarray:
+    """The image with the markers' data bits painted out: what is left (checker and the markers' black borders)
+    is point-symmetric about every corner out to the next ring of cells.
+
+    Per marker whose cell has a found corner with a measured blur: the data bits' dark fraction, rasterised
+    exactly in the target plane, blurred by the disc of that corner's blur (converted to mm by the local scale),
+    mapped to the image by the local homography of the corners (`tiltfit.blur._local_homographies`); the
+    contrast (white − dark) from a least-squares fit of the whole board's blurred picture to the image there.
+    Returns a copy of `gray` plus contrast × predicted dark fraction of the data bits.
+    """
+    import cv2
+
+    from .blur import _local_homographies
+    from .target import add_rectangles
+
+    out = gray.astype(np.float64).copy()
+    found = np.isfinite(corners).all(1) & np.isfinite(blur_px)
+    Hs = _local_homographies(target, corners, np.isfinite(corners).all(1))
+    ny, nx = target.grid_shape
+    s = target.square_mm
+    bits = target.dark_rectangles(data_bits_only=True)
+    every = target.dark_rectangles()
+    cells = target.marker_cells()
+    origin = np.array([target.x_edges[0], target.y_edges[0]])
+
+    def cell_of(rects):
+        return np.floor((np.array([[(r[0] + r[2]) / 2, (r[1] + r[3]) / 2] for r in rects]) - origin) / s).astype(int)
+
+    bits_cell, every_cell = cell_of(bits), cell_of(every)
+    checker = Target(target.x_edges, target.y_edges, target.dark_cell, target.margin)
+    n_bits = target.opencv_board().getDictionary().markerSize + 2
+    ppm = 6.0 * n_bits / target.marker_mm  # texels per mm: 6 a bit
+    H_img, W_img = gray.shape
+    for m, (i, j) in enumerate(cells):
+        # the cell's four corners as feature points (those inside the grid): (i − 1 + a, j − 1 + b)
+        ks = [(j - 1 + b) * nx + (i - 1 + a) for a in (0, 1) for b in (0, 1)
+              if 0 <= i - 1 + a < nx and 0 <= j - 1 + b < ny and found[(j - 1 + b) * nx + (i - 1 + a)]]
+        ks = [k for k in ks if k in Hs]
+        if not ks:
+            continue
+        Hm = Hs[ks[0]]
+        b_px = float(np.mean(blur_px[ks]))
+        # mm per pixel at the cell: the image size of one square
+        q = np.array([[i * s, j * s, 1.0], [(i + 1) * s, j * s, 1.0], [i * s, (j + 1) * s, 1.0]]) @ Hm.T
+        q = q[:, :2] / q[:, 2:]
+        mm_per_px = s / (0.5 * (np.hypot(*(q[1] - q[0])) + np.hypot(*(q[2] - q[0]))))
+        r_mm = 0.5 * b_px * mm_per_px
+        pad = r_mm + 2.0 / ppm
+        x0, y0 = target.x_edges[0] + i * s - pad, target.y_edges[0] + j * s - pad
+        x1, y1 = x0 + s + 2 * pad, y0 + s + 2 * pad
+        nw, nh = int(math.ceil((x1 - x0) * ppm)), int(math.ceil((y1 - y0) * ppm))
+        bx, by = np.linspace(x0, x1, nw + 1), np.linspace(y0, y1, nh + 1)
+        area = np.outer(np.diff(by), np.diff(bx))
+        dark_bits = np.zeros((nh, nw))
+        add_rectangles(dark_bits, bx, by, [r for r, c in zip(bits, bits_cell) if c[0] == i and c[1] == j])
+        # the whole board's picture there: the checker, and the markers of this cell and its neighbours
+        dark_all = 1.0 - rasterise(checker, (x0, x1), (y0, y1), nw, nh).astype(np.float64)
+        extra = np.zeros((nh, nw))
+        add_rectangles(extra, bx, by, [r for r, c in zip(every, every_cell) if abs(c[0] - i) <= 1 and abs(c[1] - j) <= 1])
+        dark_all += extra / area
+        tex = [(dark_bits / area).astype(np.float32), dark_all.astype(np.float32)]
+        rk = r_mm * ppm
+        if rk > 0.5:
+            k = int(math.ceil(rk))
+            yy, xx = np.mgrid[-k:k + 1, -k:k + 1]
+            disc = (xx * xx + yy * yy <= rk * rk).astype(np.float32)
+            tex = [cv2.filter2D(t, -1, disc / disc.sum(), borderType=cv2.BORDER_REPLICATE) for t in tex]
+        # the image pixels of the cell (+ the blur's reach)
+        corners_mm = np.array([[x0, y0, 1], [x1, y0, 1], [x1, y1, 1], [x0, y1, 1]]) @ Hm.T
+        cp = corners_mm[:, :2] / corners_mm[:, 2:]
+        c0, r0 = np.maximum(np.floor(cp.min(0)).astype(int), 0)
+        c1, r1 = np.minimum(np.ceil(cp.max(0)).astype(int), [W_img - 1, H_img - 1])
+        if c1 <= c0 or r1 <= r0:
+            continue
+        v, u = np.mgrid[r0:r1 + 1, c0:c1 + 1].astype(np.float64)
+        p = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(Hm).T
+        X, Y = p[..., 0] / p[..., 2], p[..., 1] / p[..., 2]
+        inside = (X > x0 + pad) & (X < x1 - pad) & (Y > y0 + pad) & (Y < y1 - pad)
+        mx = ((X - x0) * ppm - 0.5).astype(np.float32)
+        my = ((Y - y0) * ppm - 0.5).astype(np.float32)
+        pb, pa = (cv2.remap(t, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+                  for t in tex)
+        use = inside
+        if use.sum() < 10 or np.ptp(pa[use]) < 0.1:
+            continue
+        A = np.stack([np.ones(use.sum()), -pa[use]], -1)
+        (_, contrast), *_ = np.linalg.lstsq(A, gray[r0:r1 + 1, c0:c1 + 1][use].astype(np.float64), rcond=None)
+        reach = (X > x0) & (X < x1) & (Y > y0) & (Y < y1)
+        out[r0:r1 + 1, c0:c1 + 1] += np.where(reach, contrast * pb, 0.0)
+    return out
+
+
 def detect_charuco(image, target: CharucoTarget, *, measure_blur: bool = True, use_opencv: bool = True,
                    refine_radius_max: float = 20.0) -> Detection:
     """Find a ChArUco board's corners (with ids: the feature-point order) and their blur in a linear image.
@@ -334,10 +430,18 @@ def _detect_charuco(image, target, measure_blur, use_opencv, refine_radius_max) 
     timings["refine"] = time.perf_counter() - t2
     found = np.isfinite(corners).all(1)
     blur, sigma = np.full(N, np.nan), np.full(N, np.nan)
-    if measure_blur and found.any():
+    if found.any():
         t3 = time.perf_counter()
         blur, sigma = _measure_blur(gray, target, corners, levels=levels)
         timings["blur"] = time.perf_counter() - t3
+        if np.nanmedian(blur / _local_square_px(target, corners)) > CANCEL_BITS_BLUR:
+            # blur reaching the markers' data bits: refine again with those painted out
+            t4 = time.perf_counter()
+            again = refine_charuco(cancel_data_bits(gray, target, corners, blur), target, corners, refine_radius_max)
+            corners = np.where(np.isfinite(again), again, corners)
+            timings["cancel_bits"] = time.perf_counter() - t4
+        if not measure_blur:
+            blur, sigma = np.full(N, np.nan), np.full(N, np.nan)
     timings["total"] = time.perf_counter() - t0
     ok = bool(found.sum() >= 4)
     return Detection((W, H), corners, blur, sigma, ok, f"{int(found.sum())} of {N} corners ({source})", 1, timings)

@@ -293,8 +293,9 @@ class CharucoTarget(Target):
     def white_cell_clear_mm(self) -> float:
         return 0.5 * (self.square_mm - self.marker_mm)
 
-    def dark_rectangles(self) -> list[tuple[float, float, float, float]]:
-        """The markers' dark bits as rectangles (x0, y0, x1, y1), mm, runs along each bit row merged."""
+    def dark_rectangles(self, data_bits_only: bool = False) -> list[tuple[float, float, float, float]]:
+        """The markers' dark bits as rectangles (x0, y0, x1, y1), mm, runs along each bit row merged;
+        `data_bits_only`: without the black border (what makes a corner's neighbourhood asymmetric)."""
         cells = self.marker_cells()
         bits = _marker_bits(self.dictionary, len(cells))
         s, m = self.square_mm, self.marker_mm
@@ -304,6 +305,10 @@ class CharucoTarget(Target):
             bit = m / n
             x0 = self.x_edges[0] + (i + 0.5) * s - 0.5 * m
             y0 = self.y_edges[0] + (j + 0.5) * s - 0.5 * m
+            if data_bits_only:
+                b = b.copy()
+                b[[0, -1], :] = False
+                b[:, [0, -1]] = False
             for r in range(n):
                 row = np.concatenate([[False], b[r], [False]])
                 starts = np.nonzero(row[1:] & ~row[:-1])[0]
@@ -492,16 +497,20 @@ def rasterise(target: Target, x_range_mm, y_range_mm, width_px: int, height_px: 
     ay, sy = (np.diff(v) for v in _cumulative_sign(target.y_edges, 1.0, by))
     eps = 1.0 if (target.dark_cell[0] + target.dark_cell[1]) % 2 == 0 else -1.0
     dark_area = 0.5 * (np.outer(ay, ax) + eps * np.outer(sy, sx))
-    for rx0, ry0, rx1, ry1 in target.dark_rectangles():
-        # a dark rectangle on white ground (a marker's bits): its overlap with each pixel, separable
-        cx = np.diff(np.clip(bx, rx0, rx1))
-        cy = np.diff(np.clip(by, ry0, ry1))
-        c0, c1 = np.searchsorted(bx, rx0) - 1, np.searchsorted(bx, rx1) + 1
-        r0, r1 = np.searchsorted(by, ry0) - 1, np.searchsorted(by, ry1) + 1
-        c0, r0 = max(c0, 0), max(r0, 0)
-        dark_area[r0:r1, c0:c1] += np.outer(cy[r0:r1], cx[c0:c1])
+    add_rectangles(dark_area, bx, by, target.dark_rectangles())
     dark_frac = dark_area / (np.diff(by)[:, None] * np.diff(bx)[None, :])
     return (white + (dark - white) * dark_frac).astype(np.float32)
+
+
+def add_rectangles(dark_area: np.ndarray, bx: np.ndarray, by: np.ndarray, rectangles) -> None:
+    """Add to `dark_area` (H, W) each rectangle's (x0, y0, x1, y1) overlap with the pixels bounded by bx (W + 1)
+    and by (H + 1), ascending, mm (separable: the outer product of the overlaps along each axis)."""
+    for rx0, ry0, rx1, ry1 in rectangles:
+        cx = np.diff(np.clip(bx, rx0, rx1))
+        cy = np.diff(np.clip(by, ry0, ry1))
+        c0, c1 = max(int(np.searchsorted(bx, rx0)) - 1, 0), int(np.searchsorted(bx, rx1)) + 1
+        r0, r1 = max(int(np.searchsorted(by, ry0)) - 1, 0), int(np.searchsorted(by, ry1)) + 1
+        dark_area[r0:r1, c0:c1] += np.outer(cy[r0:r1], cx[c0:c1])
 
 
 def render_target(target: Target, dpi: float) -> np.ndarray:

@@ -135,8 +135,8 @@ def test_corners_within_005_px(blurred_partial_views, blur):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="markers' data bits within the blur of a corner bias the point-symmetry "
-                                      "refinement beyond a quarter-square blur (benchmarks/results/charuco.md)")
+@pytest.mark.xfail(strict=True, reason="beyond a quarter-square blur the painted-out data bits leave 0.1-0.7 px "
+                                      "(max) of bias in the point-symmetry refinement (benchmarks/results/charuco.md)")
 @pytest.mark.parametrize("blur", [b for b in BLURS if b > 0.25])
 def test_corners_within_005_px_at_heavy_blur(blurred_partial_views, blur):
     for (v, b), (img, truth, sq, det) in blurred_partial_views.items():
@@ -181,11 +181,11 @@ def ray_traced():
         pytest.skip("renderer has no thin_lens camera / rectangle shape")
     cam = CAMERA.with_(U=420.0, d=0.8)
     out = {}
-    for kind, views in (("partial", PARTIAL), ("full", FULL)):
+    for kind, views in (("partial", PARTIAL[:5]), ("full", FULL[:3])):
         dets, truths = [], []
         for k, v in enumerate(views):
             R, T = pose(v)
-            r = render_view(TARGET, cam, R, T, method="renderer", spp=24, seed=k, srgb8=True)
+            r = render_view(TARGET, cam, R, T, method="renderer", spp=16, seed=k, srgb8=True)
             dets.append(detect_charuco(r.image, TARGET))
             truths.append(r.truth)
         out[kind] = (dets, truths)

@@ -311,6 +311,7 @@ def cancel_data_bits(gray: np.ndarray, target: CharucoTarget, corners: np.ndarra
     out = gray.astype(np.float64).copy()
     found = np.isfinite(corners).all(1) & np.isfinite(blur_px)
     Hs = _local_homographies(target, corners, np.isfinite(corners).all(1))
+    Hinv = dict(zip(Hs, np.linalg.inv(np.stack(list(Hs.values()))))) if Hs else {}
     ny, nx = target.grid_shape
     s = target.square_mm
     bits = target.dark_rectangles(data_bits_only=True)
@@ -368,7 +369,7 @@ def cancel_data_bits(gray: np.ndarray, target: CharucoTarget, corners: np.ndarra
         if c1 <= c0 or r1 <= r0:
             continue
         v, u = np.mgrid[r0:r1 + 1, c0:c1 + 1].astype(np.float64)
-        p = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(Hm).T
+        p = np.stack([u, v, np.ones_like(u)], -1) @ Hinv[ks[0]].T
         X, Y = p[..., 0] / p[..., 2], p[..., 1] / p[..., 2]
         inside = (X > x0 + pad) & (X < x1 - pad) & (Y > y0 + pad) & (Y < y1 - pad)
         mx = ((X - x0) * ppm - 0.5).astype(np.float32)
@@ -378,11 +379,22 @@ def cancel_data_bits(gray: np.ndarray, target: CharucoTarget, corners: np.ndarra
         use = inside
         if use.sum() < 10 or np.ptp(pa[use]) < 0.1:
             continue
-        A = np.stack([np.ones(use.sum()), -pa[use]], -1)
-        (_, contrast), *_ = np.linalg.lstsq(A, gray[r0:r1 + 1, c0:c1 + 1][use].astype(np.float64), rcond=None)
+        # image = white − contrast × dark fraction: the straight-line fit's slope, in closed form
+        xs, ys = pa[use], gray[r0:r1 + 1, c0:c1 + 1][use].astype(np.float64)
+        contrast = -float(np.mean((xs - xs.mean()) * (ys - ys.mean())) / np.var(xs))
         reach = (X > x0) & (X < x1) & (Y > y0) & (Y < y1)
         out[r0:r1 + 1, c0:c1 + 1] += np.where(reach, contrast * pb, 0.0)
     return out
+
+
+def detect_board(image, target, *, measure_blur: bool = True) -> Detection:
+    """Corners and blur of any target in a linear image: `detect_charuco` for a ChArUco board, else the
+    checkerboard detector (`tiltfit.detect.detect`)."""
+    from .detect import detect
+
+    if isinstance(target, CharucoTarget):
+        return detect_charuco(image, target, measure_blur=measure_blur)
+    return detect(image, target, measure_blur=measure_blur)
 
 
 def detect_charuco(image, target: CharucoTarget, *, measure_blur: bool = True, use_opencv: bool = True,

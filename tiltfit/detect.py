@@ -992,12 +992,8 @@ def detect(image, target: Target, *, measure_blur: bool = True, **options) -> De
     Returns:
         Detection; grid_found False (and all NaN) when no board was found or its placement is ambiguous.
     """
-    from .target import CharucoTarget
-
-    if isinstance(target, CharucoTarget):  # markers name the corners: their own pipeline
-        from .charuco import detect_charuco
-
-        return detect_charuco(image, target, measure_blur=measure_blur)
+    if target.dark_rectangles():
+        raise DetectionError("target: a ChArUco board; its corners are found by tiltfit.charuco.detect_board")
     with torch_threads(1):
         return _detect(image, target, measure_blur, options)
 

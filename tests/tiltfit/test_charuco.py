@@ -9,8 +9,8 @@ import pytest
 
 from renderer import Lens
 from renderer.cameras.lens import Sensor
-from tiltfit.charuco import detect_charuco, opencv_corners
-from tiltfit.detect import detect
+from tiltfit.charuco import detect_board, detect_charuco, opencv_corners
+from tiltfit.detect import DetectionError, detect
 from tiltfit.fit import FitOptions
 from tiltfit.model import Observations
 from tiltfit.photos import fit_with_held_out
@@ -167,10 +167,12 @@ def test_blur_measured_between_markers(blurred_partial_views):
             assert abs(ratio - 1) < 0.1, f"blur {b}: measured / rendered = {ratio:.3f}"
 
 
-def test_detect_dispatches_on_the_target_type(blurred_partial_views):
+def test_detect_board_dispatches_on_the_target_type(blurred_partial_views):
     img, truth, sq, det = blurred_partial_views[(PARTIAL[0], 0.1)]
-    d = detect(img, TARGET, measure_blur=False)
-    assert d.grid_found and d.found.sum() == det.found.sum(), "tiltfit.detect.detect runs the ChArUco pipeline"
+    d = detect_board(img, TARGET, measure_blur=False)
+    assert d.grid_found and d.found.sum() == det.found.sum(), "detect_board runs the ChArUco pipeline"
+    with pytest.raises(DetectionError, match="ChArUco"):
+        detect(img, TARGET)
 
 
 # --- the ray tracer, and calibration from partial views ----------------------------------------------------

@@ -187,7 +187,7 @@ def ray_traced():
         dets, truths = [], []
         for k, v in enumerate(views):
             R, T = pose(v)
-            r = render_view(TARGET, cam, R, T, method="renderer", spp=16, seed=k, srgb8=True)
+            r = render_view(TARGET, cam, R, T, method="renderer", spp=10, seed=k, srgb8=True)
             dets.append(detect_charuco(r.image, TARGET))
             truths.append(r.truth)
         out[kind] = (dets, truths)

@@ -224,3 +224,27 @@ def test_ray_traced_partial_views_ids_and_calibration(ray_traced):
     assert diff <= 3 * s, f"w: partial {w_p:.4f} ± {s_p:.4f}, full {w_f:.4f} ± {s_f:.4f} mm: {diff / s:.1f} σ apart"
     assert s_p < 0.01 * w_p and s_f < 0.01 * w_f, f"σ of w too large to mean anything: {s_p:.4f}, {s_f:.4f} mm"
     assert abs(w_p - cam.w) <= 3 * s_p + 0.002 * cam.w, f"partial-view w {w_p:.4f} ± {s_p:.4f}, truth {cam.w}"
+
+
+def test_tiltfit_detect_writes_ids_as_positions_and_nulls(tmp_path, blurred_partial_views):
+    """`tiltfit detect` on a photo of a third of the board: a DET file with every corner of the board, the seen
+    ones at their ids' positions and null elsewhere, which `read_det` accepts back."""
+    import cv2
+
+    from renderer.io import linear_to_srgb
+    from tiltfit.cli import main
+    from tiltfit.detfile import read_det
+
+    img, truth, sq, det = blurred_partial_views[(PARTIAL[0], 0.1)]
+    cv2.imwrite(str(tmp_path / "p.png"), np.clip(np.round(255 * linear_to_srgb(np.clip(img, 0, 1))), 0, 255)
+                .astype(np.uint8))
+    TARGET.save(str(tmp_path / "t.json"))
+    rc = main(["detect", str(tmp_path / "p.png"), "--target", str(tmp_path / "t.json"), "-o", str(tmp_path / "d.json"),
+               "-q"])
+    assert rc == 0, "tiltfit detect on a ChArUco photo"
+    d = read_det(str(tmp_path / "d.json"), TARGET.n_points)
+    corners = np.array([[np.nan, np.nan] if c is None else c for c in d["corners_px"]], dtype=np.float64)
+    seen = np.isfinite(corners).all(1)
+    assert 20 <= seen.sum() < 0.45 * TARGET.n_points, f"{seen.sum()} corners in the DET file"
+    e = np.hypot(*(corners[seen] - truth.corners_px[seen]).T)
+    assert e.max() < 0.1, f"DET corners up to {e.max():.3f} px from their ids' truth"

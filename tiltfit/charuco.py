@@ -42,6 +42,8 @@ SAMPLES_PER_SQUARE = 12
 # bits painted out (`cancel_data_bits`): below it the window sees none of them (on renders, 0.1 square changes
 # nothing; 0.25 square halves the largest error).
 CANCEL_BITS_BLUR = 0.15
+# ... and then dropped when their neighbours' homography puts them this many squares away (0.2 otherwise).
+HEAVY_BLUR_TOLERANCE = 0.05
 # Rounds of completion (each reaches two corners further from the found ones; it stops when none is added).
 COMPLETION_ROUNDS = 20
 # Refined corners whose point-symmetry residual exceeds this (relative, as in `tiltfit.detect`) are dropped.
@@ -293,13 +295,25 @@ def _merge(opencv: np.ndarray, placed: np.ndarray, target: CharucoTarget):
     return np.where(fo[:, None], opencv, placed), "markers read by OpenCV and the lattice placed by them"
 
 
+# Points per pixel side where `cancel_data_bits` looks the markers' picture up before blurring it.
+SUPERSAMPLE = 3
+
+
+def _disc_kernel(r: float) -> np.ndarray:
+    """Normalised kernel of a disc of radius r (in taps), each tap weighted by its area inside (4 × 4 points)."""
+    k = int(math.ceil(r)) + 1
+    o = (np.arange(4) + 0.5) / 4 - 0.5
+    yy, xx = np.mgrid[-k:k + 1, -k:k + 1].astype(np.float64)
+    ker = sum(((xx + a) ** 2 + (yy + b) ** 2 <= r * r) for a in o for b in o).astype(np.float32)
+    return ker / ker.sum()
+
+
 def cancel_data_bits(gray: np.ndarray, target: CharucoTarget, corners: np.ndarray, blur_px: np.ndarray) -> np.ndarray:
     """The image with the markers' data bits painted out: what is left (checker and the markers' black borders)
     is point-symmetric about every corner out to the next ring of cells.
 
     Per marker whose cell has a found corner with a measured blur: the data bits' dark fraction, rasterised
-    exactly in the target plane, blurred by the disc of that corner's blur (converted to mm by the local scale),
-    mapped to the image by the local homography of the corners (`tiltfit.blur._local_homographies`); the
+    exactly in the target plane, mapped to the image by the local homography of the corners (`tiltfit.blur._local_homographies`); the
     contrast (white − dark) from a least-squares fit of the whole board's blurred picture to the image there.
     Returns a copy of `gray` plus contrast × predicted dark fraction of the data bits.
     """
@@ -327,6 +341,7 @@ def cancel_data_bits(gray: np.ndarray, target: CharucoTarget, corners: np.ndarra
     n_bits = target.opencv_board().getDictionary().markerSize + 2
     ppm = 6.0 * n_bits / target.marker_mm  # texels per mm: 6 a bit
     H_img, W_img = gray.shape
+    painted = []
     for m, (i, j) in enumerate(cells):
         # the cell's four corners as feature points (those inside the grid): (i − 1 + a, j − 1 + b)
         ks = [(j - 1 + b) * nx + (i - 1 + a) for a in (0, 1) for b in (0, 1)
@@ -341,7 +356,7 @@ def cancel_data_bits(gray: np.ndarray, target: CharucoTarget, corners: np.ndarra
         q = q[:, :2] / q[:, 2:]
         mm_per_px = s / (0.5 * (np.hypot(*(q[1] - q[0])) + np.hypot(*(q[2] - q[0]))))
         r_mm = 0.5 * b_px * mm_per_px
-        pad = r_mm + 2.0 / ppm
+        pad = 1.5 * r_mm + 2.0 / ppm  # the blur in mm varies over the cell under perspective
         x0, y0 = target.x_edges[0] + i * s - pad, target.y_edges[0] + j * s - pad
         x1, y1 = x0 + s + 2 * pad, y0 + s + 2 * pad
         nw, nh = int(math.ceil((x1 - x0) * ppm)), int(math.ceil((y1 - y0) * ppm))
@@ -355,35 +370,43 @@ def cancel_data_bits(gray: np.ndarray, target: CharucoTarget, corners: np.ndarra
         add_rectangles(extra, bx, by, [r for r, c in zip(every, every_cell) if abs(c[0] - i) <= 1 and abs(c[1] - j) <= 1])
         dark_all += extra / area
         tex = [(dark_bits / area).astype(np.float32), dark_all.astype(np.float32)]
-        rk = r_mm * ppm
-        if rk > 0.5:
-            k = int(math.ceil(rk))
-            yy, xx = np.mgrid[-k:k + 1, -k:k + 1]
-            disc = (xx * xx + yy * yy <= rk * rk).astype(np.float32)
-            tex = [cv2.filter2D(t, -1, disc / disc.sum(), borderType=cv2.BORDER_REPLICATE) for t in tex]
-        # the image pixels of the cell (+ the blur's reach)
+        # the image pixels of the cell (+ the blur's reach); the sharp pictures looked up at SUPERSAMPLE² points
+        # a pixel, then blurred by the lens's disc in the image (it is round on the sensor, not on the board)
         corners_mm = np.array([[x0, y0, 1], [x1, y0, 1], [x1, y1, 1], [x0, y1, 1]]) @ Hm.T
         cp = corners_mm[:, :2] / corners_mm[:, 2:]
         c0, r0 = np.maximum(np.floor(cp.min(0)).astype(int), 0)
         c1, r1 = np.minimum(np.ceil(cp.max(0)).astype(int), [W_img - 1, H_img - 1])
         if c1 <= c0 or r1 <= r0:
             continue
-        v, u = np.mgrid[r0:r1 + 1, c0:c1 + 1].astype(np.float64)
-        p = np.stack([u, v, np.ones_like(u)], -1) @ Hinv[ks[0]].T
+        S = SUPERSAMPLE
+        sub = (np.arange(S) + 0.5) / S - 0.5
+        v = (np.arange(r0, r1 + 1)[:, None] + sub[None]).ravel()
+        u = (np.arange(c0, c1 + 1)[:, None] + sub[None]).ravel()
+        V, U = np.meshgrid(v, u, indexing="ij")
+        p = np.stack([U, V, np.ones_like(U)], -1) @ Hinv[ks[0]].T
         X, Y = p[..., 0] / p[..., 2], p[..., 1] / p[..., 2]
-        inside = (X > x0 + pad) & (X < x1 - pad) & (Y > y0 + pad) & (Y < y1 - pad)
         mx = ((X - x0) * ppm - 0.5).astype(np.float32)
         my = ((Y - y0) * ppm - 0.5).astype(np.float32)
-        pb, pa = (cv2.remap(t, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
-                  for t in tex)
+        fine = [cv2.remap(t, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) for t in tex]
+        r_sub = 0.5 * b_px * S
+        if r_sub > 0.5:
+            fine = [cv2.filter2D(f, -1, _disc_kernel(r_sub), borderType=cv2.BORDER_REPLICATE) for f in fine]
+        h, w = r1 - r0 + 1, c1 - c0 + 1
+        pb, pa = (f.reshape(h, S, w, S).mean((1, 3)).astype(np.float64) for f in fine)
+        Xc, Yc = (a.reshape(h, S, w, S).mean((1, 3)) for a in (X, Y))
+        inside = (Xc > x0 + pad) & (Xc < x1 - pad) & (Yc > y0 + pad) & (Yc < y1 - pad)
         use = inside
         if use.sum() < 10 or np.ptp(pa[use]) < 0.1:
             continue
         # image = white − contrast × dark fraction: the straight-line fit's slope, in closed form
         xs, ys = pa[use], gray[r0:r1 + 1, c0:c1 + 1][use].astype(np.float64)
         contrast = -float(np.mean((xs - xs.mean()) * (ys - ys.mean())) / np.var(xs))
-        reach = (X > x0) & (X < x1) & (Y > y0) & (Y < y1)
-        out[r0:r1 + 1, c0:c1 + 1] += np.where(reach, contrast * pb, 0.0)
+        painted.append(((i, j), contrast, (r0, r1, c0, c1), pb))
+    # each cell's contrast fit leaves a few per cent of noise; the median of the cell and its eight neighbours
+    contrasts = {ij: c for ij, c, _, _ in painted}
+    for (i, j), _, (r0, r1, c0, c1), pb in painted:
+        near = [contrasts[(i + a, j + b)] for a in (-1, 0, 1) for b in (-1, 0, 1) if (i + a, j + b) in contrasts]
+        out[r0:r1 + 1, c0:c1 + 1] += float(np.median(near)) * pb
     return out
 
 
@@ -451,9 +474,13 @@ def _detect_charuco(image, target, measure_blur, use_opencv, refine_radius_max) 
             t4 = time.perf_counter()
             again = refine_charuco(cancel_data_bits(gray, target, corners, blur), target, corners, refine_radius_max)
             corners = np.where(np.isfinite(again), again, corners)
+            # a corner whose window left the image or the painted area can end a few pixels off
+            drop_inconsistent(corners, target, tolerance=HEAVY_BLUR_TOLERANCE)
             timings["cancel_bits"] = time.perf_counter() - t4
         if not measure_blur:
             blur, sigma = np.full(N, np.nan), np.full(N, np.nan)
     timings["total"] = time.perf_counter() - t0
+    found = np.isfinite(corners).all(1)
+    blur[~found], sigma[~found] = np.nan, np.nan
     ok = bool(found.sum() >= 4)
     return Detection((W, H), corners, blur, sigma, ok, f"{int(found.sum())} of {N} corners ({source})", 1, timings)

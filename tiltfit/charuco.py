@@ -44,6 +44,7 @@ SAMPLES_PER_SQUARE = 12
 CANCEL_BITS_BLUR = 0.15
 # ... and then dropped when their neighbours' homography puts them this many squares away (0.2 otherwise).
 HEAVY_BLUR_TOLERANCE = 0.05
+CANCEL_ROUNDS = 1
 # Rounds of completion (each reaches two corners further from the found ones; it stops when none is added).
 COMPLETION_ROUNDS = 20
 # Refined corners whose point-symmetry residual exceeds this (relative, as in `tiltfit.detect`) are dropped.
@@ -360,6 +361,7 @@ def cancel_data_bits(gray: np.ndarray, target: CharucoTarget, corners: np.ndarra
         x0, y0 = target.x_edges[0] + i * s - pad, target.y_edges[0] + j * s - pad
         x1, y1 = x0 + s + 2 * pad, y0 + s + 2 * pad
         nw, nh = int(math.ceil((x1 - x0) * ppm)), int(math.ceil((y1 - y0) * ppm))
+        x1, y1 = x0 + nw / ppm, y0 + nh / ppm  # whole texels of 1/ppm mm, as the look-up below assumes
         bx, by = np.linspace(x0, x1, nw + 1), np.linspace(y0, y1, nh + 1)
         area = np.outer(np.diff(by), np.diff(bx))
         dark_bits = np.zeros((nh, nw))
@@ -472,8 +474,10 @@ def _detect_charuco(image, target, measure_blur, use_opencv, refine_radius_max) 
         if np.nanmedian(blur / _local_square_px(target, corners)) > CANCEL_BITS_BLUR:
             # blur reaching the markers' data bits: refine again with those painted out
             t4 = time.perf_counter()
-            again = refine_charuco(cancel_data_bits(gray, target, corners, blur), target, corners, refine_radius_max)
-            corners = np.where(np.isfinite(again), again, corners)
+            for _ in range(CANCEL_ROUNDS):  # better corners place the painted bits better
+                again = refine_charuco(cancel_data_bits(gray, target, corners, blur), target, corners,
+                                       refine_radius_max)
+                corners = np.where(np.isfinite(again), again, corners)
             # a corner whose window left the image or the painted area can end a few pixels off
             drop_inconsistent(corners, target, tolerance=HEAVY_BLUR_TOLERANCE)
             timings["cancel_bits"] = time.perf_counter() - t4

@@ -265,7 +265,8 @@ def drop_inconsistent(corners: np.ndarray, target: CharucoTarget, tolerance: flo
     bad = []
     for k in np.nonzero(found)[0]:
         j, i = divmod(int(k), nx)
-        near = [jj * nx + ii for jj in range(max(0, j - 2), min(ny, j + 3)) for ii in range(max(0, i - 2), min(nx, i + 3))
+        near = [jj * nx + ii for jj in range(max(0, j - 2), min(ny, j + 3))
+                for ii in range(max(0, i - 2), min(nx, i + 3))
                 if found[jj * nx + ii] and jj * nx + ii != k]
         if len(near) < 5 or np.linalg.matrix_rank(pts[near] - pts[near].mean(0)) < 2:
             continue
@@ -314,9 +315,11 @@ def cancel_data_bits(gray: np.ndarray, target: CharucoTarget, corners: np.ndarra
     is point-symmetric about every corner out to the next ring of cells.
 
     Per marker whose cell has a found corner with a measured blur: the data bits' dark fraction, rasterised
-    exactly in the target plane, mapped to the image by the local homography of the corners (`tiltfit.blur._local_homographies`); the
-    contrast (white − dark) from a least-squares fit of the whole board's blurred picture to the image there.
-    Returns a copy of `gray` plus contrast × predicted dark fraction of the data bits.
+    exactly in the target plane, mapped to the image by the local homography of the corners
+    (`tiltfit.blur._local_homographies`) and blurred there by the disc of that corner's blur (round on the
+    sensor); the contrast (white − dark) from a straight-line fit of the whole board's blurred picture to the
+    image in the cell, its median over the cell and its neighbours. Returns `gray` plus contrast × the
+    predicted dark fraction of the data bits.
     """
     import cv2
 
@@ -369,7 +372,8 @@ def cancel_data_bits(gray: np.ndarray, target: CharucoTarget, corners: np.ndarra
         # the whole board's picture there: the checker, and the markers of this cell and its neighbours
         dark_all = 1.0 - rasterise(checker, (x0, x1), (y0, y1), nw, nh).astype(np.float64)
         extra = np.zeros((nh, nw))
-        add_rectangles(extra, bx, by, [r for r, c in zip(every, every_cell) if abs(c[0] - i) <= 1 and abs(c[1] - j) <= 1])
+        add_rectangles(extra, bx, by, [r for r, c in zip(every, every_cell)
+                                       if abs(c[0] - i) <= 1 and abs(c[1] - j) <= 1])
         dark_all += extra / area
         tex = [(dark_bits / area).astype(np.float32), dark_all.astype(np.float32)]
         # the image pixels of the cell (+ the blur's reach); the sharp pictures looked up at SUPERSAMPLE² points

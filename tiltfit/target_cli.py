@@ -9,7 +9,8 @@
 `design` writes a target whose rows project equally spaced in the design view (`tiltfit.target.design_target`:
 a camera with lens-to-sensor distance W looking at the board D away, the board inclined by PHI about its X
 axis); with `--charuco` a ChArUco board (`tiltfit.target.CharucoTarget`, OpenCV's CharucoBoard: uniform
-squares, markers of the dictionary in the white cells). `print` writes the board at true size with a labelled scale bar (`tiltfit.target.write_printable`).
+squares, markers of the dictionary in the white cells). `print` writes the board at true size with a labelled
+scale bar (`tiltfit.target.write_printable`).
 Errors print one line `tiltfit: <file or option>: <problem>` on stderr and exit with status 2.
 """
 from __future__ import annotations

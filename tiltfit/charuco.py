@@ -44,7 +44,7 @@ SAMPLES_PER_SQUARE = 12
 CANCEL_BITS_BLUR = 0.15
 # ... and then dropped when their neighbours' homography puts them this many squares away (0.2 otherwise).
 HEAVY_BLUR_TOLERANCE = 0.05
-CANCEL_ROUNDS = 1
+CANCEL_ROUNDS = 2
 # Rounds of completion (each reaches two corners further from the found ones; it stops when none is added).
 COMPLETION_ROUNDS = 20
 # Refined corners whose point-symmetry residual exceeds this (relative, as in `tiltfit.detect`) are dropped.
@@ -299,6 +299,9 @@ def _merge(opencv: np.ndarray, placed: np.ndarray, target: CharucoTarget):
 
 # Points per pixel side where `cancel_data_bits` looks the markers' picture up before blurring it.
 SUPERSAMPLE = 3
+# Scales of the measured blur `cancel_data_bits` tries per cell (the blur widths read a few per cent wide
+# where the markers' bits reach the bands, at blur beyond a quarter square).
+BLUR_SCALES = (0.86, 0.9, 0.94, 0.98, 1.02)
 
 
 def _disc_kernel(r: float) -> np.ndarray:
@@ -317,7 +320,7 @@ def cancel_data_bits(gray: np.ndarray, target: CharucoTarget, corners: np.ndarra
     Per marker whose cell has a found corner with a measured blur: the data bits' dark fraction, rasterised
     exactly in the target plane, mapped to the image by the local homography of the corners
     (`tiltfit.blur._local_homographies`) and blurred there by the disc of that corner's blur (round on the
-    sensor); the contrast (white − dark) from a straight-line fit of the whole board's blurred picture to the
+    sensor; scaled by the one of BLUR_SCALES under which the board's picture fits the cell best); the contrast (white − dark) from a straight-line fit of the whole board's blurred picture to the
     image in the cell, its median over the cell and its neighbours. Returns `gray` plus contrast × the
     predicted dark fraction of the data bits.
     """
@@ -394,19 +397,29 @@ def cancel_data_bits(gray: np.ndarray, target: CharucoTarget, corners: np.ndarra
         mx = ((X - x0) * ppm - 0.5).astype(np.float32)
         my = ((Y - y0) * ppm - 0.5).astype(np.float32)
         fine = [cv2.remap(t, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) for t in tex]
-        r_sub = 0.5 * b_px * S
-        if r_sub > 0.5:
-            fine = [cv2.filter2D(f, -1, _disc_kernel(r_sub), borderType=cv2.BORDER_REPLICATE) for f in fine]
         h, w = r1 - r0 + 1, c1 - c0 + 1
-        pb, pa = (f.reshape(h, S, w, S).mean((1, 3)).astype(np.float64) for f in fine)
         Xc, Yc = (a.reshape(h, S, w, S).mean((1, 3)) for a in (X, Y))
-        inside = (Xc > x0 + pad) & (Xc < x1 - pad) & (Yc > y0 + pad) & (Yc < y1 - pad)
-        use = inside
-        if use.sum() < 10 or np.ptp(pa[use]) < 0.1:
+        use = (Xc > x0 + pad) & (Xc < x1 - pad) & (Yc > y0 + pad) & (Yc < y1 - pad)
+        ys = gray[r0:r1 + 1, c0:c1 + 1][use].astype(np.float64)
+        if use.sum() < 10:
             continue
-        # image = white − contrast × dark fraction: the straight-line fit's slope, in closed form
-        xs, ys = pa[use], gray[r0:r1 + 1, c0:c1 + 1][use].astype(np.float64)
-        contrast = -float(np.mean((xs - xs.mean()) * (ys - ys.mean())) / np.var(xs))
+        best = None
+        for scale in BLUR_SCALES:  # the blur under which the cell's picture fits the image best
+            r_sub = 0.5 * b_px * S * scale
+            blurred = [cv2.filter2D(f, -1, _disc_kernel(r_sub), borderType=cv2.BORDER_REPLICATE) if r_sub > 0.5
+                       else f for f in fine]
+            pb, pa = (f.reshape(h, S, w, S).mean((1, 3)).astype(np.float64) for f in blurred)
+            xs = pa[use]
+            if np.ptp(xs) < 0.1:
+                break
+            # image = white − contrast × dark fraction: the straight-line fit, in closed form
+            slope = float(np.mean((xs - xs.mean()) * (ys - ys.mean())) / np.var(xs))
+            rss = float(np.sum((ys - ys.mean() - slope * (xs - xs.mean())) ** 2))
+            if best is None or rss < best[0]:
+                best = (rss, -slope, pb)
+        if best is None:
+            continue
+        _, contrast, pb = best
         painted.append(((i, j), contrast, (r0, r1, c0, c1), pb))
     # each cell's contrast fit leaves a few per cent of noise; the median of the cell and its eight neighbours
     contrasts = {ij: c for ij, c, _, _ in painted}
@@ -482,7 +495,10 @@ def _detect_charuco(image, target, measure_blur, use_opencv, refine_radius_max) 
                 again = refine_charuco(cancel_data_bits(gray, target, corners, blur), target, corners,
                                        refine_radius_max)
                 corners = np.where(np.isfinite(again), again, corners)
-            # a corner whose window left the image or the painted area can end a few pixels off
+            # a corner nearer the image's edge than its blur diameter has its blurred neighbourhood cut by the
+            # edge (the symmetry window with it), and one its neighbours place elsewhere is dropped
+            edge = np.minimum.reduce([corners[:, 0], W - 1 - corners[:, 0], corners[:, 1], H - 1 - corners[:, 1]])
+            corners[edge < blur] = np.nan
             drop_inconsistent(corners, target, tolerance=HEAVY_BLUR_TOLERANCE)
             timings["cancel_bits"] = time.perf_counter() - t4
         if not measure_blur:

@@ -125,9 +125,10 @@ def test_partial_views_get_the_right_ids(blurred_partial_views, blur):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("blur", [b for b in BLURS if b <= 0.25])
+@pytest.mark.parametrize("blur", [b for b in BLURS if b <= 0.4])
 def test_corners_within_005_px(blurred_partial_views, blur):
-    """Sub-pixel accuracy: every corner within 0.05 px of the truth up to blur of a quarter of a square."""
+    """Sub-pixel accuracy: every corner within 0.05 px of the truth up to blur of 0.4 of a square (beyond a
+    quarter square with the markers' data bits painted out)."""
     for (v, b), (img, truth, sq, det) in blurred_partial_views.items():
         if b == blur:
             f, e = _errors(det, truth)
@@ -135,22 +136,22 @@ def test_corners_within_005_px(blurred_partial_views, blur):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("blur", [b for b in BLURS if b > 0.25])
-def test_heavy_blur_within_a_few_tenths(blurred_partial_views, blur):
-    """Beyond a quarter square the corners are refined on the image with the markers' data bits painted out;
-    before that was right (a texel's misplacement of the painted bits) the largest errors were 1.5-4 px."""
+@pytest.mark.parametrize("blur", [b for b in BLURS if b > 0.4])
+def test_half_square_blur_within_a_fifth(blurred_partial_views, blur):
+    """At half a square the painted-out bits leave up to a fifth of a pixel (before the painted bits were
+    placed right the largest errors were 1.5-4 px)."""
     for (v, b), (img, truth, sq, det) in blurred_partial_views.items():
         if b == blur:
             f, e = _errors(det, truth)
             rms = float(np.sqrt(np.mean(e ** 2)))
-            assert rms <= 0.15 and e.max() <= 0.6, f"blur {b}: RMS {rms:.3f} px, max {e.max():.3f} px"
+            assert rms <= 0.1 and e.max() <= 0.25, f"blur {b}: RMS {rms:.3f} px, max {e.max():.3f} px"
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="beyond a quarter-square blur the painted-out data bits leave 0.06-0.7 px: the "
-                                      "blur widths that paint them read ~7 % wide (a plain checkerboard's floor at this "
-                                      "noise is 0.01-0.07 px; benchmarks/results/charuco.md)")
-@pytest.mark.parametrize("blur", [b for b in BLURS if b > 0.25])
+@pytest.mark.xfail(strict=True, reason="at half a square the painted-out data bits leave 0.07-0.2 px (a plain "
+                                      "checkerboard's floor at this noise is 0.01-0.07 px; "
+                                      "benchmarks/results/charuco.md)")
+@pytest.mark.parametrize("blur", [b for b in BLURS if b > 0.4])
 def test_corners_within_005_px_at_heavy_blur(blurred_partial_views, blur):
     for (v, b), (img, truth, sq, det) in blurred_partial_views.items():
         if b == blur:

@@ -2,12 +2,13 @@
 
 Pipeline (`detect_charuco`):
 1. Ids. Where the markers can be read, OpenCV's `cv2.aruco.CharucoDetector` names the corners it sees (corner
-   id k is feature point k of the `CharucoTarget`). Where they cannot (blur wider than a marker bit, about a
-   tenth of a square), the checker corners still are saddles: the saddle lattice of `tiltfit.detect` (grid
-   growth, no ids) is placed on the board by matching the image, resampled in lattice coordinates, against
-   the board's own picture (markers included) blurred by discs of 0 to 0.8 of a square, over every placement
-   (4 turns × shifts) that keeps the lattice on the board (`place_lattice`). The best placement must explain
-   the image clearly better than the next (`MIN_PLACEMENT_RATIO`), else the view is reported as ambiguous.
+   id k is feature point k of the `CharucoTarget`); it stops where blur is wider than a marker bit (about a
+   tenth of a square). The checker corners stay saddles under any blur: independently, the saddle lattice of
+   `tiltfit.detect` (grid growth, no ids) is placed on the board by matching the image, resampled in lattice
+   coordinates, against the board's own picture (markers included) blurred by discs of 0 to 0.8 of a square,
+   over every placement (4 turns × shifts) that keeps the lattice on the board (`place_lattice`). The best
+   placement must explain the image clearly better than the next (`MIN_PLACEMENT_RATIO`), else it names
+   nothing. The two are merged; where both name a corner they must agree (`_merge`).
 2. Sub-pixel refinement: the point-symmetry refinement of the checkerboard path (`refine_symmetric`): at a
    ChArUco corner the two markers touching it have black borders that are point images of each other, so the
    neighbourhood is point-symmetric out to the markers' data bits, √2 (clear + bit) from the corner; the
@@ -15,6 +16,11 @@ Pipeline (`detect_charuco`):
 3. Completion: corners neither step found, predicted by local homographies and refined the same way
    (`tiltfit.detect.complete_corners` with the ChArUco window).
 4. Blur per corner (`tiltfit.blur.measure_blur`, its bands stopping at the markers' borders).
+5. Blur beyond CANCEL_BITS_BLUR of a square reaches the data bits from inside the window: the corners are
+   refined again on the image with the data bits painted out (`cancel_data_bits`: their exact picture, mapped
+   by the local homography, blurred by the corner's disc in the image), twice; then corners nearer the image's
+   edge than their blur diameter, and corners their neighbours place HEAVY_BLUR_TOLERANCE square away, are
+   dropped.
 
 Images are (H, W) or (H, W, C) linear float arrays; outputs in pixels (x = column, y = row, (0, 0) the centre of
 the top-left pixel), NaN where a corner was not found.
@@ -44,7 +50,7 @@ SAMPLES_PER_SQUARE = 12
 CANCEL_BITS_BLUR = 0.15
 # ... and then dropped when their neighbours' homography puts them this many squares away (0.2 otherwise).
 HEAVY_BLUR_TOLERANCE = 0.05
-CANCEL_ROUNDS = 2
+CANCEL_ROUNDS = 2  # a second round, from better corners, halves the largest error at half a square of blur
 # Rounds of completion (each reaches two corners further from the found ones; it stops when none is added).
 COMPLETION_ROUNDS = 20
 # Refined corners whose point-symmetry residual exceeds this (relative, as in `tiltfit.detect`) are dropped.

@@ -262,3 +262,13 @@ def test_tiltfit_detect_writes_ids_as_positions_and_nulls(tmp_path, blurred_part
     assert 20 <= seen.sum() < 0.45 * TARGET.n_points, f"{seen.sum()} corners in the DET file"
     e = np.hypot(*(corners[seen] - truth.corners_px[seen]).T)
     assert e.max() < 0.1, f"DET corners up to {e.max():.3f} px from their ids' truth"
+
+
+def test_photometric_refinement_refuses_charuco():
+    """The photometric model renders checkerboards only: a ChArUco target is refused with one line, not fitted
+    with its markers missing."""
+    from tiltfit.photometric import PhotometricError, refine_photometric
+
+    with pytest.raises(PhotometricError, match="ChArUco") as e:
+        refine_photometric([np.zeros((24, 32))], TARGET, None)
+    assert "\n" not in str(e.value), "one line"

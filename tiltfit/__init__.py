@@ -1,7 +1,8 @@
 """Tilt-lens calibration from photographs of a checkerboard: corners, blur widths, a camera model, fits.
 
 Layers (bottom to top; `tests/tiltfit/test_layers.py` checks them, and that nothing forms an import cycle):
-- library: `target` (the board), `imaging` (pyramid, homography), `blur`, `detect`, `model`, `fit`, `validate`,
+- library: `target` (the board), `imaging` (pyramid, homography), `blur`, `detect`, `charuco` (ChArUco boards, and
+  `detect_board` for any target), `model`, `fit`, `validate`,
   `photos` (calibration from photographs, the Python entry point), `photometric`, the file formats (`calibfile`, `detfile`, `formats`, `export`), `report`, `evaluate` (photo
   against rendering), `synth` (synthetic observations and images), `opencv_corners`, `runlog`, `target_cli`;
 - experiments built on the library, in `experiments/`: `reproduce` (the paper's experiment) with `scenes`,

@@ -184,6 +184,15 @@ def _half_edges(target: Target, ks: np.ndarray, Hms: np.ndarray, r_est: np.ndarr
     cells = idx[..., None] + np.arange(-1, 3)  # (K, 4, 4) cells across the edge
     dark = np.where(horizontal[:, None], target.is_dark(lane[..., None], cells), target.is_dark(cells, lane[..., None]))
     kappa = np.where(dark, 0.0, 1.0)
+    clear = target.white_cell_clear_mm
+    if clear is not None:
+        # a white cell holding a marker (ChArUco) is white only within `clear` of its edges: the band's far
+        # line on that side is the marker's dark border
+        before_white, after_white = ~dark[..., 1], ~dark[..., 2]
+        far_lo = np.where(before_white, value - clear, far_lo)
+        far_hi = np.where(after_white, value + clear, far_hi)
+        kappa[..., 0] = np.where(before_white, 0.0, kappa[..., 0])
+        kappa[..., 3] = np.where(after_white, 0.0, kappa[..., 3])
 
     HiT = np.linalg.inv(Hms).transpose(0, 2, 1)
 

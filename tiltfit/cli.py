@@ -109,7 +109,7 @@ def _detect_image(path: str, target, encoding: str | None, keep: dict | None = N
     if keep is not None:
         keep[path] = image
     try:
-        from .detect import detect
+        from .charuco import detect_board as detect
     except ImportError:
         raise CliError(path, "board detection is not available in this installation (tiltfit.detect)") from None
     try:

@@ -850,13 +850,14 @@ def detect_corners(gray: np.ndarray, target: Target, *, coarse_max_size: int = 4
 
 
 def complete_corners(gray: np.ndarray, target: Target, corners: np.ndarray, refine_radius_max: float = 20.0,
-                     rounds: int = 2, max_asymmetry: float = 0.35) -> int:
+                     rounds: int = 2, max_asymmetry: float = 0.35, window: float = 0.4) -> int:
     """Look for the target's corners that the grid growth missed, where the found ones predict them.
 
     Once the corners are indexed, a local homography (target plane -> image) from found corners within two
     indices predicts each missing one; it is refined like the others and kept when it is a clean point-
     symmetric X-junction near the prediction. Recovers corners whose coarse saddle was too weak (very
-    heavy blur, the board's outer ring). Modifies `corners` in place; returns the number added.
+    heavy blur, the board's outer ring). `window` is the refinement window's radius in squares (0.4; a
+    ChArUco board's markers ask for less). Modifies `corners` in place; returns the number added.
     """
     H, W = gray.shape
     ny, nx = target.grid_shape
@@ -899,9 +900,9 @@ def complete_corners(gray: np.ndarray, target: Target, corners: np.ndarray, refi
         # coarse to fine: under strong lens distortion a local homography misses by up to ~0.1 of a square,
         # beyond the reach of the final window when squares are large; a first pass with a window of half
         # the square pulls the start in, the second uses the usual window
-        start, _, ok0 = refine_symmetric(gray, pred, np.clip(0.45 * spacing, 3.0, 2.5 * refine_radius_max))
+        start, _, ok0 = refine_symmetric(gray, pred, np.clip(1.125 * window * spacing, 3.0, 2.5 * refine_radius_max))
         start = np.where(ok0[:, None] & (np.hypot(*(start - pred).T) < 0.25 * spacing)[:, None], start, pred)
-        xy, asym, ok = refine_symmetric(gray, start, np.clip(0.4 * spacing, 3.0, refine_radius_max))
+        xy, asym, ok = refine_symmetric(gray, start, np.clip(window * spacing, 3.0, refine_radius_max))
         keep = ok & (asym < max_asymmetry) & (np.hypot(*(xy - pred).T) < 0.25 * spacing)
         corners[np.array(cand)[keep]] = xy[keep]
         added += int(keep.sum())
@@ -991,6 +992,8 @@ def detect(image, target: Target, *, measure_blur: bool = True, **options) -> De
     Returns:
         Detection; grid_found False (and all NaN) when no board was found or its placement is ambiguous.
     """
+    if target.dark_rectangles():
+        raise DetectionError("target: a ChArUco board; its corners are found by tiltfit.charuco.detect_board")
     with torch_threads(1):
         return _detect(image, target, measure_blur, options)
 

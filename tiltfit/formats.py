@@ -22,12 +22,28 @@ from . import calibfile, detfile, target
 DOCS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "docs")
 
 TARGET_FIELDS = [
-    ("type", "string", "required", '"checkerboard"'),
+    ("type", "string", "required", '"checkerboard" (this table) or "charuco" (the next)'),
     ("units", "string", '"mm"', '"mm" (the only unit)'),
     ("x_edges", "list of numbers", "required", f"ascending column boundaries, mm; 3 to {target.MAX_EDGES} values "
                                                f"within ±{target.MAX_MM:g}"),
     ("y_edges", "list of numbers", "required", "ascending row boundaries, mm; as `x_edges`"),
     ("dark_cell", "[int, int]", "[0, 0]", "a (column, row) cell that is dark; only the parity of the sum matters"),
+    ("margin", "number", "25", f"white border around the checkered area, mm, 0 to {target.MAX_MM:g}"),
+    ("name, description", "string", "—", "free text"),
+]
+
+CHARUCO_FIELDS = [
+    ("type", "string", "required", '"charuco": a ChArUco board as OpenCV\'s `cv2.aruco.CharucoBoard` draws it'),
+    ("units", "string", '"mm"', '"mm" (the only unit)'),
+    ("dictionary", "string", "required", "OpenCV's ArUco dictionary, e.g. `DICT_5X5_100` (`cv2.aruco.DICT_*`); it "
+                                         "must hold a marker for every white cell"),
+    ("squares", "[int, int]", "required", f"[columns, rows] of squares, each 2 to {target.MAX_EDGES - 1} (OpenCV's "
+                                          "`size`); the checkered area spans [0, columns · square_mm] × [0, rows · "
+                                          "square_mm]"),
+    ("square_mm", "number", "required", "side of a square, mm"),
+    ("marker_mm", "number", "required", "side of a marker incl. its one-bit black border, mm, below `square_mm`"),
+    ("dark_cell", "[int, int]", "[0, 0]", "even parity: the top-left square dark (OpenCV ≥ 4.6); odd: OpenCV's "
+                                          "legacy pattern, only for an even number of rows"),
     ("margin", "number", "25", f"white border around the checkered area, mm, 0 to {target.MAX_MM:g}"),
     ("name, description", "string", "—", "free text"),
 ]
@@ -61,6 +77,11 @@ def calibration_reference() -> str:
     return "\n".join([
         "## Target files (`--target T.json`)", "", _table(TARGET_FIELDS), "",
         "Unknown keys are refused. Feature points are the interior intersections, row by row.", "",
+        "ChArUco boards (`\"type\": \"charuco\"`):", "", _table(CHARUCO_FIELDS), "",
+        "Feature point k is OpenCV's ChArUco corner id k (row by row, as for checkerboards); marker m sits in the "
+        "m-th white cell, row by row. A DET file of a ChArUco view lists every corner of the board, `null` where "
+        "it was not seen, so partial views need nothing new. Detection, blur and calibration: "
+        "[charuco.md](charuco.md).", "",
         "## Detection files (`tiltfit detect -o DET.json`)", "", _table(DET_FIELDS), "",
         "Checks when `tiltfit calibrate` reads DET files (or detects images): every number finite; each view has at "
         "least 4 corners that do not lie on one line (in the image or on the target); no view repeats another's "
@@ -125,13 +146,23 @@ def calibration_reference() -> str:
 def target_schema() -> dict:
     edges = {"type": "array", "items": {"type": "number", "minimum": -target.MAX_MM, "maximum": target.MAX_MM},
              "minItems": 3, "maxItems": target.MAX_EDGES}
-    return {"$schema": SCHEMA_DIALECT, "title": "tiltfit target file", "type": "object",
-            "properties": {"type": {"const": "checkerboard"}, "units": {"const": "mm"}, "x_edges": edges,
-                           "y_edges": edges, "dark_cell": {"type": "array", "items": {"type": "integer"},
-                                                           "minItems": 2, "maxItems": 2},
-                           "margin": {"type": "number", "minimum": 0, "maximum": target.MAX_MM},
-                           "name": {"type": "string"}, "description": {"type": "string"}},
-            "required": ["type", "x_edges", "y_edges"], "additionalProperties": False}
+    pair = {"type": "array", "items": {"type": "integer"}, "minItems": 2, "maxItems": 2}
+    common = {"units": {"const": "mm"}, "dark_cell": pair,
+              "margin": {"type": "number", "minimum": 0, "maximum": target.MAX_MM},
+              "name": {"type": "string"}, "description": {"type": "string"}}
+    checkerboard = {"type": "object",
+                    "properties": {"type": {"const": "checkerboard"}, "x_edges": edges, "y_edges": edges, **common},
+                    "required": ["type", "x_edges", "y_edges"], "additionalProperties": False}
+    side = {"type": "integer", "minimum": 2, "maximum": target.MAX_EDGES - 1}
+    charuco = {"type": "object",
+               "properties": {"type": {"const": "charuco"},
+                              "dictionary": {"enum": target.aruco_dictionaries()},
+                              "squares": {"type": "array", "items": side, "minItems": 2, "maxItems": 2},
+                              "square_mm": {"type": "number", "exclusiveMinimum": 0, "maximum": target.MAX_MM},
+                              "marker_mm": {"type": "number", "exclusiveMinimum": 0, "maximum": target.MAX_MM},
+                              **common},
+               "required": ["type", "dictionary", "squares", "square_mm", "marker_mm"], "additionalProperties": False}
+    return {"$schema": SCHEMA_DIALECT, "title": "tiltfit target file", "oneOf": [checkerboard, charuco]}
 
 
 def det_schema() -> dict:

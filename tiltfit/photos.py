@@ -98,7 +98,7 @@ def observations_from_photos(photos, target: Target, pixel_pitch_mm: float, enco
     """
     from renderer import read_image
 
-    from .detect import detect
+    from .charuco import detect_board as detect
 
     points = target.feature_points()
     corners, blur, names, skipped, size = [], [], [], [], None

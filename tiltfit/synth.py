@@ -385,3 +385,42 @@ def render_with_renderer(target: Target, camera: Lens, R, T, dark: float, white:
         scene = load_scene(scene_dict)
         result = render(scene, spp=spp, seed=seed, dtype=torch.float32)
     return result.image.mean(-1).numpy().astype(np.float64)
+
+
+def render_constant_blur(target: Target, homography: np.ndarray, size_px: tuple[int, int], blur_px: float,
+                         dark: float = 0.05, white: float = 0.8, background: float = 0.3,
+                         supersample: int = 4, texture_px_per_mm: float | None = None) -> np.ndarray:
+    """(H, W) noise-free linear image of any target (markers too) under one blur disc for the whole image.
+
+    A generator independent of `render_analytic` and of the ray tracer: the target's exact area-averaged picture
+    (`rasterise`, 50 texels a square unless given) is looked up bilinearly at `supersample`² points per pixel
+    through `homography` (target (X, Y, 1) -> pixels), convolved with a disc of `blur_px` (constant: right
+    for a view whose blur varies little) at the supersampled resolution and box-averaged to pixels.
+    """
+    import cv2
+
+    from .target import rasterise
+
+    W, H = size_px
+    s = supersample
+    x0, y0, x1, y1 = target.extent_mm
+    ppm = texture_px_per_mm or 50.0 / min(np.diff(target.x_edges).min(), np.diff(target.y_edges).min())
+    tw, th = int(round((x1 - x0) * ppm)), int(round((y1 - y0) * ppm))
+    tex = rasterise(target, (x0, x1), (y0, y1), tw, th, dark, white)
+    tex = np.pad(tex, 1, constant_values=background)
+    v, u = np.mgrid[0:H * s, 0:W * s].astype(np.float64)
+    pix = np.stack([(u + 0.5) / s - 0.5, (v + 0.5) / s - 0.5, np.ones_like(u)], -1)
+    q = pix @ np.linalg.inv(homography).T
+    X, Y = q[..., 0] / q[..., 2], q[..., 1] / q[..., 2]
+    mx = ((X - x0) / (x1 - x0) * tw + 0.5).astype(np.float32)  # texel centres at +0.5, 1-texel pad
+    my = ((Y - y0) / (y1 - y0) * th + 0.5).astype(np.float32)
+    img = cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=background)
+    r = 0.5 * blur_px * s
+    if r > 0.5:
+        k = int(math.ceil(r)) + 1
+        # the disc's area-weighted kernel (4 × 4 sub-samples per tap), so its size is not rounded to taps
+        o = (np.arange(4) + 0.5) / 4 - 0.5
+        yy, xx = np.mgrid[-k:k + 1, -k:k + 1].astype(np.float64)
+        ker = sum(((xx + a) ** 2 + (yy + b) ** 2 <= r * r) for a in o for b in o).astype(np.float32)
+        img = cv2.filter2D(img, -1, ker / ker.sum(), borderType=cv2.BORDER_REPLICATE)
+    return img.reshape(H, s, W, s).mean((1, 3)).astype(np.float64)

@@ -16,6 +16,15 @@ Target file (JSON), as in the contract:
 `type`, `x_edges`, `y_edges` are required; `units` ["mm"], `dark_cell` [[0, 0]], `margin` [25] and the
 informational `name`, `description` are optional.
 
+ChArUco boards (`CharucoTarget`, OpenCV's `cv2.aruco.CharucoBoard`): uniform squares with an ArUco marker
+centred in every white cell, so a partial view still names its corners. Target file:
+    {"type": "charuco", "units": "mm", "dictionary": "DICT_5X5_100", "squares": [sx, sy], "square_mm": s,
+     "marker_mm": m, "margin": 25, "dark_cell": [0, 0]}
+The checkered area spans [0, sx·s] × [0, sy·s]; feature point k is OpenCV's ChArUco corner id k (the same
+row-by-row order); markers take ids 0, 1, … in the white cells row by row, as OpenCV places them. The top-left
+square is dark (`dark_cell` [0, 0], OpenCV ≥ 4.6); `dark_cell` of odd parity is OpenCV's legacy pattern (top-left
+white), which OpenCV draws only for an even number of rows.
+
 Design (`design_target`): for a target inclined by φ about its X axis at distance D in front of a camera
 with lens-to-sensor distance w, a target point at height Y (from the design centre) images at
     y = w · Y cos φ / (D + Y sin φ)                                   (sensor mm)
@@ -24,6 +33,7 @@ y_k = (k − n/2) Δ into the row edges, so the projected rows are equally space
 """
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -125,6 +135,20 @@ class Target:
         r, c = np.meshgrid(np.arange(self.n_rows), np.arange(self.n_cols), indexing="ij")
         return self.is_dark(c, r)
 
+    def dark_rectangles(self) -> list[tuple[float, float, float, float]]:
+        """Dark rectangles (x0, y0, x1, y1), mm, drawn inside white cells (ChArUco markers); none here."""
+        return []
+
+    @property
+    def white_cell_clear_mm(self) -> float | None:
+        """How far into a white cell from its edges it stays white, mm (None: the whole cell is white)."""
+        return None
+
+    def caption(self) -> str:
+        """What the printable's caption says about the board."""
+        return (f"{self.n_cols}x{self.n_rows} cells, board {self.x_edges[-1] - self.x_edges[0]:.1f} x "
+                f"{self.y_edges[-1] - self.y_edges[0]:.1f} mm, margin {self.margin:g} mm")
+
     # --- files -------------------------------------------------------------------------------------------
     def to_dict(self) -> dict:
         return {"type": "checkerboard", "units": "mm", "x_edges": list(self.x_edges),
@@ -159,6 +183,8 @@ def target_from_dict(data, source: str = "<target>") -> Target:
 
     if not isinstance(data, dict):
         raise TargetError(f"{source}: expected a JSON object, got {type(data).__name__}")
+    if data.get("type") == "charuco":
+        return charuco_from_dict(data, source)
     unknown = [k for k in data if k not in _KNOWN_KEYS]
     if unknown:
         raise TargetError(f"{source}: {unknown[0]}: unknown key (expected one of: {', '.join(_KNOWN_KEYS)})")
@@ -166,7 +192,7 @@ def target_from_dict(data, source: str = "<target>") -> Target:
         if key not in data:
             raise TargetError(f"{source}: {key}: missing key")
     if data["type"] != "checkerboard":
-        fail("type", '"checkerboard"', data["type"])
+        fail("type", '"checkerboard" or "charuco"', data["type"])
     if data.get("units", "mm") != "mm":
         fail("units", '"mm"', data["units"])
     edges = {}
@@ -197,6 +223,167 @@ def load_target(path: str) -> Target:
     if not os.path.exists(path):
         raise TargetError(f"{path}: no such file")
     return target_from_dict(read_json(path, TargetError, "target file"), path)
+
+
+# --- ChArUco boards ----------------------------------------------------------------------------------------
+def aruco_dictionaries() -> list[str]:
+    """Names of OpenCV's predefined ArUco dictionaries (`cv2.aruco.DICT_*`)."""
+    import cv2
+
+    return sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_") and isinstance(getattr(cv2.aruco, n), int))
+
+
+def aruco_dictionary(name: str):
+    """OpenCV's predefined dictionary `name` (e.g. "DICT_5X5_100")."""
+    import cv2
+
+    return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
+
+
+@functools.lru_cache(maxsize=8)
+def _marker_bits(name: str, n_markers: int) -> tuple[np.ndarray, ...]:
+    """Per marker id, its (b + 2, b + 2) bool image, True where dark (the border included), rows downwards."""
+    d = aruco_dictionary(name)
+    side = d.markerSize + 2
+    return tuple(d.generateImageMarker(k, side) < 128 for k in range(n_markers))
+
+
+@dataclass(frozen=True)
+class CharucoTarget(Target):
+    """A ChArUco board as OpenCV's `cv2.aruco.CharucoBoard` draws it: uniform squares, an ArUco marker centred in
+    each white cell (ids 0, 1, … row by row), one-bit marker border.
+
+    Attributes (besides Target's; the edges are uniform from 0):
+        dictionary: OpenCV dictionary name, e.g. "DICT_5X5_100".
+        marker_mm: marker side incl. its black border, mm (less than the square).
+    """
+
+    dictionary: str = "DICT_5X5_100"
+    marker_mm: float = 0.0
+
+    @classmethod
+    def board(cls, squares, square_mm: float, marker_mm: float, dictionary: str = "DICT_5X5_100",
+              margin: float = 25.0, dark_cell=(0, 0)) -> "CharucoTarget":
+        """The board of squares = (columns, rows) cells of `square_mm`, checkered area from (0, 0)."""
+        sx, sy = int(squares[0]), int(squares[1])
+        return cls(tuple(square_mm * i for i in range(sx + 1)), tuple(square_mm * j for j in range(sy + 1)),
+                   tuple(dark_cell), margin, dictionary, float(marker_mm))
+
+    @property
+    def square_mm(self) -> float:
+        return self.x_edges[1] - self.x_edges[0]
+
+    @property
+    def squares(self) -> tuple[int, int]:
+        """(columns, rows) of cells: OpenCV's `size`."""
+        return self.n_cols, self.n_rows
+
+    @property
+    def legacy_pattern(self) -> bool:
+        """OpenCV's legacy pattern: the top-left square white (odd `dark_cell` parity)."""
+        return (self.dark_cell[0] + self.dark_cell[1]) % 2 == 1
+
+    def marker_cells(self) -> np.ndarray:
+        """(M, 2) int (column, row) of the white cells, row by row: marker id m sits in cell m."""
+        dark = self.cell_colours()
+        rows, cols = np.nonzero(~dark)
+        return np.stack([cols, rows], -1)
+
+    @property
+    def white_cell_clear_mm(self) -> float:
+        return 0.5 * (self.square_mm - self.marker_mm)
+
+    def dark_rectangles(self, data_bits_only: bool = False) -> list[tuple[float, float, float, float]]:
+        """The markers' dark bits as rectangles (x0, y0, x1, y1), mm, runs along each bit row merged;
+        `data_bits_only`: without the black border (what makes a corner's neighbourhood asymmetric)."""
+        cells = self.marker_cells()
+        bits = _marker_bits(self.dictionary, len(cells))
+        s, m = self.square_mm, self.marker_mm
+        out = []
+        for (i, j), b in zip(cells, bits):
+            n = b.shape[0]
+            bit = m / n
+            x0 = self.x_edges[0] + (i + 0.5) * s - 0.5 * m
+            y0 = self.y_edges[0] + (j + 0.5) * s - 0.5 * m
+            if data_bits_only:
+                b = b.copy()
+                b[[0, -1], :] = False
+                b[:, [0, -1]] = False
+            for r in range(n):
+                row = np.concatenate([[False], b[r], [False]])
+                starts = np.nonzero(row[1:] & ~row[:-1])[0]
+                ends = np.nonzero(~row[1:] & row[:-1])[0]
+                out += [(x0 + a * bit, y0 + r * bit, x0 + e * bit, y0 + (r + 1) * bit) for a, e in zip(starts, ends)]
+        return out
+
+    def opencv_board(self):
+        """The same board as `cv2.aruco.CharucoBoard` (lengths in mm; its corner id k is feature point k)."""
+        import cv2
+
+        board = cv2.aruco.CharucoBoard(self.squares, self.square_mm, self.marker_mm,
+                                       aruco_dictionary(self.dictionary))
+        board.setLegacyPattern(self.legacy_pattern)
+        return board
+
+    def caption(self) -> str:
+        return (f"ChArUco {self.n_cols}x{self.n_rows} squares of {self.square_mm:g} mm, markers {self.marker_mm:g} mm "
+                f"{self.dictionary}, margin {self.margin:g} mm")
+
+    def to_dict(self) -> dict:
+        return {"type": "charuco", "units": "mm", "dictionary": self.dictionary, "squares": list(self.squares),
+                "square_mm": self.square_mm, "marker_mm": self.marker_mm, "margin": self.margin,
+                "dark_cell": list(self.dark_cell)}
+
+
+_CHARUCO_KEYS = ("type", "units", "dictionary", "squares", "square_mm", "marker_mm", "margin", "dark_cell", "name",
+                 "description")
+
+
+def charuco_from_dict(data: dict, source: str = "<target>") -> CharucoTarget:
+    """Validate a `"type": "charuco"` target description; errors are one line naming `source` and the field."""
+
+    def fail(field, expected, got):
+        raise TargetError(f"{source}: {field}: expected {expected}, got {describe(got)}")
+
+    unknown = [k for k in data if k not in _CHARUCO_KEYS]
+    if unknown:
+        raise TargetError(f"{source}: {unknown[0]}: unknown key for a charuco target (expected one of: "
+                          f"{', '.join(_CHARUCO_KEYS)})")
+    for key in ("dictionary", "squares", "square_mm", "marker_mm"):
+        if key not in data:
+            raise TargetError(f"{source}: {key}: missing key")
+    if data.get("units", "mm") != "mm":
+        fail("units", '"mm"', data["units"])
+    names = aruco_dictionaries()
+    if data["dictionary"] not in names:
+        fail("dictionary", "an OpenCV dictionary name such as DICT_5X5_100 (DICT_4X4_50 … DICT_ARUCO_ORIGINAL)",
+             data["dictionary"])
+    sq = data["squares"]
+    if (not isinstance(sq, list) or len(sq) != 2
+            or not all(_is_number(v) and float(v) == int(v) and 2 <= v <= MAX_EDGES - 1 for v in sq)):
+        fail("squares", f"[columns, rows], integers 2 to {MAX_EDGES - 1}", sq)
+    s, m = data["square_mm"], data["marker_mm"]
+    if not is_finite_number(s) or not 0 < s <= MAX_MM:
+        fail("square_mm", "a positive number of mm", s)
+    if not is_finite_number(m) or not 0 < m < s:
+        fail("marker_mm", f"a positive number of mm below square_mm ({s:g})", m)
+    margin = data.get("margin", 25.0)
+    if not is_finite_number(margin) or not 0 <= margin <= MAX_MM:
+        fail("margin", "a non-negative number of mm", margin)
+    dark = data.get("dark_cell", [0, 0])
+    if (not isinstance(dark, list) or len(dark) != 2
+            or not all(is_finite_number(e) and float(e) == int(e) and abs(e) < 2**31 for e in dark)):
+        fail("dark_cell", "[column, row] integers", dark)
+    if (int(dark[0]) + int(dark[1])) % 2 == 1 and int(sq[1]) % 2 == 1:
+        fail("dark_cell", "even parity ([0, 0]: the top-left square dark); OpenCV's legacy pattern (top-left white) "
+             f"exists only for an even number of rows, and squares has {int(sq[1])}", dark)
+    target = CharucoTarget.board((int(sq[0]), int(sq[1])), float(s), float(m), data["dictionary"], float(margin),
+                                 (int(dark[0]), int(dark[1])))
+    n_markers, size = len(target.marker_cells()), aruco_dictionary(data["dictionary"]).bytesList.shape[0]
+    if n_markers > size:
+        fail("squares", f"a board with at most {size} white cells ({data['dictionary']} has {size} markers; this board "
+             f"needs {n_markers})", sq)
+    return target
 
 
 # --- design ------------------------------------------------------------------------------------------------
@@ -310,8 +497,20 @@ def rasterise(target: Target, x_range_mm, y_range_mm, width_px: int, height_px: 
     ay, sy = (np.diff(v) for v in _cumulative_sign(target.y_edges, 1.0, by))
     eps = 1.0 if (target.dark_cell[0] + target.dark_cell[1]) % 2 == 0 else -1.0
     dark_area = 0.5 * (np.outer(ay, ax) + eps * np.outer(sy, sx))
+    add_rectangles(dark_area, bx, by, target.dark_rectangles())
     dark_frac = dark_area / (np.diff(by)[:, None] * np.diff(bx)[None, :])
     return (white + (dark - white) * dark_frac).astype(np.float32)
+
+
+def add_rectangles(dark_area: np.ndarray, bx: np.ndarray, by: np.ndarray, rectangles) -> None:
+    """Add to `dark_area` (H, W) each rectangle's (x0, y0, x1, y1) overlap with the pixels bounded by bx (W + 1)
+    and by (H + 1), ascending, mm (separable: the outer product of the overlaps along each axis)."""
+    for rx0, ry0, rx1, ry1 in rectangles:
+        cx = np.diff(np.clip(bx, rx0, rx1))
+        cy = np.diff(np.clip(by, ry0, ry1))
+        c0, c1 = max(int(np.searchsorted(bx, rx0)) - 1, 0), int(np.searchsorted(bx, rx1)) + 1
+        r0, r1 = max(int(np.searchsorted(by, ry0)) - 1, 0), int(np.searchsorted(by, ry1)) + 1
+        dark_area[r0:r1, c0:c1] += np.outer(cy[r0:r1], cx[c0:c1])
 
 
 def render_target(target: Target, dpi: float) -> np.ndarray:
@@ -362,9 +561,7 @@ def write_printable(target: Target, png_path: str | None, pdf_path: str | None, 
     if not (math.isfinite(scale_bar_mm) and 0 < scale_bar_mm <= bar_room):
         raise TargetError(f"scale_bar_mm: expected a length in (0, {bar_room:.4g}] mm (the bar fits on the page), "
                           f"got {scale_bar_mm:g}")
-    caption = (f"{target.n_cols}x{target.n_rows} cells, board {target.x_edges[-1] - target.x_edges[0]:.1f} x "
-               f"{target.y_edges[-1] - target.y_edges[0]:.1f} mm, margin {target.margin:g} mm; "
-               f"bar = {scale_bar_mm:g} mm")
+    caption = f"{target.caption()}; bar = {scale_bar_mm:g} mm"
     if png_path:
         pixels = (width / 25.4 * dpi) * ((y1 + strip - y0) / 25.4 * dpi)
         if not (dpi > 0 and pixels <= MAX_PRINT_PIXELS):
@@ -446,6 +643,9 @@ def _write_pdf(target, path, strip, bar_mm, caption):
             if dark[j, i]:
                 ax.add_patch(Rectangle((xe[i], ye[j]), xe[i + 1] - xe[i], ye[j + 1] - ye[j], facecolor="black",
                                        edgecolor="none", linewidth=0, antialiased=False))
+    for rx0, ry0, rx1, ry1 in target.dark_rectangles():
+        ax.add_patch(Rectangle((rx0, ry0), rx1 - rx0, ry1 - ry0, facecolor="black", edgecolor="none", linewidth=0,
+                               antialiased=False))
     bx0, by0, L, t = _bar_geometry(target, strip, bar_mm)
     ax.add_patch(Rectangle((bx0, by0), L, t, facecolor="black", edgecolor="none"))
     for k in range(int(L // 10) + 1):

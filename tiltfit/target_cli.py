@@ -2,11 +2,15 @@
 
     tiltfit target design --cols N --rows M (--square-mm S | --square-px P --pixel-pitch-mm p)
                           --w-mm W --distance-mm D [--inclination-deg PHI] [--margin-mm 25] -o T.json
+    tiltfit target design --charuco DICT_5X5_100 --cols N --rows M --square-mm S [--marker-mm M]
+                          [--margin-mm 25] -o T.json
     tiltfit target print T.json [--png OUT.png] [--pdf OUT.pdf] [--dpi 300] [--scale-bar-mm L]
 
 `design` writes a target whose rows project equally spaced in the design view (`tiltfit.target.design_target`:
 a camera with lens-to-sensor distance W looking at the board D away, the board inclined by PHI about its X
-axis). `print` writes the board at true size with a labelled scale bar (`tiltfit.target.write_printable`).
+axis); with `--charuco` a ChArUco board (`tiltfit.target.CharucoTarget`, OpenCV's CharucoBoard: uniform
+squares, markers of the dictionary in the white cells). `print` writes the board at true size with a labelled
+scale bar (`tiltfit.target.write_printable`).
 Errors print one line `tiltfit: <file or option>: <problem>` on stderr and exit with status 2.
 """
 from __future__ import annotations
@@ -42,10 +46,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--square-px", type=float, help="projected size of the central square, pixels (with "
                                                    "--pixel-pitch-mm)")
     p.add_argument("--pixel-pitch-mm", type=float, help="sensor pixel pitch, mm")
-    p.add_argument("--w-mm", type=float, required=True, help="lens-to-sensor distance of the design view, mm")
-    p.add_argument("--distance-mm", type=float, required=True, help="distance to the board's design centre, mm")
+    p.add_argument("--w-mm", type=float, help="lens-to-sensor distance of the design view, mm (checkerboards)")
+    p.add_argument("--distance-mm", type=float, help="distance to the board's design centre, mm (checkerboards)")
     p.add_argument("--inclination-deg", type=float, default=0.0, help="board inclination about its X axis [0]")
     p.add_argument("--margin-mm", type=float, default=25.0, help="white margin around the checkered area [25]")
+    p.add_argument("--charuco", metavar="DICT", help="a ChArUco board with markers of this OpenCV dictionary, e.g. "
+                                                     "DICT_5X5_100 (uniform squares; no design view)")
+    p.add_argument("--marker-mm", type=float, help="ChArUco marker side incl. its border, mm [0.75 × --square-mm]")
     p.add_argument("-o", "--output", required=True, metavar="T.json")
     p.add_argument("-q", "--quiet", action="store_true", help="no notes on stderr")
 
@@ -80,6 +87,11 @@ def _design(args, say) -> None:
         v = getattr(args, name)
         if v is not None and not (math.isfinite(v) and (v > 0 or (name == "margin_mm" and v == 0))):
             raise _Fail("--" + name.replace("_", "-"), f"expected a positive number, got {v}")
+    if args.charuco is not None:
+        return _design_charuco(args, say)
+    for name in ("w_mm", "distance_mm"):
+        if getattr(args, name) is None:
+            raise _Fail("--" + name.replace("_", "-"), "required for a checkerboard design (the design view)")
     if (args.square_mm is None) == (args.square_px is None):
         raise _Fail("--square-mm", "give --square-mm, or --square-px with --pixel-pitch-mm")
     if args.square_px is not None and args.pixel_pitch_mm is None:
@@ -110,6 +122,32 @@ def _design(args, say) -> None:
     x, y = target.x_edges[-1] - target.x_edges[0], target.y_edges[-1] - target.y_edges[0]
     say(f"wrote {args.output}: {args.cols} × {args.rows} cells, {x:.1f} × {y:.1f} mm, "
         f"{target.grid_shape[1]} × {target.grid_shape[0]} corners")
+
+
+def _design_charuco(args, say) -> None:
+    from .target import TargetError, target_from_dict
+
+    if args.square_mm is None:
+        raise _Fail("--square-mm", "a ChArUco board needs --square-mm")
+    marker = 0.75 * args.square_mm if args.marker_mm is None else args.marker_mm
+    if not (math.isfinite(marker) and 0 < marker < args.square_mm):
+        raise _Fail("--marker-mm", f"expected a length between 0 and --square-mm ({args.square_mm:g}), got {marker:g}")
+    data = {"type": "charuco", "units": "mm", "dictionary": args.charuco, "squares": [args.cols, args.rows],
+            "square_mm": args.square_mm, "marker_mm": marker, "margin": args.margin_mm}
+    try:
+        target = target_from_dict(data, args.output)
+    except TargetError as e:
+        field = str(e).removeprefix(f"{args.output}: ").split(":", 1)
+        option = {"dictionary": "--charuco", "squares": "--cols", "square_mm": "--square-mm",
+                  "marker_mm": "--marker-mm", "margin": "--margin-mm"}.get(field[0])
+        raise _Fail(option or args.output, field[-1].strip()) from None
+    try:
+        os.makedirs(os.path.dirname(os.path.abspath(args.output)), exist_ok=True)
+        target.save(args.output)
+    except OSError as e:
+        raise _Fail(args.output, f"cannot write ({e.strerror or e})") from None
+    say(f"wrote {args.output}: ChArUco {args.cols} × {args.rows} squares of {args.square_mm:g} mm, markers "
+        f"{marker:g} mm ({args.charuco}), {target.grid_shape[1]} × {target.grid_shape[0]} corners")
 
 
 def _print(args, say) -> None:

@@ -458,6 +458,9 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
     imgs = [im.mean(-1) if im.ndim == 3 else im for im in imgs]
     if not imgs:
         raise PhotometricError("no images to refine")
+    if target.dark_rectangles():
+        raise PhotometricError("target: the photometric model renders checkerboards; a ChArUco board's markers "
+                               "are not modelled (use the corner-and-blur calibration)")
     if camera.n_views != len(imgs):
         raise PhotometricError(f"the camera has {camera.n_views} views for {len(imgs)} images")
     W, H = camera.image_size_px

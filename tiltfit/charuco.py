@@ -1,0 +1,516 @@
+"""Find a ChArUco board's corners, with their ids, in partial and blurred views.
+
+Pipeline (`detect_charuco`):
+1. Ids. Where the markers can be read, OpenCV's `cv2.aruco.CharucoDetector` names the corners it sees (corner
+   id k is feature point k of the `CharucoTarget`); it stops where blur is wider than a marker bit (about a
+   tenth of a square). The checker corners stay saddles under any blur: independently, the saddle lattice of
+   `tiltfit.detect` (grid growth, no ids) is placed on the board by matching the image, resampled in lattice
+   coordinates, against the board's own picture (markers included) blurred by discs of 0 to 0.8 of a square,
+   over every placement (4 turns × shifts) that keeps the lattice on the board (`place_lattice`). The best
+   placement must explain the image clearly better than the next (`MIN_PLACEMENT_RATIO`), else it names
+   nothing. The two are merged; where both name a corner they must agree (`_merge`).
+2. Sub-pixel refinement: the point-symmetry refinement of the checkerboard path (`refine_symmetric`): at a
+   ChArUco corner the two markers touching it have black borders that are point images of each other, so the
+   neighbourhood is point-symmetric out to the markers' data bits, √2 (clear + bit) from the corner; the
+   window radius is that (`symmetric_radius`), at most 0.4 of the local square.
+3. Completion: corners neither step found, predicted by local homographies and refined the same way
+   (`tiltfit.detect.complete_corners` with the ChArUco window).
+4. Blur per corner (`tiltfit.blur.measure_blur`, its bands stopping at the markers' borders).
+5. Blur beyond CANCEL_BITS_BLUR of a square reaches the data bits from inside the window: the corners are
+   refined again on the image with the data bits painted out (`cancel_data_bits`: their exact picture, mapped
+   by the local homography, blurred by the corner's disc in the image), twice; then corners nearer the image's
+   edge than their blur diameter, and corners their neighbours place HEAVY_BLUR_TOLERANCE square away, are
+   dropped.
+
+Images are (H, W) or (H, W, C) linear float arrays; outputs in pixels (x = column, y = row, (0, 0) the centre of
+the top-left pixel), NaN where a corner was not found.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from .detect import (Detection, complete_corners, estimate_noise, find_grid, refine_symmetric, saddle_map,
+                     to_gray, _median_spacing, _min_neighbour_distance, _rot)
+from .imaging import build_pyramid, homography_dlt, homography_dlt_batch, to_full, torch_threads
+from .target import CharucoTarget, Target, rasterise
+
+# A placement is accepted when the next best one leaves this many times its residual (sum of squares after a
+# fitted gain and offset): the markers' pattern must tell the placements apart, not noise.
+MIN_PLACEMENT_RATIO = 1.5
+# Disc blurs (diameters, squares) the board's picture is compared at when placing a lattice.
+PLACEMENT_BLURS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.65, 0.8)
+# Samples per square and axis when resampling the image in lattice coordinates (a marker bit is ~0.1 square).
+SAMPLES_PER_SQUARE = 12
+# Above this median blur (diameter, squares) the corners are refined again on the image with the markers' data
+# bits painted out (`cancel_data_bits`): below it the window sees none of them (on renders, 0.1 square changes
+# nothing; 0.25 square halves the largest error).
+CANCEL_BITS_BLUR = 0.15
+# ... and then dropped when their neighbours' homography puts them this many squares away (0.2 otherwise).
+HEAVY_BLUR_TOLERANCE = 0.05
+CANCEL_ROUNDS = 2  # a second round, from better corners, halves the largest error at half a square of blur
+# Rounds of completion (each reaches two corners further from the found ones; it stops when none is added).
+COMPLETION_ROUNDS = 20
+# Refined corners whose point-symmetry residual exceeds this (relative, as in `tiltfit.detect`) are dropped.
+MAX_ASYMMETRY = 0.35
+
+
+def symmetric_radius(target: CharucoTarget) -> float:
+    """Window radius for the point-symmetry refinement, in squares: up to the markers' data bits."""
+    n_bits = target.opencv_board().getDictionary().markerSize + 2
+    clear = target.white_cell_clear_mm / target.square_mm
+    bit = target.marker_mm / n_bits / target.square_mm
+    return min(0.4, math.sqrt(2.0) * (clear + bit))
+
+
+def _srgb8(gray: np.ndarray) -> np.ndarray:
+    """8-bit sRGB-encoded copy of a linear image (what OpenCV's detectors expect), scaled to its 99.9th percentile."""
+    from renderer.io import linear_to_srgb
+
+    top = float(np.percentile(gray, 99.9)) or 1.0
+    return np.clip(np.round(255 * linear_to_srgb(np.clip(gray / top, 0, 1))), 0, 255).astype(np.uint8)
+
+
+def opencv_corners(gray: np.ndarray, target: CharucoTarget, refine: bool = True) -> np.ndarray:
+    """(N, 2) corners named by OpenCV's `CharucoDetector` (its own sub-pixel step), NaN where none."""
+    import cv2
+
+    detector = cv2.aruco.CharucoDetector(target.opencv_board())
+    if not refine:
+        params = detector.getDetectorParameters()
+        params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_NONE
+        detector.setDetectorParameters(params)
+    cc, ids, _, _ = detector.detectBoard(_srgb8(gray))
+    corners = np.full((target.n_points, 2), np.nan)
+    if ids is not None and len(ids):
+        corners[ids.ravel()] = cc.reshape(-1, 2)
+    return corners
+
+
+# --- placing a lattice on the board ------------------------------------------------------------------------
+def _board_pictures(target: CharucoTarget, n: int) -> list[np.ndarray]:
+    """The board (checkered area) at n px per square, blurred by each of PLACEMENT_BLURS (discs), 1 px margin."""
+    import cv2
+
+    sx, sy = target.squares
+    s = target.square_mm
+    pad = 1
+    img = rasterise(target, (-pad * s / n, (sx * n + pad) * s / n), (-pad * s / n, (sy * n + pad) * s / n),
+                    sx * n + 2 * pad, sy * n + 2 * pad)
+    out = []
+    for b in PLACEMENT_BLURS:
+        r = 0.5 * b * n
+        if r < 0.5:
+            out.append(img)
+            continue
+        k = int(math.ceil(r))
+        yy, xx = np.mgrid[-k:k + 1, -k:k + 1]
+        disc = (xx * xx + yy * yy <= r * r).astype(np.float32)
+        out.append(cv2.filter2D(img, -1, disc / disc.sum(), borderType=cv2.BORDER_REPLICATE))
+    return out
+
+
+def place_lattice(gray: np.ndarray, nodes: np.ndarray, xy: np.ndarray, target: CharucoTarget):
+    """Which board corner (i, j) each lattice node (a, b) is, from the markers' pattern.
+
+    The cells whose four corners are nodes are resampled (SAMPLES_PER_SQUARE² points each, through a
+    homography fitted on the nodes within two cells) and compared with the board's picture, blurred by each
+    of PLACEMENT_BLURS, under every orientation-preserving placement (i, j) = rot_k(a, b) + shift that keeps
+    the nodes on the board: residual sum of squares after a least-squares gain and offset, best blur.
+
+    Args:
+        gray: (H, W) linear image; nodes: (n, 2) integer lattice coordinates; xy: (n, 2) positions, pixels.
+    Returns:
+        (ij (n, 2) or None, message).
+    """
+    import cv2
+
+    ny, nx = target.grid_shape
+    n = SAMPLES_PER_SQUARE
+    lut = {tuple(p): k for k, p in enumerate(nodes.tolist())}
+    cells = np.array([(a, b) for (a, b) in lut if (a + 1, b) in lut and (a, b + 1) in lut and (a + 1, b + 1) in lut])
+    if len(cells) < 2:
+        return None, "too few whole cells seen to read the markers"
+    # sample positions (u, v) in lattice units within each cell, then to pixels by local homographies
+    f = (np.arange(n) + 0.5) / n
+    fu, fv = np.meshgrid(f, f)
+    uv = cells[:, None, :] + np.stack([fu.ravel(), fv.ravel()], -1)[None]  # (C, n², 2)
+    off = np.arange(-1, 3)
+    oa, ob = np.meshgrid(off, off, indexing="ij")
+    near = cells[:, None, :] + np.stack([oa.ravel(), ob.ravel()], -1)[None]  # (C, 16, 2)
+    idx = np.array([[lut.get(tuple(p), -1) for p in row] for row in near.tolist()])
+    valid = idx >= 0
+    Hs = homography_dlt_batch(near.astype(np.float64), np.where(valid[..., None], xy[np.maximum(idx, 0)], 0.0), valid)
+    q = np.einsum("cij,csj->csi", Hs, np.concatenate([uv, np.ones(uv.shape[:2] + (1,))], -1))
+    px = (q[..., :2] / q[..., 2:]).astype(np.float32)
+    obs = cv2.remap(gray.astype(np.float32), px[..., 0], px[..., 1], cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE).astype(np.float64)  # (C, n²)
+    H_img, W_img = gray.shape
+    inside = ((px[..., 0] >= 0) & (px[..., 0] <= W_img - 1) & (px[..., 1] >= 0) & (px[..., 1] <= H_img - 1)).all(1)
+    if inside.sum() < 2:
+        return None, "too few whole cells inside the image to read the markers"
+    uv, obs = uv[inside], obs[inside]
+    pictures = _board_pictures(target, n)
+    o = obs.ravel()
+    o_c = o - o.mean()
+    scores = []
+    for k in range(4):
+        rn = _rot(k, nodes)
+        lo, hi = rn.min(0), rn.max(0)
+        # corner (i, j) = rot + shift, 0 <= i < nx, 0 <= j < ny; corner (i, j) sits at board (i + 1, j + 1) squares
+        for di in range(-lo[0], nx - hi[0]):
+            for dj in range(-lo[1], ny - hi[1]):
+                b_uv = _rot(k, uv) + np.array([di + 1, dj + 1])  # board position in squares
+                mx = (b_uv[..., 0] * n + 0.5).astype(np.float32)  # picture pixel (1 px pad, centres at +0.5)
+                my = (b_uv[..., 1] * n + 0.5).astype(np.float32)
+                best = math.inf
+                for pic in pictures:
+                    m = cv2.remap(pic, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()
+                    m_c = m - m.mean()
+                    denom = float(m_c @ m_c)
+                    if denom <= 0:
+                        continue
+                    rss = float(o_c @ o_c) - float(o_c @ m_c) ** 2 / denom
+                    if (o_c @ m_c) < 0:  # dark and light swapped: not this placement
+                        rss = float(o_c @ o_c)
+                    best = min(best, rss)
+                scores.append((best, k, di, dj))
+    scores.sort()
+    if not scores:
+        return None, "the lattice does not fit on the board"
+    best, k, di, dj = scores[0]
+    second = scores[1][0] if len(scores) > 1 else math.inf
+    if not second > MIN_PLACEMENT_RATIO * max(best, 1e-30):
+        return None, (f"the markers do not tell the board's placements apart (residuals {best:.3g} and {second:.3g}); "
+                      "the view is too blurred or too small")
+    return _rot(k, nodes) + np.array([di, dj]), ""
+
+
+# Smoothing scales (full-resolution pixels) the saddle lattice is looked for at: the markers' bits are saddles
+# too, so the scale must reach a fifth of a square or so, which is not known beforehand.
+LATTICE_SCALES_PX = (1.5, 3.0, 4.5, 6.0, 8.0, 12.0, 16.0)
+
+
+def _lattice(gray: np.ndarray, levels: dict):
+    """The largest saddle lattice of `tiltfit.detect` (no ids) over LATTICE_SCALES_PX: (nodes (n, 2), positions
+    (n, 2) full-resolution pixels) or None. A scale counts when the lattice's spacing is at least 2.5 × its sigma."""
+    best = None
+    for scale in LATTICE_SCALES_PX:
+        f = max([f for f in levels if scale / f >= 1.5 and min(levels[f].shape) >= 32] or [1])
+        img, sigma = levels[f], scale / f
+        noise = estimate_noise(img)
+        grid = find_grid(saddle_map(img, sigma, noise), noise)
+        if len(grid) < 4:
+            continue
+        nodes = np.array(list(grid.keys()))
+        xy_l = np.array([grid[tuple(p)] for p in nodes.tolist()])
+        if _median_spacing(nodes, xy_l) < 2.5 * sigma:
+            continue
+        if best is None or len(nodes) > len(best[0]):
+            best = nodes, to_full(xy_l, f)
+    return best
+
+
+def _local_square_px(target: CharucoTarget, corners: np.ndarray) -> np.ndarray:
+    """(N,) image size of a square at each found corner (distance to the nearest found grid neighbour)."""
+    ny, nx = target.grid_shape
+    g = corners.reshape(ny, nx, 2)
+    d = np.full((ny, nx), np.inf)
+    dx = np.hypot(*np.diff(g, axis=1).transpose(2, 0, 1))
+    dy = np.hypot(*np.diff(g, axis=0).transpose(2, 0, 1))
+    for a, sl in ((dx, (slice(None), slice(None, -1))), (dx, (slice(None), slice(1, None))),
+                  (dy, (slice(None, -1), slice(None))), (dy, (slice(1, None), slice(None)))):
+        d[sl] = np.fmin(d[sl], np.where(np.isfinite(a), a, np.inf))
+    d = d.ravel()
+    fallback = np.median(d[np.isfinite(d)]) if np.isfinite(d).any() else 10.0
+    return np.where(np.isfinite(d), d, fallback)
+
+
+def refine_charuco(gray: np.ndarray, target: CharucoTarget, corners: np.ndarray,
+                   refine_radius_max: float = 20.0) -> np.ndarray:
+    """Point-symmetry refinement of the found corners with the ChArUco window; failed ones become NaN."""
+    found = np.isfinite(corners).all(1)
+    out = np.full_like(corners, np.nan)
+    if not found.any():
+        return out
+    square = _local_square_px(target, corners)[found]
+    radius = np.clip(symmetric_radius(target) * square, 3.0, refine_radius_max)
+    xy, asym, ok = refine_symmetric(gray, corners[found], radius)
+    ok &= (asym < MAX_ASYMMETRY) & (np.hypot(*(xy - corners[found]).T) < 0.25 * square)
+    k = np.nonzero(found)[0]
+    out[k[ok]] = xy[ok]
+    return out
+
+
+def _placed_lattice(gray, levels, target, refine_radius_max):
+    """(N, 2) corners from the saddle lattice placed by the markers' pattern (NaN elsewhere), and a message."""
+    N = target.n_points
+    corners = np.full((N, 2), np.nan)
+    lat = _lattice(gray, levels)
+    if lat is None:
+        return corners, "no checker corners found"
+    nodes, xy = lat
+    radius = np.clip(0.4 * _min_neighbour_distance(nodes, xy), 3.0, refine_radius_max)
+    xy_r, _, ok = refine_symmetric(gray, xy, radius)
+    xy = np.where(ok[:, None], xy_r, xy)
+    ij, message = place_lattice(gray, nodes, xy, target)
+    if ij is not None:
+        corners[target.feature_index(ij[:, 0], ij[:, 1])] = xy
+    return corners, message
+
+
+def drop_inconsistent(corners: np.ndarray, target: CharucoTarget, tolerance: float = 0.2) -> int:
+    """Drop corners that their neighbours (within two indices, at least 5) place elsewhere: further than
+    `tolerance` squares from the local homography of the others. Modifies `corners`; returns how many."""
+    ny, nx = target.grid_shape
+    pts = target.feature_points()[:, :2]
+    found = np.isfinite(corners).all(1)
+    square = _local_square_px(target, corners)
+    bad = []
+    for k in np.nonzero(found)[0]:
+        j, i = divmod(int(k), nx)
+        near = [jj * nx + ii for jj in range(max(0, j - 2), min(ny, j + 3))
+                for ii in range(max(0, i - 2), min(nx, i + 3))
+                if found[jj * nx + ii] and jj * nx + ii != k]
+        if len(near) < 5 or np.linalg.matrix_rank(pts[near] - pts[near].mean(0)) < 2:
+            continue
+        Hm = homography_dlt(pts[near], corners[near])
+        if Hm is None or not np.isfinite(Hm).all():
+            continue
+        q = Hm @ np.array([pts[k, 0], pts[k, 1], 1.0])
+        if np.hypot(*(q[:2] / q[2] - corners[k])) > tolerance * square[k]:
+            bad.append(k)
+    corners[bad] = np.nan
+    return len(bad)
+
+
+def _merge(opencv: np.ndarray, placed: np.ndarray, target: CharucoTarget):
+    """Union of OpenCV's named corners and the placed lattice's, and which named them (None: they disagree:
+    a corner both name lies more than a quarter of a square apart, or neither found 4)."""
+    fo, fp = np.isfinite(opencv).all(1), np.isfinite(placed).all(1)
+    if fo.sum() < 4 and fp.sum() < 4:
+        return np.full_like(opencv, np.nan), None
+    if fo.sum() < 4:
+        return placed, "lattice placed by the markers' pattern"
+    if fp.sum() < 4:
+        return opencv, "markers read by OpenCV"
+    both = fo & fp
+    square = np.median(_local_square_px(target, placed))
+    if both.any() and np.hypot(*(opencv[both] - placed[both]).T).max() > 0.25 * square:
+        return opencv, "markers read by OpenCV (the lattice placement disagreed and was dropped)"
+    return np.where(fo[:, None], opencv, placed), "markers read by OpenCV and the lattice placed by them"
+
+
+# Points per pixel side where `cancel_data_bits` looks the markers' picture up before blurring it.
+SUPERSAMPLE = 3
+# Scales of the measured blur `cancel_data_bits` tries per cell (the blur widths read a few per cent wide
+# where the markers' bits reach the bands, at blur beyond a quarter square).
+BLUR_SCALES = (0.86, 0.9, 0.94, 0.98, 1.02)
+
+
+def _disc_kernel(r: float) -> np.ndarray:
+    """Normalised kernel of a disc of radius r (in taps), each tap weighted by its area inside (4 × 4 points)."""
+    k = int(math.ceil(r)) + 1
+    o = (np.arange(4) + 0.5) / 4 - 0.5
+    yy, xx = np.mgrid[-k:k + 1, -k:k + 1].astype(np.float64)
+    ker = sum(((xx + a) ** 2 + (yy + b) ** 2 <= r * r) for a in o for b in o).astype(np.float32)
+    return ker / ker.sum()
+
+
+def cancel_data_bits(gray: np.ndarray, target: CharucoTarget, corners: np.ndarray, blur_px: np.ndarray) -> np.ndarray:
+    """The image with the markers' data bits painted out: what is left (checker and the markers' black borders)
+    is point-symmetric about every corner out to the next ring of cells.
+
+    Per marker whose cell has a found corner with a measured blur: the data bits' dark fraction, rasterised
+    exactly in the target plane, mapped to the image by the local homography of the corners
+    (`tiltfit.blur._local_homographies`) and blurred there by the disc of that corner's blur (round on the
+    sensor; scaled by the one of BLUR_SCALES under which the board's picture fits the cell best); the contrast (white − dark) from a straight-line fit of the whole board's blurred picture to the
+    image in the cell, its median over the cell and its neighbours. Returns `gray` plus contrast × the
+    predicted dark fraction of the data bits.
+    """
+    import cv2
+
+    from .blur import _local_homographies
+    from .target import add_rectangles
+
+    out = gray.astype(np.float64).copy()
+    found = np.isfinite(corners).all(1) & np.isfinite(blur_px)
+    Hs = _local_homographies(target, corners, np.isfinite(corners).all(1))
+    Hinv = dict(zip(Hs, np.linalg.inv(np.stack(list(Hs.values()))))) if Hs else {}
+    ny, nx = target.grid_shape
+    s = target.square_mm
+    bits = target.dark_rectangles(data_bits_only=True)
+    every = target.dark_rectangles()
+    cells = target.marker_cells()
+    origin = np.array([target.x_edges[0], target.y_edges[0]])
+
+    def cell_of(rects):
+        return np.floor((np.array([[(r[0] + r[2]) / 2, (r[1] + r[3]) / 2] for r in rects]) - origin) / s).astype(int)
+
+    bits_cell, every_cell = cell_of(bits), cell_of(every)
+    checker = Target(target.x_edges, target.y_edges, target.dark_cell, target.margin)
+    n_bits = target.opencv_board().getDictionary().markerSize + 2
+    ppm = 6.0 * n_bits / target.marker_mm  # texels per mm: 6 a bit
+    H_img, W_img = gray.shape
+    painted = []
+    for m, (i, j) in enumerate(cells):
+        # the cell's four corners as feature points (those inside the grid): (i − 1 + a, j − 1 + b)
+        ks = [(j - 1 + b) * nx + (i - 1 + a) for a in (0, 1) for b in (0, 1)
+              if 0 <= i - 1 + a < nx and 0 <= j - 1 + b < ny and found[(j - 1 + b) * nx + (i - 1 + a)]]
+        ks = [k for k in ks if k in Hs]
+        if not ks:
+            continue
+        Hm = Hs[ks[0]]
+        b_px = float(np.mean(blur_px[ks]))
+        # mm per pixel at the cell: the image size of one square
+        q = np.array([[i * s, j * s, 1.0], [(i + 1) * s, j * s, 1.0], [i * s, (j + 1) * s, 1.0]]) @ Hm.T
+        q = q[:, :2] / q[:, 2:]
+        mm_per_px = s / (0.5 * (np.hypot(*(q[1] - q[0])) + np.hypot(*(q[2] - q[0]))))
+        r_mm = 0.5 * b_px * mm_per_px
+        pad = 1.5 * r_mm + 2.0 / ppm  # the blur in mm varies over the cell under perspective
+        x0, y0 = target.x_edges[0] + i * s - pad, target.y_edges[0] + j * s - pad
+        x1, y1 = x0 + s + 2 * pad, y0 + s + 2 * pad
+        nw, nh = int(math.ceil((x1 - x0) * ppm)), int(math.ceil((y1 - y0) * ppm))
+        x1, y1 = x0 + nw / ppm, y0 + nh / ppm  # whole texels of 1/ppm mm, as the look-up below assumes
+        bx, by = np.linspace(x0, x1, nw + 1), np.linspace(y0, y1, nh + 1)
+        area = np.outer(np.diff(by), np.diff(bx))
+        dark_bits = np.zeros((nh, nw))
+        add_rectangles(dark_bits, bx, by, [r for r, c in zip(bits, bits_cell) if c[0] == i and c[1] == j])
+        # the whole board's picture there: the checker, and the markers of this cell and its neighbours
+        dark_all = 1.0 - rasterise(checker, (x0, x1), (y0, y1), nw, nh).astype(np.float64)
+        extra = np.zeros((nh, nw))
+        add_rectangles(extra, bx, by, [r for r, c in zip(every, every_cell)
+                                       if abs(c[0] - i) <= 1 and abs(c[1] - j) <= 1])
+        dark_all += extra / area
+        tex = [(dark_bits / area).astype(np.float32), dark_all.astype(np.float32)]
+        # the image pixels of the cell (+ the blur's reach); the sharp pictures looked up at SUPERSAMPLE² points
+        # a pixel, then blurred by the lens's disc in the image (it is round on the sensor, not on the board)
+        corners_mm = np.array([[x0, y0, 1], [x1, y0, 1], [x1, y1, 1], [x0, y1, 1]]) @ Hm.T
+        cp = corners_mm[:, :2] / corners_mm[:, 2:]
+        c0, r0 = np.maximum(np.floor(cp.min(0)).astype(int), 0)
+        c1, r1 = np.minimum(np.ceil(cp.max(0)).astype(int), [W_img - 1, H_img - 1])
+        if c1 <= c0 or r1 <= r0:
+            continue
+        S = SUPERSAMPLE
+        sub = (np.arange(S) + 0.5) / S - 0.5
+        v = (np.arange(r0, r1 + 1)[:, None] + sub[None]).ravel()
+        u = (np.arange(c0, c1 + 1)[:, None] + sub[None]).ravel()
+        V, U = np.meshgrid(v, u, indexing="ij")
+        p = np.stack([U, V, np.ones_like(U)], -1) @ Hinv[ks[0]].T
+        X, Y = p[..., 0] / p[..., 2], p[..., 1] / p[..., 2]
+        mx = ((X - x0) * ppm - 0.5).astype(np.float32)
+        my = ((Y - y0) * ppm - 0.5).astype(np.float32)
+        fine = [cv2.remap(t, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) for t in tex]
+        h, w = r1 - r0 + 1, c1 - c0 + 1
+        Xc, Yc = (a.reshape(h, S, w, S).mean((1, 3)) for a in (X, Y))
+        use = (Xc > x0 + pad) & (Xc < x1 - pad) & (Yc > y0 + pad) & (Yc < y1 - pad)
+        ys = gray[r0:r1 + 1, c0:c1 + 1][use].astype(np.float64)
+        if use.sum() < 10:
+            continue
+        best = None
+        for scale in BLUR_SCALES:  # the blur under which the cell's picture fits the image best
+            r_sub = 0.5 * b_px * S * scale
+            blurred = [cv2.filter2D(f, -1, _disc_kernel(r_sub), borderType=cv2.BORDER_REPLICATE) if r_sub > 0.5
+                       else f for f in fine]
+            pb, pa = (f.reshape(h, S, w, S).mean((1, 3)).astype(np.float64) for f in blurred)
+            xs = pa[use]
+            if np.ptp(xs) < 0.1:
+                break
+            # image = white − contrast × dark fraction: the straight-line fit, in closed form
+            slope = float(np.mean((xs - xs.mean()) * (ys - ys.mean())) / np.var(xs))
+            rss = float(np.sum((ys - ys.mean() - slope * (xs - xs.mean())) ** 2))
+            if best is None or rss < best[0]:
+                best = (rss, -slope, pb)
+        if best is None:
+            continue
+        _, contrast, pb = best
+        painted.append(((i, j), contrast, (r0, r1, c0, c1), pb))
+    # each cell's contrast fit leaves a few per cent of noise; the median of the cell and its eight neighbours
+    contrasts = {ij: c for ij, c, _, _ in painted}
+    for (i, j), _, (r0, r1, c0, c1), pb in painted:
+        near = [contrasts[(i + a, j + b)] for a in (-1, 0, 1) for b in (-1, 0, 1) if (i + a, j + b) in contrasts]
+        out[r0:r1 + 1, c0:c1 + 1] += float(np.median(near)) * pb
+    return out
+
+
+def detect_board(image, target, *, measure_blur: bool = True) -> Detection:
+    """Corners and blur of any target in a linear image: `detect_charuco` for a ChArUco board, else the
+    checkerboard detector (`tiltfit.detect.detect`)."""
+    from .detect import detect
+
+    if isinstance(target, CharucoTarget):
+        return detect_charuco(image, target, measure_blur=measure_blur)
+    return detect(image, target, measure_blur=measure_blur)
+
+
+def detect_charuco(image, target: CharucoTarget, *, measure_blur: bool = True, use_opencv: bool = True,
+                   refine_radius_max: float = 20.0) -> Detection:
+    """Find a ChArUco board's corners (with ids: the feature-point order) and their blur in a linear image.
+
+    Args:
+        image: (H, W) or (H, W, C) linear float image.
+        target: the CharucoTarget.
+        measure_blur: also measure the blur diameter per corner.
+        use_opencv: name the corners with OpenCV's marker reading where it works (else only the lattice
+            placement, which also works on sharp views).
+    Returns:
+        Detection (grid_found False and all NaN when no corner could be named).
+    """
+    with torch_threads(1):
+        return _detect_charuco(image, target, measure_blur, use_opencv, refine_radius_max)
+
+
+def _detect_charuco(image, target, measure_blur, use_opencv, refine_radius_max) -> Detection:
+    from .blur import measure_blur as _measure_blur
+
+    timings: dict = {}
+    t0 = time.perf_counter()
+    gray = to_gray(image)
+    H, W = gray.shape
+    levels = build_pyramid(gray)
+    N = target.n_points
+    corners = opencv_corners(gray, target) if use_opencv else np.full((N, 2), np.nan)
+    timings["opencv"] = time.perf_counter() - t0
+    n_opencv = int(np.isfinite(corners).all(1).sum())
+    t1 = time.perf_counter()
+    placed, message = _placed_lattice(gray, levels, target, refine_radius_max)
+    timings["lattice"] = time.perf_counter() - t1
+    corners, source = _merge(corners, placed, target)
+    if source is None:
+        return Detection((W, H), corners, np.full(N, np.nan), np.full(N, np.nan), False,
+                         message if n_opencv < 4 else "OpenCV's ids and the lattice placement disagree", 0, timings)
+    t2 = time.perf_counter()
+    corners = refine_charuco(gray, target, corners, refine_radius_max)
+    drop_inconsistent(corners, target)
+    if np.isfinite(corners).all(1).sum() >= 4:
+        complete_corners(gray, target, corners, refine_radius_max, rounds=COMPLETION_ROUNDS,
+                         window=symmetric_radius(target))
+    timings["refine"] = time.perf_counter() - t2
+    found = np.isfinite(corners).all(1)
+    blur, sigma = np.full(N, np.nan), np.full(N, np.nan)
+    if found.any():
+        t3 = time.perf_counter()
+        blur, sigma = _measure_blur(gray, target, corners, levels=levels)
+        timings["blur"] = time.perf_counter() - t3
+        if np.nanmedian(blur / _local_square_px(target, corners)) > CANCEL_BITS_BLUR:
+            # blur reaching the markers' data bits: refine again with those painted out
+            t4 = time.perf_counter()
+            for _ in range(CANCEL_ROUNDS):  # better corners place the painted bits better
+                again = refine_charuco(cancel_data_bits(gray, target, corners, blur), target, corners,
+                                       refine_radius_max)
+                corners = np.where(np.isfinite(again), again, corners)
+            # a corner nearer the image's edge than its blur diameter has its blurred neighbourhood cut by the
+            # edge (the symmetry window with it), and one its neighbours place elsewhere is dropped
+            edge = np.minimum.reduce([corners[:, 0], W - 1 - corners[:, 0], corners[:, 1], H - 1 - corners[:, 1]])
+            corners[edge < blur] = np.nan
+            drop_inconsistent(corners, target, tolerance=HEAVY_BLUR_TOLERANCE)
+            timings["cancel_bits"] = time.perf_counter() - t4
+        if not measure_blur:
+            blur, sigma = np.full(N, np.nan), np.full(N, np.nan)
+    timings["total"] = time.perf_counter() - t0
+    found = np.isfinite(corners).all(1)
+    blur[~found], sigma[~found] = np.nan, np.nan
+    ok = bool(found.sum() >= 4)
+    return Detection((W, H), corners, blur, sigma, ok, f"{int(found.sum())} of {N} corners ({source})", 1, timings)

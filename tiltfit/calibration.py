@@ -21,7 +21,8 @@ from . import fit as _core
 from .fit import MODES, FitError, FitOptions, FitResult, _fit_camera, _set_free
 from .imaging import torch_threads
 from .model import Observations, TiltLensCamera, distortion_parameter_names, residuals
-from .board import describe_board, select_board, with_points
+from .board import describe_board, with_points
+from .board_fit import select_board
 from .selection import blur_depends_on_depth, blur_is_informative, likelihood_ratio, nested_model_tests, usable_views
 from .start import initialize, start_blur
 from .validate import select_distortion
@@ -346,7 +347,7 @@ def _redistort(fit: FitResult, obs: Observations, mode: str, options: FitOptions
     """The distortion model chosen again with the board as fitted (a flat board's misfit had asked for terms the
     fitted shape explains): `select_distortion` on the fitted points; where it changes the model, the board is
     refitted with it and its held-out error recomputed. Returns (fit, held-out dict)."""
-    from .board import fit_board, held_out_rms
+    from .board_fit import fit_board, held_out_rms
 
     board = fit.board
     try:

@@ -100,7 +100,7 @@ class FitOptions:
             lens-axis centre, and every other library's untilted one) ["auto"].
         board: the target's shape (`tiltfit.board.BOARD_MODELS`): "flat" (the target file's points as they are),
             "warp" (sag and print scale), "free" (every point, OpenCV's release-object method) or "auto" (the
-            simplest the held-out views support, `tiltfit.board.select_board`) ["flat"].
+            simplest the held-out views support, `tiltfit.board_fit.select_board`) ["flat"].
     """
 
     robust: str | None = None
@@ -169,7 +169,7 @@ class FitResult:
             when the selection computed it (`tiltfit.validate.held_out_rms`), else None.
         free_principal_point: whether the principal point was fitted.
         board: the target's fitted shape (`tiltfit.board.Board`; None: the target file's points as they are);
-            board_selection: the held-out test that chose its model (`tiltfit.board.select_board`'s entries).
+            board_selection: the held-out test that chose its model (`tiltfit.board_fit.select_board`'s entries).
     """
 
     mode: str

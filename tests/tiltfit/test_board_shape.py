@@ -14,7 +14,8 @@ import pytest
 import torch
 
 from tiltfit import cli
-from tiltfit.board import WARP_PARAMETERS, Board, fit_board
+from tiltfit.board import WARP_PARAMETERS, Board
+from tiltfit.board_fit import fit_board
 from tiltfit.calibfile import calib_dict, camera_from_calib, read_calib
 from tiltfit.calibration import calibrate
 from tiltfit.fit import FitOptions, without_blur

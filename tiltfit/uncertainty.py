@@ -50,16 +50,6 @@ INTRINSIC_NAMES = ("focal_px", "cx_px", "cy_px", "k1", "k2", "p1", "p2", "k3", "
 # The per-view cluster-robust covariance
 # ---------------------------------------------------------------------------------------------------------
 
-def _psd_max(C_floor: torch.Tensor, C: torch.Tensor) -> torch.Tensor:
-    """The matrix ≥ both `C_floor` and `C` closest to C: eigenvalues of C in C_floor's whitened coordinates,
-    raised to at least 1."""
-    L = torch.linalg.cholesky(C_floor)
-    Li = torch.linalg.inv(L)
-    D = Li @ C @ Li.T
-    mu, Q = torch.linalg.eigh(0.5 * (D + D.T))
-    return L @ (Q * mu.clamp_min(1.0)) @ Q.T @ L.T
-
-
 def view_cluster_covariance(res, s2: float):
     """The per-view cluster-robust covariance (module docstring) of an LM result with per-view blocks.
 
@@ -84,8 +74,14 @@ def view_cluster_covariance(res, s2: float):
     Y = App_inv @ (Jp.transpose(1, 2) @ Js)                             # (V, K, S)
     Jt = Js - Jp @ Y                                                    # (V, R, S) pose-profiled
     S = (Jt.transpose(1, 2) @ Jt).sum(0)
-    S_inv = torch.linalg.inv(S)
-    L = torch.linalg.cholesky(0.5 * (S_inv + S_inv.T))
+    # S⁻¹ = L Lᵀ by the eigenvalues of S in its diagonal scaling (S may be badly conditioned: U, d from blur)
+    Dg = torch.diagonal(S).clamp_min(1e-300).rsqrt()
+    mu, Vs = torch.linalg.eigh(Dg[:, None] * S * Dg[None, :])
+    if not bool(torch.isfinite(mu).all()) or float(mu.min()) <= 1e-13 * float(mu.max()):
+        return None
+    L = Dg[:, None] * Vs * mu.rsqrt()[None, :]
+    L_inv = (Vs * mu.sqrt()[None, :]).T / Dg[None, :]
+    S_inv = L @ L.T
     B = Jt @ L                                                          # H̃_vv = B Bᵀ
     lam, Q = torch.linalg.eigh(B.transpose(1, 2) @ B)                   # (V, S), (V, S, S)
     lam = lam.clamp(0.0, 1.0 - 1e-3)
@@ -97,10 +93,13 @@ def view_cluster_covariance(res, s2: float):
     meat = u.T @ u
     C_rob = S_inv @ meat @ S_inv
     C_cls = s2 * S_inv
-    C_g = _psd_max(0.5 * (C_cls + C_cls.T), 0.5 * (C_rob + C_rob.T))
-    n_g = C_g.shape[0]
+    # the matrix max of the two: in the classical covariance's whitened coordinates, eigenvalues raised to ≥ 1
+    Dw = L_inv @ C_rob @ L_inv.T / s2
+    nu, Q = torch.linalg.eigh(0.5 * (Dw + Dw.T))
+    nu = nu.clamp_min(1.0)
+    C_g = s2 * (L @ (Q * nu) @ Q.T @ L.T)
     ratio = torch.diagonal(C_rob) / torch.diagonal(C_cls)
-    kappa = float(torch.trace(torch.linalg.solve(C_cls, C_g))) / n_g
+    kappa = float(nu.mean())
     cov = SchurCovariance(C_g, kappa * s2 * App_inv, Y, bj.s_idx, bj.p_idx, bj.n_params)
     info = {"design_effect": kappa, "ratio_min": float(ratio.min()), "ratio_max": float(ratio.max()),
             "n_views": int(bj.rows.shape[0])}

@@ -144,11 +144,15 @@ def pixel_grid(image_size_px, nx: int = 32, ny: int | None = None):
     return np.linspace(0.0, W - 1.0, nx), np.linspace(0.0, H - 1.0, ny)
 
 
+def _jac(fn, x: torch.Tensor) -> torch.Tensor:
+    """Jacobian of a function of a few inputs with many outputs (forward mode)."""
+    return torch.autograd.functional.jacobian(fn, x, vectorize=True, strategy="forward-mode")
+
+
 def _rotation_jacobian(theta: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """(2n, 3) derivative of the projections of directions v by a small rotation ω of them (v + ω × v)."""
     w0 = torch.zeros(3, dtype=torch.float64)
-    return torch.autograd.functional.jacobian(
-        lambda w: _project(theta, v + torch.cross(w.expand_as(v), v, dim=-1)).reshape(-1), w0)
+    return _jac(lambda w: _project(theta, v + torch.cross(w.expand_as(v), v, dim=-1)).reshape(-1), w0)
 
 
 def projection_sigma(theta: torch.Tensor, cov: torch.Tensor, image_size_px, nx: int = 32, ny: int | None = None):
@@ -167,7 +171,7 @@ def projection_sigma(theta: torch.Tensor, cov: torch.Tensor, image_size_px, nx: 
     sig = torch.full((q.shape[0],), math.nan, dtype=torch.float64)
     if int(ok.sum()) >= 3:
         vo = v[ok]
-        G = torch.autograd.functional.jacobian(lambda t: _project(t, vo).reshape(-1), theta)   # (2n, 11)
+        G = _jac(lambda t: _project(t, vo).reshape(-1), theta)                                 # (2n, 11)
         Gw = _rotation_jacobian(theta, vo)
         G = G - Gw @ torch.linalg.lstsq(Gw, G).solution
         var = ((G @ cov) * G).sum(-1).reshape(-1, 2).sum(-1)
@@ -204,7 +208,7 @@ def _best_rotation(theta_a, theta_b, v_a, q):
 
     for _ in range(8):
         r = resid(w)
-        J = torch.autograd.functional.jacobian(resid, w)
+        J = _jac(resid, w)
         step = torch.linalg.lstsq(J, -r[:, None]).solution[:, 0]
         w = w + step
         if float(step.norm()) < 1e-12:

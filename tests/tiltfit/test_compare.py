@@ -94,3 +94,15 @@ def test_calibrate_cross_validate(tmp_path, capsys):
     assert cv["k"] == 3 and len(cv["pairs"]) == 3 and sum(len(g) for g in cv["groups"]) == 9, cv
     assert all(p["consistent"] for p in cv["pairs"]), [p["verdict"] for p in cv["pairs"]]
     assert "cross-validation" in capsys.readouterr().err
+
+
+def test_report_draws_projection_uncertainty(tmp_path):
+    rvec, T = random_poses(6, 4)
+    cam = TiltLensCamera(6, **PAPER_SENSOR, **PAPER_LENS, rvec=rvec, T_mm=T, distortion=[-0.05])
+    obs = synthesize_observations(cam, board_points_mm(7, 5, 25.0), 0.1, 0.05, seed=4)
+    path = tmp_path / "c.json"
+    json.dump(calib_dict(calibrate(obs, "unified", options=OPTS), obs=obs), open(path, "w"))
+    assert main(["report", str(path), "-o", str(tmp_path / "rep"), "-q"]) == 0
+    assert os.path.getsize(tmp_path / "rep" / "projection_uncertainty.png") > 1000, "no map drawn"
+    text = open(tmp_path / "rep" / "report.md").read()
+    assert "projection uncertainty: median" in text and "σ error model: views" in text, text

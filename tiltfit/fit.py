@@ -27,6 +27,9 @@ Uncertainties: C = s² (Jᵀ W J)⁻¹ on the free parameters (s² the residual 
 w, U, d, θF, θL (exact Scheimpflug), θL of the paper's eq (1) and f by the Jacobian of those functions. In
 `tilt` mode the held w, U, d carry the uncertainties `init` gives for them (through the fit's implicit
 dependence on them), but not the bias of holding U.
+The reported σ use the error model `FitOptions.sigma_model`: "views" (default) replaces C on the global
+parameters by the per-view cluster-robust covariance (corner and blur errors correlated within a view), never
+below the classical C (`tiltfit.uncertainty`); the classical σ stay in `FitResult.sigma_classical`.
 """
 from __future__ import annotations
 

@@ -192,7 +192,7 @@ def projection_summary(theta, cov, image_size_px, nx: int = 32) -> dict:
 
 
 def _best_rotation(theta_a, theta_b, v_a, q):
-    """Rotation ω (axis-angle) minimising Σ |proj_B(R(ω) v_a) − q|² (Gauss–Newton from Kabsch)."""
+    """Rotation ω (axis-angle) minimising Σ |proj_B(R(ω) v_a) − q|² (`tiltfit.solve.least_squares` from Kabsch)."""
     from renderer import axis_angle_to_matrix, matrix_to_axis_angle
 
     v_b = _unproject(theta_b, q)
@@ -206,13 +206,9 @@ def _best_rotation(theta_a, theta_b, v_a, q):
     def resid(w):
         return (_project(theta_b, v_a @ axis_angle_to_matrix(w).T) - q).reshape(-1)
 
-    for _ in range(8):
-        r = resid(w)
-        J = _jac(resid, w)
-        step = torch.linalg.lstsq(J, -r[:, None]).solution[:, 0]
-        w = w + step
-        if float(step.norm()) < 1e-12:
-            break
+    from .solve import LMOptions, least_squares
+
+    w = least_squares(resid, w, LMOptions(max_iterations=50), jacobian_fn=lambda x: _jac(resid, x)).x
     return w
 
 

@@ -142,6 +142,7 @@ def test_gopro_subsets_spread_matches_sigma(gopro_groups):
                                          f"spread/σ {math.sqrt(np.mean(zc)):.2f}"
 
 
+@pytest.mark.slow
 def test_gopro_subsets_compare_within_prediction(gopro_groups, tmp_path, capsys):
     from tiltfit.cli import main
 

@@ -319,6 +319,9 @@ def cmd_calibrate(args) -> int:
     except FitError as e:
         raise CliError(label, str(e)) from None
     result.skipped = list(obs.skipped) + list(result.skipped)
+    if result.sigma_model.get("design_effect"):
+        say(f"σ error model: per-view ({result.sigma_model['n_views']} views; σ of the lens "
+            f"{math.sqrt(result.sigma_model['design_effect']):.2g}× the independent-noise σ on average)")
     for note in result.notes:
         if note.startswith("distortion auto:"):
             say(note)  # the choice is progress; what the data cannot determine is worth a line even with -q

@@ -101,9 +101,6 @@ def opencv(obs: Observations, model: str, views=None):
         obj.append(obs.points_mm.numpy()[ok].astype(np.float32))
         img.append(obs.corners_px[v].numpy()[ok].astype(np.float32))
     W, H = obs.image_size_px
-    K0 = np.eye(3)
-    K0[0, 0] = K0[1, 1] = float(np.median([1.0]))  # replaced by OpenCV's own initialisation
-    K0[0, 2], K0[1, 2] = (W - 1) / 2, (H - 1) / 2
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)
     rms, K, dist, rv, tv, sd_i, sd_e, per_view = cv2.calibrateCameraExtended(
         obj, img, (W, H), None, None, flags=OPENCV_FLAGS[model] | cv2.CALIB_FIX_ASPECT_RATIO, criteria=crit)

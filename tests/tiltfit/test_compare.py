@@ -4,7 +4,6 @@ import json
 import os
 
 import pytest
-import torch
 
 from tiltfit.calibfile import calib_dict
 from tiltfit.calibration import calibrate

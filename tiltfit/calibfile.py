@@ -28,6 +28,11 @@ or "free"; for warp `parameters` {sag_x_mm, sag_y_mm, scale_y_minus_1} and their
 `points_mm` and `sigma_points_mm`; `max_offset_in_plane_mm`, `max_offset_out_of_plane_mm`), `board_selection`
 (per model: fit `rms_px`, `held_out_rms_px`, `chosen`) and, with a fitted shape, per view
 `residuals_flat_board_px` (the same lens with the target file's flat points, each view's pose refitted).
+Honest uncertainties (`tiltfit.uncertainty`): `sigma_model` ({name: "views" | "classical", description,
+design_effect, ratio_min, ratio_max, n_views}: which error model `sigma` uses), `sigma_classical` (the same keys
+as `sigma` under independent noise), `intrinsics_covariance` ({names: focal_px, cx_px, cy_px, k1 … k6, matrix}),
+`projection_uncertainty` ({median_px, worst_px, grid_x_px, grid_y_px, sigma_px, method}), and after
+cross-validation `cross_validation` (`tiltfit.uncertainty.projection_difference` per pair of groups).
 
 Numbers that are not finite (e.g. the blur RMS of a view without blur widths) are written as null.
 The file is written atomically (temporary file in the same folder, then renamed).
@@ -190,6 +195,7 @@ def calib_dict(result, runtime_s: float | None = None, obs=None, target: dict | 
     }
     out["sigma"]["blur_offset_px"] = s.get("blur_offset_px")
     out["sigma"]["distortion"] = s.get("distortion")
+    _add_uncertainty(out, result, undetermined)
     if target is not None:
         out["target"] = target
     if held_out is not None:
@@ -203,6 +209,29 @@ def calib_dict(result, runtime_s: float | None = None, obs=None, target: dict | 
         for view, extra in zip(out["views"], _per_view_data(result, obs)):
             view.update(extra)
     return _clean(out)
+
+
+def _add_uncertainty(out: dict, result, undetermined: list) -> None:
+    """`sigma_model`, `sigma_classical`, `intrinsics_covariance` and `projection_uncertainty` (tiltfit.uncertainty)
+    where the fit computed its covariance."""
+    model = getattr(result, "sigma_model", None)
+    if not model:
+        return
+    out["sigma_model"] = dict(model) | {"description": (
+        "per-view cluster-robust covariance (corner and blur errors may be correlated within a view; poses "
+        "profiled out, CR2 small-sample correction), never below the classical one" if model["name"] == "views"
+        else "classical: independent residuals, s² (JᵀWJ)⁻¹")}
+    sc = dict(result.sigma_classical)
+    blank = set(undetermined) | {k for k in out["sigma"] if out["sigma"][k] is None}
+    out["sigma_classical"] = {k: (None if k in blank else sc.get(k)) for k in out["sigma"]}
+    ic = getattr(result, "intrinsics_covariance", None)
+    if ic:
+        from .uncertainty import intrinsics_vector, projection_summary
+
+        out["intrinsics_covariance"] = ic
+        theta = intrinsics_vector(out)
+        out["projection_uncertainty"] = projection_summary(
+            theta, torch.tensor(ic["matrix"], dtype=torch.float64), out["image_size_px"], nx=24)
 
 
 def write_calib(path: str, data) -> None:
@@ -369,6 +398,25 @@ def _check_extras(path: str, data: dict) -> None:
         folds = held.get("folds")
         if folds is not None and not (is_finite_number(folds) and folds == int(folds) and folds >= 0):
             raise CalibFileError(f"{path}: held_out.folds: expected a count, got {describe(folds)}")
+    ic = data.get("intrinsics_covariance")
+    if ic is not None:
+        from .uncertainty import INTRINSIC_NAMES
+
+        if not (isinstance(ic, dict) and isinstance(ic.get("names"), list)
+                and all(n in INTRINSIC_NAMES for n in ic["names"])):
+            raise CalibFileError(f"{path}: intrinsics_covariance.names: expected names among "
+                                 f"{', '.join(INTRINSIC_NAMES)}")
+        n = len(ic["names"])
+        m = ic.get("matrix")
+        if not (isinstance(m, list) and len(m) == n and all(isinstance(row, list) and len(row) == n
+                                                            and all(is_finite_number(x) for x in row) for row in m)):
+            raise CalibFileError(f"{path}: intrinsics_covariance.matrix: expected {n}×{n} finite numbers")
+    pu = data.get("projection_uncertainty")
+    if pu is not None:
+        if not isinstance(pu, dict):
+            raise CalibFileError(f"{path}: projection_uncertainty: expected an object, got {describe(pu)}")
+        for key in ("median_px", "worst_px"):
+            _optional_number(path, f"projection_uncertainty.{key}", pu.get(key), nonnegative=True)
     for key in ("distortion_model", "fit", "blur_model"):
         if data.get(key) is not None and not isinstance(data[key], str):
             raise CalibFileError(f"{path}: {key}: expected a name, got {describe(data[key])}")

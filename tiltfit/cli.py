@@ -7,6 +7,7 @@
                       [--free-principal-point | --fixed-principal-point]
     tiltfit export CALIB.json --to opencv|mrcal -o camera.yml|camera.cameramodel
     tiltfit report CALIB.json -o DIR
+    tiltfit compare A.json B.json [-o DIR]        (projection difference against the two σ' prediction)
     tiltfit reproduce [--quick] [--scale N] [--target-scale N] [--device cpu|cuda] [-o DIR]
     tiltfit stability [--quick] [-o DIR]
     tiltfit target design|print ...   (tiltfit.target_cli: the target designer and the printable)
@@ -279,6 +280,8 @@ def cmd_calibrate(args) -> int:
         raise CliError("--max-iterations", f"expected 1 to {MAX_ITERATIONS}, got {args.max_iterations}")
     if args.fit == "tilt" and not args.init:
         raise CliError("--init", "the tilt fit (stage 2) needs the stage-1 CALIB.json as --init")
+    if args.cross_validate is not None and not 2 <= args.cross_validate <= MAX_HELD_OUT:
+        raise CliError("--cross-validate", f"expected 2 to {MAX_HELD_OUT} groups, got {args.cross_validate}")
     init = init_sigma = None
     if args.init:
         from .export import is_mrcal_file, is_opencv_file, read_mrcal, read_opencv
@@ -317,6 +320,9 @@ def cmd_calibrate(args) -> int:
     except FitError as e:
         raise CliError(label, str(e)) from None
     result.skipped = list(obs.skipped) + list(result.skipped)
+    if result.sigma_model.get("design_effect"):
+        say(f"σ error model: per-view ({result.sigma_model['n_views']} views; σ of the lens "
+            f"{math.sqrt(result.sigma_model['design_effect']):.2g}× the independent-noise σ on average)")
     for note in result.notes:
         if note.startswith("distortion auto:"):
             say(note)  # the choice is progress; what the data cannot determine is worth a line even with -q
@@ -325,8 +331,11 @@ def cmd_calibrate(args) -> int:
     for warning in result.warnings:
         print(f"tiltfit: warning: {warning}", file=sys.stderr, flush=True)
     photometric = _refine_photometric(result, used, target, args, say, images) if args.refine == "photometric" else None
+    cross = _cross_validate(result, used, options, args.cross_validate, say) if args.cross_validate else None
     data = calib_dict(result, runtime_s=time.perf_counter() - t0, obs=used, target=target.to_dict(),
                       held_out=held_out)
+    if cross is not None:
+        data["cross_validation"] = cross
     if photometric is not None:
         data["refinement"], data["photometric"] = "photometric", photometric
     try:
@@ -447,6 +456,70 @@ def cmd_report(args) -> int:
     return 0
 
 
+def cmd_compare(args) -> int:
+    from .calibfile import read_calib
+    from .compare import CompareError, compare, summary_lines, write_compare
+
+    if args.output and os.path.exists(args.output) and not os.path.isdir(args.output):
+        raise CliError(args.output, "not a folder")
+    data = []
+    for path in (args.a, args.b):
+        try:
+            data.append(read_calib(path))
+        except ValueError as e:
+            raise _as_cli_error(path, e) from None
+    try:
+        res = compare(*data)
+    except CompareError as e:
+        raise CliError(args.b, str(e)) from None
+    print("\n".join(summary_lines(res, args.a, args.b)))
+    if args.output:
+        try:
+            files = write_compare(res, args.output, args.a, args.b)
+        except OSError as e:
+            raise CliError(args.output, f"cannot write ({e.strerror or e})") from None
+        for f in files:
+            _say(args.quiet)(f"wrote {f}")
+    return 0
+
+
+def _cross_validate(result, obs, options, k: int, say) -> dict:
+    """`--cross-validate K`: the views split into K interleaved groups, each calibrated alone (the chosen
+    distortion and principal-point state, no model selection), every pair compared (`tiltfit.compare`)."""
+    from dataclasses import replace
+
+    from .calibfile import calib_dict
+    from .calibration import calibrate
+    from .compare import compare, summary_lines
+    from .fit import FitError
+
+    groups = [list(range(g, obs.n_views, k)) for g in range(k)]
+    opts = replace(options, distortion=result.distortion_model, free_principal_point=result.free_principal_point,
+                   model_selection=False, progress=None)
+    calibs = []
+    for g, views in enumerate(groups):
+        try:
+            fit = calibrate(obs.subset(views), result.mode, options=opts)
+        except FitError as e:
+            raise CliError("--cross-validate", f"group {g + 1} of {k} ({len(views)} views): {e}") from None
+        calibs.append(calib_dict(fit))
+        say(f"cross-validation: group {g + 1} of {k} calibrated ({len(views)} views)")
+    pairs = []
+    for a in range(k):
+        for b in range(a + 1, k):
+            res = compare(calibs[a], calibs[b], nx=24)
+            for line in summary_lines(res, f"group {a + 1}", f"group {b + 1}"):
+                print(f"tiltfit: cross-validation: {line}", file=sys.stderr, flush=True)
+            pairs.append({"groups": [a + 1, b + 1]} | {key: res[key] for key in (
+                "median_px", "worst_px", "predicted_median_px", "predicted_worst_px", "rms_ratio", "consistent",
+                "verdict", "rotation_deg")})
+    return {"k": k, "groups": [[obs.names[v] for v in views] for views in groups], "pairs": pairs,
+            "focal_px": [c["w_mm"] / c["pixel_pitch_mm"] for c in calibs],
+            "sigma_focal_px": [c["sigma"]["w_mm"] / c["pixel_pitch_mm"] for c in calibs],
+            "principal_point_px": [c["principal_point_px"] for c in calibs],
+            "sigma_principal_point_px": [c["sigma"]["principal_point_px"] for c in calibs]}
+
+
 def cmd_reproduce(argv) -> int:
     """`tiltfit reproduce ...` is `tiltfit.experiments.reproduce.main` (its own options and help)."""
     from .experiments import reproduce
@@ -519,6 +592,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "Gaussian, or auto (the Gaussian where a likelihood-ratio test justifies it) [disc]")
     p.add_argument("--held-out", type=int, default=5, metavar="K",
                    help="K-fold held-out reprojection error (RMS per corner) beside the fit RMS (0: skip) [5]")
+    p.add_argument("--cross-validate", type=int, metavar="K",
+                   help="also split the views into K groups, calibrate each alone and compare every pair's "
+                        "projection with what their σ predict (stderr and cross_validation in CALIB.json)")
     p.add_argument("-o", "--output", required=True, metavar="CALIB.json")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=cmd_calibrate)
@@ -536,6 +612,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, metavar="DIR")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=cmd_report)
+
+    p = sub.add_parser("compare", help="cross-validate two calibrations: projection difference against what "
+                                       "their σ predict")
+    p.add_argument("a", metavar="A.json")
+    p.add_argument("b", metavar="B.json")
+    p.add_argument("-o", "--output", metavar="DIR", help="write compare.png (difference and predicted maps) and "
+                                                          "compare.json")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
+    p.set_defaults(func=cmd_compare)
 
     # Listed for --help; its arguments are parsed by tiltfit.experiments.reproduce itself (see main).
     sub.add_parser("reproduce", help="the paper's experiment end to end on a simulated camera", add_help=False)

@@ -27,6 +27,9 @@ Uncertainties: C = s² (Jᵀ W J)⁻¹ on the free parameters (s² the residual 
 w, U, d, θF, θL (exact Scheimpflug), θL of the paper's eq (1) and f by the Jacobian of those functions. In
 `tilt` mode the held w, U, d carry the uncertainties `init` gives for them (through the fit's implicit
 dependence on them), but not the bias of holding U.
+The reported σ use the error model `FitOptions.sigma_model`: "views" (default) replaces C on the global
+parameters by the per-view cluster-robust covariance (corner and blur errors correlated within a view), never
+below the classical C (`tiltfit.uncertainty`); the classical σ stay in `FitResult.sigma_classical`.
 """
 from __future__ import annotations
 
@@ -73,6 +76,9 @@ class FitOptions:
         held_out_folds: K of the K-fold held-out error that chooses the distortion model under "auto" [5].
         uncertainties: compute the covariance and σ (False: only the fitted camera is wanted, as in the held-out
             folds; a fit whose parameters are not all determined is then no error) [True].
+        sigma_model: the error model of the σ: "views" (corner errors may be correlated within a view: per-view
+            cluster-robust covariance with the classical one as floor, `tiltfit.uncertainty`) or "classical"
+            (independent noise, s² (JᵀWJ)⁻¹) ["views"]. The fitted values do not depend on it.
         sigma_corner_px, sigma_blur_px: noise levels; None estimates them from the residuals [None].
         blur_model: the camera's blur model ("ellipse", "first_order", "paper") ["ellipse"].
         nominal_focal_mm: starting w when no `init` gives one; None estimates it from homographies [None].
@@ -125,6 +131,7 @@ class FitOptions:
     uncertainties: bool = True
     distortion_centre: str = "auto"
     board: str = "flat"
+    sigma_model: str = "views"
 
     def __post_init__(self):
         if self.robust not in ROBUST_LOSSES:
@@ -137,6 +144,8 @@ class FitOptions:
             raise ValueError(f"distortion_centre: expected 'auto' or 'sensor', got {self.distortion_centre!r}")
         if self.board not in BOARD_MODELS + ("auto",):
             raise ValueError(f"board: expected one of {BOARD_MODELS + ('auto',)}, got {self.board!r}")
+        if self.sigma_model not in ("views", "classical"):
+            raise ValueError(f"sigma_model: expected 'views' or 'classical', got {self.sigma_model!r}")
         if self.distortion not in DISTORTION_MODELS + ("auto",):
             raise ValueError(f"distortion: expected one of {DISTORTION_MODELS + ('auto',)}, got {self.distortion!r}")
 
@@ -197,6 +206,9 @@ class FitResult:
     free_principal_point: bool = False
     board: object = None
     board_selection: list = field(default_factory=list)
+    sigma_classical: dict = field(default_factory=dict)
+    sigma_model: dict = field(default_factory=dict)
+    intrinsics_covariance: dict | None = None
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -476,21 +488,38 @@ def _jacobian_of(f, x: torch.Tensor) -> torch.Tensor:
     return torch.autograd.functional.jacobian(f, x.detach())
 
 
-def _uncertainties(prob: _Problem, res: LMResult, scale: torch.Tensor, init_sigma: dict | None):
-    """Covariance of the free parameters and σ of the derived quantities and per-view poses."""
+def _intrinsics(camera: TiltLensCamera, params: dict) -> torch.Tensor:
+    """(focal_px, cx, cy, k1 … k6) as functions of the stored parameters (`tiltfit.uncertainty.INTRINSIC_NAMES`)."""
+    w = torch.exp(params["log_w_mm"])
+    pp = camera.image_centre_px + params["pp_scaled"] * camera.pixel_scale_px
+    k = torch.stack([params[n].reshape(()) for n in TiltLensCamera.parameter_names("distortion")])
+    return torch.cat([(w / camera.pixel_pitch_mm).reshape(1), pp, k])
+
+
+def _uncertainties(prob: _Problem, res: LMResult, scale: torch.Tensor, init_sigma: dict | None,
+                   sigma_model: str = "views"):
+    """Covariance of the free parameters and σ of the derived quantities and per-view poses, under
+    `sigma_model` ("views": per-view cluster-robust with the classical floor, `tiltfit.uncertainty`;
+    "classical": s² (JᵀWJ)⁻¹). Returns (C, sigma, view σ, s², extras {sigma_classical, sigma_model,
+    intrinsics_covariance})."""
+    from .uncertainty import INTRINSIC_NAMES, view_cluster_covariance
+
     cam = prob.camera
     n = prob.n_corner + prob.n_blur
     p = res.x_flat.numel()
     s2 = float((res.weights * res.r * res.r).sum()) / max(n - p, 1)
     try:
-        C = solve_covariance(res, s2)
+        C_cls = solve_covariance(res, s2)
     except SolverError:
         raise FitError("the fit is degenerate: the free parameters are not all determined by the data") from None
+    robust = view_cluster_covariance(res, s2) if sigma_model == "views" else None
+    C, info = robust if robust is not None else (C_cls, {})
+    model = {"name": "views" if robust is not None else "classical"} | info
     layout = res.layout
     G = _jacobian_of(lambda v: _derived(cam, prob.params(layout.unflatten(v))), res.x_flat)
-    cov_d = G @ C.matmul(G.T)
     # Held lens parameters with known uncertainty: total derivative through the re-fitted free parameters.
     held_sig = _held_sigma(init_sigma, cam, list(prob.held))
+    Gh = Sh = None
     if held_sig:
         hnames = list(held_sig)
         h0 = torch.stack([prob.held[k].reshape(()) for k in hnames])
@@ -505,36 +534,48 @@ def _uncertainties(prob: _Problem, res: LMResult, scale: torch.Tensor, init_sigm
         Jh = torch.cat([jh[k] for k in hnames], 1) * scale[:, None]
         # dx/dh = −(JᵀWJ)⁻¹ JᵀW J_h; JᵀW v is the normal equations' gradient of v
         JtWJh = torch.stack([res.normal.gradient(Jh[:, i]) for i in range(len(hnames))], 1)
-        dx_dh = -C.matmul(JtWJh) / s2
+        dx_dh = -C_cls.matmul(JtWJh) / s2
         Gh = _jacobian_of(lambda hv: _derived(cam, prob.params(res.x, with_h(hv))), h0) + G @ dx_dh
         Sh = torch.diag(torch.tensor([held_sig[k] ** 2 for k in hnames], dtype=torch.float64))
-        cov_d = cov_d + Gh @ Sh @ Gh.T
-    sig = torch.sqrt(torch.clamp(torch.diagonal(cov_d), min=0.0))
-    sigma = {k: float(sig[i]) for i, k in enumerate(_DERIVED_KEYS)}
-    sigma["principal_point_px"] = [float(sig[8]), float(sig[9])]
-    # Per-view pose σ, if the poses are free.
-    view_sig = []
-    offsets = layout.offsets
-    sd = C.diagonal().clamp_min(0).sqrt().tolist()
-    sigma["distortion"] = [sd[offsets[n][0]] if n in offsets else 0.0
-                           for n in TiltLensCamera.parameter_names("distortion")]
-    if "inv_U_per_m" in offsets:
-        sigma["inv_U_per_m"] = sd[offsets["inv_U_per_m"][0]]
-    if "blur_offset_px" in offsets:
-        sigma["blur_offset_px"] = sd[offsets["blur_offset_px"][0]]
-    if _Problem.BOARD in offsets:
-        o, k = offsets[_Problem.BOARD]
-        sigma["board"] = sd[o:o + k]
-    for v in range(cam.n_views):
-        entry = {}
-        if "rvec" in offsets:
-            o = offsets["rvec"][0] + 3 * v
-            entry["sigma_rvec_deg"] = [math.degrees(sd[o + k]) for k in range(3)]
-        if "T_scaled" in offsets:
-            o = offsets["T_scaled"][0] + 3 * v
-            entry["sigma_T_mm"] = [sd[o + k] * cam.length_scale_mm for k in range(3)]
-        view_sig.append(entry)
-    return C, sigma, view_sig, s2
+
+    def sigmas(Cx):
+        cov_d = G @ Cx.matmul(G.T)
+        if Gh is not None:
+            cov_d = cov_d + Gh @ Sh @ Gh.T
+        sig = torch.sqrt(torch.clamp(torch.diagonal(cov_d), min=0.0))
+        sigma = {k: float(sig[i]) for i, k in enumerate(_DERIVED_KEYS)}
+        sigma["principal_point_px"] = [float(sig[8]), float(sig[9])]
+        offsets = layout.offsets
+        sd = Cx.diagonal().clamp_min(0).sqrt().tolist()
+        sigma["distortion"] = [sd[offsets[n][0]] if n in offsets else 0.0
+                               for n in TiltLensCamera.parameter_names("distortion")]
+        if "inv_U_per_m" in offsets:
+            sigma["inv_U_per_m"] = sd[offsets["inv_U_per_m"][0]]
+        if "blur_offset_px" in offsets:
+            sigma["blur_offset_px"] = sd[offsets["blur_offset_px"][0]]
+        if _Problem.BOARD in offsets:
+            o, k = offsets[_Problem.BOARD]
+            sigma["board"] = sd[o:o + k]
+        # Per-view pose σ, if the poses are free.
+        view_sig = []
+        for v in range(cam.n_views):
+            entry = {}
+            if "rvec" in offsets:
+                o = offsets["rvec"][0] + 3 * v
+                entry["sigma_rvec_deg"] = [math.degrees(sd[o + k]) for k in range(3)]
+            if "T_scaled" in offsets:
+                o = offsets["T_scaled"][0] + 3 * v
+                entry["sigma_T_mm"] = [sd[o + k] * cam.length_scale_mm for k in range(3)]
+            view_sig.append(entry)
+        return sigma, view_sig
+
+    sigma, view_sig = sigmas(C)
+    sigma_classical = sigmas(C_cls)[0] if robust is not None else dict(sigma)
+    Gi = _jacobian_of(lambda v: _intrinsics(cam, prob.params(layout.unflatten(v))), res.x_flat)
+    Ci = Gi @ C.matmul(Gi.T)
+    extras = {"sigma_classical": sigma_classical, "sigma_model": model,
+              "intrinsics_covariance": {"names": list(INTRINSIC_NAMES), "matrix": (0.5 * (Ci + Ci.T)).tolist()}}
+    return C, sigma, view_sig, s2, extras
 
 
 def _set_free(camera: TiltLensCamera, mode: str, free_pp: bool):
@@ -565,9 +606,9 @@ def _fit_camera(camera: TiltLensCamera, obs: Observations, options: FitOptions, 
         obs = with_points(obs, board.points())
     scale = prob.scale(sc, sb)
     if options.uncertainties:
-        C, sig, view_sig, s2 = _uncertainties(prob, res, scale, init_sigma)
+        C, sig, view_sig, s2, extras = _uncertainties(prob, res, scale, init_sigma, options.sigma_model)
     else:  # only the fitted camera is wanted (held-out folds): σ unknown, and a near-degenerate fit is no error
-        C, view_sig, s2 = None, [{}] * obs.n_views, math.nan
+        C, view_sig, s2, extras = None, [{}] * obs.n_views, math.nan, {}
         sig = {k: math.nan for k in _DERIVED_KEYS} | {"principal_point_px": [math.nan, math.nan],
                                                        "distortion": [math.nan] * 8}
     with torch.no_grad():
@@ -591,7 +632,8 @@ def _fit_camera(camera: TiltLensCamera, obs: Observations, options: FitOptions, 
         noise={"sigma_corner_px": sc, "sigma_blur_px": sb, "variance_factor": s2},
         parameter_names=res.layout.flat_names(), covariance=C, chi2=2.0 * res.cost,
         n_residuals=prob.n_corner + prob.n_blur, n_parameters=res.x_flat.numel(), iterations=res.iterations,
-        runtime_s=time.perf_counter() - t0, rss=_group_rss(prob, res, scale), board=_fitted_board(board, sig))
+        runtime_s=time.perf_counter() - t0, rss=_group_rss(prob, res, scale), board=_fitted_board(board, sig),
+        **extras)
 
 
 def _fitted_board(board, sigma: dict):

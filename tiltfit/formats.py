@@ -136,6 +136,18 @@ def calibration_reference() -> str:
         "predicts them better, then the top-level lens values and σ are the photometric fit's; `corner fit` "
         "otherwise, then they stay the corner fit's and the refinement's values are in `refined` and "
         "`refined_sigma`.", "",
+        "Uncertainty: `sigma` is one standard deviation under the error model named in `sigma_model.name`: "
+        "`views` (default; corner and blur errors may be correlated within a view, as a detector's bias with blur, "
+        "the board's shape or a model misfit make them: per-view cluster-robust covariance with the poses profiled "
+        "out and the CR2 small-sample correction, never below the classical covariance; `design_effect` is the "
+        "globals' average variance ratio to the classical one, which also inflates each pose's own part) or "
+        "`classical` (independent residuals). `sigma_classical` holds the classical σ of the same keys. "
+        "`intrinsics_covariance` (`names`: focal_px, cx_px, cy_px, k1 … k6; `matrix`) is what `tiltfit compare` "
+        "reads; `projection_uncertainty` gives σ of the projection across the image (px, sqrt(σx² + σy²), the part "
+        "a rotation of the camera frame explains removed; the same at every depth): `median_px`, `worst_px` and "
+        "the map `sigma_px` on `grid_x_px` × `grid_y_px`. After `--cross-validate K`: `cross_validation` "
+        "(`groups` of images, per pair `median_px`, `worst_px`, `predicted_median_px`, `predicted_worst_px`, "
+        "`rms_ratio`, `consistent`, `verdict`).", "",
         "## Every JSON file", "",
         f"UTF-8 (UTF-16/32, other encodings and image bytes are refused by name), nested at most {MAX_JSON_DEPTH} "
         "levels, numbers finite. Each refusal is one line `tiltfit: <file>: <field>: <problem>`, exit status 2; "

@@ -15,6 +15,8 @@ written by `tiltfit calibrate`). Files:
     coverage.png            where in the image the corners fell, and the share of the image inside the union
                             of the views' boards (`coverage_fraction`): empty regions (corners, a bare
                             border) leave the distortion there extrapolated
+    projection_uncertainty.png  σ of the projection across the image (CALIB.json's `projection_uncertainty`,
+                            `tiltfit.uncertainty`), where the file has it
     report.md               the numbers: RMS, held-out error, per-view table, undetermined and skipped
 """
 from __future__ import annotations
@@ -208,6 +210,8 @@ def _write_plots(calib: dict, views: list, out_dir: str) -> list:
                  fontsize=9)
     save(fig, "coverage.png")
 
+    _projection_uncertainty_plot(calib, save, plt)
+
     # Text summary.
     lines = ["# Calibration report", ""]
     rms_all = calib.get("rms_reprojection_px")
@@ -234,6 +238,7 @@ def _write_plots(calib: dict, views: list, out_dir: str) -> list:
         r = v.get("rms_reprojection_px")
         lines.append(f"| {nm} | {'' if r is None else f'{r:.3f}'} | {v.get('n_points')} | "
                      f"{'yes' if v.get('outlier') else ''} |")
+    lines += _uncertainty_lines(calib)
     path = os.path.join(out_dir, "report.md")
     with open(path, "w", encoding="utf-8") as f:
         f.write("\n".join(lines) + "\n")
@@ -288,3 +293,43 @@ def _board_text(board: dict) -> str:
         return (f"free (every point): moved up to {board.get('max_offset_in_plane_mm', 0):.2g} mm in the board's "
                 f"plane and {board.get('max_offset_out_of_plane_mm', 0):.2g} mm out of it")
     return "flat (the target file's points)"
+
+
+def _projection_uncertainty_plot(calib: dict, save, plt) -> None:
+    """projection_uncertainty.png: the map of CALIB.json's `projection_uncertainty` (nothing without one)."""
+    pu = calib.get("projection_uncertainty")
+    if not isinstance(pu, dict) or not pu.get("sigma_px"):
+        return
+    W, H = calib["image_size_px"]
+    sig = np.array([[np.nan if s is None else s for s in row] for row in pu["sigma_px"]], dtype=np.float64)
+    fig, ax = plt.subplots(figsize=(6, 6 * H / W + 0.8))
+    im = ax.pcolormesh(np.array(pu["grid_x_px"]), np.array(pu["grid_y_px"]), sig, shading="nearest", cmap="magma",
+                       vmin=0)
+    ax.set_xlim(0, W)
+    ax.set_ylim(H, 0)
+    ax.set_aspect("equal")
+    fig.colorbar(im, ax=ax, shrink=0.8, label="σ of the projection (px)")
+    model = (calib.get("sigma_model") or {}).get("name", "classical")
+    ax.set_title(f"Projection uncertainty ({model} error model): median {pu['median_px']:.2g} px, "
+                 f"worst {pu['worst_px']:.2g} px", fontsize=9)
+    save(fig, "projection_uncertainty.png")
+
+
+def _uncertainty_lines(calib: dict) -> list:
+    """report.md lines on the error model, the projection uncertainty and the cross-validation."""
+    out = []
+    model = calib.get("sigma_model")
+    if model:
+        extra = f", design effect {model['design_effect']:.2g}" if model.get("design_effect") else ""
+        out.append(f"- σ error model: {model.get('name')}{extra}")
+    pu = calib.get("projection_uncertainty")
+    if pu and pu.get("median_px") is not None:
+        out.append(f"- projection uncertainty: median {pu['median_px']:.2g} px, worst {pu['worst_px']:.2g} px")
+    cv = calib.get("cross_validation")
+    for pair in (cv or {}).get("pairs", []):
+        a, b = pair["groups"]
+        pred = pair.get("predicted_median_px")
+        out.append(f"- cross-validation, groups {a} and {b}: difference median {pair['median_px']:.2g} px against "
+                   + (f"{pred:.2g} px predicted" if pred is not None else "no prediction")
+                   + f": {pair['verdict'].split(':')[0]}")
+    return out

@@ -1,0 +1,162 @@
+"""Honest σ (issue 22): the per-view cluster-robust error model against what fits actually scatter by.
+
+(a) Monte Carlo, two-sided: 60 noise draws of a capture made by an independent generator (a pinhole + Brown k1
+    projector and a geometric-optics blur-circle formula written here, not `TiltLensCamera`) with corner errors
+    correlated within each view (a random shift and affine warp of each view's corners, a random scale of each
+    view's blur widths, plus independent noise). The predicted σ (RMS over the draws) of f, cx, cy, w, U, d, θL
+    must lie within 0.8–1.25 of the empirical spread of the estimates, and the same check must fail for σ × 0.5
+    and σ × 2 (so it can tell). The classical σ is asserted to fail it (what the issue measured).
+(b) Real subsets: the GoPro session split into three interleaved groups of views, each calibrated alone.
+    With three estimates the sample spread is noisy; the spread is defined the honest way, pooled over the
+    three pairs: sqrt(mean over pairs (a, b) of Δ² / (σ_a² + σ_b²)) (1 when σ is right; only 2 independent
+    differences per parameter, so its 95 % range is about 0.16–1.9 per parameter). The spread pooled over f, cx
+    and cy (6 independent differences, 95 % range about 0.5–1.6) must lie within 0.7–1.4, each parameter's within
+    0.4–2.0, and the classical σ's pooled spread must exceed 1.4 (too small, as the issue found). `tiltfit compare`
+    between the groups must find them within the predicted difference.
+"""
+import itertools
+import json
+import math
+import os
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from tiltfit.calibfile import calib_dict
+from tiltfit.calibration import calibrate
+from tiltfit.fit import FitOptions
+from tiltfit.model import Observations, PAPER_LENS, PAPER_SENSOR, board_points_mm, random_poses, axis_angle_to_matrix
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+W_MM, U_MM, D_MM = PAPER_LENS["w_mm"], PAPER_LENS["U_mm"], PAPER_LENS["d_mm"]
+PITCH = PAPER_SENSOR["pixel_pitch_mm"]
+SIZE = PAPER_SENSOR["image_size_px"]
+BOARD = board_points_mm(7, 5, 25.0).numpy()
+K1 = -0.05
+CX, CY = (SIZE[0] - 1) / 2 + 12.0, (SIZE[1] - 1) / 2 - 8.0
+N_VIEWS, N_DRAWS = 8, 60
+KEYS = ("f_px", "cx_px", "cy_px", "w_mm", "U_mm", "d_mm", "theta_L_deg")
+
+
+def independent_capture():
+    """Clean corners and blur widths from our own projector (not TiltLensCamera): pinhole with focal length w
+    (the sensor distance), Brown k1, and the blur circle of a thin lens focused at U: d·|w − w_z| / w_z on the
+    sensor for a point at depth z, whose image lies at w_z = 1 / (1/f − 1/z)."""
+    rvec, T = random_poses(N_VIEWS, 3)
+    R, T = axis_angle_to_matrix(rvec).numpy(), T.numpy()
+    pc = np.einsum("vij,nj->vni", R, BOARD) + T[:, None, :]
+    xy = pc[..., :2] / pc[..., 2:3]
+    xy = xy * (1 + K1 * (xy ** 2).sum(-1, keepdims=True))
+    f_px = W_MM / PITCH
+    uv = np.stack([CX + f_px * xy[..., 0], CY + f_px * xy[..., 1]], -1)
+    f_mm = W_MM * U_MM / (W_MM + U_MM)
+    w_z = 1.0 / (1.0 / f_mm - 1.0 / pc[..., 2])
+    blur = D_MM * np.abs(W_MM - w_z) / w_z / PITCH
+    return uv, blur
+
+
+def noisy(uv, blur, rng):
+    """Per-view correlated errors (shift 0.3 px, affine 3e-4, blur scale 2 %) plus independent noise."""
+    c = uv.mean(1, keepdims=True)
+    A = rng.normal(0, 3e-4, (N_VIEWS, 2, 2))
+    uv = uv + rng.normal(0, 0.3, (N_VIEWS, 1, 2)) + np.einsum("vij,vnj->vni", A, uv - c) \
+        + rng.normal(0, 0.05, uv.shape)
+    blur = blur * (1 + rng.normal(0, 0.02, (N_VIEWS, 1))) + rng.normal(0, 0.03 * np.median(blur), blur.shape)
+    return Observations(torch.tensor(BOARD), torch.tensor(uv), torch.tensor(blur), SIZE, PITCH)
+
+
+def _pick(d):
+    return [d["w_mm"] / PITCH, d["principal_point_px"][0], d["principal_point_px"][1]] + [d[k] for k in KEYS[3:]]
+
+
+@pytest.fixture(scope="module")
+def monte_carlo():
+    uv, blur = independent_capture()
+    rng = np.random.default_rng(0)
+    opts = FitOptions(model_selection=False, free_principal_point=True, distortion="k1", max_rms_px=None)
+    values, sigma, classical = [], [], []
+    for _ in range(N_DRAWS):
+        res = calibrate(noisy(uv, blur, rng), "joint", options=opts)
+        assert not res.undetermined, f"a draw left {res.undetermined} undetermined"
+        values.append(_pick(res.values))
+        sigma.append(_pick(res.sigma))
+        classical.append(_pick(res.sigma_classical))
+    values, sigma, classical = map(np.array, (values, sigma, classical))
+    empirical = values.std(0, ddof=1)
+    return empirical, np.sqrt((sigma ** 2).mean(0)), np.sqrt((classical ** 2).mean(0)), res
+
+
+def calibrated(predicted, empirical, low=0.8, high=1.25):
+    """{key: ratio} of the keys whose predicted/empirical ratio is outside [low, high]."""
+    ratio = predicted / empirical
+    return {k: round(float(r), 3) for k, r in zip(KEYS, ratio) if not low <= r <= high}
+
+
+@pytest.mark.slow
+def test_monte_carlo_sigma_matches_spread(monte_carlo):
+    empirical, predicted, classical, res = monte_carlo
+    assert res.sigma_model["name"] == "views", f"default error model: {res.sigma_model}"
+    bad = calibrated(predicted, empirical)
+    assert not bad, f"predicted σ / empirical spread outside 0.8–1.25: {bad}"
+    for factor in (0.5, 2.0):
+        wrong = calibrated(predicted * factor, empirical)
+        assert set(wrong) == set(KEYS), f"σ × {factor} should fail the check for every key; passes for " \
+                                        f"{sorted(set(KEYS) - set(wrong))}"
+    too_small = calibrated(classical, empirical)
+    assert len(too_small) >= 5, f"the classical σ should be too small here (it ignores correlated errors): " \
+                                f"fails only for {too_small}"
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Real photos: three subsets of the GoPro session
+# ---------------------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def gopro_groups():
+    sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+    from real_detections import observations
+
+    obs, _ = observations(os.path.join(ROOT, "data", "real", "gopro_wide"), 0.00155)
+    opts = FitOptions(distortion="rational", free_principal_point=True, model_selection=False, max_rms_px=None)
+    return [calibrate(obs.subset(range(g, obs.n_views, 3)), "unified", options=opts) for g in range(3)]
+
+
+def pooled_spread(fits, which, key):
+    def val(r, d):
+        d = getattr(r, d)
+        return d["w_mm"] / 0.00155 if key == "f" else d["principal_point_px"][0 if key == "cx" else 1]
+    return [(val(a, "values") - val(b, "values")) ** 2 / (val(a, which) ** 2 + val(b, which) ** 2)
+            for a, b in itertools.combinations(fits, 2)]
+
+
+def test_gopro_subsets_spread_matches_sigma(gopro_groups):
+    z = {k: pooled_spread(gopro_groups, "sigma", k) for k in ("f", "cx", "cy")}
+    per_key = {k: math.sqrt(np.mean(v)) for k, v in z.items()}
+    pooled = math.sqrt(np.mean(sum(z.values(), [])))
+    assert 0.7 <= pooled <= 1.4, f"spread/σ pooled over f, cx, cy: {pooled:.3f} (per key {per_key})"
+    assert all(0.4 <= r <= 2.0 for r in per_key.values()), f"spread/σ per key: {per_key}"
+    zc = sum((pooled_spread(gopro_groups, "sigma_classical", k) for k in ("f", "cx", "cy")), [])
+    assert math.sqrt(np.mean(zc)) > 1.4, f"the classical σ should be too small on real data: " \
+                                         f"spread/σ {math.sqrt(np.mean(zc)):.2f}"
+
+
+@pytest.mark.slow
+def test_gopro_subsets_compare_within_prediction(gopro_groups, tmp_path, capsys):
+    from tiltfit.cli import main
+
+    paths = []
+    for g, fit in enumerate(gopro_groups):
+        paths.append(str(tmp_path / f"g{g}.json"))
+        with open(paths[-1], "w") as f:
+            json.dump(calib_dict(fit), f)
+    for a, b in itertools.combinations(paths, 2):
+        out = tmp_path / f"cmp_{os.path.basename(a)}_{os.path.basename(b)}"
+        assert main(["compare", a, b, "-o", str(out), "-q"]) == 0, "compare failed"
+        res = json.load(open(out / "compare.json"))
+        assert res["consistent"] and res["rms_ratio"] <= 2.0, \
+            f"{a} vs {b}: difference {res['median_px']:.3g} px against predicted {res['predicted_median_px']:.3g}"
+        assert os.path.getsize(out / "compare.png") > 1000, "no map written"
+    printed = capsys.readouterr().out
+    assert "verdict: consistent" in printed, f"summary: {printed}"

@@ -1,0 +1,280 @@
+"""Honest uncertainties: a covariance that sees corner errors correlated within a view, the projection
+uncertainty across the image, and the projection difference between two calibrations (cross-validation).
+
+Error model ("views", the default). The classical covariance s² (JᵀWJ)⁻¹ treats every corner as independent
+noise. Real corner errors are not: a detector's bias grows with blur, the board is not the ideal grid, the model
+misfits; such errors repeat within a view. The per-view cluster-robust (sandwich) covariance lets them be
+anything within a view and independent between views:
+
+    C_g = S⁻¹ (Σ_v ũ_v ũ_vᵀ) S⁻¹,  ũ_v = J̃_vᵀ (I − H̃_vv)^(−1/2) r_v
+
+for the global parameters (lens, principal point, distortion, blur offset), with each view's pose profiled out:
+J̃_v = J_g,v − J_p,v A_vv⁻¹ A_vg (the view's global columns with its pose's directions removed), S = Σ_v J̃_vᵀ J̃_v
+the Schur complement, H̃_vv = J̃_v S⁻¹ J̃_vᵀ the view's block of the hat matrix and (I − H̃_vv)^(−1/2) the CR2
+small-sample correction (Bell and McCaffrey 2002; with per-cluster fixed effects absorbed as Pustejovsky and
+Tipton 2018 recommend): the fit pulls each view's residuals toward its own data, and without the correction the
+sandwich is too small by about (V − 1)/V and more for views of high leverage. Residuals and Jacobian rows carry
+the solve's weights and 1/σ_group, so corners and blur widths (w, U, d, θF) are covered alike.
+
+The classical covariance is the floor: C = the smallest matrix ≥ both (in whitened coordinates of the classical
+one, the sandwich's eigenvalues below 1 are raised to 1), so no linear combination gets a smaller σ than
+independent noise gives; with few views the sandwich alone is noisy and of rank < V.
+
+A view's own pose cannot be judged this way (its score is orthogonal to its own residuals at the optimum: an
+error shared by a view's corners moves its pose unseen). The poses' σ keep the globals' sandwich through their
+correlation with them (C_vv = κ s² A_vv⁻¹ + Y_v C_g Y_vᵀ, Y_v = A_vv⁻¹ A_vg) and inflate their own part by the
+design effect κ = tr(C_g (s² S⁻¹)⁻¹) / n_g, the globals' average variance ratio (≥ 1).
+
+Projection uncertainty: the intrinsics' covariance (focal length in px, principal point, distortion) propagated
+to the projection of a grid of directions across the image, with the part a rotation of the camera frame
+explains removed (as `projection_difference` removes the best-fitting rotation; the model's projection is
+central, so the depth of the point does not enter). σ at a pixel is sqrt(σ_x² + σ_y²) (the RMS length of the
+projection error).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from renderer.cameras.distortion import distort, undistort
+
+#: Names of the error models written to CALIB.json's `sigma_model.name`.
+SIGMA_MODELS = ("views", "classical")
+
+INTRINSIC_NAMES = ("focal_px", "cx_px", "cy_px", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The per-view cluster-robust covariance
+# ---------------------------------------------------------------------------------------------------------
+
+def view_cluster_covariance(res, s2: float):
+    """The per-view cluster-robust covariance (module docstring) of an LM result with per-view blocks.
+
+    Args:
+        res: `tiltfit.solve.LMResult` whose jacobian is a `BlockJacobian` (poses per view).
+        s2: the residual variance factor of the classical covariance s² A⁻¹.
+    Returns:
+        (covariance (`SchurCovariance`, flat `res.layout` order), info {design_effect, ratio_min, ratio_max,
+        n_views}) or None where the problem has no per-view blocks or fewer than 2 views.
+    """
+    from .solve.blocks import BlockJacobian, SchurCovariance
+
+    bj = res.jacobian
+    if not isinstance(bj, BlockJacobian) or bj.rows.shape[0] < 2 or bj.Js.shape[1] == 0:
+        return None
+    a = res.weights.clamp_min(0).sqrt()
+    Js = (bj.Js * a[:, None])[bj.rows]                                  # (V, R, S)
+    Jp = (bj.Jp * a[:, None])[bj.rows]                                  # (V, R, K)
+    r = (res.r * a)[bj.rows]                                            # (V, R)
+    App = Jp.transpose(1, 2) @ Jp
+    App_inv = torch.linalg.inv(App)
+    Y = App_inv @ (Jp.transpose(1, 2) @ Js)                             # (V, K, S)
+    Jt = Js - Jp @ Y                                                    # (V, R, S) pose-profiled
+    S = (Jt.transpose(1, 2) @ Jt).sum(0)
+    # S⁻¹ = L Lᵀ by the eigenvalues of S in its diagonal scaling (S may be badly conditioned: U, d from blur)
+    Dg = torch.diagonal(S).clamp_min(1e-300).rsqrt()
+    mu, Vs = torch.linalg.eigh(Dg[:, None] * S * Dg[None, :])
+    if not bool(torch.isfinite(mu).all()) or float(mu.min()) <= 1e-13 * float(mu.max()):
+        return None
+    L = Dg[:, None] * Vs * mu.rsqrt()[None, :]
+    L_inv = (Vs * mu.sqrt()[None, :]).T / Dg[None, :]
+    S_inv = L @ L.T
+    B = Jt @ L                                                          # H̃_vv = B Bᵀ
+    lam, Q = torch.linalg.eigh(B.transpose(1, 2) @ B)                   # (V, S), (V, S, S)
+    lam = lam.clamp(0.0, 1.0 - 1e-3)
+    U = B @ Q / lam.clamp_min(1e-30).sqrt()[:, None, :]                 # (V, R, S) eigenvectors of H̃_vv
+    U = torch.where(lam[:, None, :] > 1e-12, U, torch.zeros_like(U))
+    gain = (1.0 - lam) ** -0.5 - 1.0
+    e = r + (U @ (gain[..., None] * (U.transpose(1, 2) @ r[..., None]))).squeeze(-1)
+    u = (Jt.transpose(1, 2) @ e[..., None]).squeeze(-1)                 # (V, S)
+    meat = u.T @ u
+    C_rob = S_inv @ meat @ S_inv
+    C_cls = s2 * S_inv
+    # the matrix max of the two: in the classical covariance's whitened coordinates, eigenvalues raised to ≥ 1
+    Dw = L_inv @ C_rob @ L_inv.T / s2
+    nu, Q = torch.linalg.eigh(0.5 * (Dw + Dw.T))
+    nu = nu.clamp_min(1.0)
+    C_g = s2 * (L @ (Q * nu) @ Q.T @ L.T)
+    ratio = torch.diagonal(C_rob) / torch.diagonal(C_cls)
+    kappa = float(nu.mean())
+    cov = SchurCovariance(C_g, kappa * s2 * App_inv, Y, bj.s_idx, bj.p_idx, bj.n_params)
+    info = {"design_effect": kappa, "ratio_min": float(ratio.min()), "ratio_max": float(ratio.max()),
+            "n_views": int(bj.rows.shape[0])}
+    return cov, info
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Projection: unprojection, σ across the image, difference of two calibrations
+# ---------------------------------------------------------------------------------------------------------
+
+def _project(theta: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """(n, 3) directions -> (n, 2) pixels for intrinsics θ = (f, cx, cy, k1 … k6)."""
+    xy = v[:, :2] / v[:, 2:3]
+    return theta[1:3] + theta[0] * distort(xy, theta[3:])
+
+
+def _unproject(theta: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+    """(n, 2) pixels -> (n, 3) unit directions (NaN where the distortion cannot be inverted)."""
+    xy_d = (q - theta[1:3]) / theta[0]
+    xy = undistort(xy_d, theta[3:])
+    back = distort(xy, theta[3:])
+    ok = torch.isfinite(xy).all(-1) & ((back - xy_d).norm(dim=-1) * theta[0] < 1e-3)
+    v = torch.cat([xy, torch.ones_like(xy[:, :1])], -1)
+    v = v / v.norm(dim=-1, keepdim=True)
+    return torch.where(ok[:, None], v, torch.full_like(v, math.nan))
+
+
+def intrinsics_vector(calib: dict) -> torch.Tensor:
+    """θ = (focal_px, cx, cy, k1 … k6) of a CALIB.json dict."""
+    f = float(calib["w_mm"]) / float(calib["pixel_pitch_mm"])
+    W, H = calib["image_size_px"]
+    pp = calib.get("principal_point_px") or [(W - 1) / 2.0, (H - 1) / 2.0]
+    k = list((calib.get("distortion") or {}).get("coefficients") or [])
+    k = (k + [0.0] * 8)[:8]
+    return torch.tensor([f, float(pp[0]), float(pp[1])] + [float(c) for c in k], dtype=torch.float64)
+
+
+def pixel_grid(image_size_px, nx: int = 32, ny: int | None = None):
+    """(xs (nx,), ys (ny,)) pixel centres of a regular grid spanning the image (pixel centres 0 … W−1)."""
+    W, H = image_size_px
+    ny = ny or max(2, round(nx * H / W))
+    return np.linspace(0.0, W - 1.0, nx), np.linspace(0.0, H - 1.0, ny)
+
+
+def _jac(fn, x: torch.Tensor) -> torch.Tensor:
+    """Jacobian of a function of a few inputs with many outputs (forward mode)."""
+    return torch.autograd.functional.jacobian(fn, x, vectorize=True, strategy="forward-mode")
+
+
+def _rotation_jacobian(theta: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """(2n, 3) derivative of the projections of directions v by a small rotation ω of them (v + ω × v)."""
+    w0 = torch.zeros(3, dtype=torch.float64)
+    return _jac(lambda w: _project(theta, v + torch.cross(w.expand_as(v), v, dim=-1)).reshape(-1), w0)
+
+
+def projection_sigma(theta: torch.Tensor, cov: torch.Tensor, image_size_px, nx: int = 32, ny: int | None = None):
+    """σ of the projection across the image, rotation-compensated (module docstring).
+
+    Args:
+        theta: (11,) intrinsics (`INTRINSIC_NAMES`); cov: (11, 11) their covariance.
+    Returns:
+        (xs, ys, sigma (ny, nx) px; NaN where the distortion cannot be inverted).
+    """
+    xs, ys = pixel_grid(image_size_px, nx, ny)
+    X, Yg = np.meshgrid(xs, ys)
+    q = torch.tensor(np.stack([X.ravel(), Yg.ravel()], -1), dtype=torch.float64)
+    v = _unproject(theta, q)
+    ok = torch.isfinite(v).all(-1)
+    sig = torch.full((q.shape[0],), math.nan, dtype=torch.float64)
+    if int(ok.sum()) >= 3:
+        vo = v[ok]
+        G = _jac(lambda t: _project(t, vo).reshape(-1), theta)                                 # (2n, 11)
+        Gw = _rotation_jacobian(theta, vo)
+        G = G - Gw @ torch.linalg.lstsq(Gw, G).solution
+        var = ((G @ cov) * G).sum(-1).reshape(-1, 2).sum(-1)
+        sig[ok] = var.clamp_min(0).sqrt()
+    return xs, ys, sig.reshape(len(ys), len(xs)).numpy()
+
+
+def projection_summary(theta, cov, image_size_px, nx: int = 32) -> dict:
+    """CALIB.json's `projection_uncertainty`: median and worst σ over the image, and the map on a grid."""
+    xs, ys, sig = projection_sigma(theta, cov, image_size_px, nx)
+    finite = sig[np.isfinite(sig)]
+    return {"median_px": float(np.median(finite)) if finite.size else None,
+            "worst_px": float(finite.max()) if finite.size else None,
+            "grid_x_px": [float(x) for x in xs], "grid_y_px": [float(y) for y in ys],
+            "sigma_px": [[None if not np.isfinite(s) else round(float(s), 6) for s in row] for row in sig],
+            "method": "intrinsics covariance propagated to a grid of directions, the part a rotation of the "
+                      "camera frame explains removed; any depth (central projection)"}
+
+
+def _best_rotation(theta_a, theta_b, v_a, q):
+    """Rotation ω (axis-angle) minimising Σ |proj_B(R(ω) v_a) − q|² (`tiltfit.solve.least_squares` from Kabsch)."""
+    from renderer import axis_angle_to_matrix, matrix_to_axis_angle
+
+    v_b = _unproject(theta_b, q)
+    ok = torch.isfinite(v_b).all(-1)
+    Hm = v_a[ok].T @ v_b[ok]
+    Uu, _, Vt = torch.linalg.svd(Hm)
+    D = torch.eye(3, dtype=torch.float64)
+    D[2, 2] = torch.sign(torch.linalg.det(Vt.T @ Uu.T))
+    w = matrix_to_axis_angle(Vt.T @ D @ Uu.T)
+
+    def resid(w):
+        return (_project(theta_b, v_a @ axis_angle_to_matrix(w).T) - q).reshape(-1)
+
+    from .solve import LMOptions, least_squares
+
+    w = least_squares(resid, w, LMOptions(max_iterations=50), jacobian_fn=lambda x: _jac(resid, x)).x
+    return w
+
+
+def projection_difference(calib_a: dict, calib_b: dict, nx: int = 32, cov_a=None, cov_b=None) -> dict:
+    """The projection difference of two calibrations of one camera across the image, after the best-fitting
+    rotation between their camera frames (as mrcal-show-projection-diff), against the difference their
+    uncertainties predict: sqrt(σ_A² + σ_B²) per pixel (each rotation-compensated, `projection_sigma`).
+
+    Args:
+        calib_a, calib_b: CALIB.json dicts (same image size); cov_a/cov_b: their intrinsics covariances (11, 11)
+            (default: the files' `intrinsics_covariance`; without one the prediction is None).
+    Returns:
+        {grid_x_px, grid_y_px, difference_px (ny, nx), predicted_px (ny, nx) or None, median_px, worst_px,
+        predicted_median_px, predicted_worst_px, rms_ratio (RMS difference / RMS predicted), rotation_deg,
+        consistent (rms_ratio ≤ 2: within what the two σ allow), verdict}.
+    """
+    from renderer import axis_angle_to_matrix
+
+    size = tuple(calib_a["image_size_px"])
+    ta, tb = intrinsics_vector(calib_a), intrinsics_vector(calib_b)
+    xs, ys = pixel_grid(size, nx)
+    X, Yg = np.meshgrid(xs, ys)
+    q = torch.tensor(np.stack([X.ravel(), Yg.ravel()], -1), dtype=torch.float64)
+    v_a = _unproject(ta, q)
+    ok = torch.isfinite(v_a).all(-1)
+    w = _best_rotation(ta, tb, v_a[ok], q[ok])
+    diff = torch.full((q.shape[0],), math.nan, dtype=torch.float64)
+    diff[ok] = (_project(tb, v_a[ok] @ axis_angle_to_matrix(w).T) - q[ok]).norm(dim=-1)
+    diff = diff.reshape(len(ys), len(xs)).numpy()
+    cov_a = cov_a if cov_a is not None else covariance_from_calib(calib_a)
+    cov_b = cov_b if cov_b is not None else covariance_from_calib(calib_b)
+    pred = None
+    if cov_a is not None and cov_b is not None:
+        sa = projection_sigma(ta, cov_a, size, nx)[2]
+        sb = projection_sigma(tb, cov_b, size, nx)[2]
+        pred = np.sqrt(sa ** 2 + sb ** 2)
+    fin = np.isfinite(diff) & (np.isfinite(pred) if pred is not None else True)
+    out = {"grid_x_px": [float(x) for x in xs], "grid_y_px": [float(y) for y in ys],
+           "difference_px": _nested(diff), "predicted_px": _nested(pred) if pred is not None else None,
+           "median_px": float(np.median(diff[fin])), "worst_px": float(diff[fin].max()),
+           "rotation_deg": math.degrees(float(w.norm()))}
+    if pred is not None:
+        ratio = float(np.sqrt(np.mean(diff[fin] ** 2) / np.mean(pred[fin] ** 2)))
+        out |= {"predicted_median_px": float(np.median(pred[fin])), "predicted_worst_px": float(pred[fin].max()),
+                "rms_ratio": ratio, "consistent": bool(ratio <= 2.0),
+                "verdict": ("consistent: the calibrations differ by what their uncertainties predict"
+                            if ratio <= 2.0 else
+                            f"inconsistent: they differ {ratio:.1f}× more than their uncertainties predict "
+                            f"(an error the σ do not cover: board shape, a model misfit, a changed camera)")}
+    else:
+        out |= {"predicted_median_px": None, "predicted_worst_px": None, "rms_ratio": None, "consistent": None,
+                "verdict": "no prediction: a calibration has no intrinsics covariance"}
+    return out
+
+
+def _nested(a):
+    return [[None if not np.isfinite(x) else round(float(x), 6) for x in row] for row in a]
+
+
+def covariance_from_calib(calib: dict):
+    """(11, 11) intrinsics covariance (`INTRINSIC_NAMES` order) from a CALIB.json dict, or None."""
+    ic = calib.get("intrinsics_covariance")
+    if not isinstance(ic, dict) or "matrix" not in ic or "names" not in ic:
+        return None
+    C = torch.zeros(len(INTRINSIC_NAMES), len(INTRINSIC_NAMES), dtype=torch.float64)
+    idx = [INTRINSIC_NAMES.index(n) for n in ic["names"]]
+    M = torch.tensor(ic["matrix"], dtype=torch.float64)
+    C[torch.tensor(idx)[:, None], torch.tensor(idx)[None, :]] = M
+    return C

@@ -42,7 +42,7 @@ from ..solve import (Block, LMOptions, SolverError, covariance, dense_jacobian, 
 from ..stats import nested_test
 from ..target import Target
 from .render import (auto_lens_samples, board_blur_px, dark_fraction_samples, hammersley_disc_samples,
-                     pixel_blur_px, predicted_dark_fraction, sub_points, usable_mask)
+                     on_board, pixel_blur_px, predicted_dark_fraction, sub_points, board_box, usable_pixels)
 
 #: Blur kernels: the lens's disc alone, or the disc convolved with a Gaussian (diffraction, aberrations,
 #: the sensor's own spread) of std psf_sigma_px in pixels (stored signed, squared in the model, so it has no
@@ -58,9 +58,10 @@ CLOSED_FORM_MIN_BLUR_PX = 3.0
 APERTURES = ("auto", "closed_form", "samples")
 #: Pixels per block of the Jacobian (bounds its memory; results do not depend on it).
 JACOBIAN_BLOCK = 2048
-#: Candidate pixels whose brightness is predicted before picking the pixels to fit: above it a regular subset
-#: of the usable pixels (every k-th); images up to 2^19 pixels keep them all.
-MAX_CANDIDATE_PIXELS = 1 << 19
+#: Candidate pixels of a view whose brightness is predicted before picking the pixels to fit: at most this many
+#: drawn at random from the board's bounding box (a 1280 x 1024 photo's board has about 700,000: predicting all
+#: of them took most of the 30-60 s of set-up a view).
+MAX_CANDIDATE_PIXELS = 1 << 16
 #: The camera's stored lens parameters the fit moves, in the order of the `lens` block.
 LENS_PARAMETERS = ("log_w_mm", "inv_U_per_m", "d_scaled", "theta_F")
 #: A fit whose robust residual σ moved by more than this fraction resumes with the new σ (the Huber weights).
@@ -94,6 +95,8 @@ class PhotometricOptions:
         held_out_pixels: pixels per view kept out of the fit [300], chosen as the fitted ones are; the refinement
             is kept only where it predicts them better than the start's lens and poses do (with the exposure
             fitted to the same pixels as the refinement's); 0: always kept.
+        saturation: pixels at least this fraction of the view's brightest are left out (glare, clipped
+            highlights) [0.995]; None: none left out.
     """
 
     lens_samples: int = 64
@@ -106,6 +109,7 @@ class PhotometricOptions:
     seed: int = 0
     aperture: str = "auto"
     held_out_pixels: int = 300
+    saturation: float | None = 0.995
 
     def __post_init__(self):
         if self.held_out_pixels < 0:
@@ -217,10 +221,7 @@ def _select_pixels(predicted: np.ndarray, usable: np.ndarray, white: float, blac
     return np.sort(np.concatenate(pick))
 
 
-def _initial_levels(image: np.ndarray, usable: np.ndarray) -> tuple[float, float]:
-    vals = image[usable]
-    if vals.size < 100:
-        raise PhotometricError("the board covers fewer than 100 usable pixels in a view")
+def _initial_levels(vals: np.ndarray) -> tuple[float, float]:
     return float(np.percentile(vals, 97)), float(np.percentile(vals, 3))
 
 
@@ -553,33 +554,47 @@ def _choose_pixels(imgs: list, views: list, target: Target, opts: PhotometricOpt
     W, H = views[0].width, views[0].height
     rng = np.random.default_rng(opts.seed)
     rng_held = np.random.default_rng([opts.seed, 1])   # its own stream: the fitted pixels do not depend on it
+    rng_cand = np.random.default_rng([opts.seed, 2])
     picks, held, levels = [], [], []
     for k, (im, vc) in enumerate(zip(imgs, views)):
         if im.shape != (H, W):
             raise PhotometricError(f"view {k}: image is {im.shape[1]}x{im.shape[0]}, expected {W}x{H}")
-        usable = usable_mask(target, vc)
-        white, black = _initial_levels(im, usable)
-        if usable.sum() > MAX_CANDIDATE_PIXELS:  # a regular subset: predicting all of a 20 MP photo is slow
-            keep = np.flatnonzero(usable)
-            usable = np.zeros_like(usable)
-            usable.reshape(-1)[keep[::-(-keep.size // MAX_CANDIDATE_PIXELS)]] = True
-        yy, xx = np.nonzero(usable)
-        uv_all = torch.tensor(np.stack([xx, yy], -1), dtype=torch.float64)
-        pred = np.empty(uv_all.shape[0])
+        # Candidates: the board's bounding box only (a real photo is mostly elsewhere), at most
+        # MAX_CANDIDATE_PIXELS of its pixels drawn at random, less the saturated ones (glare: their brightness
+        # says nothing of the board's), then those whose blur disc lies on the board (`usable_pixels`).
+        box = board_box(target, vc)
+        if box is None:
+            raise PhotometricError(f"view {k}: the board is not on the image at the start")
+        bx0, by0, bx1, by1 = box
+        bw, bh = bx1 - bx0 + 1, by1 - by0 + 1
+        n_box = bw * bh
+        local = np.arange(n_box) if n_box <= MAX_CANDIDATE_PIXELS else \
+            np.sort(rng_cand.choice(n_box, MAX_CANDIDATE_PIXELS, replace=False))
+        cand = (by0 + local // bw) * W + bx0 + local % bw
+        if opts.saturation is not None:
+            cand = cand[im.reshape(-1)[cand] < opts.saturation * float(im.max())]
+        cand = _informative(cand, vc, target, W, opts, rng_cand)
+        uv_all = torch.tensor(np.stack([cand % W, cand // W], -1), dtype=torch.float64)
+        ok = usable_pixels(target, vc, uv_all)
+        cand, uv_all = cand[ok], uv_all[torch.from_numpy(ok)]
+        usable = np.zeros(H * W, dtype=bool)
+        usable[cand] = True
+        if cand.size < 100:
+            raise PhotometricError(f"view {k}: the board covers fewer than 100 usable pixels")
+        white, black = _initial_levels(im.reshape(-1)[cand])
+        pred_img = np.full(H * W, np.nan)
         for a in range(0, uv_all.shape[0], 1 << 16):
             dark = predicted_dark_fraction(target, vc, uv_all[a:a + (1 << 16)])
-            pred[a:a + (1 << 16)] = (white - (white - black) * dark).numpy()
-        pred_img = np.full((H, W), np.nan)
-        pred_img[yy, xx] = pred
-        picks.append(_select_pixels(pred_img.reshape(-1), usable.reshape(-1), white, black, opts.max_pixels, rng))
-        rest = usable.reshape(-1).copy()
+            pred_img[cand[a:a + (1 << 16)]] = (white - (white - black) * dark).numpy()
+        picks.append(_select_pixels(pred_img, usable, white, black, opts.max_pixels, rng))
+        rest = usable.copy()
         rest[picks[-1]] = False
-        held.append(_select_pixels(pred_img.reshape(-1), rest, white, black, opts.held_out_pixels, rng_held)
+        held.append(_select_pixels(pred_img, rest, white, black, opts.held_out_pixels, rng_held)
                     if opts.held_out_pixels else picks[-1][:0])
         levels.append((white, black))
         if say:
-            say(f"photometric: view {k + 1} of {len(imgs)}: {int(usable.sum())} usable pixels, {picks[-1].size} "
-                f"chosen ({time.perf_counter() - t0:.1f} s)")
+            say(f"photometric: view {k + 1} of {len(imgs)}: {cand.size} usable pixels of {n_box} in the board's box, "
+                f"{picks[-1].size} chosen ({time.perf_counter() - t0:.1f} s)")
     # The solver's per-view blocks need the same number of pixels in every view.
     n_rows = min(p.size for p in picks)
     picks = [p if p.size == n_rows else np.sort(rng.choice(p, n_rows, replace=False)) for p in picks]
@@ -602,6 +617,34 @@ def _choose_pixels(imgs: list, views: list, target: Target, opts: PhotometricOpt
     data = [view_data(im, vc, pick) for im, vc, pick in zip(imgs, views, picks)]
     held_data = [view_data(im, vc, pick) for im, vc, pick in zip(imgs, views, held)]
     return data, held_data, levels
+
+
+def _informative(cand: np.ndarray, vc, target: Target, W: int, opts: PhotometricOptions,
+                 rng: np.random.Generator) -> np.ndarray:
+    """The candidates worth predicting (flat indices, sorted): pixels carry geometric information only within
+    the blur disc of a cell edge. From the chief ray's point on the board, each candidate's distance to the
+    nearest cell edge in pixels (the chief-ray map's scale: the 90th percentile over 256 of them); those within half the view's blur disc + 2 px
+    are edge candidates, the others flat. Keeps up to 4 x what the selection takes of each, at random."""
+    uv = torch.tensor(np.stack([cand % W, cand // W], -1), dtype=torch.float64)
+    probe = uv[torch.from_numpy(rng.choice(cand.size, min(cand.size, 256), replace=False))]
+    steps = torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]], dtype=torch.float64)
+    with torch.no_grad():
+        XY = on_board(vc.generate_rays(uv))[:, :2].numpy()
+        hit = on_board(vc.generate_rays((probe[:, None, :] + steps).reshape(-1, 2))).reshape(-1, 3, 3)
+    J = (hit[:, 1:, :2] - hit[:, :1, :2]).numpy()                    # (n, 2 (du, dv), 2 (X, Y)) mm per px
+    with np.errstate(all="ignore"):
+        near = np.full(cand.size, np.inf)
+        for axis, edges in ((0, np.asarray(target.x_edges)), (1, np.asarray(target.y_edges))):
+            dist_mm = np.abs(XY[:, axis, None] - edges[None, :]).min(1)
+            per_px = np.nanpercentile(np.hypot(J[:, 0, axis], J[:, 1, axis]), 90)   # mm along this axis per px
+            near = np.minimum(near, dist_mm / max(per_px, 1e-300))
+    near = np.where(np.isfinite(near), near, np.inf)
+    reach = 0.5 * board_blur_px(vc, target) + 2.0
+    edge, flat = np.flatnonzero(near <= reach), np.flatnonzero(near > reach)
+    want = 4 * (opts.max_pixels + opts.held_out_pixels)
+    keep = [rng.choice(edge, min(edge.size, want), replace=False),
+            rng.choice(flat, min(flat.size, want // 2), replace=False)]
+    return np.sort(cand[np.concatenate(keep)])
 
 
 def _select_kernel(problem: _Problem, res, iterations: int, blocks: list, view_rows, opts: PhotometricOptions,

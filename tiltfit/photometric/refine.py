@@ -64,6 +64,15 @@ JACOBIAN_BLOCK = 2048
 MAX_CANDIDATE_PIXELS = 1 << 16
 #: The camera's stored lens parameters the fit moves, in the order of the `lens` block.
 LENS_PARAMETERS = ("log_w_mm", "inv_U_per_m", "d_scaled", "theta_F")
+#: Illumination models of `PhotometricOptions.illumination`.
+ILLUMINATIONS = ("flat", "gradient")
+#: With the start's σ (`refine_photometric(start_sigma=...)`), each free lens parameter stays within this many of
+#: its σ of the start (a smooth bound, start + b tanh(z / b)): the pixels cannot carry the lens far from what the
+#: corners say (unbounded, stage-1 fits of real photos drifted to θF ≈ 60-80°).
+TRUST_SIGMAS = 10.0
+#: The refinement is kept only where its RMS on the (held-out) corners is at most 1 + this times the corner
+#: fit's held-out RMS.
+CORNER_TOLERANCE = 0.02
 #: A fit whose robust residual σ moved by more than this fraction resumes with the new σ (the Huber weights).
 SCALE_TOLERANCE = 0.05
 
@@ -97,6 +106,8 @@ class PhotometricOptions:
             fitted to the same pixels as the refinement's); 0: always kept.
         saturation: pixels at least this fraction of the view's brightest are left out (glare, clipped
             highlights) [0.995]; None: none left out.
+        illumination: one of ILLUMINATIONS [gradient]: `flat` the per-view white and black levels and the
+            vignetting only; `gradient` also a linear gain across each view (1 + g_x x + g_y y).
     """
 
     lens_samples: int = 64
@@ -110,8 +121,11 @@ class PhotometricOptions:
     aperture: str = "auto"
     held_out_pixels: int = 300
     saturation: float | None = 0.995
+    illumination: str = "gradient"
 
     def __post_init__(self):
+        if self.illumination not in ILLUMINATIONS:
+            raise ValueError(f"illumination: expected one of {', '.join(ILLUMINATIONS)}, got {self.illumination!r}")
         if self.held_out_pixels < 0:
             raise ValueError(f"held_out_pixels: expected 0 or a positive count, got {self.held_out_pixels}")
         if self.lens_samples < 0:
@@ -129,17 +143,22 @@ class PhotometricOptions:
 
 class Exposure(torch.nn.Module):
     """How the board's dark fraction D becomes a photograph's linear intensity:
-    I = (1 − v ρ²) · (white_k − (white_k − black_k) · D) (`render.shade`).
+    I = (1 − v ρ²) (1 + g_x,k x + g_y,k y) · (white_k − (white_k − black_k) · D) (`render.shade`; x, y the pixel
+    about the image centre, ±1 at the edges: the illumination's gradient across view k, or a tilted board's
+    reflectance).
 
     Attributes:
         levels: (V, 2) per view the radiance of white paper and of the dark cells (linear units).
         vignetting: () v, the lens's fall-off at the image corners.
+        gain: (V, 2) per view the illumination's gradient (g_x, g_y) (zeros without `illumination="gradient"`).
     """
 
-    def __init__(self, levels, vignetting: float = 0.0):
+    def __init__(self, levels, vignetting: float = 0.0, gain=None):
         super().__init__()
         self.levels = torch.nn.Parameter(torch.as_tensor(levels, dtype=torch.float64).reshape(-1, 2).clone())
         self.vignetting = torch.nn.Parameter(torch.tensor(float(vignetting), dtype=torch.float64))
+        g = torch.zeros_like(self.levels) if gain is None else torch.as_tensor(gain, dtype=torch.float64).reshape(-1, 2)
+        self.gain = torch.nn.Parameter(g.detach().clone())
 
 
 @dataclass
@@ -159,11 +178,16 @@ class PhotometricResult:
         iterations, runtime_s, history: LM iterations, wall time, cost of each solve (½ Σ ρ of residuals in
             units of their robust σ).
         kernel_selection: under kernel `auto`, the test that chose the kernel (Λ, p, ΔBIC, costs).
-        kept: "photometric" where the refinement predicts the held-out pixels better than the start did, else
-            "corner fit" (`PhotometricOptions.held_out_pixels`); `chosen_camera` is that camera.
+        kept: "photometric" where the refinement predicts the held-out pixels better than the start did and, with
+            `corners`, the corners about as well as the corner fit predicts held-out views, else "corner fit"
+            (`PhotometricOptions.held_out_pixels`); `chosen_camera` is that camera.
         held_out: pixels, and mean Huber cost of their residuals (in units of the fit's robust σ) for the
             refinement and for the start (its lens and poses, the exposure fitted with them held).
         start_camera: the camera the refinement started from (a copy).
+        corner_check: with `corners`: start_px (the corner fit's held-out RMS per corner), refined_px (the
+            refinement's lens, poses refitted to the corners), limit_px, views; else None.
+        rejected_because: why the start was kept ("" where the refinement is).
+        free: the stored lens parameters the fit moved (`start_sigma`).
     """
 
     camera: TiltLensCamera
@@ -180,6 +204,9 @@ class PhotometricResult:
     kept: str = "photometric"
     held_out: dict | None = None
     start_camera: TiltLensCamera | None = None
+    corner_check: dict | None = None
+    rejected_because: str = ""
+    free: list = field(default_factory=lambda: list(LENS_PARAMETERS))
 
     @property
     def chosen_camera(self) -> TiltLensCamera:
@@ -193,6 +220,7 @@ class _View:
     observed: torch.Tensor    # (N,) linear intensities
     n_closed_form: int        # the first n_closed_form pixels integrate the aperture in closed form
     rho2: torch.Tensor        # (N,) squared distance from the image centre, 1 at the corners
+    xy: torch.Tensor | None = None   # (N, 2) pixel coordinates about the image centre, ±1 at the edges
 
 
 class _ViewGeometry(torch.nn.Module):
@@ -237,6 +265,28 @@ class _Problem:
         self.scale = 1.0
         self.psf_fixed = 0.0
         self.say, self.t0, self.n_jacobians = say, time.perf_counter(), 0
+        self.lens_start = torch.stack([getattr(camera, n).detach() for n in LENS_PARAMETERS]).to(torch.float64)
+        self.free = list(range(4))                     # the stored lens parameters the fit moves
+        self.bound = torch.full((4,), math.inf, dtype=torch.float64)
+
+    # --- the lens block: the free stored parameters, each within ±bound of the start (smoothly, by tanh) -----
+    def full_lens(self, z: torch.Tensor) -> torch.Tensor:
+        """(4,) stored lens parameters of the solver's lens block z (len(free),): start + b tanh(z / b)."""
+        lens = self.lens_start.clone()
+        if self.free:
+            b = self.bound[self.free]
+            step = torch.where(torch.isfinite(b), b * torch.tanh(z / b.clamp(max=1e300)), z)
+            lens[self.free] = self.lens_start[self.free] + step
+        return lens
+
+    def lens_jacobian(self, z: torch.Tensor) -> torch.Tensor:
+        """(4, len(free)) d full_lens / dz."""
+        J = torch.zeros(4, len(self.free), dtype=torch.float64)
+        if self.free:
+            b = self.bound[self.free]
+            d = torch.where(torch.isfinite(b), 1.0 / torch.cosh(z / b.clamp(max=1e300)) ** 2, torch.ones_like(z))
+            J[self.free, torch.arange(len(self.free))] = d
+        return J
 
     # --- the camera of a state -----------------------------------------------------------------------------
     def _params(self, v: int, lens: torch.Tensor, pose: torch.Tensor) -> dict:
@@ -309,28 +359,34 @@ class _Problem:
 
     # --- the solver's callback -------------------------------------------------------------------------------
     def evaluate(self, x: dict, with_jacobian: bool):
-        lens, pose, levels = x["lens"], x["pose"], x["levels"]
+        lens, pose, levels = self.full_lens(x["lens"]), x["pose"], x["levels"]
+        gain = x.get("gain")
         vig = x["vignetting"][0] if "vignetting" in x else torch.zeros((), dtype=torch.float64)
         psf = x["psf"][0] if "psf" in x else torch.tensor(self.psf_fixed, dtype=torch.float64)
         M = sum(int(d.uv.shape[0]) for d in self.data)
         if not (float(lens[1]) > 0 and float(lens[2]) > 0 and abs(float(lens[3])) < 1.5):
             nan = torch.full((M,), math.nan, dtype=torch.float64)   # outside the lens's domain
-            sizes = {"lens": 4, "pose": 6, "levels": 2, "vignetting": 1, "psf": 1}
+            sizes = {"lens": len(self.free), "pose": 6, "levels": 2, "vignetting": 1, "psf": 1, "gain": 2}
             return nan, ({k: nan[:, None].expand(M, sizes[k]) for k in x} if with_jacobian else None)
         rs, jac = [], {k: [] for k in x}
         for v, dv in enumerate(self.data):
             D, dD = self._dark(v, torch.cat([lens, pose[v]]), psf, with_jacobian)
             falloff = 1.0 - vig * dv.rho2
+            if gain is not None:   # the illumination's gradient across the view: 1 + g_x x + g_y y
+                falloff = falloff * (1.0 + dv.xy @ gain[v])
             white, black = levels[v, 0], levels[v, 1]
             shade = white - (white - black) * D
             rs.append((falloff * shade - dv.observed) / self.scale)
             if with_jacobian:
                 Jg = (-falloff * (white - black) / self.scale)[:, None] * dD
-                jac["lens"].append(Jg[:, :4])
+                jac["lens"].append(Jg[:, :4] @ self.lens_jacobian(x["lens"]))
+                if gain is not None:
+                    jac["gain"].append(((1.0 - vig * dv.rho2) * shade / self.scale)[:, None] * dv.xy)
                 jac["pose"].append(Jg[:, 4:10])
                 jac["levels"].append(torch.stack([falloff * (1 - D), falloff * D], 1) / self.scale)
                 if "vignetting" in jac:
-                    jac["vignetting"].append((-dv.rho2 * shade / self.scale)[:, None])
+                    g = 1.0 if gain is None else 1.0 + dv.xy @ gain[v]
+                    jac["vignetting"].append((-dv.rho2 * g * shade / self.scale)[:, None])
                 if "psf" in jac:
                     jac["psf"].append(Jg[:, 10:11])
         r = torch.cat(rs)
@@ -422,7 +478,7 @@ def _lens_sigma(lens: torch.Tensor, cov_lens: torch.Tensor) -> dict:
             "theta_F_deg": math.degrees(sd[4]), "theta_L_deg": math.degrees(sd[5])}
 
 
-def _sigma_dict(res, cov: torch.Tensor) -> dict:
+def _sigma_dict(res, cov: torch.Tensor, problem: "_Problem") -> dict:
     layout = res.layout
 
     def block(name):
@@ -432,7 +488,8 @@ def _sigma_dict(res, cov: torch.Tensor) -> dict:
         return slice(a, a + n)
 
     s = block("lens")
-    out = _lens_sigma(res.x["lens"], cov[s, s])
+    Jm = problem.lens_jacobian(res.x["lens"])
+    out = _lens_sigma(problem.full_lens(res.x["lens"]), Jm @ cov[s, s] @ Jm.T)
     for name, key in (("vignetting", "vignetting"), ("psf", "psf_sigma_px")):
         b = block(name)
         out[key] = math.sqrt(max(float(cov[b, b][0, 0]), 0.0)) if b is not None else 0.0
@@ -440,7 +497,8 @@ def _sigma_dict(res, cov: torch.Tensor) -> dict:
 
 
 def refine_photometric(images, target: Target, camera: TiltLensCamera, options: PhotometricOptions | None = None,
-                       say=None) -> PhotometricResult:
+                       say=None, start_sigma: dict | None = None, corners=None,
+                       corner_held_out_px: float | None = None) -> PhotometricResult:
     """Fit the camera's lens and poses, and an exposure, to the photographs by rendering the target.
 
     Args:
@@ -450,6 +508,15 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
             not modified.
         options: PhotometricOptions.
         say: optional progress callback taking one line.
+        start_sigma: the start's one-σ (the corner fit's `sigma`: w_mm, U_mm, d_mm, theta_F_deg). Given, the fit
+            moves only the lens parameters the start determined (σ > 0: θF stays where a stage-1 fit held it, U
+            and d where the corners could not tell them), each within TRUST_SIGMAS of its σ of the start; None:
+            all four free and unbounded.
+        corners: the start's `Observations` (corners of the same views). Given, the refinement is also judged
+            by them: they are held out of the photometric fit, so its lens (each view's pose refitted to the
+            corners) predicts them as the corner fit's lens predicts held-out views; it is kept only where its
+            RMS is at most the corner fit's `corner_held_out_px` (its k-fold held-out RMS per corner; None:
+            the start's own RMS with its poses refitted) times 1 + CORNER_TOLERANCE.
     Returns:
         PhotometricResult, with the refined camera.
     """
@@ -491,12 +558,18 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
                         f"by {n_samples} lens samples for the other {n_pixels - n_closed}"}[aperture])
 
     problem = _Problem(cam, target, data, lens_uv, say)
-    problem.camera_of = lambda x, v: _camera_of(cam.copy(), x).view_camera(v)
+    if start_sigma is not None:
+        problem.free, problem.bound = _trust_region(cam, start_sigma)
+    problem.camera_of = lambda x, v: _camera_of(cam.copy(), x, problem).view_camera(v)
     V = len(imgs)
-    x0 = {"lens": torch.stack([getattr(cam, n).detach() for n in LENS_PARAMETERS]),
+    x0 = {"lens": torch.zeros(len(problem.free), dtype=torch.float64),
           "pose": torch.cat([cam.rvec.detach(), cam.T_scaled.detach()], 1),
           "levels": torch.tensor(levels, dtype=torch.float64)}
-    blocks = [Block("lens", (4,)), Block("pose", (V, 6), per_view=True), Block("levels", (V, 2), per_view=True)]
+    blocks = [Block("lens", (len(problem.free),)), Block("pose", (V, 6), per_view=True),
+              Block("levels", (V, 2), per_view=True)]
+    if opts.illumination == "gradient":
+        x0["gain"] = torch.zeros(V, 2, dtype=torch.float64)
+        blocks.append(Block("gain", (V, 2), per_view=True))
     if opts.fit_vignetting:
         x0["vignetting"] = torch.zeros(1, dtype=torch.float64)
         blocks.append(Block("vignetting", (1,)))
@@ -520,17 +593,35 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
         cov_gn = covariance(res, (s_final / scale) ** 2).dense()
     except SolverError:
         cov_gn = torch.full_like(cov_sandwich, math.nan)
-    kept, held_out = "photometric", None
+    kept, held_out, reasons = "photometric", None, []
+    refined = _camera_of(camera.copy(), res.x, problem)
     if opts.held_out_pixels:
         held_out = _held_out_costs(problem, held_data, res.x, x0, opts, scale)
-        kept = "photometric" if held_out["refined"] <= held_out["start"] else "corner fit"
-        if say:
-            say(f"photometric: held-out pixels ({held_out['pixels']}) cost {held_out['refined']:.4g} refined, "
-                f"{held_out['start']:.4g} from the start: keeping the "
-                + ("refinement" if kept == "photometric" else "start (the corner fit)"))
-    refined = _camera_of(camera.copy(), res.x)
-    exposure = Exposure(res.x["levels"], float(res.x["vignetting"][0]) if "vignetting" in res.x else 0.0)
-    values = {**_lens_values(res.x["lens"]), "inv_U_per_m": float(res.x["lens"][1]),
+        if held_out["refined"] > held_out["start"]:
+            kept = "corner fit"
+            reasons.append(f"held-out pixels cost {held_out['refined']:.4g} refined, {held_out['start']:.4g} "
+                           "for the corner fit")
+    corner_check = None
+    if corners is not None:
+        corner_check = _corner_check(refined, camera, corners, corner_held_out_px)
+        if not corner_check["refined_px"] <= corner_check["limit_px"]:
+            kept = "corner fit"
+            reasons.append(f"held-out corners RMS {corner_check['refined_px']:.4f} px refined, "
+                           f"{corner_check['start_px']:.4f} px for the corner fit")
+    if say and (held_out is not None or corner_check is not None):
+        parts = []
+        if held_out is not None:
+            parts.append(f"held-out pixels ({held_out['pixels']}) cost {held_out['refined']:.4g} refined, "
+                         f"{held_out['start']:.4g} from the start")
+        if corner_check is not None:
+            parts.append(f"corners (held out of the photometric fit) RMS {corner_check['refined_px']:.4f} px "
+                         f"refined, {corner_check['start_px']:.4f} px the corner fit's held-out")
+        say("photometric: " + "; ".join(parts) + ": keeping the "
+            + ("refinement" if kept == "photometric" else "start (the corner fit)"))
+    lens_full = problem.full_lens(res.x["lens"])
+    exposure = Exposure(res.x["levels"], float(res.x["vignetting"][0]) if "vignetting" in res.x else 0.0,
+                        res.x.get("gain"))
+    values = {**_lens_values(lens_full), "inv_U_per_m": float(lens_full[1]),
               "vignetting": float(exposure.vignetting.detach()), "psf_sigma_px": abs(float(res.x["psf"][0])) if "psf" in res.x
               else 0.0, "kernel": kernel, "lens_samples": n_samples if aperture != "closed_form" else 0,
               "aperture": aperture, "closed_form_pixels": n_closed}
@@ -540,10 +631,14 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
             rv = r[view_rows[v]]
             out_views.append({"R": refined.R[v].numpy().copy(), "T_mm": refined.T_mm[v].numpy().copy(),
                               "white": float(res.x["levels"][v, 0]), "black": float(res.x["levels"][v, 1]),
-                              "rms": float(torch.sqrt((rv * rv).mean())), "n_pixels": n_rows})
-    return PhotometricResult(refined, exposure, values, _sigma_dict(res, cov_sandwich), out_views,
+                              "rms": float(torch.sqrt((rv * rv).mean())), "n_pixels": n_rows,
+                              **({"gain_x": float(res.x["gain"][v, 0]), "gain_y": float(res.x["gain"][v, 1])}
+                                 if "gain" in res.x else {})})
+    free = [LENS_PARAMETERS[i] for i in problem.free]
+    return PhotometricResult(refined, exposure, values, _sigma_dict(res, cov_sandwich, problem), out_views,
                              float(torch.sqrt((r * r).mean())), iterations, time.perf_counter() - t0, history,
-                             selection, _sigma_dict(res, cov_gn), kept, held_out, camera.copy())
+                             selection, _sigma_dict(res, cov_gn, problem), kept, held_out, camera.copy(),
+                             corner_check, "; ".join(reasons), free)
 
 
 def _choose_pixels(imgs: list, views: list, target: Target, opts: PhotometricOptions, disc_only: bool, say,
@@ -612,7 +707,8 @@ def _choose_pixels(imgs: list, views: list, target: Target, opts: PhotometricOpt
         order = torch.argsort((~closed).to(torch.int8), stable=True)     # closed-form pixels first
         uv = uv[order]
         rho2 = ((uv[:, 0] - hx) ** 2 + (uv[:, 1] - hy) ** 2) / (hx ** 2 + hy ** 2)
-        return _View(uv, observed[order], int(closed.sum()), rho2)
+        return _View(uv, observed[order], int(closed.sum()), rho2,
+                     torch.stack([(uv[:, 0] - hx) / hx, (uv[:, 1] - hy) / hy], 1))
 
     data = [view_data(im, vc, pick) for im, vc, pick in zip(imgs, views, picks)]
     held_data = [view_data(im, vc, pick) for im, vc, pick in zip(imgs, views, held)]
@@ -662,7 +758,7 @@ def _select_kernel(problem: _Problem, res, iterations: int, blocks: list, view_r
     psf = abs(float(res1.x["psf"][0]))
     justified = test["justified"] and psf >= PSF_EVIDENCE_PX
     selection = {"kernel": "disc_gaussian" if justified else "disc", "lr_statistic": test["lr_statistic"],
-                 "disc_fit": _lens_values(res.x["lens"]), "p_value": test["p_value"],
+                 "disc_fit": _lens_values(problem.full_lens(res.x["lens"])), "p_value": test["p_value"],
                  "delta_bic": test["delta_bic"], "rss_disc": rss0, "rss_disc_gaussian": rss1,
                  "psf_sigma_px": psf}
     if say:
@@ -685,8 +781,10 @@ def _held_out_costs(problem: _Problem, held_data: list, x: dict, x0: dict, opts:
     psf = x0["psf"][0] if "psf" in x0 else torch.tensor(problem.psf_fixed, dtype=torch.float64)
     levels = []
     for v, dv in enumerate(problem.data):
-        D = problem._dark(v, torch.cat([x0["lens"], x0["pose"][v]]), psf, False)[0]
+        D = problem._dark(v, torch.cat([problem.full_lens(x0["lens"]), x0["pose"][v]]), psf, False)[0]
         f = 1.0 - vig[0] * dv.rho2
+        if "gain" in x:   # the refinement's illumination gradient, as its vignetting
+            f = f * (1.0 + dv.xy @ x["gain"][v])
         A = torch.stack([f * (1 - D), f * D], 1)
         sol0 = x0["levels"][v].detach().to(torch.float64)  # the start's levels
         huber = LMOptions(max_iterations=50, rho=lambda s2: robust_rho(s2, "huber", k),
@@ -697,9 +795,10 @@ def _held_out_costs(problem: _Problem, held_data: list, x: dict, x0: dict, opts:
         except SolverError:  # creeping on (nearly) noise-free pixels: the start's levels
             sol = sol0
         levels.append(sol)
-    start = {**x0, "levels": torch.stack(levels), "vignetting": vig}
+    start = {**x0, "levels": torch.stack(levels), "vignetting": vig, **({"gain": x["gain"]} if "gain" in x else {})}
     check = _Problem(problem.camera, problem.target, held_data, problem.lens_uv)
     check.near, check.scale, check.psf_fixed = problem.near, scale, problem.psf_fixed
+    check.free, check.bound, check.lens_start = problem.free, problem.bound, problem.lens_start
 
     def cost(state):
         with torch.no_grad():
@@ -709,11 +808,50 @@ def _held_out_costs(problem: _Problem, held_data: list, x: dict, x0: dict, opts:
     return {"pixels": sum(int(d.uv.shape[0]) for d in held_data), "refined": cost(x), "start": cost(start)}
 
 
-def _camera_of(camera: TiltLensCamera, x: dict) -> TiltLensCamera:
+def _trust_region(cam: TiltLensCamera, sigma: dict):
+    """(free indices into LENS_PARAMETERS, (4,) bounds in stored units) from the start's σ: a parameter whose
+    σ is missing, 0 or not finite is held (the start held or could not determine it)."""
+    w, inv_U = math.exp(float(cam.log_w_mm)), float(cam.inv_U_per_m)
+    U = 1000.0 / inv_U
+
+    def get(key):
+        v = sigma.get(key)
+        return float(v) if isinstance(v, (int, float)) and math.isfinite(float(v)) and float(v) > 0 else None
+
+    stored = [None if get("w_mm") is None else get("w_mm") / w,
+              None if get("U_mm") is None else get("U_mm") * 1000.0 / (U * U),
+              None if get("d_mm") is None else get("d_mm") / APERTURE_SCALE_MM,
+              None if get("theta_F_deg") is None else math.radians(get("theta_F_deg"))]
+    free = [i for i, sd in enumerate(stored) if sd is not None]
+    if not free:
+        free = [0]
+        stored[0] = math.inf
+    bound = torch.tensor([math.inf if sd is None else TRUST_SIGMAS * sd for sd in stored], dtype=torch.float64)
+    return free, bound
+
+
+def _corner_check(refined: TiltLensCamera, start: TiltLensCamera, corners, start_held_out_px) -> dict:
+    """The refinement judged by the corners (held out of the photometric fit): each view's pose refitted to them
+    with the refined lens held (`validate.predict_views`), RMS per corner, against the corner fit's held-out
+    RMS (or, without it, the start's own with its poses refitted the same way)."""
+    from ..validate import predict_views
+
+    def rms(camera):
+        fit = predict_views(camera.copy().double(), corners)
+        return math.sqrt(fit.rss["corners"] / max(fit.rss["n_corners"] // 2, 1))
+
+    ref = float(start_held_out_px) if start_held_out_px is not None else rms(start)
+    got = rms(refined)
+    return {"start_px": ref, "refined_px": got, "limit_px": ref * (1 + CORNER_TOLERANCE),
+            "start_is_held_out": start_held_out_px is not None, "views": corners.n_views}
+
+
+def _camera_of(camera: TiltLensCamera, x: dict, problem: "_Problem") -> TiltLensCamera:
     """`camera` (modified in place) holding the lens and poses of the solver's state `x`."""
+    lens = problem.full_lens(x["lens"].detach())
     with torch.no_grad():
         for i, n in enumerate(LENS_PARAMETERS):
-            getattr(camera, n).copy_(x["lens"][i].to(getattr(camera, n)))
+            getattr(camera, n).copy_(lens[i].to(getattr(camera, n)))
         camera.rvec.copy_(x["pose"][:, :3].to(camera.rvec))
         camera.T_scaled.copy_(x["pose"][:, 3:6].to(camera.T_scaled))
     return camera

@@ -70,9 +70,15 @@ ILLUMINATIONS = ("flat", "gradient")
 #: its σ of the start (a smooth bound, start + b tanh(z / b)): the pixels cannot carry the lens far from what the
 #: corners say (unbounded, stage-1 fits of real photos drifted to θF ≈ 60-80°).
 TRUST_SIGMAS = 10.0
+#: Where the start could not determine the aperture, d starts where the median view's blur disc is this wide (px).
+UNDETERMINED_BLUR_PX = 1.0
 #: The refinement is kept only where its RMS on the (held-out) corners is at most 1 + this times the corner
 #: fit's held-out RMS.
 CORNER_TOLERANCE = 0.02
+#: Relative cost decrease at which a solve has converged: thousands of pixels put the cost in the thousands, and a
+#: step that lowers it by less moves the lens by a few hundredths of its σ (the solver's default, 1e-7, spent
+#: half of a real photo's iterations there).
+SOLVE_FTOL = 1e-5
 #: A fit whose robust residual σ moved by more than this fraction resumes with the new σ (the Huber weights).
 SCALE_TOLERANCE = 0.05
 
@@ -417,7 +423,7 @@ def _solve(problem: _Problem, x0: dict, blocks: list, view_rows: torch.Tensor, o
     until it holds (at most three solves). Returns (LMResult, iterations)."""
     k = opts.huber_scale
     lm = LMOptions(max_iterations=opts.iterations, rho=lambda s2: robust_rho(s2, "huber", k),
-                   weight=lambda s2: robust_weight(s2, "huber", k))
+                   weight=lambda s2: robust_weight(s2, "huber", k), ftol=SOLVE_FTOL)
     problem.scale = _robust_sigma(problem.residuals(x0))
     x, iterations, res = x0, 0, None
     for _ in range(3):
@@ -535,6 +541,18 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
     with torch.no_grad():   # a lens the photometric model can render: finite focus, a non-zero aperture
         cam.inv_U_per_m.clamp_(min=1e-3)
         cam.d_scaled.copy_(cam.d_scaled.abs().clamp(min=1e-4))
+    free = bound = None
+    if start_sigma is not None:
+        free, bound = _trust_region(cam, start_sigma)
+        if 2 not in free:
+            # The corners could not tell the aperture (a lens in focus everywhere, U and d undetermined): a
+            # placeholder d would render blur that is not there, so d starts where the views' median blur disc
+            # is UNDETERMINED_BLUR_PX and is fitted (unbounded) with U held.
+            b = float(np.median([board_blur_px(cam.view_camera(v), target) for v in range(cam.n_views)]))
+            with torch.no_grad():
+                cam.d_scaled.mul_(UNDETERMINED_BLUR_PX / max(b, 1e-9))
+            free, bound = sorted(free + [2]), bound.clone()
+            bound[2] = math.inf
     psf0 = PSF_START_PX if opts.kernel == "disc_gaussian" else 0.0
     views = [cam.view_camera(v) for v in range(cam.n_views)]
     blur = max(board_blur_px(vc, target) for vc in views)
@@ -563,8 +581,8 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
                         f"by {n_samples} lens samples for the other {n_pixels - n_closed}"}[aperture])
 
     problem = _Problem(cam, target, data, lens_uv, say)
-    if start_sigma is not None:
-        problem.free, problem.bound = _trust_region(cam, start_sigma)
+    if free is not None:
+        problem.free, problem.bound = free, bound
     problem.camera_of = lambda x, v: _camera_of(cam.copy(), x, problem).view_camera(v)
     V = len(imgs)
     x0 = {"lens": torch.zeros(len(problem.free), dtype=torch.float64),

@@ -41,26 +41,46 @@ def say(line: str) -> None:
     print(line, file=sys.stderr, flush=True)
 
 
-def synthetic() -> list[dict]:
+#: The robustness options compared on the independent captures (each from the same corner fit).
+VARIANTS = {
+    "default (mask, saturation, gradient, trust region, corner check)": ({}, True),
+    "flat illumination": ({"illumination": "flat"}, True),
+    "saturated pixels kept": ({"saturation": None}, True),
+    "no trust region, no corner check": ({}, False),
+}
+
+
+def synthetic(variants: bool) -> tuple[list[dict], list[dict]]:
     import test_photometric_independent as sim
 
-    rows = []
+    from tiltfit.photometric import PhotometricOptions, refine_photometric
+
+    rows, var_rows = [], []
     for case in sim.CASES:
         t_cpu, t_wall = time.process_time(), time.perf_counter()
-        truth, corner, res = sim._fits(case)
-        cpu, wall = time.process_time() - t_cpu, time.perf_counter() - t_wall
-        chosen = res.chosen_camera.summary()
-        row = {"case": case, "kept": res.kept, "rejected_because": res.rejected_because, "cpu_s": cpu,
-               "wall_s": wall, "photometric_s": res.runtime_s, "truth": truth, "corner_check": res.corner_check,
-               "held_out_pixels": res.held_out}
-        for k in KEYS:
-            row[k] = {"corner": corner.values[k] - truth[k], "corner_sigma": corner.sigma.get(k),
-                      "photometric": res.values[k] - truth[k], "photometric_sigma": res.sigma.get(k),
-                      "chosen": chosen[k] - truth[k]}
-        rows.append(row)
-        say(f"[independent] {case}: kept {res.kept}, θL corners {row['theta_L_deg']['corner']:+.4f}°, "
-            f"photometric {row['theta_L_deg']['photometric']:+.4f}° ({wall:.1f} s)")
-    return rows
+        lens, linear, obs, corner = sim._corner_start(case)
+        truth = sim._truth(lens)
+        for name, (changes, guarded) in (VARIANTS.items() if variants else list(VARIANTS.items())[:1]):
+            t_cpu1 = time.process_time()
+            res = refine_photometric(linear, sim.BOARD, corner.camera, PhotometricOptions(max_pixels=800, **changes),
+                                     start_sigma=corner.sigma if guarded else None, corners=obs if guarded else None)
+            chosen = res.chosen_camera.summary()
+            var_rows.append({"case": case, "variant": name, "kept": res.kept, "cpu_s": time.process_time() - t_cpu1,
+                             **{k: {"photometric": res.values[k] - truth[k], "sigma": res.sigma.get(k),
+                                    "chosen": chosen[k] - truth[k]} for k in KEYS}})
+            if name.startswith("default"):
+                cpu, wall = time.process_time() - t_cpu, time.perf_counter() - t_wall
+                row = {"case": case, "kept": res.kept, "rejected_because": res.rejected_because, "cpu_s": cpu,
+                       "wall_s": wall, "photometric_s": res.runtime_s, "truth": truth,
+                       "corner_check": res.corner_check, "held_out_pixels": res.held_out}
+                for k in KEYS:
+                    row[k] = {"corner": corner.values[k] - truth[k], "corner_sigma": corner.sigma.get(k),
+                              "photometric": res.values[k] - truth[k], "photometric_sigma": res.sigma.get(k),
+                              "chosen": chosen[k] - truth[k]}
+                rows.append(row)
+                say(f"[independent] {case}: kept {res.kept}, θL corners {row['theta_L_deg']['corner']:+.4f}°, "
+                    f"photometric {row['theta_L_deg']['photometric']:+.4f}° ({wall:.1f} s)")
+    return rows, var_rows
 
 
 def _rms(camera, obs) -> float:
@@ -128,7 +148,7 @@ def _f(x, fmt="+.4f"):
     return "—" if x is None or (isinstance(x, float) and not math.isfinite(x)) else format(x, fmt)
 
 
-def markdown(syn: list, reals: list, meta: dict) -> str:
+def markdown(syn: list, var_rows: list, reals: list, meta: dict) -> str:
     lines = ["# Photometric refinement you can trust: independent captures and real photos (one run)", "",
              f"`python benchmarks/bench_photometric_trust.py --views {meta['views']}`, {meta['date']}, one torch thread, "
              "the machine's 2 cores shared with other jobs (CPU seconds are the steadier measure).", "",
@@ -148,6 +168,13 @@ def markdown(syn: list, reals: list, meta: dict) -> str:
         cc, hp = r["corner_check"], r["held_out_pixels"]
         lines.append(f"| {r['case']} | {r['kept']} | {cc['refined_px']:.4f} / {cc['start_px']:.4f} | "
                      f"{hp['refined']:.3f} / {hp['start']:.3f} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} |")
+    if var_rows:
+        lines += ["", "### What each robustness option gives (same corner fits; error of the refinement itself, "
+                  "then of the calibration kept)", "",
+                  "| case | options | θL ° | θF ° | d mm | kept | CPU s |", "|---|---|---|---|---|---|---|"]
+        for r in var_rows:
+            cells = " | ".join(f"{_f(r[k]['photometric'])} → {_f(r[k]['chosen'])}" for k in ("theta_L_deg", "theta_F_deg", "d_mm"))
+            lines.append(f"| {r['case']} | {r['variant']} | {cells} | {r['kept']} | {r['cpu_s']:.1f} |")
     lines += ["", "## Real photos: held-out views' corner error", "",
               "Corner fit (unified, free principal point) on the even views; refinement on their photos; the odd views "
               "held out: each one's pose refitted to its corners with the lens held, RMS per corner (px).", "",
@@ -174,16 +201,17 @@ def main(argv=None) -> int:
     ap.add_argument("--views", type=int, default=6, help="views fitted per real set (as many held out) [6]")
     ap.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results"))
     ap.add_argument("--skip-synthetic", action="store_true")
+    ap.add_argument("--no-variants", action="store_true", help="the default options only on the captures")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
-    syn = [] if args.skip_synthetic else synthetic()
+    syn, var_rows = ([], []) if args.skip_synthetic else synthetic(not args.no_variants)
     reals = [real(name, args.views) for name in REAL]
     meta = {"views": args.views, "date": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "photometric_trust.json"), "w", encoding="utf-8") as f:
-        json.dump({"meta": meta, "independent": syn, "real": reals}, f, indent=1, default=float)
+        json.dump({"meta": meta, "independent": syn, "variants": var_rows, "real": reals}, f, indent=1, default=float)
     with open(os.path.join(args.out, "photometric_trust.md"), "w", encoding="utf-8") as f:
-        f.write(markdown(syn, reals, meta))
+        f.write(markdown(syn, var_rows, reals, meta))
     say(f"wrote {os.path.join(args.out, 'photometric_trust.md')}")
     return 0
 

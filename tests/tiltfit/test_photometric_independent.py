@@ -144,13 +144,12 @@ def _views(case: str, seed: int = 0):
     return lens, images, poses
 
 
-def _fits(case: str):
-    """(truth, corner fit values and σ, photometric result) of one case."""
+def _corner_start(case: str):
+    """(lens, linear images, Observations, corner fit) of one case: tiltfit's detector and joint fit."""
     from tiltfit.calibration import calibrate
     from tiltfit.detect import detect
     from tiltfit.fit import FitOptions
     from tiltfit.model import Observations
-    from tiltfit.photometric import PhotometricOptions, refine_photometric
 
     lens, images, poses = _views(case)
     linear = [_srgb_to_linear(im) for im in images]
@@ -160,11 +159,22 @@ def _fits(case: str):
     obs = Observations(BOARD.feature_points(), np.stack([d.corners_px for d in dets]),
                        np.stack([d.blur_px for d in dets]), (W_PX, H_PX), PITCH_MM)
     corner = calibrate(obs, "joint", options=FitOptions(model_selection=False, nominal_focal_mm=W_MM))
+    return lens, linear, obs, corner
+
+
+def _truth(lens: TiltedThinLens) -> dict:
+    return {"theta_L_deg": math.degrees(lens.theta_L), "theta_F_deg": math.degrees(lens.theta_F),
+            "d_mm": lens.d, "U_mm": lens.U, "w_mm": lens.w}
+
+
+def _fits(case: str):
+    """(truth, corner fit, photometric result) of one case."""
+    from tiltfit.photometric import PhotometricOptions, refine_photometric
+
+    lens, linear, obs, corner = _corner_start(case)
     res = refine_photometric(linear, BOARD, corner.camera, PhotometricOptions(max_pixels=800, aperture=APERTURE),
                              start_sigma=corner.sigma, corners=obs)
-    truth = {"theta_L_deg": math.degrees(lens.theta_L), "theta_F_deg": math.degrees(lens.theta_F),
-             "d_mm": lens.d, "U_mm": lens.U, "w_mm": lens.w}
-    return truth, corner, res
+    return _truth(lens), corner, res
 
 
 @pytest.fixture(scope="module")

@@ -33,7 +33,7 @@ sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
 sys.path.insert(0, os.path.join(ROOT, "tests", "tiltfit"))
 
 REAL = {"industrial_ds1": {"pitch_mm": 0.0048, "distortion": "opencv5"},
-        "gopro_wide": {"pitch_mm": 0.005, "distortion": "rational"}}
+        "gopro_wide": {"pitch_mm": 0.005, "distortion": "opencv5"}}  # rational: degenerate on 6 views
 KEYS = ("theta_L_deg", "theta_F_deg", "d_mm", "U_mm", "w_mm")
 
 

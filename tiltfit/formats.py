@@ -100,7 +100,8 @@ def calibration_reference() -> str:
         "the corners, held out of the photometric fit, predicted by its lens with each view's pose refitted "
         "(`refined_px`, RMS per corner) against the corner fit's k-fold held-out RMS (`start_px`; its own RMS "
         "where `start_is_held_out` is false), kept up to `limit_px`. `free`: the stored lens parameters the "
-        "refinement moved (those the corner fit determined, each within 10 of its σ); per-view `levels` add the "
+        "refinement moved (those the corner fit determined, each within 10 of its σ; `at_bound`: those that ended "
+        "at that bound, then the corner fit is kept); per-view `levels` add the "
         "illumination gradient `gain_x`, `gain_y`.", "",
         "## Every JSON file", "",
         f"UTF-8 (UTF-16/32, other encodings and image bytes are refused by name), nested at most {MAX_JSON_DEPTH} "

@@ -70,6 +70,8 @@ ILLUMINATIONS = ("flat", "gradient")
 #: its σ of the start (a smooth bound, start + b tanh(z / b)): the pixels cannot carry the lens far from what the
 #: corners say (unbounded, stage-1 fits of real photos drifted to θF ≈ 60-80°).
 TRUST_SIGMAS = 10.0
+#: A free lens parameter whose step is beyond this fraction of its bound (|tanh| > AT_BOUND) is at its bound.
+AT_BOUND = 0.95
 #: Where the start could not determine the aperture, d starts where the median view's blur disc is this wide (px).
 UNDETERMINED_BLUR_PX = 1.0
 #: The refinement is kept only where its RMS on the (held-out) corners is at most 1 + this times the corner
@@ -194,6 +196,7 @@ class PhotometricResult:
             refinement's lens, poses refitted to the corners), limit_px, views; else None.
         rejected_because: why the start was kept ("" where the refinement is).
         free: the stored lens parameters the fit moved (`start_sigma`).
+        at_bound: those of them that ended at their trust bound (then the start is kept, and their σ is 0).
     """
 
     camera: TiltLensCamera
@@ -213,6 +216,7 @@ class PhotometricResult:
     corner_check: dict | None = None
     rejected_because: str = ""
     free: list = field(default_factory=lambda: list(LENS_PARAMETERS))
+    at_bound: list = field(default_factory=list)
 
     @property
     def chosen_camera(self) -> TiltLensCamera:
@@ -466,8 +470,11 @@ def _cluster_sandwich(res, problem: _Problem) -> torch.Tensor:
     B = G.T @ G * (C / max(C - 1, 1))
     try:
         A_inv = res.normal.covariance().dense()
-    except RuntimeError:
-        return torch.full_like(B, math.nan)
+    except RuntimeError:   # a parameter the data no longer move (one at its trust bound): held, σ 0
+        try:
+            A_inv = torch.linalg.pinv(res.normal.dense(), hermitian=True)
+        except RuntimeError:
+            return torch.full_like(B, math.nan)
     return A_inv @ B @ A_inv
 
 
@@ -624,6 +631,16 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
             kept = "corner fit"
             reasons.append(f"held-out pixels cost {held_out['refined']:.4g} refined, {held_out['start']:.4g} "
                            "for the corner fit")
+    at_bound = []
+    if problem.free:
+        b = problem.bound[problem.free]
+        t = torch.tanh(res.x["lens"].detach() / b.clamp(max=1e300))
+        at_bound = [LENS_PARAMETERS[i] for i, bi, ti in zip(problem.free, b, t)
+                    if math.isfinite(float(bi)) and abs(float(ti)) > AT_BOUND]
+    if at_bound:
+        kept = "corner fit"
+        reasons.append(f"{', '.join(at_bound)} at the trust bound ({TRUST_SIGMAS:g} of the corner fit's σ): the "
+                       "pixels and the corners disagree beyond what either's σ allows")
     corner_check = None
     if corners is not None:
         corner_check = _corner_check(refined, camera, corners, corner_held_out_px)
@@ -631,8 +648,8 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
             kept = "corner fit"
             reasons.append(f"held-out corners RMS {corner_check['refined_px']:.4f} px refined, "
                            f"{corner_check['start_px']:.4f} px for the corner fit")
-    if say and (held_out is not None or corner_check is not None):
-        parts = []
+    if say and (held_out is not None or corner_check is not None or at_bound):
+        parts = [f"{', '.join(at_bound)} at the trust bound"] if at_bound else []
         if held_out is not None:
             parts.append(f"held-out pixels ({held_out['pixels']}) cost {held_out['refined']:.4g} refined, "
                          f"{held_out['start']:.4g} from the start")
@@ -661,7 +678,7 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
     return PhotometricResult(refined, exposure, values, _sigma_dict(res, cov_sandwich, problem), out_views,
                              float(torch.sqrt((r * r).mean())), iterations, time.perf_counter() - t0, history,
                              selection, _sigma_dict(res, cov_gn, problem), kept, held_out, camera.copy(),
-                             corner_check, "; ".join(reasons), free)
+                             corner_check, "; ".join(reasons), free, at_bound)
 
 
 def _choose_pixels(imgs: list, views: list, target: Target, opts: PhotometricOptions, disc_only: bool, say,

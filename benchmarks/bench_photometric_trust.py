@@ -178,7 +178,7 @@ def markdown(syn: list, var_rows: list, reals: list, meta: dict) -> str:
     lines += ["", "## Real photos: held-out views' corner error", "",
               "Corner fit (unified, free principal point) on the even views; refinement on their photos; the odd views "
               "held out: each one's pose refitted to its corners with the lens held, RMS per corner (px).", "",
-              "| set | views fit / held out | free lens parameters | held-out RMS corner fit | refinement | kept | "
+              "| set | views fit / held out | free lens parameters | held-out RMS corner fit | refinement | calibration kept | "
               "kept | why not kept | photometric s / view (wall, CPU) | corner fit s | OpenCV s | "
               "photometric / OpenCV (wall) |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in reals:

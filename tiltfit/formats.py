@@ -133,9 +133,15 @@ def calibration_reference() -> str:
         "`--psf auto` the `kernel_selection` test (`lr_statistic`, `p_value`, `delta_bic`, the disc-only fit's "
         "lens values); `held_out` (pixels kept out of the fit, the mean Huber cost of their residuals for the "
         "refinement and for the corner fit's lens and poses) and `kept`: `photometric` where the refinement "
-        "predicts them better, then the top-level lens values and σ are the photometric fit's; `corner fit` "
-        "otherwise, then they stay the corner fit's and the refinement's values are in `refined` and "
-        "`refined_sigma`.", "",
+        "predicts them better and `corner_check` does not reject it, then the top-level lens values and σ are the "
+        "photometric fit's; `corner fit` otherwise, then they stay the corner fit's and the refinement's values "
+        "are in `refined` and `refined_sigma`, and `rejected_because` says why (also on stderr). `corner_check`: "
+        "the corners, held out of the photometric fit, predicted by its lens with each view's pose refitted "
+        "(`refined_px`, RMS per corner) against the corner fit's k-fold held-out RMS (`start_px`; its own RMS "
+        "where `start_is_held_out` is false), kept up to `limit_px`. `free`: the stored lens parameters the "
+        "refinement moved (those the corner fit determined, each within 10 of its σ; `at_bound`: those that ended "
+        "at that bound, then the corner fit is kept); per-view `levels` add the "
+        "illumination gradient `gain_x`, `gain_y`.", "",
         "Uncertainty: `sigma` is one standard deviation under the error model named in `sigma_model.name`: "
         "`views` (default; corner and blur errors may be correlated within a view, as a detector's bias with blur, "
         "the board's shape or a model misfit make them: per-view cluster-robust covariance with the poses profiled "

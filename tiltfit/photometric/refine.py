@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -36,13 +36,14 @@ import torch
 from renderer.optics import theta_L_from_theta_F
 
 from ..aperture import checker_dark_fraction_disc, lines_cut
+from ..imaging import torch_threads
 from ..model import APERTURE_SCALE_MM, TiltLensCamera, axis_angle_to_matrix, robust_rho, robust_weight
 from ..solve import (Block, LMOptions, SolverError, covariance, dense_jacobian, least_squares,
                      levenberg_marquardt)
 from ..stats import nested_test
 from ..target import Target
 from .render import (auto_lens_samples, board_blur_px, dark_fraction_samples, hammersley_disc_samples,
-                     pixel_blur_px, predicted_dark_fraction, sub_points, usable_mask)
+                     on_board, pixel_blur_px, predicted_dark_fraction, sub_points, board_box, usable_pixels)
 
 #: Blur kernels: the lens's disc alone, or the disc convolved with a Gaussian (diffraction, aberrations,
 #: the sensor's own spread) of std psf_sigma_px in pixels (stored signed, squared in the model, so it has no
@@ -58,11 +59,29 @@ CLOSED_FORM_MIN_BLUR_PX = 3.0
 APERTURES = ("auto", "closed_form", "samples")
 #: Pixels per block of the Jacobian (bounds its memory; results do not depend on it).
 JACOBIAN_BLOCK = 2048
-#: Candidate pixels whose brightness is predicted before picking the pixels to fit: above it a regular subset
-#: of the usable pixels (every k-th); images up to 2^19 pixels keep them all.
-MAX_CANDIDATE_PIXELS = 1 << 19
+#: Candidate pixels of a view whose brightness is predicted before picking the pixels to fit: at most this many
+#: drawn at random from the board's bounding box (a 1280 x 1024 photo's board has about 700,000: predicting all
+#: of them took most of the 30-60 s of set-up a view).
+MAX_CANDIDATE_PIXELS = 1 << 16
 #: The camera's stored lens parameters the fit moves, in the order of the `lens` block.
 LENS_PARAMETERS = ("log_w_mm", "inv_U_per_m", "d_scaled", "theta_F")
+#: Illumination models of `PhotometricOptions.illumination`.
+ILLUMINATIONS = ("flat", "gradient")
+#: With the start's σ (`refine_photometric(start_sigma=...)`), each free lens parameter stays within this many of
+#: its σ of the start (a smooth bound, start + b tanh(z / b)): the pixels cannot carry the lens far from what the
+#: corners say (unbounded, stage-1 fits of real photos drifted to θF ≈ 60-80°).
+TRUST_SIGMAS = 10.0
+#: A free lens parameter whose step is beyond this fraction of its bound (|tanh| > AT_BOUND) is at its bound.
+AT_BOUND = 0.95
+#: Where the start could not determine the aperture, d starts where the median view's blur disc is this wide (px).
+UNDETERMINED_BLUR_PX = 1.0
+#: The refinement is kept only where its RMS on the (held-out) corners is at most 1 + this times the corner
+#: fit's held-out RMS.
+CORNER_TOLERANCE = 0.02
+#: Relative cost decrease at which a solve has converged: thousands of pixels put the cost in the thousands, and a
+#: step that lowers it by less moves the lens by a few hundredths of its σ (the solver's default, 1e-7, spent
+#: half of a real photo's iterations there).
+SOLVE_FTOL = 1e-5
 #: A fit whose robust residual σ moved by more than this fraction resumes with the new σ (the Huber weights).
 SCALE_TOLERANCE = 0.05
 
@@ -90,10 +109,14 @@ class PhotometricOptions:
         aperture: how each pixel integrates the lens's disc, one of APERTURES [auto]: `closed_form` exactly
             (disc kernel only), `samples` by the fixed lens samples, `auto` the closed form for the pixels whose
             blur disc at the start is at least CLOSED_FORM_MIN_BLUR_PX (with the disc kernel), the samples for
-            the others.
+            the others; with a distorted lens (any non-zero coefficient) the closed form for all pixels.
         held_out_pixels: pixels per view kept out of the fit [300], chosen as the fitted ones are; the refinement
             is kept only where it predicts them better than the start's lens and poses do (with the exposure
             fitted to the same pixels as the refinement's); 0: always kept.
+        saturation: pixels at least this fraction of the view's brightest are left out (glare, clipped
+            highlights) [0.995]; None: none left out.
+        illumination: one of ILLUMINATIONS [gradient]: `flat` the per-view white and black levels and the
+            vignetting only; `gradient` also a linear gain across each view (1 + g_x x + g_y y).
     """
 
     lens_samples: int = 64
@@ -106,8 +129,12 @@ class PhotometricOptions:
     seed: int = 0
     aperture: str = "auto"
     held_out_pixels: int = 300
+    saturation: float | None = 0.995
+    illumination: str = "gradient"
 
     def __post_init__(self):
+        if self.illumination not in ILLUMINATIONS:
+            raise ValueError(f"illumination: expected one of {', '.join(ILLUMINATIONS)}, got {self.illumination!r}")
         if self.held_out_pixels < 0:
             raise ValueError(f"held_out_pixels: expected 0 or a positive count, got {self.held_out_pixels}")
         if self.lens_samples < 0:
@@ -125,17 +152,22 @@ class PhotometricOptions:
 
 class Exposure(torch.nn.Module):
     """How the board's dark fraction D becomes a photograph's linear intensity:
-    I = (1 − v ρ²) · (white_k − (white_k − black_k) · D) (`render.shade`).
+    I = (1 − v ρ²) (1 + g_x,k x + g_y,k y) · (white_k − (white_k − black_k) · D) (`render.shade`; x, y the pixel
+    about the image centre, ±1 at the edges: the illumination's gradient across view k, or a tilted board's
+    reflectance).
 
     Attributes:
         levels: (V, 2) per view the radiance of white paper and of the dark cells (linear units).
         vignetting: () v, the lens's fall-off at the image corners.
+        gain: (V, 2) per view the illumination's gradient (g_x, g_y) (zeros without `illumination="gradient"`).
     """
 
-    def __init__(self, levels, vignetting: float = 0.0):
+    def __init__(self, levels, vignetting: float = 0.0, gain=None):
         super().__init__()
         self.levels = torch.nn.Parameter(torch.as_tensor(levels, dtype=torch.float64).reshape(-1, 2).clone())
         self.vignetting = torch.nn.Parameter(torch.tensor(float(vignetting), dtype=torch.float64))
+        g = torch.zeros_like(self.levels) if gain is None else torch.as_tensor(gain, dtype=torch.float64).reshape(-1, 2)
+        self.gain = torch.nn.Parameter(g.detach().clone())
 
 
 @dataclass
@@ -155,11 +187,17 @@ class PhotometricResult:
         iterations, runtime_s, history: LM iterations, wall time, cost of each solve (½ Σ ρ of residuals in
             units of their robust σ).
         kernel_selection: under kernel `auto`, the test that chose the kernel (Λ, p, ΔBIC, costs).
-        kept: "photometric" where the refinement predicts the held-out pixels better than the start did, else
-            "corner fit" (`PhotometricOptions.held_out_pixels`); `chosen_camera` is that camera.
+        kept: "photometric" where the refinement predicts the held-out pixels better than the start did and, with
+            `corners`, the corners about as well as the corner fit predicts held-out views, else "corner fit"
+            (`PhotometricOptions.held_out_pixels`); `chosen_camera` is that camera.
         held_out: pixels, and mean Huber cost of their residuals (in units of the fit's robust σ) for the
             refinement and for the start (its lens and poses, the exposure fitted with them held).
         start_camera: the camera the refinement started from (a copy).
+        corner_check: with `corners`: start_px (the corner fit's held-out RMS per corner), refined_px (the
+            refinement's lens, poses refitted to the corners), limit_px, views; else None.
+        rejected_because: why the start was kept ("" where the refinement is).
+        free: the stored lens parameters the fit moved (`start_sigma`).
+        at_bound: those of them that ended at their trust bound (then the start is kept, and their σ is 0).
     """
 
     camera: TiltLensCamera
@@ -176,6 +214,10 @@ class PhotometricResult:
     kept: str = "photometric"
     held_out: dict | None = None
     start_camera: TiltLensCamera | None = None
+    corner_check: dict | None = None
+    rejected_because: str = ""
+    free: list = field(default_factory=lambda: list(LENS_PARAMETERS))
+    at_bound: list = field(default_factory=list)
 
     @property
     def chosen_camera(self) -> TiltLensCamera:
@@ -189,6 +231,7 @@ class _View:
     observed: torch.Tensor    # (N,) linear intensities
     n_closed_form: int        # the first n_closed_form pixels integrate the aperture in closed form
     rho2: torch.Tensor        # (N,) squared distance from the image centre, 1 at the corners
+    xy: torch.Tensor | None = None   # (N, 2) pixel coordinates about the image centre, ±1 at the edges
 
 
 class _ViewGeometry(torch.nn.Module):
@@ -217,10 +260,7 @@ def _select_pixels(predicted: np.ndarray, usable: np.ndarray, white: float, blac
     return np.sort(np.concatenate(pick))
 
 
-def _initial_levels(image: np.ndarray, usable: np.ndarray) -> tuple[float, float]:
-    vals = image[usable]
-    if vals.size < 100:
-        raise PhotometricError("the board covers fewer than 100 usable pixels in a view")
+def _initial_levels(vals: np.ndarray) -> tuple[float, float]:
     return float(np.percentile(vals, 97)), float(np.percentile(vals, 3))
 
 
@@ -236,6 +276,28 @@ class _Problem:
         self.scale = 1.0
         self.psf_fixed = 0.0
         self.say, self.t0, self.n_jacobians = say, time.perf_counter(), 0
+        self.lens_start = torch.stack([getattr(camera, n).detach() for n in LENS_PARAMETERS]).to(torch.float64)
+        self.free = list(range(4))                     # the stored lens parameters the fit moves
+        self.bound = torch.full((4,), math.inf, dtype=torch.float64)
+
+    # --- the lens block: the free stored parameters, each within ±bound of the start (smoothly, by tanh) -----
+    def full_lens(self, z: torch.Tensor) -> torch.Tensor:
+        """(4,) stored lens parameters of the solver's lens block z (len(free),): start + b tanh(z / b)."""
+        lens = self.lens_start.clone()
+        if self.free:
+            b = self.bound[self.free]
+            step = torch.where(torch.isfinite(b), b * torch.tanh(z / b.clamp(max=1e300)), z)
+            lens[self.free] = self.lens_start[self.free] + step
+        return lens
+
+    def lens_jacobian(self, z: torch.Tensor) -> torch.Tensor:
+        """(4, len(free)) d full_lens / dz."""
+        J = torch.zeros(4, len(self.free), dtype=torch.float64)
+        if self.free:
+            b = self.bound[self.free]
+            d = torch.where(torch.isfinite(b), 1.0 / torch.cosh(z / b.clamp(max=1e300)) ** 2, torch.ones_like(z))
+            J[self.free, torch.arange(len(self.free))] = d
+        return J
 
     # --- the camera of a state -----------------------------------------------------------------------------
     def _params(self, v: int, lens: torch.Tensor, pose: torch.Tensor) -> dict:
@@ -308,28 +370,34 @@ class _Problem:
 
     # --- the solver's callback -------------------------------------------------------------------------------
     def evaluate(self, x: dict, with_jacobian: bool):
-        lens, pose, levels = x["lens"], x["pose"], x["levels"]
+        lens, pose, levels = self.full_lens(x["lens"]), x["pose"], x["levels"]
+        gain = x.get("gain")
         vig = x["vignetting"][0] if "vignetting" in x else torch.zeros((), dtype=torch.float64)
         psf = x["psf"][0] if "psf" in x else torch.tensor(self.psf_fixed, dtype=torch.float64)
         M = sum(int(d.uv.shape[0]) for d in self.data)
         if not (float(lens[1]) > 0 and float(lens[2]) > 0 and abs(float(lens[3])) < 1.5):
             nan = torch.full((M,), math.nan, dtype=torch.float64)   # outside the lens's domain
-            sizes = {"lens": 4, "pose": 6, "levels": 2, "vignetting": 1, "psf": 1}
+            sizes = {"lens": len(self.free), "pose": 6, "levels": 2, "vignetting": 1, "psf": 1, "gain": 2}
             return nan, ({k: nan[:, None].expand(M, sizes[k]) for k in x} if with_jacobian else None)
         rs, jac = [], {k: [] for k in x}
         for v, dv in enumerate(self.data):
             D, dD = self._dark(v, torch.cat([lens, pose[v]]), psf, with_jacobian)
             falloff = 1.0 - vig * dv.rho2
+            if gain is not None:   # the illumination's gradient across the view: 1 + g_x x + g_y y
+                falloff = falloff * (1.0 + dv.xy @ gain[v])
             white, black = levels[v, 0], levels[v, 1]
             shade = white - (white - black) * D
             rs.append((falloff * shade - dv.observed) / self.scale)
             if with_jacobian:
                 Jg = (-falloff * (white - black) / self.scale)[:, None] * dD
-                jac["lens"].append(Jg[:, :4])
+                jac["lens"].append(Jg[:, :4] @ self.lens_jacobian(x["lens"]))
+                if gain is not None:
+                    jac["gain"].append(((1.0 - vig * dv.rho2) * shade / self.scale)[:, None] * dv.xy)
                 jac["pose"].append(Jg[:, 4:10])
                 jac["levels"].append(torch.stack([falloff * (1 - D), falloff * D], 1) / self.scale)
                 if "vignetting" in jac:
-                    jac["vignetting"].append((-dv.rho2 * shade / self.scale)[:, None])
+                    g = 1.0 if gain is None else 1.0 + dv.xy @ gain[v]
+                    jac["vignetting"].append((-dv.rho2 * g * shade / self.scale)[:, None])
                 if "psf" in jac:
                     jac["psf"].append(Jg[:, 10:11])
         r = torch.cat(rs)
@@ -360,7 +428,7 @@ def _solve(problem: _Problem, x0: dict, blocks: list, view_rows: torch.Tensor, o
     until it holds (at most three solves). Returns (LMResult, iterations)."""
     k = opts.huber_scale
     lm = LMOptions(max_iterations=opts.iterations, rho=lambda s2: robust_rho(s2, "huber", k),
-                   weight=lambda s2: robust_weight(s2, "huber", k))
+                   weight=lambda s2: robust_weight(s2, "huber", k), ftol=SOLVE_FTOL)
     problem.scale = _robust_sigma(problem.residuals(x0))
     x, iterations, res = x0, 0, None
     for _ in range(3):
@@ -403,8 +471,11 @@ def _cluster_sandwich(res, problem: _Problem) -> torch.Tensor:
     B = G.T @ G * (C / max(C - 1, 1))
     try:
         A_inv = res.normal.covariance().dense()
-    except RuntimeError:
-        return torch.full_like(B, math.nan)
+    except RuntimeError:   # a parameter the data no longer move (one at its trust bound): held, σ 0
+        try:
+            A_inv = torch.linalg.pinv(res.normal.dense(), hermitian=True)
+        except RuntimeError:
+            return torch.full_like(B, math.nan)
     return A_inv @ B @ A_inv
 
 
@@ -421,7 +492,7 @@ def _lens_sigma(lens: torch.Tensor, cov_lens: torch.Tensor) -> dict:
             "theta_F_deg": math.degrees(sd[4]), "theta_L_deg": math.degrees(sd[5])}
 
 
-def _sigma_dict(res, cov: torch.Tensor) -> dict:
+def _sigma_dict(res, cov: torch.Tensor, problem: "_Problem") -> dict:
     layout = res.layout
 
     def block(name):
@@ -431,7 +502,8 @@ def _sigma_dict(res, cov: torch.Tensor) -> dict:
         return slice(a, a + n)
 
     s = block("lens")
-    out = _lens_sigma(res.x["lens"], cov[s, s])
+    Jm = problem.lens_jacobian(res.x["lens"])
+    out = _lens_sigma(problem.full_lens(res.x["lens"]), Jm @ cov[s, s] @ Jm.T)
     for name, key in (("vignetting", "vignetting"), ("psf", "psf_sigma_px")):
         b = block(name)
         out[key] = math.sqrt(max(float(cov[b, b][0, 0]), 0.0)) if b is not None else 0.0
@@ -439,7 +511,8 @@ def _sigma_dict(res, cov: torch.Tensor) -> dict:
 
 
 def refine_photometric(images, target: Target, camera: TiltLensCamera, options: PhotometricOptions | None = None,
-                       say=None) -> PhotometricResult:
+                       say=None, start_sigma: dict | None = None, corners=None,
+                       corner_held_out_px: float | None = None) -> PhotometricResult:
     """Fit the camera's lens and poses, and an exposure, to the photographs by rendering the target.
 
     Args:
@@ -449,9 +522,26 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
             not modified.
         options: PhotometricOptions.
         say: optional progress callback taking one line.
+        start_sigma: the start's one-σ (the corner fit's `sigma`: w_mm, U_mm, d_mm, theta_F_deg). Given, the fit
+            moves only the lens parameters the start determined (σ > 0: θF stays where a stage-1 fit held it, U
+            and d where the corners could not tell them), each within TRUST_SIGMAS of its σ of the start; None:
+            all four free and unbounded.
+        corners: the start's `Observations` (corners of the same views). Given, the refinement is also judged
+            by them: they are held out of the photometric fit, so its lens (each view's pose refitted to the
+            corners) predicts them as the corner fit's lens predicts held-out views; it is kept only where its
+            RMS is at most the corner fit's `corner_held_out_px` (its k-fold held-out RMS per corner; None:
+            the start's own RMS with its poses refitted) times 1 + CORNER_TOLERANCE.
     Returns:
         PhotometricResult, with the refined camera.
     """
+    # One torch thread, as `calibrate`: on a 2-core machine shared with other work OpenMP's spinning threads cost
+    # more than they give (`tiltfit calibrate --refine photometric` on 4 industrial photos: 124 s with the default
+    # threads, 13 s with one, on 2 shared cores).
+    with torch_threads(1):
+        return _refine(images, target, camera, options, say, start_sigma, corners, corner_held_out_px)
+
+
+def _refine(images, target, camera, options, say, start_sigma, corners, corner_held_out_px) -> PhotometricResult:
     opts = options or PhotometricOptions()
     t0 = time.perf_counter()
     imgs = [np.asarray(im, dtype=np.float64) for im in images]
@@ -470,10 +560,27 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
     with torch.no_grad():   # a lens the photometric model can render: finite focus, a non-zero aperture
         cam.inv_U_per_m.clamp_(min=1e-3)
         cam.d_scaled.copy_(cam.d_scaled.abs().clamp(min=1e-4))
+    free = bound = None
+    if start_sigma is not None:
+        free, bound = _trust_region(cam, start_sigma)
+        if 2 not in free:
+            # The corners could not tell the aperture (a lens in focus everywhere, U and d undetermined): a
+            # placeholder d would render blur that is not there, so d starts where the views' median blur disc
+            # is UNDETERMINED_BLUR_PX and is fitted (unbounded) with U held.
+            b = float(np.median([board_blur_px(cam.view_camera(v), target) for v in range(cam.n_views)]))
+            with torch.no_grad():
+                cam.d_scaled.mul_(UNDETERMINED_BLUR_PX / max(b, 1e-9))
+            free, bound = sorted(free + [2]), bound.clone()
+            bound[2] = math.inf
     psf0 = PSF_START_PX if opts.kernel == "disc_gaussian" else 0.0
     views = [cam.view_camera(v) for v in range(cam.n_views)]
     blur = max(board_blur_px(vc, target) for vc in views)
     disc_only = opts.kernel == "disc" and opts.aperture != "samples"
+    if disc_only and opts.aperture == "auto" and bool((cam.distortion.detach() != 0).any()):
+        # A distorted lens: every lens sample of every sub-pixel would be undistorted on its own (256 a pixel),
+        # 10-40 times the closed form's time on real photographs; the closed form models the pixel's box by
+        # 4 x 4 points (on sharp synthetic boards about 2σ of θL worse than the samples' Gaussian footprints).
+        opts = replace(opts, aperture="closed_form")
     n_samples = opts.lens_samples
     if not disc_only and n_samples == 0:
         n_samples = auto_lens_samples(blur, AUTO_KERNEL_LENS_SAMPLES if opts.kernel == "auto" else 64)
@@ -493,12 +600,18 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
                         f"by {n_samples} lens samples for the other {n_pixels - n_closed}"}[aperture])
 
     problem = _Problem(cam, target, data, lens_uv, say)
-    problem.camera_of = lambda x, v: _camera_of(cam.copy(), x).view_camera(v)
+    if free is not None:
+        problem.free, problem.bound = free, bound
+    problem.camera_of = lambda x, v: _camera_of(cam.copy(), x, problem).view_camera(v)
     V = len(imgs)
-    x0 = {"lens": torch.stack([getattr(cam, n).detach() for n in LENS_PARAMETERS]),
+    x0 = {"lens": torch.zeros(len(problem.free), dtype=torch.float64),
           "pose": torch.cat([cam.rvec.detach(), cam.T_scaled.detach()], 1),
           "levels": torch.tensor(levels, dtype=torch.float64)}
-    blocks = [Block("lens", (4,)), Block("pose", (V, 6), per_view=True), Block("levels", (V, 2), per_view=True)]
+    blocks = [Block("lens", (len(problem.free),)), Block("pose", (V, 6), per_view=True),
+              Block("levels", (V, 2), per_view=True)]
+    if opts.illumination == "gradient":
+        x0["gain"] = torch.zeros(V, 2, dtype=torch.float64)
+        blocks.append(Block("gain", (V, 2), per_view=True))
     if opts.fit_vignetting:
         x0["vignetting"] = torch.zeros(1, dtype=torch.float64)
         blocks.append(Block("vignetting", (1,)))
@@ -522,17 +635,45 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
         cov_gn = covariance(res, (s_final / scale) ** 2).dense()
     except SolverError:
         cov_gn = torch.full_like(cov_sandwich, math.nan)
-    kept, held_out = "photometric", None
+    kept, held_out, reasons = "photometric", None, []
+    refined = _camera_of(camera.copy(), res.x, problem)
     if opts.held_out_pixels:
         held_out = _held_out_costs(problem, held_data, res.x, x0, opts, scale)
-        kept = "photometric" if held_out["refined"] <= held_out["start"] else "corner fit"
-        if say:
-            say(f"photometric: held-out pixels ({held_out['pixels']}) cost {held_out['refined']:.4g} refined, "
-                f"{held_out['start']:.4g} from the start: keeping the "
-                + ("refinement" if kept == "photometric" else "start (the corner fit)"))
-    refined = _camera_of(camera.copy(), res.x)
-    exposure = Exposure(res.x["levels"], float(res.x["vignetting"][0]) if "vignetting" in res.x else 0.0)
-    values = {**_lens_values(res.x["lens"]), "inv_U_per_m": float(res.x["lens"][1]),
+        if held_out["refined"] > held_out["start"]:
+            kept = "corner fit"
+            reasons.append(f"held-out pixels cost {held_out['refined']:.4g} refined, {held_out['start']:.4g} "
+                           "for the corner fit")
+    at_bound = []
+    if problem.free:
+        b = problem.bound[problem.free]
+        t = torch.tanh(res.x["lens"].detach() / b.clamp(max=1e300))
+        at_bound = [LENS_PARAMETERS[i] for i, bi, ti in zip(problem.free, b, t)
+                    if math.isfinite(float(bi)) and abs(float(ti)) > AT_BOUND]
+    if at_bound:
+        kept = "corner fit"
+        reasons.append(f"{', '.join(at_bound)} at the trust bound ({TRUST_SIGMAS:g} of the corner fit's σ): the "
+                       "pixels and the corners disagree beyond what either's σ allows")
+    corner_check = None
+    if corners is not None:
+        corner_check = _corner_check(refined, camera, corners, corner_held_out_px)
+        if not corner_check["refined_px"] <= corner_check["limit_px"]:
+            kept = "corner fit"
+            reasons.append(f"held-out corners RMS {corner_check['refined_px']:.4f} px refined, "
+                           f"{corner_check['start_px']:.4f} px for the corner fit")
+    if say and (held_out is not None or corner_check is not None or at_bound):
+        parts = [f"{', '.join(at_bound)} at the trust bound"] if at_bound else []
+        if held_out is not None:
+            parts.append(f"held-out pixels ({held_out['pixels']}) cost {held_out['refined']:.4g} refined, "
+                         f"{held_out['start']:.4g} from the start")
+        if corner_check is not None:
+            parts.append(f"corners (held out of the photometric fit) RMS {corner_check['refined_px']:.4f} px "
+                         f"refined, {corner_check['start_px']:.4f} px the corner fit's held-out")
+        say("photometric: " + "; ".join(parts) + ": keeping the "
+            + ("refinement" if kept == "photometric" else "start (the corner fit)"))
+    lens_full = problem.full_lens(res.x["lens"])
+    exposure = Exposure(res.x["levels"], float(res.x["vignetting"][0]) if "vignetting" in res.x else 0.0,
+                        res.x.get("gain"))
+    values = {**_lens_values(lens_full), "inv_U_per_m": float(lens_full[1]),
               "vignetting": float(exposure.vignetting.detach()), "psf_sigma_px": abs(float(res.x["psf"][0])) if "psf" in res.x
               else 0.0, "kernel": kernel, "lens_samples": n_samples if aperture != "closed_form" else 0,
               "aperture": aperture, "closed_form_pixels": n_closed}
@@ -542,10 +683,14 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
             rv = r[view_rows[v]]
             out_views.append({"R": refined.R[v].numpy().copy(), "T_mm": refined.T_mm[v].numpy().copy(),
                               "white": float(res.x["levels"][v, 0]), "black": float(res.x["levels"][v, 1]),
-                              "rms": float(torch.sqrt((rv * rv).mean())), "n_pixels": n_rows})
-    return PhotometricResult(refined, exposure, values, _sigma_dict(res, cov_sandwich), out_views,
+                              "rms": float(torch.sqrt((rv * rv).mean())), "n_pixels": n_rows,
+                              **({"gain_x": float(res.x["gain"][v, 0]), "gain_y": float(res.x["gain"][v, 1])}
+                                 if "gain" in res.x else {})})
+    free = [LENS_PARAMETERS[i] for i in problem.free]
+    return PhotometricResult(refined, exposure, values, _sigma_dict(res, cov_sandwich, problem), out_views,
                              float(torch.sqrt((r * r).mean())), iterations, time.perf_counter() - t0, history,
-                             selection, _sigma_dict(res, cov_gn), kept, held_out, camera.copy())
+                             selection, _sigma_dict(res, cov_gn, problem), kept, held_out, camera.copy(),
+                             corner_check, "; ".join(reasons), free, at_bound)
 
 
 def _choose_pixels(imgs: list, views: list, target: Target, opts: PhotometricOptions, disc_only: bool, say,
@@ -556,33 +701,47 @@ def _choose_pixels(imgs: list, views: list, target: Target, opts: PhotometricOpt
     W, H = views[0].width, views[0].height
     rng = np.random.default_rng(opts.seed)
     rng_held = np.random.default_rng([opts.seed, 1])   # its own stream: the fitted pixels do not depend on it
+    rng_cand = np.random.default_rng([opts.seed, 2])
     picks, held, levels = [], [], []
     for k, (im, vc) in enumerate(zip(imgs, views)):
         if im.shape != (H, W):
             raise PhotometricError(f"view {k}: image is {im.shape[1]}x{im.shape[0]}, expected {W}x{H}")
-        usable = usable_mask(target, vc)
-        white, black = _initial_levels(im, usable)
-        if usable.sum() > MAX_CANDIDATE_PIXELS:  # a regular subset: predicting all of a 20 MP photo is slow
-            keep = np.flatnonzero(usable)
-            usable = np.zeros_like(usable)
-            usable.reshape(-1)[keep[::-(-keep.size // MAX_CANDIDATE_PIXELS)]] = True
-        yy, xx = np.nonzero(usable)
-        uv_all = torch.tensor(np.stack([xx, yy], -1), dtype=torch.float64)
-        pred = np.empty(uv_all.shape[0])
+        # Candidates: the board's bounding box only (a real photo is mostly elsewhere), at most
+        # MAX_CANDIDATE_PIXELS of its pixels drawn at random, less the saturated ones (glare: their brightness
+        # says nothing of the board's), then those whose blur disc lies on the board (`usable_pixels`).
+        box = board_box(target, vc)
+        if box is None:
+            raise PhotometricError(f"view {k}: the board is not on the image at the start")
+        bx0, by0, bx1, by1 = box
+        bw, bh = bx1 - bx0 + 1, by1 - by0 + 1
+        n_box = bw * bh
+        local = np.arange(n_box) if n_box <= MAX_CANDIDATE_PIXELS else \
+            np.sort(rng_cand.choice(n_box, MAX_CANDIDATE_PIXELS, replace=False))
+        cand = (by0 + local // bw) * W + bx0 + local % bw
+        if opts.saturation is not None:
+            cand = cand[im.reshape(-1)[cand] < opts.saturation * float(im.max())]
+        cand = _informative(cand, vc, target, W, opts, rng_cand)
+        uv_all = torch.tensor(np.stack([cand % W, cand // W], -1), dtype=torch.float64)
+        ok = usable_pixels(target, vc, uv_all)
+        cand, uv_all = cand[ok], uv_all[torch.from_numpy(ok)]
+        usable = np.zeros(H * W, dtype=bool)
+        usable[cand] = True
+        if cand.size < 100:
+            raise PhotometricError(f"view {k}: the board covers fewer than 100 usable pixels")
+        white, black = _initial_levels(im.reshape(-1)[cand])
+        pred_img = np.full(H * W, np.nan)
         for a in range(0, uv_all.shape[0], 1 << 16):
             dark = predicted_dark_fraction(target, vc, uv_all[a:a + (1 << 16)])
-            pred[a:a + (1 << 16)] = (white - (white - black) * dark).numpy()
-        pred_img = np.full((H, W), np.nan)
-        pred_img[yy, xx] = pred
-        picks.append(_select_pixels(pred_img.reshape(-1), usable.reshape(-1), white, black, opts.max_pixels, rng))
-        rest = usable.reshape(-1).copy()
+            pred_img[cand[a:a + (1 << 16)]] = (white - (white - black) * dark).numpy()
+        picks.append(_select_pixels(pred_img, usable, white, black, opts.max_pixels, rng))
+        rest = usable.copy()
         rest[picks[-1]] = False
-        held.append(_select_pixels(pred_img.reshape(-1), rest, white, black, opts.held_out_pixels, rng_held)
+        held.append(_select_pixels(pred_img, rest, white, black, opts.held_out_pixels, rng_held)
                     if opts.held_out_pixels else picks[-1][:0])
         levels.append((white, black))
         if say:
-            say(f"photometric: view {k + 1} of {len(imgs)}: {int(usable.sum())} usable pixels, {picks[-1].size} "
-                f"chosen ({time.perf_counter() - t0:.1f} s)")
+            say(f"photometric: view {k + 1} of {len(imgs)}: {cand.size} usable pixels of {n_box} in the board's box, "
+                f"{picks[-1].size} chosen ({time.perf_counter() - t0:.1f} s)")
     # The solver's per-view blocks need the same number of pixels in every view.
     n_rows = min(p.size for p in picks)
     picks = [p if p.size == n_rows else np.sort(rng.choice(p, n_rows, replace=False)) for p in picks]
@@ -600,11 +759,40 @@ def _choose_pixels(imgs: list, views: list, target: Target, opts: PhotometricOpt
         order = torch.argsort((~closed).to(torch.int8), stable=True)     # closed-form pixels first
         uv = uv[order]
         rho2 = ((uv[:, 0] - hx) ** 2 + (uv[:, 1] - hy) ** 2) / (hx ** 2 + hy ** 2)
-        return _View(uv, observed[order], int(closed.sum()), rho2)
+        return _View(uv, observed[order], int(closed.sum()), rho2,
+                     torch.stack([(uv[:, 0] - hx) / hx, (uv[:, 1] - hy) / hy], 1))
 
     data = [view_data(im, vc, pick) for im, vc, pick in zip(imgs, views, picks)]
     held_data = [view_data(im, vc, pick) for im, vc, pick in zip(imgs, views, held)]
     return data, held_data, levels
+
+
+def _informative(cand: np.ndarray, vc, target: Target, W: int, opts: PhotometricOptions,
+                 rng: np.random.Generator) -> np.ndarray:
+    """The candidates worth predicting (flat indices, sorted): pixels carry geometric information only within
+    the blur disc of a cell edge. From the chief ray's point on the board, each candidate's distance to the
+    nearest cell edge in pixels (the chief-ray map's scale: the 90th percentile over 256 of them); those within half the view's blur disc + 2 px
+    are edge candidates, the others flat. Keeps up to 4 x what the selection takes of each, at random."""
+    uv = torch.tensor(np.stack([cand % W, cand // W], -1), dtype=torch.float64)
+    probe = uv[torch.from_numpy(rng.choice(cand.size, min(cand.size, 256), replace=False))]
+    steps = torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]], dtype=torch.float64)
+    with torch.no_grad():
+        XY = on_board(vc.generate_rays(uv))[:, :2].numpy()
+        hit = on_board(vc.generate_rays((probe[:, None, :] + steps).reshape(-1, 2))).reshape(-1, 3, 3)
+    J = (hit[:, 1:, :2] - hit[:, :1, :2]).numpy()                    # (n, 2 (du, dv), 2 (X, Y)) mm per px
+    with np.errstate(all="ignore"):
+        near = np.full(cand.size, np.inf)
+        for axis, edges in ((0, np.asarray(target.x_edges)), (1, np.asarray(target.y_edges))):
+            dist_mm = np.abs(XY[:, axis, None] - edges[None, :]).min(1)
+            per_px = np.nanpercentile(np.hypot(J[:, 0, axis], J[:, 1, axis]), 90)   # mm along this axis per px
+            near = np.minimum(near, dist_mm / max(per_px, 1e-300))
+    near = np.where(np.isfinite(near), near, np.inf)
+    reach = 0.5 * board_blur_px(vc, target) + 2.0
+    edge, flat = np.flatnonzero(near <= reach), np.flatnonzero(near > reach)
+    want = 4 * (opts.max_pixels + opts.held_out_pixels)
+    keep = [rng.choice(edge, min(edge.size, want), replace=False),
+            rng.choice(flat, min(flat.size, want // 2), replace=False)]
+    return np.sort(cand[np.concatenate(keep)])
 
 
 def _select_kernel(problem: _Problem, res, iterations: int, blocks: list, view_rows, opts: PhotometricOptions,
@@ -622,7 +810,7 @@ def _select_kernel(problem: _Problem, res, iterations: int, blocks: list, view_r
     psf = abs(float(res1.x["psf"][0]))
     justified = test["justified"] and psf >= PSF_EVIDENCE_PX
     selection = {"kernel": "disc_gaussian" if justified else "disc", "lr_statistic": test["lr_statistic"],
-                 "disc_fit": _lens_values(res.x["lens"]), "p_value": test["p_value"],
+                 "disc_fit": _lens_values(problem.full_lens(res.x["lens"])), "p_value": test["p_value"],
                  "delta_bic": test["delta_bic"], "rss_disc": rss0, "rss_disc_gaussian": rss1,
                  "psf_sigma_px": psf}
     if say:
@@ -645,8 +833,10 @@ def _held_out_costs(problem: _Problem, held_data: list, x: dict, x0: dict, opts:
     psf = x0["psf"][0] if "psf" in x0 else torch.tensor(problem.psf_fixed, dtype=torch.float64)
     levels = []
     for v, dv in enumerate(problem.data):
-        D = problem._dark(v, torch.cat([x0["lens"], x0["pose"][v]]), psf, False)[0]
+        D = problem._dark(v, torch.cat([problem.full_lens(x0["lens"]), x0["pose"][v]]), psf, False)[0]
         f = 1.0 - vig[0] * dv.rho2
+        if "gain" in x:   # the refinement's illumination gradient, as its vignetting
+            f = f * (1.0 + dv.xy @ x["gain"][v])
         A = torch.stack([f * (1 - D), f * D], 1)
         sol0 = x0["levels"][v].detach().to(torch.float64)  # the start's levels
         huber = LMOptions(max_iterations=50, rho=lambda s2: robust_rho(s2, "huber", k),
@@ -657,9 +847,10 @@ def _held_out_costs(problem: _Problem, held_data: list, x: dict, x0: dict, opts:
         except SolverError:  # creeping on (nearly) noise-free pixels: the start's levels
             sol = sol0
         levels.append(sol)
-    start = {**x0, "levels": torch.stack(levels), "vignetting": vig}
+    start = {**x0, "levels": torch.stack(levels), "vignetting": vig, **({"gain": x["gain"]} if "gain" in x else {})}
     check = _Problem(problem.camera, problem.target, held_data, problem.lens_uv)
     check.near, check.scale, check.psf_fixed = problem.near, scale, problem.psf_fixed
+    check.free, check.bound, check.lens_start = problem.free, problem.bound, problem.lens_start
 
     def cost(state):
         with torch.no_grad():
@@ -669,11 +860,50 @@ def _held_out_costs(problem: _Problem, held_data: list, x: dict, x0: dict, opts:
     return {"pixels": sum(int(d.uv.shape[0]) for d in held_data), "refined": cost(x), "start": cost(start)}
 
 
-def _camera_of(camera: TiltLensCamera, x: dict) -> TiltLensCamera:
+def _trust_region(cam: TiltLensCamera, sigma: dict):
+    """(free indices into LENS_PARAMETERS, (4,) bounds in stored units) from the start's σ: a parameter whose
+    σ is missing, 0 or not finite is held (the start held or could not determine it)."""
+    w, inv_U = math.exp(float(cam.log_w_mm)), float(cam.inv_U_per_m)
+    U = 1000.0 / inv_U
+
+    def get(key):
+        v = sigma.get(key)
+        return float(v) if isinstance(v, (int, float)) and math.isfinite(float(v)) and float(v) > 0 else None
+
+    stored = [None if get("w_mm") is None else get("w_mm") / w,
+              None if get("U_mm") is None else get("U_mm") * 1000.0 / (U * U),
+              None if get("d_mm") is None else get("d_mm") / APERTURE_SCALE_MM,
+              None if get("theta_F_deg") is None else math.radians(get("theta_F_deg"))]
+    free = [i for i, sd in enumerate(stored) if sd is not None]
+    if not free:
+        free = [0]
+        stored[0] = math.inf
+    bound = torch.tensor([math.inf if sd is None else TRUST_SIGMAS * sd for sd in stored], dtype=torch.float64)
+    return free, bound
+
+
+def _corner_check(refined: TiltLensCamera, start: TiltLensCamera, corners, start_held_out_px) -> dict:
+    """The refinement judged by the corners (held out of the photometric fit): each view's pose refitted to them
+    with the refined lens held (`validate.predict_views`), RMS per corner, against the corner fit's held-out
+    RMS (or, without it, the start's own with its poses refitted the same way)."""
+    from ..validate import predict_views
+
+    def rms(camera):
+        fit = predict_views(camera.copy().double(), corners)
+        return math.sqrt(fit.rss["corners"] / max(fit.rss["n_corners"] // 2, 1))
+
+    ref = float(start_held_out_px) if start_held_out_px is not None else rms(start)
+    got = rms(refined)
+    return {"start_px": ref, "refined_px": got, "limit_px": ref * (1 + CORNER_TOLERANCE),
+            "start_is_held_out": start_held_out_px is not None, "views": corners.n_views}
+
+
+def _camera_of(camera: TiltLensCamera, x: dict, problem: "_Problem") -> TiltLensCamera:
     """`camera` (modified in place) holding the lens and poses of the solver's state `x`."""
+    lens = problem.full_lens(x["lens"].detach())
     with torch.no_grad():
         for i, n in enumerate(LENS_PARAMETERS):
-            getattr(camera, n).copy_(x["lens"][i].to(getattr(camera, n)))
+            getattr(camera, n).copy_(lens[i].to(getattr(camera, n)))
         camera.rvec.copy_(x["pose"][:, :3].to(camera.rvec))
         camera.T_scaled.copy_(x["pose"][:, 3:6].to(camera.T_scaled))
     return camera

@@ -240,28 +240,56 @@ def board_blur_px(cam: ThinLensCamera, target: Target) -> float:
                                          float(lens.theta_F))) / float(cam.screen.pitch[0])
 
 
-def usable_mask(target: Target, cam: ThinLensCamera) -> np.ndarray:
-    """(H, W) pixels whose whole blur disc lands on the board, margin included, at least two pixels' footprint
-    (at the longest chief ray) inside its outer edge: exact for the thin lens's disc (`aperture.disc_within`),
-    one focus point per pixel, in chunks of MASK_CHUNK_PIXELS pixels."""
-    W, H = cam.width, cam.height
+def usable_pixels(target: Target, cam: ThinLensCamera, uv_px: torch.Tensor, t_max: float | None = None) -> np.ndarray:
+    """(N,) bool: pixels `uv_px` (N, 2) whose whole blur disc lands on the board, margin included, at least two
+    pixels' footprint (at the chief ray's length `t_max`, by default the longest of these pixels') inside its
+    outer edge: exact for the thin lens's disc (`aperture.disc_within`), one focus point per pixel, in chunks of
+    MASK_CHUNK_PIXELS pixels. Whatever lies beyond the margin (background, the board's edge) is never fitted."""
     x0, y0, x1, y1 = target.extent_mm
-
-    def pixels(a: int) -> torch.Tensor:
-        flat = torch.arange(a, min(a + MASK_CHUNK_PIXELS, H * W))
-        return torch.stack([(flat % W).to(torch.float64), (flat // W).to(torch.float64)], -1)
-
+    chunks = range(0, uv_px.shape[0], MASK_CHUNK_PIXELS)
     with torch.no_grad():
-        starts = range(0, H * W, MASK_CHUNK_PIXELS)
         t_chief = []
-        for a in starts:
-            rays = cam.generate_rays(pixels(a))
+        for a in chunks:
+            rays = cam.generate_rays(uv_px[a:a + MASK_CHUNK_PIXELS])
             t_chief.append(-rays.origin[..., 2] / rays.direction[..., 2])
-        t_max = max(float(t.abs().max()) for t in t_chief)
+        if t_max is None:
+            t_max = max(float(t.abs().max()) for t in t_chief) if t_chief else 1.0
         guard = 2.0 * float(cam.screen.pitch[0]) * t_max / float(cam.lens.w)
-        ok = np.empty(H * W, dtype=bool)
-        for a, t in zip(starts, t_chief):
-            q_h, centre, axes, valid = cam.focus_geometry(pixels(a))
+        ok = np.empty(uv_px.shape[0], dtype=bool)
+        for a, t in zip(chunks, t_chief):
+            q_h, centre, axes, valid = cam.focus_geometry(uv_px[a:a + MASK_CHUNK_PIXELS])
             inside = disc_within(q_h, centre, axes, (x0 + guard, x1 - guard), (y0 + guard, y1 - guard))
             ok[a:a + t.shape[0]] = (inside & valid & (t > 0)).numpy()
-    return ok.reshape(H, W)
+    return ok
+
+
+def usable_mask(target: Target, cam: ThinLensCamera) -> np.ndarray:
+    """(H, W) `usable_pixels` of the whole image."""
+    W, H = cam.width, cam.height
+    flat = torch.arange(H * W)
+    uv = torch.stack([(flat % W).to(torch.float64), (flat // W).to(torch.float64)], -1)
+    return usable_pixels(target, cam, uv).reshape(H, W)
+
+
+def board_box(target: Target, cam: ThinLensCamera, pad_px: float = 2.0) -> tuple[int, int, int, int] | None:
+    """(x0, y0, x1, y1) inclusive pixel bounds of the board (margin included) on the image, by the chief rays
+    of 64 points along each side of its outline (distortion included), widened by `pad_px` and the blur disc at
+    the board's centre; None where no part of it is in front of the camera and on the image."""
+    ex0, ey0, ex1, ey1 = target.extent_mm
+    s = torch.linspace(0.0, 1.0, 64, dtype=torch.float64)
+    X = torch.cat([ex0 + (ex1 - ex0) * s, torch.full_like(s, ex1), ex1 - (ex1 - ex0) * s, torch.full_like(s, ex0)])
+    Y = torch.cat([torch.full_like(s, ey0), ey0 + (ey1 - ey0) * s, torch.full_like(s, ey1), ey1 - (ey1 - ey0) * s])
+    with torch.no_grad():
+        pts = torch.stack([X, Y, torch.zeros_like(X)], -1)
+        in_front = cam.transform.points_to_camera(pts)[:, 2] > 0
+        uv = cam.project(pts)
+    ok = in_front & torch.isfinite(uv).all(-1)
+    if not bool(ok.any()):
+        return None
+    uv = uv[ok]
+    pad = pad_px + board_blur_px(cam, target)
+    W, H = cam.width, cam.height
+    x0, y0 = max(0, int(math.floor(float(uv[:, 0].min()) - pad))), max(0, int(math.floor(float(uv[:, 1].min()) - pad)))
+    x1 = min(W - 1, int(math.ceil(float(uv[:, 0].max()) + pad)))
+    y1 = min(H - 1, int(math.ceil(float(uv[:, 1].max()) + pad)))
+    return None if x1 < x0 or y1 < y0 else (x0, y0, x1, y1)

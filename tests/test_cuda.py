@@ -88,11 +88,11 @@ def test_cuda_photometric_target_render_equals_cpu():
         t = lambda v: torch.tensor(v, dtype=torch.float64, device=device)  # noqa: E731
         uv = torch.stack(torch.meshgrid(torch.arange(120.0, 220.0, 3.0), torch.arange(80.0, 140.0, 3.0),
                                         indexing="xy"), -1).reshape(-1, 2).to(device, torch.float64)
-        lens = hammersley_disc_samples(16).to(device)
+        lens_uv = hammersley_disc_samples(16).to(device)
         rvec = t(cv2.Rodrigues(R)[0].reshape(3))
         lens = Lens(t(55.0), 1000.0 / t(1.4), t(30.0), t(math.radians(40)), sensor)
         cam = ThinLensCamera.from_calibration(lens, axis_angle_to_matrix(rvec), t(T))
-        return render_target(board, cam, uv, lens, t(0.8), t(0.06), t(0.05))
+        return render_target(board, cam, uv, lens_uv, t(0.8), t(0.06), t(0.05))
 
     cpu, gpu = run("cpu"), run("cuda")
     assert gpu.device.type == "cuda"

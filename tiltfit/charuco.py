@@ -435,6 +435,138 @@ def cancel_data_bits(gray: np.ndarray, target: CharucoTarget, corners: np.ndarra
     return out
 
 
+# --- model-based refinement: the board's own picture, blurred, fitted around each corner ------------------
+# Half-width (squares, target plane) of the window around a corner whose pixels `refine_model` fits.
+MODEL_WINDOW = 0.6
+# Gauss-Newton steps per corner and round, and rounds (the local homographies refitted on the refined corners).
+MODEL_ITERATIONS = 6
+MODEL_ROUNDS = 2
+# Texels per marker bit of the board's picture the model looks up (bilinearly, SUPERSAMPLE² points a pixel).
+MODEL_TEXELS_PER_BIT = 8
+
+
+def board_texture(target: CharucoTarget):
+    """The board's exact area-averaged picture (dark fraction 0..1, markers included) over its extent plus a
+    square of blank margin, and the mm → texel map (origin mm, texels per mm)."""
+    n_bits = target.opencv_board().getDictionary().markerSize + 2
+    ppm = MODEL_TEXELS_PER_BIT * n_bits / target.marker_mm
+    x0, y0, x1, y1 = target.extent_mm
+    pad = target.square_mm
+    x0, y0 = x0 - pad, y0 - pad
+    nw, nh = int(math.ceil((x1 + pad - x0) * ppm)), int(math.ceil((y1 + pad - y0) * ppm))
+    tex = 1.0 - rasterise(target, (x0, x0 + nw / ppm), (y0, y0 + nh / ppm), nw, nh)
+    return tex.astype(np.float32), np.array([x0, y0]), ppm
+
+
+def _render_patch(tex, origin, ppm, Hm, r0, c0, h, w, radius_px):
+    """Model of pixels rows r0..r0+h−1, columns c0..c0+w−1: the board's dark fraction through homography Hm
+    (mm → px), looked up at SUPERSAMPLE² points a pixel, convolved with a disc of `radius_px` there and
+    box-averaged; and its derivatives along x and y (per pixel)."""
+    import cv2
+
+    S = SUPERSAMPLE
+    pad = int(math.ceil(radius_px)) + 2  # pixels rendered beyond the patch so that its blur is whole
+    sub = (np.arange(S) + 0.5) / S - 0.5
+    v = (np.arange(r0 - pad, r0 + h + pad)[:, None] + sub[None]).ravel()
+    u = (np.arange(c0 - pad, c0 + w + pad)[:, None] + sub[None]).ravel()
+    V, U = np.meshgrid(v, u, indexing="ij")
+    p = np.stack([U, V, np.ones_like(U)], -1) @ np.linalg.inv(Hm).T
+    mx = ((p[..., 0] / p[..., 2] - origin[0]) * ppm - 0.5).astype(np.float32)
+    my = ((p[..., 1] / p[..., 2] - origin[1]) * ppm - 0.5).astype(np.float32)
+    fine = cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    r = radius_px * S
+    if r > 0.5:
+        fine = cv2.filter2D(fine, -1, _disc_kernel(r), borderType=cv2.BORDER_REPLICATE)
+    fine = fine.astype(np.float64)
+    gy, gx = np.gradient(fine, 1.0 / S)
+    m = pad * S
+    return [a[m:m + h * S, m:m + w * S].reshape(h, S, w, S).mean((1, 3)) for a in (fine, gx, gy)]
+
+
+def refine_model(gray: np.ndarray, target: CharucoTarget, corners: np.ndarray, blur_px: np.ndarray,
+                 texture=None) -> np.ndarray:
+    """Corners fitted by the board's own picture around each: (N, 2), NaN where the fit failed.
+
+    Per found corner with a measured blur: the pixels whose target-plane position (by the local homography of
+    the corners around, `tiltfit.blur._local_homographies`) lies within MODEL_WINDOW square of it are fitted by
+    gain × (the board's exact picture, markers' bits included, through the homography, convolved with a disc
+    in the image) + offset, by Gauss–Newton over an affine correction of the homography about the corner (6),
+    the disc's diameter, the gain and the offset. Nothing is painted out or assumed symmetric: the bits are
+    part of the model. The corner is the corrected homography's image of the board corner.
+    """
+    from .blur import _local_homographies
+
+    tex, origin, ppm = texture or board_texture(target)
+    found = np.isfinite(corners).all(1) & np.isfinite(blur_px)
+    Hs = _local_homographies(target, corners, np.isfinite(corners).all(1))
+    pts = target.feature_points()[:, :2]
+    square = _local_square_px(target, corners)
+    H_img, W_img = gray.shape
+    s = target.square_mm
+    out = np.full_like(corners, np.nan)
+    for k in np.nonzero(found)[0]:
+        if k not in Hs:
+            continue
+        Hm = Hs[k].copy()
+        P = pts[k]
+        radius = 0.5 * float(blur_px[k])
+        q = Hm @ np.array([P[0], P[1], 1.0])
+        start = q[:2] / q[2]
+        win = MODEL_WINDOW * s
+        box = np.array([[P[0] - win, P[1] - win, 1], [P[0] + win, P[1] - win, 1], [P[0] + win, P[1] + win, 1],
+                        [P[0] - win, P[1] + win, 1]]) @ Hm.T
+        box = box[:, :2] / box[:, 2:]
+        lo = np.maximum(np.floor(box.min(0)).astype(int) - 1, 0)
+        hi = np.minimum(np.ceil(box.max(0)).astype(int) + 1, [W_img - 1, H_img - 1])
+        if np.any(hi - lo < 4):
+            continue
+        c0, r0 = lo
+        w, h = hi - lo + 1
+        yy, xx = np.mgrid[r0:r0 + h, c0:c0 + w].astype(np.float64)
+        pb = np.stack([xx, yy, np.ones_like(xx)], -1) @ np.linalg.inv(Hm).T
+        X, Y = pb[..., 0] / pb[..., 2], pb[..., 1] / pb[..., 2]
+        # pixels nearer the image's edge than the blur's reach see the scene beyond it: left out
+        reach = radius + 1.0
+        use = ((np.abs(X - P[0]) <= win) & (np.abs(Y - P[1]) <= win) & (xx >= reach) & (xx <= W_img - 1 - reach)
+               & (yy >= reach) & (yy <= H_img - 1 - reach))
+        if use.sum() < 50:
+            continue
+        y = gray[r0:r0 + h, c0:c0 + w][use].astype(np.float64)
+        dx, dy = xx[use] - start[0], yy[use] - start[1]
+        gain = off = None
+        for _ in range(MODEL_ITERATIONS):
+            B, gx, gy = (a[use] for a in _render_patch(tex, origin, ppm, Hm, r0, c0, h, w, radius))
+            dr = max(0.05 * radius, 0.1)
+            B2 = _render_patch(tex, origin, ppm, Hm, r0, c0, h, w, radius + dr)[0][use]
+            if gain is None:  # image = white − contrast × dark fraction: the straight-line fit
+                gain = float(np.mean((B - B.mean()) * (y - y.mean())) / max(np.var(B), 1e-12))
+                off = float(y.mean() - gain * B.mean())
+            res = y - gain * B - off
+            # image = gain·B(W⁻¹x) + off with W(x) = x + a·(x − c) + t: d/da, d/dt = −gain ∇B · (x − c), −gain ∇B
+            J = np.stack([B, np.ones_like(B), -gain * gx, -gain * gy, -gain * gx * dx, -gain * gx * dy,
+                          -gain * gy * dx, -gain * gy * dy, gain * (B2 - B) / dr], 1)
+            try:
+                step = np.linalg.solve(J.T @ J, J.T @ res)
+            except np.linalg.LinAlgError:
+                break
+            gain, off = gain + step[0], off + step[1]
+            tx, ty, a11, a12, a21, a22, d_r = step[2:]
+            Aff = np.array([[1 + a11, a12, 0.0], [a21, 1 + a22, 0.0], [0.0, 0.0, 1.0]])
+            Aff[:2, 2] = np.array([tx, ty]) + start - Aff[:2, :2] @ start
+            Hm = Aff @ Hm
+            radius = max(radius + float(np.clip(d_r, -0.2 * radius, 0.2 * radius)), 0.0)
+            q = Hm @ np.array([P[0], P[1], 1.0])
+            new = q[:2] / q[2]
+            moved = np.hypot(*(new - start))
+            start = new
+            dx, dy = xx[use] - start[0], yy[use] - start[1]
+            if moved < 1e-3:
+                break
+        if gain is not None and gain < 0 and np.hypot(*(start - corners[k])) < 0.25 * square[k]:
+            out[k] = start
+    return out
+
+
 def detect_board(image, target, *, measure_blur: bool = True) -> Detection:
     """Corners and blur of any target in a linear image: `detect_charuco` for a ChArUco board, else the
     checkerboard detector (`tiltfit.detect.detect`)."""
@@ -497,9 +629,9 @@ def _detect_charuco(image, target, measure_blur, use_opencv, refine_radius_max) 
         if np.nanmedian(blur / _local_square_px(target, corners)) > CANCEL_BITS_BLUR:
             # blur reaching the markers' data bits: refine again with those painted out
             t4 = time.perf_counter()
-            for _ in range(CANCEL_ROUNDS):  # better corners place the painted bits better
-                again = refine_charuco(cancel_data_bits(gray, target, corners, blur), target, corners,
-                                       refine_radius_max)
+            tex = board_texture(target)
+            for _ in range(MODEL_ROUNDS):  # better corners give better local homographies to start from
+                again = refine_model(gray, target, corners, blur, tex)
                 corners = np.where(np.isfinite(again), again, corners)
             # a corner nearer the image's edge than its blur diameter has its blurred neighbourhood cut by the
             # edge (the symmetry window with it), and one its neighbours place elsewhere is dropped

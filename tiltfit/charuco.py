@@ -16,11 +16,12 @@ Pipeline (`detect_charuco`):
 3. Completion: corners neither step found, predicted by local homographies and refined the same way
    (`tiltfit.detect.complete_corners` with the ChArUco window).
 4. Blur per corner (`tiltfit.blur.measure_blur`, its bands stopping at the markers' borders).
-5. Blur beyond CANCEL_BITS_BLUR of a square reaches the data bits from inside the window: the corners are
-   refined again on the image with the data bits painted out (`cancel_data_bits`: their exact picture, mapped
-   by the local homography, blurred by the corner's disc in the image), twice; then corners nearer the image's
-   edge than their blur diameter, and corners their neighbours place HEAVY_BLUR_TOLERANCE square away, are
-   dropped.
+5. Blur beyond CANCEL_BITS_BLUR of a square reaches the data bits from inside the window: each corner is
+   fitted again by the board's own picture around it, markers' bits included (`refine_model`: the exact
+   picture through the local homography, with an affine correction, convolved with a disc in the image whose
+   diameter is fitted too, gain and offset; Gauss–Newton), twice (the second from the local homographies of the
+   refined corners); then corners nearer the image's edge than their blur diameter, and corners their
+   neighbours place HEAVY_BLUR_TOLERANCE square away, are dropped.
 
 Images are (H, W) or (H, W, C) linear float arrays; outputs in pixels (x = column, y = row, (0, 0) the centre of
 the top-left pixel), NaN where a corner was not found.
@@ -35,7 +36,7 @@ import numpy as np
 from .detect import (Detection, complete_corners, estimate_noise, find_grid, refine_symmetric, saddle_map,
                      to_gray, _median_spacing, _min_neighbour_distance, _rot)
 from .imaging import build_pyramid, homography_dlt, homography_dlt_batch, to_full, torch_threads
-from .target import CharucoTarget, Target, rasterise
+from .target import CharucoTarget, rasterise
 
 # A placement is accepted when the next best one leaves this many times its residual (sum of squares after a
 # fitted gain and offset): the markers' pattern must tell the placements apart, not noise.
@@ -44,13 +45,12 @@ MIN_PLACEMENT_RATIO = 1.5
 PLACEMENT_BLURS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.65, 0.8)
 # Samples per square and axis when resampling the image in lattice coordinates (a marker bit is ~0.1 square).
 SAMPLES_PER_SQUARE = 12
-# Above this median blur (diameter, squares) the corners are refined again on the image with the markers' data
-# bits painted out (`cancel_data_bits`): below it the window sees none of them (on renders, 0.1 square changes
-# nothing; 0.25 square halves the largest error).
+# Above this median blur (diameter, squares) the corners are fitted again by the board's own blurred picture
+# (`refine_model`): below it the point-symmetry window sees none of the markers' data bits (on renders, 0.1 square
+# changes nothing; at 0.25 square the model fit halves the largest error).
 CANCEL_BITS_BLUR = 0.15
 # ... and then dropped when their neighbours' homography puts them this many squares away (0.2 otherwise).
 HEAVY_BLUR_TOLERANCE = 0.05
-CANCEL_ROUNDS = 2  # a second round, from better corners, halves the largest error at half a square of blur
 # Rounds of completion (each reaches two corners further from the found ones; it stops when none is added).
 COMPLETION_ROUNDS = 20
 # Refined corners whose point-symmetry residual exceeds this (relative, as in `tiltfit.detect`) are dropped.
@@ -303,11 +303,8 @@ def _merge(opencv: np.ndarray, placed: np.ndarray, target: CharucoTarget):
     return np.where(fo[:, None], opencv, placed), "markers read by OpenCV and the lattice placed by them"
 
 
-# Points per pixel side where `cancel_data_bits` looks the markers' picture up before blurring it.
+# Points per pixel side where `refine_model` looks the board's picture up before blurring it.
 SUPERSAMPLE = 3
-# Scales of the measured blur `cancel_data_bits` tries per cell (the blur widths read a few per cent wide
-# where the markers' bits reach the bands, at blur beyond a quarter square).
-BLUR_SCALES = (0.86, 0.9, 0.94, 0.98, 1.02)
 
 
 def _disc_kernel(r: float) -> np.ndarray:
@@ -317,122 +314,6 @@ def _disc_kernel(r: float) -> np.ndarray:
     yy, xx = np.mgrid[-k:k + 1, -k:k + 1].astype(np.float64)
     ker = sum(((xx + a) ** 2 + (yy + b) ** 2 <= r * r) for a in o for b in o).astype(np.float32)
     return ker / ker.sum()
-
-
-def cancel_data_bits(gray: np.ndarray, target: CharucoTarget, corners: np.ndarray, blur_px: np.ndarray) -> np.ndarray:
-    """The image with the markers' data bits painted out: what is left (checker and the markers' black borders)
-    is point-symmetric about every corner out to the next ring of cells.
-
-    Per marker whose cell has a found corner with a measured blur: the data bits' dark fraction, rasterised
-    exactly in the target plane, mapped to the image by the local homography of the corners
-    (`tiltfit.blur._local_homographies`) and blurred there by the disc of that corner's blur (round on the
-    sensor; scaled by the one of BLUR_SCALES under which the board's picture fits the cell best); the contrast (white − dark) from a straight-line fit of the whole board's blurred picture to the
-    image in the cell, its median over the cell and its neighbours. Returns `gray` plus contrast × the
-    predicted dark fraction of the data bits.
-    """
-    import cv2
-
-    from .blur import _local_homographies
-    from .target import add_rectangles
-
-    out = gray.astype(np.float64).copy()
-    found = np.isfinite(corners).all(1) & np.isfinite(blur_px)
-    Hs = _local_homographies(target, corners, np.isfinite(corners).all(1))
-    Hinv = dict(zip(Hs, np.linalg.inv(np.stack(list(Hs.values()))))) if Hs else {}
-    ny, nx = target.grid_shape
-    s = target.square_mm
-    bits = target.dark_rectangles(data_bits_only=True)
-    every = target.dark_rectangles()
-    cells = target.marker_cells()
-    origin = np.array([target.x_edges[0], target.y_edges[0]])
-
-    def cell_of(rects):
-        return np.floor((np.array([[(r[0] + r[2]) / 2, (r[1] + r[3]) / 2] for r in rects]) - origin) / s).astype(int)
-
-    bits_cell, every_cell = cell_of(bits), cell_of(every)
-    checker = Target(target.x_edges, target.y_edges, target.dark_cell, target.margin)
-    n_bits = target.opencv_board().getDictionary().markerSize + 2
-    ppm = 6.0 * n_bits / target.marker_mm  # texels per mm: 6 a bit
-    H_img, W_img = gray.shape
-    painted = []
-    for m, (i, j) in enumerate(cells):
-        # the cell's four corners as feature points (those inside the grid): (i − 1 + a, j − 1 + b)
-        ks = [(j - 1 + b) * nx + (i - 1 + a) for a in (0, 1) for b in (0, 1)
-              if 0 <= i - 1 + a < nx and 0 <= j - 1 + b < ny and found[(j - 1 + b) * nx + (i - 1 + a)]]
-        ks = [k for k in ks if k in Hs]
-        if not ks:
-            continue
-        Hm = Hs[ks[0]]
-        b_px = float(np.mean(blur_px[ks]))
-        # mm per pixel at the cell: the image size of one square
-        q = np.array([[i * s, j * s, 1.0], [(i + 1) * s, j * s, 1.0], [i * s, (j + 1) * s, 1.0]]) @ Hm.T
-        q = q[:, :2] / q[:, 2:]
-        mm_per_px = s / (0.5 * (np.hypot(*(q[1] - q[0])) + np.hypot(*(q[2] - q[0]))))
-        r_mm = 0.5 * b_px * mm_per_px
-        pad = 1.5 * r_mm + 2.0 / ppm  # the blur in mm varies over the cell under perspective
-        x0, y0 = target.x_edges[0] + i * s - pad, target.y_edges[0] + j * s - pad
-        x1, y1 = x0 + s + 2 * pad, y0 + s + 2 * pad
-        nw, nh = int(math.ceil((x1 - x0) * ppm)), int(math.ceil((y1 - y0) * ppm))
-        x1, y1 = x0 + nw / ppm, y0 + nh / ppm  # whole texels of 1/ppm mm, as the look-up below assumes
-        bx, by = np.linspace(x0, x1, nw + 1), np.linspace(y0, y1, nh + 1)
-        area = np.outer(np.diff(by), np.diff(bx))
-        dark_bits = np.zeros((nh, nw))
-        add_rectangles(dark_bits, bx, by, [r for r, c in zip(bits, bits_cell) if c[0] == i and c[1] == j])
-        # the whole board's picture there: the checker, and the markers of this cell and its neighbours
-        dark_all = 1.0 - rasterise(checker, (x0, x1), (y0, y1), nw, nh).astype(np.float64)
-        extra = np.zeros((nh, nw))
-        add_rectangles(extra, bx, by, [r for r, c in zip(every, every_cell)
-                                       if abs(c[0] - i) <= 1 and abs(c[1] - j) <= 1])
-        dark_all += extra / area
-        tex = [(dark_bits / area).astype(np.float32), dark_all.astype(np.float32)]
-        # the image pixels of the cell (+ the blur's reach); the sharp pictures looked up at SUPERSAMPLE² points
-        # a pixel, then blurred by the lens's disc in the image (it is round on the sensor, not on the board)
-        corners_mm = np.array([[x0, y0, 1], [x1, y0, 1], [x1, y1, 1], [x0, y1, 1]]) @ Hm.T
-        cp = corners_mm[:, :2] / corners_mm[:, 2:]
-        c0, r0 = np.maximum(np.floor(cp.min(0)).astype(int), 0)
-        c1, r1 = np.minimum(np.ceil(cp.max(0)).astype(int), [W_img - 1, H_img - 1])
-        if c1 <= c0 or r1 <= r0:
-            continue
-        S = SUPERSAMPLE
-        sub = (np.arange(S) + 0.5) / S - 0.5
-        v = (np.arange(r0, r1 + 1)[:, None] + sub[None]).ravel()
-        u = (np.arange(c0, c1 + 1)[:, None] + sub[None]).ravel()
-        V, U = np.meshgrid(v, u, indexing="ij")
-        p = np.stack([U, V, np.ones_like(U)], -1) @ Hinv[ks[0]].T
-        X, Y = p[..., 0] / p[..., 2], p[..., 1] / p[..., 2]
-        mx = ((X - x0) * ppm - 0.5).astype(np.float32)
-        my = ((Y - y0) * ppm - 0.5).astype(np.float32)
-        fine = [cv2.remap(t, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) for t in tex]
-        h, w = r1 - r0 + 1, c1 - c0 + 1
-        Xc, Yc = (a.reshape(h, S, w, S).mean((1, 3)) for a in (X, Y))
-        use = (Xc > x0 + pad) & (Xc < x1 - pad) & (Yc > y0 + pad) & (Yc < y1 - pad)
-        ys = gray[r0:r1 + 1, c0:c1 + 1][use].astype(np.float64)
-        if use.sum() < 10:
-            continue
-        best = None
-        for scale in BLUR_SCALES:  # the blur under which the cell's picture fits the image best
-            r_sub = 0.5 * b_px * S * scale
-            blurred = [cv2.filter2D(f, -1, _disc_kernel(r_sub), borderType=cv2.BORDER_REPLICATE) if r_sub > 0.5
-                       else f for f in fine]
-            pb, pa = (f.reshape(h, S, w, S).mean((1, 3)).astype(np.float64) for f in blurred)
-            xs = pa[use]
-            if np.ptp(xs) < 0.1:
-                break
-            # image = white − contrast × dark fraction: the straight-line fit, in closed form
-            slope = float(np.mean((xs - xs.mean()) * (ys - ys.mean())) / np.var(xs))
-            rss = float(np.sum((ys - ys.mean() - slope * (xs - xs.mean())) ** 2))
-            if best is None or rss < best[0]:
-                best = (rss, -slope, pb)
-        if best is None:
-            continue
-        _, contrast, pb = best
-        painted.append(((i, j), contrast, (r0, r1, c0, c1), pb))
-    # each cell's contrast fit leaves a few per cent of noise; the median of the cell and its eight neighbours
-    contrasts = {ij: c for ij, c, _, _ in painted}
-    for (i, j), _, (r0, r1, c0, c1), pb in painted:
-        near = [contrasts[(i + a, j + b)] for a in (-1, 0, 1) for b in (-1, 0, 1) if (i + a, j + b) in contrasts]
-        out[r0:r1 + 1, c0:c1 + 1] += float(np.median(near)) * pb
-    return out
 
 
 # --- model-based refinement: the board's own picture, blurred, fitted around each corner ------------------
@@ -484,8 +365,10 @@ def _render_patch(tex, origin, ppm, Hm, r0, c0, h, w, radius_px):
 
 
 def refine_model(gray: np.ndarray, target: CharucoTarget, corners: np.ndarray, blur_px: np.ndarray,
-                 texture=None) -> np.ndarray:
-    """Corners fitted by the board's own picture around each: (N, 2), NaN where the fit failed.
+                 texture=None) -> tuple[np.ndarray, np.ndarray]:
+    """Corners fitted by the board's own picture around each: (N, 2), NaN where the fit failed, and the noise's
+    floor on each corner's error: (N,) √(trace of the 2 × 2 Cramér–Rao covariance of its position), pixels, with
+    the noise from the fit's residual (the RMS distance an unbiased fit can reach at this noise, not less).
 
     Per found corner with a measured blur: the pixels whose target-plane position (by the local homography of
     the corners around, `tiltfit.blur._local_homographies`) lies within MODEL_WINDOW square of it are fitted by
@@ -504,6 +387,7 @@ def refine_model(gray: np.ndarray, target: CharucoTarget, corners: np.ndarray, b
     H_img, W_img = gray.shape
     s = target.square_mm
     out = np.full_like(corners, np.nan)
+    floor = np.full(len(corners), np.nan)
     for k in np.nonzero(found)[0]:
         if k not in Hs:
             continue
@@ -545,9 +429,11 @@ def refine_model(gray: np.ndarray, target: CharucoTarget, corners: np.ndarray, b
             # image = gain·B(W⁻¹x) + off with W(x) = x + a·(x − c) + t: d/da, d/dt = −gain ∇B · (x − c), −gain ∇B
             J = np.stack([B, np.ones_like(B), -gain * gx, -gain * gy, -gain * gx * dx, -gain * gx * dy,
                           -gain * gy * dx, -gain * gy * dy, gain * (B2 - B) / dr], 1)
+            JtJ = J.T @ J
             try:
-                step = np.linalg.solve(J.T @ J, J.T @ res)
+                step = np.linalg.solve(JtJ, J.T @ res)
             except np.linalg.LinAlgError:
+                gain = None
                 break
             gain, off = gain + step[0], off + step[1]
             tx, ty, a11, a12, a21, a22, d_r = step[2:]
@@ -564,7 +450,9 @@ def refine_model(gray: np.ndarray, target: CharucoTarget, corners: np.ndarray, b
                 break
         if gain is not None and gain < 0 and np.hypot(*(start - corners[k])) < 0.25 * square[k]:
             out[k] = start
-    return out
+            noise2 = float(res @ res) / max(len(res) - J.shape[1], 1)
+            floor[k] = math.sqrt(noise2 * np.trace(np.linalg.inv(JtJ)[2:4, 2:4]))
+    return out, floor
 
 
 def detect_board(image, target, *, measure_blur: bool = True) -> Detection:
@@ -627,18 +515,18 @@ def _detect_charuco(image, target, measure_blur, use_opencv, refine_radius_max) 
         blur, sigma = _measure_blur(gray, target, corners, levels=levels)
         timings["blur"] = time.perf_counter() - t3
         if np.nanmedian(blur / _local_square_px(target, corners)) > CANCEL_BITS_BLUR:
-            # blur reaching the markers' data bits: refine again with those painted out
+            # blur reaching the markers' data bits: fit the board's own blurred picture, bits included
             t4 = time.perf_counter()
             tex = board_texture(target)
             for _ in range(MODEL_ROUNDS):  # better corners give better local homographies to start from
-                again = refine_model(gray, target, corners, blur, tex)
+                again, _ = refine_model(gray, target, corners, blur, tex)
                 corners = np.where(np.isfinite(again), again, corners)
             # a corner nearer the image's edge than its blur diameter has its blurred neighbourhood cut by the
             # edge (the symmetry window with it), and one its neighbours place elsewhere is dropped
             edge = np.minimum.reduce([corners[:, 0], W - 1 - corners[:, 0], corners[:, 1], H - 1 - corners[:, 1]])
             corners[edge < blur] = np.nan
             drop_inconsistent(corners, target, tolerance=HEAVY_BLUR_TOLERANCE)
-            timings["cancel_bits"] = time.perf_counter() - t4
+            timings["model"] = time.perf_counter() - t4
         if not measure_blur:
             blur, sigma = np.full(N, np.nan), np.full(N, np.nan)
     timings["total"] = time.perf_counter() - t0

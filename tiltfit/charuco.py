@@ -319,9 +319,12 @@ def _disc_kernel(r: float) -> np.ndarray:
 # --- model-based refinement: the board's own picture, blurred, fitted around each corner ------------------
 # Half-width (squares, target plane) of the window around a corner whose pixels `refine_model` fits.
 MODEL_WINDOW = 0.6
-# Gauss-Newton steps per corner and round, and rounds (the local homographies refitted on the refined corners).
-MODEL_ITERATIONS = 6
+# Iterations at most per corner and round, and rounds (the local homographies refitted on the refined corners).
+MODEL_ITERATIONS = 20
 MODEL_ROUNDS = 2
+# Converged when a Gauss-Newton step would still gain less than 0.01 (the parameters within about 0.15 of their σ)
+# or a step gains less than 1e-5 of the cost (residuals in units of the noise).
+MODEL_DECREMENT_TOL, MODEL_FTOL = 1e-2, 1e-4
 # Texels per marker bit of the board's picture the model looks up (bilinearly, SUPERSAMPLE² points a pixel).
 MODEL_TEXELS_PER_BIT = 8
 
@@ -339,14 +342,15 @@ def board_texture(target: CharucoTarget):
     return tex.astype(np.float32), np.array([x0, y0]), ppm
 
 
-def _render_patch(tex, origin, ppm, Hm, r0, c0, h, w, radius_px):
+def _render_patch(tex, origin, ppm, Hm, r0, c0, h, w, radius_px, d_radius=None):
     """Model of pixels rows r0..r0+h−1, columns c0..c0+w−1: the board's dark fraction through homography Hm
     (mm → px), looked up at SUPERSAMPLE² points a pixel, convolved with a disc of `radius_px` there and
-    box-averaged; and its derivatives along x and y (per pixel)."""
+    box-averaged; its derivatives along x and y (per pixel); and, given `d_radius`, the same picture under a
+    disc of radius_px + d_radius."""
     import cv2
 
     S = SUPERSAMPLE
-    pad = int(math.ceil(radius_px)) + 2  # pixels rendered beyond the patch so that its blur is whole
+    pad = int(math.ceil(radius_px + (d_radius or 0.0))) + 2  # pixels beyond the patch so that its blur is whole
     sub = (np.arange(S) + 0.5) / S - 0.5
     v = (np.arange(r0 - pad, r0 + h + pad)[:, None] + sub[None]).ravel()
     u = (np.arange(c0 - pad, c0 + w + pad)[:, None] + sub[None]).ravel()
@@ -354,14 +358,16 @@ def _render_patch(tex, origin, ppm, Hm, r0, c0, h, w, radius_px):
     p = np.stack([U, V, np.ones_like(U)], -1) @ np.linalg.inv(Hm).T
     mx = ((p[..., 0] / p[..., 2] - origin[0]) * ppm - 0.5).astype(np.float32)
     my = ((p[..., 1] / p[..., 2] - origin[1]) * ppm - 0.5).astype(np.float32)
-    fine = cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    r = radius_px * S
-    if r > 0.5:
-        fine = cv2.filter2D(fine, -1, _disc_kernel(r), borderType=cv2.BORDER_REPLICATE)
-    fine = fine.astype(np.float64)
+    sharp = cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+    def blurred(r):
+        return cv2.filter2D(sharp, -1, _disc_kernel(r), borderType=cv2.BORDER_REPLICATE) if r > 0.5 else sharp
+
+    fine = blurred(radius_px * S).astype(np.float64)
     gy, gx = np.gradient(fine, 1.0 / S)
+    out = [fine, gx, gy] + ([] if d_radius is None else [blurred((radius_px + d_radius) * S)])
     m = pad * S
-    return [a[m:m + h * S, m:m + w * S].reshape(h, S, w, S).mean((1, 3)) for a in (fine, gx, gy)]
+    return [a[m:m + h * S, m:m + w * S].reshape(h, S, w, S).mean((1, 3), dtype=np.float64) for a in out]
 
 
 def refine_model(gray: np.ndarray, target: CharucoTarget, corners: np.ndarray, blur_px: np.ndarray,
@@ -373,86 +379,122 @@ def refine_model(gray: np.ndarray, target: CharucoTarget, corners: np.ndarray, b
     Per found corner with a measured blur: the pixels whose target-plane position (by the local homography of
     the corners around, `tiltfit.blur._local_homographies`) lies within MODEL_WINDOW square of it are fitted by
     gain × (the board's exact picture, markers' bits included, through the homography, convolved with a disc
-    in the image) + offset, by Gauss–Newton over an affine correction of the homography about the corner (6),
-    the disc's diameter, the gain and the offset. Nothing is painted out or assumed symmetric: the bits are
-    part of the model. The corner is the corrected homography's image of the board corner.
+    in the image) + offset, by `tiltfit.solve.least_squares` over an affine correction of the homography about
+    the corner (6), the disc's radius, the gain and the offset (`_fit_corner`). Nothing is painted out or
+    assumed symmetric: the bits are part of the model. The corner is the corrected homography's image of the
+    board corner.
     """
     from .blur import _local_homographies
+    from .detect import estimate_noise
 
-    tex, origin, ppm = texture or board_texture(target)
+    texture = texture or board_texture(target)
     found = np.isfinite(corners).all(1) & np.isfinite(blur_px)
     Hs = _local_homographies(target, corners, np.isfinite(corners).all(1))
     pts = target.feature_points()[:, :2]
     square = _local_square_px(target, corners)
-    H_img, W_img = gray.shape
-    s = target.square_mm
+    noise = estimate_noise(gray)
     out = np.full_like(corners, np.nan)
     floor = np.full(len(corners), np.nan)
     for k in np.nonzero(found)[0]:
-        if k not in Hs:
-            continue
-        Hm = Hs[k].copy()
-        P = pts[k]
-        radius = 0.5 * float(blur_px[k])
-        q = Hm @ np.array([P[0], P[1], 1.0])
-        start = q[:2] / q[2]
-        win = MODEL_WINDOW * s
-        box = np.array([[P[0] - win, P[1] - win, 1], [P[0] + win, P[1] - win, 1], [P[0] + win, P[1] + win, 1],
-                        [P[0] - win, P[1] + win, 1]]) @ Hm.T
-        box = box[:, :2] / box[:, 2:]
-        lo = np.maximum(np.floor(box.min(0)).astype(int) - 1, 0)
-        hi = np.minimum(np.ceil(box.max(0)).astype(int) + 1, [W_img - 1, H_img - 1])
-        if np.any(hi - lo < 4):
-            continue
-        c0, r0 = lo
-        w, h = hi - lo + 1
-        yy, xx = np.mgrid[r0:r0 + h, c0:c0 + w].astype(np.float64)
-        pb = np.stack([xx, yy, np.ones_like(xx)], -1) @ np.linalg.inv(Hm).T
-        X, Y = pb[..., 0] / pb[..., 2], pb[..., 1] / pb[..., 2]
-        # pixels nearer the image's edge than the blur's reach see the scene beyond it: left out
-        reach = radius + 1.0
-        use = ((np.abs(X - P[0]) <= win) & (np.abs(Y - P[1]) <= win) & (xx >= reach) & (xx <= W_img - 1 - reach)
-               & (yy >= reach) & (yy <= H_img - 1 - reach))
-        if use.sum() < 50:
-            continue
-        y = gray[r0:r0 + h, c0:c0 + w][use].astype(np.float64)
-        dx, dy = xx[use] - start[0], yy[use] - start[1]
-        gain = off = None
-        for _ in range(MODEL_ITERATIONS):
-            B, gx, gy = (a[use] for a in _render_patch(tex, origin, ppm, Hm, r0, c0, h, w, radius))
-            dr = max(0.05 * radius, 0.1)
-            B2 = _render_patch(tex, origin, ppm, Hm, r0, c0, h, w, radius + dr)[0][use]
-            if gain is None:  # image = white − contrast × dark fraction: the straight-line fit
-                gain = float(np.mean((B - B.mean()) * (y - y.mean())) / max(np.var(B), 1e-12))
-                off = float(y.mean() - gain * B.mean())
-            res = y - gain * B - off
-            # image = gain·B(W⁻¹x) + off with W(x) = x + a·(x − c) + t: d/da, d/dt = −gain ∇B · (x − c), −gain ∇B
-            J = np.stack([B, np.ones_like(B), -gain * gx, -gain * gy, -gain * gx * dx, -gain * gx * dy,
-                          -gain * gy * dx, -gain * gy * dy, gain * (B2 - B) / dr], 1)
-            JtJ = J.T @ J
-            try:
-                step = np.linalg.solve(JtJ, J.T @ res)
-            except np.linalg.LinAlgError:
-                gain = None
-                break
-            gain, off = gain + step[0], off + step[1]
-            tx, ty, a11, a12, a21, a22, d_r = step[2:]
-            Aff = np.array([[1 + a11, a12, 0.0], [a21, 1 + a22, 0.0], [0.0, 0.0, 1.0]])
-            Aff[:2, 2] = np.array([tx, ty]) + start - Aff[:2, :2] @ start
-            Hm = Aff @ Hm
-            radius = max(radius + float(np.clip(d_r, -0.2 * radius, 0.2 * radius)), 0.0)
-            q = Hm @ np.array([P[0], P[1], 1.0])
-            new = q[:2] / q[2]
-            moved = np.hypot(*(new - start))
-            start = new
-            dx, dy = xx[use] - start[0], yy[use] - start[1]
-            if moved < 1e-3:
-                break
-        if gain is not None and gain < 0 and np.hypot(*(start - corners[k])) < 0.25 * square[k]:
-            out[k] = start
-            noise2 = float(res @ res) / max(len(res) - J.shape[1], 1)
-            floor[k] = math.sqrt(noise2 * np.trace(np.linalg.inv(JtJ)[2:4, 2:4]))
+        if k in Hs:
+            fit = _fit_corner(gray, target, texture, Hs[k], pts[k], 0.5 * float(blur_px[k]), noise)
+            if fit is not None and np.hypot(*(fit[0] - corners[k])) < 0.25 * square[k]:
+                out[k], floor[k] = fit
     return out, floor
+
+
+def _fit_corner(gray, target, texture, Hm, P, radius, noise):
+    """One corner of `refine_model`: (position (2,), floor) or None. Hm: homography board mm → px from the
+    corners around; P: the corner on the board, mm; radius: the blur disc's, px; noise: the pixels' σ.
+
+    Parameters x = (t (2), a (2 × 2), disc radius, gain, offset); the image is modelled as
+    gain · R(p) + offset, R the board's dark fraction through W ∘ Hm blurred by the disc, with
+    W(q) = q + a (q − c) + t about the start c. Derivatives: ∂R/∂t = −∇R, ∂R/∂a_ij = −∂_i R · (q − c)_j with
+    q = W⁻¹(p) (exact for a warp of the blurred picture; the blur taken as commuting with the small correction),
+    ∂R/∂radius by a forward difference.
+    """
+    import torch
+
+    from .solve import LMOptions, SolverError, covariance, least_squares
+
+    tex, origin, ppm = texture
+    H_img, W_img = gray.shape
+    q = Hm @ np.array([P[0], P[1], 1.0])
+    c = q[:2] / q[2]
+    win = MODEL_WINDOW * target.square_mm
+    box = np.array([[P[0] - win, P[1] - win, 1], [P[0] + win, P[1] - win, 1], [P[0] + win, P[1] + win, 1],
+                    [P[0] - win, P[1] + win, 1]]) @ Hm.T
+    box = box[:, :2] / box[:, 2:]
+    lo = np.maximum(np.floor(box.min(0)).astype(int) - 1, 0)
+    hi = np.minimum(np.ceil(box.max(0)).astype(int) + 1, [W_img - 1, H_img - 1])
+    if np.any(hi - lo < 4):
+        return None
+    c0, r0 = lo
+    w, h = hi - lo + 1
+    yy, xx = np.mgrid[r0:r0 + h, c0:c0 + w].astype(np.float64)
+    pb = np.stack([xx, yy, np.ones_like(xx)], -1) @ np.linalg.inv(Hm).T
+    X, Y = pb[..., 0] / pb[..., 2], pb[..., 1] / pb[..., 2]
+    # pixels nearer the image's edge than the blur's reach see the scene beyond it: left out
+    reach = radius + 1.0
+    use = ((np.abs(X - P[0]) <= win) & (np.abs(Y - P[1]) <= win) & (xx >= reach) & (xx <= W_img - 1 - reach)
+           & (yy >= reach) & (yy <= H_img - 1 - reach))
+    if use.sum() < 50:
+        return None
+    y = gray[r0:r0 + h, c0:c0 + w][use].astype(np.float64)
+    p = np.stack([xx[use], yy[use]], 1)
+    cache = {}
+
+    def warp(v):
+        """(homography W ∘ Hm, q − c per pixel) of the parameters v."""
+        a = np.array([[1 + v[2], v[3]], [v[4], 1 + v[5]]])
+        Wm = np.eye(3)
+        Wm[:2, :2], Wm[:2, 2] = a, v[:2] + c - a @ c
+        det = a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]
+        a_inv = np.array([[a[1, 1], -a[0, 1]], [-a[1, 0], a[0, 0]]]) / det
+        return Wm @ Hm, (p - c - v[:2]) @ a_inv.T
+
+    def render(v):
+        """Picture, its x and y derivatives, and the picture under a disc larger by `d_radius(v)`: at v's warp and
+        disc (one render for the residuals and the Jacobian at the same point)."""
+        key = v[:7].tobytes()
+        if key not in cache:
+            cache.clear()
+            cache[key] = [a[use] for a in _render_patch(tex, origin, ppm, warp(v)[0], r0, c0, h, w, max(v[6], 0.0),
+                                                        d_radius(v))]
+        return cache[key]
+
+    def d_radius(v):
+        return max(0.05 * v[6], 0.1)
+
+    def residuals(x):
+        v = x.numpy()
+        B = render(v)[0]
+        return torch.from_numpy((y - v[7] * B - v[8]) / noise)
+
+    def jacobian(x):
+        v = x.numpy()
+        B, gx, gy, B2 = render(v)
+        dr = d_radius(v)
+        d = warp(v)[1]
+        g = v[7]
+        dmodel = np.stack([-g * gx, -g * gy, -g * gx * d[:, 0], -g * gx * d[:, 1], -g * gy * d[:, 0],
+                           -g * gy * d[:, 1], g * (B2 - B) / dr, B, np.ones_like(B)], 1)
+        return torch.from_numpy(-dmodel / noise)
+
+    B0 = render(np.r_[np.zeros(6), radius, 0.0, 0.0])[0]
+    gain = float(np.mean((B0 - B0.mean()) * (y - y.mean())) / max(np.var(B0), 1e-12))
+    x0 = torch.tensor(np.r_[np.zeros(6), radius, gain, y.mean() - gain * B0.mean()], dtype=torch.float64)
+    try:
+        options = LMOptions(max_iterations=MODEL_ITERATIONS, decrement_tol=MODEL_DECREMENT_TOL, ftol=MODEL_FTOL)
+        fit = least_squares(residuals, x0, options, jacobian_fn=jacobian)
+        cov = covariance(fit, 2 * fit.cost / max(len(y) - len(x0), 1)).dense().numpy()
+    except SolverError:
+        return None
+    v = fit.x.numpy()
+    if v[7] >= 0:  # dark squares came out light
+        return None
+    q = warp(v)[0] @ np.array([P[0], P[1], 1.0])
+    return q[:2] / q[2], float(np.sqrt(cov[0, 0] + cov[1, 1]))
 
 
 def detect_board(image, target, *, measure_blur: bool = True) -> Detection:

@@ -322,8 +322,9 @@ MODEL_WINDOW = 0.6
 # Iterations at most per corner and round, and rounds (the local homographies refitted on the refined corners).
 MODEL_ITERATIONS = 20
 MODEL_ROUNDS = 2
-# Converged when a Gauss-Newton step would still gain less than 0.01 (the parameters within about 0.15 of their σ)
-# or a step gains less than 1e-5 of the cost (residuals in units of the noise).
+# Converged when a Gauss-Newton step would still gain less than 0.01 (the parameters within about 0.15 of their σ;
+# residuals in units of the noise) or a step gains less than 1e-4 of the cost (the Jacobian's blur-and-warp
+# approximation makes the last steps creep; tighter changes no corner by more than 0.001 px on the renders).
 MODEL_DECREMENT_TOL, MODEL_FTOL = 1e-2, 1e-4
 # Texels per marker bit of the board's picture the model looks up (bilinearly, SUPERSAMPLE² points a pixel).
 MODEL_TEXELS_PER_BIT = 8

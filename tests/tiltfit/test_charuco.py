@@ -139,7 +139,7 @@ def test_corners_within_005_px(blurred_partial_views, blur):
 def test_heavy_blur_error_at_the_noise_floor(blurred_partial_views):
     """At half a square of blur the corners' RMS error is the noise's floor (the model fit's Cramér–Rao bound at
     the true corners and blur), two-sided: within 0.5–2× of it. Above it: a model error left (painting the bits
-    out left 3-10× the floor); below it: the floor is not what limits the corners (or the truth leaked in). The
+    out left 4-10× the floor); below it: the floor is not what limits the corners (or the truth leaked in). The
     floor (0.005-0.01 px) puts the largest error over a view's ~25 corners near 0.015 px: 0.05 px is reachable."""
     for (v, b), (img, truth, sq, det) in blurred_partial_views.items():
         if b != 0.5:

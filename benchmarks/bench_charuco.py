@@ -6,11 +6,11 @@ sRGB image (its default refinement), the board being `CharucoTarget.opencv_board
 
 Images:
 - blur sweep: `tiltfit.synth.render_constant_blur` (exact area-averaged board with markers, looked up through the
-  view's homography, one disc of the given diameter, then 0.3 % Gaussian noise), 320 × 240, a 12 × 9 board of
-  15 mm squares with 11 mm DICT_5X5_100 markers; 4 partial views (25–34 of 88 corners visible, a square about
-  42 px) and 2 whole views (a square about 22 px); blur diameter 0 to 0.5 of the projected square.
-  Truth: the board corners projected by the view's homography. A corner farther than a quarter square from its
-  id's truth has a wrong id.
+  view's homography, one disc of the given diameter, then Gaussian noise of σ 0.003: white 0.8, dark 0.05, so
+  0.4 % of the contrast), 320 × 240, a 12 × 9 board of 15 mm squares with 11 mm DICT_5X5_100 markers; 4 partial
+  views (25–34 of 88 corners visible, a square about 42 px) and 2 whole views (a square about 22 px); blur
+  diameter 0 to 0.5 of the projected square. Truth: the board corners projected by the view's homography. A
+  corner farther than a quarter square from its id's truth has a wrong id.
 - calibration: the renderer's ray tracer (thin-lens camera, textured board), 24 spp, 8-bit, 6 partial and 4
   whole views; `unified` fit without distortion, principal point held: w ± σ of each set.
 
@@ -32,7 +32,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from benchmarks import results_io  # noqa: E402
 from renderer import Lens  # noqa: E402
 from renderer.cameras.lens import Sensor  # noqa: E402
-from tiltfit.charuco import detect_charuco, opencv_corners  # noqa: E402
+from tiltfit.charuco import CANCEL_BITS_BLUR, detect_charuco, opencv_corners, refine_model  # noqa: E402
 from tiltfit.synth import look_at_pose, observe, plane_homography, render_constant_blur, render_view  # noqa: E402
 from tiltfit.target import CharucoTarget  # noqa: E402
 
@@ -77,6 +77,11 @@ def blur_sweep(repeats: int, views) -> list:
             img = render_constant_blur(TARGET, plane_homography(CAMERA, R, T), CAMERA.sensor.size_px, b * sq)
             img = img + rng.normal(0.0, NOISE, img.shape)
             det, t_ours, _ = results_io.timed(lambda: detect_charuco(img, TARGET), repeats)
+            floor = None
+            if b > CANCEL_BITS_BLUR:  # the noise's floor: the model fit's Cramér–Rao bound at the found corners
+                _, fl = refine_model(img, TARGET, np.where(det.found[:, None], truth.corners_px, np.nan),
+                                     np.where(det.found, b * sq, np.nan))
+                floor = float(np.sqrt(np.nanmean(fl[det.found] ** 2)))
             oc, t_cv, _ = results_io.timed(lambda: opencv_corners(img, TARGET), repeats)
             fo, fc = det.found, np.isfinite(oc).all(1)
             e_o = np.hypot(*(det.corners_px[fo] - truth.corners_px[fo]).T)
@@ -88,6 +93,7 @@ def blur_sweep(repeats: int, views) -> list:
                 common["opencv_rms_px"] = float(np.sqrt(np.mean(np.sum((oc[both] - truth.corners_px[both]) ** 2, 1))))
             rows.append({"view": kind, "square_px": sq, "blur_squares": b, "blur_px": b * sq,
                          "ours": {**_stats(fo.sum(), e_o, sq, vis.sum()), "time_s": t_ours, "how": det.message,
+                                  "floor_rms_px": floor,
                                   "blur_ratio": float(np.nanmedian(det.blur_px / (b * sq))) if b > 0 else None},
                          "opencv": {**_stats(fc.sum(), e_c, sq, vis.sum()), "time_s": t_cv}, "common": common})
             print(kind, b, rows[-1]["ours"], rows[-1]["opencv"], flush=True)
@@ -152,24 +158,30 @@ def write_markdown(path: str, res: dict) -> None:
     lines = ["# ChArUco corners: ours against OpenCV's CharucoDetector", "",
              f"Machine: {res['machine']}. Command: `{res['command']}`. Same images for both, in one run; "
              f"times are medians of {res['repeats']} runs per image. See `benchmarks/bench_charuco.py` for the "
-             "renders (one blur disc per image, 0.3 % noise) and `docs/charuco.md` for the method.", "",
+             "renders (one blur disc per image, Gaussian noise of σ 0.003 on white 0.8 and dark 0.05: 0.4 % of the "
+             "contrast) and `docs/charuco.md` for the method.", "",
              "## Corner error against blur", "",
              "Blur: disc diameter in squares (pixels). found / visible corners; wrong ids: corners more than a quarter "
-             "square from their id's truth; RMS and max over the corners with right ids. *common*: RMS on the "
-             "corners both found.", "",
-             "| view | blur | ours found | wrong ids | RMS px | max px | OpenCV found | wrong ids | RMS px | max px "
-             "| common n | ours RMS | OpenCV RMS | blur measured / rendered | time ours s | time OpenCV s |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "square from their id's truth; RMS and max over the corners with right ids. *floor*: the RMS error "
+             "the noise allows at those corners, √(mean trace of the Cramér–Rao covariance) of the model fit "
+             "(`refine_model`) at the true corners and blur (computed where the model refines, blur > "
+             f"{CANCEL_BITS_BLUR} square). *common*: RMS on the corners both found.", "",
+             "| view | blur | ours found | wrong ids | RMS px | max px | floor RMS px | OpenCV found | wrong ids "
+             "| RMS px | max px | common n | ours RMS | OpenCV RMS | blur measured / rendered | time ours s "
+             "| time OpenCV s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in res["blur_sweep"]:
         o, c, m = r["ours"], r["opencv"], r["common"]
         lines.append(f"| {r['view']} ({r['square_px']:.0f} px square) | {r['blur_squares']:g} ({r['blur_px']:.1f} px) "
                      f"| {o['found']}/{o['visible']} | {o['wrong_ids']} | {num(o['rms_px'])} | {num(o['max_px'])} "
-                     f"| {c['found']}/{c['visible']} | {c['wrong_ids']} | {num(c['rms_px'])} | {num(c['max_px'])} "
+                     f"| {num(o.get('floor_rms_px'), '.4f')} | {c['found']}/{c['visible']} | {c['wrong_ids']} "
+                     f"| {num(c['rms_px'])} | {num(c['max_px'])} "
                      f"| {m['n']} | {num(m.get('ours_rms_px'))} | {num(m.get('opencv_rms_px'))} "
                      f"| {num(o['blur_ratio'])} | {o['time_s']:.2f} | {c['time_s']:.3f} |")
     if res.get("checker_reference"):
         lines += ["", "Reference: a plain checkerboard of the same squares, same views and noise, the point-symmetry "
-                  "refinement started at the truth (what the noise alone leaves):", "",
+                  "refinement (window 0.4 square) started at the truth: what that method leaves (its bias under "
+                  "perspective at heavy blur included), not the noise's floor:", "",
                   "| view | blur | RMS px | max px |", "|---|---|---|---|"]
         lines += [f"| {r['view']} | {r['blur_squares']:g} | {r['rms_px']:.3f} | {r['max_px']:.3f} |"
                   for r in res["checker_reference"]]

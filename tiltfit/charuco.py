@@ -16,11 +16,12 @@ Pipeline (`detect_charuco`):
 3. Completion: corners neither step found, predicted by local homographies and refined the same way
    (`tiltfit.detect.complete_corners` with the ChArUco window).
 4. Blur per corner (`tiltfit.blur.measure_blur`, its bands stopping at the markers' borders).
-5. Blur beyond CANCEL_BITS_BLUR of a square reaches the data bits from inside the window: the corners are
-   refined again on the image with the data bits painted out (`cancel_data_bits`: their exact picture, mapped
-   by the local homography, blurred by the corner's disc in the image), twice; then corners nearer the image's
-   edge than their blur diameter, and corners their neighbours place HEAVY_BLUR_TOLERANCE square away, are
-   dropped.
+5. Blur beyond CANCEL_BITS_BLUR of a square reaches the data bits from inside the window: each corner is
+   fitted again by the board's own picture around it, markers' bits included (`refine_model`: the exact
+   picture through the local homography, with an affine correction, convolved with a disc in the image whose
+   diameter is fitted too, gain and offset; Gauss–Newton), twice (the second from the local homographies of the
+   refined corners); then corners nearer the image's edge than their blur diameter, and corners their
+   neighbours place HEAVY_BLUR_TOLERANCE square away, are dropped.
 
 Images are (H, W) or (H, W, C) linear float arrays; outputs in pixels (x = column, y = row, (0, 0) the centre of
 the top-left pixel), NaN where a corner was not found.
@@ -35,7 +36,7 @@ import numpy as np
 from .detect import (Detection, complete_corners, estimate_noise, find_grid, refine_symmetric, saddle_map,
                      to_gray, _median_spacing, _min_neighbour_distance, _rot)
 from .imaging import build_pyramid, homography_dlt, homography_dlt_batch, to_full, torch_threads
-from .target import CharucoTarget, Target, rasterise
+from .target import CharucoTarget, rasterise
 
 # A placement is accepted when the next best one leaves this many times its residual (sum of squares after a
 # fitted gain and offset): the markers' pattern must tell the placements apart, not noise.
@@ -44,13 +45,12 @@ MIN_PLACEMENT_RATIO = 1.5
 PLACEMENT_BLURS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.65, 0.8)
 # Samples per square and axis when resampling the image in lattice coordinates (a marker bit is ~0.1 square).
 SAMPLES_PER_SQUARE = 12
-# Above this median blur (diameter, squares) the corners are refined again on the image with the markers' data
-# bits painted out (`cancel_data_bits`): below it the window sees none of them (on renders, 0.1 square changes
-# nothing; 0.25 square halves the largest error).
+# Above this median blur (diameter, squares) the corners are fitted again by the board's own blurred picture
+# (`refine_model`): below it the point-symmetry window sees none of the markers' data bits (on renders, 0.1 square
+# changes nothing; at 0.25 square the model fit halves the largest error).
 CANCEL_BITS_BLUR = 0.15
 # ... and then dropped when their neighbours' homography puts them this many squares away (0.2 otherwise).
 HEAVY_BLUR_TOLERANCE = 0.05
-CANCEL_ROUNDS = 2  # a second round, from better corners, halves the largest error at half a square of blur
 # Rounds of completion (each reaches two corners further from the found ones; it stops when none is added).
 COMPLETION_ROUNDS = 20
 # Refined corners whose point-symmetry residual exceeds this (relative, as in `tiltfit.detect`) are dropped.
@@ -303,11 +303,8 @@ def _merge(opencv: np.ndarray, placed: np.ndarray, target: CharucoTarget):
     return np.where(fo[:, None], opencv, placed), "markers read by OpenCV and the lattice placed by them"
 
 
-# Points per pixel side where `cancel_data_bits` looks the markers' picture up before blurring it.
+# Points per pixel side where `refine_model` looks the board's picture up before blurring it.
 SUPERSAMPLE = 3
-# Scales of the measured blur `cancel_data_bits` tries per cell (the blur widths read a few per cent wide
-# where the markers' bits reach the bands, at blur beyond a quarter square).
-BLUR_SCALES = (0.86, 0.9, 0.94, 0.98, 1.02)
 
 
 def _disc_kernel(r: float) -> np.ndarray:
@@ -319,120 +316,190 @@ def _disc_kernel(r: float) -> np.ndarray:
     return ker / ker.sum()
 
 
-def cancel_data_bits(gray: np.ndarray, target: CharucoTarget, corners: np.ndarray, blur_px: np.ndarray) -> np.ndarray:
-    """The image with the markers' data bits painted out: what is left (checker and the markers' black borders)
-    is point-symmetric about every corner out to the next ring of cells.
+# --- model-based refinement: the board's own picture, blurred, fitted around each corner ------------------
+# Half-width (squares, target plane) of the window around a corner whose pixels `refine_model` fits.
+MODEL_WINDOW = 0.6
+# Iterations at most per corner and round, and rounds (the local homographies refitted on the refined corners).
+MODEL_ITERATIONS = 20
+MODEL_ROUNDS = 2
+# Converged when a Gauss-Newton step would still gain less than 0.01 (the parameters within about 0.15 of their σ;
+# residuals in units of the noise) or a step gains less than 1e-4 of the cost (the Jacobian's blur-and-warp
+# approximation makes the last steps creep; tighter changes no corner by more than 0.001 px on the renders).
+MODEL_DECREMENT_TOL, MODEL_FTOL = 1e-2, 1e-4
+# Texels per marker bit of the board's picture the model looks up (bilinearly, SUPERSAMPLE² points a pixel).
+MODEL_TEXELS_PER_BIT = 8
 
-    Per marker whose cell has a found corner with a measured blur: the data bits' dark fraction, rasterised
-    exactly in the target plane, mapped to the image by the local homography of the corners
-    (`tiltfit.blur._local_homographies`) and blurred there by the disc of that corner's blur (round on the
-    sensor; scaled by the one of BLUR_SCALES under which the board's picture fits the cell best); the contrast (white − dark) from a straight-line fit of the whole board's blurred picture to the
-    image in the cell, its median over the cell and its neighbours. Returns `gray` plus contrast × the
-    predicted dark fraction of the data bits.
-    """
+
+def board_texture(target: CharucoTarget):
+    """The board's exact area-averaged picture (dark fraction 0..1, markers included) over its extent plus a
+    square of blank margin, and the mm → texel map (origin mm, texels per mm)."""
+    n_bits = target.opencv_board().getDictionary().markerSize + 2
+    ppm = MODEL_TEXELS_PER_BIT * n_bits / target.marker_mm
+    x0, y0, x1, y1 = target.extent_mm
+    pad = target.square_mm
+    x0, y0 = x0 - pad, y0 - pad
+    nw, nh = int(math.ceil((x1 + pad - x0) * ppm)), int(math.ceil((y1 + pad - y0) * ppm))
+    tex = 1.0 - rasterise(target, (x0, x0 + nw / ppm), (y0, y0 + nh / ppm), nw, nh)
+    return tex.astype(np.float32), np.array([x0, y0]), ppm
+
+
+def _render_patch(tex, origin, ppm, Hm, r0, c0, h, w, radius_px, d_radius=None):
+    """Model of pixels rows r0..r0+h−1, columns c0..c0+w−1: the board's dark fraction through homography Hm
+    (mm → px), looked up at SUPERSAMPLE² points a pixel, convolved with a disc of `radius_px` there and
+    box-averaged; its derivatives along x and y (per pixel); and, given `d_radius`, the same picture under a
+    disc of radius_px + d_radius."""
     import cv2
 
-    from .blur import _local_homographies
-    from .target import add_rectangles
+    S = SUPERSAMPLE
+    pad = int(math.ceil(radius_px + (d_radius or 0.0))) + 2  # pixels beyond the patch so that its blur is whole
+    sub = (np.arange(S) + 0.5) / S - 0.5
+    v = (np.arange(r0 - pad, r0 + h + pad)[:, None] + sub[None]).ravel()
+    u = (np.arange(c0 - pad, c0 + w + pad)[:, None] + sub[None]).ravel()
+    V, U = np.meshgrid(v, u, indexing="ij")
+    p = np.stack([U, V, np.ones_like(U)], -1) @ np.linalg.inv(Hm).T
+    mx = ((p[..., 0] / p[..., 2] - origin[0]) * ppm - 0.5).astype(np.float32)
+    my = ((p[..., 1] / p[..., 2] - origin[1]) * ppm - 0.5).astype(np.float32)
+    sharp = cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
-    out = gray.astype(np.float64).copy()
+    def blurred(r):
+        return cv2.filter2D(sharp, -1, _disc_kernel(r), borderType=cv2.BORDER_REPLICATE) if r > 0.5 else sharp
+
+    fine = blurred(radius_px * S).astype(np.float64)
+    gy, gx = np.gradient(fine, 1.0 / S)
+    out = [fine, gx, gy] + ([] if d_radius is None else [blurred((radius_px + d_radius) * S)])
+    m = pad * S
+    return [a[m:m + h * S, m:m + w * S].reshape(h, S, w, S).mean((1, 3), dtype=np.float64) for a in out]
+
+
+def refine_model(gray: np.ndarray, target: CharucoTarget, corners: np.ndarray, blur_px: np.ndarray,
+                 texture=None) -> tuple[np.ndarray, np.ndarray]:
+    """Corners fitted by the board's own picture around each: (N, 2), NaN where the fit failed, and the noise's
+    floor on each corner's error: (N,) √(trace of the 2 × 2 Cramér–Rao covariance of its position), pixels, with
+    the noise from the fit's residual (the RMS distance an unbiased fit can reach at this noise, not less).
+
+    Per found corner with a measured blur: the pixels whose target-plane position (by the local homography of
+    the corners around, `tiltfit.blur._local_homographies`) lies within MODEL_WINDOW square of it are fitted by
+    gain × (the board's exact picture, markers' bits included, through the homography, convolved with a disc
+    in the image) + offset, by `tiltfit.solve.least_squares` over an affine correction of the homography about
+    the corner (6), the disc's radius, the gain and the offset (`_fit_corner`). Nothing is painted out or
+    assumed symmetric: the bits are part of the model. The corner is the corrected homography's image of the
+    board corner.
+    """
+    from .blur import _local_homographies
+    from .detect import estimate_noise
+
+    texture = texture or board_texture(target)
     found = np.isfinite(corners).all(1) & np.isfinite(blur_px)
     Hs = _local_homographies(target, corners, np.isfinite(corners).all(1))
-    Hinv = dict(zip(Hs, np.linalg.inv(np.stack(list(Hs.values()))))) if Hs else {}
-    ny, nx = target.grid_shape
-    s = target.square_mm
-    bits = target.dark_rectangles(data_bits_only=True)
-    every = target.dark_rectangles()
-    cells = target.marker_cells()
-    origin = np.array([target.x_edges[0], target.y_edges[0]])
+    pts = target.feature_points()[:, :2]
+    square = _local_square_px(target, corners)
+    noise = estimate_noise(gray)
+    out = np.full_like(corners, np.nan)
+    floor = np.full(len(corners), np.nan)
+    for k in np.nonzero(found)[0]:
+        if k in Hs:
+            fit = _fit_corner(gray, target, texture, Hs[k], pts[k], 0.5 * float(blur_px[k]), noise)
+            if fit is not None and np.hypot(*(fit[0] - corners[k])) < 0.25 * square[k]:
+                out[k], floor[k] = fit
+    return out, floor
 
-    def cell_of(rects):
-        return np.floor((np.array([[(r[0] + r[2]) / 2, (r[1] + r[3]) / 2] for r in rects]) - origin) / s).astype(int)
 
-    bits_cell, every_cell = cell_of(bits), cell_of(every)
-    checker = Target(target.x_edges, target.y_edges, target.dark_cell, target.margin)
-    n_bits = target.opencv_board().getDictionary().markerSize + 2
-    ppm = 6.0 * n_bits / target.marker_mm  # texels per mm: 6 a bit
+def _fit_corner(gray, target, texture, Hm, P, radius, noise):
+    """One corner of `refine_model`: (position (2,), floor) or None. Hm: homography board mm → px from the
+    corners around; P: the corner on the board, mm; radius: the blur disc's, px; noise: the pixels' σ.
+
+    Parameters x = (t (2), a (2 × 2), disc radius, gain, offset); the image is modelled as
+    gain · R(p) + offset, R the board's dark fraction through W ∘ Hm blurred by the disc, with
+    W(q) = q + a (q − c) + t about the start c. Derivatives: ∂R/∂t = −∇R, ∂R/∂a_ij = −∂_i R · (q − c)_j with
+    q = W⁻¹(p) (exact for a warp of the blurred picture), less ½ radius ∂R/∂radius on the diagonal (the disc does
+    not scale with the picture); ∂R/∂radius by a forward difference. The disc's change of shape under the warp
+    is left out of the derivatives (their affine columns are 30–50 % off): the solver only takes steps that
+    lower the true cost, so it costs iterations, not accuracy (the corners' errors are at the Cramér–Rao floor).
+    """
+    import torch
+
+    from .solve import LMOptions, SolverError, covariance, least_squares
+
+    tex, origin, ppm = texture
     H_img, W_img = gray.shape
-    painted = []
-    for m, (i, j) in enumerate(cells):
-        # the cell's four corners as feature points (those inside the grid): (i − 1 + a, j − 1 + b)
-        ks = [(j - 1 + b) * nx + (i - 1 + a) for a in (0, 1) for b in (0, 1)
-              if 0 <= i - 1 + a < nx and 0 <= j - 1 + b < ny and found[(j - 1 + b) * nx + (i - 1 + a)]]
-        ks = [k for k in ks if k in Hs]
-        if not ks:
-            continue
-        Hm = Hs[ks[0]]
-        b_px = float(np.mean(blur_px[ks]))
-        # mm per pixel at the cell: the image size of one square
-        q = np.array([[i * s, j * s, 1.0], [(i + 1) * s, j * s, 1.0], [i * s, (j + 1) * s, 1.0]]) @ Hm.T
-        q = q[:, :2] / q[:, 2:]
-        mm_per_px = s / (0.5 * (np.hypot(*(q[1] - q[0])) + np.hypot(*(q[2] - q[0]))))
-        r_mm = 0.5 * b_px * mm_per_px
-        pad = 1.5 * r_mm + 2.0 / ppm  # the blur in mm varies over the cell under perspective
-        x0, y0 = target.x_edges[0] + i * s - pad, target.y_edges[0] + j * s - pad
-        x1, y1 = x0 + s + 2 * pad, y0 + s + 2 * pad
-        nw, nh = int(math.ceil((x1 - x0) * ppm)), int(math.ceil((y1 - y0) * ppm))
-        x1, y1 = x0 + nw / ppm, y0 + nh / ppm  # whole texels of 1/ppm mm, as the look-up below assumes
-        bx, by = np.linspace(x0, x1, nw + 1), np.linspace(y0, y1, nh + 1)
-        area = np.outer(np.diff(by), np.diff(bx))
-        dark_bits = np.zeros((nh, nw))
-        add_rectangles(dark_bits, bx, by, [r for r, c in zip(bits, bits_cell) if c[0] == i and c[1] == j])
-        # the whole board's picture there: the checker, and the markers of this cell and its neighbours
-        dark_all = 1.0 - rasterise(checker, (x0, x1), (y0, y1), nw, nh).astype(np.float64)
-        extra = np.zeros((nh, nw))
-        add_rectangles(extra, bx, by, [r for r, c in zip(every, every_cell)
-                                       if abs(c[0] - i) <= 1 and abs(c[1] - j) <= 1])
-        dark_all += extra / area
-        tex = [(dark_bits / area).astype(np.float32), dark_all.astype(np.float32)]
-        # the image pixels of the cell (+ the blur's reach); the sharp pictures looked up at SUPERSAMPLE² points
-        # a pixel, then blurred by the lens's disc in the image (it is round on the sensor, not on the board)
-        corners_mm = np.array([[x0, y0, 1], [x1, y0, 1], [x1, y1, 1], [x0, y1, 1]]) @ Hm.T
-        cp = corners_mm[:, :2] / corners_mm[:, 2:]
-        c0, r0 = np.maximum(np.floor(cp.min(0)).astype(int), 0)
-        c1, r1 = np.minimum(np.ceil(cp.max(0)).astype(int), [W_img - 1, H_img - 1])
-        if c1 <= c0 or r1 <= r0:
-            continue
-        S = SUPERSAMPLE
-        sub = (np.arange(S) + 0.5) / S - 0.5
-        v = (np.arange(r0, r1 + 1)[:, None] + sub[None]).ravel()
-        u = (np.arange(c0, c1 + 1)[:, None] + sub[None]).ravel()
-        V, U = np.meshgrid(v, u, indexing="ij")
-        p = np.stack([U, V, np.ones_like(U)], -1) @ Hinv[ks[0]].T
-        X, Y = p[..., 0] / p[..., 2], p[..., 1] / p[..., 2]
-        mx = ((X - x0) * ppm - 0.5).astype(np.float32)
-        my = ((Y - y0) * ppm - 0.5).astype(np.float32)
-        fine = [cv2.remap(t, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) for t in tex]
-        h, w = r1 - r0 + 1, c1 - c0 + 1
-        Xc, Yc = (a.reshape(h, S, w, S).mean((1, 3)) for a in (X, Y))
-        use = (Xc > x0 + pad) & (Xc < x1 - pad) & (Yc > y0 + pad) & (Yc < y1 - pad)
-        ys = gray[r0:r1 + 1, c0:c1 + 1][use].astype(np.float64)
-        if use.sum() < 10:
-            continue
-        best = None
-        for scale in BLUR_SCALES:  # the blur under which the cell's picture fits the image best
-            r_sub = 0.5 * b_px * S * scale
-            blurred = [cv2.filter2D(f, -1, _disc_kernel(r_sub), borderType=cv2.BORDER_REPLICATE) if r_sub > 0.5
-                       else f for f in fine]
-            pb, pa = (f.reshape(h, S, w, S).mean((1, 3)).astype(np.float64) for f in blurred)
-            xs = pa[use]
-            if np.ptp(xs) < 0.1:
-                break
-            # image = white − contrast × dark fraction: the straight-line fit, in closed form
-            slope = float(np.mean((xs - xs.mean()) * (ys - ys.mean())) / np.var(xs))
-            rss = float(np.sum((ys - ys.mean() - slope * (xs - xs.mean())) ** 2))
-            if best is None or rss < best[0]:
-                best = (rss, -slope, pb)
-        if best is None:
-            continue
-        _, contrast, pb = best
-        painted.append(((i, j), contrast, (r0, r1, c0, c1), pb))
-    # each cell's contrast fit leaves a few per cent of noise; the median of the cell and its eight neighbours
-    contrasts = {ij: c for ij, c, _, _ in painted}
-    for (i, j), _, (r0, r1, c0, c1), pb in painted:
-        near = [contrasts[(i + a, j + b)] for a in (-1, 0, 1) for b in (-1, 0, 1) if (i + a, j + b) in contrasts]
-        out[r0:r1 + 1, c0:c1 + 1] += float(np.median(near)) * pb
-    return out
+    q = Hm @ np.array([P[0], P[1], 1.0])
+    c = q[:2] / q[2]
+    win = MODEL_WINDOW * target.square_mm
+    box = np.array([[P[0] - win, P[1] - win, 1], [P[0] + win, P[1] - win, 1], [P[0] + win, P[1] + win, 1],
+                    [P[0] - win, P[1] + win, 1]]) @ Hm.T
+    box = box[:, :2] / box[:, 2:]
+    lo = np.maximum(np.floor(box.min(0)).astype(int) - 1, 0)
+    hi = np.minimum(np.ceil(box.max(0)).astype(int) + 1, [W_img - 1, H_img - 1])
+    if np.any(hi - lo < 4):
+        return None
+    c0, r0 = lo
+    w, h = hi - lo + 1
+    yy, xx = np.mgrid[r0:r0 + h, c0:c0 + w].astype(np.float64)
+    pb = np.stack([xx, yy, np.ones_like(xx)], -1) @ np.linalg.inv(Hm).T
+    X, Y = pb[..., 0] / pb[..., 2], pb[..., 1] / pb[..., 2]
+    # pixels nearer the image's edge than the blur's reach see the scene beyond it: left out
+    reach = radius + 1.0
+    use = ((np.abs(X - P[0]) <= win) & (np.abs(Y - P[1]) <= win) & (xx >= reach) & (xx <= W_img - 1 - reach)
+           & (yy >= reach) & (yy <= H_img - 1 - reach))
+    if use.sum() < 50:
+        return None
+    y = gray[r0:r0 + h, c0:c0 + w][use].astype(np.float64)
+    p = np.stack([xx[use], yy[use]], 1)
+    cache = {}
+
+    def warp(v):
+        """(homography W ∘ Hm, q − c per pixel) of the parameters v."""
+        a = np.array([[1 + v[2], v[3]], [v[4], 1 + v[5]]])
+        Wm = np.eye(3)
+        Wm[:2, :2], Wm[:2, 2] = a, v[:2] + c - a @ c
+        det = a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]
+        a_inv = np.array([[a[1, 1], -a[0, 1]], [-a[1, 0], a[0, 0]]]) / det
+        return Wm @ Hm, (p - c - v[:2]) @ a_inv.T
+
+    def render(v):
+        """Picture, its x and y derivatives, and the picture under a disc larger by `d_radius(v)`: at v's warp and
+        disc (one render for the residuals and the Jacobian at the same point)."""
+        key = v[:7].tobytes()
+        if key not in cache:
+            cache.clear()
+            cache[key] = [a[use] for a in _render_patch(tex, origin, ppm, warp(v)[0], r0, c0, h, w, max(v[6], 0.0),
+                                                        d_radius(v))]
+        return cache[key]
+
+    def d_radius(v):
+        return max(0.05 * v[6], 0.1)
+
+    def residuals(x):
+        v = x.numpy()
+        B = render(v)[0]
+        return torch.from_numpy((y - v[7] * B - v[8]) / noise)
+
+    def jacobian(x):
+        v = x.numpy()
+        B, gx, gy, B2 = render(v)
+        dr = d_radius(v)
+        d = warp(v)[1]
+        g = v[7]
+        dB_dr = (B2 - B) / dr
+        iso = 0.5 * max(v[6], 0.0) * dB_dr  # the disc keeps its size while the picture scales
+        dmodel = np.stack([-g * gx, -g * gy, -g * (gx * d[:, 0] + iso), -g * gx * d[:, 1], -g * gy * d[:, 0],
+                           -g * (gy * d[:, 1] + iso), g * dB_dr, B, np.ones_like(B)], 1)
+        return torch.from_numpy(-dmodel / noise)
+
+    B0 = render(np.r_[np.zeros(6), radius, 0.0, 0.0])[0]
+    gain = float(np.mean((B0 - B0.mean()) * (y - y.mean())) / max(np.var(B0), 1e-12))
+    x0 = torch.tensor(np.r_[np.zeros(6), radius, gain, y.mean() - gain * B0.mean()], dtype=torch.float64)
+    try:
+        options = LMOptions(max_iterations=MODEL_ITERATIONS, decrement_tol=MODEL_DECREMENT_TOL, ftol=MODEL_FTOL)
+        fit = least_squares(residuals, x0, options, jacobian_fn=jacobian)
+        cov = covariance(fit, 2 * fit.cost / max(len(y) - len(x0), 1)).dense().numpy()
+    except SolverError:
+        return None
+    v = fit.x.numpy()
+    if v[7] >= 0:  # dark squares came out light
+        return None
+    q = warp(v)[0] @ np.array([P[0], P[1], 1.0])
+    return q[:2] / q[2], float(np.sqrt(cov[0, 0] + cov[1, 1]))
 
 
 def detect_board(image, target, *, measure_blur: bool = True) -> Detection:
@@ -495,18 +562,18 @@ def _detect_charuco(image, target, measure_blur, use_opencv, refine_radius_max) 
         blur, sigma = _measure_blur(gray, target, corners, levels=levels)
         timings["blur"] = time.perf_counter() - t3
         if np.nanmedian(blur / _local_square_px(target, corners)) > CANCEL_BITS_BLUR:
-            # blur reaching the markers' data bits: refine again with those painted out
+            # blur reaching the markers' data bits: fit the board's own blurred picture, bits included
             t4 = time.perf_counter()
-            for _ in range(CANCEL_ROUNDS):  # better corners place the painted bits better
-                again = refine_charuco(cancel_data_bits(gray, target, corners, blur), target, corners,
-                                       refine_radius_max)
+            tex = board_texture(target)
+            for _ in range(MODEL_ROUNDS):  # better corners give better local homographies to start from
+                again, _ = refine_model(gray, target, corners, blur, tex)
                 corners = np.where(np.isfinite(again), again, corners)
             # a corner nearer the image's edge than its blur diameter has its blurred neighbourhood cut by the
             # edge (the symmetry window with it), and one its neighbours place elsewhere is dropped
             edge = np.minimum.reduce([corners[:, 0], W - 1 - corners[:, 0], corners[:, 1], H - 1 - corners[:, 1]])
             corners[edge < blur] = np.nan
             drop_inconsistent(corners, target, tolerance=HEAVY_BLUR_TOLERANCE)
-            timings["cancel_bits"] = time.perf_counter() - t4
+            timings["model"] = time.perf_counter() - t4
         if not measure_blur:
             blur, sigma = np.full(N, np.nan), np.full(N, np.nan)
     timings["total"] = time.perf_counter() - t0

@@ -1031,7 +1031,29 @@ def _alternative_labellings(target: Target) -> dict:
             "mirrored top-bottom": (ny - 1 - j) * nx + i}
 
 
-def labelling_problem(corners_px: np.ndarray, target: Target) -> str:
+def _radial_unfit(XY: np.ndarray, uv: np.ndarray, image_size=None) -> float:
+    """The smallest homography RMS over the corner spacing once a one-parameter radial distortion (the division
+    model x_u = c + (x − c) / (1 + λ r²), r over the farthest corner's distance from c, c the image centre or
+    the corners' centroid, λ in [−0.6, 0.6]) is undone: a wide-angle lens bends a close board's rows by a
+    quarter of a cell, which no other labelling of its corners undoes, while a different board stays unfit."""
+    from .detfile import _homography_rms
+
+    c = np.asarray(image_size, dtype=np.float64) / 2 if image_size is not None else uv.mean(0)
+    r0 = max(float(np.linalg.norm(uv - c, axis=1).max()), 1.0)
+    d = (uv - c) / r0
+    best = math.inf
+    for lam in np.linspace(-0.6, 0.6, 25):
+        u = c + r0 * d / (1.0 + lam * (d * d).sum(1, keepdims=True))
+        rms = _homography_rms(XY, u)
+        # the corner spacing in the undistorted points: the homography's scale, from the nearest neighbours
+        gap = np.linalg.norm(u[:, None] - u[None], axis=-1)
+        np.fill_diagonal(gap, np.inf)
+        spacing = float(np.median(gap.min(1)))
+        best = min(best, rms / spacing if spacing > 0 else math.inf)
+    return best
+
+
+def labelling_problem(corners_px: np.ndarray, target: Target, image_size=None) -> str:
     """Why the labelled corners (N, 2, feature order, NaN where missing) contradict the target's geometry,
     or '' when they do not.
 
@@ -1072,7 +1094,7 @@ def labelling_problem(corners_px: np.ndarray, target: Target) -> str:
     steps = np.concatenate([np.linalg.norm(np.diff(grid, axis=1), axis=-1).ravel(),
                             np.linalg.norm(np.diff(grid, axis=0), axis=-1).ravel()])
     spacing = float(np.nanmedian(steps)) if np.isfinite(steps).any() else math.inf
-    if rms > MAX_UNFIT_SPACING * spacing:
+    if rms > MAX_UNFIT_SPACING * spacing and _radial_unfit(XY[found], corners_px[found], image_size) > MAX_UNFIT_SPACING:
         return (f"{CONTRADICTS}: no projective view of its {nx}×{ny} corners fits the photo's (homography RMS "
                 f"{rms:.3g} px at a corner spacing of {spacing:.3g} px): a different board, or x_edges and "
                 "y_edges swapped")
@@ -1104,7 +1126,7 @@ def _detect(image, target, measure_blur, options) -> Detection:
     H, W = gray.shape
     levels = build_pyramid(gray)
     corners, found, message, level = detect_corners(gray, target, timings=timings, levels=levels, **options)
-    problem = labelling_problem(corners, target) if found else ""
+    problem = labelling_problem(corners, target, (W, H)) if found else ""
     if problem:
         corners, found, message = np.full_like(corners, np.nan), False, problem
     elif found:

@@ -218,7 +218,7 @@ def select_distortion(camera: TiltLensCamera, obs: Observations, options: FitOpt
             continue
         prev = fit
         entry["rms_px"] = _per_corner_rms(fit)
-        fold = radial_fold(fit.camera, obs)
+        fold = radial_fold(fit.camera, obs) or undetermined_distortion(fit, m, obs.n_views)
         if fold:
             entry["refused"] = fold
         else:

@@ -314,6 +314,9 @@ def cmd_calibrate(args) -> int:
                          progress=say, distortion=args.distortion, distortion_centre=args.distortion_centre,
                          board=args.board)
     label = args.inputs[0] if len(args.inputs) == 1 else f"{args.inputs[0]} (+{len(args.inputs) - 1} more)"
+    if args.cross_validate is not None and obs.n_views < 2 * args.cross_validate:
+        raise CliError("--cross-validate", f"{args.cross_validate} groups need at least {2 * args.cross_validate} "
+                                           f"views with a board (two a group); there are {obs.n_views}")
     try:
         result, used, held_out = fit_with_held_out(obs, args.fit, init=init, options=options, init_sigma=init_sigma,
                                                    held_out_folds=args.held_out, say=say)

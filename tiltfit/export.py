@@ -105,8 +105,13 @@ def opencv_note(calib: dict, tool: str = "OpenCV") -> str:
                      "tau is a different geometry and is 0 here); the projection of corners is still exact, the "
                      "tilted depth of field is not represented")
     if calib.get("U_mm") is not None or calib.get("d_mm") is not None:
-        parts.append(f"the blur model (focus distance U = {calib.get('U_mm')} mm, aperture d = "
-                     f"{calib.get('d_mm')} mm) is not represented")
+        U, d = calib.get("U_mm"), calib.get("d_mm")
+        parts.append(f"the blur model (focus distance U = {'unknown' if U is None else format(U, '.5g')} mm, "
+                     f"aperture d = {'unknown' if d is None else format(d, '.4g')} mm) is not represented")
+    board = calib.get("board")
+    if isinstance(board, dict) and board.get("model") not in (None, "flat"):
+        parts.append(f"the target's fitted shape (board model {board.get('model')}, CALIB.json `board`): the poses "
+                     "and the RMS hold with those points, not the target file's flat ones; the shape is not represented")
     return "; ".join(parts)
 
 
@@ -336,7 +341,7 @@ def mrcal_text(calib: dict) -> str:
     intrinsics = [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), *(float(v) for v in d)]
     note = opencv_note(calib, "mrcal") or "the calibration is fully represented"
     return ("# tiltfit calibration as an mrcal camera model\n"
-            f"# not represented: {note}\n"
+            f"# what this file does not hold: {note}\n"
             f"{_MRCAL_PITCH}{float(calib['pixel_pitch_mm'])!r}\n"
             "{\n"
             "    'lensmodel': 'LENSMODEL_OPENCV8',\n"

@@ -310,8 +310,8 @@ def _projection_uncertainty_plot(calib: dict, save, plt) -> None:
     ax.set_aspect("equal")
     fig.colorbar(im, ax=ax, shrink=0.8, label="σ of the projection (px)")
     model = (calib.get("sigma_model") or {}).get("name", "classical")
-    ax.set_title(f"Projection uncertainty ({model} error model): median {pu['median_px']:.2g} px, "
-                 f"worst {pu['worst_px']:.2g} px", fontsize=9)
+    ax.set_title(f"Projection uncertainty ({model} error model)\nmedian {pu['median_px']:.2g} px, "
+                 f"worst {pu['worst_px']:.2g} px", fontsize=9, loc="left")
     save(fig, "projection_uncertainty.png")
 
 

@@ -95,6 +95,25 @@ def test_calibrate_cross_validate(tmp_path, capsys):
     assert "cross-validation" in capsys.readouterr().err
 
 
+def test_cross_validate_more_groups_than_views_is_refused_before_calibrating(tmp_path, capsys):
+    from tests.tiltfit.test_cli import TARGET, write_detections  # noqa: F401
+
+    rvec, T = random_poses(4, 6)
+    cam = TiltLensCamera(4, **PAPER_SENSOR, **PAPER_LENS, rvec=rvec, T_mm=T)
+    dets = write_detections(str(tmp_path), cam, "v", 6)
+    target = tmp_path / "t.json"
+    json.dump(TARGET.to_dict(), open(target, "w"))
+    out = tmp_path / "c.json"
+    base = ["calibrate", *dets, "--target", str(target), "--pixel-pitch-mm", str(PAPER_SENSOR["pixel_pitch_mm"]),
+            "--distortion", "none", "--no-model-selection", "--held-out", "0", "-o", str(out), "-q"]
+    assert main(base + ["--cross-validate", "3"]) == 2, "3 groups of 4 views should be refused"
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--cross-validate" in err[0] and "4" in err[0], err
+    assert not out.exists(), "nothing written"
+    assert main(base + ["--cross-validate", "2"]) == 0, capsys.readouterr().err
+    assert out.exists(), "2 groups of 2 views calibrate"
+
+
 def test_report_draws_projection_uncertainty(tmp_path):
     rvec, T = random_poses(6, 4)
     cam = TiltLensCamera(6, **PAPER_SENSOR, **PAPER_LENS, rvec=rvec, T_mm=T, distortion=[-0.05])

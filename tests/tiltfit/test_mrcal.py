@@ -62,7 +62,7 @@ def test_round_trip_keeps_the_projection(tmp_path):
 
 def test_tilted_lens_says_what_is_lost():
     text = mrcal_text(_calib(theta_F_deg=12.0))
-    note = next(line for line in text.splitlines() if line.startswith("# not represented"))
+    note = next(line for line in text.splitlines() if line.startswith("# what this file does not hold"))
     assert "tilted" in note and "blur model" in note, f"the comment names the tilt and the blur: {note}"
 
 

@@ -73,8 +73,11 @@ def nested_model_tests(base: FitResult, obs: Observations, mode: str, options: F
         out[label] = entry
         if say:
             verdict = "justified" if entry["justified"] else "not justified"
+            held = (f"; this {mode} fit holds θF at 0 (freed it would be {entry['theta_F_deg_full']:.3g}°; the "
+                    "joint and tilt fits fit it)" if label == "theta_F"
+                    else f"; this fit holds {label}") if entry["justified"] and not is_free else ""
             say(f"model selection: freeing {label} is {verdict} (Λ = {entry['lr_statistic']:.3g}, "
-                f"p = {entry['p_value']:.3g}, ΔBIC = {entry['delta_bic']:.3g})")
+                f"p = {entry['p_value']:.3g}, ΔBIC = {entry['delta_bic']:.3g}){held}")
     return out
 
 

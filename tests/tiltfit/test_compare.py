@@ -76,18 +76,23 @@ def test_compare_bad_input(calibs, tmp_path, capsys, case):
     assert len(err.splitlines()) == 1 and field in err, f"{case}: one line naming {field}: {err!r}"
 
 
-def test_calibrate_cross_validate(tmp_path, capsys):
+def _calibrate_command(tmp_path, n_views: int, seed: int):
+    """(`tiltfit calibrate` arguments for `n_views` synthetic DET files, the CALIB.json path it writes)."""
     from tests.tiltfit.test_cli import TARGET, write_detections  # noqa: F401
 
-    rvec, T = random_poses(9, 5)
-    cam = TiltLensCamera(9, **PAPER_SENSOR, **PAPER_LENS, rvec=rvec, T_mm=T)
-    dets = write_detections(str(tmp_path), cam, "v", 5)
+    rvec, T = random_poses(n_views, seed)
+    cam = TiltLensCamera(n_views, **PAPER_SENSOR, **PAPER_LENS, rvec=rvec, T_mm=T)
+    dets = write_detections(str(tmp_path), cam, "v", seed)
     target = tmp_path / "t.json"
     json.dump(TARGET.to_dict(), open(target, "w"))
     out = tmp_path / "c.json"
-    rc = main(["calibrate", *dets, "--target", str(target), "--pixel-pitch-mm", str(PAPER_SENSOR["pixel_pitch_mm"]),
-               "--distortion", "none", "--free-principal-point", "--no-model-selection", "--held-out", "0",
-               "--cross-validate", "3", "-o", str(out), "-q"])
+    return ["calibrate", *dets, "--target", str(target), "--pixel-pitch-mm", str(PAPER_SENSOR["pixel_pitch_mm"]),
+            "--distortion", "none", "--no-model-selection", "--held-out", "0", "-o", str(out), "-q"], out
+
+
+def test_calibrate_cross_validate(tmp_path, capsys):
+    base, out = _calibrate_command(tmp_path, 9, 5)
+    rc = main(base + ["--free-principal-point", "--cross-validate", "3"])
     assert rc == 0, capsys.readouterr().err
     cv = json.load(open(out))["cross_validation"]
     assert cv["k"] == 3 and len(cv["pairs"]) == 3 and sum(len(g) for g in cv["groups"]) == 9, cv
@@ -96,16 +101,7 @@ def test_calibrate_cross_validate(tmp_path, capsys):
 
 
 def test_cross_validate_more_groups_than_views_is_refused_before_calibrating(tmp_path, capsys):
-    from tests.tiltfit.test_cli import TARGET, write_detections  # noqa: F401
-
-    rvec, T = random_poses(4, 6)
-    cam = TiltLensCamera(4, **PAPER_SENSOR, **PAPER_LENS, rvec=rvec, T_mm=T)
-    dets = write_detections(str(tmp_path), cam, "v", 6)
-    target = tmp_path / "t.json"
-    json.dump(TARGET.to_dict(), open(target, "w"))
-    out = tmp_path / "c.json"
-    base = ["calibrate", *dets, "--target", str(target), "--pixel-pitch-mm", str(PAPER_SENSOR["pixel_pitch_mm"]),
-            "--distortion", "none", "--no-model-selection", "--held-out", "0", "-o", str(out), "-q"]
+    base, out = _calibrate_command(tmp_path, 4, 6)
     assert main(base + ["--cross-validate", "3"]) == 2, "3 groups of 4 views should be refused"
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--cross-validate" in err[0] and "4" in err[0], err

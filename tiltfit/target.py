@@ -360,7 +360,7 @@ def charuco_from_dict(data: dict, source: str = "<target>") -> CharucoTarget:
              data["dictionary"])
     sq = data["squares"]
     if (not isinstance(sq, list) or len(sq) != 2
-            or not all(_is_number(v) and float(v) == int(v) and 2 <= v <= MAX_EDGES - 1 for v in sq)):
+            or not all(is_finite_number(v) and float(v) == int(v) and 2 <= v <= MAX_EDGES - 1 for v in sq)):
         fail("squares", f"[columns, rows], integers 2 to {MAX_EDGES - 1}", sq)
     s, m = data["square_mm"], data["marker_mm"]
     if not is_finite_number(s) or not 0 < s <= MAX_MM:

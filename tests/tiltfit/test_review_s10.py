@@ -1,0 +1,133 @@
+"""Findings of the session-10 code review of the ChArUco target, the target command, detection's radial
+unfit test and the report: each test failed before its fix."""
+from __future__ import annotations
+
+import math
+import tracemalloc
+
+import numpy as np
+import pytest
+
+from tiltfit.target import Target, TargetError, target_from_dict
+
+CHARUCO = {"type": "charuco", "dictionary": "DICT_5X5_100", "squares": [5, 7], "square_mm": 20.0, "marker_mm": 15.0}
+
+
+@pytest.mark.parametrize("squares", [[float("inf"), 7], [5, float("nan")], [float("-inf"), 7]])
+def test_charuco_squares_not_finite_is_a_one_line_target_error(squares):
+    """JSON's Infinity / NaN in `squares` (Python's json reads them) is refused by name, not an OverflowError."""
+    with pytest.raises(TargetError) as e:
+        target_from_dict({**CHARUCO, "squares": squares}, "t.json")
+    assert str(e.value).startswith("t.json: squares:") and "\n" not in str(e.value), f"message {e.value!s}"
+
+
+# --- tiltfit target design: options that do not apply are refused, not ignored -------------------------------
+DESIGN = ["target", "design", "--cols", "5", "--rows", "7", "--square-mm", "20"]
+
+
+@pytest.mark.parametrize("extra, option", [
+    (["--charuco", "DICT_5X5_100", "--inclination-deg", "20"], "--inclination-deg"),
+    (["--charuco", "DICT_5X5_100", "--w-mm", "4"], "--w-mm"),
+    (["--charuco", "DICT_5X5_100", "--distance-mm", "500"], "--distance-mm"),
+    (["--w-mm", "4", "--distance-mm", "500", "--marker-mm", "15"], "--marker-mm"),
+])
+def test_target_design_refuses_options_that_do_not_apply(tmp_path, capsys, extra, option):
+    """A ChArUco board has no design view (uniform squares), and a checkerboard has no markers: an option that
+    would change nothing is refused with one line naming it, and nothing is written (it was silently ignored)."""
+    from tiltfit.cli import main
+
+    out = tmp_path / "t.json"
+    rc = main(DESIGN + extra + ["-o", str(out), "-q"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err.startswith(f"tiltfit: {option}:") and "\n" not in err, f"rc {rc}, stderr {err!r}"
+    assert not out.exists(), "nothing written"
+
+
+def test_target_design_charuco_writes_the_board(tmp_path, capsys):
+    from tiltfit.cli import main
+    from tiltfit.target import CharucoTarget, load_target
+
+    out = tmp_path / "t.json"
+    rc = main(DESIGN + ["--charuco", "DICT_4X4_50", "--marker-mm", "14", "-o", str(out), "-q"])
+    assert rc == 0, capsys.readouterr().err
+    t = load_target(str(out))
+    assert isinstance(t, CharucoTarget) and t.squares == (5, 7) and t.marker_mm == 14.0 \
+        and t.square_mm == 20.0 and t.dictionary == "DICT_4X4_50", f"the board asked for: {t.to_dict()}"
+
+
+# --- detection: the radial unfit test on a large board ------------------------------------------------------
+def _grid_target(nx: int, ny: int) -> Target:
+    return target_from_dict({"type": "checkerboard", "x_edges": [10.0 * i for i in range(nx + 2)],
+                             "y_edges": [10.0 * j for j in range(ny + 2)]})
+
+
+def _barrel(target: Target, k: float, size=(4000, 3000)) -> np.ndarray:
+    """The target's corners seen face-on filling the image, bent by x_d = c + (x − c)(1 + k r²) (r over the
+    half diagonal)."""
+    XY = target.feature_points()[:, :2]
+    c = np.asarray(size, dtype=np.float64) / 2
+    uv = (XY - XY.mean(0)) / np.ptp(XY, 0).max() * 0.9 * size[0] + c
+    d = (uv - c) / np.hypot(*c)
+    return c + (uv - c) * (1 + k * (d * d).sum(1, keepdims=True))
+
+
+def test_radial_unfit_keeps_memory_linear_in_the_corners():
+    """`labelling_problem`'s radial test on a board of 2,500 corners bent by barrel distortion: its corner spacing
+    came from an N × N distance matrix (25 of them, 100 MB each here; a 40,000-corner board asked for 25 GB). The
+    bent right board is still accepted, and the peak memory stays that of a few arrays of N points."""
+    from tiltfit.detect import labelling_problem
+
+    t = _grid_target(50, 50)
+    uv = _barrel(t, -0.25)
+    tracemalloc.start()
+    try:
+        problem = labelling_problem(uv, t, (4000, 3000))
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert problem == "", f"a bent view of the right board is accepted: {problem!r}"
+    assert peak < 20e6, f"peak memory {peak / 1e6:.0f} MB for {t.n_points} corners"
+
+
+def test_radial_unfit_still_refuses_a_different_board():
+    """A board whose columns are unequal (another target) seen through the same lens stays refused."""
+    from tiltfit.detect import CONTRADICTS, labelling_problem
+
+    t = _grid_target(12, 9)
+    xe = np.cumsum([0.0] + [10.0 if i % 2 else 25.0 for i in range(13)])  # another board: unequal columns
+    other = target_from_dict({"type": "checkerboard", "x_edges": xe.tolist(), "y_edges": list(t.y_edges)})
+    uv = _barrel(other, -0.1)
+    problem = labelling_problem(uv, t, (4000, 3000))
+    assert problem.startswith(CONTRADICTS), f"a different board is refused: {problem!r}"
+    assert labelling_problem(_barrel(t, -0.1), t, (4000, 3000)) == "", "the right board through the same lens"
+
+
+# --- the report -----------------------------------------------------------------------------------------------
+def test_report_distortion_list_keeps_positions():
+    """A coefficient that is 0 inside the list is shown, not dropped (dropping it moved the later ones into its
+    place: p1 = 0 made k3 read as p1); only the trailing zeros are left out."""
+    from tiltfit.report import _rounded_list
+
+    text = _rounded_list([-0.1, 0.02, 0.0, 0.0, 0.003, 0.0, 0.0, 0.0], None)
+    assert text == "[-0.1, 0.02, 0, 0, 0.003]", text
+
+
+def test_report_without_projection_uncertainty_numbers(tmp_path):
+    """A CALIB.json whose projection_uncertainty has no median or worst σ (null: not finite), which validate_calib
+    accepts, gives a report instead of a TypeError."""
+    from tiltfit.calibfile import validate_calib
+    from tiltfit.report import write_report
+
+    W, H = 64, 48
+    g = np.random.default_rng(0)
+    corners = (g.uniform(5, 40, (6, 2))).tolist()
+    calib = {"format_version": 1, "image_size_px": [W, H], "pixel_pitch_mm": 0.01, "w_mm": 5.0, "U_mm": 600.0,
+             "d_mm": 2.0, "theta_F_deg": 0.0, "rms_reprojection_px": 0.1,
+             "views": [{"image": "a.png", "R": np.eye(3).tolist(), "T_mm": [0, 0, 500], "corners_px": corners,
+                        "residuals_px": (0.1 * g.normal(size=(6, 2))).tolist(), "rms_reprojection_px": 0.1}],
+             "projection_uncertainty": {"median_px": None, "worst_px": None, "grid_x_px": [10.0, 50.0],
+                                        "grid_y_px": [10.0, 40.0], "sigma_px": [[None, None], [None, None]]}}
+    calib = validate_calib("calib.json", calib)
+    files = write_report(calib, str(tmp_path))
+    text = (tmp_path / "report.md").read_text()
+    assert "report.md" in files and "projection uncertainty" in text, f"the report says what it knows: {text}"

@@ -88,7 +88,15 @@ def _design(args, say) -> None:
         if v is not None and not (math.isfinite(v) and (v > 0 or (name == "margin_mm" and v == 0))):
             raise _Fail("--" + name.replace("_", "-"), f"expected a positive number, got {v}")
     if args.charuco is not None:
+        # uniform squares: the design view's options would change nothing, so they are refused, not ignored
+        for name in ("w_mm", "distance_mm", "square_px", "pixel_pitch_mm"):
+            if getattr(args, name) is not None:
+                raise _Fail("--" + name.replace("_", "-"), "a ChArUco board has uniform squares and no design view")
+        if args.inclination_deg != 0:
+            raise _Fail("--inclination-deg", "a ChArUco board has uniform squares and no design view")
         return _design_charuco(args, say)
+    if args.marker_mm is not None:
+        raise _Fail("--marker-mm", "markers belong to a ChArUco board (--charuco DICT)")
     for name in ("w_mm", "distance_mm"):
         if getattr(args, name) is None:
             raise _Fail("--" + name.replace("_", "-"), "required for a checkerboard design (the design view)")

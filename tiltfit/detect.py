@@ -1031,24 +1031,33 @@ def _alternative_labellings(target: Target) -> dict:
             "mirrored top-bottom": (ny - 1 - j) * nx + i}
 
 
-def _radial_unfit(XY: np.ndarray, uv: np.ndarray, image_size=None) -> float:
+def _radial_unfit(XY: np.ndarray, corners_px: np.ndarray, grid_shape, image_size=None) -> float:
     """The smallest homography RMS over the corner spacing once a one-parameter radial distortion (the division
     model x_u = c + (x − c) / (1 + λ r²), r over the farthest corner's distance from c, c the image centre or
     the corners' centroid, λ in [−0.6, 0.6]) is undone: a wide-angle lens bends a close board's rows by a
-    quarter of a cell, which no other labelling of its corners undoes, while a different board stays unfit."""
+    quarter of a cell, which no other labelling of its corners undoes, while a different board stays unfit.
+
+    Args:
+        XY: (N, 2) the target's feature points; corners_px: (N, 2) their image positions, NaN where missing;
+        grid_shape: (ny, nx) with N = ny·nx, row by row (the spacing is the median step between grid neighbours,
+        as in `labelling_problem`: memory linear in N); image_size: (W, H) or None.
+    """
     from .detfile import _homography_rms
 
+    found = np.isfinite(corners_px).all(-1)
+    uv = corners_px[found]
     c = np.asarray(image_size, dtype=np.float64) / 2 if image_size is not None else uv.mean(0)
     r0 = max(float(np.linalg.norm(uv - c, axis=1).max()), 1.0)
-    d = (uv - c) / r0
+    d = (corners_px - c) / r0
     best = math.inf
     for lam in np.linspace(-0.6, 0.6, 25):
-        u = c + r0 * d / (1.0 + lam * (d * d).sum(1, keepdims=True))
-        rms = _homography_rms(XY, u)
-        # the corner spacing in the undistorted points: the homography's scale, from the nearest neighbours
-        gap = np.linalg.norm(u[:, None] - u[None], axis=-1)
-        np.fill_diagonal(gap, np.inf)
-        spacing = float(np.median(gap.min(1)))
+        u = c + r0 * d / (1.0 + lam * (d * d).sum(1, keepdims=True))  # NaN where missing
+        rms = _homography_rms(XY[found], u[found])
+        # the corner spacing in the undistorted points: the homography's scale, from the grid neighbours
+        g = u.reshape(*grid_shape, 2)
+        steps = np.concatenate([np.linalg.norm(np.diff(g, axis=1), axis=-1).ravel(),
+                                np.linalg.norm(np.diff(g, axis=0), axis=-1).ravel()])
+        spacing = float(np.nanmedian(steps)) if np.isfinite(steps).any() else 0.0
         best = min(best, rms / spacing if spacing > 0 else math.inf)
     return best
 
@@ -1094,7 +1103,7 @@ def labelling_problem(corners_px: np.ndarray, target: Target, image_size=None) -
     steps = np.concatenate([np.linalg.norm(np.diff(grid, axis=1), axis=-1).ravel(),
                             np.linalg.norm(np.diff(grid, axis=0), axis=-1).ravel()])
     spacing = float(np.nanmedian(steps)) if np.isfinite(steps).any() else math.inf
-    if rms > MAX_UNFIT_SPACING * spacing and _radial_unfit(XY[found], corners_px[found], image_size) > MAX_UNFIT_SPACING:
+    if rms > MAX_UNFIT_SPACING * spacing and _radial_unfit(XY, corners_px, (ny, nx), image_size) > MAX_UNFIT_SPACING:
         return (f"{CONTRADICTS}: no projective view of its {nx}×{ny} corners fits the photo's (homography RMS "
                 f"{rms:.3g} px at a corner spacing of {spacing:.3g} px): a different board, or x_edges and "
                 "y_edges swapped")

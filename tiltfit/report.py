@@ -280,7 +280,15 @@ def _rounded_list(values, sigmas) -> str:
     if not values:
         return "none"
     sigmas = sigmas or [None] * len(values)
-    return "[" + ", ".join(with_sigma(v, s) if s else f"{v:.4g}" for v, s in zip(values, sigmas) if v != 0 or s) + "]"
+    pairs = list(zip(values, sigmas))
+    while pairs and pairs[-1][0] == 0 and not pairs[-1][1]:  # trailing zeros only: the others keep their places
+        pairs.pop()
+    return "[" + ", ".join(with_sigma(v, s) if s else f"{v:.4g}" for v, s in pairs) + "]"
+
+
+def _px(value) -> str:
+    """A σ in pixels to 2 significant digits, "unknown" where CALIB.json has null."""
+    return "unknown" if value is None else f"{value:.2g} px"
 
 
 def _board_text(board: dict) -> str:
@@ -310,8 +318,8 @@ def _projection_uncertainty_plot(calib: dict, save, plt) -> None:
     ax.set_aspect("equal")
     fig.colorbar(im, ax=ax, shrink=0.8, label="σ of the projection (px)")
     model = (calib.get("sigma_model") or {}).get("name", "classical")
-    ax.set_title(f"Projection uncertainty ({model} error model)\nmedian {pu['median_px']:.2g} px, "
-                 f"worst {pu['worst_px']:.2g} px", fontsize=9, loc="left")
+    ax.set_title(f"Projection uncertainty ({model} error model)\nmedian {_px(pu.get('median_px'))}, "
+                 f"worst {_px(pu.get('worst_px'))}", fontsize=9, loc="left")
     save(fig, "projection_uncertainty.png")
 
 
@@ -323,8 +331,8 @@ def _uncertainty_lines(calib: dict) -> list:
         extra = f", design effect {model['design_effect']:.2g}" if model.get("design_effect") else ""
         out.append(f"- σ error model: {model.get('name')}{extra}")
     pu = calib.get("projection_uncertainty")
-    if pu and pu.get("median_px") is not None:
-        out.append(f"- projection uncertainty: median {pu['median_px']:.2g} px, worst {pu['worst_px']:.2g} px")
+    if pu:
+        out.append(f"- projection uncertainty: median {_px(pu.get('median_px'))}, worst {_px(pu.get('worst_px'))}")
     cv = calib.get("cross_validation")
     for pair in (cv or {}).get("pairs", []):
         a, b = pair["groups"]

@@ -128,6 +128,7 @@ def test_report_without_projection_uncertainty_numbers(tmp_path):
              "projection_uncertainty": {"median_px": None, "worst_px": None, "grid_x_px": [10.0, 50.0],
                                         "grid_y_px": [10.0, 40.0], "sigma_px": [[None, None], [None, None]]}}
     calib = validate_calib("calib.json", calib)
-    files = write_report(calib, str(tmp_path))
+    write_report(calib, str(tmp_path))
     text = (tmp_path / "report.md").read_text()
-    assert "report.md" in files and "projection uncertainty" in text, f"the report says what it knows: {text}"
+    assert "projection uncertainty: median unknown, worst unknown" in text, f"the report says what it knows: {text}"
+    assert (tmp_path / "projection_uncertainty.png").is_file(), "the (empty) map is drawn with its title"

@@ -21,8 +21,6 @@ Lengths in mm in the target frame (X along columns, Y along rows, Z = 0 the nomi
 """
 from __future__ import annotations
 
-
-import numpy as np
 import torch
 
 from .model import Observations
@@ -167,14 +165,3 @@ def describe_board(entries: list) -> str:
     return f"{chosen['model']}" + (f" (held-out error per corner: {scored}; a richer model must gain "
                                    f"{100 * BOARD_TOLERANCE:g} %)" if scored else "")
 
-
-def board_rms_without(result, obs: Observations) -> np.ndarray | None:
-    """(V, N, 2) residuals of `result`'s camera with the nominal (flat) board instead of its fitted one, or None
-    without a fitted board: what the board model explains (report figures)."""
-    board = getattr(result, "board", None)
-    if board is None or board.model == "flat":
-        return None
-    from .model import residuals
-
-    with torch.no_grad():
-        return residuals(result.camera, with_points(obs, board.nominal_mm)).corners_px.numpy()

@@ -287,8 +287,8 @@ def drop_inconsistent(corners: np.ndarray, target: CharucoTarget, tolerance: flo
 
 
 def _merge(opencv: np.ndarray, placed: np.ndarray, target: CharucoTarget):
-    """Union of OpenCV's named corners and the placed lattice's, and which named them (None: they disagree:
-    a corner both name lies more than a quarter of a square apart, or neither found 4)."""
+    """Union of OpenCV's named corners and the placed lattice's, and which named them (None: neither found 4).
+    Where they disagree (a corner both name more than a quarter of a square apart) OpenCV's alone are kept."""
     fo, fp = np.isfinite(opencv).all(1), np.isfinite(placed).all(1)
     if fo.sum() < 4 and fp.sum() < 4:
         return np.full_like(opencv, np.nan), None
@@ -540,14 +540,12 @@ def _detect_charuco(image, target, measure_blur, use_opencv, refine_radius_max) 
     N = target.n_points
     corners = opencv_corners(gray, target) if use_opencv else np.full((N, 2), np.nan)
     timings["opencv"] = time.perf_counter() - t0
-    n_opencv = int(np.isfinite(corners).all(1).sum())
     t1 = time.perf_counter()
     placed, message = _placed_lattice(gray, levels, target, refine_radius_max)
     timings["lattice"] = time.perf_counter() - t1
     corners, source = _merge(corners, placed, target)
     if source is None:
-        return Detection((W, H), corners, np.full(N, np.nan), np.full(N, np.nan), False,
-                         message if n_opencv < 4 else "OpenCV's ids and the lattice placement disagree", 0, timings)
+        return Detection((W, H), corners, np.full(N, np.nan), np.full(N, np.nan), False, message, 0, timings)
     t2 = time.perf_counter()
     corners = refine_charuco(gray, target, corners, refine_radius_max)
     drop_inconsistent(corners, target)

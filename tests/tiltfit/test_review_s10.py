@@ -132,3 +132,47 @@ def test_report_without_projection_uncertainty_numbers(tmp_path):
     text = (tmp_path / "report.md").read_text()
     assert "projection uncertainty: median unknown, worst unknown" in text, f"the report says what it knows: {text}"
     assert (tmp_path / "projection_uncertainty.png").is_file(), "the (empty) map is drawn with its title"
+
+
+# --- the distortion about the lens axis: closed forms the review checked -------------------------------------
+def test_opencv_tilt_round_trip_and_axis():
+    """R(τx, τy) of `opencv_tilt(θL, φ)` has the lens axis (sin θL sin φ, −sin θL cos φ, cos θL) as its third column,
+    and `lens_tilt_from_opencv` gives (θL, φ) back with φ in (−90°, 90°] (the opposite tilt about the same axis
+    otherwise), over both signs of both angles."""
+    from renderer.cameras.lens import lens_tilt_from_opencv, opencv_tilt, tilt_rotation
+
+    for th in np.radians([-12.0, -3.0, 4.0, 11.0]):
+        for ph in np.radians([-89.0, -40.0, 0.0, 30.0, 90.0]):
+            R = tilt_rotation(*opencv_tilt(th, ph))
+            n = np.array([math.sin(th) * math.sin(ph), -math.sin(th) * math.cos(ph), math.cos(th)])
+            assert np.allclose(R[:, 2], n, atol=1e-15) and np.allclose(R @ R.T, np.eye(3), atol=1e-15), \
+                f"θL {math.degrees(th)}, φ {math.degrees(ph)}: R's third column is the lens axis, R a rotation"
+            th2, ph2 = lens_tilt_from_opencv(*opencv_tilt(th, ph))
+            assert -math.pi / 2 < ph2 <= math.pi / 2 + 1e-12, f"φ {math.degrees(ph2)}° outside (−90°, 90°]"
+            same = abs(th2 - th) < 1e-12 and abs(ph2 - ph) < 1e-12
+            flipped = abs(th2 + th) < 1e-12 and abs(abs(ph2 - ph) - math.pi) < 1e-12
+            assert same or flipped, f"({math.degrees(th)}, {math.degrees(ph)})° came back as " \
+                f"({math.degrees(th2)}, {math.degrees(ph2)})°"
+
+
+def test_lens_axis_distortion_at_zero_tilt_is_the_sensor_model():
+    """θF = 0 (so θL = 0) with the tilt axis turned: the lens-axis camera (its frame computed, no shortcut) projects
+    as the distortion about the principal point, tangential terms included; a small tilt moves the points."""
+    import torch
+
+    from renderer.cameras import LensCamera
+
+    def camera(centre, theta_F):
+        return LensCamera(2, (1368, 912), 0.026, 55.0, 620.0, 18.0, theta_F, T_mm=[[10.0, -5.0, 600.0]] * 2,
+                          principal_point_px=(690.0, 449.0), distortion=[-0.12, 0.02, 4e-4, -3e-4, 0.01], phi=0.9,
+                          distortion_centre=centre)
+
+    X = torch.tensor([[x, y, 0.0] for x in (-150.0, 0.0, 150.0) for y in (-100.0, 0.0, 100.0)], dtype=torch.float64)
+    with torch.no_grad():
+        axis, sensor = camera("lens_axis", 0.0), camera("sensor", 0.0)
+        assert axis.distortion_frame is not None, "the lens-axis camera computes its frame"
+        diff = float((axis(X, with_blur=False)[0] - sensor(X, with_blur=False)[0]).abs().max())
+        moved = float((camera("lens_axis", 0.3)(X, with_blur=False)[0]
+                       - camera("sensor", 0.3)(X, with_blur=False)[0]).abs().max())
+    assert diff < 1e-9, f"θL = 0: the two centres differ by {diff:.2g} px"
+    assert moved > 0.05, f"θF 0.3 rad: the lens axis should move the distorted points ({moved:.2g} px)"

@@ -46,9 +46,23 @@ def _K(calib: dict) -> np.ndarray:
     return np.array([[F, 0.0, cx], [0.0, F, cy], [0.0, 0.0, 1.0]])
 
 
+def _theta_L_deg(calib: dict) -> float | None:
+    """The lens tilt θL, degrees: the file's `theta_L_deg`, or where a hand-made file leaves it out, that of θF, w
+    and U (tan θL = w tan θF / (U + w), as `tiltfit.calibfile.camera_from_calib` builds the lens); None unknown."""
+    theta_L = calib.get("theta_L_deg")
+    if theta_L is not None:
+        return theta_L
+    th, w, U = calib.get("theta_F_deg"), calib.get("w_mm"), calib.get("U_mm")
+    if th is None or w is None or U is None:
+        return None
+    from renderer.optics import theta_L_from_theta_F
+
+    return math.degrees(float(theta_L_from_theta_F(math.radians(th), w, U)))
+
+
 def _tilt(calib: dict) -> tuple[float, float] | None:
     """OpenCV's (τx, τy) of a calibration whose distortion is about a tilted lens's axis, else None."""
-    theta_L = calib.get("theta_L_deg")
+    theta_L = _theta_L_deg(calib)
     if calib.get("distortion_centre") != "lens_axis" or not theta_L:
         return None
     from renderer.cameras import opencv_tilt
@@ -87,21 +101,22 @@ def opencv_note(calib: dict, tool: str = "OpenCV") -> str:
     cannot represent ('' if nothing)."""
     parts = []
     th = calib.get("theta_F_deg")
-    axis = calib.get("distortion_centre") == "lens_axis" and bool(calib.get("theta_L_deg"))
+    theta_L = _theta_L_deg(calib)
+    axis = calib.get("distortion_centre") == "lens_axis" and bool(theta_L)
     if axis and tool == "OpenCV":
-        parts.append(f"the lens is tilted (theta_L = {calib.get('theta_L_deg'):.6g} deg about the axis at "
+        parts.append(f"the lens is tilted (theta_L = {theta_L:.6g} deg about the axis at "
                      f"{calib.get('tilt_axis_deg') or 0.0:.6g} deg) with its distortion about its own axis: OpenCV's "
                      "tilted model (tau_x, tau_y) holds that exactly (camera frame = the lens frame, principal point "
                      "= where the lens axis meets the sensor); the tilted plane of focus (theta_F = "
                      f"{'unknown' if th is None else format(th, '.6g')} deg) "
                      "and its depth of field are not represented")
     elif axis:
-        parts.append(f"the lens is tilted (theta_L = {calib.get('theta_L_deg'):.6g} deg) and its distortion is "
+        parts.append(f"the lens is tilted (theta_L = {theta_L:.6g} deg) and its distortion is "
                      f"about its own axis: {tool} has no tilted model, so this distortion about the principal point "
                      "only approximates the projection; the tilted plane of focus is not represented")
     elif th is not None and abs(th) > 1e-9:
         parts.append(f"the lens is tilted (plane of focus tilted by theta_F = {th:.4g} deg, lens tilt theta_L = "
-                     f"{calib.get('theta_L_deg')} deg): {tool} has no tilted-lens model (OpenCV's tilted-sensor "
+                     f"{'unknown' if theta_L is None else format(theta_L, '.4g')} deg): {tool} has no tilted-lens model (OpenCV's tilted-sensor "
                      "tau is a different geometry and is 0 here); the projection of corners is still exact, the "
                      "tilted depth of field is not represented")
     if calib.get("U_mm") is not None or calib.get("d_mm") is not None:

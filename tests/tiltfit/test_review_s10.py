@@ -176,3 +176,39 @@ def test_lens_axis_distortion_at_zero_tilt_is_the_sensor_model():
                        - camera("sensor", 0.3)(X, with_blur=False)[0]).abs().max())
     assert diff < 1e-9, f"θL = 0: the two centres differ by {diff:.2g} px"
     assert moved > 0.05, f"θF 0.3 rad: the lens axis should move the distorted points ({moved:.2g} px)"
+
+
+def test_export_of_a_lens_axis_calibration_without_theta_L_deg():
+    """A hand-made CALIB.json (theta_L_deg is not among the keys a start needs) with the distortion about the lens
+    axis, θF and U: `camera_from_calib` tilts the distortion's frame by the θL of θF, so the export must too
+    (it wrote OpenCV's plain model, and a note that the projection was exact)."""
+    import cv2
+    import torch
+
+    from renderer import Lens
+    from renderer.cameras import EOS_6D, LensCamera
+    from tiltfit.calibfile import camera_from_calib, validate_calib
+    from tiltfit.export import opencv_text
+
+    sensor = EOS_6D.binned(4)
+    lens = Lens.from_tilt(55.39, 45.0, math.radians(4.0), 16.0, sensor=sensor, phi=math.radians(25.0),
+                          principal_point_px=(690.3, 450.8), distortion=(-0.12, 0.02), distortion_centre="lens_axis")
+    cam = LensCamera.from_lens(lens, 1, T_mm=[[10.0, -20.0, 600.0]])
+    s = cam.summary()
+    data = {"pixel_pitch_mm": cam.pixel_pitch_mm, "image_size_px": list(cam.image_size_px),
+            "principal_point_px": s["principal_point_px"], "w_mm": s["w_mm"], "U_mm": s["U_mm"], "d_mm": s["d_mm"],
+            "theta_F_deg": s["theta_F_deg"], "tilt_axis_deg": s["tilt_axis_deg"], "distortion_centre": "lens_axis",
+            "distortion": {"model": "brown_conrady", "coefficients": s["distortion"]},
+            "views": [{"R": np.eye(3).tolist(), "T_mm": [10.0, -20.0, 600.0]}]}
+    data = validate_calib("calib.json", data)
+    X = np.array([[x, y, 0.0] for x in (-150.0, 0.0, 150.0) for y in (-100.0, 0.0, 100.0)])
+    with torch.no_grad():
+        ours = camera_from_calib(data)(torch.as_tensor(X), with_blur=False)[0][0].numpy()
+    fs = cv2.FileStorage(opencv_text(data), cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
+    K, dist = fs.getNode("camera_matrix").mat(), fs.getNode("distortion_coefficients").mat()
+    rv, tv, note = fs.getNode("rvecs").mat(), fs.getNode("tvecs").mat(), fs.getNode("tiltfit_note").string()
+    fs.release()
+    theirs = cv2.projectPoints(X, rv[0], tv[0], K, dist)[0].reshape(-1, 2)
+    worst = float(np.abs(theirs - ours).max())
+    assert worst < 0.01, f"cv2.projectPoints of the export differs from the file's camera by {worst:.2g} px"
+    assert "tau" in note and "exact" in note, f"the note names OpenCV's tilted model: {note}"

@@ -295,7 +295,7 @@ def _board_text(board: dict) -> str:
     """The fitted board in one line, numbers rounded to their σ."""
     model = board.get("model", "flat")
     if model == "warp":
-        par, sig = board.get("parameters", {}), board.get("sigma", {})
+        par, sig = board.get("parameters") or {}, board.get("sigma") or {}
         return "warp: " + ", ".join(f"{k} {with_sigma(v, sig.get(k))}" for k, v in par.items())
     if model == "free":
         return (f"free (every point): moved up to {board.get('max_offset_in_plane_mm', 0):.2g} mm in the board's "

@@ -212,3 +212,15 @@ def test_export_of_a_lens_axis_calibration_without_theta_L_deg():
     worst = float(np.abs(theirs - ours).max())
     assert worst < 0.01, f"cv2.projectPoints of the export differs from the file's camera by {worst:.2g} px"
     assert "tau" in note and "exact" in note, f"the note names OpenCV's tilted model: {note}"
+
+
+def test_report_board_text_with_null_sigma():
+    """A warp board whose `sigma` is null (validate_calib accepts it: σ is optional) is written without σ, not an
+    AttributeError."""
+    from tiltfit.calibfile import _check_board
+    from tiltfit.report import _board_text
+
+    board = {"model": "warp", "parameters": {"sag_x_mm": 0.5, "sag_y_mm": -0.2, "scale_y_minus_1": 1e-4},
+             "sigma": None}
+    _check_board("calib.json", board)
+    assert _board_text(board) == "warp: sag_x_mm 0.5, sag_y_mm -0.2, scale_y_minus_1 0.0001", _board_text(board)

@@ -421,6 +421,7 @@ def _check_extras(path: str, data: dict) -> None:
         if data.get(key) is not None and not isinstance(data[key], str):
             raise CalibFileError(f"{path}: {key}: expected a name, got {describe(data[key])}")
     _check_board(path, data.get("board"))
+    _check_uncertainty_extras(path, data)
     first = None
     for i, view in enumerate(views):
         if not isinstance(view.get("image", ""), str):
@@ -470,6 +471,38 @@ def _check_board(path: str, board) -> None:
         for key in ("points_mm", "sigma_points_mm"):
             if board.get(key) is not None:
                 _point_list(path, f"board.{key}", board[key], 3)
+
+
+def _check_uncertainty_extras(path: str, data: dict) -> None:
+    """`sigma_model` and `cross_validation` where present (what `tiltfit.report` reads of them): objects, a
+    name, numbers where numbers are written (null where not finite), and per pair its two groups and verdict."""
+    model = data.get("sigma_model")
+    if model is not None:
+        if not isinstance(model, dict):
+            raise CalibFileError(f"{path}: sigma_model: expected an object, got {describe(model)}")
+        if model.get("name") is not None and not isinstance(model["name"], str):
+            raise CalibFileError(f"{path}: sigma_model.name: expected a name, got {describe(model['name'])}")
+        for key in ("design_effect", "ratio_min", "ratio_max", "n_views"):
+            _optional_number(path, f"sigma_model.{key}", model.get(key), nonnegative=True)
+    cv = data.get("cross_validation")
+    if cv is None:
+        return
+    if not isinstance(cv, dict):
+        raise CalibFileError(f"{path}: cross_validation: expected an object, got {describe(cv)}")
+    pairs = cv.get("pairs", [])
+    if not isinstance(pairs, list):
+        raise CalibFileError(f"{path}: cross_validation.pairs: expected a list, got {describe(pairs)}")
+    for i, pair in enumerate(pairs):
+        key = f"cross_validation.pairs[{i}]"
+        if not isinstance(pair, dict):
+            raise CalibFileError(f"{path}: {key}: expected an object, got {describe(pair)}")
+        groups = pair.get("groups")
+        if not (isinstance(groups, list) and len(groups) == 2):
+            raise CalibFileError(f"{path}: {key}.groups: expected the two groups' numbers, got {describe(groups)}")
+        for name in ("median_px", "worst_px", "predicted_median_px", "predicted_worst_px", "rms_ratio"):
+            _optional_number(path, f"{key}.{name}", pair.get(name), nonnegative=True)
+        if not isinstance(pair.get("verdict"), str):
+            raise CalibFileError(f"{path}: {key}.verdict: expected a sentence, got {describe(pair.get('verdict'))}")
 
 
 def camera_from_calib(data: dict, blur_model: str | None = None) -> TiltLensCamera:

@@ -337,7 +337,7 @@ def _uncertainty_lines(calib: dict) -> list:
     for pair in (cv or {}).get("pairs", []):
         a, b = pair["groups"]
         pred = pair.get("predicted_median_px")
-        out.append(f"- cross-validation, groups {a} and {b}: difference median {pair['median_px']:.2g} px against "
-                   + (f"{pred:.2g} px predicted" if pred is not None else "no prediction")
+        out.append(f"- cross-validation, groups {a} and {b}: difference median {_px(pair.get('median_px'))} against "
+                   + (f"{_px(pred)} predicted" if pred is not None else "no prediction")
                    + f": {pair['verdict'].split(':')[0]}")
     return out

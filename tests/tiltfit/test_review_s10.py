@@ -224,3 +224,45 @@ def test_report_board_text_with_null_sigma():
              "sigma": None}
     _check_board("calib.json", board)
     assert _board_text(board) == "warp: sag_x_mm 0.5, sag_y_mm -0.2, scale_y_minus_1 0.0001", _board_text(board)
+
+
+@pytest.mark.parametrize("extra, field", [
+    ({"sigma_model": "views"}, "sigma_model"),
+    ({"sigma_model": {"name": "views", "design_effect": "x"}}, "sigma_model.design_effect"),
+    ({"cross_validation": "yes"}, "cross_validation"),
+    ({"cross_validation": {"pairs": [{}]}}, "cross_validation.pairs[0].groups"),
+    ({"cross_validation": {"pairs": [{"groups": [1, 2], "median_px": "0.1", "verdict": "ok"}]}},
+     "cross_validation.pairs[0].median_px"),
+    ({"cross_validation": {"pairs": [{"groups": [1, 2], "median_px": 0.1, "verdict": 3}]}},
+     "cross_validation.pairs[0].verdict"),
+])
+def test_report_refuses_malformed_uncertainty_extras_in_one_line(tmp_path, capsys, extra, field):
+    """`sigma_model` and `cross_validation`, which `tiltfit report` reads, are checked by validate_calib like the
+    other extras: a malformed one is one line naming the file and the field (it was a traceback)."""
+    import json
+
+    from tiltfit.cli import main
+
+    g = np.random.default_rng(0)
+    calib = {"image_size_px": [64, 48], "pixel_pitch_mm": 0.01, "w_mm": 5.0, "U_mm": 600.0, "d_mm": 2.0,
+             "theta_F_deg": 0.0, "principal_point_px": [31.5, 23.5], "rms_reprojection_px": 0.1,
+             "views": [{"image": "a.png", "R": np.eye(3).tolist(), "T_mm": [0, 0, 500],
+                        "corners_px": g.uniform(5, 40, (6, 2)).tolist(),
+                        "residuals_px": (0.1 * g.normal(size=(6, 2))).tolist(), "rms_reprojection_px": 0.1}]}
+    path = tmp_path / "calib.json"
+    path.write_text(json.dumps({**calib, **extra}))
+    rc = main(["report", str(path), "-o", str(tmp_path / "rep"), "-q"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err.startswith(f"tiltfit: {path}: {field}:") and "\n" not in err, f"rc {rc}: {err!r}"
+    assert not (tmp_path / "rep").exists(), "no report written"
+    path.write_text(json.dumps(calib))
+    assert main(["report", str(path), "-o", str(tmp_path / "rep"), "-q"]) == 0, "the file without the extra"
+
+
+def test_report_of_a_cross_validation_without_a_finite_median(tmp_path):
+    """A pair whose difference had no finite pixel (median null, as `calib_dict` writes NaN) reads 'unknown'."""
+    from tiltfit.report import _uncertainty_lines
+
+    lines = _uncertainty_lines({"cross_validation": {"pairs": [{"groups": [1, 2], "median_px": None,
+                                                                "predicted_median_px": 0.2, "verdict": "x: y"}]}})
+    assert lines == ["- cross-validation, groups 1 and 2: difference median unknown against 0.2 px predicted: x"], lines

@@ -474,8 +474,24 @@ def _check_board(path: str, board) -> None:
 
 
 def _check_uncertainty_extras(path: str, data: dict) -> None:
-    """`sigma_model` and `cross_validation` where present (what `tiltfit.report` reads of them): objects, a
-    name, numbers where numbers are written (null where not finite), and per pair its two groups and verdict."""
+    """`sigma_model`, `cross_validation` and the map of `projection_uncertainty` where present (what
+    `tiltfit.report` reads of them): objects, a name, numbers where numbers are written (null where not finite),
+    per pair its two groups and verdict, and a σ map of one row per grid_y_px and one column per grid_x_px."""
+    pu = data.get("projection_uncertainty")
+    if isinstance(pu, dict) and pu.get("sigma_px") is not None:
+        shape = []
+        for key in ("grid_y_px", "grid_x_px"):
+            grid = pu.get(key)
+            if not (isinstance(grid, list) and grid and all(is_finite_number(v) for v in grid)):
+                raise CalibFileError(f"{path}: projection_uncertainty.{key}: expected a list of pixel positions, "
+                                     f"got {describe(grid)}")
+            shape.append(len(grid))
+        sigma = pu["sigma_px"]
+        if not (isinstance(sigma, list) and len(sigma) == shape[0]
+                and all(isinstance(row, list) and len(row) == shape[1]
+                        and all(v is None or (is_finite_number(v) and v >= 0) for v in row) for row in sigma)):
+            raise CalibFileError(f"{path}: projection_uncertainty.sigma_px: expected {shape[0]} rows of {shape[1]} "
+                                 "non-negative numbers or null (grid_y_px by grid_x_px)")
     model = data.get("sigma_model")
     if model is not None:
         if not isinstance(model, dict):

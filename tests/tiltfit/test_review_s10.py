@@ -235,6 +235,14 @@ def test_report_board_text_with_null_sigma():
      "cross_validation.pairs[0].median_px"),
     ({"cross_validation": {"pairs": [{"groups": [1, 2], "median_px": 0.1, "verdict": 3}]}},
      "cross_validation.pairs[0].verdict"),
+    ({"projection_uncertainty": {"sigma_px": "x", "grid_x_px": [10.0, 50.0], "grid_y_px": [10.0, 40.0]}},
+     "projection_uncertainty.sigma_px"),
+    ({"projection_uncertainty": {"sigma_px": [[0.1, 0.2], [0.1, 0.1]], "grid_y_px": [10.0, 40.0]}},
+     "projection_uncertainty.grid_x_px"),
+    ({"projection_uncertainty": {"sigma_px": [[0.1, 0.2], [0.1, 0.1]], "grid_x_px": [10.0, 50.0],
+                                 "grid_y_px": [10.0]}}, "projection_uncertainty.sigma_px"),
+    ({"projection_uncertainty": {"sigma_px": [[0.1], [0.2, 0.3]], "grid_x_px": [10.0, 50.0],
+                                 "grid_y_px": [10.0, 40.0]}}, "projection_uncertainty.sigma_px"),
 ])
 def test_report_refuses_malformed_uncertainty_extras_in_one_line(tmp_path, capsys, extra, field):
     """`sigma_model` and `cross_validation`, which `tiltfit report` reads, are checked by validate_calib like the

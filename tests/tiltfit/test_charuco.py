@@ -168,6 +168,7 @@ def test_better_than_opencv_on_sharp_views(blurred_partial_views):
     assert len(ours) >= 20 and rms_o < 0.5 * rms_t, f"RMS ours {rms_o:.3f} px, OpenCV {rms_t:.3f} px"
 
 
+@pytest.mark.slow  # the blurred_partial_views fixture renders and detects ten views (~30 s of CPU)
 def test_blur_measured_between_markers(blurred_partial_views):
     """The blur width at the corners (bands stopping at the markers' borders) is the rendered disc within 10 %."""
     for (v, b), (img, truth, sq, det) in blurred_partial_views.items():
@@ -176,6 +177,7 @@ def test_blur_measured_between_markers(blurred_partial_views):
             assert abs(ratio - 1) < 0.1, f"blur {b}: measured / rendered = {ratio:.3f}"
 
 
+@pytest.mark.slow  # the blurred_partial_views fixture renders and detects ten views (~30 s of CPU)
 def test_detect_board_dispatches_on_the_target_type(blurred_partial_views):
     img, truth, sq, det = blurred_partial_views[(PARTIAL[0], 0.1)]
     d = detect_board(img, TARGET, measure_blur=False)
@@ -262,6 +264,7 @@ def test_ray_traced_half_square_blur_within_005_px():
     assert 0.5 * rms_floor <= rms <= 2.0 * rms_floor, f"RMS error {rms:.4f} px, noise floor {rms_floor:.4f} px"
 
 
+@pytest.mark.slow  # the blurred_partial_views fixture renders and detects ten views (~30 s of CPU)
 def test_tiltfit_detect_writes_ids_as_positions_and_nulls(tmp_path, blurred_partial_views):
     """`tiltfit detect` on a photo of a third of the board: a DET file with every corner of the board, the seen
     ones at their ids' positions and null elsewhere, which `read_det` accepts back."""

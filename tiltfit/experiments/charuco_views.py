@@ -8,8 +8,7 @@ it looks at (x, y) mm or None for the board's centre, roll °).
 from __future__ import annotations
 
 import numpy as np
-from renderer import Lens
-from renderer.cameras.lens import Sensor
+from renderer import Lens, Sensor
 
 from ..synth import look_at_pose, observe, plane_homography, render_constant_blur
 from ..target import target_from_dict

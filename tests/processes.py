@@ -1,12 +1,30 @@
-"""Processes a test started, read from /proc: whether one still runs, and the stragglers killed after a grace
-period. Shared by tests/renderer/test_group_interrupt.py and tests/renderer/test_fuzz_commands.py (which check
-that `renderer render`'s worker processes end with it). Standard library only.
+"""Processes a test started, read from /proc (and pgrep): a process's children, whether one is a
+multiprocessing worker, whether it still runs, and the stragglers killed after a grace period. Shared by
+tests/renderer/test_group_interrupt.py, tests/renderer/test_fuzz_commands.py and
+benchmarks/probe_group_interrupt.py (which check that `renderer render`'s worker processes end with it).
+Standard library only.
 """
 from __future__ import annotations
 
 import os
 import signal
+import subprocess
 import time
+
+
+def children(pid: int) -> set[int]:
+    """The ids of the child processes of `pid` (pgrep -P)."""
+    out = subprocess.run(["pgrep", "-P", str(pid)], capture_output=True, text=True).stdout
+    return {int(x) for x in out.split()}
+
+
+def is_worker(pid: int) -> bool:
+    """Whether process `pid` is a multiprocessing (spawn) worker."""
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            return b"spawn_main" in f.read()
+    except OSError:
+        return False
 
 
 def running(pid: int) -> bool:

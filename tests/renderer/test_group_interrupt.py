@@ -15,25 +15,14 @@ import pytest
 from renderer.render import _cores
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from processes import kill_left_running  # noqa: E402  (shared with tests/renderer/test_fuzz_commands.py)
+from processes import children as _children  # noqa: E402  (shared with benchmarks/probe_group_interrupt.py)
+from processes import is_worker as _is_worker  # noqa: E402
+from processes import kill_left_running  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SCENE = os.path.join(ROOT, "benchmarks", "scenes", "speed_thin_lens.json")
 
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(not hasattr(os, "killpg"), reason="POSIX process groups")]
-
-
-def _children(pid):
-    out = subprocess.run(["pgrep", "-P", str(pid)], capture_output=True, text=True).stdout
-    return {int(x) for x in out.split()}
-
-
-def _is_worker(pid):
-    try:
-        with open(f"/proc/{pid}/cmdline", "rb") as f:
-            return b"spawn_main" in f.read()
-    except OSError:
-        return False
 
 
 @pytest.mark.skipif(_cores() < 2, reason="needs worker processes (2 cores)")

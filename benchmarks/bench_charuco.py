@@ -30,31 +30,12 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks import results_io  # noqa: E402
-from renderer import Lens  # noqa: E402
-from renderer.cameras.lens import Sensor  # noqa: E402
 from tiltfit.charuco import CANCEL_BITS_BLUR, detect_charuco, opencv_corners, refine_model  # noqa: E402
-from tiltfit.synth import look_at_pose, observe, plane_homography, render_constant_blur, render_view  # noqa: E402
-from tiltfit.target import CharucoTarget  # noqa: E402
+from tiltfit.experiments.charuco_views import CAMERA, FULL, PARTIAL, TARGET, blurred_renders, pose  # noqa: E402
+from tiltfit.synth import render_view  # noqa: E402
 
-TARGET = CharucoTarget.board((12, 9), 15.0, 11.0, "DICT_5X5_100", margin=10.0)
-CAMERA = Lens(25.0, 560.0, 0.0, sensor=Sensor(320, 240, 0.03))
-PARTIAL = [((60.0, 30.0, -300.0), (50.0, 40.0), -20.0), ((150.0, 120.0, -280.0), (140.0, 100.0), 15.0),
-           ((160.0, 20.0, -300.0), (130.0, 35.0), 5.0), ((20.0, 130.0, -290.0), (45.0, 100.0), -8.0),
-           ((100.0, 60.0, -270.0), (90.0, 70.0), 30.0), ((140.0, 90.0, -310.0), (120.0, 60.0), -35.0)]
-FULL = [((40.0, -60.0, -540.0), None, 8.0), ((150.0, 120.0, -520.0), None, -10.0), ((-60.0, 40.0, -560.0), None, 20.0),
-        ((90.0, 160.0, -500.0), None, -25.0)]
 BLURS = (0.0, 0.1, 0.25, 0.4, 0.5)
 NOISE = 0.003
-
-
-def pose(view):
-    position, look, roll = view
-    return look_at_pose(TARGET, position, None if look is None else (*look, 0.0), roll_deg=roll)
-
-
-def _square_px(corners):
-    g = corners.reshape(*TARGET.grid_shape, 2)
-    return float(np.nanmedian(np.hypot(*np.diff(g, axis=1).transpose(2, 0, 1))))
 
 
 def _stats(found, err, sq, n_visible):
@@ -69,13 +50,8 @@ def blur_sweep(repeats: int, views) -> list:
     rng = np.random.default_rng(0)
     rows = []
     for kind, v in views:
-        R, T = pose(v)
-        truth = observe(TARGET, CAMERA, R, T)
-        vis = truth.in_image
-        sq = _square_px(np.where(vis[:, None], truth.corners_px, np.nan))
-        for b in BLURS:
-            img = render_constant_blur(TARGET, plane_homography(CAMERA, R, T), CAMERA.sensor.size_px, b * sq)
-            img = img + rng.normal(0.0, NOISE, img.shape)
+        for truth, sq, b, img in blurred_renders(v, BLURS, NOISE, rng):
+            vis = truth.in_image
             det, t_ours, _ = results_io.timed(lambda: detect_charuco(img, TARGET), repeats)
             floor = None
             if b > CANCEL_BITS_BLUR:  # the noise's floor: the model fit's Cramér–Rao bound at the found corners
@@ -110,13 +86,8 @@ def checker_reference(views) -> list:
     rng = np.random.default_rng(0)
     rows = []
     for kind, v in views:
-        R, T = pose(v)
-        truth = observe(checker, CAMERA, R, T)
-        vis = truth.in_image
-        sq = _square_px(np.where(vis[:, None], truth.corners_px, np.nan))
-        for b in BLURS:
-            img = render_constant_blur(checker, plane_homography(CAMERA, R, T), CAMERA.sensor.size_px, b * sq)
-            img = img + rng.normal(0.0, NOISE, img.shape)
+        for truth, sq, b, img in blurred_renders(v, BLURS, NOISE, rng, checker):
+            vis = truth.in_image
             xy, _, ok = refine_symmetric(img, truth.corners_px[vis], np.full(vis.sum(), min(0.4 * sq, 20.0)))
             e = np.hypot(*(xy - truth.corners_px[vis]).T)[ok]
             rows.append({"view": kind, "blur_squares": b, "rms_px": float(np.sqrt(np.mean(e ** 2))),

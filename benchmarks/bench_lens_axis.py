@@ -14,7 +14,6 @@ same poses and noise without any distortion (fitted without distortion), the acc
 """
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import statistics
@@ -28,7 +27,7 @@ sys.path.insert(0, os.path.join(ROOT, "tests", "tiltfit"))
 sys.path.insert(0, ROOT)
 
 import test_lens_axis_distortion as gen  # noqa: E402  (the independent capture generator)
-from results_io import add_output_options, markdown_only, save  # noqa: E402
+from results_io import run_benchmark, write_lines  # noqa: E402
 
 from tiltfit.calibfile import calib_dict  # noqa: E402
 from tiltfit.calibration import calibrate  # noqa: E402
@@ -111,17 +110,10 @@ def write_markdown(path: str, res: dict) -> None:
                      f"distortion: {statistics.median(e0):.4f}° (median |error| / σ {statistics.median(z0):.2f}); "
                      f"lens axis chosen in {chosen} of {len(sel)}; largest export round-trip error {rt:.2e} px.")
     lines.append("")
-    with open(path, "w", encoding="utf-8") as f:
-        f.write("\n".join(lines))
+    write_lines(path, lines)
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seeds", type=int, default=5)
-    add_output_options(ap, "lens_axis")
-    args = ap.parse_args(argv)
-    if markdown_only(args, write_markdown):
-        return 0
+def measure(args) -> dict:
     torch.set_num_threads(1)
     runs = []
     for phi in (0.0, 30.0):
@@ -130,8 +122,11 @@ def main(argv=None) -> int:
             r = runs[-1]
             print(f"φ {phi:g} seed {seed}: θL sensor {r['sensor']['theta_L_deg']:.4f}, auto "
                   f"{r['auto']['theta_L_deg']:.4f} ({r['auto']['centre']})", flush=True)
-    save(args.out, {"seeds": args.seeds, "runs": runs}, write_markdown)
-    return 0
+    return {"seeds": args.seeds, "runs": runs}
+
+
+def main(argv=None) -> int:
+    return run_benchmark(__doc__, "lens_axis", measure, write_markdown, argv, seeds=5)
 
 
 if __name__ == "__main__":

@@ -18,7 +18,6 @@ independent differences per parameter).
 """
 from __future__ import annotations
 
-import argparse
 import itertools
 import math
 import os
@@ -31,7 +30,7 @@ import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from real_detections import REAL, observations  # noqa: E402
-from results_io import add_output_options, markdown_only, save  # noqa: E402
+from results_io import run_benchmark, write_lines  # noqa: E402
 
 from tiltfit.calibration import calibrate  # noqa: E402
 from tiltfit.fit import FitOptions  # noqa: E402
@@ -213,24 +212,19 @@ def write_markdown(path: str, res: dict) -> None:
         lines.append(f"| {r['set']} (board {r.get('board', 'flat')}) | pooled f, cx, cy | {p['ours_classical']:.2f} | {p['ours_new']:.2f} | "
                      f"{p['opencv']:.2f} |")
     lines += ["", "Per-subset values and σ are in the JSON (`real[].table`).", ""]
-    with open(path, "w", encoding="utf-8") as f:
-        f.write("\n".join(lines))
+    write_lines(path, lines)
+
+
+def measure(args) -> dict:
+    torch.set_num_threads(1)
+    return {"monte_carlo": monte_carlo(args.draws),
+            "real": [real_subsets("gopro_wide", 0.00155, "rational", 3),
+                     real_subsets("industrial_ds1", 0.0048, "opencv5", 2),
+                     real_subsets("industrial_ds1", 0.0048, "opencv5", 2, board="auto")]}
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--draws", type=int, default=60)
-    add_output_options(ap, "sigma_honesty")
-    args = ap.parse_args(argv)
-    if markdown_only(args, write_markdown):
-        return 0
-    torch.set_num_threads(1)
-    res = {"monte_carlo": monte_carlo(args.draws),
-           "real": [real_subsets("gopro_wide", 0.00155, "rational", 3),
-                    real_subsets("industrial_ds1", 0.0048, "opencv5", 2),
-                    real_subsets("industrial_ds1", 0.0048, "opencv5", 2, board="auto")]}
-    save(args.out, res, write_markdown)
-    return 0
+    return run_benchmark(__doc__, "sigma_honesty", measure, write_markdown, argv, draws=60)
 
 
 if __name__ == "__main__":

@@ -36,8 +36,8 @@ def detect_one(path: str, target) -> dict:
         return {"no_board": e.problem}
 
 
-def read_cache(folder: str) -> dict:
-    with open(os.path.join(folder, CACHE_NAME), encoding="utf-8") as f:
+def read_cache(folder: str, name: str = CACHE_NAME) -> dict:
+    with open(os.path.join(folder, name), encoding="utf-8") as f:
         return json.load(f)
 
 
@@ -67,15 +67,19 @@ if __name__ == "__main__":
     sys.exit(main())
 
 
-def observations(folder: str, pixel_pitch_mm: float):
-    """(Observations of the photos with a board from the cache, names of those without)."""
+def observations(folder: str, pixel_pitch_mm: float, cache_name: str = CACHE_NAME):
+    """(Observations of the photos with a board from the cache, names of those without).
+
+    `cache_name`: this module's cache, or another of the same layout whose photos without a board are null
+    (corners_opencv.json, benchmarks/bench_real_calib.py's cv2.findChessboardCornersSB corners).
+    """
     import numpy as np
 
     from tiltfit.model import Observations
     from tiltfit.target import load_target
 
     target = load_target(os.path.join(folder, "target.json"))
-    cache = read_cache(folder)
+    cache = {n: d or {"no_board": "no board found"} for n, d in read_cache(folder, cache_name).items()}
     names = [n for n in sorted(cache) if "no_board" not in cache[n]]
     corners = np.array([[c if c is not None else [np.nan, np.nan] for c in cache[n]["corners_px"]] for n in names],
                        dtype=np.float64)

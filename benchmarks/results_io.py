@@ -39,6 +39,27 @@ def save(out: str, res: dict, write_markdown) -> None:
         print(f.read())
 
 
+def write_lines(path: str, lines) -> None:
+    """OUT.md from its lines (UTF-8)."""
+    with open(path, "w", encoding="utf-8") as f:
+        f.write("\n".join(lines))
+
+
+def run_benchmark(doc: str, stem: str, measure, write_markdown, argv=None, **int_options) -> int:
+    """A benchmark's main: parse `--NAME N` for each of `int_options` (name=default), --out and --markdown-only;
+    with --markdown-only rewrite OUT.md, else `save` what `measure(args)` returns. Returns the exit status (0)."""
+    import argparse
+
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
+    for name, default in int_options.items():
+        ap.add_argument("--" + name.replace("_", "-"), type=int, default=default)
+    add_output_options(ap, stem)
+    args = ap.parse_args(argv)
+    if not markdown_only(args, write_markdown):
+        save(args.out, measure(args), write_markdown)
+    return 0
+
+
 def timed(fn, repeats: int, samples: bool = False):
     """(last result, median wall-clock s, median process CPU s) of `repeats` calls of fn(): medians, because
     timings on a shared 2-core machine are noisy; with `samples`, the list of CPU seconds of every call too."""

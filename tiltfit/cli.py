@@ -482,9 +482,11 @@ def cmd_compare(args) -> int:
         except ValueError as e:
             raise _as_cli_error(path, e) from None
     try:
-        res = compare(*data)
+        res = compare(*data, rotation=not args.no_rotation)
     except CompareError as e:
         raise CliError(args.b, str(e)) from None
+    if res.get("warning"):
+        print(f"tiltfit: warning: {args.a}, {args.b}: {res['warning']}", file=sys.stderr, flush=True)
     print("\n".join(summary_lines(res, args.a, args.b)))
     if args.output:
         try:
@@ -632,6 +634,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("b", metavar="B.json")
     p.add_argument("-o", "--output", metavar="DIR", help="write compare.png (difference and predicted maps) and "
                                                           "compare.json")
+    p.add_argument("--no-rotation", action="store_true",
+                   help="compare without the best-fitting rotation between the camera frames (which absorbs a "
+                        "common shift of the principal point): such a shift then counts in full")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=cmd_compare)
 

@@ -155,11 +155,14 @@ def _rotation_jacobian(theta: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     return _jac(lambda w: _project(theta, v + torch.cross(w.expand_as(v), v, dim=-1)).reshape(-1), w0)
 
 
-def projection_sigma(theta: torch.Tensor, cov: torch.Tensor, image_size_px, nx: int = 32, ny: int | None = None):
+def projection_sigma(theta: torch.Tensor, cov: torch.Tensor, image_size_px, nx: int = 32, ny: int | None = None,
+                     compensate_rotation: bool = True):
     """σ of the projection across the image, rotation-compensated (module docstring).
 
     Args:
         theta: (11,) intrinsics (`INTRINSIC_NAMES`); cov: (11, 11) their covariance.
+        compensate_rotation: remove the part a rotation of the camera frame explains [True]; False: the whole
+            σ of the projection of a fixed camera-frame direction (a principal point's σ counts in full).
     Returns:
         (xs, ys, sigma (ny, nx) px; NaN where the distortion cannot be inverted).
     """
@@ -172,8 +175,9 @@ def projection_sigma(theta: torch.Tensor, cov: torch.Tensor, image_size_px, nx: 
     if int(ok.sum()) >= 3:
         vo = v[ok]
         G = _jac(lambda t: _project(t, vo).reshape(-1), theta)                                 # (2n, 11)
-        Gw = _rotation_jacobian(theta, vo)
-        G = G - Gw @ torch.linalg.lstsq(Gw, G).solution
+        if compensate_rotation:
+            Gw = _rotation_jacobian(theta, vo)
+            G = G - Gw @ torch.linalg.lstsq(Gw, G).solution
         var = ((G @ cov) * G).sum(-1).reshape(-1, 2).sum(-1)
         sig[ok] = var.clamp_min(0).sqrt()
     return xs, ys, sig.reshape(len(ys), len(xs)).numpy()
@@ -212,18 +216,25 @@ def _best_rotation(theta_a, theta_b, v_a, q):
     return w
 
 
-def projection_difference(calib_a: dict, calib_b: dict, nx: int = 32, cov_a=None, cov_b=None) -> dict:
+def projection_difference(calib_a: dict, calib_b: dict, nx: int = 32, cov_a=None, cov_b=None,
+                          rotation: bool = True) -> dict:
     """The projection difference of two calibrations of one camera across the image, after the best-fitting
     rotation between their camera frames (as mrcal-show-projection-diff), against the difference their
     uncertainties predict: sqrt(σ_A² + σ_B²) per pixel (each rotation-compensated, `projection_sigma`).
 
+    Each grid pixel q is unprojected with A, rotated from A's camera frame to B's and projected with B; the
+    difference is |proj_B(R v_A(q)) − q|. The rotation absorbs whatever a rotation of the camera frame explains:
+    a common shift of the principal point (the poses turn with it), so such a shift is not in the difference.
+
     Args:
         calib_a, calib_b: CALIB.json dicts (same image size); cov_a/cov_b: their intrinsics covariances (11, 11)
             (default: the files' `intrinsics_covariance`; without one the prediction is None).
+        rotation: fit the rotation [True]; False: R = I, and the prediction is not rotation-compensated either.
     Returns:
         {grid_x_px, grid_y_px, difference_px (ny, nx), predicted_px (ny, nx) or None, median_px, worst_px,
-        predicted_median_px, predicted_worst_px, rms_ratio (RMS difference / RMS predicted), rotation_deg,
-        consistent (rms_ratio ≤ 2: within what the two σ allow), verdict}.
+        predicted_median_px, predicted_worst_px, rms_ratio (RMS difference / RMS predicted), rotation_deg (the
+        fitted rotation's angle, A's camera frame to B's; 0 without one), rotation_fitted, consistent
+        (rms_ratio ≤ 2: within what the two σ allow), verdict}.
     """
     from renderer import axis_angle_to_matrix
 
@@ -234,7 +245,7 @@ def projection_difference(calib_a: dict, calib_b: dict, nx: int = 32, cov_a=None
     q = torch.tensor(np.stack([X.ravel(), Yg.ravel()], -1), dtype=torch.float64)
     v_a = _unproject(ta, q)
     ok = torch.isfinite(v_a).all(-1)
-    w = _best_rotation(ta, tb, v_a[ok], q[ok])
+    w = _best_rotation(ta, tb, v_a[ok], q[ok]) if rotation else torch.zeros(3, dtype=torch.float64)
     diff = torch.full((q.shape[0],), math.nan, dtype=torch.float64)
     diff[ok] = (_project(tb, v_a[ok] @ axis_angle_to_matrix(w).T) - q[ok]).norm(dim=-1)
     diff = diff.reshape(len(ys), len(xs)).numpy()
@@ -242,14 +253,14 @@ def projection_difference(calib_a: dict, calib_b: dict, nx: int = 32, cov_a=None
     cov_b = cov_b if cov_b is not None else covariance_from_calib(calib_b)
     pred = None
     if cov_a is not None and cov_b is not None:
-        sa = projection_sigma(ta, cov_a, size, nx)[2]
-        sb = projection_sigma(tb, cov_b, size, nx)[2]
+        sa = projection_sigma(ta, cov_a, size, nx, compensate_rotation=rotation)[2]
+        sb = projection_sigma(tb, cov_b, size, nx, compensate_rotation=rotation)[2]
         pred = np.sqrt(sa ** 2 + sb ** 2)
     fin = np.isfinite(diff) & (np.isfinite(pred) if pred is not None else True)
     out = {"grid_x_px": [float(x) for x in xs], "grid_y_px": [float(y) for y in ys],
            "difference_px": _nested(diff), "predicted_px": _nested(pred) if pred is not None else None,
            "median_px": float(np.median(diff[fin])), "worst_px": float(diff[fin].max()),
-           "rotation_deg": math.degrees(float(w.norm()))}
+           "rotation_deg": math.degrees(float(w.norm())), "rotation_fitted": bool(rotation)}
     if pred is not None:
         ratio = float(np.sqrt(np.mean(diff[fin] ** 2) / np.mean(pred[fin] ** 2)))
         out |= {"predicted_median_px": float(np.median(pred[fin])), "predicted_worst_px": float(pred[fin].max()),

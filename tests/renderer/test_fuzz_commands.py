@@ -14,6 +14,7 @@ import pytest
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import fuzz_harness  # noqa: E402
+import processes  # noqa: E402
 
 BASE = {
     "image": {"width": 4, "height": 3, "spp": 1, "max_depth": 2, "background": [0.1, 0.1, 0.1]},
@@ -172,20 +173,11 @@ def _children(pid: int) -> set[int]:
     return out
 
 
-def _alive(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().split(")")[-1].split()[0] != "Z"
-    except OSError:
-        return False
-
-
 @pytest.mark.slow
 @pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="reads the process tree from /proc")
 def test_workers_end_when_renderer_render_is_killed(tmp_path):
     """SIGKILL of `renderer render` (which cannot be caught): its worker processes end by themselves within a
     few seconds instead of living on as orphans."""
-    import signal
     import subprocess
     import time
 
@@ -215,12 +207,7 @@ def test_workers_end_when_renderer_render_is_killed(tmp_path):
         proc.wait()
         # A worker still importing torch on a loaded machine starts its watchdog late: allow 30 s (the orphans
         # this guards against lived on for over 20 minutes).
-        deadline = time.time() + 30
-        while time.time() < deadline and any(_alive(w) for w in workers):
-            time.sleep(0.2)
-        alive = [w for w in workers if _alive(w)]
-        for w in alive:
-            os.kill(w, signal.SIGKILL)
+        alive = processes.kill_left_running(workers, within_s=30, poll_s=0.2)
         assert not alive, f"worker processes {alive} outlived their killed parent by 30 s"
     finally:
         if proc.poll() is None:

@@ -14,31 +14,15 @@ import pytest
 
 from renderer.render import _cores
 
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from processes import children as _children  # noqa: E402  (shared with benchmarks/probe_group_interrupt.py)
+from processes import is_worker as _is_worker  # noqa: E402
+from processes import kill_left_running  # noqa: E402
+
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SCENE = os.path.join(ROOT, "benchmarks", "scenes", "speed_thin_lens.json")
 
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(not hasattr(os, "killpg"), reason="POSIX process groups")]
-
-
-def _children(pid):
-    out = subprocess.run(["pgrep", "-P", str(pid)], capture_output=True, text=True).stdout
-    return {int(x) for x in out.split()}
-
-
-def _is_worker(pid):
-    try:
-        with open(f"/proc/{pid}/cmdline", "rb") as f:
-            return b"spawn_main" in f.read()
-    except OSError:
-        return False
-
-
-def _running(pid):
-    try:
-        with open(f"/proc/{pid}/stat", encoding="ascii") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
-    except (OSError, IndexError):
-        return False
 
 
 @pytest.mark.skipif(_cores() < 2, reason="needs worker processes (2 cores)")
@@ -72,12 +56,7 @@ def test_group_sigint_while_workers_start(tmp_path, delay_s):
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)
             p.wait()
-    deadline = time.time() + 5
-    while time.time() < deadline and any(_running(c) for c in seen):
-        time.sleep(0.1)
-    left = [c for c in seen if _running(c)]
-    for c in left:
-        os.kill(c, signal.SIGKILL)
+    left = kill_left_running(seen, within_s=5, poll_s=0.1)
     assert p.returncode == 130, f"exit {p.returncode} (the Ctrl-C was dropped?): {err[-500:]}"
     assert "Traceback" not in err and "Exception ignored" not in err, f"a traceback on stderr: {err[-2000:]}"
     assert err.strip().splitlines() == ["renderer: interrupted"], f"one line on stderr: {err[-1000:]!r}"

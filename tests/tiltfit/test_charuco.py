@@ -7,37 +7,15 @@ import math
 import numpy as np
 import pytest
 
-from renderer import Lens
-from renderer.cameras.lens import Sensor
 from tiltfit.charuco import detect_board, detect_charuco, opencv_corners, refine_model
 from tiltfit.detect import DetectionError, detect
+from tiltfit.experiments.charuco_views import (BOARD, CAMERA, FULL, PARTIAL, TARGET, blurred_renders, pose,
+                                               square_px)
 from tiltfit.fit import FitOptions
 from tiltfit.model import Observations
 from tiltfit.photos import fit_with_held_out
-from tiltfit.synth import (look_at_pose, observe, plane_homography, render_constant_blur, render_view,
-                           renderer_available)
+from tiltfit.synth import render_view, renderer_available
 from tiltfit.target import CharucoTarget, Target, TargetError, rasterise, target_from_dict
-
-BOARD = {"type": "charuco", "units": "mm", "dictionary": "DICT_5X5_100", "squares": [12, 9], "square_mm": 15.0,
-         "marker_mm": 11.0, "margin": 10.0}
-TARGET = target_from_dict(BOARD)
-CAMERA = Lens(25.0, 560.0, 0.0, sensor=Sensor(320, 240, 0.03))
-# views of about a third of the board (25–34 of its 88 corners), and whole views
-PARTIAL = [((60.0, 30.0, -300.0), (50.0, 40.0), -20.0), ((150.0, 120.0, -280.0), (140.0, 100.0), 15.0),
-           ((160.0, 20.0, -300.0), (130.0, 35.0), 5.0), ((20.0, 130.0, -290.0), (45.0, 100.0), -8.0),
-           ((100.0, 60.0, -270.0), (90.0, 70.0), 30.0), ((140.0, 90.0, -310.0), (120.0, 60.0), -35.0)]
-FULL = [((40.0, -60.0, -540.0), None, 8.0), ((150.0, 120.0, -520.0), None, -10.0), ((-60.0, 40.0, -560.0), None, 20.0),
-        ((90.0, 160.0, -500.0), None, -25.0)]
-
-
-def pose(view):
-    position, look, roll = view
-    return look_at_pose(TARGET, position, None if look is None else (*look, 0.0), roll_deg=roll)
-
-
-def square_px(corners):
-    g = corners.reshape(*TARGET.grid_shape, 2)
-    return float(np.nanmedian(np.hypot(*np.diff(g, axis=1).transpose(2, 0, 1))))
 
 
 # --- the file format and the printable ----------------------------------------------------------------------
@@ -94,12 +72,7 @@ def blurred_partial_views():
     rng = np.random.default_rng(3)
     out = {}
     for v in PARTIAL[:2]:
-        R, T = pose(v)
-        truth = observe(TARGET, CAMERA, R, T)
-        sq = square_px(np.where(truth.in_image[:, None], truth.corners_px, np.nan))
-        for b in BLURS:
-            img = render_constant_blur(TARGET, plane_homography(CAMERA, R, T), CAMERA.sensor.size_px, b * sq)
-            img = img + rng.normal(0.0, 0.003, img.shape)
+        for truth, sq, b, img in blurred_renders(v, BLURS, 0.003, rng):
             out[(v, b)] = (img, truth, sq, detect_charuco(img, TARGET))
     return out
 

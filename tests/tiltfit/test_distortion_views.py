@@ -3,33 +3,25 @@ view wrote coefficients of 3.6e5): the rational model from one GoPro view is ref
 model and the view count; from ten views it is fitted, its mapping at the image corner determined to a pixel."""
 import json
 import os
+import sys
 
 import numpy as np
 import pytest
 
 from tiltfit.calibration import calibrate
 from tiltfit.fit import FitError, FitOptions
-from tiltfit.model import Observations
-from tiltfit.target import load_target
 from tiltfit.validate import MAX_MAPPING_SIGMA_PX, mapping_sigma_px
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
+from real_detections import observations  # noqa: E402
 
 DATA = os.path.join(os.path.dirname(__file__), "..", "..", "data", "real", "gopro_wide")
 
 
 @pytest.fixture(scope="module")
 def gopro():
-    target = load_target(os.path.join(DATA, "target.json"))
-    with open(os.path.join(DATA, "detections_tiltfit.json"), encoding="utf-8") as f:
-        dets = json.load(f)
-    names = sorted(k for k, v in dets.items() if "no_board" not in v)
-
-    def views(n):
-        ns = names[:n]
-        C = np.array([[c if c is not None else [np.nan, np.nan] for c in dets[k]["corners_px"]] for k in ns], float)
-        B = np.array([[b if b is not None else np.nan for b in dets[k]["blur_px"]] for k in ns], float)
-        return Observations(target.feature_points(), C, B, tuple(dets[ns[0]]["image_size_px"]), 0.00155, ns)
-
-    return views
+    obs, _ = observations(DATA, 0.00155)
+    return lambda n: obs.subset(range(min(n, obs.n_views)))
 
 
 def test_rational_from_one_view_is_refused(gopro):

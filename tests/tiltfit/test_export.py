@@ -1,6 +1,7 @@
 """tiltfit.export: OpenCV FileStorage round trip through cv2.projectPoints, --init from an OpenCV file, kornia."""
 import json
 import os
+import sys
 
 import cv2
 import numpy as np
@@ -12,8 +13,10 @@ from tiltfit.calibfile import calib_dict, camera_from_calib, read_calib
 from tiltfit.export import ExportError, kornia_camera, read_opencv, write_opencv
 from tiltfit.fit import FitOptions
 from tiltfit.calibration import calibrate
-from tiltfit.model import Observations
 from tiltfit.target import load_target
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
+from real_detections import observations  # noqa: E402
 
 DATA = os.path.join(os.path.dirname(__file__), "..", "..", "data", "real", "gopro_wide")
 
@@ -21,11 +24,7 @@ DATA = os.path.join(os.path.dirname(__file__), "..", "..", "data", "real", "gopr
 @pytest.fixture(scope="module")
 def real_calib():
     target = load_target(os.path.join(DATA, "target.json"))
-    with open(os.path.join(DATA, "corners_opencv.json"), encoding="utf-8") as f:
-        dets = json.load(f)
-    names = sorted(k for k, v in dets.items() if v)[:12]
-    C = np.array([dets[n]["corners_px"] for n in names], dtype=np.float64)
-    obs = Observations(target.feature_points(), C, np.full(C.shape[:2], np.nan), (1280, 960), 0.00155, names)
+    obs = observations(DATA, 0.00155, "corners_opencv.json")[0].subset(range(12))
     res = calibrate(obs, "unified", options=FitOptions(distortion="rational", free_principal_point=True,
                                                        model_selection=False))
     return obs, res, calib_dict(res, obs=obs, target=target.to_dict())

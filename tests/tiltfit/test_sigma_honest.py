@@ -119,7 +119,7 @@ POSE_KEYS = ("rvec_x_deg", "rvec_y_deg", "rvec_z_deg", "T_x_mm", "T_y_mm", "T_z_
 
 def pose_ratios(spread, predicted):
     """{pose key: predicted σ / spread}, each pooled over the views: sqrt(mean over views of the ratio²)."""
-    return dict(zip(POSE_KEYS, np.sqrt(((predicted / spread) ** 2).mean(0))))
+    return {k: round(float(r), 3) for k, r in zip(POSE_KEYS, np.sqrt(((predicted / spread) ** 2).mean(0)))}
 
 
 @pytest.mark.slow
@@ -128,7 +128,7 @@ def test_monte_carlo_pose_sigma_matches_spread(monte_carlo):
     pooled over the 8 views (one view's spread over 60 draws alone is ±9 % noise); σ × 0.5 and σ × 2 fail."""
     spread, predicted = monte_carlo[4]
     ratio = pose_ratios(spread, predicted)
-    bad = {k: round(float(r), 3) for k, r in ratio.items() if not 0.8 <= r <= 1.25}
+    bad = {k: r for k, r in ratio.items() if not 0.8 <= r <= 1.25}
     assert not bad, f"pose σ / spread (pooled over views) outside 0.8–1.25: {bad}; all: {ratio}"
     for factor in (0.5, 2.0):
         passing = [k for k, r in pose_ratios(spread, predicted * factor).items() if 0.8 <= r <= 1.25]

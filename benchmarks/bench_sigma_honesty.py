@@ -202,7 +202,8 @@ def write_markdown(path: str, res: dict) -> None:
             f"{e['ours_classical']:.4g} ({e['ratio_classical']:.2f})"
         lines.append(f"| {k} | {e['empirical']:.4g} | {cls} | {e['ours_new']:.4g} ({e['ratio_new']:.2f}) | {cv} |")
     lines += ["", "Pose rows (rvec0_deg, Tz0_mm: view 0): the views model's pose σ = the globals' part plus the own "
-              "part inflated by the design effect; the classical pose σ is not reported separately (—).", ""]
+              "part from a random affine error per view estimated from the residuals (`tiltfit.uncertainty`); the "
+              "classical pose σ is not reported separately (—).", ""]
     lines += ["## Real subsets: spread/σ pooled over pairs, sqrt(mean Δ²/(σa² + σb²))", "",
               "| set | parameter | ours, classical σ | ours, views σ | OpenCV σ |", "|---|---|---|---|---|"]
     for r in res["real"]:

@@ -85,7 +85,8 @@ def monte_carlo():
         values.append(_pick(res.values))
         sigma.append(_pick(res.sigma))
         classical.append(_pick(res.sigma_classical))
-        poses.append(np.concatenate([np.degrees(res.camera.rvec.detach().numpy()), res.camera.T_mm.detach().numpy()], 1))
+        cam = res.camera
+        poses.append(np.concatenate([np.degrees(cam.rvec.detach().numpy()), cam.T_mm.detach().numpy()], 1))
         pose_sigma.append([v["sigma_rvec_deg"] + v["sigma_T_mm"] for v in res.views])
     values, sigma, classical, poses, pose_sigma = map(np.array, (values, sigma, classical, poses, pose_sigma))
     empirical = values.std(0, ddof=1)

@@ -29,10 +29,11 @@ or "free"; for warp `parameters` {sag_x_mm, sag_y_mm, scale_y_minus_1} and their
 (per model: fit `rms_px`, `held_out_rms_px`, `chosen`) and, with a fitted shape, per view
 `residuals_flat_board_px` (the same lens with the target file's flat points, each view's pose refitted).
 Honest uncertainties (`tiltfit.uncertainty`): `sigma_model` ({name: "views" | "classical", description,
-design_effect, ratio_min, ratio_max, n_views}: which error model `sigma` uses), `sigma_classical` (the same keys
-as `sigma` under independent noise), `intrinsics_covariance` ({names: focal_px, cx_px, cy_px, k1 … k6, matrix}),
-`projection_uncertainty` ({median_px, worst_px, grid_x_px, grid_y_px, sigma_px, method}), and after
-cross-validation `cross_validation` (`tiltfit.uncertainty.projection_difference` per pair of groups).
+design_effect, ratio_min, ratio_max, n_views, view_error_px, pose_ratio_min, pose_ratio_max}: which error model
+`sigma` uses), `sigma_classical` (the same keys as `sigma` under independent noise), `intrinsics_covariance`
+({names: focal_px, cx_px, cy_px, k1 … k6, matrix}), `projection_uncertainty` ({median_px, worst_px, grid_x_px,
+grid_y_px, sigma_px, method}), and after cross-validation `cross_validation`
+(`tiltfit.uncertainty.projection_difference` per pair of groups).
 
 Numbers that are not finite (e.g. the blur RMS of a view without blur widths) are written as null.
 The file is written atomically (temporary file in the same folder, then renamed).
@@ -219,7 +220,8 @@ def _add_uncertainty(out: dict, result, undetermined: list) -> None:
         return
     out["sigma_model"] = dict(model) | {"description": (
         "per-view cluster-robust covariance (corner and blur errors may be correlated within a view; poses "
-        "profiled out, CR2 small-sample correction), never below the classical one" if model["name"] == "views"
+        "profiled out, CR2 small-sample correction), never below the classical one; each pose's own part from a "
+        "random affine error per view estimated from the residuals" if model["name"] == "views"
         else "classical: independent residuals, s² (JᵀWJ)⁻¹")}
     sc = dict(result.sigma_classical)
     blank = set(undetermined) | {k for k in out["sigma"] if out["sigma"][k] is None}

@@ -502,7 +502,7 @@ def _uncertainties(prob: _Problem, res: LMResult, scale: torch.Tensor, init_sigm
     `sigma_model` ("views": per-view cluster-robust with the classical floor, `tiltfit.uncertainty`;
     "classical": s² (JᵀWJ)⁻¹). Returns (C, sigma, view σ, s², extras {sigma_classical, sigma_model,
     intrinsics_covariance})."""
-    from .uncertainty import INTRINSIC_NAMES, view_cluster_covariance
+    from .uncertainty import INTRINSIC_NAMES, affine_modes, view_cluster_covariance
 
     cam = prob.camera
     n = prob.n_corner + prob.n_blur
@@ -512,7 +512,18 @@ def _uncertainties(prob: _Problem, res: LMResult, scale: torch.Tensor, init_sigm
         C_cls = solve_covariance(res, s2)
     except SolverError:
         raise FitError("the fit is degenerate: the free parameters are not all determined by the data") from None
-    robust = view_cluster_covariance(res, s2) if sigma_model == "views" else None
+    robust = None
+    if sigma_model == "views":
+        # the poses' own part: a random affine error of each view's corners (tiltfit.uncertainty)
+        rows = prob.view_rows
+        V, N = prob.cmask.shape
+        am = affine_modes(prob.corners, prob.cmask)
+        modes = torch.zeros(*rows.shape, am.shape[-1], dtype=torch.float64)
+        modes[:, :2 * N] = am
+        kinds = torch.zeros(rows.shape, dtype=torch.long)
+        kinds[:, :2 * N] = 1
+        kinds[:, 2 * N:] = 2
+        robust = view_cluster_covariance(res, s2, modes * scale[rows][..., None], kinds)
     C, info = robust if robust is not None else (C_cls, {})
     model = {"name": "views" if robust is not None else "classical"} | info
     layout = res.layout

@@ -6,6 +6,8 @@
     view's blur widths, plus independent noise). The predicted σ (RMS over the draws) of f, cx, cy, w, U, d, θL
     must lie within 0.8–1.25 of the empirical spread of the estimates, and the same check must fail for σ × 0.5
     and σ × 2 (so it can tell). The classical σ is asserted to fail it (what the issue measured).
+    The same draws check each view's pose (rotation and translation components, pooled over the 8 views) the
+    same two-sided way.
 (b) Real subsets: the GoPro session split into three interleaved groups of views, each calibrated alone.
     With three estimates the sample spread is noisy; the spread is defined the honest way, pooled over the
     three pairs: sqrt(mean over pairs (a, b) of Δ² / (σ_a² + σ_b²)) (1 when σ is right; only 2 independent
@@ -76,16 +78,20 @@ def monte_carlo():
     uv, blur = independent_capture()
     rng = np.random.default_rng(0)
     opts = FitOptions(model_selection=False, free_principal_point=True, distortion="k1", max_rms_px=None)
-    values, sigma, classical = [], [], []
+    values, sigma, classical, poses, pose_sigma = [], [], [], [], []
     for _ in range(N_DRAWS):
         res = calibrate(noisy(uv, blur, rng), "joint", options=opts)
         assert not res.undetermined, f"a draw left {res.undetermined} undetermined"
         values.append(_pick(res.values))
         sigma.append(_pick(res.sigma))
         classical.append(_pick(res.sigma_classical))
-    values, sigma, classical = map(np.array, (values, sigma, classical))
+        cam = res.camera
+        poses.append(np.concatenate([np.degrees(cam.rvec.detach().numpy()), cam.T_mm.detach().numpy()], 1))
+        pose_sigma.append([v["sigma_rvec_deg"] + v["sigma_T_mm"] for v in res.views])
+    values, sigma, classical, poses, pose_sigma = map(np.array, (values, sigma, classical, poses, pose_sigma))
     empirical = values.std(0, ddof=1)
-    return empirical, np.sqrt((sigma ** 2).mean(0)), np.sqrt((classical ** 2).mean(0)), res
+    pose = (poses.std(0, ddof=1), np.sqrt((pose_sigma ** 2).mean(0)))     # (V, 6) each: spread, RMS σ
+    return empirical, np.sqrt((sigma ** 2).mean(0)), np.sqrt((classical ** 2).mean(0)), res, pose
 
 
 def calibrated(predicted, empirical, low=0.8, high=1.25):
@@ -96,7 +102,7 @@ def calibrated(predicted, empirical, low=0.8, high=1.25):
 
 @pytest.mark.slow
 def test_monte_carlo_sigma_matches_spread(monte_carlo):
-    empirical, predicted, classical, res = monte_carlo
+    empirical, predicted, classical, res, _ = monte_carlo
     assert res.sigma_model["name"] == "views", f"default error model: {res.sigma_model}"
     bad = calibrated(predicted, empirical)
     assert not bad, f"predicted σ / empirical spread outside 0.8–1.25: {bad}"
@@ -107,6 +113,30 @@ def test_monte_carlo_sigma_matches_spread(monte_carlo):
     too_small = calibrated(classical, empirical)
     assert len(too_small) >= 5, f"the classical σ should be too small here (it ignores correlated errors): " \
                                 f"fails only for {too_small}"
+
+
+POSE_KEYS = ("rvec_x_deg", "rvec_y_deg", "rvec_z_deg", "T_x_mm", "T_y_mm", "T_z_mm")
+
+
+def pose_ratios(spread, predicted):
+    """{pose key: predicted σ / spread}, each pooled over the views: sqrt(mean over views of the ratio²)."""
+    return {k: round(float(r), 3) for k, r in zip(POSE_KEYS, np.sqrt(((predicted / spread) ** 2).mean(0)))}
+
+
+@pytest.mark.slow
+def test_monte_carlo_pose_sigma_matches_spread(monte_carlo):
+    """Each view's rotation and translation (the same draws): predicted σ / spread within 0.8–1.25 per component,
+    pooled over the 8 views (one view's spread over 60 draws alone is ±9 % noise); σ × 0.5 and σ × 2 fail."""
+    spread, predicted = monte_carlo[4]
+    ratio = pose_ratios(spread, predicted)
+    bad = {k: r for k, r in ratio.items() if not 0.8 <= r <= 1.25}
+    assert not bad, f"pose σ / spread (pooled over views) outside 0.8–1.25: {bad}; all: {ratio}"
+    for factor in (0.5, 2.0):
+        passing = [k for k, r in pose_ratios(spread, predicted * factor).items() if 0.8 <= r <= 1.25]
+        assert not passing, f"pose σ × {factor} should fail the check for every component; passes for {passing}"
+    per_view = predicted / spread
+    assert 0.6 <= per_view.min() and per_view.max() <= 1.6, \
+        f"a single view's pose σ / spread is far off (60 draws: ±18 % noise): {np.round(per_view, 2).tolist()}"
 
 
 # ---------------------------------------------------------------------------------------------------------

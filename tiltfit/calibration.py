@@ -340,37 +340,28 @@ def _fit_board(geometry: FitResult, obs: Observations, mode: str, options: FitOp
     fit.distortion_model = distortion
     if options.distortion == "auto" and fit.board.model != "flat":
         fit, held = _redistort(fit, obs, mode, opts, held, say)
+        fit.held_out = held
     return fit, entries, held
 
 
 def _redistort(fit: FitResult, obs: Observations, mode: str, options: FitOptions, held, say=None):
     """The distortion model chosen again with the board as fitted (a flat board's misfit had asked for terms the
-    fitted shape explains): `select_distortion` on the fitted points; where it changes the model, the board is
-    refitted with it and its held-out error recomputed. Returns (fit, held-out dict)."""
-    from .board_fit import fit_board, held_out_rms
-
-    board = fit.board
+    fitted shape explains): `select_distortion` with the board fitted beside each model and refitted in each
+    fold, so that the held-out errors it prints and records are those of the whole calibration (a choice made
+    on the points fitted to all views scored the board on the views it was fitted to). `fit` and `held` (its
+    held-out error, from the board's selection) are reused for its own model. Returns (fit, held-out dict)."""
+    known = {fit.distortion_model: (fit, held)} if held is not None else {}
     try:
-        sel = select_distortion(fit.camera, with_points(obs, board.points()), options, mode, None,
-                                folds=options.held_out_folds)
+        sel = select_distortion(fit.camera, obs, options, mode, say, folds=options.held_out_folds, board=fit.board,
+                                known=known)
     except FitError:
         return fit, held
-    new = sel.distortion_model
-    if new == fit.distortion_model:
-        fit.distortion_selection = sel.distortion_selection
-        return fit, held
-    opts = replace(options, distortion=new)
-    try:
-        refit = fit_board(sel.camera, obs, opts, board.model, mode, board=board)
-        held = held_out_rms(obs, replace(opts, progress=None, model_selection=False), board.model,
-                            options.held_out_folds, start=refit.camera)
-    except FitError:
-        return fit, held
-    if say:
-        say(f"distortion chosen again with the board as fitted: {new} (was {fit.distortion_model}); held-out "
-            f"{held['rms_px']:.4f} px per corner")
-    refit.distortion_model, refit.distortion_selection, refit.held_out = new, sel.distortion_selection, fit.held_out
-    return refit, held
+    new, old = sel.distortion_model, fit.distortion_model
+    if say and new != old:
+        say(f"distortion chosen again with the board as fitted: {new} (was {old}); held-out "
+            f"{sel.held_out['rms_px']:.4f} px per corner")
+    sel.distortion_model = new
+    return sel, sel.held_out if sel.held_out is not None else held
 
 
 def _board_line(board) -> str:

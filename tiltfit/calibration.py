@@ -25,7 +25,7 @@ from .board import describe_board, with_points
 from .board_fit import select_board
 from .selection import blur_depends_on_depth, blur_is_informative, likelihood_ratio, nested_model_tests, usable_views
 from .start import initialize, start_blur
-from .validate import select_distortion
+from .validate import DISTORTION_MODELS, select_distortion
 
 
 def fit_geometry(camera: TiltLensCamera, obs: Observations, options: FitOptions, mode: str = "unified",
@@ -351,9 +351,12 @@ def _redistort(fit: FitResult, obs: Observations, mode: str, options: FitOptions
     on the points fitted to all views scored the board on the views it was fitted to). `fit` and `held` (its
     held-out error, from the board's selection) are reused for its own model. Returns (fit, held-out dict)."""
     known = {fit.distortion_model: (fit, held)} if held is not None else {}
+    # The candidates: the model chosen with the flat board and those with fewer terms (a board's shape explains
+    # misfit that asked for terms; it does not determine terms the flat board's views could not).
+    models = DISTORTION_MODELS[:DISTORTION_MODELS.index(fit.distortion_model) + 1]
     try:
         sel = select_distortion(fit.camera, obs, options, mode, say, folds=options.held_out_folds, board=fit.board,
-                                known=known)
+                                known=known, models=models)
     except FitError:
         return fit, held
     new, old = sel.distortion_model, fit.distortion_model

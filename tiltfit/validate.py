@@ -71,7 +71,8 @@ def held_out_rms(obs: Observations, options: FitOptions = FitOptions(), folds: i
         start: a camera whose lens (w, principal point, distortion) starts each fold's fit (e.g. the fit on all
             views); None starts from the homographies without distortion.
         board: a board model (`tiltfit.board.BOARD_MODELS`) fitted with the lens in each fold and held with it
-            when the fold's views are predicted; None: the target's points as they are.
+            when the fold's views are predicted, or a `tiltfit.board.Board` of that model whose parameters start
+            each fold's (as `start` starts its lens); None: the target's points as they are.
     Returns:
         {"rms_px": RMS over all held-out corners, "per_view_px": [...] in obs order, "folds": K,
         "median_view_px"}.
@@ -98,7 +99,9 @@ def held_out_rms(obs: Observations, options: FitOptions = FitOptions(), folds: i
         else:
             from .board import Board, with_points
 
-            fit = fit_geometry(cam, tr, opts, mode="unified", board=Board(tr.points_mm, board))
+            b = Board(tr.points_mm, board.model, board.params) if isinstance(board, Board) else \
+                Board(tr.points_mm, board)
+            fit = fit_geometry(cam, tr, opts, mode="unified", board=b)
             pred = predict_views(fit.camera, with_points(obs.subset(test), fit.board.points()), opts)
         sq += pred.rss["corners"]
         n += pred.rss["n_corners"] // 2
@@ -226,7 +229,8 @@ def _per_corner_rms(fit: FitResult) -> float:
 
 
 def select_distortion(camera: TiltLensCamera, obs: Observations, options: FitOptions, mode: str = "unified",
-                      say=None, folds: int = 5, board=None, known: dict | None = None) -> FitResult:
+                      say=None, folds: int = 5, board=None, known: dict | None = None,
+                      models=DISTORTION_MODELS) -> FitResult:
     """Fit every distortion model on the corners and keep the one that predicts held-out views best.
 
     Models none, k1, k1k2, opencv5, rational are fitted in turn on all views (each starting from the previous
@@ -243,7 +247,8 @@ def select_distortion(camera: TiltLensCamera, obs: Observations, options: FitOpt
     `board` (a fitted `tiltfit.board.Board`, or None: the target's points as they are): the board's shape is
     fitted beside every model (started from `board`) and refitted without the held-out views in each fold, so
     every figure is the held-out error of the whole calibration (lens and board). `known` ({model: (fit,
-    held-out dict)}) gives fits already made with these settings (and `board`'s model), not made again.
+    held-out dict)}) gives fits already made with these settings (and `board`'s model), not made again;
+    `models` the candidates (fewest terms first).
     """
     obs = without_blur(obs)
     fixed = replace(options, progress=None, model_selection=False, free_principal_point=bool(
@@ -251,7 +256,7 @@ def select_distortion(camera: TiltLensCamera, obs: Observations, options: FitOpt
     known = known or {}
     use_held_out = obs.n_views >= 3
     fits, entries, held, prev = {}, [], {}, None
-    for m in DISTORTION_MODELS:
+    for m in models:
         entry = {"model": m, "n_terms": len(MODEL_TERMS[m])}
         entries.append(entry)
         try:
@@ -280,7 +285,7 @@ def select_distortion(camera: TiltLensCamera, obs: Observations, options: FitOpt
     # found (with the tolerance) is not scored: its held-out error is at least its fit RMS (a fit explains
     # the views it was fitted to better than new ones), so it cannot be chosen.
     for m in sorted(fits, key=lambda m: fits[m].rss["corners"]) if use_held_out else []:
-        entry = entries[DISTORTION_MODELS.index(m)]
+        entry = entries[models.index(m)]
         best = min((h["rms_px"] for h in held.values()), default=math.inf)
         if entry["rms_px"] > (1 + HELD_OUT_TOLERANCE) * best:
             entry["held_out_skipped"] = "its fit RMS exceeds the best held-out error"
@@ -288,8 +293,7 @@ def select_distortion(camera: TiltLensCamera, obs: Observations, options: FitOpt
         try:
             given = known.get(m, (None, None))[1]
             held[m] = given if (given or {}).get("folds") == min(max(2, folds), obs.n_views) else held_out_rms(
-                obs, replace(fixed, distortion=m), folds, start=fits[m].camera,
-                board=None if board is None else board.model)
+                obs, replace(fixed, distortion=m), folds, start=fits[m].camera, board=fits[m].board)
             entry["held_out_rms_px"] = held[m]["rms_px"]
         except FitError as e:
             entry["refused"] = f"held-out error not computed ({e})"
@@ -310,7 +314,7 @@ def select_distortion(camera: TiltLensCamera, obs: Observations, options: FitOpt
     scores = {e["model"]: e[key] for e in entries if e["model"] in fits and key in e}
     best = min(scores.values())
     if use_held_out:
-        chosen = next(m for m in DISTORTION_MODELS if m in scores and scores[m] <= (1 + HELD_OUT_TOLERANCE) * best)
+        chosen = next(m for m in models if m in scores and scores[m] <= (1 + HELD_OUT_TOLERANCE) * best)
     else:
         chosen = min(scores, key=scores.get)
     for e in entries:

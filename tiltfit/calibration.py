@@ -350,6 +350,7 @@ def _redistort(fit: FitResult, obs: Observations, mode: str, options: FitOptions
     fold, so that the held-out errors it prints and records are those of the whole calibration (a choice made
     on the points fitted to all views scored the board on the views it was fitted to). `fit` and `held` (its
     held-out error, from the board's selection) are reused for its own model. Returns (fit, held-out dict)."""
+    flat_entries = list(fit.distortion_selection or [])
     known = {fit.distortion_model: (fit, held)} if held is not None else {}
     # The candidates: the model chosen with the flat board and those with fewer terms (a board's shape explains
     # misfit that asked for terms; it does not determine terms the flat board's views could not).
@@ -360,6 +361,9 @@ def _redistort(fit: FitResult, obs: Observations, mode: str, options: FitOptions
     except FitError:
         return fit, held
     new, old = sel.distortion_model, fit.distortion_model
+    # The richer models keep their entries from the flat board's choice (marked so).
+    sel.distortion_selection += [dict(e, chosen=False, board="flat") for e in flat_entries
+                                 if e["model"] not in models]
     if say and new != old:
         say(f"distortion chosen again with the board as fitted: {new} (was {old}); held-out "
             f"{sel.held_out['rms_px']:.4f} px per corner")

@@ -339,12 +339,16 @@ def describe_choice(selection: list) -> str:
     chosen = next((e for e in selection if e.get("chosen")), None)
     if chosen is None:
         return "no model chosen"
-    if "held_out_rms_px" in chosen:
-        best = min((e for e in selection if "held_out_rms_px" in e), key=lambda e: e["held_out_rms_px"])
+    if "held_out_rms_px" in chosen:  # compared with the models scored with the same board
+        best = min((e for e in selection if "held_out_rms_px" in e and e.get("board") == chosen.get("board")),
+                   key=lambda e: e["held_out_rms_px"])
         why = (f"smallest held-out error, {chosen['held_out_rms_px']:.4f} px per corner" if best is chosen else
                f"held-out {chosen['held_out_rms_px']:.4f} px per corner, within {100 * HELD_OUT_TOLERANCE:g} % of "
                f"{best['model']}'s {best['held_out_rms_px']:.4f} px with fewer terms")
     else:
         why = "smallest BIC (too few views for a held-out error)"
-    refused = [f"{e['model']} ({e['refused']})" for e in selection if e.get("refused")]
-    return f"{chosen['model']}: {why}" + (f"; refused: {'; '.join(refused)}" if refused else "")
+    refused = [f"{e['model']} ({e['refused']}" + (f", with the {e['board']} board" if e.get("board") and
+                                                  e.get("board") != chosen.get("board") else "") + ")"
+               for e in selection if e.get("refused")]
+    board = f" (board {chosen['board']} refitted in each fold)" if chosen.get("board") else ""
+    return f"{chosen['model']}{board}: {why}" + (f"; refused: {'; '.join(refused)}" if refused else "")

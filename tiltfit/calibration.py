@@ -291,14 +291,16 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
         if centre_test is not None:
             result.model_selection["distortion_centre"] = centre_test
     if options.distortion == "auto" and result.distortion_selection:
-        from .validate import HELD_OUT_TOLERANCE, describe_choice
+        from .validate import HELD_OUT_TOLERANCE, MAX_PROJECTION_SIGMA_PX, describe_choice
 
         scored = "held_out_rms_px" in next(e for e in result.distortion_selection if e.get("chosen"))
         result.model_selection["distortion"] = {
             "chosen": distortion, "why": describe_choice(result.distortion_selection),
             "criterion": (f"smallest {options.held_out_folds}-fold held-out error (fewest terms within "
                           f"{100 * HELD_OUT_TOLERANCE:g} %)" if scored else "smallest BIC (fewer than 3 views)")
-            + ", radial mapping one-to-one over the image"}
+            + ", radial mapping one-to-one over the image, a rational model's projection uncertain by at most "
+            f"{MAX_PROJECTION_SIGMA_PX:g} px" + (", the board refitted in each fold" if result.board is not None
+                                                 and result.board.model != "flat" else "")}
     if blur_ok and "U_mm" not in undetermined and "theta_F_deg" not in undetermined:
         pts = obs.points_mm.numpy()
         extent = (pts[:, 0].min(), pts[:, 1].min(), pts[:, 0].max(), pts[:, 1].max())

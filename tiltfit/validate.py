@@ -221,7 +221,8 @@ def undetermined_for_choice(fit: FitResult, model: str) -> str | None:
     if worst <= MAX_PROJECTION_SIGMA_PX:
         return None
     return (f"coefficients not determined by these views: the projection is uncertain by up to ±{worst:.3g} px "
-            f"(1σ) in the image, more than the {MAX_PROJECTION_SIGMA_PX:g} px an automatic choice accepts")
+            f"(1σ) in the image, more than the {MAX_PROJECTION_SIGMA_PX:g} px an automatic choice accepts (views "
+            f"with the board near the image's corners determine it)")
 
 
 def _per_corner_rms(fit: FitResult) -> float:

@@ -44,9 +44,11 @@ CHECKED_MODELS = ("rational",)
 # The automatic choice (`select_distortion`) also refuses one of the `CHECKED_MODELS` whose projection is uncertain
 # by more than this anywhere in the image (pixels, 1σ: CALIB.json's `projection_uncertainty.worst_px`, from the
 # fit's intrinsics covariance): its coefficients trade against each other (numerator against denominator) and
-# only the radii the boards cover pin the mapping down. 12 GoPro views (data/real/gopro_wide): rational 181 px
-# with the flat board, 14 px with the fitted one (k1 905 ± 3118, k4 901 ± 3089), opencv5 3.9 px; industrial_ds1:
-# rational 0.05 px. A model asked for by name is only held to `MAX_MAPPING_SIGMA_PX`.
+# only the radii the boards cover pin the mapping down. 12 GoPro views (data/real/gopro_wide): rational 79-181 px
+# with the flat board, 14 px with the free one (k1 905 ± 3118, k4 901 ± 3089), opencv5 3.9 px; the three
+# 12-view thirds of the set 55-2200 px against opencv5's 2.1-6.0 (benchmarks/results/selection.md);
+# industrial_ds1 (20 views), flat board: rational 2.0 px (accepted). A model asked for by name is only held to
+# `MAX_MAPPING_SIGMA_PX`.
 MAX_PROJECTION_SIGMA_PX = 5.0
 
 

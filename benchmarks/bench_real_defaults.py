@@ -174,7 +174,8 @@ def main(argv=None) -> int:
         for e in t["selection"]:
             why = (f"held-out {e['held_out_rms_px']:.4f} px" if "held_out_rms_px" in e else
                    f"refused: {e['refused']}" if "refused" in e else f"held-out not computed: {e.get('held_out_skipped')}")
-            lines.append(f"  - {e['model']}{' **(chosen)**' if e.get('chosen') else ''}: "
+            lines.append(f"  - {e['model']}" + (f" (board {e['board']})" if e.get("board") else "")
+                         + f"{' **(chosen)**' if e.get('chosen') else ''}: "
                          + (f"RMS {e['rms_px']:.4f} px, " if "rms_px" in e else "") + why)
         lines += [f"- {n}" for n in t["notes"] + [f"warning: {w}" for w in t["warnings"]]] + [""]
     with open(os.path.join(args.out, "real_defaults.md"), "w", encoding="utf-8") as f:

@@ -25,7 +25,7 @@ from .board import describe_board, with_points
 from .board_fit import select_board
 from .selection import blur_depends_on_depth, blur_is_informative, likelihood_ratio, nested_model_tests, usable_views
 from .start import initialize, start_blur
-from .validate import select_distortion
+from .validate import DISTORTION_MODELS, select_distortion
 
 
 def fit_geometry(camera: TiltLensCamera, obs: Observations, options: FitOptions, mode: str = "unified",
@@ -291,14 +291,16 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
         if centre_test is not None:
             result.model_selection["distortion_centre"] = centre_test
     if options.distortion == "auto" and result.distortion_selection:
-        from .validate import HELD_OUT_TOLERANCE, describe_choice
+        from .validate import HELD_OUT_TOLERANCE, MAX_PROJECTION_SIGMA_PX, describe_choice
 
         scored = "held_out_rms_px" in next(e for e in result.distortion_selection if e.get("chosen"))
         result.model_selection["distortion"] = {
             "chosen": distortion, "why": describe_choice(result.distortion_selection),
             "criterion": (f"smallest {options.held_out_folds}-fold held-out error (fewest terms within "
                           f"{100 * HELD_OUT_TOLERANCE:g} %)" if scored else "smallest BIC (fewer than 3 views)")
-            + ", radial mapping one-to-one over the image"}
+            + ", radial mapping one-to-one over the image, a rational model's projection uncertain by at most "
+            f"{MAX_PROJECTION_SIGMA_PX:g} px" + (", the board refitted in each fold" if result.board is not None
+                                                 and result.board.model != "flat" else "")}
     if blur_ok and "U_mm" not in undetermined and "theta_F_deg" not in undetermined:
         pts = obs.points_mm.numpy()
         extent = (pts[:, 0].min(), pts[:, 1].min(), pts[:, 0].max(), pts[:, 1].max())
@@ -340,37 +342,35 @@ def _fit_board(geometry: FitResult, obs: Observations, mode: str, options: FitOp
     fit.distortion_model = distortion
     if options.distortion == "auto" and fit.board.model != "flat":
         fit, held = _redistort(fit, obs, mode, opts, held, say)
+        fit.held_out = held
     return fit, entries, held
 
 
 def _redistort(fit: FitResult, obs: Observations, mode: str, options: FitOptions, held, say=None):
     """The distortion model chosen again with the board as fitted (a flat board's misfit had asked for terms the
-    fitted shape explains): `select_distortion` on the fitted points; where it changes the model, the board is
-    refitted with it and its held-out error recomputed. Returns (fit, held-out dict)."""
-    from .board_fit import fit_board, held_out_rms
-
-    board = fit.board
+    fitted shape explains): `select_distortion` with the board fitted beside each model and refitted in each
+    fold, so that the held-out errors it prints and records are those of the whole calibration (a choice made
+    on the points fitted to all views scored the board on the views it was fitted to). `fit` and `held` (its
+    held-out error, from the board's selection) are reused for its own model. Returns (fit, held-out dict)."""
+    flat_entries = list(fit.distortion_selection or [])
+    known = {fit.distortion_model: (fit, held)} if held is not None else {}
+    # The candidates: the model chosen with the flat board and those with fewer terms (a board's shape explains
+    # misfit that asked for terms; it does not determine terms the flat board's views could not).
+    models = DISTORTION_MODELS[:DISTORTION_MODELS.index(fit.distortion_model) + 1]
     try:
-        sel = select_distortion(fit.camera, with_points(obs, board.points()), options, mode, None,
-                                folds=options.held_out_folds)
+        sel = select_distortion(fit.camera, obs, options, mode, say, folds=options.held_out_folds, board=fit.board,
+                                known=known, models=models)
     except FitError:
         return fit, held
-    new = sel.distortion_model
-    if new == fit.distortion_model:
-        fit.distortion_selection = sel.distortion_selection
-        return fit, held
-    opts = replace(options, distortion=new)
-    try:
-        refit = fit_board(sel.camera, obs, opts, board.model, mode, board=board)
-        held = held_out_rms(obs, replace(opts, progress=None, model_selection=False), board.model,
-                            options.held_out_folds, start=refit.camera)
-    except FitError:
-        return fit, held
-    if say:
-        say(f"distortion chosen again with the board as fitted: {new} (was {fit.distortion_model}); held-out "
-            f"{held['rms_px']:.4f} px per corner")
-    refit.distortion_model, refit.distortion_selection, refit.held_out = new, sel.distortion_selection, fit.held_out
-    return refit, held
+    new, old = sel.distortion_model, fit.distortion_model
+    # The richer models keep their entries from the flat board's choice (marked so).
+    sel.distortion_selection += [dict(e, chosen=False, board="flat") for e in flat_entries
+                                 if e["model"] not in models]
+    if say and new != old:
+        say(f"distortion chosen again with the board as fitted: {new} (was {old}); held-out "
+            f"{sel.held_out['rms_px']:.4f} px per corner")
+    sel.distortion_model = new
+    return sel, sel.held_out if sel.held_out is not None else held
 
 
 def _board_line(board) -> str:

@@ -100,7 +100,9 @@ def calibration_reference() -> str:
         "listed in `undetermined`. `tiltfit export` accepts every file `tiltfit calibrate` writes. Also written: "
         "`warnings` (e.g. that the thin-lens blur model does not describe the lens), `principal_point_fitted`, "
         "`model_selection.principal_point` (`justified`, `fitted`) and `distortion_selection` (per model: fit "
-        "`rms_px`, `held_out_rms_px` or why it was `refused`, `chosen`).", "",
+        "`rms_px`, `held_out_rms_px` or why it was `refused`, `chosen`, and `board`: the board model fitted with it "
+        "and refitted in each fold, where the board's shape is fitted; the distortion is chosen again then, among "
+        "the flat board's choice and the models with fewer terms).", "",
         "`distortion_centre` (default `\"sensor\"`): `\"sensor\"`, the distortion about the principal point, or "
         "`\"lens_axis\"`, about the tilted lens's own axis (applied in the lens's frame, OpenCV's tilted model: "
         "`tiltfit export --to opencv` then writes τx, τy); the joint fit chooses it by a likelihood-ratio test "

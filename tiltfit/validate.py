@@ -41,6 +41,15 @@ MAX_MAPPING_SIGMA_PX = 5.0
 # 31 / 6 / 11 px at the corner, and a general rule would refuse them too (k1 even from 35 views, which it
 # misfits).
 CHECKED_MODELS = ("rational",)
+# The automatic choice (`select_distortion`) also refuses one of the `CHECKED_MODELS` whose projection is uncertain
+# by more than this anywhere in the image (pixels, 1σ: CALIB.json's `projection_uncertainty.worst_px`, from the
+# fit's intrinsics covariance): its coefficients trade against each other (numerator against denominator) and
+# only the radii the boards cover pin the mapping down. 12 GoPro views (data/real/gopro_wide): rational 79-181 px
+# with the flat board, 14 px with the free one (k1 905 ± 3118, k4 901 ± 3089), opencv5 3.9 px; the three
+# 12-view thirds of the set 55-2200 px against opencv5's 2.1-6.0 (benchmarks/results/selection.md);
+# industrial_ds1 (20 views), flat board: rational 2.0 px (accepted). A model asked for by name is only held to
+# `MAX_MAPPING_SIGMA_PX`.
+MAX_PROJECTION_SIGMA_PX = 5.0
 
 
 def predict_views(camera, obs: Observations, options: FitOptions = FitOptions()):
@@ -64,7 +73,8 @@ def held_out_rms(obs: Observations, options: FitOptions = FitOptions(), folds: i
         start: a camera whose lens (w, principal point, distortion) starts each fold's fit (e.g. the fit on all
             views); None starts from the homographies without distortion.
         board: a board model (`tiltfit.board.BOARD_MODELS`) fitted with the lens in each fold and held with it
-            when the fold's views are predicted; None: the target's points as they are.
+            when the fold's views are predicted, or a `tiltfit.board.Board` of that model whose parameters start
+            each fold's (as `start` starts its lens); None: the target's points as they are.
     Returns:
         {"rms_px": RMS over all held-out corners, "per_view_px": [...] in obs order, "folds": K,
         "median_view_px"}.
@@ -91,7 +101,9 @@ def held_out_rms(obs: Observations, options: FitOptions = FitOptions(), folds: i
         else:
             from .board import Board, with_points
 
-            fit = fit_geometry(cam, tr, opts, mode="unified", board=Board(tr.points_mm, board))
+            b = Board(tr.points_mm, board.model, board.params) if isinstance(board, Board) else \
+                Board(tr.points_mm, board)
+            fit = fit_geometry(cam, tr, opts, mode="unified", board=b)
             pred = predict_views(fit.camera, with_points(obs.subset(test), fit.board.points()), opts)
         sq += pred.rss["corners"]
         n += pred.rss["n_corners"] // 2
@@ -184,16 +196,49 @@ def undetermined_distortion(fit: FitResult, model: str, n_views: int) -> str | N
             f"with fewer terms")
 
 
+def projection_sigma_worst_px(fit: FitResult) -> float:
+    """The worst one-σ uncertainty (pixels) of the fit's projection over the image (`tiltfit.uncertainty`'s map,
+    as CALIB.json's `projection_uncertainty.worst_px`); 0 where the fit has no intrinsics covariance."""
+    ic = getattr(fit, "intrinsics_covariance", None)
+    if not ic:
+        return 0.0
+    from .uncertainty import projection_summary
+
+    cam = fit.camera
+    with torch.no_grad():
+        theta = torch.cat([cam.focal_px.detach().reshape(1), cam.principal_point_px.detach().reshape(2),
+                           cam.distortion.detach().reshape(-1)]).to(torch.float64)
+    worst = projection_summary(theta, torch.tensor(ic["matrix"], dtype=torch.float64), cam.image_size_px,
+                               nx=24)["worst_px"]
+    return math.inf if worst is None else float(worst)
+
+
+def undetermined_for_choice(fit: FitResult, model: str) -> str | None:
+    """Why the automatic choice does not take `model`'s fit although it may be asked for by name (one line), or
+    None: for the `CHECKED_MODELS`, a projection uncertain by more than `MAX_PROJECTION_SIGMA_PX` somewhere in
+    the image (the views determine the mapping where the boards were, not its coefficients)."""
+    if model not in CHECKED_MODELS:
+        return None
+    worst = projection_sigma_worst_px(fit)
+    if worst <= MAX_PROJECTION_SIGMA_PX:
+        return None
+    return (f"coefficients not determined by these views: the projection is uncertain by up to ±{worst:.3g} px "
+            f"(1σ) in the image, more than the {MAX_PROJECTION_SIGMA_PX:g} px an automatic choice accepts (views "
+            f"with the board near the image's corners determine it)")
+
+
 def _per_corner_rms(fit: FitResult) -> float:
     return math.sqrt(fit.rss["corners"] / max(fit.rss["n_corners"] // 2, 1))
 
 
 def select_distortion(camera: TiltLensCamera, obs: Observations, options: FitOptions, mode: str = "unified",
-                      say=None, folds: int = 5) -> FitResult:
+                      say=None, folds: int = 5, board=None, known: dict | None = None,
+                      models=DISTORTION_MODELS) -> FitResult:
     """Fit every distortion model on the corners and keep the one that predicts held-out views best.
 
     Models none, k1, k1k2, opencv5, rational are fitted in turn on all views (each starting from the previous
-    fit); a model whose radial mapping folds inside the image (`radial_fold`) or whose fit fails is refused;
+    fit); a model whose radial mapping folds inside the image (`radial_fold`), whose coefficients the views do
+    not determine (`undetermined_distortion`, `undetermined_for_choice`) or whose fit fails is refused;
     the others are scored by their K-fold held-out error (`held_out_rms`, the lens of each fold started from
     the model's fit on all views; not computed for a model whose fit RMS already exceeds the best held-out
     error, which it cannot beat). The chosen model is the one with the fewest terms whose held-out error is
@@ -201,24 +246,38 @@ def select_distortion(camera: TiltLensCamera, obs: Observations, options: FitOpt
     BIC on the fitted corners. Returns that model's fit; `distortion_selection` holds one entry per model
     ({model, n_terms, rms_px, held_out_rms_px | bic, refused?, chosen}); `held_out` the chosen one's
     held-out result. The principal point is free when `options.free_principal_point` is True.
+
+    `board` (a fitted `tiltfit.board.Board`, or None: the target's points as they are): the board's shape is
+    fitted beside every model (started from `board`) and refitted without the held-out views in each fold, so
+    every figure is the held-out error of the whole calibration (lens and board). `known` ({model: (fit,
+    held-out dict)}) gives fits already made with these settings (and `board`'s model), not made again;
+    `models` the candidates (fewest terms first).
     """
     obs = without_blur(obs)
     fixed = replace(options, progress=None, model_selection=False, free_principal_point=bool(
         options.free_principal_point))
+    known = known or {}
     use_held_out = obs.n_views >= 3
     fits, entries, held, prev = {}, [], {}, None
-    for m in DISTORTION_MODELS:
+    for m in models:
         entry = {"model": m, "n_terms": len(MODEL_TERMS[m])}
         entries.append(entry)
         try:
-            fit = fit_geometry((prev.camera if prev is not None else camera).copy(), obs,
-                               replace(fixed, distortion=m), mode)
+            if m in known:
+                fit = known[m][0]
+            else:
+                start = board if prev is None or board is None else prev.board
+                fit = fit_geometry((prev.camera if prev is not None else camera).copy(), obs,
+                                   replace(fixed, distortion=m), mode,
+                                   board=None if board is None else start.copy())
         except FitError as e:
             entry["refused"] = f"not fitted ({e})"
             continue
         prev = fit
         entry["rms_px"] = _per_corner_rms(fit)
-        fold = radial_fold(fit.camera, obs) or undetermined_distortion(fit, m, obs.n_views)
+        seen = obs if fit.board is None else _with_board(obs, fit.board)
+        fold = (radial_fold(fit.camera, seen) or undetermined_distortion(fit, m, obs.n_views)
+                or undetermined_for_choice(fit, m))
         if fold:
             entry["refused"] = fold
         else:
@@ -229,25 +288,28 @@ def select_distortion(camera: TiltLensCamera, obs: Observations, options: FitOpt
     # found (with the tolerance) is not scored: its held-out error is at least its fit RMS (a fit explains
     # the views it was fitted to better than new ones), so it cannot be chosen.
     for m in sorted(fits, key=lambda m: fits[m].rss["corners"]) if use_held_out else []:
-        entry = entries[DISTORTION_MODELS.index(m)]
+        entry = entries[models.index(m)]
         best = min((h["rms_px"] for h in held.values()), default=math.inf)
         if entry["rms_px"] > (1 + HELD_OUT_TOLERANCE) * best:
             entry["held_out_skipped"] = "its fit RMS exceeds the best held-out error"
             continue
         try:
-            held[m] = held_out_rms(obs, replace(fixed, distortion=m), folds, start=fits[m].camera)
+            given = known.get(m, (None, None))[1]
+            held[m] = given if (given or {}).get("folds") == min(max(2, folds), obs.n_views) else held_out_rms(
+                obs, replace(fixed, distortion=m), folds, start=fits[m].camera, board=fits[m].board)
             entry["held_out_rms_px"] = held[m]["rms_px"]
         except FitError as e:
             entry["refused"] = f"held-out error not computed ({e})"
     if use_held_out:
         fits = {m: f for m, f in fits.items() if m in held}
+    shape = "" if board is None else f" (board {board.model} fitted, and refitted in each fold)"
     for entry in entries if say else []:
         score = (f"held-out {entry['held_out_rms_px']:.4f} px" if "held_out_rms_px" in entry else
                  f"refused: {entry['refused']}" if "refused" in entry else
                  f"held-out not computed ({entry['held_out_skipped']})" if "held_out_skipped" in entry else
                  f"BIC {entry['bic']:.1f}")
-        say(f"distortion {entry['model']}: " + (f"RMS {entry['rms_px']:.4f} px per corner, " if "rms_px" in entry
-                                                else "") + score)
+        say(f"distortion {entry['model']}{shape}: " + (f"RMS {entry['rms_px']:.4f} px per corner, "
+                                                       if "rms_px" in entry else "") + score)
     if not fits:
         raise FitError("no distortion model could be fitted: " + "; ".join(
             f"{e['model']}: {e.get('refused')}" for e in entries))
@@ -255,11 +317,13 @@ def select_distortion(camera: TiltLensCamera, obs: Observations, options: FitOpt
     scores = {e["model"]: e[key] for e in entries if e["model"] in fits and key in e}
     best = min(scores.values())
     if use_held_out:
-        chosen = next(m for m in DISTORTION_MODELS if m in scores and scores[m] <= (1 + HELD_OUT_TOLERANCE) * best)
+        chosen = next(m for m in models if m in scores and scores[m] <= (1 + HELD_OUT_TOLERANCE) * best)
     else:
         chosen = min(scores, key=scores.get)
     for e in entries:
         e["chosen"] = e["model"] == chosen
+        if board is not None:
+            e["board"] = board.model
     result = fits[chosen]
     result.distortion_model = chosen
     result.distortion_selection = entries
@@ -267,17 +331,27 @@ def select_distortion(camera: TiltLensCamera, obs: Observations, options: FitOpt
     return result
 
 
+def _with_board(obs: Observations, board) -> Observations:
+    from .board import with_points
+
+    return with_points(obs, board.points())
+
+
 def describe_choice(selection: list) -> str:
     """One line: which distortion model `select_distortion` chose and why."""
     chosen = next((e for e in selection if e.get("chosen")), None)
     if chosen is None:
         return "no model chosen"
-    if "held_out_rms_px" in chosen:
-        best = min((e for e in selection if "held_out_rms_px" in e), key=lambda e: e["held_out_rms_px"])
+    if "held_out_rms_px" in chosen:  # compared with the models scored with the same board
+        best = min((e for e in selection if "held_out_rms_px" in e and e.get("board") == chosen.get("board")),
+                   key=lambda e: e["held_out_rms_px"])
         why = (f"smallest held-out error, {chosen['held_out_rms_px']:.4f} px per corner" if best is chosen else
                f"held-out {chosen['held_out_rms_px']:.4f} px per corner, within {100 * HELD_OUT_TOLERANCE:g} % of "
                f"{best['model']}'s {best['held_out_rms_px']:.4f} px with fewer terms")
     else:
         why = "smallest BIC (too few views for a held-out error)"
-    refused = [f"{e['model']} ({e['refused']})" for e in selection if e.get("refused")]
-    return f"{chosen['model']}: {why}" + (f"; refused: {'; '.join(refused)}" if refused else "")
+    refused = [f"{e['model']} ({e['refused']}" + (f", with the {e['board']} board" if e.get("board") and
+                                                  e.get("board") != chosen.get("board") else "") + ")"
+               for e in selection if e.get("refused")]
+    board = f" (board {chosen['board']} refitted in each fold)" if chosen.get("board") else ""
+    return f"{chosen['model']}{board}: {why}" + (f"; refused: {'; '.join(refused)}" if refused else "")

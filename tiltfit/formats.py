@@ -98,9 +98,13 @@ def calibration_reference() -> str:
         "Values are never written outside their physical range: `w_mm` > 0; `U_mm` > 0 or null; `d_mm` ≥ 0 or null; "
         "a key the data cannot determine, or whose fit left its range (U ≤ 0: focus beyond infinity), is null and "
         "listed in `undetermined`. `tiltfit export` accepts every file `tiltfit calibrate` writes. Also written: "
-        "`warnings` (e.g. that the thin-lens blur model does not describe the lens), `principal_point_fitted`, "
-        "`model_selection.principal_point` (`justified`, `fitted`) and `distortion_selection` (per model: fit "
-        "`rms_px`, `held_out_rms_px` or why it was `refused`, `chosen`).", "",
+        "`warnings` (e.g. that the thin-lens blur model does not describe the lens, or that its residuals trend "
+        "with depth), `principal_point_fitted`, `model_selection.principal_point` (`justified`, `fitted`), "
+        "`model_selection.blur` (`used`: whether the blur widths gave U and d; `why_not`: why the thin-lens blur "
+        "model was refused, null where it was not; `noise_px`: the widths' noise from neighbouring corners; "
+        "`trend_with_depth`: `significant`, `p_value`, `amplitude_px`, `depth_mm` of the blur residuals' trend "
+        "with depth, where tested) and `distortion_selection` (per model: fit `rms_px`, `held_out_rms_px` or why "
+        "it was `refused`, `chosen`).", "",
         "`distortion_centre` (default `\"sensor\"`): `\"sensor\"`, the distortion about the principal point, or "
         "`\"lens_axis\"`, about the tilted lens's own axis (applied in the lens's frame, OpenCV's tilted model: "
         "`tiltfit export --to opencv` then writes τx, τy); the joint fit chooses it by a likelihood-ratio test "

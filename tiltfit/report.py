@@ -180,14 +180,23 @@ def _write_plots(calib: dict, views: list, out_dir: str) -> list:
     br = np.concatenate([_arr(v.get("blur_residuals_px", [None] * len(v.get("depth_mm", []))), 1).ravel()
                          for v in views])
     ok = np.isfinite(z) & np.isfinite(br)
+    trend = ((calib.get("model_selection") or {}).get("blur") or {}).get("trend_with_depth") or {}
     if ok.any():
         ax.scatter(z[ok], br[ok], s=3, alpha=0.5)
         ax.axhline(0, color="k", lw=0.8)
+        edges = np.quantile(z[ok], np.linspace(0, 1, 9))
+        mid = 0.5 * (edges[1:] + edges[:-1])
+        med = [np.median(br[ok][(z[ok] >= a) & (z[ok] <= b)]) for a, b in zip(edges[:-1], edges[1:])]
+        ax.plot(mid, med, "o-", color="tab:red", ms=3, lw=1.2, label="median per depth bin")
+        ax.legend(fontsize=8)
         ax.set_ylabel("blur residual, model − measured (px)")
     else:
         ax.text(0.5, 0.5, "no blur widths in this calibration", ha="center", va="center", transform=ax.transAxes)
     ax.set_xlabel("depth z in the camera frame (mm)")
-    ax.set_title("Blur residual against depth")
+    ax.set_title("Blur residual against depth" + (
+        f": a trend the blur model does not explain\n({trend['amplitude_px']:.2g} px over the depths, "
+        f"p = {trend['p_value']:.1g}; see the warning in report.md)" if trend.get("significant") else ""),
+        fontsize=10)
     save(fig, "blur_vs_depth.png")
 
     # Coverage.
@@ -233,6 +242,8 @@ def _write_plots(calib: dict, views: list, out_dir: str) -> list:
     lines.append(f"- image coverage (share of the image inside a view's board): {100 * covered:.0f} %")
     for note in calib.get("notes") or []:
         lines.append(f"- note: {note}")
+    for warning in calib.get("warnings") or []:
+        lines.append(f"- warning: {warning}")
     lines += ["", "| view | RMS (px) | corners | outlier |", "|---|---|---|---|"]
     for nm, v in zip(names, views):
         r = v.get("rms_reprojection_px")

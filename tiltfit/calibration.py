@@ -20,11 +20,13 @@ import torch
 from . import fit as _core
 from .fit import MODES, FitError, FitOptions, FitResult, _fit_camera, _set_free
 from .imaging import torch_threads
-from .model import Observations, TiltLensCamera, distortion_parameter_names, residuals
+from .model import (Observations, TiltLensCamera, distortion_parameter_names, residuals, robust_rho,
+                    robust_weight)
 from .board import describe_board, with_points
 from .board_fit import select_board
 from .selection import blur_depends_on_depth, blur_is_informative, likelihood_ratio, nested_model_tests, usable_views
 from .start import initialize, start_blur
+from .solve import LMOptions, SolverError, least_squares
 from .stats import chi2_sf
 from .validate import select_distortion
 
@@ -671,15 +673,20 @@ def blur_trend(result: FitResult, obs: Observations, noise_px: float | None = No
     span = max(z95 - z5, 1e-9)
     t = (z - z50) / span
     X = np.stack([np.ones_like(t), t, t * t], 1)
-    w = np.ones_like(r)
-    for _ in range(20):  # Huber IRLS with the residuals' robust σ (MAD)
-        coef = np.linalg.lstsq(X * np.sqrt(w)[:, None], r * np.sqrt(w), rcond=None)[0]
-        e = r - X @ coef
-        s = 1.4826 * float(np.median(np.abs(e - np.median(e)))) + 1e-12
-        w_new = np.minimum(1.0, HUBER_K * s / np.maximum(np.abs(e), 1e-300))
-        if np.allclose(w_new, w, atol=1e-6):
-            break
-        w = w_new
+    # Huber fit (`tiltfit.solve.least_squares`), residuals in units of their robust σ about the plain fit
+    plain = np.linalg.lstsq(X, r, rcond=None)[0]
+    e0 = r - X @ plain
+    s = 1.4826 * float(np.median(np.abs(e0 - np.median(e0)))) + 1e-12
+    Xt, rt = torch.from_numpy(X), torch.from_numpy(r)
+    huber = LMOptions(max_iterations=50, rho=lambda s2: robust_rho(s2, "huber", HUBER_K),
+                      weight=lambda s2: robust_weight(s2, "huber", HUBER_K))
+    try:
+        coef = least_squares(lambda c: (Xt @ c - rt) / s, torch.from_numpy(plain), huber,
+                             jacobian_fn=lambda c: Xt / s).x.numpy()
+    except SolverError:
+        return None
+    e = r - X @ coef
+    w = robust_weight(torch.from_numpy((e / s) ** 2), "huber", HUBER_K).numpy()
     bread = np.linalg.pinv((X * w[:, None]).T @ X)
     scores = np.zeros((len(groups), 3))
     np.add.at(scores, np.searchsorted(groups, view), X * (w * e)[:, None])

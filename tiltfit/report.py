@@ -11,13 +11,16 @@ written by `tiltfit calibrate`). Files:
     residual_vectors_flat_board.png  the same with the target file's flat board instead of the fitted one
                             (only when the calibration fitted the board's shape: what that shape explains)
     residual_histogram.png  x and y residuals with the Gaussian of the fitted σ: heavy tails mean outliers
-    blur_vs_depth.png       blur residual against depth (a trend means the focus or blur model is off)
+    blur_vs_depth.png       blur residual against depth, with the median per depth bin (a trend means the focus
+                            or blur model is off; the title names one the calibration found significant,
+                            `model_selection.blur.trend_with_depth`)
     coverage.png            where in the image the corners fell, and the share of the image inside the union
                             of the views' boards (`coverage_fraction`): empty regions (corners, a bare
                             border) leave the distortion there extrapolated
     projection_uncertainty.png  σ of the projection across the image (CALIB.json's `projection_uncertainty`,
                             `tiltfit.uncertainty`), where the file has it
-    report.md               the numbers: RMS, held-out error, per-view table, undetermined and skipped
+    report.md               the numbers: RMS, held-out error, per-view table, undetermined and skipped,
+                            the calibration's notes and warnings
 """
 from __future__ import annotations
 

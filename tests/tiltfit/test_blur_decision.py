@@ -125,7 +125,7 @@ def test_industrial_ds1_blur_trend_is_warned_about():
     res = calibrate(obs, "unified", options=FitOptions(**DEFAULTS))
     trend = res.model_selection["blur"]["trend_with_depth"]
     lines = [w for w in res.warnings if "trend with depth" in w]
-    assert trend["significant"] and trend["p_value"] < 1e-4 and 0.1 < trend["amplitude_px"] < 0.5, \
+    assert trend["significant"] and trend["p_value"] < 1e-3 and 0.1 < trend["amplitude_px"] < 0.5, \
         f"the trend with depth is found: {trend}"
     assert len(lines) == 1, f"one warning line: {res.warnings}"
 

@@ -703,9 +703,11 @@ def blur_trend(result: FitResult, obs: Observations, noise_px: float | None = No
     amplitude = float(curve.max() - curve.min())
     noise = noise_px if noise_px is not None and math.isfinite(noise_px) and noise_px > 0 else s
     significant = bool(p < BLUR_TREND_ALPHA and amplitude >= BLUR_TREND_MIN_RATIO * noise)
-    near, far = (round(float(v + coef[0]), 2) + 0.0 for v in (curve[0], curve[-1]))  # + 0.0: no "-0.00"
-    why = (f"the blur residuals trend with depth, which the thin-lens model does not explain: {near:+.2f} px at "
-           f"{z5:.0f} mm, {far:+.2f} px at {z95:.0f} mm (model − measured; a change {amplitude / noise:.1f}× the "
-           f"widths' noise of {noise:.2g} px; p = {p:.1g}, each view's widths sharing their errors)")
+    lo, hi = int(np.argmin(curve)), int(np.argmax(curve))
+    depth = z50 + tt * span
+    at = lambda i: f"{round(float(curve[i] + coef[0]), 2) + 0.0:+.2f} px at {depth[i]:.0f} mm"  # noqa: E731 (no -0.00)
+    why = (f"the blur residuals trend with depth, which the thin-lens model does not explain: from {at(lo)} to "
+           f"{at(hi)} (model − measured, over {z5:.0f}–{z95:.0f} mm; a change {amplitude / noise:.1f}× the widths' "
+           f"noise of {noise:.2g} px; p = {p:.1g}, each view's widths sharing their errors)")
     return {"significant": significant, "p_value": p, "wald": wald, "amplitude_px": amplitude, "noise_px": noise,
             "depth_mm": [float(z5), float(z95)], "why": why}

@@ -55,7 +55,8 @@ def write_markdown(path: str, res: dict) -> None:
              "`python benchmarks/bench_blur_decision.py`: `calibrate` with the command line's defaults on the cached "
              "detections. U written only where the blur model is used; *refused*: why (the widths' noise σ_n from "
              "neighbouring corners, on the target file's points). Trend: the blur residuals' quadratic trend with "
-             "depth (Huber, per-view cluster-robust Wald χ²(2)); warned where p < 1e-3 and its change ≥ 0.5 σ_n.", "",
+             "depth (Huber, per-view cluster-robust Wald χ²(2)); warned where p < 1e-3 and its change ≥ 0.5 σ_n.",
+             "",
              "| set | views | board | U (mm) | σ_n (px) | blur model | trend change (px) | trend p | warned |",
              "|---|---|---|---|---|---|---|---|---|"]
     for row in res["rows"]:

@@ -707,7 +707,7 @@ def blur_trend(result: FitResult, obs: Observations, noise_px: float | None = No
     depth = z50 + tt * span
     at = lambda i: f"{round(float(curve[i] + coef[0]), 2) + 0.0:+.2f} px at {depth[i]:.0f} mm"  # noqa: E731 (no -0.00)
     why = (f"the blur residuals trend with depth, which the thin-lens model does not explain: from {at(lo)} to "
-           f"{at(hi)} (model − measured, over {z5:.0f}–{z95:.0f} mm; a change {amplitude / noise:.1f}× the widths' "
-           f"noise of {noise:.2g} px; p = {p:.1g}, each view's widths sharing their errors)")
+           f"{at(hi)} (model − measured, over {z5:.0f}–{z95:.0f} mm; a change {amplitude / noise:.1f}× the "
+           f"widths' noise of {noise:.2g} px; p = {p:.1g}, each view's widths sharing their errors)")
     return {"significant": significant, "p_value": p, "wald": wald, "amplitude_px": amplitude, "noise_px": noise,
             "depth_mm": [float(z5), float(z95)], "why": why}

@@ -231,11 +231,16 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
                 if tilted is not None:
                     misfit = blur_misfit(tilted, obs, blur_noise)
                     trend = None if misfit else blur_trend(tilted, obs, blur_noise)
+            head = "the thin-lens blur model does not describe this lens"
+            if not misfit:
+                floor = focus_below_floor(result, obs, options, mode)
+                if floor:
+                    head, misfit, trend = "the blur widths do not determine the focus", floor, None
             if trend and trend["significant"]:
                 warnings.append(trend["why"] + "; U and d may be biased by it")
             if misfit:
-                warnings.append(f"the thin-lens blur model does not describe this lens: {misfit}; U and d are "
-                                f"not reported and the tilt is not tested (calibration from the corners only)")
+                warnings.append(f"{head}: {misfit}; U and d are not reported and the tilt is not tested (calibration "
+                                f"from the corners only)")
                 undetermined = ["U_mm", "d_mm"] + (["theta_F_deg"] if mode != "unified" else [])
                 if geometry is None:
                     geometry = fit_geometry(cam, obs, replace(options, distortion=distortion), mode, say)
@@ -631,6 +636,40 @@ def blur_misfit(result: FitResult, obs: Observations, noise_px: float | None = N
         return (f"the blur it explains varies by {explained:.3g} px across the corners, less than the widths' noise "
                 f"({noise:.3g} px, from neighbouring corners)")
     return None
+
+
+#: Widths below the detector's floor that may carry U before `focus_below_floor` checks (a share of all widths).
+FLOOR_SHARE = 0.1
+
+
+def focus_below_floor(result: FitResult, obs: Observations, options: FitOptions, mode: str) -> str | None:
+    """Why U rests on blur widths below the detector's floor (`options.blur_floor_px`), or None.
+
+    Below its floor a detector's width is its own resolution, not defocus (`blur_is_informative`): such widths
+    say that the blur there is small, not how small. Where at least `FLOOR_SHARE` of the widths are below the
+    floor, the blur fit is repeated from `result` without them; where that fit cannot determine U
+    (`_undetermined_focus`: 1/U within 2σ of 0) or fails, U came from the sub-floor widths alone. On the
+    shipped GoPro set's last 11 views (far views' widths 0.4–0.5 px, near views' 1–2.4 px) U = 217 ± 12 mm
+    with them and 208 ± 1e8 mm without; a capture through a lens focused inside the views' depths keeps U
+    from the widths on both sides of the plane of focus."""
+    m = obs.blur_mask
+    below = m & (obs.blur_px < options.blur_floor_px)
+    if int(below.sum()) < FLOOR_SHARE * int(m.sum()):
+        return None
+    above = Observations(obs.points_mm, obs.corners_px, torch.where(below, torch.nan, obs.blur_px),
+                         obs.image_size_px, obs.pixel_pitch_mm, list(obs.names))
+    share = f"{100 * int(below.sum()) / int(m.sum()):.0f} % of the widths"
+    try:
+        alt = _fit_camera(result.camera.copy(), above, replace(options, model_selection=False, progress=None),
+                          mode=mode)
+    except FitError as e:
+        return (f"U rests on the widths below the detector's floor ({options.blur_floor_px:g} px; {share}): "
+                f"without them the blur fit fails ({e})")
+    if "U_mm" not in _undetermined_focus(alt):
+        return None
+    return (f"U rests on the widths below the detector's floor ({options.blur_floor_px:g} px; {share}): "
+            f"{result.values['U_mm']:.0f} ± {result.sigma['U_mm']:.2g} mm with them, undetermined without them "
+            f"(1/U within 2σ of 0)")
 
 
 # When the blur residuals trend with depth (`blur_trend`): the trend must be significant with the views' errors

@@ -80,12 +80,32 @@ def test_gopro_blur_at_the_detector_floor_gives_no_focus_distance():
         f"CALIB.json records the refusal and the widths' noise (about 1.8 px): {blur} (board {res.board.model})"
 
 
+@pytest.mark.slow
+def test_gopro_focus_resting_on_widths_below_the_floor_is_refused():
+    """The GoPro set's last 11 views: near views 6–15 cm away blur by 1–2.4 px, far views sit at the detector's
+    floor (0.4–0.5 px); the model explains more than the noise, but U (217 ± 12 mm) came from the sub-floor widths
+    alone: without them the blur fit cannot determine it. No focus distance is written."""
+    obs, _ = observations(os.path.join(ROOT, "data", "real", "gopro_wide"), 0.005)
+    idx = list(range(24, obs.n_views))
+    obs = Observations(obs.points_mm, obs.corners_px[idx], obs.blur_px[idx], obs.image_size_px, obs.pixel_pitch_mm,
+                       [obs.names[i] for i in idx])
+    res = calibrate(obs, "unified", options=FitOptions(**DEFAULTS))
+    assert {"U_mm", "d_mm"} <= set(res.undetermined), f"U and d undetermined: {res.undetermined}, U {res.values}"
+    lines = [w for w in res.warnings if "do not determine the focus" in w and "detector's floor" in w]
+    assert len(lines) == 1 and len(res.warnings) == 1, f"one warning saying why: {res.warnings}"
+    assert res.model_selection["blur"]["used"] is False, f"recorded: {res.model_selection['blur']}"
+
+
 @pytest.mark.parametrize("board", ["flat", "free"])
 def test_measurable_blur_keeps_the_focus_distance(board):
     """The other side: blur 0.5–19 px straddling the plane of focus, with the target file's board and with a free
-    (moved-points) board: U is fitted and recovered, nothing is refused or warned about."""
+    (moved-points) board: U is fitted and recovered, nothing is refused or warned about. With the detector's
+    floor taken at 2 px, a sixth of the widths (those near the plane of focus) lie below it: without them U is
+    still determined, from the widths on both sides."""
     obs, lens = _capture()
-    res = calibrate(obs, "unified", options=FitOptions(board=board))
+    b = obs.blur_px[obs.blur_mask]
+    assert float((b < 2.0).double().mean()) > 0.1, "the floor check runs on this capture"
+    res = calibrate(obs, "unified", options=FitOptions(board=board, blur_floor_px=2.0))
     U, sU = res.values["U_mm"], res.sigma["U_mm"]
     assert res.model_selection["blur"]["used"] and not res.undetermined, \
         f"board {board}: the blur model is used ({res.model_selection['blur']}, undetermined {res.undetermined})"

@@ -20,11 +20,14 @@ import torch
 from . import fit as _core
 from .fit import MODES, FitError, FitOptions, FitResult, _fit_camera, _set_free
 from .imaging import torch_threads
-from .model import Observations, TiltLensCamera, distortion_parameter_names, residuals
+from .model import (Observations, TiltLensCamera, distortion_parameter_names, residuals, robust_rho,
+                    robust_weight)
 from .board import describe_board, with_points
 from .board_fit import select_board
 from .selection import blur_depends_on_depth, blur_is_informative, likelihood_ratio, nested_model_tests, usable_views
 from .start import initialize, start_blur
+from .solve import LMOptions, SolverError, least_squares
+from .stats import chi2_sf
 from .validate import DISTORTION_MODELS, select_distortion
 
 
@@ -189,6 +192,9 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
         cam = geometry.camera.copy()
     options = replace(options, free_principal_point=free_pp)
     board, board_selection, board_held_out = None, [], None
+    # The widths' noise is found along the target's rows and columns: on the target file's points (a fitted
+    # board's points no longer lie on exact lines, and the noise would not be found at all).
+    blur_noise = blur_noise_px(obs) if blur_ok else math.nan
     if options.board != "flat":
         base = geometry if geometry is not None else fit_geometry(cam, obs, replace(options, distortion=distortion),
                                                                     mode, say)
@@ -199,7 +205,7 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
             obs = with_points(obs, board.points())
             cam = geometry.camera.copy()
     result = None
-    misfit = axis_test = centre_test = None
+    misfit = axis_test = centre_test = trend = None
     if blur_ok:
         result, undetermined, note = _fit_blur(cam, obs, mode, init, init_sigma, options, distortion, geometry,
                                                say)
@@ -218,12 +224,23 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
                 result, axis_test = _with_tilt_axis(result, obs, mode, options, init_sigma, say)        # The tilt stage holds stage 1's U and d, which the lens's tilt moves (hinge rule): its residuals judge
         # that approximation, not the thin-lens model.
         if result is not None and mode != "tilt":
-            misfit = blur_misfit(result, obs)
-            if misfit and mode == "unified" and options.model_selection:
-                misfit = _misfit_with_tilt(result, obs, options)  # a tilted lens is a thin lens too
+            misfit = blur_misfit(result, obs, blur_noise)
+            trend = None if misfit else blur_trend(result, obs, blur_noise)
+            if (misfit or (trend and trend["significant"])) and mode == "unified" and options.model_selection:
+                tilted = _with_theta_F(result, obs, options)  # a tilted lens is a thin lens too
+                if tilted is not None:
+                    misfit = blur_misfit(tilted, obs, blur_noise)
+                    trend = None if misfit else blur_trend(tilted, obs, blur_noise)
+            head = "the thin-lens blur model does not describe this lens"
+            if not misfit:
+                floor = focus_below_floor(result, obs, options, mode)
+                if floor:
+                    head, misfit, trend = "the blur widths do not determine the focus", floor, None
+            if trend and trend["significant"]:
+                warnings.append(trend["why"] + "; U and d may be biased by it")
             if misfit:
-                warnings.append(f"the thin-lens blur model does not describe this lens: {misfit}; U and d are "
-                                f"not reported and the tilt is not tested (calibration from the corners only)")
+                warnings.append(f"{head}: {misfit}; U and d are not reported and the tilt is not tested (calibration "
+                                f"from the corners only)")
                 undetermined = ["U_mm", "d_mm"] + (["theta_F_deg"] if mode != "unified" else [])
                 if geometry is None:
                     geometry = fit_geometry(cam, obs, replace(options, distortion=distortion), mode, say)
@@ -290,6 +307,8 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
             result.model_selection["tilt_axis"] = axis_test
         if centre_test is not None:
             result.model_selection["distortion_centre"] = centre_test
+    if blur_ok and mode != "tilt":
+        result.model_selection["blur"] = _blur_record("U_mm" not in undetermined, blur_noise, misfit, trend)
     if options.distortion == "auto" and result.distortion_selection:
         from .validate import HELD_OUT_TOLERANCE, MAX_PROJECTION_SIGMA_PX, describe_choice
 
@@ -323,6 +342,17 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
                if blur_ok and not misfit else "")
             + f", distortion {distortion}")
     return result
+
+
+def _blur_record(used: bool, noise_px: float, misfit: str | None, trend: dict | None) -> dict:
+    """CALIB.json's `model_selection.blur`: whether the thin-lens blur model gave U (`used`), why it was refused
+    (`blur_misfit`; null where it was not, or where the notes say why U is undetermined), the widths' noise and
+    the residuals' trend with depth (`blur_trend`)."""
+    finite = lambda v: v if v is not None and math.isfinite(v) else None  # noqa: E731
+    out = {"used": bool(used), "why_not": misfit, "noise_px": finite(noise_px)}
+    if trend is not None:
+        out["trend_with_depth"] = {k: trend[k] for k in ("significant", "p_value", "amplitude_px", "depth_mm")}
+    return out
 
 
 def _fit_board(geometry: FitResult, obs: Observations, mode: str, options: FitOptions, distortion: str, say=None):
@@ -459,16 +489,16 @@ def _with_distortion_centre(base: FitResult, obs: Observations, mode: str, optio
     return (alt if entry["justified"] else base), entry
 
 
-def _misfit_with_tilt(base: FitResult, obs: Observations, options: FitOptions) -> str | None:
-    """`blur_misfit` of the fit with θF freed as well (the θF test's alternative): a capture through a tilted
-    lens misfits the untilted model, which the θF test is there to find, not to be warned about."""
+def _with_theta_F(base: FitResult, obs: Observations, options: FitOptions) -> FitResult | None:
+    """The fit with θF freed as well (the θF test's alternative), or None where it fails: a capture through a
+    tilted lens misfits the untilted model (and its residuals trend with depth), which the θF test is there to
+    find, not to be warned about; `blur_misfit` and `blur_trend` judge this fit instead."""
     cam = base.camera.copy()
     cam.free("theta_F")
     try:
-        alt = _fit_camera(cam, obs, replace(options, model_selection=False, progress=None), mode="joint")
+        return _fit_camera(cam, obs, replace(options, model_selection=False, progress=None), mode="joint")
     except FitError:
-        return blur_misfit(base, obs)
-    return blur_misfit(alt, obs)
+        return None
 
 
 def _fit_blur(cam: TiltLensCamera, obs: Observations, mode: str, init, init_sigma, options: FitOptions,
@@ -576,7 +606,7 @@ def blur_noise_px(obs: Observations) -> float:
     return math.sqrt(float((d2 * d2).mean()) / 6.0)
 
 
-def blur_misfit(result: FitResult, obs: Observations) -> str | None:
+def blur_misfit(result: FitResult, obs: Observations, noise_px: float | None = None) -> str | None:
     """Why the fitted thin-lens blur model does not describe the lens's blur widths, or None.
 
     Against the widths' measurement noise σ_n (`blur_noise_px`, found without a blur model): the model does not
@@ -585,11 +615,14 @@ def blur_misfit(result: FitResult, obs: Observations) -> str | None:
     than `BLUR_MIN_SIGNAL_RATIO` σ_n: every width is then more noise than defocus, and U and d rest on the
     average of many noisy widths, where a systematic error of the widths (edges curved by distortion, JPEG
     compression, sharpening) weighs as much as defocus. The fitted U, d and a θF test then describe the
-    model's compromise, not the lens (an untilted action camera's θF came out "justified" at −19°)."""
+    model's compromise, not the lens (an untilted action camera's θF came out "justified" at −19°).
+
+    `noise_px`: σ_n found beforehand (on the target file's points, where `obs` holds a fitted board's), or None
+    to find it here."""
     m = obs.blur_mask
     if result.rss.get("n_blur", 0) < 10:
         return None
-    noise = blur_noise_px(obs)
+    noise = blur_noise_px(obs) if noise_px is None else noise_px
     if not (math.isfinite(noise) and noise > 0):
         return None
     with torch.no_grad():
@@ -603,3 +636,117 @@ def blur_misfit(result: FitResult, obs: Observations) -> str | None:
         return (f"the blur it explains varies by {explained:.3g} px across the corners, less than the widths' noise "
                 f"({noise:.3g} px, from neighbouring corners)")
     return None
+
+
+#: Widths below the detector's floor that may carry U before `focus_below_floor` checks (a share of all widths).
+FLOOR_SHARE = 0.1
+
+
+def focus_below_floor(result: FitResult, obs: Observations, options: FitOptions, mode: str) -> str | None:
+    """Why U rests on blur widths below the detector's floor (`options.blur_floor_px`), or None.
+
+    Below its floor a detector's width is its own resolution, not defocus (`blur_is_informative`): such widths
+    say that the blur there is small, not how small. Where at least `FLOOR_SHARE` of the widths are below the
+    floor, the blur fit is repeated from `result` without them; where that fit cannot determine U
+    (`_undetermined_focus`: 1/U within 2σ of 0) or fails, U came from the sub-floor widths alone. On the
+    shipped GoPro set's last 11 views (far views' widths 0.4–0.5 px, near views' 1–2.4 px) U = 217 ± 12 mm
+    with them and 208 ± 1e8 mm without; a capture through a lens focused inside the views' depths keeps U
+    from the widths on both sides of the plane of focus."""
+    m = obs.blur_mask
+    below = m & (obs.blur_px < options.blur_floor_px)
+    if int(below.sum()) < FLOOR_SHARE * int(m.sum()):
+        return None
+    above = Observations(obs.points_mm, obs.corners_px, torch.where(below, torch.nan, obs.blur_px),
+                         obs.image_size_px, obs.pixel_pitch_mm, list(obs.names))
+    share = f"{100 * int(below.sum()) / int(m.sum()):.0f} % of the widths"
+    try:
+        alt = _fit_camera(result.camera.copy(), above, replace(options, model_selection=False, progress=None),
+                          mode=mode)
+    except FitError as e:
+        return (f"U rests on the widths below the detector's floor ({options.blur_floor_px:g} px; {share}): "
+                f"without them the blur fit fails ({e})")
+    if "U_mm" not in _undetermined_focus(alt):
+        return None
+    return (f"U rests on the widths below the detector's floor ({options.blur_floor_px:g} px; {share}): "
+            f"{result.values['U_mm']:.0f} ± {result.sigma['U_mm']:.2g} mm with them, undetermined without them "
+            f"(1/U within 2σ of 0)")
+
+
+# When the blur residuals trend with depth (`blur_trend`): the trend must be significant with the views' errors
+# correlated (cluster-robust Wald test, α), and its size over the views' depths at least this many of the
+# widths' noise σ (smaller trends bias U and d by less than the widths' scatter does). On industrial_ds1 the
+# residuals' median rises by about 0.2 px from the nearest to the farthest corners (noise 0.18 px): flagged.
+BLUR_TREND_ALPHA = 1e-3
+BLUR_TREND_MIN_RATIO = 0.5
+BLUR_TREND_MIN_VIEWS = 4  # the cluster-robust covariance of 3 coefficients needs more views than that
+HUBER_K = 1.5  # Huber's threshold, in robust σ of the residuals (Huber 1964: 95 % efficiency at the Gaussian)
+
+
+def blur_trend(result: FitResult, obs: Observations, noise_px: float | None = None) -> dict | None:
+    """Whether the fitted blur model's residuals change with depth: structure the thin-lens law does not explain.
+
+    The residuals r (model − measured, px) are regressed on a quadratic in depth, r = a + b t + c t² with
+    t = (z − median z) / (z₉₅ − z₅) (z in the camera frame), by Huber IRLS (a few widths at a detector's floor
+    must not make a trend); the coefficients' covariance is the cluster-robust sandwich with the views as
+    clusters (a view's widths share its errors), and (b, c) = 0 is tested by Wald's χ²(2). The trend is
+    `significant` where p < `BLUR_TREND_ALPHA` and its range over z₅..z₉₅ is at least `BLUR_TREND_MIN_RATIO` of
+    the widths' noise σ_n (`blur_noise_px`; the residuals' robust σ where it cannot be found).
+
+    Returns:
+        None with fewer than 30 widths or `BLUR_TREND_MIN_VIEWS` views; else {significant, p_value, wald,
+        amplitude_px, noise_px, depth_mm: [z₅, z₉₅], why (one line)}.
+    """
+    m = obs.blur_mask
+    if int(m.sum()) < 30:
+        return None
+    with torch.no_grad():
+        r = residuals(result.camera, obs).blur_px[m].double().numpy()
+        z = result.camera.to_camera(obs.points_mm.to(result.camera.rvec.dtype))[..., 2][m].double().numpy()
+    view = np.broadcast_to(np.arange(obs.n_views)[:, None], tuple(m.shape))[m.numpy()]
+    groups = np.unique(view)
+    ok = np.isfinite(r) & np.isfinite(z)
+    if len(groups) < BLUR_TREND_MIN_VIEWS or ok.sum() < 30:
+        return None
+    r, z, view = r[ok], z[ok], view[ok]
+    z5, z50, z95 = np.percentile(z, [5, 50, 95])
+    span = max(z95 - z5, 1e-9)
+    t = (z - z50) / span
+    X = np.stack([np.ones_like(t), t, t * t], 1)
+    # Huber fit (`tiltfit.solve.least_squares`), residuals in units of their robust σ about the plain fit
+    plain = np.linalg.lstsq(X, r, rcond=None)[0]
+    e0 = r - X @ plain
+    s = 1.4826 * float(np.median(np.abs(e0 - np.median(e0)))) + 1e-12
+    Xt, rt = torch.from_numpy(X), torch.from_numpy(r)
+    huber = LMOptions(max_iterations=50, rho=lambda s2: robust_rho(s2, "huber", HUBER_K),
+                      weight=lambda s2: robust_weight(s2, "huber", HUBER_K))
+    try:
+        coef = least_squares(lambda c: (Xt @ c - rt) / s, torch.from_numpy(plain), huber,
+                             jacobian_fn=lambda c: Xt / s).x.numpy()
+    except SolverError:
+        return None
+    e = r - X @ coef
+    w = robust_weight(torch.from_numpy((e / s) ** 2), "huber", HUBER_K).numpy()
+    bread = np.linalg.pinv((X * w[:, None]).T @ X)
+    scores = np.zeros((len(groups), 3))
+    np.add.at(scores, np.searchsorted(groups, view), X * (w * e)[:, None])
+    G = len(groups)
+    cov = bread @ (scores.T @ scores) @ bread * G / (G - 1)
+    b = coef[1:]
+    try:
+        wald = float(b @ np.linalg.solve(cov[1:, 1:], b))
+    except np.linalg.LinAlgError:
+        return None
+    p = chi2_sf(wald, 2)
+    tt = np.linspace((z5 - z50) / span, (z95 - z50) / span, 101)
+    curve = coef[1] * tt + coef[2] * tt * tt
+    amplitude = float(curve.max() - curve.min())
+    noise = noise_px if noise_px is not None and math.isfinite(noise_px) and noise_px > 0 else s
+    significant = bool(p < BLUR_TREND_ALPHA and amplitude >= BLUR_TREND_MIN_RATIO * noise)
+    lo, hi = int(np.argmin(curve)), int(np.argmax(curve))
+    depth = z50 + tt * span
+    at = lambda i: f"{round(float(curve[i] + coef[0]), 2) + 0.0:+.2f} px at {depth[i]:.0f} mm"  # noqa: E731 (no -0.00)
+    why = (f"the blur residuals trend with depth, which the thin-lens model does not explain: from {at(lo)} to "
+           f"{at(hi)} (model − measured, over {z5:.0f}–{z95:.0f} mm; a change {amplitude / noise:.1f}× the "
+           f"widths' noise of {noise:.2g} px; p = {p:.1g}, each view's widths sharing their errors)")
+    return {"significant": significant, "p_value": p, "wald": wald, "amplitude_px": amplitude, "noise_px": noise,
+            "depth_mm": [float(z5), float(z95)], "why": why}

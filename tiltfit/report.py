@@ -11,13 +11,16 @@ written by `tiltfit calibrate`). Files:
     residual_vectors_flat_board.png  the same with the target file's flat board instead of the fitted one
                             (only when the calibration fitted the board's shape: what that shape explains)
     residual_histogram.png  x and y residuals with the Gaussian of the fitted σ: heavy tails mean outliers
-    blur_vs_depth.png       blur residual against depth (a trend means the focus or blur model is off)
+    blur_vs_depth.png       blur residual against depth, with the median per depth bin (a trend means the focus
+                            or blur model is off; the title names one the calibration found significant,
+                            `model_selection.blur.trend_with_depth`)
     coverage.png            where in the image the corners fell, and the share of the image inside the union
                             of the views' boards (`coverage_fraction`): empty regions (corners, a bare
                             border) leave the distortion there extrapolated
     projection_uncertainty.png  σ of the projection across the image (CALIB.json's `projection_uncertainty`,
                             `tiltfit.uncertainty`), where the file has it
-    report.md               the numbers: RMS, held-out error, per-view table, undetermined and skipped
+    report.md               the numbers: RMS, held-out error, per-view table, undetermined and skipped,
+                            the calibration's notes and warnings
 """
 from __future__ import annotations
 
@@ -180,14 +183,23 @@ def _write_plots(calib: dict, views: list, out_dir: str) -> list:
     br = np.concatenate([_arr(v.get("blur_residuals_px", [None] * len(v.get("depth_mm", []))), 1).ravel()
                          for v in views])
     ok = np.isfinite(z) & np.isfinite(br)
+    trend = ((calib.get("model_selection") or {}).get("blur") or {}).get("trend_with_depth") or {}
     if ok.any():
         ax.scatter(z[ok], br[ok], s=3, alpha=0.5)
         ax.axhline(0, color="k", lw=0.8)
+        edges = np.quantile(z[ok], np.linspace(0, 1, 9))
+        mid = 0.5 * (edges[1:] + edges[:-1])
+        med = [np.median(br[ok][(z[ok] >= a) & (z[ok] <= b)]) for a, b in zip(edges[:-1], edges[1:])]
+        ax.plot(mid, med, "o-", color="tab:red", ms=3, lw=1.2, label="median per depth bin")
+        ax.legend(fontsize=8)
         ax.set_ylabel("blur residual, model − measured (px)")
     else:
         ax.text(0.5, 0.5, "no blur widths in this calibration", ha="center", va="center", transform=ax.transAxes)
     ax.set_xlabel("depth z in the camera frame (mm)")
-    ax.set_title("Blur residual against depth")
+    ax.set_title("Blur residual against depth" + (
+        f": a trend the blur model does not explain\n({trend['amplitude_px']:.2g} px over the depths, "
+        f"p = {trend['p_value']:.1g}; see the warning in report.md)" if trend.get("significant") else ""),
+        fontsize=10)
     save(fig, "blur_vs_depth.png")
 
     # Coverage.
@@ -233,6 +245,8 @@ def _write_plots(calib: dict, views: list, out_dir: str) -> list:
     lines.append(f"- image coverage (share of the image inside a view's board): {100 * covered:.0f} %")
     for note in calib.get("notes") or []:
         lines.append(f"- note: {note}")
+    for warning in calib.get("warnings") or []:
+        lines.append(f"- warning: {warning}")
     lines += ["", "| view | RMS (px) | corners | outlier |", "|---|---|---|---|"]
     for nm, v in zip(names, views):
         r = v.get("rms_reprojection_px")

@@ -442,6 +442,9 @@ def _solve(problem: _Problem, x0: dict, blocks: list, view_rows: torch.Tensor, o
         new = _robust_sigma(res.r * problem.scale)
         if abs(new / problem.scale - 1) <= SCALE_TOLERANCE:
             break
+        if problem.say:
+            problem.say(f"photometric: the residuals' robust σ re-estimated ({problem.scale:.4g} → {new:.4g}); the "
+                        "fit resumes with the new Huber weights, and its cost is not comparable with the lines above")
         problem.scale = new
     return res, iterations
 
@@ -651,8 +654,8 @@ def _refine(images, target, camera, options, say, start_sigma, corners, corner_h
                     if math.isfinite(float(bi)) and abs(float(ti)) > AT_BOUND]
     if at_bound:
         kept = "corner fit"
-        reasons.append(f"{', '.join(at_bound)} at the trust bound ({TRUST_SIGMAS:g} of the corner fit's σ): the "
-                       "pixels and the corners disagree beyond what either's σ allows")
+        reasons.append(f"{', '.join(at_bound)} at the trust bound (the refinement is held within {TRUST_SIGMAS:g}σ of "
+                       "the corner fit): the pixels and the corners disagree beyond what either's σ allows")
     corner_check = None
     if corners is not None:
         corner_check = _corner_check(refined, camera, corners, corner_held_out_px)

@@ -1,0 +1,172 @@
+"""Whether the blur widths determine the focus, and whether the blur model explains them: the calibration refuses
+the thin-lens blur model where the widths cannot support it (the shipped GoPro photos: everything in focus, blur
+at the detector's floor) and keeps it where blur is clearly measurable, both with a fitted board's moved points;
+it warns in one line where the blur residuals trend with depth (industrial_ds1; a synthetic capture whose widths
+carry a depth-dependent bias) and not where the widths follow the thin-lens law.
+
+Synthetic captures: the exact thin-lens corners and blur widths (`tiltfit.synth.observe`) of the paper's lens
+from 18 poses straddling the plane of focus, plus Gaussian noise. Real photos: tiltfit's own cached detections
+(benchmarks/real_detections.py).
+"""
+from __future__ import annotations
+
+import os
+import sys
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from renderer import Lens
+from renderer.cameras import EOS_6D
+from tiltfit import synth
+from tiltfit.calibration import calibrate
+from tiltfit.experiments import reproduce
+from tiltfit.fit import FitOptions
+from tiltfit.model import Observations
+from tiltfit.report import write_report
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+from real_detections import observations  # noqa: E402
+
+#: (rotation about x °, about y °, distance mm): depths 460–740 mm about the paper lens's U = 618 mm.
+POSES = ((30.0, 0.0, 560.0), (-25.0, 0.0, 480.0), (0.0, 35.0, 600.0), (0.0, -30.0, 650.0), (20.0, 20.0, 540.0),
+         (-15.0, -20.0, 700.0), (10.0, -10.0, 620.0), (-30.0, 10.0, 520.0), (25.0, -25.0, 680.0),
+         (0.0, 20.0, 500.0), (-20.0, 30.0, 640.0), (15.0, 5.0, 720.0), (5.0, 30.0, 580.0), (-10.0, -35.0, 560.0),
+         (35.0, 10.0, 610.0), (-35.0, -5.0, 660.0), (10.0, 25.0, 460.0), (-5.0, -15.0, 740.0))
+SENSOR = EOS_6D.binned(4)
+NOISE_CORNER_PX, NOISE_BLUR_PX = 0.05, 0.1
+DEFAULTS = dict(distortion="auto", board="auto")  # `tiltfit calibrate`'s
+
+
+def _capture(depth_bias_px: float = 0.0, seed: int = 1):
+    """(Observations, lens): widths following the thin-lens law, plus `depth_bias_px` × t where t is the depth
+    normalised to the 5–95 % depth range about its median (a detector bias growing with depth: another law)."""
+    lens = Lens.paper().with_(sensor=SENSOR)
+    target = reproduce.calibration_target(reproduce.SetValues())
+    rng = np.random.default_rng(seed)
+    P = target.feature_points()
+    corners, blur, depth = [], [], []
+    for pose in POSES:
+        R, T = reproduce.target_pose(target, *pose)
+        ob = synth.observe(target, lens, R, T)
+        assert ob.in_image.all(), f"pose {pose}: the board leaves the image"
+        depth.append((P @ np.asarray(R).T + np.asarray(T))[:, 2])
+        corners.append(ob.corners_px + rng.normal(0, NOISE_CORNER_PX, ob.corners_px.shape))
+        blur.append(ob.blur_px + rng.normal(0, NOISE_BLUR_PX, ob.blur_px.shape))
+    z = np.stack(depth)
+    t = (z - np.median(z)) / (np.percentile(z, 95) - np.percentile(z, 5))
+    blur = np.stack(blur) + depth_bias_px * t
+    return Observations(P, np.stack(corners), blur, SENSOR.size_px, SENSOR.pixel_pitch), lens
+
+
+@pytest.mark.slow
+def test_gopro_blur_at_the_detector_floor_gives_no_focus_distance():
+    """The README's 12 GoPro photos with the defaults: the target is fitted point by point there, and the blur
+    model was accepted (U 327 ± 87 mm written) because the widths' noise was sought along rows of the fitted
+    points, which lie on no exact row. The widths' noise is 1.8 px, the blur the model explains varies by 0.7 px:
+    no focus distance is written, one warning says why, and CALIB.json's model_selection.blur records it."""
+    obs, _ = observations(os.path.join(ROOT, "data", "real", "gopro_wide"), 0.005)
+    obs = Observations(obs.points_mm, obs.corners_px[:12], obs.blur_px[:12], obs.image_size_px, obs.pixel_pitch_mm,
+                       obs.names[:12])
+    res = calibrate(obs, "unified", options=FitOptions(**DEFAULTS))
+    assert {"U_mm", "d_mm"} <= set(res.undetermined), f"U and d undetermined: {res.undetermined}, U {res.values}"
+    assert len(res.warnings) == 1 and "does not describe this lens" in res.warnings[0] \
+        and "noise" in res.warnings[0], f"one warning saying why: {res.warnings}"
+    blur = res.model_selection["blur"]
+    assert blur["used"] is False and blur["why_not"] and 1.0 < blur["noise_px"] < 3.0, \
+        f"CALIB.json records the refusal and the widths' noise (about 1.8 px): {blur} (board {res.board.model})"
+
+
+@pytest.mark.slow
+def test_gopro_focus_resting_on_widths_below_the_floor_is_refused():
+    """The GoPro set's last 11 views: near views 6–15 cm away blur by 1–2.4 px, far views sit at the detector's
+    floor (0.4–0.5 px); the model explains more than the noise, but U (217 ± 12 mm) came from the sub-floor widths
+    alone: without them the blur fit cannot determine it. No focus distance is written."""
+    obs, _ = observations(os.path.join(ROOT, "data", "real", "gopro_wide"), 0.005)
+    idx = list(range(24, obs.n_views))
+    obs = Observations(obs.points_mm, obs.corners_px[idx], obs.blur_px[idx], obs.image_size_px, obs.pixel_pitch_mm,
+                       [obs.names[i] for i in idx])
+    res = calibrate(obs, "unified", options=FitOptions(**DEFAULTS))
+    assert {"U_mm", "d_mm"} <= set(res.undetermined), f"U and d undetermined: {res.undetermined}, U {res.values}"
+    lines = [w for w in res.warnings if "do not determine the focus" in w and "detector's floor" in w]
+    assert len(lines) == 1 and len(res.warnings) == 1, f"one warning saying why: {res.warnings}"
+    assert res.model_selection["blur"]["used"] is False, f"recorded: {res.model_selection['blur']}"
+
+
+@pytest.mark.parametrize("board", ["flat", "free"])
+def test_measurable_blur_keeps_the_focus_distance(board):
+    """The other side: blur 0.5–19 px straddling the plane of focus, with the target file's board and with a free
+    (moved-points) board: U is fitted and recovered, nothing is refused or warned about. With the detector's
+    floor taken at 2 px, a sixth of the widths (those near the plane of focus) lie below it: without them U is
+    still determined, from the widths on both sides."""
+    obs, lens = _capture()
+    b = obs.blur_px[obs.blur_mask]
+    assert float((b < 2.0).double().mean()) > 0.1, "the floor check runs on this capture"
+    res = calibrate(obs, "unified", options=FitOptions(board=board, blur_floor_px=2.0))
+    U, sU = res.values["U_mm"], res.sigma["U_mm"]
+    assert res.model_selection["blur"]["used"] and not res.undetermined, \
+        f"board {board}: the blur model is used ({res.model_selection['blur']}, undetermined {res.undetermined})"
+    assert abs(U - lens.U) < max(4 * sU, 0.002 * lens.U) and sU < 0.01 * lens.U, \
+        f"board {board}: U {U:.1f} ± {sU:.2g} mm vs {lens.U:.1f} mm"
+    assert not res.warnings, f"board {board}: no warning on a thin-lens capture: {res.warnings}"
+
+
+@pytest.mark.parametrize("bias_px, warned", [(0.0, False), (1.0, True)])
+def test_a_blur_trend_with_depth_is_warned_about_only_where_the_law_differs(bias_px, warned, tmp_path):
+    """Widths with a bias growing with depth (1 px over the depths, 5 noise σ: a law the thin lens does not
+    follow) leave residuals that trend with depth: one warning line, recorded in CALIB.json's
+    model_selection.blur and in the report; widths that follow the law do not (p above α)."""
+    from tiltfit.calibfile import calib_dict
+
+    obs, lens = _capture(bias_px)
+    res = calibrate(obs, "unified", options=FitOptions())
+    trend = res.model_selection["blur"]["trend_with_depth"]
+    lines = [w for w in res.warnings if "trend with depth" in w]
+    assert trend["significant"] is warned and len(lines) == int(warned) and len(res.warnings) == int(warned), \
+        f"bias {bias_px} px: trend {trend}, warnings {res.warnings}"
+    if warned:
+        assert trend["p_value"] < 1e-4 and 0.1 < trend["amplitude_px"] < 1.0, f"a clear trend: {trend}"
+        calib = calib_dict(res, obs=obs)
+        write_report(calib, str(tmp_path / "report"))
+        md = (tmp_path / "report" / "report.md").read_text(encoding="utf-8")
+        assert "- warning: the blur residuals trend with depth" in md, f"the report states the warning:\n{md}"
+    else:
+        assert trend["p_value"] > 0.01 and trend["amplitude_px"] < 0.05, f"no trend on a thin-lens capture: {trend}"
+
+
+@pytest.mark.slow
+def test_industrial_ds1_blur_trend_is_warned_about():
+    """The shipped industrial camera's 20 photos (defaults): the blur residuals rise by about 0.2 px from the
+    nearest corners to the farthest (the widths' noise 0.18 px), which blur_vs_depth.png shows: one warning."""
+    obs, _ = observations(os.path.join(ROOT, "data", "real", "industrial_ds1"), 0.0048)
+    res = calibrate(obs, "unified", options=FitOptions(**DEFAULTS))
+    trend = res.model_selection["blur"]["trend_with_depth"]
+    lines = [w for w in res.warnings if "trend with depth" in w]
+    assert trend["significant"] and trend["p_value"] < 1e-3 and 0.1 < trend["amplitude_px"] < 0.5, \
+        f"the trend with depth is found: {trend}"
+    assert len(lines) == 1, f"one warning line: {res.warnings}"
+
+
+def test_photometric_progress_says_when_the_robust_scale_is_re_estimated(monkeypatch):
+    """The photometric fit's cost jumps when the Huber σ is re-estimated: a progress line says so."""
+    from tiltfit.photometric import refine
+
+    said = []
+    problem = SimpleNamespace(scale=1.0, say=said.append, residuals=lambda x: torch.ones(100), evaluate=None)
+    calls = []
+
+    def fake_lm(evaluate, x, blocks, rows, lm):
+        calls.append(1)
+        # residuals in units of the scale: twice the scale, then matching it (1.4826 × median |r| = 1)
+        r = torch.full((100,), 2.0 / 1.4826 if len(calls) == 1 else 1.0 / 1.4826)
+        return SimpleNamespace(x=x, iterations=3, cost=float(len(calls)), r=r)
+
+    monkeypatch.setattr(refine, "levenberg_marquardt", fake_lm)
+    problem.scale = 1.4826 + 1e-12  # the robust σ of residuals of ones
+    refine._solve(problem, {}, [], torch.zeros(0), refine.PhotometricOptions(), [])
+    lines = [s for s in said if "re-estimated" in s]
+    assert len(calls) == 2 and len(lines) == 1 and "not comparable" in lines[0], \
+        f"one line when the scale changed, none when it held: {said}"

@@ -21,8 +21,15 @@ of `focus_geometry` (10 tangents through cheap geometry). Lens-sample pixels tak
 rays (benchmarks/results/photometric_profile.md: forward mode through the aperture integral was 78 % of the
 time before).
 
-σ: the cluster-robust sandwich A⁻¹ B A⁻¹ of the Huber fit (clusters: square tiles as wide as the view's blur
-disc), with the textbook Gauss–Newton σ beside it.
+σ: the per-view cluster-robust covariance of the corner fit (`tiltfit.uncertainty.view_cluster_covariance`: views
+as clusters, each view's pose, levels and illumination profiled out, the CR2 small-sample correction, the
+classical covariance as its floor), applied to the Huber fit's weighted residuals and Jacobian. A photograph's
+pixels share their errors across the whole view, not only within a blur disc: a board that is not flat or not
+the ideal print, a tone curve or an illumination the exposure model misses, move every edge of the view together,
+and the lens absorbs them as it absorbs a view's correlated corner errors. The textbook Gauss–Newton σ and the
+earlier sandwich over square tiles as wide as the blur disc stay beside it for comparison
+(benchmarks/results/photometric_sigma.md: on real subsets and on correlated per-view errors both are several
+times too small).
 """
 from __future__ import annotations
 
@@ -180,8 +187,11 @@ class PhotometricResult:
         values: w_mm, U_mm (inf when 1/U = 0), inv_U_per_m, d_mm, theta_F_deg, theta_L_deg, vignetting,
             psf_sigma_px (σ of the Gaussian part of the kernel, 0 for the disc alone), kernel, lens_samples,
             aperture, closed_form_pixels.
-        sigma: one-σ of the same keys from the cluster-robust sandwich covariance.
+        sigma: one-σ of the same keys under the error model `sigma_model` (per-view cluster-robust).
         sigma_gauss_newton: the textbook σ, (JᵀWJ)⁻¹ scaled by the residuals' robust σ (kept for comparison).
+        sigma_tiles: the sandwich over square tiles as wide as the blur disc (kept for comparison).
+        sigma_model: the error model of `sigma`: {name: "views" | "tiles" (fewer than 2 views, or the per-view
+            covariance singular), design_effect, ratio_min, ratio_max, n_views} (`tiltfit.uncertainty`).
         views: per view: R (3×3), T_mm, white, black, rms (linear units), n_pixels.
         rms: RMS photometric residual over all views (linear intensity units).
         iterations, runtime_s, history: LM iterations, wall time, cost of each solve (½ Σ ρ of residuals in
@@ -218,6 +228,8 @@ class PhotometricResult:
     rejected_because: str = ""
     free: list = field(default_factory=lambda: list(LENS_PARAMETERS))
     at_bound: list = field(default_factory=list)
+    sigma_tiles: dict | None = None
+    sigma_model: dict = field(default_factory=dict)
 
     @property
     def chosen_camera(self) -> TiltLensCamera:
@@ -479,6 +491,23 @@ def _cluster_sandwich(res, problem: _Problem) -> torch.Tensor:
     return A_inv @ B @ A_inv
 
 
+def _view_covariance(res, s2: float, cov_tiles: torch.Tensor):
+    """(covariance (P, P), sigma_model) of the Huber fit under the per-view error model (module docstring):
+    `tiltfit.uncertainty.view_cluster_covariance` with views as clusters; the tile sandwich `cov_tiles` where
+    that cannot be formed (one view, or a singular Schur complement: a lens parameter at its trust bound)."""
+    from ..uncertainty import view_cluster_covariance
+
+    try:
+        got = view_cluster_covariance(res, s2)
+    except RuntimeError:   # a singular per-view block (a view whose pixels no longer move its pose)
+        got = None
+    if got is None:
+        return cov_tiles, {"name": "tiles", "n_views": int(res.jacobian.rows.shape[0])
+                           if hasattr(res.jacobian, "rows") else 1}
+    cov, info = got
+    return cov.dense(), {"name": "views", **info}
+
+
 def _lens_sigma(lens: torch.Tensor, cov_lens: torch.Tensor) -> dict:
     """One-σ of w, 1/U, U, d, θF, θL (mm, 1/m, degrees) from the covariance of the stored lens block."""
     def physical(p):
@@ -628,13 +657,14 @@ def _refine(images, target, camera, options, say, start_sigma, corners, corner_h
         res, iterations, scale, selection = _select_kernel(problem, res, iterations, blocks, view_rows, opts,
                                                            history, say)
     kernel = "disc_gaussian" if "psf" in res.x else "disc"
-    cov_sandwich = _cluster_sandwich(res, problem)
+    cov_tiles = _cluster_sandwich(res, problem)
     r = res.r * scale
     s_final = _robust_sigma(r)
     try:
         cov_gn = covariance(res, (s_final / scale) ** 2).dense()
     except SolverError:
-        cov_gn = torch.full_like(cov_sandwich, math.nan)
+        cov_gn = torch.full_like(cov_tiles, math.nan)
+    cov_sigma, sigma_model = _view_covariance(res, (s_final / scale) ** 2, cov_tiles)
     kept, held_out, reasons = "photometric", None, []
     refined = _camera_of(camera.copy(), res.x, problem)
     if opts.held_out_pixels:
@@ -687,10 +717,11 @@ def _refine(images, target, camera, options, say, start_sigma, corners, corner_h
                               **({"gain_x": float(res.x["gain"][v, 0]), "gain_y": float(res.x["gain"][v, 1])}
                                  if "gain" in res.x else {})})
     free = [LENS_PARAMETERS[i] for i in problem.free]
-    return PhotometricResult(refined, exposure, values, _sigma_dict(res, cov_sandwich, problem), out_views,
+    return PhotometricResult(refined, exposure, values, _sigma_dict(res, cov_sigma, problem), out_views,
                              float(torch.sqrt((r * r).mean())), iterations, time.perf_counter() - t0, history,
                              selection, _sigma_dict(res, cov_gn, problem), kept, held_out, camera.copy(),
-                             corner_check, "; ".join(reasons), free, at_bound)
+                             corner_check, "; ".join(reasons), free, at_bound, _sigma_dict(res, cov_tiles, problem),
+                             sigma_model)
 
 
 def _choose_pixels(imgs: list, views: list, target: Target, opts: PhotometricOptions, disc_only: bool, say,

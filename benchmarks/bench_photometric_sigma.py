@@ -77,7 +77,7 @@ def real_subset(name: str, obs, views: list, target, folder: str) -> dict:
     from renderer import read_image
     from tiltfit.calibration import calibrate
     from tiltfit.fit import FitOptions
-    from tiltfit.photometric import PhotometricOptions, refine_photometric
+    from tiltfit.photometric import PhotometricError, PhotometricOptions, refine_photometric
     from tiltfit.validate import held_out_rms
 
     cfg = REAL[name]
@@ -97,9 +97,18 @@ def real_subset(name: str, obs, views: list, target, folder: str) -> dict:
         im = np.asarray(read_image(os.path.join(folder, n)), dtype=np.float64)
         images.append(im.mean(-1) if im.ndim == 3 else im)
     t_cpu, t = time.process_time(), time.perf_counter()
-    res = refine_photometric(images, target, corner.camera,
-                             PhotometricOptions(lens_samples=0, max_pixels=1000 if images[0].size >= 1 << 20 else 2000),
-                             start_sigma=corner.sigma, corners=sub, corner_held_out_px=kfold["rms_px"])
+    base = {"views": len(views), "names": list(sub.names), "corner_fit": {k: corner.values.get(k) for k in KEYS},
+            "corner_fit_sigma": {k: corner.sigma.get(k) for k in KEYS}, "corner_sigma_model": dict(corner.sigma_model),
+            "corner_fit_s": corner_s, "opencv_s": opencv_s}
+    try:
+        res = refine_photometric(images, target, corner.camera,
+                                 PhotometricOptions(lens_samples=0,
+                                                    max_pixels=1000 if images[0].size >= 1 << 20 else 2000),
+                                 start_sigma=corner.sigma, corners=sub, corner_held_out_px=kfold["rms_px"])
+    except PhotometricError as e:   # `tiltfit calibrate --refine photometric` stops with this message
+        say(f"[{name}] views {views[0]}, {views[1]}, …: refinement failed: {e}")
+        return base | {"failed": str(e), "kept": "—", "rejected_because": f"failed: {e}", "free": [],
+                       "calib": base["corner_fit"], "calib_sigma": base["corner_fit_sigma"]}
     ph_s, ph_cpu = time.perf_counter() - t, time.process_time() - t_cpu
     moved = [k for p in res.free for k in MOVES[p]]
     out = {"views": len(views), "names": list(sub.names), "kept": res.kept, "rejected_because": res.rejected_because,
@@ -120,7 +129,13 @@ def real_subset(name: str, obs, views: list, target, folder: str) -> dict:
 
 
 def pooled(subsets: list, value: str, sigma: str, key: str):
-    """sqrt(mean over pairs of Δ² / (σa² + σb²)), None where a σ is missing or 0 (held)."""
+    """sqrt(mean over pairs of Δ² / (σa² + σb²)), None where a σ is missing or 0 (held) and, for the refinement,
+    where the subsets' refinements did not free the same lens parameters (their models differ: U held at the
+    start's placeholder in one, fitted in another)."""
+    if value == "photometric":
+        subsets = [s for s in subsets if "failed" not in s]   # the refinement stopped on a subset
+        if len({tuple(s["free"]) for s in subsets}) > 1:
+            return None
     terms = []
     for a, b in itertools.combinations(subsets, 2):
         va, vb, sa, sb = a[value][key], b[value][key], a[sigma][key], b[sigma][key]
@@ -179,7 +194,8 @@ def write_markdown(path: str, res: dict) -> None:
               "Each subset: corner fit (unified, free principal point, opencv5) and the refinement as `tiltfit calibrate "
               "--refine photometric` runs it. *CALIB.json* is what the file carries: the refinement's values and σ "
               "where it is kept (for the parameters it moved), else the corner fit's (per-view σ, `tiltfit.uncertainty`). "
-              "— : held (σ 0) in a subset.", "",
+              "— : held (σ 0) in a subset, or (photometric columns) the subsets' refinements freed different lens "
+              "parameters, so their models differ.", "",
               "| set | parameter | photometric, views σ | photometric, tiles σ | photometric, Gauss–Newton σ | "
               "corner fit σ | CALIB.json |", "|---|---|---|---|---|---|---|"]
         for r in res["real"]:
@@ -193,6 +209,12 @@ def write_markdown(path: str, res: dict) -> None:
               " | photometric s / view | OpenCV s | photometric / OpenCV |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in res["real"]:
             for g, s in enumerate(r["subsets"]):
+                if "failed" in s:
+                    L.append(f"| {r['set']} | {g + 1} | {s['views']} | — | refinement failed: {s['failed']} | — | — | "
+                             + " | ".join(f"— / {_f(s['corner_fit'][k], '.4g')} ± {_f(s['corner_fit_sigma'][k])}"
+                                          for k in ("w_mm", "U_mm", "d_mm")) + " | — | "
+                             f"{s['opencv_s']:.3f} | — |")
+                    continue
                 cells = []
                 for k in ("w_mm", "U_mm", "d_mm"):
                     cells.append(f"{s['photometric'][k]:.4g} ± {_f(s['photometric_sigma'][k])} "

@@ -491,21 +491,37 @@ def _cluster_sandwich(res, problem: _Problem) -> torch.Tensor:
     return A_inv @ B @ A_inv
 
 
-def _view_covariance(res, s2: float, cov_tiles: torch.Tensor):
+def _view_covariance(res, s2: float, cov_tiles: torch.Tensor, held: list | None = None):
     """(covariance (P, P), sigma_model) of the Huber fit under the per-view error model (module docstring):
-    `tiltfit.uncertainty.view_cluster_covariance` with views as clusters; the tile sandwich `cov_tiles` where
-    that cannot be formed (one view, or a singular Schur complement: a lens parameter at its trust bound)."""
+    `tiltfit.uncertainty.view_cluster_covariance` with views as clusters. `held`: flat positions of global
+    parameters the data no longer move (a lens parameter at its trust bound), left out of the covariance (σ 0).
+    The tile sandwich `cov_tiles` where the per-view one cannot be formed (one view, a singular Schur complement)."""
+    from types import SimpleNamespace
+
+    from ..solve.blocks import BlockJacobian
     from ..uncertainty import view_cluster_covariance
 
+    bj = res.jacobian
+    if not isinstance(bj, BlockJacobian):
+        return cov_tiles, {"name": "tiles", "n_views": 1}
+    P = bj.n_params
+    keep = torch.ones(P, dtype=torch.bool)
+    if held:
+        keep[torch.tensor(held)] = False
+    pos = torch.cumsum(keep.to(torch.int64), 0) - 1           # each kept parameter's place in the reduced vector
+    cols = keep[bj.s_idx]
+    reduced = BlockJacobian(bj.Js[:, cols], bj.Jp, bj.rows, pos[bj.s_idx[cols]], pos[bj.p_idx], int(keep.sum()))
     try:
-        got = view_cluster_covariance(res, s2)
+        got = view_cluster_covariance(SimpleNamespace(jacobian=reduced, weights=res.weights, r=res.r), s2)
     except RuntimeError:   # a singular per-view block (a view whose pixels no longer move its pose)
         got = None
     if got is None:
-        return cov_tiles, {"name": "tiles", "n_views": int(res.jacobian.rows.shape[0])
-                           if hasattr(res.jacobian, "rows") else 1}
+        return cov_tiles, {"name": "tiles", "n_views": int(bj.rows.shape[0])}
     cov, info = got
-    return cov.dense(), {"name": "views", **info}
+    idx = torch.nonzero(keep).squeeze(1)
+    full = torch.zeros(P, P, dtype=cov_tiles.dtype)
+    full[idx[:, None], idx[None, :]] = cov.dense()
+    return full, {"name": "views", **info}
 
 
 def _lens_sigma(lens: torch.Tensor, cov_lens: torch.Tensor) -> dict:
@@ -664,7 +680,6 @@ def _refine(images, target, camera, options, say, start_sigma, corners, corner_h
         cov_gn = covariance(res, (s_final / scale) ** 2).dense()
     except SolverError:
         cov_gn = torch.full_like(cov_tiles, math.nan)
-    cov_sigma, sigma_model = _view_covariance(res, (s_final / scale) ** 2, cov_tiles)
     kept, held_out, reasons = "photometric", None, []
     refined = _camera_of(camera.copy(), res.x, problem)
     if opts.held_out_pixels:
@@ -679,6 +694,11 @@ def _refine(images, target, camera, options, say, start_sigma, corners, corner_h
         t = torch.tanh(res.x["lens"].detach() / b.clamp(max=1e300))
         at_bound = [LENS_PARAMETERS[i] for i, bi, ti in zip(problem.free, b, t)
                     if math.isfinite(float(bi)) and abs(float(ti)) > AT_BOUND]
+    held = []
+    if at_bound:
+        a = res.layout.offsets["lens"][0]
+        held = [a + problem.free.index(LENS_PARAMETERS.index(n)) for n in at_bound]
+    cov_sigma, sigma_model = _view_covariance(res, (s_final / scale) ** 2, cov_tiles, held)
     if at_bound:
         kept = "corner fit"
         reasons.append(f"{', '.join(at_bound)} at the trust bound ({TRUST_SIGMAS:g} of the corner fit's σ): the "

@@ -18,7 +18,7 @@
    carries (the refinement's values and σ where it is kept, else the corner fit's).
 
     python benchmarks/bench_photometric_sigma.py [--draws 24] [--sets industrial_ds1 gopro_wide]
-        [--out benchmarks/results/photometric_sigma] [--markdown-only]
+        [--warp-px 0.3 0] [--out benchmarks/results/photometric_sigma] [--markdown-only]
 
 One torch thread. Writes OUT.json and OUT.md.
 """
@@ -235,7 +235,8 @@ def main(argv=None) -> int:
     ap.add_argument("--draws", type=int, default=24, help="Monte Carlo draws [24]")
     ap.add_argument("--views", type=int, default=6, help="views of the Monte Carlo captures (at most 6) [6]")
     ap.add_argument("--max-pixels", type=int, default=400, help="pixels a view in the Monte Carlo [400]")
-    ap.add_argument("--warp-px", type=float, default=0.3, help="σ of each displacement coefficient (px) [0.3]")
+    ap.add_argument("--warp-px", type=float, nargs="*", default=[0.3, 0.0],
+                    help="σ of each displacement coefficient (px), one Monte Carlo each [0.3 0] (0: noise alone)")
     ap.add_argument("--cases", nargs="*", default=["heavy blur"], help="simulator cases [heavy blur]")
     ap.add_argument("--sets", nargs="*", default=list(REAL), help="real sets [industrial_ds1 gopro_wide]")
     add_output_options(ap, "photometric_sigma")
@@ -244,7 +245,7 @@ def main(argv=None) -> int:
         return 0
     torch.set_num_threads(1)
     command = "python benchmarks/bench_photometric_sigma.py " + " ".join(argv if argv is not None else sys.argv[1:])
-    mcs = [monte_carlo(c, args.draws, args.views, args.max_pixels, args.warp_px) for c in args.cases]
+    mcs = [monte_carlo(c, args.draws, args.views, args.max_pixels, w) for c in args.cases for w in args.warp_px]
     reals = [real(name) for name in args.sets]
     res = {"meta": {"command": command.strip(), "date": time.strftime("%Y-%m-%dT%H:%M:%S%z")},
            "monte_carlo": mcs, "real": reals}

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import json
 import math
 import os
 import sys
@@ -104,7 +105,8 @@ def real_subset(name: str, obs, views: list, target, folder: str) -> dict:
         res = refine_photometric(images, target, corner.camera,
                                  PhotometricOptions(lens_samples=0,
                                                     max_pixels=1000 if images[0].size >= 1 << 20 else 2000),
-                                 start_sigma=corner.sigma, corners=sub, corner_held_out_px=kfold["rms_px"])
+                                 start_sigma=corner.sigma, corners=sub, corner_held_out_px=kfold["rms_px"],
+                                 start_covariance=corner.intrinsics_covariance)
     except PhotometricError as e:   # `tiltfit calibrate --refine photometric` stops with this message
         say(f"[{name}] views {views[0]}, {views[1]}, …: refinement failed: {e}")
         return base | {"failed": str(e), "kept": "—", "rejected_because": f"failed: {e}", "free": [],
@@ -117,6 +119,7 @@ def real_subset(name: str, obs, views: list, target, folder: str) -> dict:
            "corner_sigma_model": dict(corner.sigma_model),
            "photometric": {k: res.values[k] for k in KEYS}, **{f"photometric_{w}": {k: getattr(res, w)[k] for k in KEYS}
                                                                 for w in SIGMAS},
+           "photometric_sigma_held": {k: (res.sigma_held or {}).get(k, 0.0) for k in KEYS},
            "photometric_wall_s": ph_s, "photometric_cpu_s": ph_cpu, "corner_fit_s": corner_s, "opencv_s": opencv_s}
     # What CALIB.json carries: the refinement's values and σ where it is kept, else the corner fit's.
     ph = res.kept == "photometric"
@@ -178,9 +181,15 @@ def write_markdown(path: str, res: dict) -> None:
          "textbook σ), **tiles** (`sigma_tiles`: the sandwich over blur-disc tiles that `sigma` was before) and "
          "**Gauss–Newton** (`sigma_gauss_newton`, independent pixels).", ""]
     for mc in res["monte_carlo"]:
+        bound = [r["at_bound"] for r in mc["rows"] if r["at_bound"]]
         L += [f"## Monte Carlo: {mc['draws']} draws, {mc['case']}, {mc['views']} views, {mc['max_pixels']} pixels a view, "
-              f"per-view quadratic displacement σ {mc['warp_px']} px a coefficient", "",
-              f"Freed: {', '.join(mc['free'])}. {mc['cpu_s']:.0f} CPU s. Ratio = RMS predicted σ / empirical spread "
+              + (f"per-view quadratic displacement σ {mc['warp_px']} px a coefficient" if mc["warp_px"] else
+                 "noise alone (no per-view displacement)"), "",
+              f"Freed: {', '.join(mc['free'])}; draws that ended with a parameter at its trust bound (its σ 0 there, "
+              f"the corner fit kept): {len(bound)}"
+              + (f" ({', '.join(sorted({p for b in bound for p in b}))})" if bound else "") +
+              f". {mc['cpu_s']:.0f} CPU s" + (f" (measured by `{mc['from']}`)" if mc.get("from") else "") +
+              ". Ratio = RMS predicted σ / empirical spread "
               "(1 is honest; with this many draws a ratio is known to about ±" +
               f"{100 / math.sqrt(2 * (mc['draws'] - 1)):.0f} %).", "",
               "| parameter | truth | mean error | empirical spread | " + " | ".join(
@@ -196,6 +205,9 @@ def write_markdown(path: str, res: dict) -> None:
               "where it is kept (for the parameters it moved), else the corner fit's (per-view σ, `tiltfit.uncertainty`). "
               "— : held (σ 0) in a subset, or (photometric columns) the subsets' refinements freed different lens "
               "parameters, so their models differ.", "",
+              "Photometric σ: *views* includes the held principal point's and distortion's uncertainty (the corner "
+              "fit's, propagated: `sigma_held`, shown as [held …] below); *tiles* and *Gauss–Newton* are conditional "
+              "on them.", "",
               "| set | parameter | photometric, views σ | photometric, tiles σ | photometric, Gauss–Newton σ | "
               "corner fit σ | CALIB.json |", "|---|---|---|---|---|---|---|"]
         for r in res["real"]:
@@ -218,6 +230,7 @@ def write_markdown(path: str, res: dict) -> None:
                 cells = []
                 for k in ("w_mm", "U_mm", "d_mm"):
                     cells.append(f"{s['photometric'][k]:.4g} ± {_f(s['photometric_sigma'][k])} "
+                                 f"[held {_f(s.get('photometric_sigma_held', {}).get(k))}] "
                                  f"({_f(s['photometric_sigma_tiles'][k])}, {_f(s['photometric_sigma_gauss_newton'][k])}) / "
                                  f"{_f(s['corner_fit'][k], '.4g')} ± {_f(s['corner_fit_sigma'][k])}")
                 de = s["sigma_model"].get("design_effect")
@@ -239,13 +252,20 @@ def main(argv=None) -> int:
                     help="σ of each displacement coefficient (px), one Monte Carlo each [0.3 0] (0: noise alone)")
     ap.add_argument("--cases", nargs="*", default=["heavy blur"], help="simulator cases [heavy blur]")
     ap.add_argument("--sets", nargs="*", default=list(REAL), help="real sets [industrial_ds1 gopro_wide]")
+    ap.add_argument("--monte-carlo-from", metavar="JSON",
+                    help="take the Monte Carlo part from an earlier OUT.json instead of running it")
     add_output_options(ap, "photometric_sigma")
     args = ap.parse_args(argv)
     if markdown_only(args, write_markdown):
         return 0
     torch.set_num_threads(1)
     command = "python benchmarks/bench_photometric_sigma.py " + " ".join(argv if argv is not None else sys.argv[1:])
-    mcs = [monte_carlo(c, args.draws, args.views, args.max_pixels, w) for c in args.cases for w in args.warp_px]
+    if args.monte_carlo_from:
+        with open(args.monte_carlo_from, encoding="utf-8") as f:
+            earlier = json.load(f)
+        mcs = [m | {"from": f"{earlier['meta']['command']} ({earlier['meta']['date']})"} for m in earlier["monte_carlo"]]
+    else:
+        mcs = [monte_carlo(c, args.draws, args.views, args.max_pixels, w) for c in args.cases for w in args.warp_px]
     reals = [real(name) for name in args.sets]
     res = {"meta": {"command": command.strip(), "date": time.strftime("%Y-%m-%dT%H:%M:%S%z")},
            "monte_carlo": mcs, "real": reals}

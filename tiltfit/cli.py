@@ -389,7 +389,8 @@ def _refine_photometric(result, obs, target, args, say, photos: dict | None = No
                                  PhotometricOptions(kernel=args.psf, lens_samples=0,
                                                     max_pixels=1000 if images[0].size >= 1 << 20 else 2000),
                                  say=say, start_sigma=result.sigma, corners=obs,
-                                 corner_held_out_px=(held_out or {}).get("rms_px"))
+                                 corner_held_out_px=(held_out or {}).get("rms_px"),
+                                 start_covariance=result.intrinsics_covariance)
     except PhotometricError as e:
         raise CliError(args.inputs[0], f"photometric refinement: {e}") from None
     v, sg, cam = res.values, res.sigma, result.camera

@@ -191,7 +191,11 @@ class PhotometricResult:
         sigma_gauss_newton: the textbook σ, (JᵀWJ)⁻¹ scaled by the residuals' robust σ (kept for comparison).
         sigma_tiles: the sandwich over square tiles as wide as the blur disc (kept for comparison).
         sigma_model: the error model of `sigma`: {name: "views" | "tiles" (fewer than 2 views, or the per-view
-            covariance singular), design_effect, ratio_min, ratio_max, n_views} (`tiltfit.uncertainty`).
+            covariance singular), design_effect, ratio_min, ratio_max, n_views (`tiltfit.uncertainty`),
+            held_propagated: whether `sigma` includes the held principal point's and distortion's uncertainty}.
+        sigma_held: with `start_covariance`, the part of `sigma` the held principal point and distortion
+            contribute alone (`sigma`² = conditional² + held²); `sigma_tiles` and `sigma_gauss_newton` are
+            conditional on them.
         views: per view: R (3×3), T_mm, white, black, rms (linear units), n_pixels.
         rms: RMS photometric residual over all views (linear intensity units).
         iterations, runtime_s, history: LM iterations, wall time, cost of each solve (½ Σ ρ of residuals in
@@ -230,6 +234,7 @@ class PhotometricResult:
     at_bound: list = field(default_factory=list)
     sigma_tiles: dict | None = None
     sigma_model: dict = field(default_factory=dict)
+    sigma_held: dict | None = None
 
     @property
     def chosen_camera(self) -> TiltLensCamera:
@@ -524,6 +529,56 @@ def _view_covariance(res, s2: float, cov_tiles: torch.Tensor, held: list | None 
     return full, {"name": "views", **info}
 
 
+def _held_covariance(problem: "_Problem", res, start_covariance: dict | None):
+    """(P, P) covariance the held principal point and distortion add to the fitted parameters, or None.
+
+    The fit holds them at the corner fit's values, so its own covariance is conditional on them; they carry the
+    corner fit's uncertainty (`start_covariance`: its `intrinsics_covariance`, {names, matrix}, cx_px, cy_px,
+    k1 … k6 among the names), which moves the solution by dx/dh = −A⁻¹ JᵀW J_h (J_h: the residuals'
+    derivatives with respect to each held h, by forward differences of 0.1 of its σ). Returns D C_hh Dᵀ with
+    D = dx/dh (in the solver's flat order), ignoring the correlation between the corners' errors and the pixels'
+    (the same views): on the real sets the held parameters alone moved w between subsets by many times the
+    conditional σ (benchmarks/results/photometric_sigma.md)."""
+    from ..uncertainty import INTRINSIC_NAMES
+
+    if not isinstance(start_covariance, dict) or "names" not in start_covariance:
+        return None
+    names, M = list(start_covariance["names"]), torch.as_tensor(start_covariance["matrix"], dtype=torch.float64)
+    cam = problem.camera
+    dist = cam.parameter_names("distortion")
+    # Each held intrinsic: (index in the matrix, camera parameter, element, camera units per intrinsic unit).
+    targets = {"cx_px": ("pp_scaled", 0, 1.0 / cam.pixel_scale_px), "cy_px": ("pp_scaled", 1, 1.0 / cam.pixel_scale_px)}
+    targets |= {n: (dn, None, 1.0) for n, dn in zip(INTRINSIC_NAMES[3:], dist)}
+    held = [(names.index(n), *targets[n]) for n in names if n in targets and float(M[names.index(n), names.index(n)]) > 0]
+    if not held:
+        return None
+    idx = torch.tensor([h[0] for h in held])
+    C_hh = M[idx[:, None], idx[None, :]]
+    try:
+        cov = res.normal.covariance()
+    except RuntimeError:   # a parameter the data no longer move: no sensitivities
+        return None
+    with torch.no_grad():
+        r0 = problem.evaluate(res.x, False)[0]
+        cols = []
+        for (i, name, el, unit), var in zip(held, torch.diagonal(C_hh)):
+            step = 0.1 * math.sqrt(float(var))
+            param = getattr(cam, name)
+            before = param.detach().clone()
+            if el is None:
+                param.add_(step * unit)
+            else:
+                param[el] += step * unit
+            cols.append((problem.evaluate(res.x, False)[0] - r0) / step)
+            param.copy_(before)
+    Jh = torch.stack(cols, 1)
+    if not bool(torch.isfinite(Jh).all()):
+        return None
+    g = torch.stack([res.normal.gradient(Jh[:, j]) for j in range(Jh.shape[1])], 1)   # JᵀW J_h (P, H)
+    D = -cov.matmul(g)
+    return D @ C_hh @ D.T
+
+
 def _lens_sigma(lens: torch.Tensor, cov_lens: torch.Tensor) -> dict:
     """One-σ of w, 1/U, U, d, θF, θL (mm, 1/m, degrees) from the covariance of the stored lens block."""
     def physical(p):
@@ -557,7 +612,8 @@ def _sigma_dict(res, cov: torch.Tensor, problem: "_Problem") -> dict:
 
 def refine_photometric(images, target: Target, camera: TiltLensCamera, options: PhotometricOptions | None = None,
                        say=None, start_sigma: dict | None = None, corners=None,
-                       corner_held_out_px: float | None = None) -> PhotometricResult:
+                       corner_held_out_px: float | None = None,
+                       start_covariance: dict | None = None) -> PhotometricResult:
     """Fit the camera's lens and poses, and an exposure, to the photographs by rendering the target.
 
     Args:
@@ -576,6 +632,9 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
             corners) predicts them as the corner fit's lens predicts held-out views; it is kept only where its
             RMS is at most the corner fit's `corner_held_out_px` (its k-fold held-out RMS per corner; None:
             the start's own RMS with its poses refitted) times 1 + CORNER_TOLERANCE.
+        start_covariance: the start's `intrinsics_covariance` ({names, matrix}: cx_px, cy_px, k1 … k6 among
+            them). Given, σ includes what the uncertainty of the held principal point and distortion does to the
+            fitted lens (`_held_covariance`); None: σ is conditional on them.
     Returns:
         PhotometricResult, with the refined camera.
     """
@@ -583,10 +642,12 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
     # more than they give (`tiltfit calibrate --refine photometric` on 4 industrial photos: 124 s with the default
     # threads, 13 s with one, on 2 shared cores).
     with torch_threads(1):
-        return _refine(images, target, camera, options, say, start_sigma, corners, corner_held_out_px)
+        return _refine(images, target, camera, options, say, start_sigma, corners, corner_held_out_px,
+                       start_covariance)
 
 
-def _refine(images, target, camera, options, say, start_sigma, corners, corner_held_out_px) -> PhotometricResult:
+def _refine(images, target, camera, options, say, start_sigma, corners, corner_held_out_px,
+            start_covariance=None) -> PhotometricResult:
     opts = options or PhotometricOptions()
     t0 = time.perf_counter()
     imgs = [np.asarray(im, dtype=np.float64) for im in images]
@@ -699,6 +760,10 @@ def _refine(images, target, camera, options, say, start_sigma, corners, corner_h
         a = res.layout.offsets["lens"][0]
         held = [a + problem.free.index(LENS_PARAMETERS.index(n)) for n in at_bound]
     cov_sigma, sigma_model = _view_covariance(res, (s_final / scale) ** 2, cov_tiles, held)
+    cov_held = _held_covariance(problem, res, start_covariance) if not at_bound else None
+    sigma_model["held_propagated"] = cov_held is not None
+    if cov_held is not None:
+        cov_sigma = cov_sigma + cov_held
     if at_bound:
         kept = "corner fit"
         reasons.append(f"{', '.join(at_bound)} at the trust bound ({TRUST_SIGMAS:g} of the corner fit's σ): the "
@@ -741,7 +806,7 @@ def _refine(images, target, camera, options, say, start_sigma, corners, corner_h
                              float(torch.sqrt((r * r).mean())), iterations, time.perf_counter() - t0, history,
                              selection, _sigma_dict(res, cov_gn, problem), kept, held_out, camera.copy(),
                              corner_check, "; ".join(reasons), free, at_bound, _sigma_dict(res, cov_tiles, problem),
-                             sigma_model)
+                             sigma_model, _sigma_dict(res, cov_held, problem) if cov_held is not None else None)
 
 
 def _choose_pixels(imgs: list, views: list, target: Target, opts: PhotometricOptions, disc_only: bool, say,

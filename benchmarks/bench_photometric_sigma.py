@@ -56,13 +56,14 @@ def say(line: str) -> None:
     print(line, file=sys.stderr, flush=True)
 
 
-def monte_carlo(case: str, draws: int, views: int, max_pixels: int, warp_px: float) -> dict:
+def monte_carlo(case: str, draws: int, views: int, max_pixels: int, warp_px: float, trust_region: bool = True) -> dict:
     import test_photometric_sigma as mc
 
     t_cpu, t = time.process_time(), time.perf_counter()
     out = mc.monte_carlo(case, draws, mc.VIEWS[:views], warp_px, max_pixels, lens_rings=2, lens_sectors=4,
-                         say=lambda m: say(m))
+                         say=lambda m: say(m), trust_region=trust_region)
     out |= {"case": case, "draws": draws, "views": views, "max_pixels": max_pixels, "warp_px": warp_px,
+            "trust_region": trust_region,
             "ratios": {w: mc.ratios(out, w) for w in SIGMAS},
             "spread": {k: float(np.std([r["values"][k] for r in out["rows"]], ddof=1)) for k in KEYS},
             "mean_error": {k: float(np.mean([r["values"][k] for r in out["rows"]]) - out["truth"][k]) for k in KEYS},
@@ -184,7 +185,8 @@ def write_markdown(path: str, res: dict) -> None:
         bound = [r["at_bound"] for r in mc["rows"] if r["at_bound"]]
         L += [f"## Monte Carlo: {mc['draws']} draws, {mc['case']}, {mc['views']} views, {mc['max_pixels']} pixels a view, "
               + (f"per-view quadratic displacement σ {mc['warp_px']} px a coefficient" if mc["warp_px"] else
-                 "noise alone (no per-view displacement)"), "",
+                 "noise alone (no per-view displacement)")
+              + ("" if mc.get("trust_region", True) else ", no trust region (every lens parameter free)"), "",
               f"Freed: {', '.join(mc['free'])}; draws that ended with a parameter at its trust bound (its σ 0 there, "
               f"the corner fit kept): {len(bound)}"
               + (f" ({', '.join(sorted({p for b in bound for p in b}))})" if bound else "") +
@@ -252,8 +254,10 @@ def main(argv=None) -> int:
                     help="σ of each displacement coefficient (px), one Monte Carlo each [0.3 0] (0: noise alone)")
     ap.add_argument("--cases", nargs="*", default=["heavy blur"], help="simulator cases [heavy blur]")
     ap.add_argument("--sets", nargs="*", default=list(REAL), help="real sets [industrial_ds1 gopro_wide]")
-    ap.add_argument("--monte-carlo-from", metavar="JSON",
-                    help="take the Monte Carlo part from an earlier OUT.json instead of running it")
+    ap.add_argument("--no-trust-region", action="store_true",
+                    help="Monte Carlo refinements without the corner fit's trust region (every lens parameter free)")
+    ap.add_argument("--monte-carlo-from", metavar="JSON", nargs="*",
+                    help="take the Monte Carlo part from earlier OUT.json files instead of running it")
     add_output_options(ap, "photometric_sigma")
     args = ap.parse_args(argv)
     if markdown_only(args, write_markdown):
@@ -261,11 +265,15 @@ def main(argv=None) -> int:
     torch.set_num_threads(1)
     command = "python benchmarks/bench_photometric_sigma.py " + " ".join(argv if argv is not None else sys.argv[1:])
     if args.monte_carlo_from:
-        with open(args.monte_carlo_from, encoding="utf-8") as f:
-            earlier = json.load(f)
-        mcs = [m | {"from": f"{earlier['meta']['command']} ({earlier['meta']['date']})"} for m in earlier["monte_carlo"]]
+        mcs = []
+        for path in args.monte_carlo_from:
+            with open(path, encoding="utf-8") as f:
+                earlier = json.load(f)
+            mcs += [m | {"from": f"{earlier['meta']['command']} ({earlier['meta']['date']}; {path})"}
+                    for m in earlier["monte_carlo"]]
     else:
-        mcs = [monte_carlo(c, args.draws, args.views, args.max_pixels, w) for c in args.cases for w in args.warp_px]
+        mcs = [monte_carlo(c, args.draws, args.views, args.max_pixels, w, not args.no_trust_region)
+               for c in args.cases for w in args.warp_px]
     reals = [real(name) for name in args.sets]
     res = {"meta": {"command": command.strip(), "date": time.strftime("%Y-%m-%dT%H:%M:%S%z")},
            "monte_carlo": mcs, "real": reals}

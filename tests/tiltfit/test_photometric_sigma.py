@@ -87,9 +87,11 @@ def corner_start(images, views=VIEWS):
 
 
 def monte_carlo(case: str, draws: int, views=VIEWS, warp_px: float = WARP_PX, max_pixels: int = 400,
-                lens_rings: int = 4, lens_sectors: int = 8, say=None) -> dict:
-    """Per draw the refinement's values and its three σ (views, tiles, Gauss–Newton). Returns {truth, free,
-    corner {values, sigma}, rows [{values, sigma, sigma_tiles, sigma_gauss_newton, sigma_model}]}."""
+                lens_rings: int = 4, lens_sectors: int = 8, say=None, trust_region: bool = True) -> dict:
+    """Per draw the refinement's values and its three σ (views, tiles, Gauss–Newton); `trust_region`: the
+    corner fit's σ bound the lens (as `tiltfit calibrate` runs it), else every lens parameter is free and
+    unbounded. Returns {truth, free, corner {values, sigma}, rows [{values, sigma, sigma_tiles,
+    sigma_gauss_newton, sigma_model, at_bound}]}."""
     from tiltfit.photometric import PhotometricOptions, refine_photometric
 
     corner = corner_start(draw_captures(case, 0, views, warp_px, lens_rings, lens_sectors), views)
@@ -98,7 +100,7 @@ def monte_carlo(case: str, draws: int, views=VIEWS, warp_px: float = WARP_PX, ma
         images = draw_captures(case, d, views, warp_px, lens_rings, lens_sectors)
         res = refine_photometric(images, sim.BOARD, corner.camera,
                                  PhotometricOptions(max_pixels=max_pixels, held_out_pixels=0),
-                                 start_sigma=corner.sigma)
+                                 start_sigma=corner.sigma if trust_region else None)
         free = res.free
         rows.append({"values": {k: res.values[k] for k in KEYS}, "sigma": {k: res.sigma[k] for k in KEYS},
                      "sigma_tiles": {k: res.sigma_tiles[k] for k in KEYS},

@@ -389,13 +389,14 @@ def _refine_photometric(result, obs, target, args, say, photos: dict | None = No
                                  PhotometricOptions(kernel=args.psf, lens_samples=0,
                                                     max_pixels=1000 if images[0].size >= 1 << 20 else 2000),
                                  say=say, start_sigma=result.sigma, corners=obs,
-                                 corner_held_out_px=(held_out or {}).get("rms_px"))
+                                 corner_held_out_px=(held_out or {}).get("rms_px"),
+                                 start_covariance=result.intrinsics_covariance)
     except PhotometricError as e:
         raise CliError(args.inputs[0], f"photometric refinement: {e}") from None
     v, sg, cam = res.values, res.sigma, result.camera
     block.update(kept=res.kept, held_out=res.held_out, refined={k: v[k] for k in keys},
                  refined_sigma={k: sg[k] for k in keys}, corner_check=res.corner_check, free=res.free, at_bound=res.at_bound,
-                 rejected_because=res.rejected_because)
+                 rejected_because=res.rejected_because, sigma_model=res.sigma_model)
     if res.kept != "photometric":
         # Not progress: the user asked for a refinement and gets the corner fit, so this line shows even with -q.
         print(f"tiltfit: note: photometric refinement not kept ({res.rejected_because}); CALIB.json keeps the "

@@ -148,7 +148,12 @@ def calibration_reference() -> str:
         "where `start_is_held_out` is false), kept up to `limit_px`. `free`: the stored lens parameters the "
         "refinement moved (those the corner fit determined, each within 10 of its σ; `at_bound`: those that ended "
         "at that bound, then the corner fit is kept); per-view `levels` add the "
-        "illumination gradient `gain_x`, `gain_y`.", "",
+        "illumination gradient `gain_x`, `gain_y`. `sigma_model`: the error model of the refinement's σ "
+        "(`refined_sigma`, and the top-level σ of the lens values it moved where it is kept): `views` (per-view "
+        "cluster-robust as the corner fit's, each view's pose, levels and illumination gradient profiled out, never "
+        "below the textbook σ; `design_effect`, `ratio_min`, `ratio_max`, `n_views`) or `tiles` (a sandwich over "
+        "blur-disc tiles, where the per-view covariance cannot be formed: one view, or a singular one); a lens "
+        "parameter `at_bound` is held out of it (σ 0).", "",
         "Uncertainty: `sigma` is one standard deviation under the error model named in `sigma_model.name`: "
         "`views` (default; corner and blur errors may be correlated within a view, as a detector's bias with blur, "
         "the board's shape or a model misfit make them: per-view cluster-robust covariance with the poses profiled "

@@ -21,8 +21,16 @@ of `focus_geometry` (10 tangents through cheap geometry). Lens-sample pixels tak
 rays (benchmarks/results/photometric_profile.md: forward mode through the aperture integral was 78 % of the
 time before).
 
-σ: the cluster-robust sandwich A⁻¹ B A⁻¹ of the Huber fit (clusters: square tiles as wide as the view's blur
-disc), with the textbook Gauss–Newton σ beside it.
+σ: the per-view cluster-robust covariance of the corner fit (`tiltfit.uncertainty.view_cluster_covariance`: views
+as clusters, each view's pose, levels and illumination profiled out, the CR2 small-sample correction, the
+classical covariance as its floor), applied to the Huber fit's weighted residuals and Jacobian. A photograph's
+pixels share their errors across the whole view, not only within a blur disc: a board that is not flat or not
+the ideal print, a tone curve or an illumination the exposure model misses, move every edge of the view together,
+and the lens absorbs them as it absorbs a view's correlated corner errors. Given the start's intrinsics
+covariance, σ also carries the held principal point's and distortion's uncertainty (`_held_covariance`). The
+textbook Gauss–Newton σ and the earlier sandwich over square tiles as wide as the blur disc stay beside it for
+comparison (benchmarks/results/photometric_sigma.md: with per-view errors they are 0.46–0.77 and 0.61–1.02 of
+the spread, the per-view σ 0.96–1.12; between real GoPro subsets w moved 25 tile σ, 0.66 of this σ).
 """
 from __future__ import annotations
 
@@ -180,8 +188,15 @@ class PhotometricResult:
         values: w_mm, U_mm (inf when 1/U = 0), inv_U_per_m, d_mm, theta_F_deg, theta_L_deg, vignetting,
             psf_sigma_px (σ of the Gaussian part of the kernel, 0 for the disc alone), kernel, lens_samples,
             aperture, closed_form_pixels.
-        sigma: one-σ of the same keys from the cluster-robust sandwich covariance.
+        sigma: one-σ of the same keys under the error model `sigma_model` (per-view cluster-robust).
         sigma_gauss_newton: the textbook σ, (JᵀWJ)⁻¹ scaled by the residuals' robust σ (kept for comparison).
+        sigma_tiles: the sandwich over square tiles as wide as the blur disc (kept for comparison).
+        sigma_model: the error model of `sigma`: {name: "views" | "tiles" (fewer than 2 views, or the per-view
+            covariance singular), design_effect, ratio_min, ratio_max, n_views (`tiltfit.uncertainty`),
+            held_propagated: whether `sigma` includes the held principal point's and distortion's uncertainty}.
+        sigma_held: with `start_covariance`, the part of `sigma` the held principal point and distortion
+            contribute alone (`sigma`² = conditional² + held²); `sigma_tiles` and `sigma_gauss_newton` are
+            conditional on them.
         views: per view: R (3×3), T_mm, white, black, rms (linear units), n_pixels.
         rms: RMS photometric residual over all views (linear intensity units).
         iterations, runtime_s, history: LM iterations, wall time, cost of each solve (½ Σ ρ of residuals in
@@ -218,6 +233,9 @@ class PhotometricResult:
     rejected_because: str = ""
     free: list = field(default_factory=lambda: list(LENS_PARAMETERS))
     at_bound: list = field(default_factory=list)
+    sigma_tiles: dict | None = None
+    sigma_model: dict = field(default_factory=dict)
+    sigma_held: dict | None = None
 
     @property
     def chosen_camera(self) -> TiltLensCamera:
@@ -482,6 +500,89 @@ def _cluster_sandwich(res, problem: _Problem) -> torch.Tensor:
     return A_inv @ B @ A_inv
 
 
+def _view_covariance(res, s2: float, cov_tiles: torch.Tensor, held: list | None = None):
+    """(covariance (P, P), sigma_model) of the Huber fit under the per-view error model (module docstring):
+    `tiltfit.uncertainty.view_cluster_covariance` with views as clusters. `held`: flat positions of global
+    parameters the data no longer move (a lens parameter at its trust bound), left out of the covariance (σ 0).
+    The tile sandwich `cov_tiles` where the per-view one cannot be formed (one view, a singular Schur complement)."""
+    from types import SimpleNamespace
+
+    from ..solve.blocks import BlockJacobian
+    from ..uncertainty import view_cluster_covariance
+
+    bj = res.jacobian
+    if not isinstance(bj, BlockJacobian):
+        return cov_tiles, {"name": "tiles", "n_views": 1}
+    P = bj.n_params
+    keep = torch.ones(P, dtype=torch.bool)
+    if held:
+        keep[torch.tensor(held)] = False
+    pos = torch.cumsum(keep.to(torch.int64), 0) - 1           # each kept parameter's place in the reduced vector
+    cols = keep[bj.s_idx]
+    reduced = BlockJacobian(bj.Js[:, cols], bj.Jp, bj.rows, pos[bj.s_idx[cols]], pos[bj.p_idx], int(keep.sum()))
+    try:
+        got = view_cluster_covariance(SimpleNamespace(jacobian=reduced, weights=res.weights, r=res.r), s2)
+    except RuntimeError:   # a singular per-view block (a view whose pixels no longer move its pose)
+        got = None
+    if got is None:
+        return cov_tiles, {"name": "tiles", "n_views": int(bj.rows.shape[0])}
+    cov, info = got
+    idx = torch.nonzero(keep).squeeze(1)
+    full = torch.zeros(P, P, dtype=cov_tiles.dtype)
+    full[idx[:, None], idx[None, :]] = cov.dense()
+    return full, {"name": "views", **info}
+
+
+def _held_covariance(problem: "_Problem", res, start_covariance: dict | None):
+    """(P, P) covariance the held principal point and distortion add to the fitted parameters, or None.
+
+    The fit holds them at the corner fit's values, so its own covariance is conditional on them; they carry the
+    corner fit's uncertainty (`start_covariance`: its `intrinsics_covariance`, {names, matrix}, cx_px, cy_px,
+    k1 … k6 among the names), which moves the solution by dx/dh = −A⁻¹ JᵀW J_h (J_h: the residuals'
+    derivatives with respect to each held h, by forward differences of 0.1 of its σ). Returns D C_hh Dᵀ with
+    D = dx/dh (in the solver's flat order), ignoring the correlation between the corners' errors and the pixels'
+    (the same views): on the real sets the held parameters alone moved w between subsets by many times the
+    conditional σ (benchmarks/results/photometric_sigma.md)."""
+    from ..uncertainty import INTRINSIC_NAMES
+
+    if not isinstance(start_covariance, dict) or "names" not in start_covariance:
+        return None
+    names, M = list(start_covariance["names"]), torch.as_tensor(start_covariance["matrix"], dtype=torch.float64)
+    cam = problem.camera
+    dist = cam.parameter_names("distortion")
+    # Each held intrinsic: (index in the matrix, camera parameter, element, camera units per intrinsic unit).
+    targets = {"cx_px": ("pp_scaled", 0, 1.0 / cam.pixel_scale_px), "cy_px": ("pp_scaled", 1, 1.0 / cam.pixel_scale_px)}
+    targets |= {n: (dn, None, 1.0) for n, dn in zip(INTRINSIC_NAMES[3:], dist)}
+    held = [(names.index(n), *targets[n]) for n in names if n in targets and float(M[names.index(n), names.index(n)]) > 0]
+    if not held:
+        return None
+    idx = torch.tensor([h[0] for h in held])
+    C_hh = M[idx[:, None], idx[None, :]]
+    try:
+        cov = res.normal.covariance()
+    except RuntimeError:   # a parameter the data no longer move: no sensitivities
+        return None
+    with torch.no_grad():
+        r0 = problem.evaluate(res.x, False)[0]
+        cols = []
+        for (i, name, el, unit), var in zip(held, torch.diagonal(C_hh)):
+            step = 0.1 * math.sqrt(float(var))
+            param = getattr(cam, name)
+            before = param.detach().clone()
+            if el is None:
+                param.add_(step * unit)
+            else:
+                param[el] += step * unit
+            cols.append((problem.evaluate(res.x, False)[0] - r0) / step)
+            param.copy_(before)
+    Jh = torch.stack(cols, 1)
+    if not bool(torch.isfinite(Jh).all()):
+        return None
+    g = torch.stack([res.normal.gradient(Jh[:, j]) for j in range(Jh.shape[1])], 1)   # JᵀW J_h (P, H)
+    D = -cov.matmul(g)
+    return D @ C_hh @ D.T
+
+
 def _lens_sigma(lens: torch.Tensor, cov_lens: torch.Tensor) -> dict:
     """One-σ of w, 1/U, U, d, θF, θL (mm, 1/m, degrees) from the covariance of the stored lens block."""
     def physical(p):
@@ -515,7 +616,8 @@ def _sigma_dict(res, cov: torch.Tensor, problem: "_Problem") -> dict:
 
 def refine_photometric(images, target: Target, camera: TiltLensCamera, options: PhotometricOptions | None = None,
                        say=None, start_sigma: dict | None = None, corners=None,
-                       corner_held_out_px: float | None = None) -> PhotometricResult:
+                       corner_held_out_px: float | None = None,
+                       start_covariance: dict | None = None) -> PhotometricResult:
     """Fit the camera's lens and poses, and an exposure, to the photographs by rendering the target.
 
     Args:
@@ -534,6 +636,9 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
             corners) predicts them as the corner fit's lens predicts held-out views; it is kept only where its
             RMS is at most the corner fit's `corner_held_out_px` (its k-fold held-out RMS per corner; None:
             the start's own RMS with its poses refitted) times 1 + CORNER_TOLERANCE.
+        start_covariance: the start's `intrinsics_covariance` ({names, matrix}: cx_px, cy_px, k1 … k6 among
+            them). Given, σ includes what the uncertainty of the held principal point and distortion does to the
+            fitted lens (`_held_covariance`); None: σ is conditional on them.
     Returns:
         PhotometricResult, with the refined camera.
     """
@@ -541,10 +646,12 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
     # more than they give (`tiltfit calibrate --refine photometric` on 4 industrial photos: 124 s with the default
     # threads, 13 s with one, on 2 shared cores).
     with torch_threads(1):
-        return _refine(images, target, camera, options, say, start_sigma, corners, corner_held_out_px)
+        return _refine(images, target, camera, options, say, start_sigma, corners, corner_held_out_px,
+                       start_covariance)
 
 
-def _refine(images, target, camera, options, say, start_sigma, corners, corner_held_out_px) -> PhotometricResult:
+def _refine(images, target, camera, options, say, start_sigma, corners, corner_held_out_px,
+            start_covariance=None) -> PhotometricResult:
     opts = options or PhotometricOptions()
     t0 = time.perf_counter()
     imgs = [np.asarray(im, dtype=np.float64) for im in images]
@@ -631,13 +738,13 @@ def _refine(images, target, camera, options, say, start_sigma, corners, corner_h
         res, iterations, scale, selection = _select_kernel(problem, res, iterations, blocks, view_rows, opts,
                                                            history, say)
     kernel = "disc_gaussian" if "psf" in res.x else "disc"
-    cov_sandwich = _cluster_sandwich(res, problem)
+    cov_tiles = _cluster_sandwich(res, problem)
     r = res.r * scale
     s_final = _robust_sigma(r)
     try:
         cov_gn = covariance(res, (s_final / scale) ** 2).dense()
     except SolverError:
-        cov_gn = torch.full_like(cov_sandwich, math.nan)
+        cov_gn = torch.full_like(cov_tiles, math.nan)
     kept, held_out, reasons = "photometric", None, []
     refined = _camera_of(camera.copy(), res.x, problem)
     if opts.held_out_pixels:
@@ -652,6 +759,15 @@ def _refine(images, target, camera, options, say, start_sigma, corners, corner_h
         t = torch.tanh(res.x["lens"].detach() / b.clamp(max=1e300))
         at_bound = [LENS_PARAMETERS[i] for i, bi, ti in zip(problem.free, b, t)
                     if math.isfinite(float(bi)) and abs(float(ti)) > AT_BOUND]
+    held = []
+    if at_bound:
+        a = res.layout.offsets["lens"][0]
+        held = [a + problem.free.index(LENS_PARAMETERS.index(n)) for n in at_bound]
+    cov_sigma, sigma_model = _view_covariance(res, (s_final / scale) ** 2, cov_tiles, held)
+    cov_held = _held_covariance(problem, res, start_covariance) if not at_bound else None
+    sigma_model["held_propagated"] = cov_held is not None
+    if cov_held is not None:
+        cov_sigma = cov_sigma + cov_held
     if at_bound:
         kept = "corner fit"
         reasons.append(f"{', '.join(at_bound)} at the trust bound (the refinement is held within {TRUST_SIGMAS:g}σ of "
@@ -690,10 +806,11 @@ def _refine(images, target, camera, options, say, start_sigma, corners, corner_h
                               **({"gain_x": float(res.x["gain"][v, 0]), "gain_y": float(res.x["gain"][v, 1])}
                                  if "gain" in res.x else {})})
     free = [LENS_PARAMETERS[i] for i in problem.free]
-    return PhotometricResult(refined, exposure, values, _sigma_dict(res, cov_sandwich, problem), out_views,
+    return PhotometricResult(refined, exposure, values, _sigma_dict(res, cov_sigma, problem), out_views,
                              float(torch.sqrt((r * r).mean())), iterations, time.perf_counter() - t0, history,
                              selection, _sigma_dict(res, cov_gn, problem), kept, held_out, camera.copy(),
-                             corner_check, "; ".join(reasons), free, at_bound)
+                             corner_check, "; ".join(reasons), free, at_bound, _sigma_dict(res, cov_tiles, problem),
+                             sigma_model, _sigma_dict(res, cov_held, problem) if cov_held is not None else None)
 
 
 def _choose_pixels(imgs: list, views: list, target: Target, opts: PhotometricOptions, disc_only: bool, say,

@@ -92,10 +92,23 @@ CORNER_TOLERANCE = 0.02
 SOLVE_FTOL = 1e-5
 #: A fit whose robust residual σ moved by more than this fraction resumes with the new σ (the Huber weights).
 SCALE_TOLERANCE = 0.05
+#: A view needs at least this many usable pixels (blur disc on the board inside its margin, not saturated) to
+#: take part in the fit; a view with fewer is left out of it (its pose stays the start's).
+MIN_USABLE_PIXELS = 100
+#: Views the fit needs: with fewer left after leaving out those without enough usable pixels, it stops.
+MIN_VIEWS = 1
 
 
 class PhotometricError(RuntimeError):
     """The photometric fit cannot run or did not converge (one-line message)."""
+
+
+class _ViewsLeftOut(Exception):
+    """Raised by `_choose_pixels`: these views (index, reason) cannot take part in the fit."""
+
+    def __init__(self, views: list):
+        super().__init__(f"{len(views)} views left out")
+        self.views = views
 
 
 @dataclass(frozen=True)
@@ -213,6 +226,11 @@ class PhotometricResult:
         rejected_because: why the start was kept ("" where the refinement is).
         free: the stored lens parameters the fit moved (`start_sigma`).
         at_bound: those of them that ended at their trust bound (then the start is kept, and their σ is 0).
+        left_out: the views left out of the fit, each {view (index), image (the corners' name, where given),
+            reason}: too few usable pixels (fewer than MIN_USABLE_PIXELS whose blur disc lies on the board inside
+            its margin, saturated ones dropped) or no board on the image at the start. Their poses in `camera` stay
+            the start's, and `views` holds {R, T_mm, left_out: reason} for them; the fit is the one the other views
+            alone give.
     """
 
     camera: TiltLensCamera
@@ -236,6 +254,7 @@ class PhotometricResult:
     sigma_tiles: dict | None = None
     sigma_model: dict = field(default_factory=dict)
     sigma_held: dict | None = None
+    left_out: list = field(default_factory=list)
 
     @property
     def chosen_camera(self) -> TiltLensCamera:
@@ -697,7 +716,11 @@ def _refine(images, target, camera, options, say, start_sigma, corners, corner_h
     elif n_samples == 0:
         n_samples = auto_lens_samples(CLOSED_FORM_MIN_BLUR_PX)   # for the sharper pixels only
     lens_uv = hammersley_disc_samples(n_samples)
-    data, held_data, levels = _choose_pixels(imgs, views, target, opts, disc_only, say, t0)
+    try:
+        data, held_data, levels = _choose_pixels(imgs, views, target, opts, disc_only, say, t0)
+    except _ViewsLeftOut as e:
+        return _without_views(e.views, imgs, target, camera, options, say, start_sigma, corners, corner_held_out_px,
+                              start_covariance, t0)
     n_rows = int(data[0].uv.shape[0])
     n_closed = sum(d.n_closed_form for d in data)
     n_pixels = sum(int(d.uv.shape[0]) for d in data)
@@ -822,7 +845,7 @@ def _choose_pixels(imgs: list, views: list, target: Target, opts: PhotometricOpt
     rng = np.random.default_rng(opts.seed)
     rng_held = np.random.default_rng([opts.seed, 1])   # its own stream: the fitted pixels do not depend on it
     rng_cand = np.random.default_rng([opts.seed, 2])
-    picks, held, levels = [], [], []
+    picks, held, levels, left_out = [], [], [], []
     for k, (im, vc) in enumerate(zip(imgs, views)):
         if im.shape != (H, W):
             raise PhotometricError(f"view {k}: image is {im.shape[1]}x{im.shape[0]}, expected {W}x{H}")
@@ -831,23 +854,31 @@ def _choose_pixels(imgs: list, views: list, target: Target, opts: PhotometricOpt
         # says nothing of the board's), then those whose blur disc lies on the board (`usable_pixels`).
         box = board_box(target, vc)
         if box is None:
-            raise PhotometricError(f"view {k}: the board is not on the image at the start")
+            left_out.append((k, "the board is not on the image at the start"))
+            continue
         bx0, by0, bx1, by1 = box
         bw, bh = bx1 - bx0 + 1, by1 - by0 + 1
         n_box = bw * bh
         local = np.arange(n_box) if n_box <= MAX_CANDIDATE_PIXELS else \
             np.sort(rng_cand.choice(n_box, MAX_CANDIDATE_PIXELS, replace=False))
         cand = (by0 + local // bw) * W + bx0 + local % bw
+        n_drawn = cand.size
         if opts.saturation is not None:
             cand = cand[im.reshape(-1)[cand] < opts.saturation * float(im.max())]
+        n_saturated = n_drawn - cand.size
         cand = _informative(cand, vc, target, W, opts, rng_cand)
         uv_all = torch.tensor(np.stack([cand % W, cand // W], -1), dtype=torch.float64)
         ok = usable_pixels(target, vc, uv_all)
         cand, uv_all = cand[ok], uv_all[torch.from_numpy(ok)]
         usable = np.zeros(H * W, dtype=bool)
         usable[cand] = True
-        if cand.size < 100:
-            raise PhotometricError(f"view {k}: the board covers fewer than 100 usable pixels")
+        if cand.size < MIN_USABLE_PIXELS:
+            left_out.append((k, f"the board covers {cand.size} usable pixels, fewer than {MIN_USABLE_PIXELS} (pixels "
+                                f"whose blur disc lies on the board inside its margin; {n_saturated} of the {n_drawn} "
+                                "in the board's box saturated)"))
+            continue
+        if left_out:   # this view is usable, but the fit restarts without the left-out ones
+            continue
         white, black = _initial_levels(im.reshape(-1)[cand])
         pred_img = np.full(H * W, np.nan)
         for a in range(0, uv_all.shape[0], 1 << 16):
@@ -862,6 +893,8 @@ def _choose_pixels(imgs: list, views: list, target: Target, opts: PhotometricOpt
         if say:
             say(f"photometric: view {k + 1} of {len(imgs)}: {cand.size} usable pixels of {n_box} in the board's box, "
                 f"{picks[-1].size} chosen ({time.perf_counter() - t0:.1f} s)")
+    if left_out:
+        raise _ViewsLeftOut(left_out)
     # The solver's per-view blocks need the same number of pixels in every view.
     n_rows = min(p.size for p in picks)
     picks = [p if p.size == n_rows else np.sort(rng.choice(p, n_rows, replace=False)) for p in picks]
@@ -1000,6 +1033,58 @@ def _trust_region(cam: TiltLensCamera, sigma: dict):
         stored[0] = math.inf
     bound = torch.tensor([math.inf if sd is None else TRUST_SIGMAS * sd for sd in stored], dtype=torch.float64)
     return free, bound
+
+
+def _camera_views(camera: TiltLensCamera, views: list) -> TiltLensCamera:
+    """A copy of `camera` with the listed views' poses only."""
+    sub = camera.copy()
+    for name in ("rvec", "T_scaled"):
+        p = getattr(camera, name)
+        setattr(sub, name, torch.nn.Parameter(p.detach()[views].clone(), requires_grad=p.requires_grad))
+    return sub
+
+
+def _without_views(left_out: list, imgs: list, target: Target, camera: TiltLensCamera, options, say, start_sigma,
+                   corners, corner_held_out_px, start_covariance, t0: float) -> PhotometricResult:
+    """The refinement on the views not in `left_out` ((index, reason) pairs), exactly as if only they had been
+    given; the left-out views' poses stay the start's. Stops where fewer than MIN_VIEWS remain."""
+    names = list(corners.names) if corners is not None else None
+
+    def label(k):
+        return f"view {k}" + (f" ({names[k]})" if names else "")
+
+    out = {k for k, _ in left_out}
+    keep = [k for k in range(len(imgs)) if k not in out]
+    if len(keep) < MIN_VIEWS:
+        k, why = left_out[0]
+        raise PhotometricError(f"no view left to fit ({len(left_out)} of {len(imgs)} left out; {label(k)}: {why}"
+                               + (", …" if len(left_out) > 1 else "") + ")")
+    for k, why in left_out:
+        if say:
+            say(f"photometric: {label(k)} left out of the fit (its pose stays the start's): {why}")
+    res = _refine([imgs[k] for k in keep], target, _camera_views(camera, keep), options, say, start_sigma,
+                  corners.subset(keep) if corners is not None else None, corner_held_out_px, start_covariance)
+    # Back to every view: the fitted views' poses from the refinement, the left-out ones' the start's.
+    full, start = camera.copy(), camera.copy()
+    with torch.no_grad():
+        full.load_state_dict({k: v for k, v in res.camera.state_dict().items() if k not in ("rvec", "T_scaled")},
+                             strict=False)
+        full.rvec[keep] = res.camera.rvec.detach().to(full.rvec)
+        full.T_scaled[keep] = res.camera.T_scaled.detach().to(full.T_scaled)
+    views = [None] * len(imgs)
+    for k, v in zip(keep, res.views):
+        views[k] = v
+    reasons = dict(left_out)
+    for k in out:
+        views[k] = {"R": start.R[k].detach().numpy().copy(), "T_mm": start.T_mm[k].detach().numpy().copy(),
+                    "left_out": reasons[k], "n_pixels": 0}
+    # Views the inner run left out in turn (its own pixel draws): their indices back to this run's.
+    inner = [(keep[e["view"]], e["reason"]) for e in res.left_out]
+    res.camera, res.start_camera, res.views = full, start, views
+    res.left_out = [{"view": k, **({"image": names[k]} if names else {}), "reason": why}
+                    for k, why in sorted(left_out + inner)]
+    res.runtime_s = time.perf_counter() - t0
+    return res
 
 
 def _corner_check(refined: TiltLensCamera, start: TiltLensCamera, corners, start_held_out_px) -> dict:

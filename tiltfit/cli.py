@@ -393,7 +393,13 @@ def _refine_photometric(result, obs, target, args, say, photos: dict | None = No
                                  start_covariance=result.intrinsics_covariance)
     except PhotometricError as e:
         raise CliError(args.inputs[0], f"photometric refinement: {e}") from None
+    for e in res.left_out:
+        if getattr(args, "quiet", False):   # without -q the refinement said so as it happened
+            print(f"tiltfit: note: photometric refinement: {result.views[e['view']]['image']} left out of the fit "
+                  f"(its pose stays the corner fit's): {e['reason']}", file=sys.stderr, flush=True)
     v, sg, cam = res.values, res.sigma, result.camera
+    block.update(left_out=[{"view": e["view"], "image": result.views[e["view"]]["image"], "reason": e["reason"]}
+                           for e in res.left_out])
     block.update(kept=res.kept, held_out=res.held_out, refined={k: v[k] for k in keys},
                  refined_sigma={k: sg[k] for k in keys}, corner_check=res.corner_check, free=res.free, at_bound=res.at_bound,
                  rejected_because=res.rejected_because, sigma_model=res.sigma_model)
@@ -414,9 +420,12 @@ def _refine_photometric(result, obs, target, args, say, photos: dict | None = No
     result.rss = dict(result.rss, corners=float((r.corners_px**2).sum()))
     for k, (view, fitted) in enumerate(zip(result.views, res.views)):
         view.update(R=cam.R[k].tolist(), T_mm=cam.T_mm[k].tolist(), rms_reprojection_px=float(rms_corners[k]),
-                    rms_blur_px=float(rms_blur[k]), rms_photometric=fitted["rms"])
+                    rms_blur_px=float(rms_blur[k]))
+        if "rms" in fitted:   # not for a view left out of the fit
+            view["rms_photometric"] = fitted["rms"]
     block.update(rms_linear=res.rms, iterations=res.iterations, runtime_s=res.runtime_s, vignetting=v["vignetting"],
-                 levels=[{k: x[k] for k in ("white", "black", "gain_x", "gain_y") if k in x} for x in res.views],
+                 levels=[None if "left_out" in x else {k: x[k] for k in ("white", "black", "gain_x", "gain_y") if k in x}
+                         for x in res.views],
                  kernel=v["kernel"],
                  psf_sigma_px=v["psf_sigma_px"], psf_sigma_px_sigma=sg["psf_sigma_px"],
                  aperture=v["aperture"], closed_form_pixels=v["closed_form_pixels"],

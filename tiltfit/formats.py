@@ -72,7 +72,7 @@ def _table(rows) -> str:
 
 def calibration_reference() -> str:
     """Markdown reference of the target, DET and CALIB files and of what reading them checks."""
-    from .photometric import CLOSED_FORM_MIN_BLUR_PX
+    from .photometric import CLOSED_FORM_MIN_BLUR_PX, MIN_USABLE_PIXELS
 
     return "\n".join([
         "## Target files (`--target T.json`)", "", _table(TARGET_FIELDS), "",
@@ -131,7 +131,12 @@ def calibration_reference() -> str:
         f"finite) and `T_mm` within ±{calibfile.MAX_LENGTH_MM:g} mm.", "",
         "After `--refine photometric`: `refinement: \"photometric\"` and a `photometric` block with the corner "
         "fit it started from (`corner_fit`, `corner_fit_sigma`), `rms_linear` (photometric RMS, linear units), "
-        "`iterations`, `runtime_s`, `vignetting`, per-view `levels` (`white`, `black`), the blur `kernel` "
+        "`iterations`, `runtime_s`, `vignetting`, per-view `levels` (`white`, `black`; null for a view left out), "
+        "`left_out`: the views left out of the fit (`view` index, `image`, `reason`: fewer than "
+        f"{MIN_USABLE_PIXELS} usable pixels, those whose blur disc lies on the board inside its margin, saturated "
+        "ones dropped, or no board on the image at the start; also one line on stderr each), whose poses stay the "
+        "corner fit's and which have no `rms_photometric` (the refinement stops only where no view is left), "
+        "the blur `kernel` "
         "(`disc` or `disc_gaussian`), `psf_sigma_px` and its σ `psf_sigma_px_sigma` (0 for the disc), how each pixel "
         "integrated the lens's `aperture`: `closed_form` (exact) for pixels whose blur disc at the start is at "
         f"least {CLOSED_FORM_MIN_BLUR_PX:g} px (with the disc kernel), fixed lens samples for the others, so `closed_form`, "

@@ -926,6 +926,8 @@ def _informative(cand: np.ndarray, vc, target: Target, W: int, opts: Photometric
     the blur disc of a cell edge. From the chief ray's point on the board, each candidate's distance to the
     nearest cell edge in pixels (the chief-ray map's scale: the 90th percentile over 256 of them); those within half the view's blur disc + 2 px
     are edge candidates, the others flat. Keeps up to 4 x what the selection takes of each, at random."""
+    if cand.size == 0:   # nothing of the board's box left (saturated): the view is left out
+        return cand
     uv = torch.tensor(np.stack([cand % W, cand // W], -1), dtype=torch.float64)
     probe = uv[torch.from_numpy(rng.choice(cand.size, min(cand.size, 256), replace=False))]
     steps = torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]], dtype=torch.float64)

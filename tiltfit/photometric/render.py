@@ -244,16 +244,27 @@ def usable_pixels(target: Target, cam: ThinLensCamera, uv_px: torch.Tensor, t_ma
     """(N,) bool: pixels `uv_px` (N, 2) whose whole blur disc lands on the board, margin included, at least two
     pixels' footprint (at the chief ray's length `t_max`, by default the longest of these pixels') inside its
     outer edge: exact for the thin lens's disc (`aperture.disc_within`), one focus point per pixel, in chunks of
-    MASK_CHUNK_PIXELS pixels. Whatever lies beyond the margin (background, the board's edge) is never fitted."""
+    MASK_CHUNK_PIXELS pixels. Whatever lies beyond the margin (background, the board's edge) is never fitted.
+
+    `t_max` by default comes from the pixels whose chief ray meets the board's plane in front of the camera and
+    within one board size of its outline: a pixel of the board's box whose ray grazes the plane (it met it 255 m
+    away on a real GoPro view) would widen the guard past the whole board and leave no pixel usable."""
     x0, y0, x1, y1 = target.extent_mm
+    bx, by = x1 - x0, y1 - y0
     chunks = range(0, uv_px.shape[0], MASK_CHUNK_PIXELS)
     with torch.no_grad():
-        t_chief = []
+        t_chief, t_near = [], []
         for a in chunks:
             rays = cam.generate_rays(uv_px[a:a + MASK_CHUNK_PIXELS])
-            t_chief.append(-rays.origin[..., 2] / rays.direction[..., 2])
+            t = -rays.origin[..., 2] / rays.direction[..., 2]
+            hit = rays.origin + t[..., None] * rays.direction
+            near = (t > 0) & (hit[..., 0] >= x0 - bx) & (hit[..., 0] <= x1 + bx) & (hit[..., 1] >= y0 - by) & \
+                (hit[..., 1] <= y1 + by)
+            t_chief.append(t)
+            t_near.append(t[near])
         if t_max is None:
-            t_max = max(float(t.abs().max()) for t in t_chief) if t_chief else 1.0
+            t_near = torch.cat(t_near) if t_near else torch.zeros(0)
+            t_max = float(t_near.max()) if t_near.numel() else 1.0   # none near the board: none usable anyway
         guard = 2.0 * float(cam.screen.pitch[0]) * t_max / float(cam.lens.w)
         ok = np.empty(uv_px.shape[0], dtype=bool)
         for a, t in zip(chunks, t_chief):

@@ -247,8 +247,8 @@ def usable_pixels(target: Target, cam: ThinLensCamera, uv_px: torch.Tensor, t_ma
     MASK_CHUNK_PIXELS pixels. Whatever lies beyond the margin (background, the board's edge) is never fitted.
 
     `t_max` by default comes from the pixels whose chief ray meets the board's plane in front of the camera and
-    within one board size of its outline: a pixel of the board's box whose ray grazes the plane (it met it 255 m
-    away on a real GoPro view) would widen the guard past the whole board and leave no pixel usable."""
+    within one board size of its outline: a pixel of the board's box whose ray grazes the plane (on a real GoPro
+    view one met it 742 m away) would widen the guard past the whole board and leave no pixel usable."""
     x0, y0, x1, y1 = target.extent_mm
     bx, by = x1 - x0, y1 - y0
     chunks = range(0, uv_px.shape[0], MASK_CHUNK_PIXELS)

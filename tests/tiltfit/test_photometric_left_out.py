@@ -80,6 +80,8 @@ def without():
 
 @pytest.mark.parametrize("case", ["tiny board", "off the image"])
 def test_a_view_with_too_few_usable_pixels_is_left_out(without, case):
+    """A fourth view (inserted second) with a tiny board or none on the image: one `say` line names it and why,
+    `left_out` lists it, its pose stays the start's, and lens, σ, poses and levels are those of the fit without it."""
     images, start, ref = without
     if case == "tiny board":   # 30 m away: a few pixels wide, its blur disc wider than the board
         R, T = reproduce.target_pose(tp.BOARD, 0.0, 0.0, 30000.0)
@@ -114,6 +116,7 @@ def test_a_view_with_too_few_usable_pixels_is_left_out(without, case):
 
 
 def test_no_view_left_is_an_error(without):
+    """Only a view without usable pixels: a one-line PhotometricError naming the view and the cause."""
     images, start, _ = without
     R, T = reproduce.target_pose(tp.BOARD, 0.0, 0.0, 30000.0)
     cam = _camera_views(_with_view(start, 0, R, T), [0])

@@ -199,3 +199,38 @@ def test_real_gopro_subset_end_to_end(gopro_third, capsys):
     assert block["kept"] in ("photometric", "corner fit") and math.isfinite(block["rms_linear"]), f"block {block}"
     assert block["corner_check"]["views"] == 3, f"the corner check scores the three views: {block['corner_check']}"
     assert block["held_out"]["pixels"] == 3 * 300, f"held-out pixels of every view: {block['held_out']}"
+
+
+@pytest.mark.slow
+def test_command_line_path_records_a_left_out_view(gopro_third, capsys, monkeypatch):
+    """The same three views with GOPR0053.jpg's mask emptied (as the old guard did): `cli._refine_photometric`
+    under -q prints one note naming the photo and why, records it in the block's `left_out`, writes no levels
+    and no `rms_photometric` for it, and fits the other two."""
+    from tiltfit import cli
+    from tiltfit.photometric import refine
+
+    target, sub, result, used, held_out = gopro_third
+    names = [os.path.basename(n) for n in sub.names]
+    keep = [names.index(n) for n in ("GOPR0047.jpg", "GOPR0053.jpg", "GOPR0061.jpg")]
+    small = copy.copy(result)
+    small.camera = _camera_views(result.camera, keep)
+    small.views = [copy.deepcopy(result.views[k]) for k in keep]
+    small.values, small.sigma, small.rss = dict(result.values), dict(result.sigma), dict(result.rss)
+    plain, calls = refine.usable_pixels, []
+
+    def second_view_empty(target, cam, uv, t_max=None):
+        calls.append(1)
+        ok = plain(target, cam, uv, t_max)
+        return ok & False if len(calls) == 2 else ok   # the first pass's second view: GOPR0053.jpg
+
+    monkeypatch.setattr(refine, "usable_pixels", second_view_empty)
+    args = argparse.Namespace(psf="disc", encoding=None, inputs=small.views[0]["image"], quiet=True)
+    block = cli._refine_photometric(small, used.subset(keep), target, args, lambda line: None, held_out=held_out)
+    notes = [s for s in capsys.readouterr().err.splitlines() if "left out" in s]
+    assert len(notes) == 1 and "GOPR0053.jpg" in notes[0] and "0 usable pixels" in notes[0], f"stderr {notes}"
+    assert [(e["view"], os.path.basename(e["image"])) for e in block["left_out"]] == [(1, "GOPR0053.jpg")], \
+        f"left_out {block['left_out']}"
+    assert block["corner_check"]["views"] == 2, f"the two fitted views: {block['corner_check']}"
+    if block["kept"] == "photometric":
+        assert block["levels"][1] is None and None not in (block["levels"][0], block["levels"][2]), block["levels"]
+        assert "rms_photometric" not in small.views[1] and "rms_photometric" in small.views[0], "per-view RMS"

@@ -74,30 +74,14 @@ def monte_carlo(case: str, draws: int, views: int, max_pixels: int, warp_px: flo
 
 
 def real_subset(name: str, obs, views: list, target, folder: str) -> dict:
-    import cv2
-
-    from renderer import read_image
-    from tiltfit.calibration import calibrate
-    from tiltfit.fit import FitOptions
+    from photometric_start import corner_start, grey_photos
     from tiltfit.photometric import PhotometricError, PhotometricOptions, refine_photometric
-    from tiltfit.validate import held_out_rms
 
     cfg = REAL[name]
     sub = obs.subset(views)
-    options = FitOptions(free_principal_point=True, distortion=cfg["distortion"], model_selection=False)
-    t = time.perf_counter()
-    corner = calibrate(sub, "unified", options=options)
-    corner_s = time.perf_counter() - t
-    kfold = held_out_rms(sub, options, folds=5, distortion=cfg["distortion"], start=corner.camera)
-    pts = [target.feature_points()[np.isfinite(c[:, 0])].astype(np.float32) for c in sub.corners_px.numpy()]
-    img = [c[np.isfinite(c[:, 0])].astype(np.float32) for c in sub.corners_px.numpy()]
-    t = time.perf_counter()
-    cv2.calibrateCamera(pts, img, tuple(sub.image_size_px), None, None)   # the peer's time on the same corners
-    opencv_s = time.perf_counter() - t
-    images = []
-    for n in sub.names:
-        im = np.asarray(read_image(os.path.join(folder, n)), dtype=np.float64)
-        images.append(im.mean(-1) if im.ndim == 3 else im)
+    start = corner_start(sub, target, cfg["distortion"])   # the peer's time: OpenCV on the same corners
+    corner, corner_s, kfold, opencv_s = start["corner"], start["corner_s"], start["kfold"], start["opencv_s"]
+    images = grey_photos(folder, sub.names)
     t_cpu, t = time.process_time(), time.perf_counter()
     base = {"views": len(views), "names": list(sub.names), "corner_fit": {k: corner.values.get(k) for k in KEYS},
             "corner_fit_sigma": {k: corner.sigma.get(k) for k in KEYS}, "corner_sigma_model": dict(corner.sigma_model),

@@ -91,15 +91,10 @@ def _rms(camera, obs) -> float:
 
 
 def real(name: str, n_views: int, repeats: int = 1) -> dict:
-    import cv2
-
+    from photometric_start import corner_start, grey_photos
     from real_detections import observations
-    from renderer import read_image
-    from tiltfit.calibration import calibrate
-    from tiltfit.fit import FitOptions
     from tiltfit.photometric import PhotometricOptions, refine_photometric
     from tiltfit.target import load_target
-    from tiltfit.validate import held_out_rms
 
     cfg = REAL[name]
     folder = os.path.join(ROOT, "data", "real", name)
@@ -108,25 +103,12 @@ def real(name: str, n_views: int, repeats: int = 1) -> dict:
     V = min(obs.n_views, 2 * n_views)
     fit_views, test_views = list(range(0, V, 2)), list(range(1, V, 2))
     fit_obs, test_obs = obs.subset(fit_views), obs.subset(test_views)
-    options = FitOptions(free_principal_point=True, distortion=cfg["distortion"], model_selection=False)
-    t = time.perf_counter()
-    corner = calibrate(fit_obs, "unified", options=options)
-    corner_s = time.perf_counter() - t
-    kfold = held_out_rms(fit_obs, options, folds=5, distortion=cfg["distortion"], start=corner.camera)
-    # The peer: OpenCV on the same corners (free principal point, the same distortion terms).
-    pts = [target.feature_points()[np.isfinite(c[:, 0])].astype(np.float32) for c in fit_obs.corners_px.numpy()]
-    img = [c[np.isfinite(c[:, 0])].astype(np.float32) for c in fit_obs.corners_px.numpy()]
-    flags = cv2.CALIB_RATIONAL_MODEL if cfg["distortion"] == "rational" else 0
-    opencv_all = []
-    for _ in range(max(repeats, 5)):   # cheap: at least 5 for its median
-        t = time.perf_counter()
-        cv2.calibrateCamera(pts, img, tuple(fit_obs.image_size_px), None, None, flags=flags)
-        opencv_all.append(time.perf_counter() - t)
-    opencv_s = float(np.median(opencv_all))
-    images = []
-    for n in fit_obs.names:
-        im = np.asarray(read_image(os.path.join(folder, n)), dtype=np.float64)
-        images.append(im.mean(-1) if im.ndim == 3 else im)
+    # The peer: OpenCV on the same corners (free principal point, the same distortion terms); cheap: at least 5
+    # runs for its median.
+    start = corner_start(fit_obs, target, cfg["distortion"], opencv_repeats=max(repeats, 5))
+    corner, corner_s, kfold, opencv_s = start["corner"], start["corner_s"], start["kfold"], start["opencv_s"]
+    opencv_all = start["opencv_s_all"]
+    images = grey_photos(folder, fit_obs.names)
     walls, cpus = [], []
     for r in range(repeats):   # the same fit each time: its wall time's median over the repeats
         t_cpu, t = time.process_time(), time.perf_counter()

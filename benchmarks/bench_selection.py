@@ -25,6 +25,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from real_detections import REAL, observations  # noqa: E402
+from results_io import write_lines  # noqa: E402
 
 from tiltfit.calibfile import calib_dict  # noqa: E402
 from tiltfit.calibration import calibrate  # noqa: E402
@@ -108,8 +109,7 @@ def main() -> int:
                          f"{x['sigma_f_px']:.1f} | {x['principal_point_px'][0]:.1f}, {x['principal_point_px'][1]:.1f} | "
                          f"{x['held_out_rms_px']:.4f} | {x['projection_worst_px']:.3g} | {rel[0]:.3g} ({rel[1]}) | "
                          + (f"{r['paired_z']:+.2f}" if k == "defaults" and "paired_z" in r else "") + " |")
-    with open(os.path.join(here, "selection.md"), "w", encoding="utf-8") as f:
-        f.write("\n".join(lines) + "\n")
+    write_lines(os.path.join(here, "selection.md"), lines + [""])
     print("\n".join(lines))
     return 0
 

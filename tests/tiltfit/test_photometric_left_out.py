@@ -178,13 +178,9 @@ def test_grazing_pixels_of_the_box_do_not_empty_the_usable_mask(gopro_third):
         "the pixels whose rays meet the plane far away do not change the others' mask"
 
 
-@pytest.mark.slow
-def test_real_gopro_subset_end_to_end(gopro_third, capsys):
-    """The same subset through the function `tiltfit calibrate --refine photometric -q` runs
-    (`cli._refine_photometric`), on three of its views to stay small (GOPR0047, GOPR0053, GOPR0061; the corner
-    fit of all eleven): it finishes, GOPR0053.jpg is fitted (not left out), the block says `left_out: []`."""
-    from tiltfit import cli
-
+def _three_views(gopro_third):
+    """The subset's corner fit cut to GOPR0047, GOPR0053 and GOPR0061 (small enough for a test): (target, the
+    cut result, its observations, the held-out check)."""
     target, sub, result, used, held_out = gopro_third
     names = [os.path.basename(n) for n in sub.names]
     keep = [names.index(n) for n in ("GOPR0047.jpg", "GOPR0053.jpg", "GOPR0061.jpg")]
@@ -192,8 +188,19 @@ def test_real_gopro_subset_end_to_end(gopro_third, capsys):
     small.camera = _camera_views(result.camera, keep)
     small.views = [copy.deepcopy(result.views[k]) for k in keep]
     small.values, small.sigma, small.rss = dict(result.values), dict(result.sigma), dict(result.rss)
+    return target, small, used.subset(keep), held_out
+
+
+@pytest.mark.slow
+def test_real_gopro_subset_end_to_end(gopro_third, capsys):
+    """The same subset through the function `tiltfit calibrate --refine photometric -q` runs
+    (`cli._refine_photometric`), on three of its views to stay small (GOPR0047, GOPR0053, GOPR0061; the corner
+    fit of all eleven): it finishes, GOPR0053.jpg is fitted (not left out), the block says `left_out: []`."""
+    from tiltfit import cli
+
+    target, small, used, held_out = _three_views(gopro_third)
     args = argparse.Namespace(psf="disc", encoding=None, inputs=small.views[0]["image"], quiet=True)
-    block = cli._refine_photometric(small, used.subset(keep), target, args, lambda line: None, held_out=held_out)
+    block = cli._refine_photometric(small, used, target, args, lambda line: None, held_out=held_out)
     err = capsys.readouterr().err
     assert block["left_out"] == [] and "left out" not in err, f"left_out {block['left_out']}; stderr {err!r}"
     assert block["kept"] in ("photometric", "corner fit") and math.isfinite(block["rms_linear"]), f"block {block}"
@@ -209,13 +216,7 @@ def test_command_line_path_records_a_left_out_view(gopro_third, capsys, monkeypa
     from tiltfit import cli
     from tiltfit.photometric import refine
 
-    target, sub, result, used, held_out = gopro_third
-    names = [os.path.basename(n) for n in sub.names]
-    keep = [names.index(n) for n in ("GOPR0047.jpg", "GOPR0053.jpg", "GOPR0061.jpg")]
-    small = copy.copy(result)
-    small.camera = _camera_views(result.camera, keep)
-    small.views = [copy.deepcopy(result.views[k]) for k in keep]
-    small.values, small.sigma, small.rss = dict(result.values), dict(result.sigma), dict(result.rss)
+    target, small, used, held_out = _three_views(gopro_third)
     plain, calls = refine.usable_pixels, []
 
     def second_view_empty(target, cam, uv, t_max=None):
@@ -225,7 +226,7 @@ def test_command_line_path_records_a_left_out_view(gopro_third, capsys, monkeypa
 
     monkeypatch.setattr(refine, "usable_pixels", second_view_empty)
     args = argparse.Namespace(psf="disc", encoding=None, inputs=small.views[0]["image"], quiet=True)
-    block = cli._refine_photometric(small, used.subset(keep), target, args, lambda line: None, held_out=held_out)
+    block = cli._refine_photometric(small, used, target, args, lambda line: None, held_out=held_out)
     notes = [s for s in capsys.readouterr().err.splitlines() if "left out" in s]
     assert len(notes) == 1 and "GOPR0053.jpg" in notes[0] and "0 usable pixels" in notes[0], f"stderr {notes}"
     assert [(e["view"], os.path.basename(e["image"])) for e in block["left_out"]] == [(1, "GOPR0053.jpg")], \

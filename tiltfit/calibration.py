@@ -310,7 +310,7 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
     if blur_ok and mode != "tilt":
         result.model_selection["blur"] = _blur_record("U_mm" not in undetermined, blur_noise, misfit, trend)
     if options.distortion == "auto" and result.distortion_selection:
-        from .validate import HELD_OUT_TOLERANCE, MAX_PROJECTION_SIGMA_PX, describe_choice
+        from .validate import HELD_OUT_TOLERANCE, MAX_PROJECTION_SIGMA_PX, PROJECTION_SIGMA_FACTOR, describe_choice
 
         scored = "held_out_rms_px" in next(e for e in result.distortion_selection if e.get("chosen"))
         result.model_selection["distortion"] = {
@@ -318,7 +318,7 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
             "criterion": (f"smallest {options.held_out_folds}-fold held-out error (fewest terms within "
                           f"{100 * HELD_OUT_TOLERANCE:g} %)" if scored else "smallest BIC (fewer than 3 views)")
             + ", radial mapping one-to-one over the image, a rational model's projection uncertain by at most "
-            f"{MAX_PROJECTION_SIGMA_PX:g} px" + (", the board refitted in each fold" if result.board is not None
+            f"{MAX_PROJECTION_SIGMA_PX:g} px or {PROJECTION_SIGMA_FACTOR:g}× opencv5's" + (", the board refitted in each fold" if result.board is not None
                                                  and result.board.model != "flat" else "")}
     if blur_ok and "U_mm" not in undetermined and "theta_F_deg" not in undetermined:
         pts = obs.points_mm.numpy()
@@ -386,7 +386,14 @@ def _redistort(fit: FitResult, obs: Observations, mode: str, options: FitOptions
     known = {fit.distortion_model: (fit, held)} if held is not None else {}
     # The candidates: the model chosen with the flat board and those with fewer terms (a board's shape explains
     # misfit that asked for terms; it does not determine terms the flat board's views could not).
+    # Richer models refused with the flat board only because their projection was too uncertain are tried again:
+    # the flat board's misfit inflates their σ (GoPro, 12 views: rational5 ±37 px with the flat board, ±5 px
+    # with the free one).
+    from .validate import PROJECTION_REFUSAL
+
     models = DISTORTION_MODELS[:DISTORTION_MODELS.index(fit.distortion_model) + 1]
+    models += tuple(e["model"] for e in flat_entries if e["model"] not in models
+                    and str(e.get("refused", "")).startswith(PROJECTION_REFUSAL))
     try:
         sel = select_distortion(fit.camera, obs, options, mode, say, folds=options.held_out_folds, board=fit.board,
                                 known=known, models=models)

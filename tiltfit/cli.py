@@ -3,7 +3,7 @@
     tiltfit detect IMAGE --target T.json [--encoding srgb|linear] -o DET.json
     tiltfit calibrate IMAGE... --target T.json --pixel-pitch-mm P [--fit unified|tilt|joint]
                       [--init CALIB.json] [--encoding srgb|linear] -o CALIB.json
-                      [--distortion auto|none|k1|k1k2|opencv5|rational] [--held-out K]
+                      [--distortion auto|none|k1|k1k2|opencv5|rational5|rational] [--held-out K]
                       [--free-principal-point | --fixed-principal-point]
     tiltfit export CALIB.json --to opencv|mrcal -o camera.yml|camera.cameramodel
     tiltfit report CALIB.json -o DIR
@@ -597,7 +597,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-model-selection", action="store_true",
                    help="skip the θF / principal-point tests (the principal point is then held unless "
                         "--free-principal-point)")
-    p.add_argument("--distortion", choices=("auto", "none", "k1", "k1k2", "opencv5", "rational"), default="auto",
+    p.add_argument("--distortion", choices=("auto", "none", "k1", "k1k2", "opencv5", "rational5", "rational"), default="auto",
                    help="lens distortion terms (OpenCV's order); auto: the model with the smallest K-fold "
                         "held-out error (--held-out K, 5 if 0) whose radial mapping is one-to-one over the image "
                         "[auto]")

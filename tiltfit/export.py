@@ -8,7 +8,10 @@ OpenCV's camera: K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx = fy = w / p 
 coefficients (k1, k2, p1, p2, k3 [, k4, k5, k6]) in the same order and normalisation as ours, and per-view
 rvec (Rodrigues of R) and tvec (mm) with X_cam = R X_target + t — the same conventions as CALIB.json, so an
 untilted calibration projects identically through `cv2.projectPoints`. What OpenCV cannot represent is said
-in the file (`tiltfit_note`): the blur (U, d) and the tilted plane of focus.
+in the file (`tiltfit_note`): the blur (U, d) and the tilted plane of focus. A distortion model that the
+coefficients alone do not name (rational5: the rational model with k3, k5, k6 held at 0) is written as `flags`
+(`cv2.calibrateCamera`'s, e.g. CALIB_RATIONAL_MODEL | CALIB_FIX_K3 | CALIB_FIX_K5 | CALIB_FIX_K6) and
+`tiltfit_distortion_model` (a line saying it).
 
 A tilted lens whose distortion is about its own axis (CALIB.json `distortion_centre` "lens_axis") is OpenCV's
 tilted model (CALIB_TILTED_MODEL), exactly: OpenCV's camera frame is the lens frame (its z the lens axis n),
@@ -87,6 +90,29 @@ def opencv_camera(calib: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     d[:dist.size] = dist
     d[12:] = tau
     return K, d, R
+
+
+# The OpenCV calibration flags that fit the same distortion terms as a tiltfit model (CALIB.json
+# `distortion_model`), where the coefficients alone do not say it: rational5 is OpenCV's rational model (8
+# coefficients) with k3, k5 and k6 held at 0.
+OPENCV_MODEL_FLAGS = {"rational5": ("CALIB_RATIONAL_MODEL", "CALIB_FIX_K3", "CALIB_FIX_K5", "CALIB_FIX_K6"),
+                      "rational": ("CALIB_RATIONAL_MODEL",)}
+
+
+def opencv_model(calib: dict) -> tuple[str, int] | None:
+    """(a line naming the distortion model in OpenCV's terms, the `cv2.calibrateCamera` flags that fit the same
+    terms) of a calibration whose `distortion_model` is one of `OPENCV_MODEL_FLAGS`, else None."""
+    import cv2
+
+    name = calib.get("distortion_model")
+    flags = OPENCV_MODEL_FLAGS.get(name)
+    if flags is None:
+        return None
+    from renderer.cameras.distortion import COEFFICIENT_NAMES, MODEL_TERMS
+
+    held = [k for k in COEFFICIENT_NAMES if k not in MODEL_TERMS[name]]
+    what = "OpenCV's rational model" + (f" with {', '.join(held)} fixed at 0" if held else "")
+    return f"{name}: {what} ({' | '.join(flags)})", sum(int(getattr(cv2, f)) for f in flags)
 
 
 def _dist(calib: dict) -> np.ndarray:
@@ -176,6 +202,10 @@ def opencv_text(calib: dict, format_name: str = ".yml") -> str:
             fs.write("rms_reprojection_px", float(calib["rms_reprojection_px"]))
         fs.write("pixel_pitch_mm", float(calib["pixel_pitch_mm"]))
         fs.write("tiltfit_note", opencv_note(calib) or "the calibration is fully represented")
+        model = opencv_model(calib)
+        if model is not None:
+            fs.write("flags", int(model[1]))
+            fs.write("tiltfit_distortion_model", model[0])
         return fs.releaseAndGetString()
     except cv2.error as e:
         fs.release()
@@ -355,8 +385,11 @@ def mrcal_text(calib: dict) -> str:
     W, H = (int(v) for v in calib["image_size_px"])
     intrinsics = [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), *(float(v) for v in d)]
     note = opencv_note(calib, "mrcal") or "the calibration is fully represented"
+    name = calib.get("distortion_model")
+    model = (f"# distortion {name}: LENSMODEL_OPENCV8 with {', '.join(k for k in ('k3', 'k5', 'k6'))} = 0\n"
+             if name == "rational5" else "")
     return ("# tiltfit calibration as an mrcal camera model\n"
-            f"# what this file does not hold: {note}\n"
+            f"# what this file does not hold: {note}\n" + model +
             f"{_MRCAL_PITCH}{float(calib['pixel_pitch_mm'])!r}\n"
             "{\n"
             "    'lensmodel': 'LENSMODEL_OPENCV8',\n"

@@ -87,7 +87,7 @@ class FitOptions:
         model_selection: run the θF / principal-point tests [True].
         alpha: significance level of the tests [0.01].
         progress: callable(str) for progress lines, or None [None].
-        distortion: "none", "k1", "k1k2", "opencv5", "rational" or "auto" (the model with the smallest
+        distortion: "none", "k1", "k1k2", "opencv5", "rational5", "rational" or "auto" (the model with the smallest
             held-out error whose radial mapping is one-to-one over the image, `tiltfit.validate`) ["none"].
         max_rms_px: a view reprojecting worse than this (RMS per corner) is an error (mismatched data); None: no
             check [7.0].

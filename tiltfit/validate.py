@@ -40,7 +40,9 @@ MAX_MAPPING_SIGMA_PX = 5.0
 # with fewer terms keep their fold warning only: opencv5 / k1k2 / k1 from one GoPro view are uncertain by
 # 31 / 6 / 11 px at the corner, and a general rule would refuse them too (k1 even from 35 views, which it
 # misfits).
-CHECKED_MODELS = ("rational",)
+# rational5 (k1 k2 p1 p2 k4) is checked as well: one denominator term against two numerator terms, determined by
+# a dozen GoPro views (σ of 2-4 % on k1, k4) but a model of the same family.
+CHECKED_MODELS = ("rational5", "rational")
 # The automatic choice (`select_distortion`) also refuses one of the `CHECKED_MODELS` whose projection is uncertain
 # by more than this anywhere in the image (pixels, 1σ: CALIB.json's `projection_uncertainty.worst_px`, from the
 # fit's intrinsics covariance): its coefficients trade against each other (numerator against denominator) and
@@ -50,6 +52,16 @@ CHECKED_MODELS = ("rational",)
 # industrial_ds1 (20 views), flat board: rational 2.0 px (accepted). A model asked for by name is only held to
 # `MAX_MAPPING_SIGMA_PX`.
 MAX_PROJECTION_SIGMA_PX = 5.0
+# ... or, where the views leave even the polynomial model `REFERENCE_MODEL` that uncertain (the image's corners
+# beyond the boards: its worst σ on the GoPro thirds is 2.9-10.5 px), by more than `PROJECTION_SIGMA_FACTOR` times
+# that model's worst σ on the same views: a model no more uncertain than opencv5 away from the boards is no less
+# determined. GoPro, free board (benchmarks/results/rational_terms.md): rational5 2.9-7.4 px where opencv5 has
+# 2.9-10.5 (at most 2.0×; accepted), rational 22-1700 px (4.2-580×; refused) on 11-12 views, 10.9 against 7.8 px
+# (1.4×; accepted) on all 35.
+REFERENCE_MODEL = "opencv5"
+#: How `undetermined_for_choice`'s refusal begins (a refusal the fitted board may lift: `tiltfit.calibration`).
+PROJECTION_REFUSAL = "coefficients not determined by these views"
+PROJECTION_SIGMA_FACTOR = 3.0
 
 
 def predict_views(camera, obs: Observations, options: FitOptions = FitOptions()):
@@ -213,18 +225,24 @@ def projection_sigma_worst_px(fit: FitResult) -> float:
     return math.inf if worst is None else float(worst)
 
 
-def undetermined_for_choice(fit: FitResult, model: str) -> str | None:
+def undetermined_for_choice(fit: FitResult, model: str, reference: FitResult | None = None) -> str | None:
     """Why the automatic choice does not take `model`'s fit although it may be asked for by name (one line), or
     None: for the `CHECKED_MODELS`, a projection uncertain by more than `MAX_PROJECTION_SIGMA_PX` somewhere in
-    the image (the views determine the mapping where the boards were, not its coefficients)."""
+    the image, and by more than `PROJECTION_SIGMA_FACTOR` times that of `reference` (the `REFERENCE_MODEL`'s fit
+    on the same views, or None) (the views determine the mapping where the boards were, not its coefficients)."""
     if model not in CHECKED_MODELS:
         return None
     worst = projection_sigma_worst_px(fit)
-    if worst <= MAX_PROJECTION_SIGMA_PX:
+    limit = MAX_PROJECTION_SIGMA_PX
+    ref = projection_sigma_worst_px(reference) if reference is not None else 0.0
+    if math.isfinite(ref):
+        limit = max(limit, PROJECTION_SIGMA_FACTOR * ref)
+    if worst <= limit:
         return None
-    return (f"coefficients not determined by these views: the projection is uncertain by up to ±{worst:.3g} px "
-            f"(1σ) in the image, more than the {MAX_PROJECTION_SIGMA_PX:g} px an automatic choice accepts (views "
-            f"with the board near the image's corners determine it)")
+    return (f"{PROJECTION_REFUSAL}: the projection is uncertain by up to ±{worst:.3g} px "
+            f"(1σ) in the image, more than the {limit:.3g} px an automatic choice accepts (the larger of "
+            f"{MAX_PROJECTION_SIGMA_PX:g} px and {PROJECTION_SIGMA_FACTOR:g}× {REFERENCE_MODEL}'s ±{ref:.3g} px; "
+            f"views with the board near the image's corners determine it)")
 
 
 def _per_corner_rms(fit: FitResult) -> float:
@@ -236,7 +254,7 @@ def select_distortion(camera: TiltLensCamera, obs: Observations, options: FitOpt
                       models=DISTORTION_MODELS) -> FitResult:
     """Fit every distortion model on the corners and keep the one that predicts held-out views best.
 
-    Models none, k1, k1k2, opencv5, rational are fitted in turn on all views (each starting from the previous
+    Models none, k1, k1k2, opencv5, rational5, rational are fitted in turn on all views (each starting from the previous
     fit); a model whose radial mapping folds inside the image (`radial_fold`), whose coefficients the views do
     not determine (`undetermined_distortion`, `undetermined_for_choice`) or whose fit fails is refused;
     the others are scored by their K-fold held-out error (`held_out_rms`, the lens of each fold started from
@@ -258,7 +276,7 @@ def select_distortion(camera: TiltLensCamera, obs: Observations, options: FitOpt
         options.free_principal_point))
     known = known or {}
     use_held_out = obs.n_views >= 3
-    fits, entries, held, prev = {}, [], {}, None
+    fits, entries, held, prev, reference = {}, [], {}, None, None
     for m in models:
         entry = {"model": m, "n_terms": len(MODEL_TERMS[m])}
         entries.append(entry)
@@ -274,10 +292,12 @@ def select_distortion(camera: TiltLensCamera, obs: Observations, options: FitOpt
             entry["refused"] = f"not fitted ({e})"
             continue
         prev = fit
+        if m == REFERENCE_MODEL:
+            reference = fit
         entry["rms_px"] = _per_corner_rms(fit)
         seen = obs if fit.board is None else _with_board(obs, fit.board)
         fold = (radial_fold(fit.camera, seen) or undetermined_distortion(fit, m, obs.n_views)
-                or undetermined_for_choice(fit, m))
+                or undetermined_for_choice(fit, m, reference))
         if fold:
             entry["refused"] = fold
         else:

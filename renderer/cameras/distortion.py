@@ -25,7 +25,11 @@ R = I is the plain model. This is OpenCV's tilted model (CALIB_TILTED_MODEL) see
 camera frame is our lens frame and its tilt (τx, τy) is R (`renderer.cameras.lens.tilt_rotation`).
 
 Models by name (the terms tiltfit frees; `MODEL_TERMS`): none, k1, k1k2, opencv5 (k1 k2 p1 p2 k3),
-rational (all eight).
+rational5 (k1 k2 p1 p2 k4: the rational model with k3 = k5 = k6 = 0, a first-order denominator: opencv5's five
+terms with k3 traded for k4; OpenCV's CALIB_RATIONAL_MODEL | CALIB_FIX_K3 | CALIB_FIX_K5 | CALIB_FIX_K6), rational
+(all eight). A wide-angle lens's mapping bends over less than its radius squared: one denominator term follows
+it where opencv5's polynomial cannot, and unlike the eight terms it is determined by a dozen views (GoPro:
+benchmarks/results/rational_terms.md).
 """
 from __future__ import annotations
 
@@ -43,6 +47,7 @@ MODEL_TERMS = {
     "k1": ("k1",),
     "k1k2": ("k1", "k2"),
     "opencv5": ("k1", "k2", "p1", "p2", "k3"),
+    "rational5": ("k1", "k2", "p1", "p2", "k4"),
     "rational": COEFFICIENT_NAMES,
 }
 MODELS = tuple(MODEL_TERMS)

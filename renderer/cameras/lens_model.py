@@ -83,7 +83,7 @@ _GROUPS = {
 
 
 def distortion_parameter_names(model: str) -> tuple[str, ...]:
-    """Stored names of the coefficients a distortion model frees ("none", "k1", "k1k2", "opencv5", "rational")."""
+    """Stored names of the coefficients a distortion model frees ("none", "k1", "k1k2", "opencv5", "rational5", "rational")."""
     if model not in MODEL_TERMS:
         raise ValueError(f"distortion: expected one of {tuple(MODEL_TERMS)}, got {model!r}")
     return tuple(f"dist_{k}" for k in MODEL_TERMS[model])

@@ -106,8 +106,13 @@ def calibration_reference() -> str:
         "`trend_with_depth`: `significant`, `p_value`, `amplitude_px`, `depth_mm` of the blur residuals' trend "
         "with depth, where tested) and `distortion_selection` (per model: fit `rms_px`, `held_out_rms_px` or why "
         "it was `refused`, `chosen`, and `board`: the board model fitted with it and refitted in each fold, where "
-        "the board's shape is fitted; the distortion is chosen again then, among the flat board's choice and the "
-        "models with fewer terms).", "",
+        "the board's shape is fitted; the distortion is chosen again then, among the flat board's choice, the "
+        "models with fewer terms, and the richer ones the flat board's fit refused only for an uncertain "
+        "projection). The models (`distortion_model`; the coefficients are always the eight of OpenCV's rational "
+        "model, those a model does not fit 0): `none`, `k1`, `k1k2`, `opencv5` (k1 k2 p1 p2 k3), `rational5` (k1 "
+        "k2 p1 p2 k4: OpenCV's rational model with k3, k5, k6 held at 0, a first-order denominator; `tiltfit export "
+        "--to opencv` writes its `flags`, CALIB_RATIONAL_MODEL | CALIB_FIX_K3 | CALIB_FIX_K5 | CALIB_FIX_K6), "
+        "`rational` (all eight).", "",
         "`distortion_centre` (default `\"sensor\"`): `\"sensor\"`, the distortion about the principal point, or "
         "`\"lens_axis\"`, about the tilted lens's own axis (applied in the lens's frame, OpenCV's tilted model: "
         "`tiltfit export --to opencv` then writes τx, τy); the joint fit chooses it by a likelihood-ratio test "

@@ -60,7 +60,8 @@ def test_auto_matches_opencv_with_the_same_camera_model(industrial):
         img.append(obs.corners_px[v].numpy()[m].astype(np.float32))
     W, H = obs.image_size_px
     K0 = np.array([[3000.0, 0, (W - 1) / 2], [0, 3000.0, (H - 1) / 2], [0, 0, 1]])
-    flags = cv2.CALIB_FIX_ASPECT_RATIO | {"opencv5": 0, "rational": cv2.CALIB_RATIONAL_MODEL}[res.distortion_model]
+    flags = cv2.CALIB_FIX_ASPECT_RATIO | {"opencv5": 0, "rational": cv2.CALIB_RATIONAL_MODEL, "rational5": cv2.CALIB_RATIONAL_MODEL | cv2.CALIB_FIX_K3 |
+                                        cv2.CALIB_FIX_K5 | cv2.CALIB_FIX_K6}[res.distortion_model]
     rms_cv, K, _, _, _ = cv2.calibrateCamera(obj, img, (W, H), K0, None, flags=flags, criteria=(
         cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12))
     f = float(res.camera.focal_px.detach())

@@ -17,7 +17,8 @@ from tiltfit.model import Observations
 from tiltfit.target import load_target
 
 DATA = os.path.join(os.path.dirname(__file__), "..", "..", "data", "real", "gopro_wide")
-FLAGS = {"k1k2": cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST, "opencv5": 0, "rational": cv2.CALIB_RATIONAL_MODEL}
+FLAGS = {"k1k2": cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST, "opencv5": 0, "rational": cv2.CALIB_RATIONAL_MODEL,
+         "rational5": cv2.CALIB_RATIONAL_MODEL | cv2.CALIB_FIX_K3 | cv2.CALIB_FIX_K5 | cv2.CALIB_FIX_K6}
 
 
 @pytest.fixture(scope="module")
@@ -46,7 +47,7 @@ def test_reference_corners_cover_the_set(real):
     assert n == 36 and obs.n_views >= 34, f"findChessboardCornersSB found {obs.n_views} of {n} boards"
 
 
-@pytest.mark.parametrize("model", ["k1k2", "opencv5", "rational"])
+@pytest.mark.parametrize("model", ["k1k2", "opencv5", "rational5", "rational"])
 def test_calibration_matches_opencv_on_the_same_corners(real, model):
     obs, _ = real
     res = calibrate(obs, "unified", options=FitOptions(distortion=model, free_principal_point=True,
@@ -63,6 +64,6 @@ def test_auto_frees_terms_the_real_lens_needs(real):
     obs, _ = real
     res = calibrate(obs, "unified", options=FitOptions(distortion="auto", free_principal_point=True,
                                                        model_selection=False))
-    assert res.distortion_model in ("opencv5", "rational"), f"auto chose {res.distortion_model}"
+    assert res.distortion_model in ("opencv5", "rational5", "rational"), f"auto chose {res.distortion_model}"
     steps = [e["model"] for e in res.distortion_selection]
     assert steps[:4] == ["none", "k1", "k1k2", "opencv5"], f"tried in order: {steps}"

@@ -5,7 +5,6 @@ lets the default choice predict held-out views on a 12-view subset nearly as wel
 the automatic choice refuses (undetermined), where opencv5 was 10× worse."""
 import json
 import os
-from dataclasses import replace
 
 import cv2
 import numpy as np

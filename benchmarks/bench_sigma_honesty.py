@@ -50,7 +50,8 @@ V = 8
 CX, CY = (SIZE[0] - 1) / 2 + 12.0, (SIZE[1] - 1) / 2 - 8.0
 K1 = -0.05
 OPENCV_FLAGS = {"k1": cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST,
-                "opencv5": 0, "rational": cv2.CALIB_RATIONAL_MODEL}
+                "opencv5": 0, "rational": cv2.CALIB_RATIONAL_MODEL,
+                "rational5": cv2.CALIB_RATIONAL_MODEL | cv2.CALIB_FIX_K3 | cv2.CALIB_FIX_K5 | cv2.CALIB_FIX_K6}
 # OpenCV's stdDeviationsIntrinsics order: fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6, ...
 CV_INDEX = {"f_px": 0, "cx_px": 2, "cy_px": 3, "k1": 4}
 
@@ -275,6 +276,7 @@ def measure(args) -> dict:
     torch.set_num_threads(1)
     return {"monte_carlo": monte_carlo(args.draws),
             "real": [real_subsets("gopro_wide", 0.00155, "rational", 3),
+                     real_subsets("gopro_wide", 0.00155, "rational5", 3, board="auto"),
                      real_subsets("industrial_ds1", 0.0048, "opencv5", 2),
                      real_subsets("industrial_ds1", 0.0048, "opencv5", 2, board="auto")],
             "real_poses": real_poses()}

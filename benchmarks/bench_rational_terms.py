@@ -18,7 +18,6 @@ import sys
 import time
 
 import cv2
-import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import renderer.cameras.distortion as _distortion  # noqa: E402
@@ -39,6 +38,7 @@ from tiltfit.calibfile import calib_dict  # noqa: E402
 from tiltfit.calibration import calibrate  # noqa: E402
 from tiltfit.fit import FitError, FitOptions, without_blur  # noqa: E402
 from tiltfit.imaging import torch_threads  # noqa: E402
+from tiltfit.opencv_corners import opencv_calibrate  # noqa: E402
 from tiltfit.validate import held_out_rms  # noqa: E402
 
 FOLDS = 5
@@ -68,16 +68,8 @@ def ours(obs, model, board, held=True) -> dict:
 
 
 def opencv(obs, model) -> dict:
-    obj, img = [], []
-    for v in range(obs.n_views):
-        m = obs.corner_mask[v].numpy()
-        obj.append(obs.points_mm.numpy()[m].astype(np.float32))
-        img.append(obs.corners_px[v].numpy()[m].astype(np.float32))
-    W, H = obs.image_size_px
-    f0 = 600.0 if W < 2000 and obs.pixel_pitch_mm == 0.005 else 3000.0
-    K0 = np.array([[f0, 0, (W - 1) / 2], [0, f0, (H - 1) / 2], [0, 0, 1]])
-    rms, K, dist, _, _ = cv2.calibrateCamera(obj, img, (W, H), K0, None, flags=cv2.CALIB_FIX_ASPECT_RATIO | FLAGS[model],
-                                             criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12))
+    f0 = 600.0 if obs.image_size_px[0] < 2000 and obs.pixel_pitch_mm == 0.005 else 3000.0
+    rms, K, _ = opencv_calibrate(obs, FLAGS[model], focal_px=f0)
     return {"f_px": float(K[0, 0]), "principal_point_px": [float(K[0, 2]), float(K[1, 2])], "rms_px": float(rms)}
 
 

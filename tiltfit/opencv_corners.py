@@ -84,3 +84,21 @@ def opencv_detections(paths, target, cache: str | None = None, say=None) -> list
             f.write("{\n" + ",\n".join(f"{json.dumps(k)}: {json.dumps(v)}" for k, v in sorted(cached.items()))
                     + "\n}\n")
     return out
+
+
+def opencv_calibrate(obs, flags: int = 0, focal_px: float = 600.0):
+    """The peer on the same corners: `cv2.calibrateCamera` on each view's detected corners of `obs`
+    (`tiltfit.model.Observations`) with square pixels (CALIB_FIX_ASPECT_RATIO | `flags`), started at `focal_px`
+    and the image centre, run to convergence. Returns (RMS per corner as OpenCV defines it, K, distortion)."""
+    import cv2
+
+    obj, img = [], []
+    for v in range(obs.n_views):
+        m = obs.corner_mask[v].numpy()
+        obj.append(obs.points_mm.numpy()[m].astype(np.float32))
+        img.append(obs.corners_px[v].numpy()[m].astype(np.float32))
+    W, H = obs.image_size_px
+    K0 = np.array([[focal_px, 0, (W - 1) / 2], [0, focal_px, (H - 1) / 2], [0, 0, 1]])
+    rms, K, dist, _, _ = cv2.calibrateCamera(obj, img, (W, H), K0, None, flags=cv2.CALIB_FIX_ASPECT_RATIO | flags,
+                                             criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12))
+    return float(rms), K, dist.ravel()

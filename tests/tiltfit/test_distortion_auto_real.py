@@ -2,18 +2,19 @@
 chosen model predicts held-out views within 5 % of the best model; the geometry equals OpenCV's calibrateCamera
 with the same camera model on the same corners. And the stopping rule: the GoPro fold whose rational fit with a
 free principal point crept on by 3e-8 of its cost per iteration (no held-out error on main) converges."""
-import json
 import os
+import sys
 
 import cv2
-import numpy as np
 import pytest
 
 from tiltfit.fit import FitOptions, fit_geometry, without_blur
 from tiltfit.start import initialize
 from tiltfit.calibration import calibrate
-from tiltfit.model import Observations
-from tiltfit.target import load_target
+from tiltfit.opencv_corners import opencv_calibrate
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
+from real_detections import observations as real_observations  # noqa: E402
 
 REAL = os.path.join(os.path.dirname(__file__), "..", "..", "data", "real")
 
@@ -21,14 +22,8 @@ pytestmark = pytest.mark.slow
 
 
 def observations(name, pitch):
-    folder = os.path.join(REAL, name)
-    target = load_target(os.path.join(folder, "target.json"))
-    with open(os.path.join(folder, "detections_tiltfit.json"), encoding="utf-8") as f:
-        cache = json.load(f)
-    names = [n for n in sorted(cache) if "no_board" not in cache[n]]
-    C = np.array([[c if c is not None else [np.nan, np.nan] for c in cache[n]["corners_px"]] for n in names], float)
-    return Observations(target.feature_points(), C, np.full(C.shape[:2], np.nan),
-                        tuple(cache[names[0]]["image_size_px"]), pitch, names)
+    """The shipped set's cached corners, without blur widths (corners only, as OpenCV)."""
+    return without_blur(real_observations(os.path.join(REAL, name), pitch)[0])
 
 
 @pytest.fixture(scope="module")
@@ -53,17 +48,9 @@ def test_auto_predicts_held_out_views_as_well_as_the_best_model(industrial):
 def test_auto_matches_opencv_with_the_same_camera_model(industrial):
     obs, res = industrial
     assert res.free_principal_point and res.model_selection["principal_point"]["justified"], "pp fitted"
-    obj, img = [], []
-    for v in range(obs.n_views):
-        m = obs.corner_mask[v].numpy()
-        obj.append(obs.points_mm.numpy()[m].astype(np.float32))
-        img.append(obs.corners_px[v].numpy()[m].astype(np.float32))
-    W, H = obs.image_size_px
-    K0 = np.array([[3000.0, 0, (W - 1) / 2], [0, 3000.0, (H - 1) / 2], [0, 0, 1]])
-    flags = cv2.CALIB_FIX_ASPECT_RATIO | {"opencv5": 0, "rational": cv2.CALIB_RATIONAL_MODEL, "rational5": cv2.CALIB_RATIONAL_MODEL | cv2.CALIB_FIX_K3 |
-                                        cv2.CALIB_FIX_K5 | cv2.CALIB_FIX_K6}[res.distortion_model]
-    rms_cv, K, _, _, _ = cv2.calibrateCamera(obj, img, (W, H), K0, None, flags=flags, criteria=(
-        cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12))
+    flags = {"opencv5": 0, "rational": cv2.CALIB_RATIONAL_MODEL, "rational5": cv2.CALIB_RATIONAL_MODEL | cv2.CALIB_FIX_K3 |
+             cv2.CALIB_FIX_K5 | cv2.CALIB_FIX_K6}[res.distortion_model]
+    rms_cv, K, _ = opencv_calibrate(obs, flags, focal_px=3000.0)
     f = float(res.camera.focal_px.detach())
     rms = (res.rss["corners"] / (res.rss["n_corners"] / 2)) ** 0.5
     assert abs(f / K[0, 0] - 1) < 0.002, f"focal {f:.2f} vs OpenCV {K[0, 0]:.2f} px"

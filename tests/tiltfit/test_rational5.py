@@ -3,8 +3,8 @@ photos (data/real/gopro_wide, tiltfit's cached corners): it is OpenCV's constrai
 length and principal point on the same corners, within 0.2σ, where OpenCV's opencv5 is 1.7σ away), and it
 lets the default choice predict held-out views on a 12-view subset nearly as well as the eight-term model that
 the automatic choice refuses (undetermined), where opencv5 was 10× worse."""
-import json
 import os
+import sys
 
 import cv2
 import numpy as np
@@ -15,9 +15,11 @@ from tiltfit.calibration import calibrate
 from tiltfit.export import mrcal_text, opencv_model, opencv_text
 from tiltfit.fit import FitOptions, without_blur
 from tiltfit.imaging import torch_threads
-from tiltfit.model import Observations
-from tiltfit.target import load_target
+from tiltfit.opencv_corners import opencv_calibrate
 from tiltfit.validate import PROJECTION_SIGMA_FACTOR, held_out_rms
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
+from real_detections import observations  # noqa: E402
 
 REAL = os.path.join(os.path.dirname(__file__), "..", "..", "data", "real")
 
@@ -26,27 +28,12 @@ pytestmark = pytest.mark.slow
 
 @pytest.fixture(scope="module")
 def gopro():
-    folder = os.path.join(REAL, "gopro_wide")
-    target = load_target(os.path.join(folder, "target.json"))
-    with open(os.path.join(folder, "detections_tiltfit.json"), encoding="utf-8") as f:
-        cache = json.load(f)
-    names = [n for n in sorted(cache) if "no_board" not in cache[n]]
-    C = np.array([[c if c is not None else [np.nan, np.nan] for c in cache[n]["corners_px"]] for n in names], float)
-    return Observations(target.feature_points(), C, np.full(C.shape[:2], np.nan),
-                        tuple(cache[names[0]]["image_size_px"]), 0.005, names)
+    return without_blur(observations(os.path.join(REAL, "gopro_wide"), 0.005)[0])   # corners only, as OpenCV
 
 
 def _opencv(obs, flags):
-    obj, img = [], []
-    for v in range(obs.n_views):
-        m = obs.corner_mask[v].numpy()
-        obj.append(obs.points_mm.numpy()[m].astype(np.float32))
-        img.append(obs.corners_px[v].numpy()[m].astype(np.float32))
-    W, H = obs.image_size_px
-    K0 = np.array([[600.0, 0, (W - 1) / 2], [0, 600.0, (H - 1) / 2], [0, 0, 1]])
-    _, K, dist, _, _ = cv2.calibrateCamera(obj, img, (W, H), K0, None, flags=cv2.CALIB_FIX_ASPECT_RATIO | flags,
-                                           criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12))
-    return K, dist.ravel()
+    _, K, dist = opencv_calibrate(obs, flags, focal_px=600.0)
+    return K, dist
 
 
 def test_rational5_is_opencvs_rational_model_with_k3_k5_k6_fixed(gopro):

@@ -27,7 +27,6 @@ from .board_fit import select_board
 from .selection import blur_depends_on_depth, blur_is_informative, likelihood_ratio, nested_model_tests, usable_views
 from .start import initialize, start_blur
 from .solve import LMOptions, SolverError, least_squares
-from .stats import chi2_sf
 from .validate import DISTORTION_MODELS, select_distortion
 
 
@@ -680,10 +679,10 @@ def focus_below_floor(result: FitResult, obs: Observations, options: FitOptions,
 
 
 # When the blur residuals trend with depth (`blur_trend`): the trend must be significant with the views' errors
-# correlated (cluster-robust Wald test, α), and its size over the views' depths at least this many of the
+# sharing their errors (an F test on the views' means, α), and its size over the views' depths at least this many of the
 # widths' noise σ (smaller trends bias U and d by less than the widths' scatter does). On industrial_ds1 the
 # residuals' median rises by about 0.2 px from the nearest to the farthest corners (noise 0.18 px): flagged.
-BLUR_TREND_ALPHA = 1e-3
+BLUR_TREND_ALPHA = 1e-2  # a warning: 1 % of captures without a trend get it (the test holds its level)
 BLUR_TREND_MIN_RATIO = 0.5
 BLUR_TREND_MIN_VIEWS = 4  # the cluster-robust covariance of 3 coefficients needs more views than that
 HUBER_K = 1.5  # Huber's threshold, in robust σ of the residuals (Huber 1964: 95 % efficiency at the Gaussian)
@@ -695,12 +694,13 @@ def blur_trend(result: FitResult, obs: Observations, noise_px: float | None = No
     The residuals r (model − measured, px) are regressed on a quadratic in depth, r = a + b t + c t² with
     t = (z − median z) / (z₉₅ − z₅) (z in the camera frame), by Huber IRLS (a few widths at a detector's floor
     must not make a trend); the coefficients' covariance is the cluster-robust sandwich with the views as
-    clusters (a view's widths share its errors), and (b, c) = 0 is tested by Wald's χ²(2). The trend is
-    `significant` where p < `BLUR_TREND_ALPHA` and its range over z₅..z₉₅ is at least `BLUR_TREND_MIN_RATIO` of
+    clusters (a view's widths share its errors): (b, c) = 0 is F-tested on the views' weighted means (their
+    regression on the same quadratic, F(2, G − 3) for G views), which holds its level where a view's widths share
+    an error. The trend is `significant` where p < `BLUR_TREND_ALPHA` and its range over z₅..z₉₅ is at least `BLUR_TREND_MIN_RATIO` of
     the widths' noise σ_n (`blur_noise_px`; the residuals' robust σ where it cannot be found).
 
     Returns:
-        None with fewer than 30 widths or `BLUR_TREND_MIN_VIEWS` views; else {significant, p_value, wald,
+        None with fewer than 30 widths or `BLUR_TREND_MIN_VIEWS` views; else {significant, p_value, f_statistic,
         amplitude_px, noise_px, depth_mm: [z₅, z₉₅], why (one line)}.
     """
     m = obs.blur_mask
@@ -733,17 +733,24 @@ def blur_trend(result: FitResult, obs: Observations, noise_px: float | None = No
         return None
     e = r - X @ coef
     w = robust_weight(torch.from_numpy((e / s) ** 2), "huber", HUBER_K).numpy()
-    bread = np.linalg.pinv((X * w[:, None]).T @ X)
-    scores = np.zeros((len(groups), 3))
-    np.add.at(scores, np.searchsorted(groups, view), X * (w * e)[:, None])
+    # The test, on the views' (Huber-weighted) means: an error a view's widths share is indistinguishable from
+    # a trend with depth across few views, and a sandwich over few clusters is far too small (per-view offsets
+    # alone, no trend, p < 1e-3 in 50 % of 4-view and 11 % of 10-view captures by the cluster-robust Wald χ²(2)).
+    # The view means' regression on the same quadratic, F-tested on (2, G − 3) degrees of freedom, holds its level
+    # there (p < 1e-3 in 0.0–0.2 % of 3,000 simulated null captures of 4–20 views, with or without offsets).
     G = len(groups)
-    cov = bread @ (scores.T @ scores) @ bread * G / (G - 1)
-    b = coef[1:]
-    try:
-        wald = float(b @ np.linalg.solve(cov[1:, 1:], b))
-    except np.linalg.LinAlgError:
+    idx = np.searchsorted(groups, view)
+    wsum = np.bincount(idx, weights=w, minlength=G)
+    if G < 4 or bool((wsum <= 0).any()):
         return None
-    p = chi2_sf(wald, 2)
+    rm = np.bincount(idx, weights=w * r, minlength=G) / wsum
+    Xm = np.stack([np.bincount(idx, weights=w * X[:, k], minlength=G) / wsum for k in range(3)], 1)
+    fit_m = np.linalg.lstsq(Xm, rm, rcond=None)[0]
+    rss1 = float(((rm - Xm @ fit_m) ** 2).sum())
+    rss0 = float(((rm - rm.mean()) ** 2).sum())
+    dof = G - 3
+    f_stat = max(rss0 - rss1, 0.0) / 2 / max(rss1 / dof, 1e-300)
+    p = (1 + 2 * f_stat / dof) ** (-dof / 2)   # F(2, dof)'s upper tail, in closed form for 2 numerator dof
     tt = np.linspace((z5 - z50) / span, (z95 - z50) / span, 101)
     curve = coef[1] * tt + coef[2] * tt * tt
     amplitude = float(curve.max() - curve.min())
@@ -755,5 +762,5 @@ def blur_trend(result: FitResult, obs: Observations, noise_px: float | None = No
     why = (f"the blur residuals trend with depth, which the thin-lens model does not explain: from {at(lo)} to "
            f"{at(hi)} (model − measured, over {z5:.0f}–{z95:.0f} mm; a change {amplitude / noise:.1f}× the "
            f"widths' noise of {noise:.2g} px; p = {p:.1g}, each view's widths sharing their errors)")
-    return {"significant": significant, "p_value": p, "wald": wald, "amplitude_px": amplitude, "noise_px": noise,
+    return {"significant": significant, "p_value": p, "f_statistic": f_stat, "amplitude_px": amplitude, "noise_px": noise,
             "depth_mm": [float(z5), float(z95)], "why": why}

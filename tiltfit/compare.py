@@ -71,7 +71,7 @@ def compare(calib_a: dict, calib_b: dict, nx: int = 32, rotation: bool = True) -
                            "images": [str(views_a[i].get("image", f"view{i}")) for i, _ in pairs]}
     if n:
         whole = n == n_a == n_b
-        res["warning"] = (f"{'all ' if whole else ''}{n} views are in both calibrations (of {n_a} and {n_b}): "
+        res["warning"] = (f"{'all ' if whole else ''}{n} {'view is' if n == 1 else 'views are'} in both calibrations (of {n_a} and {n_b}): "
                           f"the predicted difference assumes independent calibrations and is then not the right "
                           f"yardstick (shared views make them agree more than it says)")
         if whole:

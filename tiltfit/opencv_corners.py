@@ -88,8 +88,9 @@ def opencv_detections(paths, target, cache: str | None = None, say=None) -> list
 
 def opencv_calibrate(obs, flags: int = 0, focal_px: float = 600.0):
     """The peer on the same corners: `cv2.calibrateCamera` on each view's detected corners of `obs`
-    (`tiltfit.model.Observations`) with square pixels (CALIB_FIX_ASPECT_RATIO | `flags`), started at `focal_px`
-    and the image centre, run to convergence. Returns (RMS per corner as OpenCV defines it, K, distortion)."""
+    (`tiltfit.model.Observations`) with square pixels (CALIB_FIX_ASPECT_RATIO | `flags`), run to convergence
+    (`focal_px`: the initial matrix's focal length; without CALIB_USE_INTRINSIC_GUESS OpenCV keeps only its
+    fx/fy ratio, for the fixed aspect ratio, and starts from its own estimate). Returns (RMS per corner as OpenCV defines it, K, distortion)."""
     import cv2
 
     obj, img = [], []

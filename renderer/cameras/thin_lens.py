@@ -111,10 +111,7 @@ def focus_lens(path: str, cfg: dict, transform: CameraTransform) -> Lens:
             and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
                     for q in pts for v in q)):
         raise SceneError(f"{path}.focus_points: expected three points [x, y, z] of finite numbers, got {pts!r}")
-    if cfg["w"] <= 0:
-        raise SceneError(f"{path}.w: expected a positive distance, got {cfg['w']}")
-    if cfg["d"] < 0:
-        raise SceneError(f"{path}.d: expected a diameter >= 0, got {cfg['d']}")
+    _check_lens_and_sensor(path, cfg)
     world = torch.tensor(pts, dtype=torch.float64)
     cam = transform.points_to_camera(world).numpy()
     try:
@@ -123,23 +120,34 @@ def focus_lens(path: str, cfg: dict, transform: CameraTransform) -> Lens:
         raise SceneError(f"{path}.focus_points: {str(e).removeprefix('points: ')}") from None
 
 
+# The tilt axis's range, the same as CALIB.json's (`tiltfit.calibfile`): a turn either way. A larger number is a
+# typing error, not a rotation (1e9° would quietly render as 280°).
+MAX_TILT_AXIS_DEG = 360.0
+
+
+def _check_lens_and_sensor(path: str, cfg: dict) -> None:
+    """The checks every thin lens takes, however its focus is given (U, f or focus_points): w > 0, d >= 0 and a
+    sensor of positive width and height (a zero size divides by zero; a negative one turns the image by 180°)."""
+    if cfg["w"] <= 0:
+        raise SceneError(f"{path}.w: expected a positive distance, got {cfg['w']}")
+    if cfg["d"] < 0:
+        raise SceneError(f"{path}.d: expected a diameter >= 0, got {cfg['d']}")
+    sx, sy = cfg["sensor_size"]
+    if not (sx > 0 and sy > 0):
+        raise SceneError(f"{path}.sensor_size: expected positive sizes, got {[sx, sy]}")
+
+
 def parse_lens(path: str, cfg: dict) -> Lens:
     """Validate the thin-lens keys and resolve the `Lens` (U, θF exactly). Messages name the field."""
     phi = cfg.get("tilt_axis_deg")
-    if phi is not None and not math.isfinite(phi):
-        raise SceneError(f"{path}.tilt_axis_deg: expected a finite angle, got {phi}")
+    if phi is not None and not abs(phi) <= MAX_TILT_AXIS_DEG:
+        raise SceneError(f"{path}.tilt_axis_deg: expected an angle within ±{MAX_TILT_AXIS_DEG:g}°, got {phi}")
     return _parse_lens(path, cfg).with_(phi=math.radians(phi or 0.0))
 
 
 def _parse_lens(path: str, cfg: dict) -> Lens:
     w, d = cfg["w"], cfg["d"]
-    if w <= 0:
-        raise SceneError(f"{path}.w: expected a positive distance, got {w}")
-    if d < 0:
-        raise SceneError(f"{path}.d: expected a diameter >= 0, got {d}")
-    sx, sy = cfg["sensor_size"]
-    if sx <= 0 or sy <= 0:
-        raise SceneError(f"{path}.sensor_size: expected positive sizes, got {[sx, sy]}")
+    _check_lens_and_sensor(path, cfg)
     if cfg.get("theta_F_deg") is not None and cfg.get("theta_L_deg") is not None:
         raise SceneError(f"{path}: give theta_F_deg or theta_L_deg, not both")
     if (cfg.get("U") is None) == (cfg.get("f") is None):

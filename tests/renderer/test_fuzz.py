@@ -41,6 +41,10 @@ CAMERAS = {
                              "fov_deg": 40, "alpha": 2, "pseudo_screen_distance": 4},
 }
 
+# A thin lens focused through three world points (U, θF and the tilt axis follow from them).
+FOCUS_POINTS = {"type": "thin_lens", "position": [0, 0, -5], "look_at": [0, 0, 0], "w": 1, "d": 0.2,
+                "sensor_size": [0.8, 0.6], "focus_points": [[0, 0, 0], [1, 0, 0.5], [0, 1, 0]]}
+
 # Numeric fields (path into the scene, camera variant) and the values every one of them is tried with.
 FIELDS = [
     ("image.background.0", None), ("camera.position.0", None), ("camera.position.2", None),
@@ -226,6 +230,21 @@ def _physics_cases() -> list[dict]:
         "thin-lens-theta90": ("camera", {**CAMERAS["thin_lens"], "theta_F_deg": 90}, "refuse", "camera"),
         "alpha-neg": ("camera", {**CAMERAS["inverted_perspective"], "alpha": -3}, "either", ""),
         "sensor0": ("camera", {**CAMERAS["thin_lens"], "sensor_size": [0, 0.6]}, "refuse", "sensor_size"),
+        # issue 33 §4: focus_points skipped the sensor check ([0, 0] divided by zero, a negative size turned the
+        # image by 180° with exit 0), and the tilt axis had no range (1e9° rendered as 280°).
+        "focus-points-sensor0": ("camera", {**FOCUS_POINTS, "sensor_size": [0, 0]}, "refuse", "camera.sensor_size"),
+        "focus-points-sensor-neg": ("camera", {**FOCUS_POINTS, "sensor_size": [-36, -27]}, "refuse",
+                                    "camera.sensor_size"),
+        "focus-points-sensor-neg-x": ("camera", {**FOCUS_POINTS, "sensor_size": [-0.8, 0.6]}, "refuse",
+                                      "camera.sensor_size"),
+        "focus-points-ok": ("camera", FOCUS_POINTS, "ok", ""),
+        "focus-points-w0": ("camera", {**FOCUS_POINTS, "w": 0}, "refuse", "camera.w"),
+        "tilt-axis-1e9": ("camera", {**CAMERAS["thin_lens"], "tilt_axis_deg": 1e9}, "refuse", "camera.tilt_axis_deg"),
+        "tilt-axis-361": ("camera", {**CAMERAS["thin_lens"], "tilt_axis_deg": -361}, "refuse",
+                          "camera.tilt_axis_deg"),
+        "tilt-axis-360": ("camera", {**CAMERAS["thin_lens"], "tilt_axis_deg": 360}, "ok", ""),
+        "tilt-axis-with-focus-points": ("camera", {**FOCUS_POINTS, "tilt_axis_deg": 1e9}, "refuse",
+                                        "camera: give focus_points or tilt_axis_deg"),
         "light-at-surface": ("lights.0.position", [0, 0, -1], "either", ""),
         "light-inside": ("lights.0.position", [0, 0, 0], "either", ""),
         "camera-inside": ("camera.position", [0, 0, 0.2], "either", ""),

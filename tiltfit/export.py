@@ -151,9 +151,36 @@ def opencv_note(calib: dict, tool: str = "OpenCV") -> str:
                      f"aperture d = {'unknown' if d is None else format(d, '.4g')} mm) is not represented")
     board = calib.get("board")
     if isinstance(board, dict) and board.get("model") not in (None, "flat"):
-        parts.append(f"the target's fitted shape (board model {board.get('model')}, CALIB.json `board`): the poses "
-                     "and the RMS hold with those points, not the target file's flat ones; the shape is not represented")
+        head = (f"the target's fitted shape (board model {board.get('model')}, CALIB.json `board`): the poses "
+                "and the RMS hold with those points, not the target file's flat ones")
+        if tool == "OpenCV" and board_points_mm(calib) is not None:
+            parts.append(head + "; they are in object_points (N x 3, mm, the target's feature-point order, as "
+                         "cv2.calibrateCameraRO's newObjPoints): cv2.projectPoints of object_points with each view's "
+                         "rvec, tvec gives the calibration's residuals")
+        else:
+            parts.append(head + "; the shape is not represented")
     return "; ".join(parts)
+
+
+def board_points_mm(calib: dict) -> np.ndarray | None:
+    """(N, 3) the target's feature points as fitted (CALIB.json `board`, mm, the target frame, feature-point
+    order), or None: a flat board (the target file's points are the fitted ones) or a shape this file cannot
+    rebuild (a `warp` board without the `target` it bends)."""
+    board = calib.get("board")
+    if not isinstance(board, dict) or board.get("model") in (None, "flat"):
+        return None
+    if board.get("model") == "free" and board.get("points_mm") is not None:
+        return np.asarray(board["points_mm"], dtype=np.float64).reshape(-1, 3)
+    if not isinstance(calib.get("target"), dict):
+        return None
+    from .board import Board
+    from .target import target_from_dict
+
+    nominal = target_from_dict(calib["target"]).feature_points()
+    try:
+        return Board.from_summary(nominal, board).points().numpy()
+    except (KeyError, TypeError, ValueError) as e:
+        raise ExportError(f"board: cannot rebuild the fitted target points ({e})") from None
 
 
 # FileStorage formats by file name ending; `.gz` after any of them compresses the file.
@@ -174,8 +201,10 @@ def opencv_text(calib: dict, format_name: str = ".yml") -> str:
 
     Nodes: camera_matrix (3×3), distortion_coefficients (1×5 or 1×8; 1×14 with τx, τy for a tilted lens's
     distortion about its axis: `opencv_camera`), image_width, image_height, rvecs and tvecs (V×3, one row per
-    view, tvec in mm, OpenCV's frame), images (a sequence of the views' file names), rms_reprojection_px (per
-    corner, OpenCV's definition), pixel_pitch_mm, tiltfit_note.
+    view, tvec in mm, OpenCV's frame), images (a sequence of the views' file names), object_points (N×3, mm: the
+    target's fitted points where the calibration fitted its shape, `board_points_mm`; the poses hold with these,
+    as with cv2.calibrateCameraRO's newObjPoints), rms_reprojection_px (per corner, OpenCV's definition),
+    pixel_pitch_mm, tiltfit_note.
     """
     import cv2
 
@@ -198,6 +227,9 @@ def opencv_text(calib: dict, format_name: str = ".yml") -> str:
             for v in views:
                 fs.write("", os.path.basename(str(v.get("image", ""))))
             fs.endWriteStruct()
+            points = board_points_mm(calib)
+            if points is not None:
+                fs.write("object_points", points)
         if calib.get("rms_reprojection_px") is not None:
             fs.write("rms_reprojection_px", float(calib["rms_reprojection_px"]))
         fs.write("pixel_pitch_mm", float(calib["pixel_pitch_mm"]))

@@ -31,6 +31,15 @@ WARP_PARAMETERS = ("sag_x_mm", "sag_y_mm", "scale_y_minus_1")
 #: A richer board model must predict held-out views better than the simpler one by this fraction to be chosen:
 #: K-fold held-out errors on a few dozen views scatter by about 1 % (`tiltfit.validate.HELD_OUT_TOLERANCE`).
 BOARD_TOLERANCE = 0.01
+#: ... and by this many standard errors of its gain over the views (the per-view differences of held-out squared
+#: error, a paired comparison): over a dozen views a board with dozens of parameters wins a 1 % margin by chance
+#: (sony_small: 13 views of 24 corners; 2: a one-sided chance of about 2.5 %).
+BOARD_GAIN_Z = 2.0
+#: A board model the views cannot carry: one whose parameters make the lens's σ (focal length, principal point)
+#: more than this many times the flat board's on the same views is not chosen automatically. Its shape then trades
+#: against the lens (a small board seen from few directions: the free points of 24 corners moved the principal
+#: point by 30 px with σ 3.3× the flat board's), and a better held-out error says nothing of the lens.
+BOARD_MAX_SIGMA_RATIO = 2.0
 #: The board's Jacobian block is dense (V·N·3 rows by K parameters, a few copies of it in the solve): the free
 #: model (K ≈ 3N) is not tried beyond this many entries (1.6e8 bytes a copy; 20 views of 160 points: 4.5e6).
 MAX_BOARD_JACOBIAN_ENTRIES = 2e7

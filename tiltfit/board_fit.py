@@ -11,7 +11,8 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
-from .board import BOARD_MODELS, BOARD_TOLERANCE, MAX_BOARD_JACOBIAN_ENTRIES, Board
+from .board import (BOARD_GAIN_Z, BOARD_MAX_SIGMA_RATIO, BOARD_MODELS, BOARD_TOLERANCE, MAX_BOARD_JACOBIAN_ENTRIES,
+                    Board)
 from .fit import FitError, fit_geometry
 from .model import Observations
 from .validate import held_out_rms as _held_out
@@ -40,7 +41,9 @@ def select_board(camera, obs: Observations, options, mode: str = "unified", mode
     Each model in `models` is fitted on all views (distortion as `options.distortion` names it, principal point
     free when `options.free_principal_point` is True) and scored by its K-fold held-out error
     (`held_out_rms`): a richer model is chosen only where it predicts the held-out views better than every
-    simpler one by more than `BOARD_TOLERANCE`. With fewer than 3 views no held-out error is computed (and the
+    simpler one by more than `BOARD_TOLERANCE`, better than the model it displaces by `BOARD_GAIN_Z` standard
+    errors over the views, and leaves the lens determined (its σ at most `BOARD_MAX_SIGMA_RATIO` × the flat
+    board's): `_choose`. With fewer than 3 views no held-out error is computed (and the
     flat board is kept when it is among `models`); a model whose dense Jacobian block would exceed
     `MAX_BOARD_JACOBIAN_ENTRIES` is refused.
 
@@ -85,15 +88,75 @@ def select_board(camera, obs: Observations, options, mode: str = "unified", mode
     if not fits:
         raise FitError("no board model could be fitted: " + "; ".join(f"{e['model']}: {e.get('refused')}"
                                                                        for e in entries))
-    # Simplest first: a richer model is chosen where it beats every simpler one by the tolerance.
+    chosen = _choose(entries, fits, obs)
+    for e in entries:
+        e["chosen"] = e["model"] == chosen
+    return fits[chosen], entries
+
+
+def _choose(entries: list, fits: dict, obs: Observations) -> str:
+    """The simplest fitted model no richer one displaces. A richer model displaces the one chosen so far where
+    (1) its held-out error beats every simpler one's by `BOARD_TOLERANCE`, (2) its gain over the chosen one is
+    `BOARD_GAIN_Z` standard errors over the views (`held_out_gain`), and (3) the views carry it: the lens's σ
+    with it are at most `BOARD_MAX_SIGMA_RATIO` times the flat board's (`sigma_ratio`). An entry that fails (2)
+    or (3) says why under `not_chosen`."""
     chosen, best = None, math.inf
+    flat = fits.get("flat")
     for e in entries:
         if e["model"] not in fits:
             continue
         score = e.get("held_out_rms_px", math.inf)
-        if chosen is None or score < (1 - BOARD_TOLERANCE) * best:
+        if chosen is None:
             chosen = e["model"]
+        elif score < (1 - BOARD_TOLERANCE) * best:
+            prev = next(x for x in entries if x["model"] == chosen)
+            gain = held_out_gain(prev.get("held_out"), e.get("held_out"), obs)
+            if gain is not None:
+                e["gain_z"] = gain
+            ratio = sigma_ratio(fits[e["model"]], flat) if flat is not None else None
+            if ratio is not None:
+                e["sigma_ratio"] = ratio
+            if gain is not None and gain < BOARD_GAIN_Z:
+                e["not_chosen"] = (f"its held-out gain over {chosen} is {gain:.2g} standard errors over the views "
+                                   f"(at least {BOARD_GAIN_Z:g} needed)")
+            elif ratio is not None and ratio > BOARD_MAX_SIGMA_RATIO:
+                e["not_chosen"] = (f"the views do not carry it: the lens's σ (focal length, principal point) "
+                                   f"{ratio:.2g}× the flat board's (at most {BOARD_MAX_SIGMA_RATIO:g}×)")
+            else:
+                chosen = e["model"]
         best = min(best, score)
-    for e in entries:
-        e["chosen"] = e["model"] == chosen
-    return fits[chosen], entries
+    return chosen
+
+
+def held_out_gain(simple: dict | None, rich: dict | None, obs: Observations) -> float | None:
+    """How many standard errors the richer model's held-out squared error is below the simpler one's, over the
+    views: the per-view differences n_v (e_simple² − e_rich²) (n_v corners, e the per-view held-out RMS), their
+    mean over its standard error (a paired t statistic). None without per-view errors for both, or with fewer
+    than 3 views; +inf where every view gains alike."""
+    if not simple or not rich:
+        return None
+    a, b = simple.get("per_view_px"), rich.get("per_view_px")
+    if a is None or b is None or len(a) != len(b) or len(a) != obs.n_views:
+        return None
+    n = obs.corner_mask.sum(-1).double()
+    d = [float(n[v]) * (a[v] ** 2 - b[v] ** 2) for v in range(len(a)) if math.isfinite(a[v]) and math.isfinite(b[v])]
+    if len(d) < 3:
+        return None
+    mean = sum(d) / len(d)
+    var = sum((x - mean) ** 2 for x in d) / (len(d) - 1)
+    if var <= 0:
+        return math.inf if mean > 0 else -math.inf
+    return mean / math.sqrt(var / len(d))
+
+
+def sigma_ratio(fit, flat) -> float | None:
+    """The largest ratio of the lens's σ (focal length, cx, cy) in `fit` to those in `flat` (the flat board's fit
+    on the same views), or None where either has no σ (principal point held: the focal length alone)."""
+    def lens_sigma(f):
+        s = f.sigma or {}
+        pp = s.get("principal_point_px") or [math.nan, math.nan]
+        return [s.get("w_mm", math.nan), *pp]
+
+    ratios = [a / b for a, b in zip(lens_sigma(fit), lens_sigma(flat))
+              if math.isfinite(a) and math.isfinite(b) and b > 0 and a > 0]
+    return max(ratios) if ratios else None

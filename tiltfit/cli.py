@@ -28,6 +28,7 @@ import argparse
 import json
 import math
 import os
+import re
 import signal
 import sys
 import time
@@ -71,7 +72,12 @@ def _as_cli_error(file: str, err: Exception) -> CliError:
     terms)."""
     msg = _in_cli_terms("; ".join(line.strip() for line in str(err).strip().splitlines()) or type(err).__name__)
     prefix = f"{file}: "
-    return CliError(file, msg[len(prefix):] if msg.startswith(prefix) else msg)
+    if msg.startswith(prefix):
+        return CliError(file, msg[len(prefix):])
+    located = re.match(rf"{re.escape(file)}(:\d+:\d+): (.*)", msg)
+    if located:  # a parser's `FILE:LINE:COL: problem`, named once as the renderer writes it
+        return CliError(file + located[1], located[2])
+    return CliError(file, msg)
 
 
 def _say(quiet: bool):

@@ -228,12 +228,11 @@ def _add_uncertainty(out: dict, result, undetermined: list) -> None:
     out["sigma_classical"] = {k: (None if k in blank else sc.get(k)) for k in out["sigma"]}
     ic = getattr(result, "intrinsics_covariance", None)
     if ic:
-        from .uncertainty import intrinsics_vector, projection_summary
+        from .uncertainty import covariance_from_calib, projection_summary
 
         out["intrinsics_covariance"] = ic
-        theta = intrinsics_vector(out)
-        out["projection_uncertainty"] = projection_summary(
-            theta, torch.tensor(ic["matrix"], dtype=torch.float64), out["image_size_px"], nx=24)
+        cov = covariance_from_calib(out, check=False)
+        out["projection_uncertainty"] = projection_summary(result.camera.lens, cov, nx=24)
 
 
 def write_calib(path: str, data) -> None:
@@ -402,17 +401,14 @@ def _check_extras(path: str, data: dict) -> None:
             raise CalibFileError(f"{path}: held_out.folds: expected a count, got {describe(folds)}")
     ic = data.get("intrinsics_covariance")
     if ic is not None:
-        from .uncertainty import INTRINSIC_NAMES
+        from .uncertainty import covariance_problem
 
-        if not (isinstance(ic, dict) and isinstance(ic.get("names"), list)
-                and all(n in INTRINSIC_NAMES for n in ic["names"])):
-            raise CalibFileError(f"{path}: intrinsics_covariance.names: expected names among "
-                                 f"{', '.join(INTRINSIC_NAMES)}")
-        n = len(ic["names"])
-        m = ic.get("matrix")
-        if not (isinstance(m, list) and len(m) == n and all(isinstance(row, list) and len(row) == n
-                                                            and all(is_finite_number(x) for x in row) for row in m)):
-            raise CalibFileError(f"{path}: intrinsics_covariance.matrix: expected {n}×{n} finite numbers")
+        if not isinstance(ic, dict):
+            raise CalibFileError(f"{path}: intrinsics_covariance: expected an object {{names, matrix}}, got "
+                                 f"{describe(ic)}")
+        problem = covariance_problem(ic.get("names"), ic.get("matrix"))
+        if problem:
+            raise CalibFileError(f"{path}: {problem}")
     pu = data.get("projection_uncertainty")
     if pu is not None:
         if not isinstance(pu, dict):

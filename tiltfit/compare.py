@@ -34,7 +34,7 @@ import re
 
 import numpy as np
 
-from .uncertainty import intrinsics_vector, projection_difference
+from .uncertainty import covariance_from_calib, intrinsics_vector, projection_difference
 
 #: Two views whose detected corners agree to this RMS (px) are one view (the same photo, or the board in the same
 #: place: their errors are shared).
@@ -55,11 +55,17 @@ def compare(calib_a: dict, calib_b: dict, nx: int = 32, rotation: bool = True) -
     (`consistent` None).
 
     Raises:
-        CompareError: different image sizes ("image_size_px: ...").
+        CompareError: different image sizes ("image_size_px: ..."), or an `intrinsics_covariance` that is not a
+            covariance (`tiltfit.uncertainty.covariance_problem`).
     """
     if [int(s) for s in calib_a["image_size_px"]] != [int(s) for s in calib_b["image_size_px"]]:
         raise CompareError(f"image_size_px: {list(calib_b['image_size_px'])} differs from the first "
                            f"calibration's {list(calib_a['image_size_px'])}")
+    for which, calib in (("the first calibration", calib_a), ("the second calibration", calib_b)):
+        try:
+            covariance_from_calib(calib)
+        except ValueError as e:
+            raise CompareError(f"{which}: {e}") from None
     res = projection_difference(calib_a, calib_b, nx, rotation=rotation)
     ta, tb = intrinsics_vector(calib_a), intrinsics_vector(calib_b)
     res["focal_difference_px"] = float(tb[0] - ta[0])

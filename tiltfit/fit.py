@@ -489,11 +489,18 @@ def _jacobian_of(f, x: torch.Tensor) -> torch.Tensor:
 
 
 def _intrinsics(camera: TiltLensCamera, params: dict) -> torch.Tensor:
-    """(focal_px, cx, cy, k1 … k6) as functions of the stored parameters (`tiltfit.uncertainty.INTRINSIC_NAMES`)."""
+    """(focal_px, cx, cy, k1 … k6, θL°, φ°) as functions of the stored parameters
+    (`tiltfit.uncertainty.INTRINSIC_NAMES`: what the projection depends on; θL and φ place a lens-axis
+    distortion's frame)."""
     w = torch.exp(params["log_w_mm"])
     pp = camera.image_centre_px + params["pp_scaled"] * camera.pixel_scale_px
     k = torch.stack([params[n].reshape(()) for n in TiltLensCamera.parameter_names("distortion")])
-    return torch.cat([(w / camera.pixel_pitch_mm).reshape(1), pp, k])
+    # tan θL = w tan θF / (U + w) written with 1/U, finite (θL = 0) and differentiable at focus at infinity
+    u = params["inv_U_per_m"] / 1000.0
+    theta_L = torch.atan(w * torch.tan(params["theta_F"]) * u / (1.0 + w * u))
+    deg = 180.0 / math.pi
+    return torch.cat([(w / camera.pixel_pitch_mm).reshape(1), pp, k, (theta_L * deg).reshape(1),
+                      (params["phi"] * deg).reshape(1)])
 
 
 def _uncertainties(prob: _Problem, res: LMResult, scale: torch.Tensor, init_sigma: dict | None,

@@ -43,8 +43,9 @@ and OpenCV 8.0 and 5.1) but 4.0 for the roll (25): an unmodelled board shape err
 directions more than isotropy says, which no residual shows (`board="auto"` fits the shape there).
 `view_error_px`: the per-view affine error's RMS length at a corner.
 
-Projection uncertainty: the intrinsics' covariance (focal length in px, principal point, distortion) propagated
-to the projection of a grid of directions across the image, with the part a rotation of the camera frame
+Projection uncertainty: the intrinsics' covariance (focal length in px, principal point, distortion, and the lens
+tilt θL and tilt axis φ that place a lens-axis distortion's frame: `INTRINSIC_NAMES`) propagated through the fitted
+lens (`calib_lens`, `renderer.Lens.project`) to the projection of a grid of directions across the image, with the part a rotation of the camera frame
 explains removed (as `projection_difference` removes the best-fitting rotation; the model's projection is
 central, so the depth of the point does not enter). σ at a pixel is sqrt(σ_x² + σ_y²) (the RMS length of the
 projection error).
@@ -56,12 +57,15 @@ import math
 import numpy as np
 import torch
 
-from renderer.cameras.distortion import distort, undistort
 
 #: Names of the error models written to CALIB.json's `sigma_model.name`.
 SIGMA_MODELS = ("views", "classical")
 
-INTRINSIC_NAMES = ("focal_px", "cx_px", "cy_px", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+#: The intrinsics the projection depends on, in `intrinsics_covariance`'s order: focal length and principal point
+#: (px), the distortion (OpenCV's order), the lens tilt θL and the tilt axis φ (degrees; they place the distortion's
+#: frame when it is about the lens axis).
+INTRINSIC_NAMES = ("focal_px", "cx_px", "cy_px", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "theta_L_deg",
+                   "tilt_axis_deg")
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -210,34 +214,75 @@ def _pose_random_effect(Jp, Jt, r, S_inv, App, App_inv, B, kinds, s2):
 
 
 # ---------------------------------------------------------------------------------------------------------
-# Projection: unprojection, σ across the image, difference of two calibrations
+# Projection: the fitted lens, unprojection, σ across the image, difference of two calibrations
 # ---------------------------------------------------------------------------------------------------------
 
-def _project(theta: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """(n, 3) directions -> (n, 2) pixels for intrinsics θ = (f, cx, cy, k1 … k6)."""
-    xy = v[:, :2] / v[:, 2:3]
-    return theta[1:3] + theta[0] * distort(xy, theta[3:])
+#: A variance whose σ exceeds this (in the parameter's own unit: px, 1, degrees) is not an uncertainty but a
+#: broken file (1e300 on a diagonal); well above any σ a calibration of a real sensor can have.
+MAX_SIGMA = 1e6
 
 
-def _unproject(theta: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
-    """(n, 2) pixels -> (n, 3) unit directions (NaN where the distortion cannot be inverted)."""
-    xy_d = (q - theta[1:3]) / theta[0]
-    xy = undistort(xy_d, theta[3:])
-    back = distort(xy, theta[3:])
-    ok = torch.isfinite(xy).all(-1) & ((back - xy_d).norm(dim=-1) * theta[0] < 1e-3)
+def calib_lens(calib: dict):
+    """The `renderer.Lens` of a CALIB.json dict (plain floats), built as every reader builds it:
+    `tiltfit.calibfile.camera_from_calib(calib).lens` (w, U, d, θF, tilt axis, principal point, distortion and its
+    centre, sensor). The one entry point for the projection of a calibration file here."""
+    from .calibfile import camera_from_calib
+
+    return _plain_lens(camera_from_calib(calib).lens)
+
+
+def _plain_lens(lens):
+    """A `Lens` with tensor fields (a fitted camera's) as plain floats."""
+    from renderer.cameras.lens import _float
+
+    dist = None if lens.distortion is None else tuple(_float(k) for k in lens.distortion)
+    pp = None if lens.principal_point_px is None else tuple(_float(c) for c in lens.principal_point_px)
+    return type(lens)(_float(lens.w), _float(lens.U), _float(lens.d), _float(lens.theta_F), lens.sensor, pp, dist,
+                      _float(lens.phi), lens.distortion_centre)
+
+
+def intrinsics_vector(lens) -> torch.Tensor:
+    """θ (`INTRINSIC_NAMES`: focal_px, cx, cy, k1 … k6, θL°, φ°) of a `renderer.Lens` or a CALIB.json dict
+    (`calib_lens`): the parameters the projection depends on, the coordinates of `intrinsics_covariance`."""
+    if isinstance(lens, dict):
+        lens = calib_lens(lens)
+    lens = _plain_lens(lens)
+    k = (list(lens.distortion or ()) + [0.0] * 8)[:8]
+    cx, cy = lens.center_px
+    return torch.tensor([float(lens.focal_px), cx, cy, *k, math.degrees(lens.theta_L), math.degrees(lens.phi)],
+                        dtype=torch.float64)
+
+
+def _lens_at(lens, theta: torch.Tensor):
+    """The `Lens` of intrinsics θ (`INTRINSIC_NAMES`; tensors, graph kept), U, d, sensor and distortion centre
+    from `lens`: θL and φ place the distortion's frame (`Lens.distortion_frame`; θF from θL at U)."""
+    from renderer.cameras import Lens
+
+    return Lens.from_theta_L(theta[0] * lens.sensor.pixel_pitch, lens.U, lens.d, torch.deg2rad(theta[11]),
+                             sensor=lens.sensor, principal_point_px=(theta[1], theta[2]), distortion=theta[3:11],
+                             phi=torch.deg2rad(theta[12]), distortion_centre=lens.distortion_centre)
+
+
+def _project(lens, theta: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """(n, 3) camera-frame directions -> (n, 2) pixels through the lens of intrinsics θ (`Lens.project`)."""
+    return _lens_at(lens, theta).project(v)
+
+
+def _unproject(lens, q: torch.Tensor) -> torch.Tensor:
+    """(n, 2) pixels -> (n, 3) unit camera-frame directions through `lens` (its distortion about its centre, the
+    principal point or the lens axis); NaN where the distortion cannot be inverted."""
+    from renderer.cameras.distortion import undistort_about_axis
+    from renderer.cameras.projection import normalised_from_pixels
+
+    f, c = float(lens.focal_px), tuple(float(x) for x in lens.center_px)
+    xy_d = normalised_from_pixels(q, f, c)
+    k = lens.distortion or (0.0,)
+    xy = undistort_about_axis(xy_d, k, lens.distortion_frame)
     v = torch.cat([xy, torch.ones_like(xy[:, :1])], -1)
+    back = lens.project(v)
+    ok = torch.isfinite(xy).all(-1) & ((back - q).norm(dim=-1) < 1e-3)
     v = v / v.norm(dim=-1, keepdim=True)
     return torch.where(ok[:, None], v, torch.full_like(v, math.nan))
-
-
-def intrinsics_vector(calib: dict) -> torch.Tensor:
-    """θ = (focal_px, cx, cy, k1 … k6) of a CALIB.json dict."""
-    f = float(calib["w_mm"]) / float(calib["pixel_pitch_mm"])
-    W, H = calib["image_size_px"]
-    pp = calib.get("principal_point_px") or [(W - 1) / 2.0, (H - 1) / 2.0]
-    k = list((calib.get("distortion") or {}).get("coefficients") or [])
-    k = (k + [0.0] * 8)[:8]
-    return torch.tensor([f, float(pp[0]), float(pp[1])] + [float(c) for c in k], dtype=torch.float64)
 
 
 def pixel_grid(image_size_px, nx: int = 32, ny: int | None = None):
@@ -248,61 +293,78 @@ def pixel_grid(image_size_px, nx: int = 32, ny: int | None = None):
 
 
 def _jac(fn, x: torch.Tensor) -> torch.Tensor:
-    """Jacobian of a function of a few inputs with many outputs (forward mode)."""
-    return torch.autograd.functional.jacobian(fn, x, vectorize=True, strategy="forward-mode")
+    """(m, n) Jacobian of a function of a few inputs (n ≲ 13) with many outputs: one forward-mode pass per input
+    (dual numbers, so the lens's plain-number checks may read the values)."""
+    import torch.autograd.forward_ad as fwad
+
+    cols = []
+    for i in range(x.numel()):
+        e = torch.zeros_like(x)
+        e.view(-1)[i] = 1.0
+        with fwad.dual_level():
+            out = fn(fwad.make_dual(x, e))
+            t = fwad.unpack_dual(out).tangent
+        cols.append(torch.zeros_like(out) if t is None else t)
+    return torch.stack(cols, -1)
 
 
-def _rotation_jacobian(theta: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+def _rotation_jacobian(lens, theta: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """(2n, 3) derivative of the projections of directions v by a small rotation ω of them (v + ω × v)."""
     w0 = torch.zeros(3, dtype=torch.float64)
-    return _jac(lambda w: _project(theta, v + torch.cross(w.expand_as(v), v, dim=-1)).reshape(-1), w0)
+    return _jac(lambda w: _project(lens, theta, v + torch.cross(w.expand_as(v), v, dim=-1)).reshape(-1), w0)
 
 
-def projection_sigma(theta: torch.Tensor, cov: torch.Tensor, image_size_px, nx: int = 32, ny: int | None = None,
+def projection_sigma(lens, cov: torch.Tensor, nx: int = 32, ny: int | None = None,
                      compensate_rotation: bool = True):
-    """σ of the projection across the image, rotation-compensated (module docstring).
+    """σ of the projection through the fitted lens across the image, rotation-compensated (module docstring).
 
     Args:
-        theta: (11,) intrinsics (`INTRINSIC_NAMES`); cov: (11, 11) their covariance.
+        lens: the `renderer.Lens` (`calib_lens`, or a fitted camera's `lens`); the projection is its own
+            (`Lens.project`: focal length, principal point, distortion about the principal point or the tilted
+            lens's axis).
+        cov: (13, 13) covariance of its intrinsics (`INTRINSIC_NAMES`, `covariance_from_calib`).
         compensate_rotation: remove the part a rotation of the camera frame explains [True]; False: the whole
             σ of the projection of a fixed camera-frame direction (a principal point's σ counts in full).
     Returns:
         (xs, ys, sigma (ny, nx) px; NaN where the distortion cannot be inverted).
     """
-    xs, ys = pixel_grid(image_size_px, nx, ny)
+    lens = _plain_lens(lens)
+    theta = intrinsics_vector(lens)
+    xs, ys = pixel_grid(lens.sensor.size_px, nx, ny)
     X, Yg = np.meshgrid(xs, ys)
     q = torch.tensor(np.stack([X.ravel(), Yg.ravel()], -1), dtype=torch.float64)
-    v = _unproject(theta, q)
+    v = _unproject(lens, q)
     ok = torch.isfinite(v).all(-1)
     sig = torch.full((q.shape[0],), math.nan, dtype=torch.float64)
     if int(ok.sum()) >= 3:
         vo = v[ok]
-        G = _jac(lambda t: _project(t, vo).reshape(-1), theta)                                 # (2n, 11)
+        G = _jac(lambda t: _project(lens, t, vo).reshape(-1), theta)                           # (2n, 13)
         if compensate_rotation:
-            Gw = _rotation_jacobian(theta, vo)
+            Gw = _rotation_jacobian(lens, theta, vo)
             G = G - Gw @ torch.linalg.lstsq(Gw, G).solution
         var = ((G @ cov) * G).sum(-1).reshape(-1, 2).sum(-1)
         sig[ok] = var.clamp_min(0).sqrt()
     return xs, ys, sig.reshape(len(ys), len(xs)).numpy()
 
 
-def projection_summary(theta, cov, image_size_px, nx: int = 32) -> dict:
+def projection_summary(lens, cov, nx: int = 32) -> dict:
     """CALIB.json's `projection_uncertainty`: median and worst σ over the image, and the map on a grid."""
-    xs, ys, sig = projection_sigma(theta, cov, image_size_px, nx)
+    xs, ys, sig = projection_sigma(lens, cov, nx)
     finite = sig[np.isfinite(sig)]
     return {"median_px": float(np.median(finite)) if finite.size else None,
             "worst_px": float(finite.max()) if finite.size else None,
             "grid_x_px": [float(x) for x in xs], "grid_y_px": [float(y) for y in ys],
             "sigma_px": [[None if not np.isfinite(s) else round(float(s), 6) for s in row] for row in sig],
-            "method": "intrinsics covariance propagated to a grid of directions, the part a rotation of the "
+            "method": "intrinsics covariance (focal length, principal point, distortion, lens tilt and tilt axis) "
+                      "propagated through the fitted lens to a grid of directions, the part a rotation of the "
                       "camera frame explains removed; any depth (central projection)"}
 
 
-def _best_rotation(theta_a, theta_b, v_a, q):
+def _best_rotation(lens_a, lens_b, v_a, q):
     """Rotation ω (axis-angle) minimising Σ |proj_B(R(ω) v_a) − q|² (`tiltfit.solve.least_squares` from Kabsch)."""
     from renderer import axis_angle_to_matrix, matrix_to_axis_angle
 
-    v_b = _unproject(theta_b, q)
+    v_b = _unproject(lens_b, q)
     ok = torch.isfinite(v_b).all(-1)
     Hm = v_a[ok].T @ v_b[ok]
     Uu, _, Vt = torch.linalg.svd(Hm)
@@ -311,12 +373,17 @@ def _best_rotation(theta_a, theta_b, v_a, q):
     w = matrix_to_axis_angle(Vt.T @ D @ Uu.T)
 
     def resid(w):
-        return (_project(theta_b, v_a @ axis_angle_to_matrix(w).T) - q).reshape(-1)
+        return (lens_b.project(v_a @ axis_angle_to_matrix(w).T) - q).reshape(-1)
 
     from .solve import LMOptions, least_squares
 
     w = least_squares(resid, w, LMOptions(max_iterations=50), jacobian_fn=lambda x: _jac(resid, x)).x
     return w
+
+
+#: Fewer distinct grid pixels than this along a side leave nothing for the comparison to see once the rotation
+#: (3 parameters) is fitted: a focal length or distortion difference needs points away from each other.
+MIN_COMPARE_SIDE_PX = 8
 
 
 def projection_difference(calib_a: dict, calib_b: dict, nx: int = 32, cov_a=None, cov_b=None,
@@ -326,69 +393,151 @@ def projection_difference(calib_a: dict, calib_b: dict, nx: int = 32, cov_a=None
     uncertainties predict: sqrt(σ_A² + σ_B²) per pixel (each rotation-compensated, `projection_sigma`).
 
     Each grid pixel q is unprojected with A, rotated from A's camera frame to B's and projected with B; the
-    difference is |proj_B(R v_A(q)) − q|. The rotation absorbs whatever a rotation of the camera frame explains:
-    a common shift of the principal point (the poses turn with it), so such a shift is not in the difference.
+    difference is |proj_B(R v_A(q)) − q|. Both project through their full fitted lens (`calib_lens`: tilt, tilt
+    axis and the distortion's centre included). The rotation absorbs whatever a rotation of the camera frame
+    explains: a common shift of the principal point (the poses turn with it), so such a shift is not in the
+    difference.
+
+    No verdict (`consistent` None) where the σ say nothing: an image under `MIN_COMPARE_SIDE_PX` a side (the
+    rotation absorbs any difference there), a predicted σ of 0 or not finite, or one larger than the image.
 
     Args:
-        calib_a, calib_b: CALIB.json dicts (same image size); cov_a/cov_b: their intrinsics covariances (11, 11)
-            (default: the files' `intrinsics_covariance`; without one the prediction is None).
+        calib_a, calib_b: CALIB.json dicts (same image size); cov_a/cov_b: their intrinsics covariances (13, 13)
+            (default: the files' `intrinsics_covariance`, `covariance_from_calib`; without one the prediction
+            is None).
         rotation: fit the rotation [True]; False: R = I, and the prediction is not rotation-compensated either.
     Returns:
         {grid_x_px, grid_y_px, difference_px (ny, nx), predicted_px (ny, nx) or None, median_px, worst_px,
         predicted_median_px, predicted_worst_px, rms_ratio (RMS difference / RMS predicted), rotation_deg (the
         fitted rotation's angle, A's camera frame to B's; 0 without one), rotation_fitted, consistent
-        (rms_ratio ≤ 2: within what the two σ allow), verdict}.
+        (rms_ratio ≤ 2: within what the two σ allow; None: no verdict), verdict}.
+    Raises:
+        ValueError: an `intrinsics_covariance` that is not a covariance (`covariance_from_calib`).
     """
     from renderer import axis_angle_to_matrix
 
-    size = tuple(calib_a["image_size_px"])
-    ta, tb = intrinsics_vector(calib_a), intrinsics_vector(calib_b)
+    size = tuple(int(s) for s in calib_a["image_size_px"])
+    la, lb = calib_lens(calib_a), calib_lens(calib_b)
     xs, ys = pixel_grid(size, nx)
     X, Yg = np.meshgrid(xs, ys)
     q = torch.tensor(np.stack([X.ravel(), Yg.ravel()], -1), dtype=torch.float64)
-    v_a = _unproject(ta, q)
+    v_a = _unproject(la, q)
     ok = torch.isfinite(v_a).all(-1)
-    w = _best_rotation(ta, tb, v_a[ok], q[ok]) if rotation else torch.zeros(3, dtype=torch.float64)
+    w = _best_rotation(la, lb, v_a[ok], q[ok]) if rotation else torch.zeros(3, dtype=torch.float64)
     diff = torch.full((q.shape[0],), math.nan, dtype=torch.float64)
-    diff[ok] = (_project(tb, v_a[ok] @ axis_angle_to_matrix(w).T) - q[ok]).norm(dim=-1)
+    diff[ok] = (lb.project(v_a[ok] @ axis_angle_to_matrix(w).T) - q[ok]).norm(dim=-1)
     diff = diff.reshape(len(ys), len(xs)).numpy()
     cov_a = cov_a if cov_a is not None else covariance_from_calib(calib_a)
     cov_b = cov_b if cov_b is not None else covariance_from_calib(calib_b)
     pred = None
     if cov_a is not None and cov_b is not None:
-        sa = projection_sigma(ta, cov_a, size, nx, compensate_rotation=rotation)[2]
-        sb = projection_sigma(tb, cov_b, size, nx, compensate_rotation=rotation)[2]
+        sa = projection_sigma(la, cov_a, nx, compensate_rotation=rotation)[2]
+        sb = projection_sigma(lb, cov_b, nx, compensate_rotation=rotation)[2]
         pred = np.sqrt(sa ** 2 + sb ** 2)
     fin = np.isfinite(diff) & (np.isfinite(pred) if pred is not None else True)
     out = {"grid_x_px": [float(x) for x in xs], "grid_y_px": [float(y) for y in ys],
            "difference_px": _nested(diff), "predicted_px": _nested(pred) if pred is not None else None,
-           "median_px": float(np.median(diff[fin])), "worst_px": float(diff[fin].max()),
+           "median_px": float(np.median(diff[fin])) if fin.any() else None,
+           "worst_px": float(diff[fin].max()) if fin.any() else None,
            "rotation_deg": math.degrees(float(w.norm())), "rotation_fitted": bool(rotation)}
-    if pred is not None:
-        ratio = float(np.sqrt(np.mean(diff[fin] ** 2) / np.mean(pred[fin] ** 2)))
-        out |= {"predicted_median_px": float(np.median(pred[fin])), "predicted_worst_px": float(pred[fin].max()),
-                "rms_ratio": ratio, "consistent": bool(ratio <= 2.0),
-                "verdict": ("consistent: the calibrations differ by what their uncertainties predict"
-                            if ratio <= 2.0 else
-                            f"inconsistent: they differ {ratio:.1f}× more than their uncertainties predict "
-                            f"(an error the σ do not cover: board shape, a model misfit, a changed camera)")}
-    else:
-        out |= {"predicted_median_px": None, "predicted_worst_px": None, "rms_ratio": None, "consistent": None,
-                "verdict": "no prediction: a calibration has no intrinsics covariance"}
-    return out
+    if pred is None:
+        return out | {"predicted_median_px": None, "predicted_worst_px": None, "rms_ratio": None,
+                      "consistent": None, "verdict": "no prediction: a calibration has no intrinsics covariance"}
+    rms_pred = float(np.sqrt(np.mean(pred[fin] ** 2))) if fin.any() else math.nan
+    ratio = float(np.sqrt(np.mean(diff[fin] ** 2))) / rms_pred if rms_pred > 0 else math.nan
+    out |= {"predicted_median_px": float(np.median(pred[fin])) if fin.any() else None,
+            "predicted_worst_px": float(pred[fin].max()) if fin.any() else None,
+            "rms_ratio": ratio if math.isfinite(ratio) else None}
+    silent = _silent_sigma(size, rms_pred)
+    if silent:
+        return out | {"consistent": None, "verdict": f"no verdict: {silent}"}
+    return out | {"consistent": bool(ratio <= 2.0),
+                  "verdict": ("consistent: the calibrations differ by what their uncertainties predict"
+                              if ratio <= 2.0 else
+                              f"inconsistent: they differ {ratio:.1f}× more than their uncertainties predict "
+                              f"(an error the σ do not cover: board shape, a model misfit, a changed camera)")}
+
+
+def _silent_sigma(size, rms_pred: float) -> str | None:
+    """Why the predicted σ cannot judge a difference (a clause), or None."""
+    W, H = size
+    if min(W, H) < MIN_COMPARE_SIDE_PX:
+        return (f"a {W}×{H} px image is too small to compare projections (under {MIN_COMPARE_SIDE_PX} px a side, "
+                f"the best-fitting rotation absorbs any difference)")
+    if not (math.isfinite(rms_pred) and rms_pred > 0):
+        return "the predicted σ is 0 or not finite, so it says nothing about the difference"
+    if rms_pred > math.hypot(W, H):
+        return (f"the predicted σ ({rms_pred:.3g} px RMS) is larger than the image, so it says nothing about the "
+                f"difference")
+    return None
 
 
 def _nested(a):
     return [[None if not np.isfinite(x) else round(float(x), 6) for x in row] for row in a]
 
 
-def covariance_from_calib(calib: dict):
-    """(11, 11) intrinsics covariance (`INTRINSIC_NAMES` order) from a CALIB.json dict, or None."""
+def covariance_problem(names, matrix) -> str | None:
+    """Why {names, matrix} is not a covariance of intrinsics (a clause naming the field), or None.
+
+    A covariance is a square matrix of finite numbers, one row per name (`INTRINSIC_NAMES`), symmetric, with no
+    negative variance of any parameter or combination (positive semi-definite, to rounding) and no σ above
+    `MAX_SIGMA` (in the parameter's unit)."""
+    if not (isinstance(names, list) and names and all(n in INTRINSIC_NAMES for n in names)
+            and len(set(names)) == len(names)):
+        return f"intrinsics_covariance.names: expected distinct names among {', '.join(INTRINSIC_NAMES)}"
+    n = len(names)
+    if not (isinstance(matrix, list) and len(matrix) == n and all(
+            isinstance(row, list) and len(row) == n and all(
+                isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in row)
+            for row in matrix)):
+        return f"intrinsics_covariance.matrix: expected {n}×{n} finite numbers"
+    C = np.array(matrix, dtype=np.float64)
+    d = np.diag(C)
+    if (d < 0).any():
+        i = int(np.argmin(d))
+        return f"intrinsics_covariance.matrix: the variance of {names[i]} is negative ({d[i]:.3g})"
+    if (d > MAX_SIGMA ** 2).any():
+        i = int(np.argmax(d))
+        return (f"intrinsics_covariance.matrix: the variance of {names[i]} ({d[i]:.3g}) is not an uncertainty "
+                f"(σ above {MAX_SIGMA:g})")
+    s = np.sqrt(d)
+    scale = np.outer(s, s)
+    if (np.abs(C - C.T) > 1e-6 * scale + 1e-300).any():
+        return "intrinsics_covariance.matrix: not symmetric"
+    live = s > 0
+    if (np.abs(C[~live]) > 0).any():
+        return "intrinsics_covariance.matrix: a parameter of zero variance has non-zero covariances"
+    if live.any():
+        corr = C[np.ix_(live, live)] / scale[np.ix_(live, live)]
+        if float(np.linalg.eigvalsh(corr).min()) < -1e-6:
+            return ("intrinsics_covariance.matrix: not positive semi-definite (a combination of the parameters "
+                    "has a negative variance)")
+    return None
+
+
+def covariance_from_calib(calib: dict, check: bool = True):
+    """(13, 13) intrinsics covariance (`INTRINSIC_NAMES` order) from a CALIB.json dict, or None without one.
+
+    A file written before θL and the tilt axis were among the names gets their variances from `sigma`
+    (theta_L_deg, tilt_axis_deg; uncorrelated with the rest). `check` False: a fit's own covariance, taken as
+    it is (rounding may leave it a hair indefinite).
+
+    Raises:
+        ValueError: the file's `intrinsics_covariance` is not a covariance (`covariance_problem`, one line)."""
     ic = calib.get("intrinsics_covariance")
     if not isinstance(ic, dict) or "matrix" not in ic or "names" not in ic:
         return None
+    problem = covariance_problem(ic["names"], ic["matrix"]) if check else None
+    if problem:
+        raise ValueError(problem)
     C = torch.zeros(len(INTRINSIC_NAMES), len(INTRINSIC_NAMES), dtype=torch.float64)
     idx = [INTRINSIC_NAMES.index(n) for n in ic["names"]]
     M = torch.tensor(ic["matrix"], dtype=torch.float64)
     C[torch.tensor(idx)[:, None], torch.tensor(idx)[None, :]] = M
+    sigma = calib.get("sigma") or {}
+    for name in ("theta_L_deg", "tilt_axis_deg"):
+        s = sigma.get(name)
+        if name not in ic["names"] and isinstance(s, (int, float)) and math.isfinite(s) and 0 <= s <= MAX_SIGMA:
+            i = INTRINSIC_NAMES.index(name)
+            C[i, i] = float(s) ** 2
     return C

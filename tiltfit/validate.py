@@ -215,13 +215,9 @@ def projection_sigma_worst_px(fit: FitResult) -> float:
     ic = getattr(fit, "intrinsics_covariance", None)
     if not ic:
         return 0.0
-    from .uncertainty import projection_summary
+    from .uncertainty import covariance_from_calib, projection_summary
 
-    cam = fit.camera
-    with torch.no_grad():
-        theta = torch.cat([cam.focal_px.detach().reshape(1), cam.principal_point_px.detach().reshape(2),
-                           cam.distortion.detach().reshape(-1)]).to(torch.float64)
-    worst = projection_summary(theta, torch.tensor(ic["matrix"], dtype=torch.float64), cam.image_size_px,
+    worst = projection_summary(fit.camera.lens, covariance_from_calib({"intrinsics_covariance": ic}, check=False),
                                nx=24)["worst_px"]
     return math.inf if worst is None else float(worst)
 

@@ -24,6 +24,7 @@ from .model import (Observations, TiltLensCamera, distortion_parameter_names, re
                     robust_weight)
 from .board import describe_board, with_points
 from .board_fit import select_board
+from .distortion_centre import with_distortion_centre
 from .selection import blur_depends_on_depth, blur_is_informative, likelihood_ratio, nested_model_tests, usable_views
 from .start import initialize, start_blur
 from .solve import LMOptions, SolverError, least_squares
@@ -129,6 +130,25 @@ def _undetermined_focus(result: FitResult) -> list:
     return out
 
 
+def _focus_beyond_infinity(result: FitResult) -> str | None:
+    """Where the blur fit put the focus beyond infinity (1/U ≤ 0: widths at a detector's floor, a lens focused
+    far beyond the views), the camera's focus is set to infinity, the nearest physical value, so that no negative
+    U reaches a lens, a file or a later stage (per-view annotations, uncertainty, photometric refinement);
+    returns the note saying why U is undetermined, or None where 1/U > 0."""
+    cam = result.camera
+    inv_u = float(cam.inv_U_per_m.detach())
+    if inv_u > 0.0 or not math.isfinite(inv_u):
+        return None
+    s_inv = result.sigma.get("inv_U_per_m")
+    with torch.no_grad():
+        cam.inv_U_per_m.zero_()
+    result.values["U_mm"] = math.inf
+    result.values["f_mm"] = float(cam.w_mm.detach())  # f = U w / (U + w) → w at U = ∞
+    spread = f" ± {s_inv:.2g}" if s_inv is not None and math.isfinite(s_inv) else ""
+    return (f"U undetermined: the blur widths put the focus beyond infinity (1/U = {inv_u:.3g}{spread} per m); "
+            f"the lens is held focused at infinity for the per-view values")
+
+
 def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | None = None,
               options: FitOptions = FitOptions(), init_sigma: dict | None = None) -> FitResult:
     """Calibrate a tilt-lens camera from detected corners and blur widths of several views.
@@ -205,9 +225,13 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
             cam = geometry.camera.copy()
     result = None
     misfit = axis_test = centre_test = trend = None
+    axis_entries = []  # the distortion models scored about the lens axis (`tiltfit.distortion_centre`)
     if blur_ok:
         result, undetermined, note = _fit_blur(cam, obs, mode, init, init_sigma, options, distortion, geometry,
-                                               say)
+                                               say, board=board)
+        if result is not None and result.board is not None:  # refitted beside the lens: its σ is in the lens's
+            board = result.board
+            obs = with_points(obs, board.points())
         if note:
             notes.append(note)
         if result is not None and mode == "joint" and options.model_selection:
@@ -218,7 +242,8 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
             # A tilted lens's distortion may be about its own axis: test that centre (and, where it is chosen, the
             # tilt axis again: the distortion's centre then says where the lens tilts).
             if options.distortion_centre == "auto":
-                result, centre_test = _with_distortion_centre(result, obs, mode, options, init_sigma, say)
+                result, centre_test, distortion, axis_entries = with_distortion_centre(
+                    result, obs, mode, options, init_sigma, distortion, options.distortion == "auto", say)
             if centre_test is not None and centre_test["fitted"] and not axis_test.get("fitted"):
                 result, axis_test = _with_tilt_axis(result, obs, mode, options, init_sigma, say)        # The tilt stage holds stage 1's U and d, which the lens's tilt moves (hinge rule): its residuals judge
         # that approximation, not the thin-lens model.
@@ -263,14 +288,27 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
     if geometry is not None:
         result.distortion_selection = geometry.distortion_selection
         result.held_out = geometry.held_out  # computed with the principal point as decided (geometry only)
+        if axis_entries and result.distortion_selection:
+            about_axis = result.camera.distortion_centre == "lens_axis"
+            result.distortion_selection = [dict(e, chosen=bool(e.get("chosen")) and not about_axis)
+                                           for e in result.distortion_selection] + axis_entries
+            if about_axis:
+                result.held_out = next(e["held_out"] for e in axis_entries if e["chosen"])
     if board is not None:
-        result.board, result.board_selection = board, board_selection
+        # the fit's own board (refitted with the lens in the blur fit); a test's refit held it as it was
+        result.board = result.board if result.board is not None else board
+        result.board_selection = board_selection
+        board = result.board
         if board.model != "flat":
             result.held_out = board_held_out  # the distortion test's held-out error had the flat board
             head = f"board auto: {describe_board(board_selection)}" if options.board == "auto" else f"board {board.model}"
             notes.append(head + _board_line(board))
     result.free_principal_point = free_pp
     undetermined += [k for k in _out_of_range(result) if k not in undetermined]
+    beyond = _focus_beyond_infinity(result)
+    if beyond:
+        undetermined += [k for k in ("U_mm",) if k not in undetermined]
+        notes.append(beyond)
     result.undetermined = undetermined
     if options.distortion == "auto" and result.distortion_selection:
         from .validate import describe_choice
@@ -469,32 +507,6 @@ def _with_tilt_axis(base: FitResult, obs: Observations, mode: str, options: FitO
     return (alt if entry["justified"] else base), entry
 
 
-def _with_distortion_centre(base: FitResult, obs: Observations, mode: str, options: FitOptions, init_sigma,
-                            say=None):
-    """The distortion about the lens's own axis (`renderer.Lens.distortion_centre` "lens_axis": in the tilted
-    lens's frame, as OpenCV's tilted model) tested against `base`'s, about the principal point. The two models
-    have the same parameters and coincide at θL = 0, so the comparison is not nested: the lens-axis model is
-    charged one parameter (the choice of centre) in `likelihood_ratio` (χ²(1) and BIC), so it replaces `base`
-    only where its fit is better by more than one free parameter would make it by chance; on an untilted
-    lens the simpler, usual model (about the principal point) stays. Returns (fit, test entry or None where
-    there is no distortion to centre)."""
-    cam = base.camera.copy()
-    if cam.distortion_centre == "lens_axis" or not bool(cam.distortion.detach().any()):
-        return base, None
-    cam.distortion_centre = "lens_axis"
-    try:
-        alt = _fit_camera(cam, obs, replace(options, model_selection=False, progress=None), init_sigma, mode=mode)
-    except FitError as e:
-        return base, {"error": str(e), "justified": None, "fitted": False, "chosen": "sensor"}
-    entry = likelihood_ratio(base, alt, 1, options.alpha)
-    entry["theta_L_deg_full"] = alt.values["theta_L_deg"]
-    entry["fitted"] = entry["justified"]
-    entry["chosen"] = "lens_axis" if entry["justified"] else "sensor"
-    _say_test(say, "the distortion's centre (the lens axis)", entry,
-              "distortion about the lens axis" if entry["justified"] else "distortion about the principal point")
-    return (alt if entry["justified"] else base), entry
-
-
 def _with_theta_F(base: FitResult, obs: Observations, options: FitOptions) -> FitResult | None:
     """The fit with θF freed as well (the θF test's alternative), or None where it fails: a capture through a
     tilted lens misfits the untilted model (and its residuals trend with depth), which the θF test is there to
@@ -508,7 +520,7 @@ def _with_theta_F(base: FitResult, obs: Observations, options: FitOptions) -> Fi
 
 
 def _fit_blur(cam: TiltLensCamera, obs: Observations, mode: str, init, init_sigma, options: FitOptions,
-              distortion: str, geometry: FitResult | None, say=None):
+              distortion: str, geometry: FitResult | None, say=None, board=None):
     """The corner-and-blur fit from `cam` (distortion terms `distortion` free); returns (result or None,
     undetermined keys, note or None). None where the blur fit failed and there is a geometric fit to report
     instead (made here if needed); raises where the widths vary with depth and still did not fit."""
@@ -526,7 +538,7 @@ def _fit_blur(cam: TiltLensCamera, obs: Observations, mode: str, init, init_sigm
         if options.blur_offset and mode != "tilt":
             cam.free("blur_offset")
             try:
-                result = _fit_camera(cam, obs, options, sigma_init, say, mode=mode)
+                result = _fit_camera(cam, obs, options, sigma_init, say, mode=mode, board=_board_copy(board))
                 if _offset_correlation(result) > MAX_OFFSET_CORRELATION:
                     raise FitError("the blur offset is not separable from U and d: the depths do not "
                                    "straddle the plane of focus")
@@ -536,7 +548,7 @@ def _fit_blur(cam: TiltLensCamera, obs: Observations, mode: str, init, init_sigm
                 cam = start.copy()
                 result = None
         if result is None:
-            result = _fit_camera(cam, obs, options, sigma_init, say, mode=mode)
+            result = _fit_camera(cam, obs, options, sigma_init, say, mode=mode, board=_board_copy(board))
         return result, _undetermined_focus(result), None
     except FitError as e:
         if geometry is None:
@@ -546,6 +558,12 @@ def _fit_blur(cam: TiltLensCamera, obs: Observations, mode: str, init, init_sigm
             if mode == "tilt" or blur_depends_on_depth(start, obs):
                 raise
         return None, ["U_mm", "d_mm"], f"U and d undetermined: the blur fit failed ({e}); the calibration is geometric"
+
+
+def _board_copy(board):
+    """A fitted non-flat board to refit beside the lens (its parameters' uncertainty then stays in the lens's σ,
+    not profiled out as known), or None."""
+    return board.copy() if board is not None and board.model != "flat" else None
 
 
 def _check_rms(result: FitResult, options: FitOptions, distortion: str):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -109,3 +110,67 @@ def test_export_of_a_flat_board_has_no_object_points(tmp_path):
     fs = cv2.FileStorage(str(yml), cv2.FILE_STORAGE_READ)
     assert fs.getNode("object_points").empty(), "a flat board's points are the target file's: nothing to export"
     fs.release()
+
+
+def blurred_capture(points_mm, nominal_mm, seed=0, n_views=8):
+    """Corners and blur widths of `points_mm` seen by a pinhole with k1 and a thin-lens blur circle, written here
+    (not tiltfit's camera; as benchmarks/bench_sigma_honesty.py's capture), with `nominal_mm` as the target's points."""
+    import torch
+
+    from tiltfit.model import PAPER_LENS, PAPER_SENSOR, Observations, axis_angle_to_matrix, random_poses
+
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    w, U, d = PAPER_LENS["w_mm"], PAPER_LENS["U_mm"], PAPER_LENS["d_mm"]
+    pitch, size = PAPER_SENSOR["pixel_pitch_mm"], PAPER_SENSOR["image_size_px"]
+    rvec, T = random_poses(n_views, 3)
+    R, T = axis_angle_to_matrix(rvec).numpy(), T.numpy()
+    P = np.asarray(points_mm) - np.asarray(nominal_mm).mean(0)
+    pc = np.einsum("vij,nj->vni", R, P) + T[:, None, :]
+    xy = pc[..., :2] / pc[..., 2:3]
+    xy = xy * (1 - 0.05 * (xy ** 2).sum(-1, keepdims=True))
+    cx, cy = (size[0] - 1) / 2 + 12.0, (size[1] - 1) / 2 - 8.0
+    uv = np.stack([cx + w / pitch * xy[..., 0], cy + w / pitch * xy[..., 1]], -1) + rng.normal(0, 0.05, xy.shape)
+    w_z = 1.0 / (1.0 / (w * U / (w + U)) - 1.0 / pc[..., 2])
+    blur = d * np.abs(w - w_z) / w_z / pitch
+    blur = blur + rng.normal(0, 0.03 * np.median(blur), blur.shape)
+    nominal = np.asarray(nominal_mm) - np.asarray(nominal_mm).mean(0)
+    return Observations(torch.tensor(nominal), torch.tensor(uv), torch.tensor(blur), size, pitch)
+
+
+def test_the_fitted_board_stays_in_the_sigma_of_the_blur_fit():
+    """With blur widths the final fit is the corner-and-blur fit: it refits the board beside the lens, so the σ of
+    the focal length and principal point include what the board's shape absorbs (the same fit with the board's
+    points held as known gives smaller σ), and the board it reports is the one its poses and RMS were fitted with."""
+    import torch
+
+    from tiltfit.board import Board, with_points
+    from tiltfit.calibration import calibrate
+    from tiltfit.fit import FitOptions, without_blur
+
+    nominal = board_points_mm(8, 6, 25.0, centred=False).numpy()
+    true = Board(nominal, "warp", torch.tensor([0.8, -0.4, 0.002])).points().numpy()
+    obs = blurred_capture(true, nominal, seed=2)
+    opts = FitOptions(distortion="k1", free_principal_point=True, model_selection=False, board="free")
+    res = calibrate(obs, "unified", options=opts)
+    assert "U_mm" not in res.undetermined and res.rss["n_blur"] > 0, f"not the blur fit: {res.notes}"
+    assert res.board is not None and res.board.model == "free", res.board
+    held = calibrate(with_points(obs, res.board.points()), "unified",  # (a bent board starts no homography)
+                     options=replace(opts, board="flat", nominal_focal_mm=res.values["w_mm"]))
+
+    def lens_sigma(r):
+        return np.array([r.sigma["w_mm"], *r.sigma["principal_point_px"]])
+
+    ratio = lens_sigma(res) / lens_sigma(held)
+    assert ratio.max() > 1.5, f"σ with the board refitted / σ with its points held: {ratio} (the board profiled out)"
+    assert (ratio > 0.95).all(), f"σ ratio {ratio}"
+    # ... and no more than the corners alone give with the board fitted (the widths only add information).
+    corners_only = calibrate(without_blur(obs), "unified", options=opts)
+    upper = lens_sigma(res) / lens_sigma(corners_only)
+    assert (upper < 1.1).all() and (upper > 0.3).all(), f"σ of the blur fit / σ of the corners-only fit: {upper}"
+    # The reported board is the fitted one: its points reproduce the views' RMS.
+    with torch.no_grad():
+        from tiltfit.model import residuals
+
+        rc, _ = residuals(res.camera, with_points(obs, res.board.points())).rms_per_view()
+    assert np.allclose(rc.numpy(), [v["rms_reprojection_px"] for v in res.views], rtol=1e-6), "board and views differ"

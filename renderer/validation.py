@@ -123,12 +123,46 @@ def check_tree(value, where: str, error=ValueError, *, float32=False, max_depth:
                 number(prefix, v, error, float32=True)
 
 
+# Bytes that text files do not hold: C0 controls other than tab, newline, form feed and carriage return.
+_CONTROL = bytes(b for b in range(32) if b not in b"\t\n\f\r") + b"\x7f"
+
+
+def _wide_text(data: bytes) -> bool:
+    """Whether `data` holding NUL bytes is text in UTF-16 or UTF-32: a byte-order mark, or decoding to printable,
+    mostly ASCII text."""
+    if data.startswith((b"\xff\xfe", b"\xfe\xff", b"\x00\x00\xfe\xff")):
+        return True
+    head = data[:4096]
+    for codec in ("utf-32-le", "utf-32-be", "utf-16-le", "utf-16-be"):
+        width = 4 if "32" in codec else 2
+        try:
+            text = head[:len(head) - len(head) % width].decode(codec)
+        except UnicodeDecodeError:
+            continue
+        # JSON and YAML are ASCII in their syntax: wide text of them decodes to mostly ASCII characters.
+        if text and sum(c.isprintable() or c in "\t\n\r" for c in text) >= 0.95 * len(text) \
+                and sum(c < "\x80" for c in text) >= 0.5 * len(text):
+            return True
+    return False
+
+
+def _binary(data: bytes) -> bool:
+    """Whether `data` is binary data rather than text in any encoding: NUL bytes not explained by UTF-16/32,
+    or more than 1 % control bytes in its first 4 KiB (text in a legacy 8-bit encoding has none)."""
+    head = data[:4096]
+    if b"\x00" in head:
+        return not _wide_text(data)
+    return len(head) > 0 and sum(head.count(c) for c in _CONTROL) > 0.01 * len(head)
+
+
 def _decode(path: str, data: bytes, error, what: str) -> str:
-    if data.startswith((b"\xff\xfe", b"\xfe\xff")) or (len(data) > 1 and (data[0] == 0 or data[1] == 0)):
-        raise error(f"{path}: not UTF-8 text (looks like UTF-16 or UTF-32); save the {what} as UTF-8")
     if data.startswith(b"\x89PNG") or data.startswith(b"\xff\xd8\xff") or data.startswith(b"II*\x00") \
             or data.startswith(b"MM\x00*") or data.startswith(b"v/1\x01"):
         raise error(f"{path}: is an image, not a JSON {what}")
+    if _binary(data):
+        raise error(f"{path}: binary data, not a text file; a {what} is JSON text (UTF-8)")
+    if data.startswith((b"\xff\xfe", b"\xfe\xff")) or b"\x00" in data[:4096]:
+        raise error(f"{path}: not UTF-8 text (looks like UTF-16 or UTF-32); save the {what} as UTF-8")
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as e:

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from renderer.validation import (FLOAT32_MAX, MAX_JSON_DEPTH, check_tree, describe, is_finite_number, json_depth,
@@ -23,6 +24,12 @@ def _write(tmp_path, data: bytes):
     ('{"a": 1}'.encode("utf-16"), "not UTF-8 text (looks like UTF-16 or UTF-32)"),
     ('{"a": 1}'.encode("utf-32"), "not UTF-8 text (looks like UTF-16 or UTF-32)"),
     ('{"a": "caf\xe9"}'.encode("latin-1"), "not UTF-8 text (byte 0xe9 at offset 10)"),
+    ('{"a": 1}'.encode("utf-16-le"), "not UTF-8 text (looks like UTF-16 or UTF-32)"),
+    ('{"a": 1}'.encode("utf-32-be"), "not UTF-8 text (looks like UTF-16 or UTF-32)"),
+    # issue 33 §4: binary junk was called UTF-16 (a NUL in its first two bytes)
+    (bytes(range(256)) * 4, "binary data, not a text file"),
+    (b"\x00\x01\x02\x03abc", "binary data, not a text file"),
+    (bytes(np.random.default_rng(0).integers(1, 256, 300, dtype=np.uint8)), "binary data, not a text file"),
     (b"\x89PNG\r\n\x1a\n" + bytes(20), "is an image, not a JSON file"),
     (b'{"a": 1,}', "f.json:1:9: not valid JSON"),
     (b"", "f.json:1:1: not valid JSON"),

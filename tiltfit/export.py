@@ -36,6 +36,7 @@ import os
 import numpy as np
 import torch
 from renderer import axis_angle_to_matrix, matrix_to_axis_angle
+from renderer.validation import is_finite_number
 
 
 class ExportError(ValueError):
@@ -289,6 +290,18 @@ def _matrix(path: str, fs, key: str, shapes: tuple, required: bool):
     return m
 
 
+def _check_focal(path: str, key: str, fx: float, fy: float) -> None:
+    """Refuse a camera file's focal lengths (pixels) that tiltfit cannot hold: not positive (a mirrored or
+    flipped camera) or not square within 1 %."""
+    for name, v in (("fx", fx), ("fy", fy)):
+        if not v > 0:
+            raise ExportError(f"{path}: {key}: the focal length {name} = {v:g} is not positive (a negative one "
+                              "mirrors the image); expected fx, fy > 0")
+    if abs(fx / fy - 1) > 0.01:
+        raise ExportError(f"{path}: {key}: fx = {fx:g} and fy = {fy:g} differ by more than 1 % "
+                          "(tiltfit models square pixels)")
+
+
 def _integer(path: str, fs, key: str) -> int:
     node = fs.getNode(key)
     if node.empty() or node.isNone():
@@ -374,16 +387,21 @@ def read_opencv(path: str, pixel_pitch_mm: float | None = None) -> dict:
         raise ExportError(f"{path}: pixel_pitch_mm: not in the file (or not a positive number); give it as "
                           "the pixel_pitch_mm argument")
     fx, fy = float(K[0, 0]), float(K[1, 1])
-    if not (fx > 0 and fy > 0) or abs(fx / fy - 1) > 0.01:
-        raise ExportError(f"{path}: camera_matrix: fx = {fx:g} and fy = {fy:g} differ by more than 1 % "
-                          "(tiltfit models square pixels)")
+    _check_focal(path, "camera_matrix", fx, fy)
     from renderer.cameras import lens_tilt_from_opencv, tilt_rotation
 
     f = 0.5 * (fx + fy)
     R = tilt_rotation(*tau)  # camera_from_lens (the identity without τ)
     theta_L, phi = lens_tilt_from_opencv(*tau)
+    pp = [float(K[0, 2]) - f * R[0, 2], float(K[1, 2]) - f * R[1, 2]]
+    if any(tau) and not all(-s <= c <= 2 * s for c, s in zip(pp, size)):
+        # CALIB.json's own bound on the principal point (tiltfit.calibfile): name the tilt that moved it there.
+        raise ExportError(f"{path}: distortion_coefficients: tau_x, tau_y = {tau[0]:g}, {tau[1]:g} rad tilt the "
+                          f"lens by theta_L = {math.degrees(theta_L):.4g} deg, which puts the optical axis at "
+                          f"({pp[0]:.6g}, {pp[1]:.6g}) px, more than one image size outside the {size[0]}x{size[1]} "
+                          "image; expected a smaller tilt")
     out = {"pixel_pitch_mm": float(pitch), "image_size_px": size,
-           "principal_point_px": [float(K[0, 2]) - f * R[0, 2], float(K[1, 2]) - f * R[1, 2]],
+           "principal_point_px": pp,
            "w_mm": f * R[2, 2] * float(pitch), "U_mm": None, "d_mm": None, "theta_F_deg": 0.0,
            "distortion": {"model": "brown_conrady", "coefficients": d or [0.0]},
            "undetermined": ["U_mm", "d_mm"], "source": os.path.abspath(path)}
@@ -462,8 +480,7 @@ def read_mrcal(path: str, pixel_pitch_mm: float | None = None) -> dict:
         raise ExportError(f"{path}: lensmodel: expected one of {', '.join(_MRCAL_MODELS)}, got {lensmodel!r}")
     n = 4 + _MRCAL_MODELS[lensmodel]
     intr = model.get("intrinsics")
-    if not (isinstance(intr, (list, tuple)) and len(intr) == n and all(
-            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in intr)):
+    if not (isinstance(intr, (list, tuple)) and len(intr) == n and all(is_finite_number(v) for v in intr)):
         raise ExportError(f"{path}: intrinsics: expected {n} finite numbers for {lensmodel}")
     size = model.get("imagersize")
     if not (isinstance(size, (list, tuple)) and len(size) == 2 and all(
@@ -480,9 +497,7 @@ def read_mrcal(path: str, pixel_pitch_mm: float | None = None) -> dict:
         raise ExportError(f"{path}: pixel_pitch_mm: not in the file (or not a positive number); give it as "
                           "the pixel_pitch_mm argument")
     fx, fy, cx, cy = (float(v) for v in intr[:4])
-    if not (fx > 0 and fy > 0) or abs(fx / fy - 1) > 0.01:
-        raise ExportError(f"{path}: intrinsics: fx = {fx:g} and fy = {fy:g} differ by more than 1 % "
-                          "(tiltfit models square pixels)")
+    _check_focal(path, "intrinsics", fx, fy)
     return {"pixel_pitch_mm": float(pitch), "image_size_px": [int(size[0]), int(size[1])],
             "principal_point_px": [cx, cy], "w_mm": 0.5 * (fx + fy) * float(pitch),
             "U_mm": None, "d_mm": None, "theta_F_deg": 0.0,

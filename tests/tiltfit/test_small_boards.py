@@ -174,3 +174,48 @@ def test_the_fitted_board_stays_in_the_sigma_of_the_blur_fit():
 
         rc, _ = residuals(res.camera, with_points(obs, res.board.points())).rms_per_view()
     assert np.allclose(rc.numpy(), [v["rms_reprojection_px"] for v in res.views], rtol=1e-6), "board and views differ"
+
+
+def test_held_out_gain_is_a_paired_t_over_the_views():
+    """A gain every view shares is many standard errors; the same mean gain carried by one view of six is not."""
+    import torch
+
+    from tiltfit.board_fit import held_out_gain
+    from tiltfit.model import Observations
+
+    obs = Observations(board_points_mm(4, 3, 10.0), torch.zeros(6, 12, 2), torch.full((6, 12), math.nan), (64, 48), 0.01)
+    simple = {"per_view_px": [0.30] * 6}
+    even = held_out_gain(simple, {"per_view_px": [0.29, 0.291, 0.289, 0.29, 0.292, 0.288]}, obs)
+    assert even > 10, f"a gain shared by every view: {even:.3g} standard errors"
+    lone = math.sqrt(0.30 ** 2 - 6 * (0.30 ** 2 - 0.29 ** 2))  # the same total gain, all in one view
+    one = held_out_gain(simple, {"per_view_px": [lone, 0.3, 0.3, 0.3, 0.3, 0.3]}, obs)
+    assert 0.5 < one < 2.0, f"a gain carried by one view of six: {one:.3g} standard errors (a t of 1 expected)"
+    assert held_out_gain(simple, {"per_view_px": [0.3] * 5}, obs) is None, "views missing: no comparison"
+
+
+def test_small_board_keeps_the_board_the_views_carry():
+    """sony_small (13 real views of a 4×6-corner board, cached detections): `free` (65 parameters) predicts held-out
+    views better by 12 %, but by less than 2 standard errors over the views and with the lens's σ 3.7× the flat
+    board's; it was chosen and moved the principal point 30 px from OpenCV's (and BoofCV's reference). The
+    defaults keep a board the views carry and a principal point near OpenCV's on the same corners."""
+    import os
+    import sys
+
+    root = os.path.join(os.path.dirname(__file__), "..", "..")
+    sys.path.insert(0, os.path.join(root, "benchmarks"))
+    from real_detections import observations
+
+    from tiltfit.calibration import calibrate
+    from tiltfit.fit import FitOptions
+    from tiltfit.opencv_corners import opencv_calibrate
+
+    obs, _ = observations(os.path.join(root, "benchmarks", "small_sets", "sony_small"), 0.0096)
+    res = calibrate(obs, "unified", options=FitOptions(distortion="auto", board="auto"))
+    free = next(e for e in res.board_selection if e["model"] == "free")
+    assert res.board is None or res.board.model != "free", f"free chosen: {res.board_selection}"
+    assert "not_chosen" in free, f"the free board's entry does not say why it was not chosen: {free}"
+    _, K, _ = opencv_calibrate(obs)
+    pp, s = np.array(res.values["principal_point_px"]), np.array(res.sigma["principal_point_px"])
+    off = pp - K[:2, 2]
+    assert np.all(np.abs(off) < 12), f"principal point {pp} vs OpenCV's {K[:2, 2]} (σ {s})"
+    assert np.all(s > 0.5) and np.all(s < 12), f"σ of the principal point {s} px on 13 views of 24 corners"

@@ -24,6 +24,7 @@ from .model import (Observations, TiltLensCamera, distortion_parameter_names, re
                     robust_weight)
 from .board import describe_board, with_points
 from .board_fit import select_board
+from .distortion_centre import with_distortion_centre
 from .selection import blur_depends_on_depth, blur_is_informative, likelihood_ratio, nested_model_tests, usable_views
 from .start import initialize, start_blur
 from .solve import LMOptions, SolverError, least_squares
@@ -205,6 +206,7 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
             cam = geometry.camera.copy()
     result = None
     misfit = axis_test = centre_test = trend = None
+    axis_entries = []  # the distortion models scored about the lens axis (`tiltfit.distortion_centre`)
     if blur_ok:
         result, undetermined, note = _fit_blur(cam, obs, mode, init, init_sigma, options, distortion, geometry,
                                                say, board=board)
@@ -221,7 +223,12 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
             # A tilted lens's distortion may be about its own axis: test that centre (and, where it is chosen, the
             # tilt axis again: the distortion's centre then says where the lens tilts).
             if options.distortion_centre == "auto":
-                result, centre_test = _with_distortion_centre(result, obs, mode, options, init_sigma, say)
+                shaped = board if board is not None and board.model != "flat" else None
+                result, centre_test, distortion, axis_entries = with_distortion_centre(
+                    result, obs, mode, options, init_sigma, distortion, options.distortion == "auto", shaped, say)
+                if shaped is not None and getattr(result, "board", None) is not None:  # refitted about the axis
+                    board = result.board
+                    obs = with_points(obs, board.points())
             if centre_test is not None and centre_test["fitted"] and not axis_test.get("fitted"):
                 result, axis_test = _with_tilt_axis(result, obs, mode, options, init_sigma, say)        # The tilt stage holds stage 1's U and d, which the lens's tilt moves (hinge rule): its residuals judge
         # that approximation, not the thin-lens model.
@@ -266,6 +273,12 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
     if geometry is not None:
         result.distortion_selection = geometry.distortion_selection
         result.held_out = geometry.held_out  # computed with the principal point as decided (geometry only)
+        if axis_entries and result.distortion_selection:
+            about_axis = result.camera.distortion_centre == "lens_axis"
+            result.distortion_selection = [dict(e, chosen=bool(e.get("chosen")) and not about_axis)
+                                           for e in result.distortion_selection] + axis_entries
+            if about_axis:
+                result.held_out = next(e["held_out"] for e in axis_entries if e["chosen"])
     if board is not None:
         # the fit's own board (refitted with the lens in the blur fit); a test's refit held it as it was
         result.board = result.board if result.board is not None else board
@@ -472,32 +485,6 @@ def _with_tilt_axis(base: FitResult, obs: Observations, mode: str, options: FitO
     _say_test(say, "the tilt axis's direction", entry,
               f"φ = {alt.values['tilt_axis_deg']:.2f} ± {alt.sigma['tilt_axis_deg']:.2g}°" if entry["justified"]
               else "held at 0 (tilt about the camera x axis)")
-    return (alt if entry["justified"] else base), entry
-
-
-def _with_distortion_centre(base: FitResult, obs: Observations, mode: str, options: FitOptions, init_sigma,
-                            say=None):
-    """The distortion about the lens's own axis (`renderer.Lens.distortion_centre` "lens_axis": in the tilted
-    lens's frame, as OpenCV's tilted model) tested against `base`'s, about the principal point. The two models
-    have the same parameters and coincide at θL = 0, so the comparison is not nested: the lens-axis model is
-    charged one parameter (the choice of centre) in `likelihood_ratio` (χ²(1) and BIC), so it replaces `base`
-    only where its fit is better by more than one free parameter would make it by chance; on an untilted
-    lens the simpler, usual model (about the principal point) stays. Returns (fit, test entry or None where
-    there is no distortion to centre)."""
-    cam = base.camera.copy()
-    if cam.distortion_centre == "lens_axis" or not bool(cam.distortion.detach().any()):
-        return base, None
-    cam.distortion_centre = "lens_axis"
-    try:
-        alt = _fit_camera(cam, obs, replace(options, model_selection=False, progress=None), init_sigma, mode=mode)
-    except FitError as e:
-        return base, {"error": str(e), "justified": None, "fitted": False, "chosen": "sensor"}
-    entry = likelihood_ratio(base, alt, 1, options.alpha)
-    entry["theta_L_deg_full"] = alt.values["theta_L_deg"]
-    entry["fitted"] = entry["justified"]
-    entry["chosen"] = "lens_axis" if entry["justified"] else "sensor"
-    _say_test(say, "the distortion's centre (the lens axis)", entry,
-              "distortion about the lens axis" if entry["justified"] else "distortion about the principal point")
     return (alt if entry["justified"] else base), entry
 
 

@@ -101,7 +101,7 @@ class FitOptions:
             depths do not straddle the plane of focus (then it is not separable from U), and in "tilt" mode,
             which holds `init`'s offset with its w, U, d (the same detector's bias, calibrated in stage 1).
         distortion_centre: where the distortion of a tilted lens is centred: "auto" tests the lens's own axis
-            against the principal point in the joint fit (`tiltfit.calibration._with_distortion_centre`) and
+            against the principal point in the joint fit (`tiltfit.distortion_centre`) and
             keeps the one the data support; "sensor" holds it at the principal point (the model before the
             lens-axis centre, and every other library's untilted one) ["auto"].
         board: the target's shape (`tiltfit.board.BOARD_MODELS`): "flat" (the target file's points as they are),

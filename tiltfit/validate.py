@@ -70,8 +70,21 @@ def predict_views(camera, obs: Observations, options: FitOptions = FitOptions())
     distortion); returns the FitResult (its RMS is the prediction error)."""
     held = replace(options, distortion="none", free_principal_point=False, model_selection=False, progress=None,
                    max_rms_px=None)
-    cam = initialize(obs, "tilt", init=camera, options=held, blur=False)
+    cam = keep_distortion_axis(initialize(obs, "tilt", init=camera, options=held, blur=False), camera)
     return fit_geometry(cam, without_blur(obs), held, mode="tilt", hold_distortion=True)
+
+
+def keep_distortion_axis(camera: TiltLensCamera, start: TiltLensCamera | None) -> TiltLensCamera:
+    """`camera` (a geometric start made by `initialize`, which sets θF = 0 and centres the distortion on the
+    principal point) given `start`'s tilt (θF, φ) and centre where `start`'s distortion is about its lens axis:
+    the corners then see the distortion where the lens puts it (θF and φ are held by the geometric fits)."""
+    if start is None or start.distortion_centre != "lens_axis":
+        return camera
+    with torch.no_grad():
+        camera.theta_F.copy_(start.theta_F)
+        camera.phi.copy_(start.phi)
+    camera.distortion_centre = "lens_axis"
+    return camera
 
 
 def held_out_rms(obs: Observations, options: FitOptions = FitOptions(), folds: int = 5,
@@ -107,7 +120,7 @@ def held_out_rms(obs: Observations, options: FitOptions = FitOptions(), folds: i
         test = [v for v in range(V) if v % K == k]
         train = [v for v in range(V) if v % K != k]
         tr = obs.subset(train)
-        cam = initialize(tr, "unified", init=start, options=opts, blur=False)  # geometry only
+        cam = keep_distortion_axis(initialize(tr, "unified", init=start, options=opts, blur=False), start)
         if board is None:
             fit = fit_geometry(cam, tr, opts, mode="unified")
             pred = predict_views(fit.camera, obs.subset(test), opts)

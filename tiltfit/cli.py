@@ -445,7 +445,7 @@ def _refine_photometric(result, obs, target, args, say, photos: dict | None = No
 
 def cmd_export(args) -> int:
     from .calibfile import read_calib
-    from .export import MRCAL_EXTENSION, ExportError, write_mrcal, write_opencv
+    from .export import MRCAL_EXTENSION, ExportError, check_exportable, write_mrcal, write_opencv
 
     _check_output(args.output)
     if (args.to == "mrcal") != args.output.lower().endswith(MRCAL_EXTENSION):
@@ -453,6 +453,8 @@ def cmd_export(args) -> int:
                        + (f"a {MRCAL_EXTENSION} file" if args.to == "mrcal" else "a .yml, .xml or .json file"))
     try:
         data = read_calib(args.calib)
+        if args.to == "opencv":
+            check_exportable(data)
     except ValueError as e:
         raise _as_cli_error(args.calib, e) from None
     try:

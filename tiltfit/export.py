@@ -57,6 +57,8 @@ def _theta_L_deg(calib: dict) -> float | None:
     if theta_L is not None:
         return theta_L
     th, w, U = calib.get("theta_F_deg"), calib.get("w_mm"), calib.get("U_mm")
+    if th == 0:  # an untilted plane of focus: an untilted lens, whatever U is
+        return 0.0
     if th is None or w is None or U is None:
         return None
     from renderer.optics import theta_L_from_theta_F
@@ -72,6 +74,18 @@ def _tilt(calib: dict) -> tuple[float, float] | None:
     from renderer.cameras import opencv_tilt
 
     return opencv_tilt(math.radians(theta_L), math.radians(calib.get("tilt_axis_deg") or 0.0))
+
+
+def check_exportable(calib: dict) -> None:
+    """Refuse a calibration that no OpenCV camera file projects as it does: distortion about the lens axis
+    (`distortion_centre` "lens_axis") of a lens whose tilt θL is undetermined. OpenCV's tilted model needs θL for
+    τx, τy, and τ = 0 would put the distortion about the principal point, another camera. Raises ExportError
+    naming the field."""
+    if calib.get("distortion_centre") == "lens_axis" and _theta_L_deg(calib) is None:
+        raise ExportError("theta_L_deg: undetermined (null) in a calibration whose distortion is about the lens "
+                          "axis (distortion_centre lens_axis): OpenCV's tilted model needs the lens tilt for tau_x, "
+                          "tau_y, and no other OpenCV camera projects as this one; calibrate again with "
+                          "--distortion-centre sensor, or with views that determine the tilt")
 
 
 def opencv_camera(calib: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -141,6 +155,9 @@ def opencv_note(calib: dict, tool: str = "OpenCV") -> str:
         parts.append(f"the lens is tilted (theta_L = {theta_L:.6g} deg) and its distortion is "
                      f"about its own axis: {tool} has no tilted model, so this distortion about the principal point "
                      "only approximates the projection; the tilted plane of focus is not represented")
+    elif calib.get("distortion_centre") == "lens_axis" and theta_L is None:
+        parts.append(f"the lens tilt is undetermined (theta_L null) and the distortion is about the lens axis: "
+                     f"{tool}'s distortion about the principal point only approximates the projection")
     elif th is not None and abs(th) > 1e-9:
         parts.append(f"the lens is tilted (plane of focus tilted by theta_F = {th:.4g} deg, lens tilt theta_L = "
                      f"{'unknown' if theta_L is None else format(theta_L, '.4g')} deg): {tool} has no tilted-lens model (OpenCV's tilted-sensor "
@@ -209,6 +226,7 @@ def opencv_text(calib: dict, format_name: str = ".yml") -> str:
     """
     import cv2
 
+    check_exportable(calib)
     fs = cv2.FileStorage(format_name, cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
     try:
         W, H = calib["image_size_px"]

@@ -3,6 +3,8 @@
     fit_board(camera, obs, options, model)    -> FitResult with `board` set (that model fitted)
     select_board(camera, obs, options, ...)   -> FitResult with `board` set (model chosen by held-out error)
     held_out_rms(obs, options, model)         -> K-fold held-out error with that board model
+    held_out_gain(simple, rich, obs)          -> a richer model's held-out gain in standard errors over the views
+    sigma_ratio(fit, flat)                    -> how much a board model inflates the lens's σ over the flat board's
 
 The models themselves (`Board`, `BOARD_MODELS`) are in `tiltfit.board`, below the fit that uses them.
 """

@@ -172,6 +172,8 @@ def initialize(obs: Observations, mode: str = "unified", init: TiltLensCamera | 
             w_mm = F * obs.pixel_pitch_mm
     rvec, T = poses_from_pnp(obs, w_mm / obs.pixel_pitch_mm, pp, dist)
     U0, d0 = (float(init.U_mm), float(init.d_mm)) if init is not None else (600.0, 10.0)
+    if not U0 > 0:  # a start beyond infinity (1/U ≤ 0) is focus at infinity: never a negative U in a lens
+        U0 = math.inf
     cam = TiltLensCamera(obs.n_views, obs.image_size_px, obs.pixel_pitch_mm, w_mm, U0, d0, rvec=rvec,
                          T_mm=T, principal_point_px=pp, blur_model=options.blur_model, distortion=dist)
     if init is not None:

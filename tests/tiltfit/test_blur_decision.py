@@ -147,6 +147,45 @@ def test_a_blur_trend_with_depth_is_warned_about_only_where_the_law_differs(bias
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("board", ["flat", "free"])
+@pytest.mark.parametrize("d_mm", [0.15, 0.5])
+def test_widths_at_the_detector_floor_leave_the_focus_undetermined_without_a_negative_u(board, d_mm):
+    """Issue 33 §0: a lens focused far beyond the views (U 100 m). With a 0.15 mm aperture every true width is
+    below the detector's 1 px floor and the widths are the floor plus noise; with 0.5 mm they are 1.8–2.5 px,
+    nearly constant (∝ 1/z), plus the detector's one-sided noise. There the blur fit puts 1/U below 0 (focus
+    beyond infinity) and the calibration ended in a traceback where a later stage (the per-view annotation of a
+    fitted board, the projection uncertainty) built a lens with that negative U. U must end undetermined: null
+    in CALIB.json with the reason, and no negative U in the fitted camera or its lens."""
+    from tiltfit.calibfile import calib_dict
+
+    lens = Lens.paper().with_(sensor=SENSOR, U=100_000.0, d=d_mm)
+    target = reproduce.calibration_target(reproduce.SetValues())
+    rng = np.random.default_rng(0)
+    P = target.feature_points()
+    corners, blur = [], []
+    for pose in POSES:
+        R, T = reproduce.target_pose(target, *pose)
+        ob = synth.observe(target, lens, R, T)
+        assert d_mm > 0.2 or float(ob.blur_px.max()) < 1.0, "the true widths sit below the detector's floor"
+        corners.append(ob.corners_px + rng.normal(0, NOISE_CORNER_PX, ob.corners_px.shape))
+        blur.append(np.maximum(ob.blur_px, 1.0) + np.abs(rng.normal(0, 0.1, ob.blur_px.shape)))
+    obs = Observations(P, np.stack(corners), np.stack(blur), SENSOR.size_px, SENSOR.pixel_pitch)
+    res = calibrate(obs, "unified", options=FitOptions(distortion="none", board=board))
+    calib = calib_dict(res, obs=obs)
+    assert calib["U_mm"] is None and "U_mm" in calib["undetermined"], \
+        f"U undetermined (null) from widths at the floor: U {calib['U_mm']}, undetermined {calib['undetermined']}"
+    assert calib["sigma"]["U_mm"] is None, f"no σ for an undetermined U: {calib['sigma']['U_mm']}"
+    assert any(n.startswith("U undetermined") or " undetermined" in n for n in calib["notes"]), \
+        f"a note says why U is undetermined: {calib['notes']}"
+    U = float(res.camera.U_mm)
+    assert U > 0, f"the fitted camera holds no negative focus distance: U {U}"
+    assert res.camera.lens.U > 0, "the fitted camera's lens is a physical lens"
+    f_px = calib["w_mm"] / calib["pixel_pitch_mm"]
+    f_true = lens.w / SENSOR.pixel_pitch
+    assert abs(f_px - f_true) < 0.01 * f_true, f"the geometry is still calibrated: f {f_px:.1f} px, truth {f_true:.1f}"
+
+
+@pytest.mark.slow
 def test_industrial_ds1_blur_trend_is_warned_about():
     """The shipped industrial camera's 20 photos (defaults): the blur residuals rise by about 0.2 px from the
     nearest corners to the farthest (the widths' noise 0.18 px), which blur_vs_depth.png shows: one warning."""

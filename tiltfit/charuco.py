@@ -55,6 +55,14 @@ HEAVY_BLUR_TOLERANCE = 0.05
 COMPLETION_ROUNDS = 20
 # Refined corners whose point-symmetry residual exceeds this (relative, as in `tiltfit.detect`) are dropped.
 MAX_ASYMMETRY = 0.35
+# A view whose markers or corners fit the board only read backwards (no lens maps a printed board like that).
+MIRROR_IMAGE = "a mirror image of the board: a mirrored photo or stream"
+# When no board is found, the photo is read again for a hint: inverted, mirrored, and for markers of other
+# dictionaries (the largest of each family; its smaller ones are its first ids). A hint needs this many markers.
+MIN_HINT_MARKERS = 2
+HINT_DICTIONARIES = ("DICT_4X4_1000", "DICT_5X5_1000", "DICT_6X6_1000", "DICT_7X7_1000", "DICT_ARUCO_ORIGINAL",
+                     "DICT_APRILTAG_16h5", "DICT_APRILTAG_25h9", "DICT_APRILTAG_36h10", "DICT_APRILTAG_36h11",
+                     "DICT_ARUCO_MIP_36h12")
 
 
 def symmetric_radius(target: CharucoTarget) -> float:
@@ -74,7 +82,8 @@ def _srgb8(gray: np.ndarray) -> np.ndarray:
 
 
 def opencv_corners(gray: np.ndarray, target: CharucoTarget, refine: bool = True) -> np.ndarray:
-    """(N, 2) corners named by OpenCV's `CharucoDetector` (its own sub-pixel step), NaN where none."""
+    """(N, 2) corners named by OpenCV's `CharucoDetector` (its own sub-pixel step), NaN where none. `gray` is the
+    photo as taken: for an `inverted` target its 8-bit encoding is inverted (what `detectInvertedMarker` reads)."""
     import cv2
 
     detector = cv2.aruco.CharucoDetector(target.opencv_board())
@@ -82,11 +91,61 @@ def opencv_corners(gray: np.ndarray, target: CharucoTarget, refine: bool = True)
         params = detector.getDetectorParameters()
         params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_NONE
         detector.setDetectorParameters(params)
-    cc, ids, _, _ = detector.detectBoard(_srgb8(gray))
+    img8 = _srgb8(gray)
+    cc, ids, _, _ = detector.detectBoard(255 - img8 if target.inverted else img8)
     corners = np.full((target.n_points, 2), np.nan)
     if ids is not None and len(ids):
         corners[ids.ravel()] = cc.reshape(-1, 2)
     return corners
+
+
+def _marker_ids(img8: np.ndarray, dictionary: str) -> list[int]:
+    """Ids of the ArUco markers of `dictionary` OpenCV reads in an 8-bit grey image."""
+    import cv2
+
+    from .target import aruco_dictionary
+
+    _, ids, _ = cv2.aruco.ArucoDetector(aruco_dictionary(dictionary)).detectMarkers(img8)
+    return [] if ids is None else sorted(int(i) for i in ids.ravel())
+
+
+def _family(name: str) -> str:
+    """A dictionary's family (DICT_4X4_50 → DICT_4X4): its sizes share their first ids."""
+    return name.rsplit("_", 1)[0] if name.rsplit("_", 1)[-1].isdigit() else name.upper()
+
+
+def no_board_hint(gray: np.ndarray, target: CharucoTarget) -> str:
+    """Why a photo shows no board of the target's although it shows markers: the colours inverted (a white-on-black
+    print), a mirror image, or markers of another dictionary; '' when none of these reads more markers.
+
+    Args:
+        gray: (H, W) linear photo as taken (not inverted).
+    """
+    img8 = _srgb8(gray)
+    shown = 255 - img8 if target.inverted else img8
+    n_own = len(_marker_ids(shown, target.dictionary))
+    n_inverted = len(_marker_ids(255 - shown, target.dictionary))
+    if n_inverted >= MIN_HINT_MARKERS and n_inverted > n_own:
+        if target.inverted:
+            return (f"the photo shows {n_inverted} of its markers dark on white, and the target file says "
+                    "\"inverted\": true (remove the key)")
+        return (f"the inverted photo shows {n_inverted} of its markers: a board printed white on black (add "
+                "\"inverted\": true to the target file) or a colour-inverted photo")
+    n_mirror = len(_marker_ids(np.ascontiguousarray(shown[:, ::-1]), target.dictionary))
+    if n_mirror >= MIN_HINT_MARKERS and n_mirror > n_own:
+        return f"{MIRROR_IMAGE}: its mirror image shows {n_mirror} markers"
+    if n_own >= MIN_HINT_MARKERS:
+        return ""
+    for name in HINT_DICTIONARIES:
+        ids = _marker_ids(shown, name) or _marker_ids(255 - shown, name)
+        if len(ids) < MIN_HINT_MARKERS:
+            continue
+        if _family(name) == _family(target.dictionary):
+            return (f"its markers have ids {ids[:5]}{'…' if len(ids) > 5 else ''} of {name}, beyond the target's "
+                    f"{target.dictionary}: another board of the family")
+        return (f"the markers are not of the target's dictionary {target.dictionary}: {len(ids)} read as {name} "
+                f"(ids {ids[:5]}{'…' if len(ids) > 5 else ''})")
+    return ""
 
 
 # --- placing a lattice on the board ------------------------------------------------------------------------
@@ -156,13 +215,16 @@ def place_lattice(gray: np.ndarray, nodes: np.ndarray, xy: np.ndarray, target: C
     o = obs.ravel()
     o_c = o - o.mean()
     scores = []
-    for k in range(4):
-        rn = _rot(k, nodes)
+    # orientation-preserving placements (k < 4), and their mirror images (k ≥ 4: the lattice's a axis reversed
+    # first), which only a mirrored photo can show: markers read backwards
+    for k in range(8):
+        mirror = np.array([-1, 1]) if k >= 4 else np.array([1, 1])
+        rn = _rot(k, nodes * mirror)
         lo, hi = rn.min(0), rn.max(0)
         # corner (i, j) = rot + shift, 0 <= i < nx, 0 <= j < ny; corner (i, j) sits at board (i + 1, j + 1) squares
         for di in range(-lo[0], nx - hi[0]):
             for dj in range(-lo[1], ny - hi[1]):
-                b_uv = _rot(k, uv) + np.array([di + 1, dj + 1])  # board position in squares
+                b_uv = _rot(k, uv * mirror) + np.array([di + 1, dj + 1])  # board position in squares
                 mx = (b_uv[..., 0] * n + 0.5).astype(np.float32)  # picture pixel (1 px pad, centres at +0.5)
                 my = (b_uv[..., 1] * n + 0.5).astype(np.float32)
                 best = math.inf
@@ -185,6 +247,8 @@ def place_lattice(gray: np.ndarray, nodes: np.ndarray, xy: np.ndarray, target: C
     if not second > MIN_PLACEMENT_RATIO * max(best, 1e-30):
         return None, (f"the markers do not tell the board's placements apart (residuals {best:.3g} and {second:.3g}); "
                       "the view is too blurred or too small")
+    if k >= 4:
+        return None, f"{MIRROR_IMAGE} (the markers' pattern fits the board read backwards)"
     return _rot(k, nodes) + np.array([di, dj]), ""
 
 
@@ -532,19 +596,28 @@ def detect_charuco(image, target: CharucoTarget, *, measure_blur: bool = True, u
 def _detect_charuco(image, target, measure_blur, use_opencv, refine_radius_max) -> Detection:
     from .blur import measure_blur as _measure_blur
 
+    from .detect import invert_photo
+    from .detfile import mirrored
+
     timings: dict = {}
     t0 = time.perf_counter()
-    gray = to_gray(image)
+    photo = to_gray(image)
+    gray = invert_photo(photo) if target.inverted else photo
     H, W = gray.shape
     levels = build_pyramid(gray)
     N = target.n_points
-    corners = opencv_corners(gray, target) if use_opencv else np.full((N, 2), np.nan)
+    corners = opencv_corners(photo, target) if use_opencv else np.full((N, 2), np.nan)
     timings["opencv"] = time.perf_counter() - t0
     t1 = time.perf_counter()
     placed, message = _placed_lattice(gray, levels, target, refine_radius_max)
     timings["lattice"] = time.perf_counter() - t1
     corners, source = _merge(corners, placed, target)
+    if source is not None and mirrored(corners, target.feature_points()):
+        corners, source, message = np.full_like(corners, np.nan), None, MIRROR_IMAGE
     if source is None:
+        if not message.startswith(MIRROR_IMAGE):
+            hint = no_board_hint(photo, target)
+            message = hint or message
         return Detection((W, H), corners, np.full(N, np.nan), np.full(N, np.nan), False, message, 0, timings)
     t2 = time.perf_counter()
     corners = refine_charuco(gray, target, corners, refine_radius_max)

@@ -1127,15 +1127,132 @@ def labelling_note(corners_px: np.ndarray, target: Target) -> str:
             "board is turned by 90° in the photo, or the target file's x_edges and y_edges are swapped")
 
 
+
+# --- colour checks of a labelling --------------------------------------------------------------------------
+# What one photo of a checkerboard with uniform cells can tell about the target file (docs/charuco.md,
+# "Inverted prints and mirror images"): every lattice symmetry changes a cell's parity i + j by a constant, so the
+# colours fix the placement only up to that constant. A labelling is checked by (1) the cells' colours: the share
+# of the cells next to found corners whose colour it predicts; 0 when no placement explains them (the target
+# file's other dark_cell parity; or, on a board of even × even cells, a mirrored photo, which is the same
+# picture); 1 when right. Below MIN_COLOUR_AGREEMENT, the midpoint, it is refused. (2) the margin: next to a light
+# border cell, within the margin, the photo must stay light (one white sheet), read MARGIN_PROBE_SQUARES of a
+# square out (at most half the margin) and normalised between the median dark (0) and light (1) cell; below
+# 0.5 on most such probes the margin is dark: inverted colours (a white-on-black print, or an inverted photo).
+# Blur spreads a cell's edge symmetrically, so a probe any distance out stays on its side of 0.5.
+MIN_COLOUR_AGREEMENT = 0.5
+MARGIN_PROBE_SQUARES = 0.15
+# the least number of margin probes (inside the image) that decide, and the share of them that must be dark
+MIN_MARGIN_PROBES = 3
+DARK_MARGIN_SHARE = 0.75
+
+
+def invert_photo(gray: np.ndarray) -> np.ndarray:
+    """A photo of a white-on-black board as its dark-on-white counterpart: max − I (affine, so the corners and
+    the blur widths stay where they are)."""
+    return (np.float32(gray.max()) - gray).astype(np.float32)
+
+
+def _cell_and_margin_samples(gray: np.ndarray, corners_px: np.ndarray, target: Target):
+    """Grey levels at the centres of the cells next to found corners, and at margin probes beside the border
+    cells, each placed by the local homography (`tiltfit.blur._local_homographies`) of the nearest found corner.
+
+    Returns:
+        cells: (m, 3) [column, row, level]; margin: (p, 3) [column, row, level] of the border cell each probe
+        is beside (probes outside the image left out).
+    """
+    import cv2
+
+    from .blur import _local_homographies
+
+    ny, nx = target.grid_shape
+    found = np.isfinite(corners_px).all(-1)
+    Hs = _local_homographies(target, corners_px, found)
+    xe, ye = np.asarray(target.x_edges), np.asarray(target.y_edges)
+    smooth = cv2.GaussianBlur(gray, (0, 0), 1.0)
+    h, w = gray.shape
+    cells, margin = {}, []
+    for k, Hm in Hs.items():
+        j, i = divmod(k, nx)
+        for c, r in ((i, j), (i + 1, j), (i, j + 1), (i + 1, j + 1)):  # corner (i, j) touches cells i..i+1, j..j+1
+            if (c, r) in cells:
+                continue
+            centre = np.array([[0.5 * (xe[c] + xe[c + 1]), 0.5 * (ye[r] + ye[r + 1])]])
+            out = []
+            s = min(xe[c + 1] - xe[c], ye[r + 1] - ye[r])
+            d = min(MARGIN_PROBE_SQUARES * s, 0.5 * target.margin)
+            if d > 0:
+                if c == 0:
+                    out.append([xe[0] - d, centre[0, 1]])
+                if c == target.n_cols - 1:
+                    out.append([xe[-1] + d, centre[0, 1]])
+                if r == 0:
+                    out.append([centre[0, 0], ye[0] - d])
+                if r == target.n_rows - 1:
+                    out.append([centre[0, 0], ye[-1] + d])
+            xy = apply_homography(Hm, np.concatenate([centre, np.array(out).reshape(-1, 2)]))
+            inside = (xy[:, 0] >= 2) & (xy[:, 0] <= w - 3) & (xy[:, 1] >= 2) & (xy[:, 1] <= h - 3)
+            if not inside[0]:
+                continue
+            v = _bilinear(smooth, xy)
+            cells[(c, r)] = v[0]
+            margin += [[c, r, m] for m in v[1:][inside[1:]]]
+    cells_a = np.array([[c, r, v] for (c, r), v in cells.items()]).reshape(-1, 3)
+    return cells_a, np.array(margin).reshape(-1, 3)
+
+
+def colour_problem(gray: np.ndarray, corners_px: np.ndarray, target: Target) -> str:
+    """Why the labelled corners' colours contradict the target file (inverted colours, the other dark-cell
+    parity or a mirrored photo), or '' when they do not or cannot be told (see the notes above
+    MIN_COLOUR_AGREEMENT).
+
+    Args:
+        gray: (H, W) linear image, as detected (inverted already for an `inverted` target);
+        corners_px: (N, 2) labelled corners, feature order, NaN where missing.
+    """
+    cells, margin = _cell_and_margin_samples(gray, corners_px, target)
+    if len(cells) < 4:
+        return ""
+    lo, hi = np.percentile(cells[:, 2], [10, 90])
+    if not hi > lo:
+        return ""
+    observed_dark = cells[:, 2] < 0.5 * (lo + hi)
+    expected_dark = target.is_dark(cells[:, 0].astype(int), cells[:, 1].astype(int))
+    if observed_dark.all() or not observed_dark.any():
+        return ""
+    dark_level = float(np.median(cells[observed_dark, 2]))
+    light_level = float(np.median(cells[~observed_dark, 2]))
+    # probes beside the border cells seen light: one white sheet with the margin, unless the colours are inverted
+    light_cells = {(int(c), int(r)) for (c, r, _), d in zip(cells, observed_dark) if not d}
+    beside_light = np.array([(int(c), int(r)) in light_cells for c, r, _ in margin], bool)
+    probes = (margin[beside_light, 2] - dark_level) / (light_level - dark_level) if len(margin) else np.zeros(0)
+    if len(probes) >= MIN_MARGIN_PROBES and np.mean(probes < 0.5) >= DARK_MARGIN_SHARE:
+        if target.inverted:
+            return (f"{CONTRADICTS}: inverted colours: the target file says \"inverted\": true, but the photo shows "
+                    "dark cells on a light sheet (remove the key)")
+        return (f"{CONTRADICTS}: inverted colours: the margin around the board is as dark as its dark cells "
+                f"(median {np.median(probes):.2f} of the way from dark to light): a board printed white on black "
+                "(add \"inverted\": true to the target file) or a colour-inverted photo")
+    agreement = float(np.mean(observed_dark == expected_dark))
+    if agreement < MIN_COLOUR_AGREEMENT:
+        ny, nx = target.grid_shape
+        mirror = (" or the photo is mirrored (on a board of an even number of cells each way a mirror image swaps "
+                  "the colours)" if target.n_cols % 2 == 0 and target.n_rows % 2 == 0 else "")
+        return (f"{CONTRADICTS}: the cells' colours match no placement of its {nx}×{ny} corners ({100 * agreement:.0f} % "
+                f"of {len(cells)} cells agree with the best): its dark_cell has the other parity{mirror}")
+    return ""
+
+
 def _detect(image, target, measure_blur, options) -> Detection:
     check_target_size(target)
     timings: dict = {}
     t0 = time.perf_counter()
     gray = to_gray(image)
+    if target.inverted:
+        gray = invert_photo(gray)
     H, W = gray.shape
     levels = build_pyramid(gray)
     corners, found, message, level = detect_corners(gray, target, timings=timings, levels=levels, **options)
-    problem = labelling_problem(corners, target, (W, H)) if found else ""
+    problem = (colour_problem(gray, corners, target) or labelling_problem(corners, target, (W, H))) if found else ""
     if problem:
         corners, found, message = np.full_like(corners, np.nan), False, problem
     elif found:

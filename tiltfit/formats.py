@@ -29,6 +29,8 @@ TARGET_FIELDS = [
     ("y_edges", "list of numbers", "required", "ascending row boundaries, mm; as `x_edges`"),
     ("dark_cell", "[int, int]", "[0, 0]", "a (column, row) cell that is dark; only the parity of the sum matters"),
     ("margin", "number", "25", f"white border around the checkered area, mm, 0 to {target.MAX_MM:g}"),
+    ("inverted", "boolean", "false", "true for a board printed white on black (light cells, markers and margin "
+     "dark, dark ones light): detection inverts the photo first; without it such a board is refused with a hint"),
     ("name, description", "string", "—", "free text"),
 ]
 
@@ -45,6 +47,8 @@ CHARUCO_FIELDS = [
     ("dark_cell", "[int, int]", "[0, 0]", "even parity: the top-left square dark (OpenCV ≥ 4.6); odd: OpenCV's "
                                           "legacy pattern, only for an even number of rows"),
     ("margin", "number", "25", f"white border around the checkered area, mm, 0 to {target.MAX_MM:g}"),
+    ("inverted", "boolean", "false", "true for a board printed white on black (light cells, markers and margin "
+     "dark, dark ones light): detection inverts the photo first; without it such a board is refused with a hint"),
     ("name, description", "string", "—", "free text"),
 ]
 
@@ -192,7 +196,7 @@ def target_schema() -> dict:
     pair = {"type": "array", "items": {"type": "integer"}, "minItems": 2, "maxItems": 2}
     common = {"units": {"const": "mm"}, "dark_cell": pair,
               "margin": {"type": "number", "minimum": 0, "maximum": target.MAX_MM},
-              "name": {"type": "string"}, "description": {"type": "string"}}
+              "inverted": {"type": "boolean"}, "name": {"type": "string"}, "description": {"type": "string"}}
     checkerboard = {"type": "object",
                     "properties": {"type": {"const": "checkerboard"}, "x_edges": edges, "y_edges": edges, **common},
                     "required": ["type", "x_edges", "y_edges"], "additionalProperties": False}

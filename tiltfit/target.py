@@ -37,7 +37,7 @@ import functools
 import json
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -65,18 +65,22 @@ class Target:
         y_edges: ascending row boundaries, mm (at least 3).
         dark_cell: a (column, row) cell that is dark [(0, 0)]; only its parity matters.
         margin: width of the white border around the checkered area, mm [25].
+        inverted: printed white on black [False]: the dark cells (and markers, margin) light and the light ones
+            dark; detection inverts the photo first (OpenCV's `detectInvertedMarker`).
     """
 
     x_edges: tuple[float, ...]
     y_edges: tuple[float, ...]
     dark_cell: tuple[int, int] = (0, 0)
     margin: float = 25.0
+    inverted: bool = field(default=False, kw_only=True)
 
     def __post_init__(self):
         object.__setattr__(self, "x_edges", tuple(float(v) for v in self.x_edges))
         object.__setattr__(self, "y_edges", tuple(float(v) for v in self.y_edges))
         object.__setattr__(self, "dark_cell", (int(self.dark_cell[0]), int(self.dark_cell[1])))
         object.__setattr__(self, "margin", float(self.margin))
+        object.__setattr__(self, "inverted", bool(self.inverted))
         for name in ("x_edges", "y_edges"):
             problem = _edges_problem(getattr(self, name))
             if problem:
@@ -152,7 +156,8 @@ class Target:
     # --- files -------------------------------------------------------------------------------------------
     def to_dict(self) -> dict:
         return {"type": "checkerboard", "units": "mm", "x_edges": list(self.x_edges),
-                "y_edges": list(self.y_edges), "dark_cell": list(self.dark_cell), "margin": self.margin}
+                "y_edges": list(self.y_edges), "dark_cell": list(self.dark_cell), "margin": self.margin,
+                **({"inverted": True} if self.inverted else {})}
 
     def save(self, path: str) -> None:
         """Write the target file (JSON)."""
@@ -171,7 +176,15 @@ def _edges_problem(edges) -> str | None:
     return None
 
 
-_KNOWN_KEYS = ("type", "units", "x_edges", "y_edges", "dark_cell", "margin", "name", "description")
+_KNOWN_KEYS = ("type", "units", "x_edges", "y_edges", "dark_cell", "margin", "inverted", "name", "description")
+
+
+def _inverted(data: dict, fail) -> bool:
+    """The optional `inverted` key: a JSON boolean (false by default)."""
+    value = data.get("inverted", False)
+    if not isinstance(value, bool):
+        fail("inverted", "true or false (a board printed white on black)", value)
+    return value
 
 
 def target_from_dict(data, source: str = "<target>") -> Target:
@@ -211,7 +224,9 @@ def target_from_dict(data, source: str = "<target>") -> Target:
     margin = data.get("margin", 25.0)
     if not is_finite_number(margin) or not 0 <= margin <= MAX_MM:
         fail("margin", "a non-negative number of mm", margin)
-    return Target(tuple(edges["x_edges"]), tuple(edges["y_edges"]), (int(dark[0]), int(dark[1])), float(margin))
+    inverted = _inverted(data, fail)
+    return Target(tuple(edges["x_edges"]), tuple(edges["y_edges"]), (int(dark[0]), int(dark[1])), float(margin),
+                  inverted=inverted)
 
 
 def _is_number(x) -> bool:
@@ -263,11 +278,11 @@ class CharucoTarget(Target):
 
     @classmethod
     def board(cls, squares, square_mm: float, marker_mm: float, dictionary: str = "DICT_5X5_100",
-              margin: float = 25.0, dark_cell=(0, 0)) -> "CharucoTarget":
+              margin: float = 25.0, dark_cell=(0, 0), inverted: bool = False) -> "CharucoTarget":
         """The board of squares = (columns, rows) cells of `square_mm`, checkered area from (0, 0)."""
         sx, sy = int(squares[0]), int(squares[1])
         return cls(tuple(square_mm * i for i in range(sx + 1)), tuple(square_mm * j for j in range(sy + 1)),
-                   tuple(dark_cell), margin, dictionary, float(marker_mm))
+                   tuple(dark_cell), margin, dictionary, float(marker_mm), inverted=inverted)
 
     @property
     def square_mm(self) -> float:
@@ -332,11 +347,11 @@ class CharucoTarget(Target):
     def to_dict(self) -> dict:
         return {"type": "charuco", "units": "mm", "dictionary": self.dictionary, "squares": list(self.squares),
                 "square_mm": self.square_mm, "marker_mm": self.marker_mm, "margin": self.margin,
-                "dark_cell": list(self.dark_cell)}
+                "dark_cell": list(self.dark_cell), **({"inverted": True} if self.inverted else {})}
 
 
-_CHARUCO_KEYS = ("type", "units", "dictionary", "squares", "square_mm", "marker_mm", "margin", "dark_cell", "name",
-                 "description")
+_CHARUCO_KEYS = ("type", "units", "dictionary", "squares", "square_mm", "marker_mm", "margin", "dark_cell", "inverted",
+                 "name", "description")
 
 
 def charuco_from_dict(data: dict, source: str = "<target>") -> CharucoTarget:
@@ -377,8 +392,9 @@ def charuco_from_dict(data: dict, source: str = "<target>") -> CharucoTarget:
     if (int(dark[0]) + int(dark[1])) % 2 == 1 and int(sq[1]) % 2 == 1:
         fail("dark_cell", "even parity ([0, 0]: the top-left square dark); OpenCV's legacy pattern (top-left white) "
              f"exists only for an even number of rows, and squares has {int(sq[1])}", dark)
+    inverted = _inverted(data, fail)
     target = CharucoTarget.board((int(sq[0]), int(sq[1])), float(s), float(m), data["dictionary"], float(margin),
-                                 (int(dark[0]), int(dark[1])))
+                                 (int(dark[0]), int(dark[1])), inverted)
     n_markers, size = len(target.marker_cells()), aruco_dictionary(data["dictionary"]).bytesList.shape[0]
     if n_markers > size:
         fail("squares", f"a board with at most {size} white cells ({data['dictionary']} has {size} markers; this board "

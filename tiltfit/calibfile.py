@@ -418,7 +418,6 @@ def _check_extras(path: str, data: dict) -> None:
     for key in ("distortion_model", "fit", "blur_model"):
         if data.get(key) is not None and not isinstance(data[key], str):
             raise CalibFileError(f"{path}: {key}: expected a name, got {describe(data[key])}")
-    _check_board(path, data.get("board"))
     _check_uncertainty_extras(path, data)
     first = None
     for i, view in enumerate(views):
@@ -435,11 +434,13 @@ def _check_extras(path: str, data: dict) -> None:
                            ("depth_mm", 1), ("residuals_flat_board_px", 2)):
             if view.get(key) is not None:
                 first = _point_list(path, f"views[{i}].{key}", view[key], width, first)
+    _check_board(path, data.get("board"), first)
 
 
-def _check_board(path: str, board) -> None:
+def _check_board(path: str, board, first=None) -> None:
     """The `board` entry (`tiltfit.board.Board.summary`), where present: a known model, finite parameters and
-    σ, and for the free model one [X, Y, Z] per point."""
+    σ, and for the free model one [X, Y, Z] per point: as many as the views' per-point lists hold (`first`, as
+    `_point_list` returns it), where the file has such lists."""
     from .board import BOARD_MODELS, WARP_PARAMETERS
 
     if board is None:
@@ -468,7 +469,10 @@ def _check_board(path: str, board) -> None:
                                  f"{describe(board.get('points_mm'))}")
         for key in ("points_mm", "sigma_points_mm"):
             if board.get(key) is not None:
-                _point_list(path, f"board.{key}", board[key], 3)
+                if first is not None and isinstance(board[key], list) and len(board[key]) != first[1]:
+                    raise CalibFileError(f"{path}: board.{key}: {len(board[key])} points, but {first[0]} has "
+                                         f"{first[1]} (expected one [X, Y, Z] per feature point of the target)")
+                first = _point_list(path, f"board.{key}", board[key], 3, first)
 
 
 def _check_uncertainty_extras(path: str, data: dict) -> None:

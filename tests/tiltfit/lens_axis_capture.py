@@ -55,10 +55,11 @@ def _frame_to(n: np.ndarray) -> np.ndarray:
     return np.eye(3) + V + V @ V / (1.0 + c)
 
 
-def project(p_cam: np.ndarray, theta_L: float, phi: float, k: tuple) -> np.ndarray:
+def project(p_cam: np.ndarray, theta_L: float, phi: float, k: tuple, about_axis: bool = True) -> np.ndarray:
     """(N, 3) camera-frame points -> (N, 2) pixels: the chief ray's direction, distorted radially about the lens
-    axis (k1, k2, ... of r² in the lens frame), projected onto the sensor at w."""
-    R = _frame_to(lens_axis(theta_L, phi))
+    axis (k1, k2, ... of r² in the lens frame; with `about_axis` False about the principal point, the camera
+    frame's z), projected onto the sensor at w."""
+    R = _frame_to(lens_axis(theta_L, phi)) if about_axis else np.eye(3)
     q = p_cam @ R                                  # lens-frame coordinates (Rᵀ p)
     x, y = q[:, 0] / q[:, 2], q[:, 1] / q[:, 2]
     r2 = x * x + y * y
@@ -85,7 +86,7 @@ def blur_px(p_cam: np.ndarray, theta_L: float, phi: float, rim_points: int = 204
 
 
 def capture(theta_L_deg: float, phi_deg: float, k: tuple, poses, seed: int, corner_noise_px: float = 0.07,
-            blur_noise_px: float = 0.1):
+            blur_noise_px: float = 0.1, about_axis: bool = True):
     """(points (N, 3), corners (V, N, 2), blur widths (V, N)) of the board seen in `poses`."""
     theta_L, phi = math.radians(theta_L_deg), math.radians(phi_deg)
     rng = np.random.default_rng(seed)
@@ -95,7 +96,7 @@ def capture(theta_L_deg: float, phi_deg: float, k: tuple, poses, seed: int, corn
         R = _rotation(rx, ry)
         T = np.array([0.0, 0.0, dist]) - R @ centre
         p = BOARD_MM @ R.T + T
-        uv = project(p, theta_L, phi, k)
+        uv = project(p, theta_L, phi, k, about_axis)
         assert ((uv > 0) & (uv < (WIDTH_PX, HEIGHT_PX))).all(), f"pose {(rx, ry, dist)}: the board leaves the image"
         corners.append(uv + rng.normal(0, corner_noise_px, uv.shape))
         widths.append(blur_px(p, theta_L, phi) + rng.normal(0, blur_noise_px, len(p)))

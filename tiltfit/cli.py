@@ -307,6 +307,8 @@ def cmd_calibrate(args) -> int:
         if args.fit == "tilt" and (data.get("U_mm") is None or data.get("d_mm") is None):
             raise CliError(args.init, "U_mm, d_mm: undetermined in this calibration; the tilt fit needs them")
     target = _load_target(args.target)
+    if args.refine == "photometric":  # what the refinement cannot take is known before any image is read
+        _check_photometric_inputs(args, target)
     images = {} if args.refine == "photometric" else None  # read once, for detection and the refinement
     obs = _observations(args, target, say, images)
     if init is not None and tuple(init.image_size_px) != tuple(obs.image_size_px):
@@ -354,6 +356,17 @@ def cmd_calibrate(args) -> int:
         raise CliError(args.output, f"cannot write ({e.strerror or e})") from None
     say(f"wrote {args.output}")
     return 0
+
+
+def _check_photometric_inputs(args, target) -> None:
+    """Refuse `--refine photometric` up front where it cannot run: a target with markers (the photometric model
+    renders checkerboards) or DET files instead of photographs."""
+    if target.dark_rectangles():
+        raise CliError(args.target, "--refine photometric: the photometric model renders checkerboards; a ChArUco "
+                                    "board's markers are not modelled (calibrate without --refine)")
+    for path in args.inputs:
+        if _is_det_file(path):
+            raise CliError(path, "--refine photometric needs the photographs, not DET files")
 
 
 def _refine_photometric(result, obs, target, args, say, photos: dict | None = None, held_out: dict | None = None) -> dict:

@@ -114,16 +114,19 @@ def read_det(path: str, n_points: int) -> dict:
 
 
 def check_view(name: str, corners_px: np.ndarray, points: np.ndarray) -> None:
-    """Refuse one view whose found corners cannot give a pose: fewer than 4, all on one line (in the image or on
-    the target), or a mirror image of the target.
+    """Refuse one view whose found corners cannot calibrate: fewer than `tiltfit.model.MIN_CORNERS` (6), all on one
+    line (in the image or on the target), or a mirror image of the target.
 
     Args:
         corners_px: (N, 2) pixels, NaN where not found; points: (N, 3) target points, mm (Z = 0).
     """
     found = np.isfinite(corners_px).all(-1)
     n = int(found.sum())
-    if n < 4:
-        raise DetFileError(f"{name}: corners_px: {n} corners found; a view needs at least 4 (not on one line)")
+    from .model import MIN_CORNERS
+
+    if n < MIN_CORNERS:
+        raise DetFileError(f"{name}: corners_px: {n} corners found; a view needs at least {MIN_CORNERS} (not on one "
+                           f"line)")
     xy, XY = corners_px[found], points[found, :2]
     for what, p in (("in the image", xy), ("on the target", XY)):
         centred = p - p.mean(0)

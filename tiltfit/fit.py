@@ -42,7 +42,7 @@ import torch
 from renderer.cameras.distortion import MODELS as DISTORTION_MODELS
 
 from .board import BOARD_MODELS
-from .model import (APERTURE_SCALE_MM, BLUR_MODELS, ROBUST_LOSSES, Observations, TiltLensCamera,
+from .model import (APERTURE_SCALE_MM, BLUR_MODELS, MIN_CORNERS, ROBUST_LOSSES, Observations, TiltLensCamera,
                     distortion_parameter_names, residuals, robust_rho, robust_weight)
 from .solve import Block, LMOptions, LMResult, SolverError
 from .solve.blocks import DenseCovariance
@@ -91,7 +91,8 @@ class FitOptions:
             held-out error whose radial mapping is one-to-one over the image, `tiltfit.validate`) ["none"].
         max_rms_px: a view reprojecting worse than this (RMS per corner) is an error (mismatched data); None: no
             check [7.0].
-        min_corners: views with fewer detected corners are skipped (listed in `FitResult.skipped`) [6].
+        min_corners: views with fewer detected corners are skipped (listed in `FitResult.skipped`)
+            [`tiltfit.model.MIN_CORNERS`, 6].
         blur_floor_px: blur widths all below this carry no information on U and d (sharp images): the fit is
             geometric and U, d are reported undetermined [1.0].
         outlier_factor: a view whose RMS exceeds this many times the median view RMS is flagged [3.0].
@@ -124,7 +125,7 @@ class FitOptions:
     progress: object = None
     distortion: str = "none"
     max_rms_px: float | None = MAX_RMS_REPROJECTION_PX
-    min_corners: int = 6
+    min_corners: int = MIN_CORNERS
     blur_floor_px: float = 1.0
     outlier_factor: float = 3.0
     blur_offset: bool = True

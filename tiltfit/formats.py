@@ -88,7 +88,8 @@ def calibration_reference() -> str:
         "[charuco.md](charuco.md).", "",
         "## Detection files (`tiltfit detect -o DET.json`)", "", _table(DET_FIELDS), "",
         "Checks when `tiltfit calibrate` reads DET files (or detects images): every number finite; each view has at "
-        "least 4 corners that do not lie on one line (in the image or on the target); no view repeats another's "
+        "least 6 corners (`tiltfit.model.MIN_CORNERS`, the fit's `min_corners` too; `tiltfit target design` refuses "
+        "boards with fewer) that do not lie on one line (in the image or on the target); no view repeats another's "
         "detections (a copy would shrink σ as if it were new evidence); no view is a mirror image of the target "
         "(a flipped photo, or the board seen from behind).", "",
         "## Calibration files (`tiltfit calibrate -o CALIB.json`, `--init`)", "",

@@ -80,6 +80,11 @@ def _design(args, say) -> None:
         v = getattr(args, name)
         if v < 2:
             raise _Fail(f"--{name}", f"expected at least 2 cells, got {v}")
+    from .model import MIN_CORNERS
+
+    if (args.cols - 1) * (args.rows - 1) < MIN_CORNERS:
+        raise _Fail("--cols", f"{args.cols} × {args.rows} cells have {(args.cols - 1) * (args.rows - 1)} inner "
+                              f"corners; a view needs at least {MIN_CORNERS} to calibrate (more cells)")
     if (args.cols - 1) * (args.rows - 1) > MAX_FEATURE_POINTS:
         raise _Fail("--cols", f"{args.cols} × {args.rows} cells have more corners than the detector handles "
                               f"({MAX_FEATURE_POINTS})")

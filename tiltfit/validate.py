@@ -186,13 +186,16 @@ def radial_fold(camera: TiltLensCamera, obs: Observations) -> str | None:
 
 def mapping_sigma_px(fit: FitResult) -> float:
     """One-σ uncertainty (pixels) of the fitted radial mapping r ↦ r_d at the image corner farthest from the
-    principal point, propagated from the covariance of the radial coefficients (k1…k6); 0 without covariance
-    or free radial terms."""
+    principal point, propagated from the covariance of the radial coefficients (k1…k6); 0 without free radial
+    terms, inf (undetermined) where the fit has no covariance: no covariance is no evidence of a determined
+    mapping."""
     names = list(fit.parameter_names or [])
     radial = ("dist_k1", "dist_k2", "dist_k3", "dist_k4", "dist_k5", "dist_k6")
     idx = [names.index(n) for n in radial if n in names]
-    if fit.covariance is None or not idx:
+    if not idx:
         return 0.0
+    if fit.covariance is None:
+        return math.inf
     k1, k2, k3, k4, k5, k6 = _radial_coefficients(fit.camera)
     r = _corner_radius(fit.camera)
     r2 = r * r
@@ -210,24 +213,54 @@ def mapping_sigma_px(fit: FitResult) -> float:
 def undetermined_distortion(fit: FitResult, model: str, n_views: int) -> str | None:
     """Why the views do not determine the coefficients of the distortion `model` (one line), or None: for the
     `CHECKED_MODELS`, its radial mapping at the image corner is uncertain by more than `MAX_MAPPING_SIGMA_PX` (a single view of
-    the board fits the rational model's eight coefficients to anything: issue 24 found 3.6e5)."""
+    the board fits the rational model's eight coefficients to anything: issue 24 found 3.6e5), the fit has no
+    covariance to tell, or a denominator term is undetermined (`undetermined_denominator`)."""
     if model not in CHECKED_MODELS:
         return None
     sigma = mapping_sigma_px(fit)
-    if sigma <= MAX_MAPPING_SIGMA_PX:
-        return None
-    return (f"distortion {model}: too few views ({n_views}) to determine its {len(MODEL_TERMS[model])} "
-            f"coefficients: the fitted mapping at the image corner is uncertain by ±{sigma:.3g} px (1σ; at most "
-            f"{MAX_MAPPING_SIGMA_PX:g} px accepted); calibrate from more views spread over the image, or a model "
-            f"with fewer terms")
+    head = f"distortion {model}: too few views ({n_views}) to determine its {len(MODEL_TERMS[model])} coefficients"
+    advice = "calibrate from more views spread over the image, or a model with fewer terms"
+    if math.isinf(sigma) and fit.covariance is None:
+        return f"{head}: the fit has no covariance to show they are determined; {advice}"
+    if sigma > MAX_MAPPING_SIGMA_PX:
+        return (f"{head}: the fitted mapping at the image corner is uncertain by ±{sigma:.3g} px (1σ; at most "
+                f"{MAX_MAPPING_SIGMA_PX:g} px accepted); {advice}")
+    why = undetermined_denominator(fit, model)
+    return f"{head}: {why}; {advice}" if why else None
+
+
+# A rational denominator term (k4, k5, k6) whose σ exceeds both its own size (not even its sign known) and this
+# (an absolute floor, so that a small term of a lens with little distortion stays) is not determined: the
+# numerator and denominator trade against each other, which leaves the mapping at the image corner pinned
+# (`mapping_sigma_px` small) while the projection elsewhere is not. industrial_ds1, flat board, rational5:
+# 1 view k4 260 ± 594, 12 views −7.2 ± 8.3 (refused), 3 views −24.5 ± 1.7 (kept); GoPro, 18 views: 2–5 %.
+MAX_DENOMINATOR_SIGMA = 1.0
+
+
+def undetermined_denominator(fit: FitResult, model: str) -> str | None:
+    """Which rational denominator term of `model` the fit does not determine (a clause), or None."""
+    from renderer.cameras.distortion import COEFFICIENT_NAMES
+
+    sig = list((fit.sigma or {}).get("distortion") or [])
+    k = [float(c) for c in fit.camera.distortion.detach()]
+    for name in ("k4", "k5", "k6"):
+        if name not in MODEL_TERMS[model]:
+            continue
+        i = COEFFICIENT_NAMES.index(name)
+        s = sig[i] if i < len(sig) else math.nan
+        if not math.isfinite(s) or (s > abs(k[i]) and s > MAX_DENOMINATOR_SIGMA):
+            return (f"its denominator term {name} = {k[i]:.3g} ± {s:.3g} is not determined (the numerator and "
+                    f"denominator trade against each other)")
+    return None
 
 
 def projection_sigma_worst_px(fit: FitResult) -> float:
     """The worst one-σ uncertainty (pixels) of the fit's projection over the image (`tiltfit.uncertainty`'s map,
-    as CALIB.json's `projection_uncertainty.worst_px`); 0 where the fit has no intrinsics covariance."""
+    as CALIB.json's `projection_uncertainty.worst_px`); inf (undetermined) where the fit has no intrinsics
+    covariance."""
     ic = getattr(fit, "intrinsics_covariance", None)
     if not ic:
-        return 0.0
+        return math.inf
     from .uncertainty import covariance_from_calib, projection_summary
 
     worst = projection_summary(fit.camera.lens, covariance_from_calib({"intrinsics_covariance": ic}, check=False),

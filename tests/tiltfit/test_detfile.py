@@ -112,15 +112,15 @@ def test_collinear_and_too_few_corners_are_refused():
     points = TARGET.feature_points()
     corners, _ = _view()
     one_row = corners.copy()
-    one_row[4:] = np.nan  # the first row only: 4 corners on one target line
-    with pytest.raises(DetFileError, match="the 4 found corners lie on one line"):
+    one_row[4:] = np.nan  # the first row only: 4 corners on one target line, and too few (MIN_CORNERS 6)
+    with pytest.raises(DetFileError, match="4 corners found; a view needs at least 6"):
         check_view("v.json", one_row, points)
     line = np.stack([np.linspace(10, 300, len(corners)), np.linspace(20, 200, len(corners))], -1)
     with pytest.raises(DetFileError, match="lie on one line in the image"):
         check_view("v.json", line, points)
     few = corners.copy()
     few[3:] = np.nan
-    with pytest.raises(DetFileError, match="3 corners found; a view needs at least 4"):
+    with pytest.raises(DetFileError, match="3 corners found; a view needs at least 6"):
         check_view("v.json", few, points)
 
 

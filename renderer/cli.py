@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import logging
 import math
 import os
 import shutil
@@ -134,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     previous = interrupt_on_sigterm()
     previous_int = _remember_interrupts()
     try:
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), _torch_warnings_silenced(getattr(args, "quiet", False)):
             # numpy's floating-point warnings would print before the one-line error; failures are reported once.
             warnings.simplefilter("ignore", RuntimeWarning)
             device = parse_device(args.device)
@@ -160,6 +161,35 @@ def main(argv: list[str] | None = None) -> int:
         from .interrupts import INTERRUPTS
 
         INTERRUPTS.clear()  # acted on: a later call in this process (tests, a library user) starts afresh
+
+
+class _BelowError(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.levelno >= logging.ERROR
+
+
+@contextlib.contextmanager
+def _torch_warnings_silenced(quiet: bool):
+    """Under --quiet, torch's own warnings (torch.compile's recompilation and graph-break notes, which came to
+    32 stderr lines for one `--compile` render) are not printed: warnings raised in torch's modules are ignored
+    and torch's log handlers (each torch logger has its own and does not propagate) drop records below ERROR.
+    Errors still print; everything is restored afterwards."""
+    if not quiet:
+        yield
+        return
+    handlers = {h for name, lg in list(logging.root.manager.loggerDict.items())
+                if name == "torch" or name.startswith("torch.") if isinstance(lg, logging.Logger)
+                for h in lg.handlers}
+    below_error = _BelowError()
+    for h in handlers:
+        h.addFilter(below_error)
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", module=r"torch(\.|$)")
+            yield
+    finally:
+        for h in handlers:
+            h.removeFilter(below_error)
 
 
 def _remember_interrupts():

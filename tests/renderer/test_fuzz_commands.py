@@ -215,3 +215,57 @@ def test_workers_end_when_renderer_render_is_killed(tmp_path):
             proc.wait()
     assert not [n for n in os.listdir(tmp_path) if n != "scene.json"], f"left: {os.listdir(tmp_path)}"
 
+
+
+@pytest.mark.parametrize("quiet", [True, False])
+def test_compile_under_quiet_prints_no_torch_warnings(tmp_path, monkeypatch, quiet):
+    """issue 33 §4: `--compile --quiet` printed 32 lines of torch.compile's warnings. torch.compile is replaced by
+    one that logs a dynamo warning and raises an inductor UserWarning on every call (as recompilations do), so
+    the test runs in seconds. What torch's own log handler and the warnings machinery let through is recorded:
+    nothing under --quiet (and stderr is empty); both without it (the negative control)."""
+    import logging
+    import warnings
+
+    import torch
+
+    from renderer.cli import main
+
+    def noisy_compile(fn, *args, **kwargs):
+        def run(*a, **k):
+            logging.getLogger("torch._dynamo.convert_frame").warning("torch._dynamo hit config.recompile_limit (8)")
+            warnings.warn_explicit("TensorFloat32 tensor cores", UserWarning, "torch/_inductor/utils.py", 1,
+                                   module="torch._inductor.utils")
+            return fn(*a, **k)
+        return run
+
+    class Collect(logging.Handler):  # stands beside torch's own stderr handler on the dynamo logger
+        def __init__(self):
+            super().__init__()
+            self.lines = []
+
+        def emit(self, record):
+            self.lines.append(record.getMessage())
+
+    monkeypatch.setattr(torch, "compile", noisy_compile)
+    scene = json.loads(_scene())
+    scene["camera"] = {"type": "thin_lens", "position": [0, 0, -5], "look_at": [0, 0, 0], "w": 1, "U": 5, "d": 0.2,
+                       "sensor_size": [0.8, 0.6], "theta_F_deg": 5}
+    (tmp_path / "scene.json").write_text(json.dumps(scene))
+    argv = ["render", tmp_path / "scene.json", "-o", tmp_path / "out.exr", "--compile"] + (["--quiet"] if quiet else [])
+    dynamo, collect = logging.getLogger("torch._dynamo"), Collect()
+    dynamo.addHandler(collect)
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            rc, err = fuzz_harness.run_command(main, argv)
+    finally:
+        dynamo.removeHandler(collect)
+    assert rc == 0, f"exit {rc}: {err}"
+    torch_warnings = [w for w in caught if "TensorFloat32" in str(w.message)]
+    if quiet:
+        assert not collect.lines and not torch_warnings, \
+            f"--quiet let through {len(collect.lines)} log lines and {len(torch_warnings)} warnings"
+        assert not err.strip(), f"--quiet printed {len(err.splitlines())} lines: {err[:300]!r}"
+    else:
+        assert collect.lines and torch_warnings, "the stand-in's warnings were silenced without --quiet"
+    assert not collect.filters, "a filter was left on torch's log handlers"

@@ -8,6 +8,7 @@ Total internal reflection sends the transmitted share along the reflected ray.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -75,6 +76,74 @@ class ImageTexture:
         return top * (1 - ay) + bottom * ay
 
 
+@dataclass(frozen=True, eq=False)
+class GridTexture:
+    """A piecewise-constant albedo on axis-aligned cells in uv (scene units): exact edges at any distance, for
+    prints made of rectangles (a calibration target's squares and markers).
+
+    Attributes:
+        xs: (nx + 1,) ascending cell boundaries along u; ys: (ny + 1,) along v.
+        cells: (ny, nx) palette indices of the cells (row j between ys[j] and ys[j + 1]).
+        colors: the palette, linear RGB.
+        outside: the palette index beyond the boundaries.
+    """
+
+    xs: np.ndarray
+    ys: np.ndarray
+    cells: np.ndarray
+    colors: tuple[tuple[float, float, float], ...]
+    outside: int = 0
+
+    def __post_init__(self):
+        xs, ys = np.asarray(self.xs, np.float64), np.asarray(self.ys, np.float64)
+        cells = np.asarray(self.cells, np.int64)
+        if xs.ndim != 1 or ys.ndim != 1 or cells.shape != (len(ys) - 1, len(xs) - 1) or \
+                np.any(np.diff(xs) <= 0) or np.any(np.diff(ys) <= 0):
+            raise ValueError("grid texture: expected ascending boundaries xs (nx + 1), ys (ny + 1) and cells (ny, nx)")
+        if cells.size and not (0 <= cells.min() and cells.max() < len(self.colors)) or \
+                not 0 <= self.outside < len(self.colors):
+            raise ValueError(f"grid texture: palette indices must be 0 to {len(self.colors) - 1}")
+        # The table with a border of `outside` cells: index 0 and n + 1 along each axis lie beyond the grid.
+        table = np.full((cells.shape[0] + 2, cells.shape[1] + 2), self.outside, np.int64)
+        table[1:-1, 1:-1] = cells
+        object.__setattr__(self, "xs", xs)
+        object.__setattr__(self, "ys", ys)
+        object.__setattr__(self, "cells", cells)
+        object.__setattr__(self, "_table", torch.as_tensor(table.ravel()))
+
+    @property
+    def palette(self) -> tuple[tuple[float, float, float], ...]:
+        """The colours `palette_index` picks from."""
+        return self.colors
+
+    def palette_index(self, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        """(N,) long palette index of the points with texture coordinates u, v ((N,) each)."""
+        xs = torch.as_tensor(self.xs, dtype=u.dtype, device=u.device)
+        ys = torch.as_tensor(self.ys, dtype=v.dtype, device=v.device)
+        i = torch.searchsorted(xs, u.contiguous(), right=True)  # 0: before xs[0]; nx + 1: at or after xs[-1]
+        j = torch.searchsorted(ys, v.contiguous(), right=True)
+        return self._table.to(u.device)[j * (len(self.xs) + 1) + i]
+
+    def evaluate(self, uv: torch.Tensor) -> torch.Tensor:
+        """(N, 2) uv -> (N, 3) linear RGB albedo."""
+        cols = torch.tensor(self.colors, dtype=uv.dtype, device=uv.device)
+        return cols[self.palette_index(uv[..., 0], uv[..., 1])]
+
+    def raster(self, texel: float, max_side: int = 8192) -> tuple[np.ndarray, tuple[float, float], tuple[float, float]]:
+        """The texture sampled at texel centres over its grid (for renderers without it: Mitsuba's bitmap):
+        ((H, W, 3) float32 linear RGB, origin (u0, v0), size (su, sv)), texels of `texel` scene units or
+        coarser so that neither side exceeds `max_side`."""
+        u0, u1, v0, v1 = self.xs[0], self.xs[-1], self.ys[0], self.ys[-1]
+        t = max(texel, (u1 - u0) / max_side, (v1 - v0) / max_side)
+        W, H = max(1, int(math.ceil((u1 - u0) / t))), max(1, int(math.ceil((v1 - v0) / t)))
+        u = torch.as_tensor(u0 + (np.arange(W) + 0.5) * (u1 - u0) / W)
+        v = torch.as_tensor(v0 + (np.arange(H) + 0.5) * (v1 - v0) / H)
+        V, U = torch.meshgrid(v, u, indexing="ij")
+        idx = self.palette_index(U.reshape(-1), V.reshape(-1)).numpy()
+        return (np.asarray(self.colors, np.float32)[idx].reshape(H, W, 3), (float(u0), float(v0)),
+                (float(u1 - u0), float(v1 - v0)))
+
+
 @dataclass(frozen=True)
 class Material:
     """Surface appearance. All weights are dimensionless; colours are linear RGB albedos.
@@ -95,7 +164,7 @@ class Material:
     reflect: float = 0.0
     transmit: float = 0.0
     ior: float = 1.0
-    texture: CheckerTexture | ImageTexture | None = None
+    texture: CheckerTexture | ImageTexture | GridTexture | None = None
 
 
 class MaterialTable:

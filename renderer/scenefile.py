@@ -28,6 +28,7 @@ nesting depth, numbers finite and within float32, `extends` chain length, `--set
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import os
 
@@ -290,8 +291,11 @@ def build_scene(cfg: dict, base_dir: str = ".") -> Scene:
     for key in ("image", "camera"):
         if key not in cfg:
             raise SceneError(f"{key}: missing required section")
-    image = ImageSettings(**_positive_image(parse_params("image", cfg["image"], IMAGE_PARAMS)))
     camera_cfg = cfg["camera"]
+    if isinstance(camera_cfg, dict) and isinstance(camera_cfg.get("file"), str):  # files beside the scene
+        camera_cfg = {**camera_cfg, "file": os.path.join(base_dir, os.path.expanduser(camera_cfg["file"]))}
+    image = ImageSettings(**_positive_image(parse_params("image", _image_size_from_camera(cfg["image"], camera_cfg),
+                                                         IMAGE_PARAMS)))
     distortion = camera_cfg.get("distortion") if isinstance(camera_cfg, dict) else None
     if isinstance(camera_cfg, dict) and "distortion" in camera_cfg:
         camera_cfg = {k: v for k, v in camera_cfg.items() if k != "distortion"}
@@ -327,6 +331,28 @@ def build_scene(cfg: dict, base_dir: str = ".") -> Scene:
                 raise SceneError("layers: mixed-projection layers are not available in this version") from None
             layers = build_layers("layers", layer_cfgs, [o.name for o in objects], camera, cfg["camera"])
     return Scene(objects=objects, lights=lights, camera=camera, image=image, layers=layers)
+
+
+def _image_size_from_camera(image_cfg, camera_cfg):
+    """The `image` section with `width` and `height` filled in from the camera where it has a size of its own
+    (a calibrated camera: the calibration's image) and the scene gives none."""
+    if not isinstance(image_cfg, dict) or not isinstance(camera_cfg, dict) or \
+            ("width" in image_cfg and "height" in image_cfg):
+        return image_cfg
+    from .cameras.registry import camera_class
+
+    cls = camera_class(str(camera_cfg.get("type", "pinhole")))
+    size = getattr(cls, "image_size", None)
+    if size is None:
+        return image_cfg
+    W, H = size("camera", camera_cfg)
+    if "width" in image_cfg:  # the other side of the same aspect ratio
+        return {**image_cfg, "height": max(1, round(image_cfg["width"] * H / W))} \
+            if isinstance(image_cfg["width"], int) else image_cfg
+    if "height" in image_cfg:
+        return {**image_cfg, "width": max(1, round(image_cfg["height"] * W / H))} \
+            if isinstance(image_cfg["height"], int) else image_cfg
+    return {**image_cfg, "width": W, "height": H}
 
 
 def _list(cfg: dict, key: str) -> list:
@@ -367,7 +393,11 @@ def _light(path: str, cfg) -> Light:
 def _object(path: str, cfg, base_dir: str) -> SceneObject:
     p = parse_params(path, cfg, OBJECT_PARAMS)
     shape = build_shape(f"{path}.shape", p["shape"], base_dir)
-    return SceneObject(p["name"], shape, build_material(f"{path}.material", p["material"], base_dir))
+    material = build_material(f"{path}.material", p["material"], base_dir)
+    own = getattr(shape, "texture", None)  # a shape that brings its own albedo (a calibration target's print)
+    if own is not None and material.texture is None and "color" not in p["material"]:
+        material = dataclasses.replace(material, texture=own)
+    return SceneObject(p["name"], shape, material)
 
 
 def build_material(path: str, cfg: dict, base_dir: str = ".") -> Material:

@@ -33,11 +33,25 @@ def register_camera(name: str, params: list[Param]):
     return deco
 
 
+def camera_class(kind: str):
+    """The registered class of camera type `kind` (plugins loaded if needed), or None."""
+    if kind not in CAMERAS:
+        from ..plugins import load_plugins
+
+        load_plugins()
+    entry = CAMERAS.get(kind)
+    return None if entry is None else entry[1]
+
+
 def build_camera(path: str, cfg: dict, width: int, height: int) -> Camera:
     """Validate the `camera` section and build the camera it names (`type`)."""
     if not isinstance(cfg, dict):
         raise SceneError(f"{path}: expected an object, got {cfg!r}")
     kind = cfg.get("type", "pinhole")
+    if kind not in CAMERAS:
+        from ..plugins import load_plugins
+
+        load_plugins()
     if kind not in CAMERAS:
         raise SceneError(f"{path}.type: unknown camera {kind!r} (expected one of: {', '.join(sorted(CAMERAS))})")
     params, cls = CAMERAS[kind]

@@ -44,7 +44,7 @@ import os
 import numpy as np
 import torch
 
-from ..materials import CheckerTexture, ImageTexture
+from ..materials import CheckerTexture, GridTexture, ImageTexture
 
 from ..transforms import world_from_local_4x4 as _matrix
 
@@ -397,7 +397,20 @@ def _reflectance(mi, material, weight: float, uv_map):
         return {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(weight * tex.pixels, dtype=np.float32)),
                 "raw": True, "filter_type": "bilinear", "wrap_mode": "repeat",
                 "to_uv": _uv_transform(mi, scale / size, offset / size)}
+    if isinstance(tex, GridTexture):
+        # Exact cells here; Mitsuba gets them sampled at texel centres (nearest texel, edges within half a
+        # texel: GRID_TEXEL_FRACTION of the smallest cell, at most 8192 texels a side), clamped beyond the grid.
+        cell = min(np.diff(tex.xs).min(), np.diff(tex.ys).min())
+        pixels, origin, size = tex.raster(GRID_TEXEL_FRACTION * cell)
+        size, origin = np.asarray(size), np.asarray(origin)
+        return {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(weight * pixels, dtype=np.float32)),
+                "raw": True, "filter_type": "nearest", "wrap_mode": "clamp",
+                "to_uv": _uv_transform(mi, scale / size, (offset - origin) / size)}
     return {"type": "rgb", "value": [weight * c for c in material.color]}
+
+
+#: A `GridTexture`'s texel for Mitsuba, as a fraction of its smallest cell.
+GRID_TEXEL_FRACTION = 1.0 / 64
 
 
 def _bsdf(mi, material, uv_map=((1.0, 1.0), (0.0, 0.0)), dropped=None, name="", ambient=False):

@@ -30,6 +30,10 @@ def build_shape(path: str, cfg: dict, base_dir: str = ".") -> Shape:
         raise SceneError(f"{path}: expected an object, got {cfg!r}")
     kind = cfg.get("type")
     if kind not in SHAPES:
+        from ..plugins import load_plugins
+
+        load_plugins()
+    if kind not in SHAPES:
         raise SceneError(f"{path}.type: unknown shape {kind!r} (expected one of: {', '.join(sorted(SHAPES))})")
     params, fn = SHAPES[kind]
     parsed = parse_params(path, cfg, params, ignore=("type",))

@@ -1,0 +1,193 @@
+"""A calibration read once: the lens, the views' poses and the target, from any calibration file.
+
+`Calibration.read(path)` takes a CALIB.json (`tiltfit calibrate`), an OpenCV FileStorage camera file (the
+14-coefficient tilted model included: τx, τy become the lens tilt with its distortion about the lens axis) or an
+mrcal `.cameramodel`, validates it once and gives:
+
+- `lens`: the one `renderer.Lens` (w, U, d, θF, tilt axis φ, sensor, principal point, distortion and its
+  centre), plain numbers, for rendering and projecting;
+- `pose(view)`: (R, T) of a view, X_cam = R · X_target + T (mm), the view named by index or image name;
+- `camera(view)`: the renderer's `ThinLensCamera` of that view (the calibrated distortion and defocus), at the
+  file's image size or scaled to another of the same aspect;
+- `target` (the target file stored in CALIB.json, or None) and `board_points_mm` (a fitted board's points).
+
+Where the file cannot say how the lens blurs (U or d undetermined, or not in the file: OpenCV and mrcal files
+have no focus), the lens renders sharp: focus at infinity and a pinhole aperture (d = 0). The blur of a real
+photo is then not reproduced, and `blur_known` says so.
+
+Scene files use it through the `calibrated` camera (`tiltfit.scene_plugins`):
+    {"type": "calibrated", "file": "calib.json", "view": 0}
+"""
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from renderer import Lens, Sensor
+
+
+class CalibrationError(ValueError):
+    """A calibration file that cannot be used; the message is one line naming the file and the field."""
+
+
+def read_calibration_dict(path: str, pixel_pitch_mm: float | None = None) -> dict:
+    """The validated CALIB.json-like dict of any calibration file (CALIB.json, OpenCV FileStorage, mrcal),
+    chosen by its content. `pixel_pitch_mm` is needed for OpenCV and mrcal files that do not state it.
+
+    Raises:
+        ValueError (CalibFileError, ExportError): one line naming the file and the field.
+    """
+    from .calibfile import read_calib, validate_calib
+    from .export import is_mrcal_file, is_opencv_file, read_mrcal, read_opencv
+
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise CalibrationError(f"{path}: no such file")
+    if os.path.isdir(path):
+        raise CalibrationError(f"{path}: is a folder, not a calibration file")
+    if is_mrcal_file(path):
+        return validate_calib(path, read_mrcal(path, pixel_pitch_mm))
+    if is_opencv_file(path):
+        return validate_calib(path, read_opencv(path, pixel_pitch_mm))
+    return read_calib(path)
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A calibration file's content as one object (see the module docstring).
+
+    Attributes:
+        path: the file it was read from.
+        data: the validated CALIB.json-like dict.
+        lens: the calibrated `renderer.Lens` with its sensor (mm).
+        blur_known: whether U and d come from the calibration (else the lens renders sharp).
+    """
+
+    path: str
+    data: dict = field(repr=False)
+    lens: Lens
+    blur_known: bool
+
+    @classmethod
+    def read(cls, path, pixel_pitch_mm: float | None = None) -> "Calibration":
+        """Read and validate `path` (CALIB.json, OpenCV FileStorage or mrcal; see the module docstring)."""
+        path = os.fspath(path)
+        return cls.from_dict(read_calibration_dict(path, pixel_pitch_mm), path)
+
+    @classmethod
+    def from_dict(cls, data: dict, path: str = "<calibration>") -> "Calibration":
+        """The Calibration of an already validated CALIB.json dict (`tiltfit.calibfile.validate_calib`)."""
+        from renderer import optics
+
+        U, d = data.get("U_mm"), data.get("d_mm")
+        blur_known = U is not None and d is not None
+        if not blur_known:
+            U, d = math.inf, 0.0
+        w = float(data["w_mm"])
+        theta_F = data.get("theta_F_deg")
+        if theta_F is not None:
+            theta_F = math.radians(theta_F)
+        elif data.get("theta_L_deg"):  # an OpenCV tilted-model file gives θL; θF is the tilt at this U
+            theta_F = float(optics.theta_F_from_theta_L(math.radians(data["theta_L_deg"]), w, U))
+        else:
+            theta_F = 0.0
+        coefficients = (data.get("distortion") or {}).get("coefficients") or None
+        W, H = (int(v) for v in data["image_size_px"])
+        pp = data.get("principal_point_px")
+        lens = Lens(w, float(U), float(d), float(theta_F), Sensor(W, H, float(data["pixel_pitch_mm"])),
+                    None if pp is None else (float(pp[0]), float(pp[1])),
+                    None if coefficients is None else tuple(float(c) for c in coefficients),
+                    math.radians(data.get("tilt_axis_deg") or 0.0), data.get("distortion_centre") or "sensor")
+        return cls(path, data, lens, blur_known)
+
+    # --- views -------------------------------------------------------------------------------------------
+    @property
+    def views(self) -> list[dict]:
+        """The file's views (CALIB.json `views`: image, R, T_mm, ...), in order."""
+        return list(self.data.get("views") or [])
+
+    @property
+    def image_size_px(self) -> tuple[int, int]:
+        """(W, H) of the calibrated images."""
+        return self.lens.sensor.size_px
+
+    def view_index(self, view) -> int:
+        """The index of `view`: an index (negative counts from the end) or an image name (the file name is
+        enough); CalibrationError naming `view` otherwise."""
+        views = self.views
+        if not views:
+            raise CalibrationError(f"{self.path}: views: the file has no views; give the camera's pose (R, T_mm)")
+        if isinstance(view, (int, np.integer)) and not isinstance(view, bool):
+            if not -len(views) <= int(view) < len(views):
+                raise CalibrationError(f"{self.path}: view: expected 0 to {len(views) - 1}, got {int(view)}")
+            return int(view) % len(views)
+        if isinstance(view, str):
+            names = [str(v.get("image", "")) for v in views]
+            for i, name in enumerate(names):
+                if view in (name, os.path.basename(name)):
+                    return i
+            shown = ", ".join(os.path.basename(n) for n in names[:4]) + (", ..." if len(names) > 4 else "")
+            raise CalibrationError(f"{self.path}: view: no view of image {view!r} (views: {shown})")
+        raise CalibrationError(f"{self.path}: view: expected a view index or an image name, got {view!r}")
+
+    def pose(self, view=0) -> tuple[np.ndarray, np.ndarray]:
+        """(R (3, 3), T (3,) mm) of a view: X_cam = R · X_target + T."""
+        v = self.views[self.view_index(view)]
+        return np.asarray(v["R"], dtype=np.float64), np.asarray(v["T_mm"], dtype=np.float64)
+
+    # --- rendering ---------------------------------------------------------------------------------------
+    def lens_for_image(self, image_size_px=None) -> Lens:
+        """The lens with its sensor resampled to `image_size_px` (W, H) (same aspect ratio: the same field of
+        view and principal point, coarser or finer pixels), or the calibrated one for None."""
+        if image_size_px is None or tuple(int(v) for v in image_size_px) == self.image_size_px:
+            return self.lens
+        W0, H0 = self.image_size_px
+        W, H = (int(v) for v in image_size_px)
+        if W < 1 or H < 1 or abs(W / H - W0 / H0) > 0.01 * W0 / H0:
+            raise CalibrationError(f"{self.path}: image size {W}x{H}: expected the calibration's aspect ratio "
+                                   f"({W0}x{H0}, or a scaled copy of it)")
+        s = W / W0
+        pp = self.lens.principal_point_px or ((W0 - 1) / 2.0, (H0 - 1) / 2.0)
+        sensor = Sensor(W, H, self.lens.sensor.pixel_pitch / s)
+        return self.lens.with_(sensor=sensor, principal_point_px=((pp[0] + 0.5) * s - 0.5, (pp[1] + 0.5) * s - 0.5))
+
+    def camera(self, view=0, image_size_px=None, R=None, T_mm=None):
+        """The renderer's camera of a view (`renderer.cameras.ThinLensCamera`, lengths in mm): the calibrated
+        lens, distortion (about its centre) and defocus, the view's pose or the given (R, T_mm)."""
+        from renderer.cameras import ThinLensCamera
+
+        if (R is None) != (T_mm is None):
+            raise CalibrationError(f"{self.path}: give both R and T_mm for a pose, or neither")
+        if R is None:
+            R, T_mm = self.pose(view)
+        import torch
+
+        return ThinLensCamera.from_calibration(self.lens_for_image(image_size_px),
+                                               torch.as_tensor(np.asarray(R, dtype=np.float64)),
+                                               torch.as_tensor(np.asarray(T_mm, dtype=np.float64)))
+
+    # --- the target --------------------------------------------------------------------------------------
+    @property
+    def target(self):
+        """The `tiltfit.target.Target` stored in the calibration (CALIB.json `target`), or None."""
+        from .target import target_from_dict
+
+        t = self.data.get("target")
+        return None if not isinstance(t, dict) else target_from_dict(t, f"{self.path}: target")
+
+    @property
+    def board_points_mm(self) -> np.ndarray | None:
+        """(N, 3) the fitted board's feature points (mm, target frame), or None for a flat board."""
+        from .export import board_points_mm
+
+        return board_points_mm(self.data)
+
+    def project(self, points_mm, view=0) -> np.ndarray:
+        """(N, 2) pixel positions of target-frame points (N, 3) in a view, through the full lens (tilt,
+        distortion about its centre)."""
+        R, T = self.pose(view)
+        p_cam = np.asarray(points_mm, dtype=np.float64) @ R.T + T
+        return np.asarray(self.lens.project(p_cam), dtype=np.float64)

@@ -78,6 +78,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="override a scene key before validation, e.g. camera.alpha=2 or objects.2.material.color="
                         "[1,0,0] (value parsed as JSON, else a string); repeatable")
     _common(r)
+    r.add_argument("--camera", metavar="CALIB",
+                   help="render through a calibration (CALIB.json, OpenCV .yml/.xml or mrcal .cameramodel): the "
+                        "scene's camera becomes the calibrated one, at the calibration's image size")
+    r.add_argument("--view", metavar="K", help="with --camera: the view (index or image name) whose pose is used [0]")
     r.add_argument("--encoding", choices=("srgb", "linear"),
                    help="output encoding [sRGB for PNG/TIFF, linear for EXR]")
     r.add_argument("--quiet", action="store_true", help="no progress on stderr")
@@ -269,8 +273,11 @@ def cmd_render(args, device) -> int:
     from .scenefile import load_scene, require_objects
 
     _check_output(args.output, (".exr", ".png", ".tif", ".tiff"))
+    if args.view is not None and not args.camera:
+        raise UsageError("--view: needs --camera (the calibration whose view it names)")
     scene_file = resolve_scene(args.scene)
-    scene = load_scene(scene_file, args.overrides)
+    scene = load_scene(_with_camera(scene_file, args), args.overrides, base_dir=os.path.dirname(
+        os.path.abspath(scene_file))) if args.camera else load_scene(scene_file, args.overrides)
     require_objects(scene_file, scene)
     if args.intersector != "auto" and args.backend != "mitsuba":  # auto: the scene's own default
         from .mitsuba.intersect import use_intersector
@@ -302,6 +309,27 @@ def cmd_render(args, device) -> int:
         h, w = result.image.shape[:2]
         print(f"renderer: wrote {args.output} ({w}x{h}, {time.perf_counter() - start:.1f} s)", file=sys.stderr)
     return 0
+
+
+def _with_camera(scene_file: str, args) -> dict:
+    """The scene's dict with its camera replaced by `--camera FILE [--view K]` (a `calibrated` camera, at the
+    calibration's image size unless --set gives one)."""
+    from .params import SceneError
+    from .scenefile import read_scene_json
+
+    if not os.path.exists(args.camera):
+        raise UsageError(f"--camera: {args.camera}: no such file")
+    cfg = read_scene_json(scene_file)
+    if not isinstance(cfg, dict):
+        raise SceneError(f"{scene_file}: expected an object at the top level, got {cfg!r}")
+    cfg.pop("extends", None)
+    view = args.view if args.view is not None else 0
+    if isinstance(view, str) and view.lstrip("-").isdigit():
+        view = int(view)
+    cfg["camera"] = {"type": "calibrated", "file": os.path.abspath(args.camera), "view": view}
+    if isinstance(cfg.get("image"), dict):
+        cfg["image"] = {k: v for k, v in cfg["image"].items() if k not in ("width", "height")}
+    return cfg
 
 
 def cmd_animate(args, device) -> int:

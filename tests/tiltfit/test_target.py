@@ -177,7 +177,8 @@ def test_png_scale_bar_is_labelled_and_the_board_unchanged(tmp_path):
     t = design_target(5, 4, 20.0, w_mm=W_MM, distance_mm=D_MM, inclination_deg=20)
     png = tmp_path / "t.png"
     write_printable(t, str(png), None, dpi=200)
-    img = imread(str(png))[..., 0]
+    img = imread(str(png))
+    img = img if img.ndim == 2 else img[..., 0]  # grey (written in strips) or RGBA
     x0, y0, x1, y1 = t.extent_mm
     board = render_target(t, 200)
     ref = linear_to_srgb(board[:-1])  # the last row may be cut differently where the strip begins

@@ -130,6 +130,25 @@ def _undetermined_focus(result: FitResult) -> list:
     return out
 
 
+def _focus_beyond_infinity(result: FitResult) -> str | None:
+    """Where the blur fit put the focus beyond infinity (1/U ≤ 0: widths at a detector's floor, a lens focused
+    far beyond the views), the camera's focus is set to infinity, the nearest physical value, so that no negative
+    U reaches a lens, a file or a later stage (per-view annotations, uncertainty, photometric refinement);
+    returns the note saying why U is undetermined, or None where 1/U > 0."""
+    cam = result.camera
+    inv_u = float(cam.inv_U_per_m.detach())
+    if inv_u > 0.0 or not math.isfinite(inv_u):
+        return None
+    s_inv = result.sigma.get("inv_U_per_m")
+    with torch.no_grad():
+        cam.inv_U_per_m.zero_()
+    result.values["U_mm"] = math.inf
+    result.values["f_mm"] = float(cam.w_mm.detach())  # f = U w / (U + w) → w at U = ∞
+    spread = f" ± {s_inv:.2g}" if s_inv is not None and math.isfinite(s_inv) else ""
+    return (f"U undetermined: the blur widths put the focus beyond infinity (1/U = {inv_u:.3g}{spread} per m); "
+            f"the lens is held focused at infinity for the per-view values")
+
+
 def calibrate(obs: Observations, mode: str = "unified", init: TiltLensCamera | None = None,
               options: FitOptions = FitOptions(), init_sigma: dict | None = None) -> FitResult:
     """Calibrate a tilt-lens camera from detected corners and blur widths of several views.
@@ -290,6 +309,10 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
             notes.append(head + _board_line(board))
     result.free_principal_point = free_pp
     undetermined += [k for k in _out_of_range(result) if k not in undetermined]
+    beyond = _focus_beyond_infinity(result)
+    if beyond:
+        undetermined += [k for k in ("U_mm",) if k not in undetermined]
+        notes.append(beyond)
     result.undetermined = undetermined
     if options.distortion == "auto" and result.distortion_selection:
         from .validate import describe_choice

@@ -421,7 +421,7 @@ def _refine_photometric(result, obs, target, args, say, photos: dict | None = No
                            for e in res.left_out])
     block.update(kept=res.kept, held_out=res.held_out, refined={k: v[k] for k in keys},
                  refined_sigma={k: sg[k] for k in keys}, corner_check=res.corner_check, free=res.free, at_bound=res.at_bound,
-                 rejected_because=res.rejected_because, sigma_model=res.sigma_model)
+                 rejected_because=res.rejected_because, sigma_model=res.sigma_model, bounds=res.bounds)
     if res.kept != "photometric":
         # Not progress: the user asked for a refinement and gets the corner fit, so this line shows even with -q.
         print(f"tiltfit: note: photometric refinement not kept ({res.rejected_because}); CALIB.json keeps the "

@@ -253,6 +253,7 @@ def _write_plots(calib: dict, views: list, out_dir: str) -> list:
         lines.append(f"| {nm} | {'' if r is None else f'{r:.3f}'} | {v.get('n_points')} | "
                      f"{'yes' if v.get('outlier') else ''} |")
     lines += _uncertainty_lines(calib)
+    lines += photometric_lines(calib)
     path = os.path.join(out_dir, "report.md")
     with open(path, "w", encoding="utf-8") as f:
         f.write("\n".join(lines) + "\n")
@@ -355,3 +356,48 @@ def _uncertainty_lines(calib: dict) -> list:
                    + (f"{_px(pred)} predicted" if pred is not None else "no prediction")
                    + f": {pair['verdict'].split(':')[0]}")
     return out
+
+
+def photometric_lines(calib: dict) -> list:
+    """report.md lines on the photometric refinement (`--refine photometric`): kept or not and why, and for each
+    bounded lens parameter its start, bound and refined value (which parameter hit which bound)."""
+    ph = calib.get("photometric")
+    if not isinstance(ph, dict):
+        return []
+    out = ["", "## Photometric refinement", "",
+           f"- kept: {ph.get('kept', 'photometric')}" + (f" (not kept: {ph['rejected_because']})"
+                                                          if ph.get("rejected_because") else "")]
+    if ph.get("rms_linear") is not None:
+        out.append(f"- pixel residual RMS {ph['rms_linear']:.4g} (linear units)")
+    bounds = ph.get("bounds") or []
+    if bounds:
+        out += ["", "| parameter | start | trust bound | refined | at the bound |", "|---|---|---|---|---|"]
+        for b in bounds:
+            out.append(f"| {b['parameter']} | {b['start']:.6g} | [{b['low']:.6g}, {b['high']:.6g}] | "
+                       f"{b['refined']:.6g} | {'**yes**' if b.get('at_bound') else 'no'} |")
+    return out
+
+
+def plot_residual_image(residual: np.ndarray, path: str, title: str = "photo − rendered") -> str:
+    """Save an (H, W) residual image (photo − rendered, linear units; NaN where nothing was rendered) as a PNG with
+    a diverging colour scale symmetric about 0 (±99th percentile of |residual|). Returns `path`."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    r = np.asarray(residual, dtype=np.float64)
+    finite = np.isfinite(r)
+    lim = float(np.percentile(np.abs(r[finite]), 99)) if finite.any() else 1.0
+    H, W = r.shape
+    fig, ax = plt.subplots(figsize=(6, 6 * H / W + 0.8))
+    try:
+        im = ax.imshow(np.where(finite, r, np.nan), cmap="RdBu_r", vmin=-lim, vmax=lim, interpolation="nearest")
+        fig.colorbar(im, ax=ax, shrink=0.8, label="linear intensity")
+        rms = float(np.sqrt(np.mean(r[finite] ** 2))) if finite.any() else math.nan
+        ax.set_title(f"{title}: RMS {rms:.4g} over {int(finite.sum())} pixels", fontsize=9)
+        ax.set_axis_off()
+        fig.savefig(path, dpi=110, bbox_inches="tight")
+    finally:
+        plt.close(fig)
+    return path

@@ -89,3 +89,92 @@ def test_forward_model_agrees_with_exact_tracing_within_noise(blur_px, tilt_deg,
     assert abs(r.mean()) < 4 * noise / math.sqrt(edge.sum()) + 5e-4, f"mean {r.mean():+.5f} (noise {noise:.5f})"
     shift = _implied_d(cam_fn, truth, uv[torch.from_numpy(edge)], r, near)
     assert abs(shift) < 0.6, f"the mismatch would move d by {shift:+.3f} %"
+
+
+# ------------------------------------------------------------------------------------------ the refinement
+
+FIT_BOARD = Target(tuple(50.0 * i for i in range(7)), tuple(50.0 * j for j in range(5)), (0, 0), 25.0)
+FIT_VIEWS = ((20.0, 5.0, 780.0), (-15.0, 15.0, 820.0), (-10.0, -10.0, 800.0))
+
+
+@pytest.fixture(scope="module")
+def tilted_fit():
+    """Three exact captures (240 x 160, lens tilted +5°, 8-bit sRGB with shot and read noise), the corner fit
+    (tiltfit's detector and joint fit) and the refinement started from it."""
+    from renderer.io import srgb_to_linear
+    from tiltfit.calibration import calibrate
+    from tiltfit.detect import detect
+    from tiltfit.fit import FitOptions
+    from tiltfit.model import Observations
+    from tiltfit.photometric import PhotometricOptions, refine_photometric
+
+    W, H, pitch = 240, 160, 0.13
+    lens = ec.ExactLens.focused_at(55.0, 760.0, 40.0, 5.0, W, H, pitch)
+    linear = []
+    for k, (rx, ry, dist) in enumerate(FIT_VIEWS):
+        R, T = ec.pose_facing(FIT_BOARD, rx, ry, dist)
+        img = ec.capture(lens, R, T, FIT_BOARD, seed=k, aperture_strata=6, pixel_strata=3)
+        linear.append(srgb_to_linear(img / 255.0))
+    dets = [detect(im, FIT_BOARD) for im in linear]
+    assert min(int(d.found.sum()) for d in dets) == FIT_BOARD.n_points, "corners not found: no corner fit to start"
+    obs = Observations(FIT_BOARD.feature_points(), np.stack([d.corners_px for d in dets]),
+                       np.stack([d.blur_px for d in dets]), (W, H), pitch)
+    corner = calibrate(obs, "joint", options=FitOptions(model_selection=False, nominal_focal_mm=55.0))
+    res = refine_photometric(linear, FIT_BOARD, corner.camera, PhotometricOptions(max_pixels=800),
+                             start_sigma=corner.sigma, corners=obs)
+    return lens.truth(), corner, res
+
+
+@pytest.mark.slow
+def test_refinement_of_exact_captures_is_kept_and_within_sigma(tilted_fit):
+    truth, corner, res = tilted_fit
+    report = "; ".join(f"{k}: truth {truth[k]:.4f}, corners {corner.values[k] - truth[k]:+.4f} "
+                       f"(σ {corner.sigma[k]:.4f}), photometric {res.values[k] - truth[k]:+.4f} (σ {res.sigma[k]:.4f})"
+                       for k in ("theta_L_deg", "theta_F_deg", "d_mm", "U_mm"))
+    assert res.kept == "photometric", f"not kept ({res.rejected_because}): {report}"
+    for k in ("theta_L_deg", "theta_F_deg", "d_mm"):
+        err, s = res.values[k] - truth[k], res.sigma[k]
+        assert 0 < s < corner.sigma[k], f"{k}: σ {s} against the corner fit's {corner.sigma[k]}: {report}"
+        assert abs(err) <= 2.5 * s, f"{k} off by {err:+.4f} ({err / s:+.1f}σ): {report}"
+
+
+@pytest.mark.slow
+def test_bound_record_says_which_parameter_is_where(tilted_fit):
+    """Each bounded lens parameter's record holds its start inside its bound, the refined value inside it too,
+    and `at_bound` exactly where the refined value reached 95 % of the way to an end."""
+    truth, corner, res = tilted_fit
+    names = {b["parameter"] for b in res.bounds}
+    assert {"w_mm", "d_mm", "theta_F_deg"} <= names, f"bounds for {names}"
+    for b in res.bounds:
+        assert b["low"] < b["start"] < b["high"], b
+        assert b["low"] <= b["refined"] <= b["high"], b
+        assert b["at_bound"] == (b["parameter"] in {e for e in res.at_bound} or
+                                 {"w_mm": "log_w_mm", "U_mm": "inv_U_per_m", "d_mm": "d_scaled",
+                                  "theta_F_deg": "theta_F"}[b["parameter"]] in res.at_bound), b
+    from tiltfit.report import photometric_lines
+
+    lines = "\n".join(photometric_lines({"photometric": {"kept": res.kept, "bounds": res.bounds,
+                                                         "rejected_because": res.rejected_because}}))
+    assert all(b["parameter"] in lines for b in res.bounds), lines
+
+
+def test_residual_image_of_the_truth_is_noise(tmp_path):
+    """At the generator's truth the residual image (photo − rendered board) is the capture's noise on the usable
+    pixels and NaN elsewhere; with d 10 % off it shows the edges (a negative control); it plots to a PNG."""
+    from tiltfit.photometric import residual_image
+    from tiltfit.report import plot_residual_image
+
+    truth, R, T, (W, H, pitch), D = _forward_case(6.0, 5.0, 20.0)
+    photo = (LOOK.paper - (LOOK.paper - LOOK.ink) * D[0]).reshape(H, W)
+    res = residual_image(photo, BOARD, _model_camera(truth, R, T, W, H, pitch), LOOK.paper, LOOK.ink)
+    finite = np.isfinite(res)
+    noise = float(np.sqrt(np.mean((D[0] - D[1]).reshape(H, W)[finite] ** 2) / 2)) * (LOOK.paper - LOOK.ink)
+    assert 300 < finite.sum() < W * H, f"{finite.sum()} usable pixels of {W * H}"
+    rms = float(np.sqrt(np.mean(res[finite] ** 2)))
+    assert rms < 1.5 * noise, f"residual RMS {rms:.5f} at the truth, noise {noise:.5f}"
+    off = residual_image(photo, BOARD, _model_camera(truth, R, T, W, H, pitch, d=1.1 * truth["d_mm"]),
+                         LOOK.paper, LOOK.ink)
+    rms_off = float(np.sqrt(np.nanmean(off ** 2)))
+    assert rms_off > 1.5 * rms, f"d 10 % off: RMS {rms_off:.5f}, at the truth {rms:.5f}"
+    path = plot_residual_image(res, str(tmp_path / "residual.png"))
+    assert (tmp_path / "residual.png").stat().st_size > 1000, path

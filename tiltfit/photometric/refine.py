@@ -231,6 +231,8 @@ class PhotometricResult:
             its margin, saturated ones dropped) or no board on the image at the start. Their poses in `camera` stay
             the start's, and `views` holds {R, T_mm, left_out: reason} for them; the fit is the one the other views
             alone give.
+        bounds: per free lens parameter with a trust bound, {parameter (w_mm, U_mm, d_mm or theta_F_deg), start,
+            low, high (the bound's ends, same units), refined, at_bound}: which parameter hit which bound.
     """
 
     camera: TiltLensCamera
@@ -255,6 +257,7 @@ class PhotometricResult:
     sigma_model: dict = field(default_factory=dict)
     sigma_held: dict | None = None
     left_out: list = field(default_factory=list)
+    bounds: list = field(default_factory=list)
 
     @property
     def chosen_camera(self) -> TiltLensCamera:
@@ -793,8 +796,12 @@ def _refine(images, target, camera, options, say, start_sigma, corners, corner_h
         cov_sigma = cov_sigma + cov_held
     if at_bound:
         kept = "corner fit"
-        reasons.append(f"{', '.join(at_bound)} at the trust bound (the refinement is held within {TRUST_SIGMAS:g}σ of "
-                       "the corner fit): the pixels and the corners disagree beyond what either's σ allows")
+        hit = "; ".join(f"{e['parameter']} {e['refined']:.6g} at the bound [{e['low']:.6g}, {e['high']:.6g}] "
+                        f"(start {e['start']:.6g})" for e in _bound_record(problem, res.x["lens"], at_bound)
+                        if e["at_bound"])
+        reasons.append(f"{', '.join(at_bound)} at the trust bound ({hit}; the refinement is held within "
+                       f"{TRUST_SIGMAS:g}σ of the corner fit): the pixels and the corners disagree beyond what "
+                       "either's σ allows")
     corner_check = None
     if corners is not None:
         corner_check = _corner_check(refined, camera, corners, corner_held_out_px)
@@ -829,11 +836,13 @@ def _refine(images, target, camera, options, say, start_sigma, corners, corner_h
                               **({"gain_x": float(res.x["gain"][v, 0]), "gain_y": float(res.x["gain"][v, 1])}
                                  if "gain" in res.x else {})})
     free = [LENS_PARAMETERS[i] for i in problem.free]
+    bounds = _bound_record(problem, res.x["lens"], at_bound)
     return PhotometricResult(refined, exposure, values, _sigma_dict(res, cov_sigma, problem), out_views,
                              float(torch.sqrt((r * r).mean())), iterations, time.perf_counter() - t0, history,
                              selection, _sigma_dict(res, cov_gn, problem), kept, held_out, camera.copy(),
                              corner_check, "; ".join(reasons), free, at_bound, _sigma_dict(res, cov_tiles, problem),
-                             sigma_model, _sigma_dict(res, cov_held, problem) if cov_held is not None else None)
+                             sigma_model, _sigma_dict(res, cov_held, problem) if cov_held is not None else None,
+                             bounds=bounds)
 
 
 def _choose_pixels(imgs: list, views: list, target: Target, opts: PhotometricOptions, disc_only: bool, say,
@@ -1035,6 +1044,29 @@ def _trust_region(cam: TiltLensCamera, sigma: dict):
         stored[0] = math.inf
     bound = torch.tensor([math.inf if sd is None else TRUST_SIGMAS * sd for sd in stored], dtype=torch.float64)
     return free, bound
+
+
+#: Stored lens parameter -> (its name in CALIB.json, the physical value of a stored one).
+_PHYSICAL = {"log_w_mm": ("w_mm", math.exp), "inv_U_per_m": ("U_mm", lambda v: 1000.0 / v if v > 0 else math.inf),
+             "d_scaled": ("d_mm", lambda v: APERTURE_SCALE_MM * abs(v)), "theta_F": ("theta_F_deg", math.degrees)}
+
+
+def _bound_record(problem: "_Problem", z: torch.Tensor, at_bound: list) -> list:
+    """Per free lens parameter with a finite trust bound: its start, the bound's two ends and the refined value in
+    CALIB.json's units (U's ends swap: it is stored as 1/U), and whether it ended at the bound (`at_bound`)."""
+    lens = problem.full_lens(z.detach())
+    out = []
+    for i in problem.free:
+        b = float(problem.bound[i])
+        if not math.isfinite(b):
+            continue
+        stored = LENS_PARAMETERS[i]
+        name, to_physical = _PHYSICAL[stored]
+        start = float(problem.lens_start[i])
+        ends = sorted(to_physical(v) for v in (start - b, start + b))
+        out.append({"parameter": name, "start": to_physical(start), "low": ends[0], "high": ends[1],
+                    "refined": to_physical(float(lens[i])), "at_bound": stored in at_bound})
+    return out
 
 
 def _camera_views(camera: TiltLensCamera, views: list) -> TiltLensCamera:

@@ -314,3 +314,40 @@ def board_box(target: Target, cam: ThinLensCamera, pad_px: float = 2.0) -> tuple
     x1 = min(W - 1, int(math.ceil(float(uv[:, 0].max()) + pad)))
     y1 = min(H - 1, int(math.ceil(float(uv[:, 1].max()) + pad)))
     return None if x1 < x0 or y1 < y0 else (x0, y0, x1, y1)
+
+
+def residual_image(image: np.ndarray, target: Target, cam: ThinLensCamera, white: float, black: float,
+                   vignetting: float = 0.0, gain=(0.0, 0.0), subpixels: int = 2,
+                   chunk: int = 1 << 15) -> np.ndarray:
+    """(H, W) photo − rendered board of one view (linear units), NaN outside the pixels the fit may use
+    (`usable_pixels` of the board's box): what the refinement could not explain, for `tiltfit.report`'s
+    `plot_residual_image`.
+
+    Args:
+        image: (H, W) linear photo of the view (decode sRGB first).
+        cam: the view's camera (`TiltLensCamera.view_camera(v)` of the calibration).
+        white, black, vignetting, gain: the view's exposure (CALIB.json's photometric `levels` and `vignetting`;
+            gain (g_x, g_y) the illumination gradient, `render.shade` and `refine.Exposure`).
+        subpixels: points per pixel side of the closed-form aperture [2: a picture, not a fit].
+    """
+    W, H = cam.width, cam.height
+    out = np.full((H, W), np.nan)
+    box = board_box(target, cam)
+    if box is None:
+        return out
+    x0, y0, x1, y1 = box
+    ys, xs = np.mgrid[y0:y1 + 1, x0:x1 + 1]
+    uv = torch.tensor(np.stack([xs.ravel(), ys.ravel()], -1), dtype=torch.float64)
+    ok = usable_pixels(target, cam, uv)
+    uv = uv[torch.from_numpy(ok)]
+    near = max(len(target.x_edges), len(target.y_edges))
+    hx, hy = (W - 1) / 2, (H - 1) / 2
+    img = np.asarray(image, dtype=np.float64)
+    with torch.no_grad():
+        for a in range(0, uv.shape[0], chunk):
+            u = uv[a:a + chunk]
+            pred = shade(dark_fraction_disc(target, cam, u, near, subpixels), u, (W, H), white, black, vignetting)
+            pred = pred * (1.0 + gain[0] * (u[:, 0] - hx) / hx + gain[1] * (u[:, 1] - hy) / hy)
+            ix, iy = u[:, 0].long().numpy(), u[:, 1].long().numpy()
+            out[iy, ix] = img[iy, ix] - pred.numpy()
+    return out

@@ -23,6 +23,7 @@ from .imaging import torch_threads
 from .model import (Observations, TiltLensCamera, distortion_parameter_names, residuals, robust_rho,
                     robust_weight)
 from .board import describe_board, with_points
+from .blur_views import screen_blur_views
 from .board_fit import select_board
 from .distortion_centre import with_distortion_centre
 from .selection import blur_depends_on_depth, blur_is_informative, likelihood_ratio, nested_model_tests, usable_views
@@ -214,6 +215,7 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
     # The widths' noise is found along the target's rows and columns: on the target file's points (a fitted
     # board's points no longer lie on exact lines, and the noise would not be found at all).
     blur_noise = blur_noise_px(obs) if blur_ok else math.nan
+    file_points = obs.points_mm
     if options.board != "flat":
         base = geometry if geometry is not None else fit_geometry(cam, obs, replace(options, distortion=distortion),
                                                                     mode, say)
@@ -227,8 +229,13 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
     misfit = axis_test = centre_test = trend = None
     axis_entries = []  # the distortion models scored about the lens axis (`tiltfit.distortion_centre`)
     if blur_ok:
-        result, undetermined, note = _fit_blur(cam, obs, mode, init, init_sigma, options, distortion, geometry,
-                                               say, board=board)
+        # One view's widths may disagree with the others' (a sharp photo of very low contrast): left out, named.
+        result, undetermined, note, obs, outlier = screen_blur_views(
+            lambda o: _fit_blur(cam.copy(), o, mode, init, init_sigma, options, distortion, geometry, say, board=board),
+            obs, lambda o: blur_noise if o is obs else blur_noise_px(with_points(o, file_points)))
+        if outlier:
+            notes.append(outlier)
+            blur_noise = blur_noise_px(with_points(obs, file_points))  # the outlier's widths inflated it
         if result is not None and result.board is not None:  # refitted beside the lens: its σ is in the lens's
             board = result.board
             obs = with_points(obs, board.points())

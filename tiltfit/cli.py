@@ -213,7 +213,8 @@ def _observations(args, target, say, images: dict | None = None):
     is kept there under its path)."""
     import numpy as np
 
-    from .model import Observations
+    from .detfile import too_few_corners
+    from .model import MIN_CORNERS, Observations
 
     points = target.feature_points()
     corners, blur, size, names, skipped = [], [], None, [], []
@@ -236,15 +237,21 @@ def _observations(args, target, say, images: dict | None = None):
             say(f"{path}: {n} of {len(points)} corners detected in {time.perf_counter() - t0:.1f} s")
         if size is not None and list(det["image_size_px"]) != size:
             raise CliError(path, f"image size {det['image_size_px']} differs from the first input's {size}")
+        view = [c if c is not None else [math.nan, math.nan] for c in det["corners_px"]]
+        few = too_few_corners(np.array(view, dtype=np.float64))
+        if few:  # a partial view is left out, as a photo without a board is; the others still calibrate
+            print(f"tiltfit: warning: {path}: corners_px: {few}; skipped", file=sys.stderr, flush=True)
+            skipped.append({"image": path, "reason": few})
+            continue
         size = list(det["image_size_px"])
-        corners.append([c if c is not None else [math.nan, math.nan] for c in det["corners_px"]])
+        corners.append(view)
         blur.append([b if b is not None else math.nan for b in det["blur_px"]])
         names.append(path)
-    if not corners:
+    if not corners and all(s["reason"].startswith("no board found") for s in skipped):
         raise CliError(args.inputs[0], f"no board found in any of the {len(args.inputs)} images")
     if skipped and len(corners) < MIN_VIEWS_AFTER_SKIPPING:
-        raise CliError(args.inputs[0], f"only {len(corners)} of {len(args.inputs)} images have a board "
-                                       f"(at least {MIN_VIEWS_AFTER_SKIPPING} needed)")
+        raise CliError(args.inputs[0], f"only {len(corners)} of {len(args.inputs)} images have a board with {MIN_CORNERS} "
+                                       f"corners or more (at least {MIN_VIEWS_AFTER_SKIPPING} needed)")
     _check_views(names, np.array(corners, dtype=np.float64), points)
     obs = Observations(points, np.array(corners, dtype=np.float64), np.array(blur, dtype=np.float64),
                        tuple(size), args.pixel_pitch_mm, names=names)

@@ -113,6 +113,16 @@ def read_det(path: str, n_points: int) -> dict:
     return det
 
 
+def too_few_corners(corners_px: np.ndarray) -> str | None:
+    """Why a view (corners_px (N, 2) pixels, NaN where not found) has too few corners to calibrate, or None:
+    fewer than `tiltfit.model.MIN_CORNERS`. `tiltfit calibrate` skips such a view (a partial detection) and goes
+    on with the others."""
+    from .model import MIN_CORNERS
+
+    n = int(np.isfinite(corners_px).all(-1).sum())
+    return f"{n} corners found; a view needs at least {MIN_CORNERS} (not on one line)" if n < MIN_CORNERS else None
+
+
 def check_view(name: str, corners_px: np.ndarray, points: np.ndarray) -> None:
     """Refuse one view whose found corners cannot calibrate: fewer than `tiltfit.model.MIN_CORNERS` (6), all on one
     line (in the image or on the target), or a mirror image of the target.
@@ -122,11 +132,9 @@ def check_view(name: str, corners_px: np.ndarray, points: np.ndarray) -> None:
     """
     found = np.isfinite(corners_px).all(-1)
     n = int(found.sum())
-    from .model import MIN_CORNERS
-
-    if n < MIN_CORNERS:
-        raise DetFileError(f"{name}: corners_px: {n} corners found; a view needs at least {MIN_CORNERS} (not on one "
-                           f"line)")
+    few = too_few_corners(corners_px)
+    if few:
+        raise DetFileError(f"{name}: corners_px: {few}")
     xy, XY = corners_px[found], points[found, :2]
     for what, p in (("in the image", xy), ("on the target", XY)):
         centred = p - p.mean(0)

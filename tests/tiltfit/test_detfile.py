@@ -108,13 +108,25 @@ def test_a_mirror_image_labelled_as_a_turned_board_is_flagged_when_rows_are_non_
         assert mirrored(rows_backwards, t.feature_points()) is flagged, f"non-uniform rows: {flagged}"
 
 
+WIDE = target_from_dict({"type": "checkerboard", "x_edges": [0, 25, 50, 75, 100, 125, 150, 175, 200],
+                         "y_edges": [0, 30, 55, 75, 90]})
+
+
 def test_collinear_and_too_few_corners_are_refused():
+    # a row of 7 corners (more than MIN_CORNERS, so the line check, not the count, refuses it)
+    R, T = look_at_pose(WIDE, (100, 45, -800))
+    wide = observe(WIDE, CAMERA, R, T).corners_px
+    one_row = wide.copy()
+    one_row[7:] = np.nan  # the first row only: 7 corners on one target line
+    with pytest.raises(DetFileError, match="v.json: corners_px: the 7 found corners lie on one line"):
+        check_view("v.json", one_row, WIDE.feature_points())
+    check_view("v.json", wide, WIDE.feature_points())  # the whole view: accepted
     points = TARGET.feature_points()
     corners, _ = _view()
-    one_row = corners.copy()
-    one_row[4:] = np.nan  # the first row only: 4 corners on one target line, and too few (MIN_CORNERS 6)
+    four = corners.copy()
+    four[4:] = np.nan  # 4 corners: too few (MIN_CORNERS 6)
     with pytest.raises(DetFileError, match="4 corners found; a view needs at least 6"):
-        check_view("v.json", one_row, points)
+        check_view("v.json", four, points)
     line = np.stack([np.linspace(10, 300, len(corners)), np.linspace(20, 200, len(corners))], -1)
     with pytest.raises(DetFileError, match="lie on one line in the image"):
         check_view("v.json", line, points)
@@ -122,6 +134,49 @@ def test_collinear_and_too_few_corners_are_refused():
     few[3:] = np.nan
     with pytest.raises(DetFileError, match="3 corners found; a view needs at least 6"):
         check_view("v.json", few, points)
+
+
+def _calibrate_dets(tmp_path, views, capsys):
+    tfile = tmp_path / "T.json"
+    TARGET.save(str(tfile))
+    paths = []
+    for i, (corners, blur) in enumerate(views):
+        path = tmp_path / f"v{i}.json"
+        det = _det_dict(corners, blur)
+        det["corners_px"] = [c if np.isfinite(c).all() else None for c in det["corners_px"]]  # not found: null
+        path.write_text(json.dumps(det))
+        paths.append(str(path))
+    out = tmp_path / "CALIB.json"
+    rc = main(["calibrate", *paths, "--target", str(tfile), "--pixel-pitch-mm", "0.02", "--distortion", "none",
+               "--board", "flat", "-q", "-o", str(out)])
+    return rc, capsys.readouterr().err, out, paths
+
+
+@pytest.mark.parametrize("n_found", [4, 5])
+def test_a_partial_view_is_skipped_naming_it_and_the_run_goes_on(tmp_path, capsys, n_found):
+    """A DET file whose view has 4 or 5 corners (fewer than MIN_CORNERS) is skipped with one line, listed under
+    CALIB.json's `skipped`; the other views calibrate."""
+    views = [_view(p) for p in ((60, 45, -700), (-200, 0, -650), (300, 150, -600), (60, -250, -600))]
+    partial = views[1][0].copy()
+    partial[n_found:] = np.nan
+    views.insert(2, (partial, views[1][1]))
+    rc, err, out, paths = _calibrate_dets(tmp_path, views, capsys)
+    assert rc == 0, err
+    lines = [s for s in err.splitlines() if paths[2] in s]
+    assert len(lines) == 1 and f"{n_found} corners found; a view needs at least 6" in lines[0] \
+        and lines[0].endswith("skipped"), err
+    calib = json.loads(out.read_text())
+    assert [s["image"] for s in calib["skipped"]] == [paths[2]], calib["skipped"]
+    assert [v["image"] for v in calib["views"]] == paths[:2] + paths[3:], "the four full views calibrate"
+
+
+def test_too_few_views_left_after_skipping_partial_ones_stops(tmp_path, capsys):
+    views = [_view(p) for p in ((60, 45, -700), (-200, 0, -650), (300, 150, -600))]
+    views[2] = (np.where(np.arange(12)[:, None] < 5, views[2][0], np.nan), views[2][1])
+    rc, err, out, paths = _calibrate_dets(tmp_path, views, capsys)
+    assert rc == 2 and "only 2 of 3 images have a board with 6 corners or more" in err, err
+    assert len(err.strip().splitlines()) == 2 and "Traceback" not in err, f"a warning and the error: {err}"
+    assert not out.exists(), "no output file left behind"
 
 
 def test_repeated_views_are_refused_naming_both_files():

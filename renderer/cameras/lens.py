@@ -270,6 +270,17 @@ class Lens:
             pp = tuple((c + 0.5) / factor - 0.5 for c in pp)
         return replace(self, sensor=self._sensor("binned").binned(factor), principal_point_px=pp)
 
+    def cropped(self, x0: int, y0: int, width_px: int, height_px: int) -> "Lens":
+        """The same optics read out only on the window of pixels x0 ≤ x < x0 + width, y0 ≤ y < y0 + height:
+        pixel (x, y) of the cropped lens is pixel (x0 + x, y0 + y) of this one (the principal point moves by
+        the window's origin; the window may reach past the sensor's edge)."""
+        if not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in (x0, y0, width_px, height_px)):
+            raise ValueError(f"window: expected whole pixels, got {(x0, y0, width_px, height_px)!r}")
+        sensor = self._sensor("cropped")
+        cx, cy = self.center_px
+        return replace(self, sensor=Sensor(int(width_px), int(height_px), sensor.pixel_pitch),
+                       principal_point_px=(cx - int(x0), cy - int(y0)))
+
     # ------------------------------------------------------------------ closed forms
 
     def project(self, p_cam):

@@ -154,19 +154,38 @@ def undistort(xy_d: torch.Tensor, coefficients, iterations: int = 20) -> torch.T
     # Converged means within a few hundred ulps of the input's dtype (1e-9 alone failed 2-8 % of float32 pixels).
     tol = max(1e-9, 256 * torch.finfo(xy_d.dtype).eps)
     with torch.no_grad():
-        xy = xy_d.detach().clone()
+        xy = xy_d.detach().reshape(-1, 2).clone()
         kd = k.detach()
-        target = xy_d.detach()
+        target = xy_d.detach().reshape(-1, 2)
         scale = 1 + target.norm(dim=-1)
+        # Each point's Newton steps depend on that point alone, so a point whose step no longer changes it (a
+        # fixed point in floating point) would return the same numbers at every further step: the steps run on
+        # the points still moving only, which gives the same result as stepping all of them every time.
+        idx = None  # the points still moving (None: all)
+        stuck = False  # whether a point that stopped moving is still far from converged
         for _ in range(iterations):
-            err = distort(xy, kd) - target
-            if bool((err.norm(dim=-1) <= 1e-3 * tol * scale).all()):
+            sub = xy if idx is None else xy[idx]
+            tgt = target if idx is None else target[idx]
+            err = distort(sub, kd) - tgt
+            tiny = err.norm(dim=-1) <= 1e-3 * tol * (scale if idx is None else scale[idx])
+            if not stuck and bool(tiny.all()):
                 break   # every point converged far below the tolerance: more steps change nothing
-            step = _solve2(distort_jacobian(xy, kd), err)
+            step = _solve2(distort_jacobian(sub, kd), err)
             # Limit steps to half the current radius plus a little: keeps Newton inside the invertible zone.
-            limit = 0.5 * xy.norm(dim=-1, keepdim=True) + 0.05
+            limit = 0.5 * sub.norm(dim=-1, keepdim=True) + 0.05
             n = step.norm(dim=-1, keepdim=True)
-            xy = xy - step * torch.clamp(limit / n.clamp(min=1e-300), max=1.0)
+            new = sub - step * torch.clamp(limit / n.clamp(min=1e-300), max=1.0)
+            moving = (new != sub).any(-1)
+            stuck = stuck or bool((~moving & ~tiny).any())
+            if idx is None:
+                xy = new
+                idx = moving.nonzero().squeeze(-1)
+            else:
+                xy[idx] = new
+                idx = idx[moving]
+            if idx.numel() == 0:
+                break
+        xy = xy.reshape(xy_d.shape)
         bad = (distort(xy, kd) - xy_d.detach()).norm(dim=-1) > tol * (1 + xy_d.detach().norm(dim=-1))
         bad |= torch.linalg.det(distort_jacobian(xy, kd)) <= 0
     J = distort_jacobian(xy, k)

@@ -1,11 +1,14 @@
 """Calibration with one bad (low-contrast) view against the same without it (issue 33 §3), OpenCV's
 calibrateCamera on the same corners in the same run.
 
-    python benchmarks/bench_bad_view.py [--set industrial_ds1] [--good 3] [--contrast 0.003]
+    python benchmarks/bench_bad_view.py [--set industrial_ds1] [--good 3 | --views 0,5,10] [--contrast 0.003]
+                                        [--bits 16|8]
 
 Three good photos of a shipped real set (tiltfit's cached detections) and a fourth photo made from another photo of
-the set with its contrast scaled to `--contrast` about mid-grey (16-bit linear PNG: a sharp, valid view whose
-detected corners and blur widths are those of a low-contrast photo). Each case is calibrated with tiltfit's
+the set with its contrast scaled to `--contrast` about mid-grey (`--bits 16`: a linear PNG; `--bits 8`: an 8-bit PNG,
+where 0.3 % is under one grey level: the corners survive, the blur widths come out near 0 px or random, the case of
+issue 33 §3(a)). tiltfit is also run with the screen of disagreeing blur widths off (`tiltfit.blur_views`, the
+behaviour before it) in the same run. Each case is calibrated with tiltfit's
 defaults (`calibrate`, unified, distortion k1, flat board) and with `cv2.calibrateCamera` (k1 only, square pixels)
 on the same corners; focal length, principal point, RMS per corner and time. Writes
 benchmarks/results/bad_view.json and .md (medians over `--repeats` runs for the times).
@@ -28,19 +31,21 @@ from results_io import add_output_options, save  # noqa: E402
 PITCH = {"industrial_ds1": 0.0048, "gopro_wide": 0.005}
 
 
-def low_contrast_view(folder: str, photo: str, contrast: float, target):
-    """The DET dict of `photo` with its contrast scaled by `contrast` about mid-grey (16-bit linear PNG)."""
+def low_contrast_view(folder: str, photo: str, contrast: float, target, bits: int = 16):
+    """The DET dict of `photo` with its contrast scaled by `contrast` about mid-grey (`bits`-bit PNG)."""
     from tiltfit import cli
 
     grey = cv2.imread(photo, cv2.IMREAD_GRAYSCALE).astype(np.float64) / 255.0
     low = 0.5 + (grey - 0.5) * contrast
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "low_" + os.path.splitext(os.path.basename(photo))[0] + ".png")
-        cv2.imwrite(path, np.round(low * 65535).astype(np.uint16))
+        top, dtype = (65535, np.uint16) if bits == 16 else (255, np.uint8)
+        cv2.imwrite(path, np.round(low * top).astype(dtype))
         return cli._detect_image(path, target, None)
 
 
-def calibrate_case(obs, repeats: int):
+def calibrate_case(obs, repeats: int, screen: bool = True):
+    from tiltfit import blur_views
     from tiltfit.calibration import calibrate
     from tiltfit.fit import FitError, FitOptions
     from tiltfit.opencv_corners import opencv_calibrate
@@ -49,11 +54,16 @@ def calibrate_case(obs, repeats: int):
     times, result = [], None
     for _ in range(repeats):
         t0 = time.perf_counter()
+        needs = blur_views.needs_screening
+        if not screen:
+            blur_views.needs_screening = lambda *a: False
         try:
             result = calibrate(obs, "unified", options=FitOptions(distortion="k1", board="flat"))
             err = None
         except FitError as e:
             err = str(e)
+        finally:
+            blur_views.needs_screening = needs
         times.append(time.perf_counter() - t0)
     if err:
         out["tiltfit"] = {"error": err, "time_s": float(np.median(times))}
@@ -62,7 +72,11 @@ def calibrate_case(obs, repeats: int):
         out["tiltfit"] = {"focal_px": v["w_mm"] / obs.pixel_pitch_mm, "cx": v["principal_point_px"][0],
                           "cy": v["principal_point_px"][1],
                           "rms_px": float(np.sqrt(result.rss["corners"] / (result.rss["n_corners"] / 2))),
+                          "U_mm": None if "U_mm" in result.undetermined else v["U_mm"],
+                          "d_mm": None if "d_mm" in result.undetermined else v["d_mm"],
                           "time_s": float(np.median(times)), "notes": list(result.notes) + list(result.warnings)}
+    if not screen:
+        return out
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
@@ -76,22 +90,28 @@ def calibrate_case(obs, repeats: int):
 def write_markdown(path: str, res: dict) -> None:
     lines = [f"# One bad (low-contrast) view: {res['set']}, {res['good']} good views + "
              f"{res['bad_photo']} at {res['contrast']:g} contrast", "",
-             f"Reproduce: `python benchmarks/bench_bad_view.py --set {res['set']} --good {res['good']} --contrast "
-             f"{res['contrast']:g}`. tiltfit: `calibrate` unified, distortion k1, flat board; OpenCV: calibrateCamera, "
+             f"Reproduce: `python benchmarks/bench_bad_view.py --set {res['set']} --views "
+             f"{','.join(map(str, res['views']))} --contrast {res['contrast']:g} --bits {res['bits']}` "
+             f"({res['bits']}-bit photo). tiltfit: `calibrate` unified, distortion k1, flat board; OpenCV: calibrateCamera, "
              f"k1 only, square pixels, same corners. Times are medians of {res['repeats']} runs.", "",
              f"Bad view: {res['bad_corners']} corners found, blur widths median {res['bad_blur_median_px']:.3g} px "
              f"(good views: {res['good_blur_median_px']:.3g} px).", "",
-             "| case | tool | focal px | cx | cy | RMS px | time s | note |", "|---|---|---|---|---|---|---|---|"]
+             "| case | tool | focal px | cx | cy | RMS px | U mm | d mm | time s | note |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     cases = res["cases"]
     for name, case in cases.items():
         for tool in ("tiltfit", "opencv"):
+            if tool not in case:
+                continue
             r = case[tool]
             if "error" in r:
-                lines.append(f"| {name} | {tool} | — | — | — | — | {r['time_s']:.2f} | error: {r['error']} |")
+                lines.append(f"| {name} | {tool} | — | — | — | — | — | — | {r['time_s']:.2f} | error: {r['error']} |")
             else:
-                note = "; ".join(r.get("notes", []))[:160]
+                note = "; ".join(r.get("notes", []))[:200]
+                focus = " | ".join("—" if r.get(k) is None else f"{r[k]:.4g}" for k in ("U_mm", "d_mm")) \
+                    if tool == "tiltfit" else "— | —"
                 lines.append(f"| {name} | {tool} | {r['focal_px']:.2f} | {r['cx']:.2f} | {r['cy']:.2f} | "
-                             f"{r['rms_px']:.3f} | {r['time_s']:.2f} | {note} |")
+                             f"{r['rms_px']:.3f} | {focus} | {r['time_s']:.2f} | {note} |")
     a, b = cases["without the bad view"], cases["with the bad view"]
     for tool in ("tiltfit", "opencv"):
         if "error" not in a[tool] and "error" not in b[tool]:
@@ -105,6 +125,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--set", default="industrial_ds1")
     ap.add_argument("--good", type=int, default=3)
+    ap.add_argument("--views", default=None, help="the good views (indices into the set's photos with a board)")
+    ap.add_argument("--bits", type=int, choices=(8, 16), default=16)
     ap.add_argument("--contrast", type=float, default=0.003)
     ap.add_argument("--repeats", type=int, default=3)
     add_output_options(ap, "bad_view")
@@ -114,18 +136,20 @@ def main(argv=None) -> int:
 
     folder = os.path.join(REAL, args.set)
     obs = observations(folder, PITCH[args.set])[0]
-    good = obs.subset(list(range(args.good)))
+    views = [int(v) for v in args.views.split(",")] if args.views else list(range(args.good))
+    good = obs.subset(views)
     target = load_target(os.path.join(folder, "target.json"))
     bad_photo = photos(folder)[args.good + 5]
-    det = low_contrast_view(folder, bad_photo, args.contrast, target)
+    det = low_contrast_view(folder, bad_photo, args.contrast, target, args.bits)
     corners = np.array([[np.nan, np.nan] if c is None else c for c in det["corners_px"]], dtype=np.float64)
     blur = np.array([np.nan if b is None else b for b in det["blur_px"]], dtype=np.float64)
     both = Observations(good.points_mm, np.concatenate([good.corners_px.numpy(), corners[None]]),
                         np.concatenate([good.blur_px.numpy(), blur[None]]), good.image_size_px, good.pixel_pitch_mm,
                         list(good.names) + ["low_contrast.png"])
     cases = {"without the bad view": calibrate_case(good, args.repeats),
-             "with the bad view": calibrate_case(both, args.repeats)}
-    res = {"set": args.set, "good": args.good, "contrast": args.contrast, "repeats": args.repeats,
+             "with the bad view": calibrate_case(both, args.repeats),
+             "with the bad view, no blur screen (before)": calibrate_case(both, args.repeats, screen=False)}
+    res = {"set": args.set, "good": len(views), "views": views, "bits": args.bits, "contrast": args.contrast, "repeats": args.repeats,
            "bad_photo": os.path.basename(bad_photo), "bad_corners": int(np.isfinite(corners).all(-1).sum()),
            "bad_blur_median_px": float(np.nanmedian(blur)),
            "good_blur_median_px": float(np.nanmedian(good.blur_px.numpy())), "cases": cases}

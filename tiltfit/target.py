@@ -675,7 +675,8 @@ def _write_rows(out, r0: int, rows_u8: np.ndarray) -> None:
 
 def _scale_bar_rows(target, dpi, strip, bar_mm, caption, W, H, Hb) -> np.ndarray:
     """(H − Hb, W) uint8 rows below the board: white, the bar and its 10 mm ticks in pixels, the caption drawn
-    by matplotlib 2 mm below the bar at 6 pt, as in the PDF."""
+    by matplotlib 2 mm below the bar at 6 pt, as in the PDF (only the caption's box is drawn, so a wide page
+    costs no more than a narrow one)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -689,14 +690,19 @@ def _scale_bar_rows(target, dpi, strip, bar_mm, caption, W, H, Hb) -> np.ndarray
     for k in range(int(L // 10) + 1):
         xk = bx0 + 10.0 * k
         img[max(r(by0 - 1.5), 0):max(r(by0 + t), 0), c(xk) - 1:c(xk) + 1] = 0.0
-    fig = Figure(figsize=(W / dpi, (H - Hb) / dpi), dpi=dpi)
-    canvas = FigureCanvasAgg(fig)
-    fig.figimage(_srgb8(img), cmap="gray", vmin=0, vmax=255, origin="upper", resize=False)
-    fig.text(c(bx0) / W, 1.0 - r(by0 + t + 2.0) / (H - Hb), caption, fontsize=6, va="top", ha="left",
-             color="black")
-    canvas.draw()
-    rgba = np.asarray(canvas.buffer_rgba())
-    return rgba[:H - Hb, :W, 0].copy()
+    rows = _srgb8(img)
+    top, left = max(r(by0 + t + 2.0), 0), c(bx0)
+    # The caption's box: 6 pt a character is wider than any glyph of the font at 6 pt; to the strip's bottom.
+    box_w, box_h = min(W - left, int(math.ceil(len(caption) * 6 / 72 * dpi)) + 2), H - Hb - top
+    if box_w > 0 and box_h > 0:
+        fig = Figure(figsize=(box_w / dpi, box_h / dpi), dpi=dpi, facecolor="white")
+        canvas = FigureCanvasAgg(fig)
+        fig.text(0.0, 1.0, caption, fontsize=6, va="top", ha="left", color="black")
+        canvas.draw()
+        text = np.asarray(canvas.buffer_rgba())[:box_h, :box_w, 0]
+        region = rows[top:top + text.shape[0], left:left + text.shape[1]]
+        np.minimum(region, text[:region.shape[0], :region.shape[1]], out=region)
+    return rows
 
 
 def _save_atomic(fig, path: str, fmt: str, **kwargs) -> None:

@@ -496,7 +496,7 @@ def cmd_report(args) -> int:
     except ValueError as e:
         raise _as_cli_error(args.calib, e) from None
     try:
-        files = write_report(data, args.output)
+        files = write_report(data, args.output, args.calib, _real_vs_rendered_options(args))
     except OSError as e:
         raise CliError(args.output, f"cannot write ({e.strerror or e})") from None
     except ValueError as e:
@@ -505,6 +505,27 @@ def cmd_report(args) -> int:
     for f in files:
         say(f"wrote {f}")
     return 0
+
+
+def _real_vs_rendered_options(args):
+    """`tiltfit report`'s real-against-rendered options from the command line (one-line errors naming the flag)."""
+    from .real_vs_rendered import RealVsRenderedOptions
+
+    views = None
+    if args.views is not None:
+        try:
+            views = tuple(int(v) for v in args.views.split(",") if v.strip())
+        except ValueError:
+            raise CliError("--views", f"expected view indices separated by commas (0,3,7), got {args.views!r}") from None
+    for flag, value, low in (("--max-views", args.max_views, 0), ("--spp", args.spp, 1), ("--scale", args.scale, 1)):
+        if value is not None and value < low:
+            raise CliError(flag, f"expected an integer >= {low}, got {value}")
+    for folder in args.photos or []:
+        if not os.path.isdir(folder):
+            raise CliError(folder, "--photos: not a folder")
+    say = _say(args.quiet)
+    return RealVsRenderedOptions(views=views, max_views=args.max_views, photos_dirs=tuple(args.photos or ()),
+                                 spp=args.spp, scale=args.scale, encoding=args.encoding, say=say)
 
 
 def cmd_compare(args) -> int:
@@ -660,9 +681,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=cmd_export)
 
-    p = sub.add_parser("report", help="residual, blur and coverage plots of a calibration")
+    p = sub.add_parser("report", help="residual, blur and coverage plots of a calibration, and its photos against "
+                                      "the target rendered through it")
     p.add_argument("calib", metavar="CALIB.json")
     p.add_argument("-o", "--output", required=True, metavar="DIR")
+    p.add_argument("--photos", action="append", metavar="DIR",
+                   help="folder where the views' photos are looked for by name when their stored path is not there "
+                        "(repeatable)")
+    p.add_argument("--views", metavar="K,K,...", help="views compared with renderings (indices) [--max-views of them, "
+                                                      "spread over the views]")
+    p.add_argument("--max-views", type=int, default=6, metavar="N",
+                   help="views compared with renderings when --views is not given; 0: none [6]")
+    p.add_argument("--spp", type=int, default=4, help="samples per pixel of the renderings [4]")
+    p.add_argument("--scale", type=int, default=None, metavar="K",
+                   help="compare at 1/K of the photos' resolution [the smallest K giving at most 640 px across]")
+    p.add_argument("--encoding", choices=("srgb", "linear"), default=None,
+                   help="the photos' encoding [as the file says; 8-bit: srgb]")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=cmd_report)
 

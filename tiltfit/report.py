@@ -97,17 +97,26 @@ def _arr(values, width: int) -> np.ndarray:
                     dtype=np.float64).reshape(len(values), width)
 
 
-def write_report(calib: dict, out_dir: str) -> list:
+def write_report(calib: dict, out_dir: str, calib_path: str | None = None, real_vs_rendered=None) -> list:
     """Write the report's PNG plots and report.md into `out_dir`; returns the paths written.
 
     `calib` is a CALIB dict checked by `tiltfit.calibfile.validate_calib`. The files are written as a set
     (`renderer.io.atomic_folder`): on an error or interrupt none of them reaches `out_dir`.
+    real_vs_rendered: `tiltfit.real_vs_rendered.RealVsRenderedOptions` to add the real-against-rendered page
+    (photos found through the views' `image`, relative to `calib_path`'s folder or in its `photos_dirs`), or None.
     """
     from renderer.io import atomic_folder
 
     views = _views(calib)
     with atomic_folder(out_dir) as staging:
         names = _write_plots(calib, views, staging)
+        if real_vs_rendered is not None and (real_vs_rendered.max_views > 0 or real_vs_rendered.views):
+            from .real_vs_rendered import markdown_lines, write_real_vs_rendered
+
+            more, summary = write_real_vs_rendered(calib, calib_path, staging, real_vs_rendered)
+            names += more
+            with open(os.path.join(staging, "report.md"), "a", encoding="utf-8") as f:
+                f.write("\n".join(markdown_lines(summary)) + "\n")
     return [os.path.join(out_dir, name) for name in names]
 
 

@@ -80,7 +80,10 @@ def poses_from_pnp(obs: Observations, focal_px: float, principal_point_px,
         # IPPE for a flat board; SQPnP where it fails (a board exactly facing the camera gave IPPE NaNs with
         # opencv-python-headless 5.0.0 on a GPU machine), then the iterative method.
         for flags in ([cv2.SOLVEPNP_IPPE] if planar else []) + [cv2.SOLVEPNP_SQPNP, cv2.SOLVEPNP_ITERATIVE]:
-            ok, r, t = cv2.solvePnP(pts[m], obs.corners_px[v].numpy()[m], K, dist, flags=flags)
+            try:  # OpenCV asserts on what it cannot solve (e.g. corners undistorted by an absurd start)
+                ok, r, t = cv2.solvePnP(pts[m], obs.corners_px[v].numpy()[m], K, dist, flags=flags)
+            except cv2.error:
+                continue
             if ok and np.isfinite(r).all() and np.isfinite(t).all():
                 break
         else:
@@ -88,8 +91,11 @@ def poses_from_pnp(obs: Observations, focal_px: float, principal_point_px,
         # The iterative refinement only polishes the first pose (the joint fit refines it again); some OpenCV
         # builds refuse it where the first pose is fine (seen with opencv-python-headless 5.0.0 on a GPU
         # machine), so its failure keeps the first pose instead of failing the calibration.
-        ok2, r2, t2 = cv2.solvePnP(pts[m], obs.corners_px[v].numpy()[m], K, dist, r.copy(), t.copy(), True,
-                                   cv2.SOLVEPNP_ITERATIVE)
+        try:
+            ok2, r2, t2 = cv2.solvePnP(pts[m], obs.corners_px[v].numpy()[m], K, dist, r.copy(), t.copy(), True,
+                                       cv2.SOLVEPNP_ITERATIVE)
+        except cv2.error:
+            ok2 = False
         if ok2 and np.isfinite(r2).all() and np.isfinite(t2).all():
             r, t = r2, t2
         if not (np.isfinite(r).all() and np.isfinite(t).all()):

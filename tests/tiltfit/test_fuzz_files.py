@@ -95,7 +95,10 @@ def _yml(K="1750., 0., 319.5, 0., 1750., 239.5, 0., 0., 1.", dist=None) -> str:
 
 def _init_cases() -> list[dict]:
     rest = "1750.0, 319.5, 239.5, 0, 0, 0, 0"
-    out = [_init("mrcal-ok", _mrcal(f"1750.0, {rest}"), (), expect="either", init="c.cameramodel")]
+    out = [_init("mrcal-ok", _mrcal(f"1750.0, {rest}"), (), expect="either", init="c.cameramodel"),
+           # a finite but absurd start: OpenCV's solvePnP asserted (a traceback) on the corners it undistorts
+           _init("mrcal-p1-1e300", _mrcal("1750.0, 1750.0, 319.5, 239.5, 0, 0, 1e300, 0"), (), expect="either",
+                 init="c.cameramodel")]
     for name, intr, field in (
             ("mrcal-fx-400-digits", f"{HUGE}, {rest}", "intrinsics"),
             ("mrcal-fx-minus-400-digits", f"-{HUGE}, {rest}", "intrinsics"),

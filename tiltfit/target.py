@@ -682,15 +682,14 @@ def _scale_bar_rows(target, dpi, strip, bar_mm, caption, W, H, Hb) -> np.ndarray
 
     x0, y0, _, _ = target.extent_mm
     px = 25.4 / dpi
-    img = np.ones((H - Hb, W), dtype=np.float32)
+    rows = np.full((H - Hb, W), 255, dtype=np.uint8)  # white; black is 0 in any encoding
     bx0, by0, L, t = _bar_geometry(target, strip, bar_mm)
     c = lambda x: int(round((x - x0) / px))  # noqa: E731
     r = lambda y: int(round((y - y0) / px)) - Hb  # noqa: E731
-    img[max(r(by0), 0):max(r(by0 + t), 0), c(bx0):c(bx0 + L)] = 0.0
+    rows[max(r(by0), 0):max(r(by0 + t), 0), c(bx0):c(bx0 + L)] = 0
     for k in range(int(L // 10) + 1):
         xk = bx0 + 10.0 * k
-        img[max(r(by0 - 1.5), 0):max(r(by0 + t), 0), c(xk) - 1:c(xk) + 1] = 0.0
-    rows = _srgb8(img)
+        rows[max(r(by0 - 1.5), 0):max(r(by0 + t), 0), c(xk) - 1:c(xk) + 1] = 0
     top, left = max(r(by0 + t + 2.0), 0), c(bx0)
     # The caption's box: 6 pt a character is wider than any glyph of the font at 6 pt; to the strip's bottom.
     box_w, box_h = min(W - left, int(math.ceil(len(caption) * 6 / 72 * dpi)) + 2), H - Hb - top

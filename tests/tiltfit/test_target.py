@@ -227,3 +227,47 @@ def test_target_cli_errors_are_one_line(tmp_path, capsys, argv, where):
     err = capsys.readouterr().err.strip()
     assert rc == 2 and err.startswith("tiltfit: ") and "\n" not in err and where in err, f"rc {rc}: {err!r}"
     assert not (tmp_path / "x.png").exists() and not (tmp_path / "out.json").exists(), "partial output left"
+
+
+def test_png_written_in_strips_is_the_whole_board_exactly(tmp_path, monkeypatch):
+    """Strips of a few rows (many seams) give the same board as one rasterisation of the whole page."""
+    import OpenImageIO as oiio
+
+    import tiltfit.target as tt
+    from renderer.io import linear_to_srgb
+
+    monkeypatch.setattr(tt, "PNG_STRIP_PIXELS", 1 << 12)
+    t = design_target(5, 4, 20.0, w_mm=W_MM, distance_mm=D_MM, inclination_deg=20)
+    write_printable(t, str(tmp_path / "t.png"), None, dpi=100)
+    img = oiio.ImageBuf(str(tmp_path / "t.png")).get_pixels(oiio.UINT8)[..., 0].astype(np.float64) / 255
+    ref = linear_to_srgb(render_target(t, 100)[:-1])
+    assert img.shape[1] == ref.shape[1] and img.shape[0] > ref.shape[0], f"PNG {img.shape}, board {ref.shape}"
+    assert np.abs(img[:ref.shape[0]] - ref).max() < 1.5 / 255, "the strips changed the board"
+
+
+def test_png_print_memory_does_not_grow_with_the_page(tmp_path, monkeypatch):
+    """issue 33 §4: a 0.71 m board at 300 dpi took 10 GB (141 bytes a pixel). Python-side peak memory
+    (tracemalloc: numpy's arrays included) of printing a 0.65 × 0.53 m board at 100 and 200 dpi (4.4 and 17.7
+    megapixels) with strips of 2^16 pixels: the same few MB for both, under 0.5 byte a pixel of the larger."""
+    import tracemalloc
+
+    import tiltfit.target as tt
+
+    monkeypatch.setattr(tt, "PNG_STRIP_PIXELS", 1 << 16)
+    from tiltfit.target import target_from_dict
+
+    t = target_from_dict({"type": "checkerboard", "units": "mm", "x_edges": [i * 60.0 for i in range(10)],
+                          "y_edges": [i * 60.0 for i in range(8)], "dark_cell": [0, 0], "margin": 25})
+    write_printable(t, str(tmp_path / "warm.png"), None, dpi=20)  # fonts and modules loaded outside the count
+    peaks, pixels = [], []
+    for dpi in (100, 200):
+        tracemalloc.start()
+        try:
+            write_printable(t, str(tmp_path / "t.png"), None, dpi=dpi)
+            peaks.append(tracemalloc.get_traced_memory()[1])
+        finally:
+            tracemalloc.stop()
+        x0, y0, x1, y1 = t.extent_mm
+        pixels.append((x1 - x0) * (y1 + 15 - y0) * (dpi / 25.4) ** 2)
+    assert peaks[1] < 1.5 * peaks[0] + (1 << 20), f"peak {peaks[0] / 1e6:.1f} MB -> {peaks[1] / 1e6:.1f} MB for 4x pixels"
+    assert peaks[1] < 0.5 * pixels[1], f"{peaks[1] / pixels[1]:.2f} bytes a pixel at 200 dpi"

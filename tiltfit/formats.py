@@ -120,7 +120,9 @@ def calibration_reference() -> str:
         "`rational` (all eight).", "",
         "`distortion_centre` (default `\"sensor\"`): `\"sensor\"`, the distortion about the principal point, or "
         "`\"lens_axis\"`, about the tilted lens's own axis (applied in the lens's frame, OpenCV's tilted model: "
-        "`tiltfit export --to opencv` then writes τx, τy); the joint fit chooses it by a likelihood-ratio test "
+        "`tiltfit export --to opencv` then writes τx, τy, and refuses the file, naming `theta_L_deg`, where θL is "
+        "undetermined (null, with θF ≠ 0): τ = 0 would be another camera; mrcal's file says the tilt is unknown and "
+        "its projection approximate); the joint fit chooses it by a likelihood-ratio test "
         "(`model_selection.distortion_centre`: `lr_statistic`, `p_value`, `delta_bic`, `justified`, `chosen`). "
         "Checked when reading: one of " + ", ".join(f"`{c}`" for c in DISTORTION_CENTRES) + "; `theta_L_deg`, "
         "where given, |θL| < 90 (a file with θL but no θF, as read from an OpenCV τ file, starts θF from θL).", "",

@@ -166,7 +166,8 @@ def opencv_note(calib: dict, tool: str = "OpenCV") -> str:
     if calib.get("U_mm") is not None or calib.get("d_mm") is not None:
         U, d = calib.get("U_mm"), calib.get("d_mm")
         parts.append(f"the blur model (focus distance U = {'unknown' if U is None else format(U, '.5g')} mm, "
-                     f"aperture d = {'unknown' if d is None else format(d, '.4g')} mm) is not represented")
+                     f"aperture d = {'unknown' if d is None else format(d, '.4g')} mm) is not part of {tool}'s "
+                     f"model: tiltfit keeps U and d beside it (tiltfit_U_mm, tiltfit_d_mm) for rendering")
     board = calib.get("board")
     if isinstance(board, dict) and board.get("model") not in (None, "flat"):
         head = (f"the target's fitted shape (board model {board.get('model')}, CALIB.json `board`): the poses "
@@ -252,6 +253,9 @@ def opencv_text(calib: dict, format_name: str = ".yml") -> str:
         if calib.get("rms_reprojection_px") is not None:
             fs.write("rms_reprojection_px", float(calib["rms_reprojection_px"]))
         fs.write("pixel_pitch_mm", float(calib["pixel_pitch_mm"]))
+        for key, node in _FOCUS_NODES:  # for tiltfit and the renderer's calibrated camera; OpenCV ignores them
+            if is_finite_number(calib.get(key)):
+                fs.write(node, float(calib[key]))
         fs.write("tiltfit_note", opencv_note(calib) or "the calibration is fully represented")
         model = opencv_model(calib)
         if model is not None:
@@ -399,6 +403,11 @@ def read_opencv(path: str, pixel_pitch_mm: float | None = None) -> dict:
             pitch = p_node.real()
         rv = _matrix(path, fs, "rvecs", ((None, 3), (3,)), required=False)
         tv = _matrix(path, fs, "tvecs", ((None, 3), (3,)), required=False)
+        focus = {}
+        for key, node_name in _FOCUS_NODES:
+            node = fs.getNode(node_name)
+            if not node.empty() and not node.isNone():
+                focus[key] = _focus_value(path, node_name, node.real() if (node.isReal() or node.isInt()) else None)
     finally:
         fs.release()
     if pitch is None or not (np.isfinite(pitch) and pitch > 0):
@@ -423,6 +432,7 @@ def read_opencv(path: str, pixel_pitch_mm: float | None = None) -> dict:
            "w_mm": f * R[2, 2] * float(pitch), "U_mm": None, "d_mm": None, "theta_F_deg": 0.0,
            "distortion": {"model": "brown_conrady", "coefficients": d or [0.0]},
            "undetermined": ["U_mm", "d_mm"], "source": os.path.abspath(path)}
+    _add_focus(out, focus)
     if any(tau):
         # θF needs U, which an OpenCV file does not hold: the lens tilt θL and its axis are what it says.
         out.update(theta_F_deg=None, theta_L_deg=math.degrees(theta_L), tilt_axis_deg=math.degrees(phi),
@@ -439,6 +449,8 @@ def read_opencv(path: str, pixel_pitch_mm: float | None = None) -> dict:
 # mrcal (https://mrcal.secretsauce.net): a camera model file is a Python dict literal, `#` comments allowed.
 MRCAL_EXTENSION = ".cameramodel"
 _MRCAL_PITCH = "# tiltfit pixel_pitch_mm = "
+#: U and d in camera files (tiltfit's own nodes: OpenCV FileStorage node names; mrcal comment lines by the key).
+_FOCUS_NODES = (("U_mm", "tiltfit_U_mm"), ("d_mm", "tiltfit_d_mm"))
 _MRCAL_MODELS = {"LENSMODEL_PINHOLE": 0, "LENSMODEL_OPENCV4": 4, "LENSMODEL_OPENCV5": 5, "LENSMODEL_OPENCV8": 8}
 
 
@@ -458,7 +470,9 @@ def mrcal_text(calib: dict) -> str:
              if name == "rational5" else "")
     return ("# tiltfit calibration as an mrcal camera model\n"
             f"# what this file does not hold: {note}\n" + model +
-            f"{_MRCAL_PITCH}{float(calib['pixel_pitch_mm'])!r}\n"
+            f"{_MRCAL_PITCH}{float(calib['pixel_pitch_mm'])!r}\n" +
+            "".join(f"# tiltfit {key} = {float(calib[key])!r}\n" for key, _ in _FOCUS_NODES
+                    if is_finite_number(calib.get(key))) +
             "{\n"
             "    'lensmodel': 'LENSMODEL_OPENCV8',\n"
             f"    'intrinsics': [{', '.join(repr(v) for v in intrinsics)}],\n"
@@ -514,13 +528,41 @@ def read_mrcal(path: str, pixel_pitch_mm: float | None = None) -> dict:
     if pitch is None or not (math.isfinite(pitch) and pitch > 0):
         raise ExportError(f"{path}: pixel_pitch_mm: not in the file (or not a positive number); give it as "
                           "the pixel_pitch_mm argument")
+    focus = {}
+    for line in text.splitlines():
+        for key, _ in _FOCUS_NODES:
+            head = f"# tiltfit {key} = "
+            if line.startswith(head):
+                try:
+                    value = float(line[len(head):])
+                except ValueError:
+                    value = None
+                focus[key] = _focus_value(path, key, value)
     fx, fy, cx, cy = (float(v) for v in intr[:4])
     _check_focal(path, "intrinsics", fx, fy)
-    return {"pixel_pitch_mm": float(pitch), "image_size_px": [int(size[0]), int(size[1])],
-            "principal_point_px": [cx, cy], "w_mm": 0.5 * (fx + fy) * float(pitch),
-            "U_mm": None, "d_mm": None, "theta_F_deg": 0.0,
-            "distortion": {"model": "brown_conrady", "coefficients": [float(v) for v in intr[4:]] or [0.0]},
-            "undetermined": ["U_mm", "d_mm"], "source": os.path.abspath(path)}
+    out = {"pixel_pitch_mm": float(pitch), "image_size_px": [int(size[0]), int(size[1])],
+           "principal_point_px": [cx, cy], "w_mm": 0.5 * (fx + fy) * float(pitch),
+           "U_mm": None, "d_mm": None, "theta_F_deg": 0.0,
+           "distortion": {"model": "brown_conrady", "coefficients": [float(v) for v in intr[4:]] or [0.0]},
+           "undetermined": ["U_mm", "d_mm"], "source": os.path.abspath(path)}
+    _add_focus(out, focus)
+    return out
+
+
+def _focus_value(path: str, key: str, value) -> float:
+    """A focus distance or aperture from a camera file: a positive length (U) or ≥ 0 (d), else ExportError."""
+    ok = value is not None and math.isfinite(value) and (value >= 0 if "d_mm" in key else value > 0) \
+        and value < 1e9
+    if not ok:
+        raise ExportError(f"{path}: {key}: expected {'an aperture >= 0' if 'd_mm' in key else 'a positive length'} "
+                          f"in mm, got {value!r}")
+    return float(value)
+
+
+def _add_focus(out: dict, focus: dict) -> None:
+    """Put U and d read from a camera file's tiltfit nodes (both or neither) into a CALIB.json-like dict."""
+    if len(focus) == 2:
+        out.update(U_mm=focus["U_mm"], d_mm=focus["d_mm"], undetermined=[])
 
 
 def is_mrcal_file(path: str) -> bool:

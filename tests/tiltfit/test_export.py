@@ -25,7 +25,7 @@ DATA = os.path.join(os.path.dirname(__file__), "..", "..", "data", "real", "gopr
 def real_calib():
     target = load_target(os.path.join(DATA, "target.json"))
     obs = observations(DATA, 0.00155, "corners_opencv.json")[0].subset(range(12))
-    res = calibrate(obs, "unified", options=FitOptions(distortion="rational", free_principal_point=True,
+    res = calibrate(obs, "unified", options=FitOptions(distortion="rational5", free_principal_point=True,
                                                        model_selection=False))
     return obs, res, calib_dict(res, obs=obs, target=target.to_dict())
 
@@ -39,7 +39,7 @@ def test_opencv_round_trip_projects_within_a_hundredth_of_a_pixel(real_calib, tm
     rv, tv = fs.getNode("rvecs").mat(), fs.getNode("tvecs").mat()
     assert (fs.getNode("image_width").real(), fs.getNode("image_height").real()) == (1280, 960), "image size"
     fs.release()
-    assert dist.size == 8, "rational model: 8 coefficients"
+    assert dist.size == 8, "rational5 (OpenCV's rational model, k3 k5 k6 = 0): 8 coefficients"
     with torch.no_grad():
         ours = res.camera(obs.points_mm, with_blur=False)[0].numpy()
     worst = 0.0
@@ -75,7 +75,7 @@ def test_init_from_opencv_file(real_calib, tmp_path):
         dets.append(str(p))
     out = tmp_path / "calib.json"
     rc = cli.main(["calibrate", *dets, "--target", os.path.join(DATA, "target.json"), "--pixel-pitch-mm",
-                   "0.00155", "--init", path, "--distortion", "rational", "--free-principal-point", "--board", "flat", "--held-out",
+                   "0.00155", "--init", path, "--distortion", "rational5", "--free-principal-point", "--board", "flat", "--held-out",
                    "0", "-q", "-o", str(out)])
     assert rc == 0, "calibrate --init camera.yml"
     new = read_calib(str(out))

@@ -10,7 +10,7 @@
 | `theta_F_deg` | degrees | 0 | tilt of the plane of focus z = U + y tan θF about the camera x axis, \\|θF\\| < 90 |
 | `theta_L_deg` | degrees | — | lens tilt instead of `theta_F_deg`, converted exactly (`renderer.optics`) |
 | `principal_point_px` | pixels | centre | (cx, cy) where the optical axis meets the image |
-| `tilt_axis_deg` | degrees | 0 | direction φ of the tilt axis from the camera x axis (a tilt-shift lens's rotation), \|φ\| ≤ 360 |
+| `tilt_axis_deg` | degrees | 0 | direction φ of the tilt axis from the camera x axis (a tilt-shift lens's rotation), \\|φ\\| ≤ 360 |
 | `focus_points` | scene | — | three world points the plane of focus passes through, instead of U/f and the tilts |
 
 Geometry (camera frame x right, y down, z forward; lens centre at the origin):

@@ -7,7 +7,6 @@ junk. Run in-process through tests/fuzz_harness.py: exit 0 with a finite output,
 """
 from __future__ import annotations
 
-import copy
 import json
 import os
 import sys

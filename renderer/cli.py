@@ -84,7 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--view", metavar="K", help="with --camera: the view (index or image name) whose pose is used [0]")
     r.add_argument("--encoding", choices=("srgb", "linear"),
                    help="output encoding [sRGB for PNG/TIFF, linear for EXR]")
-    r.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    r.add_argument("--quiet", action="store_true", help="no progress on stderr, nor torch's warnings (e.g. --compile's)")
     r.add_argument("--backend", choices=("torch", "mitsuba"), default="torch",
                    help="torch: our tracer [default]; mitsuba: export the scene to Mitsuba 3 and render it there with "
                         "our camera (the `direct` integrator; one stderr line names what cannot be mapped, the lens "

@@ -9,6 +9,7 @@ images rendered through the three files must agree with each other and with the 
 from __future__ import annotations
 
 import json
+import sys
 import math
 import os
 
@@ -250,3 +251,31 @@ def test_render_command_with_camera(capture, tmp_path):
         assert img.shape[:2] == (SENSOR.height_px, SENSOR.width_px), f"the calibration's size: {img.shape}"
     assert cli.main(["render", str(tmp_path / "s.json"), "--view", "1", "-o", str(tmp_path / "p.png")]) == 2
     assert not (tmp_path / "p.png").exists()
+
+
+def test_mitsuba_renders_the_calibrated_camera_as_ours(capture):
+    """The same scene through Mitsuba 3 (`renderer.mitsuba.to_mitsuba`: our thin-lens sensor with the calibrated
+    distortion, the print as a bitmap): the board lands on the same pixels (llvm where it runs, else a smaller
+    image on scalar_rgb, whose Python sensor is slow)."""
+    mi = pytest.importorskip("mitsuba")
+    from renderer.mitsuba.export import DEFAULT_VARIANT, develop, jit_variant_runs, load_mitsuba, to_mitsuba
+
+    _, _, _, folder, _ = capture
+    variant = "llvm_ad_rgb" if jit_variant_runs("llvm_ad_rgb") else "scalar_rgb"
+    cfg = _scene(folder, 4, spp=8)
+    cfg["image"]["width"] = 120 if variant == "llvm_ad_rgb" else 48
+    scene = renderer.load_scene(cfg)
+    ours = renderer.render(scene, spp=8, progress=False, seed=3).image[..., 0].numpy()
+    try:
+        m = load_mitsuba(variant)
+        m.set_log_level(m.LogLevel.Error)
+        ms_dict, dropped = to_mitsuba(scene, 8)
+        theirs = develop(scene, m.render(m.load_dict(ms_dict), seed=3, spp=8))[..., 0]
+    finally:
+        if sys.modules.get("mitsuba") is not None and mi.variant() != DEFAULT_VARIANT:
+            load_mitsuba(DEFAULT_VARIANT)
+    assert not dropped, f"nothing of the scene is dropped: {dropped}"
+    board = (ours > 0) | (theirs > 0)
+    diff = np.abs(ours - theirs)[board].mean() / 0.76
+    assert diff < 0.05, f"mean |ours − Mitsuba| over the board: {diff:.4f} of the print's contrast"
+    assert abs(float((ours > 0.02).mean()) - float((theirs > 0.02).mean())) < 0.01, "the same board area"

@@ -176,6 +176,8 @@ def main(argv=None) -> int:
     x0, y0, w, h = window
     region = photo[y0:y0 + h, x0:x0 + w]
     gain = composite.photo_gain(region, without)
+    if np.ptp(region, axis=-1).max() < 1e-6:  # a monochrome camera (industrial_ds1): the objects in grey too
+        with_objects = with_objects.mean(-1, keepdims=True).repeat(3, -1)
     photo[y0:y0 + h, x0:x0 + w] = composite.differential_composite(region, with_objects, without, alpha[..., 0], gain)
     out = os.path.join(args.out, "composite.png")
     write_image(out, np.clip(photo, 0, 1).astype(np.float32))

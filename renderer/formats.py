@@ -69,7 +69,10 @@ def scene_schema() -> dict:
     from . import scenefile as sf
     distortion = _distortion_schema()
     from .cameras import CAMERAS, POSE_PARAMS
+    from .plugins import load_plugins
     from .shapes import SHAPES
+
+    load_plugins()  # as `scene_reference`
 
     image = _limits(object_schema(sf.IMAGE_PARAMS), {
         "width": {"minimum": 1, "maximum": sf.MAX_IMAGE_SIDE}, "height": {"minimum": 1, "maximum": sf.MAX_IMAGE_SIDE},
@@ -108,8 +111,10 @@ def scene_reference() -> str:
     """Markdown reference of the scene file: every section's keys, kinds, defaults and meaning, and the limits."""
     from . import scenefile as sf
     from .cameras import CAMERAS, POSE_PARAMS
+    from .plugins import load_plugins
     from .shapes import SHAPES
 
+    load_plugins()  # the installed packages' cameras and shapes (tiltfit's calibrated camera and target shape)
     out = ["## Scene files (`renderer render SCENE.json`)", "",
            "JSON, UTF-8. Top-level sections: " + ", ".join(f"`{s}`" for s in sf.SECTIONS) + ". "
            "Schema: [docs/schemas/scene.schema.json](schemas/scene.schema.json).", "",

@@ -40,6 +40,13 @@ BOARD_GAIN_Z = 2.0
 #: against the lens (a small board seen from few directions: the free points of 24 corners moved the principal
 #: point by 30 px with σ 3.3× the flat board's), and a better held-out error says nothing of the lens.
 BOARD_MAX_SIGMA_RATIO = 2.0
+#: A board model the views cannot carry is not tried by the automatic choice: at least this many corners seen
+#: (over all views) per parameter of the board. The free model gives each point three coordinates, fixed only by
+#: that point's own sightings (one corner, two numbers, per view) beside the poses and the lens they share: at 2
+#: corners a parameter (a free board seen in about 6 views) each coordinate rests on 4 numbers of which the rest
+#: of the fit takes its part; below it the points follow the corners' noise and trade against the lens (4 ChArUco
+#: views, 48 corners for 29 parameters: f 396 ± 43 px where every other estimate was 610-684, issue 33 §5).
+MIN_CORNERS_PER_BOARD_PARAMETER = 2.0
 #: The board's Jacobian block is dense (V·N·3 rows by K parameters, a few copies of it in the solve): the free
 #: model (K ≈ 3N) is not tried beyond this many entries (1.6e8 bytes a copy; 20 views of 160 points: 4.5e6).
 MAX_BOARD_JACOBIAN_ENTRIES = 2e7

@@ -4,6 +4,7 @@
     select_board(camera, obs, options, ...)   -> FitResult with `board` set (model chosen by held-out error)
     held_out_rms(obs, options, model)         -> K-fold held-out error with that board model
     held_out_gain(simple, rich, obs)          -> a richer model's held-out gain in standard errors over the views
+                                                 (`tiltfit.validate`'s, shared with the distortion's choice)
     sigma_ratio(fit, flat)                    -> how much a board model inflates the lens's σ over the flat board's
 
 The models themselves (`Board`, `BOARD_MODELS`) are in `tiltfit.board`, below the fit that uses them.
@@ -14,9 +15,10 @@ import math
 from dataclasses import replace
 
 from .board import (BOARD_GAIN_Z, BOARD_MAX_SIGMA_RATIO, BOARD_MODELS, BOARD_TOLERANCE, MAX_BOARD_JACOBIAN_ENTRIES,
-                    Board)
+                    MIN_CORNERS_PER_BOARD_PARAMETER, Board)
 from .fit import FitError, fit_geometry
 from .model import Observations
+from .validate import choice_variance, held_out_gain
 from .validate import held_out_rms as _held_out
 
 
@@ -45,7 +47,8 @@ def select_board(camera, obs: Observations, options, mode: str = "unified", mode
     (`held_out_rms`): a richer model is chosen only where it predicts the held-out views better than every
     simpler one by more than `BOARD_TOLERANCE`, better than the model it displaces by `BOARD_GAIN_Z` standard
     errors over the views, and leaves the lens determined (its σ at most `BOARD_MAX_SIGMA_RATIO` × the flat
-    board's): `_choose`. With fewer than 3 views no held-out error is computed (and the
+    board's): `_choose`. A model with fewer than `MIN_CORNERS_PER_BOARD_PARAMETER` corners per parameter is not
+    tried (asked for by name, it is fitted). With fewer than 3 views no held-out error is computed (and the
     flat board is kept when it is among `models`); a model whose dense Jacobian block would exceed
     `MAX_BOARD_JACOBIAN_ENTRIES` is refused.
 
@@ -62,6 +65,11 @@ def select_board(camera, obs: Observations, options, mode: str = "unified", mode
         entry = {"model": m, "n_params": Board(obs.points_mm, m).n_params}
         entries.append(entry)
         size = obs.n_views * obs.points_mm.shape[0] * 3 * entry["n_params"]
+        corners = int(obs.corner_mask.sum())
+        if len(models) > 1 and corners < MIN_CORNERS_PER_BOARD_PARAMETER * entry["n_params"]:
+            entry["refused"] = (f"not tried: the views carry it not ({corners} corners for {entry['n_params']} "
+                                f"parameters; at least {MIN_CORNERS_PER_BOARD_PARAMETER:g} a parameter)")
+            continue
         if size > MAX_BOARD_JACOBIAN_ENTRIES:
             entry["refused"] = (f"not fitted ({obs.n_views} views × {obs.points_mm.shape[0]} points × "
                                 f"{entry['n_params']} parameters: a dense block of {size:.2g} entries)")
@@ -93,6 +101,9 @@ def select_board(camera, obs: Observations, options, mode: str = "unified", mode
     chosen = _choose(entries, fits, obs)
     for e in entries:
         e["chosen"] = e["model"] == chosen
+    var = choice_variance({e["model"]: (fits[e["model"]].values, e.get("held_out")) for e in entries
+                           if e["model"] in fits}, chosen, obs)
+    fits[chosen].choice_variance = dict(fits[chosen].choice_variance, **({"board": var} if var else {}))
     return fits[chosen], entries
 
 
@@ -128,27 +139,6 @@ def _choose(entries: list, fits: dict, obs: Observations) -> str:
                 chosen = e["model"]
         best = min(best, score)
     return chosen
-
-
-def held_out_gain(simple: dict | None, rich: dict | None, obs: Observations) -> float | None:
-    """How many standard errors the richer model's held-out squared error is below the simpler one's, over the
-    views: the per-view differences n_v (e_simple² − e_rich²) (n_v corners, e the per-view held-out RMS), their
-    mean over its standard error (a paired t statistic). None without per-view errors for both, or with fewer
-    than 3 views; +inf where every view gains alike."""
-    if not simple or not rich:
-        return None
-    a, b = simple.get("per_view_px"), rich.get("per_view_px")
-    if a is None or b is None or len(a) != len(b) or len(a) != obs.n_views:
-        return None
-    n = obs.corner_mask.sum(-1).double()
-    d = [float(n[v]) * (a[v] ** 2 - b[v] ** 2) for v in range(len(a)) if math.isfinite(a[v]) and math.isfinite(b[v])]
-    if len(d) < 3:
-        return None
-    mean = sum(d) / len(d)
-    var = sum((x - mean) ** 2 for x in d) / (len(d) - 1)
-    if var <= 0:
-        return math.inf if mean > 0 else -math.inf
-    return mean / math.sqrt(var / len(d))
 
 
 def sigma_ratio(fit, flat) -> float | None:

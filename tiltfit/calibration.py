@@ -74,6 +74,7 @@ def _geometry_with_principal_point(camera: TiltLensCamera, obs: Observations, op
     if entry["justified"]:
         return free, entry
     held.distortion_selection = free.distortion_selection
+    held.choice_variance = {k: dict(v, principal_point_px=[0.0, 0.0]) for k, v in free.choice_variance.items()}
     return held, entry
 
 
@@ -212,6 +213,7 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
         cam = geometry.camera.copy()
     options = replace(options, free_principal_point=free_pp)
     board, board_selection, board_held_out = None, [], None
+    choice = geometry.choice_variance if geometry is not None else {}
     # The widths' noise is found along the target's rows and columns: on the target file's points (a fitted
     # board's points no longer lie on exact lines, and the noise would not be found at all).
     blur_noise = blur_noise_px(obs) if blur_ok else math.nan
@@ -221,6 +223,7 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
                                                                     mode, say)
         fitted, board_selection, board_held_out = _fit_board(base, obs, mode, options, distortion, say)
         board = fitted.board
+        choice = fitted.choice_variance
         if board.model != "flat":  # the rest of the fit sees the target as fitted; a flat board changes nothing
             geometry, distortion = fitted, fitted.distortion_model
             obs = with_points(obs, board.points())
@@ -315,6 +318,7 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
             head = f"board auto: {describe_board(board_selection)}" if options.board == "auto" else f"board {board.model}"
             notes.append(head + _board_line(board))
     result.free_principal_point = free_pp
+    _add_choice_variance(result, choice, free_pp)
     undetermined += [k for k in _out_of_range(result) if k not in undetermined]
     beyond = _focus_beyond_infinity(result)
     if beyond:
@@ -392,6 +396,35 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
     return result
 
 
+def _add_choice_variance(result: FitResult, choice: dict, free_pp: bool) -> None:
+    """The automatic choices' model-selection variance (`tiltfit.validate.choice_variance`, of the distortion terms
+    and of the board's model) added to the reported σ of the focal length (w) and principal point, and to the
+    intrinsics covariance's diagonal, so that σ holds what the choice between models the views cannot tell apart
+    leaves open; recorded under `sigma_model["model_choice"]` (one-σ, px)."""
+    parts = [v for v in (choice or {}).values() if v]
+    if not parts or not result.sigma or not result.sigma.get("w_mm"):
+        return
+    pitch = float(result.camera.pixel_pitch_mm)
+    var_w = sum(p["w_mm"] for p in parts)
+    var_pp = [sum(p["principal_point_px"][i] for p in parts) if free_pp else 0.0 for i in (0, 1)]
+    s = result.sigma
+    s["w_mm"] = math.sqrt(s["w_mm"] ** 2 + var_w)
+    if s.get("principal_point_px") is not None:
+        s["principal_point_px"] = [math.sqrt(a ** 2 + b) for a, b in zip(s["principal_point_px"], var_pp)]
+    ic = result.intrinsics_covariance
+    if ic:
+        names, matrix = list(ic["names"]), [list(map(float, row)) for row in ic["matrix"]]
+        for name, var in (("focal_px", var_w / pitch ** 2), ("cx_px", var_pp[0]), ("cy_px", var_pp[1])):
+            if name in names:
+                matrix[names.index(name)][names.index(name)] += var
+        result.intrinsics_covariance = dict(ic, matrix=matrix)
+    result.sigma_model = dict(result.sigma_model or {}, model_choice={
+        "focal_px": math.sqrt(var_w) / pitch, "principal_point_px": [math.sqrt(v) for v in var_pp],
+        "weights": {k: p["weights"] for k, p in choice.items() if p},
+        "description": "spread of the estimates over the models the held-out views cannot tell apart (weights "
+                       "exp(-z^2/2), z the best model's held-out gain in standard errors), added to sigma"})
+
+
 def _blur_record(used: bool, noise_px: float, misfit: str | None, trend: dict | None) -> dict:
     """CALIB.json's `model_selection.blur`: whether the thin-lens blur model gave U (`used`), why it was refused
     (`blur_misfit`; null where it was not, or where the notes say why U is undetermined), the widths' noise and
@@ -418,9 +451,13 @@ def _fit_board(geometry: FitResult, obs: Observations, mode: str, options: FitOp
     fit.distortion_selection = geometry.distortion_selection
     fit.held_out = geometry.held_out
     fit.distortion_model = distortion
+    board_var = fit.choice_variance.get("board")
+    fit.choice_variance = dict(geometry.choice_variance)
     if options.distortion == "auto" and fit.board.model != "flat":
         fit, held = _redistort(fit, obs, mode, opts, held, say)
         fit.held_out = held
+    if board_var:
+        fit.choice_variance = dict(fit.choice_variance, board=board_var)
     return fit, entries, held
 
 
@@ -442,6 +479,11 @@ def _redistort(fit: FitResult, obs: Observations, mode: str, options: FitOptions
     models = DISTORTION_MODELS[:DISTORTION_MODELS.index(fit.distortion_model) + 1]
     models += tuple(e["model"] for e in flat_entries if e["model"] not in models
                     and str(e.get("refused", "")).startswith(PROJECTION_REFUSAL))
+    # ... and richer models the flat board's held-out views could not tell from the best (weight of their
+    # model-choice variance above exp(-4.5), z < 3): with the board they may be chosen, and they stay in σ.
+    close = ((fit.choice_variance or {}).get("distortion") or {}).get("weights", {})
+    models += tuple(m for m in DISTORTION_MODELS if m not in models and close.get(m, 0.0) > math.exp(-4.5))
+    models = tuple(m for m in DISTORTION_MODELS if m in models)
     try:
         sel = select_distortion(fit.camera, obs, options, mode, say, folds=options.held_out_folds, board=fit.board,
                                 known=known, models=models)

@@ -180,6 +180,9 @@ class FitResult:
         free_principal_point: whether the principal point was fitted.
         board: the target's fitted shape (`tiltfit.board.Board`; None: the target file's points as they are);
             board_selection: the held-out test that chose its model (`tiltfit.board_fit.select_board`'s entries).
+        choice_variance: {"distortion" | "board": `tiltfit.validate.choice_variance`'s dict}: the spread of the
+            focal length and principal point over the models an automatic choice could not tell apart, added to
+            `sigma` by `tiltfit.calibration` (`sigma_model["model_choice"]` records it).
     """
 
     mode: str
@@ -210,6 +213,7 @@ class FitResult:
     sigma_classical: dict = field(default_factory=dict)
     sigma_model: dict = field(default_factory=dict)
     intrinsics_covariance: dict | None = None
+    choice_variance: dict = field(default_factory=dict)
 
 
 # ---------------------------------------------------------------------------------------------------------

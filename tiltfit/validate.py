@@ -63,6 +63,9 @@ REFERENCE_MODEL = "opencv5"
 #: How `undetermined_for_choice`'s refusal begins (a refusal the fitted board may lift: `tiltfit.calibration`).
 PROJECTION_REFUSAL = "coefficients not determined by these views"
 PROJECTION_SIGMA_FACTOR = 3.0
+#: The one-standard-error rule of the automatic choices (`_fewest_terms_within_one_se`): a model with fewer terms
+#: is kept where the best model's held-out gain over it is at most this many standard errors over the views.
+ONE_SE = 1.0
 
 
 def predict_views(camera, obs: Observations, options: FitOptions = FitOptions()):
@@ -288,6 +291,27 @@ def undetermined_for_choice(fit: FitResult, model: str, reference: FitResult | N
             f"views with the board near the image's corners determine it)")
 
 
+def held_out_gain(simple: dict | None, rich: dict | None, obs: Observations) -> float | None:
+    """How many standard errors the richer model's held-out squared error is below the simpler one's, over the
+    views: the per-view differences n_v (e_simple² − e_rich²) (n_v corners, e the per-view held-out RMS), their
+    mean over its standard error (a paired t statistic). None without per-view errors for both, or with fewer
+    than 3 views; +inf where every view gains alike."""
+    if not simple or not rich:
+        return None
+    a, b = simple.get("per_view_px"), rich.get("per_view_px")
+    if a is None or b is None or len(a) != len(b) or len(a) != obs.n_views:
+        return None
+    n = obs.corner_mask.sum(-1).double()
+    d = [float(n[v]) * (a[v] ** 2 - b[v] ** 2) for v in range(len(a)) if math.isfinite(a[v]) and math.isfinite(b[v])]
+    if len(d) < 3:
+        return None
+    mean = sum(d) / len(d)
+    var = sum((x - mean) ** 2 for x in d) / (len(d) - 1)
+    if var <= 0:
+        return math.inf if mean > 0 else -math.inf
+    return mean / math.sqrt(var / len(d))
+
+
 def _per_corner_rms(fit: FitResult) -> float:
     return math.sqrt(fit.rss["corners"] / max(fit.rss["n_corners"] // 2, 1))
 
@@ -380,7 +404,7 @@ def select_distortion(camera: TiltLensCamera, obs: Observations, options: FitOpt
     scores = {e["model"]: e[key] for e in entries if e["model"] in fits and key in e}
     best = min(scores.values())
     if use_held_out:
-        chosen = next(m for m in models if m in scores and scores[m] <= (1 + HELD_OUT_TOLERANCE) * best)
+        chosen = _fewest_terms_within_one_se(models, scores, held, obs, entries)
     else:
         chosen = min(scores, key=scores.get)
     for e in entries:
@@ -391,7 +415,68 @@ def select_distortion(camera: TiltLensCamera, obs: Observations, options: FitOpt
     result.distortion_model = chosen
     result.distortion_selection = entries
     result.held_out = held.get(chosen)
+    if use_held_out:
+        var = choice_variance({m: (fits[m].values, held.get(m)) for m in fits}, chosen, obs)
+        result.choice_variance = {"distortion": var} if var else {}
     return result
+
+
+def _fewest_terms_within_one_se(models, scores: dict, held: dict, obs: Observations, entries: list) -> str:
+    """The one-standard-error rule (Hastie, Tibshirani & Friedman, ESL §7.10): the model with the fewest terms whose
+    held-out error is within `HELD_OUT_TOLERANCE` of the smallest, or whose excess over the best model is at most
+    one standard error over the views (`held_out_gain` of the best over it at most `ONE_SE`). On a dozen views of a
+    small board the held-out errors of k1 … opencv5 differ by less than their scatter over the views, and a choice
+    made on the mean alone flips between halves of one set (issue 33 §5: k1 against opencv5). The entry of a
+    model so chosen records the best model's gain over it in standard errors (`gain_z_of_best`)."""
+    best_m = min(scores, key=scores.get)
+    for m in models:
+        if m not in scores:
+            continue
+        if scores[m] <= (1 + HELD_OUT_TOLERANCE) * scores[best_m]:
+            return m
+        gain = held_out_gain(held.get(m), held.get(best_m), obs)
+        if gain is not None and gain <= ONE_SE:
+            entries[models.index(m)]["gain_z_of_best"] = gain
+            return m
+    return best_m
+
+
+def choice_variance(candidates: dict, chosen: str, obs: Observations) -> dict | None:
+    """The variance of the focal length and principal point that an automatic model choice leaves (model-selection
+    uncertainty, Buckland, Burnham & Augustin 1997, Biometrics 53:603): Σ_m w_m (θ_m − θ_chosen)² / Σ_m w_m over
+    the candidate models m, each weighted by how well the held-out views support it against the best one,
+    w_m = exp(−z_m²/2) with z_m the best model's held-out gain over m in standard errors over the views
+    (`held_out_gain`; 0 for the best). Models the views tell apart (z of 3 or more) add nothing; two the views
+    cannot tell apart (the one-standard-error rule then takes the one with fewer terms) add their difference, which
+    the covariance of the chosen model's own fit does not hold (issue 33 §5: k1 against opencv5 moved the principal
+    point by 30 px on five industrial_ds1 views, each σ 2-7 px).
+
+    Args:
+        candidates: {model: (fit values {w_mm, principal_point_px}, held-out dict with per_view_px)}.
+        chosen: the model whose values are reported.
+    Returns:
+        {"w_mm": variance (mm²), "principal_point_px": [variance, variance] (px²), "weights": {model: w}}, or None
+        with fewer than two scored candidates.
+    """
+    scored = {m: c for m, c in candidates.items() if c[1] and c[1].get("per_view_px") is not None}
+    if chosen not in scored or len(scored) < 2:
+        return None
+    best = min(scored, key=lambda m: scored[m][1]["rms_px"])
+    weights = {}
+    for m, (_, held) in scored.items():
+        z = 0.0 if m == best else held_out_gain(held, scored[best][1], obs)
+        weights[m] = 0.0 if z is None else math.exp(-0.5 * max(z, 0.0) ** 2)  # -inf (no worse anywhere): 1
+    total = sum(weights.values())
+    if total <= 0:
+        return None
+    ref = scored[chosen][0]
+
+    def spread(get):
+        return sum(w * (get(scored[m][0]) - get(ref)) ** 2 for m, w in weights.items()) / total
+
+    return {"w_mm": spread(lambda v: float(v["w_mm"])),
+            "principal_point_px": [spread(lambda v, i=i: float(v["principal_point_px"][i])) for i in (0, 1)],
+            "weights": {m: round(w / total, 4) for m, w in weights.items()}}
 
 
 def _with_board(obs: Observations, board) -> Observations:

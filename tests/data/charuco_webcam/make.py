@@ -38,5 +38,21 @@ def main():
         f.writelines(",".join(map(str, r)) + "\n" for r in rows)
 
 
+#: Four frames with all 12 corners, spread over the stream: the 4-view case of issue 33 §5.
+FOUR_VIEWS = (26, 36, 39, 44)
+
+
+def four_views():
+    """published_corners_4views.csv: the published corners of `FOUR_VIEWS` in the full 1280×720 frame."""
+    pub = collections.defaultdict(dict)
+    for r in csv.DictReader(open(os.path.join(SOURCE, "published_corners_cam0.csv"))):
+        pub[int(r["frame_index"])][int(r["keypoint_id"])] = (float(r["img_loc_x"]), float(r["img_loc_y"]))
+    with open(os.path.join(HERE, "published_corners_4views.csv"), "w") as f:
+        f.write("frame,corner_id,x_px,y_px\n")
+        for fi in FOUR_VIEWS:
+            f.writelines(f"{fi},{k},{x:.4f},{y:.4f}\n" for k, (x, y) in sorted(pub[fi].items()))
+
+
 if __name__ == "__main__":
     main()
+    four_views()

@@ -1,6 +1,6 @@
 """Render a CG object into a real photo through the photo's calibration, and check the calibrated camera first.
 
-    python examples/composite.py [--set gopro_wide|industrial_ds1] [--view IMAGE] [--spp N] [--out DIR]
+    python examples/composite.py [--set gopro_wide|industrial_ds1] [--view IMAGE] [--spp 8] [--out DIR]
                                  [--picture docs/composite.png]
 
 1. Calibrate the shipped photo set from its cached detections (`data/real/SET/detections_tiltfit.json`, what
@@ -121,7 +121,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--set", default="gopro_wide", choices=sorted(PITCH_MM), help="shipped photo set [gopro_wide]")
     p.add_argument("--view", help="photo to composite into [a view with the board large and off-centre]")
-    p.add_argument("--spp", type=int, default=16, help="samples per pixel [16]")
+    p.add_argument("--spp", type=int, default=8, help="samples per pixel [8; docs/composite.png: 16]")
     p.add_argument("--out", default=os.path.join(HERE, "composite_out"), help="output folder [examples/composite_out]")
     p.add_argument("--picture", help="also write a small copy of the composite here (the docs' picture)")
     args = p.parse_args(argv)
@@ -138,7 +138,11 @@ def main(argv=None) -> int:
     calib_path = os.path.abspath(os.path.join(args.out, "calib.json"))
     write_calib(calib_path, data)
     cal = Calibration.read(calib_path)
-    view = cal.view_index(args.view or DEFAULT_VIEW[args.set])
+    try:
+        view = cal.view_index(args.view or DEFAULT_VIEW[args.set])
+    except ValueError as e:
+        print(f"composite.py: --view: {e}", file=sys.stderr)
+        return 2
     image_path = cal.views[view]["image"]
     print(f"calibrated {len(cal.views)} views of {args.set} in {time.perf_counter() - t_start:.1f} s: RMS "
           f"{data['rms_reprojection_px']:.3f} px, distortion {data['distortion_model']}, "

@@ -19,7 +19,7 @@ shadow, the check the pixels around each corner.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 

@@ -2,7 +2,6 @@
 window's origin; composite renders and the board-alignment check of a calibration render only windows."""
 import math
 
-import numpy as np
 import pytest
 import torch
 

@@ -10,23 +10,60 @@ renders view v with gradients reaching its parameters; `project_pinhole` is the 
 `axis_angle_to_matrix` / `matrix_to_axis_angle` / `CameraTransform` the one owner of rotations and poses.
 
 Importing it raises glibc's mmap and trim thresholds (`renderer.memory`; RENDERER_MALLOPT=0 opts out).
+The names above are imported on first use (module `__getattr__`), so `import renderer` and the `renderer`
+command's --help and argument errors do not load torch (docs/speed.md, start-up).
 """
+import importlib
+import sys
+import types
+
 from .memory import tune_allocator
 
 tune_allocator()
 
-from .cameras import Lens, LensCamera, Sensor, ThinLensCamera, project_pinhole
-from .io import read_image, write_image
-from .materials import CheckerTexture, ImageTexture, Material
-from .params import SceneError
-from .rays import Hit, Rays
-from .render import RenderResult, render
-from .scene import ImageSettings, Light, Scene, SceneObject
-from .scenefile import load_scene
-from .transforms import CameraTransform, axis_angle_to_matrix, matrix_to_axis_angle
+#: Public name -> the submodule that owns it (imported when the name is first used).
+_EXPORTS = {
+    "Lens": "cameras", "LensCamera": "cameras", "Sensor": "cameras", "ThinLensCamera": "cameras",
+    "project_pinhole": "cameras",
+    "read_image": "io", "write_image": "io",
+    "CheckerTexture": "materials", "ImageTexture": "materials", "Material": "materials",
+    "SceneError": "params",
+    "Hit": "rays", "Rays": "rays",
+    "RenderResult": "render", "render": "render",
+    "ImageSettings": "scene", "Light": "scene", "Scene": "scene", "SceneObject": "scene",
+    "load_scene": "scenefile",
+    "CameraTransform": "transforms", "axis_angle_to_matrix": "transforms", "matrix_to_axis_angle": "transforms",
+}
 
-__all__ = [
-    "CameraTransform", "CheckerTexture", "Hit", "ImageSettings", "ImageTexture", "Lens", "LensCamera", "Light", "Material",
-    "Rays", "RenderResult", "Scene", "SceneError", "SceneObject", "Sensor", "ThinLensCamera", "axis_angle_to_matrix",
-    "load_scene", "matrix_to_axis_angle", "project_pinhole", "read_image", "render", "write_image",
-]
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    """A public name (`_EXPORTS`) or a submodule (`renderer.cameras`), imported on first use."""
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(f".{_EXPORTS[name]}", __name__), name)
+        globals()[name] = value
+        return value
+    try:
+        return importlib.import_module(f".{name}", __name__)
+    except ModuleNotFoundError as e:
+        if e.name != f"{__name__}.{name}":
+            raise
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))
+
+
+class _Package(types.ModuleType):
+    """`renderer.render` is the function, as when the package imported it eagerly: importing the submodule
+    `renderer.render` (which binds the submodule on the package) leaves the function there."""
+
+    def __setattr__(self, name: str, value) -> None:
+        if isinstance(value, types.ModuleType) and _EXPORTS.get(name) == name:
+            value = getattr(value, name)
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Package

@@ -62,7 +62,7 @@ def _seed(text: str) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .sampling import SAMPLERS
+    from .params import SAMPLERS
 
     parser = argparse.ArgumentParser(prog="renderer", description="Batched PyTorch ray tracer for unusual cameras "
                                      "(inverted and mixed perspective, tilted lenses).")
@@ -142,6 +142,7 @@ def main(argv: list[str] | None = None) -> int:
         with warnings.catch_warnings(), _torch_warnings_silenced(getattr(args, "quiet", False)):
             # numpy's floating-point warnings would print before the one-line error; failures are reported once.
             warnings.simplefilter("ignore", RuntimeWarning)
+            check_inputs(args)  # before torch loads (parse_device): a bad file or option is refused at once
             device = parse_device(args.device)
             if args.command == "render":
                 return cmd_render(args, device)
@@ -268,13 +269,35 @@ def resolve_scene(name: str) -> str:
     return shipped if os.path.isfile(shipped) else name
 
 
+def check_inputs(args) -> None:
+    """Refuse what can be refused without torch (whose import takes seconds): the output path, options that
+    need each other, a missing --camera, the scene file's or manifest's JSON (an `extends` chain included).
+    The scene's fields are validated when it loads."""
+    from .validation import read_scene_json
+
+    if args.command == "render":
+        _check_output(args.output, RENDER_EXTENSIONS)
+        if args.view is not None and not args.camera:
+            raise UsageError("--view: needs --camera (the calibration whose view it names)")
+        if args.camera and not os.path.exists(args.camera):
+            raise UsageError(f"--camera: {args.camera}: no such file")
+        read_scene_json(resolve_scene(args.scene))
+    elif args.command == "animate":
+        read_scene_json(resolve_scene(args.scene))
+        if os.path.exists(args.output) and not os.path.isdir(args.output):
+            raise UsageError(f"{args.output}: not a folder")
+    else:
+        _check_output(args.output, (".png",))
+        read_manifest(args.manifest)
+
+
+RENDER_EXTENSIONS = (".exr", ".png", ".tif", ".tiff")
+
+
 def cmd_render(args, device) -> int:
     from .render import render
     from .scenefile import load_scene, require_objects
 
-    _check_output(args.output, (".exr", ".png", ".tif", ".tiff"))
-    if args.view is not None and not args.camera:
-        raise UsageError("--view: needs --camera (the calibration whose view it names)")
     scene_file = resolve_scene(args.scene)
     scene = load_scene(_with_camera(scene_file, args), args.overrides, base_dir=os.path.dirname(
         os.path.abspath(scene_file))) if args.camera else load_scene(scene_file, args.overrides)
@@ -315,10 +338,8 @@ def _with_camera(scene_file: str, args) -> dict:
     """The scene's dict with its camera replaced by `--camera FILE [--view K]` (a `calibrated` camera, at the
     calibration's image size unless --set gives one)."""
     from .params import SceneError
-    from .scenefile import read_scene_json
+    from .validation import read_scene_json
 
-    if not os.path.exists(args.camera):
-        raise UsageError(f"--camera: {args.camera}: no such file")
     cfg = read_scene_json(scene_file)
     if not isinstance(cfg, dict):
         raise SceneError(f"{scene_file}: expected an object at the top level, got {cfg!r}")
@@ -461,7 +482,6 @@ def cmd_gallery(args, device) -> int:
     from .render import render
     from .scenefile import load_scene
 
-    _check_output(args.output, (".png",))
     entries = read_manifest(args.manifest)
     if not entries:
         raise SceneError(f"{args.manifest}: no entries")

@@ -33,8 +33,6 @@ import shutil
 import sys
 import tempfile
 
-import numpy as np
-
 from .errors import ImageIOError  # noqa: F401 - raised here, and importable from here as before
 
 
@@ -57,11 +55,15 @@ def software_version(name: str = "renderer") -> str:
 
 
 def srgb_to_linear(v: np.ndarray) -> np.ndarray:
+    import numpy as np  # here, not at the top: the commands' argument checks use this module
+
     v = np.asarray(v, dtype=np.float64)
     return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
 
 
 def linear_to_srgb(v: np.ndarray) -> np.ndarray:
+    import numpy as np
+
     v = np.clip(np.asarray(v, dtype=np.float64), 0.0, None)
     return np.where(v <= 0.0031308, v * 12.92, 1.055 * np.power(v, 1 / 2.4) - 0.055)
 
@@ -110,6 +112,7 @@ def read_image(path: str, encoding: str | None = None, max_pixels: int | None = 
         max_pixels: refuse (ImageIOError naming the file) an image of more pixels, from its header, before
             any pixel is decoded (a small file can declare a huge image: a decompression bomb).
     """
+    import numpy as np
     import OpenImageIO as oiio
 
     if encoding not in (None, "srgb", "linear"):
@@ -170,6 +173,7 @@ def write_image(path: str, image, encoding: str | None = None, metadata: dict | 
         ImageIOError: unsupported format or encoding, non-finite pixels, an unwritable path (one line).
     The file is written atomically (see the module docstring): a failure leaves the old file or nothing.
     """
+    import numpy as np
     import OpenImageIO as oiio
 
     levels = isinstance(image, np.ndarray) and image.dtype == np.uint8

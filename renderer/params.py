@@ -14,6 +14,11 @@ from .validation import describe, is_finite_number, is_number
 
 REQUIRED = object()
 
+#: The pixel-and-lens sample patterns (`renderer.sampling`), named here so that parsing needs no torch.
+SAMPLERS = ("independent", "stratified", "sobol", "center")
+#: Where a lens's distortion is centred (`renderer.cameras.Lens.distortion_centre`), named here for file readers.
+DISTORTION_CENTRES = ("sensor", "lens_axis")
+
 
 @dataclass(frozen=True)
 class Param:

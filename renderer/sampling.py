@@ -15,7 +15,7 @@ import math
 
 import torch
 
-SAMPLERS = ("independent", "stratified", "sobol", "center")
+from .params import SAMPLERS  # noqa: F401 - the names, declared without torch for the command line
 
 _M32 = 0xFFFFFFFF
 

@@ -39,7 +39,8 @@ from .io import ImageIOError, read_image
 from .materials import CheckerTexture, ImageTexture, Material
 from .params import Param, SceneError, check_value, parse_params
 from .sampling import SAMPLERS
-from .validation import MAX_EXTENDS, MAX_JSON_DEPTH, MAX_SET_SEGMENTS, check_memory, check_tree, json_depth, read_json
+from .validation import MAX_JSON_DEPTH, MAX_SET_SEGMENTS, check_memory, check_tree, json_depth, merge, read_json
+from .validation import read_scene_json  # noqa: F401 - owned there (no torch: the command line checks files first)
 from .scene import ImageSettings, Light, Scene, SceneObject
 from .shapes import build_shape
 
@@ -146,36 +147,6 @@ OBJECT_PARAMS = [
 
 
 # ----------------------------------------------------------------------------------------------- reading
-
-
-def read_scene_json(path: str, _seen: tuple[str, ...] = ()) -> dict:
-    """Read a scene file and resolve its `extends` chain into one plain dict (not yet validated)."""
-    real = os.path.realpath(path)
-    if real in _seen:
-        raise SceneError(f"{path}: extends: circular reference")
-    if len(_seen) >= MAX_EXTENDS:
-        raise SceneError(f"{path}: extends: a chain of more than {MAX_EXTENDS} files (from {_seen[0]})")
-    cfg = read_json(path, SceneError, "scene file")
-    if not isinstance(cfg, dict):
-        raise SceneError(f"{path}: expected a JSON object at the top level, got {type(cfg).__name__}")
-    base = cfg.pop("extends", None)
-    if base is None:
-        return cfg
-    if not isinstance(base, str):
-        raise SceneError(f"{path}: extends: expected a file name, got {base!r}")
-    base_path = os.path.join(os.path.dirname(path), base)
-    return merge(read_scene_json(base_path, _seen + (real,)), cfg)
-
-
-def merge(base: dict, over: dict) -> dict:
-    """`over` merged onto `base`: objects key by key (recursively), anything else replaced."""
-    out = copy.deepcopy(base)
-    for key, value in over.items():
-        if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = merge(out[key], value)
-        else:
-            out[key] = copy.deepcopy(value)
-    return out
 
 
 def parse_override(text: str) -> tuple[list[str], object]:

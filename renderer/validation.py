@@ -21,10 +21,13 @@ each package keeps its own error type; messages are `<file>: <field>: <problem>`
 """
 from __future__ import annotations
 
+import copy
 import json
 import math
 import os
 import re
+
+from .errors import SceneError
 
 MAX_JSON_BYTES = 64 << 20
 MAX_JSON_DEPTH = 64
@@ -236,3 +239,33 @@ def check_memory(where: str, n_bytes: float, error=ValueError, what: str = "this
 
 def _gib(n: float) -> str:
     return f"{n / 2**30:.3g} GiB" if n < 2**70 else f"{n:.3g} bytes"
+
+
+def read_scene_json(path: str, _seen: tuple[str, ...] = ()) -> dict:
+    """Read a scene file and resolve its `extends` chain into one plain dict (not yet validated)."""
+    real = os.path.realpath(path)
+    if real in _seen:
+        raise SceneError(f"{path}: extends: circular reference")
+    if len(_seen) >= MAX_EXTENDS:
+        raise SceneError(f"{path}: extends: a chain of more than {MAX_EXTENDS} files (from {_seen[0]})")
+    cfg = read_json(path, SceneError, "scene file")
+    if not isinstance(cfg, dict):
+        raise SceneError(f"{path}: expected a JSON object at the top level, got {type(cfg).__name__}")
+    base = cfg.pop("extends", None)
+    if base is None:
+        return cfg
+    if not isinstance(base, str):
+        raise SceneError(f"{path}: extends: expected a file name, got {base!r}")
+    base_path = os.path.join(os.path.dirname(path), base)
+    return merge(read_scene_json(base_path, _seen + (real,)), cfg)
+
+
+def merge(base: dict, over: dict) -> dict:
+    """`over` merged onto `base`: objects key by key (recursively), anything else replaced."""
+    out = copy.deepcopy(base)
+    for key, value in over.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out

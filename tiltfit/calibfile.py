@@ -43,16 +43,20 @@ from __future__ import annotations
 import json
 import math
 import os
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
-from renderer.cameras import DISTORTION_CENTRES
 from renderer.io import write_text
+from renderer.params import DISTORTION_CENTRES
 from renderer.validation import describe, is_finite_number, read_json
 
 from .detfile import MAX_IMAGE_SIDE
-from .model import TiltLensCamera, residuals
+
+# torch and the camera model (`tiltfit.model`) are imported where a camera is built, so that reading and checking
+# a CALIB.json (`tiltfit export`, `compare`, `report`, the commands' file errors) does not load them.
+if TYPE_CHECKING:
+    from .model import TiltLensCamera
 
 FORMAT_VERSION = 2
 
@@ -72,7 +76,7 @@ class CalibFileError(ValueError):
 
 def _clean(v):
     """JSON-safe copy: tensors and arrays to lists, non-finite floats to None."""
-    if isinstance(v, torch.Tensor):
+    if hasattr(v, "detach"):  # a torch tensor
         v = v.detach().cpu().tolist()
     if isinstance(v, np.ndarray):
         v = v.tolist()
@@ -90,7 +94,10 @@ def _clean(v):
 def _per_view_data(result, obs) -> list:
     """Per-view corners, residuals, blur and depths for the report (lists aligned with the feature points);
     with a fitted board, residuals of its points and, beside them, of the target file's flat points."""
+    import torch
+
     from .board import with_points
+    from .model import residuals
 
     cam = result.camera
     board = getattr(result, "board", None)
@@ -528,7 +535,11 @@ def camera_from_calib(data: dict, blur_model: str | None = None) -> TiltLensCame
 
     U and d the file leaves undetermined start at 600 and 10 mm; a file that gives the lens tilt θL but not θF
     (an OpenCV tilted-model file: `tiltfit.export.read_opencv`) gets the θF of that θL at this U."""
+    import torch
+
     from renderer import optics
+
+    from .model import TiltLensCamera
 
     views = data.get("views") or []
     n = max(len(views), 1)

@@ -54,7 +54,7 @@ import torch.nn.functional as F
 from .blur import measure_blur as _measure_blur
 from .imaging import apply_homography, build_pyramid, homography_dlt, homography_dlt_batch, to_full, torch_threads
 from .solve.batched import BatchedOptions, batched_levenberg_marquardt, normal_from_residuals
-from .target import Target
+from .target import MAX_FEATURE_POINTS, Target
 
 
 class DetectionError(ValueError):
@@ -996,11 +996,6 @@ def detect(image, target: Target, *, measure_blur: bool = True, **options) -> De
         raise DetectionError("target: a ChArUco board; its corners are found by tiltfit.charuco.detect_board")
     with torch_threads(1):
         return _detect(image, target, measure_blur, options)
-
-
-# the largest target `detect` accepts (200 × 200 corners): beyond it the indexing (every placement of the
-# seen corners on the target) and the bookkeeping per feature point would run for minutes or exhaust memory
-MAX_FEATURE_POINTS = 40_000
 
 
 def check_target_size(target: Target) -> None:

@@ -28,6 +28,10 @@ from renderer.validation import describe, is_finite_number, read_json
 
 DET_FORMAT_VERSION = 1
 MAX_IMAGE_SIDE = 1 << 17
+#: The fewest corners a view must have to enter a calibration, everywhere (`tiltfit calibrate`'s DET check, the
+#: fit's `min_corners`, `tiltfit target design`): a pose takes 6 parameters and 3 corners fit it exactly; 6 corners
+#: (12 residuals) leave as many again to say something about the lens, and PnP's start needs 4.
+MIN_CORNERS = 6
 
 UNITS = {
     "corners_px": "pixels; x = column, y = row, (0, 0) the centre of the top-left pixel",
@@ -115,10 +119,8 @@ def read_det(path: str, n_points: int) -> dict:
 
 def too_few_corners(corners_px: np.ndarray) -> str | None:
     """Why a view (corners_px (N, 2) pixels, NaN where not found) has too few corners to calibrate, or None:
-    fewer than `tiltfit.model.MIN_CORNERS`. `tiltfit calibrate` skips such a view (a partial detection) and goes
-    on with the others."""
-    from .model import MIN_CORNERS
-
+    fewer than `MIN_CORNERS`. `tiltfit calibrate` skips such a view (a partial detection) and goes on with the
+    others."""
     n = int(np.isfinite(corners_px).all(-1).sum())
     return f"{n} corners found; a view needs at least {MIN_CORNERS} (not on one line)" if n < MIN_CORNERS else None
 

@@ -13,7 +13,7 @@ import json
 import os
 import sys
 
-from renderer.cameras import DISTORTION_CENTRES
+from renderer.params import DISTORTION_CENTRES
 from renderer.formats import SCHEMA_DIALECT, scene_reference, scene_schema
 from renderer.validation import MAX_JSON_DEPTH
 

@@ -20,12 +20,9 @@ from renderer.cameras import APERTURE_SCALE_MM, LensCamera, distortion_parameter
 from renderer.optics import BLUR_MODELS  # noqa: F401  (re-exported)
 from renderer.optics import blur_diameter as blur_diameter_mm  # noqa: F401  (re-exported)
 
-ROBUST_LOSSES = (None, "none", "huber", "cauchy")
+from .detfile import MIN_CORNERS  # noqa: F401 - the fewest corners a view must have (owned there: no torch)
 
-#: The fewest corners a view must have to enter a calibration, everywhere (`tiltfit calibrate`'s DET check, the
-#: fit's `min_corners`, `tiltfit target design`): a pose takes 6 parameters and 3 corners fit it exactly; 6 corners
-#: (12 residuals) leave as many again to say something about the lens, and PnP's start needs 4.
-MIN_CORNERS = 6
+ROBUST_LOSSES = (None, "none", "huber", "cauchy")
 
 #: The calibration's camera: the renderer's one camera model (see the module docstring).
 TiltLensCamera = LensCamera

@@ -41,13 +41,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from renderer import project_pinhole
-from renderer.transforms import euler_xyz_deg
 from renderer.validation import describe, is_finite_number, read_json
 
 # Stated limit for target files: at most this many edges per axis (200 × 200 feature points, detection's own
-# limit `tiltfit.detect.MAX_FEATURE_POINTS`), so an absurd file is refused when it is loaded. Real boards have tens.
+# limit MAX_FEATURE_POINTS), so an absurd file is refused when it is loaded. Real boards have tens.
 MAX_EDGES = 201
+# The largest target `tiltfit.detect` accepts (200 × 200 corners): beyond it the indexing (every placement of the
+# seen corners on the target) and the bookkeeping per feature point would run for minutes or exhaust memory.
+MAX_FEATURE_POINTS = 40_000
 # Edge positions and the margin, mm: beyond a kilometre is a unit mistake, not a target.
 MAX_MM = 1e6
 
@@ -471,6 +472,8 @@ def designed_pose(target: Target, distance_mm: float, inclination_deg: float) ->
 
     R is the rotation about the x axis by the inclination; the design centre sits at (0, 0, D).
     """
+    from renderer.transforms import euler_xyz_deg
+
     R = euler_xyz_deg((inclination_deg, 0.0, 0.0)).numpy()
     xc, yc = design_centre_mm(target)
     T = np.array([0.0, 0.0, distance_mm]) - R @ np.array([xc, yc, 0.0])
@@ -479,6 +482,8 @@ def designed_pose(target: Target, distance_mm: float, inclination_deg: float) ->
 
 def projected_row_spacing(target: Target, w_mm: float, distance_mm: float, inclination_deg: float) -> np.ndarray:
     """(n_rows,) projected row heights in the design view, sensor mm (uniform for a designed target)."""
+    from renderer import project_pinhole
+
     R, T = designed_pose(target, distance_mm, inclination_deg)
     xc, _ = design_centre_mm(target)
     p = np.stack([np.full(target.n_rows + 1, xc), np.asarray(target.y_edges), np.zeros(target.n_rows + 1)], 1)

@@ -73,15 +73,13 @@ class _Fail(Exception):
 
 
 def _design(args, say) -> None:
-    from .detect import MAX_FEATURE_POINTS
-    from .target import MAX_EDGES, MAX_MM, TargetError, design_target, target_from_dict
+    from .detfile import MIN_CORNERS
+    from .target import MAX_EDGES, MAX_FEATURE_POINTS, MAX_MM, TargetError, design_target, target_from_dict
 
     for name in ("cols", "rows"):
         v = getattr(args, name)
         if v < 2:
             raise _Fail(f"--{name}", f"expected at least 2 cells, got {v}")
-    from .model import MIN_CORNERS
-
     if (args.cols - 1) * (args.rows - 1) < MIN_CORNERS:
         raise _Fail("--cols", f"{args.cols} × {args.rows} cells have {(args.cols - 1) * (args.rows - 1)} inner "
                               f"corners; a view needs at least {MIN_CORNERS} to calibrate (more cells)")

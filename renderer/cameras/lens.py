@@ -36,9 +36,7 @@ import numpy as np
 import torch
 
 from .. import optics
-
-#: Where a lens's distortion is centred (`Lens.distortion_centre`).
-DISTORTION_CENTRES = ("sensor", "lens_axis")
+from ..params import DISTORTION_CENTRES  # noqa: F401 - where a lens's distortion is centred (`Lens.distortion_centre`)
 
 #: The paper's camera: Canon EOS 6D (5472 × 3648, 6.54 µm pixels) with the TS-E 45 mm at f/2.8, stage-1 estimates.
 PAPER_W_MM, PAPER_U_MM, PAPER_D_MM = 55.39, 618.4, 18.81

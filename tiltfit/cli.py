@@ -509,7 +509,7 @@ def cmd_report(args) -> int:
 
 def _real_vs_rendered_options(args):
     """`tiltfit report`'s real-against-rendered options from the command line (one-line errors naming the flag)."""
-    from .real_vs_rendered import RealVsRenderedOptions
+    from .real_vs_rendered import DEFAULT_SPP, RealVsRenderedOptions
 
     views = None
     if args.views is not None:
@@ -525,7 +525,8 @@ def _real_vs_rendered_options(args):
             raise CliError(folder, "--photos: not a folder")
     say = _say(args.quiet)
     return RealVsRenderedOptions(views=views, max_views=args.max_views, photos_dirs=tuple(args.photos or ()),
-                                 spp=args.spp, scale=args.scale, encoding=args.encoding, say=say)
+                                 spp=DEFAULT_SPP if args.spp is None else args.spp, scale=args.scale,
+                                 encoding=args.encoding, say=say)
 
 
 def cmd_compare(args) -> int:
@@ -692,7 +693,7 @@ def build_parser() -> argparse.ArgumentParser:
                                                       "spread over the views]")
     p.add_argument("--max-views", type=int, default=6, metavar="N",
                    help="views compared with renderings when --views is not given; 0: none [6]")
-    p.add_argument("--spp", type=int, default=4, help="samples per pixel of the renderings [4]")
+    p.add_argument("--spp", type=int, default=None, help="samples per pixel of the renderings [8]")
     p.add_argument("--scale", type=int, default=None, metavar="K",
                    help="compare at 1/K of the photos' resolution [the smallest K giving at most 640 px across]")
     p.add_argument("--encoding", choices=("srgb", "linear"), default=None,

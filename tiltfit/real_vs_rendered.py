@@ -34,9 +34,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-#: Samples per pixel of the renderings. Sobol samples over the pixel and the aperture; at 4 the profiles' average
-#: error is within 0.1 grey level of that at spp 32 on both shipped sets (benchmarks/bench_real_vs_rendered.py).
-DEFAULT_SPP = 4
+#: Samples per pixel of the renderings (Sobol over the pixel and the aperture). Render noise adds to |photo −
+#: rendered|: against spp 32 on both shipped sets a line's average error moves by a median 0.10 (max 0.42) grey
+#: level at 8, 0.31 (0.78) at 4, in half the time of 32 (benchmarks/results/real_vs_rendered.md).
+DEFAULT_SPP = 8
 #: Default largest width (px) of the compared images: 1280-px photos are compared at half resolution.
 DEFAULT_MAX_WIDTH_PX = 640
 #: Views compared by default, spread evenly over the calibration's views.
@@ -366,7 +367,10 @@ def compare_view(calibration, target, view: int, photo_path: str, options: RealV
     rows, profiles = (compare_profiles(photo_grey, rendered_grey, lines, to_grey_levels=False) if lines else ([], {}))
     diff = (photo_grey - rendered_grey)[board]
     if not calibration.blur_known:
-        notes.append("the calibration did not determine U and d: rendered sharp (the photo's blur is not modelled)")
+        notes.append("U, d undetermined: rendered sharp")
+    board_model = (calibration.data.get("board") or {}).get("model", "flat")
+    if board_model != "flat":
+        notes.append(f"board rendered flat (the calibration fitted a {board_model} one)")
     if k > 1:
         notes.append(f"compared at 1/{k} resolution ({size[0]}x{size[1]})")
     return ViewComparison(view, str(calibration.views[view].get("image", "")), photo_path, photo_grey, rendered_grey,
@@ -390,7 +394,7 @@ def view_figure(cmp: ViewComparison, title: str):
     panel_h = 14.0 / 3 * (y1 - y0) / (x1 - x0)
     fig = plt.figure(figsize=(14.0, panel_h + 3.6))
     grid = fig.add_gridspec(2, 3, height_ratios=[panel_h, 2.9], hspace=0.22, wspace=0.12, left=0.05, right=0.97,
-                            top=1 - 0.55 / (panel_h + 3.6), bottom=0.45 / (panel_h + 3.6))
+                            top=1 - 0.75 / (panel_h + 3.6), bottom=0.45 / (panel_h + 3.6))
     extent = (x0 - 0.5, x1 - 0.5, y1 - 0.5, y0 - 0.5)
     shown = {"photo": cmp.photo_grey, "rendered through the calibration, brightness fitted": cmp.rendered_grey}
     for j, (label, img) in enumerate(shown.items()):
@@ -410,7 +414,7 @@ def view_figure(cmp: ViewComparison, title: str):
     ax.set_title(f"photo − rendered (red: photo brighter); RMS {cmp.rms_board:.1f}", fontsize=9)
     ax.set_axis_off()
     fig.colorbar(im, ax=ax, shrink=0.85, pad=0.02, label="grey levels")
-    fig.suptitle(title, fontsize=10)
+    fig.suptitle(title, fontsize=10, y=1 - 0.08 / (panel_h + 3.6))
     for j, name in enumerate(LINE_NAMES):
         ax = fig.add_subplot(grid[1, j])
         row = next((r for r in cmp.rows if r["line"] == name), None)
@@ -515,7 +519,7 @@ def write_real_vs_rendered(calib: dict, calib_path: str | None, out_dir: str,
         os.makedirs(os.path.join(out_dir, "real_vs_rendered"), exist_ok=True)
         name = os.path.join("real_vs_rendered", f"view_{v:02d}.png")
         fig = view_figure(cmp, f"view {v}: {os.path.basename(image)} — profile error {cmp.profile_error:.1f} grey "
-                               f"levels" + ("".join(f"; {t}" for t in cmp.notes)))
+                               f"levels" + ("\n" + "; ".join(cmp.notes) if cmp.notes else ""))
         try:
             fig.savefig(os.path.join(out_dir, name), dpi=90)
         finally:

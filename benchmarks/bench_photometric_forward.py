@@ -10,14 +10,20 @@ pixels the fit uses (`usable_pixels`: the blur disc on the board inside its marg
 - what that mismatch does to a fit: the shift of d (and of U) that best explains it, by least squares on the
   model's own derivative (central differences), in % (a pure rendering error turned into a parameter error);
 - by blur size, inclination, tilt and position in the image; for each of the forward model's paths: the
-  aperture in closed form, the fixed lens samples (64, the refinement's count below 3 px, and 256), and `auto`
-  (the refinement's mix: closed form from 3 px of blur).
+  aperture in closed form (4 x 4 points per pixel, 8 x 8 below render.SHARP_BLUR_PX, as the fit takes them),
+  the fixed lens samples (64, the refinement's count for sharp pixels, and 256), and `auto` (the refinement's
+  mix: closed form from CLOSED_FORM_MIN_BLUR_PX of blur).
 
 Candidates checked beside it (each its own section): the 8-bit sRGB decoding (bias of decoded levels against the
-linear signal), the per-view gain (levels fitted to the 8-bit capture against the truth) and the pixel's area
-(closed form with 4 x 4 against 8 x 8 points per pixel on sharp edges).
+linear signal), the per-view gain (levels fitted to the 8-bit capture against the truth), the pixel's area
+(closed form with 4 x 4 against 8 x 8 points per pixel on sharp edges) and the pixel quadrature alone
+(`pixel_quadrature`: no generator noise; the closed form with n x n points per pixel and the lens samples
+against the closed form with 40 x 40 points, by blur size: what set SHARP_BLUR_PX and CLOSED_FORM_MIN_BLUR_PX).
 
-    python benchmarks/bench_photometric_forward.py [--quick 1]
+    python benchmarks/bench_photometric_forward.py [--quick 1] [--part 0|1|2] [--strata N]
+
+`--part 1` the cases alone, `--part 2` the other sections alone (each to its own --out; the full run is both);
+`--strata` the generator's aperture strata per side [12].
 
 Writes benchmarks/results/photometric_forward.{json,md}. One torch thread.
 """
@@ -42,8 +48,9 @@ from renderer.cameras.lens import Lens, Sensor  # noqa: E402
 from renderer.io import srgb_to_linear  # noqa: E402
 from tiltfit.experiments import exact_capture as ec  # noqa: E402
 from tiltfit.photometric import CLOSED_FORM_MIN_BLUR_PX  # noqa: E402
-from tiltfit.photometric.render import (dark_fraction_disc, dark_fraction_samples,  # noqa: E402
-                                        hammersley_disc_samples, pixel_blur_px, usable_pixels)
+from tiltfit.photometric.render import (SHARP_BLUR_PX, SUBPIXELS, SUBPIXELS_SHARP,  # noqa: E402
+                                        dark_fraction_disc, dark_fraction_samples, hammersley_disc_samples,
+                                        pixel_blur_px, usable_pixels)
 from tiltfit.target import Target  # noqa: E402
 
 W_PX, H_PX, PITCH_MM, W_MM, DIST_MM = 128, 96, 0.1, 50.0, 720.0
@@ -94,25 +101,36 @@ def all_pixels() -> torch.Tensor:
     return torch.stack([(flat % W_PX).to(torch.float64), (flat // W_PX).to(torch.float64)], -1)
 
 
+def closed_form(cam, uv, blur_px, near) -> np.ndarray:
+    """The closed form as the fit takes it: SUBPIXELS_SHARP points a side below SHARP_BLUR_PX, SUBPIXELS above."""
+    sharp = torch.from_numpy(np.asarray(blur_px) < SHARP_BLUR_PX)
+    out = np.empty(uv.shape[0])
+    with torch.no_grad():
+        for m, sub in ((sharp, SUBPIXELS_SHARP), (~sharp, SUBPIXELS)):
+            if bool(m.any()):
+                out[m.numpy()] = dark_fraction_disc(BOARD, cam, uv[m], near, sub).numpy()
+    return out
+
+
 def render_paths(cam, uv, blur_px) -> dict:
     """Dark fraction of every pixel by each of the forward model's paths."""
     near = max(len(BOARD.x_edges), len(BOARD.y_edges))
+    closed = closed_form(cam, uv, blur_px, near)
     with torch.no_grad():
-        closed = dark_fraction_disc(BOARD, cam, uv, near).numpy()
         s64 = dark_fraction_samples(BOARD, cam, uv, hammersley_disc_samples(64)).numpy()
         s256 = dark_fraction_samples(BOARD, cam, uv, hammersley_disc_samples(256)).numpy()
     auto = np.where(blur_px >= CLOSED_FORM_MIN_BLUR_PX, closed, s64)
     return {"closed form": closed, "samples 64": s64, "samples 256": s256, "auto": auto}
 
 
-def implied_shift(cam_fn, truth, uv, pick, r, key, rel=1e-3) -> float:
+def implied_shift(cam_fn, truth, uv, pick, r, key, rel=1e-3, subpixels=SUBPIXELS) -> float:
     """The relative change of `key` (d or U) that best explains the residual r = model − exact (least squares on
     the closed form's central difference), in %."""
     near = max(len(BOARD.x_edges), len(BOARD.y_edges))
     base = {"d": truth["d_mm"], "U": truth["U_mm"]}[key]
     with torch.no_grad():
-        up = dark_fraction_disc(BOARD, cam_fn(**{key: base * (1 + rel)}), uv[pick], near).numpy()
-        dn = dark_fraction_disc(BOARD, cam_fn(**{key: base * (1 - rel)}), uv[pick], near).numpy()
+        up = dark_fraction_disc(BOARD, cam_fn(**{key: base * (1 + rel)}), uv[pick], near, subpixels).numpy()
+        dn = dark_fraction_disc(BOARD, cam_fn(**{key: base * (1 - rel)}), uv[pick], near, subpixels).numpy()
     J = (up - dn) / (2 * rel)
     return float(-100.0 * (J @ r) / max(J @ J, 1e-300))
 
@@ -232,17 +250,69 @@ def pixel_area(strata: int) -> dict:
     return out
 
 
+#: pixel_quadrature's geometries: name -> (lens tilt °, board rx°, ry°); and its blur sizes (px at the centre).
+QUADRATURE_CASES = {"facing": (0.0, 0.0, 10.0), "inclined 30° x 30°": (0.0, 30.0, 30.0),
+                    "tilt +5°, inclined 50°": (5.0, 50.0, 10.0)}
+QUADRATURE_BLUR_PX = (0.7, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0)
+
+
+def pixel_quadrature(max_pixels: int = 500) -> dict:
+    """The pixel's box alone: no generator, so no noise. On up to `max_pixels` edge pixels of each case, the closed
+    form with n x n points per pixel (n = 4, 6, 8, stretched to the box's variance: `sub_points`) and the fixed lens
+    samples (64, 256) against the closed form with 40 x 40 points, as the d that would explain the difference (%)
+    and the RMS of D."""
+    near = max(len(BOARD.x_edges), len(BOARD.y_edges))
+    rng = np.random.default_rng(0)
+    out = {}
+    for name, (tilt, rx, ry) in QUADRATURE_CASES.items():
+        rows = {}
+        for blur in QUADRATURE_BLUR_PX:
+            d = 20.0
+            lens = ec.ExactLens.focused_at(W_MM, focus_for_blur(blur, d), d, tilt, W_PX, H_PX, PITCH_MM)
+            R, T = ec.pose_facing(BOARD, rx, ry, DIST_MM)
+            truth = lens.truth()
+            cam_fn = lambda **c: model_camera(truth, R, T, **c)  # noqa: E731
+            cam = cam_fn()
+            uv = all_pixels()
+            uv = uv[torch.from_numpy(usable_pixels(BOARD, cam, uv))]
+            with torch.no_grad():
+                ref = dark_fraction_disc(BOARD, cam, uv, near, 40).numpy()
+            edge = np.flatnonzero((ref > 0.03) & (ref < 0.97))
+            edge = np.sort(rng.choice(edge, min(edge.size, max_pixels), replace=False))
+            u, ref = uv[torch.from_numpy(edge)], ref[edge]
+            pick = torch.arange(u.shape[0])
+            blur_px = pixel_blur_px(cam, u).numpy()
+            row = {"pixels": int(u.shape[0]), "blur_px_range": [float(blur_px.min()), float(blur_px.max())]}
+            with torch.no_grad():
+                paths = {f"closed {n}x{n}": dark_fraction_disc(BOARD, cam, u, near, n).numpy() for n in (4, 6, 8)}
+                for ns in (64, 256):
+                    paths[f"samples {ns}"] = dark_fraction_samples(BOARD, cam, u, hammersley_disc_samples(ns)).numpy()
+            paths["as fitted"] = np.where(blur_px >= CLOSED_FORM_MIN_BLUR_PX, closed_form(cam, u, blur_px, near),
+                                          paths["samples 64"])
+            for path, D in paths.items():
+                r = D - ref
+                row[path] = {"d_pct": implied_shift(cam_fn, truth, u, pick, r, "d", subpixels=40),
+                             "rms": float(np.sqrt((r ** 2).mean()))}
+            rows[f"{blur:g}"] = row
+            print(f"quadrature {name} {blur:g} px", file=sys.stderr, flush=True)
+        out[name] = rows
+    return out
+
+
 def measure(args) -> dict:
     torch.set_num_threads(1)
-    strata = 12
-    names = QUICK if args.quick else tuple(CASES)
+    strata = args.strata
+    names = QUICK if args.quick else tuple(CASES) if args.part in (0, 1) else ()
     t0 = time.perf_counter()
     cases = []
     for name in names:
         print(f"case {name}", file=sys.stderr, flush=True)
         cases.append(measure_case(name, strata))
-    extra = {} if args.quick else {"srgb_and_gain": srgb_and_gain(strata), "pixel_area": pixel_area(strata)}
-    return {"command": "python benchmarks/bench_photometric_forward.py" + (" --quick 1" if args.quick else ""),
+    extra = {} if args.quick or args.part == 1 else {
+        "pixel_quadrature": pixel_quadrature(), "srgb_and_gain": srgb_and_gain(strata), "pixel_area": pixel_area(strata)}
+    opts = "".join(f" --{k} {v}" for k, v in (("quick", args.quick), ("part", args.part), ("strata", args.strata))
+                   if v != {"quick": 0, "part": 0, "strata": 12}[k])
+    return {"command": "python benchmarks/bench_photometric_forward.py" + opts,
             "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "image": [W_PX, H_PX], "pitch_mm": PITCH_MM,
             "aperture_strata": strata, "pixel_strata": 4, "cases": cases, **extra,
             "wall_s": time.perf_counter() - t0}
@@ -256,8 +326,16 @@ def write_markdown(path: str, res: dict) -> None:
          "Dark fraction D (0 paper, 1 ink) of the forward model at the generator's truth minus the exact capture's, "
          "on the usable edge pixels. *excess* is the RMS beyond the generator's own noise (in units of the noise of "
          "the two seeds' mean in the last column); *d %*, *U %* are the shifts of d and U that would best explain the "
-         "difference (what it does to a fit); *noise d %* is the same for the generator's noise alone.", "",
-         "| case | blur px (median, range) | path | mean | excess RMS | excess / noise | d % | U % | noise d % |",
+         "difference (what it does to a fit); *noise d %* is the same for the generator's noise alone."]
+    if res["cases"]:
+        L += _case_lines(res)
+    _extra_lines(L, res)
+    L.append("")
+    write_lines(path, L)
+
+
+def _case_lines(res: dict) -> list:
+    L = ["", "| case | blur px (median, range) | path | mean | excess RMS | excess / noise | d % | U % | noise d % |",
          "|---|---|---|---|---|---|---|---|---|"]
     for c in res["cases"]:
         lo, hi = c["blur_px_range"] or (math.nan, math.nan)
@@ -278,6 +356,23 @@ def write_markdown(path: str, res: dict) -> None:
         s = c["seconds"]
         L.append(f"| {c['case']} | {s['exact_per_capture']:.2f} | {s['model_all_paths']:.2f} | "
                  f"{s['exact_per_capture'] / max(s['model_all_paths'], 1e-9):.1f}x |")
+    return L
+
+
+def _extra_lines(L: list, res: dict) -> None:
+    if "pixel_quadrature" in res:
+        q = res["pixel_quadrature"]
+        paths = [k for k in next(iter(next(iter(q.values())).values())) if k not in ("pixels", "blur_px_range")]
+        L += ["", "## Pixel quadrature alone (no generator: against the closed form with 40 x 40 points per pixel)", "",
+              "The d (%) a fit would take from each path's error alone (RMS of D in brackets), by the blur disc at the "
+              f"board's centre; the fit now takes the closed form from {CLOSED_FORM_MIN_BLUR_PX:g} px with "
+              f"{SUBPIXELS_SHARP} x {SUBPIXELS_SHARP} points below {SHARP_BLUR_PX:g} px (*as fitted*).", "",
+              "| case | blur px (pixels' range) | " + " | ".join(paths) + " |", "|---|---|" + "---|" * len(paths)]
+        for case, rows in q.items():
+            for blur, row in rows.items():
+                lo, hi = row["blur_px_range"]
+                L.append(f"| {case} | {blur} ({lo:.2f}–{hi:.2f}) | " + " | ".join(
+                    f"{row[p]['d_pct']:+.3f} ({row[p]['rms']:.4f})" for p in paths) + " |")
     if "srgb_and_gain" in res:
         g = res["srgb_and_gain"]
         L += ["", "## 8-bit sRGB decoding and the per-view levels (4 px, facing; Poisson + read noise, 4 captures)", "",
@@ -295,9 +390,7 @@ def write_markdown(path: str, res: dict) -> None:
             a, b = row["closed form 4x4"], row["closed form 8x8"]
             L.append(f"| {case} | {row['generator_noise_rms']:.4f} | {a['mean']:+.4f} / {a['excess_rms']:.4f} | "
                      f"{b['mean']:+.4f} / {b['excess_rms']:.4f} |")
-    L.append("")
-    write_lines(path, L)
 
 
 if __name__ == "__main__":
-    sys.exit(run_benchmark(__doc__, "photometric_forward", measure, write_markdown, quick=0))
+    sys.exit(run_benchmark(__doc__, "photometric_forward", measure, write_markdown, quick=0, part=0, strata=12))

@@ -13,11 +13,12 @@ with v the vignetting and ρ the distance from the image centre, 1 at the corner
 the one sensor model `tiltfit.synth` and `tiltfit.experiments.reproduce` expose their captures with).
 
 D is integrated over the aperture in one of two ways:
-- in closed form (`dark_fraction_disc`): each of 4 x 4 points of the pixel (a grid with the box's variance,
-  `sub_points`) sees the aperture disc through its
-  focus point (`ThinLensCamera.focus_geometry`), on which the board's cell edges are straight lines, so D is a
-  sum of disc segments and wedges (`tiltfit.aperture`). Exact for the thin lens at any tilt and blur. The fit
-  uses it for pixels whose blur disc is at least CLOSED_FORM_MIN_BLUR_PX;
+- in closed form (`dark_fraction_disc`): each of n x n points of the pixel (a grid with the box's variance,
+  `sub_points`; n = 4, or SUBPIXELS_SHARP below SHARP_BLUR_PX of blur: `closed_form_subpixels`) sees the
+  aperture disc through its focus point (`ThinLensCamera.focus_geometry`), on which the board's cell edges are
+  straight lines, so D is a sum of disc segments and wedges (`tiltfit.aperture`). Exact over the aperture for
+  the thin lens at any tilt and blur; the pixel's box is the n x n points' quadrature, whose error grows as the
+  blur disc shrinks. The fit uses it for pixels whose blur disc is at least CLOSED_FORM_MIN_BLUR_PX;
 - by fixed lens samples (`dark_fraction_samples`): rays for each pixel and sample, intersected with the board
   plane Z = 0, the checker evaluated analytically and antialiased over the pixel's footprint (below). Sharp
   boards need it: there the pixel's box matters more than the disc.
@@ -47,6 +48,12 @@ from ..target import Target
 
 #: Sensor points per pixel side of the closed-form aperture (`dark_fraction_disc`).
 SUBPIXELS = 4
+#: ... for pixels whose blur disc is narrower than SHARP_BLUR_PX (`closed_form_subpixels`). The n x n points'
+#: quadrature of the pixel's box errs by about the same for the same n · blur: against a 40 x 40 grid, the d a
+#: fit would take from it is −0.40 % (4 x 4) and −0.06 % (8 x 8) at a 1.5 px disc on a facing board, −0.20 % and
+#: −0.02 % at 2 px, +0.02 % and +0.006 % at 3 px (benchmarks/results/photometric_forward.md, "pixel quadrature").
+SUBPIXELS_SHARP = 8
+SHARP_BLUR_PX = 3.0
 #: `lens_samples=0` (auto) takes 64 · (b / 10 px)² samples for the start's largest blur disc b at the board's
 #: centre, in multiples of 16, from 64 to this many (`auto_lens_samples`).
 AUTO_LENS_SAMPLES_MAX = 256
@@ -103,6 +110,12 @@ def hammersley_disc_samples(n: int, dtype=torch.float64) -> torch.Tensor:
     r = np.hypot(xy[:, 0], xy[:, 1])
     xy = xy * np.minimum(1.0, (1 - 1e-12) / np.maximum(r, 1e-300))[:, None]
     return torch.tensor(np.clip(_inverse_concentric(xy), 0.0, np.nextafter(1.0, 0.0)), dtype=dtype)
+
+
+def closed_form_subpixels(blur_px: float) -> int:
+    """Points per pixel side the closed form takes for a pixel whose blur disc is `blur_px` wide: SUBPIXELS, or
+    SUBPIXELS_SHARP below SHARP_BLUR_PX."""
+    return SUBPIXELS_SHARP if float(blur_px) < SHARP_BLUR_PX else SUBPIXELS
 
 
 def _axis_terms(coord: torch.Tensor, edges: torch.Tensor, sigma: torch.Tensor):

@@ -34,8 +34,6 @@ import math
 import os
 
 import numpy as np
-import torch
-from renderer import axis_angle_to_matrix, matrix_to_axis_angle
 from renderer.validation import is_finite_number
 
 
@@ -166,7 +164,7 @@ def opencv_note(calib: dict, tool: str = "OpenCV") -> str:
     if calib.get("U_mm") is not None or calib.get("d_mm") is not None:
         U, d = calib.get("U_mm"), calib.get("d_mm")
         parts.append(f"the blur model (focus distance U = {'unknown' if U is None else format(U, '.5g')} mm, "
-                     f"aperture d = {'unknown' if d is None else format(d, '.4g')} mm) is not part of {tool}'s "
+                     f"aperture d = {'unknown' if d is None else format(d, '.4g')} mm) is not in the {tool} camera "
                      f"model: tiltfit keeps U and d beside it (tiltfit_U_mm, tiltfit_d_mm) for rendering")
     board = calib.get("board")
     if isinstance(board, dict) and board.get("model") not in (None, "flat"):
@@ -226,6 +224,8 @@ def opencv_text(calib: dict, format_name: str = ".yml") -> str:
     pixel_pitch_mm, tiltfit_note.
     """
     import cv2
+
+    from renderer import matrix_to_axis_angle  # torch: imported by the commands that convert rotations
 
     check_exportable(calib)
     fs = cv2.FileStorage(format_name, cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
@@ -366,6 +366,10 @@ def read_opencv(path: str, pixel_pitch_mm: float | None = None) -> dict:
     Raises:
         ExportError: naming the file and the missing or malformed node.
     """
+    import torch
+
+    from renderer import axis_angle_to_matrix
+
     if not os.path.isfile(path):
         raise ExportError(f"{path}: {'is a folder' if os.path.isdir(path) else 'no such file'}")
     fs = _open_storage(path)

@@ -30,6 +30,9 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+import torch
+
 from ..cameras.lens import Lens
 from ..transforms import world_from_local_4x4
 
@@ -85,6 +88,9 @@ def _classes(mi):
             self.center_px = (props.get("cx"), props.get("cy"))
             self.distance = props.get("distance", 1.0)
             self.k = tuple(props.get(name, 0.0) for name in COEFFICIENT_NAMES)
+            # camera_from_lens (row by row) where the distortion acts about a tilted lens's axis, else None
+            rot = [props.get(f"lens_r{i}{j}", math.nan) for i in range(3) for j in range(3)]
+            self.camera_from_lens = None if any(math.isnan(v) for v in rot) else rot
 
         def _screen(self, position_sample):
             """Film position -> (x, y) on our screen plane, camera frame, scene units, and whether the pixel has
@@ -94,8 +100,17 @@ def _classes(mi):
             xs, ys = (u - self.center_px[0]) * self.pitch[0], (v - self.center_px[1]) * self.pitch[1]
             if not any(self.k):
                 return xs, ys, True
-            x, y, ok = undistort(dr, self.k, xs / self.distance, ys / self.distance)
-            return x * self.distance, y * self.distance, ok
+            xn, yn = xs / self.distance, ys / self.distance
+            if self.camera_from_lens is None:
+                x, y, ok = undistort(dr, self.k, xn, yn)
+                return x * self.distance, y * self.distance, ok
+            # distortion.undistort_about_axis: into the lens frame (Rᵀ (x, y, 1)), undistort there, back (R ·)
+            r = self.camera_from_lens
+            vx, vy, vz = (r[0 + i] * xn + r[3 + i] * yn + r[6 + i] for i in range(3))
+            xl, yl, ok = undistort(dr, self.k, vx / vz, vy / vz)
+            cx, cy, cz = (r[3 * i] * xl + r[3 * i + 1] * yl + r[3 * i + 2] for i in range(3))
+            ok = ok & (vz > 0) & (cz > 0)
+            return cx / cz * self.distance, cy / cz * self.distance, ok
 
         def sample_ray(self, time, wavelength_sample, position_sample, aperture_sample, active=True):
             xs, ys, ok = self._screen(position_sample)
@@ -164,10 +179,11 @@ def _coefficients(camera) -> dict:
     distortion = camera.distortion
     if distortion is None or distortion.is_identity:
         return {}
-    if distortion.camera_from_lens is not None:
-        raise NotImplementedError("camera.distortion about a tilted lens's axis (distortion_centre lens_axis): the "
-                                  "Mitsuba sensors distort about the principal point only")
-    return {name: float(v) for name, v in zip(COEFFICIENT_NAMES, distortion.coefficients)}
+    out = {name: float(v) for name, v in zip(COEFFICIENT_NAMES, distortion.coefficients)}
+    if distortion.camera_from_lens is not None:  # about a tilted lens's axis: the rotation into its frame
+        R = np.asarray(torch.as_tensor(distortion.camera_from_lens).detach().cpu(), dtype=np.float64)
+        out.update({f"lens_r{i}{j}": float(R[i, j]) for i in range(3) for j in range(3)})
+    return out
 
 
 def sensor_dict(mi, camera, spp: int, sampler: str = "independent") -> dict:

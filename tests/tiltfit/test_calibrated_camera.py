@@ -253,16 +253,24 @@ def test_render_command_with_camera(capture, tmp_path):
     assert not (tmp_path / "p.png").exists()
 
 
-def test_mitsuba_renders_the_calibrated_camera_as_ours(capture):
+@pytest.mark.parametrize("centre", ["sensor", "lens_axis"])
+def test_mitsuba_renders_the_calibrated_camera_as_ours(capture, centre, tmp_path):
     """The same scene through Mitsuba 3 (`renderer.mitsuba.to_mitsuba`: our thin-lens sensor with the calibrated
     distortion, the print as a bitmap): the board lands on the same pixels (llvm where it runs, else a smaller
-    image on scalar_rgb, whose Python sensor is slow)."""
+    image on scalar_rgb, whose Python sensor is slow). `lens_axis`: the same calibration with a lens tilted by
+    8° about an axis at 30° and its distortion about the lens axis (OpenCV's tilted model)."""
     mi = pytest.importorskip("mitsuba")
     from renderer.mitsuba.export import DEFAULT_VARIANT, develop, jit_variant_runs, load_mitsuba, to_mitsuba
 
-    _, _, _, folder, _ = capture
+    _, _, _, folder, data = capture
+    if centre == "lens_axis":
+        data = dict(data, theta_F_deg=8.0, tilt_axis_deg=30.0, distortion_centre="lens_axis", theta_L_deg=None,
+                    theta_L_paper_deg=None)
+        (tmp_path / "calib.json").write_text(json.dumps(data))
+        folder = tmp_path
     variant = "llvm_ad_rgb" if jit_variant_runs("llvm_ad_rgb") else "scalar_rgb"
     cfg = _scene(folder, 4, spp=8)
+    cfg["objects"][0]["shape"]["file"] = str(capture[3] / "calib.json")
     cfg["image"]["width"] = 120 if variant == "llvm_ad_rgb" else 48
     scene = renderer.load_scene(cfg)
     ours = renderer.render(scene, spp=8, progress=False, seed=3).image[..., 0].numpy()

@@ -21,6 +21,9 @@ written by `tiltfit calibrate`). Files:
                             `tiltfit.uncertainty`), where the file has it
     report.md               the numbers: RMS, held-out error, per-view table, undetermined and skipped,
                             the calibration's notes and warnings
+    real_vs_rendered/view_KK.png, real_vs_rendered.png, real_vs_rendered.json  with `real_vs_rendered` options
+                            (the CLI's default): each found photo against the target rendered through the
+                            calibration, difference and brightness profiles (`tiltfit.real_vs_rendered`)
 """
 from __future__ import annotations
 

@@ -104,7 +104,7 @@ def _detect_image(path: str, target, encoding: str | None, keep: dict | None = N
     `keep`: where given, the image read is stored there under its path (for `--refine photometric`)."""
     from renderer import read_image
 
-    from .detect import MAX_IMAGE_PIXELS
+    from .detfile import MAX_IMAGE_PIXELS
 
     try:
         with _quiet_c_stderr():
@@ -277,10 +277,6 @@ def _check_range(option: str, value, low_exclusive: float, high: float, what: st
 
 
 def cmd_calibrate(args) -> int:
-    from .calibfile import calib_dict, camera_from_calib, read_calib, sigma_from_calib, validate_calib, write_calib
-    from .fit import FitError, FitOptions
-    from .photos import fit_with_held_out
-
     say = _say(args.quiet)
     t0 = time.perf_counter()
     _check_output(args.output)
@@ -295,6 +291,14 @@ def cmd_calibrate(args) -> int:
         raise CliError("--init", "the tilt fit (stage 2) needs the stage-1 CALIB.json as --init")
     if args.cross_validate is not None and not 2 <= args.cross_validate <= MAX_HELD_OUT:
         raise CliError("--cross-validate", f"expected 2 to {MAX_HELD_OUT} groups, got {args.cross_validate}")
+    for path in args.inputs + ([args.init] if args.init else []):
+        if not os.path.isfile(path):  # refused before the fit's modules load (seconds: torch)
+            raise CliError(path, "no such file")
+    target = _load_target(args.target)
+    from .calibfile import calib_dict, camera_from_calib, read_calib, sigma_from_calib, validate_calib, write_calib
+    from .fit import FitError, FitOptions
+    from .photos import fit_with_held_out
+
     init = init_sigma = None
     if args.init:
         from .export import is_mrcal_file, is_opencv_file, read_mrcal, read_opencv
@@ -313,7 +317,6 @@ def cmd_calibrate(args) -> int:
         init_sigma = sigma_from_calib(data)
         if args.fit == "tilt" and (data.get("U_mm") is None or data.get("d_mm") is None):
             raise CliError(args.init, "U_mm, d_mm: undetermined in this calibration; the tilt fit needs them")
-    target = _load_target(args.target)
     if args.refine == "photometric":  # what the refinement cannot take is known before any image is read
         _check_photometric_inputs(args, target)
     images = {} if args.refine == "photometric" else None  # read once, for detection and the refinement
@@ -531,16 +534,20 @@ def _real_vs_rendered_options(args):
 
 def cmd_compare(args) -> int:
     from .calibfile import read_calib
-    from .compare import CompareError, compare, summary_lines, write_compare
 
     if args.output and os.path.exists(args.output) and not os.path.isdir(args.output):
         raise CliError(args.output, "not a folder")
+    for path in (args.a, args.b):
+        if not os.path.isfile(path):  # both refused before a calibration's checks load torch
+            raise CliError(path, "is a folder" if os.path.isdir(path) else "no such file")
     data = []
     for path in (args.a, args.b):
         try:
             data.append(read_calib(path))
         except ValueError as e:
             raise _as_cli_error(path, e) from None
+    from .compare import CompareError, compare, summary_lines, write_compare  # after the checks: loads torch
+
     try:
         res = compare(*data, rotation=not args.no_rotation)
     except CompareError as e:

@@ -52,6 +52,7 @@ import torch
 import torch.nn.functional as F
 
 from .blur import measure_blur as _measure_blur
+from .detfile import MAX_IMAGE_PIXELS  # the largest photo detection reads (named there: no torch)
 from .imaging import apply_homography, build_pyramid, homography_dlt, homography_dlt_batch, to_full, torch_threads
 from .solve.batched import BatchedOptions, batched_levenberg_marquardt, normal_from_residuals
 from .target import MAX_FEATURE_POINTS, Target
@@ -928,12 +929,6 @@ def _min_neighbour_distance(nodes: np.ndarray, xy: np.ndarray) -> np.ndarray:
                 out[k] = min(out[k], float(np.hypot(*(q - p))))
     fallback = np.median(out[np.isfinite(out)]) if np.isfinite(out).any() else 10.0
     return np.where(np.isfinite(out), out, fallback)
-
-
-# The largest photo detection reads (pixels): above the largest camera sensors (about 150 megapixels); the
-# pyramid and saddle maps need tens of bytes a pixel, so larger files (or decompression bombs) are refused
-# from their header.
-MAX_IMAGE_PIXELS = 200_000_000
 
 
 def detect_file(path: str, target: Target, encoding: str | None = None, **options) -> Detection:

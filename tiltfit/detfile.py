@@ -28,6 +28,10 @@ from renderer.validation import describe, is_finite_number, read_json
 
 DET_FORMAT_VERSION = 1
 MAX_IMAGE_SIDE = 1 << 17
+# The largest photo detection reads (pixels): above the largest camera sensors (about 150 megapixels); the
+# pyramid and saddle maps need tens of bytes a pixel, so larger files (or decompression bombs) are refused
+# from their header.
+MAX_IMAGE_PIXELS = 200_000_000
 #: The fewest corners a view must have to enter a calibration, everywhere (`tiltfit calibrate`'s DET check, the
 #: fit's `min_corners`, `tiltfit target design`): a pose takes 6 parameters and 3 corners fit it exactly; 6 corners
 #: (12 residuals) leave as many again to say something about the lens, and PnP's start needs 4.

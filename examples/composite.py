@@ -12,10 +12,11 @@
    are, within the calibration's reprojection error of that view (times 1.5), and where the calibration projects
    them (0.1 px). Exit status 1 otherwise.
 3. The composite: a glossy sphere and a box standing on the board, lit by a point light above the camera (where
-   the room's ceiling lights are) and an ambient fill, rendered through the same camera. Differential rendering
-   (Debevec 1998): the objects' pixels come from the render at the photo's exposure and white balance; elsewhere
-   the photo is multiplied by the ratio of the board rendered with and without the objects, which lays their
-   shadows onto the real board. Only a window around the objects and their shadows is rendered.
+   the room's ceiling lights are) and an ambient fill, rendered through the same camera; the board and the wall
+   it hangs on (a plane just behind it) catch their shadows. Differential rendering (Debevec 1998): the objects'
+   pixels come from the render at the photo's exposure and white balance; elsewhere the photo is multiplied by
+   the ratio of the board and wall rendered with and without the objects, which lays their shadows onto the real
+   ones. Only a window around the objects and their shadows is rendered.
 Writes DIR/calib.json, DIR/alignment.json, DIR/composite.png (full size) and, with --picture, a small copy for
 the docs. Uses only the public API: `tiltfit.calibration.calibrate`, `tiltfit.calibrated.Calibration`,
 `tiltfit.composite`, `renderer.load_scene`.
@@ -73,8 +74,9 @@ def photo_corners(cache: dict, view_name: str) -> np.ndarray:
 
 
 def object_scene(calib_path: str, view, target_path: str, cal, objects_only: bool = False, lights: bool = True):
-    """The scene dict: the board (unless objects_only) and the CG objects standing on it, lit from above the
-    camera; with lights=False, white objects under unit ambient light (their render is their coverage)."""
+    """The scene dict: the board and the wall it hangs on (unless objects_only) and the CG objects standing on
+    it, lit from above the camera; with lights=False, white objects under unit ambient light (their render is
+    their coverage). Returns (scene, the objects' bounding-box corners (16, 3), the light's position)."""
     R, T = cal.pose(view)
     camera_centre = -R.T @ T                         # target frame
     front = -1.0 if camera_centre[2] < 0 else 1.0    # the board's side facing the camera (Z sign)
@@ -98,7 +100,10 @@ def object_scene(calib_path: str, view, target_path: str, cal, objects_only: boo
                {"name": "box", "shape": {"type": "box", "center": box.tolist(), "size": [box_size] * 3,
                                          "rotation_deg": [0, 0, 30]}, "material": matte}]
     if not objects_only:
-        objects.insert(0, {"name": "board", "shape": {"type": "target", "file": target_path}})
+        # the local scene that catches the shadows: the board, and the wall 0.1 mm behind it (so close that the
+        # board's edge casts no visible shadow on it)
+        objects[:0] = [{"name": "board", "shape": {"type": "target", "file": target_path}},
+                       {"name": "wall", "shape": {"type": "plane", "point": [0, 0, -0.1 * front], "normal": [0, 0, front]}}]
     distance = float(np.linalg.norm(light - centre))
     scene = {"image": {"spp": 1, "max_depth": 2},
              "camera": {"type": "calibrated", "file": calib_path, "view": view},
@@ -170,7 +175,7 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     target_path = os.path.join(folder, "target.json")
     full, extent, light = object_scene(calib_path, view, target_path, cal)
-    board_only = dict(full, objects=full["objects"][:1])
+    board_only = dict(full, objects=full["objects"][:2])
     mask, _, _ = object_scene(calib_path, view, target_path, cal, objects_only=True, lights=False)
     footprint = np.concatenate([extent, shadow_points(extent, light)])
     window = composite.window_around(cal.project(footprint, view), cal.image_size_px, margin_px=12)

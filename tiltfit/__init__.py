@@ -4,7 +4,9 @@ Layers (bottom to top; `tests/tiltfit/test_layers.py` checks them, and that noth
 - library: `target` (the board), `imaging` (pyramid, homography), `blur`, `detect`, `charuco` (ChArUco boards, and
   `detect_board` for any target), `model`, `fit`, `validate`,
   `photos` (calibration from photographs, the Python entry point), `photometric`, the file formats (`calibfile`, `detfile`, `formats`, `export`), `report`, `evaluate` (photo
-  against rendering), `synth` (synthetic observations and images), `opencv_corners`, `runlog`, `target_cli`;
+  against rendering), `calibrated` (a calibration file as one object) with `scene_plugins` (its scene-file camera
+  and target shape) and `composite` (CG rendered into calibrated photos, and the board-alignment check), `synth`
+  (synthetic observations and images), `opencv_corners`, `runlog`, `target_cli`;
 - experiments built on the library, in `experiments/`: `reproduce` (the paper's experiment) with `scenes`,
   `stability/` (where each method fails, one module per study) and `cluster`; the library never imports them;
 - front end: `cli` (`tiltfit ...`, also `python -m tiltfit`).

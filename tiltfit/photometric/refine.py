@@ -90,6 +90,17 @@ UNDETERMINED_BLUR_PX = 1.0
 #: The refinement is kept only where its RMS on the (held-out) corners is at most 1 + this times the corner
 #: fit's held-out RMS.
 CORNER_TOLERANCE = 0.02
+#: Without the corner fit's held-out RMS the corners are compared in sample (the corner fit minimised their cost, so
+#: any other lens costs more): kept while the cost rises by at most the χ² quantile of this level for the free lens
+#: parameters, in units of the corners' own noise: the refined lens inside the corner fit's confidence region.
+#: (A tolerance of 2 % on the RMS rejected refinements one corner-fit σ from the start, where the corners were
+#: few: on 2 heavy-blur views, 0.0210 against 0.0207 px, the refinement nearer the truth in w, U and d;
+#: benchmarks/results/photometric_refine.md.)
+CORNER_CONFIDENCE = 0.99
+#: The held-out pixels reject the refinement where their mean Huber cost is higher than the start's by more than
+#: this many standard errors of the paired difference (pixel by pixel); equal predictions are a coin flip, not a
+#: reason to reject.
+HELD_OUT_Z = 2.0
 #: Relative cost decrease at which a solve has converged: thousands of pixels put the cost in the thousands, and a
 #: step that lowers it by less moves the lens by a few hundredths of its σ (the solver's default, 1e-7, spent
 #: half of a real photo's iterations there).
@@ -786,10 +797,11 @@ def _refine(images, target, camera, options, say, start_sigma, corners, corner_h
     refined = _camera_of(camera.copy(), res.x, problem)
     if opts.held_out_pixels:
         held_out = _held_out_costs(problem, held_data, res.x, x0, opts, scale)
-        if held_out["refined"] > held_out["start"]:
+        if held_out["refined"] - held_out["start"] > HELD_OUT_Z * held_out["difference_se"]:
             kept = "corner fit"
             reasons.append(f"held-out pixels cost {held_out['refined']:.4g} refined, {held_out['start']:.4g} "
-                           "for the corner fit")
+                           f"for the corner fit (more than {HELD_OUT_Z:g} standard errors, "
+                           f"{held_out['difference_se']:.2g}, apart)")
     at_bound = []
     if problem.free:
         b = problem.bound[problem.free]
@@ -815,7 +827,7 @@ def _refine(images, target, camera, options, say, start_sigma, corners, corner_h
                        "either's σ allows")
     corner_check = None
     if corners is not None:
-        corner_check = _corner_check(refined, camera, corners, corner_held_out_px)
+        corner_check = _corner_check(refined, camera, corners, corner_held_out_px, len(problem.free))
         if not corner_check["refined_px"] <= corner_check["limit_px"]:
             kept = "corner fit"
             reasons.append(f"held-out corners RMS {corner_check['refined_px']:.4f} px refined, "
@@ -1033,9 +1045,13 @@ def _held_out_costs(problem: _Problem, held_data: list, x: dict, x0: dict, opts:
     def cost(state):
         with torch.no_grad():
             r = check.evaluate(state, False)[0]
-        return float(robust_rho(r * r, "huber", k).mean())
+        return robust_rho(r * r, "huber", k)
 
-    return {"pixels": sum(int(d.uv.shape[0]) for d in held_data), "refined": cost(x), "start": cost(start)}
+    c_ref, c_start = cost(x), cost(start)
+    diff = c_ref - c_start
+    n = int(diff.numel())
+    se = float(diff.std() / math.sqrt(n)) if n > 1 else math.inf
+    return {"pixels": n, "refined": float(c_ref.mean()), "start": float(c_start.mean()), "difference_se": se}
 
 
 def _trust_region(cam: TiltLensCamera, sigma: dict):
@@ -1135,20 +1151,42 @@ def _without_views(left_out: list, imgs: list, target: Target, camera: TiltLensC
     return res
 
 
-def _corner_check(refined: TiltLensCamera, start: TiltLensCamera, corners, start_held_out_px) -> dict:
+def _chi2_quantile(p: float, k: int) -> float:
+    """x with P(χ²(k) ≤ x) = p (bisection on `stats.chi2_sf`)."""
+    from ..stats import chi2_sf
+
+    lo, hi = 0.0, 10.0 * k + 100.0
+    for _ in range(100):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if chi2_sf(mid, k) > 1 - p else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def _corner_check(refined: TiltLensCamera, start: TiltLensCamera, corners, start_held_out_px,
+                  n_free: int = 4) -> dict:
     """The refinement judged by the corners (held out of the photometric fit): each view's pose refitted to them
     with the refined lens held (`validate.predict_views`), RMS per corner, against the corner fit's held-out
-    RMS (or, without it, the start's own with its poses refitted the same way)."""
+    RMS times 1 + CORNER_TOLERANCE; or, without it, against the start's own RMS with its poses refitted the same way
+    (in sample): there the limit lets the corners' cost rise by the χ² quantile (CORNER_CONFIDENCE, `n_free`
+    degrees of freedom) times their noise variance (their RSS over its residual degrees of freedom)."""
     from ..validate import predict_views
 
-    def rms(camera):
+    def rss(camera):
         fit = predict_views(camera.copy().double(), corners)
-        return math.sqrt(fit.rss["corners"] / max(fit.rss["n_corners"] // 2, 1))
+        return float(fit.rss["corners"]), max(int(fit.rss["n_corners"]), 1)
 
-    ref = float(start_held_out_px) if start_held_out_px is not None else rms(start)
-    got = rms(refined)
-    return {"start_px": ref, "refined_px": got, "limit_px": ref * (1 + CORNER_TOLERANCE),
-            "start_is_held_out": start_held_out_px is not None, "views": corners.n_views}
+    got_rss, n_res = rss(refined)
+    got = math.sqrt(got_rss / max(n_res // 2, 1))
+    if start_held_out_px is not None:
+        ref = float(start_held_out_px)
+        return {"start_px": ref, "refined_px": got, "limit_px": ref * (1 + CORNER_TOLERANCE),
+                "start_is_held_out": True, "views": corners.n_views}
+    start_rss, _ = rss(start)
+    dof = max(n_res - 6 * corners.n_views - n_free, 1)
+    limit_rss = start_rss * (1.0 + _chi2_quantile(CORNER_CONFIDENCE, max(n_free, 1)) / dof)
+    return {"start_px": math.sqrt(start_rss / max(n_res // 2, 1)), "refined_px": got,
+            "limit_px": math.sqrt(limit_rss / max(n_res // 2, 1)), "start_is_held_out": False,
+            "views": corners.n_views}
 
 
 def _camera_of(camera: TiltLensCamera, x: dict, problem: "_Problem") -> TiltLensCamera:

@@ -26,7 +26,7 @@ _EXPORTS = {
     "Lens": "cameras", "LensCamera": "cameras", "Sensor": "cameras", "ThinLensCamera": "cameras",
     "project_pinhole": "cameras",
     "read_image": "io", "write_image": "io",
-    "CheckerTexture": "materials", "ImageTexture": "materials", "Material": "materials",
+    "CheckerTexture": "materials", "GridTexture": "materials", "ImageTexture": "materials", "Material": "materials",
     "SceneError": "params",
     "Hit": "rays", "Rays": "rays",
     "RenderResult": "render", "render": "render",

@@ -11,16 +11,15 @@ mrcal `.cameramodel`, validates it once and gives:
   file's image size or scaled to another of the same aspect;
 - `target` (the target file stored in CALIB.json, or None) and `board_points_mm` (a fitted board's points).
 
-Where the file cannot say how the lens blurs (U or d undetermined, or not in the file: OpenCV and mrcal files
-have no focus), the lens renders sharp: focus at infinity and a pinhole aperture (d = 0). The blur of a real
-photo is then not reproduced, and `blur_known` says so.
+Where the file cannot say how the lens blurs (U or d undetermined, or not in a camera file from another tool), the
+lens renders sharp: a pinhole aperture (d = 0; `tiltfit.calib_lens`). The blur of a real photo is then not
+reproduced, and `blur_known` says so.
 
 Scene files use it through the `calibrated` camera (`tiltfit.scene_plugins`):
     {"type": "calibrated", "file": "calib.json", "view": 0}
 """
 from __future__ import annotations
 
-import math
 import os
 from dataclasses import dataclass, field
 
@@ -80,27 +79,9 @@ class Calibration:
     @classmethod
     def from_dict(cls, data: dict, path: str = "<calibration>") -> "Calibration":
         """The Calibration of an already validated CALIB.json dict (`tiltfit.calibfile.validate_calib`)."""
-        from renderer import optics
+        from .calib_lens import lens_from_calib
 
-        U, d = data.get("U_mm"), data.get("d_mm")
-        blur_known = U is not None and d is not None
-        if not blur_known:
-            U, d = math.inf, 0.0
-        w = float(data["w_mm"])
-        theta_F = data.get("theta_F_deg")
-        if theta_F is not None:
-            theta_F = math.radians(theta_F)
-        elif data.get("theta_L_deg"):  # an OpenCV tilted-model file gives θL; θF is the tilt at this U
-            theta_F = float(optics.theta_F_from_theta_L(math.radians(data["theta_L_deg"]), w, U))
-        else:
-            theta_F = 0.0
-        coefficients = (data.get("distortion") or {}).get("coefficients") or None
-        W, H = (int(v) for v in data["image_size_px"])
-        pp = data.get("principal_point_px")
-        lens = Lens(w, float(U), float(d), float(theta_F), Sensor(W, H, float(data["pixel_pitch_mm"])),
-                    None if pp is None else (float(pp[0]), float(pp[1])),
-                    None if coefficients is None else tuple(float(c) for c in coefficients),
-                    math.radians(data.get("tilt_axis_deg") or 0.0), data.get("distortion_centre") or "sensor")
+        lens, blur_known = lens_from_calib(data)
         return cls(path, data, lens, blur_known)
 
     # --- views -------------------------------------------------------------------------------------------

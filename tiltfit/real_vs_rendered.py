@@ -261,9 +261,8 @@ def render_print(calibration, target, view: int, size_px, spp: int, window=None)
     import torch
 
     import renderer
+    from renderer import ImageSettings, Light, Material, Scene, SceneObject
     from renderer.cameras import ThinLensCamera
-    from renderer.materials import Material
-    from renderer.scene import ImageSettings, Light, Scene, SceneObject
 
     from .scene_plugins import TargetBoard
 

@@ -34,11 +34,10 @@ import os
 
 import numpy as np
 
+from renderer import GridTexture
 from renderer.cameras import register_camera
-from renderer.materials import GridTexture
 from renderer.params import Param, SceneError
-from renderer.shapes import register_shape
-from renderer.shapes.rectangle import Rectangle
+from renderer.shapes import Rectangle, register_shape
 
 #: Printed reflectances (dark toner, white paper) of a target shape without `reflectance`.
 DEFAULT_REFLECTANCE = (0.04, 0.8)

@@ -223,17 +223,18 @@ MAX_SIGMA = 1e6
 
 
 def calib_lens(calib: dict):
-    """The `renderer.Lens` of a CALIB.json dict (plain floats), built as every reader builds it:
-    `tiltfit.calibfile.camera_from_calib(calib).lens` (w, U, d, θF, tilt axis, principal point, distortion and its
-    centre, sensor). The one entry point for the projection of a calibration file here."""
-    from .calibfile import camera_from_calib
+    """The `renderer.Lens` of a CALIB.json dict (plain floats), as `tiltfit.calibrated.Calibration` builds it
+    (`tiltfit.calib_lens.lens_from_calib`: w, θF and θL, tilt axis, principal point, distortion and its centre,
+    sensor). The one entry point for the projection of a calibration file here."""
+    from .calib_lens import lens_from_calib
 
-    return _plain_lens(camera_from_calib(calib).lens)
+    return lens_from_calib(calib)[0]
 
 
 def _plain_lens(lens):
     """A `Lens` with tensor fields (a fitted camera's) as plain floats."""
-    from renderer.cameras.lens import _float
+    def _float(v):
+        return float(v.detach()) if isinstance(v, torch.Tensor) else float(v)
 
     dist = None if lens.distortion is None else tuple(_float(k) for k in lens.distortion)
     pp = None if lens.principal_point_px is None else tuple(_float(c) for c in lens.principal_point_px)
@@ -272,7 +273,7 @@ def _unproject(lens, q: torch.Tensor) -> torch.Tensor:
     """(n, 2) pixels -> (n, 3) unit camera-frame directions through `lens` (its distortion about its centre, the
     principal point or the lens axis); NaN where the distortion cannot be inverted."""
     from renderer.cameras.distortion import undistort_about_axis
-    from renderer.cameras.projection import normalised_from_pixels
+    from renderer.cameras import normalised_from_pixels
 
     f, c = float(lens.focal_px), tuple(float(x) for x in lens.center_px)
     xy_d = normalised_from_pixels(q, f, c)

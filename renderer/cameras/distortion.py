@@ -136,7 +136,8 @@ def _solve2(J: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.stack([(e * b[..., 0] - c * b[..., 1]) / det, (a * b[..., 1] - d * b[..., 0]) / det], -1)
 
 
-def undistort(xy_d: torch.Tensor, coefficients, iterations: int = 20) -> torch.Tensor:
+def undistort(xy_d: torch.Tensor, coefficients, iterations: int = 20, start: torch.Tensor | None = None,
+              skip: torch.Tensor | None = None) -> torch.Tensor:
     """Distorted normalised coordinates -> ideal ones: the inverse of `distort`, by Newton's method.
 
     The iterations run without autograd; one final Newton step with autograd on gives the exact first-order
@@ -146,6 +147,9 @@ def undistort(xy_d: torch.Tensor, coefficients, iterations: int = 20) -> torch.T
         xy_d: (..., 2) distorted normalised coordinates.
         coefficients: as in `distort`.
         iterations: Newton steps (each step is damped to stay where the model is monotonic).
+        start: (..., 2) where Newton starts (an interpolated map of the inverse: `UndistortionMap`), NaN where
+            there is none [the distorted coordinates themselves]; the root is the same, reached in fewer steps.
+        skip: (...,) True where the inverse is known not to exist (returned as NaN without iterating).
     Returns:
         (..., 2) ideal normalised coordinates; NaN where Newton's method did not converge (outside the
         region where the distortion is invertible).
@@ -155,14 +159,19 @@ def undistort(xy_d: torch.Tensor, coefficients, iterations: int = 20) -> torch.T
     tol = max(1e-9, 256 * torch.finfo(xy_d.dtype).eps)
     with torch.no_grad():
         xy = xy_d.detach().reshape(-1, 2).clone()
+        if start is not None:
+            s0 = start.detach().reshape(-1, 2).to(xy)
+            xy = torch.where(torch.isfinite(s0).all(-1, keepdim=True), s0, xy)
         kd = k.detach()
         target = xy_d.detach().reshape(-1, 2)
         scale = 1 + target.norm(dim=-1)
-        # Each point's Newton steps depend on that point alone, so a point whose step no longer changes it (a
-        # fixed point in floating point) would return the same numbers at every further step: the steps run on
-        # the points still moving only, which gives the same result as stepping all of them every time.
+        # Each point's Newton steps depend on that point alone: the steps run on the points still moving only.
+        ulps = 8 * torch.finfo(xy.dtype).eps
         idx = None  # the points still moving (None: all)
         stuck = False  # whether a point that stopped moving is still far from converged
+        if skip is not None and bool(skip.any()):
+            idx = (~skip.reshape(-1)).nonzero().squeeze(-1)
+            stuck = True  # the skipped points are not converged: no early stop on "all converged"
         for _ in range(iterations):
             sub = xy if idx is None else xy[idx]
             tgt = target if idx is None else target[idx]
@@ -175,7 +184,9 @@ def undistort(xy_d: torch.Tensor, coefficients, iterations: int = 20) -> torch.T
             limit = 0.5 * sub.norm(dim=-1, keepdim=True) + 0.05
             n = step.norm(dim=-1, keepdim=True)
             new = sub - step * torch.clamp(limit / n.clamp(min=1e-300), max=1.0)
-            moving = (new != sub).any(-1)
+            # A point whose step is a few ulps has converged (some alternate between neighbouring numbers for
+            # ever): it leaves the moving set, the result within those ulps of where further steps would go.
+            moving = ((new - sub).abs() > ulps * (1 + sub.abs())).any(-1)
             stuck = stuck or bool((~moving & ~tiny).any())
             if idx is None:
                 xy = new
@@ -188,6 +199,8 @@ def undistort(xy_d: torch.Tensor, coefficients, iterations: int = 20) -> torch.T
         xy = xy.reshape(xy_d.shape)
         bad = (distort(xy, kd) - xy_d.detach()).norm(dim=-1) > tol * (1 + xy_d.detach().norm(dim=-1))
         bad |= torch.linalg.det(distort_jacobian(xy, kd)) <= 0
+        if skip is not None:
+            bad |= skip.reshape(bad.shape)
     J = distort_jacobian(xy, k)
     out = xy - _solve2(J, distort(xy, k) - xy_d)
     return torch.where(bad[..., None], torch.full_like(out, math.nan), out)
@@ -227,12 +240,15 @@ def distort_about_axis(xy: torch.Tensor, coefficients, camera_from_lens) -> torc
     return _pi(_rotated(_lifted(x_l), R))
 
 
-def undistort_about_axis(xy_d: torch.Tensor, coefficients, camera_from_lens, iterations: int = 20) -> torch.Tensor:
-    """The inverse of `distort_about_axis` (`undistort` in the lens frame); NaN where it does not converge."""
+def undistort_about_axis(xy_d: torch.Tensor, coefficients, camera_from_lens, iterations: int = 20,
+                         start: torch.Tensor | None = None, skip: torch.Tensor | None = None) -> torch.Tensor:
+    """The inverse of `distort_about_axis` (`undistort` in the lens frame); NaN where it does not converge.
+    `start`, `skip` as `undistort`'s (`start` in the camera frame's normalised coordinates)."""
     if camera_from_lens is None:
-        return undistort(xy_d, coefficients, iterations)
+        return undistort(xy_d, coefficients, iterations, start, skip)
     R = torch.as_tensor(camera_from_lens).to(xy_d)
-    x_l = undistort(_pi(_rotated(_lifted(xy_d), R.transpose(-1, -2))), coefficients, iterations)
+    start_l = None if start is None else _pi(_rotated(_lifted(start.to(xy_d)), R.transpose(-1, -2)))
+    x_l = undistort(_pi(_rotated(_lifted(xy_d), R.transpose(-1, -2))), coefficients, iterations, start_l, skip)
     return _pi(_rotated(_lifted(x_l), R))
 
 
@@ -316,8 +332,9 @@ class BrownConrady:
     def distort(self, xy: torch.Tensor) -> torch.Tensor:
         return distort_about_axis(xy, self.coefficients, self.camera_from_lens)
 
-    def undistort(self, xy_d: torch.Tensor) -> torch.Tensor:
-        return undistort_about_axis(xy_d, self.coefficients, self.camera_from_lens)
+    def undistort(self, xy_d: torch.Tensor, start: torch.Tensor | None = None,
+                  skip: torch.Tensor | None = None) -> torch.Tensor:
+        return undistort_about_axis(xy_d, self.coefficients, self.camera_from_lens, start=start, skip=skip)
 
     def to_config(self) -> dict:
         """The scene-file / CALIB.json form (trailing zero rational terms dropped)."""

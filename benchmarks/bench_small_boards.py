@@ -8,7 +8,8 @@ Sets and splits (views dealt round-robin, so every subset spans the session):
                     benchmarks/small_sets/sony_small): all, halves.
     industrial_ds1  20 views of 16×10 corners: all, halves, quarters.
     gopro_wide      36 views: thirds (slow: a free board of 54 points over 12 views with rational5).
-For each subset: f, cx, cy with σ (ours: the reported σ; OpenCV: stdDeviationsIntrinsics), and our choices (board,
+For each subset: f, cx, cy with σ (ours: the reported σ, which holds the spread over the models the automatic choices
+could not tell apart, recorded apart as `model_choice`; OpenCV: stdDeviationsIntrinsics), and our choices (board,
 distortion). Between the subsets of one split: the spread of each quantity (max − min) and spread/σ pooled over
 the pairs, sqrt(mean over pairs (a, b) of Δ² / (σ_a² + σ_b²)) (1 is honest; far above: σ too small; far below: σ
 too large). OpenCV fits fx and fy apart, its five distortion terms and the principal point (flags 0).
@@ -52,6 +53,7 @@ def ours(obs) -> dict:
             "board": r.board.model if r.board is not None else "flat", "distortion": r.distortion_model,
             "board_choice": [{k: e[k] for k in ("model", "held_out_rms_px", "gain_z", "sigma_ratio", "not_chosen",
                                                  "chosen") if k in e} for e in r.board_selection],
+            "model_choice": (r.sigma_model or {}).get("model_choice"),
             "seconds": time.perf_counter() - t}
 
 

@@ -35,11 +35,6 @@ BOARD_TOLERANCE = 0.01
 #: error, a paired comparison): over a dozen views a board with dozens of parameters wins a 1 % margin by chance
 #: (sony_small: 13 views of 24 corners; 2: a one-sided chance of about 2.5 %).
 BOARD_GAIN_Z = 2.0
-#: A board model the views cannot carry: one whose parameters make the lens's σ (focal length, principal point)
-#: more than this many times the flat board's on the same views is not chosen automatically. Its shape then trades
-#: against the lens (a small board seen from few directions: the free points of 24 corners moved the principal
-#: point by 30 px with σ 3.3× the flat board's), and a better held-out error says nothing of the lens.
-BOARD_MAX_SIGMA_RATIO = 2.0
 #: A board model the views cannot carry is not tried by the automatic choice: at least this many corners seen
 #: (over all views) per parameter of the board. The free model gives each point three coordinates, fixed only by
 #: that point's own sightings (one corner, two numbers, per view) beside the poses and the lens they share: at 2

@@ -416,7 +416,7 @@ def select_distortion(camera: TiltLensCamera, obs: Observations, options: FitOpt
     result.distortion_selection = entries
     result.held_out = held.get(chosen)
     if use_held_out:
-        var = choice_variance({m: (fits[m].values, held.get(m)) for m in fits}, chosen, obs)
+        var = choice_variance({m: (fits[m].values, held.get(m)) for m in fits}, chosen, obs, ONE_SE)
         result.choice_variance = {"distortion": var} if var else {}
     return result
 
@@ -441,19 +441,23 @@ def _fewest_terms_within_one_se(models, scores: dict, held: dict, obs: Observati
     return best_m
 
 
-def choice_variance(candidates: dict, chosen: str, obs: Observations) -> dict | None:
+def choice_variance(candidates: dict, chosen: str, obs: Observations, rule_z: float) -> dict | None:
     """The variance of the focal length and principal point that an automatic model choice leaves (model-selection
     uncertainty, Buckland, Burnham & Augustin 1997, Biometrics 53:603): Σ_m w_m (θ_m − θ_chosen)² / Σ_m w_m over
-    the candidate models m, each weighted by how well the held-out views support it against the best one,
-    w_m = exp(−z_m²/2) with z_m the best model's held-out gain over m in standard errors over the views
-    (`held_out_gain`; 0 for the best). Models the views tell apart (z of 3 or more) add nothing; two the views
-    cannot tell apart (the one-standard-error rule then takes the one with fewer terms) add their difference, which
-    the covariance of the chosen model's own fit does not hold (issue 33 §5: k1 against opencv5 moved the principal
-    point by 30 px on five industrial_ds1 views, each σ 2-7 px).
+    the candidate models m, weighted as the choice itself weighs them. The choice takes a richer model where its
+    held-out gain over the simpler one is at least `rule_z` standard errors over the views (`held_out_gain`):
+    read as a likelihood ratio exp(z|z|/2) against prior odds exp(−rule_z²/2) per step to a richer model, the
+    weight of m relative to the chosen model c is exp((z|z| − rule_z²)/2) with z the gain of m over c where m is
+    richer, and its inverse with z the gain of c over m where m is simpler. So at the rule's threshold two models
+    weigh alike (the choice is a coin's toss and σ holds half their difference), the chosen one weighs most, and
+    models the views tell apart add nothing. Issue 33 §5: k1 against opencv5 moved the principal point by 30 px on
+    five industrial_ds1 views, each σ 2-7 px.
 
     Args:
-        candidates: {model: (fit values {w_mm, principal_point_px}, held-out dict with per_view_px)}.
+        candidates: {model: (fit values {w_mm, principal_point_px}, held-out dict with per_view_px)}, fewest
+            parameters first.
         chosen: the model whose values are reported.
+        rule_z: the standard errors the choice asks of a richer model.
     Returns:
         {"w_mm": variance (mm²), "principal_point_px": [variance, variance] (px²), "weights": {model: w}}, or None
         with fewer than two scored candidates.
@@ -461,14 +465,20 @@ def choice_variance(candidates: dict, chosen: str, obs: Observations) -> dict | 
     scored = {m: c for m, c in candidates.items() if c[1] and c[1].get("per_view_px") is not None}
     if chosen not in scored or len(scored) < 2:
         return None
-    best = min(scored, key=lambda m: scored[m][1]["rms_px"])
+    order = list(scored)
     weights = {}
     for m, (_, held) in scored.items():
-        z = 0.0 if m == best else held_out_gain(held, scored[best][1], obs)
-        weights[m] = 0.0 if z is None else math.exp(-0.5 * max(z, 0.0) ** 2)  # -inf (no worse anywhere): 1
+        if m == chosen:
+            weights[m] = 1.0
+            continue
+        richer = order.index(m) > order.index(chosen)
+        z = held_out_gain(scored[chosen][1], held, obs) if richer else held_out_gain(held, scored[chosen][1], obs)
+        if z is None:
+            weights[m] = 0.0
+            continue
+        log_odds = 0.5 * (z * abs(z) - rule_z ** 2) if math.isfinite(z) else math.copysign(math.inf, z)
+        weights[m] = math.exp(min(log_odds if richer else -log_odds, 50.0))
     total = sum(weights.values())
-    if total <= 0:
-        return None
     ref = scored[chosen][0]
 
     def spread(get):

@@ -46,24 +46,33 @@ def test_one_standard_error_rule_keeps_fewer_terms_within_the_scatter_over_the_v
         assert got == expected, f"chose {got} with per-view errors {rich['per_view_px']}"
 
 
-def test_choice_variance_holds_the_spread_of_models_the_views_cannot_tell_apart():
-    """Two models 30 px apart in cx: indistinguishable (z = 0) gives the chosen one σ = 30/√2; told apart (z ≫ 3)
-    nothing; the focal length's spread follows the same weights."""
+def test_choice_variance_weighs_models_as_the_choice_does():
+    """Two models 30 px apart in cx. Indistinguishable over the views (z ≈ 0) with the rule asking 1 standard error
+    of the richer one: the simpler one is chosen and σ holds the richer one at the prior odds exp(-1/2); the richer
+    one many standard errors better but not chosen: σ holds nearly all of the difference; chosen: nothing."""
     from tiltfit.validate import choice_variance
 
-    a = ({"w_mm": 10.0, "principal_point_px": [617.0, 497.0]}, {"per_view_px": [0.30] * 6, "rms_px": 0.30})
-    same = ({"w_mm": 10.1, "principal_point_px": [647.0, 467.0]}, {"per_view_px": [0.30] * 6, "rms_px": 0.30})
-    far = ({"w_mm": 10.1, "principal_point_px": [647.0, 467.0]},
-           {"per_view_px": [0.29, 0.291, 0.289, 0.29, 0.292, 0.288], "rms_px": 0.29})
-    obs = views_obs(a[1]["per_view_px"])
-    v = choice_variance({"k1": a, "opencv5": same}, "k1", obs)
-    assert v is not None, "two scored models: a variance"
+    def held(per_view):
+        return {"per_view_px": per_view, "rms_px": math.sqrt(np.mean(np.square(per_view)))}
+
+    simple = ({"w_mm": 10.0, "principal_point_px": [617.0, 497.0]}, held([0.30] * 6))
+    rich = {"w_mm": 10.1, "principal_point_px": [647.0, 467.0]}
+    tie = (rich, held([0.2999, 0.3001, 0.2999, 0.3001, 0.2999, 0.3001]))
+    better = (rich, held([0.29, 0.291, 0.289, 0.29, 0.292, 0.288]))
+    obs = views_obs([0.3] * 6)
+    v = choice_variance({"k1": simple, "opencv5": tie}, "k1", obs, 1.0)
+    w = math.exp(-0.5) / (1 + math.exp(-0.5))
     s = np.sqrt(v["principal_point_px"])
-    assert np.allclose(s, 30 / math.sqrt(2), rtol=1e-6), f"σ of the principal point from the choice {s}"
-    assert math.isclose(math.sqrt(v["w_mm"]), 0.1 / math.sqrt(2), rel_tol=1e-6), f"σ of w {math.sqrt(v['w_mm'])}"
-    told = choice_variance({"k1": a, "opencv5": far}, "opencv5", obs)
-    assert max(told["principal_point_px"]) < 1e-6, f"a model many standard errors worse adds {told}"
-    assert choice_variance({"k1": a}, "k1", obs) is None, "one model: no choice, no variance"
+    assert np.allclose(s, 30 * math.sqrt(w), rtol=0.01), f"σ of the principal point {s}, expected {30 * math.sqrt(w)}"
+    assert math.isclose(math.sqrt(v["w_mm"]), 0.1 * math.sqrt(w), rel_tol=0.01), f"σ of w {math.sqrt(v['w_mm'])}"
+    wrong = choice_variance({"k1": simple, "opencv5": better}, "k1", obs, 1.0)
+    assert 29 < math.sqrt(wrong["principal_point_px"][0]) <= 30, f"the better model left out: {wrong}"
+    right = choice_variance({"k1": simple, "opencv5": better}, "opencv5", obs, 1.0)
+    assert max(right["principal_point_px"]) < 1e-6, f"a model many standard errors worse adds {right}"
+    stricter = choice_variance({"flat": simple, "free": tie}, "flat", obs, 2.0)
+    assert stricter["principal_point_px"][0] < 0.5 * v["principal_point_px"][0], \
+        f"a rule asking 2 standard errors weighs the richer model less: {stricter} vs {v}"
+    assert choice_variance({"k1": simple}, "k1", obs, 1.0) is None, "one model: no choice, no variance"
 
 
 def charuco_four_views():

@@ -15,7 +15,10 @@ focal length (f·pitch against w) and the principal point; OpenCV has no photome
 Table per case: truth, corner fit ± σ (error in σ), refined ± σ (error in σ), OpenCV ± σ, kept?, why not, the
 bound record, times.
 
-    python benchmarks/bench_photometric_refine.py [--quick 1]
+    python benchmarks/bench_photometric_refine.py [--quick 1] [--seeds N]
+
+`--seeds N` repeats every case with N noise seeds (and sampling seeds of the generators) and adds a summary over
+them: per parameter the RMS error and the RMS of error/σ of the corner fit and of the kept calibration.
 
 Writes benchmarks/results/photometric_refine.{json,md}. One torch thread.
 """
@@ -125,16 +128,16 @@ def opencv_fit(obs) -> dict:
             "seconds": time.perf_counter() - t0}
 
 
-def measure_case(case: str, generator: str) -> dict:
+def measure_case(case: str, generator: str, seed: int = 0) -> dict:
     from tiltfit.photometric import PhotometricOptions, refine_photometric
 
     t0 = time.perf_counter()
-    images, truth = captures(case, generator)
+    images, truth = captures(case, generator, seed)
     t_capture = time.perf_counter() - t0
     t0 = time.perf_counter()
     obs, corner, found = corner_fit(images)
     t_corner = time.perf_counter() - t0
-    out = {"case": case, "generator": generator, "truth": truth, "corners_found": found,
+    out = {"case": case, "generator": generator, "seed": seed, "truth": truth, "corners_found": found,
            "capture_s": t_capture, "corner_fit_s": t_corner}
     cx_s, cy_s = principal_sigma(corner)
     pp = corner.values.get("principal_point_px")
@@ -163,15 +166,17 @@ def measure(args) -> dict:
     names = QUICK if args.quick else tuple(CASES)
     t0 = time.perf_counter()
     rows = []
-    for gen in (("exact",) if args.quick else tuple(GENERATORS)):
-        for name in (n for n in names if n in GENERATORS[gen]):
-            print(f"case {name} ({gen})", file=sys.stderr, flush=True)
-            try:
-                rows.append(measure_case(name, gen))
-            except Exception as e:   # a case that fails is a result too (the detector on heavy blur, a fit)
-                rows.append({"case": name, "generator": gen, "error": f"{type(e).__name__}: {e}"})
-            print(f"  {rows[-1].get('kept', rows[-1].get('error'))}", file=sys.stderr, flush=True)
-    return {"command": "python benchmarks/bench_photometric_refine.py" + (" --quick 1" if args.quick else ""),
+    for seed in range(args.seeds):
+        for gen in (("exact",) if args.quick else tuple(GENERATORS)):
+            for name in (n for n in names if n in GENERATORS[gen]):
+                print(f"case {name} ({gen}, seed {seed})", file=sys.stderr, flush=True)
+                try:
+                    rows.append(measure_case(name, gen, seed))
+                except Exception as e:   # a case that fails is a result too (the detector on heavy blur, a fit)
+                    rows.append({"case": name, "generator": gen, "seed": seed, "error": f"{type(e).__name__}: {e}"})
+                print(f"  {rows[-1].get('kept', rows[-1].get('error'))}", file=sys.stderr, flush=True)
+    opts = (" --quick 1" if args.quick else "") + (f" --seeds {args.seeds}" if args.seeds != 1 else "")
+    return {"command": "python benchmarks/bench_photometric_refine.py" + opts, "seeds": args.seeds,
             "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "image": [W_PX, H_PX], "pitch_mm": PITCH_MM,
             "w_mm": W_MM, "cases": rows, "wall_s": time.perf_counter() - t0}
 
@@ -194,9 +199,13 @@ def write_markdown(path: str, res: dict) -> None:
          "(error, error in σ). OpenCV: `calibrateCamera` on the same corners (pinhole, no distortion): f·pitch beside "
          "w, and the principal point; it has no photometric step. The refinement holds the principal point (the "
          "corner fit's).", ""]
+    if res.get("seeds", 1) > 1:
+        L += _summary_lines(res)
     digits = {"w_mm": 3, "U_mm": 2, "d_mm": 3, "theta_F_deg": 3, "theta_L_deg": 4, "cx_px": 2, "cy_px": 2}
     for c in res["cases"]:
-        L += [f"## {c['case']} ({c['generator']})", ""]
+        if c.get("seed", 0) != 0:
+            continue
+        L += [f"## {c['case']} ({c['generator']}" + (", seed 0" if res.get("seeds", 1) > 1 else "") + ")", ""]
         if "error" in c:
             L += [f"Failed: {c['error']}", ""]
             continue
@@ -231,5 +240,39 @@ def write_markdown(path: str, res: dict) -> None:
     write_lines(path, L)
 
 
+def _summary_lines(res: dict) -> list:
+    """Per case, generator and parameter over the seeds: RMS error and RMS of error/σ, corner fit against the kept
+    calibration (the refinement where kept, else the corner fit), and how often the refinement was kept."""
+    groups = {}
+    for c in res["cases"]:
+        groups.setdefault((c["case"], c["generator"]), []).append(c)
+    L = [f"## Over {res['seeds']} seeds: RMS error (RMS of error/σ), corner fit → kept calibration", "",
+         "| case | kept | " + " | ".join(KEYS) + " |", "|---|---|" + "---|" * len(KEYS)]
+    for (case, gen), rows in groups.items():
+        ok = [c for c in rows if "error" not in c]
+        kept = sum(c["kept"] == "photometric" for c in ok)
+        cells = []
+        for k in KEYS:
+            def stats(pick):
+                e, z = [], []
+                for c in ok:
+                    v, sg = pick(c)
+                    if v is None or not math.isfinite(v):
+                        continue
+                    e.append(v - c["truth"][k])
+                    if sg and math.isfinite(sg) and sg > 0:
+                        z.append((v - c["truth"][k]) / sg)
+                rms = lambda a: math.sqrt(sum(x * x for x in a) / len(a)) if a else math.nan  # noqa: E731
+                return rms(e), rms(z)
+
+            ce, cz = stats(lambda c: (c["corner_fit"][k], c["corner_fit_sigma"][k]))
+            ke, kz = stats(lambda c: (c["refined"][k], c["refined_sigma"][k]) if c["kept"] == "photometric" else
+                           (c["corner_fit"][k], c["corner_fit_sigma"][k]))
+            cells.append(f"{ce:.3g} ({cz:.2f}) → {ke:.3g} ({kz:.2f})")
+        L.append(f"| {case} ({gen}) | {kept} of {len(ok)}" + (f", {len(rows) - len(ok)} failed" if len(ok) < len(rows)
+                                                                else "") + " | " + " | ".join(cells) + " |")
+    return L + [""]
+
+
 if __name__ == "__main__":
-    sys.exit(run_benchmark(__doc__, "photometric_refine", measure, write_markdown, quick=0))
+    sys.exit(run_benchmark(__doc__, "photometric_refine", measure, write_markdown, quick=0, seeds=1))

@@ -144,7 +144,7 @@ def measure(args) -> dict:
             "goal_s": GOAL_S, "rows": rows}
 
 
-def write_markdown(res: dict, path: str) -> None:
+def write_markdown(path: str, res: dict) -> None:
     lines = [
         "# Start-up of the commands (issue 32 §2)",
         "",

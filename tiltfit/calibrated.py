@@ -32,6 +32,51 @@ class CalibrationError(ValueError):
     """A calibration file that cannot be used; the message is one line naming the file and the field."""
 
 
+class PoseError(CalibrationError):
+    """A pose of one's own that is not one (`checked_pose`): `field` is "R" or "T_mm", `reason` what is wrong."""
+
+    def __init__(self, path: str, field: str, reason: str):
+        super().__init__(f"{path}: {field}: {reason}")
+        self.field, self.reason = field, reason
+
+
+#: A pose of one's own (`Calibration.camera`'s R): R · Rᵀ within this of the identity (as CALIB.json's views).
+ROTATION_TOLERANCE = 1e-6
+#: The largest |T| coordinate (mm) of a pose of one's own (as CALIB.json's views: `tiltfit.calibfile`).
+MAX_TRANSLATION_MM = 1e9
+
+
+def checked_pose(R, T_mm, path: str = "<calibration>") -> tuple[np.ndarray, np.ndarray]:
+    """(R (3, 3), T (3,)) as float64 after checking them: R a rotation (rows; orthonormal within
+    `ROTATION_TOLERANCE`, determinant +1), T three finite numbers within ±`MAX_TRANSLATION_MM`.
+
+    Raises:
+        PoseError: one line naming `path` and R or T_mm.
+    """
+    def numbers(value) -> np.ndarray | None:
+        flat = np.asarray(value, dtype=object).ravel() if isinstance(value, (list, tuple, np.ndarray)) else ()
+        if not len(flat) or any(isinstance(v, (bool, np.bool_, str, bytes, dict, list)) for v in flat):
+            return None
+        try:
+            a = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError, OverflowError):
+            return None
+        return a if np.isfinite(a).all() else None
+
+    Rm = numbers(R)
+    with np.errstate(all="ignore"):
+        rotation = Rm is not None and Rm.shape == (3, 3) and bool(
+            np.abs(Rm @ Rm.T - np.eye(3)).max() < ROTATION_TOLERANCE and np.linalg.det(Rm) > 0)
+    if not rotation:
+        raise PoseError(path, "R", f"expected a 3x3 rotation matrix (rows; orthonormal, determinant +1), got "
+                                   f"{str(R)[:80]}")
+    T = numbers(T_mm)
+    if T is None or T.shape != (3,) or np.abs(T).max() > MAX_TRANSLATION_MM:
+        raise PoseError(path, "T_mm", f"expected 3 finite numbers within ±{MAX_TRANSLATION_MM:g} mm, got "
+                                      f"{str(T_mm)[:80]}")
+    return Rm, T
+
+
 def read_calibration_dict(path: str, pixel_pitch_mm: float | None = None) -> dict:
     """The validated CALIB.json-like dict of any calibration file (CALIB.json, OpenCV FileStorage, mrcal),
     chosen by its content. `pixel_pitch_mm` is needed for OpenCV and mrcal files that do not state it.
@@ -63,12 +108,16 @@ class Calibration:
         data: the validated CALIB.json-like dict.
         lens: the calibrated `renderer.Lens` with its sensor (mm).
         blur_known: whether U and d come from the calibration (else the lens renders sharp).
+        result: the fit (`tiltfit.fit.FitResult`) where the calibration was just made, else None.
+        held_out: {"rms_px", "folds", ...} of the k-fold held-out error where computed, else None.
     """
 
     path: str
     data: dict = field(repr=False)
     lens: Lens
     blur_known: bool
+    result: object = field(default=None, repr=False, compare=False)
+    held_out: dict | None = field(default=None, repr=False, compare=False)
 
     @classmethod
     def read(cls, path, pixel_pitch_mm: float | None = None) -> "Calibration":
@@ -77,12 +126,40 @@ class Calibration:
         return cls.from_dict(read_calibration_dict(path, pixel_pitch_mm), path)
 
     @classmethod
-    def from_dict(cls, data: dict, path: str = "<calibration>") -> "Calibration":
-        """The Calibration of an already validated CALIB.json dict (`tiltfit.calibfile.validate_calib`)."""
+    def from_dict(cls, data: dict, path: str = "<calibration>", result=None,
+                  held_out: dict | None = None) -> "Calibration":
+        """The Calibration of an already validated CALIB.json dict (`tiltfit.calibfile.validate_calib`), or of a
+        fit just made (`tiltfit.calibrate_photos`: its `tiltfit.fit.FitResult` as `result`, the k-fold held-out
+        error as `held_out`)."""
         from .calib_lens import lens_from_calib
 
         lens, blur_known = lens_from_calib(data)
-        return cls(path, data, lens, blur_known)
+        return cls(path, data, lens, blur_known, result, held_out)
+
+    # --- what people read first --------------------------------------------------------------------------
+    @property
+    def focal_px(self) -> float:
+        """Focal length w / pixel pitch (px)."""
+        return float(self.lens.focal_px)
+
+    @property
+    def principal_point_px(self) -> tuple[float, float]:
+        """(cx, cy) in pixels (pixel centres at integers)."""
+        cx, cy = self.lens.center_px
+        return float(cx), float(cy)
+
+    @property
+    def rms_px(self) -> float | None:
+        """Reprojection RMS per corner over all views (px; OpenCV's `calibrateCamera` definition), or None."""
+        rms = self.data.get("rms_reprojection_px")
+        return None if rms is None else float(rms)
+
+    def save(self, path: str) -> None:
+        """Write CALIB.json atomically (read by `tiltfit report`, `tiltfit export`, `--init` and the `calibrated`
+        scene camera)."""
+        from .calibfile import write_calib
+
+        write_calib(path, self.data)
 
     # --- views -------------------------------------------------------------------------------------------
     @property
@@ -126,7 +203,10 @@ class Calibration:
         if image_size_px is None or tuple(int(v) for v in image_size_px) == self.image_size_px:
             return self.lens
         W0, H0 = self.image_size_px
-        W, H = (int(v) for v in image_size_px)
+        size = tuple(image_size_px) if isinstance(image_size_px, (tuple, list)) else ()
+        if len(size) != 2 or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in size):
+            raise CalibrationError(f"{self.path}: image size: expected two integers (W, H), got {image_size_px!r}")
+        W, H = (int(v) for v in size)
         if W < 1 or H < 1 or abs(W / H - W0 / H0) > 0.01 * W0 / H0:
             raise CalibrationError(f"{self.path}: image size {W}x{H}: expected the calibration's aspect ratio "
                                    f"({W0}x{H0}, or a scaled copy of it)")
@@ -144,6 +224,8 @@ class Calibration:
             raise CalibrationError(f"{self.path}: give both R and T_mm for a pose, or neither")
         if R is None:
             R, T_mm = self.pose(view)
+        else:
+            R, T_mm = checked_pose(R, T_mm, self.path)
         import torch
 
         return ThinLensCamera.from_calibration(self.lens_for_image(image_size_px),
@@ -170,5 +252,9 @@ class Calibration:
         """(N, 2) pixel positions of target-frame points (N, 3) in a view, through the full lens (tilt,
         distortion about its centre)."""
         R, T = self.pose(view)
-        p_cam = np.asarray(points_mm, dtype=np.float64) @ R.T + T
+        points = np.asarray(points_mm, dtype=np.float64)
+        if points.ndim != 2 or points.shape[1] != 3:
+            raise CalibrationError(f"{self.path}: project: expected (N, 3) target points (mm), got shape "
+                                   f"{points.shape}")
+        p_cam = points @ R.T + T
         return np.asarray(self.lens.project(p_cam), dtype=np.float64)

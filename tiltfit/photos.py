@@ -10,50 +10,16 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 
-from .calibfile import calib_dict, write_calib
+from .calibfile import calib_dict
+from .calibrated import Calibration
 from .calibration import calibrate
 from .fit import FitOptions, FitResult
 from .model import Observations
 from .target import Target, load_target
-
-
-@dataclass
-class Calibration:
-    """A calibration and what CALIB.json holds of it.
-
-    Attributes:
-        result: the fit (`tiltfit.fit.FitResult`: camera module, values, σ, views, notes, warnings).
-        data: the CALIB.json content (`tiltfit.calibfile.calib_dict`), held-out error included where computed.
-        held_out: {"rms_px", "folds", ...} of the k-fold held-out error (per corner), or None.
-    """
-
-    result: FitResult
-    data: dict
-    held_out: dict | None = None
-
-    @property
-    def focal_px(self) -> float:
-        """Focal length w / pixel pitch (px)."""
-        return float(self.data["w_mm"]) / float(self.data["pixel_pitch_mm"])
-
-    @property
-    def principal_point_px(self) -> tuple[float, float]:
-        """(cx, cy) in pixels (pixel centres at integers)."""
-        cx, cy = self.data["principal_point_px"]
-        return float(cx), float(cy)
-
-    @property
-    def rms_px(self) -> float:
-        """Reprojection RMS per corner over all views (px; OpenCV's `calibrateCamera` definition)."""
-        return float(self.data["rms_reprojection_px"])
-
-    def save(self, path: str) -> None:
-        """Write CALIB.json atomically (read by `tiltfit report`, `tiltfit export` and `--init`)."""
-        write_calib(path, self.data)
 
 
 def fit_with_held_out(obs: Observations, mode: str = "unified", init=None, options: FitOptions | None = None,
@@ -153,4 +119,4 @@ def calibrate_photos(photos, target, pixel_pitch_mm: float, mode: str = "unified
     result.skipped = list(obs.skipped) + list(result.skipped)
     data = calib_dict(result, runtime_s=time.perf_counter() - t0, obs=used, target=target.to_dict(),
                       held_out=held_out)
-    return Calibration(result, data, held_out)
+    return Calibration.from_dict(data, "<calibrate_photos>", result, held_out)

@@ -153,8 +153,10 @@ def calibration_reference() -> str:
         "corner fit's and which have no `rms_photometric` (the refinement stops only where no view is left), "
         "the blur `kernel` "
         "(`disc` or `disc_gaussian`), `psf_sigma_px` and its σ `psf_sigma_px_sigma` (0 for the disc), how each pixel "
-        "integrated the lens's `aperture`: `closed_form` (exact) for pixels whose blur disc at the start is at "
-        f"least {CLOSED_FORM_MIN_BLUR_PX:g} px (with the disc kernel), fixed lens samples for the others, so `closed_form`, "
+        "integrated the lens's `aperture`: `closed_form` (exact over the aperture; 8 x 8 points a pixel where its blur "
+        "disc is under 3 px, 4 x 4 elsewhere) for every pixel with the disc kernel"
+        + (f" whose blur disc at the start is at least {CLOSED_FORM_MIN_BLUR_PX:g} px" if CLOSED_FORM_MIN_BLUR_PX > 0 else "")
+        + ", fixed lens samples for the others, so `closed_form`, "
         "`samples` or `mixed`, with the count `closed_form_pixels` and the fixed `lens_samples` per pixel of the "
         "others (chosen from the start's blur; 0 when every pixel is in closed form), and under "
         "`--psf auto` the `kernel_selection` test (`lr_statistic`, `p_value`, `delta_bic`, the disc-only fit's "

@@ -63,11 +63,14 @@ AUTO_KERNEL_LENS_SAMPLES = 128
 PSF_EVIDENCE_PX = 0.5    # narrower Gaussians `auto` rejects: the fixed lens samples' own coarseness
 PSF_START_PX = 0.5       # where a freed Gaussian starts (σ = 0 is a stationary point of σ²)
 #: `aperture="auto"` integrates the disc in closed form from this blur-disc diameter (px) at the start on (with
-#: 8 x 8 points per pixel below render.SHARP_BLUR_PX); below it the pixel's box matters more than the disc and
-#: the fixed lens samples' Gaussian footprints model it. Between 1.5 and 3 px the closed form's 8 x 8 points are
-#: the nearer to exact tracing and the cheaper (d −0.06 % to +0.05 % against +0.18 % to −0.15 % for 64 samples;
-#: 0.14 s against 0.17 s for 629 pixels; benchmarks/results/photometric_forward.md "pixel quadrature"); it was 3.
-CLOSED_FORM_MIN_BLUR_PX = 1.5
+#: 8 x 8 points per pixel below render.SHARP_BLUR_PX), the fixed lens samples below it. Measured against a 40 x 40
+#: grid of the closed form (benchmarks/results/photometric_forward_extras.md, "pixel quadrature"), the 8 x 8 closed
+#: form is nearer than the 64 (and 256) lens samples' Gaussian footprints at every blur size: the d a fit would take
+#: −0.05 % against +0.28 % at 1.5 px facing, −0.07 % against +17 % on a tilted, inclined board at 0-0.5 px (the
+#: footprints' Gaussian is not the box where the disc is sub-pixel), −0.23 % against −0.30 % at 1 px facing; and
+#: cheaper (0.14 s against 0.17 s for 629 pixels). So 0: the disc kernel is integrated in closed form at every
+#: pixel (it was 3 px; the lens samples remain for the Gaussian kernels and `aperture="samples"`).
+CLOSED_FORM_MIN_BLUR_PX = 0.0
 APERTURES = ("auto", "closed_form", "samples")
 #: Pixels per block of the Jacobian (bounds its memory; results do not depend on it).
 JACOBIAN_BLOCK = 2048

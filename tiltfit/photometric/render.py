@@ -18,10 +18,10 @@ D is integrated over the aperture in one of two ways:
   aperture disc through its focus point (`ThinLensCamera.focus_geometry`), on which the board's cell edges are
   straight lines, so D is a sum of disc segments and wedges (`tiltfit.aperture`). Exact over the aperture for
   the thin lens at any tilt and blur; the pixel's box is the n x n points' quadrature, whose error grows as the
-  blur disc shrinks. The fit uses it for pixels whose blur disc is at least CLOSED_FORM_MIN_BLUR_PX;
+  blur disc shrinks. The fit uses it for every pixel with the disc kernel (`refine.CLOSED_FORM_MIN_BLUR_PX`);
 - by fixed lens samples (`dark_fraction_samples`): rays for each pixel and sample, intersected with the board
-  plane Z = 0, the checker evaluated analytically and antialiased over the pixel's footprint (below). Sharp
-  boards need it: there the pixel's box matters more than the disc.
+  plane Z = 0, the checker evaluated analytically and antialiased over the pixel's footprint (below). The
+  Gaussian kernels need it (the disc convolved with a Gaussian has no closed form here).
 
 Antialiased checker: for a hit (X, Y) on the board with pixel footprint σ (mm), per axis the nearest cell edge
 e_j and z = (X − e_j)/σ give A = E[inside] and B = E[inside · s] (s = ±1 the column's parity sign) under a
@@ -51,7 +51,8 @@ SUBPIXELS = 4
 #: ... for pixels whose blur disc is narrower than SHARP_BLUR_PX (`closed_form_subpixels`). The n x n points'
 #: quadrature of the pixel's box errs by about the same for the same n · blur: against a 40 x 40 grid, the d a
 #: fit would take from it is −0.40 % (4 x 4) and −0.06 % (8 x 8) at a 1.5 px disc on a facing board, −0.20 % and
-#: −0.02 % at 2 px, +0.02 % and +0.006 % at 3 px (benchmarks/results/photometric_forward.md, "pixel quadrature").
+#: −0.02 % at 2 px, +0.02 % and +0.006 % at 3 px (benchmarks/results/photometric_forward_extras.md,
+#: "pixel quadrature").
 SUBPIXELS_SHARP = 8
 SHARP_BLUR_PX = 3.0
 #: `lens_samples=0` (auto) takes 64 · (b / 10 px)² samples for the start's largest blur disc b at the board's

@@ -82,8 +82,8 @@ def check_exportable(calib: dict) -> None:
     if calib.get("distortion_centre") == "lens_axis" and _theta_L_deg(calib) is None:
         raise ExportError("theta_L_deg: undetermined (null) in a calibration whose distortion is about the lens "
                           "axis (distortion_centre lens_axis): OpenCV's tilted model needs the lens tilt for tau_x, "
-                          "tau_y, and no other OpenCV camera projects as this one; calibrate again with "
-                          "--distortion-centre sensor, or with views that determine the tilt")
+                          "tau_y, and no other OpenCV camera projects as this one; calibrate again with the "
+                          "distortion centre at the sensor (principal point), or with views that determine the tilt")
 
 
 def opencv_camera(calib: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -261,7 +261,10 @@ def opencv_text(calib: dict, format_name: str = ".yml") -> str:
         if model is not None:
             fs.write("flags", int(model[1]))
             fs.write("tiltfit_distortion_model", model[0])
-        return fs.releaseAndGetString()
+        text = fs.releaseAndGetString()
+        # OpenCV's JSON writer escapes an apostrophe (in a note, an image's name) as \', which JSON does not allow;
+        # its reader takes the plain apostrophe back, and a backslash is written as \\ so no other \' occurs.
+        return text.replace("\\'", "'") if format_name.endswith(".json") else text
     except cv2.error as e:
         fs.release()
         raise ExportError(f"cannot write in OpenCV's format ({' '.join(str(e).split())[-160:]})") from None

@@ -152,7 +152,7 @@ def pick_views(n_views: int, options: RealVsRenderedOptions) -> list[int]:
     if options.views is not None:
         bad = [v for v in options.views if not -n_views <= int(v) < n_views]
         if bad:
-            raise RealVsRenderedError(f"--views: view {bad[0]} does not exist (the calibration has {n_views} "
+            raise RealVsRenderedError(f"views: view {bad[0]} does not exist (the calibration has {n_views} "
                                       f"views: 0 to {n_views - 1})")
         return sorted({int(v) % n_views for v in options.views})
     m = min(int(options.max_views), n_views)
@@ -167,7 +167,7 @@ def comparison_scale(size_px, options: RealVsRenderedOptions) -> int:
     if options.scale is not None:
         k = int(options.scale)
         if k < 1 or W % k or H % k:
-            raise RealVsRenderedError(f"--scale: {k} does not divide the {W}x{H} image into whole pixels")
+            raise RealVsRenderedError(f"scale: {k} does not divide the {W}x{H} image into whole pixels")
         return k
     divisors = [k for k in range(1, 17) if W % k == 0 and H % k == 0]
     fitting = [k for k in divisors if W / k <= options.max_width_px]
@@ -501,7 +501,7 @@ def write_real_vs_rendered(calib: dict, calib_path: str | None, out_dir: str,
         path = find_photo(image, calib_path, options.photos_dirs)
         if path is None:
             summary["skipped"].append({"view": v, "image": image, "reason": "photo not found"
-                                       + ("" if options.photos_dirs else " (give --photos DIR)")})
+                                       + ("" if options.photos_dirs else " (give the folder of the photos)")})
             say(f"real vs rendered: view {v} ({os.path.basename(image)}): photo not found, skipped")
             continue
         say(f"real vs rendered: view {v} ({os.path.basename(image)}), {n + 1} of {len(chosen)}: rendering")

@@ -6,6 +6,7 @@ these tests do not depend on the detector.
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 
@@ -68,7 +69,8 @@ def run_cli(args, capfd):
 def assert_one_line_error(rc, err, file, output):
     lines = err.strip().splitlines()
     assert rc == 2, f"exit status 2 expected, got {rc} ({err!r})"
-    assert len(lines) == 1 and lines[0].startswith(f"tiltfit: {file}: "), f"one line naming {file}: {err!r}"
+    assert len(lines) == 1 and re.match(rf"tiltfit: {re.escape(str(file))}(:\d+:\d+)?: ", lines[0]), \
+        f"one line naming {file} (and where in it): {err!r}"
     assert "Traceback" not in err, "no traceback"
     assert not os.path.exists(output), "no output file is left behind"
     leftovers = [n for n in os.listdir(os.path.dirname(output)) if n.startswith(".calib-") or n.startswith(".tiltfit-")]

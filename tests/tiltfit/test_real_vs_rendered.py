@@ -137,7 +137,7 @@ def test_pick_views_and_scale():
     assert comparison_scale((1280, 1024), RealVsRenderedOptions()) == 2
     assert comparison_scale((1280, 960), RealVsRenderedOptions(max_width_px=320)) == 4
     assert comparison_scale((640, 480), RealVsRenderedOptions()) == 1
-    with pytest.raises(RealVsRenderedError, match="--scale: 7"):
+    with pytest.raises(RealVsRenderedError, match="scale: 7 does not divide"):
         comparison_scale((640, 480), RealVsRenderedOptions(scale=7))
 
 

@@ -299,8 +299,18 @@ def cmd_render(args, device) -> int:
     from .scenefile import load_scene, require_objects
 
     scene_file = resolve_scene(args.scene)
-    scene = load_scene(_with_camera(scene_file, args), args.overrides, base_dir=os.path.dirname(
-        os.path.abspath(scene_file))) if args.camera else load_scene(scene_file, args.overrides)
+    if args.camera:
+        try:
+            scene = load_scene(_with_camera(scene_file, args), args.overrides,
+                               base_dir=os.path.dirname(os.path.abspath(scene_file)))
+        except SceneError as e:  # the camera's keys came from --camera and --view: name the options
+            text = str(e)
+            for key, option in (("camera.view: ", "--view: "), ("camera.file: ", "--camera: ")):
+                if text.startswith(key):
+                    raise SceneError(option + text[len(key):]) from None
+            raise SceneError(f"{scene_file}: {text}") from None
+    else:
+        scene = load_scene(scene_file, args.overrides)
     require_objects(scene_file, scene)
     if args.intersector != "auto" and args.backend != "mitsuba":  # auto: the scene's own default
         from .mitsuba.intersect import use_intersector

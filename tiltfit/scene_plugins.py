@@ -59,16 +59,27 @@ def _calibration(path: str, mtime: float, pixel_pitch_mm):
 
 
 def _read(key: str, cfg: dict):
+    from renderer.validation import is_finite_number
+
     from .calibrated import CalibrationError
 
-    path = cfg["file"]
+    path, pitch = cfg.get("file"), cfg.get("pixel_pitch_mm")
+    if not isinstance(path, str) or not path.strip():
+        raise SceneError(f"{key}.file: expected the calibration file's name, got {path!r}")
+    if pitch is not None and not (is_finite_number(pitch) and not isinstance(pitch, bool) and 0 < pitch <= 1e3):
+        raise SceneError(f"{key}.pixel_pitch_mm: expected a positive number of mm (at most 1000), got {pitch!r}")
     try:
         mtime = os.path.getmtime(path) if os.path.exists(path) else 0.0
-        return _calibration(os.path.abspath(path), mtime, cfg.get("pixel_pitch_mm"))
+        return _calibration(os.path.abspath(path), mtime, None if pitch is None else float(pitch))
     except (CalibrationError, ValueError) as e:
         text = str(e)
         raise SceneError(f"{key}.file: {text if path in text or os.path.abspath(path) in text else f'{path}: {text}'}") \
             from None
+
+
+#: The camera keys every camera has (`renderer.cameras.registry.POSE_PARAMS`) and their defaults: a calibrated
+#: camera's pose is the view's (or R and T_mm), so any other value would be ignored, and is refused.
+_UNUSED_POSE_KEYS = {"position": (0.0, 0.0, 0.0), "look_at": (0.0, 0.0, 1.0), "up": (0.0, -1.0, 0.0)}
 
 
 class CalibratedCamera:
@@ -77,32 +88,38 @@ class CalibratedCamera:
     @classmethod
     def image_size(cls, path: str, cfg: dict) -> tuple[int, int]:
         """(W, H) of the calibrated images."""
-        if not isinstance(cfg.get("file"), str):
-            raise SceneError(f"{path}.file: expected the calibration file's name, got {cfg.get('file')!r}")
         return _read(path, cfg).image_size_px
 
     @classmethod
     def from_config(cls, path, cfg, transform, width, height):
-        from .calibrated import CalibrationError
+        from .calibrated import CalibrationError, PoseError, checked_pose
 
         cal = _read(path, cfg)
+        for key, default in _UNUSED_POSE_KEYS.items():
+            if tuple(cfg.get(key, default)) != default:
+                raise SceneError(f"{path}.{key}: not used by a calibrated camera (its pose is the view's, or R and "
+                                 "T_mm in the target's frame)")
         R, T = cfg.get("R"), cfg.get("T_mm")
+        if (R is None) != (T is None):
+            raise SceneError(f"{path}.{'T_mm' if T is None else 'R'}: missing (give both R and T_mm for a pose of "
+                             "your own, or neither)")
         if R is not None:
-            R = np.asarray(R, dtype=np.float64) if _is_matrix(R) else None
-            if R is None or not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
-                raise SceneError(f"{path}.R: expected a 3x3 rotation matrix (rows), got {cfg.get('R')!r}")
+            try:
+                R, T = checked_pose(R, T, cal.path)
+            except PoseError as e:
+                raise SceneError(f"{path}.{e.field}: {e.reason}") from None
+        try:
+            cal.lens_for_image((width, height))
+        except CalibrationError:
+            W0, H0 = cal.image_size_px
+            raise SceneError(f"image: {width}x{height} px: expected the aspect ratio of the calibration's {W0}x{H0} "
+                             f"images ({cal.path}) within 1 %") from None
         try:
             return cal.camera(cfg.get("view", 0), (width, height), R, T)
         except CalibrationError as e:
-            raise SceneError(f"{path}.{'view' if 'view' in str(e) else 'file'}: {e}") from None
+            raise SceneError(f"{path}.{'view' if ': view:' in str(e) else 'file'}: {e}") from None
         except ValueError as e:
             raise SceneError(f"{path}: {e}") from None
-
-
-def _is_matrix(value) -> bool:
-    return (isinstance(value, (list, tuple)) and len(value) == 3
-            and all(isinstance(r, (list, tuple)) and len(r) == 3 for r in value)
-            and all(isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x) for r in value for x in r))
 
 
 TARGET_PARAMS = [
@@ -152,7 +169,10 @@ def _load_target(path: str, key: str):
         raise SceneError(f"{key}.file: {path}: no such file")
     try:
         data = read_json(path, TargetError, "target file")
-        if isinstance(data, dict) and isinstance(data.get("target"), dict) and "views" in data:  # a CALIB.json
+        if isinstance(data, dict) and "views" in data and "w_mm" in data:  # a CALIB.json
+            if not isinstance(data.get("target"), dict):
+                raise SceneError(f"{key}.file: {path}: target: the calibration holds no target; give the target "
+                                 "file itself")
             return target_from_dict(data["target"], f"{path}: target")
         return target_from_dict(data, path)
     except ValueError as e:

@@ -471,15 +471,18 @@ def test_interrupt_in_the_atomic_writer_leaves_the_old_output(tmp_path, monkeypa
     assert sorted(os.listdir(tmp_path)) == sorted(["I.json", "s.json", out.name]), f"left: {os.listdir(tmp_path)}"
 
 
-def test_transposed_target_on_a_uniform_board_is_labelled_and_said(tmp_path):
-    """A uniform board with a target file of its rows and columns swapped is a valid view of the board turned
-    by 90° (no contradiction to refuse): detection labels it and says so; the matching file gets no such note."""
+def test_transposed_target_on_a_uniform_board_is_refused_by_its_colours(tmp_path):
+    """A uniform board whose target file has its rows and columns swapped: the grid fits the photo turned by 90°,
+    but on this board (an even number of cells each way) that turn swaps the squares' colours, so no placement
+    of the file's board matches the photo: detection refuses in one line naming the contradiction (it labelled
+    all corners before, wrongly); the matching file is labelled with no note."""
     from tiltfit.cli import main
     from renderer import Lens, Sensor
     from tiltfit.synth import look_at_pose, render_view
     from tiltfit.target import target_from_dict
 
     t = target_from_dict(TARGET)
+    assert t.n_cols % 2 == 0 and t.n_rows % 2 == 0, "the premise: an even number of cells each way"
     cam = Lens(35, 900, 8, sensor=Sensor(640, 480, 0.02))
     px = render_view(t, cam, *look_at_pose(t, (100, 75, -950)), noise_sigma=0.002, srgb8=True, seed=0).image_srgb8
     (tmp_path / "img.png").write_bytes(_png(px))
@@ -489,7 +492,9 @@ def test_transposed_target_on_a_uniform_board_is_labelled_and_said(tmp_path):
         (tmp_path / f"{name}.json").write_text(json.dumps(target))
         rc, err = fuzz_harness.run_command(main, ["detect", tmp_path / "img.png", "--target", tmp_path / f"{name}.json",
                                                   "-o", tmp_path / f"{name}-D.json"])
-        assert rc == 0, f"{name}: exit {rc}: {err}"
+        assert rc == (0 if name == "same" else 2), f"{name}: exit {rc}: {err}"
         notes[name] = err
-    assert "x_edges and y_edges are swapped" in notes["swapped"], f"no note on the labelling: {notes['swapped']!r}"
+    assert "contradicts the target file" in notes["swapped"] and len(notes["swapped"].strip().splitlines()) == 1, \
+        f"one line naming the contradiction: {notes['swapped']!r}"
+    assert not (tmp_path / "swapped-D.json").exists(), "no detection file written for the refused labelling"
     assert "x_edges and y_edges" not in notes["same"], f"a note where the target matches: {notes['same']!r}"

@@ -498,8 +498,10 @@ def cmd_report(args) -> int:
         data = read_calib(args.calib)
     except ValueError as e:
         raise _as_cli_error(args.calib, e) from None
+    options = _real_vs_rendered_options(args)
+    _check_report_options(options, data)
     try:
-        files = write_report(data, args.output, args.calib, _real_vs_rendered_options(args))
+        files = write_report(data, args.output, args.calib, options)
     except OSError as e:
         raise CliError(args.output, f"cannot write ({e.strerror or e})") from None
     except ValueError as e:
@@ -510,9 +512,30 @@ def cmd_report(args) -> int:
     return 0
 
 
+def _check_report_options(options, data: dict) -> None:
+    """Refuse --views and --scale that do not fit the calibration before anything is written (one size for
+    every view: refused once, not skipped view by view)."""
+    from .real_vs_rendered import RealVsRenderedError, comparison_scale, pick_views
+
+    n = len(data.get("views") or [])
+    if options.views is not None:
+        bad = [v for v in options.views if not -n <= v < n]
+        if bad:
+            raise CliError("--views", f"view {bad[0]} does not exist (the calibration has {n} views"
+                                      + (f": 0 to {n - 1})" if n else ")"))
+        pick_views(n, options)
+    if options.scale is not None:
+        try:
+            comparison_scale(data["image_size_px"], options)
+        except RealVsRenderedError:
+            W, H = data["image_size_px"]
+            raise CliError("--scale", f"{options.scale} does not divide the calibration's {W}x{H} images into "
+                                      "whole pixels") from None
+
+
 def _real_vs_rendered_options(args):
     """`tiltfit report`'s real-against-rendered options from the command line (one-line errors naming the flag)."""
-    from .real_vs_rendered import DEFAULT_SPP, RealVsRenderedOptions
+    from .real_vs_rendered import DEFAULT_SPP, MAX_SPP, RealVsRenderedOptions
 
     views = None
     if args.views is not None:
@@ -523,6 +546,8 @@ def _real_vs_rendered_options(args):
     for flag, value, low in (("--max-views", args.max_views, 0), ("--spp", args.spp, 1), ("--scale", args.scale, 1)):
         if value is not None and value < low:
             raise CliError(flag, f"expected an integer >= {low}, got {value}")
+    if args.spp is not None and args.spp > MAX_SPP:
+        raise CliError("--spp", f"expected at most {MAX_SPP} samples per pixel, got {args.spp}")
     for folder in args.photos or []:
         if not os.path.isdir(folder):
             raise CliError(folder, "--photos: not a folder")
@@ -700,7 +725,7 @@ def build_parser() -> argparse.ArgumentParser:
                                                       "spread over the views]")
     p.add_argument("--max-views", type=int, default=6, metavar="N",
                    help="views compared with renderings when --views is not given; 0: none [6]")
-    p.add_argument("--spp", type=int, default=None, help="samples per pixel of the renderings [8]")
+    p.add_argument("--spp", type=int, default=None, help="samples per pixel of the renderings [8; at most 1024]")
     p.add_argument("--scale", type=int, default=None, metavar="K",
                    help="compare at 1/K of the photos' resolution [the smallest K giving at most 640 px across]")
     p.add_argument("--encoding", choices=("srgb", "linear"), default=None,

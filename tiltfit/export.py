@@ -200,6 +200,9 @@ def board_points_mm(calib: dict) -> np.ndarray | None:
         raise ExportError(f"board: cannot rebuild the fitted target points ({e})") from None
 
 
+#: The largest rotation-vector angle (rad) read from a camera file: OpenCV writes angles within π; far larger
+#: ones lose the rotation to rounding (1e308 became NaN).
+MAX_ROTATION_VECTOR_RAD = 1e3
 # FileStorage formats by file name ending; `.gz` after any of them compresses the file.
 OPENCV_EXTENSIONS = (".yml", ".yaml", ".xml", ".json")
 # The largest image side an OpenCV camera file may state (as tiltfit.detfile.MAX_IMAGE_SIDE).
@@ -327,6 +330,14 @@ def _check_focal(path: str, key: str, fx: float, fy: float) -> None:
                           "(tiltfit models square pixels)")
 
 
+def _check_focal_length_mm(path: str, key: str, w_mm: float) -> None:
+    """Refuse a focal length in mm (focal length in pixels × pixel pitch) beyond CALIB.json's lengths (1e9 mm),
+    naming both of its sources."""
+    if not (math.isfinite(w_mm) and w_mm <= 1e9):
+        raise ExportError(f"{path}: {key}, pixel_pitch_mm: the focal length in pixels times the pixel pitch is "
+                          f"{w_mm:g} mm; expected at most 1e9 mm")
+
+
 def _integer(path: str, fs, key: str) -> int:
     node = fs.getNode(key)
     if node.empty() or node.isNone():
@@ -414,7 +425,8 @@ def read_opencv(path: str, pixel_pitch_mm: float | None = None) -> dict:
         for key, node_name in _FOCUS_NODES:
             node = fs.getNode(node_name)
             if not node.empty() and not node.isNone():
-                focus[key] = _focus_value(path, node_name, node.real() if (node.isReal() or node.isInt()) else None)
+                focus[key] = _focus_value(path, node_name, node.real() if (node.isReal() or node.isInt()) else
+                                          node.string() if node.isString() else "a sequence or a map")
     finally:
         fs.release()
     if pitch is None or not (np.isfinite(pitch) and pitch > 0):
@@ -439,7 +451,8 @@ def read_opencv(path: str, pixel_pitch_mm: float | None = None) -> dict:
            "w_mm": f * R[2, 2] * float(pitch), "U_mm": None, "d_mm": None, "theta_F_deg": 0.0,
            "distortion": {"model": "brown_conrady", "coefficients": d or [0.0]},
            "undetermined": ["U_mm", "d_mm"], "source": os.path.abspath(path)}
-    _add_focus(out, focus)
+    _check_focal_length_mm(path, "camera_matrix", out["w_mm"])
+    _add_focus(path, out, focus, dict(_FOCUS_NODES))
     if any(tau):
         # θF needs U, which an OpenCV file does not hold: the lens tilt θL and its axis are what it says.
         out.update(theta_F_deg=None, theta_L_deg=math.degrees(theta_L), tilt_axis_deg=math.degrees(phi),
@@ -448,6 +461,11 @@ def read_opencv(path: str, pixel_pitch_mm: float | None = None) -> dict:
         rv, tv = rv.reshape(-1, 3), tv.reshape(-1, 3)
         if rv.shape[0] != tv.shape[0]:
             raise ExportError(f"{path}: rvecs, tvecs: {rv.shape[0]} and {tv.shape[0]} rows; expected one per view")
+        angle = np.linalg.norm(rv, axis=1)
+        if (angle > MAX_ROTATION_VECTOR_RAD).any():
+            i = int(np.argmax(angle > MAX_ROTATION_VECTOR_RAD))
+            raise ExportError(f"{path}: rvecs: row {i} turns by {angle[i]:g} rad; expected a rotation vector (angle "
+                              f"at most {MAX_ROTATION_VECTOR_RAD:g} rad)")
         out["views"] = [{"R": (R @ axis_angle_to_matrix(torch.tensor(r, dtype=torch.float64)).numpy()).tolist(),
                          "T_mm": [float(x) for x in R @ t]} for r, t in zip(rv, tv)]
     return out
@@ -543,7 +561,7 @@ def read_mrcal(path: str, pixel_pitch_mm: float | None = None) -> dict:
                 try:
                     value = float(line[len(head):])
                 except ValueError:
-                    value = None
+                    value = line[len(head):].strip()
                 focus[key] = _focus_value(path, key, value)
     fx, fy, cx, cy = (float(v) for v in intr[:4])
     _check_focal(path, "intrinsics", fx, fy)
@@ -552,13 +570,14 @@ def read_mrcal(path: str, pixel_pitch_mm: float | None = None) -> dict:
            "U_mm": None, "d_mm": None, "theta_F_deg": 0.0,
            "distortion": {"model": "brown_conrady", "coefficients": [float(v) for v in intr[4:]] or [0.0]},
            "undetermined": ["U_mm", "d_mm"], "source": os.path.abspath(path)}
-    _add_focus(out, focus)
+    _check_focal_length_mm(path, "intrinsics", out["w_mm"])
+    _add_focus(path, out, focus, {key: f"# tiltfit {key}" for key, _ in _FOCUS_NODES})
     return out
 
 
 def _focus_value(path: str, key: str, value) -> float:
     """A focus distance or aperture from a camera file: a positive length (U) or ≥ 0 (d), else ExportError."""
-    ok = value is not None and math.isfinite(value) and (value >= 0 if "d_mm" in key else value > 0) \
+    ok = isinstance(value, float) and math.isfinite(value) and (value >= 0 if "d_mm" in key else value > 0) \
         and value < 1e9
     if not ok:
         raise ExportError(f"{path}: {key}: expected {'an aperture >= 0' if 'd_mm' in key else 'a positive length'} "
@@ -566,8 +585,14 @@ def _focus_value(path: str, key: str, value) -> float:
     return float(value)
 
 
-def _add_focus(out: dict, focus: dict) -> None:
-    """Put U and d read from a camera file's tiltfit nodes (both or neither) into a CALIB.json-like dict."""
+def _add_focus(path: str, out: dict, focus: dict, names: dict) -> None:
+    """Put U and d read from a camera file's tiltfit nodes (both or neither; `names`: key -> the file's name of
+    it) into a CALIB.json-like dict."""
+    if len(focus) == 1:
+        given = next(iter(focus))
+        missing = next(k for k in names if k != given)
+        raise ExportError(f"{path}: {names[missing]}: missing ({names[given]} is given; the blur needs both, or "
+                          "neither for a sharp rendering)")
     if len(focus) == 2:
         out.update(U_mm=focus["U_mm"], d_mm=focus["d_mm"], undetermined=[])
 

@@ -38,6 +38,9 @@ import numpy as np
 #: rendered|: against spp 32 on both shipped sets a line's average error moves by a median 0.10 (max 0.42) grey
 #: level at 8, 0.31 (0.78) at 4, in half the time of 32 (benchmarks/results/real_vs_rendered.md).
 DEFAULT_SPP = 8
+#: The most samples per pixel `tiltfit report` renders with: far beyond where render noise stops mattering (spp 8
+#: is within a median 0.1 grey level of spp 32) and still bounded in time and memory (1e9 tried to allocate 32 GB).
+MAX_SPP = 1024
 #: Default largest width (px) of the compared images: 1280-px photos are compared at half resolution.
 DEFAULT_MAX_WIDTH_PX = 640
 #: Views compared by default, spread evenly over the calibration's views.

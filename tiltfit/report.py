@@ -88,7 +88,9 @@ def _short(name: str, n: int = 16) -> str:
 
 def _views(calib: dict) -> list:
     views = calib.get("views") or []
-    if not views or not any("residuals_px" in v for v in views):
+    if not views:
+        raise ValueError("views: the calibration has no views, so there are no residuals to plot")
+    if not any("residuals_px" in v for v in views):
         raise ValueError("views[].residuals_px: missing (calibrate with this version of tiltfit to get a report)")
     if not any(r is not None for v in views for r in v.get("residuals_px") or []):
         raise ValueError("views[].residuals_px: no view has a residual to draw")

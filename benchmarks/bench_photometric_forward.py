@@ -251,12 +251,11 @@ def pixel_area(strata: int) -> dict:
 
 
 #: pixel_quadrature's geometries: name -> (lens tilt °, board rx°, ry°); and its blur sizes (px at the centre).
-QUADRATURE_CASES = {"facing": (0.0, 0.0, 10.0), "inclined 30° x 30°": (0.0, 30.0, 30.0),
-                    "tilt +5°, inclined 50°": (5.0, 50.0, 10.0)}
-QUADRATURE_BLUR_PX = (0.7, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0)
+QUADRATURE_CASES = {"facing": (0.0, 0.0, 10.0), "tilt +5°, inclined 50°": (5.0, 50.0, 10.0)}
+QUADRATURE_BLUR_PX = (1.0, 1.5, 2.0, 3.0, 6.0)
 
 
-def pixel_quadrature(max_pixels: int = 500) -> dict:
+def pixel_quadrature(max_pixels: int = 200) -> dict:
     """The pixel's box alone: no generator, so no noise. On up to `max_pixels` edge pixels of each case, the closed
     form with n x n points per pixel (n = 4, 6, 8, stretched to the box's variance: `sub_points`) and the fixed lens
     samples (64, 256) against the closed form with 40 x 40 points, as the d that would explain the difference (%)

@@ -124,3 +124,30 @@ def test_a_board_asked_for_by_name_is_still_fitted(model):
         assert "carry" not in str(e), f"asked for by name and refused by the corner count: {e}"
         return
     assert "carry" not in entries[0].get("refused", ""), f"asked for by name: {entries[0]}"
+
+
+@pytest.mark.slow
+def test_industrial_quarters_choose_alike_and_sigma_covers_their_spread():
+    """industrial_ds1 dealt into four quarters of 5 views (cached detections): every quarter takes the same board and
+    distortion terms (E's σ-ratio rule sent one to flat/rational, 15-45 px from the others), and the principal
+    points' spread over the pairs of quarters is what σ says: pooled spread/σ between 0.3 and 2 (it was 5.4)."""
+    import itertools
+    import sys
+
+    root = os.path.join(HERE, "..", "..")
+    sys.path.insert(0, os.path.join(root, "benchmarks"))
+    from real_detections import observations
+
+    from tiltfit.calibration import calibrate
+    from tiltfit.fit import FitOptions
+
+    obs, _ = observations(os.path.join(root, "data", "real", "industrial_ds1"), 0.0048)
+    fits = [calibrate(obs.subset([v for v in range(obs.n_views) if v % 4 == k]), "unified",
+                      options=FitOptions(distortion="auto", board="auto")) for k in range(4)]
+    choices = {((r.board.model if r.board is not None else "flat"), r.distortion_model) for r in fits}
+    assert len(choices) == 1, f"the quarters chose {choices}"
+    pp = np.array([r.values["principal_point_px"] for r in fits])
+    s = np.array([r.sigma["principal_point_px"] for r in fits])
+    z2 = [(pp[a] - pp[b]) ** 2 / (s[a] ** 2 + s[b] ** 2) for a, b in itertools.combinations(range(4), 2)]
+    pooled = float(np.sqrt(np.mean(z2)))
+    assert 0.3 < pooled < 2.0, f"spread/σ of the principal point over the quarters {pooled:.2f}: {pp} ± {s}"

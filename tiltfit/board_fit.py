@@ -67,8 +67,8 @@ def select_board(camera, obs: Observations, options, mode: str = "unified", mode
         size = obs.n_views * obs.points_mm.shape[0] * 3 * entry["n_params"]
         corners = int(obs.corner_mask.sum())
         if len(models) > 1 and corners < MIN_CORNERS_PER_BOARD_PARAMETER * entry["n_params"]:
-            entry["refused"] = (f"not tried: the views carry it not ({corners} corners for {entry['n_params']} "
-                                f"parameters; at least {MIN_CORNERS_PER_BOARD_PARAMETER:g} a parameter)")
+            entry["refused"] = (f"not tried: too few corners for its parameters ({corners} corners for "
+                                f"{entry['n_params']}; at least {MIN_CORNERS_PER_BOARD_PARAMETER:g} a parameter)")
             continue
         if size > MAX_BOARD_JACOBIAN_ENTRIES:
             entry["refused"] = (f"not fitted ({obs.n_views} views × {obs.points_mm.shape[0]} points × "

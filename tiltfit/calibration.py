@@ -421,8 +421,10 @@ def _add_choice_variance(result: FitResult, choice: dict, free_pp: bool) -> None
     result.sigma_model = dict(result.sigma_model or {}, model_choice={
         "focal_px": math.sqrt(var_w) / pitch, "principal_point_px": [math.sqrt(v) for v in var_pp],
         "weights": {k: p["weights"] for k, p in choice.items() if p},
-        "description": "spread of the estimates over the models the held-out views cannot tell apart (weights "
-                       "exp(-z^2/2), z the best model's held-out gain in standard errors), added to sigma"})
+        "description": "spread of the estimates over the models the held-out views cannot tell apart, added to "
+                       "sigma: weights exp((z|z| - z_rule^2)/2) against the chosen model, z a richer model's held-out "
+                       "gain in standard errors over the views, z_rule what the choice asks of it (1 for the "
+                       "distortion terms, 2 for the board's shape)"})
 
 
 def _blur_record(used: bool, noise_px: float, misfit: str | None, trend: dict | None) -> dict:

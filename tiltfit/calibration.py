@@ -368,7 +368,7 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
         result.model_selection["distortion"] = {
             "chosen": distortion, "why": describe_choice(result.distortion_selection),
             "criterion": (f"smallest {options.held_out_folds}-fold held-out error (fewest terms within "
-                          f"{100 * HELD_OUT_TOLERANCE:g} %)" if scored else "smallest BIC (fewer than 3 views)")
+                          f"{100 * HELD_OUT_TOLERANCE:g} % or one standard error over the views)" if scored else "smallest BIC (fewer than 3 views)")
             + ", radial mapping one-to-one over the image, a rational model's projection uncertain by at most "
             f"{MAX_PROJECTION_SIGMA_PX:g} px or {PROJECTION_SIGMA_FACTOR:g}× opencv5's" + (", the board refitted in each fold" if result.board is not None
                                                  and result.board.model != "flat" else "")}

@@ -327,7 +327,8 @@ def select_distortion(camera: TiltLensCamera, obs: Observations, options: FitOpt
     the others are scored by their K-fold held-out error (`held_out_rms`, the lens of each fold started from
     the model's fit on all views; not computed for a model whose fit RMS already exceeds the best held-out
     error, which it cannot beat). The chosen model is the one with the fewest terms whose held-out error is
-    within `HELD_OUT_TOLERANCE` of the smallest. With fewer than 3 views (no held-out error) the score is
+    within `HELD_OUT_TOLERANCE` of the smallest or within one standard error of it over the views
+    (`_fewest_terms_within_one_se`); `choice_variance` gives what the choice leaves open. With fewer than 3 views (no held-out error) the score is
     BIC on the fitted corners. Returns that model's fit; `distortion_selection` holds one entry per model
     ({model, n_terms, rms_px, held_out_rms_px | bic, refused?, chosen}); `held_out` the chosen one's
     held-out result. The principal point is free when `options.free_principal_point` is True.
@@ -503,8 +504,10 @@ def describe_choice(selection: list) -> str:
     if "held_out_rms_px" in chosen:  # compared with the models scored with the same board
         best = min((e for e in selection if "held_out_rms_px" in e and e.get("board") == chosen.get("board")),
                    key=lambda e: e["held_out_rms_px"])
+        within = (f"within one standard error over the views (a gain of {chosen['gain_z_of_best']:.2g})"
+                  if "gain_z_of_best" in chosen else f"within {100 * HELD_OUT_TOLERANCE:g} %")
         why = (f"smallest held-out error, {chosen['held_out_rms_px']:.4f} px per corner" if best is chosen else
-               f"held-out {chosen['held_out_rms_px']:.4f} px per corner, within {100 * HELD_OUT_TOLERANCE:g} % of "
+               f"held-out {chosen['held_out_rms_px']:.4f} px per corner, {within} of "
                f"{best['model']}'s {best['held_out_rms_px']:.4f} px with fewer terms")
     else:
         why = "smallest BIC (too few views for a held-out error)"

@@ -8,6 +8,8 @@ Sets and splits (views dealt round-robin, so every subset spans the session):
                     benchmarks/small_sets/sony_small): all, halves.
     industrial_ds1  20 views of 16×10 corners: all, halves, quarters.
     gopro_wide      36 views: thirds (slow: a free board of 54 points over 12 views with rational5).
+    charuco_webcam4 4 frames of an inverted ChArUco board (12 corners each, published detections): all (issue 33 §5:
+                    a free board gave f = 396 ± 43 px on such a set).
 For each subset: f, cx, cy with σ (ours: the reported σ, which holds the spread over the models the automatic choices
 could not tell apart, recorded apart as `model_choice`; OpenCV: stdDeviationsIntrinsics), and our choices (board,
 distortion). Between the subsets of one split: the spread of each quantity (max − min) and spread/σ pooled over
@@ -38,6 +40,9 @@ SETS = {  # folder with target.json and the detection cache, pixel pitch (mm; se
     "sony_small": (os.path.join(HERE, "small_sets", "sony_small"), 0.0096, (1, 2)),
     "industrial_ds1": (os.path.join(REAL, "industrial_ds1"), 0.0048, (1, 2, 4)),
     "gopro_wide": (os.path.join(REAL, "gopro_wide"), 0.00155, (3,)),
+    # 4 frames of the inverted ChArUco webcam stream, caliscope's published corners (12 a frame; 48 for the free
+    # board's 29 parameters): tests/data/charuco_webcam/published_corners_4views.csv; pitch arbitrary (f in px).
+    "charuco_webcam4": (os.path.join(os.path.dirname(HERE), "tests", "data", "charuco_webcam"), 0.003, (1,)),
 }
 KEYS = ("f_px", "cx_px", "cy_px")
 
@@ -85,11 +90,27 @@ def spread(results: list) -> dict:
     return out
 
 
+def charuco_four_views(folder: str, pitch: float):
+    """Observations of the 4-view ChArUco case: 3×4 inner corners of 54 mm squares, corner id k at column k % 3,
+    row k // 3 (OpenCV's ChArUco ids), the published corners in the 1280×720 frame."""
+    import csv
+
+    from tiltfit.model import Observations
+
+    rows = list(csv.DictReader(open(os.path.join(folder, "published_corners_4views.csv"))))
+    frames = sorted({int(r["frame"]) for r in rows})
+    pts = np.array([[(k % 3 + 1) * 54.0, (k // 3 + 1) * 54.0, 0.0] for k in range(12)])
+    uv = np.full((len(frames), 12, 2), np.nan)
+    for r in rows:
+        uv[frames.index(int(r["frame"])), int(r["corner_id"])] = float(r["x_px"]), float(r["y_px"])
+    return Observations(pts, uv, np.full(uv.shape[:2], np.nan), (1280, 720), pitch, [f"frame_{f}" for f in frames])
+
+
 def run(sets) -> dict:
     out = {}
     for name in sets:
         folder, pitch, splits = SETS[name]
-        obs, _ = observations(folder, pitch)
+        obs = charuco_four_views(folder, pitch) if name == "charuco_webcam4" else observations(folder, pitch)[0]
         out[name] = {}
         for n in splits:
             subs = [obs if n == 1 else obs.subset([v for v in range(obs.n_views) if v % n == k]) for k in range(n)]

@@ -61,8 +61,8 @@ def run_set(name: str, pitch_mm: float, n_views: int) -> dict:
         calib = json.load(open(out)) if os.path.isfile(out) else {}
     ph = calib.get("photometric") or {}
     return {"set": name, "views": names, "exit_status": status, "wall_s": wall,
-            "command": "tiltfit " + " ".join(os.path.relpath(a, ROOT) if a.startswith(ROOT) else a
-                                              for a in argv if not a.startswith(tempfile.gettempdir())),
+            "command": "tiltfit " + " ".join("CALIB.json" if a == out else os.path.relpath(a, ROOT)
+                                              if a.startswith(ROOT) else a for a in argv),
             "distortion": (calib.get("distortion") or {}).get("model"),
             "kept": ph.get("kept"), "rejected_because": ph.get("rejected_because"), "bounds": ph.get("bounds"),
             "at_bound": ph.get("at_bound"), "free": ph.get("free"), "held_out": ph.get("held_out"),
@@ -100,8 +100,9 @@ def write_markdown(path: str, res: dict) -> None:
             rf, rs = (s["refined"] or {}).get(k), (s["refined_sigma"] or {}).get(k)
             b = bounds.get(k)
             fmt = lambda v: "—" if v is None else f"{v:.6g}"  # noqa: E731
+            end = lambda v: "∞" if v is None else f"{v:.6g}"   # noqa: E731  (U's end where 1/U reaches 0)
             L.append(f"| {k} | {fmt(cf)} ± {fmt(cs)} | {fmt(rf)} ± {fmt(rs)} | "
-                     + (f"[{b['low']:.6g}, {b['high']:.6g}] | {'**yes**' if b['at_bound'] else 'no'} |" if b else
+                     + (f"[{end(b['low'])}, {end(b['high'])}] | {'**yes**' if b['at_bound'] else 'no'} |" if b else
                         "not bounded (held or free) | — |"))
         h, cc = s.get("held_out"), s.get("corner_check")
         L.append("")

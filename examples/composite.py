@@ -122,6 +122,29 @@ def shadow_points(points, light):
     return light + t[:, None] * (points - light)
 
 
+def check_args(args) -> str | None:
+    """The first problem with the command line as one line naming the option, or None."""
+    from renderer.params import MAX_SPP
+
+    if not 1 <= args.spp <= MAX_SPP:
+        return f"--spp: expected an integer in 1..{MAX_SPP}, got {args.spp}"
+    if os.path.exists(args.out) and not os.path.isdir(args.out):
+        return f"--out: {args.out}: not a folder"
+    if args.picture:
+        folder = os.path.dirname(os.path.abspath(args.picture))
+        if not os.path.isdir(folder):
+            return f"--picture: {args.picture}: no folder {folder}"
+        if not args.picture.lower().endswith((".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr")):
+            return f"--picture: {args.picture}: expected a .png, .jpg, .tif or .exr file name"
+    if args.view:
+        with open(os.path.join(REAL, args.set, "detections_tiltfit.json"), encoding="utf-8") as f:
+            names = sorted(n for n, det in json.load(f).items() if "no_board" not in det)
+        if not any(args.view in (n, os.path.basename(n)) for n in names):
+            return (f"--view: no photo {args.view!r} with the board in {args.set} ({', '.join(names[:3])}, ... "
+                    f"{len(names)} in all)")
+    return None
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--set", default="gopro_wide", choices=sorted(PITCH_MM), help="shipped photo set [gopro_wide]")
@@ -130,6 +153,10 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=os.path.join(HERE, "composite_out"), help="output folder [examples/composite_out]")
     p.add_argument("--picture", help="also write a small copy of the composite here (the docs' picture)")
     args = p.parse_args(argv)
+    problem = check_args(args)
+    if problem:  # before the calibration: nothing is written
+        print(f"composite.py: {problem}", file=sys.stderr)
+        return 2
 
     from renderer import load_scene, read_image, write_image
     from tiltfit.calibfile import write_calib

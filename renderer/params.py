@@ -18,6 +18,9 @@ REQUIRED = object()
 SAMPLERS = ("independent", "stratified", "sobol", "center")
 #: Where a lens's distortion is centred (`renderer.cameras.Lens.distortion_centre`), named here for file readers.
 DISTORTION_CENTRES = ("sensor", "lens_axis")
+#: Samples per pixel beyond which a render is a mistake (`renderer.scenefile`'s image limits); the sampler draws a
+#: pixel's samples at once, so 1e9 asked for 32 GB.
+MAX_SPP = 1 << 16
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,7 @@ import math
 
 import torch
 
-from .params import SAMPLERS  # noqa: F401 - the names, declared without torch for the command line
+from .params import MAX_SPP, SAMPLERS  # noqa: F401 - the names, declared without torch for the command line
 
 _M32 = 0xFFFFFFFF
 
@@ -64,8 +64,8 @@ class Sampler:
     def __init__(self, name: str, spp: int, seed: int = 0):
         if name not in SAMPLERS:
             raise ValueError(f"sampler: expected one of {', '.join(SAMPLERS)}, got {name!r}")
-        if spp < 1:
-            raise ValueError(f"spp: expected a positive integer, got {spp}")
+        if not 1 <= spp <= MAX_SPP:
+            raise ValueError(f"spp: expected an integer in 1..{MAX_SPP}, got {spp}")
         self.name, self.spp, self.seed = name, spp, seed
         # The seed's first links of the key chains, as 0-dim tensors: the same numbers as the ints (the chain
         # keeps the low 32 bits), but a compiled caller (`renderer.fused`) takes them as inputs instead of

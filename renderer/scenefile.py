@@ -37,6 +37,7 @@ import numpy as np
 from .cameras import build_camera
 from .io import ImageIOError, read_image
 from .materials import CheckerTexture, ImageTexture, Material
+from . import params
 from .params import Param, SceneError, check_value, parse_params
 from .sampling import SAMPLERS
 from .validation import MAX_JSON_DEPTH, MAX_SET_SEGMENTS, check_memory, check_tree, json_depth, merge, read_json
@@ -49,7 +50,7 @@ SECTIONS = ("image", "camera", "lights", "objects", "layers", "extends", "descri
 # Stated limits of the image section: beyond them a render is a mistake, not a picture (a 65536-pixel side,
 # 65536 samples per pixel, 64 bounces already mean hours or a mirror hall that converges long before).
 MAX_IMAGE_SIDE = 1 << 16
-MAX_SPP = 1 << 16
+MAX_SPP = params.MAX_SPP
 MAX_DEPTH = 64
 MAX_SHININESS = 1e6
 # Peak bytes per pixel of a render (image, coverage, tile order and its sort keys), for the memory check.

@@ -200,13 +200,15 @@ class Calibration:
     def lens_for_image(self, image_size_px=None) -> Lens:
         """The lens with its sensor resampled to `image_size_px` (W, H) (same aspect ratio: the same field of
         view and principal point, coarser or finer pixels), or the calibrated one for None."""
-        if image_size_px is None or tuple(int(v) for v in image_size_px) == self.image_size_px:
+        if image_size_px is None:
             return self.lens
-        W0, H0 = self.image_size_px
         size = tuple(image_size_px) if isinstance(image_size_px, (tuple, list)) else ()
         if len(size) != 2 or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in size):
             raise CalibrationError(f"{self.path}: image size: expected two integers (W, H), got {image_size_px!r}")
         W, H = (int(v) for v in size)
+        W0, H0 = self.image_size_px
+        if (W, H) == (W0, H0):
+            return self.lens
         if W < 1 or H < 1 or abs(W / H - W0 / H0) > 0.01 * W0 / H0:
             raise CalibrationError(f"{self.path}: image size {W}x{H}: expected the calibration's aspect ratio "
                                    f"({W0}x{H0}, or a scaled copy of it)")

@@ -448,7 +448,7 @@ def read_opencv(path: str, pixel_pitch_mm: float | None = None) -> dict:
                           "image; expected a smaller tilt")
     out = {"pixel_pitch_mm": float(pitch), "image_size_px": size,
            "principal_point_px": pp,
-           "w_mm": f * R[2, 2] * float(pitch), "U_mm": None, "d_mm": None, "theta_F_deg": 0.0,
+           "w_mm": float(f * R[2, 2]) * float(pitch), "U_mm": None, "d_mm": None, "theta_F_deg": 0.0,
            "distortion": {"model": "brown_conrady", "coefficients": d or [0.0]},
            "undetermined": ["U_mm", "d_mm"], "source": os.path.abspath(path)}
     _check_focal_length_mm(path, "camera_matrix", out["w_mm"])
@@ -461,7 +461,8 @@ def read_opencv(path: str, pixel_pitch_mm: float | None = None) -> dict:
         rv, tv = rv.reshape(-1, 3), tv.reshape(-1, 3)
         if rv.shape[0] != tv.shape[0]:
             raise ExportError(f"{path}: rvecs, tvecs: {rv.shape[0]} and {tv.shape[0]} rows; expected one per view")
-        angle = np.linalg.norm(rv, axis=1)
+        with np.errstate(over="ignore"):
+            angle = np.linalg.norm(rv, axis=1)
         if (angle > MAX_ROTATION_VECTOR_RAD).any():
             i = int(np.argmax(angle > MAX_ROTATION_VECTOR_RAD))
             raise ExportError(f"{path}: rvecs: row {i} turns by {angle[i]:g} rad; expected a rotation vector (angle "

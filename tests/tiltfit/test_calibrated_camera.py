@@ -188,7 +188,7 @@ def test_a_smaller_image_renders_the_same_view(capture):
     half = renderer.render(scene, spp=4, progress=False, seed=2).image[..., 0]
     pooled = torch.nn.functional.avg_pool2d(full[None, None], 2)[0, 0]
     assert float((pooled - half).abs().mean()) < 0.01, "the half-size render is the full one pooled"
-    with pytest.raises(SceneError, match=r"camera.*aspect ratio"):
+    with pytest.raises(SceneError, match=r"image: 300x300 px: .*aspect ratio"):
         bad = _scene(folder, 1)
         bad["image"].update(width=300, height=300)
         renderer.load_scene(bad)

@@ -432,11 +432,16 @@ def _refine_photometric(result, obs, target, args, say, photos: dict | None = No
     block.update(kept=res.kept, held_out=res.held_out, refined={k: v[k] for k in keys},
                  refined_sigma={k: sg[k] for k in keys}, corner_check=res.corner_check, free=res.free, at_bound=res.at_bound,
                  rejected_because=res.rejected_because, sigma_model=res.sigma_model, bounds=res.bounds)
+    exposure = {"vignetting": v["vignetting"],
+                "levels": [None if "left_out" in x else {k: x[k] for k in ("white", "black", "gain_x", "gain_y") if k in x}
+                           for x in res.views]}
     if res.kept != "photometric":
         # Not progress: the user asked for a refinement and gets the corner fit, so this line shows even with -q.
         print(f"tiltfit: note: photometric refinement not kept ({res.rejected_because}); CALIB.json keeps the "
               "corner fit", file=sys.stderr, flush=True)
-        block.update(rms_linear=res.rms, iterations=res.iterations, runtime_s=res.runtime_s)
+        # The refinement's exposure too: `tiltfit report` draws the residual image through the corner fit with its
+        # vignetting and illumination gradient (the levels refitted there, as the held-out check refits them).
+        block.update(rms_linear=res.rms, iterations=res.iterations, runtime_s=res.runtime_s, **exposure)
         return block
     with torch.no_grad():
         cam.load_state_dict(res.camera.state_dict())   # the refined lens and poses, in the fit's own module
@@ -452,9 +457,7 @@ def _refine_photometric(result, obs, target, args, say, photos: dict | None = No
                     rms_blur_px=float(rms_blur[k]))
         if "rms" in fitted:   # not for a view left out of the fit
             view["rms_photometric"] = fitted["rms"]
-    block.update(rms_linear=res.rms, iterations=res.iterations, runtime_s=res.runtime_s, vignetting=v["vignetting"],
-                 levels=[None if "left_out" in x else {k: x[k] for k in ("white", "black", "gain_x", "gain_y") if k in x}
-                         for x in res.views],
+    block.update(rms_linear=res.rms, iterations=res.iterations, runtime_s=res.runtime_s, **exposure,
                  kernel=v["kernel"],
                  psf_sigma_px=v["psf_sigma_px"], psf_sigma_px_sigma=sg["psf_sigma_px"],
                  aperture=v["aperture"], closed_form_pixels=v["closed_form_pixels"],

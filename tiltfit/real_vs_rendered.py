@@ -185,6 +185,27 @@ def _project(calibration, points_mm: np.ndarray, view: int, k: int) -> np.ndarra
     return (xy + 0.5) / k - 0.5
 
 
+def _rectangle(x0: float, y0: float, x1: float, y1: float, n: int = 64) -> np.ndarray:
+    """(4 n + 1, 3) points along a closed rectangle on the target plane Z = 0 (mm), n a side."""
+    t = np.linspace(0.0, 1.0, n, endpoint=False)
+    xy = np.concatenate([np.stack([x0 + (x1 - x0) * t, np.full_like(t, y0)], 1),
+                         np.stack([np.full_like(t, x1), y0 + (y1 - y0) * t], 1),
+                         np.stack([x1 - (x1 - x0) * t, np.full_like(t, y1)], 1),
+                         np.stack([np.full_like(t, x0), y1 - (y1 - y0) * t], 1), [[x0, y0]]])
+    return np.c_[xy, np.zeros(len(xy))]
+
+
+def board_outlines(calibration, target, view: int, k: int = 1) -> dict:
+    """{"checkered": (K, 2), "board": (K, 2)} closed polylines (px, image divided by k) of the checkered area's
+    outline and of the board's outer edge (its margin's), projected through the lens (distortion bends them)."""
+    xe, ye = target.x_edges, target.y_edges
+    out = {}
+    for name, rect in (("checkered", (xe[0], ye[0], xe[-1], ye[-1])), ("board", target.extent_mm)):
+        xy = _project(calibration, _rectangle(*(float(v) for v in rect)), view, k)
+        out[name] = xy[np.isfinite(xy).all(1)]
+    return out
+
+
 def board_mask(calibration, target, view: int, k: int, size_px) -> np.ndarray:
     """(H, W) bool: pixels whose centre lies inside the checkered area's outline, projected through the lens."""
     import cv2

@@ -330,18 +330,15 @@ def board_box(target: Target, cam: ThinLensCamera, pad_px: float = 2.0) -> tuple
     return None if x1 < x0 or y1 < y0 else (x0, y0, x1, y1)
 
 
-def residual_image(image: np.ndarray, target: Target, cam: ThinLensCamera, white: float, black: float,
-                   vignetting: float = 0.0, gain=(0.0, 0.0), subpixels: int = 2,
-                   chunk: int = 1 << 15) -> np.ndarray:
-    """(H, W) photo − rendered board of one view (linear units), NaN outside the pixels the fit may use
-    (`usable_pixels` of the board's box): what the refinement could not explain, for `tiltfit.report`'s
-    `plot_residual_image`.
+def dark_fraction_image(target: Target, cam: ThinLensCamera, subpixels: int = 2, stride: int = 1,
+                        chunk: int = 1 << 15) -> np.ndarray:
+    """(H, W) dark fraction D of one view's pixels (`dark_fraction_disc`), NaN outside the pixels the fit may use
+    (`usable_pixels` of the board's box) and off the grid of every `stride`-th column and row (x and y multiples
+    of `stride`: `image[::stride, ::stride]` is the evaluated grid). Each evaluated pixel is the full-resolution
+    pixel, so a stride thins the picture without changing the model.
 
     Args:
-        image: (H, W) linear photo of the view (decode sRGB first).
-        cam: the view's camera (`TiltLensCamera.view_camera(v)` of the calibration).
-        white, black, vignetting, gain: the view's exposure (CALIB.json's photometric `levels` and `vignetting`;
-            gain (g_x, g_y) the illumination gradient, `render.shade` and `refine.Exposure`).
+        cam: the view's camera (`TiltLensCamera.view_camera(v)`, or `tiltfit.calibrated.Calibration.camera(v)`).
         subpixels: points per pixel side of the closed-form aperture [2: a picture, not a fit].
     """
     W, H = cam.width, cam.height
@@ -350,18 +347,49 @@ def residual_image(image: np.ndarray, target: Target, cam: ThinLensCamera, white
     if box is None:
         return out
     x0, y0, x1, y1 = box
-    ys, xs = np.mgrid[y0:y1 + 1, x0:x1 + 1]
+    k = max(int(stride), 1)
+    ys, xs = np.mgrid[-(-y0 // k) * k:y1 + 1:k, -(-x0 // k) * k:x1 + 1:k]
     uv = torch.tensor(np.stack([xs.ravel(), ys.ravel()], -1), dtype=torch.float64)
-    ok = usable_pixels(target, cam, uv)
-    uv = uv[torch.from_numpy(ok)]
+    if not uv.shape[0]:
+        return out
+    uv = uv[torch.from_numpy(usable_pixels(target, cam, uv))]
     near = max(len(target.x_edges), len(target.y_edges))
-    hx, hy = (W - 1) / 2, (H - 1) / 2
-    img = np.asarray(image, dtype=np.float64)
     with torch.no_grad():
         for a in range(0, uv.shape[0], chunk):
             u = uv[a:a + chunk]
-            pred = shade(dark_fraction_disc(target, cam, u, near, subpixels), u, (W, H), white, black, vignetting)
-            pred = pred * (1.0 + gain[0] * (u[:, 0] - hx) / hx + gain[1] * (u[:, 1] - hy) / hy)
-            ix, iy = u[:, 0].long().numpy(), u[:, 1].long().numpy()
-            out[iy, ix] = img[iy, ix] - pred.numpy()
+            out[u[:, 1].long().numpy(), u[:, 0].long().numpy()] = dark_fraction_disc(target, cam, u, near,
+                                                                                      subpixels).numpy()
     return out
+
+
+def shade_image(dark: np.ndarray, white: float, black: float, vignetting: float = 0.0, gain=(0.0, 0.0)) -> np.ndarray:
+    """(H, W) linear intensity the exposure makes of a dark-fraction image (`dark_fraction_image`; NaN stays NaN):
+    `shade`'s vignetting and levels times the view's illumination gradient 1 + g_x x + g_y y (x, y about the image
+    centre, ±1 at the edges; `refine.Exposure`)."""
+    H, W = dark.shape
+    ys, xs = np.mgrid[0:H, 0:W]
+    uv = torch.tensor(np.stack([xs.ravel(), ys.ravel()], -1), dtype=torch.float64)
+    hx, hy = (W - 1) / 2, (H - 1) / 2
+    with torch.no_grad():
+        pred = shade(torch.from_numpy(np.ascontiguousarray(dark, dtype=np.float64).ravel()), uv, (W, H), white, black,
+                     vignetting)
+        pred = pred * (1.0 + gain[0] * (uv[:, 0] - hx) / hx + gain[1] * (uv[:, 1] - hy) / hy)
+    return pred.numpy().reshape(H, W)
+
+
+def residual_image(image: np.ndarray, target: Target, cam: ThinLensCamera, white: float, black: float,
+                   vignetting: float = 0.0, gain=(0.0, 0.0), subpixels: int = 2,
+                   chunk: int = 1 << 15, stride: int = 1) -> np.ndarray:
+    """(H, W) photo − rendered board of one view (linear units), NaN outside the pixels the fit may use
+    (`usable_pixels` of the board's box; with `stride`, off its grid: `dark_fraction_image`): what the refinement
+    could not explain, for `tiltfit.report`'s `plot_residual_image`.
+
+    Args:
+        image: (H, W) linear photo of the view (decode sRGB first).
+        cam: the view's camera (`TiltLensCamera.view_camera(v)` of the calibration).
+        white, black, vignetting, gain: the view's exposure (CALIB.json's photometric `levels` and `vignetting`;
+            gain (g_x, g_y) the illumination gradient, `render.shade` and `refine.Exposure`).
+        subpixels: points per pixel side of the closed-form aperture [2: a picture, not a fit].
+    """
+    dark = dark_fraction_image(target, cam, subpixels, stride, chunk)
+    return np.asarray(image, dtype=np.float64) - shade_image(dark, white, black, vignetting, gain)

@@ -1,0 +1,149 @@
+"""`tiltfit report` on a calibration refined with `--refine photometric`: the residual images (issue 30 §5: when the
+refinement is rejected the report shows why).
+
+Photos from the independent generator (`tiltfit.experiments.exact_capture`: every ray traced through the thin lens,
+shot and read noise, 8-bit sRGB), three small views, calibrated on the command line with `--refine photometric`:
+- the report draws `photometric_residual_view_KK.png` for the views the real-against-rendered page compares and
+  shows them in report.md under the bounds table, with the sentence on the trust bounds;
+- the residual at the generator's truth is the capture's noise (measured from a second capture of the same view),
+  through the camera the record refers to: the refined one where kept, the corner fit's where not (a wrong
+  `refined` lens in a rejected record changes nothing); with the principal point 2 px off it is clearly larger.
+"""
+from __future__ import annotations
+
+import copy
+import json
+import math
+import os
+
+import numpy as np
+import pytest
+
+from tiltfit.experiments import exact_capture as ec
+from tiltfit.target import Target
+
+BOARD = Target(tuple(50.0 * i for i in range(7)), tuple(50.0 * j for j in range(5)), (0, 0), 25.0)
+VIEWS = ((20.0, 5.0, 780.0), (-15.0, 15.0, 820.0), (-10.0, -10.0, 800.0))
+W, H, PITCH = 240, 160, 0.13
+# Focused at 650 mm with a 40 mm aperture: blur discs of about 5 px on the boards at 780-820 mm.
+LENS = ec.ExactLens.focused_at(55.0, 650.0, 40.0, 0.0, W, H, PITCH)
+STRATA = {"aperture_strata": 5, "pixel_strata": 2}
+
+
+def _linear(img: np.ndarray) -> np.ndarray:
+    from renderer.io import srgb_to_linear
+
+    return srgb_to_linear(img / 255.0)
+
+
+@pytest.fixture(scope="module")
+def refined(tmp_path_factory):
+    """(folder, CALIB.json dict, its path, the true poses, a second capture of view 0 (linear), each photo (linear))."""
+    import cv2
+
+    from tiltfit import cli
+
+    folder = tmp_path_factory.mktemp("photometric_report")
+    paths, poses, photos = [], [], []
+    for k, (rx, ry, dist) in enumerate(VIEWS):
+        R, T = ec.pose_facing(BOARD, rx, ry, dist)
+        img = ec.capture(LENS, R, T, BOARD, seed=k, **STRATA)
+        paths.append(str(folder / f"view{k}.png"))
+        cv2.imwrite(paths[-1], img)
+        poses.append((R, T))
+        photos.append(_linear(img.astype(np.float64)))
+    again = _linear(ec.capture(LENS, *poses[0], BOARD, seed=100, **STRATA).astype(np.float64))
+    (folder / "board.json").write_text(json.dumps(BOARD.to_dict()))
+    out = folder / "calib.json"
+    rc = cli.main(["calibrate", *paths, "--target", str(folder / "board.json"), "--pixel-pitch-mm", str(PITCH),
+                   "--fit", "unified", "--distortion", "none", "--held-out", "0", "--refine", "photometric", "-q",
+                   "-o", str(out)])
+    assert rc == 0, "calibrate --refine photometric succeeds"
+    return folder, json.loads(out.read_text()), str(out), poses, again, photos
+
+
+def _noise(photo: np.ndarray, again: np.ndarray, where: np.ndarray) -> float:
+    """σ of one capture's pixel (linear) on `where`: two captures of the same view differ by √2 σ."""
+    d = (photo - again)[where]
+    return float(np.sqrt(np.mean(d * d) / 2))
+
+
+def _at_truth(calib: dict, poses, kept: str = "photometric", **change) -> dict:
+    """`calib` with the generator's true lens and poses, as the camera its photometric record refers to; the
+    record's levels dropped (refitted), so that every camera below is shaded the same way."""
+    truth = LENS.truth()
+    lens = {"w_mm": truth["w_mm"], "U_mm": truth["U_mm"], "d_mm": truth["d_mm"], "theta_F_deg": 0.0,
+            "theta_L_deg": 0.0}
+    data = copy.deepcopy(calib)
+    data.update(lens, principal_point_px=[(W - 1) / 2 + change.get("dx_px", 0.0), (H - 1) / 2])
+    data["views"] = [dict(v, R=np.asarray(R).tolist(), T_mm=np.asarray(T).tolist()) for v, (R, T) in
+                     zip(data["views"], poses)]
+    ph = data["photometric"]
+    ph.pop("levels", None)
+    ph["kept"] = kept
+    ph["refined" if kept == "photometric" else "corner_fit"] = dict(lens)
+    return data
+
+
+@pytest.mark.slow
+def test_report_draws_the_residual_images_of_the_compared_views(refined, tmp_path):
+    """write_report: one `photometric_residual_view_KK.png` per compared view, shown in report.md after the bounds
+    table and its sentence; the residual through the calibration is near the capture's noise."""
+    from tiltfit.real_vs_rendered import RealVsRenderedOptions
+    from tiltfit.report import photometric_residual, write_report
+
+    folder, calib, path, poses, again, photos = refined
+    out = tmp_path / "report"
+    files = write_report(calib, str(out), path, RealVsRenderedOptions(max_views=3, spp=1))
+    names = sorted(os.path.basename(f) for f in files if "photometric_residual" in f)
+    assert names == [f"photometric_residual_view_{k:02d}.png" for k in range(3)], f"residual images {names}"
+    assert all((out / n).stat().st_size > 10_000 for n in names), "figures, not empty files"
+    md = (out / "report.md").read_text()
+    bounds, sentence, images = (md.index(s) for s in ("| parameter | start | trust bound", "**Trust bound:**",
+                                                       "![photometric_residual_view_00.png]"))
+    assert bounds < sentence < images < md.index("## Real against rendered"), "order: table, sentence, images"
+    res = photometric_residual(calib, 0, photos[0], path)
+    sigma = _noise(photos[0], again, np.isfinite(res.residual))
+    assert res.levels == ("record" if calib["photometric"]["kept"] == "photometric" else "refitted"), res.levels
+    assert 0.7 * sigma < res.rms < 2.0 * sigma, f"residual RMS {res.rms:.5f} through the calibration, noise {sigma:.5f}"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kept", ["photometric", "corner fit"])
+def test_residual_at_the_truth_is_noise_and_a_wrong_camera_is_not(refined, kept):
+    """At the generator's truth (as the refined camera, or as the corner fit's in a rejected record whose `refined`
+    lens is 20 % off in d: it must not be used) the residual RMS is the capture's noise within ×1.5 both ways; with
+    the principal point 2 px off it is at least twice that."""
+    from tiltfit.report import photometric_residual
+
+    _, calib, path, poses, again, photos = refined
+    truth = _at_truth(calib, poses, kept)
+    if kept != "photometric":
+        truth["photometric"]["refined"] = dict(truth["photometric"]["corner_fit"],
+                                               d_mm=1.2 * truth["photometric"]["corner_fit"]["d_mm"])
+    res = photometric_residual(truth, 0, photos[0], path)
+    finite = np.isfinite(res.residual)
+    sigma = _noise(photos[0], again, finite)
+    assert finite.sum() > 3000, f"{finite.sum()} pixels of the board drawn"
+    assert res.camera == kept and res.levels == "refitted", (res.camera, res.levels)
+    assert sigma / 1.5 < res.rms < 1.5 * sigma, f"{kept}: RMS {res.rms:.5f} at the truth, capture noise {sigma:.5f}"
+    off = photometric_residual(_at_truth(calib, poses, kept, dx_px=2.0), 0, photos[0], path)
+    assert off.rms > 2.0 * sigma, f"{kept}: principal point 2 px off: RMS {off.rms:.5f}, noise {sigma:.5f}"
+
+
+def test_bound_sentence_names_the_parameter_and_the_end():
+    """The sentence under the bounds table: which parameter hit which end; without a hit, why it was not kept."""
+    from tiltfit.report import bound_sentence, photometric_lines
+
+    d = {"parameter": "d_mm", "start": 36.01, "low": 35.5, "high": 36.12, "refined": 36.12, "at_bound": True}
+    w = {"parameter": "w_mm", "start": 55.0, "low": 54.0, "high": 56.0, "refined": 54.9, "at_bound": False}
+    hit = bound_sentence({"kept": "corner fit", "bounds": [w, d], "rejected_because": "d_mm at the trust bound"})
+    assert "d_mm hit the upper end" in hit and "w_mm" not in hit and "corner fit is kept" in hit, hit
+    low = bound_sentence({"kept": "corner fit", "bounds": [dict(d, refined=35.5)]})
+    assert "d_mm hit the lower end" in low, low
+    why = bound_sentence({"kept": "corner fit", "bounds": [w], "rejected_because": "held-out corners RMS 0.015 px"})
+    assert "No lens parameter reached" in why and "held-out corners RMS 0.015 px" in why, why
+    ok = bound_sentence({"kept": "photometric", "bounds": [w]})
+    assert "No lens parameter reached" in ok and "not kept" not in ok, ok
+    lines = photometric_lines({"photometric": {"kept": "corner fit", "bounds": [w, d]}})
+    assert lines[-1].startswith("**Trust bound:**") and "| d_mm |" in "\n".join(lines), lines

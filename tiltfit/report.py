@@ -118,6 +118,8 @@ def write_report(calib: dict, out_dir: str, calib_path: str | None = None, real_
     from renderer.io import atomic_folder
 
     views = _views(calib)
+    if "photometric" in calib:
+        check_photometric_record(calib["photometric"], len(views))
     with atomic_folder(out_dir) as staging:
         names = _write_plots(calib, views, staging)
         wanted = real_vs_rendered is not None and (real_vs_rendered.max_views > 0 or real_vs_rendered.views)
@@ -383,6 +385,49 @@ def _uncertainty_lines(calib: dict) -> list:
     return out
 
 
+def _finite(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def check_photometric_record(ph, n_views: int) -> None:
+    """Refuse (ValueError naming the field) a CALIB.json `photometric` record the report cannot read: `kept` a text,
+    `bounds` entries with `start`, `low`, `high`, `refined` finite or null (∞), `vignetting` finite, `levels` one entry (or
+    null) a view with finite levels and gains, `refined` and `corner_fit` lens values finite or null."""
+    if not isinstance(ph, dict):
+        raise ValueError(f"photometric: expected an object, got {type(ph).__name__}")
+    if not isinstance(ph.get("kept", ""), str):
+        raise ValueError(f"photometric.kept: expected a text, got {ph['kept']!r}")
+    for i, b in enumerate(ph.get("bounds") or []):
+        if not isinstance(b, dict) or not isinstance(b.get("parameter"), str):
+            raise ValueError(f"photometric.bounds[{i}]: expected an object with a parameter name, got {b!r}")
+        for key in ("start", "low", "high", "refined"):   # null: U at infinity (1/U = 0)
+            if b.get(key) is not None and not _finite(b.get(key)):
+                raise ValueError(f"photometric.bounds[{i}].{key}: expected a number or null, got {b.get(key)!r}")
+    if ph.get("vignetting") is not None and not _finite(ph["vignetting"]):
+        raise ValueError(f"photometric.vignetting: expected a finite number, got {ph['vignetting']!r}")
+    levels = ph.get("levels")
+    if levels is not None:
+        if not isinstance(levels, list) or len(levels) != n_views:
+            raise ValueError(f"photometric.levels: expected a list of {n_views} entries (one a view), got {levels!r}"[:200])
+        for i, lv in enumerate(levels):
+            if lv is None:
+                continue
+            if not isinstance(lv, dict):
+                raise ValueError(f"photometric.levels[{i}]: expected an object or null, got {lv!r}")
+            for key in ("white", "black", "gain_x", "gain_y"):
+                if key in lv and not _finite(lv[key]):
+                    raise ValueError(f"photometric.levels[{i}].{key}: expected a finite number, got {lv[key]!r}")
+    for name in ("refined", "corner_fit"):
+        lens = ph.get(name)
+        if lens is None:
+            continue
+        if not isinstance(lens, dict):
+            raise ValueError(f"photometric.{name}: expected an object, got {lens!r}")
+        for key, value in lens.items():
+            if value is not None and not _finite(value):
+                raise ValueError(f"photometric.{name}.{key}: expected a finite number or null, got {value!r}")
+
+
 def photometric_lines(calib: dict) -> list:
     """report.md lines on the photometric refinement (`--refine photometric`): kept or not and why, and for each
     bounded lens parameter its start, bound and refined value (which parameter hit which bound)."""
@@ -398,9 +443,15 @@ def photometric_lines(calib: dict) -> list:
     if bounds:
         out += ["", "| parameter | start | trust bound | refined | at the bound |", "|---|---|---|---|---|"]
         for b in bounds:
-            out.append(f"| {b['parameter']} | {b['start']:.6g} | [{b['low']:.6g}, {b['high']:.6g}] | "
-                       f"{b['refined']:.6g} | {'**yes**' if b.get('at_bound') else 'no'} |")
+            out.append(f"| {b['parameter']} | {_bound_value(b['start'])} | [{_bound_value(b['low'])}, "
+                       f"{_bound_value(b['high'])}] | {_bound_value(b['refined'])} | "
+                       f"{'**yes**' if b.get('at_bound') else 'no'} |")
     return out + ["", bound_sentence(ph)]
+
+
+def _bound_value(value) -> str:
+    """A bound record's number; null is U at infinity (1/U = 0)."""
+    return "∞" if value is None else f"{value:.6g}"
 
 
 def bound_sentence(ph: dict) -> str:
@@ -413,9 +464,11 @@ def bound_sentence(ph: dict) -> str:
     if hits:
         parts = []
         for b in hits:
-            end = "upper" if abs(b["refined"] - b["high"]) <= abs(b["refined"] - b["low"]) else "lower"
-            parts.append(f"{b['parameter']} hit the {end} end of its trust bound ({b['start']:.6g} → "
-                         f"{b['refined']:.6g}, bound [{b['low']:.6g}, {b['high']:.6g}])")
+            r, lo, hi = (math.inf if b.get(k) is None else float(b[k]) for k in ("refined", "low", "high"))
+            end = "upper" if r == hi or (math.isfinite(r) and abs(r - hi) <= abs(r - lo)) else "lower"
+            parts.append(f"{b['parameter']} hit the {end} end of its trust bound ({_bound_value(b.get('start'))} → "
+                         f"{_bound_value(b.get('refined'))}, bound [{_bound_value(b.get('low'))}, "
+                         f"{_bound_value(b.get('high'))}])")
         text = "; ".join(parts) + ": pixels and corners disagree on " + (
             "it" if len(hits) == 1 else "them") + " beyond both fits' σ"
         return f"**Trust bound:** {text}" + ("" if kept else ", so the corner fit is kept") + "."
@@ -476,10 +529,12 @@ def photometric_calibration(calib: dict, calib_path: str | None = None):
 
     ph = calib.get("photometric") or {}
     lens = ph.get("refined" if ph.get("kept", "photometric") == "photometric" else "corner_fit") or {}
-    keys = ("w_mm", "U_mm", "d_mm", "theta_F_deg")
+    keys = ("w_mm", "d_mm", "theta_F_deg")
     data = dict(calib)
-    if all(isinstance(lens.get(k), (int, float)) and math.isfinite(lens[k]) for k in keys):
+    if all(_finite(lens.get(k)) for k in keys):
         data.update({k: float(lens[k]) for k in keys})
+        # U at infinity (1/U = 0) is null in the JSON
+        data["U_mm"] = float(lens["U_mm"]) if _finite(lens.get("U_mm")) else math.inf
         data.pop("theta_L_deg", None)   # θL follows from θF, w and U (`lens_from_calib`)
     return Calibration.from_dict(data, calib_path or "<calibration>")
 

@@ -147,3 +147,36 @@ def test_bound_sentence_names_the_parameter_and_the_end():
     assert "No lens parameter reached" in ok and "not kept" not in ok, ok
     lines = photometric_lines({"photometric": {"kept": "corner fit", "bounds": [w, d]}})
     assert lines[-1].startswith("**Trust bound:**") and "| d_mm |" in "\n".join(lines), lines
+    # U's bound reaches infinity (1/U = 0): null in CALIB.json, ∞ in the table and the sentence
+    u = {"parameter": "U_mm", "start": 1583.1, "low": 693.9, "high": None, "refined": None, "at_bound": True}
+    text = "\n".join(photometric_lines({"photometric": {"kept": "corner fit", "bounds": [u]}}))
+    assert "[693.9, ∞]" in text and "U_mm hit the upper end" in text, text
+
+
+@pytest.mark.parametrize("field, value, named", [
+    ("levels", {"white": 1}, "photometric.levels"),
+    ("levels", [{"white": "x", "black": 0.0}], "photometric.levels[0].white"),
+    ("bounds", [{"parameter": "d_mm", "start": 1.0, "low": 0.5, "high": "2", "refined": 1.0}],
+     "photometric.bounds[0].high"),
+    ("refined", {"w_mm": "55", "d_mm": 1.0}, "photometric.refined.w_mm"),
+    ("vignetting", [0.1], "photometric.vignetting"),
+])
+def test_a_bad_photometric_record_is_one_line_naming_the_field(tmp_path, field, value, named):
+    """`tiltfit report` on a CALIB.json whose photometric record is malformed: exit status 2, one line naming the
+    file and the field, no report folder."""
+    import subprocess
+    import sys
+
+    calib = {"pixel_pitch_mm": PITCH, "image_size_px": [W, H], "w_mm": 55.0, "U_mm": None, "d_mm": None,
+             "theta_F_deg": 0.0, "views": [{"image": "a.png", "R": np.eye(3).tolist(), "T_mm": [0, 0, 800.0],
+                                            "corners_px": [[10.0, 10.0]], "residuals_px": [[0.1, 0.0]]}],
+             "target": BOARD.to_dict(), "photometric": {"kept": "corner fit", field: value}}
+    path = tmp_path / "calib.json"
+    path.write_text(json.dumps(calib))
+    out = tmp_path / "report"
+    run = subprocess.run([sys.executable, "-m", "tiltfit", "report", str(path), "-o", str(out)], capture_output=True,
+                         text=True, timeout=120)
+    lines = run.stderr.strip().splitlines()
+    assert run.returncode == 2 and len(lines) == 1, f"exit {run.returncode}, stderr {run.stderr!r}"
+    assert str(path) in lines[0] and named in lines[0] and "Traceback" not in run.stderr, lines[0]
+    assert not out.exists(), "no partial report"

@@ -450,7 +450,11 @@ def _refine_photometric(result, obs, target, args, say, photos: dict | None = No
     result.values.update({k: x for k, x in cam.summary().items() if k in result.values})
     # σ of the refined keys from the photometric covariance; f and the paper's θL are not propagated.
     result.sigma.update({k: sg[k] for k in keys}, f_mm=None, theta_L_paper_deg=None)
-    result.undetermined = [k for k in result.undetermined if k not in ("U_mm", "d_mm")]
+    if "inv_U_per_m" in res.free:
+        # U fitted: the pixels determined it and d with it. Where the corners could not tell U the refinement holds
+        # it at the start's placeholder and fits d beside it, a blur scale with no focus distance: both stay
+        # undetermined (null), not the placeholder U with σ 0.
+        result.undetermined = [k for k in result.undetermined if k not in ("U_mm", "d_mm")]
     result.rss = dict(result.rss, corners=float((r.corners_px**2).sum()))
     for k, (view, fitted) in enumerate(zip(result.views, res.views)):
         view.update(R=cam.R[k].tolist(), T_mm=cam.T_mm[k].tolist(), rms_reprojection_px=float(rms_corners[k]),

@@ -199,9 +199,14 @@ def test_real_gopro_subset_end_to_end(gopro_third, capsys):
     from tiltfit import cli
 
     target, small, used, held_out = _three_views(gopro_third)
+    assert {"U_mm", "d_mm"} <= set(small.undetermined), f"the GoPro's blur cannot tell U, d: {small.undetermined}"
     args = argparse.Namespace(psf="disc", encoding=None, inputs=small.views[0]["image"], quiet=True)
     block = cli._refine_photometric(small, used, target, args, lambda line: None, held_out=held_out)
     err = capsys.readouterr().err
+    # U was held at the start's placeholder (not free), so U and d stay undetermined though the refinement is kept.
+    assert block["kept"] == "photometric", f"the case this is about: the refinement kept ({block['rejected_because']})"
+    assert "inv_U_per_m" not in block["free"] and {"U_mm", "d_mm"} <= set(small.undetermined), \
+        f"free {block['free']}, undetermined {small.undetermined}"
     assert block["left_out"] == [] and "left out" not in err, f"left_out {block['left_out']}; stderr {err!r}"
     assert block["kept"] in ("photometric", "corner fit") and math.isfinite(block["rms_linear"]), f"block {block}"
     assert block["corner_check"]["views"] == 3, f"the corner check scores the three views: {block['corner_check']}"

@@ -27,9 +27,9 @@ from .fit import FitError
 from .model import Observations, residuals
 
 #: A view's blur residual (RMS, px) above this many times the other views' median residual and the widths'
-#: noise is an outlier. The views of one lens differ by up to about 2.5× on the shipped real sets
-#: (industrial_ds1: 0.13–0.35 px under one fit); a view of 0.3 %-contrast widths misses by 10–20×.
-BLUR_VIEW_OUTLIER_FACTOR = 3.0
+#: noise is an outlier. Good views of one lens differ by up to about 5× on the shipped real sets (industrial_ds1:
+#: 0.12–0.35 px under one fit, 0.71 px on a view with glare); a view of 0.3 %-contrast widths misses by 10–20×.
+BLUR_VIEW_OUTLIER_FACTOR = 8.0
 #: Suspect views refitted without their widths when the fit with all views failed (each costs one blur fit).
 MAX_SUSPECTS = 2
 #: The fewest other views with blur widths that a view is compared with.
@@ -101,7 +101,7 @@ def suspects(result, obs: Observations) -> list[int]:
     return sorted(has, key=lambda v: -score[v])[:MAX_SUSPECTS]
 
 
-def screen_blur_views(fit: Callable, obs: Observations, noise_px: Callable):
+def screen_blur_views(fit: Callable, obs: Observations, noise_px: Callable, accept: Callable | None = None):
     """The blur fit with a view whose widths disagree with the others' left out, naming it.
 
     Args:
@@ -109,6 +109,10 @@ def screen_blur_views(fit: Callable, obs: Observations, noise_px: Callable):
             with everything else bound). Called with every view first, then without each suspect's widths.
         obs: the observations; noise_px: obs -> the widths' measurement noise σ, px (`calibration.blur_noise_px`;
             the outlier is judged against the other views' noise, not a pooled one it inflates).
+        accept: (result, obs) -> whether the blur model fitted without a suspect's widths describes the lens
+            (`calibration.blur_misfit` is None); a view is left out only then: where the model is refused with or
+            without it (widths at a detector's floor in every view), that view did not sink the fit, and every
+            view's widths stay (the refusal and its noise are the whole set's) [None: no such check].
     Returns:
         (result, undetermined, note, observations used (the outlier's widths left out), line naming the view or
         None).
@@ -137,7 +141,7 @@ def screen_blur_views(fit: Callable, obs: Observations, noise_px: Callable):
         noise = noise_px(kept)
         bar = BLUR_VIEW_OUTLIER_FACTOR * max(others, noise if math.isfinite(noise) else 0.0)
         rescued = first[0] is None
-        if rms[v] > bar or rescued:
+        if (rms[v] > bar or rescued) and (accept is None or accept(alt[0], kept)):
             why = (f"the blur fit with them {'did not converge' if failure is not None else 'failed'}; "
                    if rescued else "")
             line = (f"{obs.names[v]}: its blur widths disagree with the other views' ({why}RMS {rms[v]:.3g} px from "

@@ -233,9 +233,10 @@ def _calibrate(obs: Observations, mode: str, init: TiltLensCamera | None, option
     axis_entries = []  # the distortion models scored about the lens axis (`tiltfit.distortion_centre`)
     if blur_ok:
         # One view's widths may disagree with the others' (a sharp photo of very low contrast): left out, named.
+        noise_of = (lambda o: blur_noise if o is obs else blur_noise_px(with_points(o, file_points)))
         result, undetermined, note, obs, outlier = screen_blur_views(
             lambda o: _fit_blur(cam.copy(), o, mode, init, init_sigma, options, distortion, geometry, say, board=board),
-            obs, lambda o: blur_noise if o is obs else blur_noise_px(with_points(o, file_points)))
+            obs, noise_of, accept=lambda r, o: blur_misfit(r, o, noise_of(o)) is None)
         if outlier:
             notes.append(outlier)
             blur_noise = blur_noise_px(with_points(obs, file_points))  # the outlier's widths inflated it

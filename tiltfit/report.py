@@ -498,6 +498,9 @@ class PhotometricResidual:
         levels: "record" (CALIB.json's photometric `levels` of this view) or "refitted" (white and black fitted
             to this photo with the rest held: the record's levels belong to another camera, or are missing).
         camera: "photometric" (the refined lens and poses) or "corner fit".
+        rms_levels_refitted: the RMS with white and black fitted to these pixels (`fit_levels`): far below `rms`
+            where the levels, not the geometry, miss (a tone curve, sharpening halos the fit's edge pixels saw).
+        n_saturated: pixels left out as saturated (glare; the fit leaves them out too).
     """
 
     residual: np.ndarray
@@ -508,6 +511,8 @@ class PhotometricResidual:
     gain: tuple
     levels: str
     camera: str
+    rms_levels_refitted: float = math.nan
+    n_saturated: int = 0
 
     @property
     def rms(self) -> float:
@@ -574,12 +579,15 @@ def photometric_residual(calib: dict, view: int, photo: np.ndarray, calib_path: 
     The exposure is the record's: its `vignetting` and the view's illumination gradient (`levels[view]` `gain_x`,
     `gain_y`), and its white and black levels where the refinement was kept; where it was not, the record's levels
     belong to the rejected camera, so white and black are refitted to the photo through the corner fit's
-    (`fit_levels`, as the refinement's held-out check does), as they are for a record without levels.
+    (`fit_levels`, as the refinement's held-out check does), as they are for a record without levels. Saturated
+    pixels (the fit's `PhotometricOptions.saturation` of the photo's brightest: glare) are left out as the fit
+    leaves them out.
 
     Args:
         photo: (H, W) linear photo of the view at the calibration's size (the channels' mean, as the fit reads it).
         max_pixels: evaluate every k-th column and row where the board's box holds more (RESIDUAL_MAX_PIXELS).
     """
+    from .photometric import PhotometricOptions
     from .photometric.render import board_box, dark_fraction_image, shade_image
 
     ph = calib.get("photometric") or {}
@@ -597,17 +605,24 @@ def photometric_residual(calib: dict, view: int, photo: np.ndarray, calib_path: 
     area = 0 if box is None else (box[2] - box[0] + 1) * (box[3] - box[1] + 1)
     stride = max(1, math.ceil(math.sqrt(area / max(int(max_pixels), 1))))
     dark = dark_fraction_image(target, cam, stride=stride)
+    saturation = PhotometricOptions().saturation
+    saturated = np.isfinite(dark) & (photo >= (saturation or math.inf) * float(photo.max()))
+    dark[saturated] = np.nan
     levels = (ph.get("levels") or [])
     rec = levels[view] if view < len(levels) and isinstance(levels[view], dict) else {}
     vignetting = float(ph.get("vignetting") or 0.0)
     gain = (float(rec.get("gain_x", 0.0)), float(rec.get("gain_y", 0.0)))
+    refitted = fit_levels(photo, dark, vignetting, gain)
     if kept and "white" in rec and "black" in rec:
-        white, black, source = float(rec["white"]), float(rec["black"]), "record"
+        (white, black), source = (float(rec["white"]), float(rec["black"])), "record"
     else:
-        (white, black), source = fit_levels(photo, dark, vignetting, gain), "refitted"
+        (white, black), source = refitted, "refitted"
     residual = photo - shade_image(dark, white, black, vignetting, gain)
+    again = (photo - shade_image(dark, *refitted, vignetting, gain))[np.isfinite(dark)]
     return PhotometricResidual(residual, stride, white, black, vignetting, gain, source,
-                               "photometric" if kept else "corner fit")
+                               "photometric" if kept else "corner fit",
+                               float(np.sqrt(np.mean(again * again))) if again.size else math.nan,
+                               int(saturated.sum()))
 
 
 def write_photometric_residuals(calib: dict, calib_path: str | None, out_dir: str, options) -> tuple[list, list]:
@@ -644,17 +659,19 @@ def write_photometric_residuals(calib: dict, calib_path: str | None, out_dir: st
         cal = cal or photometric_calibration(calib, calib_path)
         name = f"photometric_residual_view_{v:02d}.png"
         span = res.white - res.black
-        title = (f"view {v}: {os.path.basename(image)}: photo − model through the "
+        title = (f"view {v}: {os.path.basename(image)}\nphoto − model through the "
                  + ("refined camera" if kept else "corner fit's camera (refinement not kept)")
-                 + f"\nRMS {res.rms:.3g} linear = {100 * res.rms / span:.2g} % of the print's contrast"
-                 + f", {res.n_pixels} pixels" + (f" (every {res.stride}th row and column)" if res.stride > 1 else "")
-                 + ("" if res.levels == "record" else "; levels refitted"))
+                 + ("" if res.levels == "record" else ", levels refitted")
+                 + f"\nRMS {res.rms:.3g} linear, {100 * res.rms / span:.2g} % of the print's contrast "
+                 + f"({100 * res.rms_levels_refitted / span:.2g} % levels refitted)\n{res.n_pixels} "
+                 + "pixels" + (f", every {res.stride}th row and column" if res.stride > 1 else "")
+                 + (f"; {res.n_saturated} saturated left blank" if res.n_saturated else ""))
         plot_residual_image(res.residual, os.path.join(out_dir, name), title,
                             outlines=board_outlines(cal, cal.target, v), photo=photo, stride=res.stride, contrast=span)
         files.append(name)
         shown.append(name)
         rows.append(f"| {v} | {os.path.basename(image)} | {res.rms:.4g} | {100 * res.rms / span:.2g} | "
-                    f"{res.n_pixels} | {res.stride} | {res.levels} |")
+                    f"{100 * res.rms_levels_refitted / span:.2g} | {res.n_pixels} | {res.stride} | {res.levels} |")
     lines = ["", "### Residual images", "",
              "Photo − the photometric model (the target's dark fraction through the lens, aperture in closed form, "
              "shaded by the view's exposure) on the pixels the fit may use (the board inside its margin), through "
@@ -663,8 +680,11 @@ def write_photometric_residuals(calib: dict, calib_path: str | None, out_dir: st
                              "and illumination gradient, white and black refitted to each photo.")
              + " Red: the photo is brighter than the model."]
     if rows:
-        lines += ["", "| view | image | RMS (linear) | RMS (% of contrast) | pixels | stride | levels |",
-                  "|---|---|---|---|---|---|---|", *rows, ""]
+        lines += ["", "| view | image | RMS (linear) | RMS (% of contrast) | the same, levels refitted here | pixels "
+                  "| stride | levels |", "|---|---|---|---|---|---|---|---|", *rows, "",
+                  "Where refitting the levels to these pixels brings the RMS down a lot, the levels (a tone curve, "
+                  "sharpening halos the fit's edge pixels saw), not the geometry, are what the model misses; "
+                  "saturated pixels (glare) are left blank, as the fit leaves them out.", ""]
         lines += [f"![{n}]({n})" for n in shown]
     lines += skipped
     return files, lines
@@ -673,7 +693,7 @@ def write_photometric_residuals(calib: dict, calib_path: str | None, out_dir: st
 def plot_residual_image(residual: np.ndarray, path: str, title: str = "photo − rendered", *, outlines=None,
                         photo: np.ndarray | None = None, stride: int = 1, contrast: float | None = None) -> str:
     """Save an (H, W) residual image (photo − rendered, linear units; NaN where nothing was rendered) as a PNG with
-    a diverging colour scale symmetric about 0 (±99th percentile of |residual|), cut to the rendered pixels.
+    a diverging colour scale symmetric about 0 (±95th percentile of |residual|), cut to the rendered pixels.
     Returns `path`.
 
     Args:
@@ -693,7 +713,9 @@ def plot_residual_image(residual: np.ndarray, path: str, title: str = "photo −
     grid = r[::k, ::k]
     scale = 100.0 / contrast if contrast else 1.0
     finite = np.isfinite(grid)
-    lim = float(np.percentile(np.abs(grid[finite]), 99)) * scale if finite.any() else 1.0
+    # ±95th percentile of |residual|: glare or a shadow over a few per cent of the board saturates the scale
+    # (the bar's arrows) instead of washing out the rest
+    lim = float(np.percentile(np.abs(grid[finite]), 95)) * scale if finite.any() else 1.0
     lim = lim if lim > 0 else 1.0
     if finite.any():   # cut to the rendered pixels, with a margin
         rows, cols = np.nonzero(finite)
@@ -718,7 +740,7 @@ def plot_residual_image(residual: np.ndarray, path: str, title: str = "photo −
             ax.plot(line[:, 0], line[:, 1], color="k", lw=0.8, alpha=0.7)
         ax.set_xlim(x0 - 0.5, x1 + 0.5)
         ax.set_ylim(y1 + 0.5, y0 - 0.5)
-        fig.colorbar(im, ax=ax, shrink=0.8, pad=0.02,
+        fig.colorbar(im, ax=ax, shrink=0.8, pad=0.02, extend="both",
                      label="photo − model, % of the print's contrast" if contrast else "photo − model (linear)")
         if "RMS" not in title:
             rms = float(np.sqrt(np.mean(grid[finite] ** 2))) if finite.any() else math.nan

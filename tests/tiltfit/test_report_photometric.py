@@ -126,6 +126,7 @@ def test_residual_at_the_truth_is_noise_and_a_wrong_camera_is_not(refined, kept)
     sigma = _noise(photos[0], again, finite)
     assert finite.sum() > 3000, f"{finite.sum()} pixels of the board drawn"
     assert res.camera == kept and res.levels == "refitted", (res.camera, res.levels)
+    assert res.rms_levels_refitted == pytest.approx(res.rms, rel=1e-9), "levels refitted: the same RMS"
     assert sigma / 1.5 < res.rms < 1.5 * sigma, f"{kept}: RMS {res.rms:.5f} at the truth, capture noise {sigma:.5f}"
     off = photometric_residual(_at_truth(calib, poses, kept, dx_px=2.0), 0, photos[0], path)
     assert off.rms > 2.0 * sigma, f"{kept}: principal point 2 px off: RMS {off.rms:.5f}, noise {sigma:.5f}"

@@ -106,6 +106,15 @@ def test_report_draws_the_residual_images_of_the_compared_views(refined, tmp_pat
     sigma = _noise(photos[0], again, np.isfinite(res.residual))
     assert res.levels == ("record" if calib["photometric"]["kept"] == "photometric" else "refitted"), res.levels
     assert 0.7 * sigma < res.rms < 2.0 * sigma, f"residual RMS {res.rms:.5f} through the calibration, noise {sigma:.5f}"
+    # The same record, rejected: drawn through the corner fit's camera, levels refitted, and report.md says why.
+    rejected = copy.deepcopy(calib)
+    rejected["photometric"].update(kept="corner fit", rejected_because="held-out corners RMS 0.0300 px refined")
+    write_report(rejected, str(tmp_path / "rejected"), path, RealVsRenderedOptions(views=(1,), spp=1))
+    md = (tmp_path / "rejected" / "report.md").read_text()
+    assert "not kept: held-out corners RMS 0.0300 px refined" in md.split("**Trust bound:**")[1], md
+    assert "the corner fit's camera (the refinement was not kept)" in md and "| 1 | view1.png |" in md, md
+    assert [r for r in md.splitlines() if r.startswith("| 1 | view1.png |")][0].endswith("| refitted |"), md
+    assert (tmp_path / "rejected" / "photometric_residual_view_01.png").is_file(), "the rejected record's figure"
 
 
 @pytest.mark.slow

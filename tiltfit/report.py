@@ -658,16 +658,17 @@ def write_photometric_residuals(calib: dict, calib_path: str | None, out_dir: st
             continue
         cal = cal or photometric_calibration(calib, calib_path)
         name = f"photometric_residual_view_{v:02d}.png"
-        span = res.white - res.black
+        span = res.white - res.black if res.white > res.black else math.nan   # % of contrast: NaN without one
         title = (f"view {v}: {os.path.basename(image)}\nphoto − model through the "
                  + ("refined camera" if kept else "corner fit's camera (refinement not kept)")
                  + ("" if res.levels == "record" else ", levels refitted")
                  + f"\nRMS {res.rms:.3g} linear, {100 * res.rms / span:.2g} % of the print's contrast "
                  + f"({100 * res.rms_levels_refitted / span:.2g} % levels refitted)\n{res.n_pixels} "
-                 + "pixels" + (f", every {res.stride}th row and column" if res.stride > 1 else "")
+                 + "pixels" + (f", one row and column in {res.stride}" if res.stride > 1 else "")
                  + (f"; {res.n_saturated} saturated left blank" if res.n_saturated else ""))
         plot_residual_image(res.residual, os.path.join(out_dir, name), title,
-                            outlines=board_outlines(cal, cal.target, v), photo=photo, stride=res.stride, contrast=span)
+                            outlines=board_outlines(cal, cal.target, v), photo=photo, stride=res.stride,
+                            contrast=span if math.isfinite(span) else None)
         files.append(name)
         shown.append(name)
         rows.append(f"| {v} | {os.path.basename(image)} | {res.rms:.4g} | {100 * res.rms / span:.2g} | "

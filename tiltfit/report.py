@@ -481,7 +481,8 @@ def bound_sentence(ph: dict) -> str:
 
 #: Most pixels a view's photometric residual image evaluates (`photometric_residual`): beyond it every k-th column
 #: and row of the board's box (each still a full-resolution pixel of the model). The model's cost is mostly the
-#: undistortion of each pixel: 52,000 pixels of a GoPro view took 25 s on two loaded cores.
+#: undistortion of each pixel: 22,000-30,000 usable pixels a view took a median 9-10 s on the shipped sets
+#: (benchmarks/results/report_photometric_real.md).
 RESIDUAL_MAX_PIXELS = 40_000
 #: Residuals beyond this many robust σ are left out of the levels' fit (glare, dust), as in the real-vs-rendered fit.
 LEVELS_CLIP_SIGMA = 3.0

@@ -416,7 +416,17 @@ def atomic_folder(path: str):
             os.rename(staging, path)
             return
         for name in sorted(os.listdir(staging)):
-            os.replace(os.path.join(staging, name), os.path.join(path, name))
+            src, dst = os.path.join(staging, name), os.path.join(path, name)
+            if os.path.isdir(src) and os.path.isdir(dst) and not os.path.islink(dst):
+                # A folder written again (a report's subfolder): the old one aside, the new in, the old removed
+                # (os.replace cannot replace a folder that is not empty).
+                old = os.path.join(path, f".{name}.{os.getpid()}.old")
+                shutil.rmtree(old, ignore_errors=True)
+                os.rename(dst, old)
+                os.rename(src, dst)
+                shutil.rmtree(old, ignore_errors=True)
+            else:
+                os.replace(src, dst)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
 

@@ -164,3 +164,22 @@ def test_sigkill_during_a_write_leaves_nothing_behind(tmp_path):
     assert proc.returncode == -9, f"killed by SIGKILL: {proc.returncode} {proc.stderr[-300:]!r}"
     assert os.listdir(tmp_path) == ["out.png"], f"left behind: {os.listdir(tmp_path)}"
     assert out.read_bytes() == b"previous", "the old file survives"
+
+
+def test_atomic_folder_writes_a_subfolder_again(tmp_path):
+    """A folder output written twice (`tiltfit report -o DIR` run again): its subfolders are replaced by the new
+    ones, not refused because the old ones are not empty, and no staging or old copy is left."""
+    from renderer.io import atomic_folder
+
+    out = tmp_path / "report"
+    for run in ("first", "second"):
+        with atomic_folder(str(out)) as staging:
+            os.makedirs(os.path.join(staging, "sub"))
+            with open(os.path.join(staging, "sub", f"{run}.txt"), "w") as f:
+                f.write(run)
+            with open(os.path.join(staging, "top.txt"), "w") as f:
+                f.write(run)
+    assert sorted(os.listdir(out / "sub")) == ["second.txt"], f"the subfolder is the new one: {os.listdir(out / 'sub')}"
+    assert (out / "top.txt").read_text() == "second"
+    assert sorted(os.listdir(tmp_path)) == ["report"] and sorted(os.listdir(out)) == ["sub", "top.txt"], \
+        f"nothing left over: {os.listdir(tmp_path)}, {os.listdir(out)}"

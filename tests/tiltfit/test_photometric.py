@@ -268,10 +268,11 @@ def test_calibrate_refine_photometric_on_the_command_line(tmp_path):
     assert 0 < ph["rms_linear"] < 0.01, f"photometric RMS {ph['rms_linear']} (noise 0.002)"
     assert set(ph["corner_fit"]) >= {"w_mm", "U_mm", "d_mm", "theta_L_deg"}, "the corner fit is kept beside it"
     # Discs of up to about 10 px (d 30 mm, U 700 mm, views at 480-700 mm), sharper where the board crosses the
-    # plane of focus: from 3 px on the aperture is integrated in closed form, sharper pixels by lens samples.
-    assert ph["aperture"] == "mixed" and 64 <= ph["lens_samples"] <= 96, \
+    # plane of focus: with the disc kernel every pixel integrates the aperture in closed form (8 x 8 points a pixel
+    # under 3 px of blur), no lens samples.
+    assert ph["aperture"] == "closed_form" and ph["lens_samples"] == 0, \
         f"aperture {ph['aperture']}, {ph['lens_samples']} lens samples for discs of up to about 10 px"
-    assert ph["closed_form_pixels"] > 0.5 * 3 * 2000, f"only {ph['closed_form_pixels']} pixels in closed form"
+    assert ph["closed_form_pixels"] == 3 * 2000, f"only {ph['closed_form_pixels']} pixels in closed form"
     assert ph["kernel"] == "disc" and ph["psf_sigma_px"] == 0 and "kernel_selection" not in ph, \
         f"the default kernel is the disc alone: {ph['kernel']}, σ {ph['psf_sigma_px']}"
     assert abs(data["d_mm"] / d - 1) < 0.01, f"d {data['d_mm']:.3f} vs {d}"

@@ -320,21 +320,16 @@ def _design(mask: np.ndarray, r: np.ndarray) -> np.ndarray:
 def fit_brightness(photo: np.ndarray, r: np.ndarray, board: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The rendering as the photo would show it: a(x, y) + b(x, y) · r fitted to the photo's linear luminance over
     `board` (module docstring), robustly. Returns the (H, W) model over the whole image and the fit's mask."""
-    keep = board & np.isfinite(photo)
+    from .solve.robust_linear import clipped_lstsq
+
+    ok = board & np.isfinite(photo)
     full = _design(np.ones_like(board), r)
-    coef = np.zeros(full.shape[1])
-    for _ in range(3):
-        A = _design(keep, r)
-        if len(A) < 3 * A.shape[1]:
-            raise RealVsRenderedError(f"the board covers {int(keep.sum())} pixels: too few for the brightness fit")
-        coef = np.linalg.lstsq(A, photo[keep], rcond=None)[0]
-        res = photo[board] - _design(board, r) @ coef
-        sigma = 1.4826 * float(np.median(np.abs(res - np.median(res))))
-        new = board.copy()
-        new[board] = np.abs(res) <= CLIP_SIGMA * max(sigma, 1e-6)
-        if (new == keep).all():
-            break
-        keep = new
+    A = _design(ok, r)
+    coef, kept = clipped_lstsq(A, photo[ok], CLIP_SIGMA, iterations=3, min_rows=3 * A.shape[1], sigma_floor=1e-6)
+    if coef is None:
+        raise RealVsRenderedError(f"the board covers {int(ok.sum())} pixels: too few for the brightness fit")
+    keep = np.zeros_like(board)
+    keep[ok] = kept
     return (full @ coef).reshape(board.shape), keep
 
 

@@ -555,19 +555,12 @@ def fit_levels(photo: np.ndarray, dark: np.ndarray, vignetting: float = 0.0, gai
     ok = np.isfinite(dark) & np.isfinite(photo)
     A = np.stack([shade_image(dark, 1.0, 0.0, vignetting, gain)[ok],
                   shade_image(dark, 0.0, 1.0, vignetting, gain)[ok]], 1)
+    from .solve.robust_linear import clipped_lstsq
+
     y = np.asarray(photo, dtype=np.float64)[ok]
-    keep = np.ones(len(y), bool)
-    coef = np.array([1.0, 0.0])
-    for _ in range(5):
-        if keep.sum() < 2:
-            break
-        coef = np.linalg.lstsq(A[keep], y[keep], rcond=None)[0]
-        r = y - A @ coef
-        sigma = 1.4826 * float(np.median(np.abs(r[keep] - np.median(r[keep]))))
-        new = np.abs(r) <= LEVELS_CLIP_SIGMA * max(sigma, 1e-9)
-        if (new == keep).all():
-            break
-        keep = new
+    coef, _ = clipped_lstsq(A, y, LEVELS_CLIP_SIGMA, iterations=5, min_rows=2)
+    if coef is None:
+        coef = np.array([1.0, 0.0])
     return float(coef[0]), float(coef[1])
 
 

@@ -218,7 +218,6 @@ def _det_cases() -> list[dict]:
             ("too-few", {**base, "corners_px": base["corners_px"][:-1]}, ("v0.json", "corners_px")),
             ("too-many-blur", {**base, "blur_px": base["blur_px"] + [1.0]}, ("v0.json", "blur_px")),
             ("no-corners", {**base, "corners_px": [None] * n}, ("v0.json", "no board")),
-            ("three-corners", {**base, "corners_px": base["corners_px"][:3] + [None] * (n - 3)}, ("v0.json", "4")),
             ("collinear-row", {**base, "corners_px": base["corners_px"][:7] + [None] * (n - 7)},
              ("v0.json", "one line")),
             ("collinear-image", {**base, "corners_px": [[10.0 + i, 20.0 + 2 * i] for i in range(n)]},
@@ -229,6 +228,9 @@ def _det_cases() -> list[dict]:
             ("missing-blur", {k: v for k, v in base.items() if k != "blur_px"}, ("v0.json", "blur_px")),
             ("size-differs", {**base, "image_size_px": [800, 600]}, ("v1.json", "size"))):
         out.append(_calibrate({"v0.json": json.dumps(view)}, name=f"det/{name}", fields=fields, category="views"))
+    # A view with too few corners is left out, named in one warning line (CALIB.json `skipped`); the rest calibrate.
+    out.append(_calibrate({"v0.json": json.dumps({**base, "corners_px": base["corners_px"][:3] + [None] * (n - 3)})},
+                          expect="ok", name="det/three-corners", category="views"))
     dup = {f"v{i}.json": json.dumps(VIEWS[0]) for i in range(4)}
     out.append(_calibrate(dup, name="det/six-copies", fields=("v1.json", "same detections"), category="views"))
     out.append(_calibrate({"v3.json": json.dumps(VIEWS[1])}, name="det/one-copy", fields=("v3.json", "v1.json"),

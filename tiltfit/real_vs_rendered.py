@@ -285,10 +285,9 @@ def render_print(calibration, target, view: int, size_px, spp: int, window=None)
     import torch
 
     import renderer
-    from renderer import ImageSettings, Light, Material, Scene, SceneObject
     from renderer.cameras import ThinLensCamera
 
-    from .scene_plugins import TargetBoard
+    from .composite import board_scene
 
     W, H = (int(v) for v in size_px)
     x0, y0, w, h = window or (0, 0, W, H)
@@ -298,10 +297,7 @@ def render_print(calibration, target, view: int, size_px, spp: int, window=None)
     R, T = calibration.pose(view)
     lens = calibration.lens_for_image((W, H)).cropped(x0, y0, w, h)
     camera = ThinLensCamera.from_calibration(lens, torch.as_tensor(R), torch.as_tensor(T))
-    board = TargetBoard(target, reflectance=(0.0, 1.0))
-    scene = Scene([SceneObject("board", board, Material(texture=board.texture))], [Light("ambient", (1.0, 1.0, 1.0))],
-                  camera, ImageSettings(w, h, spp=spp))
-    result = renderer.render(scene, spp=spp, progress=False)
+    result = renderer.render(board_scene(target, camera, reflectance=(0.0, 1.0)), spp=spp, progress=False)
     out[y0:y0 + h, x0:x0 + w] = result.image.detach().cpu().numpy().astype(np.float64)[..., 0]
     return out
 

@@ -30,34 +30,11 @@ SETS = {"industrial_ds1": 0.0048, "gopro_wide": 0.005}
 
 
 def run_set(name: str, pitch_mm: float, n_views: int) -> dict:
-    from real_detections import read_cache
-
-    from tiltfit import cli
-
-    folder = os.path.join(ROOT, "data", "real", name)
-    cache = read_cache(folder)
-    names = [n for n in sorted(cache) if cache[n] and "no_board" not in cache[n]][:n_views]
-    photos = [os.path.join(folder, n) for n in names]
-    detect = cli._detect_image
-
-    def cached(path, target, encoding, keep=None):
-        from renderer import read_image
-
-        if keep is not None:   # the photo as the command reads it, for the refinement
-            keep[path] = read_image(path, encoding)
-        return cache[os.path.basename(path)]
+    from photometric_start import calibrate_refined_cached
 
     with tempfile.TemporaryDirectory() as tmp:
         out = os.path.join(tmp, "CALIB.json")
-        argv = ["calibrate", *photos, "--target", os.path.join(folder, "target.json"), "--pixel-pitch-mm",
-                str(pitch_mm), "--refine", "photometric", "-o", out, "-q"]
-        cli._detect_image = cached
-        t0 = time.perf_counter()
-        try:
-            status = cli.main(argv)
-        finally:
-            cli._detect_image = detect
-        wall = time.perf_counter() - t0
+        names, argv, status, wall = calibrate_refined_cached(name, pitch_mm, n_views, out)
         calib = json.load(open(out)) if os.path.isfile(out) else {}
     ph = calib.get("photometric") or {}
     return {"set": name, "views": names, "exit_status": status, "wall_s": wall,

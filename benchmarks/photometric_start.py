@@ -9,6 +9,8 @@ import time
 
 import numpy as np
 
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
 
 def corner_start(obs, target, distortion: str, opencv_repeats: int = 5) -> dict:
     """{corner (FitResult), corner_s, kfold (`held_out_rms`), options, opencv_s (median of `opencv_repeats`),
@@ -45,3 +47,36 @@ def grey_photos(folder: str, names) -> list:
         im = np.asarray(read_image(os.path.join(folder, n)), dtype=np.float64)
         images.append(im.mean(-1) if im.ndim == 3 else im)
     return images
+
+
+def calibrate_refined_cached(name: str, pitch_mm: float, n_views: int, out: str) -> tuple[list, list, int, float]:
+    """`tiltfit calibrate --refine photometric` of the first `n_views` photos (with a board) of the shipped set
+    data/real/NAME into `out`, the command's detection replaced by tiltfit's cached detections of the same photos
+    (`real_detections`; the photos themselves are still read for the refinement). Returns (image names, argv,
+    exit status, wall seconds)."""
+    from real_detections import read_cache
+
+    from tiltfit import cli
+
+    folder = os.path.join(ROOT, "data", "real", name)
+    cache = read_cache(folder)
+    names = [n for n in sorted(cache) if cache[n] and "no_board" not in cache[n]][:n_views]
+    photos = [os.path.join(folder, n) for n in names]
+    detect = cli._detect_image
+
+    def cached(path, target, encoding, keep=None):
+        from renderer import read_image
+
+        if keep is not None:   # the photo as the command reads it, for the refinement
+            keep[path] = read_image(path, encoding)
+        return cache[os.path.basename(path)]
+
+    argv = ["calibrate", *photos, "--target", os.path.join(folder, "target.json"), "--pixel-pitch-mm", str(pitch_mm),
+            "--refine", "photometric", "-o", out, "-q"]
+    cli._detect_image = cached
+    t0 = time.perf_counter()
+    try:
+        status = cli.main(argv)
+    finally:
+        cli._detect_image = detect
+    return names, argv, status, time.perf_counter() - t0

@@ -32,22 +32,9 @@ FIGURES = os.path.join(ROOT, "benchmarks", "results", "report_photometric_real")
 
 
 def run_set(name: str, pitch_mm: float, n_views: int) -> dict:
-    from real_detections import read_cache
+    from photometric_start import calibrate_refined_cached
 
     from tiltfit import cli, report
-
-    folder = os.path.join(ROOT, "data", "real", name)
-    cache = read_cache(folder)
-    names = [n for n in sorted(cache) if cache[n] and "no_board" not in cache[n]][:n_views]
-    photos = [os.path.join(folder, n) for n in names]
-    detect = cli._detect_image
-
-    def cached(path, target, encoding, keep=None):
-        from renderer import read_image
-
-        if keep is not None:   # the photo as the command reads it, for the refinement
-            keep[path] = read_image(path, encoding)
-        return cache[os.path.basename(path)]
 
     timings = []
     plain = report.photometric_residual
@@ -60,14 +47,7 @@ def run_set(name: str, pitch_mm: float, n_views: int) -> dict:
 
     with tempfile.TemporaryDirectory() as tmp:
         calib, out = os.path.join(tmp, "CALIB.json"), os.path.join(tmp, "report")
-        cli._detect_image = cached
-        t0 = time.perf_counter()
-        try:
-            status = cli.main(["calibrate", *photos, "--target", os.path.join(folder, "target.json"),
-                               "--pixel-pitch-mm", str(pitch_mm), "--refine", "photometric", "-o", calib, "-q"])
-        finally:
-            cli._detect_image = detect
-        calibrate_s = time.perf_counter() - t0
+        names, _, status, calibrate_s = calibrate_refined_cached(name, pitch_mm, n_views, calib)
         report.photometric_residual = timed_residual
         t0 = time.perf_counter()
         try:

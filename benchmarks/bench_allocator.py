@@ -1,4 +1,4 @@
-"""What raising glibc's mmap threshold (`renderer.memory.tune_allocator`) gives: the same work in fresh
+"""What raising glibc's mmap threshold (`renderer.core.memory.tune_allocator`) gives: the same work in fresh
 processes with RENDERER_MALLOPT=1 (the default) and =0 (glibc's own thresholds), interleaved, medians of
 wall, user and system time.
 
@@ -24,7 +24,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 RENDER = """
 import time, torch
 from renderer import render
-from renderer.scenefile import load_scene
+from renderer.scene.file import load_scene
 scene = load_scene("benchmarks/scenes/speed_thin_lens.json", ["image.width=256", "image.height=256"])
 render(scene)
 t = time.perf_counter()
@@ -77,7 +77,7 @@ def main(argv=None) -> int:
     os.makedirs(os.path.dirname(args.out), exist_ok=True)
     with open(args.out + ".json", "w") as f:
         json.dump(res, f, indent=1)
-    lines = ["# glibc's mmap threshold raised (`renderer.memory`) against glibc's defaults", "",
+    lines = ["# glibc's mmap threshold raised (`renderer.core.memory`) against glibc's defaults", "",
              f"Date: {res['date']}; load average {tuple(round(x, 1) for x in res['load_start'])} at the start, "
              f"{tuple(round(x, 1) for x in res['load_end'])} at the end. Command: `python benchmarks/bench_allocator.py`. "
              f"Fresh processes, interleaved, medians of {args.repeats}; timed = the workload's own timer, user and "

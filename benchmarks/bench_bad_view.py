@@ -7,7 +7,7 @@ calibrateCamera on the same corners in the same run.
 Three good photos of a shipped real set (tiltfit's cached detections) and a fourth photo made from another photo of
 the set with its contrast scaled to `--contrast` about mid-grey (`--bits 16`: a linear PNG; `--bits 8`: an 8-bit PNG,
 where 0.3 % is under one grey level: the corners survive, the blur widths come out near 0 px or random, the case of
-issue 33 §3(a)). tiltfit is also run with the screen of disagreeing blur widths off (`tiltfit.blur_views`, the
+issue 33 §3(a)). tiltfit is also run with the screen of disagreeing blur widths off (`tiltfit.calibrate.blur_views`, the
 behaviour before it) in the same run. Each case is calibrated with tiltfit's
 defaults (`calibrate`, unified, distortion k1, flat board) and with `cv2.calibrateCamera` (k1 only, square pixels)
 on the same corners; focal length, principal point, RMS per corner and time. Writes
@@ -33,7 +33,7 @@ PITCH = {"industrial_ds1": 0.0048, "gopro_wide": 0.005}
 
 def low_contrast_view(folder: str, photo: str, contrast: float, target, bits: int = 16):
     """The DET dict of `photo` with its contrast scaled by `contrast` about mid-grey (`bits`-bit PNG)."""
-    from tiltfit import cli
+    from tiltfit.cli import main as cli
 
     grey = cv2.imread(photo, cv2.IMREAD_GRAYSCALE).astype(np.float64) / 255.0
     low = 0.5 + (grey - 0.5) * contrast
@@ -45,10 +45,10 @@ def low_contrast_view(folder: str, photo: str, contrast: float, target, bits: in
 
 
 def calibrate_case(obs, repeats: int, screen: bool = True):
-    from tiltfit import blur_views
-    from tiltfit.calibration import calibrate
-    from tiltfit.fit import FitError, FitOptions
-    from tiltfit.opencv_corners import opencv_calibrate
+    from tiltfit.calibrate import blur_views
+    from tiltfit.calibrate.flow import calibrate
+    from tiltfit.calibrate.fit import FitError, FitOptions
+    from tiltfit.detect.opencv import opencv_calibrate
 
     out = {}
     times, result = [], None
@@ -131,8 +131,8 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=3)
     add_output_options(ap, "bad_view")
     args = ap.parse_args(argv)
-    from tiltfit.model import Observations
-    from tiltfit.target import load_target
+    from tiltfit.calibrate.model import Observations
+    from tiltfit.target.layout import load_target
 
     folder = os.path.join(REAL, args.set)
     obs = observations(folder, PITCH[args.set])[0]

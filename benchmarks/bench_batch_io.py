@@ -1,10 +1,10 @@
 """Two of this project's throughput settings, measured: the CPU's rays per batch, and writing a 20-Mpx photo.
 
 1. Rays per batch (`render(chunk_rays=...)`) on the issue-11 speed scene (512x512, 16 spp), one torch thread,
-   median CPU time of interleaved repeats: what `renderer.render.CPU_CHUNK_RAYS` is chosen from.
+   median CPU time of interleaved repeats: what `renderer.tracing.render.CPU_CHUNK_RAYS` is chosen from.
 2. A 5472x3648 photograph as `tiltfit reproduce --scale 1` makes it: the sensor model on a numpy array
    against a tensor (`SensorResponse.expose`), and the PNG written from its uint8 levels against the
-   former decode-and-re-encode path, at zlib level 3 (`renderer.io.PNG_COMPRESSION_LEVEL`) and 6
+   former decode-and-re-encode path, at zlib level 3 (`camio.files.PNG_COMPRESSION_LEVEL`) and 6
    (OpenImageIO's default).
 
     PYTHONPATH=. OMP_NUM_THREADS=1 python benchmarks/bench_batch_io.py   # -> benchmarks/results/batch_io.{json,md}
@@ -25,9 +25,10 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from results_io import ROOT, add_output_options, markdown_only, save  # noqa: E402
 
-from renderer import io as rio  # noqa: E402
-from renderer import load_scene, render, write_image  # noqa: E402
-from renderer.sensor import SensorResponse, decode_srgb8  # noqa: E402
+from camio import files as rio  # noqa: E402
+from renderer import load_scene, write_image
+from renderer import render  # noqa: E402
+from renderer.cameras.sensor import SensorResponse, decode_srgb8  # noqa: E402
 
 SCENE = os.path.join(ROOT, "benchmarks", "scenes", "speed_thin_lens.json")
 

@@ -43,8 +43,8 @@ from shapely import affinity
 from renderer.beam import BeamTracer, ScreenCamera
 from renderer.beam.segment import Region
 from renderer.beam.shade import label_pixels
-from renderer.render import render
-from renderer.scenefile import load_scene
+from renderer.tracing.render import render
+from renderer.scene.file import load_scene
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 SCENE = os.path.join(HERE, "..", "renderer", "scenes", "beam_fig2.json")
@@ -276,7 +276,7 @@ def figure(path, frames, images, cams):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from renderer.io import linear_to_srgb
+    from camio.files import linear_to_srgb
 
     n = len(frames)
     fig = Figure(figsize=(3.2 * n, 5.0), dpi=100)

@@ -1,8 +1,8 @@
 """Why stage 1's d missed by many σ on rendered captures, and what the blur-offset parameter does about it.
 
 Captures: the θL = 0 views of `bench_calib_opencv` (analytic renderer, exact blur spot, shot + read noise,
-vignetting, 8-bit sRGB), 1/`--downscale` of the EOS 6D; corners and blur from `tiltfit.detect` against the
-truth of `tiltfit.synth`. Reports the blur detector's error (mean = bias, std = scatter, against the σ it
+vignetting, 8-bit sRGB), 1/`--downscale` of the EOS 6D; corners and blur from `tiltfit.detect.chessboard` against the
+truth of `tiltfit.experiments.synth`. Reports the blur detector's error (mean = bias, std = scatter, against the σ it
 reports) by blur size, then stage 1 (unified) with the blur offset held at 0 (the old fit) and free (now),
 as z = (estimate − truth) / σ for w, U, d.
 
@@ -22,10 +22,10 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from bench_calib_opencv import CAMERA, TARGET, capture  # noqa: E402
 
-from tiltfit.detect import detect  # noqa: E402
-from tiltfit.fit import FitOptions  # noqa: E402
-from tiltfit.calibration import calibrate  # noqa: E402
-from tiltfit.model import Observations  # noqa: E402
+from tiltfit.detect.chessboard import detect  # noqa: E402
+from tiltfit.calibrate.fit import FitOptions  # noqa: E402
+from tiltfit.calibrate.flow import calibrate  # noqa: E402
+from tiltfit.calibrate.model import Observations  # noqa: E402
 
 
 def main(argv=None) -> int:

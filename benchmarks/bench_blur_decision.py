@@ -2,7 +2,7 @@
 used, the widths' noise, the blur the model explains, and the blur residuals' trend with depth.
 
 Sets: GoPro (all 35 views with a board, the README's first 12, the set split in three both as contiguous thirds
-and round-robin), industrial_ds1 (all 20 views, halves). `tiltfit.calibration.calibrate` with `tiltfit
+and round-robin), industrial_ds1 (all 20 views, halves). `tiltfit.calibrate.flow.calibrate` with `tiltfit
 calibrate`'s defaults (distortion and board auto) on tiltfit's cached detections (benchmarks/real_detections.py).
 
     python benchmarks/bench_blur_decision.py [--out benchmarks/results/blur_decision] [--markdown-only]
@@ -17,9 +17,9 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from real_detections import REAL, observations  # noqa: E402
 from results_io import add_output_options, markdown_only, save  # noqa: E402
 
-from tiltfit.calibration import calibrate  # noqa: E402
-from tiltfit.fit import FitError, FitOptions  # noqa: E402
-from tiltfit.model import Observations  # noqa: E402
+from tiltfit.calibrate.flow import calibrate  # noqa: E402
+from tiltfit.calibrate.fit import FitError, FitOptions  # noqa: E402
+from tiltfit.calibrate.model import Observations  # noqa: E402
 
 PITCH_MM = {"gopro_wide": 0.005, "industrial_ds1": 0.0048}
 

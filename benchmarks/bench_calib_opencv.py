@@ -6,10 +6,10 @@ through the lens centre onto the untilted sensor (NOTES.md §2). So OpenCV's CAL
 our fit θL.
 
 Captures (same for every method): `tiltfit.experiments.reproduce`'s designed target and TARGET_VIEWS, rendered by
-`tiltfit.synth` (analytic, exact blur spot) through the simulated camera's true lens (w = 55.39, d = 18.81 mm,
+`tiltfit.experiments.synth` (analytic, exact blur spot) through the simulated camera's true lens (w = 55.39, d = 18.81 mm,
 f from U0 = 618.4 mm) tilted by exactly θL ∈ {0, +5°, −5°} about its centre (U from the hinge rule, θF from the
 exact Scheimpflug rule), exposed by `reproduce.SimulatedCamera.expose` (vignetting, shot + read noise, 8-bit
-sRGB), 1368 × 912 (EOS 6D binned 4×). Corners and blur from `tiltfit.detect.detect` on the decoded image.
+sRGB), 1368 × 912 (EOS 6D binned 4×). Corners and blur from `tiltfit.detect.chessboard.detect` on the decoded image.
 
 (a) OpenCV on our detected corners: cv2.calibrateCamera plain (k1, k2, p1, p2, k3), with CALIB_TILTED_MODEL
     (all of the above + τx, τy), and CALIB_TILTED_MODEL with the other distortion terms held at 0 (τ only).
@@ -38,13 +38,13 @@ import numpy as np
 import torch
 
 from renderer import Lens
-from tiltfit import synth
+from tiltfit.experiments import synth
 from tiltfit.experiments import reproduce
-from tiltfit.detect import detect
-from tiltfit.evaluate import linear_from_grey_levels
-from tiltfit.fit import FitError, FitOptions
-from tiltfit.calibration import calibrate
-from tiltfit.model import Observations
+from tiltfit.detect.chessboard import detect
+from tiltfit.photometric.profiles import linear_from_grey_levels
+from tiltfit.calibrate.fit import FitError, FitOptions
+from tiltfit.calibrate.flow import calibrate
+from tiltfit.calibrate.model import Observations
 
 TILTS_DEG = (0.0, 5.0, -5.0)
 CAMERA = reproduce.SimulatedCamera()

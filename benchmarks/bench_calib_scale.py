@@ -66,7 +66,7 @@ def write_views(n: int, folder: str) -> tuple[list, str]:
 def child_tiltfit(folder: str) -> dict:
     import torch  # noqa: F401  (imports before the baseline)
 
-    from tiltfit import cli
+    from tiltfit.cli import main as cli
 
     base = _rss_mb()
     dets = sorted(glob.glob(os.path.join(folder, "view*.json")))
@@ -90,7 +90,7 @@ def child_opencv(folder: str) -> dict:
     import numpy as np
     import torch  # noqa: F401  (the same imports as the tiltfit child, for a comparable baseline)
 
-    from tiltfit.target import load_target
+    from tiltfit.target.layout import load_target
 
     base = _rss_mb()
     pts = np.asarray(load_target(os.path.join(folder, "target.json")).feature_points(), dtype=np.float32)

@@ -66,7 +66,7 @@ T0 = time.perf_counter()
 
 def _detect_real(name: str, spec: dict, cache: str) -> tuple[list, str]:
     """DET files of a real set (detected by `tiltfit detect` where not cached) and its target file."""
-    from tiltfit import cli
+    from tiltfit.cli import main as cli
 
     folder = os.path.join(ROOT, spec["folder"])
     target = os.path.join(folder, "target.json")
@@ -97,8 +97,8 @@ def write_synthetic_views(n: int, out_dir: str, size=(1368, 912)) -> tuple[list,
         from tiltfit.experiments import reproduce
     except ImportError:  # --base code from before tiltfit/experiments/
         from tiltfit import reproduce
-    from tiltfit.model import TiltLensCamera, random_poses, synthesize_observations
-    from tiltfit.target import design_centre_mm
+    from tiltfit.calibrate.model import TiltLensCamera, random_poses, synthesize_observations
+    from tiltfit.target.layout import design_centre_mm
 
     target_file = os.path.join(out_dir, "target.json")
     dets = [os.path.join(out_dir, f"view{v:05d}.json") for v in range(n)]
@@ -126,8 +126,8 @@ def write_synthetic_views(n: int, out_dir: str, size=(1368, 912)) -> tuple[list,
 
 def observations(dets: list, target_file: str, pitch_mm: float):
     """`Observations` of DET files (views with fewer than 6 corners left out, as `calibrate` does)."""
-    from tiltfit.model import Observations
-    from tiltfit.target import load_target
+    from tiltfit.calibrate.model import Observations
+    from tiltfit.target.layout import load_target
 
     points = load_target(target_file).feature_points()
     corners, blur, names, size = [], [], [], None
@@ -164,12 +164,12 @@ def opencv_calibrate(obs, model: str):
 
 
 def ours(obs, model: str, blur: bool):
-    from tiltfit.fit import FitOptions, without_blur
+    from tiltfit.calibrate.fit import FitOptions, without_blur
 
     try:
-        from tiltfit.calibration import calibrate
-    except ImportError:  # --base code from before tiltfit.calibration existed
-        from tiltfit.fit import calibrate
+        from tiltfit.calibrate.flow import calibrate
+    except ImportError:  # --base code from before tiltfit.calibrate.flow existed
+        from tiltfit.calibrate.fit import calibrate
 
     opts = FitOptions(distortion=model, free_principal_point=True, max_rms_px=None, model_selection=False)
     res = calibrate(obs if blur else without_blur(obs), "unified", options=opts)
@@ -185,7 +185,7 @@ def ours(obs, model: str, blur: bool):
 
 
 def default_command(dets: list, target: str, pitch_mm: float, out: str) -> dict:
-    from tiltfit import cli
+    from tiltfit.cli import main as cli
 
     rc = cli.main(["calibrate", *dets, "--target", target, "--pixel-pitch-mm", str(pitch_mm), "-q", "-o", out])
     if rc != 0:

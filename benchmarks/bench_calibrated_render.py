@@ -29,7 +29,7 @@ REFLECTANCE = (0.04, 0.8)
 
 
 def scene_of(name: str, spp: int):
-    from renderer.scenefile import load_scene
+    from renderer.scene.file import load_scene
 
     return load_scene({
         "image": {"spp": spp},

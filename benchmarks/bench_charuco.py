@@ -5,7 +5,7 @@ Peer, measured in the same run on the same images: `cv2.aruco.CharucoDetector(bo
 sRGB image (its default refinement), the board being `CharucoTarget.opencv_board()`.
 
 Images:
-- blur sweep: `tiltfit.synth.render_constant_blur` (exact area-averaged board with markers, looked up through the
+- blur sweep: `tiltfit.experiments.synth.render_constant_blur` (exact area-averaged board with markers, looked up through the
   view's homography, one disc of the given diameter, then Gaussian noise of σ 0.003: white 0.8, dark 0.05, so
   0.4 % of the contrast), 320 × 240, a 12 × 9 board of 15 mm squares with 11 mm DICT_5X5_100 markers; 4 partial
   views (25–34 of 88 corners visible, a square about 42 px) and 2 whole views (a square about 22 px); blur
@@ -30,9 +30,9 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from benchmarks import results_io  # noqa: E402
-from tiltfit.charuco import CANCEL_BITS_BLUR, detect_charuco, opencv_corners, refine_model  # noqa: E402
+from tiltfit.detect.charuco import CANCEL_BITS_BLUR, detect_charuco, opencv_corners, refine_model  # noqa: E402
 from tiltfit.experiments.charuco_views import CAMERA, FULL, PARTIAL, TARGET, blurred_renders, pose  # noqa: E402
-from tiltfit.synth import render_view  # noqa: E402
+from tiltfit.experiments.synth import render_view  # noqa: E402
 
 BLURS = (0.0, 0.1, 0.25, 0.4, 0.5)
 NOISE = 0.003
@@ -79,8 +79,8 @@ def blur_sweep(repeats: int, views) -> list:
 def checker_reference(views) -> list:
     """The same views and noise with a plain checkerboard of the same squares: the point-symmetry refinement
     (window 0.4 square) started at the truth, i.e. what noise alone leaves at each blur."""
-    from tiltfit.detect import refine_symmetric
-    from tiltfit.target import Target
+    from tiltfit.detect.chessboard import refine_symmetric
+    from tiltfit.target.layout import Target
 
     checker = Target(TARGET.x_edges, TARGET.y_edges, TARGET.dark_cell, TARGET.margin)
     rng = np.random.default_rng(0)
@@ -96,9 +96,9 @@ def checker_reference(views) -> list:
 
 
 def calibration(spp: int) -> dict:
-    from tiltfit.fit import FitOptions
-    from tiltfit.model import Observations
-    from tiltfit.photos import fit_with_held_out
+    from tiltfit.calibrate.fit import FitOptions
+    from tiltfit.calibrate.model import Observations
+    from tiltfit.calibrate.photos import fit_with_held_out
 
     cam = CAMERA.with_(U=420.0, d=0.8)
     out = {"truth_w_mm": cam.w, "spp": spp}

@@ -5,7 +5,7 @@ Data: /work/shared/data/real/charuco_webcam (caliscope, BSD-2): cam_0.mp4, 48 fr
 54 mm squares, 40.5 mm DICT_4X4_1000 markers, printed inverted; `published_corners_cam0.csv` is caliscope's own
 detections (OpenCV ChArUco ids), a second detector, not ground truth.
 
-Ours: `tiltfit.charuco.detect_board` with the target's `"inverted": true`. Peer, measured in the same run on the
+Ours: `tiltfit.detect.charuco.detect_board` with the target's `"inverted": true`. Peer, measured in the same run on the
 same frames: `cv2.aruco.CharucoDetector(board).detectBoard` on the inverted 8-bit grey frame (its default
 refinement). A corner farther than 2 px from the published corner of its id counts as a wrong id.
 
@@ -64,9 +64,9 @@ def summary(d: list[float], n_ref: int, n_found: int) -> dict:
 def main(argv=None) -> int:
     import cv2
 
-    from renderer.io import srgb_to_linear
-    from tiltfit.charuco import detect_board
-    from tiltfit.target import target_from_dict
+    from camio.files import srgb_to_linear
+    from tiltfit.detect.charuco import detect_board
+    from tiltfit.target.layout import target_from_dict
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--every", type=int, default=1, help="use every K-th frame")

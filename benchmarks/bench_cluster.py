@@ -39,11 +39,11 @@ import torch
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from renderer.animate import animate  # noqa: E402
-from renderer.cli import resolve_scene  # noqa: E402
-from renderer.distributed import map_on_cluster  # noqa: E402
-from renderer.io import read_image  # noqa: E402
-from renderer.scenefile import load_scene, read_scene_json  # noqa: E402
+from renderer.cli.animate import animate  # noqa: E402
+from renderer.cli.main import resolve_scene  # noqa: E402
+from renderer.tracing.distributed import map_on_cluster  # noqa: E402
+from camio.files import read_image  # noqa: E402
+from renderer.scene.file import load_scene, read_scene_json  # noqa: E402
 
 RESULTS = os.path.join(ROOT, "benchmarks", "results")
 

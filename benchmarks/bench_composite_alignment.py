@@ -6,7 +6,7 @@ check, on more views), with OpenCV's projection of the same calibration as the p
 For each shipped set (gopro_wide, industrial_ds1): calibrate from the cached detections with the defaults and the
 board held flat (the rendered board is the flat print); for N views spread over the set, render the board alone
 through the view's calibrated camera on a window around each corner, measure the corners as `tiltfit detect`
-does (`tiltfit.composite.board_alignment`) and compare them with
+does (`tiltfit.report.composite.board_alignment`) and compare them with
 - the photo's detected corners (RMS), beside the calibration's own reprojection RMS of that view;
 - the calibration's projection (`Calibration.project`) and OpenCV's (`cv2.projectPoints` with the same K,
   distortion coefficients and pose; these calibrations are untilted, so OpenCV's model is theirs).
@@ -31,11 +31,11 @@ SETS = {"gopro_wide": 0.005, "industrial_ds1": 0.00155}
 
 def calibrate_flat(folder: str, pitch_mm: float):
     from real_detections import observations
-    from tiltfit.calibfile import calib_dict
-    from tiltfit.calibrated import Calibration
-    from tiltfit.calibration import calibrate
-    from tiltfit.fit import FitOptions
-    from tiltfit.target import load_target
+    from tiltfit.files.calib import calib_dict
+    from tiltfit.files.calibrated import Calibration
+    from tiltfit.calibrate.flow import calibrate
+    from tiltfit.calibrate.fit import FitOptions
+    from tiltfit.target.layout import load_target
 
     obs, _ = observations(folder, pitch_mm)
     target = load_target(os.path.join(folder, "target.json"))
@@ -65,7 +65,7 @@ def main(argv=None) -> int:
     p.add_argument("--spp", type=int, default=16, help="samples per pixel [16, as the example]")
     args = p.parse_args(argv)
 
-    from tiltfit.composite import board_alignment
+    from tiltfit.report.composite import board_alignment
 
     rows = []
     for name, pitch in SETS.items():

@@ -6,7 +6,7 @@ Peers, measured in the same run on the same images:
 - `classic`: cv2.findChessboardCorners (ADAPTIVE_THRESH | NORMALIZE_IMAGE) + cv2.cornerSubPix (11 × 11 window).
 OpenCV gets the 8-bit sRGB image (as cv2.imread would), ours the same image decoded to linear.
 
-Images: `tiltfit.synth` exact disc-blur rendering of the 9 × 6 designed target (40 inner corners) from several
+Images: `tiltfit.experiments.synth` exact disc-blur rendering of the 9 × 6 designed target (40 inner corners) from several
 poses, blur set to a fraction of the projected square (focus at 400 mm, target at ~650 mm), 8-bit sRGB with
 Gaussian noise 0.004 (linear). A method succeeds on an image when it returns every visible corner and
 none is more than 1 px off (a returned board with misplaced corners counts as a failure; the JSON keeps
@@ -29,10 +29,10 @@ import cv2
 import numpy as np
 import torch
 
-from tiltfit.detect import detect, detect_corners, to_gray
-from tiltfit.blur import measure_blur
-from tiltfit.synth import PAPER_CAMERA, look_at_pose, projected_square_px, render_view, with_blur_ratio
-from tiltfit.target import design_target
+from tiltfit.detect.chessboard import detect, detect_corners, to_gray
+from tiltfit.detect.blur import measure_blur
+from tiltfit.experiments.synth import PAPER_CAMERA, look_at_pose, projected_square_px, render_view, with_blur_ratio
+from tiltfit.target.layout import design_target
 
 TARGET = design_target(9, 6, 20.0, w_mm=55.39, distance_mm=650.0, inclination_deg=20.0)
 PATTERN = (TARGET.grid_shape[1], TARGET.grid_shape[0])  # OpenCV: (points per row, per column)

@@ -35,8 +35,8 @@ from results_io import add_output_options, markdown_only, save  # noqa: E402
 
 from renderer import render  # noqa: E402
 from renderer.mitsuba import intersect as mi_intersect  # noqa: E402
-from renderer.scene import Scene  # noqa: E402
-from renderer.scenefile import load_scene  # noqa: E402
+from renderer.scene.model import Scene  # noqa: E402
+from renderer.scene.file import load_scene  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # "ours defaults": our own intersection in one process (`render`'s defaults before `intersector="auto"` and

@@ -34,7 +34,7 @@ import torch
 
 from renderer import render
 from renderer.mitsuba import load_mitsuba, to_mitsuba
-from renderer.scenefile import load_scene
+from renderer.scene.file import load_scene
 from results_io import add_output_options, markdown_only, save
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -150,7 +150,7 @@ Per camera ray (one primary and one shadow ray), Mitsuba spends about 80 ns of o
    shadow rays skipping the convex or flat object they leave) brought the tests from 22 to about 3.3 per
    camera ray. Since issue 11 the sphere, box (a plain slab test), rectangle, plane, cylinder and cone test
    rays given as (3, N) component rows, several times faster in eager torch than the former (N, 3) code,
-   and this direct-light scene takes the fast path of `renderer/direct.py` (no grouping of hits by
+   and this direct-light scene takes the fast path of `renderer/tracing/direct.py` (no grouping of hits by
    object); see `benchmarks/results/profile_fig6.md`. Eager at one thread went from 8.1x to 6.5x
    (`fig6_mitsuba_issue11.md`, 640x480).
 2. Overheads of expressing a ray tracer as tensor operations: sorting hits by object (a stable argsort,

@@ -39,7 +39,7 @@ def _child(renderer_name: str, size: int, spp: int, repeats: int) -> None:
     """In a child process: warm-up and timed renders of one configuration; prints one JSON line."""
     from renderer import render
     from renderer.mitsuba import load_mitsuba, to_mitsuba
-    from renderer.scenefile import load_scene
+    from renderer.scene.file import load_scene
 
     scene = load_scene(SCENE, [f"image.width={size}", f"image.height={size}", f"image.spp={spp}"])
     if renderer_name == "ours":

@@ -14,9 +14,9 @@ import time
 
 import torch
 
-import renderer.rays as rays
+import renderer.core.rays as rays
 from renderer import render
-from renderer.scenefile import load_scene
+from renderer.scene.file import load_scene
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 REPEATS = 7

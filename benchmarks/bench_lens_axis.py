@@ -29,10 +29,10 @@ sys.path.insert(0, ROOT)
 import test_lens_axis_distortion as gen  # noqa: E402  (the independent capture generator)
 from results_io import run_benchmark, write_lines  # noqa: E402
 
-from tiltfit.calibfile import calib_dict  # noqa: E402
-from tiltfit.calibration import calibrate  # noqa: E402
-from tiltfit.export import opencv_text  # noqa: E402
-from tiltfit.fit import FitOptions  # noqa: E402
+from tiltfit.files.calib import calib_dict  # noqa: E402
+from tiltfit.calibrate.flow import calibrate  # noqa: E402
+from tiltfit.files.export import opencv_text  # noqa: E402
+from tiltfit.calibrate.fit import FitOptions  # noqa: E402
 
 
 def _round_trip_px(res, obs) -> float:

@@ -1,5 +1,5 @@
 """Distortion about the lens axis on captures from an independent generator (issue 33 §1): the centre and terms
-chosen together (`tiltfit.distortion_centre`) against the distortion held at the principal point, in one run.
+chosen together (`tiltfit.calibrate.distortion_centre`) against the distortion held at the principal point, in one run.
 
 Captures: tests/tiltfit/lens_axis_capture.py (numpy: the chief ray through a tilted thin lens, radial distortion
 k1 −0.12, k2 0.02 about the lens axis, blur widths by tracing the aperture's rim; noise 0.07 px on corners, 0.1 px
@@ -24,9 +24,9 @@ sys.path.insert(0, ROOT)
 import lens_axis_capture as gen  # noqa: E402  (the independent capture generator)
 from results_io import run_benchmark, write_lines  # noqa: E402
 
-from tiltfit.calibration import calibrate  # noqa: E402
-from tiltfit.fit import FitOptions  # noqa: E402
-from tiltfit.model import Observations  # noqa: E402
+from tiltfit.calibrate.flow import calibrate  # noqa: E402
+from tiltfit.calibrate.fit import FitOptions  # noqa: E402
+from tiltfit.calibrate.model import Observations  # noqa: E402
 
 K, THETA_L = (-0.12, 0.02), 5.0
 

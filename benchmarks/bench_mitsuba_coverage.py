@@ -3,7 +3,7 @@
 Scenes: every shipped scene file (renderer/scenes/*.json, benchmarks/scenes/*.json) and the case reported in
 issue 20 (`ISSUE_SCENE`: a tilted lens above an infinite checkered floor with a sphere and one point light).
 For each, two renders by each renderer at the same size and spp (ours: `render(..., intersector="torch")`,
-sobol samples; Mitsuba: `renderer.backends.render_mitsuba`, independent samples):
+sobol samples; Mitsuba: `renderer.cli.backends.render_mitsuba`, independent samples):
 - as is: the scene file unchanged; Mitsuba's list of what it did not map is recorded, and the list this
   module expects from the scene file itself (`expected_not_mapped`, written from the file, not from the
   exporter) beside it;
@@ -62,7 +62,7 @@ def scene_files() -> list[str]:
 
 def scene_config(source) -> dict:
     """The merged scene dict of a file (its `extends` chain resolved) or a copy of a dict."""
-    from renderer.scenefile import read_scene_json
+    from renderer.scene.file import read_scene_json
 
     return read_scene_json(source) if isinstance(source, str) else json.loads(json.dumps(source))
 
@@ -105,9 +105,9 @@ def compare(source, overrides, spp: int, seed: int = 0) -> dict:
     import numpy as np
 
     from renderer import render
-    from renderer.backends import render_mitsuba
+    from renderer.cli.backends import render_mitsuba
     from renderer.mitsuba import load_mitsuba, to_mitsuba
-    from renderer.scenefile import load_scene
+    from renderer.scene.file import load_scene
 
     base_dir = None if isinstance(source, str) else ROOT
     scene = load_scene(source, overrides, base_dir=base_dir)

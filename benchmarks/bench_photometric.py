@@ -1,18 +1,18 @@
 """Corner-and-blur calibration against photometric refinement: accuracy and time on the same captures.
 
-Same ray-traced photographs for both methods (`tiltfit.synth.render_view(method="renderer")`: the general
+Same ray-traced photographs for both methods (`tiltfit.experiments.synth.render_view(method="renderer")`: the general
 tracer's thin lens with Monte Carlo lens sampling, not either fit's model), a 6 × 4 board of 50 mm cells at
 1/8 of the EOS 6D (684 × 456), three views at 480–700 mm, 128 spp and sensor noise 0.003, lens tilts θL = +5°
 and −5°. The blur grows by focusing the untilted lens farther (U0). Levels: blur discs of about 18 and 23 px
 (a quarter and a third of the projected square), and one past the square (30 mm cells, d = 60 mm, 1/16 of
 the EOS 6D: discs 1.4 squares) where no corner detector finds the board.
 
-- corners + blur: `tiltfit.detect` (corners and edge blur widths) then the joint fit (`calibrate(..., "joint")`)
+- corners + blur: `tiltfit.detect.chessboard` (corners and edge blur widths) then the joint fit (`calibrate(..., "joint")`)
   on the views where the detector finds at least 3/4 of the corners (at least two views).
 - photometric: `tiltfit.photometric.refine_photometric` on all views, started from the corner fit where there
   is one (a view the corner fit left out starts from the rough prior's pose), else from a rough start (pose
   0.1°/0.5 mm, w +0.3 %, U +1 %, d −3 %, θL +0.1°: a prior calibration's quality), twice: with the aperture
-  in closed form (its default at these blurs, `tiltfit.aperture`) on `--pixels` pixels per view, and with
+  in closed form (its default at these blurs, `tiltfit.photometric.aperture`) on `--pixels` pixels per view, and with
   the fixed lens samples (`aperture="samples"`, 192 samples) on 1500 (`--no-samples` leaves that one out:
   it takes 6 to 12 minutes a case on one thread).
 
@@ -39,16 +39,16 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from renderer.cameras import EOS_6D
 from renderer import Lens, Sensor
-from renderer import optics  # noqa: E402
-from tiltfit import synth  # noqa: E402
+from renderer.cameras import optics  # noqa: E402
+from tiltfit.experiments import synth  # noqa: E402
 from tiltfit.experiments import reproduce  # noqa: E402
-from tiltfit.detect import detect  # noqa: E402
-from tiltfit.fit import FitError, FitOptions  # noqa: E402
-from tiltfit.calibration import calibrate  # noqa: E402
-from tiltfit.model import Observations  # noqa: E402
-from tiltfit.calibfile import camera_from_calib  # noqa: E402
+from tiltfit.detect.chessboard import detect  # noqa: E402
+from tiltfit.calibrate.fit import FitError, FitOptions  # noqa: E402
+from tiltfit.calibrate.flow import calibrate  # noqa: E402
+from tiltfit.calibrate.model import Observations  # noqa: E402
+from tiltfit.files.calib import camera_from_calib  # noqa: E402
 from tiltfit.photometric import PhotometricOptions, refine_photometric  # noqa: E402
-from tiltfit.target import Target  # noqa: E402
+from tiltfit.target.layout import Target  # noqa: E402
 
 BOARD = Target(tuple(50.0 * i for i in range(7)), tuple(50.0 * j for j in range(5)), (0, 0), 25.0)
 SMALL_BOARD = Target(tuple(30.0 * i for i in range(7)), tuple(30.0 * j for j in range(5)), (0, 0), 25.0)

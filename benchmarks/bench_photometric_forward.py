@@ -45,13 +45,13 @@ from results_io import run_benchmark, write_lines  # noqa: E402
 
 from renderer.cameras import ThinLensCamera  # noqa: E402
 from renderer.cameras.lens import Lens, Sensor  # noqa: E402
-from renderer.io import srgb_to_linear  # noqa: E402
+from camio.files import srgb_to_linear  # noqa: E402
 from tiltfit.experiments import exact_capture as ec  # noqa: E402
 from tiltfit.photometric import CLOSED_FORM_MIN_BLUR_PX  # noqa: E402
 from tiltfit.photometric.render import (SHARP_BLUR_PX, SUBPIXELS, SUBPIXELS_SHARP,  # noqa: E402
                                         dark_fraction_disc, dark_fraction_samples, hammersley_disc_samples,
                                         pixel_blur_px, usable_pixels)
-from tiltfit.target import Target  # noqa: E402
+from tiltfit.target.layout import Target  # noqa: E402
 
 W_PX, H_PX, PITCH_MM, W_MM, DIST_MM = 128, 96, 0.1, 50.0, 720.0
 BOARD = Target(tuple(20.0 * i for i in range(5)), tuple(20.0 * j for j in range(4)), (0, 0), 12.0)

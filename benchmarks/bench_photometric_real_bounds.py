@@ -1,7 +1,7 @@
 """`tiltfit calibrate ... --refine photometric` on a few views of each shipped real set: is the refinement kept, and
 where not, what CALIB.json's `photometric.bounds` and `rejected_because` say (issue 30 §5).
 
-The command itself (`tiltfit.cli.main`), with its defaults, on the first N photos of each set that have a board;
+The command itself (`tiltfit.cli.main.main`), with its defaults, on the first N photos of each set that have a board;
 the detections come from the cache beside the photos (`benchmarks/real_detections.py`: what `tiltfit detect`
 finds there, so the run skips 3 s of detection a photo), the photos themselves are read as the command reads them.
 No peer: OpenCV has no photometric refinement (bench_photometric_trust.py puts calibrateCamera beside the corner fit

@@ -2,7 +2,7 @@
 
 Captures of the independent exact-tracing generator (`tiltfit.experiments.exact_capture`: every ray through the
 tilted thin lens, stratified aperture and pixel area, Poisson and read noise, 8-bit sRGB) and, for the same lens
-and poses, of the project's ray tracer (`tiltfit.synth.render_view(method="renderer")`, Gaussian noise, float).
+and poses, of the project's ray tracer (`tiltfit.experiments.synth.render_view(method="renderer")`, Gaussian noise, float).
 Cases: lens tilt +5° and −5°, heavy blur (2 views, d = 36 mm, untilted) and strong inclination (boards turned
 55-60°).
 
@@ -39,7 +39,7 @@ sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
 from results_io import run_benchmark, write_lines  # noqa: E402
 
 from tiltfit.experiments import exact_capture as ec  # noqa: E402
-from tiltfit.target import Target  # noqa: E402
+from tiltfit.target.layout import Target  # noqa: E402
 
 W_PX, H_PX, PITCH_MM, W_MM = 240, 160, 0.13, 55.0
 BOARD = Target(tuple(50.0 * i for i in range(7)), tuple(50.0 * j for j in range(5)), (0, 0), 25.0)
@@ -60,8 +60,8 @@ GENERATORS = {"exact": tuple(CASES), "renderer": ("heavy blur (2 views, d 36 mm)
 def captures(case: str, generator: str, seed: int = 0):
     """Linear images of the case's views, and the truth (w, U, d, θF, θL, principal point)."""
     from renderer.cameras.lens import Lens, Sensor
-    from renderer.io import srgb_to_linear
-    from tiltfit import synth
+    from camio.files import srgb_to_linear
+    from tiltfit.experiments import synth
 
     U0, d, tilt, views = CASES[case]
     lens = ec.ExactLens.focused_at(W_MM, U0, d, tilt, W_PX, H_PX, PITCH_MM)
@@ -82,10 +82,10 @@ def captures(case: str, generator: str, seed: int = 0):
 
 
 def corner_fit(images):
-    from tiltfit.calibration import calibrate
-    from tiltfit.detect import detect
-    from tiltfit.fit import FitOptions
-    from tiltfit.model import Observations
+    from tiltfit.calibrate.flow import calibrate
+    from tiltfit.detect.chessboard import detect
+    from tiltfit.calibrate.fit import FitOptions
+    from tiltfit.calibrate.model import Observations
 
     dets = [detect(im, BOARD) for im in images]
     obs = Observations(BOARD.feature_points(), np.stack([d.corners_px for d in dets]),

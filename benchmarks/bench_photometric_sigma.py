@@ -135,7 +135,7 @@ def pooled(subsets: list, value: str, sigma: str, key: str):
 
 def real(name: str) -> dict:
     from real_detections import observations
-    from tiltfit.target import load_target
+    from tiltfit.target.layout import load_target
 
     cfg = REAL[name]
     folder = os.path.join(ROOT, "data", "real", name)
@@ -188,7 +188,7 @@ def write_markdown(path: str, res: dict) -> None:
         L += ["## Real subsets of one session: spread/σ pooled over pairs, sqrt(mean Δ² / (σa² + σb²))", "",
               "Each subset: corner fit (unified, free principal point, opencv5) and the refinement as `tiltfit calibrate "
               "--refine photometric` runs it. *CALIB.json* is what the file carries: the refinement's values and σ "
-              "where it is kept (for the parameters it moved), else the corner fit's (per-view σ, `tiltfit.uncertainty`). "
+              "where it is kept (for the parameters it moved), else the corner fit's (per-view σ, `tiltfit.uncertainty.covariance`). "
               "— : held (σ 0) in a subset, or (photometric columns) the subsets' refinements freed different lens "
               "parameters, so their models differ.", "",
               "Photometric σ: *views* includes the held principal point's and distortion's uncertainty (the corner "

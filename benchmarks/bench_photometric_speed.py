@@ -38,7 +38,7 @@ W_MM, D_MM, THETA_L_DEG, U0_MM, DOWNSCALE, VIEWS = 55.39, 40.0, 4.65, 1000.0, 16
 
 
 def _board():
-    from tiltfit.target import Target
+    from tiltfit.target.layout import Target
 
     return Target(tuple(50.0 * i for i in range(7)), tuple(50.0 * j for j in range(5)), (0, 0), 25.0)
 
@@ -48,8 +48,8 @@ def make_captures(path: str) -> None:
     import cv2
     import numpy as np
 
-    from renderer import optics
-    from tiltfit import synth
+    from renderer.cameras import optics
+    from tiltfit.experiments import synth
     from tiltfit.experiments import reproduce
 
     board = _board()
@@ -94,10 +94,10 @@ def worker(captures: str, repeats: int, seeds: int) -> None:
     import torch
 
     torch.set_num_threads(1)
-    from tiltfit.calibration import calibrate
-    from tiltfit.detect import detect
-    from tiltfit.fit import FitOptions
-    from tiltfit.model import Observations
+    from tiltfit.calibrate.flow import calibrate
+    from tiltfit.detect.chessboard import detect
+    from tiltfit.calibrate.fit import FitOptions
+    from tiltfit.calibrate.model import Observations
     from tiltfit.photometric import PhotometricOptions, refine_photometric
 
     with open(captures, "rb") as f:
@@ -112,7 +112,7 @@ def worker(captures: str, repeats: int, seeds: int) -> None:
 
     new_api = "camera" in inspect.signature(refine_photometric).parameters
     if new_api:
-        from tiltfit.calibfile import camera_from_calib
+        from tiltfit.files.calib import camera_from_calib
 
         camera = camera_from_calib({**cap["start"], "image_size_px": cap["size"], "pixel_pitch_mm": cap["pitch"]})
 

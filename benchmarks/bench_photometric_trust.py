@@ -7,7 +7,7 @@
 2. on the real photo sets (data/real/industrial_ds1, data/real/gopro_wide; tiltfit's cached corners): the
    corner fit on the first half of the views (free principal point, the set's distortion model), the photometric
    refinement of it on the same views' photos, and the held-out corner error on the other half (each held-out
-   view's pose refitted, the lens held: `tiltfit.validate.predict_views`) of the corner fit, of the refinement and
+   view's pose refitted, the lens held: `tiltfit.select.held_out.predict_views`) of the corner fit, of the refinement and
    of the calibration kept; seconds per view of the refinement against `cv2.calibrateCamera` on the same corners
    (the peer, same run).
 
@@ -84,7 +84,7 @@ def synthetic(variants: bool) -> tuple[list[dict], list[dict]]:
 
 
 def _rms(camera, obs) -> float:
-    from tiltfit.validate import predict_views
+    from tiltfit.select.held_out import predict_views
 
     fit = predict_views(camera.copy().double(), obs)
     return math.sqrt(fit.rss["corners"] / max(fit.rss["n_corners"] // 2, 1))
@@ -94,7 +94,7 @@ def real(name: str, n_views: int, repeats: int = 1) -> dict:
     from photometric_start import corner_start, grey_photos
     from real_detections import observations
     from tiltfit.photometric import PhotometricOptions, refine_photometric
-    from tiltfit.target import load_target
+    from tiltfit.target.layout import load_target
 
     cfg = REAL[name]
     folder = os.path.join(ROOT, "data", "real", name)

@@ -34,12 +34,12 @@ _distortion.MODELS = tuple(_distortion.MODEL_TERMS)
 from real_detections import REAL, observations  # noqa: E402
 from results_io import write_lines  # noqa: E402
 
-from tiltfit.calibfile import calib_dict  # noqa: E402
-from tiltfit.calibration import calibrate  # noqa: E402
-from tiltfit.fit import FitError, FitOptions, without_blur  # noqa: E402
-from tiltfit.imaging import torch_threads  # noqa: E402
-from tiltfit.opencv_corners import opencv_calibrate  # noqa: E402
-from tiltfit.validate import held_out_rms  # noqa: E402
+from tiltfit.files.calib import calib_dict  # noqa: E402
+from tiltfit.calibrate.flow import calibrate  # noqa: E402
+from tiltfit.calibrate.fit import FitError, FitOptions, without_blur  # noqa: E402
+from tiltfit.detect.imaging import torch_threads  # noqa: E402
+from tiltfit.detect.opencv import opencv_calibrate  # noqa: E402
+from tiltfit.select.held_out import held_out_rms  # noqa: E402
 
 FOLDS = 5
 MODELS = ("opencv5", "rational5", "rational6", "rational")

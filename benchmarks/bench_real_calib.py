@@ -29,12 +29,12 @@ import numpy as np
 import torch
 
 from renderer.cameras.distortion import MODELS
-from tiltfit.fit import FitOptions
-from tiltfit.calibration import calibrate
-from tiltfit.model import Observations
-from tiltfit.opencv_corners import opencv_detections
-from tiltfit.target import load_target
-from tiltfit.validate import held_out_rms
+from tiltfit.calibrate.fit import FitOptions
+from tiltfit.calibrate.flow import calibrate
+from tiltfit.calibrate.model import Observations
+from tiltfit.detect.opencv import opencv_detections
+from tiltfit.target.layout import load_target
+from tiltfit.select.held_out import held_out_rms
 
 from results_io import timed
 

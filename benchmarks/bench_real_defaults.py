@@ -30,8 +30,8 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from real_detections import REAL, read_cache  # noqa: E402
 
-from tiltfit import cli  # noqa: E402
-from tiltfit.target import load_target  # noqa: E402
+from tiltfit.cli import main as cli  # noqa: E402
+from tiltfit.target.layout import load_target  # noqa: E402
 
 # The pitch only scales w, U, d in mm; the pixels (focal length, principal point, RMS) do not depend on it.
 PIXEL_PITCH_MM = {"gopro_wide": 0.005, "industrial_ds1": 0.0048}

@@ -2,8 +2,8 @@
 8 × 6-corner board) against OpenCV, in the same run on the same files.
 
 Peers:
-- `ours`: tiltfit.detect.detect (corners only, measure_blur=False, like the OpenCV peers) on the image decoded
-  to linear by renderer.io.read_image; its blur measurement is timed separately (`ours_blur_s`).
+- `ours`: tiltfit.detect.chessboard.detect (corners only, measure_blur=False, like the OpenCV peers) on the image decoded
+  to linear by camio.files.read_image; its blur measurement is timed separately (`ours_blur_s`).
 - `sb`: cv2.findChessboardCornersSB (NORMALIZE_IMAGE | EXHAUSTIVE | ACCURACY) + cv2.cornerSubPix (5 × 5) on the
   8-bit grey image (cv2.imread).
 - `classic`: cv2.findChessboardCorners (ADAPTIVE_THRESH | NORMALIZE_IMAGE) + cv2.cornerSubPix (11 × 11).
@@ -30,12 +30,12 @@ import cv2
 import numpy as np
 import torch
 
-from renderer.io import read_image
-from tiltfit.blur import measure_blur
-from tiltfit.detect import detect, to_gray
-from tiltfit.imaging import build_pyramid
-from tiltfit.opencv_corners import match_labelling, sb_corners
-from tiltfit.target import load_target
+from camio.files import read_image
+from tiltfit.detect.blur import measure_blur
+from tiltfit.detect.chessboard import detect, to_gray
+from tiltfit.detect.imaging import build_pyramid
+from tiltfit.detect.opencv import match_labelling, sb_corners
+from tiltfit.target.layout import load_target
 
 from results_io import timed
 
@@ -144,7 +144,7 @@ def main(argv=None):
           "",
           "| method | boards found | corners | time / image (median) | ours / peer time |",
           "|---|---|---|---|---|",
-          f"| ours (`tiltfit.detect`, corners) | {summary['found']['ours']} / {len(rows)} | "
+          f"| ours (`tiltfit.detect.chessboard`, corners) | {summary['found']['ours']} / {len(rows)} | "
           f"{summary['ours_corners_total']} | {t['ours']:.3f} s | 1 |",
           f"| OpenCV `findChessboardCornersSB` + `cornerSubPix` | {summary['found']['sb']} / {len(rows)} | "
           f"{48 * summary['found']['sb']} | {t['sb']:.3f} s | {summary['time_ratio_ours_over']['sb']} |",

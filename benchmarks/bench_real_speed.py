@@ -3,10 +3,10 @@ image by image in one run.
 
 Sets: data/real/gopro_wide (36 GoPro JPEGs, 8 × 6 corners) and data/real/industrial_ds1 (20 PNGs, 1280 × 1024,
 16 × 10 corners). Per image, interleaved (so every method sees the same machine load):
-- `ours`: `tiltfit.detect.detect` as `tiltfit detect` runs it (corners and blur widths), on the image decoded to
-  linear by `renderer.io.read_image`; and `ours_corners`: the same with `measure_blur=False`.
+- `ours`: `tiltfit.detect.chessboard.detect` as `tiltfit detect` runs it (corners and blur widths), on the image decoded to
+  linear by `camio.files.read_image`; and `ours_corners`: the same with `measure_blur=False`.
 - `sb`: `cv2.findChessboardCornersSB` (NORMALIZE_IMAGE | EXHAUSTIVE | ACCURACY) on the 8-bit grey image, and
-  `sb_subpix`: the same + `cv2.cornerSubPix` (5 × 5), i.e. `tiltfit.opencv_corners.sb_corners`.
+  `sb_subpix`: the same + `cv2.cornerSubPix` (5 × 5), i.e. `tiltfit.detect.opencv.sb_corners`.
 - `base` (with `--baseline-rev REV`): `detect` of tiltfit at git revision REV (extracted with `git archive`),
   in a worker process fed one image at a time; its corners and blur widths are compared with ours.
 One torch thread and one OpenCV thread everywhere. Times exclude file decoding; each is the median over
@@ -36,10 +36,10 @@ import numpy as np
 import torch
 
 from results_io import add_output_options, markdown_only, save, timed
-from renderer.io import read_image
-from tiltfit.detect import detect
-from tiltfit.opencv_corners import match_labelling
-from tiltfit.target import load_target
+from camio.files import read_image
+from tiltfit.detect.chessboard import detect
+from tiltfit.detect.opencv import match_labelling
+from tiltfit.target.layout import load_target
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SETS = {"gopro_wide": "*.jpg", "industrial_ds1": "*.png"}
@@ -51,9 +51,9 @@ WORKER = r"""
 import json, statistics, sys, time
 import torch
 torch.set_num_threads(1)
-from renderer.io import read_image
-from tiltfit.detect import detect
-from tiltfit.target import load_target
+from camio.files import read_image
+from tiltfit.detect.chessboard import detect
+from tiltfit.target.layout import load_target
 print(json.dumps({"ready": True}), flush=True)
 for line in sys.stdin:
     job = json.loads(line)

@@ -4,7 +4,7 @@
         [--reference-spp 32] [--calib SET=CALIB.json ...]
 
 For each set: a calibration with the defaults from the cached detections (benchmarks/real_detections.py; or the
-given CALIB.json), then for a few views spread over the set the report's comparison (`tiltfit.real_vs_rendered`,
+given CALIB.json), then for a few views spread over the set the report's comparison (`tiltfit.report.real_vs_rendered`,
 at its default resolution) at each spp and at the reference spp (the peer: the converged rendering, same run).
 Reported per spp: the median over views of |profile error − the reference's| and |RMS over the board − the
 reference's| (grey levels) and the median render time per view (s). The default spp is the smallest whose
@@ -39,9 +39,9 @@ def calibration_file(name: str, given: dict, say) -> str:
     if os.path.exists(path):
         return path
     from real_detections import observations
-    from tiltfit.calibfile import calib_dict, write_calib
-    from tiltfit.calibration import calibrate
-    from tiltfit.fit import FitOptions
+    from tiltfit.files.calib import calib_dict, write_calib
+    from tiltfit.calibrate.flow import calibrate
+    from tiltfit.calibrate.fit import FitOptions
 
     folder = os.path.join(ROOT, "data", "real", name)
     obs, _ = observations(folder, PIXEL_PITCH_MM)
@@ -57,8 +57,8 @@ def calibration_file(name: str, given: dict, say) -> str:
 
 
 def run(args) -> dict:
-    from tiltfit.calibrated import Calibration
-    from tiltfit.real_vs_rendered import RealVsRenderedOptions, compare_view, find_photo, pick_views
+    from tiltfit.files.calibrated import Calibration
+    from tiltfit.report.real_vs_rendered import RealVsRenderedOptions, compare_view, find_photo, pick_views
 
     say = lambda m: print(m, file=sys.stderr, flush=True)  # noqa: E731
     given = dict(s.split("=", 1) for s in args.calib)

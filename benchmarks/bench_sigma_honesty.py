@@ -1,5 +1,5 @@
 """σ honesty (issue 22): predicted against empirical σ for every parameter, ours (the classical σ and the
-per-view cluster-robust σ, `tiltfit.uncertainty`) and OpenCV's `calibrateCameraExtended` (stdDeviationsIntrinsics),
+per-view cluster-robust σ, `tiltfit.uncertainty.covariance`) and OpenCV's `calibrateCameraExtended` (stdDeviationsIntrinsics),
 on the same corners, in one run.
 
     python benchmarks/bench_sigma_honesty.py [--draws 60] [--out benchmarks/results/sigma_honesty]
@@ -37,9 +37,9 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from real_detections import REAL, observations  # noqa: E402
 from results_io import run_benchmark, write_lines  # noqa: E402
 
-from tiltfit.calibration import calibrate  # noqa: E402
-from tiltfit.fit import FitOptions  # noqa: E402
-from tiltfit.model import (PAPER_LENS, PAPER_SENSOR, Observations, axis_angle_to_matrix,  # noqa: E402
+from tiltfit.calibrate.flow import calibrate  # noqa: E402
+from tiltfit.calibrate.fit import FitOptions  # noqa: E402
+from tiltfit.calibrate.model import (PAPER_LENS, PAPER_SENSOR, Observations, axis_angle_to_matrix,  # noqa: E402
                            board_points_mm, random_poses)
 
 W_MM, U_MM, D_MM = PAPER_LENS["w_mm"], PAPER_LENS["U_mm"], PAPER_LENS["d_mm"]
@@ -247,7 +247,7 @@ def write_markdown(path: str, res: dict) -> None:
             f"{e['ours_classical']:.4g} ({e['ratio_classical']:.2f})"
         lines.append(f"| {k} | {e['empirical']:.4g} | {cls} | {e['ours_new']:.4g} ({e['ratio_new']:.2f}) | {cv} |")
     lines += ["", "Pose rows (rvec0_deg, Tz0_mm: view 0): the views model's pose σ = the globals' part plus the own "
-              "part from a random affine error per view estimated from the residuals (`tiltfit.uncertainty`); the "
+              "part from a random affine error per view estimated from the residuals (`tiltfit.uncertainty.covariance`); the "
               "classical pose σ is not reported separately (—).", ""]
     lines += ["## Real subsets: spread/σ pooled over pairs, sqrt(mean Δ²/(σa² + σb²))", "",
               "| set | parameter | ours, classical σ | ours, views σ | OpenCV σ |", "|---|---|---|---|---|"]

@@ -33,8 +33,8 @@ sys.path.insert(0, HERE)
 from real_detections import REAL, observations  # noqa: E402
 from results_io import save, write_lines  # noqa: E402
 
-from tiltfit.calibration import calibrate  # noqa: E402
-from tiltfit.fit import FitOptions  # noqa: E402
+from tiltfit.calibrate.flow import calibrate  # noqa: E402
+from tiltfit.calibrate.fit import FitOptions  # noqa: E402
 
 SETS = {  # folder with target.json and the detection cache, pixel pitch (mm; sets only w_mm, not f in pixels), splits
     "sony_small": (os.path.join(HERE, "small_sets", "sony_small"), 0.0096, (1, 2)),
@@ -95,7 +95,7 @@ def charuco_four_views(folder: str, pitch: float):
     row k // 3 (OpenCV's ChArUco ids), the published corners in the 1280×720 frame."""
     import csv
 
-    from tiltfit.model import Observations
+    from tiltfit.calibrate.model import Observations
 
     rows = list(csv.DictReader(open(os.path.join(folder, "published_corners_4views.csv"))))
     frames = sorted({int(r["frame"]) for r in rows})

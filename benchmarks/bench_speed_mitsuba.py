@@ -10,7 +10,7 @@ sample is one camera ray plus one shadow ray where it hits. 512×512 at 16 spp.
   (`torch`: our own intersection in one process, the defaults before issue 11's change; `*_workers2`: two
   single-threaded processes; `embree*`: `intersector="mitsuba"`; `embree_jit2`: one torch thread and
   Dr.Jit's own pool of two threads in one process; `*_threads2`: two torch and two Dr.Jit threads;
-  `embree_fused*`: `compile=True` with Embree, `renderer.fused`'s compiled stages between the Embree calls).
+  `embree_fused*`: `compile=True` with Embree, `renderer.tracing.fused`'s compiled stages between the Embree calls).
 - Mitsuba: `llvm_ad_rgb` where it runs here (else `scalar_rgb`, said in the table), its own thread count,
   the scene exported by `renderer.mitsuba.to_mitsuba` (Mitsuba's own `thinlens` sensor, box filter,
   `independent` sampler, the `direct` integrator with one emitter sample and no BSDF sample: the same
@@ -44,7 +44,7 @@ import torch
 
 from renderer import render
 from renderer.mitsuba import load_mitsuba, to_mitsuba
-from renderer.scenefile import load_scene
+from renderer.scene.file import load_scene
 from results_io import add_output_options, markdown_only, save
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -61,7 +61,7 @@ MODES = {"defaults": {}, "torch": {"intersector": "torch", "workers": 1},
          "embree_jit2": {"intersector": "mitsuba", "workers": 1, "threads": None},
          "embree_threads2": {"intersector": "mitsuba", "workers": 1, "threads": 2},
          "workers2": {"workers": 2}, "threads2": {"threads": 2}, "compile": {"compile": True},
-         # renderer.fused: Embree with the work between its calls in three torch.compile'd stages on 1-D components.
+         # renderer.tracing.fused: Embree with the work between its calls in three torch.compile'd stages on 1-D components.
          "embree_fused": {"intersector": "mitsuba", "workers": 1, "compile": True},
          "embree_fused_workers2": {"intersector": "mitsuba", "workers": 2, "compile": True},
          "cuda": {"device": "cuda"}, "cuda_chunk15": {"device": "cuda", "chunk_rays": 1 << 15},

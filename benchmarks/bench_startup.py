@@ -74,9 +74,9 @@ def make_inputs(folder: str) -> dict:
 import json, os, sys
 sys.path.insert(0, {os.path.join(ROOT, 'benchmarks')!r})
 from real_detections import observations
-from tiltfit.calibfile import calib_dict, write_calib
-from tiltfit.calibration import calibrate
-from tiltfit.fit import FitOptions
+from tiltfit.files.calib import calib_dict, write_calib
+from tiltfit.calibrate.flow import calibrate
+from tiltfit.calibrate.fit import FitOptions
 folder = {os.path.join(ROOT, 'data', 'real', 'industrial_ds1')!r}
 obs, _ = observations(folder, 0.00155)
 obs = obs.subset(list(range(0, obs.n_views, max(1, obs.n_views // 8)))[:8])

@@ -53,8 +53,8 @@ import numpy as np
 import torch
 
 from renderer import render
-from renderer.scenefile import load_scene
-from renderer.transforms import euler_xyz_deg
+from renderer.scene.file import load_scene
+from renderer.core.transforms import euler_xyz_deg
 
 # Lens and sensor, scene units (mm): 50 mm lens-to-sensor distance, focused at 1 m, f/2.8 aperture,
 # a 36 mm wide sensor (39.6° horizontal field of view). Blur diameters: 5 px at z = 600, 0 at 1000,

@@ -24,10 +24,10 @@ import time
 import torch
 
 from renderer import render
-from renderer.scenefile import load_scene
+from renderer.scene.file import load_scene
 from results_io import add_output_options, markdown_only, save
 
-render_mod = importlib.import_module("renderer.render")
+render_mod = importlib.import_module("renderer.tracing.render")
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCENE = os.path.join(ROOT, "benchmarks", "scenes", "speed_thin_lens.json")
 

@@ -1,7 +1,7 @@
 """How reproducible the blur widths of the real photos are under changes of floating-point rounding alone.
 
 For each image (every `--every`-th of a set), on the corners of the current `detect`, the blur widths of
-`tiltfit.blur.measure_blur` are computed three ways:
+`tiltfit.detect.blur.measure_blur` are computed three ways:
 - `rev`: the code at git revision REV (`--rev`, extracted with `git archive`);
 - `rev_reordered`: the same code with one sum in `pixel_esf` evaluated in another order,
   (G2₁ + G2₄) − (G2₂ + G2₃) instead of G2₁ − G2₂ − G2₃ + G2₄: mathematically identical, only the
@@ -29,11 +29,11 @@ import numpy as np
 import torch
 
 from results_io import add_output_options, markdown_only, save
-from renderer.io import read_image
-from tiltfit import blur as current
-from tiltfit.detect import detect, to_gray
-from tiltfit.imaging import build_pyramid
-from tiltfit.target import load_target
+from camio.files import read_image
+from tiltfit.detect import blur as current
+from tiltfit.detect.chessboard import detect, to_gray
+from tiltfit.detect.imaging import build_pyramid
+from tiltfit.target.layout import load_target
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SETS = {"gopro_wide": "*.jpg", "industrial_ds1": "*.png"}
@@ -42,7 +42,7 @@ REORDERED_SUM = "    G2 = _G2(u)\n    G2u = (G2[..., 0] + G2[..., 3]) - (G2[...,
 
 
 def load_module(path: str, name: str):
-    """tiltfit/blur.py from another checkout, as a module of the installed package (its relative imports)."""
+    """tiltfit/detect/blur.py from another checkout, as a module of the installed package (its relative imports)."""
     spec = importlib.util.spec_from_file_location(f"tiltfit.{name}", path)
     module = importlib.util.module_from_spec(spec)
     module.__package__ = "tiltfit"
@@ -54,9 +54,9 @@ def load_module(path: str, name: str):
 def revision_blur_modules(rev: str):
     folder = tempfile.mkdtemp(prefix="blur_rev_")
     try:
-        text = subprocess.run(["git", "-C", ROOT, "show", f"{rev}:tiltfit/blur.py"], check=True, capture_output=True,
+        text = subprocess.run(["git", "-C", ROOT, "show", f"{rev}:tiltfit/detect/blur.py"], check=True, capture_output=True,
                               text=True).stdout
-        assert ORIGINAL_SUM in text, f"{rev}: tiltfit/blur.py has no `{ORIGINAL_SUM.strip()}` to reorder"
+        assert ORIGINAL_SUM in text, f"{rev}: tiltfit/detect/blur.py has no `{ORIGINAL_SUM.strip()}` to reorder"
         paths = {}
         for name, body in (("rev", text), ("rev_reordered", text.replace(ORIGINAL_SUM, REORDERED_SUM))):
             paths[name] = os.path.join(folder, f"blur_{name}.py")

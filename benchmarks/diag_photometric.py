@@ -31,12 +31,13 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from bench_photometric import BOARD, D_MM, W_MM, rough_start  # noqa: E402
-from renderer import Lens, Sensor, optics  # noqa: E402
+from renderer import Lens, Sensor
+from renderer.cameras import optics  # noqa: E402
 from renderer.cameras import EOS_6D  # noqa: E402
-from tiltfit import synth  # noqa: E402
+from tiltfit.experiments import synth  # noqa: E402
 from tiltfit.experiments import reproduce  # noqa: E402
 from tiltfit import photometric as P  # noqa: E402
-from tiltfit.calibfile import camera_from_calib  # noqa: E402
+from tiltfit.files.calib import camera_from_calib  # noqa: E402
 
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
 THETA_L_DEG, U0_MM, DOWNSCALE, VIEWS = 4.65, 1000.0, 16, (0, 1, 2)

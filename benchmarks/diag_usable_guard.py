@@ -23,10 +23,10 @@ import torch  # noqa: E402
 def main() -> int:
     from real_detections import observations
     from renderer import read_image
-    from tiltfit.calibration import calibrate
-    from tiltfit.fit import FitOptions
+    from tiltfit.calibrate.flow import calibrate
+    from tiltfit.calibrate.fit import FitOptions
     from tiltfit.photometric import PhotometricOptions, refine, render
-    from tiltfit.target import load_target
+    from tiltfit.target.layout import load_target
 
     torch.set_num_threads(1)
     rows, plain = [], render.usable_pixels

@@ -72,7 +72,7 @@ def main(argv=None) -> int:
         results, t0 = [], time.perf_counter()
         failures = []
         for k, case in enumerate(cases):
-            res = fuzz_harness.classify(case, importlib.import_module(f"{package}.cli").main, package, args.timeout)
+            res = fuzz_harness.classify(case, importlib.import_module(f"{package}.cli.main").main, package, args.timeout)
             results.append(res)
             if res.outcome in fuzz_harness.FAILURES:
                 failures.append({"case": case["name"], "outcome": res.outcome, "detail": res.detail[:300]})

@@ -17,9 +17,9 @@ def corner_start(obs, target, distortion: str, opencv_repeats: int = 5) -> dict:
     opencv_s_all}."""
     import cv2
 
-    from tiltfit.calibration import calibrate
-    from tiltfit.fit import FitOptions
-    from tiltfit.validate import held_out_rms
+    from tiltfit.calibrate.flow import calibrate
+    from tiltfit.calibrate.fit import FitOptions
+    from tiltfit.select.held_out import held_out_rms
 
     options = FitOptions(free_principal_point=True, distortion=distortion, model_selection=False)
     t = time.perf_counter()
@@ -56,7 +56,7 @@ def calibrate_refined_cached(name: str, pitch_mm: float, n_views: int, out: str)
     exit status, wall seconds)."""
     from real_detections import read_cache
 
-    from tiltfit import cli
+    from tiltfit.cli import main as cli
 
     folder = os.path.join(ROOT, "data", "real", name)
     cache = read_cache(folder)

@@ -20,11 +20,12 @@ import torch
 
 import importlib
 
-from renderer import direct, integrator
-from renderer.scene import Scene
-from renderer.scenefile import load_scene
+from renderer.tracing import direct
+from renderer.tracing import integrator
+from renderer.scene.model import Scene
+from renderer.scene.file import load_scene
 
-render_mod = importlib.import_module("renderer.render")
+render_mod = importlib.import_module("renderer.tracing.render")
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCENE = os.path.join(ROOT, "benchmarks", "scenes", "speed_thin_lens.json")
@@ -52,7 +53,7 @@ def _wrap(owner, name: str, label: str):
 
 
 def instrument(scene):
-    """Time the stages of `renderer.render` / `renderer.integrator` and each shape kind's intersect."""
+    """Time the stages of `renderer.render` / `renderer.tracing.integrator` and each shape kind's intersect."""
     _wrap(render_mod.Sampler, "pixel_block", "samples")
     _wrap(render_mod, "_camera_samples", "camera samples")
     for cam in {type(scene.camera)}:

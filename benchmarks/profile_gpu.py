@@ -19,7 +19,7 @@ import torch
 from torch.profiler import ProfilerActivity, profile
 
 from renderer import render
-from renderer.scenefile import load_scene
+from renderer.scene.file import load_scene
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCENE = os.path.join(ROOT, "benchmarks", "scenes", "speed_thin_lens.json")

@@ -1,5 +1,5 @@
 """How many views determine a distortion model: the fitted radial mapping's 1σ at the image corner (pixels,
-propagated from the fit's covariance, `tiltfit.validate.mapping_sigma_px`) and the coefficients, for the first
+propagated from the fit's covariance, `tiltfit.select.held_out.mapping_sigma_px`) and the coefficients, for the first
 n GoPro views (data/real/gopro_wide, tiltfit's cached detections). Issue 24: `--distortion rational` from one
 view wrote coefficients of 3.6e5; it is now refused where that σ exceeds `MAX_MAPPING_SIGMA_PX`.
 
@@ -19,11 +19,11 @@ DATA = os.path.join(ROOT, "data", "real", "gopro_wide")
 
 
 def main(argv=None) -> int:
-    from tiltfit.calibration import calibrate
-    from tiltfit.fit import FitError, FitOptions
-    from tiltfit.model import Observations
-    from tiltfit.target import load_target
-    from tiltfit.validate import MAX_MAPPING_SIGMA_PX, mapping_sigma_px
+    from tiltfit.calibrate.flow import calibrate
+    from tiltfit.calibrate.fit import FitError, FitOptions
+    from tiltfit.calibrate.model import Observations
+    from tiltfit.target.layout import load_target
+    from tiltfit.select.held_out import MAX_MAPPING_SIGMA_PX, mapping_sigma_px
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("-o", "--output", default=os.path.join(ROOT, "benchmarks", "results", "rational_views.json"))

@@ -26,7 +26,7 @@ def photos(folder: str) -> list[str]:
 
 def detect_one(path: str, target) -> dict:
     """The DET.json dict `tiltfit detect` would write for `path`, or {"no_board": reason}."""
-    from tiltfit import cli
+    from tiltfit.cli import main as cli
 
     try:
         return cli._detect_image(path, target, None)
@@ -42,7 +42,7 @@ def read_cache(folder: str, name: str = CACHE_NAME) -> dict:
 
 
 def write_cache(folder: str, say=print) -> dict:
-    from tiltfit.target import load_target
+    from tiltfit.target.layout import load_target
 
     target = load_target(os.path.join(folder, "target.json"))
     out = {}
@@ -75,8 +75,8 @@ def observations(folder: str, pixel_pitch_mm: float, cache_name: str = CACHE_NAM
     """
     import numpy as np
 
-    from tiltfit.model import Observations
-    from tiltfit.target import load_target
+    from tiltfit.calibrate.model import Observations
+    from tiltfit.target.layout import load_target
 
     target = load_target(os.path.join(folder, "target.json"))
     cache = {n: d or {"no_board": "no board found"} for n, d in read_cache(folder, cache_name).items()}

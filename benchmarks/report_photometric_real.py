@@ -34,7 +34,8 @@ FIGURES = os.path.join(ROOT, "benchmarks", "results", "report_photometric_real")
 def run_set(name: str, pitch_mm: float, n_views: int) -> dict:
     from photometric_start import calibrate_refined_cached
 
-    from tiltfit import cli, report
+    from tiltfit.cli import main as cli
+    from tiltfit.report import plots as report
 
     timings = []
     plain = report.photometric_residual

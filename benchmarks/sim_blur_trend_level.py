@@ -3,7 +3,7 @@
 Simulated residuals with no trend with depth: G views at depths spread over 500–900 mm (±30 mm within a view),
 40 widths a view, independent noise 0.2 px, and an offset shared by each view's widths (σ 0, 0.1 or 0.3 px).
 The share of captures called significant at p < 1e-3 by (a) the cluster-robust Wald χ²(2) on the quadratic's
-(b, c) that `tiltfit.calibration.blur_trend` used before, and (b) the F(2, G − 3) test on the views' means it
+(b, c) that `tiltfit.calibrate.flow.blur_trend` used before, and (b) the F(2, G − 3) test on the views' means it
 uses now; and the share at α = 1e-2 (its level now) with a real trend of 0.4 px over the depths (power).
 Plain least squares here (the code fits Huber weights first; with no outliers they are all 1).
 `python benchmarks/sim_blur_trend_level.py` → benchmarks/results/blur_trend_level.md.

@@ -18,8 +18,8 @@
    the ratio of the board and wall rendered with and without the objects, which lays their shadows onto the real
    ones. Only a window around the objects and their shadows is rendered.
 Writes DIR/calib.json, DIR/alignment.json, DIR/composite.png (full size) and, with --picture, a small copy for
-the docs. Uses only the public API: `tiltfit.calibration.calibrate`, `tiltfit.calibrated.Calibration`,
-`tiltfit.composite`, `renderer.load_scene`.
+the docs. Uses only the public API: `tiltfit.calibrate.flow.calibrate`, `tiltfit.files.calibrated.Calibration`,
+`tiltfit.report.composite`, `renderer.load_scene`.
 """
 from __future__ import annotations
 
@@ -44,11 +44,11 @@ PHOTO_FACTOR, PROJECTION_PX = 1.5, 0.1
 
 def calibrate_from_cache(folder: str, pixel_pitch_mm: float):
     """(CALIB.json dict, target) of a shipped set from its cached detections, the board flat."""
-    from tiltfit.calibfile import calib_dict
-    from tiltfit.calibration import calibrate
-    from tiltfit.fit import FitOptions
-    from tiltfit.model import Observations
-    from tiltfit.target import load_target
+    from tiltfit.files.calib import calib_dict
+    from tiltfit.calibrate.flow import calibrate
+    from tiltfit.calibrate.fit import FitOptions
+    from tiltfit.calibrate.model import Observations
+    from tiltfit.target.layout import load_target
 
     target = load_target(os.path.join(folder, "target.json"))
     with open(os.path.join(folder, "detections_tiltfit.json"), encoding="utf-8") as f:
@@ -124,7 +124,7 @@ def shadow_points(points, light):
 
 def check_args(args) -> str | None:
     """The first problem with the command line as one line naming the option, or None."""
-    from renderer.params import MAX_SPP
+    from renderer.core.params import MAX_SPP
 
     if not 1 <= args.spp <= MAX_SPP:
         return f"--spp: expected an integer in 1..{MAX_SPP}, got {args.spp}"
@@ -159,9 +159,9 @@ def main(argv=None) -> int:
         return 2
 
     from renderer import load_scene, read_image, write_image
-    from tiltfit.calibfile import write_calib
-    from tiltfit.calibrated import Calibration
-    from tiltfit import composite
+    from tiltfit.files.calib import write_calib
+    from tiltfit.files.calibrated import Calibration
+    from tiltfit.report import composite
 
     t_start = time.perf_counter()
     folder = os.path.abspath(os.path.join(REAL, args.set))

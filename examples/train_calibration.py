@@ -1,8 +1,8 @@
 """Calibrate a tilt-lens camera the way one trains a model: config file, optimizer loop, logs, checkpoints.
 
 Uses only tiltfit's public API: `TiltLensCamera` (an nn.Module whose parameters are the lens and the poses),
-`synthesize_observations`, `loss`, `tiltfit.start.initialize` (PnP poses, homography focal length, linear blur
-scan) and, for comparison, `tiltfit.calibration.calibrate` (Levenberg–Marquardt).
+`synthesize_observations`, `loss`, `tiltfit.calibrate.start.initialize` (PnP poses, homography focal length, linear blur
+scan) and, for comparison, `tiltfit.calibrate.flow.calibrate` (Levenberg–Marquardt).
 
     python examples/train_calibration.py [--config examples/calib_config.json] [--resume] [--out DIR]
 
@@ -25,10 +25,10 @@ import time
 
 import torch
 
-from tiltfit.calibration import calibrate
-from tiltfit.fit import FitOptions
-from tiltfit.model import TiltLensCamera, board_points_mm, loss, random_poses, synthesize_observations
-from tiltfit.start import initialize
+from tiltfit.calibrate.flow import calibrate
+from tiltfit.calibrate.fit import FitOptions
+from tiltfit.calibrate.model import TiltLensCamera, board_points_mm, loss, random_poses, synthesize_observations
+from tiltfit.calibrate.start import initialize
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 

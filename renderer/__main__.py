@@ -2,7 +2,7 @@
 import sys
 
 try:
-    from .cli import main
+    from renderer.cli.main import main
 
     sys.exit(main())
 except KeyboardInterrupt:  # a Ctrl-C while the modules load, or after the command's own handler

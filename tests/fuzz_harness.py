@@ -253,5 +253,5 @@ def check(case: dict, prog: str) -> None:
     """Run one case through `prog`'s CLI main (`renderer` or `tiltfit`) and fail on a bad outcome."""
     import importlib
 
-    res = classify(case, importlib.import_module(f"{prog}.cli").main, prog)
+    res = classify(case, importlib.import_module(f"{prog}.cli.main").main, prog)
     assert res.outcome not in FAILURES, f"{case['name']}: {res.outcome}: {res.detail}"

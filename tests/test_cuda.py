@@ -15,7 +15,8 @@ import pytest
 import torch
 
 from renderer.cameras import EOS_6D
-from renderer import load_scene, render
+from renderer import load_scene
+from renderer import render
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 
@@ -77,7 +78,7 @@ def test_cuda_photometric_target_render_equals_cpu():
     from tiltfit.experiments import reproduce
     from renderer import Lens, ThinLensCamera, axis_angle_to_matrix
     from tiltfit.photometric import hammersley_disc_samples, render_target
-    from tiltfit.target import Target
+    from tiltfit.target.layout import Target
 
     board = Target(tuple(50.0 * i for i in range(7)), tuple(50.0 * j for j in range(5)), (0, 0), 25.0)
     sensor = EOS_6D.binned(16)
@@ -101,8 +102,8 @@ def test_cuda_photometric_target_render_equals_cpu():
 
 
 def test_cuda_cli_render(tmp_path):
-    from renderer.cli import main
-    from renderer.io import read_image
+    from renderer.cli.main import main
+    from camio.files import read_image
 
     scene = os.path.join(os.path.dirname(__file__), "..", "renderer", "scenes", "tilt_fig9a.json")
     common = [scene, "--set", "image.width=48", "--set", "image.height=32", "--spp", "2", "--quiet",
@@ -114,7 +115,7 @@ def test_cuda_cli_render(tmp_path):
 
 
 def test_cuda_default_chunk_is_large_and_changes_nothing():
-    from renderer.render import CPU_CHUNK_RAYS, default_chunk_rays
+    from renderer.tracing.render import CPU_CHUNK_RAYS, default_chunk_rays
 
     assert default_chunk_rays("cuda") > CPU_CHUNK_RAYS, "a GPU should trace more rays per batch than the CPU"
     assert default_chunk_rays("cpu") == CPU_CHUNK_RAYS
@@ -127,8 +128,8 @@ def test_cuda_default_chunk_is_large_and_changes_nothing():
 
 @pytest.mark.parametrize("name", ["independent", "stratified", "sobol", "center"])
 def test_cuda_camera_samples_are_the_cpu_samples_bit_for_bit(name):
-    from renderer.render import _camera_samples
-    from renderer.sampling import Sampler
+    from renderer.tracing.render import _camera_samples
+    from renderer.tracing.sampling import Sampler
 
     pixel = torch.arange(0, 5000, 7)
     smp = Sampler(name, 16, seed=5)

@@ -44,7 +44,7 @@ def test_readme_has_the_two_quick_starts():
 
 
 def test_readme_render_quick_start(tmp_path):
-    from renderer.io import read_image
+    from camio.files import read_image
 
     printed = run_block(readme_blocks()[0], tmp_path)
     image = read_image(str(tmp_path / "tilt.png"))

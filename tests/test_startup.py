@@ -15,7 +15,7 @@ HEAVY = ("torch", "kornia", "matplotlib", "cv2", "mitsuba")
 
 RUN = """
 import json, sys
-from {package}.cli import main
+from {package}.cli.main import main
 try:
     rc = main({argv!r})
 except SystemExit as e:
@@ -81,9 +81,10 @@ def test_import_renderer_is_light_and_its_names_resolve():
 import json, sys
 import renderer
 light = "torch" not in sys.modules
-import renderer.render
+import renderer.tracing.render
 fn = callable(renderer.render) and not isinstance(renderer.render, type(sys))
-from renderer import render, load_scene, Scene, SceneError
+from renderer import load_scene, Scene, SceneError
+from renderer import render
 names = sorted(n for n in renderer.__all__ if not hasattr(renderer, n))
 try:
     renderer.no_such_name
@@ -97,7 +98,7 @@ print(json.dumps({"light": light, "fn": fn and render is renderer.render, "unres
     assert p.returncode == 0, p.stderr[-2000:]
     got = json.loads(p.stdout.strip().splitlines()[-1])
     assert got["light"], "import renderer loaded torch"
-    assert got["fn"], "renderer.render is not the render function after `import renderer.render`"
+    assert got["fn"], "renderer.render is not the render function after `import renderer.tracing.render`"
     assert got["unresolved"] == [], f"public names that do not resolve: {got['unresolved']}"
     assert got["missing"], "renderer.no_such_name did not raise AttributeError"
     assert got["torch"], "the public names resolved without loading torch: the check above would prove nothing"

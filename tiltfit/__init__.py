@@ -17,10 +17,10 @@ __all__ = ["Calibration", "calibrate_photos"]
 
 
 def __getattr__(name: str):
-    """`tiltfit.calibrate_photos` and `tiltfit.Calibration` (`tiltfit.photos`), imported on first use so that
+    """`tiltfit.calibrate_photos` and `tiltfit.Calibration` (`tiltfit.calibrate.photos`), imported on first use so that
     `import tiltfit` stays light."""
     if name in __all__:
-        from . import photos
+        from tiltfit.calibrate import photos
 
         return getattr(photos, name)
     raise AttributeError(f"module 'tiltfit' has no attribute {name!r}")

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..params import SceneError
+from renderer.core.params import SceneError
 from .polygons import Face, scene_faces
 from .segment import Region, ScreenCamera, Segmenter, Timing
 from .shade import label_pixels, lit_regions, render_regions
@@ -53,7 +53,7 @@ class BeamTracer:
     """Segments and renders one scene for a sequence of camera positions (see the module docstring).
 
     Args:
-        scene: a `renderer.scene.Scene` with a pinhole camera, polyhedron/csg objects.
+        scene: a `renderer.scene.model.Scene` with a pinhole camera, polyhedron/csg objects.
         reuse: keep step (2) between frames (False: every frame from scratch, for comparison).
     """
 

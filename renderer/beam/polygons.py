@@ -20,7 +20,7 @@ import numpy as np
 import shapely
 from shapely.geometry import Polygon, box
 
-from ..params import SceneError
+from renderer.core.params import SceneError
 from ..shapes.csg import CSG
 from ..shapes.polyhedron import Polyhedron
 

@@ -33,7 +33,7 @@ import shapely
 from shapely.geometry import Polygon, box
 
 from ..cameras.projection import project_pinhole
-from ..errors import SceneError
+from camio.errors import SceneError
 from .polygons import MIN_AREA, areal, clip_halfspace, polygons_of, pyramid
 
 # The integrator drops paths whose throughput falls to this; the segmentation stops recursing there too.
@@ -72,7 +72,7 @@ class ScreenCamera:
     def of(camera) -> "ScreenCamera":
         """From a renderer PinholeCamera without distortion (the segmentation projects straight lines)."""
         from ..cameras.pinhole import PinholeCamera
-        from ..params import SceneError
+        from renderer.core.params import SceneError
 
         if not isinstance(camera, PinholeCamera):
             raise SceneError(f"camera.type: beam tracing needs a pinhole camera, got {type(camera).__name__}")

@@ -3,7 +3,7 @@
 A region's beam reflects from the mirrors of its signature and ends on its target face (or the background).
 For each pixel the ray from the eye meets level j's face in that level's virtual scene (one plane equation,
 no search); the point is moved back to the real scene and shaded there, with the integrator's model
-(`renderer.materials`):
+(`renderer.scene.materials`):
 
     L = Σ_j T_j · (1 − r_j) · local_j  +  T_end · (background if the beam leaves the scene),
     T_0 = 1, T_{j+1} = T_j · r_j,
@@ -92,7 +92,7 @@ def shade_local(face, material, x: np.ndarray, d: np.ndarray, lights, lit: list,
     """Local radiance (N, 3) leaving points x (N, 3) of `face` towards rays of direction d (N, 3).
 
     Args:
-        material: the face's `renderer.materials.Material`.
+        material: the face's `renderer.scene.materials.Material`.
         lit: the face's lit polygons per light (`lit_regions`).
         eps: the ray tracer's offset of shadow-ray origins along the normal (`Scene.ray_epsilon`); the
             light's distance and direction are taken from there, as the integrator does.

@@ -1,6 +1,6 @@
 """Cameras, registered by name and built from plain dicts (the scene file's `camera` section).
 
-Each camera module declares its parameters (`PARAMS`, a list of `renderer.params.Param`) and a builder
+Each camera module declares its parameters (`PARAMS`, a list of `renderer.core.params.Param`) and a builder
 `from_config(cfg, transform, width, height) -> Camera`, and registers them with `register_camera`.
 `build_camera(path, cfg, width, height)` validates a dict and builds the camera it names (both in
 `registry`, which the camera modules import: they never import this package).
@@ -18,11 +18,11 @@ from .base import Camera, Screen, screen_from_config  # noqa: F401  (re-exported
 from .registry import CAMERAS, POSE_PARAMS, SCREEN_PARAMS, build_camera, register_camera  # noqa: F401
 
 # Registration happens on import of each camera module.
-from . import pinhole  # noqa: F401
-from . import orthographic  # noqa: F401
-from . import inverted_perspective  # noqa: F401
-from . import thin_lens  # noqa: F401
-from . import accumulation  # noqa: F401
+from renderer.cameras import pinhole  # noqa: F401
+from renderer.cameras import orthographic  # noqa: F401
+from renderer.cameras import inverted_perspective  # noqa: F401
+from renderer.cameras import thin_lens  # noqa: F401
+from renderer.cameras import accumulation  # noqa: F401
 
 from .lens import (DISTORTION_CENTRES, EOS_6D, Lens, Sensor, lens_tilt_from_opencv, opencv_tilt,  # noqa: F401
                    tilt_rotation)

@@ -18,7 +18,7 @@ import copy
 
 import torch
 
-from ..rays import Rays, normalize
+from renderer.core.rays import Rays, normalize
 from .registry import register_camera
 from .thin_lens import THIN_LENS_PARAMS, ThinLensCamera
 
@@ -77,7 +77,7 @@ def render_accumulation(scene, lens_uv: torch.Tensor, spp: int = 1, **render_kwa
     Returns:
         RenderResult: the mean image and the mean coverage over the passes.
     """
-    from ..render import RenderResult, render
+    from renderer.tracing.render import RenderResult, render
 
     if lens_uv.ndim != 2 or lens_uv.shape[-1] != 2 or lens_uv.shape[0] < 1:
         raise ValueError(f"lens_uv: expected shape (n, 2) with n >= 1, got {tuple(lens_uv.shape)}")

@@ -11,9 +11,9 @@ from dataclasses import dataclass
 
 import torch
 
-from ..params import SceneError
-from ..rays import Rays
-from ..transforms import CameraTransform
+from renderer.core.params import SceneError
+from renderer.core.rays import Rays
+from renderer.core.transforms import CameraTransform
 from .projection import normalised_from_pixels, pixels_from_normalised, project_pinhole
 
 #: `Camera.undistort_pixels` keeps a map of the inverse distortion, nodes every this many pixels, for calls with at

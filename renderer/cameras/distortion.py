@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..params import SceneError
+from renderer.core.params import SceneError
 
 N_COEFFICIENTS = 8
 COEFFICIENT_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
@@ -345,7 +345,7 @@ class BrownConrady:
 
 def distortion_from_config(path: str, cfg) -> BrownConrady | None:
     """Parse `{model: "brown_conrady", coefficients: [...], centre: "sensor"|"lens_axis"}` (None or null: no
-    distortion). The centre is the caller's to apply (`renderer.scenefile`: a thin lens's frame).
+    distortion). The centre is the caller's to apply (`renderer.scene.file`: a thin lens's frame).
 
     Raises:
         SceneError: naming `path` and the bad field.

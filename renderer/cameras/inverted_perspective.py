@@ -28,9 +28,9 @@ from __future__ import annotations
 
 import torch
 
-from ..params import Param, SceneError
-from ..rays import Rays, normalize
-from ..transforms import CameraTransform
+from renderer.core.params import Param, SceneError
+from renderer.core.rays import Rays, normalize
+from renderer.core.transforms import CameraTransform
 from .base import Camera, Screen, screen_from_config
 from .registry import SCREEN_PARAMS, register_camera
 

@@ -47,9 +47,9 @@ from dataclasses import dataclass
 
 import torch
 
-from ..params import Param, SceneError, parse_params
-from ..rays import Rays, normalize
-from ..transforms import look_at_rotation
+from renderer.core.params import Param, SceneError, parse_params
+from renderer.core.rays import Rays, normalize
+from renderer.core.transforms import look_at_rotation
 from .base import Camera
 from .inverted_perspective import inverted_projection, inverted_rays
 

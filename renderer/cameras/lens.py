@@ -35,8 +35,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
-from .. import optics
-from ..params import DISTORTION_CENTRES  # noqa: F401 - where a lens's distortion is centred (`Lens.distortion_centre`)
+from . import optics
+from renderer.core.params import DISTORTION_CENTRES  # noqa: F401 - where a lens's distortion is centred (`Lens.distortion_centre`)
 
 #: The paper's camera: Canon EOS 6D (5472 × 3648, 6.54 µm pixels) with the TS-E 45 mm at f/2.8, stage-1 estimates.
 PAPER_W_MM, PAPER_U_MM, PAPER_D_MM = 55.39, 618.4, 18.81
@@ -326,7 +326,7 @@ class Lens:
 
     def blur_px(self, p_cam) -> np.ndarray:
         """(..., 3) camera-frame points -> (...,) blur-disc diameters, pixels: the exact thin-lens value for a lens
-        tilted about its centre (`renderer.optics.blur_diameter_exact`, the equivalent-area diameter of the
+        tilted about its centre (`renderer.cameras.optics.blur_diameter_exact`, the equivalent-area diameter of the
         blur ellipse); for θF = 0 it is the paper's eq (2)."""
         p = self.to_tilt_frame(torch.as_tensor(np.asarray(p_cam, dtype=np.float64)))
         b = optics.blur_diameter_exact(p, self.w, self.U, self.d, self.theta_F)

@@ -1,14 +1,14 @@
 """The one camera model: pose, lens and sensor mapping as a torch module with tensor parameters, V views sharing
 one lens. It renders (`view_camera(v)` is the renderer's `ThinLensCamera` of view v, built from the module's own
 tensors, so gradients of a rendered image reach every parameter) and it is fitted (tiltfit's calibration uses it
-as `tiltfit.model.TiltLensCamera`: pinhole geometry plus thin-lens blur, paper eqs 2–4). Its two closed-form
+as `tiltfit.calibrate.model.TiltLensCamera`: pinhole geometry plus thin-lens blur, paper eqs 2–4). Its two closed-form
 calls, both differentiable in every parameter:
 
     project(X_world, view) -> uv_px    uv = c + (w / p) · D(x / z, y / z),  (x, y, z) = R X + T
     blur(X_world, view)    -> b_px     blur-disc diameter b = w d |1/z_F − 1/z| / p     (eqs 2 and 4)
 
 The projection is `renderer.cameras.projection.project_pinhole` (the same function as every renderer camera's
-chief-ray projection), the blur `renderer.optics.blur_diameter`, rotations `renderer.transforms`.
+chief-ray projection), the blur `renderer.cameras.optics.blur_diameter`, rotations `renderer.core.transforms`.
 
 Conventions (docs/conventions.md): camera frame x right, y down, z forward; X_cam = R X_world + T;
 pixel (0, 0) is the centre of the top-left pixel and the principal point defaults to ((W−1)/2, (H−1)/2);
@@ -20,9 +20,9 @@ D is the lens's Brown–Conrady distortion in OpenCV's order and normalisation
 untilted camera equals `cv2.projectPoints` with K = [[w/p, 0, cx], [0, w/p, cy], [0, 0, 1]]. With
 `distortion_centre="lens_axis"` D acts in the lens's own frame, about its axis (`renderer.Lens.distortion_frame`,
 `distortion.distort_about_axis`): a tilted camera then equals OpenCV's tilted model (τx, τy; see
-tiltfit/export.py); for θL = 0 it is the same model.
+tiltfit/files/export.py); for θL = 0 it is the same model.
 
-Blur models (`blur_model`; closed forms from `renderer.optics`, all equal to eq (2) when θF = 0):
+Blur models (`blur_model`; closed forms from `renderer.cameras.optics`, all equal to eq (2) when θF = 0):
     "ellipse" (default): equivalent-area diameter 2 sqrt(ab) of the exact blur ellipse of an ideal thin lens
         tilted about its centre by θL (θL from θF, w, U by the exact Scheimpflug relation).
     "first_order": b = w d |1/z_F − 1/z| with z_F = U z / (z − y tan θF), where the chief ray meets the plane
@@ -48,9 +48,9 @@ import math
 
 import torch
 
-from .. import optics
-from ..optics import BLUR_MODELS
-from ..transforms import axis_angle_to_matrix, matrix_to_axis_angle, rotated_point_jacobian
+from . import optics
+from renderer.cameras.optics import BLUR_MODELS
+from renderer.core.transforms import axis_angle_to_matrix, matrix_to_axis_angle, rotated_point_jacobian
 from .distortion import (COEFFICIENT_NAMES, MODEL_TERMS, BrownConrady, distort, distort_coefficient_jacobian,
                          distort_jacobian)
 from .distortion import distort_about_axis_jacobians

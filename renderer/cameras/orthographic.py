@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import torch
 
-from ..params import Param
-from ..rays import Rays
+from renderer.core.params import Param
+from renderer.core.rays import Rays
 from .base import Camera
 from .registry import register_camera
 

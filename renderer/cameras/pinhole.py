@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from ..rays import Rays, unit_vectors_from_rows, vectors_from_rows
+from renderer.core.rays import Rays, unit_vectors_from_rows, vectors_from_rows
 from .base import Camera
 from .registry import SCREEN_PARAMS, register_camera
 

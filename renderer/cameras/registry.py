@@ -4,8 +4,8 @@
 once it is imported."""
 from __future__ import annotations
 
-from ..params import Param, SceneError, parse_params
-from ..transforms import CameraTransform
+from renderer.core.params import Param, SceneError, parse_params
+from renderer.core.transforms import CameraTransform
 from .base import Camera
 
 CAMERAS: dict[str, tuple[list[Param], object]] = {}
@@ -36,7 +36,7 @@ def register_camera(name: str, params: list[Param]):
 def camera_class(kind: str):
     """The registered class of camera type `kind` (plugins loaded if needed), or None."""
     if kind not in CAMERAS:
-        from ..plugins import load_plugins
+        from renderer.scene.plugins import load_plugins
 
         load_plugins()
     entry = CAMERAS.get(kind)
@@ -49,7 +49,7 @@ def build_camera(path: str, cfg: dict, width: int, height: int) -> Camera:
         raise SceneError(f"{path}: expected an object, got {cfg!r}")
     kind = cfg.get("type", "pinhole")
     if kind not in CAMERAS:
-        from ..plugins import load_plugins
+        from renderer.scene.plugins import load_plugins
 
         load_plugins()
     if kind not in CAMERAS:

@@ -8,7 +8,7 @@
 | `d` | scene | required | aperture diameter (0: a pinhole) |
 | `sensor_size` | scene | required | [width, height] of the sensor at distance w |
 | `theta_F_deg` | degrees | 0 | tilt of the plane of focus z = U + y tan θF about the camera x axis, \\|θF\\| < 90 |
-| `theta_L_deg` | degrees | — | lens tilt instead of `theta_F_deg`, converted exactly (`renderer.optics`) |
+| `theta_L_deg` | degrees | — | lens tilt instead of `theta_F_deg`, converted exactly (`renderer.cameras.optics`) |
 | `principal_point_px` | pixels | centre | (cx, cy) where the optical axis meets the image |
 | `tilt_axis_deg` | degrees | 0 | direction φ of the tilt axis from the camera x axis (a tilt-shift lens's rotation), \\|φ\\| ≤ 360 |
 | `focus_points` | scene | — | three world points the plane of focus passes through, instead of U/f and the tilts |
@@ -44,11 +44,11 @@ import math
 
 import torch
 
-from .. import optics
-from ..blend import carries_derivative, selector
-from ..params import Param, SceneError
-from ..rays import Rays, normalize_rows_, unit_vectors_from_rows, vectors_from_rows
-from ..transforms import CameraTransform
+from . import optics
+from renderer.core.blend import carries_derivative, selector
+from renderer.core.params import Param, SceneError
+from renderer.core.rays import Rays, normalize_rows_, unit_vectors_from_rows, vectors_from_rows
+from renderer.core.transforms import CameraTransform
 from .base import Camera, Screen
 from .distortion import BrownConrady
 from .lens import Lens
@@ -121,7 +121,7 @@ def focus_lens(path: str, cfg: dict, transform: CameraTransform) -> Lens:
         raise SceneError(f"{path}.focus_points: {str(e).removeprefix('points: ')}") from None
 
 
-# The tilt axis's range, the same as CALIB.json's (`tiltfit.calibfile`): a turn either way. A larger number is a
+# The tilt axis's range, the same as CALIB.json's (`tiltfit.files.calib`): a turn either way. A larger number is a
 # typing error, not a rotation (1e9° would quietly render as 280°).
 MAX_TILT_AXIS_DEG = 360.0
 
@@ -311,7 +311,7 @@ class ThinLensCamera(Camera):
         Every ray `generate_rays` traces from the sensor point of `uv_px` leaves a point L of the lens disc and
         passes through that point's conjugate, its focus point q (on the plane of focus): the ray is the line
         (L, q). A pixel's blur is therefore the aperture disc seen through q, in closed form
-        (`tiltfit.aperture` integrates a checkerboard over it exactly).
+        (`tiltfit.photometric.aperture` integrates a checkerboard over it exactly).
 
         Args:
             uv_px: (..., 2) pixel positions (distorted pixels are traced through their ideal positions, as in

@@ -3,7 +3,7 @@ do not express: a Phong highlight (Mitsuba 3 has no Phong BSDF), and a diffuse w
 ambient light (Mitsuba's albedo AOV, which `export.develop` multiplies by the ambient intensity, would include
 the weight; ours does not). Written in Python with Dr.Jit arithmetic like `renderer.mitsuba.sensors`.
 
-The model is renderer/materials.py's local term, lit by a light from direction l (cosine included, as in
+The model is renderer/scene/materials.py's local term, lit by a light from direction l (cosine included, as in
 every Mitsuba BSDF):
     f · cos = w · [kd · c/π + ks · (s + 2)/(2π) · max(0, r·v)^s] · max(0, n·l),   r = 2 (n·l) n − l,
 with the albedo c (the `reflectance` texture, given as w · c), the weights kd (`diffuse`), ks (`specular`),

@@ -44,9 +44,9 @@ import os
 import numpy as np
 import torch
 
-from ..materials import CheckerTexture, GridTexture, ImageTexture
+from renderer.scene.materials import CheckerTexture, GridTexture, ImageTexture
 
-from ..transforms import world_from_local_4x4 as _matrix
+from renderer.core.transforms import world_from_local_4x4 as _matrix
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
 

@@ -37,7 +37,7 @@ import sys
 import numpy as np
 import torch
 
-from ..interrupts import held
+from camio.interrupts import held
 from .export import load_mitsuba, shape_dicts
 
 # Shape types with an exact Mitsuba counterpart (see the module docstring).
@@ -208,7 +208,7 @@ def llvm_available() -> bool:
     (`export.jit_variant_runs` tries a kernel in a child process), any failure meaning no."""
     if not _LLVM:
         # A Ctrl-C is held over the import and the probe: one inside the extension's import came back as an
-        # ImportError, read here as "no Mitsuba", and the render went on (renderer.interrupts).
+        # ImportError, read here as "no Mitsuba", and the render went on (camio.interrupts).
         with held():
             try:
                 _LLVM.append(load_mitsuba(DEFAULT_VARIANT).variant().startswith("llvm"))

@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from ..cameras.lens import Lens
-from ..transforms import world_from_local_4x4
+from renderer.core.transforms import world_from_local_4x4
 
 _REGISTERED: set = set()
 COEFFICIENT_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")  # OpenCV's order, as the scene file's

@@ -10,7 +10,7 @@ import os
 
 import torch
 
-from ..params import Param, SceneError, check_value, parse_params
+from renderer.core.params import Param, SceneError, check_value, parse_params
 from .base import ParameterError, Shape
 
 SHAPES: dict[str, tuple[list[Param], object]] = {}
@@ -30,7 +30,7 @@ def build_shape(path: str, cfg: dict, base_dir: str = ".") -> Shape:
         raise SceneError(f"{path}: expected an object, got {cfg!r}")
     kind = cfg.get("type")
     if kind not in SHAPES:
-        from ..plugins import load_plugins
+        from renderer.scene.plugins import load_plugins
 
         load_plugins()
     if kind not in SHAPES:

@@ -13,7 +13,7 @@ Two optional fast paths, same results (tests/renderer/test_fast_paths.py):
   defeats its vectorised loops. Shapes with `soa_native = True` implement it (and `intersect` calls it,
   keeping their former (N, 3) code as `intersect_reference`); the default transposes;
 - `normal_at(p, aux)` -> (N, 3): the normal alone, for untextured objects (no texture coordinates computed);
-  shapes with `soa_native` also have `normal_rows(p, aux)` for (3, N) rows (renderer/direct.py).
+  shapes with `soa_native` also have `normal_rows(p, aux)` for (3, N) rows (renderer/tracing/direct.py).
 Shapes keep their parameters in float64 and convert them once per device/dtype (`_param`), again when one
 is replaced or edited in place. A bad
 parameter raises `ParameterError` naming it; `build_shape` prefixes the scene-file path.
@@ -24,7 +24,7 @@ import math
 
 import torch
 
-from ..rays import component_rows
+from renderer.core.rays import component_rows
 
 INF = float("inf")
 
@@ -140,7 +140,7 @@ def quadratic_roots(a: torch.Tensor, half_b: torch.Tensor, c: torch.Tensor,
 
 
 def geometry_key(scene) -> tuple:
-    """What caches built from a scene's shapes (the Embree scene, `renderer.direct`'s normal tables) depend
+    """What caches built from a scene's shapes (the Embree scene, `renderer.tracing.direct`'s normal tables) depend
     on, cheaply: per object its shape (type, identity) and, for each attribute, the tensor's identity,
     storage and in-place version counter (or the plain value). Replacing a shape (the way to move one: shapes
     convert their parameters once, `Shape._param`), giving it new tensors or editing them in place changes

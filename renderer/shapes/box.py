@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import torch
 
-from ..transforms import euler_xyz_deg
+from renderer.core.transforms import euler_xyz_deg
 from .base import INF, positive
 from .placed import PlacedShape
 from .polyhedron import clip_convex, coordinates_across

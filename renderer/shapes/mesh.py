@@ -28,8 +28,8 @@ from __future__ import annotations
 
 import torch
 
-from ..transforms import euler_xyz_deg
-from ..validation import FLOAT32_MAX
+from renderer.core.transforms import euler_xyz_deg
+from camio.checks import FLOAT32_MAX
 from .base import INF, ParameterError, Shape
 from .polyhedron import coordinates_across
 

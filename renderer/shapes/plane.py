@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import torch
 
-from ..rays import normalize
+from renderer.core.rays import normalize
 from .base import INF, ParameterError, Shape
 
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import torch
 
-from ..transforms import euler_xyz_deg
+from renderer.core.transforms import euler_xyz_deg
 from .base import INF, positive
 from .placed import PlacedShape
 

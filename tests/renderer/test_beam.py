@@ -12,11 +12,11 @@ import torch
 
 from renderer.beam import BeamTracer, ScreenCamera
 from renderer.beam.polygons import solid_faces
-from renderer.cli import main
-from renderer.io import read_image
-from renderer.params import SceneError
-from renderer.render import render
-from renderer.scenefile import load_scene
+from renderer.cli.main import main
+from camio.files import read_image
+from renderer.core.params import SceneError
+from renderer.tracing.render import render
+from renderer.scene.file import load_scene
 from renderer.shapes import build_shape
 
 SCENE = "renderer/scenes/beam_fig2.json"

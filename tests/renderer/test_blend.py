@@ -1,8 +1,8 @@
-"""renderer.blend: the branch-free select equals torch.where bit for bit, and falls back where it must."""
+"""renderer.core.blend: the branch-free select equals torch.where bit for bit, and falls back where it must."""
 import pytest
 import torch
 
-from renderer.blend import select, selector
+from renderer.core.blend import select, selector
 
 SPECIAL = [float("inf"), float("-inf"), float("nan"), -0.0, 0.0, 1e-45, -3.5]
 

@@ -8,13 +8,14 @@ from __future__ import annotations
 import pytest
 import torch
 
-from renderer import ImageSettings, Light, Material, Scene, SceneError, SceneObject, render
+from renderer import ImageSettings, Light, Material, Scene, SceneError, SceneObject
+from renderer import render
 from renderer.cameras import build_camera
 from renderer.cameras.base import Screen
 from renderer.cameras.inverted_perspective import InvertedPerspectiveCamera
 from renderer.cameras.orthographic import OrthographicCamera
 from renderer.shapes import build_shape
-from renderer.transforms import CameraTransform
+from renderer.core.transforms import CameraTransform
 
 W, H = 41, 29  # odd and non-square, so a swapped or off-by-half pixel convention shows
 SCREEN_SIZE = (0.82, 0.58)  # pitch 0.02 at q3 = 1

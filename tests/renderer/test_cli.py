@@ -9,10 +9,10 @@ import sys
 import numpy as np
 import pytest
 
-from renderer.cli import main
-from renderer.io import read_image
-from renderer.render import render
-from renderer.scenefile import load_scene
+from renderer.cli.main import main
+from camio.files import read_image
+from renderer.tracing.render import render
+from renderer.scene.file import load_scene
 
 
 def scene_dict(width=16, height=12):

@@ -1,4 +1,4 @@
-"""`renderer render --backend mitsuba` and `--cluster` (renderer/backends.py)."""
+"""`renderer render --backend mitsuba` and `--cluster` (renderer/cli/backends.py)."""
 import os
 
 import numpy as np
@@ -7,9 +7,9 @@ import pytest
 pytest.importorskip("mitsuba")
 
 from renderer import render  # noqa: E402
-from renderer.cli import main  # noqa: E402
-from renderer.io import read_image  # noqa: E402
-from renderer.scenefile import load_scene  # noqa: E402
+from renderer.cli.main import main  # noqa: E402
+from camio.files import read_image  # noqa: E402
+from renderer.scene.file import load_scene  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("restore_mitsuba_variant")  # conftest: no variant left behind
 
@@ -84,7 +84,7 @@ def test_export_maps_a_distortion_and_names_where_it_does_not_invert():
 def test_distorted_camera_renders_our_image():
     """A distorted tilted thin lens (through our plugin) and a distorted pinhole: Mitsuba's mean intensity is
     ours within 1 %, and pixel by pixel far closer than without the distortion."""
-    from renderer.backends import render_mitsuba
+    from renderer.cli.backends import render_mitsuba
 
     for camera in (["camera.theta_F_deg=15"], ['camera={"type": "pinhole", "fov_deg": 50}']):
         size = ["image.width=24", "image.height=24", *camera]
@@ -102,7 +102,7 @@ def test_mitsuba_line_names_distortion_sampler_and_ignored_options(tmp_path, cap
     """A distortion that does not invert at the corners, the scene-default sobol sampler and
     --intersector/--compile given: all named in the one line (even with --quiet), and the image records the
     sampler Mitsuba used."""
-    from renderer.io import image_metadata
+    from camio.files import image_metadata
 
     out = str(tmp_path / "m.exr")
     rc = main(["render", SCENE, "-o", out, "--backend", "mitsuba", "--quiet", "--intersector", "torch", "--compile",
@@ -133,7 +133,7 @@ def test_mitsuba_line_lists_nothing_for_an_exact_scene(tmp_path, capsys):
 
 def test_compile_with_cluster_is_named(monkeypatch, tmp_path, capsys):
     """--compile with --cluster: the cluster traces uncompiled, and one stderr line says so."""
-    import renderer.distributed as distributed
+    import renderer.tracing.distributed as distributed
 
     seen = {}
 
@@ -150,7 +150,7 @@ def test_compile_with_cluster_is_named(monkeypatch, tmp_path, capsys):
 
 def test_device_with_mitsuba_is_named(capsys):
     """Mitsuba renders on its own (CPU) variant: a --device other than cpu is named as ignored."""
-    from renderer.backends import render_with
+    from renderer.cli.backends import render_with
 
     scene = load_scene(SCENE, ["image.width=8", "image.height=8"])
     result = render_with("mitsuba", None, scene, 1, "independent", device="cuda", seed=0, progress=False)

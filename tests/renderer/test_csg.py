@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from renderer.params import SceneError
+from renderer.core.params import SceneError
 from renderer.shapes import build_shape
 from renderer.shapes.csg import CSG
 

@@ -19,9 +19,9 @@ import torch
 
 from renderer import render
 from renderer.mitsuba import intersect as mi_intersect
-from renderer.scenefile import load_scene
+from renderer.scene.file import load_scene
 
-RENDER = sys.modules["renderer.render"]  # the module (the package exports the function under the same name)
+RENDER = sys.modules["renderer.tracing.render"]
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 CFG = {
     "image": {"width": 24, "height": 16, "spp": 2, "max_depth": 1},
@@ -237,9 +237,9 @@ def test_auto_workers_give_the_one_process_image(monkeypatch):
 UNGUARDED = """
 import sys, warnings
 import torch
-import renderer.render  # noqa: F401
-from renderer.scenefile import load_scene
-render_module = sys.modules["renderer.render"]
+import renderer.tracing.render  # noqa: F401
+from renderer.scene.file import load_scene
+render_module = sys.modules["renderer.tracing.render"]
 render_module.AUTO_WORKERS_MIN_RAYS = 1  # every render would start workers,
 render_module._cores = lambda: 2  # two of them, on any machine
 scene = load_scene({cfg!r})
@@ -272,8 +272,8 @@ def test_spawn_safe_reads_the_main_guard(tmp_path):
 
 EDITED = """
 import os, sys
-import renderer.render  # noqa: F401
-render_module = sys.modules["renderer.render"]
+import renderer.tracing.render  # noqa: F401
+render_module = sys.modules["renderer.tracing.render"]
 
 
 def safe():

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from renderer.cameras.distortion import BrownConrady, distort, distortion_from_config, undistort
-from renderer.params import SceneError
+from renderer.core.params import SceneError
 
 COEFFS = {
     "opencv5": [-0.21, 0.05, 0.0027, 0.0007, -0.0055],
@@ -61,7 +61,7 @@ def test_config_parsing_names_the_field():
 
 
 def test_scene_camera_with_distortion_matches_opencv_and_traces_through_undistorted_pixels():
-    from renderer.scenefile import build_scene
+    from renderer.scene.file import build_scene
 
     W, H, f_px = 321, 241, 250.0
     cfg = {"image": {"width": W, "height": H},
@@ -85,7 +85,7 @@ def test_scene_camera_with_distortion_matches_opencv_and_traces_through_undistor
 
 def test_thin_lens_with_distortion_focuses_the_distorted_pixel_on_its_point():
     """Every lens sample's ray at the distorted pixel of a point on the plane of focus passes through it."""
-    from renderer.scenefile import build_scene
+    from renderer.scene.file import build_scene
 
     W, H, w, U, pitch = 201, 151, 50.0, 600.0, 0.05
     cfg = {"image": {"width": W, "height": H},

@@ -1,4 +1,4 @@
-"""Renders on a local Ray cluster (renderer/distributed.py) give the single-process image bit for bit."""
+"""Renders on a local Ray cluster (renderer/tracing/distributed.py) give the single-process image bit for bit."""
 import numpy as np
 import pytest
 import torch
@@ -6,8 +6,8 @@ import torch
 ray = pytest.importorskip("ray")
 
 from renderer import render  # noqa: E402
-from renderer.distributed import render_on_ray  # noqa: E402
-from renderer.scenefile import load_scene  # noqa: E402
+from renderer.tracing.distributed import render_on_ray  # noqa: E402
+from renderer.scene.file import load_scene  # noqa: E402
 
 SCENES = {"tilted thin lens": ("tilt_fig9b", ["image.width=40", "image.height=30", "image.spp=4"]),
           "layers": ("fig10", ["image.width=32", "image.height=24", "image.spp=2"])}
@@ -18,7 +18,7 @@ SCENES = {"tilted thin lens": ("tilt_fig9b", ["image.width=40", "image.height=30
 def test_ray_render_equals_single_process(cluster, name):
     """Same seed, same image: every pixel equal, with chunks small enough to make many tasks (a split
     that changed sampling or order would show)."""
-    from renderer.cli import resolve_scene
+    from renderer.cli.main import resolve_scene
 
     path, overrides = SCENES[name]
     scene = load_scene(resolve_scene(path), overrides)
@@ -34,8 +34,8 @@ def test_ray_render_equals_single_process(cluster, name):
 @pytest.mark.slow
 def test_cli_cluster_flag_writes_the_same_image(cluster, tmp_path):
     """`renderer render --cluster auto` (joining the running local cluster) writes the single-process image."""
-    from renderer.cli import main, resolve_scene
-    from renderer.io import read_image
+    from renderer.cli.main import main, resolve_scene
+    from camio.files import read_image
 
     overrides = ["image.width=24", "image.height=16", "image.spp=2"]
     out = str(tmp_path / "c.exr")
@@ -54,8 +54,8 @@ ANIMATIONS = {"trace": ("tilt_fig9b", 3, 5.0, ["image.width=24", "image.height=1
 
 def _animate_frames(monkeypatch, tmp_path, method, cluster):
     """animate() with the float frames the driver writes captured: ({frame file: image}, rows)."""
-    import renderer.animate as an
-    from renderer.cli import resolve_scene
+    import renderer.cli.animate as an
+    from renderer.cli.main import resolve_scene
 
     written = {}
     monkeypatch.setattr(an, "write_image", lambda path, image: written.__setitem__(
@@ -86,7 +86,7 @@ def test_animate_on_cluster_equals_single_process(cluster, monkeypatch, tmp_path
 
 
 def test_contiguous_runs_cover_every_frame_once():
-    from renderer.animate import contiguous_runs
+    from renderer.cli.animate import contiguous_runs
 
     for frames, workers in ((5, 2), (3, 8), (10, 3), (1, 1)):
         runs = contiguous_runs(frames, workers)
@@ -99,7 +99,7 @@ def test_map_on_cluster_here_and_on_ray_agree(cluster):
     """The generic helper: results in input order, here and as tasks; a task's exception comes back as itself."""
     import operator
 
-    from renderer.distributed import imap_on_cluster, map_on_cluster
+    from renderer.tracing.distributed import imap_on_cluster, map_on_cluster
 
     items = [3, 1, 2, 0]
     assert map_on_cluster(operator.mul, items, None, shared=10) == [30, 10, 20, 0], "here"
@@ -112,7 +112,7 @@ def test_map_on_cluster_here_and_on_ray_agree(cluster):
 
 def test_cli_animate_unreachable_cluster_is_one_line(tmp_path, capsys):
     """A bad --cluster address: one line naming it, exit 2, no output folder left behind."""
-    from renderer.cli import main
+    from renderer.cli.main import main
 
     out = tmp_path / "frames"
     status = main(["animate", "beam_fig2", "--method", "trace", "--frames", "2", "-o", str(out),
@@ -128,8 +128,8 @@ def test_cli_animate_cluster_flag_writes_the_same_frames(cluster, tmp_path):
     the same command without --cluster; the seed reaches the tasks."""
     import csv
 
-    from renderer.cli import main
-    from renderer.io import read_image
+    from renderer.cli.main import main
+    from camio.files import read_image
 
     args = ["animate", "tilt_fig9b", "--method", "trace", "--frames", "2", "--step", "5", "--quiet",
             "--set", "image.width=24", "--set", "image.height=16", "--set", "image.spp=2"]

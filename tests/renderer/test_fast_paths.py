@@ -3,7 +3,7 @@
 - `Shape.intersect_soa` on (3, N) rows against each shape's `intersect_reference` (the former (N, 3) code):
   same hit/miss, t to float64 rounding, same face index (aux); `need_aux=False` the same t.
 - `normal_rows` / `uv_rows` against `surface`.
-- `renderer.direct.trace_direct` (direct light on rows) against the general integrator (fast_paths=False):
+- `renderer.tracing.direct.trace_direct` (direct light on rows) against the general integrator (fast_paths=False):
   the same image to float32 rounding, with ambient light, a background, a tilted lens and layers' object
   masks; scenes it cannot render exactly do not take it.
 """
@@ -14,10 +14,10 @@ import pytest
 import torch
 
 from renderer import render
-from renderer.direct import applies
-from renderer.integrator import trace
+from renderer.tracing.direct import applies
+from renderer.tracing.integrator import trace
 from renderer.shapes import Box, Cone, Cylinder, Plane, Rectangle, Sphere
-from renderer.scenefile import load_scene
+from renderer.scene.file import load_scene
 
 SCENE = os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks", "scenes", "speed_thin_lens.json")
 SHAPES = {
@@ -81,7 +81,7 @@ def test_rows_normals_and_uv_match_surface(name):
 def test_checker_palette_index_is_evaluate_on_rows():
     """The checker's row form (what the fast paths gather colours with) picks the colour `evaluate` gives, on
     both sides of cell borders and of the origin (negative cells), in float32 and float64."""
-    from renderer.materials import CheckerTexture, ImageTexture
+    from renderer.scene.materials import CheckerTexture, ImageTexture
 
     tex = CheckerTexture(0.25, ((0.9, 0.1, 0.2), (0.1, 0.8, 0.3)))
     for dtype in (torch.float32, torch.float64):

@@ -1,4 +1,4 @@
-"""The compiled direct-light path for Embree renders (`renderer.fused`, `render(intersector="mitsuba",
+"""The compiled direct-light path for Embree renders (`renderer.tracing.fused`, `render(intersector="mitsuba",
 compile=True)`) against the eager path with the same intersector: the same samples, camera rays and shading
 formulas, so the images agree to float rounding (Inductor may contract or reorder float operations; a ray
 grazing an edge could then change its hit, hence the small allowance for a few pixels).
@@ -21,9 +21,10 @@ from renderer.mitsuba.export import jit_variant_runs  # noqa: E402
 if not jit_variant_runs("llvm_ad_rgb"):
     pytest.skip("mitsuba's llvm_ad_rgb variant does not run here (needs LLVM >= 16)", allow_module_level=True)
 
-from renderer import fused, render  # noqa: E402
-from renderer.scene import TraceOptions  # noqa: E402
-from renderer.scenefile import build_scene, load_scene  # noqa: E402
+from renderer.tracing import fused
+from renderer import render  # noqa: E402
+from renderer.scene.model import TraceOptions  # noqa: E402
+from renderer.scene.file import build_scene, load_scene  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SPEED = os.path.join(ROOT, "benchmarks", "scenes", "speed_thin_lens.json")
@@ -114,9 +115,9 @@ def test_cli_compile_flag_reaches_render(tmp_path, monkeypatch):
     intersector); without the flag the scene's own setting stands (compile=None)."""
     import sys
 
-    from renderer.cli import main as cli_main
+    from renderer.cli.main import main as cli_main
 
-    render_module = sys.modules["renderer.render"]
+    render_module = sys.modules["renderer.tracing.render"]
     seen = []
     real = render_module.render
 

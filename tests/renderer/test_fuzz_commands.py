@@ -143,8 +143,8 @@ def test_cluster_port_that_is_not_ray_fails_fast_with_one_line(tmp_path, monkeyp
     import functools
     import time
 
-    from renderer import distributed
-    from renderer.cli import main
+    from renderer.cli import distributed
+    from renderer.cli.main import main
 
     monkeypatch.setattr(distributed, "_check_reachable",
                         functools.partial(distributed._check_reachable, timeout=1.0))
@@ -228,7 +228,7 @@ def test_compile_under_quiet_prints_no_torch_warnings(tmp_path, monkeypatch, qui
 
     import torch
 
-    from renderer.cli import main
+    from renderer.cli.main import main
 
     def noisy_compile(fn, *args, **kwargs):
         def run(*a, **k):

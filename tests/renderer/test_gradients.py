@@ -20,7 +20,7 @@ from renderer import CameraTransform, load_scene, write_image
 from renderer.cameras.base import Screen
 from renderer.cameras import Lens
 from renderer.cameras.thin_lens import ThinLensCamera
-from renderer.integrator import trace
+from renderer.tracing.integrator import trace
 
 W_PX, H_PX, PITCH = 9, 7, 0.5  # a tiny sensor: 4.5 x 3.5 scene units at distance w
 SCENES = Path(__file__).resolve().parents[2] / "renderer" / "scenes"

@@ -12,7 +12,7 @@ import time
 
 import pytest
 
-from renderer.render import _cores
+from renderer.tracing.render import _cores
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from processes import children as _children  # noqa: E402  (shared with benchmarks/probe_group_interrupt.py)

@@ -7,10 +7,10 @@ import math
 import pytest
 import torch
 
-from renderer.integrator import trace
-from renderer.render import render
-from renderer.scenefile import load_scene
-from renderer.transforms import euler_xyz_deg
+from renderer.tracing.integrator import trace
+from renderer.tracing.render import render
+from renderer.scene.file import load_scene
+from renderer.core.transforms import euler_xyz_deg
 
 F64 = torch.float64
 AMBIENT_ONLY = [{"type": "ambient", "intensity": [1, 1, 1]}]

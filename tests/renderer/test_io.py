@@ -9,8 +9,8 @@ import sys
 import numpy as np
 import pytest
 
-from renderer import io as rio
-from renderer.io import ImageIOError, atomic_output, image_metadata, read_image, write_image
+from camio import files as rio
+from camio.files import ImageIOError, atomic_output, image_metadata, read_image, write_image
 
 # Largest slope of the sRGB decoding curve (at code 1.0): 2.4/1.055 · (1.055/1.055)^1.4 ≈ 2.275; a half-step of
 # quantisation in sRGB codes is at most this much in linear values.
@@ -153,7 +153,7 @@ def test_sigkill_during_a_write_leaves_nothing_behind(tmp_path):
     out = tmp_path / "out.png"
     out.write_bytes(b"previous")
     code = ("import os, signal\n"
-            "from renderer.io import atomic_output\n"
+            "from camio.files import atomic_output\n"
             f"with atomic_output({str(out)!r}) as tmp:\n"
             "    with open(tmp, 'wb') as f:\n"
             "        f.write(b'x' * 100000)\n"
@@ -169,7 +169,7 @@ def test_sigkill_during_a_write_leaves_nothing_behind(tmp_path):
 def test_atomic_folder_writes_a_subfolder_again(tmp_path):
     """A folder output written twice (`tiltfit report -o DIR` run again): its subfolders are replaced by the new
     ones, not refused because the old ones are not empty, and no staging or old copy is left."""
-    from renderer.io import atomic_folder
+    from camio.files import atomic_folder
 
     out = tmp_path / "report"
     for run in ("first", "second"):

@@ -7,10 +7,10 @@ import pytest
 import torch
 from torch.func import functional_call, jacrev
 
-from renderer import optics
+from renderer.cameras import optics
 from renderer.cameras import LensCamera
 from renderer.cameras.distortion import MODEL_TERMS, COEFFICIENT_NAMES, distort, distort_coefficient_jacobian
-from renderer.transforms import axis_angle_to_matrix, rotated_point_jacobian
+from renderer.core.transforms import axis_angle_to_matrix, rotated_point_jacobian
 
 F64 = torch.float64
 TOL = 1e-9  # relative to the largest derivative; the closed forms agree with autograd to ~1e-15

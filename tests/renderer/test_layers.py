@@ -6,10 +6,11 @@ from __future__ import annotations
 import pytest
 import torch
 
-from renderer import CheckerTexture, ImageSettings, Light, Material, Scene, SceneError, SceneObject, render
+from renderer import CheckerTexture, ImageSettings, Light, Material, Scene, SceneError, SceneObject
+from renderer import render
 from renderer.cameras import build_camera
 from renderer.cameras.layers import Layer, LayerCamera, build_layers
-from renderer.render import render_passes
+from renderer.tracing.render import render_passes
 from renderer.shapes import build_shape
 
 W, H = 61, 45  # odd, non-square
@@ -328,7 +329,7 @@ def test_layer_defaults_and_overrides():
 
 
 def test_scene_file_layers_reach_the_renderer():
-    scenefile = pytest.importorskip("renderer.scenefile")
+    scenefile = pytest.importorskip("renderer.scene.file")
     cfg = {
         "image": {"width": 9, "height": 7},
         "camera": {"type": "pinhole", "fov_deg": 40},

@@ -13,8 +13,8 @@ import torch
 
 from renderer import (CameraTransform, LensCamera, ThinLensCamera, axis_angle_to_matrix, load_scene,
                       matrix_to_axis_angle, project_pinhole, write_image)
-from renderer.integrator import trace
-from renderer.transforms import look_at_rotation
+from renderer.tracing.integrator import trace
+from renderer.core.transforms import look_at_rotation
 
 
 def _random_camera(seed: int, n_views: int = 3) -> LensCamera:

@@ -42,7 +42,7 @@ def test_plane_pieces_cover_the_view_without_gaps():
     near hits, and every point of the outermost square (out to `PLANE_REACH` times the camera's height or the
     scene's extent) lies in some rectangle."""
     from renderer.mitsuba.export import PLANE_REACH, plane_pieces
-    from renderer.scenefile import load_scene
+    from renderer.scene.file import load_scene
 
     scene = load_scene(bench.ISSUE_SCENE, ["camera.look_at=[0, -150, 500]"])  # level camera: horizon in view
     floor = scene.objects[0].shape
@@ -77,7 +77,7 @@ def test_scene_maps_or_names_what_it_drops(mi, name):
     cfg = bench.scene_config(source)
     size = bench.small(cfg, SIDE)
     from renderer.mitsuba import to_mitsuba
-    from renderer.scenefile import load_scene
+    from renderer.scene.file import load_scene
 
     scene = load_scene(source, size, base_dir=None if isinstance(source, str) else str(ROOT))
     dropped = to_mitsuba(scene, SPP)[1]
@@ -94,9 +94,9 @@ def test_issue_case_through_the_command_line(mi, tmp_path, capsys):
     mitsuba` gives our mean intensity within 2 % (was 26 % darker: the floor ended under the sphere) and our
     image pixel by pixel (floor cells in place); the one stderr line and the metadata name only the sampler."""
     from renderer import render
-    from renderer.cli import main
-    from renderer.io import image_metadata, read_image
-    from renderer.scenefile import load_scene
+    from renderer.cli.main import main
+    from camio.files import image_metadata, read_image
+    from renderer.scene.file import load_scene
 
     path = tmp_path / "issue.json"
     path.write_text(json.dumps(bench.ISSUE_SCENE))
@@ -121,8 +121,8 @@ def test_issue_case_through_the_command_line(mi, tmp_path, capsys):
 def test_cli_names_each_dropped_element(mi, tmp_path, capsys):
     """fig6 (mirrors, glass): the one stderr line and the image metadata name each element the scene file
     holds that Mitsuba cannot reproduce."""
-    from renderer.cli import main
-    from renderer.io import image_metadata
+    from renderer.cli.main import main
+    from camio.files import image_metadata
 
     out = str(tmp_path / "f.exr")
     rc = main(["render", "fig6", "-o", out, "--backend", "mitsuba", "--spp", "1", "--quiet",
@@ -195,9 +195,9 @@ def test_every_shape_and_texture_lines_up(mi, tmp_path, camera):
     and our plugin (pinhole with non-square pixels, orthographic): nothing named, the mean within 2 %, and
     pixel by pixel far closer to ours than a mirrored image (the texture cells: the close-ups below)."""
     from renderer import render
-    from renderer.backends import render_mitsuba
-    from renderer.io import write_image
-    from renderer.scenefile import load_scene
+    from renderer.cli.backends import render_mitsuba
+    from camio.files import write_image
+    from renderer.scene.file import load_scene
 
     texture = str(tmp_path / "texture.exr")
     write_image(texture, torch.rand(3, 4, 3, generator=torch.Generator().manual_seed(1)), "linear")
@@ -222,9 +222,9 @@ def test_issue_case_in_the_scalar_variant(mi):
     """The issue-20 scene in Mitsuba's scalar_rgb variant (what runs where Dr.Jit's LLVM backend cannot):
     mean intensity within 2 % of ours as well."""
     from renderer import render
-    from renderer.backends import render_mitsuba
+    from renderer.cli.backends import render_mitsuba
     from renderer.mitsuba import load_mitsuba
-    from renderer.scenefile import load_scene
+    from renderer.scene.file import load_scene
 
     scene = load_scene(bench.ISSUE_SCENE, ["image.width=36", "image.height=24"])
     try:
@@ -263,9 +263,9 @@ def test_texture_cells_land_where_ours_do(mi, tmp_path, shape):
     Mitsuba's image is far closer to ours than Mitsuba's image with the checker colours swapped (or the
     texture image turned upside down) is; cells shifted by half a cell would be halfway between."""
     from renderer import render
-    from renderer.backends import render_mitsuba
-    from renderer.io import write_image
-    from renderer.scenefile import load_scene
+    from renderer.cli.backends import render_mitsuba
+    from camio.files import write_image
+    from renderer.scene.file import load_scene
 
     texture = {"type": "checker", "size": 0.25, "colors": [[0.9, 0.8, 0.3], [0.1, 0.3, 0.8]]}
     if shape == "image_texture":
@@ -303,8 +303,8 @@ def test_phong_and_diffuse_weight_carry_over(mi, material):
     ours pixel by pixel (within 3 % of the mean; the highlight alone, or the ambient light taken with the
     diffuse weight, would be off by far more)."""
     from renderer import render
-    from renderer.backends import render_mitsuba
-    from renderer.scenefile import load_scene
+    from renderer.cli.backends import render_mitsuba
+    from renderer.scene.file import load_scene
 
     mat = MATERIALS[material]
     cfg = {"image": {"width": 24, "height": 24, "spp": 32, "max_depth": 0},

@@ -26,11 +26,11 @@ if not jit_variant_runs("llvm_ad_rgb"):
     pytest.skip("mitsuba's llvm_ad_rgb variant does not run here (needs LLVM >= 16)", allow_module_level=True)
 
 from renderer import render  # noqa: E402
-from renderer.cli import main as cli_main  # noqa: E402
-from renderer.direct import applies  # noqa: E402
+from renderer.cli.main import main as cli_main  # noqa: E402
+from renderer.tracing.direct import applies  # noqa: E402
 from renderer.mitsuba import intersect as mi_intersect  # noqa: E402
-from renderer.scene import TraceOptions  # noqa: E402
-from renderer.scenefile import load_scene  # noqa: E402
+from renderer.scene.model import TraceOptions  # noqa: E402
+from renderer.scene.file import load_scene  # noqa: E402
 
 OURS, EMBREE = TraceOptions(intersector="torch"), TraceOptions(intersector="mitsuba")
 OCTAHEDRON = """v 1 0 0\nv -1 0 0\nv 0 1 0\nv 0 -1 0\nv 0 0 1\nv 0 0 -1

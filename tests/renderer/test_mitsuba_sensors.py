@@ -14,7 +14,7 @@ mi = pytest.importorskip("mitsuba")
 from renderer import render  # noqa: E402
 from renderer.mitsuba import load_mitsuba, to_mitsuba  # noqa: E402
 from renderer.mitsuba.sensors import register, sensor_dict  # noqa: E402
-from renderer.scenefile import load_scene  # noqa: E402
+from renderer.scene.file import load_scene  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("restore_mitsuba_variant")  # conftest: no variant left behind
 

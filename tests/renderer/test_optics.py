@@ -1,10 +1,10 @@
-"""renderer.optics: exact Scheimpflug/hinge relations, the paper's approximations, closed-form blur."""
+"""renderer.cameras.optics: exact Scheimpflug/hinge relations, the paper's approximations, closed-form blur."""
 import math
 
 import pytest
 import torch
 
-from renderer import optics
+from renderer.cameras import optics
 
 DEG = math.pi / 180
 # The paper's stage-1 estimate (NOTES.md §2): w, U in mm.
@@ -14,7 +14,7 @@ W_PAPER, U_PAPER = 55.39, 618.4
 def _lens_conjugate(p, f, theta_L):
     """Conjugate of point p (..., 3) through a thin lens of focal length f at the origin, normal (0, −sin, cos).
 
-    Independent of renderer.optics: 1/s_o + 1/s_i = 1/f with distances along the lens normal, the conjugate
+    Independent of renderer.cameras.optics: 1/s_o + 1/s_i = 1/f with distances along the lens normal, the conjugate
     on the line p–O on the other side (works both ways: scene -> sensor side and sensor -> scene side).
     """
     n = torch.tensor([0.0, -math.sin(theta_L), math.cos(theta_L)], dtype=p.dtype)

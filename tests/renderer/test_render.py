@@ -13,13 +13,13 @@ import warnings
 import pytest
 import torch
 
-import renderer.scene as scene_module
+import renderer.scene.model as scene_module
 from renderer import render
-from renderer.integrator import trace
-from renderer.render import tile_order
-from renderer.sampling import SAMPLERS, Sampler
-from renderer.scene import TraceOptions
-from renderer.scenefile import load_scene
+from renderer.tracing.integrator import trace
+from renderer.tracing.render import tile_order
+from renderer.tracing.sampling import SAMPLERS, Sampler
+from renderer.scene.model import TraceOptions
+from renderer.scene.file import load_scene
 
 PLAIN = TraceOptions(culling=False)
 

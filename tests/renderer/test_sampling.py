@@ -1,7 +1,7 @@
 """Samplers: stratification, decorrelated lens strata, chunk-independence."""
 import torch
 
-from renderer.sampling import Sampler, permute
+from renderer.tracing.sampling import Sampler, permute
 
 
 def test_permute_is_a_bijection_for_any_size_and_key():

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from renderer import SceneError
-from renderer.io import write_image
-from renderer.scenefile import load_scene
+from camio.files import write_image
+from renderer.scene.file import load_scene
 
 SCENES = os.path.join(os.path.dirname(__file__), "..", "..", "renderer", "scenes")
 
@@ -202,7 +202,7 @@ def test_every_shipped_scene_loads(path):
 
 
 def test_every_gallery_entry_loads():
-    from renderer.cli import GALLERY_MANIFEST, read_manifest
+    from renderer.cli.main import GALLERY_MANIFEST, read_manifest
 
     entries = read_manifest(GALLERY_MANIFEST)
     assert len(entries) >= 12, "the paper's Figs. 6-10 are all in the gallery"

@@ -1,4 +1,4 @@
-"""The one sensor model (renderer.sensor): fall-off, noise statistics, 8-bit sRGB, and that the capture
+"""The one sensor model (renderer.cameras.sensor): fall-off, noise statistics, 8-bit sRGB, and that the capture
 simulations use it."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from renderer import Lens, Sensor
-from renderer.sensor import SensorResponse, decode_srgb8, encode_srgb8, radial_falloff
+from renderer.cameras.sensor import SensorResponse, decode_srgb8, encode_srgb8, radial_falloff
 
 
 def test_falloff_is_one_at_the_centre_and_one_minus_v_at_the_corners():
@@ -89,9 +89,9 @@ def test_noisy_sensor_needs_an_rng():
 def test_capture_simulations_use_the_sensor_model():
     """tiltfit's simulated camera and synthetic views expose through this model: the same numbers for the
     same settings and noise draws."""
-    from tiltfit import synth
+    from tiltfit.experiments import synth
     from tiltfit.experiments import reproduce
-    from tiltfit.target import Target
+    from tiltfit.target.layout import Target
 
     cam = reproduce.SimulatedCamera()
     rad = np.random.default_rng(0).random((30, 40, 3)) * 0.9
@@ -130,7 +130,7 @@ def test_a_tensor_is_exposed_like_an_array():
 
 
 def test_uint8_levels_are_written_unchanged(tmp_path):
-    from renderer.io import ImageIOError, read_image, write_image
+    from camio.files import ImageIOError, read_image, write_image
     import OpenImageIO as oiio
 
     levels = np.random.default_rng(2).integers(0, 256, (7, 9, 3), dtype=np.uint8)

@@ -8,10 +8,10 @@ import pytest
 import torch
 
 import renderer
-from renderer.params import SceneError
+from renderer.core.params import SceneError
 from renderer.shapes import (Box, Cone, Cylinder, Mesh, Polyhedron, Rectangle, Sphere, build_shape, load_obj)
 from renderer.shapes import mesh as mesh_module
-from renderer.transforms import euler_xyz_deg
+from renderer.core.transforms import euler_xyz_deg
 
 SCENES = Path(renderer.__file__).parent / "scenes"
 T_MIN = 1e-6

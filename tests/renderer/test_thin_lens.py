@@ -6,15 +6,16 @@ import torch
 
 import renderer.cameras.accumulation  # noqa: F401  (registers thin_lens_accumulation)
 import renderer.cameras.thin_lens  # noqa: F401  (registers thin_lens)
-from renderer import CameraTransform, ImageSettings, Light, Material, Scene, SceneError, SceneObject, render
-from renderer import optics
+from renderer import CameraTransform, ImageSettings, Light, Material, Scene, SceneError, SceneObject
+from renderer import render
+from renderer.cameras import optics
 from renderer.cameras import build_camera
 from renderer.cameras.accumulation import AccumulationBufferCamera, render_accumulation
 from renderer.cameras.base import Screen
 from renderer.cameras.pinhole import PinholeCamera
 from renderer.cameras import Lens
 from renderer.cameras.thin_lens import ThinLensCamera, concentric_disk
-from renderer.materials import CheckerTexture
+from renderer.scene.materials import CheckerTexture
 from renderer.shapes.plane import Plane
 from renderer.shapes.sphere import Sphere
 

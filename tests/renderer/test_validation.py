@@ -1,4 +1,4 @@
-"""renderer.validation: file-level checks shared by every reader (one line naming the file, never a traceback)."""
+"""camio.checks: file-level checks shared by every reader (one line naming the file, never a traceback)."""
 from __future__ import annotations
 
 import json
@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from renderer.validation import (FLOAT32_MAX, MAX_JSON_DEPTH, check_tree, describe, is_finite_number, json_depth,
+from camio.checks import (FLOAT32_MAX, MAX_JSON_DEPTH, check_tree, describe, is_finite_number, json_depth,
                                  number, read_json)
 
 

@@ -1,5 +1,5 @@
 """The aperture in closed form: disc areas cut by lines, the thin lens's focus points, and the target renderer
-that integrates the checker over the disc exactly (`tiltfit.aperture`, `render_target_disc`)."""
+that integrates the checker over the disc exactly (`tiltfit.photometric.aperture`, `render_target_disc`)."""
 from __future__ import annotations
 
 import math
@@ -12,10 +12,10 @@ import renderer
 from renderer.cameras import EOS_6D, Lens
 from renderer.cameras import ThinLensCamera
 from tiltfit.experiments import reproduce
-from tiltfit.aperture import checker_dark_fraction_disc, disc_halfplane_fraction, disc_wedge_fraction, lines_cut
+from tiltfit.photometric.aperture import checker_dark_fraction_disc, disc_halfplane_fraction, disc_wedge_fraction, lines_cut
 from tiltfit.photometric import render_target_disc
 from tiltfit.photometric.render import on_board, pixel_blur_px
-from tiltfit.target import Target
+from tiltfit.target.layout import Target
 
 BOARD = Target(tuple(50.0 * i for i in range(7)), tuple(50.0 * j for j in range(5)), (0, 0), 25.0)
 f64 = dict(dtype=torch.float64)

@@ -14,10 +14,10 @@ import sys
 import numpy as np
 import pytest
 
-from tiltfit.blur_views import BLUR_VIEW_OUTLIER_FACTOR
-from tiltfit.calibration import calibrate
-from tiltfit.cli import main
-from tiltfit.fit import FitOptions
+from tiltfit.calibrate.blur_views import BLUR_VIEW_OUTLIER_FACTOR
+from tiltfit.calibrate.flow import calibrate
+from tiltfit.cli.main import main
+from tiltfit.calibrate.fit import FitOptions
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
 from real_detections import REAL, observations, photos  # noqa: E402
@@ -32,7 +32,7 @@ def industrial():
 
 
 def _with_widths(obs, view, widths):
-    from tiltfit.model import Observations
+    from tiltfit.calibrate.model import Observations
 
     blur = obs.blur_px.numpy().copy()
     blur[view] = widths
@@ -74,8 +74,8 @@ def test_cli_with_a_low_contrast_8_bit_photo_names_it_and_converges(tmp_path, in
     photo (detected here; the good views from DET files of tiltfit's cached detections)."""
     import cv2
 
-    from tiltfit.detfile import describe_detection
-    from tiltfit.target import load_target
+    from tiltfit.files.det import describe_detection
+    from tiltfit.target.layout import load_target
 
     folder = os.path.join(REAL, "industrial_ds1")
     tfile = os.path.join(folder, "target.json")

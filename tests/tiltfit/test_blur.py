@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 import torch
 
-from renderer.io import srgb_to_linear
-from tiltfit.blur import measure_blur, pixel_esf
+from camio.files import srgb_to_linear
+from tiltfit.detect.blur import measure_blur, pixel_esf
 
-from tiltfit.synth import PAPER_CAMERA, look_at_pose, projected_square_px, render_view, with_blur_ratio
-from tiltfit.target import design_target
+from tiltfit.experiments.synth import PAPER_CAMERA, look_at_pose, projected_square_px, render_view, with_blur_ratio
+from tiltfit.target.layout import design_target
 
 torch.set_num_threads(1)
 

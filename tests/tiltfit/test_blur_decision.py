@@ -4,7 +4,7 @@ at the detector's floor) and keeps it where blur is clearly measurable, both wit
 it warns in one line where the blur residuals trend with depth (industrial_ds1; a synthetic capture whose widths
 carry a depth-dependent bias) and not where the widths follow the thin-lens law.
 
-Synthetic captures: the exact thin-lens corners and blur widths (`tiltfit.synth.observe`) of the paper's lens
+Synthetic captures: the exact thin-lens corners and blur widths (`tiltfit.experiments.synth.observe`) of the paper's lens
 from 18 poses straddling the plane of focus, plus Gaussian noise. Real photos: tiltfit's own cached detections
 (benchmarks/real_detections.py).
 """
@@ -20,12 +20,12 @@ import torch
 
 from renderer import Lens
 from renderer.cameras import EOS_6D
-from tiltfit import synth
-from tiltfit.calibration import BLUR_TREND_ALPHA, calibrate
+from tiltfit.experiments import synth
+from tiltfit.calibrate.flow import BLUR_TREND_ALPHA, calibrate
 from tiltfit.experiments import reproduce
-from tiltfit.fit import FitOptions
-from tiltfit.model import Observations
-from tiltfit.report import write_report
+from tiltfit.calibrate.fit import FitOptions
+from tiltfit.calibrate.model import Observations
+from tiltfit.report.plots import write_report
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
@@ -127,7 +127,7 @@ def test_a_blur_trend_with_depth_is_warned_about_only_where_the_law_differs(bias
     follow) leave residuals that trend with depth: one warning line, recorded in CALIB.json's
     model_selection.blur and in the report; widths that follow the law do not (p above α), nor do widths with an
     offset each view's widths share (0.3 px: across few views a cluster-robust Wald test read it as a trend)."""
-    from tiltfit.calibfile import calib_dict
+    from tiltfit.files.calib import calib_dict
 
     obs, lens = _capture(bias_px, view_offset_px=offset_px)
     res = calibrate(obs, "unified", options=FitOptions())
@@ -156,7 +156,7 @@ def test_widths_at_the_detector_floor_leave_the_focus_undetermined_without_a_neg
     beyond infinity) and the calibration ended in a traceback where a later stage (the per-view annotation of a
     fitted board, the projection uncertainty) built a lens with that negative U. U must end undetermined: null
     in CALIB.json with the reason, and no negative U in the fitted camera or its lens."""
-    from tiltfit.calibfile import calib_dict
+    from tiltfit.files.calib import calib_dict
 
     lens = Lens.paper().with_(sensor=SENSOR, U=100_000.0, d=d_mm)
     target = reproduce.calibration_target(reproduce.SetValues())

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from tiltfit.model import Observations
+from tiltfit.calibrate.model import Observations
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 CHARUCO = os.path.join(HERE, "..", "data", "charuco_webcam", "published_corners_4views.csv")
@@ -27,7 +27,7 @@ def views_obs(per_view_px, corners=24):
 def test_one_standard_error_rule_keeps_fewer_terms_within_the_scatter_over_the_views():
     """k1 and opencv5 held out on six views: opencv5 better by 3 % on average but carried by one view keeps k1 (the
     1 % rule took opencv5); the same 3 % on every view takes opencv5."""
-    from tiltfit.validate import _fewest_terms_within_one_se
+    from tiltfit.select.held_out import _fewest_terms_within_one_se
 
     models = ("k1", "opencv5")
     k1 = {"per_view_px": [0.30] * 6, "rms_px": 0.30}
@@ -50,7 +50,7 @@ def test_choice_variance_weighs_models_as_the_choice_does():
     """Two models 30 px apart in cx. Indistinguishable over the views (z ≈ 0) with the rule asking 1 standard error
     of the richer one: the simpler one is chosen and σ holds the richer one at the prior odds exp(-1/2); the richer
     one many standard errors better but not chosen: σ holds nearly all of the difference; chosen: nothing."""
-    from tiltfit.validate import choice_variance
+    from tiltfit.select.held_out import choice_variance
 
     def held(per_view):
         return {"per_view_px": per_view, "rms_px": math.sqrt(np.mean(np.square(per_view)))}
@@ -91,8 +91,8 @@ def test_four_charuco_views_do_not_take_a_free_board():
     """4 views of 12 ChArUco corners (48 corners for the free board's 29 parameters): free is not tried, and the focal
     length is that of the whole stream (OpenCV on all 46 frames: 883 px; the issue's free board gave 396 ± 43 on
     such a set)."""
-    from tiltfit.calibration import calibrate
-    from tiltfit.fit import FitOptions
+    from tiltfit.calibrate.flow import calibrate
+    from tiltfit.calibrate.fit import FitOptions
 
     obs = charuco_four_views()
     res = calibrate(obs, "unified", options=FitOptions(distortion="auto", board="auto"))
@@ -109,13 +109,13 @@ def test_four_charuco_views_do_not_take_a_free_board():
 def test_a_board_asked_for_by_name_is_still_fitted(model):
     """The rule only bounds the automatic choice: `--board free` on the same 48 corners is fitted or refused by the
     fit itself, never by the corner count."""
-    from tiltfit.board_fit import select_board
-    from tiltfit.calibration import fit_geometry
-    from tiltfit.fit import FitOptions
+    from tiltfit.select.board import select_board
+    from tiltfit.calibrate.flow import fit_geometry
+    from tiltfit.calibrate.fit import FitOptions
 
     obs = charuco_four_views()
     opts = FitOptions(distortion="k1", free_principal_point=False, model_selection=False)
-    from tiltfit.start import initialize
+    from tiltfit.calibrate.start import initialize
 
     flat = fit_geometry(initialize(obs, "unified", None, opts, blur=False), obs, opts)
     try:
@@ -138,8 +138,8 @@ def test_industrial_quarters_choose_alike_and_sigma_covers_their_spread():
     sys.path.insert(0, os.path.join(root, "benchmarks"))
     from real_detections import observations
 
-    from tiltfit.calibration import calibrate
-    from tiltfit.fit import FitOptions
+    from tiltfit.calibrate.flow import calibrate
+    from tiltfit.calibrate.fit import FitOptions
 
     obs, _ = observations(os.path.join(root, "data", "real", "industrial_ds1"), 0.0048)
     fits = [calibrate(obs.subset([v for v in range(obs.n_views) if v % 4 == k]), "unified",

@@ -1,4 +1,4 @@
-"""The target as it is (tiltfit.board): on the industrial photos, whose printed board is not the ideal grid (the
+"""The target as it is (tiltfit.target.shape): on the industrial photos, whose printed board is not the ideal grid (the
 data set was published to show that), the fitted board predicts held-out views as well as OpenCV's
 calibrateCameraRO on the same corners and the flat board is rejected; on boards projected by OpenCV (not our
 model) the automatic choice keeps a flat board flat and finds a bent one; CALIB.json carries the fitted board and
@@ -13,15 +13,15 @@ import numpy as np
 import pytest
 import torch
 
-from tiltfit import cli
-from tiltfit.board import WARP_PARAMETERS, Board
-from tiltfit.board_fit import fit_board
-from tiltfit.calibfile import calib_dict, camera_from_calib, read_calib
-from tiltfit.calibration import calibrate
-from tiltfit.fit import FitOptions, without_blur
-from tiltfit.model import Observations, board_points_mm
-from tiltfit.report import coverage_fraction, with_sigma, write_report
-from tiltfit.start import initialize
+from tiltfit.cli import main as cli
+from tiltfit.target.shape import WARP_PARAMETERS, Board
+from tiltfit.select.board import fit_board
+from tiltfit.files.calib import calib_dict, camera_from_calib, read_calib
+from tiltfit.calibrate.flow import calibrate
+from tiltfit.calibrate.fit import FitOptions, without_blur
+from tiltfit.calibrate.model import Observations, board_points_mm
+from tiltfit.report.plots import coverage_fraction, with_sigma, write_report
+from tiltfit.calibrate.start import initialize
 
 ROOT = os.path.join(os.path.dirname(__file__), "..", "..")
 sys.path.insert(0, os.path.join(ROOT, "benchmarks"))

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
-from tiltfit import cli
+from tiltfit.cli import main as cli
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import fuzz_harness  # noqa: E402  (tests/fuzz_harness.py: run a command's main in-process)
@@ -99,7 +99,7 @@ def test_defaults_match_opencv_on_the_same_corners(gopro):
     board = {e["model"]: e for e in data["board_selection"]}
     if data["board"]["model"] == "flat":  # OpenCV's board: as well as OpenCV, and not better than it can be
         assert 0.9 * rms_cv < rms, f"RMS per corner {rms:.4f} px vs OpenCV's {rms_cv:.4f} px"
-    else:  # the board's shape fitted (tiltfit.board): an RMS below OpenCV's, paid for by held-out views
+    else:  # the board's shape fitted (tiltfit.target.shape): an RMS below OpenCV's, paid for by held-out views
         chosen = board[data["board"]["model"]]
         assert chosen["held_out_rms_px"] < 0.99 * board["flat"]["held_out_rms_px"], f"board selection {board}"
         assert chosen["rms_px"] == pytest.approx(rms), "the RMS written is the chosen board's"
@@ -126,7 +126,7 @@ def test_auto_distortion_says_what_and_why(gopro):
     assert sel[chosen[0]]["held_out_rms_px"] <= 1.05 * best, "the chosen model predicts held-out views best"
     assert "folds back" in sel["rational"].get("refused", ""), \
         f"the rational fit folds before its outermost corner: {sel['rational']}"
-    board = next(e for e in data["board_selection"] if e["chosen"])  # chosen after the distortion (tiltfit.board)
+    board = next(e for e in data["board_selection"] if e["chosen"])  # chosen after the distortion (tiltfit.target.shape)
     if board["model"] == "flat":
         assert data["held_out"]["rms_px"] == pytest.approx(sel[chosen[0]]["held_out_rms_px"]), "held-out written"
     else:  # the distortion chosen again with the fitted board: its held-out error, no worse than the board test's

@@ -10,12 +10,12 @@ import sys
 import pytest
 import torch
 
-from tiltfit import cli
-from tiltfit.calibfile import calib_dict
-from tiltfit.fit import FitOptions
-from tiltfit.calibration import calibrate
-from tiltfit.model import PAPER_LENS, PAPER_SENSOR, Observations, TiltLensCamera, random_poses
-from tiltfit.target import Target
+from tiltfit.cli import main as cli
+from tiltfit.files.calib import calib_dict
+from tiltfit.calibrate.fit import FitOptions
+from tiltfit.calibrate.flow import calibrate
+from tiltfit.calibrate.model import PAPER_LENS, PAPER_SENSOR, Observations, TiltLensCamera, random_poses
+from tiltfit.target.layout import Target
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import fuzz_harness  # noqa: E402  (tests/fuzz_harness.py: run a command's main in-process)

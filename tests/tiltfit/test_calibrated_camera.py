@@ -1,7 +1,7 @@
-"""Rendering through a calibration (issue 30 §1): `tiltfit.calibrated.Calibration`, the scene-file `calibrated`
+"""Rendering through a calibration (issue 30 §1): `tiltfit.files.calibrated.Calibration`, the scene-file `calibrated`
 camera and `target` shape, `renderer render --camera`.
 
-The round trip: corners of a known lens (`tiltfit.synth.observe`: the closed-form thin-lens projection, not the
+The round trip: corners of a known lens (`tiltfit.experiments.synth.observe`: the closed-form thin-lens projection, not the
 renderer) are calibrated, the calibration is written as CALIB.json, OpenCV FileStorage and mrcal files, and each
 file's camera must put the board where the true lens does, within the calibration's own projection σ; the
 images rendered through the three files must agree with each other and with the true lens's rendering.
@@ -20,17 +20,17 @@ import torch
 import renderer
 from renderer import Lens
 from renderer.cameras import ThinLensCamera
-from renderer.params import SceneError
+from renderer.core.params import SceneError
 from renderer import Sensor
-from tiltfit import synth
-from tiltfit.calibfile import calib_dict, write_calib
-from tiltfit.calibrated import Calibration, CalibrationError
-from tiltfit.calibration import calibrate
-from tiltfit.export import write_mrcal, write_opencv
-from tiltfit.fit import FitOptions
-from tiltfit.model import Observations
-from tiltfit.scene_plugins import target_texture
-from tiltfit.target import CharucoTarget, design_target, rasterise
+from tiltfit.experiments import synth
+from tiltfit.files.calib import calib_dict, write_calib
+from tiltfit.files.calibrated import Calibration, CalibrationError
+from tiltfit.calibrate.flow import calibrate
+from tiltfit.files.export import write_mrcal, write_opencv
+from tiltfit.calibrate.fit import FitOptions
+from tiltfit.calibrate.model import Observations
+from tiltfit.files.scene_plugins import target_texture
+from tiltfit.target.layout import CharucoTarget, design_target, rasterise
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SENSOR = Sensor(480, 320, 0.012)  # a small sensor: 5.76 × 3.84 mm
@@ -146,7 +146,7 @@ def test_renders_through_the_three_files_agree_with_the_true_lens(capture):
 
 def test_the_rendered_board_is_the_print(capture):
     """The target shape's albedo at each board point is the print's: cell centres dark or light as the target
-    says, the margin light, and the render of a fronto-parallel view matches `tiltfit.target.rasterise`."""
+    says, the margin light, and the render of a fronto-parallel view matches `tiltfit.target.layout.rasterise`."""
     _, target, _, _, _ = capture
     tex = target_texture(target, (0.04, 0.8))
     x0, y0, x1, y1 = target.extent_mm
@@ -236,7 +236,7 @@ def test_bad_calibration_file_names_the_file_and_field(tmp_path, capture):
 def test_render_command_with_camera(capture, tmp_path):
     """`renderer render SCENE --camera CALIB --view K` renders the scene through the calibration's view K at the
     calibration's image size; --view without --camera is refused."""
-    from renderer import cli
+    from renderer.cli import main as cli
 
     _, _, _, folder, _ = capture
     scene = _scene(folder, 0, spp=1)

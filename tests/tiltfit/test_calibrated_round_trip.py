@@ -19,9 +19,9 @@ import renderer
 from renderer import Lens, Sensor
 from renderer.cameras import ThinLensCamera
 from tiltfit import calibrate_photos
-from tiltfit.calibrated import Calibration
-from tiltfit.export import write_mrcal, write_opencv
-from tiltfit.target import design_target
+from tiltfit.files.calibrated import Calibration
+from tiltfit.files.export import write_mrcal, write_opencv
+from tiltfit.target.layout import design_target
 
 pytestmark = pytest.mark.slow
 

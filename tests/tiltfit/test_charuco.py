@@ -7,15 +7,15 @@ import math
 import numpy as np
 import pytest
 
-from tiltfit.charuco import detect_board, detect_charuco, opencv_corners, refine_model
-from tiltfit.detect import DetectionError, detect
+from tiltfit.detect.charuco import detect_board, detect_charuco, opencv_corners, refine_model
+from tiltfit.detect.chessboard import DetectionError, detect
 from tiltfit.experiments.charuco_views import (BOARD, CAMERA, FULL, PARTIAL, TARGET, blurred_renders, pose,
                                                square_px)
-from tiltfit.fit import FitOptions
-from tiltfit.model import Observations
-from tiltfit.photos import fit_with_held_out
-from tiltfit.synth import render_view, renderer_available
-from tiltfit.target import CharucoTarget, Target, TargetError, rasterise, target_from_dict
+from tiltfit.calibrate.fit import FitOptions
+from tiltfit.calibrate.model import Observations
+from tiltfit.calibrate.photos import fit_with_held_out
+from tiltfit.experiments.synth import render_view, renderer_available
+from tiltfit.target.layout import CharucoTarget, Target, TargetError, rasterise, target_from_dict
 
 
 # --- the file format and the printable ----------------------------------------------------------------------
@@ -53,7 +53,7 @@ def test_picture_is_opencvs_board(dictionary, squares, dark_cell):
 
 
 def test_printable_png_and_pdf(tmp_path):
-    from tiltfit import target_cli
+    from tiltfit.cli import target as target_cli
 
     TARGET.save(str(tmp_path / "t.json"))
     rc = target_cli.main(["print", tmp_path / "t.json", "--png", tmp_path / "t.png", "--pdf", tmp_path / "t.pdf",
@@ -217,7 +217,7 @@ def test_ray_traced_half_square_blur_within_005_px():
     the RMS error at the noise's floor (the model fit's Cramér–Rao bound at the truth), two-sided: 0.5–2×."""
     if not renderer_available():
         pytest.skip("renderer has no thin_lens camera / rectangle shape")
-    from tiltfit.detect import to_gray
+    from tiltfit.detect.chessboard import to_gray
 
     R, T = pose(PARTIAL[1])
     r = render_view(TARGET, CAMERA.with_(U=420.0, d=24.0), R, T, method="renderer", spp=256, seed=1, srgb8=True)
@@ -243,9 +243,9 @@ def test_tiltfit_detect_writes_ids_as_positions_and_nulls(tmp_path, blurred_part
     ones at their ids' positions and null elsewhere, which `read_det` accepts back."""
     import cv2
 
-    from renderer.io import linear_to_srgb
-    from tiltfit.cli import main
-    from tiltfit.detfile import read_det
+    from camio.files import linear_to_srgb
+    from tiltfit.cli.main import main
+    from tiltfit.files.det import read_det
 
     img, truth, sq, det = blurred_partial_views[(PARTIAL[0], 0.1)]
     cv2.imwrite(str(tmp_path / "p.png"), np.clip(np.round(255 * linear_to_srgb(np.clip(img, 0, 1))), 0, 255)

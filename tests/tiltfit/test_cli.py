@@ -1,4 +1,4 @@
-"""tiltfit.cli: `tiltfit calibrate` / `detect` end to end on files, and the error contract.
+"""tiltfit.cli.main: `tiltfit calibrate` / `detect` end to end on files, and the error contract.
 
 Detections are written as DET.json files (the format of `tiltfit detect`) from synthetic observations, so
 these tests do not depend on the detector.
@@ -14,10 +14,10 @@ import pytest
 import torch
 
 from renderer import write_image
-from tiltfit.calibfile import REQUIRED_KEYS, SIGMA_KEYS, VIEW_KEYS, camera_from_calib, read_calib
-from tiltfit.cli import main
-from tiltfit.model import PAPER_LENS, PAPER_SENSOR, TiltLensCamera, random_poses, synthesize_observations
-from tiltfit.target import Target
+from tiltfit.files.calib import REQUIRED_KEYS, SIGMA_KEYS, VIEW_KEYS, camera_from_calib, read_calib
+from tiltfit.cli.main import main
+from tiltfit.calibrate.model import PAPER_LENS, PAPER_SENSOR, TiltLensCamera, random_poses, synthesize_observations
+from tiltfit.target.layout import Target
 
 W_MM, U_MM, D_MM = PAPER_LENS["w_mm"], PAPER_LENS["U_mm"], PAPER_LENS["d_mm"]
 F_MM = W_MM * U_MM / (W_MM + U_MM)
@@ -252,10 +252,10 @@ def test_python_m_tiltfit(files):
 
 @pytest.mark.slow
 def test_end_to_end_on_rendered_images(tmp_path, capfd):
-    """Render target photographs (tiltfit.synth), then `tiltfit calibrate` them: detection + fit."""
-    from renderer.io import srgb_to_linear
-    from tiltfit.synth import PAPER_CAMERA, pose_from_axis_angle, render_view
-    from tiltfit.target import design_target
+    """Render target photographs (tiltfit.experiments.synth), then `tiltfit calibrate` them: detection + fit."""
+    from camio.files import srgb_to_linear
+    from tiltfit.experiments.synth import PAPER_CAMERA, pose_from_axis_angle, render_view
+    from tiltfit.target.layout import design_target
 
     target = design_target(9, 6, 25.0, w_mm=W_MM, distance_mm=600.0, inclination_deg=15.0)
     target_file = str(tmp_path / "T.json")
@@ -285,7 +285,7 @@ def test_end_to_end_on_rendered_images(tmp_path, capfd):
 
 
 def test_calib_file_round_trip_and_atomic_write(tmp_path):
-    from tiltfit.calibfile import CalibFileError, write_calib
+    from tiltfit.files.calib import CalibFileError, write_calib
 
     data = {"pixel_pitch_mm": PITCH, "image_size_px": [5472, 3648], "principal_point_px": [2735.5, 1823.5],
             "w_mm": W_MM, "U_mm": U_MM, "d_mm": D_MM, "theta_F_deg": 10.0,

@@ -6,7 +6,7 @@ import os
 import numpy as np
 import pytest
 
-from tiltfit import cli
+from tiltfit.cli import main as cli
 
 DATA = os.path.join(os.path.dirname(__file__), "..", "..", "data", "real", "gopro_wide")
 TARGET = os.path.join(DATA, "target.json")

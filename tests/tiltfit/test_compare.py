@@ -7,13 +7,13 @@ from dataclasses import replace
 
 import pytest
 
-from tiltfit.calibfile import calib_dict
-from tiltfit.calibration import calibrate
-from tiltfit.cli import main
-from tiltfit.fit import FitOptions
-from tiltfit.model import PAPER_LENS, PAPER_SENSOR, TiltLensCamera, board_points_mm, random_poses, \
+from tiltfit.files.calib import calib_dict
+from tiltfit.calibrate.flow import calibrate
+from tiltfit.cli.main import main
+from tiltfit.calibrate.fit import FitOptions
+from tiltfit.calibrate.model import PAPER_LENS, PAPER_SENSOR, TiltLensCamera, board_points_mm, random_poses, \
     synthesize_observations
-from tiltfit.uncertainty import projection_difference
+from tiltfit.uncertainty.covariance import projection_difference
 
 OPTS = FitOptions(model_selection=False, free_principal_point=True, distortion="k1", max_rms_px=None)
 
@@ -137,7 +137,7 @@ def _shifted(path, tmp_path, name, d_cx=0.0, d_cy=0.0, d_focal_px=0.0):
 
 
 def test_compare_prints_a_before_b_and_signs_b_minus_a(calibs, tmp_path, capsys):
-    from tiltfit.compare import plot_titles
+    from tiltfit.uncertainty.compare import plot_titles
 
     a = calibs["a"]
     c = _shifted(a, tmp_path, "c.json", d_cx=4.0, d_cy=-2.0, d_focal_px=10.0)
@@ -201,7 +201,7 @@ def named_calibs():
 
 
 def test_compare_warns_about_shared_views(named_calibs, tmp_path, capsys):
-    from tiltfit.compare import compare
+    from tiltfit.uncertainty.compare import compare
 
     paths = {}
     for name, data in named_calibs.items():
@@ -218,7 +218,7 @@ def test_compare_warns_about_shared_views(named_calibs, tmp_path, capsys):
 
 
 def test_compare_no_warning_for_disjoint_views(named_calibs, calibs, tmp_path, capsys):
-    from tiltfit.compare import shared_views
+    from tiltfit.uncertainty.compare import shared_views
 
     a = dict(named_calibs["A"], views=[v for v in named_calibs["A"]["views"][:6]])
     assert shared_views(a, named_calibs["C"]) == [], "views 0–5 and 6–11 share none"
@@ -232,7 +232,7 @@ def test_compare_no_warning_for_disjoint_views(named_calibs, calibs, tmp_path, c
 
 
 def test_shared_views_by_name_or_corners(named_calibs):
-    from tiltfit.compare import shared_views
+    from tiltfit.uncertainty.compare import shared_views
 
     a, b = named_calibs["A"], named_calibs["B"]
     assert shared_views(a, b) == [(4, 0), (5, 1), (6, 2), (7, 3)], shared_views(a, b)

@@ -14,13 +14,13 @@ import pytest
 import torch
 
 from renderer.cameras import Lens, Sensor
-from tiltfit.calibfile import calib_dict
-from tiltfit.cli import main
-from tiltfit.compare import CompareError, compare
-from tiltfit.export import opencv_camera
-from tiltfit.fit import FitOptions, _fit_camera, _set_free
-from tiltfit.model import Observations, TiltLensCamera, axis_angle_to_matrix, board_points_mm, random_poses
-from tiltfit.uncertainty import calib_lens, covariance_from_calib, projection_difference, projection_sigma
+from tiltfit.files.calib import calib_dict
+from tiltfit.cli.main import main
+from tiltfit.uncertainty.compare import CompareError, compare
+from tiltfit.files.export import opencv_camera
+from tiltfit.calibrate.fit import FitOptions, _fit_camera, _set_free
+from tiltfit.calibrate.model import Observations, TiltLensCamera, axis_angle_to_matrix, board_points_mm, random_poses
+from tiltfit.uncertainty.covariance import calib_lens, covariance_from_calib, projection_difference, projection_sigma
 
 SENSOR = Sensor(1368, 912, 0.02616)
 N_VIEWS = 8
@@ -122,8 +122,8 @@ def test_projection_sigma_matches_monte_carlo_of_refits(monte_carlo):
 @pytest.fixture(scope="module")
 def fitted(tmp_path_factory):
     """A small calibration with a covariance (8 views of the paper's lens, k1), written to a file."""
-    from tiltfit.calibration import calibrate
-    from tiltfit.model import PAPER_LENS, PAPER_SENSOR, synthesize_observations
+    from tiltfit.calibrate.flow import calibrate
+    from tiltfit.calibrate.model import PAPER_LENS, PAPER_SENSOR, synthesize_observations
 
     rvec, T = random_poses(8, 1)
     cam = TiltLensCamera(8, **PAPER_SENSOR, **PAPER_LENS, rvec=rvec, T_mm=T, distortion=[-0.05])

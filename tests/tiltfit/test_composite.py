@@ -1,4 +1,4 @@
-"""tiltfit.composite: the board rendered through a calibration of real photos lines up with the photo's corners,
+"""tiltfit.report.composite: the board rendered through a calibration of real photos lines up with the photo's corners,
 and the differential-rendering composite's closed forms."""
 import json
 import math
@@ -9,13 +9,13 @@ import sys
 import numpy as np
 import pytest
 
-from tiltfit import composite
-from tiltfit.calibfile import calib_dict
-from tiltfit.calibrated import Calibration
-from tiltfit.calibration import calibrate
-from tiltfit.fit import FitOptions
-from tiltfit.model import Observations
-from tiltfit.target import load_target
+from tiltfit.report import composite
+from tiltfit.files.calib import calib_dict
+from tiltfit.files.calibrated import Calibration
+from tiltfit.calibrate.flow import calibrate
+from tiltfit.calibrate.fit import FitOptions
+from tiltfit.calibrate.model import Observations
+from tiltfit.target.layout import load_target
 
 ROOT = os.path.join(os.path.dirname(__file__), "..", "..")
 GOPRO = os.path.join(ROOT, "data", "real", "gopro_wide")

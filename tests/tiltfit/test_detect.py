@@ -1,4 +1,4 @@
-"""Corner detection on synthetic images of known geometry (tiltfit.synth, exact disc-blur rendering)."""
+"""Corner detection on synthetic images of known geometry (tiltfit.experiments.synth, exact disc-blur rendering)."""
 import json
 import math
 
@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from tiltfit.detect import (Detection, detect, read_detection_json, refine_symmetric, to_gray,
+from tiltfit.detect.chessboard import (Detection, detect, read_detection_json, refine_symmetric, to_gray,
                             write_detection_json)
 from renderer import Lens, Sensor
-from tiltfit.synth import (PAPER_CAMERA, look_at_pose, observe, projected_square_px, render_view,
+from tiltfit.experiments.synth import (PAPER_CAMERA, look_at_pose, observe, projected_square_px, render_view,
                            with_blur_ratio)
-from tiltfit.target import Target, design_target
+from tiltfit.target.layout import Target, design_target
 
 torch.set_num_threads(1)
 
@@ -173,8 +173,8 @@ def test_detection_json_contract(tmp_path):
 def test_analytic_rendering_equals_brute_force_disc_convolution():
     """Fronto-parallel board, uniform blur: render_analytic against a 16× supersampled image convolved with
     an anti-aliased disc (FFT) and box-averaged back, away from the image border."""
-    from tiltfit.synth import render_analytic
-    from tiltfit.target import rasterise
+    from tiltfit.experiments.synth import render_analytic
+    from tiltfit.target.layout import rasterise
 
     t = Target(tuple(np.arange(0, 81, 10.0)), tuple(np.arange(0, 61, 10.0)), (0, 0), 10.0)
     cam = Lens(50.0, 500.0, 10.0, sensor=Sensor(64, 48, 0.05))
@@ -208,7 +208,7 @@ def test_analytic_rendering_equals_brute_force_disc_convolution():
 @pytest.mark.slow
 def test_ray_tracer_agrees_with_the_analytic_rendering():
     """The renderer's thin-lens camera and textured rectangle show the same image (within Monte Carlo noise)."""
-    from tiltfit.synth import renderer_available
+    from tiltfit.experiments.synth import renderer_available
 
     if not renderer_available():
         pytest.skip("renderer has no thin_lens camera / rectangle shape")

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import torch
 
-from tiltfit.detect import detect_files
-from tiltfit.imaging import apply_homography, homography_dlt
-from tiltfit.opencv_corners import match_labelling, sb_corners
-from tiltfit.target import load_target
+from tiltfit.detect.chessboard import detect_files
+from tiltfit.detect.imaging import apply_homography, homography_dlt
+from tiltfit.detect.opencv import match_labelling, sb_corners
+from tiltfit.target.layout import load_target
 
 torch.set_num_threads(1)
 

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import torch
 
-from renderer.io import linear_to_srgb, srgb_to_linear
-from tiltfit.detect import DetectionError, detect, detect_files
-from tiltfit.opencv_corners import match_labelling, sb_corners
+from camio.files import linear_to_srgb, srgb_to_linear
+from tiltfit.detect.chessboard import DetectionError, detect, detect_files
+from tiltfit.detect.opencv import match_labelling, sb_corners
 from renderer import Lens, Sensor
-from tiltfit.synth import look_at_pose, observe, render_view
-from tiltfit.target import Target, load_target
+from tiltfit.experiments.synth import look_at_pose, observe, render_view
+from tiltfit.target.layout import Target, load_target
 
 torch.set_num_threads(1)
 

@@ -7,12 +7,12 @@ import os
 import numpy as np
 import pytest
 
-from tiltfit.calibfile import read_calib, write_calib
-from tiltfit.cli import _write_json_atomic, main
-from tiltfit.detfile import DET_FORMAT_VERSION, DetFileError, check_view, check_views, describe_detection, read_det
+from tiltfit.files.calib import read_calib, write_calib
+from tiltfit.cli.main import _write_json_atomic, main
+from tiltfit.files.det import DET_FORMAT_VERSION, DetFileError, check_view, check_views, describe_detection, read_det
 from renderer import Lens, Sensor
-from tiltfit.synth import look_at_pose, observe
-from tiltfit.target import target_from_dict
+from tiltfit.experiments.synth import look_at_pose, observe
+from tiltfit.target.layout import target_from_dict
 
 TARGET = target_from_dict({"type": "checkerboard", "x_edges": [0, 25, 50, 75, 100, 125], "y_edges": [0, 30, 55, 75,
                                                                                                        90]})
@@ -91,7 +91,7 @@ def test_every_real_view_passes_and_its_mirror_image_is_refused():
 def test_a_mirror_image_labelled_as_a_turned_board_is_flagged_when_rows_are_non_uniform():
     """A detector labels a mirrored photo with an orientation-preserving placement (rows read backwards); with
     non-uniform rows that placement leaves a large homography residual which reading the rows back removes."""
-    from tiltfit.detfile import mirrored
+    from tiltfit.files.det import mirrored
 
     nonuniform = target_from_dict({"type": "checkerboard", "x_edges": [0, 25, 50, 75, 100, 125, 150],
                                    "y_edges": [0, 18, 38, 60, 84, 110]})
@@ -189,7 +189,7 @@ def test_repeated_views_are_refused_naming_both_files():
 
 def test_detect_writes_a_self_describing_det_file(tmp_path):
     from renderer import write_image
-    from tiltfit.synth import render_view
+    from tiltfit.experiments.synth import render_view
 
     tfile = tmp_path / "T.json"
     TARGET.save(str(tfile))

@@ -8,10 +8,10 @@ import sys
 import cv2
 import pytest
 
-from tiltfit.fit import FitOptions, fit_geometry, without_blur
-from tiltfit.start import initialize
-from tiltfit.calibration import calibrate
-from tiltfit.opencv_corners import opencv_calibrate
+from tiltfit.calibrate.fit import FitOptions, fit_geometry, without_blur
+from tiltfit.calibrate.start import initialize
+from tiltfit.calibrate.flow import calibrate
+from tiltfit.detect.opencv import opencv_calibrate
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
 from real_detections import observations as real_observations  # noqa: E402

@@ -8,10 +8,10 @@ import cv2
 import numpy as np
 import pytest
 
-from tiltfit import cli
-from tiltfit.fit import FitOptions
-from tiltfit.calibration import calibrate
-from tiltfit.model import Observations, board_points_mm, random_poses
+from tiltfit.cli import main as cli
+from tiltfit.calibrate.fit import FitOptions
+from tiltfit.calibrate.flow import calibrate
+from tiltfit.calibrate.model import Observations, board_points_mm, random_poses
 
 W, H, F_PX, PITCH = 1280, 960, 560.0, 0.00155
 BOARD = board_points_mm(8, 6, 25.0)
@@ -74,7 +74,7 @@ def _write_dets(folder, obs, blur_px):
 
 def test_sharp_images_give_exit_0_and_undetermined_focus(tmp_path, capsys):
     """Blur widths all below a pixel (everything in focus): geometric calibration, U and d null."""
-    from tiltfit.target import Target
+    from tiltfit.target.layout import Target
 
     obs = opencv_observations([-0.25, 0.06, 0, 0, 0], n_views=10, seed=7)
     rng = np.random.default_rng(1)

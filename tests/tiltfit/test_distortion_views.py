@@ -8,9 +8,9 @@ import sys
 import numpy as np
 import pytest
 
-from tiltfit.calibration import calibrate
-from tiltfit.fit import FitError, FitOptions
-from tiltfit.validate import MAX_MAPPING_SIGMA_PX, mapping_sigma_px
+from tiltfit.calibrate.flow import calibrate
+from tiltfit.calibrate.fit import FitError, FitOptions
+from tiltfit.select.held_out import MAX_MAPPING_SIGMA_PX, mapping_sigma_px
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
 from real_detections import observations  # noqa: E402
@@ -49,7 +49,7 @@ def test_rational_from_ten_views_is_refused_and_rational5_fitted_and_determined(
 
 
 def test_cli_rational_from_one_view_one_line_exit_2_nothing_written(tmp_path, capsys):
-    from tiltfit import cli
+    from tiltfit.cli import main as cli
 
     with open(os.path.join(DATA, "detections_tiltfit.json"), encoding="utf-8") as f:
         dets = json.load(f)

@@ -1,4 +1,4 @@
-"""tiltfit.evaluate: profiles along polylines, metrics, tables and plots, checked against closed forms."""
+"""tiltfit.photometric.profiles: profiles along polylines, metrics, tables and plots, checked against closed forms."""
 import csv
 import io
 import math
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from tiltfit.evaluate import (EvaluationError, average_error, bias, compare_profiles, csv_table, grey_levels,
+from tiltfit.photometric.profiles import (EvaluationError, average_error, bias, compare_profiles, csv_table, grey_levels,
                               markdown_table, mean_absolute_error, plot_images, plot_profiles, polyline_samples,
                               profile, rmse, save_figure, write_csv, write_markdown)
 

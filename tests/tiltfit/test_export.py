@@ -1,4 +1,4 @@
-"""tiltfit.export: OpenCV FileStorage round trip through cv2.projectPoints, --init from an OpenCV file, kornia."""
+"""tiltfit.files.export: OpenCV FileStorage round trip through cv2.projectPoints, --init from an OpenCV file, kornia."""
 import json
 import os
 import sys
@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from tiltfit import cli
-from tiltfit.calibfile import calib_dict, camera_from_calib, read_calib
-from tiltfit.export import ExportError, kornia_camera, read_opencv, write_opencv
-from tiltfit.fit import FitOptions
-from tiltfit.calibration import calibrate
-from tiltfit.target import load_target
+from tiltfit.cli import main as cli
+from tiltfit.files.calib import calib_dict, camera_from_calib, read_calib
+from tiltfit.files.export import ExportError, kornia_camera, read_opencv, write_opencv
+from tiltfit.calibrate.fit import FitOptions
+from tiltfit.calibrate.flow import calibrate
+from tiltfit.target.layout import load_target
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
 from real_detections import observations  # noqa: E402

@@ -1,22 +1,22 @@
-"""tiltfit.fit: end-to-end calibrations on synthetic observations of the paper's camera.
+"""tiltfit.calibrate.fit: end-to-end calibrations on synthetic observations of the paper's camera.
 
 Camera (paper, §4.2): 5472 × 3648 px, 6.54 µm pixels, w = 55.39 mm, U = 618.4 mm, d = 18.81 mm; a board of
 9 × 6 cells of 25 mm (40 corners) at 520–720 mm in random poses; corner noise 0.05 px, blur noise 3 % of the
 median blur. Tilted views are generated with the exact thin-lens physics: the lens (f = w U / (w + U)) tilted
 by θL about its centre, so U moves (hinge rule) and θF follows the Scheimpflug relation; the blur is the
-exact blur ellipse's equivalent-area diameter (renderer.optics).
+exact blur ellipse's equivalent-area diameter (renderer.cameras.optics).
 """
 import math
 
 import pytest
 import torch
 
-from renderer import optics
-from tiltfit.calibration import calibrate
-from tiltfit.fit import FitError, FitOptions
-from tiltfit.model import (PAPER_LENS, PAPER_SENSOR, TiltLensCamera, board_points_mm, random_poses,
+from renderer.cameras import optics
+from tiltfit.calibrate.flow import calibrate
+from tiltfit.calibrate.fit import FitError, FitOptions
+from tiltfit.calibrate.model import (PAPER_LENS, PAPER_SENSOR, TiltLensCamera, board_points_mm, random_poses,
                            synthesize_observations)
-from tiltfit.start import focal_from_homographies
+from tiltfit.calibrate.start import focal_from_homographies
 
 W_MM, U_MM, D_MM = PAPER_LENS["w_mm"], PAPER_LENS["U_mm"], PAPER_LENS["d_mm"]
 F_MM = W_MM * U_MM / (W_MM + U_MM)
@@ -183,7 +183,7 @@ def _coverage_ok(z) -> tuple[bool, str]:
 def test_uncertainties_are_honest():
     """Across 20 + 20 seeded fits with independent corner noise the errors in units of the classical σ behave like
     N(0, 1) — a two-sided test: the same check fails when σ is scaled by 2 or by 0.5. The default σ (the per-view
-    error model, `tiltfit.uncertainty`, with the classical σ as its floor) may only be conservative here: never
+    error model, `tiltfit.uncertainty.covariance`, with the classical σ as its floor) may only be conservative here: never
     too small, at most about 1.3× the classical (mean z² ≥ 0.5); correlated errors: test_sigma_honest.py."""
     zs, lines, zv = [], [], []
     for seed in range(20):
@@ -308,7 +308,7 @@ def test_blur_scan_on_non_finite_geometry_raises_fit_error_not_type_error():
     """A NaN starting pose (seen from solvePnP on degenerate views) must end in a clear FitError."""
     import pytest as _pytest
 
-    from tiltfit.start import blur_from_scan
+    from tiltfit.calibrate.start import blur_from_scan
 
     p_cam = torch.full((1, 6, 3), float("nan"), dtype=torch.float64)
     blur = torch.ones(1, 6, dtype=torch.float64)

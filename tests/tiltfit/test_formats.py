@@ -8,8 +8,8 @@ import os
 import jsonschema
 import pytest
 
-from renderer.scenefile import read_scene_json
-from tiltfit import formats
+from renderer.scene.file import read_scene_json
+from tiltfit.files import formats
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -17,9 +17,9 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 def test_committed_docs_equal_a_fresh_build():
     for rel, text in formats.build().items():
         path = os.path.join(formats.DOCS, rel)
-        assert os.path.isfile(path), f"{rel} missing: run python -m tiltfit.formats"
+        assert os.path.isfile(path), f"{rel} missing: run python -m tiltfit.files.formats"
         with open(path, encoding="utf-8") as f:
-            assert f.read() == text, f"{rel} is out of date: run python -m tiltfit.formats"
+            assert f.read() == text, f"{rel} is out of date: run python -m tiltfit.files.formats"
 
 
 @pytest.mark.parametrize("name", ["scene", "target", "det"])
@@ -43,7 +43,7 @@ def test_every_shipped_scene_satisfies_the_schema_and_broken_ones_do_not():
 
 
 def test_the_reference_states_the_limits_the_code_enforces():
-    from renderer import scenefile
+    from renderer.scene import file as scenefile
 
     text = formats.build()["file_formats.md"]
     for needle in (f"`spp` ≤ {scenefile.MAX_SPP}", f"`max_depth` ≤ {scenefile.MAX_DEPTH}", "| `radius` |",
@@ -53,7 +53,7 @@ def test_the_reference_states_the_limits_the_code_enforces():
 
 def test_schema_and_validator_agree_on_optional_sections():
     """camera.distortion and animation: accepted by the validator and by the schema alike."""
-    from renderer.scenefile import build_scene
+    from renderer.scene.file import build_scene
 
     validator = jsonschema.Draft202012Validator(json.loads(formats.build()["schemas/scene.schema.json"]))
     cfg = read_scene_json(os.path.join(ROOT, "renderer", "scenes", "fig6.json"))

@@ -35,8 +35,8 @@ MORE_POSES = POSES + tuple((100 + 60 * k, 75 - 40 * k, -900 - 10 * k) for k in r
 def _views(poses=POSES) -> list[dict]:
     """Four DET dicts of the target seen by a synthetic thin-lens camera (w 35 mm, U 900 mm, d 8 mm)."""
     from renderer import Lens, Sensor
-    from tiltfit.synth import look_at_pose, observe
-    from tiltfit.target import target_from_dict
+    from tiltfit.experiments.synth import look_at_pose, observe
+    from tiltfit.target.layout import target_from_dict
 
     t = target_from_dict(TARGET)
     cam = Lens(35, 900, 8, sensor=Sensor(640, 480, 0.02))
@@ -98,15 +98,15 @@ def _blank_png() -> bytes:
 
 
 def _board_png(mirror: bool = False) -> bytes:
-    """An 8-bit photo of BOARD_TARGET (tiltfit.synth's analytic renderer), or its mirror image; cached."""
+    """An 8-bit photo of BOARD_TARGET (tiltfit.experiments.synth's analytic renderer), or its mirror image; cached."""
     key = "mirror" if mirror else "board"
     if key not in _PNG:
         import tempfile
 
         import OpenImageIO as oiio
         from renderer import Lens, Sensor
-        from tiltfit.synth import look_at_pose, render_view
-        from tiltfit.target import target_from_dict
+        from tiltfit.experiments.synth import look_at_pose, render_view
+        from tiltfit.target.layout import target_from_dict
 
         t = target_from_dict(BOARD_TARGET)
         cam = Lens(35, 900, 8, sensor=Sensor(640, 480, 0.02))

@@ -147,7 +147,7 @@ CAMERA_FILES = {  # name: (file name, text, what the one line must name)
 
 @pytest.mark.parametrize("name", sorted(CAMERA_FILES))
 def test_camera_file_refused_with_one_line_naming_the_field(tmp_path, name):
-    from tiltfit.calibrated import Calibration
+    from tiltfit.files.calibrated import Calibration
 
     file, text, field = CAMERA_FILES[name]
     (tmp_path / file).write_text(text)
@@ -159,7 +159,7 @@ def test_camera_file_refused_with_one_line_naming_the_field(tmp_path, name):
 
 def test_camera_file_with_U_and_d_renders_their_blur(tmp_path):
     """The control of the cases above: both lines given, the blur is known and U, d are the file's."""
-    from tiltfit.calibrated import Calibration
+    from tiltfit.files.calibrated import Calibration
 
     (tmp_path / "c.cameramodel").write_text(_mrcal("# tiltfit U_mm = 900.0\n# tiltfit d_mm = 8.0\n"))
     cal = Calibration.read(tmp_path / "c.cameramodel")
@@ -176,7 +176,7 @@ def test_camera_file_with_U_and_d_renders_their_blur(tmp_path):
     ("eye", [0, 0, 900], "R"),
 ])
 def test_camera_pose_of_ones_own_is_checked(tmp_path, R, T, field):
-    from tiltfit.calibrated import Calibration, PoseError
+    from tiltfit.files.calibrated import Calibration, PoseError
 
     (tmp_path / "C.json").write_text(json.dumps(_calib()))
     cal = Calibration.read(tmp_path / "C.json")
@@ -187,7 +187,7 @@ def test_camera_pose_of_ones_own_is_checked(tmp_path, R, T, field):
 
 def test_camera_pose_of_ones_own_is_used(tmp_path):
     """The control: a valid pose is the camera's (its translation is the given T)."""
-    from tiltfit.calibrated import Calibration
+    from tiltfit.files.calibrated import Calibration
 
     (tmp_path / "C.json").write_text(json.dumps(_calib()))
     cal = Calibration.read(tmp_path / "C.json")
@@ -199,7 +199,7 @@ def test_camera_pose_of_ones_own_is_used(tmp_path):
 
 @pytest.mark.parametrize("size", [(80.5, 60), ("80", "60"), (True, 60), (80,)])
 def test_image_size_must_be_two_integers(tmp_path, size):
-    from tiltfit.calibrated import Calibration, CalibrationError
+    from tiltfit.files.calibrated import Calibration, CalibrationError
 
     (tmp_path / "C.json").write_text(json.dumps(_calib()))
     with pytest.raises(CalibrationError, match="image size: expected two integers"):
@@ -207,7 +207,7 @@ def test_image_size_must_be_two_integers(tmp_path, size):
 
 
 def test_project_refuses_points_that_are_not_n_by_3(tmp_path):
-    from tiltfit.calibrated import Calibration, CalibrationError
+    from tiltfit.files.calibrated import Calibration, CalibrationError
 
     (tmp_path / "C.json").write_text(json.dumps(_calib()))
     with pytest.raises(CalibrationError, match=r"C.json: project: expected \(N, 3\)"):
@@ -216,8 +216,8 @@ def test_project_refuses_points_that_are_not_n_by_3(tmp_path):
 
 def test_sampler_refuses_more_samples_per_pixel_than_the_scene_limit():
     """`renderer.render(spp=1e9)` drew a pixel's samples at once (32 GB); the scene files' limit holds there too."""
-    from renderer.params import MAX_SPP
-    from renderer.sampling import Sampler
+    from renderer.core.params import MAX_SPP
+    from renderer.tracing.sampling import Sampler
 
     with pytest.raises(ValueError, match=f"spp: expected an integer in 1..{MAX_SPP}"):
         Sampler("sobol", 10 ** 9)
@@ -231,7 +231,7 @@ def test_opencv_json_export_of_a_fitted_board_is_json(tmp_path, image):
     reader takes; the file must parse as JSON and read back through OpenCV with the same points and names."""
     import cv2
 
-    from tiltfit.cli import main
+    from tiltfit.cli.main import main
 
     grid = [[x, y, 0.1 * x] for y in (25, 50, 75) for x in (25, 50, 75)]
     calib = _calib(board={"model": "free", "points_mm": grid})

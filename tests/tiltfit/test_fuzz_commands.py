@@ -25,8 +25,8 @@ TARGET = {"type": "checkerboard", "units": "mm", "x_edges": [0, 25, 50, 75, 100,
 def _dets() -> dict:
     """Four DET.json files of TARGET seen by a synthetic thin-lens camera (w 35 mm, U 900 mm, d 8 mm)."""
     from renderer import Lens, Sensor
-    from tiltfit.synth import look_at_pose, observe
-    from tiltfit.target import target_from_dict
+    from tiltfit.experiments.synth import look_at_pose, observe
+    from tiltfit.target.layout import target_from_dict
 
     t = target_from_dict(TARGET)
     cam = Lens(35, 900, 8, sensor=Sensor(640, 480, 0.02))
@@ -250,12 +250,12 @@ def _png(pixels) -> bytes:
 
 
 def _board_png(kind: str) -> bytes:
-    """An 8-bit photo of BOARD (tiltfit.synth's renderer): as printed, with dark and light swapped, or
+    """An 8-bit photo of BOARD (tiltfit.experiments.synth's renderer): as printed, with dark and light swapped, or
     mirrored; cached."""
     if not _PNG:
         from renderer import Lens, Sensor
-        from tiltfit.synth import look_at_pose, render_view
-        from tiltfit.target import target_from_dict
+        from tiltfit.experiments.synth import look_at_pose, render_view
+        from tiltfit.target.layout import target_from_dict
 
         t = target_from_dict(BOARD)
         cam = Lens(35, 900, 8, sensor=Sensor(640, 480, 0.02))
@@ -315,9 +315,9 @@ def test_fuzz_case(case):
 def test_export_files_are_accepted_by_init(tmp_path, ext):
     """What `tiltfit export` writes, in every format it writes, reads back through --init's reader and checks
     with the lens and poses unchanged."""
-    from tiltfit.calibfile import validate_calib
-    from tiltfit.cli import main
-    from tiltfit.export import is_opencv_file, read_opencv
+    from tiltfit.files.calib import validate_calib
+    from tiltfit.cli.main import main
+    from tiltfit.files.export import is_opencv_file, read_opencv
 
     (tmp_path / "I.json").write_text(json.dumps(CALIB))
     out = tmp_path / f"cam{ext}"
@@ -354,7 +354,7 @@ def test_interrupt_mid_write_one_line_exit_130_nothing_partial(tmp_path, monkeyp
     and the output folder / file as before the run (no partial plot set, no temporary file)."""
     from matplotlib.figure import Figure
 
-    from tiltfit.cli import main
+    from tiltfit.cli.main import main
 
     (tmp_path / "I.json").write_text(json.dumps(CALIB))
     (tmp_path / "T.json").write_text(json.dumps(TARGET))
@@ -363,10 +363,10 @@ def test_interrupt_mid_write_one_line_exit_130_nothing_partial(tmp_path, monkeyp
         (tmp_path / "rep" / "keep.txt").write_text("mine")
     before = {p.relative_to(tmp_path) for p in tmp_path.rglob("*")}
     if command == "print-png":  # the PNG is written in strips of rows: Ctrl-C after the first strip
-        import tiltfit.target
+        import tiltfit.target.layout
 
-        monkeypatch.setattr(tiltfit.target, "PNG_STRIP_PIXELS", 1 << 12)
-        _interrupt_on_call(monkeypatch, tiltfit.target, "_write_rows", 2)
+        monkeypatch.setattr(tiltfit.target.layout, "PNG_STRIP_PIXELS", 1 << 12)
+        _interrupt_on_call(monkeypatch, tiltfit.target.layout, "_write_rows", 2)
     else:
         _interrupt_on_call(monkeypatch, Figure, "savefig", 3 if command.startswith("report") else 1)
     argv = {"report": ["report", tmp_path / "I.json", "-o", tmp_path / "rep"],
@@ -384,7 +384,7 @@ def test_leftover_of_a_killed_writer_is_removed_by_the_next_run(tmp_path):
     is gone (and leaves a live process's temporary file alone)."""
     import subprocess
 
-    from tiltfit.cli import main
+    from tiltfit.cli.main import main
 
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     pid = int(dead.stdout)
@@ -414,7 +414,7 @@ def test_leftover_of_a_killed_writer_is_removed_by_the_next_run(tmp_path):
 ])
 def test_target_usage_errors_are_one_line(tmp_path, argv, where):
     """argparse's usage errors of `tiltfit target` (a word for a number, a missing option) as one line, exit 2."""
-    from tiltfit.cli import main
+    from tiltfit.cli.main import main
 
     rc, err = fuzz_harness.run_command(main, ["target", *argv, "-o", tmp_path / "x.json"])
     lines = err.strip().splitlines()
@@ -423,10 +423,10 @@ def test_target_usage_errors_are_one_line(tmp_path, argv, where):
 
 
 def _interrupting_atomic_output(monkeypatch):
-    """renderer.io.atomic_output that lets the writer start, then raises KeyboardInterrupt (Ctrl-C mid-write)."""
+    """camio.files.atomic_output that lets the writer start, then raises KeyboardInterrupt (Ctrl-C mid-write)."""
     import contextlib
 
-    from renderer import io
+    from camio import files as io
 
     real = io.atomic_output
 
@@ -455,11 +455,11 @@ def test_interrupt_in_the_atomic_writer_leaves_the_old_output(tmp_path, monkeypa
     out.write_bytes(b"previous")
     _interrupting_atomic_output(monkeypatch)
     if command == "render":
-        from renderer.cli import main
+        from renderer.cli.main import main
 
         argv, prefix = ["render", tmp_path / "s.json", "-o", out, "--quiet"], "renderer"
     else:
-        from tiltfit.cli import main
+        from tiltfit.cli.main import main
 
         prefix = "tiltfit"
         argv = (["export", tmp_path / "I.json", "-o", out, "-q"] if command == "export" else
@@ -476,10 +476,10 @@ def test_transposed_target_on_a_uniform_board_is_refused_by_its_colours(tmp_path
     but on this board (an even number of cells each way) that turn swaps the squares' colours, so no placement
     of the file's board matches the photo: detection refuses in one line naming the contradiction (it labelled
     all corners before, wrongly); the matching file is labelled with no note."""
-    from tiltfit.cli import main
+    from tiltfit.cli.main import main
     from renderer import Lens, Sensor
-    from tiltfit.synth import look_at_pose, render_view
-    from tiltfit.target import target_from_dict
+    from tiltfit.experiments.synth import look_at_pose, render_view
+    from tiltfit.target.layout import target_from_dict
 
     t = target_from_dict(TARGET)
     assert t.n_cols % 2 == 0 and t.n_rows % 2 == 0, "the premise: an even number of cells each way"

@@ -29,8 +29,8 @@ def _dets() -> dict:
     """Four DET.json files of TARGET seen by a synthetic thin-lens camera (w 35 mm, U 900 mm, d 8 mm)."""
     if not _DETS:
         from renderer import Lens, Sensor
-        from tiltfit.synth import look_at_pose, observe
-        from tiltfit.target import target_from_dict
+        from tiltfit.experiments.synth import look_at_pose, observe
+        from tiltfit.target.layout import target_from_dict
 
         t = target_from_dict(TARGET)
         cam = Lens(35, 900, 8, sensor=Sensor(640, 480, 0.02))
@@ -229,7 +229,7 @@ def test_fuzz_case(case):
 @pytest.mark.parametrize("command", ["export", "report", "compare", "detect"])
 def test_a_parse_error_names_the_file_once(tmp_path, command):
     """issue 33 §4: `b.yml: b.yml:1:1: not valid JSON` named the file twice; the location follows it once."""
-    from tiltfit.cli import main
+    from tiltfit.cli.main import main
 
     bad = tmp_path / "b.yml"
     bad.write_text("foo: [1, 2\n")
@@ -248,7 +248,7 @@ def test_export_of_a_lens_axis_calibration_with_theta_L_writes_tau(tmp_path):
     and a note that does not call the projection approximate."""
     import cv2
 
-    from tiltfit.cli import main
+    from tiltfit.cli.main import main
 
     calib = _calib(distortion_centre="lens_axis", theta_F_deg=40.0, theta_L_deg=3.0)
     (tmp_path / "I.json").write_text(json.dumps(calib))

@@ -13,12 +13,13 @@ import numpy as np
 import pytest
 import torch
 
-from renderer import optics, write_image
-from tiltfit import synth
+from renderer import write_image
+from renderer.cameras import optics
+from tiltfit.experiments import synth
 from tiltfit.experiments import reproduce
-from tiltfit.fit import FitOptions
-from tiltfit.calibration import calibrate
-from tiltfit.model import Observations, TiltLensCamera, synthesize_observations
+from tiltfit.calibrate.fit import FitOptions
+from tiltfit.calibrate.flow import calibrate
+from tiltfit.calibrate.model import Observations, TiltLensCamera, synthesize_observations
 
 W_MM, U0_MM, D_MM = 55.39, 618.4, 18.81
 F_MM = float(optics.focal_length(W_MM, U0_MM))
@@ -30,7 +31,7 @@ POSES = [reproduce.target_pose(TARGET, *v) for v in reproduce.TARGET_VIEWS]
 
 def observations(theta_L_deg: float, d_mm: float, seed: int):
     """Synthetic detections of the exact tilted lens: 0.05 px corner noise, blur noise 0.05 px + 2 %
-    (about what tiltfit.detect achieves on 1368 × 912 noisy 8-bit images)."""
+    (about what tiltfit.detect.chessboard achieves on 1368 × 912 noisy 8-bit images)."""
     R = torch.tensor(np.stack([p[0] for p in POSES]))
     T = torch.tensor(np.stack([p[1] for p in POSES]))
     truth = TiltLensCamera.from_tilted_lens(len(POSES), SIZE, PITCH, W_MM, F_MM, d_mm, math.radians(theta_L_deg),
@@ -66,7 +67,7 @@ def test_heavy_blur_rendered_images_calibrate_stage1():
     """Rendered, noisy 8-bit images with d = 37.6 mm (blur up to ~40 % of a square): corners and blur are
     found in every view and stage 1 recovers w, U, d within 3σ."""
     torch.set_num_threads(1)
-    from tiltfit.detect import detect
+    from tiltfit.detect.chessboard import detect
 
     cam = synth.PAPER_CAMERA.with_(d=D_HEAVY_MM).binned(4)
     corners, blur = [], []

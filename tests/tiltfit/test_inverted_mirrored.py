@@ -10,10 +10,10 @@ import os
 import numpy as np
 import pytest
 
-from renderer.io import read_image
-from tiltfit.charuco import MIRROR_IMAGE, detect_board
-from tiltfit.detect import CONTRADICTS, detect, to_gray
-from tiltfit.target import CharucoTarget, Target, TargetError, load_target, target_from_dict
+from camio.files import read_image
+from tiltfit.detect.charuco import MIRROR_IMAGE, detect_board
+from tiltfit.detect.chessboard import CONTRADICTS, detect, to_gray
+from tiltfit.target.layout import CharucoTarget, Target, TargetError, load_target, target_from_dict
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 WEBCAM = os.path.join(ROOT, "tests", "data", "charuco_webcam")
@@ -123,7 +123,7 @@ def test_mirrored_or_transposed_symmetric_board_is_labelled_consistently(gopro):
     """A board of odd × odd uniform cells looks the same mirrored, turned or transposed: nothing in one photo tells
     them apart, so the labels must be a valid view of the file's board (a projective image, orientation kept) and a
     transposition is noted."""
-    from tiltfit.detfile import mirrored
+    from tiltfit.files.det import mirrored
 
     gray, target, normal = gopro
     det = detect(np.ascontiguousarray(gray[:, ::-1]), target, measure_blur=False)
@@ -143,9 +143,9 @@ def test_mirrored_or_transposed_symmetric_board_is_labelled_consistently(gopro):
 
 def test_mirrored_even_by_even_board_is_refused():
     """On a board of 8 × 6 cells a mirror image swaps the colours: no placement explains them (a different
-    renderer from the detector: tiltfit.synth's analytic one)."""
+    renderer from the detector: tiltfit.experiments.synth's analytic one)."""
     from renderer import Lens, Sensor
-    from tiltfit.synth import look_at_pose, render_view
+    from tiltfit.experiments.synth import look_at_pose, render_view
 
     board = Target(tuple(np.arange(0, 161, 20.0)), tuple(np.arange(0, 121, 20.0)), (0, 0), 25.0)
     cam = Lens(50.0, 1e5, 1.0, sensor=Sensor(640, 480, 0.012))

@@ -34,7 +34,7 @@ from import_graph import modules as _modules  # noqa: E402
 #: Experiment modules (a package name covers its submodules).
 EXPERIMENTS = ("tiltfit.experiments",)
 #: Command-line front ends.
-FRONT_ENDS = ("tiltfit", "tiltfit.cli", "tiltfit.__main__")
+FRONT_ENDS = ("tiltfit", "tiltfit.cli", "tiltfit.cli.main", "tiltfit.cli.target", "tiltfit.__main__")
 
 
 def test_find_cycle_finds_a_planted_cycle():
@@ -45,10 +45,11 @@ def test_find_cycle_finds_a_planted_cycle():
 
 def test_resolves_relative_and_function_level_imports(tmp_path):
     src = tmp_path / "x.py"
-    src.write_text("def f():\n    from .detect import build\n    from . import blur\n")
-    known = {"tiltfit", "tiltfit.detect", "tiltfit.blur", "tiltfit.x"}
-    got = sorted(m for m, _ in _imports("tiltfit.x", str(src), known))
-    assert got == ["tiltfit.blur", "tiltfit.detect"], f"function-level relative imports resolved, got {got}"
+    src.write_text("def f():\n    from .chessboard import build\n    from . import blur\n")
+    known = {"tiltfit", "tiltfit.detect", "tiltfit.detect.chessboard", "tiltfit.detect.blur", "tiltfit.detect.x"}
+    got = sorted(m for m, _ in _imports("tiltfit.detect.x", str(src), known))
+    assert got == ["tiltfit.detect.blur", "tiltfit.detect.chessboard"], \
+        f"function-level relative imports resolved, got {got}"
     src.write_text("from .. import reproduce\nfrom ..stability.common import Study\n")
     known |= {"tiltfit.experiments.reproduce", "tiltfit.experiments.stability", "tiltfit.experiments.stability.common",
               "tiltfit.experiments.stability.d"}
@@ -79,12 +80,12 @@ def test_library_never_imports_experiments_or_front_ends():
 
 #: `renderer`'s public API, the only renderer modules tiltfit may import: the package itself (`renderer.__all__`:
 #: LensCamera, ThinLensCamera, project_pinhole, the rotations, render, load_scene, images ...), the cameras
-#: package (`renderer.cameras`: the camera classes and the one camera model), and the modules of shared
-#: concepts: distortion, optics (closed forms), sensor (exposure), transforms (poses), io, validation, params,
-#: formats, distributed, shapes (the registry), cli (the command-line helpers both front ends share).
-RENDERER_PUBLIC = ("renderer", "renderer.cameras", "renderer.cameras.distortion", "renderer.optics",
-                   "renderer.sensor", "renderer.transforms", "renderer.io", "renderer.validation", "renderer.params",
-                   "renderer.formats", "renderer.distributed", "renderer.shapes", "renderer.cli")
+#: package (`renderer.cameras`: the camera classes and the one camera model) with its modules of shared concepts
+#: (distortion, optics: closed forms, sensor: exposure), transforms (poses), params, the scene-file reference
+#: (formats), Ray clusters (distributed) and the shape registry. `camio`, below both, is not renderer.
+RENDERER_PUBLIC = ("renderer", "renderer.cameras", "renderer.cameras.distortion", "renderer.cameras.optics",
+                   "renderer.cameras.sensor", "renderer.core.transforms", "renderer.core.params",
+                   "renderer.scene.formats", "renderer.tracing.distributed", "renderer.shapes")
 
 
 def _renderer_imports(path: str) -> list[tuple[str, str | None, int]]:
@@ -115,11 +116,11 @@ def _private_renderer_uses(path: str) -> list[str]:
 
 def test_the_public_api_check_finds_private_imports(tmp_path):
     src = tmp_path / "x.py"
-    src.write_text("from renderer import LensCamera, optics\nfrom renderer.cameras import project_pinhole\n"
-                   "def f():\n    import renderer.io\n")
+    src.write_text("from renderer import LensCamera; from renderer.cameras import optics\nfrom renderer.cameras import project_pinhole\n"
+                   "def f():\n    import camio.files\n")
     assert _private_renderer_uses(str(src)) == [], "public names and modules pass"
-    src.write_text("from renderer.cameras.thin_lens import ThinLensCamera\nfrom renderer.optics import _tensors\n"
-                   "def f():\n    import renderer.integrator\n")
+    src.write_text("from renderer.cameras.thin_lens import ThinLensCamera\nfrom renderer.cameras.optics import _tensors\n"
+                   "def f():\n    import renderer.tracing.integrator\n")
     got = _private_renderer_uses(str(src))
     assert len(got) == 3, f"an implementation module, a private name and a private module import are found: {got}"
 

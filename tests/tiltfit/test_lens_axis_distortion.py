@@ -18,12 +18,12 @@ import torch
 
 from renderer import Lens
 from renderer.cameras import EOS_6D, LensCamera
-from tiltfit.calibfile import calib_dict, camera_from_calib, validate_calib
-from tiltfit.calibration import calibrate
+from tiltfit.files.calib import calib_dict, camera_from_calib, validate_calib
+from tiltfit.calibrate.flow import calibrate
 from tiltfit.experiments import reproduce
-from tiltfit.export import opencv_text, read_opencv
-from tiltfit.fit import FitOptions
-from tiltfit.model import Observations
+from tiltfit.files.export import opencv_text, read_opencv
+from tiltfit.calibrate.fit import FitOptions
+from tiltfit.calibrate.model import Observations
 
 SENSOR = EOS_6D.binned(4)
 POSES = ((30.0, 0.0, 560.0), (-25.0, 0.0, 480.0), (0.0, 35.0, 600.0), (0.0, -30.0, 650.0), (20.0, 20.0, 540.0),
@@ -287,8 +287,8 @@ def test_scene_file_thin_lens_with_distortion_about_its_axis():
     """A scene file's `camera.distortion.centre: "lens_axis"` on a tilted thin lens: the camera projects as OpenCV's
     tilted model of that lens (built here from the lens's axis), and every lens sample's ray at the distorted pixel
     of a point on the plane of focus passes through it; a wrong centre is refused by name."""
-    from renderer.params import SceneError
-    from renderer.scenefile import build_scene
+    from renderer.core.params import SceneError
+    from renderer.scene.file import build_scene
 
     W, H, pitch = SENSOR.width_px, SENSOR.height_px, SENSOR.pixel_pitch
     theta_L, phi = math.radians(5.0), math.radians(30.0)
@@ -319,7 +319,7 @@ def test_scene_file_thin_lens_with_distortion_about_its_axis():
 
 
 def test_what_other_tools_cannot_hold_is_said_and_bad_tau_files_are_refused(tmp_path):
-    from tiltfit.export import ExportError, mrcal_text
+    from tiltfit.files.export import ExportError, mrcal_text
 
     data = _dict(_camera(5.0, 30.0))
     assert "approximates" in mrcal_text(data), "mrcal has no tilted model: the file says the distortion is approximate"

@@ -2,7 +2,7 @@
 tests/tiltfit/lens_axis_capture.py traces the chief ray and the aperture's rim through a tilted thin lens with numpy
 (radial distortion about the lens axis, k1 −0.12, k2 0.02; corner noise 0.07 px, widths 0.1 px), calibrated as a
 user would: `unified` on untilted captures of the same lens, then `joint` from it. The centre and the terms are
-chosen together (`tiltfit.distortion_centre`): the lens axis with radial terms only, θL within 0.02° and 2σ of the
+chosen together (`tiltfit.calibrate.distortion_centre`): the lens axis with radial terms only, θL within 0.02° and 2σ of the
 truth, for 3 views and 6; the OpenCV export then carries τ. A lens whose distortion is about the principal point
 keeps that centre, tilted or not.
 """
@@ -18,11 +18,11 @@ import pytest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import lens_axis_capture as gen  # noqa: E402  (the independent generator, beside this file)
-from tiltfit.calibfile import calib_dict
-from tiltfit.calibration import calibrate
-from tiltfit.export import opencv_text
-from tiltfit.fit import FitOptions
-from tiltfit.model import Observations
+from tiltfit.files.calib import calib_dict
+from tiltfit.calibrate.flow import calibrate
+from tiltfit.files.export import opencv_text
+from tiltfit.calibrate.fit import FitOptions
+from tiltfit.calibrate.model import Observations
 
 K = (-0.12, 0.02)
 THETA_L = 5.0

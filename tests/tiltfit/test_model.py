@@ -1,4 +1,4 @@
-"""tiltfit.model: projection, blur, parametrisation, residuals and synthetic observations."""
+"""tiltfit.calibrate.model: projection, blur, parametrisation, residuals and synthetic observations."""
 import math
 
 import numpy as np
@@ -6,8 +6,8 @@ import pytest
 import torch
 from torch.func import functional_call
 
-from renderer import optics
-from tiltfit.model import (BLUR_MODELS, PAPER_LENS, PAPER_SENSOR, Observations, TiltLensCamera,
+from renderer.cameras import optics
+from tiltfit.calibrate.model import (BLUR_MODELS, PAPER_LENS, PAPER_SENSOR, Observations, TiltLensCamera,
                            axis_angle_to_matrix, blur_diameter_mm, board_points_mm, loss,
                            matrix_to_axis_angle, normalized_residual_vector, random_poses, residuals,
                            robust_rho, robust_weight, synthesize_observations)

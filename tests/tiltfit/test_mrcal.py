@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from renderer import Lens, Sensor
-from tiltfit.calibfile import camera_from_calib, validate_calib
-from tiltfit.export import ExportError, mrcal_text, read_mrcal
+from tiltfit.files.calib import camera_from_calib, validate_calib
+from tiltfit.files.export import ExportError, mrcal_text, read_mrcal
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 import fuzz_harness  # noqa: E402  (tests/fuzz_harness.py: run a command's main in-process)
@@ -84,7 +84,7 @@ def test_cli_export_and_init(tmp_path):
     calib_path = tmp_path / "calib.json"
     calib_path.write_text(json.dumps(_calib()))
     out = tmp_path / "cam.cameramodel"
-    from tiltfit.cli import main
+    from tiltfit.cli.main import main
 
     rc, err = fuzz_harness.run_command(main, ["export", calib_path, "--to", "mrcal", "-o", out, "-q"])
     assert rc == 0 and out.is_file(), f"export: {err}"

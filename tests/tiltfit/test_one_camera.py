@@ -11,8 +11,8 @@ import torch
 
 import renderer
 from renderer import Lens, Sensor
-from tiltfit import synth
-from tiltfit.model import TiltLensCamera
+from tiltfit.experiments import synth
+from tiltfit.calibrate.model import TiltLensCamera
 
 
 def test_the_calibration_camera_is_the_renderers():

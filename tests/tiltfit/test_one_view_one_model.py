@@ -4,7 +4,7 @@
     k1 ≈ k4 ≈ 260 ± 594 and was accepted (the mapping at the image corner is pinned while the terms trade); it is
     refused now, like the same lens from 12 views (k4 −7.2 ± 8.3), while 3 views that determine it (k4 −24.5 ± 1.7)
     are kept; and a fit without a covariance is refused as undetermined, not taken as 0 px.
-(c) One number of corners a view (`tiltfit.model.MIN_CORNERS`): the fit's `min_corners`, the DET check and
+(c) One number of corners a view (`tiltfit.calibrate.model.MIN_CORNERS`): the fit's `min_corners`, the DET check and
     `tiltfit target design`, which refuses boards that can never be calibrated.
 """
 import math
@@ -13,12 +13,12 @@ import sys
 
 import pytest
 
-from tiltfit.calibration import calibrate
-from tiltfit.cli import main
-from tiltfit.fit import FitError, FitOptions, fit_geometry, without_blur
-from tiltfit.model import MIN_CORNERS
-from tiltfit.start import initialize
-from tiltfit.validate import mapping_sigma_px, undetermined_distortion
+from tiltfit.calibrate.flow import calibrate
+from tiltfit.cli.main import main
+from tiltfit.calibrate.fit import FitError, FitOptions, fit_geometry, without_blur
+from tiltfit.calibrate.model import MIN_CORNERS
+from tiltfit.calibrate.start import initialize
+from tiltfit.select.held_out import mapping_sigma_px, undetermined_distortion
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
 from real_detections import observations  # noqa: E402
@@ -63,7 +63,7 @@ def test_no_covariance_is_undetermined_not_zero(industrial):
 
 def test_min_corners_is_one_number():
     assert FitOptions().min_corners == MIN_CORNERS == 6, (FitOptions().min_corners, MIN_CORNERS)
-    from tiltfit.formats import build
+    from tiltfit.files.formats import build
 
     text = build()["file_formats.md"]
     assert f"at least {MIN_CORNERS} corners" in text and "at least 4 corners" not in text, "docs say the number"

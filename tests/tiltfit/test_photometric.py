@@ -1,6 +1,6 @@
 """Photometric refinement: the analytic target renderer and the fit to ray-traced photographs.
 
-The photographs are rendered by the general ray tracer (`tiltfit.synth.render_view(method="renderer")`:
+The photographs are rendered by the general ray tracer (`tiltfit.experiments.synth.render_view(method="renderer")`:
 thin-lens distributed ray tracing, image texture, Monte Carlo noise), not by the fit's own analytic target
 model, so the fit has to bridge a different generator.
 """
@@ -12,16 +12,17 @@ import numpy as np
 import pytest
 import torch
 
-from renderer import Lens, Sensor, optics
+from renderer import Lens, Sensor
+from renderer.cameras import optics
 from renderer.cameras import EOS_6D
-from tiltfit import synth
+from tiltfit.experiments import synth
 from tiltfit.experiments import reproduce
 from renderer import ThinLensCamera, axis_angle_to_matrix
-from tiltfit.calibfile import camera_from_calib
-from tiltfit.model import TiltLensCamera
+from tiltfit.files.calib import camera_from_calib
+from tiltfit.calibrate.model import TiltLensCamera
 from tiltfit.photometric import (PhotometricOptions, checker_dark_fraction, hammersley_disc_samples,
                                  refine_photometric, render_target)
-from tiltfit.target import Target
+from tiltfit.target.layout import Target
 
 # A coarse board (6 x 4 cells of 50 mm) so heavy blur still leaves structure at 1/16 of the EOS 6D.
 BOARD = Target(tuple(50.0 * i for i in range(7)), tuple(50.0 * j for j in range(5)), (0, 0), 25.0)
@@ -127,11 +128,11 @@ def _perturbed_init(poses, truth, seed=1, d_mm=D_MM, scale=1.0, theta_L_deg=THET
 
 
 def _corner_fit(images, board: Target, pitch: float):
-    """The corner-and-blur calibration (`tiltfit.detect`, then the joint fit) on the same photographs."""
-    from tiltfit.detect import detect
-    from tiltfit.fit import FitOptions
-    from tiltfit.calibration import calibrate
-    from tiltfit.model import Observations
+    """The corner-and-blur calibration (`tiltfit.detect.chessboard`, then the joint fit) on the same photographs."""
+    from tiltfit.detect.chessboard import detect
+    from tiltfit.calibrate.fit import FitOptions
+    from tiltfit.calibrate.flow import calibrate
+    from tiltfit.calibrate.model import Observations
 
     dets = [detect(im, board) for im in images]
     found = [int(d.found.sum()) for d in dets]
@@ -191,7 +192,7 @@ def test_photometric_fit_converges_where_blur_exceeds_the_square():
     d_mm = 60.0  # f/0.9: discs of 1.4 projected squares (median), where no corner detector finds the board
     images, poses, truth = _captures(U0_mm=1400.0, board=SMALL_BOARD, d_mm=d_mm, views=(0, 1, 4))
     assert truth["blur_over_square"] >= 1.3, f"blur / square only {truth['blur_over_square']:.2f}"
-    from tiltfit.detect import detect
+    from tiltfit.detect.chessboard import detect
 
     found = [int(detect(im, SMALL_BOARD, measure_blur=False).found.sum()) for im in images]
     assert max(found) < 4, f"the corner detector must find no board here, found {found} corners"
@@ -245,7 +246,7 @@ def test_calibrate_refine_photometric_on_the_command_line(tmp_path):
     import json
 
     from renderer import write_image
-    from tiltfit import cli
+    from tiltfit.cli import main as cli
 
     w_px, h_px = EOS_6D.binned(DOWNSCALE).size_px
     pitch = EOS_6D.pixel_pitch * DOWNSCALE

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from tiltfit.experiments import exact_capture as ec
-from tiltfit.target import Target
+from tiltfit.target.layout import Target
 
 BOARD = Target(tuple(20.0 * i for i in range(5)), tuple(20.0 * j for j in range(4)), (0, 0), 12.0)
 LOOK = ec.Board()
@@ -135,11 +135,11 @@ FIT_VIEWS = ((20.0, 5.0, 780.0), (-15.0, 15.0, 820.0), (-10.0, -10.0, 800.0))
 def tilted_fit():
     """Three exact captures (240 x 160, lens tilted +5°, 8-bit sRGB with shot and read noise), the corner fit
     (tiltfit's detector and joint fit) and the refinement started from it."""
-    from renderer.io import srgb_to_linear
-    from tiltfit.calibration import calibrate
-    from tiltfit.detect import detect
-    from tiltfit.fit import FitOptions
-    from tiltfit.model import Observations
+    from camio.files import srgb_to_linear
+    from tiltfit.calibrate.flow import calibrate
+    from tiltfit.detect.chessboard import detect
+    from tiltfit.calibrate.fit import FitOptions
+    from tiltfit.calibrate.model import Observations
     from tiltfit.photometric import PhotometricOptions, refine_photometric
 
     W, H, pitch = 240, 160, 0.13
@@ -185,7 +185,7 @@ def test_bound_record_says_which_parameter_is_where(tilted_fit):
         assert b["at_bound"] == (b["parameter"] in {e for e in res.at_bound} or
                                  {"w_mm": "log_w_mm", "U_mm": "inv_U_per_m", "d_mm": "d_scaled",
                                   "theta_F_deg": "theta_F"}[b["parameter"]] in res.at_bound), b
-    from tiltfit.report import photometric_lines
+    from tiltfit.report.plots import photometric_lines
 
     lines = "\n".join(photometric_lines({"photometric": {"kept": res.kept, "bounds": res.bounds,
                                                          "rejected_because": res.rejected_because}}))
@@ -196,7 +196,7 @@ def test_residual_image_of_the_truth_is_noise(tmp_path):
     """At the generator's truth the residual image (photo − rendered board) is the capture's noise on the usable
     pixels and NaN elsewhere; with d 10 % off it shows the edges (a negative control); it plots to a PNG."""
     from tiltfit.photometric import residual_image
-    from tiltfit.report import plot_residual_image
+    from tiltfit.report.plots import plot_residual_image
 
     truth, R, T, (W, H, pitch), D = _forward_case(6.0, 5.0, 20.0)
     photo = (LOOK.paper - (LOOK.paper - LOOK.ink) * D[0]).reshape(H, W)
@@ -229,11 +229,11 @@ def test_heavy_blur_two_views_refinement_is_kept():
     and the corner fit's own RMS on them is in sample, so the refinement one corner-fit σ away costs a few % more
     there. It was rejected for it (0.0210 px against a limit of 1.02 x 0.0203 px) though nearer the truth; the
     corner check now allows the χ² rise of its free lens parameters. Kept, and w, U, d within 2.5 of its σ."""
-    from renderer.io import srgb_to_linear
-    from tiltfit.calibration import calibrate
-    from tiltfit.detect import detect
-    from tiltfit.fit import FitOptions
-    from tiltfit.model import Observations
+    from camio.files import srgb_to_linear
+    from tiltfit.calibrate.flow import calibrate
+    from tiltfit.detect.chessboard import detect
+    from tiltfit.calibrate.fit import FitOptions
+    from tiltfit.calibrate.model import Observations
     from tiltfit.photometric import PhotometricOptions, refine_photometric
 
     W, H, pitch = 240, 160, 0.13

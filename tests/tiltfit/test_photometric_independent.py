@@ -8,7 +8,7 @@ grey wall beyond the board's white margin, an illumination gradient and a glare 
 and a plain gamma-2.2 tone curve to 8 bits, read back as sRGB (so the fit meets a tone curve it does not know).
 The truth (w, U, θF, d, θL) is derived from the same physics (U and θF from two conjugate points).
 
-On those captures, started from the corner-and-blur fit (`tiltfit.detect`, then the joint fit), the refinement
+On those captures, started from the corner-and-blur fit (`tiltfit.detect.chessboard`, then the joint fit), the refinement
 that `refine_photometric` keeps (`chosen_camera`: the refinement, or the corner fit where the held-out evidence
 rejects it) is never worse than the corner fit by more than the photometric σ, for θL, θF and d, and better
 where the corners are biased (heavy blur, ±5° tilt).
@@ -20,7 +20,7 @@ import math
 import numpy as np
 import pytest
 
-from tiltfit.target import Target
+from tiltfit.target.layout import Target
 
 BOARD = Target(tuple(50.0 * i for i in range(7)), tuple(50.0 * j for j in range(5)), (0, 0), 25.0)
 W_PX, H_PX, PITCH_MM, W_MM = 240, 160, 0.13, 55.0
@@ -146,10 +146,10 @@ def _views(case: str, seed: int = 0):
 
 def _corner_start(case: str):
     """(lens, linear images, Observations, corner fit) of one case: tiltfit's detector and joint fit."""
-    from tiltfit.calibration import calibrate
-    from tiltfit.detect import detect
-    from tiltfit.fit import FitOptions
-    from tiltfit.model import Observations
+    from tiltfit.calibrate.flow import calibrate
+    from tiltfit.detect.chessboard import detect
+    from tiltfit.calibrate.fit import FitOptions
+    from tiltfit.calibrate.model import Observations
 
     lens, images, poses = _views(case)
     linear = [_srgb_to_linear(im) for im in images]

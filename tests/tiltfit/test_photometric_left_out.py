@@ -50,7 +50,8 @@ def _with_view(camera, at: int, R, T_mm):
 def _own_model():
     """test_photometric.py's `own_model` (noise-free captures of the fit's own model, 171 x 114, 3 views, and a
     start off like a corner fit's): (images, truth camera, start camera)."""
-    from renderer import Lens, Sensor, optics
+    from renderer import Lens, Sensor
+    from renderer.cameras import optics
     from renderer.cameras import EOS_6D
     from tiltfit.photometric.render import dark_fraction_disc, shade
 
@@ -133,9 +134,9 @@ def _gopro_third_subset():
     sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
     from real_detections import observations
 
-    from tiltfit.fit import FitOptions
-    from tiltfit.photos import fit_with_held_out
-    from tiltfit.target import load_target
+    from tiltfit.calibrate.fit import FitOptions
+    from tiltfit.calibrate.photos import fit_with_held_out
+    from tiltfit.target.layout import load_target
 
     folder = os.path.join(ROOT, "data", "real", "gopro_wide")
     target = load_target(os.path.join(folder, "target.json"))
@@ -196,7 +197,7 @@ def test_real_gopro_subset_end_to_end(gopro_third, capsys):
     """The same subset through the function `tiltfit calibrate --refine photometric -q` runs
     (`cli._refine_photometric`), on three of its views to stay small (GOPR0047, GOPR0053, GOPR0061; the corner
     fit of all eleven): it finishes, GOPR0053.jpg is fitted (not left out), the block says `left_out: []`."""
-    from tiltfit import cli
+    from tiltfit.cli import main as cli
 
     target, small, used, held_out = _three_views(gopro_third)
     assert {"U_mm", "d_mm"} <= set(small.undetermined), f"the GoPro's blur cannot tell U, d: {small.undetermined}"
@@ -218,7 +219,7 @@ def test_command_line_path_records_a_left_out_view(gopro_third, capsys, monkeypa
     """The same three views with GOPR0053.jpg's mask emptied (as the old guard did): `cli._refine_photometric`
     under -q prints one note naming the photo and why, records it in the block's `left_out`, writes no levels
     and no `rms_photometric` for it, and fits the other two."""
-    from tiltfit import cli
+    from tiltfit.cli import main as cli
     from tiltfit.photometric import refine
 
     target, small, used, held_out = _three_views(gopro_third)

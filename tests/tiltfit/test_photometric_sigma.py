@@ -73,10 +73,10 @@ def draw_captures(case: str, draw: int, views=VIEWS, warp_px: float = WARP_PX, l
 
 def corner_start(images, views=VIEWS):
     """The corner fit (tiltfit's detector and joint fit) the refinement starts from in every draw."""
-    from tiltfit.calibration import calibrate
-    from tiltfit.detect import detect
-    from tiltfit.fit import FitOptions
-    from tiltfit.model import Observations
+    from tiltfit.calibrate.flow import calibrate
+    from tiltfit.detect.chessboard import detect
+    from tiltfit.calibrate.fit import FitOptions
+    from tiltfit.calibrate.model import Observations
 
     dets = [detect(im, sim.BOARD) for im in images]
     found = [int(d.found.sum()) for d in dets]

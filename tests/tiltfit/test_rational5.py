@@ -10,13 +10,13 @@ import cv2
 import numpy as np
 import pytest
 
-from tiltfit.calibfile import calib_dict
-from tiltfit.calibration import calibrate
-from tiltfit.export import mrcal_text, opencv_model, opencv_text
-from tiltfit.fit import FitError, FitOptions, without_blur
-from tiltfit.imaging import torch_threads
-from tiltfit.opencv_corners import opencv_calibrate
-from tiltfit.validate import PROJECTION_SIGMA_FACTOR, held_out_rms
+from tiltfit.files.calib import calib_dict
+from tiltfit.calibrate.flow import calibrate
+from tiltfit.files.export import mrcal_text, opencv_model, opencv_text
+from tiltfit.calibrate.fit import FitError, FitOptions, without_blur
+from tiltfit.detect.imaging import torch_threads
+from tiltfit.detect.opencv import opencv_calibrate
+from tiltfit.select.held_out import PROJECTION_SIGMA_FACTOR, held_out_rms
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
 from real_detections import observations  # noqa: E402

@@ -1,7 +1,7 @@
 """A joint fit on images made by the ray tracer (renderer's thin-lens camera, Monte Carlo aperture sampling),
 not by the model being fitted: the lens of the simulated camera tilted by θL = 5° about its centre, five
 target views at 1/8 of the EOS 6D's resolution (684 × 456), 16 samples per pixel, corners and blur from
-`tiltfit.detect`."""
+`tiltfit.detect.chessboard`."""
 import math
 
 import numpy as np
@@ -9,11 +9,11 @@ import pytest
 import torch
 
 from renderer import Lens
-from tiltfit import synth
+from tiltfit.experiments import synth
 from tiltfit.experiments import reproduce
-from tiltfit.fit import FitOptions
-from tiltfit.calibration import calibrate
-from tiltfit.model import Observations
+from tiltfit.calibrate.fit import FitOptions
+from tiltfit.calibrate.flow import calibrate
+from tiltfit.calibrate.model import Observations
 
 THETA_L_DEG = 5.0
 DOWNSCALE = 8
@@ -21,7 +21,7 @@ DOWNSCALE = 8
 
 @pytest.mark.slow
 def test_joint_fit_on_ray_traced_tilted_images():
-    detect = pytest.importorskip("tiltfit.detect").detect
+    detect = pytest.importorskip("tiltfit.detect.chessboard").detect
     torch.manual_seed(0)
     cam0 = reproduce.SimulatedCamera().untilted
     cam = Lens.from_tilt(cam0.w, cam0.f, math.radians(THETA_L_DEG), cam0.d, sensor=cam0.sensor.binned(DOWNSCALE))

@@ -11,10 +11,10 @@ import cv2
 import numpy as np
 import pytest
 
-from tiltfit.fit import FitOptions
-from tiltfit.calibration import calibrate
-from tiltfit.model import Observations
-from tiltfit.target import load_target
+from tiltfit.calibrate.fit import FitOptions
+from tiltfit.calibrate.flow import calibrate
+from tiltfit.calibrate.model import Observations
+from tiltfit.target.layout import load_target
 
 DATA = os.path.join(os.path.dirname(__file__), "..", "..", "data", "real", "gopro_wide")
 FLAGS = {"k1k2": cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST, "opencv5": 0, "rational": cv2.CALIB_RATIONAL_MODEL,

@@ -1,4 +1,4 @@
-"""tiltfit.real_vs_rendered and `tiltfit report`'s real-against-rendered page.
+"""tiltfit.report.real_vs_rendered and `tiltfit report`'s real-against-rendered page.
 
 The synthetic capture is made by the renderer through a known lens, but not the way the report renders it: a point
 light (light falling off over the board), printed reflectances 0.05 / 0.85, 8-bit sRGB, spp 16. The report must
@@ -50,11 +50,11 @@ def _capture(calib: dict, path: str) -> None:
     import torch
 
     import renderer
-    from renderer.io import write_image
-    from renderer.materials import Material
-    from renderer.scene import ImageSettings, Light, Scene, SceneObject
-    from tiltfit.calibrated import Calibration
-    from tiltfit.scene_plugins import TargetBoard
+    from camio.files import write_image
+    from renderer.scene.materials import Material
+    from renderer.scene.model import ImageSettings, Light, Scene, SceneObject
+    from tiltfit.files.calibrated import Calibration
+    from tiltfit.files.scene_plugins import TargetBoard
 
     cal = Calibration.from_dict(calib)
     board = TargetBoard(cal.target, reflectance=(0.05, 0.85))
@@ -75,7 +75,7 @@ def synthetic(tmp_path_factory):
 
 
 def _report(calib, folder, name, **kw):
-    from tiltfit.real_vs_rendered import RealVsRenderedOptions, write_real_vs_rendered
+    from tiltfit.report.real_vs_rendered import RealVsRenderedOptions, write_real_vs_rendered
 
     out = folder / name
     out.mkdir()
@@ -114,7 +114,7 @@ def test_a_wrong_blur_shows_in_the_profiles(synthetic):
 
 
 def test_photo_found_by_name_and_missing_photo_skipped(synthetic, tmp_path):
-    from tiltfit.real_vs_rendered import find_photo
+    from tiltfit.report.real_vs_rendered import find_photo
 
     calib, photo, folder = synthetic
     assert find_photo("elsewhere/capture.png", None, [str(folder)]) == os.path.join(str(folder), "capture.png")
@@ -127,7 +127,7 @@ def test_photo_found_by_name_and_missing_photo_skipped(synthetic, tmp_path):
 
 
 def test_pick_views_and_scale():
-    from tiltfit.real_vs_rendered import RealVsRenderedError, RealVsRenderedOptions, comparison_scale, pick_views
+    from tiltfit.report.real_vs_rendered import RealVsRenderedError, RealVsRenderedOptions, comparison_scale, pick_views
 
     assert pick_views(35, RealVsRenderedOptions()) == [0, 7, 14, 20, 27, 34]
     assert pick_views(3, RealVsRenderedOptions()) == [0, 1, 2]
@@ -162,8 +162,8 @@ def test_report_on_real_gopro_views(tmp_path):
     md = (out / "report.md").read_text()
     assert "## Real against rendered" in md and "GOPR0032.jpg" in md, md[-800:]
 
-    from tiltfit.calibfile import read_calib
-    from tiltfit.real_vs_rendered import RealVsRenderedOptions, write_real_vs_rendered
+    from tiltfit.files.calib import read_calib
+    from tiltfit.report.real_vs_rendered import RealVsRenderedOptions, write_real_vs_rendered
 
     moved = read_calib(FIXTURE)
     moved["principal_point_px"][0] += 8.0
@@ -175,7 +175,7 @@ def test_report_on_real_gopro_views(tmp_path):
 
 
 def test_cli_bad_options_are_one_line(tmp_path, capsys):
-    from tiltfit import cli
+    from tiltfit.cli import main as cli
 
     for args, needle in ((["--views", "0,x"], "--views"), (["--views", "5"], "view 5 does not exist"),
                          (["--spp", "0"], "--spp"), (["--photos", str(tmp_path / "none")], "not a folder")):

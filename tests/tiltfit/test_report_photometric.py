@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from tiltfit.experiments import exact_capture as ec
-from tiltfit.target import Target
+from tiltfit.target.layout import Target
 
 BOARD = Target(tuple(50.0 * i for i in range(7)), tuple(50.0 * j for j in range(5)), (0, 0), 25.0)
 VIEWS = ((20.0, 5.0, 780.0), (-15.0, 15.0, 820.0), (-10.0, -10.0, 800.0))
@@ -31,7 +31,7 @@ STRATA = {"aperture_strata": 5, "pixel_strata": 2}
 
 
 def _linear(img: np.ndarray) -> np.ndarray:
-    from renderer.io import srgb_to_linear
+    from camio.files import srgb_to_linear
 
     return srgb_to_linear(img / 255.0)
 
@@ -41,7 +41,7 @@ def refined(tmp_path_factory):
     """(folder, CALIB.json dict, its path, the true poses, a second capture of view 0 (linear), each photo (linear))."""
     import cv2
 
-    from tiltfit import cli
+    from tiltfit.cli import main as cli
 
     folder = tmp_path_factory.mktemp("photometric_report")
     paths, poses, photos = [], [], []
@@ -89,8 +89,8 @@ def _at_truth(calib: dict, poses, kept: str = "photometric", **change) -> dict:
 def test_report_draws_the_residual_images_of_the_compared_views(refined, tmp_path):
     """write_report: one `photometric_residual_view_KK.png` per compared view, shown in report.md after the bounds
     table and its sentence; the residual through the calibration is near the capture's noise."""
-    from tiltfit.real_vs_rendered import RealVsRenderedOptions
-    from tiltfit.report import photometric_residual, write_report
+    from tiltfit.report.real_vs_rendered import RealVsRenderedOptions
+    from tiltfit.report.plots import photometric_residual, write_report
 
     folder, calib, path, poses, again, photos = refined
     out = tmp_path / "report"
@@ -123,7 +123,7 @@ def test_residual_at_the_truth_is_noise_and_a_wrong_camera_is_not(refined, kept)
     """At the generator's truth (as the refined camera, or as the corner fit's in a rejected record whose `refined`
     lens is 20 % off in d: it must not be used) the residual RMS is the capture's noise within ×1.5 both ways; with
     the principal point 2 px off it is at least twice that."""
-    from tiltfit.report import photometric_residual
+    from tiltfit.report.plots import photometric_residual
 
     _, calib, path, poses, again, photos = refined
     truth = _at_truth(calib, poses, kept)
@@ -143,7 +143,7 @@ def test_residual_at_the_truth_is_noise_and_a_wrong_camera_is_not(refined, kept)
 
 def test_bound_sentence_names_the_parameter_and_the_end():
     """The sentence under the bounds table: which parameter hit which end; without a hit, why it was not kept."""
-    from tiltfit.report import bound_sentence, photometric_lines
+    from tiltfit.report.plots import bound_sentence, photometric_lines
 
     d = {"parameter": "d_mm", "start": 36.01, "low": 35.5, "high": 36.12, "refined": 36.12, "at_bound": True}
     w = {"parameter": "w_mm", "start": 55.0, "low": 54.0, "high": 56.0, "refined": 54.9, "at_bound": False}

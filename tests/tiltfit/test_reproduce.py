@@ -208,7 +208,7 @@ def test_set_value_stages_run_and_write_outputs(tmp_path):
 def test_png_of_a_photograph_holds_its_exact_grey_levels(tmp_path):
     from renderer import read_image
 
-    from tiltfit.evaluate import grey_levels
+    from tiltfit.photometric.profiles import grey_levels
 
     img = np.random.default_rng(3).integers(0, 256, size=(7, 9, 3)).astype(np.uint8)
     img[0, :3] = [[0, 0, 0], [1, 2, 3], [255, 254, 128]]

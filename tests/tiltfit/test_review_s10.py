@@ -8,7 +8,7 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from tiltfit.target import Target, TargetError, target_from_dict
+from tiltfit.target.layout import Target, TargetError, target_from_dict
 
 CHARUCO = {"type": "charuco", "dictionary": "DICT_5X5_100", "squares": [5, 7], "square_mm": 20.0, "marker_mm": 15.0}
 
@@ -34,7 +34,7 @@ DESIGN = ["target", "design", "--cols", "5", "--rows", "7", "--square-mm", "20"]
 def test_target_design_refuses_options_that_do_not_apply(tmp_path, capsys, extra, option):
     """A ChArUco board has no design view (uniform squares), and a checkerboard has no markers: an option that
     would change nothing is refused with one line naming it, and nothing is written (it was silently ignored)."""
-    from tiltfit.cli import main
+    from tiltfit.cli.main import main
 
     out = tmp_path / "t.json"
     rc = main(DESIGN + extra + ["-o", str(out), "-q"])
@@ -44,8 +44,8 @@ def test_target_design_refuses_options_that_do_not_apply(tmp_path, capsys, extra
 
 
 def test_target_design_charuco_writes_the_board(tmp_path, capsys):
-    from tiltfit.cli import main
-    from tiltfit.target import CharucoTarget, load_target
+    from tiltfit.cli.main import main
+    from tiltfit.target.layout import CharucoTarget, load_target
 
     out = tmp_path / "t.json"
     rc = main(DESIGN + ["--charuco", "DICT_4X4_50", "--marker-mm", "14", "-o", str(out), "-q"])
@@ -75,7 +75,7 @@ def test_radial_unfit_keeps_memory_linear_in_the_corners():
     """`labelling_problem`'s radial test on a board of 2,500 corners bent by barrel distortion: its corner spacing
     came from an N × N distance matrix (25 of them, 100 MB each here; a 40,000-corner board asked for 25 GB). The
     bent right board is still accepted, and the peak memory stays that of a few arrays of N points."""
-    from tiltfit.detect import labelling_problem
+    from tiltfit.detect.chessboard import labelling_problem
 
     t = _grid_target(50, 50)
     uv = _barrel(t, -0.25)
@@ -91,7 +91,7 @@ def test_radial_unfit_keeps_memory_linear_in_the_corners():
 
 def test_radial_unfit_still_refuses_a_different_board():
     """A board whose columns are unequal (another target) seen through the same lens stays refused."""
-    from tiltfit.detect import CONTRADICTS, labelling_problem
+    from tiltfit.detect.chessboard import CONTRADICTS, labelling_problem
 
     t = _grid_target(12, 9)
     xe = np.cumsum([0.0] + [10.0 if i % 2 else 25.0 for i in range(13)])  # another board: unequal columns
@@ -106,7 +106,7 @@ def test_radial_unfit_still_refuses_a_different_board():
 def test_report_distortion_list_keeps_positions():
     """A coefficient that is 0 inside the list is shown, not dropped (dropping it moved the later ones into its
     place: p1 = 0 made k3 read as p1); only the trailing zeros are left out."""
-    from tiltfit.report import _rounded_list
+    from tiltfit.report.plots import _rounded_list
 
     text = _rounded_list([-0.1, 0.02, 0.0, 0.0, 0.003, 0.0, 0.0, 0.0], None)
     assert text == "[-0.1, 0.02, 0, 0, 0.003]", text
@@ -115,8 +115,8 @@ def test_report_distortion_list_keeps_positions():
 def test_report_without_projection_uncertainty_numbers(tmp_path):
     """A CALIB.json whose projection_uncertainty has no median or worst σ (null: not finite), which validate_calib
     accepts, gives a report instead of a TypeError."""
-    from tiltfit.calibfile import validate_calib
-    from tiltfit.report import write_report
+    from tiltfit.files.calib import validate_calib
+    from tiltfit.report.plots import write_report
 
     W, H = 64, 48
     g = np.random.default_rng(0)
@@ -187,8 +187,8 @@ def test_export_of_a_lens_axis_calibration_without_theta_L_deg():
 
     from renderer import Lens
     from renderer.cameras import EOS_6D, LensCamera
-    from tiltfit.calibfile import camera_from_calib, validate_calib
-    from tiltfit.export import opencv_text
+    from tiltfit.files.calib import camera_from_calib, validate_calib
+    from tiltfit.files.export import opencv_text
 
     sensor = EOS_6D.binned(4)
     lens = Lens.from_tilt(55.39, 45.0, math.radians(4.0), 16.0, sensor=sensor, phi=math.radians(25.0),
@@ -217,8 +217,8 @@ def test_export_of_a_lens_axis_calibration_without_theta_L_deg():
 def test_report_board_text_with_null_sigma():
     """A warp board whose `sigma` is null (validate_calib accepts it: σ is optional) is written without σ, not an
     AttributeError."""
-    from tiltfit.calibfile import _check_board
-    from tiltfit.report import _board_text
+    from tiltfit.files.calib import _check_board
+    from tiltfit.report.plots import _board_text
 
     board = {"model": "warp", "parameters": {"sag_x_mm": 0.5, "sag_y_mm": -0.2, "scale_y_minus_1": 1e-4},
              "sigma": None}
@@ -249,7 +249,7 @@ def test_report_refuses_malformed_uncertainty_extras_in_one_line(tmp_path, capsy
     other extras: a malformed one is one line naming the file and the field (it was a traceback)."""
     import json
 
-    from tiltfit.cli import main
+    from tiltfit.cli.main import main
 
     g = np.random.default_rng(0)
     calib = {"image_size_px": [64, 48], "pixel_pitch_mm": 0.01, "w_mm": 5.0, "U_mm": 600.0, "d_mm": 2.0,
@@ -269,7 +269,7 @@ def test_report_refuses_malformed_uncertainty_extras_in_one_line(tmp_path, capsy
 
 def test_report_of_a_cross_validation_without_a_finite_median(tmp_path):
     """A pair whose difference had no finite pixel (median null, as `calib_dict` writes NaN) reads 'unknown'."""
-    from tiltfit.report import _uncertainty_lines
+    from tiltfit.report.plots import _uncertainty_lines
 
     lines = _uncertainty_lines({"cross_validation": {"pairs": [{"groups": [1, 2], "median_px": None,
                                                                 "predicted_median_px": 0.2, "verdict": "x: y"}]}})

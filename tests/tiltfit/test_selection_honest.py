@@ -12,10 +12,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from tiltfit.calibfile import calib_dict
-from tiltfit.calibration import calibrate
-from tiltfit.fit import FitOptions, without_blur
-from tiltfit.validate import held_out_rms
+from tiltfit.files.calib import calib_dict
+from tiltfit.calibrate.flow import calibrate
+from tiltfit.calibrate.fit import FitOptions, without_blur
+from tiltfit.select.held_out import held_out_rms
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, os.path.join(ROOT, "benchmarks"))

@@ -26,10 +26,10 @@ import numpy as np
 import pytest
 import torch
 
-from tiltfit.calibfile import calib_dict
-from tiltfit.calibration import calibrate
-from tiltfit.fit import FitOptions
-from tiltfit.model import Observations, PAPER_LENS, PAPER_SENSOR, board_points_mm, random_poses, axis_angle_to_matrix
+from tiltfit.files.calib import calib_dict
+from tiltfit.calibrate.flow import calibrate
+from tiltfit.calibrate.fit import FitOptions
+from tiltfit.calibrate.model import Observations, PAPER_LENS, PAPER_SENSOR, board_points_mm, random_poses, axis_angle_to_matrix
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 W_MM, U_MM, D_MM = PAPER_LENS["w_mm"], PAPER_LENS["U_mm"], PAPER_LENS["d_mm"]
@@ -174,7 +174,7 @@ def test_gopro_subsets_spread_matches_sigma(gopro_groups):
 
 @pytest.mark.slow
 def test_gopro_subsets_compare_within_prediction(gopro_groups, tmp_path, capsys):
-    from tiltfit.cli import main
+    from tiltfit.cli.main import main
 
     paths = []
     for g, fit in enumerate(gopro_groups):
@@ -232,7 +232,7 @@ def test_industrial_halves_spread_matches_sigma(industrial_halves):
 
 @pytest.mark.slow
 def test_industrial_halves_compare_within_prediction(industrial_halves, tmp_path):
-    from tiltfit.cli import main
+    from tiltfit.cli.main import main
 
     paths = []
     for g, fit in enumerate(industrial_halves):

@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
-from tiltfit import cli
-from tiltfit.model import board_points_mm
+from tiltfit.cli import main as cli
+from tiltfit.calibrate.model import board_points_mm
 
 W, H = 1280, 1024
 K_TRUE = np.array([[2000.0, 0, 650.0], [0, 2000.0, 505.0], [0, 0, 1]])
@@ -117,7 +117,7 @@ def blurred_capture(points_mm, nominal_mm, seed=0, n_views=8):
     (not tiltfit's camera; as benchmarks/bench_sigma_honesty.py's capture), with `nominal_mm` as the target's points."""
     import torch
 
-    from tiltfit.model import PAPER_LENS, PAPER_SENSOR, Observations, axis_angle_to_matrix, random_poses
+    from tiltfit.calibrate.model import PAPER_LENS, PAPER_SENSOR, Observations, axis_angle_to_matrix, random_poses
 
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
@@ -144,9 +144,9 @@ def test_the_fitted_board_stays_in_the_sigma_of_the_blur_fit():
     points held as known gives smaller σ), and the board it reports is the one its poses and RMS were fitted with."""
     import torch
 
-    from tiltfit.board import Board, with_points
-    from tiltfit.calibration import calibrate
-    from tiltfit.fit import FitOptions, without_blur
+    from tiltfit.target.shape import Board, with_points
+    from tiltfit.calibrate.flow import calibrate
+    from tiltfit.calibrate.fit import FitOptions, without_blur
 
     nominal = board_points_mm(8, 6, 25.0, centred=False).numpy()
     true = Board(nominal, "warp", torch.tensor([0.8, -0.4, 0.002])).points().numpy()
@@ -170,7 +170,7 @@ def test_the_fitted_board_stays_in_the_sigma_of_the_blur_fit():
     assert (upper < 1.1).all() and (upper > 0.3).all(), f"σ of the blur fit / σ of the corners-only fit: {upper}"
     # The reported board is the fitted one: its points reproduce the views' RMS.
     with torch.no_grad():
-        from tiltfit.model import residuals
+        from tiltfit.calibrate.model import residuals
 
         rc, _ = residuals(res.camera, with_points(obs, res.board.points())).rms_per_view()
     assert np.allclose(rc.numpy(), [v["rms_reprojection_px"] for v in res.views], rtol=1e-6), "board and views differ"
@@ -180,8 +180,8 @@ def test_held_out_gain_is_a_paired_t_over_the_views():
     """A gain every view shares is many standard errors; the same mean gain carried by one view of six is not."""
     import torch
 
-    from tiltfit.board_fit import held_out_gain
-    from tiltfit.model import Observations
+    from tiltfit.select.board import held_out_gain
+    from tiltfit.calibrate.model import Observations
 
     obs = Observations(board_points_mm(4, 3, 10.0), torch.zeros(6, 12, 2), torch.full((6, 12), math.nan), (64, 48), 0.01)
     simple = {"per_view_px": [0.30] * 6}
@@ -206,9 +206,9 @@ def test_small_board_keeps_the_board_the_views_carry():
     sys.path.insert(0, os.path.join(root, "benchmarks"))
     from real_detections import observations
 
-    from tiltfit.calibration import calibrate
-    from tiltfit.fit import FitOptions
-    from tiltfit.opencv_corners import opencv_calibrate
+    from tiltfit.calibrate.flow import calibrate
+    from tiltfit.calibrate.fit import FitOptions
+    from tiltfit.detect.opencv import opencv_calibrate
 
     obs, _ = observations(os.path.join(root, "benchmarks", "small_sets", "sony_small"), 0.0096)
     res = calibrate(obs, "unified", options=FitOptions(distortion="auto", board="auto"))

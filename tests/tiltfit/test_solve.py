@@ -154,8 +154,8 @@ def test_calibration_problem_jacobian_equals_autograd_of_its_residuals():
     same matrix autograd gives for its residual vector, with corners and blur widths missing here and there."""
     from torch.func import functional_call
 
-    from tiltfit.fit import _Problem
-    from tiltfit.model import TiltLensCamera, board_points_mm, random_poses, synthesize_observations
+    from tiltfit.calibrate.fit import _Problem
+    from tiltfit.calibrate.model import TiltLensCamera, board_points_mm, random_poses, synthesize_observations
 
     rvec, T = random_poses(3, seed=7)
     cam = TiltLensCamera(3, (1368, 912), 0.026, 55.0, 640.0, 18.0, 0.3, rvec=rvec, T_mm=T,

@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from renderer import load_scene, render
+from renderer import load_scene
+from renderer import render
 from tiltfit.experiments import stability as st
-from tiltfit.fit import FitOptions
-from tiltfit.calibration import calibrate
+from tiltfit.calibrate.fit import FitOptions
+from tiltfit.calibrate.flow import calibrate
 from tiltfit.experiments.stability import coverage, gamma_noise, singular, two_stage
 
 torch.set_num_threads(1)
@@ -164,7 +165,7 @@ def test_measured_srgb_bias_is_the_predicted_one(ratio, expect):
 # ------------------------------------------------------------------------------------------ command line
 
 def test_cli_runs_one_sweep(tmp_path, capsys):
-    from tiltfit.cli import main
+    from tiltfit.cli.main import main
 
     assert main(["stability", "--quick", "--only", "singular", "-o", str(tmp_path)]) == 0
     for name in ("singular.json", "singular.csv", "singular.png", "stability.md", "run.json"):

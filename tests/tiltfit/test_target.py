@@ -6,7 +6,7 @@ import re
 import numpy as np
 import pytest
 
-from tiltfit.target import (Target, TargetError, design_target, designed_pose, load_target, projected_row_spacing,
+from tiltfit.target.layout import (Target, TargetError, design_target, designed_pose, load_target, projected_row_spacing,
                             rasterise, render_target, target_texture, write_printable)
 
 W_MM, D_MM = 55.39, 620.0  # the paper's w and a distance near its plane of focus
@@ -171,8 +171,8 @@ def test_png_scale_bar_is_labelled_and_the_board_unchanged(tmp_path):
     """The PNG holds the exact rasterised board, the bar, and the caption text below the bar."""
     from matplotlib.image import imread
 
-    from renderer.io import linear_to_srgb
-    from tiltfit.target import _bar_geometry
+    from camio.files import linear_to_srgb
+    from tiltfit.target.layout import _bar_geometry
 
     t = design_target(5, 4, 20.0, w_mm=W_MM, distance_mm=D_MM, inclination_deg=20)
     png = tmp_path / "t.png"
@@ -191,7 +191,7 @@ def test_png_scale_bar_is_labelled_and_the_board_unchanged(tmp_path):
 
 
 def test_target_cli_design_and_print(tmp_path, capsys):
-    from tiltfit.cli import main
+    from tiltfit.cli.main import main
 
     out = tmp_path / "t.json"
     rc = main(["target", "design", "--cols", "9", "--rows", "7", "--square-mm", "25", "--w-mm", "4",
@@ -216,7 +216,7 @@ def test_target_cli_design_and_print(tmp_path, capsys):
     (["print", "{d}/missing.json", "--pdf", "{d}/x.pdf"], "missing.json"),
 ])
 def test_target_cli_errors_are_one_line(tmp_path, capsys, argv, where):
-    from tiltfit.cli import main
+    from tiltfit.cli.main import main
 
     t = tmp_path / "t.json"
     design_target(5, 4, 20.0, w_mm=W_MM, distance_mm=D_MM).save(str(t))
@@ -233,8 +233,8 @@ def test_png_written_in_strips_is_the_whole_board_exactly(tmp_path, monkeypatch)
     """Strips of a few rows (many seams) give the same board as one rasterisation of the whole page."""
     import OpenImageIO as oiio
 
-    import tiltfit.target as tt
-    from renderer.io import linear_to_srgb
+    import tiltfit.target.layout as tt
+    from camio.files import linear_to_srgb
 
     monkeypatch.setattr(tt, "PNG_STRIP_PIXELS", 1 << 12)
     t = design_target(5, 4, 20.0, w_mm=W_MM, distance_mm=D_MM, inclination_deg=20)
@@ -251,10 +251,10 @@ def test_png_print_memory_does_not_grow_with_the_page(tmp_path, monkeypatch):
     megapixels) with strips of 2^16 pixels: the same few MB for both, under 0.5 byte a pixel of the larger."""
     import tracemalloc
 
-    import tiltfit.target as tt
+    import tiltfit.target.layout as tt
 
     monkeypatch.setattr(tt, "PNG_STRIP_PIXELS", 1 << 16)
-    from tiltfit.target import target_from_dict
+    from tiltfit.target.layout import target_from_dict
 
     t = target_from_dict({"type": "checkerboard", "units": "mm", "x_edges": [i * 60.0 for i in range(10)],
                           "y_edges": [i * 60.0 for i in range(8)], "dark_cell": [0, 0], "margin": 25})

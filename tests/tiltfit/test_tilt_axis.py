@@ -1,7 +1,7 @@
 """A lens tilted about a turned axis (a tilt-shift lens's rotation, `Lens.phi`): the calibration tests the tilt
 axis's direction φ and frees it only where the data justify it.
 
-Captures: the exact thin-lens corners and blur widths (`tiltfit.synth.observe`, the blur ellipse's
+Captures: the exact thin-lens corners and blur widths (`tiltfit.experiments.synth.observe`, the blur ellipse's
 equivalent-area diameter) of the paper's lens tilted by θL = 5° about an axis at φ, plus Gaussian noise; the
 fit starts from the untilted stage-1 fit, as `tiltfit reproduce` does.
 """
@@ -14,11 +14,11 @@ import pytest
 
 from renderer import Lens
 from renderer.cameras import EOS_6D
-from tiltfit import synth
-from tiltfit.calibration import calibrate
+from tiltfit.experiments import synth
+from tiltfit.calibrate.flow import calibrate
 from tiltfit.experiments import reproduce
-from tiltfit.fit import FitOptions
-from tiltfit.model import Observations
+from tiltfit.calibrate.fit import FitOptions
+from tiltfit.calibrate.model import Observations
 
 POSES = ((30.0, 0.0, 560.0), (-25.0, 0.0, 480.0), (0.0, 35.0, 600.0), (0.0, -30.0, 650.0), (20.0, 20.0, 540.0),
          (-15.0, -20.0, 700.0))
@@ -86,7 +86,7 @@ def test_an_x_axis_fit_of_a_turned_tilt_is_refused_and_the_freed_one_fits(stage1
 
 def test_sharp_line_is_where_the_blur_vanishes():
     """`sharp_line`: the board points it reports lie on the plane of focus (zero blur), for a turned tilt."""
-    from tiltfit.calibration import sharp_line
+    from tiltfit.calibrate.flow import sharp_line
 
     true = Lens.paper()
     lens = Lens.from_tilt(true.w, true.f, math.radians(5.0), true.d, sensor=SENSOR, phi=math.radians(35.0))

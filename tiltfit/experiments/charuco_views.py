@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 from renderer import Lens, Sensor
 
-from ..synth import look_at_pose, observe, plane_homography, render_constant_blur
-from ..target import target_from_dict
+from tiltfit.experiments.synth import look_at_pose, observe, plane_homography, render_constant_blur
+from tiltfit.target.layout import target_from_dict
 
 BOARD = {"type": "charuco", "units": "mm", "dictionary": "DICT_5X5_100", "squares": [12, 9], "square_mm": 15.0,
          "marker_mm": 11.0, "margin": 10.0}
@@ -39,13 +39,13 @@ def square_px(corners, target=TARGET) -> float:
 
 
 def blurred_renders(view, blurs, noise: float, rng, target=TARGET):
-    """A view's constant-blur renders (`tiltfit.synth.render_constant_blur`) plus Gaussian noise from `rng`.
+    """A view's constant-blur renders (`tiltfit.experiments.synth.render_constant_blur`) plus Gaussian noise from `rng`.
 
     Args:
         view: a view (`PARTIAL`, `FULL`); blurs: blur-disc diameters in squares; noise: σ of the noise;
         target: the board drawn (`TARGET`, or a plain checkerboard of its squares).
     Yields:
-        (truth (`tiltfit.synth.observe`), square_px, blur in squares, image (H, W)), one per blur.
+        (truth (`tiltfit.experiments.synth.observe`), square_px, blur in squares, image (H, W)), one per blur.
     """
     R, T = pose(view)
     truth = observe(target, CAMERA, R, T)

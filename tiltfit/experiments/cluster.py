@@ -2,7 +2,7 @@
 
 Each study of `tiltfit.experiments.stability` is a function `study(cfg, log) -> Study` whose every noise draw is seeded
 from `cfg.seed`, so it gives the same rows, findings and figure wherever it runs. `run_studies` runs them
-here one after another, or as one Ray task each through `renderer.distributed.imap_on_cluster` (the
+here one after another, or as one Ray task each through `renderer.tracing.distributed.imap_on_cluster` (the
 configuration shipped once), and hands them back in the order asked for, each as soon as it and all
 before it are done; the caller writes the outputs exactly as for a serial run.
 
@@ -19,7 +19,7 @@ import pickle
 
 import torch
 
-from ..runlog import RunLog
+from tiltfit.experiments.runlog import RunLog
 
 
 def run_studies(studies: dict, names, cfg, log, cluster: str | None = None):
@@ -33,7 +33,7 @@ def run_studies(studies: dict, names, cfg, log, cluster: str | None = None):
         cluster: None (here, one after another), or `auto` / a Ray address (one task per study, each with
             the driver's torch thread count).
     Raises:
-        ImportError, ConnectionError: from `renderer.distributed` when the cluster cannot be used.
+        ImportError, ConnectionError: from `renderer.tracing.distributed` when the cluster cannot be used.
     """
     names = list(names)
     if cluster is None:
@@ -41,7 +41,7 @@ def run_studies(studies: dict, names, cfg, log, cluster: str | None = None):
             log(f"{name}: start")
             yield name, studies[name](cfg, log)
         return
-    from renderer.distributed import cluster_session, imap_on_cluster
+    from renderer.tracing.distributed import cluster_session, imap_on_cluster
 
     threads = torch.get_num_threads()
     jobs = [studies[name] for name in names]

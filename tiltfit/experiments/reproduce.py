@@ -12,9 +12,9 @@ camera is simulated, so every estimate can be checked against the truth:
                what a real camera adds to an image: vignetting, shot and read noise, 8-bit sRGB. The truth
                renders the photographs only; the calibration sees nothing but those images.
 (b) targets    target photographs (the paper's Fig. 4 kind of board) at θL = 0, +5°, −5°, rendered by
-               tiltfit.synth through the true lens and exposed by the simulated camera; corners and blur
-               widths read back by tiltfit.detect / tiltfit.blur as from any photograph.
-(c) calibrate  stage 1 (unified, eq. 3) + stage 2 (tilt, eq. 4, the paper) + joint (tiltfit.fit), from the
+               tiltfit.experiments.synth through the true lens and exposed by the simulated camera; corners and blur
+               widths read back by tiltfit.detect.chessboard / tiltfit.detect.blur as from any photograph.
+(c) calibrate  stage 1 (unified, eq. 3) + stage 2 (tilt, eq. 4, the paper) + joint (tiltfit.calibrate.fit), from the
                detections only, started from the set values; Table 1 and the stage-1 table.
 (d) boxes      the boxes scene photographed with the true lens at the three lens states, re-rendered as
                CG with (i) the set values and (ii) the calibrated values; profiles along the red and the
@@ -43,14 +43,15 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 import torch
-from renderer import render, write_image
-from renderer.transforms import euler_xyz_deg
-from renderer.sensor import SensorResponse
+from renderer import write_image
+from renderer import render
+from renderer.core.transforms import euler_xyz_deg
+from renderer.cameras.sensor import SensorResponse
 
-from ..evaluate import (compare_profiles, linear_from_grey_levels, plot_images, plot_profiles,
+from tiltfit.photometric.profiles import (compare_profiles, linear_from_grey_levels, plot_images, plot_profiles,
                        save_figure, write_csv, write_markdown, markdown_table)
 from .scenes import Lens, Sensor, boxes_scene, boxes_scene_dict, profile_lines
-from ..runlog import RunLog
+from tiltfit.experiments.runlog import RunLog
 
 NOT_RUN = "not run"  # a table cell of a stage that was skipped (RunConfig.calibrate False) or failed
 
@@ -83,7 +84,7 @@ class RunConfig:
         target_downscale: pixel binning of the target photographs (detection wants more pixels; 8: 684 x 456,
             1: the paper's 5472 x 3648).
         target_views: target views per lens state (the first of TARGET_VIEWS).
-        target_method: how `tiltfit.synth` renders the target (`analytic` or `renderer`).
+        target_method: how `tiltfit.experiments.synth` renders the target (`analytic` or `renderer`).
         photometric_pixels, photometric_lens_samples: pixels per view and fixed lens samples of the
             photometric refinement (0 pixels: skip it).
         device: torch device of the boxes renders (`cpu` or `cuda`); the fits run on the CPU.
@@ -168,7 +169,7 @@ class SimulatedCamera:
 
     @property
     def response(self) -> SensorResponse:
-        """The sensor's response (`renderer.sensor`): vignetting, shot and read noise, 8-bit sRGB."""
+        """The sensor's response (`renderer.cameras.sensor`): vignetting, shot and read noise, 8-bit sRGB."""
         return SensorResponse(vignetting=self.vignetting, read_noise=self.read_noise, full_well=self.full_well,
                               encoding="srgb8")
 
@@ -264,7 +265,7 @@ MIN_CORNER_FRACTION = 0.75
 def calibration_target(set_values: SetValues):
     """The paper's kind of target (Fig. 4): a checkerboard whose row spacing makes the rows project evenly for
     an inclined view, designed with the set values (the designer does not know the true lens)."""
-    from ..target import design_target
+    from tiltfit.target.layout import design_target
 
     nominal = set_values.nominal
     return design_target(9, 6, 25.0, w_mm=nominal.w, distance_mm=nominal.U, inclination_deg=30.0)
@@ -273,7 +274,7 @@ def calibration_target(set_values: SetValues):
 def target_pose(target, rot_x_deg: float, rot_y_deg: float, distance_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """(R, T), X_cam = R X_target + T: the board's design centre on the optical axis at `distance_mm`, the
     board turned by rot_x then rot_y about the camera axes."""
-    from ..target import design_centre_mm
+    from tiltfit.target.layout import design_centre_mm
 
     R = euler_xyz_deg((rot_x_deg, rot_y_deg, 0.0)).numpy()  # Ry · Rx
     xc, yc = design_centre_mm(target)
@@ -283,13 +284,13 @@ def target_pose(target, rot_x_deg: float, rot_y_deg: float, distance_mm: float) 
 def stage_targets(camera: SimulatedCamera, set_values: SetValues, cfg: RunConfig, out_dir: str, log) -> dict | None:
     """(b) Photograph the target at every lens state with the true lens, then detect corners and blur.
 
-    The images come from `tiltfit.synth.render_view` seen through the true lens state (w, U from the hinge
+    The images come from `tiltfit.experiments.synth.render_view` seen through the true lens state (w, U from the hinge
     rule, d, θF from the exact Scheimpflug rule): by default (`cfg.target_method` `renderer`) ray traced by
     the renderer's thin lens at `cfg.spp_capture` samples, the same camera as the boxes photographs, so every
     fit is judged against the thin lens itself. (The `analytic` disc-gather model is exact for its disc but
     takes the blur diameter from paper (4) at the board point, a few percent off the thin lens's under a
     tilt: it biased the photometric θL by up to 5σ.) Then `camera.expose` adds vignetting, noise and 8-bit
-    sRGB; `tiltfit.detect.detect` reads them back like any photograph.
+    sRGB; `tiltfit.detect.chessboard.detect` reads them back like any photograph.
     Returns:
         {"target", "image_size_px", "pixel_pitch_mm", "detections": {state: [Detection]}, "files"}, or None
         when `cfg.calibrate` is False.
@@ -297,8 +298,8 @@ def stage_targets(camera: SimulatedCamera, set_values: SetValues, cfg: RunConfig
     if not cfg.calibrate:
         log("(b) target photographs: skipped (calibrate off)")
         return None
-    from .. import synth
-    from ..detect import detect
+    from tiltfit.experiments import synth
+    from tiltfit.detect.chessboard import detect
 
     target = calibration_target(set_values)
     k = cfg.target_downscale
@@ -335,9 +336,9 @@ def stage_targets(camera: SimulatedCamera, set_values: SetValues, cfg: RunConfig
 # ----------------------------------------------------------------------------------------- (c) calibrate
 
 def observations(targets: dict, label: str):
-    """`tiltfit.model.Observations` of one lens state's target photographs; views where the board was not found,
+    """`tiltfit.calibrate.model.Observations` of one lens state's target photographs; views where the board was not found,
     or less than MIN_CORNER_FRACTION of it, are left out. None when no view is left."""
-    from ..model import Observations
+    from tiltfit.calibrate.model import Observations
 
     target = targets["target"]
     dets = [(d, f) for d, f in zip(targets["detections"][label], targets["files"][label])
@@ -399,9 +400,9 @@ def stage_calibrate(targets: dict | None, set_values: SetValues, cfg: RunConfig,
     if targets is None:
         log("(c) calibration: skipped (calibrate off)")
         return out
-    from ..fit import FitError, FitOptions
+    from tiltfit.calibrate.fit import FitError, FitOptions
 
-    from ..calibration import calibrate
+    from tiltfit.calibrate.flow import calibrate
 
     quiet = FitOptions(model_selection=False, nominal_focal_mm=set_values.nominal.w)
     obs_a = observations(targets, "a")
@@ -878,7 +879,8 @@ def main(argv=None) -> int:
         ap.error(f"--scale: expected an integer from 1 to 256, got {args.scale}")
     if args.target_scale is not None and not 1 <= args.target_scale <= 256:
         ap.error(f"--target-scale: expected an integer from 1 to 256, got {args.target_scale}")
-    from renderer.cli import UsageError, parse_device
+    from camio.checks import parse_device
+    from camio.errors import UsageError
 
     try:
         parse_device(args.device)

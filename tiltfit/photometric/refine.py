@@ -21,7 +21,7 @@ of `focus_geometry` (10 tangents through cheap geometry). Lens-sample pixels tak
 rays (benchmarks/results/photometric_profile.md: forward mode through the aperture integral was 78 % of the
 time before).
 
-σ: the per-view cluster-robust covariance of the corner fit (`tiltfit.uncertainty.view_cluster_covariance`: views
+σ: the per-view cluster-robust covariance of the corner fit (`tiltfit.uncertainty.covariance.view_cluster_covariance`: views
 as clusters, each view's pose, levels and illumination profiled out, the CR2 small-sample correction, the
 classical covariance as its floor), applied to the Huber fit's weighted residuals and Jacobian. A photograph's
 pixels share their errors across the whole view, not only within a blur disc: a board that is not flat or not
@@ -41,15 +41,15 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from renderer.optics import theta_L_from_theta_F
+from renderer.cameras.optics import theta_L_from_theta_F
 
-from ..aperture import checker_dark_fraction_disc, lines_cut
-from ..imaging import torch_threads
-from ..model import APERTURE_SCALE_MM, TiltLensCamera, axis_angle_to_matrix, robust_rho, robust_weight
+from tiltfit.photometric.aperture import checker_dark_fraction_disc, lines_cut
+from tiltfit.detect.imaging import torch_threads
+from tiltfit.calibrate.model import APERTURE_SCALE_MM, TiltLensCamera, axis_angle_to_matrix, robust_rho, robust_weight
 from ..solve import (Block, LMOptions, SolverError, covariance, dense_jacobian, least_squares,
                      levenberg_marquardt)
-from ..stats import nested_test
-from ..target import Target
+from tiltfit.select.stats import nested_test
+from tiltfit.target.layout import Target
 from .render import (SHARP_BLUR_PX, SUBPIXELS, SUBPIXELS_SHARP, auto_lens_samples, board_blur_px,
                      dark_fraction_samples, hammersley_disc_samples, on_board, pixel_blur_px, predicted_dark_fraction,
                      sub_points, board_box, usable_pixels)
@@ -223,7 +223,7 @@ class PhotometricResult:
         sigma_gauss_newton: the textbook σ, (JᵀWJ)⁻¹ scaled by the residuals' robust σ (kept for comparison).
         sigma_tiles: the sandwich over square tiles as wide as the blur disc (kept for comparison).
         sigma_model: the error model of `sigma`: {name: "views" | "tiles" (fewer than 2 views, or the per-view
-            covariance singular), design_effect, ratio_min, ratio_max, n_views (`tiltfit.uncertainty`),
+            covariance singular), design_effect, ratio_min, ratio_max, n_views (`tiltfit.uncertainty.covariance`),
             held_propagated: whether `sigma` includes the held principal point's and distortion's uncertainty}.
         sigma_held: with `start_covariance`, the part of `sigma` the held principal point and distortion
             contribute alone (`sigma`² = conditional² + held²); `sigma_tiles` and `sigma_gauss_newton` are
@@ -548,13 +548,13 @@ def _cluster_sandwich(res, problem: _Problem) -> torch.Tensor:
 
 def _view_covariance(res, s2: float, cov_tiles: torch.Tensor, held: list | None = None):
     """(covariance (P, P), sigma_model) of the Huber fit under the per-view error model (module docstring):
-    `tiltfit.uncertainty.view_cluster_covariance` with views as clusters. `held`: flat positions of global
+    `tiltfit.uncertainty.covariance.view_cluster_covariance` with views as clusters. `held`: flat positions of global
     parameters the data no longer move (a lens parameter at its trust bound), left out of the covariance (σ 0).
     The tile sandwich `cov_tiles` where the per-view one cannot be formed (one view, a singular Schur complement)."""
     from types import SimpleNamespace
 
     from ..solve.blocks import BlockJacobian
-    from ..uncertainty import view_cluster_covariance
+    from tiltfit.uncertainty.covariance import view_cluster_covariance
 
     bj = res.jacobian
     if not isinstance(bj, BlockJacobian):
@@ -589,7 +589,7 @@ def _held_covariance(problem: "_Problem", res, start_covariance: dict | None):
     D = dx/dh (in the solver's flat order), ignoring the correlation between the corners' errors and the pixels'
     (the same views): on the real sets the held parameters alone moved w between subsets by many times the
     conditional σ (benchmarks/results/photometric_sigma.md)."""
-    from ..uncertainty import INTRINSIC_NAMES
+    from tiltfit.uncertainty.covariance import INTRINSIC_NAMES
 
     if not isinstance(start_covariance, dict) or "names" not in start_covariance:
         return None
@@ -1156,7 +1156,7 @@ def _without_views(left_out: list, imgs: list, target: Target, camera: TiltLensC
 
 def _chi2_quantile(p: float, k: int) -> float:
     """x with P(χ²(k) ≤ x) = p (bisection on `stats.chi2_sf`)."""
-    from ..stats import chi2_sf
+    from tiltfit.select.stats import chi2_sf
 
     lo, hi = 0.0, 10.0 * k + 100.0
     for _ in range(100):
@@ -1172,7 +1172,7 @@ def _corner_check(refined: TiltLensCamera, start: TiltLensCamera, corners, start
     RMS times 1 + CORNER_TOLERANCE; or, without it, against the start's own RMS with its poses refitted the same way
     (in sample): there the limit lets the corners' cost rise by the χ² quantile (CORNER_CONFIDENCE, `n_free`
     degrees of freedom) times their noise variance (their RSS over its residual degrees of freedom)."""
-    from ..validate import predict_views
+    from tiltfit.select.held_out import predict_views
 
     def rss(camera):
         fit = predict_views(camera.copy().double(), corners)

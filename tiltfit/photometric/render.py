@@ -9,14 +9,14 @@ deterministic and its derivatives exact. The photograph's intensity is then the 
 
     I(u) = (1 − v ρ(u)²) · (white − (white − black) · D(u))
 
-with v the vignetting and ρ the distance from the image centre, 1 at the corners (`renderer.sensor.radial_falloff`,
-the one sensor model `tiltfit.synth` and `tiltfit.experiments.reproduce` expose their captures with).
+with v the vignetting and ρ the distance from the image centre, 1 at the corners (`renderer.cameras.sensor.radial_falloff`,
+the one sensor model `tiltfit.experiments.synth` and `tiltfit.experiments.reproduce` expose their captures with).
 
 D is integrated over the aperture in one of two ways:
 - in closed form (`dark_fraction_disc`): each of n x n points of the pixel (a grid with the box's variance,
   `sub_points`; n = 4, or SUBPIXELS_SHARP below SHARP_BLUR_PX of blur: `closed_form_subpixels`) sees the
   aperture disc through its focus point (`ThinLensCamera.focus_geometry`), on which the board's cell edges are
-  straight lines, so D is a sum of disc segments and wedges (`tiltfit.aperture`). Exact over the aperture for
+  straight lines, so D is a sum of disc segments and wedges (`tiltfit.photometric.aperture`). Exact over the aperture for
   the thin lens at any tilt and blur; the pixel's box is the n x n points' quadrature, whose error grows as the
   blur disc shrinks. The fit uses it for every pixel with the disc kernel (`refine.CLOSED_FORM_MIN_BLUR_PX`);
 - by fixed lens samples (`dark_fraction_samples`): rays for each pixel and sample, intersected with the board
@@ -40,11 +40,11 @@ import numpy as np
 import torch
 
 from renderer.cameras import ThinLensCamera, concentric_disk
-from renderer.optics import blur_diameter_first_order, blur_diameter_paper
-from renderer.sensor import radial_falloff
+from renderer.cameras.optics import blur_diameter_first_order, blur_diameter_paper
+from renderer.cameras.sensor import radial_falloff
 
-from ..aperture import checker_dark_fraction_disc, disc_within
-from ..target import Target
+from tiltfit.photometric.aperture import checker_dark_fraction_disc, disc_within
+from tiltfit.target.layout import Target
 
 #: Sensor points per pixel side of the closed-form aperture (`dark_fraction_disc`).
 SUBPIXELS = 4
@@ -208,11 +208,11 @@ def dark_fraction_samples(target: Target, cam: ThinLensCamera, uv_px: torch.Tens
 
 def dark_fraction_disc(target: Target, cam: ThinLensCamera, uv_px: torch.Tensor, near: int,
                        subpixels: int = SUBPIXELS) -> torch.Tensor:
-    """(N,) dark fraction of pixels `uv_px` with the aperture integrated in closed form (`tiltfit.aperture`).
+    """(N,) dark fraction of pixels `uv_px` with the aperture integrated in closed form (`tiltfit.photometric.aperture`).
 
     Each pixel is the mean of a `subpixels` x `subpixels` grid of sensor points (`sub_points`: the box pixel's
     variance, exact for the mean and spread of an edge's profile); each point's dark fraction is exact over the disc.
-    `near`: lines per family given the two-line term (`tiltfit.aperture.lines_cut` counts them)."""
+    `near`: lines per family given the two-line term (`tiltfit.photometric.aperture.lines_cut` counts them)."""
     q_h, centre, axes, _ = cam.focus_geometry(sub_points(uv_px, subpixels))
     return checker_dark_fraction_disc(q_h, centre, axes, target, near).mean(-1)
 
@@ -338,7 +338,7 @@ def dark_fraction_image(target: Target, cam: ThinLensCamera, subpixels: int = 2,
     pixel, so a stride thins the picture without changing the model.
 
     Args:
-        cam: the view's camera (`TiltLensCamera.view_camera(v)`, or `tiltfit.calibrated.Calibration.camera(v)`).
+        cam: the view's camera (`TiltLensCamera.view_camera(v)`, or `tiltfit.files.calibrated.Calibration.camera(v)`).
         subpixels: points per pixel side of the closed-form aperture [2: a picture, not a fit].
     """
     W, H = cam.width, cam.height
@@ -382,7 +382,7 @@ def residual_image(image: np.ndarray, target: Target, cam: ThinLensCamera, white
                    chunk: int = 1 << 15, stride: int = 1) -> np.ndarray:
     """(H, W) photo − rendered board of one view (linear units), NaN outside the pixels the fit may use
     (`usable_pixels` of the board's box; with `stride`, off its grid: `dark_fraction_image`): what the refinement
-    could not explain, for `tiltfit.report`'s `plot_residual_image`.
+    could not explain, for `tiltfit.report.plots`'s `plot_residual_image`.
 
     Args:
         image: (H, W) linear photo of the view (decode sRGB first).

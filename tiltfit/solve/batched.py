@@ -3,8 +3,8 @@
     batched_levenberg_marquardt(evaluate, x0, options=BatchedOptions(), small_step=None, project=None)
         -> BatchedResult
 
-The detector's per-corner fits (`tiltfit.detect.refine_symmetric`: a corner's position from the point symmetry
-of its patch) and the blur measurement's per-corner fits (`tiltfit.blur.fit_corners`: blur diameter and edge
+The detector's per-corner fits (`tiltfit.detect.chessboard.refine_symmetric`: a corner's position from the point symmetry
+of its patch) and the blur measurement's per-corner fits (`tiltfit.detect.blur.fit_corners`: blur diameter and edge
 levels) are thousands of problems of 2 to ~20 parameters that share nothing; one batched solve replaces a loop
 over them. `tiltfit.solve.levenberg_marquardt` is the solver of one large problem with block structure.
 

@@ -21,9 +21,9 @@ def main() -> int:
     sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
     from real_detections import observations
 
-    from tiltfit.calibfile import calib_dict, write_calib
-    from tiltfit.calibration import calibrate
-    from tiltfit.fit import FitOptions
+    from tiltfit.files.calib import calib_dict, write_calib
+    from tiltfit.calibrate.flow import calibrate
+    from tiltfit.calibrate.fit import FitOptions
 
     for name, pitch in SETS.items():
         folder = os.path.join(ROOT, "data", "real", name)

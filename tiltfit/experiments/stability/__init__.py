@@ -3,15 +3,15 @@
 Five small sweeps, each with a closed-form prediction beside the measurement, a plot (PNG) and its numbers
 (JSON and CSV), and one summary page (stability.md) that states every finding with its number:
 
-(a) detectors    our detector (`tiltfit.detect`) against OpenCV's findChessboardCornersSB and
-                 findChessboardCorners + cornerSubPix on `tiltfit.synth` images of the target whose blur
+(a) detectors    our detector (`tiltfit.detect.chessboard`) against OpenCV's findChessboardCornersSB and
+                 findChessboardCorners + cornerSubPix on `tiltfit.experiments.synth` images of the target whose blur
                  diameter grows to the size of a projected square: success rate and corner RMS. (The
                  benchmark `benchmarks/bench_detect_opencv.py` is not part of the installed package, so the
                  sweep is repeated here, small, with the same target, poses and scoring.)
 (b) two-stage    the paper's two stages (stage 1 untilted; stage 2 with w, U, d held, eq. (4), θL from
-                 eq. (1)) against the joint fit as the lens tilt grows, on `tiltfit.model` observations made
+                 eq. (1)) against the joint fit as the lens tilt grows, on `tiltfit.calibrate.model` observations made
                  with the exact physics: a thin lens tilted about its centre, so U follows the hinge rule and
-                 θF the Scheimpflug rule, and the blur is the exact spot (`renderer.optics`). The two-stage
+                 θF the Scheimpflug rule, and the blur is the exact spot (`renderer.cameras.optics`). The two-stage
                  error is predicted by `two_stage_prediction` (a 1-D least-squares problem over the same
                  points, then eq. (1)).
 (c) coverage     the accumulation-buffer camera (Barsky–Pasztor) against distributed ray tracing as the plane
@@ -48,8 +48,8 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
-from ...evaluate import markdown_table, save_figure, write_csv
-from ...runlog import RunLog
+from tiltfit.photometric.profiles import markdown_table, save_figure, write_csv
+from tiltfit.experiments.runlog import RunLog
 from .closed_forms import (coverage_closed_form, first_row_lost_theta_F, inverted_magnification, singular_depth,
                            srgb_blur_bias, two_stage_prediction)
 from .common import D_MM, F_MM, U0_MM, W_MM, StabilityConfig, Study

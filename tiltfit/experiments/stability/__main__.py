@@ -1,6 +1,6 @@
 """`python -m tiltfit.experiments.stability` is `tiltfit stability`."""
 import sys
 
-from . import main
+from tiltfit.experiments.stability import main
 
 sys.exit(main())

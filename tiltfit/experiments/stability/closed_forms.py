@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import torch
-from renderer import optics
+from renderer.cameras import optics
 
 from .common import D_MM, U0_MM, W_MM
 
@@ -58,7 +58,7 @@ def two_stage_prediction(p_cam, theta_L: float, w_mm: float = W_MM, U_mm: float 
 
     The truth: the lens (f = U w / (U + w) from the untilted state) tilted by θL about its centre has
     U' = f w / (w cos θL − f) (hinge rule) and tan θF = (U' + w) tan θL / w (Scheimpflug), and the blur of a
-    point is the exact spot (`renderer.optics.blur_diameter_exact`). Stage 2 holds w, U, d at the untilted
+    point is the exact spot (`renderer.cameras.optics.blur_diameter_exact`). Stage 2 holds w, U, d at the untilted
     values and fits θF with the paper's eq. (4); with the poses known from the corners this is the 1-D least
     squares problem min over θF of Σ (b_eq4(p; w, U, d, θF) − b_exact(p))², solved here on a 0.1° grid
     refined by golden section. θL then follows from eq. (1) with f = U w cos θL / (U + w) at the fitted
@@ -110,8 +110,8 @@ def srgb_blur_bias(b_px: float, dark: float = 0.05, white: float = 0.8, angle_de
     """Predicted relative bias b_fit / b − 1 of a blur diameter measured on sRGB-encoded values.
 
     One straight edge between linear levels `dark` and `white`, blurred by a disc of diameter b and
-    integrated over pixels (`tiltfit.blur.pixel_esf`, edge at `angle_deg` to the pixel grid), is encoded
-    to sRGB and then fitted, as `tiltfit.blur` fits linear data, with the same pixel-integrated disc model
+    integrated over pixels (`tiltfit.detect.blur.pixel_esf`, edge at `angle_deg` to the pixel grid), is encoded
+    to sRGB and then fitted, as `tiltfit.detect.blur` fits linear data, with the same pixel-integrated disc model
     (free dark level, contrast, edge offset and diameter). The encoding is concave, so it steepens the dark
     side of the edge and flattens the bright one: at pixel-sized blur the bent ramp reads wider (b is
     overestimated); at large blur the bend is symmetric enough that b is slightly underestimated.
@@ -122,9 +122,9 @@ def srgb_blur_bias(b_px: float, dark: float = 0.05, white: float = 0.8, angle_de
     Returns:
         b_fit / b − 1 (dimensionless).
     """
-    from renderer.io import linear_to_srgb
+    from camio.files import linear_to_srgb
 
-    from ...blur import pixel_esf
+    from tiltfit.detect.blur import pixel_esf
     from ...solve import LMOptions, least_squares
 
     if not b_px > 0:

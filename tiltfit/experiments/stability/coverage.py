@@ -8,7 +8,9 @@ import time
 
 import numpy as np
 import torch
-from renderer import load_scene, optics, render
+from renderer import load_scene
+from renderer.cameras import optics
+from renderer import render
 
 from .closed_forms import coverage_closed_form, first_row_lost_theta_F
 from .common import D_MM, U0_MM, W_MM, StabilityConfig, Study, subplots_row

@@ -1,5 +1,5 @@
-"""(a) Corner detectors against blur: ours (`tiltfit.detect`) against OpenCV's findChessboardCornersSB and
-findChessboardCorners + cornerSubPix on `tiltfit.synth` images of the target, blur growing to the projected square."""
+"""(a) Corner detectors against blur: ours (`tiltfit.detect.chessboard`) against OpenCV's findChessboardCornersSB and
+findChessboardCorners + cornerSubPix on `tiltfit.experiments.synth` images of the target, blur growing to the projected square."""
 from __future__ import annotations
 
 import time
@@ -11,7 +11,7 @@ from .common import StabilityConfig, Study, subplots_row
 def detector_target():
     """The detector sweep's target (as benchmarks/bench_detect_opencv.py): 9 × 6 cells of 20 mm, rows designed
     for a 20° inclined view from 650 mm."""
-    from ...target import design_target
+    from tiltfit.target.layout import design_target
 
     return design_target(9, 6, 20.0, w_mm=55.39, distance_mm=650.0, inclination_deg=20.0)
 
@@ -42,7 +42,7 @@ def _opencv_detectors(pattern):
     return {"opencv_sb": sb, "opencv_classic": classic}
 
 
-DETECTOR_LABELS = {"ours": "ours (tiltfit.detect)", "opencv_sb": "cv2.findChessboardCornersSB",
+DETECTOR_LABELS = {"ours": "ours (tiltfit.detect.chessboard)", "opencv_sb": "cv2.findChessboardCornersSB",
                    "opencv_classic": "cv2.findChessboardCorners + cornerSubPix"}
 
 
@@ -61,8 +61,8 @@ def _score(found, truth, visible, by_index: bool, square_px: float):
 
 def study_detectors(cfg: StabilityConfig, log) -> Study:
     """(a) Success rate and corner RMS of the three detectors against blur / projected square."""
-    from ...detect import detect
-    from ...synth import PAPER_CAMERA, look_at_pose, projected_square_px, render_view, with_blur_ratio
+    from tiltfit.detect.chessboard import detect
+    from tiltfit.experiments.synth import PAPER_CAMERA, look_at_pose, projected_square_px, render_view, with_blur_ratio
 
     t0 = time.perf_counter()
     target = detector_target()

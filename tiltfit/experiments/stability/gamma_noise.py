@@ -13,10 +13,10 @@ from .detectors import DETECTOR_POSES, detector_target
 
 def srgb_bias_rows(cfg: StabilityConfig, log) -> list[dict]:
     """Blur measured on decoded (linear) and on encoded (sRGB) values, true corners, against the truth."""
-    from renderer.io import srgb_to_linear
+    from camio.files import srgb_to_linear
 
-    from ...blur import measure_blur
-    from ...synth import PAPER_CAMERA, look_at_pose, render_view, with_blur_ratio
+    from tiltfit.detect.blur import measure_blur
+    from tiltfit.experiments.synth import PAPER_CAMERA, look_at_pose, render_view, with_blur_ratio
 
     target = detector_target()
     base = PAPER_CAMERA.binned(12)
@@ -44,8 +44,8 @@ def srgb_bias_rows(cfg: StabilityConfig, log) -> list[dict]:
 
 def _expose(clean: np.ndarray, sigma: float, rng: np.random.Generator) -> np.ndarray:
     """(H, W) clean linear image -> (H, W) uint8 sRGB photograph with Gaussian noise σ (linear units): the one
-    sensor model, `renderer.sensor`."""
-    from renderer.sensor import SensorResponse
+    sensor model, `renderer.cameras.sensor`."""
+    from renderer.cameras.sensor import SensorResponse
 
     return SensorResponse(read_noise=sigma, encoding="srgb8").expose(clean, rng)
 
@@ -54,12 +54,12 @@ def _calibrate_photos(photos8, decode: bool, target, size, pitch):
     """Detect the target in 8-bit photographs (decoded to linear, or mistakenly not) and run stage 1.
 
     Returns (FitResult or None, views used, message)."""
-    from renderer.io import srgb_to_linear
+    from camio.files import srgb_to_linear
 
-    from ...detect import detect
-    from ...fit import FitError, FitOptions
-    from ...calibration import calibrate
-    from ...model import Observations
+    from tiltfit.detect.chessboard import detect
+    from tiltfit.calibrate.fit import FitError, FitOptions
+    from tiltfit.calibrate.flow import calibrate
+    from tiltfit.calibrate.model import Observations
     from ..reproduce import MIN_CORNER_FRACTION
 
     corners, blur = [], []
@@ -83,10 +83,10 @@ def _calibrate_photos(photos8, decode: bool, target, size, pitch):
 
 def _noise_rows(cfg: StabilityConfig, log) -> list[dict]:
     """Stage-1 calibration error against image noise (and with blur read off sRGB values, at one level)."""
-    from .. import reproduce
+    from tiltfit.experiments import reproduce
     from renderer import Lens
 
-    from ...synth import render_view
+    from tiltfit.experiments.synth import render_view
 
     target = reproduce.calibration_target(reproduce.SetValues())
     cam = Lens.paper().binned(cfg.noise_downscale)

@@ -7,7 +7,8 @@ import time
 
 import numpy as np
 import torch
-from renderer import load_scene, render
+from renderer import load_scene
+from renderer import render
 
 from .closed_forms import inverted_magnification, singular_depth
 from .common import StabilityConfig, Study

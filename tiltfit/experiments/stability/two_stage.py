@@ -26,7 +26,7 @@ def _nan(v):
 
 def _tilt_setup(cfg: StabilityConfig):
     """The target, views and sensor of (b) and (e): reproduce's designed target and target views."""
-    from .. import reproduce
+    from tiltfit.experiments import reproduce
     from ..scenes import EOS_6D
 
     target = reproduce.calibration_target(reproduce.SetValues())
@@ -38,7 +38,7 @@ def _tilt_setup(cfg: StabilityConfig):
 def tilt_observations(theta_L: float, cfg: StabilityConfig, seed: int):
     """Observations of the exact tilted thin lens (w, f, d of the simulated camera, tilted by θL about its
     centre; exact blur spot) seeing reproduce's target from its target views; returns (obs, true camera)."""
-    from ...model import TiltLensCamera, synthesize_observations
+    from tiltfit.calibrate.model import TiltLensCamera, synthesize_observations
 
     target, poses, size, pitch = _tilt_setup(cfg)
     R = torch.tensor(np.stack([p[0] for p in poses]))
@@ -52,9 +52,9 @@ def tilt_observations(theta_L: float, cfg: StabilityConfig, seed: int):
 
 def study_two_stage(cfg: StabilityConfig, log) -> Study:
     """(b) θL error of the paper's two stages and of the joint fit as the tilt grows."""
-    from ...fit import FitError, FitOptions
+    from tiltfit.calibrate.fit import FitError, FitOptions
 
-    from ...calibration import calibrate
+    from tiltfit.calibrate.flow import calibrate
 
     t0 = time.perf_counter()
     opts = FitOptions(model_selection=False, nominal_focal_mm=55.0)

@@ -1,0 +1,712 @@
+"""The least-squares fit of a tilt-lens camera: the problem over its free parameters, the solve with the noise
+levels estimated, and the uncertainties. The starting camera is `tiltfit.calibrate.start`'s, the nested-model tests
+`tiltfit.select.nested`'s, and the calibration flow built on them (which terms to free, the checks after the fit)
+`tiltfit.calibrate.flow`'s:
+
+    calibrate(obs, mode="unified" | "tilt" | "joint", init=None, options=FitOptions()) -> FitResult
+                                                                        (tiltfit.calibrate.flow)
+    fit_geometry(camera, obs, options, mode)                            -> FitResult   (corners only)
+
+Modes (the paper's two stages, and one fit of everything):
+    unified  stage 1, eq (3): θF = 0; fits w, U, d and every view's R, T from corners and blur.
+    tilt     stage 2, eq (4): w, U, d held at `init`'s values; fits θF and every view's R, T. Because the
+             lens tilts about its centre, the true U moves with the tilt (hinge rule); holding U biases θF.
+    joint    w, U, d, θF and the poses together; `init` (if any) is only the starting point.
+The principal point is fitted where the views support it (a likelihood-ratio test on the corners; held at the
+image centre, or `init`'s, otherwise), or as `FitOptions.free_principal_point` forces. Distortion terms are
+chosen by their held-out error (`tiltfit.select.held_out.select_distortion`).
+
+Objective: ½ Σ ρ((r_i / σ_g)²) over reprojection residuals (group g = corners, pixels) and blur residuals
+(g = blur, pixels); ρ is quadratic, Huber or Cauchy. The noise levels σ_g are estimated from the residuals
+(variance components, with the degrees of freedom each group uses) unless given. Minimised by
+Levenberg–Marquardt with Marquardt's diagonal scaling on the free parameters of `TiltLensCamera`, its
+Jacobian in closed form (`LensCamera.jacobian`), solved by `tiltfit.solve` (Schur complement of the per-view
+poses), robust losses by iterative reweighting.
+
+Uncertainties: C = s² (Jᵀ W J)⁻¹ on the free parameters (s² the residual variance factor), propagated to
+w, U, d, θF, θL (exact Scheimpflug), θL of the paper's eq (1) and f by the Jacobian of those functions. In
+`tilt` mode the held w, U, d carry the uncertainties `init` gives for them (through the fit's implicit
+dependence on them), but not the bias of holding U.
+The reported σ use the error model `FitOptions.sigma_model`: "views" (default) replaces C on the global
+parameters by the per-view cluster-robust covariance (corner and blur errors correlated within a view), never
+below the classical C (`tiltfit.uncertainty.covariance`); the classical σ stay in `FitResult.sigma_classical`.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field, replace
+
+import torch
+
+from renderer.cameras.distortion import MODELS as DISTORTION_MODELS
+
+from tiltfit.target.shape import BOARD_MODELS
+from tiltfit.calibrate.model import (APERTURE_SCALE_MM, BLUR_MODELS, MIN_CORNERS, ROBUST_LOSSES, Observations, TiltLensCamera,
+                    distortion_parameter_names, residuals, robust_rho, robust_weight)
+from tiltfit.solve import Block, LMOptions, LMResult, SolverError
+from tiltfit.solve.blocks import DenseCovariance
+from tiltfit.solve import covariance as solve_covariance
+from tiltfit.solve import levenberg_marquardt as solve_lm
+
+MODES = ("unified", "tilt", "joint")
+# A calibrated view reprojecting worse than this (RMS per corner; 5 px per coordinate) means mismatched data.
+MAX_RMS_REPROJECTION_PX = 7.0
+
+_MODE_FREE = {
+    "unified": ("lens", "pose"),
+    "tilt": ("theta_F", "pose"),
+    "joint": ("lens", "theta_F", "pose"),
+}
+
+
+class FitError(RuntimeError):
+    """A calibration that cannot be done or did not converge; the message is one line."""
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """Settings of `calibrate` (defaults in brackets).
+
+    Attributes:
+        robust: None, "huber" or "cauchy" [None]; `robust_scale` is the threshold in σ [3.0].
+        free_principal_point: True fits the principal point, False holds it (at the image centre or `init`'s);
+            None fits it where the views support it: free unless the likelihood-ratio test on the corners
+            (`_geometry_with_principal_point`) finds it not justified; held when `model_selection` is off [None].
+        held_out_folds: K of the K-fold held-out error that chooses the distortion model under "auto" [5].
+        uncertainties: compute the covariance and σ (False: only the fitted camera is wanted, as in the held-out
+            folds; a fit whose parameters are not all determined is then no error) [True].
+        sigma_model: the error model of the σ: "views" (corner errors may be correlated within a view: per-view
+            cluster-robust covariance with the classical one as floor, `tiltfit.uncertainty.covariance`) or "classical"
+            (independent noise, s² (JᵀWJ)⁻¹) ["views"]. The fitted values do not depend on it.
+        sigma_corner_px, sigma_blur_px: noise levels; None estimates them from the residuals [None].
+        blur_model: the camera's blur model ("ellipse", "first_order", "paper") ["ellipse"].
+        nominal_focal_mm: starting w when no `init` gives one; None estimates it from homographies [None].
+        max_iterations: Levenberg–Marquardt iterations per solve [200].
+        noise_iterations: re-estimations of σ_g (each followed by a warm re-solve) [4].
+        model_selection: run the θF / principal-point tests [True].
+        alpha: significance level of the tests [0.01].
+        progress: callable(str) for progress lines, or None [None].
+        distortion: "none", "k1", "k1k2", "opencv5", "rational5", "rational" or "auto" (the model with the smallest
+            held-out error whose radial mapping is one-to-one over the image, `tiltfit.select.held_out`) ["none"].
+        max_rms_px: a view reprojecting worse than this (RMS per corner) is an error (mismatched data); None: no
+            check [7.0].
+        min_corners: views with fewer detected corners are skipped (listed in `FitResult.skipped`)
+            [`tiltfit.calibrate.model.MIN_CORNERS`, 6].
+        blur_floor_px: blur widths all below this carry no information on U and d (sharp images): the fit is
+            geometric and U, d are reported undetermined [1.0].
+        outlier_factor: a view whose RMS exceeds this many times the median view RMS is flagged [3.0].
+        blur_offset: fit a constant offset of the measured blur widths (the blur detector's bias) beside the
+            lens [True]. Without it such a bias goes into d and U, and their σ (which only sees the scatter)
+            is too small: on rendered captures a −0.011 px bias put stage 1's d 8–12σ off. Held at 0 when the
+            depths do not straddle the plane of focus (then it is not separable from U), and in "tilt" mode,
+            which holds `init`'s offset with its w, U, d (the same detector's bias, calibrated in stage 1).
+        distortion_centre: where the distortion of a tilted lens is centred: "auto" tests the lens's own axis
+            against the principal point in the joint fit (`tiltfit.calibrate.distortion_centre`) and
+            keeps the one the data support; "sensor" holds it at the principal point (the model before the
+            lens-axis centre, and every other library's untilted one) ["auto"].
+        board: the target's shape (`tiltfit.target.shape.BOARD_MODELS`): "flat" (the target file's points as they are),
+            "warp" (sag and print scale), "free" (every point, OpenCV's release-object method) or "auto" (the
+            simplest the held-out views support, `tiltfit.select.board.select_board`) ["flat"].
+    """
+
+    robust: str | None = None
+    robust_scale: float = 3.0
+    free_principal_point: bool | None = None
+    held_out_folds: int = 5
+    sigma_corner_px: float | None = None
+    sigma_blur_px: float | None = None
+    blur_model: str = "ellipse"
+    nominal_focal_mm: float | None = None
+    max_iterations: int = 200
+    noise_iterations: int = 4
+    model_selection: bool = True
+    alpha: float = 0.01
+    progress: object = None
+    distortion: str = "none"
+    max_rms_px: float | None = MAX_RMS_REPROJECTION_PX
+    min_corners: int = MIN_CORNERS
+    blur_floor_px: float = 1.0
+    outlier_factor: float = 3.0
+    blur_offset: bool = True
+    uncertainties: bool = True
+    distortion_centre: str = "auto"
+    board: str = "flat"
+    sigma_model: str = "views"
+
+    def __post_init__(self):
+        if self.robust not in ROBUST_LOSSES:
+            raise ValueError(f"robust: expected one of {ROBUST_LOSSES}, got {self.robust!r}")
+        if self.blur_model not in BLUR_MODELS:
+            raise ValueError(f"blur_model: expected one of {BLUR_MODELS}, got {self.blur_model!r}")
+        if self.max_iterations < 1:
+            raise ValueError(f"max_iterations: expected at least 1, got {self.max_iterations}")
+        if self.distortion_centre not in ("auto", "sensor"):
+            raise ValueError(f"distortion_centre: expected 'auto' or 'sensor', got {self.distortion_centre!r}")
+        if self.board not in BOARD_MODELS + ("auto",):
+            raise ValueError(f"board: expected one of {BOARD_MODELS + ('auto',)}, got {self.board!r}")
+        if self.sigma_model not in ("views", "classical"):
+            raise ValueError(f"sigma_model: expected 'views' or 'classical', got {self.sigma_model!r}")
+        if self.distortion not in DISTORTION_MODELS + ("auto",):
+            raise ValueError(f"distortion: expected one of {DISTORTION_MODELS + ('auto',)}, got {self.distortion!r}")
+
+
+@dataclass
+class FitResult:
+    """What `calibrate` found.
+
+    Attributes:
+        mode: "unified", "tilt" or "joint".
+        camera: the fitted camera (float64; free/frozen state as fitted).
+        values: w_mm, U_mm, d_mm, f_mm, theta_F_deg, theta_L_deg, theta_L_paper_deg, tilt_axis_deg (φ, the tilt
+            axis's direction: 0 unless the tilt-axis test freed it), principal_point_px.
+        sigma: one-σ uncertainties of the same keys (0 for held ones without an `init` sigma).
+        views: per view: image, R, T_mm, rms_reprojection_px, rms_blur_px, n_points, sigma_rvec_deg,
+            sigma_T_mm.
+        noise: estimated (or given) sigma_corner_px, sigma_blur_px.
+        parameter_names, covariance: the free parameters (stored units of the camera, flat order) and their
+            covariance (`tiltfit.solve.covariance`: `.dense()` the matrix, `.diagonal()`, `.submatrix(idx)`;
+            by blocks, so thousands of views need no (P, P) matrix); None when `FitOptions.uncertainties` is off.
+        chi2: Σ ρ((r/σ)²) at the solution; n_residuals, n_parameters; iterations; runtime_s.
+        model_selection: per tested parameter, the test's numbers and a verdict (see the module docstring).
+        distortion_model: the distortion terms fitted ("none", "k1", …); distortion_selection: the tests that
+            chose them under `distortion="auto"` (one entry per candidate).
+        undetermined: keys the data cannot determine (e.g. "U_mm", "d_mm" from sharp images); their values
+            are not meaningful and CALIB.json writes null.
+        skipped: views left out, [{image, reason}]; notes: one-line remarks for the user (stderr); warnings:
+            one-line warnings (the blur model does not describe the lens).
+        held_out: the K-fold held-out error of the chosen distortion model with the final principal-point state
+            when the selection computed it (`tiltfit.select.held_out.held_out_rms`), else None.
+        free_principal_point: whether the principal point was fitted.
+        board: the target's fitted shape (`tiltfit.target.shape.Board`; None: the target file's points as they are);
+            board_selection: the held-out test that chose its model (`tiltfit.select.board.select_board`'s entries).
+        choice_variance: {"distortion" | "board": `tiltfit.select.held_out.choice_variance`'s dict}: the spread of the
+            focal length and principal point over the models an automatic choice could not tell apart, added to
+            `sigma` by `tiltfit.calibrate.flow` (`sigma_model["model_choice"]` records it).
+    """
+
+    mode: str
+    camera: TiltLensCamera
+    values: dict
+    sigma: dict
+    views: list
+    noise: dict
+    parameter_names: list
+    covariance: object
+    chi2: float
+    n_residuals: int
+    n_parameters: int
+    iterations: int
+    runtime_s: float
+    rss: dict = field(default_factory=dict)
+    model_selection: dict = field(default_factory=dict)
+    distortion_model: str = "none"
+    distortion_selection: list = field(default_factory=list)
+    undetermined: list = field(default_factory=list)
+    skipped: list = field(default_factory=list)
+    notes: list = field(default_factory=list)
+    warnings: list = field(default_factory=list)
+    held_out: dict | None = None
+    free_principal_point: bool = False
+    board: object = None
+    board_selection: list = field(default_factory=list)
+    sigma_classical: dict = field(default_factory=dict)
+    sigma_model: dict = field(default_factory=dict)
+    intrinsics_covariance: dict | None = None
+    choice_variance: dict = field(default_factory=dict)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The least-squares problem over a camera's free parameters
+# ---------------------------------------------------------------------------------------------------------
+
+class _Problem:
+    """The calibration as a least-squares problem over a camera's free parameters (`tiltfit.solve` blocks).
+
+    Residuals, flat: corners (V·N·2, pixels) then blur widths (V·N, pixels; none when no width was measured),
+    model − observation, 0 where unobserved, each divided by its group's σ (`scale`). Parameters: the camera's free stored parameters by
+    name (`LensCamera.named_parameters` order); the poses (`rvec`, `T_scaled`) are per-view blocks. The
+    Jacobian is the camera's closed form (`LensCamera.jacobian`). With a `board` (`tiltfit.target.shape.Board`) that
+    has parameters, the target points are the board's and its parameters are one more global block, "board"
+    (∂uv/∂θ = ∂uv/∂p_cam · R_v · ∂X/∂θ).
+    """
+
+    POSE = ("rvec", "T_scaled")
+    BOARD = "board"
+
+    def __init__(self, camera: TiltLensCamera, obs: Observations, names: list[str] | None = None, board=None):
+        self.camera = camera
+        self.obs = obs
+        self.board = board if board is not None and board.n_params > 0 else None
+        self.names = names if names is not None else camera.free_parameter_names()
+        if self.board is not None and self.BOARD not in self.names:
+            self.names = list(self.names) + [self.BOARD]
+        if not self.names:
+            raise FitError("no free parameters to fit")
+        params = dict(camera.named_parameters())
+        if self.board is not None:
+            params[self.BOARD] = self.board.params
+        self.shapes = [params[n].shape for n in self.names]
+        self.held = {n: p.detach() for n, p in params.items() if n not in self.names}
+        # columns per parameter in a residual row (a pose's: its own view's 3)
+        self._sizes = {n: (p.shape[-1] if n in self.POSE else p.numel()) for n, p in params.items()}
+        self.work = camera.copy().requires_grad_(False)  # evaluated at trial parameters, never autograd
+        self._work_params = dict(self.work.named_parameters())
+        self._overridden = set()  # held parameters `_load` replaced (restored on the next call)
+        self.points = obs.points_mm.to(torch.float64) if self.board is None else self.board.points()
+        self.cmask = obs.corner_mask
+        self.bmask = obs.blur_mask
+        self.corners = torch.nan_to_num(obs.corners_px)
+        self.blur = torch.nan_to_num(obs.blur_px)
+        dist_names = camera.parameter_names("distortion")
+        self.with_distortion = any(n in self.names or bool(self.held[n] != 0) for n in dist_names)
+        self.n_corner = int(self.cmask.sum()) * 2
+        self.n_blur = int(self.bmask.sum())
+        # Without blur widths (a geometric fit) the residual vector has no blur rows at all.
+        self.blur_rows_kept = self.n_blur > 0
+        nc = self.cmask.numel() * 2
+        nb = self.bmask.numel() if self.blur_rows_kept else 0
+        self.corner_rows = torch.zeros(nc + nb, dtype=torch.bool)
+        self.corner_rows[:nc] = self.cmask[..., None].expand(-1, -1, 2).reshape(-1)
+        self.blur_rows = torch.zeros_like(self.corner_rows)
+        self.blur_rows[nc:] = self.bmask.reshape(-1) if nb else False
+        V, N = self.cmask.shape
+        self.blocks = [Block(n, tuple(shape), per_view=n in self.POSE) for n, shape in zip(self.names, self.shapes)]
+        # rows of view v: its 2N corner entries (and its N blur entries)
+        self.view_rows = 2 * N * torch.arange(V)[:, None] + torch.arange(2 * N)[None]
+        if nb:
+            self.view_rows = torch.cat([self.view_rows, 2 * V * N + N * torch.arange(V)[:, None]
+                                        + torch.arange(N)[None]], 1)
+
+    def x0(self) -> dict:
+        params = dict(self.camera.named_parameters())
+        if self.board is not None:
+            params[self.BOARD] = self.board.params
+        return {n: params[n].detach().to(torch.float64).clone() for n in self.names}
+
+    def params(self, x: dict, held: dict | None = None) -> dict:
+        return {**(held if held is not None else self.held), **x}
+
+    def _load(self, x: dict, held: dict | None = None):
+        """Put x (and `held` in place of the held values) into the working camera."""
+        wp = self._work_params
+        with torch.no_grad():
+            for n in self._overridden:
+                wp[n].copy_(self.held[n])
+            self._overridden = set()
+            for n, v in x.items():
+                if n == self.BOARD:
+                    self.points = self.board.points(v)
+                    continue
+                wp[n].copy_(v)
+            for n, v in (held or {}).items():
+                if n not in x:
+                    wp[n].copy_(v)
+                    self._overridden.add(n)
+
+    def _flat(self, uv: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        rc = torch.where(self.cmask[..., None], uv - self.corners, torch.zeros_like(uv)).reshape(-1)
+        if not self.blur_rows_kept:
+            return rc
+        rb = torch.where(self.bmask, b - self.blur, torch.zeros_like(b)).reshape(-1)
+        return torch.cat([rc, rb])
+
+    def raw(self, x: dict, held: dict | None = None) -> torch.Tensor:
+        """Model − observation, flat: corners (V·N·2, pixels) then blur (V·N, pixels, if kept); 0 where
+        unobserved."""
+        self._load(x, held)
+        with torch.no_grad():
+            uv, b = self.work(self.points, with_blur=self.n_blur > 0, with_distortion=self.with_distortion)
+        return self._flat(uv, b)
+
+    def raw_jacobian(self, x: dict, names, held: dict | None = None) -> tuple[torch.Tensor, dict]:
+        """`raw(x)` and its derivatives {name: (M, size)} with respect to the named stored parameters (free or
+        held; a pose's row i with respect to the pose of row i's view)."""
+        J, r = self._raw_jacobian_matrix(x, names, held)
+        return r, dict(zip(names, torch.split(J, [self._sizes[n] for n in names], 1)))
+
+    def _raw_jacobian_matrix(self, x: dict, names, held: dict | None = None):
+        """((M, Σ sizes) derivatives of `raw` by the named parameters side by side, raw(x))."""
+        self._load(x, held)
+        cam_names = [n for n in names if n != self.BOARD]
+        if self.BOARD in names and "T_scaled" not in cam_names:
+            cam_names.append("T_scaled")  # ∂/∂p_cam, for the board's chain rule
+        uv, b, jac = self.work.jacobian(self.points, with_blur=self.n_blur > 0, with_distortion=self.with_distortion,
+                                        names=cam_names)
+        if self.BOARD in names:
+            d_pcam = jac["T_scaled"] / self.work.length_scale_mm                # (V, N, 3, 3) ∂(u, v, b)/∂p_cam
+            d_world = d_pcam @ self.work.R.detach()[:, None]                    # ∂/∂X_world
+            jac[self.BOARD] = torch.einsum("vnij,njk->vnik", d_world, self.board.basis)
+        j = torch.cat([jac[n] for n in names], -1)                          # (V, N, 3, P)
+        jc = torch.where(self.cmask[..., None, None], j[..., :2, :], 0.0).reshape(-1, j.shape[-1])
+        if not self.blur_rows_kept:
+            return jc, self._flat(uv, b)
+        jb = torch.where(self.bmask[..., None], j[..., 2, :], 0.0).reshape(-1, j.shape[-1])
+        return torch.cat([jc, jb]), self._flat(uv, b)
+
+    def evaluate(self, scale: torch.Tensor):
+        """The `tiltfit.solve.levenberg_marquardt` callback of the residuals `raw(x) * scale`."""
+        sizes = [self._sizes[n] for n in self.names]
+
+        def evaluate(x: dict, with_jacobian: bool):
+            if not with_jacobian:
+                return self.raw(x) * scale, None
+            J, r = self._raw_jacobian_matrix(x, self.names)
+            return r * scale, dict(zip(self.names, torch.split(J * scale[:, None], sizes, 1)))
+
+        return evaluate
+
+    def scale(self, sigma_c: float, sigma_b: float) -> torch.Tensor:
+        """(M,) 1/σ of each residual row."""
+        nc = self.cmask.numel() * 2
+        s = torch.full((self.corner_rows.numel(),), 1.0 / sigma_c, dtype=torch.float64)
+        s[nc:] = 1.0 / sigma_b
+        return s
+
+    def write_back(self, x: dict):
+        with torch.no_grad():
+            params = dict(self.camera.named_parameters())
+            for n, v in x.items():
+                if n == self.BOARD:
+                    self.board.params = v.detach().clone()
+                    continue
+                params[n].copy_(v)
+
+
+def _robust_options(robust: str | None, scale: float, max_iterations: int) -> LMOptions:
+    """`LMOptions` with the robust loss of `tiltfit.calibrate.model` (ρ and its IRLS weight)."""
+    if robust in (None, "none"):
+        return LMOptions(max_iterations=max_iterations)
+    return LMOptions(max_iterations=max_iterations, rho=lambda s2: robust_rho(s2, robust, scale),
+                     weight=lambda s2: robust_weight(s2, robust, scale))
+
+
+def _lm(evaluate, x0: dict, blocks, view_rows, options: LMOptions) -> LMResult:
+    try:
+        return solve_lm(evaluate, x0, blocks, view_rows, options)
+    except SolverError as e:
+        raise FitError(str(e)) from None
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The solve and the uncertainties
+# ---------------------------------------------------------------------------------------------------------
+
+def _group_sigma(prob: _Problem, r_raw: torch.Tensor, normal, robust: str | None) -> tuple[float, float]:
+    """Variance components: σ_g² = Σ_g r² / (n_g − tr_g(hat matrix)) (MAD-based under a robust loss); the
+    hat matrix's diagonal from the normal equations' blocks (`normal.leverages`)."""
+    try:
+        cov = normal.covariance()
+    except RuntimeError:
+        cov = DenseCovariance(torch.linalg.pinv(normal.dense()))
+    lev = normal.leverages(cov)
+    out = []
+    for rows, n in ((prob.corner_rows, prob.n_corner), (prob.blur_rows, prob.n_blur)):
+        if n == 0:
+            out.append(1.0)
+            continue
+        used = float(lev[rows].sum())
+        dof = max(n - used, 1.0)
+        rg = r_raw[rows]
+        if robust in (None, "none"):
+            s2 = float((rg * rg).sum()) / dof
+        else:
+            s2 = (1.4826 * float(rg.abs().median())) ** 2 * n / dof
+        out.append(math.sqrt(max(s2, 1e-24)))
+    return out[0], out[1]
+
+
+def _solve(camera: TiltLensCamera, obs: Observations, options: FitOptions, sigma=None, say=None, board=None):
+    """Fit the camera's free parameters in place; returns (problem, LM result, σ_corner, σ_blur).
+
+    Unless both σ are given, alternates solving with re-estimating them until they change by less than
+    0.1 % (at most `noise_iterations` re-estimations), then solves once more with the final σ if needed.
+    """
+    prob = _Problem(camera, obs, board=board)
+    sc = options.sigma_corner_px or (sigma[0] if sigma else 1.0)
+    sb = options.sigma_blur_px or (sigma[1] if sigma else 1.0)
+    estimate = options.sigma_corner_px is None or options.sigma_blur_px is None
+    lm_options = _robust_options(options.robust, options.robust_scale, options.max_iterations)
+    one_group = (prob.n_corner == 0 or prob.n_blur == 0) and options.robust in (None, "none")
+    x, total_it = prob.x0(), 0
+    for outer in range(options.noise_iterations + 1):
+        scale = prob.scale(sc, sb)
+        res = _lm(prob.evaluate(scale), x, prob.blocks, prob.view_rows, lm_options)
+        x, total_it = res.x, total_it + res.iterations
+        if not estimate or outer == options.noise_iterations:
+            break
+        new_sc, new_sb = _group_sigma(prob, res.r / scale, res.normal, options.robust)
+        new_sc = options.sigma_corner_px or new_sc
+        new_sb = options.sigma_blur_px or new_sb
+        changed = abs(new_sc / sc - 1) > 1e-3 or abs(new_sb / sb - 1) > 1e-3
+        if say:
+            say(f"  pass {outer + 1}: cost {res.cost:.6g} after {res.iterations} iterations; "
+                f"σ_corner {new_sc:.4g} px, σ_blur {new_sb:.4g} px")
+        if not changed:
+            break
+        if one_group:
+            # One σ scales every residual alike: the minimiser stays, and the estimate is final.
+            res = res.scaled(sc / new_sc if prob.n_corner else sb / new_sb)
+            sc, sb = new_sc, new_sb
+            break
+        sc, sb = new_sc, new_sb
+    res.iterations = total_it
+    prob.write_back(res.x)
+    return prob, res, sc, sb
+
+
+def _derived(camera: TiltLensCamera, params: dict) -> torch.Tensor:
+    """(w, U, d, f, θF°, θL°, θL_paper°, φ°, cx, cy) as functions of the stored parameters."""
+    from renderer.cameras import optics
+
+    w, d = torch.exp(params["log_w_mm"]), params["d_scaled"].abs() * APERTURE_SCALE_MM
+    U = 1000.0 / params["inv_U_per_m"]
+    thF = params["theta_F"]
+    thL = optics.theta_L_from_theta_F(thF, w, U)
+    f = optics.focal_length(w, U, thL)
+    thLp = optics.theta_L_paper(thF, f, U)
+    pp = camera.image_centre_px + params["pp_scaled"] * camera.pixel_scale_px
+    deg = 180.0 / math.pi
+    return torch.stack([w, U, d, f, thF * deg, thL * deg, thLp * deg, params["phi"] * deg, pp[0], pp[1]])
+
+
+_DERIVED_KEYS = ("w_mm", "U_mm", "d_mm", "f_mm", "theta_F_deg", "theta_L_deg", "theta_L_paper_deg",
+                 "tilt_axis_deg")
+
+
+def _held_sigma(init_sigma: dict | None, camera: TiltLensCamera, names: list[str]) -> dict:
+    """σ of held stored lens parameters from an `init` sigma dict (relative σ for log w, cm for d)."""
+    out = {}
+    if not init_sigma:
+        return out
+    if "log_w_mm" in names and init_sigma.get("w_mm"):
+        out["log_w_mm"] = float(init_sigma["w_mm"]) / float(camera.w_mm)
+    if "d_scaled" in names and init_sigma.get("d_mm"):
+        out["d_scaled"] = float(init_sigma["d_mm"]) / APERTURE_SCALE_MM
+    if "inv_U_per_m" in names and init_sigma.get("U_mm") and math.isfinite(float(camera.U_mm)):
+        out["inv_U_per_m"] = 1000.0 * float(init_sigma["U_mm"]) / float(camera.U_mm) ** 2
+    return out
+
+
+def _jacobian_of(f, x: torch.Tensor) -> torch.Tensor:
+    """(m, n) Jacobian of a small function (m, n ≲ 10) by reverse-mode autograd."""
+    return torch.autograd.functional.jacobian(f, x.detach())
+
+
+def _intrinsics(camera: TiltLensCamera, params: dict) -> torch.Tensor:
+    """(focal_px, cx, cy, k1 … k6, θL°, φ°) as functions of the stored parameters
+    (`tiltfit.uncertainty.covariance.INTRINSIC_NAMES`: what the projection depends on; θL and φ place a lens-axis
+    distortion's frame)."""
+    w = torch.exp(params["log_w_mm"])
+    pp = camera.image_centre_px + params["pp_scaled"] * camera.pixel_scale_px
+    k = torch.stack([params[n].reshape(()) for n in TiltLensCamera.parameter_names("distortion")])
+    # tan θL = w tan θF / (U + w) written with 1/U, finite (θL = 0) and differentiable at focus at infinity
+    u = params["inv_U_per_m"] / 1000.0
+    theta_L = torch.atan(w * torch.tan(params["theta_F"]) * u / (1.0 + w * u))
+    deg = 180.0 / math.pi
+    return torch.cat([(w / camera.pixel_pitch_mm).reshape(1), pp, k, (theta_L * deg).reshape(1),
+                      (params["phi"] * deg).reshape(1)])
+
+
+def _uncertainties(prob: _Problem, res: LMResult, scale: torch.Tensor, init_sigma: dict | None,
+                   sigma_model: str = "views"):
+    """Covariance of the free parameters and σ of the derived quantities and per-view poses, under
+    `sigma_model` ("views": per-view cluster-robust with the classical floor, `tiltfit.uncertainty.covariance`;
+    "classical": s² (JᵀWJ)⁻¹). Returns (C, sigma, view σ, s², extras {sigma_classical, sigma_model,
+    intrinsics_covariance})."""
+    from tiltfit.uncertainty.covariance import INTRINSIC_NAMES, affine_modes, view_cluster_covariance
+
+    cam = prob.camera
+    n = prob.n_corner + prob.n_blur
+    p = res.x_flat.numel()
+    s2 = float((res.weights * res.r * res.r).sum()) / max(n - p, 1)
+    try:
+        C_cls = solve_covariance(res, s2)
+    except SolverError:
+        raise FitError("the fit is degenerate: the free parameters are not all determined by the data") from None
+    robust = None
+    if sigma_model == "views":
+        # the poses' own part: a random affine error of each view's corners (tiltfit.uncertainty.covariance)
+        rows = prob.view_rows
+        V, N = prob.cmask.shape
+        am = affine_modes(prob.corners, prob.cmask)
+        modes = torch.zeros(*rows.shape, am.shape[-1], dtype=torch.float64)
+        modes[:, :2 * N] = am
+        kinds = torch.zeros(rows.shape, dtype=torch.long)
+        kinds[:, :2 * N] = 1
+        kinds[:, 2 * N:] = 2
+        robust = view_cluster_covariance(res, s2, modes * scale[rows][..., None], kinds)
+    C, info = robust if robust is not None else (C_cls, {})
+    model = {"name": "views" if robust is not None else "classical"} | info
+    layout = res.layout
+    G = _jacobian_of(lambda v: _derived(cam, prob.params(layout.unflatten(v))), res.x_flat)
+    # Held lens parameters with known uncertainty: total derivative through the re-fitted free parameters.
+    held_sig = _held_sigma(init_sigma, cam, list(prob.held))
+    Gh = Sh = None
+    if held_sig:
+        hnames = list(held_sig)
+        h0 = torch.stack([prob.held[k].reshape(()) for k in hnames])
+
+        def with_h(hv):
+            held = dict(prob.held)
+            for i, k in enumerate(hnames):
+                held[k] = hv[i]
+            return held
+
+        _, jh = prob.raw_jacobian(res.x, hnames)
+        Jh = torch.cat([jh[k] for k in hnames], 1) * scale[:, None]
+        # dx/dh = −(JᵀWJ)⁻¹ JᵀW J_h; JᵀW v is the normal equations' gradient of v
+        JtWJh = torch.stack([res.normal.gradient(Jh[:, i]) for i in range(len(hnames))], 1)
+        dx_dh = -C_cls.matmul(JtWJh) / s2
+        Gh = _jacobian_of(lambda hv: _derived(cam, prob.params(res.x, with_h(hv))), h0) + G @ dx_dh
+        Sh = torch.diag(torch.tensor([held_sig[k] ** 2 for k in hnames], dtype=torch.float64))
+
+    def sigmas(Cx):
+        cov_d = G @ Cx.matmul(G.T)
+        if Gh is not None:
+            cov_d = cov_d + Gh @ Sh @ Gh.T
+        sig = torch.sqrt(torch.clamp(torch.diagonal(cov_d), min=0.0))
+        sigma = {k: float(sig[i]) for i, k in enumerate(_DERIVED_KEYS)}
+        sigma["principal_point_px"] = [float(sig[8]), float(sig[9])]
+        offsets = layout.offsets
+        sd = Cx.diagonal().clamp_min(0).sqrt().tolist()
+        sigma["distortion"] = [sd[offsets[n][0]] if n in offsets else 0.0
+                               for n in TiltLensCamera.parameter_names("distortion")]
+        if "inv_U_per_m" in offsets:
+            sigma["inv_U_per_m"] = sd[offsets["inv_U_per_m"][0]]
+        if "blur_offset_px" in offsets:
+            sigma["blur_offset_px"] = sd[offsets["blur_offset_px"][0]]
+        if _Problem.BOARD in offsets:
+            o, k = offsets[_Problem.BOARD]
+            sigma["board"] = sd[o:o + k]
+        # Per-view pose σ, if the poses are free.
+        view_sig = []
+        for v in range(cam.n_views):
+            entry = {}
+            if "rvec" in offsets:
+                o = offsets["rvec"][0] + 3 * v
+                entry["sigma_rvec_deg"] = [math.degrees(sd[o + k]) for k in range(3)]
+            if "T_scaled" in offsets:
+                o = offsets["T_scaled"][0] + 3 * v
+                entry["sigma_T_mm"] = [sd[o + k] * cam.length_scale_mm for k in range(3)]
+            view_sig.append(entry)
+        return sigma, view_sig
+
+    sigma, view_sig = sigmas(C)
+    sigma_classical = sigmas(C_cls)[0] if robust is not None else dict(sigma)
+    Gi = _jacobian_of(lambda v: _intrinsics(cam, prob.params(layout.unflatten(v))), res.x_flat)
+    Ci = Gi @ C.matmul(Gi.T)
+    extras = {"sigma_classical": sigma_classical, "sigma_model": model,
+              "intrinsics_covariance": {"names": list(INTRINSIC_NAMES), "matrix": (0.5 * (Ci + Ci.T)).tolist()}}
+    return C, sigma, view_sig, s2, extras
+
+
+def _set_free(camera: TiltLensCamera, mode: str, free_pp: bool):
+    camera.freeze("all")
+    camera.free(*_MODE_FREE[mode])
+    if free_pp:
+        camera.free("principal_point")
+    if mode == "unified":
+        with torch.no_grad():
+            camera.theta_F.zero_()
+
+
+def _group_rss(prob: _Problem, res: LMResult, scale: torch.Tensor) -> dict:
+    raw = res.r / scale
+    return {"corners": float((raw[prob.corner_rows] ** 2).sum()), "blur": float((raw[prob.blur_rows] ** 2).sum()),
+            "n_corners": prob.n_corner, "n_blur": prob.n_blur}
+
+
+def _fit_camera(camera: TiltLensCamera, obs: Observations, options: FitOptions, init_sigma=None, say=None,
+                sigma=None, mode: str = "joint", board=None):
+    """Fit the camera's free parameters (and `board`'s, a `tiltfit.target.shape.Board`, if given: fitted in place and
+    kept in the result's `board`, the observations then seen as its points)."""
+    t0 = time.perf_counter()
+    prob, res, sc, sb = _solve(camera, obs, options, sigma, say, board)
+    if board is not None:
+        from tiltfit.target.shape import with_points
+
+        obs = with_points(obs, board.points())
+    scale = prob.scale(sc, sb)
+    if options.uncertainties:
+        C, sig, view_sig, s2, extras = _uncertainties(prob, res, scale, init_sigma, options.sigma_model)
+    else:  # only the fitted camera is wanted (held-out folds): σ unknown, and a near-degenerate fit is no error
+        C, view_sig, s2, extras = None, [{}] * obs.n_views, math.nan, {}
+        sig = {k: math.nan for k in _DERIVED_KEYS} | {"principal_point_px": [math.nan, math.nan],
+                                                       "distortion": [math.nan] * 8}
+    with torch.no_grad():
+        vals = _derived(camera, dict(camera.named_parameters()))
+        rc, rb = residuals(camera, obs).rms_per_view()
+    values = {k: float(vals[i]) for i, k in enumerate(_DERIVED_KEYS)}
+    values["principal_point_px"] = [float(vals[8]), float(vals[9])]
+    values["blur_offset_px"] = float(camera.blur_offset_px.detach())
+    views = []
+    R = camera.R.detach()
+    T = camera.T_mm.detach()
+    n_points = obs.corner_mask.sum(-1).tolist()
+    for v in range(obs.n_views):
+        views.append({
+            "image": obs.names[v], "R": R[v].tolist(), "T_mm": T[v].tolist(),
+            "rms_reprojection_px": float(rc[v]), "rms_blur_px": float(rb[v]),
+            "n_points": int(n_points[v]), **view_sig[v],
+        })
+    return FitResult(
+        mode=mode, camera=camera, values=values, sigma=sig, views=views,
+        noise={"sigma_corner_px": sc, "sigma_blur_px": sb, "variance_factor": s2},
+        parameter_names=res.layout.flat_names(), covariance=C, chi2=2.0 * res.cost,
+        n_residuals=prob.n_corner + prob.n_blur, n_parameters=res.x_flat.numel(), iterations=res.iterations,
+        runtime_s=time.perf_counter() - t0, rss=_group_rss(prob, res, scale), board=_fitted_board(board, sig),
+        **extras)
+
+
+def _fitted_board(board, sigma: dict):
+    """The fitted board with its parameters' σ (None without a board)."""
+    if board is None:
+        return None
+    if board.n_params and "board" in sigma:
+        board.sigma = torch.tensor(sigma["board"], dtype=torch.float64)
+    return board
+
+
+def without_blur(obs: Observations) -> Observations:
+    """The same observations with every blur width removed (geometry only)."""
+    return Observations(obs.points_mm, obs.corners_px, torch.full_like(obs.blur_px, math.nan), obs.image_size_px,
+                        obs.pixel_pitch_mm, list(obs.names))
+
+
+def _set_free_geometry(camera: TiltLensCamera, mode: str, free_pp: bool, distortion: str | None):
+    """Free the geometric parameters; `distortion` None holds the coefficients as they are, a model name frees
+    its terms and sets the others to 0."""
+    camera.freeze("all")
+    camera.free("pose")
+    if mode != "tilt":
+        camera.free("w")
+    if free_pp:
+        camera.free("principal_point")
+    if distortion is not None:
+        free = distortion_parameter_names(distortion)
+        with torch.no_grad():
+            for n in camera.parameter_names("distortion"):
+                if n not in free:
+                    getattr(camera, n).zero_()
+        camera.free(*free)
+
+
+def fit_geometry(camera: TiltLensCamera, obs: Observations, options: FitOptions, mode: str = "unified",
+                 say=None, hold_distortion: bool = False, board=None) -> FitResult:
+    """Fit w (unless `mode` is "tilt"), the poses, the principal point if `options.free_principal_point` is
+    True and the distortion on the corners alone (blur widths ignored; U, d, θF held).
+
+    `options.distortion` names the terms to free (the others are set to 0, except with `hold_distortion`, which
+    keeps the camera's coefficients fixed as they are); "auto" is `tiltfit.calibrate.flow.fit_geometry`'s.
+    `board` (a `tiltfit.target.shape.Board`) is fitted beside the camera, starting from its parameters.
+    """
+    if options.distortion == "auto" and not hold_distortion:
+        raise ValueError("distortion: auto is chosen by held-out error in tiltfit.calibrate.flow.fit_geometry; "
+                         "this fit takes a named model")
+    quiet = replace(options, model_selection=False, progress=None)
+    cam = camera.copy()
+    _set_free_geometry(cam, mode, bool(options.free_principal_point), None if hold_distortion else options.distortion)
+    fit = _fit_camera(cam, without_blur(obs), quiet, mode=mode, board=board)
+    fit.distortion_model = "none" if hold_distortion else options.distortion
+    return fit

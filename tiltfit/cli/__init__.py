@@ -1,0 +1,2 @@
+"""The `tiltfit` command: `main` (detect, calibrate, report, export, compare, reproduce, stability) and
+`target` (`tiltfit target design|print`)."""

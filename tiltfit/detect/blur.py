@@ -1,0 +1,514 @@
+"""Blur-disc diameter at each feature point, from the edges that meet there (paper (2), (4)).
+
+A lens focused elsewhere spreads a point into a uniform disc of diameter b (per-axis standard deviation
+b/4). Across a straight edge the image is then the edge spread function
+    F(s) = 1/2 + (u √(1 − u²) + asin u)/π,   u = clip(s / r, −1, 1),   r = b / 2,
+the area of the disc segment beyond the edge, and each pixel integrates F over its square: projected on
+the edge normal n = (cos α, sin α) the square is a box of width |cos α| convolved with one of width
+|sin α|, so the pixel value is a second difference of the double antiderivative of F (`pixel_esf`, exact).
+
+For each feature point, pixels of a band along each of the (up to four) edges leaving it — the half of the
+edge nearest the point, away from it by more than the blur radius so the crossing edge does not reach them
+— are fitted with the profile of the cells the band crosses: the two cells on either side of the edge and
+the next cell beyond each (their edges, placed by a local homography of the detected corners, share the
+blur), so blur nearly as wide as a square is modelled. The blur varies over the neighbourhood as
+b(x) = |β + g · (x − p)|, linear through zero if need be (the signed form of the paper's (4) is linear in
+position to first order), so a point on the plane of focus is measured sharp although its edges, away from
+it, are not. Free per point: β and g; per band: dark level, contrast and edge offset (Levenberg–Marquardt,
+batched over points). The reported b is |β| with its standard error.
+
+Fits run on the 2×2 box pyramid level where the blur is a few pixels (a level pixel is exactly the box
+integral of f × f pixels, so the model holds there with b / f): a first pass where squares are 24–48 px
+finds the blur, the next passes refit on bands cut for it.
+
+Intensities must be linear: an sRGB-encoded image bends the profile and biases b (see the tests).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from tiltfit.detect.imaging import apply_homography, build_pyramid, homography_dlt_batch, torch_threads
+from tiltfit.solve.batched import BatchedOptions, Normal, batched_levenberg_marquardt
+from tiltfit.target.layout import Target
+
+
+
+def _G(u: torch.Tensor) -> torch.Tensor:
+    """G(u) = ∫_{−1}^{u} F: antiderivative of the disc edge spread function (radius units); G(u ≥ 1) = u."""
+    return _G_and_G2(u, with_G=True)[0]
+
+
+def _G2(u: torch.Tensor) -> torch.Tensor:
+    """G2(u) = ∫_{−1}^{u} G, closed form; G2(u ≥ 1) = 5/8 + (u² − 1)/2."""
+    return _G_and_G2(u, with_G=False)[1]
+
+
+def _G_and_G2(u: torch.Tensor, with_G: bool = True):
+    """(G(u) or None, G2(u)), sharing the square root and arcsine (the costly part of the pixel ESF)."""
+    uc = u.clamp(-1.0, 1.0)
+    # floored: the square root of exact zeros (every |u| >= 1) is slow on some CPUs' vector units, and
+    # √1e-30 = 1e-15 changes G and G2 by far less than float32 resolves
+    s = torch.sqrt((1 - uc * uc).clamp_min_(1e-30))
+    a = torch.asin(uc)
+    over = (u - 1).clamp_min(0.0)
+    inner = (0.25 * uc * uc + 1.0 / 16 + (a * (0.5 * uc * uc + 0.125) + uc * s * (0.625 - s * s / 12)) / math.pi)
+    G2 = inner + over * (1 + 0.5 * over)  # (u² − 1)/2 = over + over²/2 for u = 1 + over
+    if not with_G:
+        return None, G2
+    G = 0.5 * uc + (uc * a + s * (1 - s * s / 3.0)) / math.pi + over
+    return G, G2
+
+
+def pixel_esf(d: torch.Tensor, r: torch.Tensor, wa: torch.Tensor, wb: torch.Tensor, with_derivatives: bool = False):
+    """Disc edge spread function integrated exactly over a pixel.
+
+    The pixel square projected on the edge normal is a box of width wa convolved with one of width wb
+    (wa ≥ wb: |cos α|, |sin α|); integrating F over both is a second difference of G2:
+        E(d) = r² [G2(u₁) − G2(u₂) − G2(u₃) + G2(u₄)] / (wa wb),   u = (d ± (wa ± wb)/2) / r.
+
+    Args:
+        d: (...) signed distance of pixel centres from the edge, pixels (positive on the far side).
+        r: blur-disc radius b/2, pixels (broadcast); wa, wb: projected pixel widths (broadcast).
+    Returns:
+        E (...) in [0, 1]; with_derivatives: also ∂E/∂d and ∂E/∂r.
+    """
+    r = r.clamp_min(1e-3)
+    wb = wb.clamp_min(0.02)  # an axis-aligned edge: a box of 0.02 px changes E by < 1e-4
+    reach = r + 0.5 * (wa + wb) + 1e-3
+    d = torch.maximum(torch.minimum(d, reach), -reach)  # E is exactly 0 or 1 beyond; keeps G2 small
+    hp, hm = 0.5 * (wa + wb), 0.5 * (wa - wb)
+    # the four abscissae lead (not trail), so the second differences are plain sums of whole arrays
+    u = torch.stack(torch.broadcast_tensors(d + hp, d + hm, d - hm, d - hp)) / r
+    norm = r * r / (wa * wb)
+    G, G2 = _G_and_G2(u, with_G=with_derivatives)
+    G2u = (G2[0] + G2[3]) - (G2[1] + G2[2])
+    E = G2u * norm
+    if not with_derivatives:
+        return E
+    uG = u * G
+    dE_dd = ((G[0] + G[3]) - (G[1] + G[2])) * norm / r
+    dE_dr = (2 * G2u - ((uG[0] + uG[3]) - (uG[1] + uG[2]))) * norm / r
+    return E, dE_dd, dE_dr
+
+
+def _pixel_esf_on_edges(d: torch.Tensor, r: torch.Tensor, wa: torch.Tensor, wb: torch.Tensor, deriv: bool,
+                        where: torch.Tensor | None = None):
+    """`pixel_esf` evaluated only at the pixels the blurred edge reaches; elsewhere E is exactly 0 or 1.
+
+    Most pixels of a band lie inside the cells, beyond the blur disc and the pixel's own width from the
+    edge (|d| >= r + (wa + wb)/2), where E is 1 (d > 0) or 0 with zero derivatives: the closed form is
+    evaluated on the rest only (typically 5–15 % of a band).
+
+    Args:
+        d, r: (..., n) distances and radii, pixels; wa, wb: (..., 1) projected pixel widths per band;
+        where: (..., n) bool, the pixels that may be evaluated (others take the step value).
+    Returns:
+        E, ∂E/∂d, ∂E/∂r (..., n); the derivatives None without deriv.
+    """
+    E = (d > 0).to(d.dtype)
+    E_d = torch.zeros_like(d) if deriv else None
+    E_r = torch.zeros_like(d) if deriv else None
+    if where is not None and not bool(where.any()):
+        return E, E_d, E_r
+    sel = d.abs() < r + (0.5 * (wa + wb.clamp_min(0.02)) + 1e-3)
+    if where is not None:
+        sel &= where
+    at = sel.reshape(-1).nonzero().squeeze(1)
+    if at.numel() == 0:
+        return E, E_d, E_r
+    band = at // d.shape[-1]
+    out = pixel_esf(d.reshape(-1)[at], r.reshape(-1)[at], wa.reshape(-1)[band], wb.reshape(-1)[band], deriv)
+    for full, part in zip((E, E_d, E_r), out if deriv else (out,)):
+        full.view(-1).index_copy_(0, at, part)
+    return E, E_d, E_r
+
+
+def _local_homographies(target: Target, corners_px: np.ndarray, found: np.ndarray):
+    """Per found corner, the homography target (X, Y) -> pixels fitted on found corners within 2 indices."""
+    ny, nx = target.grid_shape
+    pts = target.feature_points()[:, :2]
+    ks = np.nonzero(found)[0]
+    if ks.size == 0:
+        return {}
+    dj, di = np.meshgrid(np.arange(-2, 3), np.arange(-2, 3), indexing="ij")
+    jj = ks[:, None] // nx + dj.ravel()[None]
+    ii = ks[:, None] % nx + di.ravel()[None]
+    inside = (jj >= 0) & (jj < ny) & (ii >= 0) & (ii < nx)
+    kk = np.where(inside, jj * nx + ii, 0)
+    valid = inside & found[kk]
+    Hs = homography_dlt_batch(pts[kk], np.where(valid[..., None], corners_px[kk], 0.0), valid)
+    return {int(k): Hm for k, Hm in zip(ks, Hs) if np.isfinite(Hm).all()}
+
+
+def _half_edges(target: Target, ks: np.ndarray, Hms: np.ndarray, r_est: np.ndarray, image_shape, max_pixels: int,
+                first_pass: bool = False, grads: np.ndarray | None = None) -> list[list[dict]]:
+    """Pixel bands of the up-to-four half-edges at feature points ks, with their profile geometry.
+
+    The geometry (edge lines, band limits, bounding boxes) is computed for all points at once; only the
+    pixel selection runs per band.
+
+    Args:
+        ks: (K,) feature-point indices; Hms: (K, 3, 3) homographies target -> pixels of the image the bands
+            are cut from; r_est: (K,) blur radius expected at each point, pixels; grads: (K, 2) expected
+            gradient of the diameter, per pixel, or None.
+        first_pass: allow bands nearer the point (to 0.3 of the edge) when r_est is only an upper bound.
+    Returns:
+        per point, a list of dicts: px (n, 2) pixel positions, dxy (n, 2) offsets from the point, d0 / d_lo /
+        d_hi signed distances to the edge and the next parallel edges (positive towards larger target
+        coordinates), kappa (4,) white (1) or dark (0) for the cells crossed, wa, wb the pixel's projected
+        widths.
+    """
+    K = len(ks)
+    ny, nx = target.grid_shape
+    xe, ye = np.asarray(target.x_edges), np.asarray(target.y_edges)
+    H_img, W_img = image_shape
+    r_est = np.asarray(r_est, dtype=np.float64)[:, None]  # (K, 1)
+    gnorm = np.zeros((K, 1)) if grads is None else np.hypot(grads[:, 0], grads[:, 1])[:, None]
+    j, i = np.divmod(np.asarray(ks), nx)
+    j, i = j[:, None], i[:, None]
+    # the four half-edges, in the order (horizontal, vertical) towards +, then towards −. A horizontal edge
+    # Y = ye[j+1] lies along the line `axis` = 1; leaving the corner towards +X it borders cell column i+1,
+    # towards −X column i. `idx` is the cell index across the edge just before it.
+    horizontal = np.array([True, False, True, False])
+    sgn = np.array([1, 1, -1, -1])
+    value = np.where(horizontal, ye[j + 1], xe[i + 1])  # (K, 4) the edge line's coordinate
+    a_near = np.where(horizontal, xe[i + 1], ye[j + 1])
+    a_far = np.where(horizontal, xe[i + 1 + sgn], ye[j + 1 + sgn])
+    lane = np.where(horizontal, np.where(sgn > 0, i + 1, i), np.where(sgn > 0, j + 1, j))
+    idx = np.where(horizontal, j, i)
+    far_lo = np.where(horizontal, ye[j], xe[i])  # the parallel edges before and after (always inside)
+    far_hi = np.where(horizontal, ye[j + 2], xe[i + 2])
+    cells = idx[..., None] + np.arange(-1, 3)  # (K, 4, 4) cells across the edge
+    dark = np.where(horizontal[:, None], target.is_dark(lane[..., None], cells), target.is_dark(cells, lane[..., None]))
+    kappa = np.where(dark, 0.0, 1.0)
+    clear = target.white_cell_clear_mm
+    if clear is not None:
+        # a white cell holding a marker (ChArUco) is white only within `clear` of its edges: the band's far
+        # line on that side is the marker's dark border
+        before_white, after_white = ~dark[..., 1], ~dark[..., 2]
+        far_lo = np.where(before_white, value - clear, far_lo)
+        far_hi = np.where(after_white, value + clear, far_hi)
+        kappa[..., 0] = np.where(before_white, 0.0, kappa[..., 0])
+        kappa[..., 3] = np.where(after_white, 0.0, kappa[..., 3])
+
+    HiT = np.linalg.inv(Hms).transpose(0, 2, 1)
+
+    def line(on_x, v):
+        """Image lines (K, 4, 3), a² + b² = 1, of the target lines X = v (on_x) or Y = v."""
+        lt = np.stack([np.where(on_x, 1.0, 0.0) + 0 * v, np.where(on_x, 0.0, 1.0) + 0 * v, -v], -1)
+        li = np.einsum("kij,ksj->ksi", HiT, lt)
+        return li / np.hypot(li[..., 0], li[..., 1])[..., None]
+
+    def point(x, y):
+        q = np.einsum("kij,ksj->ksi", Hms, np.stack([x, y, np.ones_like(x)], -1))
+        return q[..., :2] / q[..., 2:]
+
+    def oriented(L, p):
+        """L flipped where needed so that it is positive at the points p (K, 4, 2)."""
+        return np.where(((L[..., :2] * p).sum(-1) + L[..., 2] < 0)[..., None], -L, L)
+
+    vertical_line = ~horizontal  # X = const: the edge line of a vertical edge
+    L0 = line(vertical_line, value)
+    P_near, P_far = line(horizontal, a_near), line(horizontal, a_far)
+    L_lo, L_hi = line(vertical_line, far_lo), line(vertical_line, far_hi)
+    along_mid = 0.5 * (a_near + a_far)
+    after = value + 0.25 * (far_hi - value)
+    pa = point(np.where(horizontal, along_mid, after), np.where(horizontal, after, along_mid))
+    pm = point(np.where(horizontal, along_mid, value), np.where(horizontal, value, along_mid))
+    L0 = oriented(L0, pa)  # positive towards the "after" cells (larger target coordinate)
+    P_near, P_far = oriented(P_near, pm), oriented(P_far, pm)
+    L_lo, L_hi = oriented(L_lo, pm), oriented(L_hi, pm)  # positive towards the central edge
+    centre = point(xe[i + 1] + 0 * value, ye[j + 1] + 0 * value)  # (K, 4, 2), the same for the 4 edges
+    seg = 2.0 * np.hypot(*(pm - centre).transpose(2, 0, 1))  # image length of the whole edge segment (approx.)
+    r_far = r_est + 0.5 * gnorm * seg  # the blur may grow along the band
+    core = np.maximum(r_est, np.minimum(r_far, 0.45 * seg))
+    margin = np.minimum(r_est + 1.5, 0.3 * seg) if first_pass else core + 1.5
+    reach = np.maximum(0.5 * seg, margin + np.maximum(3.0, 0.1 * seg))  # the near half, or a short band past it
+    s_max = 1.3 * core + 4.0
+    n_px = L0[..., :2]
+    p_end = centre + (pm - centre) * np.minimum(2.0, reach / (0.5 * seg))[..., None]
+    ends = np.stack([centre - s_max[..., None] * n_px, centre + s_max[..., None] * n_px,
+                     p_end - s_max[..., None] * n_px, p_end + s_max[..., None] * n_px], -2)  # (K, 4, 4, 2)
+    lo = np.maximum(np.floor(ends.min(-2)).astype(int), 0)
+    hi = np.minimum(np.ceil(ends.max(-2)).astype(int), [W_img - 1, H_img - 1])
+    alpha = np.arctan2(L0[..., 1], L0[..., 0])
+    wa = np.maximum(np.abs(np.cos(alpha)), np.abs(np.sin(alpha)))
+    wb = np.minimum(np.abs(np.cos(alpha)), np.abs(np.sin(alpha)))
+    use = (seg - 2 * margin >= 3.0) & (hi > lo).all(-1)
+    lines = np.stack([L0, P_near, P_far, L_lo, L_hi], -2)  # (K, 4, 5, 3)
+
+    out = []
+    for c in range(K):
+        bands = []
+        for e in np.nonzero(use[c])[0]:
+            (x0, y0), (x1, y1) = lo[c, e], hi[c, e]
+            P = np.empty(((y1 - y0 + 1) * (x1 - x0 + 1), 2))
+            P.reshape(y1 - y0 + 1, x1 - x0 + 1, 2)[..., 0] = np.arange(x0, x1 + 1)
+            P.reshape(y1 - y0 + 1, x1 - x0 + 1, 2)[..., 1] = np.arange(y0, y1 + 1)[:, None]
+            # signed distances to the edge, the two lines closing the band, and the next parallel edges
+            d0, dn, dfar, d_lo, d_hi = (P @ lines[c, e, :, :2].T + lines[c, e, :, 2]).T
+            mg, rc = margin[c, e], reach[c, e]
+            keep = ((np.abs(d0) <= s_max[c, e]) & (dn >= mg) & (dfar >= mg) & (dn <= rc) & (d_lo >= 0)
+                    & (d_hi >= 0))
+            idx_keep = np.nonzero(keep)[0]
+            if idx_keep.size < 12:
+                continue
+            if idx_keep.size > max_pixels:
+                idx_keep = idx_keep[np.linspace(0, idx_keep.size - 1, max_pixels).astype(int)]
+            bands.append(dict(px=P[idx_keep].astype(int), dxy=P[idx_keep] - centre[c, e], d0=d0[idx_keep],
+                              d_lo=d_lo[idx_keep], d_hi=-d_hi[idx_keep], kappa=kappa[c, e].tolist(),
+                              wa=float(wa[c, e]), wb=float(wb[c, e])))
+        out.append(bands)
+    return out
+
+
+def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, iterations: int = 30):
+    """Levenberg–Marquardt fit of the cell-profile model to the bands of each point, batched over points.
+
+    The blur diameter varies linearly over a point's neighbourhood through zero if need be,
+    b(x) = |β + g · (x − p)| (the paper's (4) is linear in position to first order), so a point on the plane
+    of focus is measured as sharp even though its edges away from it are not. Free per point: β, g (2);
+    per band: dark level, contrast and edge offset.
+
+    Args:
+        img: the (pyramid-level) image; groups: per point, the bands from `_half_edges`;
+        r0: (C,) upper bound of the blur radius per point, pixels (the start is scanned below it).
+    Returns:
+        b (C,) = |β|, sigma_b (C,), grad (C, 2), ok (C,), in pixels of `img`.
+    """
+    C = len(groups)
+    B = max(len(g) for g in groups)
+    n = max(len(b["d0"]) for g in groups for b in g)
+    P = 3 + 3 * B
+    f32, f64 = torch.float32, torch.float64
+    mask = np.zeros((C, B, n))
+    vals = np.zeros((C, B, n))
+    d0 = np.zeros((C, B, n))
+    dlo = np.full((C, B, n), 1e6)
+    dhi = np.full((C, B, n), -1e6)
+    dxy = np.zeros((C, B, n, 2))
+    kap = np.ones((C, B, 4))
+    wa = np.ones((C, B))
+    wb = np.zeros((C, B))
+    for c, g in enumerate(groups):
+        for e, b in enumerate(g):
+            m = len(b["d0"])
+            mask[c, e, :m] = 1.0
+            vals[c, e, :m] = img[b["px"][:, 1], b["px"][:, 0]]
+            d0[c, e, :m], dlo[c, e, :m], dhi[c, e, :m] = b["d0"], b["d_lo"], b["d_hi"]
+            dxy[c, e, :m] = b["dxy"]
+            kap[c, e], wa[c, e], wb[c, e] = b["kappa"], b["wa"], b["wb"]
+    has_band = torch.from_numpy(mask.any(-1))
+    mask, I = torch.from_numpy(mask), torch.from_numpy(vals)
+    r0 = torch.as_tensor(np.asarray(r0, dtype=np.float64))
+    r_cap = 1.5 * r0 + 1.0
+    lim = (r_cap + 2.0)[:, None, None] + 0.0
+    dxy_t = torch.from_numpy(dxy).to(f32)
+    d0_t = torch.from_numpy(d0.clip(-1e4, 1e4)).to(f32)
+    dlo_t, dhi_t = torch.from_numpy(dlo), torch.from_numpy(dhi)
+    # far lines: only the entries within reach are evaluated, elsewhere the step is 0 or 1
+    far = [((dlo_t.abs() < 1.3 * lim), dlo_t.to(f32)), ((dhi_t.abs() < 1.3 * lim), dhi_t.to(f32))]
+    kap_t = torch.from_numpy(kap).to(f32)
+    c_lo, c_0, c_hi = (kap_t[..., 1] - kap_t[..., 0]), (kap_t[..., 2] - kap_t[..., 1]), (kap_t[..., 3] - kap_t[..., 2])
+    wa_t = torch.from_numpy(wa).to(f32)[..., None]
+    wb_t = torch.from_numpy(wb).to(f32)[..., None]
+
+    def model(theta, idx, deriv=True):
+        """Model values f (k, B, n) at the corners idx (k,) and, with deriv, the six non-zero columns of the
+        Jacobian per pixel (k, B, n, 6): a pixel of band e depends on the point's (β, gx, gy) and on band e's
+        (dark level, contrast, edge offset) only."""
+        th = theta.to(f32)
+        beta, gx, gy = th[:, 0], th[:, 1], th[:, 2]
+        o, c, delta = th[:, 3::3], th[:, 4::3], th[:, 5::3]  # (k, B)
+        dxy_k, wa_k, wb_k = dxy_t[idx], wa_t[idx], wb_t[idx]
+        sb = beta[:, None, None] + gx[:, None, None] * dxy_k[..., 0] + gy[:, None, None] * dxy_k[..., 1]
+        r = (0.5 * sb.abs()).clamp_min(1e-3)
+        e0, e0_d, e0_r = _pixel_esf_on_edges(d0_t[idx] - delta[..., None], r, wa_k, wb_k, deriv)
+        terms = [_pixel_esf_on_edges(dist[idx], r, wa_k, wb_k, deriv, near[idx])[::2] for near, dist in far]
+        (elo, elo_r), (ehi, ehi_r) = terms
+        cl, c0, ch = c_lo[idx][..., None], c_0[idx][..., None], c_hi[idx][..., None]
+        gsum = kap_t[idx][..., 0:1] + cl * elo + c0 * e0 + ch * ehi
+        f = o[..., None] + c[..., None] * gsum
+        if not deriv:
+            return f.double(), None
+        dr = c[..., None] * (cl * elo_r + c0 * e0_r + ch * ehi_r) * 0.5 * torch.sign(sb)
+        K = torch.stack([dr, dr * dxy_k[..., 0], dr * dxy_k[..., 1], torch.ones_like(dr), gsum,
+                         -c[..., None] * c0 * e0_d], -1)
+        return f.double(), K
+
+    def normal_equations(K, res, idx):
+        """JᵀJ (k, P, P) and Jᵀ res (k, P) from the six non-zero Jacobian columns K (k, B, n, 6) per pixel."""
+        k = K.shape[0]
+        KmT = (K.double() * mask[idx][..., None]).transpose(-1, -2)
+        M = KmT @ KmT.transpose(-1, -2)  # (k, B, 6, 6)
+        v = (KmT @ res[..., None])[..., 0]  # (k, B, 6)
+        A = torch.zeros(k, P, P, dtype=f64)
+        A[:, :3, :3] = M[:, :, :3, :3].sum(1)
+        for e in range(B):
+            sl = slice(3 + 3 * e, 6 + 3 * e)
+            A[:, :3, sl] = M[:, e, :3, 3:]
+            A[:, sl, :3] = M[:, e, 3:, :3]
+            A[:, sl, sl] = M[:, e, 3:, 3:]
+        return A, torch.cat([v[:, :, :3].sum(1), v[:, :, 3:].reshape(k, 3 * B)], 1)
+
+    # start: scan β from 4 % to 200 % of 2 r0 (g = 0) with the levels of each band solved linearly
+    every = torch.arange(C)
+    npix = mask.sum(-1)
+    best = torch.full((C,), float("inf"), dtype=f64)
+    theta = torch.zeros(C, P, dtype=f64)
+    for frac in (0.05, 0.13, 0.3, 0.55, 1.0, 1.6):
+        trial = torch.zeros(C, P, dtype=f64)
+        trial[:, 0] = (2 * r0 * frac).clamp_min(0.1)  # β is a diameter
+        trial[:, 4::3] = 1.0
+        gg = model(trial, every, deriv=False)[0] * mask
+        sg, sI = gg.sum(-1), (I * mask).sum(-1)
+        sgg, sgI = (gg * gg).sum(-1), (gg * I * mask).sum(-1)
+        det = npix * sgg - sg * sg
+        cc = (npix * sgI - sg * sI) / det.clamp_min(1e-30)
+        oo = (sI - cc * sg) / npix.clamp_min(1)
+        cost = ((((I - oo[..., None] - cc[..., None] * gg) * mask) ** 2).sum((-1, -2)))
+        better = cost < best
+        trial[:, 3::3], trial[:, 4::3] = oo, torch.where(has_band, cc, torch.ones_like(cc))
+        theta = torch.where(better[:, None], trial, theta)
+        best = torch.where(better, cost, best)
+    # weak prior on g (1 % per pixel) keeps points with few bands well posed: residuals prior · (gx, gy)
+    prior = 1e-2 * torch.sqrt(npix.sum(-1)) * theta[:, 4::3].abs().mean(-1).clamp_min(1e-6)
+
+    def evaluate(th, idx):
+        """`tiltfit.solve.Normal` (cost, JᵀJ, Jᵀr) of the corners idx at parameters th (k, P), r model − data,
+        the prior included."""
+        f, K = model(th, idx)
+        res = (I[idx] - f) * mask[idx]
+        cost = (res * res).sum((-1, -2)) + ((prior[idx, None] * th[:, 1:3]) ** 2).sum(-1)
+        A, Kr = normal_equations(K, res, idx)
+        A[:, 1, 1] += prior[idx] ** 2
+        A[:, 2, 2] += prior[idx] ** 2
+        g = -Kr
+        g[:, 1:3] += prior[idx, None] ** 2 * th[:, 1:3]
+        return Normal(cost, A, g)
+
+    def small_step(step, th, idx):
+        # converged: the diameter moves by < 1e-4 of itself (+1e-4 px) and the gradient by < 1e-5 (a corner
+        # whose step is this small would hardly move again: < 0.01 σ of its blur on the shipped real photos)
+        return (step[:, 0].abs() < 1e-4 * (th[:, 0].abs() + 1)) & (step[:, 1:3].abs().max(1).values < 1e-5)
+
+    def within_cap(th, idx):
+        th[:, 0] = th[:, 0].clamp(-2 * r_cap[idx], 2 * r_cap[idx])
+        return th
+
+    sol = batched_levenberg_marquardt(evaluate, theta, BatchedOptions(max_iterations=iterations),
+                                      small_step=small_step, project=within_cap)
+    theta, cost = sol.x, sol.cost
+    dof = (npix.sum(-1) - (3 + 3 * has_band.sum(-1))).clamp_min(1)
+    contrast = theta[:, 4::3].abs().max(-1).values
+    # a floor of 0.1 % of the contrast keeps noise-free fits honest where b is not identifiable (a sharp
+    # edge almost parallel to the pixel grid samples its profile at one phase only)
+    s2 = torch.maximum(cost / dof, (1e-3 * contrast) ** 2)
+    A = sol.A
+    keep = torch.cat([torch.ones(C, 3, dtype=torch.bool), has_band.repeat_interleave(3, dim=1)], 1)
+    A = torch.where(keep[:, :, None] & keep[:, None, :], A, torch.diag_embed(torch.ones(C, P, dtype=f64)))
+    cov = torch.linalg.pinv(A) * s2[:, None, None]
+    b = theta[:, 0].abs()
+    sig = torch.sqrt(cov[:, 0, 0].clamp_min(0))
+    ok = torch.isfinite(b) & torch.isfinite(sig) & (contrast > 0) & (has_band.sum(-1) >= 1)
+    return b.numpy(), sig.numpy(), theta[:, 1:3].numpy(), ok.numpy()
+
+
+def _level_homography(Hm: np.ndarray, factor: int) -> np.ndarray:
+    """Compose a full-resolution homography with full -> pyramid-level pixels, x_l = (x + 0.5)/f − 0.5."""
+    S = np.array([[1.0 / factor, 0.0, 0.5 / factor - 0.5], [0.0, 1.0 / factor, 0.5 / factor - 0.5], [0, 0, 1.0]])
+    return S @ Hm
+
+
+def measure_blur(gray: np.ndarray, target: Target, corners_px: np.ndarray, *, levels: dict | None = None,
+                 max_passes: int = 3, max_pixels: int = 600, level_blur_px: float = 5.0,
+                 min_level_square_px: float = 16.0) -> tuple[np.ndarray, np.ndarray]:
+    """Blur-disc diameter at each found feature point.
+
+    Each fit runs on a level of the 2×2 box pyramid (a level pixel is exactly the box integral of f × f
+    pixels, so the model holds there with b/f): the first pass on the level where squares are about
+    24–48 px, with bands cut for blur up to 0.8 of a square; later passes on the level where the blur found
+    is about `level_blur_px` (but squares at least `min_level_square_px`), with bands cut for that blur.
+    A corner is refitted until its level and band stop changing (at most `max_passes`).
+
+    Args:
+        gray: (H, W) linear image.
+        target: the Target; corners_px: (N, 2) detected feature points (full resolution), NaN where missing.
+        levels: the pyramid of `gray` ({factor: image}), if already built.
+        max_pixels: pixels per band at most (evenly thinned beyond).
+    Returns:
+        blur_px (N,), blur_sigma_px (N,): diameters and one-standard-deviation uncertainties, full-resolution
+        pixels, NaN where not measured.
+    """
+    with torch_threads(1):
+        return _measure_blur(gray, target, corners_px, levels, max_passes, max_pixels, level_blur_px,
+                             min_level_square_px)
+
+
+def _measure_blur(gray, target, corners_px, levels, max_passes, max_pixels, level_blur_px, min_level_square_px):
+    if levels is None:
+        levels = build_pyramid(np.asarray(gray, dtype=np.float32))
+    factors = sorted(levels)
+    N = target.n_points
+    blur = np.full(N, np.nan)
+    sigma = np.full(N, np.nan)
+    found = np.isfinite(corners_px).all(1)
+    Hs = _local_homographies(target, corners_px, found)
+    if not Hs:
+        return blur, sigma
+    ny, nx = target.grid_shape
+    square = {}
+    for k, Hm in Hs.items():
+        j, i = divmod(k, nx)
+        c = apply_homography(Hm, np.array([[target.x_edges[i + 1], target.y_edges[j + 1]]]))[0]
+        nb = apply_homography(Hm, np.array([[target.x_edges[i], target.y_edges[j + 1]],
+                                  [target.x_edges[i + 2], target.y_edges[j + 1]],
+                                  [target.x_edges[i + 1], target.y_edges[j]],
+                                  [target.x_edges[i + 1], target.y_edges[j + 2]]]))
+        square[k] = float(np.min(np.hypot(*(nb - c).T)))
+
+    def level_for(sq, b=None):
+        ok = [f for f in factors if sq / f >= (24.0 if b is None else min_level_square_px)
+              and (b is None or f <= max(1.0, b / level_blur_px))]
+        return ok[-1] if ok else factors[0]
+
+    # plan per point: (level factor, expected radius there, its gradient, first pass?)
+    plan = {k: (level_for(square[k]), 0.4 * square[k] / level_for(square[k]), None, True) for k in Hs}
+    for _ in range(max_passes):
+        if not plan:
+            break
+        results = {}
+        for f in sorted({p[0] for p in plan.values()}):
+            keys, groups = [], []
+            for first in (True, False):
+                ks = [k for k, p in plan.items() if p[0] == f and p[3] == first]
+                if not ks:
+                    continue
+                grads = None if first else np.array([plan[k][2] for k in ks])
+                # the first pass only has to find the blur to within ~10 %: fewer pixels, fewer iterations
+                bands = _half_edges(target, np.array(ks), np.stack([_level_homography(Hs[k], f) for k in ks]),
+                                    np.array([plan[k][1] for k in ks]), levels[f].shape,
+                                    max_pixels // 3 if first else max_pixels, first_pass=first, grads=grads)
+                keys += [k for k, bk in zip(ks, bands) if bk]
+                groups += [bk for bk in bands if bk]
+            if not groups:
+                continue
+            r0 = np.array([max(plan[k][1], 0.3) for k in keys])
+            first = plan[keys[0]][3]
+            b, sb, grad, ok = fit_corners(levels[f], groups, r0, iterations=8 if first else 30)
+            for i, k in enumerate(keys):
+                if ok[i]:
+                    results[k] = (b[i] * f, sb[i] * f, grad[i])
+        new_plan = {}
+        for k, (m, s, g) in results.items():
+            blur[k], sigma[k] = m, s
+            f_new = level_for(square[k], m)
+            r_new = 0.55 * m / f_new + 0.5
+            fk, r_l, _, first = plan[k]
+            if first or f_new != fk or abs(r_new - r_l) > 0.25 * r_l:
+                new_plan[k] = (f_new, r_new, g, False)
+        plan = new_plan
+    return blur, sigma

@@ -1,0 +1,111 @@
+"""Image and plane-geometry helpers shared by corner detection (`tiltfit.detect.chessboard`) and blur measurement
+(`tiltfit.detect.blur`): the 2×2 box pyramid and its pixel mapping, the normalised-DLT homography, and a guard that
+runs small-tensor work on one torch thread.
+
+Library layer, bottom: imports neither `detect` nor `blur`, so both import it and the dependency runs one way
+(detect -> blur -> imaging). Pixel coordinates: x = column, y = row, (0, 0) the centre of the top-left pixel.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+
+class torch_threads:
+    """Run a block with `n` torch threads, then restore. The tensors here are small (patches, bands): extra
+    threads only add synchronisation, and on a busy machine OpenMP spinning makes them many times slower."""
+
+    def __init__(self, n: int = 1):
+        self.n = n
+
+    def __enter__(self):
+        self.saved = torch.get_num_threads()
+        if self.saved != self.n:
+            torch.set_num_threads(self.n)
+
+    def __exit__(self, *exc):
+        if torch.get_num_threads() != self.saved:
+            torch.set_num_threads(self.saved)
+
+
+# --- image pyramid -----------------------------------------------------------------------------------------
+def build_pyramid(gray: np.ndarray, min_size: int = 64) -> dict[int, np.ndarray]:
+    """{factor: image} with factor 1, 2, 4, ...: each level the 2×2 box average of the previous one."""
+    levels = {1: gray}
+    f, img = 1, gray
+    while min(img.shape) // 2 >= min_size:
+        h, w = (img.shape[0] // 2) * 2, (img.shape[1] // 2) * 2
+        img = 0.25 * (img[0:h:2, 0:w:2] + img[1:h:2, 0:w:2] + img[0:h:2, 1:w:2] + img[1:h:2, 1:w:2])
+        f *= 2
+        levels[f] = img
+    return levels
+
+
+def to_full(xy_level: np.ndarray, factor: int) -> np.ndarray:
+    """Pixel coordinates at a pyramid level -> full resolution."""
+    return (xy_level + 0.5) * factor - 0.5
+
+
+# --- plane homography --------------------------------------------------------------------------------------
+def homography_dlt(src: np.ndarray, dst: np.ndarray) -> np.ndarray | None:
+    """Least-squares homography dst ~ H src (normalised DLT), or None.
+
+    Args:
+        src, dst: (N, 2) corresponding points, N >= 4.
+    Returns:
+        (3, 3) H with H[2, 2] = 1, or None (fewer than 4 points, or H[2, 2] ≈ 0).
+    """
+    if src.shape[0] < 4:
+        return None
+    Hm = homography_dlt_batch(src[None], dst[None])[0]
+    return Hm if np.isfinite(Hm).all() else None
+
+
+def homography_dlt_batch(src: np.ndarray, dst: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+    """`homography_dlt` for K point sets at once (one batched SVD instead of K calls).
+
+    Args:
+        src, dst: (K, M, 2) corresponding points; valid: (K, M) bool, the points each set uses [all].
+    Returns:
+        (K, 3, 3) homographies with H[2, 2] = 1; NaN for a set with fewer than 4 valid points or H[2, 2] ≈ 0.
+    """
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    K, M = src.shape[:2]
+    w = np.ones((K, M)) if valid is None else np.asarray(valid, dtype=np.float64)
+    n = np.maximum(w.sum(1), 1.0)
+
+    def norm(p):
+        """(K, 3, 3) similarity moving the valid points' centroid to 0 and their mean distance to √2."""
+        m = (p * w[..., None]).sum(1) / n[:, None]
+        s = math.sqrt(2) / np.maximum((np.sqrt(((p - m[:, None]) ** 2).sum(-1)) * w).sum(1) / n, 1e-12)
+        T = np.zeros((K, 3, 3))
+        T[:, 0, 0], T[:, 1, 1], T[:, 2, 2] = s, s, 1.0
+        T[:, :2, 2] = -s[:, None] * m
+        return T
+
+    Ts, Td = norm(src), norm(dst)
+    x, y = (Ts[:, None, 0, 0] * src[..., 0] + Ts[:, None, 0, 2]), (Ts[:, None, 1, 1] * src[..., 1] + Ts[:, None, 1, 2])
+    u, v = (Td[:, None, 0, 0] * dst[..., 0] + Td[:, None, 0, 2]), (Td[:, None, 1, 1] * dst[..., 1] + Td[:, None, 1, 2])
+    zero, one = np.zeros_like(x), np.ones_like(x)
+    rows = np.stack([np.stack([-x, -y, -one, zero, zero, zero, u * x, u * y, u], -1),
+                     np.stack([zero, zero, zero, -x, -y, -one, v * x, v * y, v], -1)], 2)  # (K, M, 2, 9)
+    rows = (rows * w[..., None, None]).reshape(K, 2 * M, 9)  # a point left out gives zero rows
+    if 2 * M < 9:  # the thin SVD below needs 9 rows for the null vector; zero rows change nothing
+        rows = np.concatenate([rows, np.zeros((K, 9 - 2 * M, 9))], 1)
+    _, _, vt = np.linalg.svd(rows, full_matrices=False)  # (not the 2M × 2M left factor)
+    Hn = vt[:, -1].reshape(K, 3, 3)
+    Hm = np.linalg.inv(Td) @ Hn @ Ts
+    h22 = Hm[:, 2, 2]
+    good = (np.abs(h22) > 1e-15) & (w.sum(1) >= 4)
+    out = np.full((K, 3, 3), np.nan)
+    out[good] = Hm[good] / h22[good, None, None]
+    return out
+
+
+def apply_homography(Hm: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """(N, 2) points mapped by the (3, 3) homography Hm (with the perspective division)."""
+    q = np.c_[p, np.ones(len(p))] @ Hm.T
+    return q[:, :2] / q[:, 2:]

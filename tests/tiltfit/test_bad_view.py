@@ -19,7 +19,7 @@ from tiltfit.calibrate.flow import calibrate
 from tiltfit.cli.main import main
 from tiltfit.calibrate.fit import FitOptions
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))  # tests/real_detections.py
 from real_detections import REAL, observations, photos  # noqa: E402
 
 OPTS = FitOptions(distortion="k1", board="flat", model_selection=False)

@@ -6,7 +6,7 @@ carry a depth-dependent bias) and not where the widths follow the thin-lens law.
 
 Synthetic captures: the exact thin-lens corners and blur widths (`tiltfit.experiments.synth.observe`) of the paper's lens
 from 18 poses straddling the plane of focus, plus Gaussian noise. Real photos: tiltfit's own cached detections
-(benchmarks/real_detections.py).
+(tests/real_detections.py).
 """
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ from tiltfit.calibrate.model import Observations
 from tiltfit.report.plots import write_report
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+sys.path.insert(0, os.path.join(ROOT, "tests"))
 from real_detections import observations  # noqa: E402
 
 #: (rotation about x °, about y °, distance mm): depths 460–740 mm about the paper lens's U = 618 mm.

@@ -135,7 +135,7 @@ def test_industrial_quarters_choose_alike_and_sigma_covers_their_spread():
     import sys
 
     root = os.path.join(HERE, "..", "..")
-    sys.path.insert(0, os.path.join(root, "benchmarks"))
+    sys.path.insert(0, os.path.join(root, "tests"))
     from real_detections import observations
 
     from tiltfit.calibrate.flow import calibrate

@@ -24,7 +24,7 @@ from tiltfit.report.plots import coverage_fraction, with_sigma, write_report
 from tiltfit.calibrate.start import initialize
 
 ROOT = os.path.join(os.path.dirname(__file__), "..", "..")
-sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+sys.path.insert(0, os.path.join(ROOT, "tests"))
 from real_detections import observations  # noqa: E402
 
 # The geometric model both tools fit: one focal length (OpenCV: CALIB_FIX_ASPECT_RATIO), principal point free,

@@ -3,7 +3,7 @@ OpenCV's calibrateCamera gives on the same corners; the blur model, which does n
 refused in one warning line; what it writes is in range and exported.
 
 The corners and blur widths are tiltfit's own detections, cached in data/real/gopro_wide/detections_tiltfit.json
-(benchmarks/real_detections.py); one photo is detected again here to check the cache is current.
+(tests/real_detections.py); one photo is detected again here to check the cache is current.
 """
 import json
 import os
@@ -82,7 +82,7 @@ def test_cache_is_what_the_detector_finds(tmp_path):
     fresh, cached = json.loads(out.read_text()), cached_detections(DATA)[name]
     diff = np.abs(np.array(fresh["corners_px"], dtype=float) - np.array(cached["corners_px"], dtype=float))
     assert np.nanmax(diff) < 1e-6, f"cached corners differ from a fresh detection by {np.nanmax(diff)} px: rerun " \
-                                   f"benchmarks/real_detections.py"
+                                   f"tests/real_detections.py"
 
 
 def test_defaults_match_opencv_on_the_same_corners(gopro):

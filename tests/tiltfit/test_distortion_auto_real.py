@@ -13,7 +13,7 @@ from tiltfit.calibrate.start import initialize
 from tiltfit.calibrate.flow import calibrate
 from tiltfit.detect.opencv import opencv_calibrate
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))  # tests/real_detections.py
 from real_detections import observations as real_observations  # noqa: E402
 
 REAL = os.path.join(os.path.dirname(__file__), "..", "..", "data", "real")

@@ -12,7 +12,7 @@ from tiltfit.calibrate.flow import calibrate
 from tiltfit.calibrate.fit import FitError, FitOptions
 from tiltfit.select.held_out import MAX_MAPPING_SIGMA_PX, mapping_sigma_px
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))  # tests/real_detections.py
 from real_detections import observations  # noqa: E402
 
 DATA = os.path.join(os.path.dirname(__file__), "..", "..", "data", "real", "gopro_wide")

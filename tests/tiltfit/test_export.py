@@ -15,7 +15,7 @@ from tiltfit.calibrate.fit import FitOptions
 from tiltfit.calibrate.flow import calibrate
 from tiltfit.target.layout import load_target
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))  # tests/real_detections.py
 from real_detections import observations  # noqa: E402
 
 DATA = os.path.join(os.path.dirname(__file__), "..", "..", "data", "real", "gopro_wide")

@@ -20,7 +20,7 @@ from tiltfit.calibrate.model import MIN_CORNERS
 from tiltfit.calibrate.start import initialize
 from tiltfit.select.held_out import mapping_sigma_px, undetermined_distortion
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))  # tests/real_detections.py
 from real_detections import observations  # noqa: E402
 
 REAL = os.path.join(os.path.dirname(__file__), "..", "..", "data", "real")

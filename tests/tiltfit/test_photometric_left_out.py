@@ -131,7 +131,7 @@ def _gopro_third_subset():
     """data/real/gopro_wide, every third view from the third (benchmarks/bench_photometric_sigma.py's third subset),
     its corner fit as `tiltfit calibrate` makes it (unified, free principal point, opencv5, 5-fold held-out error):
     (target, Observations with the photos' paths as names, result, used, held_out)."""
-    sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+    sys.path.insert(0, os.path.join(ROOT, "tests"))
     from real_detections import observations
 
     from tiltfit.calibrate.fit import FitOptions

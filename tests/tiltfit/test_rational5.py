@@ -18,7 +18,7 @@ from tiltfit.detect.imaging import torch_threads
 from tiltfit.detect.opencv import opencv_calibrate
 from tiltfit.select.held_out import PROJECTION_SIGMA_FACTOR, held_out_rms
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))  # tests/real_detections.py
 from real_detections import observations  # noqa: E402
 
 REAL = os.path.join(os.path.dirname(__file__), "..", "..", "data", "real")

@@ -2,7 +2,7 @@
 honest one (the board refitted without the scored views), and a model is chosen only where its coefficients are
 determined (data/real/gopro_wide: 12 views chose a rational model whose coefficients cancel, k1 905 ± 3118).
 
-Corners: tiltfit's cached detections (benchmarks/real_detections.py); on industrial_ds1 geometric fits (blur
+Corners: tiltfit's cached detections (tests/real_detections.py); on industrial_ds1 geometric fits (blur
 widths left out: the choice is made on the corners)."""
 import math
 import os
@@ -18,7 +18,7 @@ from tiltfit.calibrate.fit import FitOptions, without_blur
 from tiltfit.select.held_out import held_out_rms
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+sys.path.insert(0, os.path.join(ROOT, "tests"))
 from real_detections import observations  # noqa: E402
 
 pytestmark = pytest.mark.slow

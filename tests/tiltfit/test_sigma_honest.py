@@ -145,7 +145,7 @@ def test_monte_carlo_pose_sigma_matches_spread(monte_carlo):
 
 @pytest.fixture(scope="module")
 def gopro_groups():
-    sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+    sys.path.insert(0, os.path.join(ROOT, "tests"))
     from real_detections import observations
 
     obs, _ = observations(os.path.join(ROOT, "data", "real", "gopro_wide"), 0.00155)
@@ -200,7 +200,7 @@ def test_gopro_subsets_compare_within_prediction(gopro_groups, tmp_path, capsys)
 def industrial_halves():
     """industrial_ds1's 20 views in two interleaved halves, each calibrated alone with the board chosen by
     held-out error (`board="auto"`, what `tiltfit calibrate` does by default: the free board on this set)."""
-    sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+    sys.path.insert(0, os.path.join(ROOT, "tests"))
     from real_detections import observations
 
     obs, _ = observations(os.path.join(ROOT, "data", "real", "industrial_ds1"), 0.0048)

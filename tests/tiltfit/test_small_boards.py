@@ -203,7 +203,7 @@ def test_small_board_keeps_the_board_the_views_carry():
     import sys
 
     root = os.path.join(os.path.dirname(__file__), "..", "..")
-    sys.path.insert(0, os.path.join(root, "benchmarks"))
+    sys.path.insert(0, os.path.join(root, "tests"))
     from real_detections import observations
 
     from tiltfit.calibrate.flow import calibrate

@@ -18,7 +18,7 @@ SETS = {"industrial_ds1": 0.00155, "gopro_wide": 0.005}
 
 
 def main() -> int:
-    sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+    sys.path.insert(0, os.path.join(ROOT, "tests"))
     from real_detections import observations
 
     from tiltfit.files.calib import calib_dict, write_calib

@@ -1,11 +1,16 @@
-"""tiltfit's own detections (corners and blur widths) of the shipped real photo sets, cached beside the photos.
+"""Test fixture: tiltfit's own detections (corners and blur widths) of the shipped real photo sets, cached beside
+the photos, and the Observations built from them.
 
-    python benchmarks/real_detections.py [SET ...]      (default: every folder under data/real/)
+    python tests/real_detections.py [SET ...]      (default: every folder under data/real/ with a target.json)
 
 Writes data/real/SET/detections_tiltfit.json: {image basename: DET.json dict | {"no_board": reason}}, one image
-per line. `tiltfit calibrate` run on the photos detects exactly these (tests check one image against a fresh
-detection); tests and benchmarks/bench_real_calib.py read the cache instead of detecting again (about 3 s per
-photo).
+per line. The detections are made through the public API (`renderer.read_image`, `tiltfit.detect.charuco.detect_board`,
+`Detection.to_json_dict`), the steps `tiltfit detect` takes, so `tiltfit calibrate` run on the photos detects
+exactly these (tests/tiltfit/test_calibrate_defaults.py checks one image against a fresh `tiltfit detect`). Tests
+and benchmarks read the cache instead of detecting again (about 3 s per photo):
+
+    sys.path.insert(0, "tests"); from real_detections import observations          (tests)
+    sys.path.insert(0, ROOT);    from tests.real_detections import observations    (benchmarks)
 """
 from __future__ import annotations
 
@@ -25,23 +30,28 @@ def photos(folder: str) -> list[str]:
 
 
 def detect_one(path: str, target) -> dict:
-    """The DET.json dict `tiltfit detect` would write for `path`, or {"no_board": reason}."""
-    from tiltfit.cli import main as cli
+    """The DET.json dict of `path` (corners and blur widths, as `tiltfit detect` finds them), or
+    {"no_board": reason} where no corner could be placed."""
+    from renderer import read_image
+    from tiltfit.detect.charuco import detect_board
+    from tiltfit.files.det import MAX_IMAGE_PIXELS
 
-    try:
-        return cli._detect_image(path, target, None)
-    except cli.CliError as e:
-        if not e.problem.startswith("no board found"):
-            raise
-        return {"no_board": e.problem}
+    found = detect_board(read_image(path, None, MAX_IMAGE_PIXELS), target)
+    det = found.to_json_dict()
+    if det.get("grid_found") and any(c is not None for c in det["corners_px"]):
+        return det
+    why = getattr(found, "message", "") or ""
+    return {"no_board": "no board found" + (f" ({why})" if why else "")}
 
 
 def read_cache(folder: str, name: str = CACHE_NAME) -> dict:
+    """The cache file `name` of a set folder as a dict."""
     with open(os.path.join(folder, name), encoding="utf-8") as f:
         return json.load(f)
 
 
 def write_cache(folder: str, say=print) -> dict:
+    """Detect every photo of a set folder and write its cache; returns the dict written."""
     from tiltfit.target.layout import load_target
 
     target = load_target(os.path.join(folder, "target.json"))
@@ -55,23 +65,11 @@ def write_cache(folder: str, say=print) -> dict:
     return out
 
 
-def main(argv=None) -> int:
-    sets = (argv if argv is not None else sys.argv[1:]) or sorted(
-        d for d in os.listdir(REAL) if os.path.isfile(os.path.join(REAL, d, "target.json")))
-    for s in sets:
-        write_cache(os.path.join(REAL, s), say=lambda m, s=s: print(f"[{s}] {m}", file=sys.stderr, flush=True))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
-
-
 def observations(folder: str, pixel_pitch_mm: float, cache_name: str = CACHE_NAME):
     """(Observations of the photos with a board from the cache, names of those without).
 
     `cache_name`: this module's cache, or another of the same layout whose photos without a board are null
-    (corners_opencv.json, benchmarks/bench_real_calib.py's cv2.findChessboardCornersSB corners).
+    (corners_opencv.json, benchmarks/calibration/bench_real_calib.py's cv2.findChessboardCornersSB corners).
     """
     import numpy as np
 
@@ -87,3 +85,15 @@ def observations(folder: str, pixel_pitch_mm: float, cache_name: str = CACHE_NAM
     size = tuple(cache[names[0]]["image_size_px"])
     return (Observations(target.feature_points(), corners, blur, size, pixel_pitch_mm, names),
             [n for n in sorted(cache) if "no_board" in cache[n]])
+
+
+def main(argv=None) -> int:
+    sets = (argv if argv is not None else sys.argv[1:]) or sorted(
+        d for d in os.listdir(REAL) if os.path.isfile(os.path.join(REAL, d, "target.json")))
+    for s in sets:
+        write_cache(os.path.join(REAL, s), say=lambda m, s=s: print(f"[{s}] {m}", file=sys.stderr, flush=True))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -4,7 +4,11 @@ Public API:
     load_scene(path_or_dict, overrides) -> Scene     (scene files as in docs/conventions.md)
     render(scene, spp, sampler, device=...) -> RenderResult(image (H, W, 3) linear, coverage (H, W))
     read_image / write_image                          (OpenImageIO; sRGB for 8-bit files)
-and the building blocks: cameras, shapes, materials, Scene, trace. The one camera model for rendering and
+and the building blocks, one folder per concept: `core/` (rays, transforms, parameters), `cameras/` (every
+camera, the lens, optics closed forms, the sensor), `scene/` (scenes, materials, scene files), `shapes/`,
+`tracing/` (the render loop, samplers, the integrator), `beam/` (beam tracing of mirror polyhedra), `mitsuba/`
+(Mitsuba 3 as a peer and intersector) and `cli/` (the `renderer` command). Files, checks and errors shared with
+`tiltfit` are in `camio`. The one camera model for rendering and
 fitting is `LensCamera` (renderer/cameras/lens_model.py): `view_camera(v)` gives the `ThinLensCamera` that
 renders view v with gradients reaching its parameters; `project_pinhole` is the one pinhole projection and
 `axis_angle_to_matrix` / `matrix_to_axis_angle` / `CameraTransform` the one owner of rotations and poses.

@@ -1,16 +1,22 @@
 """Tilt-lens calibration from photographs of a checkerboard: corners, blur widths, a camera model, fits.
 
-Layers (bottom to top; `tests/tiltfit/test_layers.py` checks them, and that nothing forms an import cycle):
-- library: `target` (the board), `imaging` (pyramid, homography), `blur`, `detect`, `charuco` (ChArUco boards, and
-  `detect_board` for any target), `model`, `fit`, `validate`,
-  `photos` (calibration from photographs, the Python entry point), `photometric`, the file formats (`calibfile`, `detfile`, `formats`, `export`), `report`, `evaluate` (photo
-  against rendering), `calibrated` (a calibration file as one object) with `scene_plugins` (its scene-file camera
-  and target shape) and `composite` (CG rendered into calibrated photos, and the board-alignment check), `synth`
-  (synthetic observations and images), `opencv_corners`, `runlog`, `target_cli`;
-- experiments built on the library, in `experiments/`: `reproduce` (the paper's experiment) with `scenes`,
-  `stability/` (where each method fails, one module per study) and `cluster`; the library never imports them;
-- front end: `cli` (`tiltfit ...`, also `python -m tiltfit`).
-`tiltfit` builds on `renderer`'s public API; `renderer` never imports `tiltfit`.
+Folders, one concept each (bottom to top; `tests/tiltfit/test_layers.py` checks the layers and that nothing forms
+an import cycle; docs/architecture.md walks a photo through them):
+- `target/`: the board (`layout`) and the printed board's fitted shape (`shape`);
+- `detect/`: corners (chessboard, ChArUco, OpenCV's as a peer) and blur widths in an image;
+- `solve/`: the one least-squares solver and the one robust linear solve;
+- `calibrate/`: the camera model, its fit, the starting camera and the calibration as a sequence of stages;
+- `select/`: which model the data support (held-out error, nested-model tests, the board shape);
+- `uncertainty/`: covariances, projection uncertainty, two calibrations compared;
+- `photometric/`: the photo against the rendering (profiles, the photometric refinement, the aperture closed form);
+- `files/`: CALIB.json, DET.json, the calibration read once (`files.calibrated.Calibration`), other libraries'
+  formats, the scene-file components and the generated format reference;
+- `report/`: the calibration report, real against rendered, CG composited into photos;
+- `experiments/`: the paper's experiment (`reproduce`), the stability studies and synthetic observations;
+  the library never imports them;
+- `cli/`: the `tiltfit` command (also `python -m tiltfit`).
+`tiltfit` builds on `renderer`'s public API and on `camio` (files, checks, errors, progress); `renderer` never
+imports `tiltfit`.
 """
 
 __all__ = ["Calibration", "calibrate_photos"]

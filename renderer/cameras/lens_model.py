@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import copy
 import math
+from typing import NamedTuple
 
 import torch
 
@@ -87,6 +88,33 @@ def distortion_parameter_names(model: str) -> tuple[str, ...]:
     if model not in MODEL_TERMS:
         raise ValueError(f"distortion: expected one of {tuple(MODEL_TERMS)}, got {model!r}")
     return tuple(f"dist_{k}" for k in MODEL_TERMS[model])
+
+
+class _ProjectionTerms(NamedTuple):
+    """The terms of `LensCamera.jacobian`'s projection that its columns share (V views, N points)."""
+    rvec: torch.Tensor      # (V, 3) axis-angle rotations
+    p_rot: torch.Tensor     # (V, N, 3) R X, mm
+    p_cam: torch.Tensor     # (V, N, 3) camera frame, mm
+    xn: torch.Tensor        # (V, N, 2) ideal normalised coordinates x / z, y / z
+    k: torch.Tensor         # (8,) distortion coefficients
+    xd: torch.Tensor        # (V, N, 2) distorted normalised coordinates
+    dxd_dp: torch.Tensor    # (V, N, 2, 3) ∂x_d/∂p_cam
+    uv: torch.Tensor        # (V, N, 2) pixels
+    F: float                # focal length, pixels
+    with_distortion: bool
+    axis: bool              # D about the lens axis (its frame turns with θL and φ)
+    J_k: torch.Tensor | None        # axis only: ∂x_d/∂k
+    J_angles: list | None           # axis only: [∂x_d/∂θL, ∂x_d/∂φ]
+    dthL: list | None               # axis only: ∂θL/∂(log w, 1/U in dioptres, θF)
+
+
+class _BlurTerms(NamedTuple):
+    """The terms of `LensCamera.jacobian`'s blur (zeros and None without blur)."""
+    with_blur: bool
+    b: torch.Tensor                 # (V, N) blur diameters, pixels
+    db_dlens: torch.Tensor | None   # (V, N, 4) ∂b_mm/∂(w, U, d, θF)
+    db_dphi: torch.Tensor | None    # (V, N) ∂b_mm/∂φ
+    rows: torch.Tensor              # (V, N, 3, 3) ∂(u, v, b)/∂p_cam
 
 
 class LensCamera(torch.nn.Module):
@@ -347,97 +375,123 @@ class LensCamera(torch.nn.Module):
         """
         names = tuple(n for n, _ in self.named_parameters()) if names is None else tuple(names)
         with torch.no_grad():
-            dt, dev = self.rvec.dtype, self.rvec.device
-            X = torch.as_tensor(X_world, dtype=dt, device=dev)
-            rvec = self.rvec.detach()
-            p_rot = torch.einsum("vij,nj->vni", axis_angle_to_matrix(rvec), X)   # (V, N, 3)
-            p_cam = p_rot + self.T_mm.detach()[:, None, :]
-            x, y, z = p_cam.unbind(-1)
-            iz = 1.0 / z
-            xn = p_cam[..., :2] * iz[..., None]
-            zero = torch.zeros_like(z)
-            dxn_dp = torch.stack([iz, zero, -xn[..., 0] * iz, zero, iz, -xn[..., 1] * iz], -1).reshape(z.shape + (2, 3))
-            k = self.distortion.detach()
-            F = float(self.focal_px.detach())
-            dist_names = [n for n in _DIST if n in names]
-            axis = with_distortion and self.distortion_centre == "lens_axis"
-            if axis:  # D about the lens axis: its frame turns with θL (so w, U, θF) and φ
-                xd, J_xy, J_k, J_angles, dthL = self._lens_axis_jacobians(xn, k)
-                dxd_dp = J_xy @ dxn_dp
-            elif with_distortion:
-                xd = distort(xn, k)
-                dxd_dp = distort_jacobian(xn, k) @ dxn_dp
-            else:
-                xd, dxd_dp = xn, dxn_dp
-            uv = self.principal_point_px.detach() + F * xd
-            pitch = self.pixel_pitch_mm
-            pose = any(n in names for n in ("rvec", "T_scaled"))
-            lens_names = [n for n in ("log_w_mm", "inv_U_per_m", "d_scaled", "theta_F") if n in names]
-            if with_blur:
-                phi = self.phi.detach()
-                p_tilt = tilt_frame(p_cam, phi)  # the blur is a tilt about x in the frame turned by φ
-                b_mm, Jb = optics.blur_diameter_jacobian(p_tilt, self.w_mm.detach(), self.U_mm.detach(),
-                                                         self.d_mm.detach(), self.theta_F.detach(), self.blur_model)
-                b = b_mm / pitch + self.blur_offset_px.detach()
-                c, sn = torch.cos(phi), torch.sin(phi)
-                jt = Jb[..., :3]  # ∂b/∂p_tilt; p_tilt = M p_cam, M = [[c, s, 0], [−s, c, 0], [0, 0, 1]]
-                db_dp = torch.stack([jt[..., 0] * c - jt[..., 1] * sn, jt[..., 0] * sn + jt[..., 1] * c,
-                                     jt[..., 2]], -1)
-                db_dphi = jt[..., 0] * p_tilt[..., 1] - jt[..., 1] * p_tilt[..., 0]  # ∂p_tilt/∂φ = (y_t, −x_t, 0)
-                rows = torch.cat([F * dxd_dp, db_dp[..., None, :] / pitch], -2)    # ∂(u, v, b)/∂p_cam
-            else:
-                b = zero
-                rows = torch.cat([F * dxd_dp, torch.zeros_like(dxd_dp[..., :1, :])], -2)
-            jac = {}
-            if lens_names:
-                # ∂/∂(w, U, d, θF), then by the stored parametrisation w = exp(log_w), U = 1000 / inv_U,
-                # d = 10 |d_scaled|
-                w, U = self.w_mm.detach(), self.U_mm.detach()
-                lens = torch.zeros(z.shape + (3, 4), dtype=dt, device=dev)
-                lens[..., :2, 0] = xd / pitch
-                if with_blur:
-                    lens[..., 2, :] = Jb[..., 3:] / pitch
-                chain = torch.stack([w, -U * U / 1000.0, APERTURE_SCALE_MM * torch.sign(self.d_scaled.detach()),
-                                     torch.ones_like(w)])
-                lens = lens * chain
-                if axis:  # through θL(w, 1/U, θF) of the distortion's frame, already by the stored parameters
-                    for i, g in zip((0, 1, 3), dthL):
-                        lens[..., :2, i] += F * J_angles[0] * g
-                for i, n in enumerate(("log_w_mm", "inv_U_per_m", "d_scaled", "theta_F")):
-                    if n in names:
-                        jac[n] = lens[..., i:i + 1]
-            if pose:
-                if "rvec" in names:
-                    jac["rvec"] = rotated_point_jacobian(rvec[:, None, :], p_rot, rows)
-                if "T_scaled" in names:
-                    jac["T_scaled"] = rows * self.length_scale_mm
-            if "pp_scaled" in names:
-                pp = torch.zeros(z.shape + (3, 2), dtype=dt, device=dev)
-                pp[..., 0, 0] = self.pixel_scale_px
-                pp[..., 1, 1] = self.pixel_scale_px
-                jac["pp_scaled"] = pp
-            if "phi" in names:
-                dphi = torch.zeros(z.shape + (3, 1), dtype=dt, device=dev)
-                if with_blur:
-                    dphi[..., 2, 0] = db_dphi / pitch
-                if axis:
-                    dphi[..., :2, 0] = F * J_angles[1]
-                jac["phi"] = dphi
-            if "blur_offset_px" in names:
-                off = torch.zeros(z.shape + (3, 1), dtype=dt, device=dev)
-                if with_blur:
-                    off[..., 2, 0] = 1.0
-                jac["blur_offset_px"] = off
-            if dist_names:
-                dk = torch.zeros(z.shape + (3, 8), dtype=dt, device=dev)
-                if axis:
-                    dk[..., :2, :] = F * J_k
-                elif with_distortion:
-                    dk[..., :2, :] = F * distort_coefficient_jacobian(xn, k)
-                for n in dist_names:
-                    i = _DIST.index(n)
-                    jac[n] = dk[..., i:i + 1]
-        return uv, b, jac
+            proj = self._projection_terms(X_world, with_distortion)
+            blur = self._blur_terms(proj, with_blur)
+            jac = self._lens_columns(proj, blur, names)
+            jac.update(self._pose_columns(proj, blur, names))
+            jac.update(self._sensor_columns(proj, blur, names))
+        return proj.uv, blur.b, jac
+
+    def _projection_terms(self, X_world: torch.Tensor, with_distortion: bool) -> _ProjectionTerms:
+        """The projection part of `jacobian`: pixels and ∂(x_d)/∂p_cam for all views (no autograd)."""
+        dt, dev = self.rvec.dtype, self.rvec.device
+        X = torch.as_tensor(X_world, dtype=dt, device=dev)
+        rvec = self.rvec.detach()
+        p_rot = torch.einsum("vij,nj->vni", axis_angle_to_matrix(rvec), X)   # (V, N, 3)
+        p_cam = p_rot + self.T_mm.detach()[:, None, :]
+        z = p_cam[..., 2]
+        iz = 1.0 / z
+        xn = p_cam[..., :2] * iz[..., None]
+        zero = torch.zeros_like(z)
+        dxn_dp = torch.stack([iz, zero, -xn[..., 0] * iz, zero, iz, -xn[..., 1] * iz], -1).reshape(z.shape + (2, 3))
+        k = self.distortion.detach()
+        F = float(self.focal_px.detach())
+        axis = with_distortion and self.distortion_centre == "lens_axis"
+        J_k = J_angles = dthL = None
+        if axis:  # D about the lens axis: its frame turns with θL (so w, U, θF) and φ
+            xd, J_xy, J_k, J_angles, dthL = self._lens_axis_jacobians(xn, k)
+            dxd_dp = J_xy @ dxn_dp
+        elif with_distortion:
+            xd = distort(xn, k)
+            dxd_dp = distort_jacobian(xn, k) @ dxn_dp
+        else:
+            xd, dxd_dp = xn, dxn_dp
+        uv = self.principal_point_px.detach() + F * xd
+        return _ProjectionTerms(rvec, p_rot, p_cam, xn, k, xd, dxd_dp, uv, F, with_distortion, axis, J_k, J_angles,
+                                dthL)
+
+    def _blur_terms(self, proj: _ProjectionTerms, with_blur: bool) -> _BlurTerms:
+        """The blur part of `jacobian`: b (V, N) pixels, ∂b/∂(w, U, d, θF), ∂b/∂φ and the rows ∂(u, v, b)/∂p_cam."""
+        pitch = self.pixel_pitch_mm
+        dxd_dp, F = proj.dxd_dp, proj.F
+        if not with_blur:
+            rows = torch.cat([F * dxd_dp, torch.zeros_like(dxd_dp[..., :1, :])], -2)
+            return _BlurTerms(False, torch.zeros_like(proj.p_cam[..., 2]), None, None, rows)
+        phi = self.phi.detach()
+        p_tilt = tilt_frame(proj.p_cam, phi)  # the blur is a tilt about x in the frame turned by φ
+        b_mm, Jb = optics.blur_diameter_jacobian(p_tilt, self.w_mm.detach(), self.U_mm.detach(),
+                                                 self.d_mm.detach(), self.theta_F.detach(), self.blur_model)
+        b = b_mm / pitch + self.blur_offset_px.detach()
+        c, sn = torch.cos(phi), torch.sin(phi)
+        jt = Jb[..., :3]  # ∂b/∂p_tilt; p_tilt = M p_cam, M = [[c, s, 0], [−s, c, 0], [0, 0, 1]]
+        db_dp = torch.stack([jt[..., 0] * c - jt[..., 1] * sn, jt[..., 0] * sn + jt[..., 1] * c,
+                             jt[..., 2]], -1)
+        db_dphi = jt[..., 0] * p_tilt[..., 1] - jt[..., 1] * p_tilt[..., 0]  # ∂p_tilt/∂φ = (y_t, −x_t, 0)
+        rows = torch.cat([F * dxd_dp, db_dp[..., None, :] / pitch], -2)    # ∂(u, v, b)/∂p_cam
+        return _BlurTerms(True, b, Jb[..., 3:], db_dphi, rows)
+
+    def _lens_columns(self, proj: _ProjectionTerms, blur: _BlurTerms, names) -> dict:
+        """`jacobian`'s columns of log_w_mm, inv_U_per_m, d_scaled and theta_F among `names`."""
+        lens_names = ("log_w_mm", "inv_U_per_m", "d_scaled", "theta_F")
+        if not any(n in names for n in lens_names):
+            return {}
+        # ∂/∂(w, U, d, θF), then by the stored parametrisation w = exp(log_w), U = 1000 / inv_U,
+        # d = 10 |d_scaled|
+        pitch = self.pixel_pitch_mm
+        w, U = self.w_mm.detach(), self.U_mm.detach()
+        lens = torch.zeros(proj.p_cam.shape[:-1] + (3, 4), dtype=proj.p_cam.dtype, device=proj.p_cam.device)
+        lens[..., :2, 0] = proj.xd / pitch
+        if blur.with_blur:
+            lens[..., 2, :] = blur.db_dlens / pitch
+        chain = torch.stack([w, -U * U / 1000.0, APERTURE_SCALE_MM * torch.sign(self.d_scaled.detach()),
+                             torch.ones_like(w)])
+        lens = lens * chain
+        if proj.axis:  # through θL(w, 1/U, θF) of the distortion's frame, already by the stored parameters
+            for i, g in zip((0, 1, 3), proj.dthL):
+                lens[..., :2, i] += proj.F * proj.J_angles[0] * g
+        return {n: lens[..., i:i + 1] for i, n in enumerate(lens_names) if n in names}
+
+    def _pose_columns(self, proj: _ProjectionTerms, blur: _BlurTerms, names) -> dict:
+        """`jacobian`'s columns of rvec and T_scaled among `names` (each view's own pose)."""
+        jac = {}
+        if "rvec" in names:
+            jac["rvec"] = rotated_point_jacobian(proj.rvec[:, None, :], proj.p_rot, blur.rows)
+        if "T_scaled" in names:
+            jac["T_scaled"] = blur.rows * self.length_scale_mm
+        return jac
+
+    def _sensor_columns(self, proj: _ProjectionTerms, blur: _BlurTerms, names) -> dict:
+        """`jacobian`'s columns of pp_scaled, phi, blur_offset_px and the distortion coefficients among `names`."""
+        jac = {}
+        shape, dt, dev = proj.p_cam.shape[:-1], proj.p_cam.dtype, proj.p_cam.device
+        if "pp_scaled" in names:
+            pp = torch.zeros(shape + (3, 2), dtype=dt, device=dev)
+            pp[..., 0, 0] = self.pixel_scale_px
+            pp[..., 1, 1] = self.pixel_scale_px
+            jac["pp_scaled"] = pp
+        if "phi" in names:
+            dphi = torch.zeros(shape + (3, 1), dtype=dt, device=dev)
+            if blur.with_blur:
+                dphi[..., 2, 0] = blur.db_dphi / self.pixel_pitch_mm
+            if proj.axis:
+                dphi[..., :2, 0] = proj.F * proj.J_angles[1]
+            jac["phi"] = dphi
+        if "blur_offset_px" in names:
+            off = torch.zeros(shape + (3, 1), dtype=dt, device=dev)
+            if blur.with_blur:
+                off[..., 2, 0] = 1.0
+            jac["blur_offset_px"] = off
+        dist_names = [n for n in _DIST if n in names]
+        if dist_names:
+            dk = torch.zeros(shape + (3, 8), dtype=dt, device=dev)
+            if proj.axis:
+                dk[..., :2, :] = proj.F * proj.J_k
+            elif proj.with_distortion:
+                dk[..., :2, :] = proj.F * distort_coefficient_jacobian(proj.xn, proj.k)
+            for n in dist_names:
+                i = _DIST.index(n)
+                jac[n] = dk[..., i:i + 1]
+        return jac
 
     def _lens_axis_jacobians(self, xn: torch.Tensor, k: torch.Tensor):
         """D about the lens axis at ideal normalised points xn with its derivatives (no autograd): x_d, ∂x_d/∂xn,

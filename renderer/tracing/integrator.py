@@ -9,6 +9,7 @@ step is a tensor operation over a batch.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import torch
 
@@ -154,6 +155,103 @@ def direct_light(scene: Scene, p, n_f, d, albedo, table, obj, *, options: TraceO
     return out
 
 
+def _add_background(radiance, found, background, pix, thr):
+    """radiance (N, 3) plus the background seen by the rays of the batch that miss (~found) every object;
+    pix, thr: the batch's pixels and throughputs (None: the primary rays, throughput one)."""
+    miss = (~found).to(radiance.dtype)[:, None] * background
+    if pix is None:
+        return radiance + miss
+    radiance.index_add_(0, pix, thr * miss)
+    return radiance
+
+
+class _Surfaces(NamedTuple):
+    """The hit points of one bounce, one row each: point, incoming unit direction and normal facing it
+    (n, 3), whether the ray enters the surface (n,), albedo (n, 3) and object id (n,)."""
+    p: torch.Tensor
+    d: torch.Tensor
+    n_f: torch.Tensor
+    entering: torch.Tensor
+    albedo: torch.Tensor
+    obj: torch.Tensor
+
+    def first(self, n: int) -> "_Surfaces":
+        """The first n rows."""
+        return _Surfaces(*(x[:n] for x in self))
+
+
+def _hit_surfaces(scene: Scene, table, o, d, hit, options: TraceOptions):
+    """The rays of a batch that hit, grouped by object, and their surfaces.
+
+    Returns:
+        None where no ray hits; else hits (n,) long indices of the hitting rays in the batch, and their
+        _Surfaces of n_rows ≥ n rows: the rows past n are the padding that fills
+        the last culling packet (they repeat the last hit).
+    """
+    n_objects, fast = len(scene.objects), options.compile
+    order, counts = _group_by_object(hit.object_id, n_objects, options.packet_size if options.culling else 1)
+    if order.shape[0] == 0:
+        return None
+    n_hit, n_rows = sum(counts), order.shape[0]
+    # The padding rows repeat the last hit: they join the last object's group and are dropped by the caller.
+    last = max(k for k, c in enumerate(counts) if c)
+    rows = counts[:last] + [counts[last] + n_rows - n_hit] + counts[last + 1:]
+    p, d, aux = compiled_call(fast, _hit_points, o, d, hit.t, hit.aux, order)
+    obj = torch.repeat_interleave(torch.arange(n_objects, device=o.device),
+                                  torch.tensor(rows, device=o.device), output_size=n_rows)
+    normal, uv = _surface(scene, p, aux, rows, options, table.textures)
+    n_f, entering = compiled_call(fast, _orient, normal, d)
+    return order[:n_hit], _Surfaces(p, d, n_f, entering, _albedo(table, uv, rows), obj)
+
+
+def _split_weights(table, obj, entering):
+    """Mirror, transmitted and local weights kr, kt, 1 − kr − kt (n,) and ior (n,) of the hits' materials.
+
+    Leaving a transparent object is a bare dielectric interface: no shading, full transmission.
+    """
+    kr, kt, ior = (x.index_select(0, obj) for x in (table.reflect, table.transmit, table.ior))
+    exiting = (~entering) & (kt > 0)
+    kt = torch.where(exiting, torch.ones_like(kt), kt)
+    kr = torch.where(exiting, torch.zeros_like(kr), kr)
+    return kr, kt, (1 - kr - kt).clamp_min(0), ior
+
+
+def _add_local(radiance, scene: Scene, table, surfaces: _Surfaces, pix, thr, local_w, options: TraceOptions) -> None:
+    """Add the local shading of the hits whose material keeps a local weight (in place into radiance)."""
+    p, d, n_f, entering, albedo, obj = surfaces
+    weight = local_w[:, None] if thr is None else thr * local_w[:, None]
+    shaded = (local_w > 0).nonzero().squeeze(1)
+    if shaded.numel():
+        sel = (lambda x: x) if shaded.shape[0] == p.shape[0] else (lambda x: x.index_select(0, shaded))
+        local = direct_light(scene, sel(p), sel(n_f), sel(d), sel(albedo), table, sel(obj), options=options,
+                             outside=sel(entering))
+        radiance.index_add_(0, sel(pix), sel(weight) * local)
+
+
+def _children(surfaces: _Surfaces, kr, kt, ior, thr, pix, eps: float):
+    """The next batch: mirror and refracted rays (origin, direction, throughput, pixel) whose throughput
+    stays above _MIN_THROUGHPUT, reflected rays first; None where there are none. Total internal reflection
+    sends the transmitted weight into the mirror ray."""
+    p, d, n_f, entering, albedo, _ = surfaces
+    cos_i = -(n_f * d).sum(-1)
+    eta = torch.where(entering, 1 / ior, ior)
+    k = 1 - eta**2 * (1 - cos_i**2)
+    tir = k < 0
+    refl_dir = d + 2 * cos_i[:, None] * n_f
+    refr_dir = normalize(eta[:, None] * d + (eta * cos_i - root(k))[:, None] * n_f)
+    w_refl = kr + torch.where(tir, kt, torch.zeros_like(kt))
+    w_refr = torch.where(tir, torch.zeros_like(kt), kt)
+    tint = torch.where(entering[:, None], albedo, torch.ones_like(albedo))
+    thr_refl = thr * w_refl[:, None]
+    thr_refr = thr * w_refr[:, None] * tint
+    r = (thr_refl.amax(-1) > _MIN_THROUGHPUT).nonzero().squeeze(1)
+    s = (thr_refr.amax(-1) > _MIN_THROUGHPUT).nonzero().squeeze(1)
+    if r.numel() + s.numel() == 0:
+        return None
+    return (torch.cat([p[r] + n_f[r] * eps, p[s] - n_f[s] * eps]), torch.cat([refl_dir[r], refr_dir[s]]),
+            torch.cat([thr_refl[r], thr_refr[s]]), torch.cat([pix[r], pix[s]]))
+
+
 def trace(scene: Scene, o: torch.Tensor, d: torch.Tensor, first_hit_objects: list[bool] | None = None,
           max_depth: int | None = None, *, options: TraceOptions | None = None):
     """Radiance along each ray.
@@ -169,8 +267,7 @@ def trace(scene: Scene, o: torch.Tensor, d: torch.Tensor, first_hit_objects: lis
     """
     options = scene.options if options is None else options
     max_depth = scene.image.max_depth if max_depth is None else max_depth
-    n_rays, n_objects = o.shape[0], len(scene.objects)
-    radiance = torch.zeros(n_rays, 3, dtype=o.dtype, device=o.device)
+    radiance = torch.zeros(o.shape[0], 3, dtype=o.dtype, device=o.device)
     background = torch.tensor(scene.image.background, dtype=o.dtype, device=o.device)
     table = scene.materials(o)
     if direct.applies(scene, options, table):
@@ -178,74 +275,33 @@ def trace(scene: Scene, o: torch.Tensor, d: torch.Tensor, first_hit_objects: lis
     bounces = bool(((table.reflect > 0) | (table.transmit > 0)).any())
     pix = None  # pixel (index into the N input rays) of each ray in the batch; None: the identity
     thr = None  # path throughput of each ray; None: all ones (primary rays)
-    eps = scene.ray_epsilon
-    fast = options.compile
     found_primary = None
     for depth in range(max_depth + 1):
         hit = scene.intersect(o, d, first_hit_objects if depth == 0 else None, options=options)
-        found = hit.found
         if depth == 0:
-            found_primary = found
+            found_primary = hit.found
         if bool((background != 0).any()):
-            miss = (~found).to(o.dtype)[:, None] * background
-            if pix is None:
-                radiance = radiance + miss
-            else:
-                radiance.index_add_(0, pix, thr * miss)
-        order, counts = _group_by_object(hit.object_id, n_objects, options.packet_size if options.culling else 1)
-        if order.shape[0] == 0:
+            radiance = _add_background(radiance, hit.found, background, pix, thr)
+        batch = _hit_surfaces(scene, table, o, d, hit, options)
+        if batch is None:
             break
-        n_hit, n_rows = sum(counts), order.shape[0]
-        # The padding rows repeat the last hit: they join the last object's group and are dropped below.
-        last = max(k for k, c in enumerate(counts) if c)
-        rows = counts[:last] + [counts[last] + n_rows - n_hit] + counts[last + 1:]
-        p, d, aux = compiled_call(fast, _hit_points, o, d, hit.t, hit.aux, order)
-        hits = order[:n_hit]
+        hits, surfaces = batch
         pix = hits if pix is None else pix.index_select(0, hits)
         thr = None if thr is None else thr.index_select(0, hits)
-        obj = torch.repeat_interleave(torch.arange(n_objects, device=o.device),
-                                      torch.tensor(rows, device=o.device), output_size=n_rows)
-        normal, uv = _surface(scene, p, aux, rows, options, table.textures)
-        n_f, entering = compiled_call(fast, _orient, normal, d)
-        albedo = _albedo(table, uv, rows)
         if not bounces:
-            local = direct_light(scene, p, n_f, d, albedo, table, obj, options=options, outside=entering)[:n_hit]
+            s = surfaces
+            local = direct_light(scene, s.p, s.n_f, s.d, s.albedo, table, s.obj, options=options,
+                                 outside=s.entering)[:hits.shape[0]]
             radiance.index_add_(0, pix, local if thr is None else thr * local)
             break
-        p, d, n_f, entering, albedo, obj = (x[:n_hit] for x in (p, d, n_f, entering, albedo, obj))
-        kr, kt, ior = (x.index_select(0, obj) for x in (table.reflect, table.transmit, table.ior))
-        # Leaving a transparent object is a bare dielectric interface: no shading, full transmission.
-        exiting = (~entering) & (kt > 0)
-        kt = torch.where(exiting, torch.ones_like(kt), kt)
-        kr = torch.where(exiting, torch.zeros_like(kr), kr)
-        local_w = (1 - kr - kt).clamp_min(0)
-        weight = local_w[:, None] if thr is None else thr * local_w[:, None]
-        shaded = (local_w > 0).nonzero().squeeze(1)
-        if shaded.numel():
-            sel = (lambda x: x) if shaded.shape[0] == p.shape[0] else (lambda x: x.index_select(0, shaded))
-            local = direct_light(scene, sel(p), sel(n_f), sel(d), sel(albedo), table, sel(obj), options=options,
-                                 outside=sel(entering))
-            radiance.index_add_(0, sel(pix), sel(weight) * local)
+        surfaces = surfaces.first(hits.shape[0])
+        kr, kt, local_w, ior = _split_weights(table, surfaces.obj, surfaces.entering)
+        _add_local(radiance, scene, table, surfaces, pix, thr, local_w, options)
         if depth == max_depth:
             break
-        thr = torch.ones_like(p) if thr is None else thr
-        cos_i = -(n_f * d).sum(-1)
-        eta = torch.where(entering, 1 / ior, ior)
-        k = 1 - eta**2 * (1 - cos_i**2)
-        tir = k < 0
-        refl_dir = d + 2 * cos_i[:, None] * n_f
-        refr_dir = normalize(eta[:, None] * d + (eta * cos_i - root(k))[:, None] * n_f)
-        w_refl = kr + torch.where(tir, kt, torch.zeros_like(kt))
-        w_refr = torch.where(tir, torch.zeros_like(kt), kt)
-        tint = torch.where(entering[:, None], albedo, torch.ones_like(albedo))
-        thr_refl = thr * w_refl[:, None]
-        thr_refr = thr * w_refr[:, None] * tint
-        r = (thr_refl.amax(-1) > _MIN_THROUGHPUT).nonzero().squeeze(1)
-        s = (thr_refr.amax(-1) > _MIN_THROUGHPUT).nonzero().squeeze(1)
-        if r.numel() + s.numel() == 0:
+        thr = torch.ones_like(surfaces.p) if thr is None else thr
+        children = _children(surfaces, kr, kt, ior, thr, pix, scene.ray_epsilon)
+        if children is None:
             break
-        o = torch.cat([p[r] + n_f[r] * eps, p[s] - n_f[s] * eps])
-        d = torch.cat([refl_dir[r], refr_dir[s]])
-        thr = torch.cat([thr_refl[r], thr_refr[s]])
-        pix = torch.cat([pix[r], pix[s]])
+        o, d, thr, pix = children
     return radiance, found_primary

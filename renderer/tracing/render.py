@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import atexit
 import concurrent.futures
+import contextlib
 import functools
 import hashlib
 import math
@@ -401,10 +402,24 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
     """
     W, H = scene.camera.width, scene.camera.height
     spp = scene.image.spp if spp is None else spp
-    chunk_given = chunk_rays
-    chunk_rays = default_chunk_rays(device) if chunk_rays is None else chunk_rays
     sampler = sampler or scene.image.sampler
     scene.refresh()  # a shape moved or replaced since the last render: culling spheres, extent, materials
+    options = _options(scene, culling, compile, intersector, device, dtype)
+    chunk_rays = _chunk_size(scene, options, chunk_rays, device, dtype)
+    auto = workers is None
+    workers = _worker_count(scene, workers, W * H * spp * len(render_passes(scene)), device, dtype)
+    smp = Sampler(sampler, spp, seed)
+    image = torch.empty(W * H, 3, dtype=dtype, device=device)
+    coverage = torch.empty(W * H, dtype=dtype, device=device)
+    bar = Progress(W * H * spp, "render", enabled=progress)
+    with _thread_limits(threads, device, jit=options.intersector == "mitsuba" and workers <= 1):
+        _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device, dtype, seed, chunk_rays,
+                     max_depth, workers, auto)
+    return RenderResult(image.reshape(H, W, 3), coverage.reshape(H, W))
+
+
+def _options(scene: Scene, culling, compile, intersector, device, dtype) -> TraceOptions:
+    """scene.options with the caller's culling, compile and intersector where given, `auto` resolved."""
     options = scene.options
     if culling is not None:
         options = replace(options, culling=culling)
@@ -412,42 +427,55 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
         options = replace(options, compile=compile)
     if intersector is not None:
         options = replace(options, intersector=intersector)
-    options = _resolve_intersector(scene, options, device, dtype)
-    if chunk_given is None and options.intersector == "mitsuba":
-        chunk_rays = EMBREE_CHUNK_RAYS
-        if options.compile:
-            from renderer.tracing import fused
+    return _resolve_intersector(scene, options, device, dtype)
 
-            chunk_rays = fused.CHUNK_RAYS if fused.applies(scene, options, device, dtype) else chunk_rays
-    auto = workers is None
-    if auto:
-        if getattr(multiprocessing.current_process(), "_inheriting", False):
-            # A worker process starting for `workers=None` re-runs the main script: stop it at its first render.
-            raise RuntimeError("render: called while a worker process starts and runs the main script again; guard "
-                               "the script's work with `if __name__ == \"__main__\":` or pass workers=1")
-        workers = auto_workers(scene, W * H * spp * len(render_passes(scene)), device, dtype)
-    smp = Sampler(sampler, spp, seed)
-    image = torch.empty(W * H, 3, dtype=dtype, device=device)
-    coverage = torch.empty(W * H, dtype=dtype, device=device)
-    bar = Progress(W * H * spp, "render", enabled=progress)
+
+def _chunk_size(scene: Scene, options: TraceOptions, chunk_rays: int | None, device, dtype) -> int:
+    """Camera rays a batch: chunk_rays where given; else `fused.CHUNK_RAYS` on the fused path,
+    `EMBREE_CHUNK_RAYS` with the mitsuba intersector, `default_chunk_rays` otherwise."""
+    if chunk_rays is not None:
+        return chunk_rays
+    if options.intersector != "mitsuba":
+        return default_chunk_rays(device)
+    if options.compile:
+        from renderer.tracing import fused
+
+        if fused.applies(scene, options, device, dtype):
+            return fused.CHUNK_RAYS
+    return EMBREE_CHUNK_RAYS
+
+
+def _worker_count(scene: Scene, workers: int | None, rays: int, device, dtype) -> int:
+    """workers where given, else `auto_workers` for `rays` camera rays; refuses to run in a worker process
+    that is starting (it re-runs the main script)."""
+    if workers is not None:
+        return workers
+    if getattr(multiprocessing.current_process(), "_inheriting", False):
+        # A worker process starting for `workers=None` re-runs the main script: stop it at its first render.
+        raise RuntimeError("render: called while a worker process starts and runs the main script again; guard "
+                           "the script's work with `if __name__ == \"__main__\":` or pass workers=1")
+    return auto_workers(scene, rays, device, dtype)
+
+
+@contextlib.contextmanager
+def _thread_limits(threads: int | None, device, jit: bool):
+    """torch's CPU threads (and, jit, Dr.Jit's thread pool) set to `threads` inside the block and restored
+    after it; None: left as they are."""
     previous = torch.get_num_threads()
     if threads is not None and torch.device(device).type == "cpu" and threads != previous:
         torch.set_num_threads(threads)
     jit_threads = None
-    if options.intersector == "mitsuba" and threads is not None and workers <= 1:
+    if jit and threads is not None:
         from renderer.mitsuba.intersect import set_jit_threads
 
         jit_threads = set_jit_threads(threads)
     try:
-        _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device, dtype, seed, chunk_rays,
-                     max_depth, workers, auto)
+        yield
     finally:
         if torch.get_num_threads() != previous:
             torch.set_num_threads(previous)
         if jit_threads is not None:
             set_jit_threads(jit_threads)
-    return RenderResult(image.reshape(H, W, 3), coverage.reshape(H, W))
-
 
 def _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device, dtype, seed, chunk_rays,
                  max_depth, workers, auto=False):

@@ -425,9 +425,12 @@ def _solve(camera: TiltLensCamera, obs: Observations, options: FitOptions, sigma
     prob = _Problem(camera, obs, board=board)
     sc = options.sigma_corner_px or (sigma[0] if sigma else 1.0)
     sb = options.sigma_blur_px or (sigma[1] if sigma else 1.0)
-    estimate = options.sigma_corner_px is None or options.sigma_blur_px is None
-    lm_options = _robust_options(options.robust, options.robust_scale, options.max_iterations)
     one_group = (prob.n_corner == 0 or prob.n_blur == 0) and options.robust in (None, "none")
+    # One group without uncertainties (held-out folds, candidates scored by their residuals): σ moves no
+    # minimiser and nothing reads it, so its estimate (a covariance and the leverages) is not made.
+    estimate = (options.sigma_corner_px is None or options.sigma_blur_px is None) and not (
+        one_group and not options.uncertainties)
+    lm_options = _robust_options(options.robust, options.robust_scale, options.max_iterations)
     x, total_it = prob.x0(), 0
     for outer in range(options.noise_iterations + 1):
         scale = prob.scale(sc, sb)

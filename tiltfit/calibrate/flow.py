@@ -601,7 +601,8 @@ def _fit_blur(cam: TiltLensCamera, obs: Observations, mode: str, init, init_sigm
             except FitError as e:
                 if say:
                     say(f"blur offset held at 0 ({e})")
-                cam = start.copy()
+                # warm start: the fit with the offset, the offset held at 0 (the same minimum, fewer iterations)
+                cam, board = (start.copy(), board) if result is None else _offset_held(result, start)
                 result = None
         if result is None:
             result = _fit_camera(cam, obs, options, sigma_init, say, mode=mode, board=_board_copy(board))
@@ -614,6 +615,17 @@ def _fit_blur(cam: TiltLensCamera, obs: Observations, mode: str, init, init_sigm
             if mode == "tilt" or blur_depends_on_depth(start, obs):
                 raise
         return None, ["U_mm", "d_mm"], f"U and d undetermined: the blur fit failed ({e}); the calibration is geometric"
+
+
+def _offset_held(fitted: FitResult, start: TiltLensCamera):
+    """(camera, board) of a fit with the blur offset free, as the start of the same fit with it held at 0:
+    `start`'s free parameters, `fitted`'s values."""
+    cam = start.copy()
+    with torch.no_grad():
+        for name, p in fitted.camera.named_parameters():
+            getattr(cam, name).copy_(p)
+        cam.blur_offset_px.zero_()
+    return cam, fitted.board
 
 
 def _board_copy(board):

@@ -15,7 +15,7 @@ import math
 from dataclasses import replace
 
 from tiltfit.target.shape import (BOARD_GAIN_Z, BOARD_MODELS, BOARD_TOLERANCE, MAX_BOARD_JACOBIAN_ENTRIES,
-                    MIN_CORNERS_PER_BOARD_PARAMETER, Board)
+                    MIN_CORNERS_PER_BOARD_PARAMETER, Board, free_board_at)
 from tiltfit.calibrate.fit import FitError, fit_geometry
 from tiltfit.calibrate.model import Observations
 from tiltfit.select.held_out import choice_variance, held_out_gain
@@ -75,7 +75,13 @@ def select_board(camera, obs: Observations, options, mode: str = "unified", mode
                                 f"{entry['n_params']} parameters: a dense block of {size:.2g} entries)")
             continue
         try:
-            fit = flat if (m == "flat" and flat is not None) else fit_board(camera.copy(), obs, quiet, m, mode)
+            # warm start: each model from the richest one fitted before it (its lens, and its points as the free
+            # board's start)
+            prev = fits[next(reversed(fits))] if fits else None
+            start_board = free_board_at(prev.board) if m == "free" and prev is not None and prev.board is not None \
+                else None
+            fit = flat if (m == "flat" and flat is not None) else fit_board(
+                (prev.camera if prev is not None else camera).copy(), obs, quiet, m, mode, board=start_board)
             if fit.board is None:
                 fit.board = Board(obs.points_mm, "flat")
         except (FitError, ValueError) as e:

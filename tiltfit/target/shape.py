@@ -122,6 +122,14 @@ class Board:
         return b
 
 
+def free_board_at(board: Board) -> Board:
+    """A free board whose points start where `board`'s are (a warm start for the free model's fit from a simpler
+    model's): every free coordinate at `board`'s, the gauge's 7 at their nominal values."""
+    out = Board(board.nominal_mm, "free")
+    out.params = board.offsets_mm().reshape(-1)[_free_index(board.nominal_mm)].clone()
+    return out
+
+
 def _free_index(nominal: torch.Tensor) -> torch.Tensor:
     """Flat (x, y, z per point) indices of the free model's parameters: all but the gauge (module docstring)."""
     n, c = nominal.shape[0], _row_length(nominal)

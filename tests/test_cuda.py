@@ -52,16 +52,15 @@ def test_cuda_float32_and_compile_paths(dtype):
 
 def test_cuda_thin_lens_gradients_equal_cpu():
     from renderer import CameraTransform
-    from renderer.cameras.base import Screen
     from renderer.cameras import Lens
     from renderer.cameras.thin_lens import ThinLensCamera
 
     def grads(device):
         p = [torch.tensor(v, dtype=torch.float64, device=device, requires_grad=True)
              for v in (50.0, 600.0, 20.0, math.radians(30.0))]
-        screen = Screen(9, 7, (4.5, 3.5), p[0])
         cam = ThinLensCamera(CameraTransform(torch.eye(3, dtype=torch.float64, device=device),
-                                             torch.zeros(3, dtype=torch.float64, device=device)), screen, Lens(*p))
+                                             torch.zeros(3, dtype=torch.float64, device=device)), Lens(*p), (9, 7),
+                             (4.5, 3.5))
         g = torch.Generator().manual_seed(3)
         uv = (torch.rand(16, 2, generator=g, dtype=torch.float64) * 6).to(device)
         lens = (0.15 + 0.7 * torch.rand(16, 2, generator=g, dtype=torch.float64)).to(device)

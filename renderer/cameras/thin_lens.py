@@ -15,7 +15,7 @@
 
 Geometry (camera frame x right, y down, z forward; lens centre at the origin):
 - The sensor is at z = −w behind the lens. The image is read out upright: pixel (x, y) maps through
-  `Screen` to (x_s, y_s) (sensor size at distance w), its sensor point is P = (−x_s, −y_s, −w) and its
+  `Screen` (made from the lens: its w and principal point) to (x_s, y_s) (sensor size at distance w), its sensor point is P = (−x_s, −y_s, −w) and its
   chief ray, through the lens centre, has direction c = (x_s, y_s, w) -- the same ray as a pinhole with
   screen distance w and the same screen size. So world points land on the same pixels as for that pinhole.
 - The lens disc (diameter d) lies in the lens plane z = y tan θL; a lens sample lens_uv ∈ [0, 1)² is
@@ -40,6 +40,7 @@ extends smoothly there.
 """
 from __future__ import annotations
 
+import copy
 import math
 
 import torch
@@ -181,19 +182,66 @@ def _parse_lens(path: str, cfg: dict) -> Lens:
 class ThinLensCamera(Camera):
     """Thin lens of aperture d, sensor at w, plane of focus z = U + y tan θF (distributed ray tracing).
 
-    Its lens is `lens` (a `renderer.cameras.lens.Lens`: w, U, d, θF, and θL, f derived; scene units, radians).
-    The lens's numbers may be Python floats or 0-dim tensors: with tensors that require grad, gradients reach
-    them through every ray. θL and f are derived on every call, never cached, so a lens replaced after
-    construction (`cam.lens = cam.lens.with_(U=...)`) changes them too.
+    Its lens is `lens` (a `renderer.cameras.lens.Lens`: w, U, d, θF, principal point and distortion, and θL, f
+    derived; scene units, radians), the only place the camera keeps them: the sensor mapping (`screen`, at
+    distance w about the lens's principal point) and the distortion (`distortion`) are read from it on every
+    call, never copied, so a lens replaced after construction (`cam.lens = cam.lens.with_(w=...)`) moves the
+    rays, the projection and the undistortion with it. The lens's numbers may be Python floats or 0-dim tensors:
+    with tensors that require grad, gradients reach them through every ray.
+
+    Args:
+        transform: the pose.
+        lens: the `Lens`.
+        image_size_px: (W, H) pixels, and sensor_size: (width, height) of the sensor, scene units: the pixel grid
+            of a lens without a `Sensor` (a scene file's, whose pixels need not be square); None for a lens
+            with one (its `size_px` and `size`).
     """
 
     uses_lens_samples = True
 
-    def __init__(self, transform, screen: Screen, lens: Lens):
-        super().__init__(transform, screen)
+    def __init__(self, transform, lens: Lens, image_size_px=None, sensor_size=None):
         if not isinstance(lens, Lens):
             raise TypeError(f"lens: expected a renderer.cameras.lens.Lens, got {type(lens).__name__}")
+        if (image_size_px is None) != (sensor_size is None):
+            raise ValueError("image_size_px, sensor_size: give both (a lens without a Sensor) or neither")
+        if image_size_px is None and lens.sensor is None:
+            raise ValueError("lens.sensor: a lens without a Sensor needs image_size_px and sensor_size")
+        if image_size_px is not None and lens.sensor is not None:
+            raise ValueError("image_size_px, sensor_size: this lens has a Sensor; give neither (one pixel grid)")
+        self.transform = transform
         self.lens = lens
+        self._grid = None if image_size_px is None else (
+            int(image_size_px[0]), int(image_size_px[1]), (sensor_size[0], sensor_size[1]))
+
+    @property
+    def screen(self) -> Screen:
+        """The pixel-to-sensor mapping at distance w about the principal point, both the lens's (made on each
+        call from `lens`, so it always agrees with it)."""
+        lens = self.lens
+        if self._grid is None:
+            (W, H), size = lens.sensor.size_px, lens.sensor.size
+        else:
+            W, H, size = self._grid
+        return Screen(W, H, size, lens.w, lens.principal_point_px)
+
+    @property
+    def distortion(self) -> BrownConrady | None:
+        """The lens's distortion (`Lens.distortion` in `Lens.distortion_frame`), None without one; made once per
+        lens value."""
+        lens = self.lens
+        if lens.distortion is None:
+            return None
+        cached = self.__dict__.get("_distortion_of")
+        if cached is None or cached[0] is not lens:
+            cached = (lens, BrownConrady(lens.distortion, lens.distortion_frame))
+            self._distortion_of = cached
+        return cached[1]
+
+    def with_lens(self, lens: Lens) -> "ThinLensCamera":
+        """The same camera (pose, pixel grid) with another lens."""
+        out = copy.copy(self)
+        out.lens = lens
+        return out
 
     @classmethod
     def from_config(cls, path, cfg, transform, width, height):
@@ -202,8 +250,9 @@ class ThinLensCamera(Camera):
         else:
             lens = parse_lens(path, cfg)
         pp = cfg.get("principal_point_px")
-        screen = Screen(width, height, tuple(cfg["sensor_size"]), lens.w, pp)
-        return cls(transform, screen, lens)
+        if pp is not None:
+            lens = lens.with_(principal_point_px=tuple(pp))
+        return cls(transform, lens, (width, height), tuple(cfg["sensor_size"]))
 
     @classmethod
     def from_calibration(cls, lens: Lens, R, T) -> "ThinLensCamera":
@@ -217,12 +266,9 @@ class ThinLensCamera(Camera):
             lens: the `Lens`, with its sensor (numbers or 0-dim tensors: gradients reach them).
             R: (3, 3) rotation camera_from_world; T: (3,) translation.
         """
-        W, H = lens.sensor.size_px
-        screen = Screen(W, H, lens.sensor.size, lens.w, lens.principal_point_px)
-        cam = cls(CameraTransform.from_extrinsics(R, T), screen, lens)
-        if lens.distortion is not None:
-            cam.distortion = BrownConrady(lens.distortion, lens.distortion_frame)
-        return cam
+        if lens.sensor is None:
+            raise ValueError("lens.sensor: a calibrated camera needs the lens's sensor (Sensor(W, H, pitch))")
+        return cls(CameraTransform.from_extrinsics(R, T), lens)
 
     def lens_points(self, lens_uv: torch.Tensor) -> torch.Tensor:
         """(..., 2) samples in [0, 1)² -> (..., 3) points on the tilted lens disc, camera frame."""
@@ -276,8 +322,8 @@ class ThinLensCamera(Camera):
         and pitch too), inputs of one shape that carry no derivative of any kind (reverse or forward mode,
         torch.func), eager tracing."""
         lens = self.lens
-        params = (lens.w, lens.U, lens.d, lens.theta_F, self.screen.distance, *self.screen.center_px,
-                  *self.screen.pitch)
+        screen = self.screen
+        params = (lens.w, lens.U, lens.d, lens.theta_F, *screen.center_px, *screen.pitch)
         return (not any(isinstance(p, torch.Tensor) for p in params) and self._untwisted()
                 and uv_px.shape == lens_uv.shape
                 and not carries_derivative(uv_px) and not carries_derivative(lens_uv)
@@ -288,7 +334,7 @@ class ThinLensCamera(Camera):
         two (3, ...) blocks with in-place steps: fewer temporaries and no stacking copies (eager, no
         gradients)."""
         x, y = self.screen.plane_xy(uv_px)
-        z = self.screen.distance  # a number: rounded to x's dtype in each operation, as a filled row would be
+        z = self.lens.w  # a number: rounded to x's dtype in each operation, as a filled row would be
         lx, ly = concentric_disk_xy(lens_uv.to(x))
         origin = torch.empty((3, *x.shape), dtype=x.dtype, device=x.device)
         torch.mul(lx, self.lens.d / 2, out=origin[0])

@@ -273,13 +273,14 @@ def build_scene(cfg: dict, base_dir: str = ".") -> Scene:
         camera_cfg = {k: v for k, v in camera_cfg.items() if k != "distortion"}
     camera = build_camera("camera", camera_cfg, image.width, image.height)
     if distortion is not None:
-        from renderer.cameras.distortion import BrownConrady, distortion_from_config
+        from renderer.cameras.distortion import distortion_from_config
 
-        camera.distortion = distortion_from_config("camera.distortion", distortion)
+        parsed = distortion_from_config("camera.distortion", distortion)
         lens = getattr(camera, "lens", None)
-        if distortion.get("centre") == "lens_axis" and lens is not None:  # about the thin lens's own axis
-            camera.lens = lens.with_(distortion=camera.distortion.coefficients, distortion_centre="lens_axis")
-            camera.distortion = BrownConrady(camera.distortion.coefficients, camera.lens.distortion_frame)
+        if lens is not None:  # a thin lens's distortion is its lens's (about its own axis where the file says so)
+            camera.lens = lens.with_(distortion=parsed.coefficients, distortion_centre=distortion.get("centre", "sensor"))
+        else:
+            camera.distortion = parsed
         _check_distortion_inverse(camera, image.width, image.height)
     lights = [_light(f"lights[{i}]", c) for i, c in enumerate(_list(cfg, "lights"))]
     objects = []

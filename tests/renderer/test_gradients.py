@@ -17,7 +17,6 @@ import pytest
 import torch
 
 from renderer import CameraTransform, load_scene, write_image
-from renderer.cameras.base import Screen
 from renderer.cameras import Lens
 from renderer.cameras.thin_lens import ThinLensCamera
 from renderer.tracing.integrator import trace
@@ -34,8 +33,8 @@ def _skew(v):
 
 def _camera(w, U, d, theta_F, rvec, position):
     R = torch.linalg.matrix_exp(_skew(rvec))
-    screen = Screen(W_PX, H_PX, (W_PX * PITCH, H_PX * PITCH), w)
-    return ThinLensCamera(CameraTransform(R, position), screen, Lens(w, U, d, theta_F))
+    return ThinLensCamera(CameraTransform(R, position), Lens(w, U, d, theta_F), (W_PX, H_PX),
+                          (W_PX * PITCH, H_PX * PITCH))
 
 
 def _samples(n=12, seed=3):

@@ -24,8 +24,7 @@ W, U, D = 50.0, 1000.0, 20.0  # scene units (mm): sensor distance, focus distanc
 
 
 def _lens(theta_F_deg=0.0, size=(36.0, 36.0), px=(9, 9), d=D, pp=None, transform=None, cls=ThinLensCamera):
-    screen = Screen(px[0], px[1], size, W, pp)
-    return cls(transform or CameraTransform.identity(), screen, Lens(W, U, d, theta_F_deg * DEG))
+    return cls(transform or CameraTransform.identity(), Lens(W, U, d, theta_F_deg * DEG, principal_point_px=pp), px, size)
 
 
 def _random_samples(n, cam, seed=0, dtype=torch.float64):
@@ -84,7 +83,7 @@ def test_concentric_disk_is_uniform_on_the_disc():
 def test_zero_aperture_is_exactly_the_pinhole(dtype):
     pose = CameraTransform.look_at((10.0, -20.0, 5.0), (30.0, 40.0, 900.0), (0.0, -1.0, 0.0))
     screen = Screen(7, 5, (36.0, 24.0), W, (3.3, 1.7))  # odd, non-square, off-centre principal point
-    lens = ThinLensCamera(pose, screen, Lens(W, U, 0.0, 40 * DEG))
+    lens = ThinLensCamera(pose, Lens(W, U, 0.0, 40 * DEG, principal_point_px=(3.3, 1.7)), (7, 5), (36.0, 24.0))
     pin = PinholeCamera(pose, screen)
     uv, lens_uv = _random_samples(200, lens, dtype=dtype)
     a, b = lens.generate_rays(uv, lens_uv), pin.generate_rays(uv, lens_uv)
@@ -255,7 +254,7 @@ def _rendered_spot(p, theta_F, spp=256, rho_px=1.5):
     center, shape = optics.blur_ellipse(p, W, U, D, theta_F)
     n = int(1.4 * 2 * math.sqrt(float(shape.diagonal().max())) / PITCH) + 8
     pp = ((n - 1) / 2 - float(center[0]) / PITCH, (n - 1) / 2 - float(center[1]) / PITCH)
-    cam = ThinLensCamera(CameraTransform.identity(), Screen(n, n, (n * PITCH, n * PITCH), W, pp), Lens(W, U, D, theta_F))
+    cam = ThinLensCamera(CameraTransform.identity(), Lens(W, U, D, theta_F, principal_point_px=pp), (n, n), (n * PITCH, n * PITCH))
     rho = rho_px * PITCH * float(p.norm()) / W
     obj = SceneObject("dot", Sphere(p.tolist(), rho), Material(color=(1.0, 1.0, 1.0)))
     img = render(_scene(cam, [obj], spp=spp), dtype=torch.float64).image[..., 0]
@@ -346,7 +345,7 @@ def test_a_turned_tilt_axis_focuses_on_its_plane(phi_deg):
     y_φ = y cos φ − x sin φ (closed forms written here, not the camera's)."""
     phi, theta_F = math.radians(phi_deg), math.radians(30.0)
     lens = Lens(W, U, D, theta_F, phi=phi)
-    cam = ThinLensCamera(CameraTransform.identity(), Screen(11, 7, (36.0, 24.0), W), lens)
+    cam = ThinLensCamera(CameraTransform.identity(), lens, (11, 7), (36.0, 24.0))
     g = torch.Generator().manual_seed(5)
     uv = torch.rand(40, 2, generator=g, dtype=torch.float64) * torch.tensor([11.0, 7.0]) - 0.5
     lens_uv = torch.rand(40, 2, generator=g, dtype=torch.float64)
@@ -363,3 +362,20 @@ def test_a_turned_tilt_axis_focuses_on_its_plane(phi_deg):
     to_focus = focus - o
     cross = torch.linalg.cross(to_focus, rays.direction)
     assert float((cross.norm(dim=-1) / to_focus.norm(dim=-1)).max()) < 1e-9, "each ray passes through the focus"
+
+
+def test_a_replaced_lens_moves_the_rays():
+    """The camera keeps no copy of its lens: w, the principal point and the distortion are read from `lens` on every
+    call, so a lens set after construction (`cam.lens = cam.lens.with_(...)`) gives the rays and the projection
+    of a camera built with it."""
+    lens = Lens(W, U, D, 20 * DEG, principal_point_px=(4.0, 3.5))
+    moved = lens.with_(w=1.3 * W, principal_point_px=(5.25, 2.0), distortion=(-0.2, 0.03))
+    cam = ThinLensCamera(CameraTransform.identity(), lens, (9, 7), (36.0, 24.0))
+    cam.lens = moved
+    fresh = ThinLensCamera(CameraTransform.identity(), moved, (9, 7), (36.0, 24.0))
+    uv, lens_uv = _random_samples(50, cam)
+    a, b = cam.generate_rays(uv, lens_uv), fresh.generate_rays(uv, lens_uv)
+    assert torch.equal(a.origin, b.origin) and torch.equal(a.direction, b.direction), "rays at the new w"
+    assert cam.screen.distance == 1.3 * W and cam.screen.center_px == (5.25, 2.0), "the screen follows the lens"
+    p = torch.tensor([[30.0, -20.0, 900.0]], dtype=torch.float64)
+    assert torch.equal(cam.project(p), fresh.project(p)), "the projection too, with the new distortion"

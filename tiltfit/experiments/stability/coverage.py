@@ -30,7 +30,7 @@ def bottom_edge_valid(scene, theta_F: float) -> bool:
     """Whether the camera of `scene`, with its plane of focus tilted to θF (radians) instead, has a valid ray at
     the image's bottom edge (pixel y = H − 0.5, the lowest sample position), through the lens centre."""
     cam = scene.camera
-    tilted = type(cam)(cam.transform, cam.screen, cam.lens.with_(theta_F=theta_F))
+    tilted = cam.with_lens(cam.lens.with_(theta_F=theta_F))
     uv = torch.tensor([[(cam.width - 1) / 2.0, cam.height - 0.5]], dtype=torch.float64)
     return bool(tilted.generate_rays(uv, torch.full_like(uv, 0.5)).valid.all())
 

@@ -1,6 +1,6 @@
 """Run a command-line `main(argv)` in-process on one fuzz case and classify what happened.
 
-Shared by tests/renderer/test_fuzz.py, tests/tiltfit/test_fuzz.py and benchmarks/fuzz_counts.py (which runs
+Shared by tests/renderer/test_fuzz.py, tests/tiltfit/test_fuzz.py and benchmarks/robustness/fuzz_counts.py (which runs
 the same corpus against another checkout to count the failures before a change). It uses only OpenImageIO
 and the standard library, never the code under test, so it measures any version of the packages.
 

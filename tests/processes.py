@@ -1,7 +1,7 @@
 """Processes a test started, read from /proc (and pgrep): a process's children, whether one is a
 multiprocessing worker, whether it still runs, and the stragglers killed after a grace period. Shared by
 tests/renderer/test_group_interrupt.py, tests/renderer/test_fuzz_commands.py and
-benchmarks/probe_group_interrupt.py (which check that `renderer render`'s worker processes end with it).
+benchmarks/robustness/probe_group_interrupt.py (which check that `renderer render`'s worker processes end with it).
 Standard library only.
 """
 from __future__ import annotations

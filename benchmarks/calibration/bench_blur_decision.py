@@ -3,9 +3,9 @@ used, the widths' noise, the blur the model explains, and the blur residuals' tr
 
 Sets: GoPro (all 35 views with a board, the README's first 12, the set split in three both as contiguous thirds
 and round-robin), industrial_ds1 (all 20 views, halves). `tiltfit.calibrate.flow.calibrate` with `tiltfit
-calibrate`'s defaults (distortion and board auto) on tiltfit's cached detections (benchmarks/real_detections.py).
+calibrate`'s defaults (distortion and board auto) on tiltfit's cached detections (tests/real_detections.py).
 
-    python benchmarks/bench_blur_decision.py [--out benchmarks/results/blur_decision] [--markdown-only]
+    python benchmarks/calibration/bench_blur_decision.py [--out benchmarks/results/blur_decision] [--markdown-only]
 """
 from __future__ import annotations
 
@@ -13,9 +13,9 @@ import argparse
 import os
 import sys
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from real_detections import REAL, observations  # noqa: E402
-from results_io import add_output_options, markdown_only, save  # noqa: E402
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from tests.real_detections import REAL, observations  # noqa: E402
+from benchmarks.results_io import add_output_options, markdown_only, save  # noqa: E402
 
 from tiltfit.calibrate.flow import calibrate  # noqa: E402
 from tiltfit.calibrate.fit import FitError, FitOptions  # noqa: E402
@@ -52,7 +52,7 @@ def run_one(obs: Observations, idx) -> dict:
 
 def write_markdown(path: str, res: dict) -> None:
     lines = ["# The blur model's decision on the real sets", "",
-             "`python benchmarks/bench_blur_decision.py`: `calibrate` with the command line's defaults on the cached "
+             "`python benchmarks/calibration/bench_blur_decision.py`: `calibrate` with the command line's defaults on the cached "
              "detections. U written only where the blur model is used; *refused*: why (the widths' noise σ_n from "
              "neighbouring corners, on the target file's points). Trend: the blur residuals' quadratic trend with "
              "depth (Huber, per-view cluster-robust Wald χ²(2)); warned where p < 1e-3 and its change ≥ 0.5 σ_n.",

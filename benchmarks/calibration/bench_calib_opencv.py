@@ -19,7 +19,7 @@ Timings: per image median of detection (corners) and blur measurement (Detection
 1368 × 912; detection of one 5472 × 3648 image (skipped with --quick).
 
 Writes benchmarks/results/calib_opencv.{json,md}. Usage:
-    python benchmarks/bench_calib_opencv.py [--quick] [--out benchmarks/results]
+    python benchmarks/calibration/bench_calib_opencv.py [--quick] [--out benchmarks/results]
 """
 from __future__ import annotations
 
@@ -246,7 +246,7 @@ def main(argv=None) -> int:
     global T0
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="3 views per lens state, no 5472 × 3648 image")
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results"))
+    ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "benchmarks", "results"))
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
@@ -256,7 +256,7 @@ def main(argv=None) -> int:
                        f"({os.cpu_count()} CPUs), Python {platform.python_version()}, torch {torch.__version__}, "
                        f"OpenCV {cv2.__version__}".replace("  ", " "),
             "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-            "command": "python benchmarks/bench_calib_opencv.py" + (" --quick" if args.quick else ""),
+            "command": "python benchmarks/calibration/bench_calib_opencv.py" + (" --quick" if args.quick else ""),
             "runtime_s": time.perf_counter() - T0}
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "calib_opencv.json"), "w", encoding="utf-8") as fh:

@@ -17,7 +17,7 @@ the DET files. CPU time (user + system of the child, all threads) and wall time 
 sizes up to --repeat-max-views, one run above; CPU time is the figure to compare on a loaded machine.
 
 Writes benchmarks/results/calib_scale.{json,md}. Usage:
-    python benchmarks/bench_calib_scale.py [--sizes 50,200,500,1000,2000] [--repeats 3] [--repeat-max-views 200]
+    python benchmarks/calibration/bench_calib_scale.py [--sizes 50,200,500,1000,2000] [--repeats 3] [--repeat-max-views 200]
                                            [--threads 1] [--base REV --base-sizes 1000,2000]
 """
 from __future__ import annotations
@@ -36,7 +36,8 @@ import sys
 import tempfile
 import time
 
-from results_io import ROOT, add_output_options, markdown_only, save
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))  # the repository root
+from benchmarks.results_io import ROOT, add_output_options, markdown_only, save  # noqa: E402
 
 PITCH_MM = 0.00654 * 4
 SIZE_PX = (1368, 912)
@@ -56,7 +57,7 @@ def _rss_mb() -> float:
 def write_views(n: int, folder: str) -> tuple[list, str]:
     """n synthetic DET files and their target file in `folder` (written once, seeded): bench_calib_speed's
     synthetic tilted capture, n views."""
-    from bench_calib_speed import write_synthetic_views
+    from benchmarks.calibration.bench_calib_speed import write_synthetic_views
 
     return write_synthetic_views(n, folder, SIZE_PX)
 
@@ -139,7 +140,7 @@ def extract(rev: str) -> str:
 
 def write_markdown(path: str, res: dict) -> None:
     lines = ["# Calibration at scale: time and memory against the number of views", "",
-             f"{res['date']}, {res['machine']}; `python benchmarks/bench_calib_scale.py "
+             f"{res['date']}, {res['machine']}; `python benchmarks/calibration/bench_calib_scale.py "
              f"--sizes {','.join(str(r['views']) for r in res['rows'])}"
              f"{' --base ' + res['base']['rev'] if res.get('base') else ''}`. Synthetic views of the paper's target "
              "(40 corners, blur widths), `tiltfit calibrate` with its defaults (distortion auto with the 5-fold "
@@ -206,7 +207,6 @@ def main(argv=None) -> int:
         return 0
     if markdown_only(args, write_markdown):
         return 0
-    sys.path.insert(0, ROOT)
     res_load = " / ".join(f"{x:.1f}" for x in os.getloadavg())
     rows = []
     for n in [int(s) for s in args.sizes.split(",")]:

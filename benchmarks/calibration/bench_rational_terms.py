@@ -6,7 +6,7 @@ rational5 (k1 k2 p1 p2 k4, offered by tiltfit) and rational6 (k1 k2 p1 p2 k3 k4:
 opencv5's numerator; defined here only, for the comparison). And each against OpenCV's calibrateCamera with the
 same terms (CALIB_RATIONAL_MODEL with k3/k5/k6 fixed, square pixels, flat board) on the same corners.
 
-Writes benchmarks/results/rational_terms.{json,md}. Usage: python benchmarks/bench_rational_terms.py
+Writes benchmarks/results/rational_terms.{json,md}. Usage: python benchmarks/calibration/bench_rational_terms.py
 """
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ import time
 
 import cv2
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 import renderer.cameras.distortion as _distortion  # noqa: E402
 
 # The benchmark-only candidate, placed by its number of terms before tiltfit reads the model list.
@@ -31,8 +31,8 @@ for _name, _t in _terms.items():
         _distortion.MODEL_TERMS["rational6"] = ("k1", "k2", "p1", "p2", "k3", "k4")
 _distortion.MODELS = tuple(_distortion.MODEL_TERMS)
 
-from real_detections import REAL, observations  # noqa: E402
-from results_io import write_lines  # noqa: E402
+from tests.real_detections import REAL, observations  # noqa: E402
+from benchmarks.results_io import write_lines  # noqa: E402
 
 from tiltfit.files.calib import calib_dict  # noqa: E402
 from tiltfit.calibrate.flow import calibrate  # noqa: E402
@@ -97,7 +97,7 @@ def main() -> int:
                                                                       "error")}, file=sys.stderr, flush=True)
     out = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
            "machine": platform.platform(), "folds": FOLDS, "rows": rows}
-    here = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
+    here = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "benchmarks", "results")
     with open(os.path.join(here, "rational_terms.json"), "w", encoding="utf-8") as f:
         json.dump(out, f, indent=1, default=lambda o: None)
         f.write("\n")
@@ -109,7 +109,7 @@ def main() -> int:
              "`cv2.calibrateCamera` with `CALIB_FIX_ASPECT_RATIO` and the same terms (rational5: `CALIB_RATIONAL_MODEL "
              "| CALIB_FIX_K3 | CALIB_FIX_K5 | CALIB_FIX_K6`; rational6: without FIX_K3) on the same corners with the "
              f"flat board; Δf/σ: ours (flat board) minus OpenCV's, in our σ. `{out['date']}`. Reproduce: "
-             "`python benchmarks/bench_rational_terms.py`.", "",
+             "`python benchmarks/calibration/bench_rational_terms.py`.", "",
              "| data | views | board | model | held-out px | worst σ px | f px | largest σ/|k| | flat f px | OpenCV f px | Δf/σ | Δ(cx, cy) px |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     names = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")

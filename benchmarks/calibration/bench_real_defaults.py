@@ -8,7 +8,7 @@ camera model). RMS per corner (OpenCV's definition, sqrt(mean(dx² + dy²))); he
 round-robin), the lens calibrated on the others, each held-out view's pose by solvePnP with that lens.
 
 Writes benchmarks/results/real_defaults.{json,md}. Usage:
-    python benchmarks/bench_real_defaults.py [--sets gopro_wide industrial_ds1] [--out benchmarks/results]
+    python benchmarks/calibration/bench_real_defaults.py [--sets gopro_wide industrial_ds1] [--out benchmarks/results]
 """
 from __future__ import annotations
 
@@ -27,8 +27,8 @@ import time
 import cv2
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from real_detections import REAL, read_cache  # noqa: E402
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from tests.real_detections import REAL, read_cache  # noqa: E402
 
 from tiltfit.cli import main as cli  # noqa: E402
 from tiltfit.target.layout import load_target  # noqa: E402
@@ -105,7 +105,7 @@ def ours(folder: str, set_name: str, tmp: str):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sets", nargs="+", default=sorted(PIXEL_PITCH_MM))
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results"))
+    ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "benchmarks", "results"))
     args = ap.parse_args(argv)
     say = lambda m: print(f"[bench_real_defaults] {m}", file=sys.stderr, flush=True)  # noqa: E731
     rows = []
@@ -142,12 +142,12 @@ def main(argv=None) -> int:
         json.dump(out, f, indent=1)
         f.write("\n")
     lines = ["# `tiltfit calibrate` defaults against OpenCV on the shipped photos (same corners)", "",
-             "Corners and blur widths: tiltfit's own detector (`benchmarks/real_detections.py`). Ours: only the "
+             "Corners and blur widths: tiltfit's own detector (`tests/real_detections.py`). Ours: only the "
              "required flags (`--target`, `--pixel-pitch-mm`). OpenCV: `cv2.calibrateCamera` with its default flags "
              "(fx, fy, principal point free; k1 k2 p1 p2 k3), and with `CALIB_FIX_ASPECT_RATIO` (square pixels, "
              "our camera model). RMS per corner, OpenCV's definition sqrt(mean(dx² + dy²)); held-out: the same "
              f"{FOLDS} folds of views, lens from the other views, pose refitted. `{out['date']}`, OpenCV "
-             f"{cv2.__version__}. Reproduce: `python benchmarks/bench_real_defaults.py`.", "",
+             f"{cv2.__version__}. Reproduce: `python benchmarks/calibration/bench_real_defaults.py`.", "",
              "| set | who | model | fx | fy | cx | cy | RMS px | held-out px |", "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         for label, who, model in (("tiltfit", "tiltfit defaults", r["tiltfit"]["distortion_model"]),

@@ -1,6 +1,6 @@
 """The default model choice on small GoPro sets (issue 22): `tiltfit calibrate`'s defaults (distortion auto, board
 auto) against what they chose before on the first 12 photos (rational distortion, free board), on the same corners
-(tiltfit's cached detections, benchmarks/real_detections.py): the first 12 photos, and the 35 views dealt into
+(tiltfit's cached detections, tests/real_detections.py): the first 12 photos, and the 35 views dealt into
 three interleaved groups (about 12 views each).
 
 Per set and configuration: the models, focal length and principal point, the K-fold held-out error (lens and
@@ -8,7 +8,7 @@ board refitted without the scored views), the distortion coefficients with σ, t
 image (CALIB.json's `projection_uncertainty.worst_px`), and the paired difference of the held-out mean square
 error (defaults minus rational/free, over the same views and folds) in standard errors.
 
-Writes benchmarks/results/selection.{json,md}. Usage: python benchmarks/bench_selection.py
+Writes benchmarks/results/selection.{json,md}. Usage: python benchmarks/calibration/bench_selection.py
 """
 from __future__ import annotations
 
@@ -23,9 +23,9 @@ from dataclasses import replace
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from real_detections import REAL, observations  # noqa: E402
-from results_io import write_lines  # noqa: E402
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from tests.real_detections import REAL, observations  # noqa: E402
+from benchmarks.results_io import write_lines  # noqa: E402
 
 from tiltfit.files.calib import calib_dict  # noqa: E402
 from tiltfit.calibrate.flow import calibrate  # noqa: E402
@@ -82,7 +82,7 @@ def main() -> int:
                   f"z {row.get('paired_z')}", file=sys.stderr, flush=True)
     out = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
            "machine": platform.platform(), "folds": FOLDS, "rows": rows}
-    here = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
+    here = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "benchmarks", "results")
     with open(os.path.join(here, "selection.json"), "w", encoding="utf-8") as f:
         json.dump(out, f, indent=1)
         f.write("\n")
@@ -94,7 +94,7 @@ def main() -> int:
              "z: the held-out mean square error of the defaults minus that of rational/free, paired over the same "
              "views, in standard errors (positive: the defaults predict worse). Worst σ: the projection's σ at the "
              f"worst place in the image (CALIB.json's `projection_uncertainty.worst_px`). `{out['date']}`. "
-             "Reproduce: `python benchmarks/bench_selection.py`.", "",
+             "Reproduce: `python benchmarks/calibration/bench_selection.py`.", "",
              "| views | configuration | distortion | board | f px | cx, cy | held-out px | worst σ px | largest σ/|k| | z |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:

@@ -1,7 +1,7 @@
 """The fitted board on small boards and its σ (issue 33 §5): our defaults (`board auto`, `distortion auto`) against
 OpenCV's calibrateCameraExtended on the same corners, in one run, on disjoint subsets of real sets.
 
-    python benchmarks/bench_small_boards.py [--sets sony_small,industrial_ds1,gopro_wide] [--out benchmarks/results/small_boards]
+    python benchmarks/calibration/bench_small_boards.py [--sets sony_small,industrial_ds1,gopro_wide] [--out benchmarks/results/small_boards]
 
 Sets and splits (views dealt round-robin, so every subset spans the session):
     sony_small      13 views of a 4×6-corner board (640×480; /work/shared/data/real/sony_small, detections cached in
@@ -28,10 +28,10 @@ import time
 import cv2
 import numpy as np
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, HERE)
-from real_detections import REAL, observations  # noqa: E402
-from results_io import save, write_lines  # noqa: E402
+HERE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # benchmarks/
+sys.path.insert(0, os.path.dirname(HERE))
+from tests.real_detections import REAL, observations  # noqa: E402
+from benchmarks.results_io import save, write_lines  # noqa: E402
 
 from tiltfit.calibrate.flow import calibrate  # noqa: E402
 from tiltfit.calibrate.fit import FitOptions  # noqa: E402

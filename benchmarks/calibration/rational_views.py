@@ -3,7 +3,7 @@ propagated from the fit's covariance, `tiltfit.select.held_out.mapping_sigma_px`
 n GoPro views (data/real/gopro_wide, tiltfit's cached detections). Issue 24: `--distortion rational` from one
 view wrote coefficients of 3.6e5; it is now refused where that σ exceeds `MAX_MAPPING_SIGMA_PX`.
 
-    python benchmarks/rational_views.py [-o benchmarks/results/rational_views.json]
+    python benchmarks/calibration/rational_views.py [-o benchmarks/results/rational_views.json]
 """
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import sys
 
 import numpy as np
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 DATA = os.path.join(ROOT, "data", "real", "gopro_wide")
 
 

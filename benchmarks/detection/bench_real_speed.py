@@ -16,7 +16,7 @@ Corner agreement with SB + cornerSubPix is measured after matching the labelling
 turned by 180°).
 
 Writes benchmarks/results/real_speed_detect.{json,md}. Usage:
-    python benchmarks/bench_real_speed.py [--repeats 3] [--baseline-rev fc99d87] [--sets gopro_wide,...]
+    python benchmarks/detection/bench_real_speed.py [--repeats 3] [--baseline-rev fc99d87] [--sets gopro_wide,...]
 """
 from __future__ import annotations
 
@@ -35,13 +35,14 @@ import cv2
 import numpy as np
 import torch
 
-from results_io import add_output_options, markdown_only, save, timed
-from camio.files import read_image
-from tiltfit.detect.chessboard import detect
-from tiltfit.detect.opencv import match_labelling
-from tiltfit.target.layout import load_target
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))  # the repository root: benchmarks.results_io
+from benchmarks.results_io import add_output_options, markdown_only, save, timed  # noqa: E402
+from camio.files import read_image  # noqa: E402
+from tiltfit.detect.chessboard import detect  # noqa: E402
+from tiltfit.detect.opencv import match_labelling  # noqa: E402
+from tiltfit.target.layout import load_target  # noqa: E402
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SETS = {"gopro_wide": "*.jpg", "industrial_ds1": "*.png"}
 SB_FLAGS = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
 SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 1e-3)
@@ -287,7 +288,7 @@ def main(argv=None):
     finally:
         if base is not None:
             base.close()
-    res = {"command": "python benchmarks/bench_real_speed.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+    res = {"command": "python benchmarks/detection/bench_real_speed.py " + " ".join(argv if argv is not None else sys.argv[1:]),
            "repeats": args.repeats, "baseline_repeats": args.baseline_repeats,
            "baseline_rev": base.rev if base else None, "load_before": load_before, "load_after": os.getloadavg(),
            "sets": sets,

@@ -7,7 +7,7 @@ reports) by blur size, then stage 1 (unified) with the blur offset held at 0 (th
 as z = (estimate − truth) / σ for w, U, d.
 
 Writes benchmarks/results/blur_bias.{json,md}. Usage:
-    python benchmarks/bench_blur_bias.py [--downscale 4] [--out benchmarks/results]
+    python benchmarks/history/bench_blur_bias.py [--downscale 4] [--out benchmarks/results]
 """
 from __future__ import annotations
 
@@ -19,8 +19,8 @@ import sys
 import numpy as np
 import torch
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bench_calib_opencv import CAMERA, TARGET, capture  # noqa: E402
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from benchmarks.calibration.bench_calib_opencv import CAMERA, TARGET, capture  # noqa: E402
 
 from tiltfit.detect.chessboard import detect  # noqa: E402
 from tiltfit.calibrate.fit import FitOptions  # noqa: E402
@@ -32,7 +32,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--downscale", type=int, default=4)
     ap.add_argument("--views", type=int, default=5)
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results"))
+    ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "benchmarks", "results"))
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     C, B, S, TB, TC = [], [], [], [], []

@@ -14,8 +14,8 @@ Dr.Jit's thread pool included). Then:
   intersection and shadow rays timed the same way in an instrumented render with the torch intersector;
 - the cost of the torch <-> Dr.Jit hand-over alone (DLPack, zero-copy) against copying the same array.
 
-    python benchmarks/bench_embree.py           # -> benchmarks/results/speed_thin_lens_embree.{json,md}
-    python benchmarks/bench_embree.py --size 128 --repeats 3 --out /tmp/embree
+    python benchmarks/history/bench_embree.py           # -> benchmarks/results/speed_thin_lens_embree.{json,md}
+    python benchmarks/history/bench_embree.py --size 128 --repeats 3 --out /tmp/embree
 """
 from __future__ import annotations
 
@@ -29,16 +29,16 @@ import time
 
 import torch
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bench_speed_mitsuba import SCENE, Mitsuba, add_speed_scene_options, time_modes  # noqa: E402
-from results_io import add_output_options, markdown_only, save  # noqa: E402
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from benchmarks.renderer.bench_speed_mitsuba import SCENE, Mitsuba, add_speed_scene_options, time_modes  # noqa: E402
+from benchmarks.results_io import add_output_options, markdown_only, save  # noqa: E402
 
 from renderer import render  # noqa: E402
 from renderer.mitsuba import intersect as mi_intersect  # noqa: E402
 from renderer.scene.model import Scene  # noqa: E402
 from renderer.scene.file import load_scene  # noqa: E402
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 # "ours defaults": our own intersection in one process (`render`'s defaults before `intersector="auto"` and
 # `workers=None`; bench_speed_mitsuba.py times those); every mode names its intersector and workers.
 OURS, ONE = {"intersector": "torch", "workers": 1}, {"intersector": "mitsuba", "workers": 1}
@@ -230,7 +230,7 @@ def main(argv=None):
         sys.exit(f"--modes: unknown {unknown} (expected some of: {', '.join(MODES)})")
     modes = {k: MODES[k] for k in args.modes.split(",")}
     res = {"date": datetime.datetime.now().isoformat(timespec="seconds"),
-           "command": "python benchmarks/bench_embree.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+           "command": "python benchmarks/history/bench_embree.py " + " ".join(argv if argv is not None else sys.argv[1:]),
            "scene": os.path.relpath(SCENE, ROOT), "size": args.size, "spp": args.spp, "repeats": args.repeats,
            "machine": {"cores": os.cpu_count(), "torch": torch.__version__, "mitsuba": ms.mi.__version__,
                        "drjit_threads": dr.thread_count(), "load_start": load_start}}

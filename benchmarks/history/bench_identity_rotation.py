@@ -3,7 +3,7 @@ against the identity on every batch until issue 21) pays: the speed scene render
 (the general (3, 3) products, which give the same bits for finite rays: checked here) and with the shortcut
 patched in, interleaved in one process, one thread, medians of wall time.
 
-    python benchmarks/bench_identity_rotation.py     # -> benchmarks/results/identity_rotation.md
+    python benchmarks/history/bench_identity_rotation.py     # -> benchmarks/results/identity_rotation.md
 """
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ import renderer.core.rays as rays
 from renderer import render
 from renderer.scene.file import load_scene
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 REPEATS = 7
 
 
@@ -63,7 +63,7 @@ def main():
         "# Identity-rotation shortcut in `Rays.transformed`", "",
         f"{datetime.datetime.now():%Y-%m-%d %H:%M}, load {load:.1f} on {os.cpu_count()} cores; speed scene 256×256, "
         f"16 spp, one process, one thread, median of {REPEATS} interleaved renders.", "",
-        "    python benchmarks/bench_identity_rotation.py", "",
+        "    python benchmarks/history/bench_identity_rotation.py", "",
         "| intersector | with shortcut (s) | without (s) | without / with | same image |",
         "|---|---|---|---|---|", *rows, ""])
     out = os.path.join(ROOT, "benchmarks", "results", "identity_rotation.md")

@@ -14,7 +14,7 @@ this checkout), on the same machine in the same run:
    and the joint corner fits' errors against the simulated camera's true lens states (θL, θF, w, U, d) and
    their run times, and whether Tables 1 and 2 (table1.md, table2.md) are the same.
 
-    python benchmarks/bench_photometric_speed.py [--before REV] [--repeats N] [--no-reproduce]
+    python benchmarks/history/bench_photometric_speed.py [--before REV] [--repeats N] [--no-reproduce]
 
 writes benchmarks/results/photometric_speed.{md,json}.
 """
@@ -31,7 +31,7 @@ import sys
 import tempfile
 import time
 
-HERE = os.path.dirname(os.path.abspath(__file__))
+HERE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # benchmarks/
 ROOT = os.path.dirname(HERE)
 RESULTS = os.path.join(HERE, "results")
 W_MM, D_MM, THETA_L_DEG, U0_MM, DOWNSCALE, VIEWS = 55.39, 40.0, 4.65, 1000.0, 16, (0, 1, 2)
@@ -215,7 +215,7 @@ def main(argv=None) -> int:
 
 def report(result: dict) -> str:
     lines = ["# Photometric refinement before and after the redesign (same machine, same run)", "",
-             f"Before: {result['before']}; after: {result['after']}. `python benchmarks/bench_photometric_speed.py`. "
+             f"Before: {result['before']}; after: {result['after']}. `python benchmarks/history/bench_photometric_speed.py`. "
              f"One torch thread; median of {result['repeats']} fits after a warm-up; the machine's 2 cores are "
              "shared with other jobs, so CPU seconds are the steadier measure.", "",
              "## Speed: 3 views at 342 x 228, blur discs 18 px, θL 4.65°, 2000 pixels a view", "",

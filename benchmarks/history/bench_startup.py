@@ -10,7 +10,7 @@ what a script calling OpenCV pays first) and `import torch`. Heavy libraries loa
 extra `-X importtime` run of the "after" tree.
 
     git worktree add /tmp/old c3ffd60
-    python benchmarks/bench_startup.py [--repeats 5] [--old /tmp/old]   # -> benchmarks/results/startup.{json,md}
+    python benchmarks/history/bench_startup.py [--repeats 5] [--old /tmp/old]   # -> benchmarks/results/startup.{json,md}
 """
 from __future__ import annotations
 
@@ -24,8 +24,8 @@ import sys
 import tempfile
 import time
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from results_io import ROOT, add_output_options, markdown_only, save, write_lines  # noqa: E402
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from benchmarks.results_io import ROOT, add_output_options, markdown_only, save, write_lines  # noqa: E402
 
 HEAVY = ("torch", "kornia", "matplotlib", "cv2", "mitsuba", "OpenImageIO", "numpy", "scipy")
 TARGET = os.path.join(ROOT, "data", "real", "industrial_ds1", "target.json")
@@ -73,7 +73,7 @@ def make_inputs(folder: str) -> dict:
     script = f"""
 import json, os, sys
 sys.path.insert(0, {os.path.join(ROOT, 'benchmarks')!r})
-from real_detections import observations
+from tests.real_detections import observations
 from tiltfit.files.calib import calib_dict, write_calib
 from tiltfit.calibrate.flow import calibrate
 from tiltfit.calibrate.fit import FitOptions
@@ -148,7 +148,7 @@ def write_markdown(path: str, res: dict) -> None:
     lines = [
         "# Start-up of the commands (issue 32 §2)",
         "",
-        f"`python benchmarks/bench_startup.py` on {res['date']}: each case a fresh process, wall seconds from launch "
+        f"`python benchmarks/history/bench_startup.py` on {res['date']}: each case a fresh process, wall seconds from launch "
         f"to exit, median of {res['repeats']} (after one warm-up run); {res['cpus']} CPUs, load average "
         f"{res['load_average'][0]:.1f} at the end. before: {res['old_tree'] or '(not measured)'}; after: this checkout. "
         f"Peers in the same run: the bare interpreter, `import cv2`, `import torch`. Goal for help and bad input: "

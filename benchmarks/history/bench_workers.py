@@ -7,7 +7,7 @@ difference between the render's wall time and the busiest worker is the cost of 
 results back; the difference between the summed busy time and one process's time is what the two processes
 lose running side by side (memory traffic of two eager tracers on 2 cores).
 
-    python benchmarks/bench_workers.py        # -> benchmarks/results/workers.{json,md}
+    python benchmarks/history/bench_workers.py        # -> benchmarks/results/workers.{json,md}
 """
 from __future__ import annotations
 
@@ -25,10 +25,11 @@ import torch
 
 from renderer import render
 from renderer.scene.file import load_scene
-from results_io import add_output_options, markdown_only, save
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))  # the repository root: benchmarks.results_io
+from benchmarks.results_io import add_output_options, markdown_only, save  # noqa: E402
 
 render_mod = importlib.import_module("renderer.tracing.render")
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SCENE = os.path.join(ROOT, "benchmarks", "scenes", "speed_thin_lens.json")
 
 
@@ -112,7 +113,7 @@ def main(argv=None):
               f"(busy {busy[-1]:.3f} s)", file=sys.stderr, flush=True)
     med = statistics.median
     res = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "cores": os.cpu_count(),
-           "command": "python benchmarks/bench_workers.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+           "command": "python benchmarks/history/bench_workers.py " + " ".join(argv if argv is not None else sys.argv[1:]),
            "scene": os.path.relpath(SCENE, ROOT), "size": args.size, "spp": args.spp, "repeats": args.repeats,
            "load_start": load_start, "load_end": [round(x, 1) for x in os.getloadavg()],
            "one_process": one, "two_workers": two, "jobs_wall": jobs_wall, "busy_sum": busy,

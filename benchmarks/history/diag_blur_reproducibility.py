@@ -12,7 +12,7 @@ Counted: points whose width moves from `rev`'s by more than 1 and 3 of `rev`'s s
 counts for `current` are no sign of a changed method.
 
 Writes benchmarks/results/blur_reproducibility.{json,md}. Usage:
-    python benchmarks/diag_blur_reproducibility.py --rev fc99d87 [--every 3]
+    python benchmarks/history/diag_blur_reproducibility.py --rev fc99d87 [--every 3]
 """
 from __future__ import annotations
 
@@ -28,14 +28,15 @@ import tempfile
 import numpy as np
 import torch
 
-from results_io import add_output_options, markdown_only, save
-from camio.files import read_image
-from tiltfit.detect import blur as current
-from tiltfit.detect.chessboard import detect, to_gray
-from tiltfit.detect.imaging import build_pyramid
-from tiltfit.target.layout import load_target
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))  # the repository root: benchmarks.results_io
+from benchmarks.results_io import add_output_options, markdown_only, save  # noqa: E402
+from camio.files import read_image  # noqa: E402
+from tiltfit.detect import blur as current  # noqa: E402
+from tiltfit.detect.chessboard import detect, to_gray  # noqa: E402
+from tiltfit.detect.imaging import build_pyramid  # noqa: E402
+from tiltfit.target.layout import load_target  # noqa: E402
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SETS = {"gopro_wide": "*.jpg", "industrial_ds1": "*.png"}
 ORIGINAL_SUM = "    G2u = (_G2(u) * sgn).sum(-1)\n"
 REORDERED_SUM = "    G2 = _G2(u)\n    G2u = (G2[..., 0] + G2[..., 3]) - (G2[..., 1] + G2[..., 2])\n"
@@ -95,7 +96,7 @@ def main(argv=None):
     torch.set_num_threads(1)
     mods = revision_blur_modules(args.rev)
     mods["current"] = current
-    res = {"command": "python benchmarks/diag_blur_reproducibility.py " + " ".join(
+    res = {"command": "python benchmarks/history/diag_blur_reproducibility.py " + " ".join(
         argv if argv is not None else sys.argv[1:]), "rev": args.rev, "sets": {}}
     for name, pattern in SETS.items():
         folder = os.path.join(ROOT, "data", "real", name)

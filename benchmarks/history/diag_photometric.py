@@ -13,7 +13,7 @@ d −3 %, θL +0.1°). What changes from one group to the next:
 
 z = error / σ with σ the fit's own (cluster-robust sandwich; the textbook Gauss–Newton σ beside it).
 
-    python benchmarks/diag_photometric.py [--workers N]
+    python benchmarks/history/diag_photometric.py [--workers N]
 
 writes benchmarks/results/photometric_diagnosis.{md,json}. Runs about 25 min on one core.
 """
@@ -28,9 +28,9 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 
-from bench_photometric import BOARD, D_MM, W_MM, rough_start  # noqa: E402
+from benchmarks.photometric.bench_photometric import BOARD, D_MM, W_MM, rough_start  # noqa: E402
 from renderer import Lens, Sensor
 from renderer.cameras import optics  # noqa: E402
 from renderer.cameras import EOS_6D  # noqa: E402
@@ -39,7 +39,7 @@ from tiltfit.experiments import reproduce  # noqa: E402
 from tiltfit import photometric as P  # noqa: E402
 from tiltfit.files.calib import camera_from_calib  # noqa: E402
 
-RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
+RESULTS = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "benchmarks", "results")
 THETA_L_DEG, U0_MM, DOWNSCALE, VIEWS = 4.65, 1000.0, 16, (0, 1, 2)
 #: (group, capture method, spp or model samples, capture noise, fit lens samples, seeds)
 GROUPS = (("own model, 64 samples, no noise", "model", 64, 0.0, 64, (0,)),
@@ -104,7 +104,7 @@ def run(job: dict) -> dict:
 def table(rows) -> list[str]:
     lines = ["# Photometric fit at heavy blur: where the error comes from\n",
              "342 x 228, blur discs of 18 px (half the square), θL 4.65°, 3 views, 1000 pixels per view; "
-             "`python benchmarks/diag_photometric.py`. Errors: θL in degrees, U and d in percent; z = error / σ "
+             "`python benchmarks/history/diag_photometric.py`. Errors: θL in degrees, U and d in percent; z = error / σ "
              "(σ: cluster-robust sandwich; Gauss–Newton σ in brackets).\n",
              "| captures | seed | fit lens samples | residual RMS | θL error | σ θL | z θL | U error | σ U | "
              "z U | "

@@ -4,7 +4,7 @@ from every candidate of the board's box (before: a grazing ray of a GoPro view m
 left 0 usable pixels). Candidates as `refine._choose_pixels` draws them; corner fits unified, free principal
 point, opencv5: industrial_ds1's 6 even views of the first 12, gopro_wide's and its three thirds.
 
-    python benchmarks/diag_usable_guard.py
+    python benchmarks/history/diag_usable_guard.py
 
 Prints one line per view set: (longest chief ray of the candidates mm, usable now, usable before, same mask).
 """
@@ -12,16 +12,15 @@ import os
 import sys
 import time
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
-sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 
 def main() -> int:
-    from real_detections import observations
+    from tests.real_detections import observations
     from renderer import read_image
     from tiltfit.calibrate.flow import calibrate
     from tiltfit.calibrate.fit import FitOptions

@@ -5,8 +5,8 @@ programs on the cores; inclusive times; the nesting is shown by indentation in t
 report) and counts the torch operator calls per stage with torch.profiler. One torch thread, warm (one
 render first), median of `--repeats`.
 
-    python benchmarks/profile_fig6.py                       # prints a markdown table
-    python benchmarks/profile_fig6.py --set image.width=256 --kwargs "dict(chunk_rays=1<<16)"
+    python benchmarks/history/profile_fig6.py                       # prints a markdown table
+    python benchmarks/history/profile_fig6.py --set image.width=256 --kwargs "dict(chunk_rays=1<<16)"
 """
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ from renderer.scene.file import load_scene
 
 render_mod = importlib.import_module("renderer.tracing.render")
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SCENE = os.path.join(ROOT, "benchmarks", "scenes", "speed_thin_lens.json")
 
 _TIMES: collections.Counter = collections.Counter()

@@ -5,7 +5,7 @@ warm (one render first), for each chunk size given. The question it answers: is 
 close to wall time, so faster kernels would pay) or waiting on Python and launches (kernel time far below
 wall time, so fewer, bigger or fused kernels would pay)?
 
-    python benchmarks/profile_gpu.py --out benchmarks/results/profile_gpu   # needs a CUDA device
+    python benchmarks/history/profile_gpu.py --out benchmarks/results/profile_gpu   # needs a CUDA device
 """
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ from torch.profiler import ProfilerActivity, profile
 from renderer import render
 from renderer.scene.file import load_scene
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SCENE = os.path.join(ROOT, "benchmarks", "scenes", "speed_thin_lens.json")
 
 
@@ -73,7 +73,7 @@ def main(argv=None):
     with open(args.out + ".json", "w") as f:
         json.dump(res, f, indent=1)
     lines = [f"# One GPU render of the issue-11 speed scene ({args.size}×{args.size}, {scene.image.spp} spp)", "",
-             f"{res['gpu']}, torch {res['torch']}. Command: `python benchmarks/profile_gpu.py "
+             f"{res['gpu']}, torch {res['torch']}. Command: `python benchmarks/history/profile_gpu.py "
              f"--chunks {args.chunks}`. Wall: median of {args.repeats} warm renders; kernel counts and GPU-busy "
              "time from one profiled render (the profiler adds its own overhead to that render).", "",
              "| chunk_rays | median wall (s) | kernel launches | GPU busy (s) | busy / wall | peak memory (GB) |",

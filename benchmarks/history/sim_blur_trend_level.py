@@ -6,7 +6,7 @@ The share of captures called significant at p < 1e-3 by (a) the cluster-robust W
 (b, c) that `tiltfit.calibrate.flow.blur_trend` used before, and (b) the F(2, G − 3) test on the views' means it
 uses now; and the share at α = 1e-2 (its level now) with a real trend of 0.4 px over the depths (power).
 Plain least squares here (the code fits Huber weights first; with no outliers they are all 1).
-`python benchmarks/sim_blur_trend_level.py` → benchmarks/results/blur_trend_level.md.
+`python benchmarks/history/sim_blur_trend_level.py` → benchmarks/results/blur_trend_level.md.
 """
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import os
 
 import numpy as np
 
-HERE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
+HERE = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "benchmarks", "results")
 
 
 def trial(rng, G, off_sd, trend=0.0, n=40, noise=0.2):
@@ -45,7 +45,7 @@ def trial(rng, G, off_sd, trend=0.0, n=40, noise=0.2):
 def main() -> int:
     rng = np.random.default_rng(0)
     lines = ["# The blur-trend test's level with errors a view's widths share", "",
-             "`python benchmarks/sim_blur_trend_level.py` (module docstring: what is simulated). Share of captures "
+             "`python benchmarks/history/sim_blur_trend_level.py` (module docstring: what is simulated). Share of captures "
              "called significant; 2,000 null captures a row, 500 with the trend.", "",
              "| views | offset σ px | Wald χ²(2), p < 1e-3 (before) | F on view means, p < 1e-3 | F, p < 1e-2 (now) "
              "| power, trend 0.4 px, F p < 1e-2 |", "|---|---|---|---|---|---|"]

@@ -20,7 +20,7 @@ Each row's error is against the truth; σ is the method's own one-σ (the photom
 cluster-robust sandwich covariance, with the textbook Gauss–Newton σ beside it). Times are CPU seconds of the
 job's process (all its threads): they compare across thread counts and with jobs sharing the machine.
 
-    python benchmarks/bench_photometric.py [--quick] [--workers N]
+    python benchmarks/photometric/bench_photometric.py [--quick] [--workers N]
 
 writes benchmarks/results/photometric.{md,json,png}.
 """
@@ -35,7 +35,7 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 
 from renderer.cameras import EOS_6D
 from renderer import Lens, Sensor
@@ -62,7 +62,7 @@ LEVELS = ((700.0, "board", D_MM, (0, 1, 2), 8), (760.0, "board", D_MM, (0, 1, 2)
 TARGETS = {"theta_L_err_deg": 0.01, "U_err_pct": 0.05, "d_err_pct": 0.1}
 #: Pixels per view of the lens-sample fit (its cost grows with pixels × samples).
 SAMPLES_PIXELS = 1500
-RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
+RESULTS = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "benchmarks", "results")
 
 
 def captures(U0_mm: float, board: Target, d_mm: float, theta_L_deg: float, views, downscale: int, spp: int):
@@ -291,7 +291,7 @@ def table(rows, meta) -> list[str]:
              + (f"{meta['workers']} worker processes on {meta['cores']} cores ({meta['cpu']}), "
               f"{meta['wall_s'] / 60:.1f} min in all, load average {meta['load_average']:.1f} at the end. "
               if not meta.get("table_from") else "Rows of an interrupted run (below). ")
-             + "`python benchmarks/bench_photometric.py`.\n",
+             + "`python benchmarks/photometric/bench_photometric.py`.\n",
              *([meta["note"] + "\n"] if meta.get("note") else []),
              "Targets (issue 9): |θL error| ≤ 0.01°, |U error| ≤ 0.05 %, |d error| ≤ 0.1 %; the last column "
              "says "

@@ -20,7 +20,7 @@ linear signal), the per-view gain (levels fitted to the 8-bit capture against th
 (`pixel_quadrature`: no generator noise; the closed form with n x n points per pixel and the lens samples
 against the closed form with 40 x 40 points, by blur size: what set SHARP_BLUR_PX and CLOSED_FORM_MIN_BLUR_PX).
 
-    python benchmarks/bench_photometric_forward.py [--quick 1] [--part 0|1|2] [--strata N]
+    python benchmarks/photometric/bench_photometric_forward.py [--quick 1] [--part 0|1|2] [--strata N]
 
 `--part 1` the cases alone, `--part 2` the other sections alone (each to its own --out; the full run is both);
 `--strata` the generator's aperture strata per side [12].
@@ -37,11 +37,10 @@ import time
 import numpy as np
 import torch
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
-sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
 
-from results_io import run_benchmark, write_lines  # noqa: E402
+from benchmarks.results_io import run_benchmark, write_lines  # noqa: E402
 
 from renderer.cameras import ThinLensCamera  # noqa: E402
 from renderer.cameras.lens import Lens, Sensor  # noqa: E402
@@ -311,7 +310,7 @@ def measure(args) -> dict:
         "pixel_quadrature": pixel_quadrature(), "srgb_and_gain": srgb_and_gain(strata), "pixel_area": pixel_area(strata)}
     opts = "".join(f" --{k} {v}" for k, v in (("quick", args.quick), ("part", args.part), ("strata", args.strata))
                    if v != {"quick": 0, "part": 0, "strata": 12}[k])
-    return {"command": "python benchmarks/bench_photometric_forward.py" + opts,
+    return {"command": "python benchmarks/photometric/bench_photometric_forward.py" + opts,
             "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "image": [W_PX, H_PX], "pitch_mm": PITCH_MM,
             "aperture_strata": strata, "pixel_strata": 4, "cases": cases, **extra,
             "wall_s": time.perf_counter() - t0}

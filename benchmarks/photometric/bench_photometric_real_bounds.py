@@ -2,12 +2,12 @@
 where not, what CALIB.json's `photometric.bounds` and `rejected_because` say (issue 30 §5).
 
 The command itself (`tiltfit.cli.main.main`), with its defaults, on the first N photos of each set that have a board;
-the detections come from the cache beside the photos (`benchmarks/real_detections.py`: what `tiltfit detect`
+the detections come from the cache beside the photos (`tests/real_detections.py`: what `tiltfit detect`
 finds there, so the run skips 3 s of detection a photo), the photos themselves are read as the command reads them.
 No peer: OpenCV has no photometric refinement (bench_photometric_trust.py puts calibrateCamera beside the corner fit
 on these sets).
 
-    python benchmarks/bench_photometric_real_bounds.py [--views 4]
+    python benchmarks/photometric/bench_photometric_real_bounds.py [--views 4]
 
 Writes benchmarks/results/photometric_real_bounds.{json,md}.
 """
@@ -19,18 +19,17 @@ import sys
 import tempfile
 import time
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
-sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
 
-from results_io import run_benchmark, write_lines  # noqa: E402
+from benchmarks.results_io import run_benchmark, write_lines  # noqa: E402
 
 #: Set -> pixel pitch (mm), as bench_photometric_trust.py and bench_real_calib.py take them.
 SETS = {"industrial_ds1": 0.0048, "gopro_wide": 0.005}
 
 
 def run_set(name: str, pitch_mm: float, n_views: int) -> dict:
-    from photometric_start import calibrate_refined_cached
+    from benchmarks.photometric.photometric_start import calibrate_refined_cached
 
     with tempfile.TemporaryDirectory() as tmp:
         out = os.path.join(tmp, "CALIB.json")
@@ -56,7 +55,7 @@ def measure(args) -> dict:
         print(f"set {name}", file=sys.stderr, flush=True)
         rows.append(run_set(name, pitch, args.views))
         print(f"  kept {rows[-1]['kept']}: {rows[-1]['rejected_because']}", file=sys.stderr, flush=True)
-    return {"command": f"python benchmarks/bench_photometric_real_bounds.py --views {args.views}",
+    return {"command": f"python benchmarks/photometric/bench_photometric_real_bounds.py --views {args.views}",
             "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "sets": rows, "wall_s": time.perf_counter() - t0}
 
 

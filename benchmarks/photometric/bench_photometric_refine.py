@@ -15,7 +15,7 @@ focal length (f·pitch against w) and the principal point; OpenCV has no photome
 Table per case: truth, corner fit ± σ (error in σ), refined ± σ (error in σ), OpenCV ± σ, kept?, why not, the
 bound record, times.
 
-    python benchmarks/bench_photometric_refine.py [--quick 1] [--seeds N]
+    python benchmarks/photometric/bench_photometric_refine.py [--quick 1] [--seeds N]
 
 `--seeds N` repeats every case with N noise seeds (and sampling seeds of the generators) and adds a summary over
 them: per parameter the RMS error and the RMS of error/σ of the corner fit and of the kept calibration.
@@ -32,11 +32,10 @@ import time
 import numpy as np
 import torch
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
-sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
 
-from results_io import run_benchmark, write_lines  # noqa: E402
+from benchmarks.results_io import run_benchmark, write_lines  # noqa: E402
 
 from tiltfit.experiments import exact_capture as ec  # noqa: E402
 from tiltfit.target.layout import Target  # noqa: E402
@@ -176,7 +175,7 @@ def measure(args) -> dict:
                     rows.append({"case": name, "generator": gen, "seed": seed, "error": f"{type(e).__name__}: {e}"})
                 print(f"  {rows[-1].get('kept', rows[-1].get('error'))}", file=sys.stderr, flush=True)
     opts = (" --quick 1" if args.quick else "") + (f" --seeds {args.seeds}" if args.seeds != 1 else "")
-    return {"command": "python benchmarks/bench_photometric_refine.py" + opts, "seeds": args.seeds,
+    return {"command": "python benchmarks/photometric/bench_photometric_refine.py" + opts, "seeds": args.seeds,
             "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "image": [W_PX, H_PX], "pitch_mm": PITCH_MM,
             "w_mm": W_MM, "cases": rows, "wall_s": time.perf_counter() - t0}
 

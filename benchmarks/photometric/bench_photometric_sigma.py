@@ -17,7 +17,7 @@
    parameter, so it is noisy), for the refinement's three σ, for the corner fit's σ and for what CALIB.json
    carries (the refinement's values and σ where it is kept, else the corner fit's).
 
-    python benchmarks/bench_photometric_sigma.py [--draws 24] [--sets industrial_ds1 gopro_wide]
+    python benchmarks/photometric/bench_photometric_sigma.py [--draws 24] [--sets industrial_ds1 gopro_wide]
         [--warp-px 0.3 0] [--out benchmarks/results/photometric_sigma] [--markdown-only]
 
 One torch thread. Writes OUT.json and OUT.md.
@@ -35,12 +35,11 @@ import time
 import numpy as np
 import torch
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
-sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
 sys.path.insert(0, os.path.join(ROOT, "tests", "tiltfit"))
 
-from results_io import add_output_options, markdown_only, save  # noqa: E402
+from benchmarks.results_io import add_output_options, markdown_only, save  # noqa: E402
 
 KEYS = ("w_mm", "U_mm", "d_mm", "theta_F_deg", "theta_L_deg")
 SIGMAS = ("sigma", "sigma_tiles", "sigma_gauss_newton")
@@ -74,7 +73,7 @@ def monte_carlo(case: str, draws: int, views: int, max_pixels: int, warp_px: flo
 
 
 def real_subset(name: str, obs, views: list, target, folder: str) -> dict:
-    from photometric_start import corner_start, grey_photos
+    from benchmarks.photometric.photometric_start import corner_start, grey_photos
     from tiltfit.photometric import PhotometricError, PhotometricOptions, refine_photometric
 
     cfg = REAL[name]
@@ -134,7 +133,7 @@ def pooled(subsets: list, value: str, sigma: str, key: str):
 
 
 def real(name: str) -> dict:
-    from real_detections import observations
+    from tests.real_detections import observations
     from tiltfit.target.layout import load_target
 
     cfg = REAL[name]
@@ -247,7 +246,7 @@ def main(argv=None) -> int:
     if markdown_only(args, write_markdown):
         return 0
     torch.set_num_threads(1)
-    command = "python benchmarks/bench_photometric_sigma.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    command = "python benchmarks/photometric/bench_photometric_sigma.py " + " ".join(argv if argv is not None else sys.argv[1:])
     if args.monte_carlo_from:
         mcs = []
         for path in args.monte_carlo_from:

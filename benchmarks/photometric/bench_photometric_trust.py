@@ -11,7 +11,7 @@
    of the calibration kept; seconds per view of the refinement against `cv2.calibrateCamera` on the same corners
    (the peer, same run).
 
-    python benchmarks/bench_photometric_trust.py [--views N] [--repeats N] [--skip-synthetic] [--out benchmarks/results]
+    python benchmarks/photometric/bench_photometric_trust.py [--views N] [--repeats N] [--skip-synthetic] [--out benchmarks/results]
 
 Writes photometric_trust.md and photometric_trust.json. One torch thread.
 """
@@ -27,9 +27,8 @@ import time
 import numpy as np
 import torch
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
-sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
 sys.path.insert(0, os.path.join(ROOT, "tests", "tiltfit"))
 
 REAL = {"industrial_ds1": {"pitch_mm": 0.0048, "distortion": "opencv5"},
@@ -91,8 +90,8 @@ def _rms(camera, obs) -> float:
 
 
 def real(name: str, n_views: int, repeats: int = 1) -> dict:
-    from photometric_start import corner_start, grey_photos
-    from real_detections import observations
+    from benchmarks.photometric.photometric_start import corner_start, grey_photos
+    from tests.real_detections import observations
     from tiltfit.photometric import PhotometricOptions, refine_photometric
     from tiltfit.target.layout import load_target
 
@@ -141,7 +140,7 @@ def _f(x, fmt="+.4f"):
 
 def markdown(syn: list, var_rows: list, reals: list, meta: dict) -> str:
     lines = ["# Photometric refinement you can trust: independent captures and real photos (one run)", "",
-             f"`python benchmarks/bench_photometric_trust.py --views {meta['views']}`, {meta['date']}, one torch thread, "
+             f"`python benchmarks/photometric/bench_photometric_trust.py --views {meta['views']}`, {meta['date']}, one torch thread, "
              "the machine's 2 cores shared with other jobs (CPU seconds are the steadier measure).", "",
              "## Captures of the independent simulator (tests/tiltfit/test_photometric_independent.py)", "",
              "240 x 160 px, 3 views, 8-bit gamma 2.2 read as sRGB, illumination gradient, glare, grey wall; errors "

@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
 def corner_start(obs, target, distortion: str, opencv_repeats: int = 5) -> dict:
@@ -54,7 +54,7 @@ def calibrate_refined_cached(name: str, pitch_mm: float, n_views: int, out: str)
     data/real/NAME into `out`, the command's detection replaced by tiltfit's cached detections of the same photos
     (`real_detections`; the photos themselves are still read for the refinement). Returns (image names, argv,
     exit status, wall seconds)."""
-    from real_detections import read_cache
+    from tests.real_detections import read_cache
 
     from tiltfit.cli import main as cli
 

@@ -2,12 +2,12 @@
 refinement is rejected on real photos, the report shows why).
 
 For each set: `tiltfit calibrate` with `--refine photometric` on the first N photos with a board (detections from the
-cache beside the photos, `benchmarks/real_detections.py`, as bench_photometric_real_bounds.py does), then
+cache beside the photos, `tests/real_detections.py`, as bench_photometric_real_bounds.py does), then
 `tiltfit report CALIB.json --views 0,..,N-1` (the real-against-rendered page at spp 2); what report.md says on the
 refinement (kept, the trust-bound sentence, each view's residual RMS) and the time the residual images took, and the
 residual images copied beside the results. No peer: neither OpenCV nor mrcal renders a photometric residual.
 
-    python benchmarks/report_photometric_real.py [--views 3]
+    python benchmarks/photometric/report_photometric_real.py [--views 3]
 
 Writes benchmarks/results/report_photometric_real.{json,md} and report_photometric_real/SET_view_KK.png.
 """
@@ -20,11 +20,10 @@ import sys
 import tempfile
 import time
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
-sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
 
-from results_io import run_benchmark, write_lines  # noqa: E402
+from benchmarks.results_io import run_benchmark, write_lines  # noqa: E402
 
 #: Set -> pixel pitch (mm), as bench_photometric_real_bounds.py takes them.
 SETS = {"industrial_ds1": 0.0048, "gopro_wide": 0.005}
@@ -32,7 +31,7 @@ FIGURES = os.path.join(ROOT, "benchmarks", "results", "report_photometric_real")
 
 
 def run_set(name: str, pitch_mm: float, n_views: int) -> dict:
-    from photometric_start import calibrate_refined_cached
+    from benchmarks.photometric.photometric_start import calibrate_refined_cached
 
     from tiltfit.cli import main as cli
     from tiltfit.report import plots as report
@@ -77,7 +76,7 @@ def measure(args) -> dict:
     for name, pitch in SETS.items():
         print(f"set {name}", file=sys.stderr, flush=True)
         rows.append(run_set(name, pitch, args.views))
-    return {"command": f"python benchmarks/report_photometric_real.py --views {args.views}",
+    return {"command": f"python benchmarks/photometric/report_photometric_real.py --views {args.views}",
             "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "sets": rows}
 
 

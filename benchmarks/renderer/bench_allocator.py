@@ -6,7 +6,7 @@ Workloads: the issue-11 speed scene rendered at 256×256, 16 spp (eager, one thr
 process after a warm-up render; and the photometric refinement of two ray-traced views (the target renderer's
 forward-mode Jacobians), one fit.
 
-    python benchmarks/bench_allocator.py            # -> benchmarks/results/allocator.{json,md}
+    python benchmarks/renderer/bench_allocator.py            # -> benchmarks/results/allocator.{json,md}
 """
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ import statistics
 import subprocess
 import sys
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 RENDER = """
 import time, torch
@@ -79,7 +79,7 @@ def main(argv=None) -> int:
         json.dump(res, f, indent=1)
     lines = ["# glibc's mmap threshold raised (`renderer.core.memory`) against glibc's defaults", "",
              f"Date: {res['date']}; load average {tuple(round(x, 1) for x in res['load_start'])} at the start, "
-             f"{tuple(round(x, 1) for x in res['load_end'])} at the end. Command: `python benchmarks/bench_allocator.py`. "
+             f"{tuple(round(x, 1) for x in res['load_end'])} at the end. Command: `python benchmarks/renderer/bench_allocator.py`. "
              f"Fresh processes, interleaved, medians of {args.repeats}; timed = the workload's own timer, user and "
              "system = the whole process (imports and set-up included).", "",
              "| workload | allocator | timed (s) | user (s) | system (s) | timed, glibc / tuned |", "|---|---|---|---|---|---|"]

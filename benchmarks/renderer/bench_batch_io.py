@@ -7,7 +7,7 @@
    former decode-and-re-encode path, at zlib level 3 (`camio.files.PNG_COMPRESSION_LEVEL`) and 6
    (OpenImageIO's default).
 
-    PYTHONPATH=. OMP_NUM_THREADS=1 python benchmarks/bench_batch_io.py   # -> benchmarks/results/batch_io.{json,md}
+    PYTHONPATH=. OMP_NUM_THREADS=1 python benchmarks/renderer/bench_batch_io.py   # -> benchmarks/results/batch_io.{json,md}
 """
 from __future__ import annotations
 
@@ -22,8 +22,8 @@ import time
 import numpy as np
 import torch
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from results_io import ROOT, add_output_options, markdown_only, save  # noqa: E402
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from benchmarks.results_io import ROOT, add_output_options, markdown_only, save  # noqa: E402
 
 from camio import files as rio  # noqa: E402
 from renderer import load_scene, write_image
@@ -88,7 +88,7 @@ def photo(repeats: int, log) -> dict:
 def write_markdown(path: str, res: dict) -> None:
     lines = ["# Rays per batch and 20-Mpx photo writing", "",
              f"Date: {res['date']}. Load average {res['load_start']} at the start, {res['load_end']} at the end "
-             "(2 shared cores). Command: `PYTHONPATH=. OMP_NUM_THREADS=1 python benchmarks/bench_batch_io.py`.", "",
+             "(2 shared cores). Command: `PYTHONPATH=. OMP_NUM_THREADS=1 python benchmarks/renderer/bench_batch_io.py`.", "",
              "## Rays per batch, issue-11 speed scene (512x512, 16 spp), one torch thread", "",
              "| rays per batch | median CPU (s) | / 2^15 |", "|---|---|---|"]
     base = res["batches"]["2^15"]

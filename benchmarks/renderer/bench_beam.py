@@ -19,8 +19,8 @@ frame 0 always includes step (1)):
   tree (signature, target) differs from the exact segmentation.
 
 Usage (writes benchmarks/results/beam.{json,md} and beam_frames.png; --quick: beam_quick.*):
-    .venv/bin/python benchmarks/bench_beam.py              # 320 × 240, 5 frames, 7 repeats
-    .venv/bin/python benchmarks/bench_beam.py --quick      # 160 × 120, 3 repeats
+    .venv/bin/python benchmarks/renderer/bench_beam.py              # 320 × 240, 5 frames, 7 repeats
+    .venv/bin/python benchmarks/renderer/bench_beam.py --quick      # 160 × 120, 3 repeats
 """
 from __future__ import annotations
 
@@ -46,7 +46,7 @@ from renderer.beam.shade import label_pixels
 from renderer.tracing.render import render
 from renderer.scene.file import load_scene
 
-HERE = os.path.dirname(os.path.abspath(__file__))
+HERE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # benchmarks/
 SCENE = os.path.join(HERE, "..", "renderer", "scenes", "beam_fig2.json")
 
 

@@ -11,7 +11,7 @@ Timing: a warm-up render each (reported apart: our first call, Mitsuba's JIT), t
 interleaved, medians of wall time; the ratio is ours / Mitsuba. Agreement: mean |ours − Mitsuba| over the
 board, in units of the print's contrast (0.76), on the last images.
 
-    .venv/bin/python benchmarks/bench_calibrated_render.py         # writes benchmarks/results/calibrated_render.*
+    .venv/bin/python benchmarks/renderer/bench_calibrated_render.py         # writes benchmarks/results/calibrated_render.*
 """
 from __future__ import annotations
 
@@ -22,7 +22,8 @@ import time
 
 import numpy as np
 
-from results_io import ROOT, run_benchmark, write_lines
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))  # the repository root: benchmarks.results_io
+from benchmarks.results_io import ROOT, run_benchmark, write_lines  # noqa: E402
 
 SETS = ("industrial_ds1", "gopro_wide")
 REFLECTANCE = (0.04, 0.8)
@@ -46,7 +47,8 @@ def measure(args) -> dict:
 
     from renderer import render
     from renderer.mitsuba import load_mitsuba, to_mitsuba
-    from renderer.mitsuba.export import DEFAULT_VARIANT, develop
+    from renderer.mitsuba.export import develop
+    from renderer.mitsuba.variants import DEFAULT_VARIANT
 
     mi = load_mitsuba(DEFAULT_VARIANT)
     out = {"spp": args.spp, "repeats": args.repeats, "mitsuba_variant": mi.variant(), "sets": {},
@@ -98,7 +100,7 @@ def measure(args) -> dict:
 
 def write_markdown(path: str, res: dict) -> None:
     lines = ["# Rendering the target through a calibration: ours against Mitsuba 3 (same camera, same run)", "",
-             f"`python benchmarks/bench_calibrated_render.py` — view 0 of each shipped set's calibration "
+             f"`python benchmarks/renderer/bench_calibrated_render.py` — view 0 of each shipped set's calibration "
              f"(tests/data/calibrations), full size, {res['spp']} spp, ambient light; medians of {res['repeats']} "
              f"interleaved renders; Mitsuba {res['mitsuba_variant']}. Load average at start: "
              f"{', '.join(f'{v:.1f}' for v in res['load_average_start'])} (2 cores).", "",

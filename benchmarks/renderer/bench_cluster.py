@@ -12,8 +12,8 @@ Measured in one run, medians over `--repeats` interleaved repeats:
 Every cluster run's frames are compared with the one-process frames pixel for pixel (8-bit PNG values).
 
 Usage (writes benchmarks/results/cluster.{json,md}; --quick: cluster_quick.*):
-    .venv/bin/python benchmarks/bench_cluster.py            # tilt_fig9b 640x480, 8 spp, 8 frames, 3 repeats
-    .venv/bin/python benchmarks/bench_cluster.py --quick    # 240x160, 4 frames, 2 repeats
+    .venv/bin/python benchmarks/renderer/bench_cluster.py            # tilt_fig9b 640x480, 8 spp, 8 frames, 3 repeats
+    .venv/bin/python benchmarks/renderer/bench_cluster.py --quick    # 240x160, 4 frames, 2 repeats
 """
 from __future__ import annotations
 
@@ -36,7 +36,7 @@ import numpy as np
 import ray
 import torch
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
 
 from renderer.cli.animate import animate  # noqa: E402
@@ -178,7 +178,7 @@ def report(r: dict, quick: bool) -> str:
     one = m["trace_1thread"]
     lines = [
         f"# `renderer animate --cluster` on this machine ({r['date']})\n",
-        f"Command: `.venv/bin/python benchmarks/bench_cluster.py{' --quick' if quick else ''}`. {cores} cores, load "
+        f"Command: `.venv/bin/python benchmarks/renderer/bench_cluster.py{' --quick' if quick else ''}`. {cores} cores, load "
         f"average {', '.join(f'{x:.1f}' for x in r['machine']['load_average'])} (machine shared), ray "
         f"{r['machine']['ray']}, torch {r['machine']['torch']}; medians of {r['repeats']} interleaved repeats.\n",
         f"## Frames by ray tracing: `{t['scene']}` {t['width']}×{t['height']}, {t['spp']} spp, {t['frames']} frames\n",

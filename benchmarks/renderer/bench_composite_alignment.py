@@ -1,7 +1,7 @@
 """The board rendered through a calibration of real photos against the photos' corners (examples/composite.py's
 check, on more views), with OpenCV's projection of the same calibration as the peer.
 
-    python benchmarks/bench_composite_alignment.py [--views N] [--spp S]
+    python benchmarks/renderer/bench_composite_alignment.py [--views N] [--spp S]
 
 For each shipped set (gopro_wide, industrial_ds1): calibrate from the cached detections with the defaults and the
 board held flat (the rendered board is the flat print); for N views spread over the set, render the board alone
@@ -22,15 +22,15 @@ import time
 
 import numpy as np
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, HERE)
+HERE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # benchmarks/
+sys.path.insert(0, os.path.dirname(HERE))
 RESULTS = os.path.join(HERE, "results")
 #: The examples' pixel pitches (mm; pixel results do not depend on them).
 SETS = {"gopro_wide": 0.005, "industrial_ds1": 0.00155}
 
 
 def calibrate_flat(folder: str, pitch_mm: float):
-    from real_detections import observations
+    from tests.real_detections import observations
     from tiltfit.files.calib import calib_dict
     from tiltfit.files.calibrated import Calibration
     from tiltfit.calibrate.flow import calibrate
@@ -99,7 +99,7 @@ def main(argv=None) -> int:
     with open(os.path.join(RESULTS, "composite_alignment.json"), "w", encoding="utf-8") as f:
         json.dump({"spp": args.spp, "rows": rows, "median": summary}, f, indent=1)
     lines = ["# The board rendered through a calibration against the photos (examples/composite.py's check)", "",
-             f"`python benchmarks/bench_composite_alignment.py --views {args.views} --spp {args.spp}`: each set "
+             f"`python benchmarks/renderer/bench_composite_alignment.py --views {args.views} --spp {args.spp}`: each set "
              "calibrated from its cached detections (defaults, board flat); per view the board rendered alone "
              "through the calibrated camera, its corners measured as `tiltfit detect` does. Peer: OpenCV's "
              "`cv2.projectPoints` of the same calibration.", "",

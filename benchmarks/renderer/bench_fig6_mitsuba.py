@@ -14,8 +14,8 @@ worker processes it counts only the parent, so that ratio is not meaningful ther
 agreement: mean |ours − Mitsuba| over the mean, on the last timed images (4 spp noise included) and on
 2 × 2-pixel block means.
 
-    .venv/bin/python benchmarks/bench_fig6_mitsuba.py                # writes benchmarks/results/fig6_mitsuba.{json,md}
-    .venv/bin/python benchmarks/bench_fig6_mitsuba.py --sizes 320x240 --repeats 3 --threads 1 --modes eager --out /tmp/q
+    .venv/bin/python benchmarks/renderer/bench_fig6_mitsuba.py                # writes benchmarks/results/fig6_mitsuba.{json,md}
+    .venv/bin/python benchmarks/renderer/bench_fig6_mitsuba.py --sizes 320x240 --repeats 3 --threads 1 --modes eager --out /tmp/q
 """
 from __future__ import annotations
 
@@ -35,9 +35,10 @@ import torch
 from renderer import render
 from renderer.mitsuba import load_mitsuba, to_mitsuba
 from renderer.scene.file import load_scene
-from results_io import add_output_options, markdown_only, save
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))  # the repository root: benchmarks.results_io
+from benchmarks.results_io import add_output_options, markdown_only, save  # noqa: E402
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SCENE = os.path.join(ROOT, "renderer", "scenes", "fig6.json")
 # Horizontal extent of the screen at distance 1: the plate (6 wide at distance 5) just fills the width.
 SCREEN_WIDTH = 1.2
@@ -226,7 +227,7 @@ def main(argv=None):
 
     default_threads = (torch.get_num_threads(), dr.thread_count())
     result = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "machine": machine_info(mi),
-              "command": "python benchmarks/bench_fig6_mitsuba.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+              "command": "python benchmarks/renderer/bench_fig6_mitsuba.py " + " ".join(argv if argv is not None else sys.argv[1:]),
               "scene": os.path.relpath(SCENE, ROOT), "runs": []}
     for threads in args.threads.split(","):
         t_torch, t_dr = default_threads if threads == "default" else (int(threads), int(threads))

@@ -3,7 +3,7 @@
 A fresh Debian 12 machine has libLLVM 14 and 15 only; Mitsuba's `llvm_ad_rgb` needs 16 or newer (the Makefile
 installs Debian's libllvm19 where it can). Without it `render(scene)`'s default `intersector="auto"` traces with
 our pure-torch code, and Mitsuba itself can only run `scalar_rgb`. Both situations are measured here in the same
-run, the missing library simulated with `RENDERER_HIDE_MITSUBA_JIT=1` (renderer.mitsuba.export.HIDE_JIT_ENV):
+run, the missing library simulated with `RENDERER_HIDE_MITSUBA_JIT=1` (renderer.mitsuba.variants.HIDE_JIT_ENV):
 
 - `ours_llvm`: `render(scene)` with the llvm variant running (Embree hits, worker processes as the defaults pick);
 - `ours_no_llvm`: `render(scene)` with it hidden (pure torch);
@@ -13,7 +13,7 @@ Each configuration runs in its own fresh process (one warm-up render, then `--re
 the processes are run `--rounds` times in turn and the medians of the rounds reported, with ratios to Mitsuba's
 llvm variant (what a user with the library gets from the peer).
 
-    python benchmarks/bench_fresh_machine.py     # -> benchmarks/results/fresh_machine_speed.{json,md}
+    python benchmarks/renderer/bench_fresh_machine.py     # -> benchmarks/results/fresh_machine_speed.{json,md}
 """
 from __future__ import annotations
 
@@ -27,9 +27,10 @@ import subprocess
 import sys
 import time
 
-from results_io import add_output_options, markdown_only, save
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))  # the repository root: benchmarks.results_io
+from benchmarks.results_io import add_output_options, markdown_only, save  # noqa: E402
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SCENE = os.path.join(ROOT, "benchmarks", "scenes", "speed_thin_lens.json")
 CONFIGS = {"ours_llvm": ("ours", False), "ours_no_llvm": ("ours", True),
            "mitsuba_llvm": ("mitsuba", False), "mitsuba_scalar": ("mitsuba", True)}
@@ -96,7 +97,7 @@ def write_markdown(path: str, res: dict) -> None:
         f"{res['machine']['load_end']} at the end. Scene `benchmarks/scenes/speed_thin_lens.json` at "
         f"{res['size']}x{res['size']}, {res['spp']} spp. Each configuration in a fresh process, {res['repeats']} timed "
         f"renders after one warm-up, {res['rounds']} rounds in turn; medians. No libLLVM >= 16 simulated with "
-        "`RENDERER_HIDE_MITSUBA_JIT=1`. Command: `python benchmarks/bench_fresh_machine.py`.",
+        "`RENDERER_HIDE_MITSUBA_JIT=1`. Command: `python benchmarks/renderer/bench_fresh_machine.py`.",
         "",
         "| configuration | engine | median render (s) | / Mitsuba llvm | / Mitsuba in the same situation | warm-up (s) |",
         "|---|---|---|---|---|---|",

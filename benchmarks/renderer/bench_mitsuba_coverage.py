@@ -14,7 +14,7 @@ The difference is Mitsuba's mean over ours, minus 1. `--before OLD.json` adds th
 this script on the exporter before issue 20 (its `dropped` list came from `to_mitsuba` alone; where that
 exporter failed, the error).
 
-    PYTHONPATH=. .venv/bin/python benchmarks/bench_mitsuba_coverage.py --before benchmarks/results/mitsuba_backend_coverage_before.json
+    PYTHONPATH=. .venv/bin/python benchmarks/renderer/bench_mitsuba_coverage.py --before benchmarks/results/mitsuba_backend_coverage_before.json
     # writes benchmarks/results/mitsuba_backend_coverage.{json,md}
 
 tests/renderer/test_mitsuba_coverage.py runs the same comparisons at a smaller size.
@@ -28,7 +28,7 @@ import os
 import sys
 import time
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
 
 SHIPPED = sorted(glob.glob(os.path.join(ROOT, "renderer", "scenes", "*.json"))
@@ -167,7 +167,7 @@ def write_markdown(path: str, res: dict) -> None:
         f"({res['variant']}); difference = Mitsuba's mean / ours − 1. *As is*: the scene file unchanged; "
         "*mapped part*: the elements Mitsuba does not reproduce (last column) neutralised, so the two should "
         "agree to sampling noise. *Before*: the exporter before issue 20 on the unchanged scene. "
-        "Made by `benchmarks/bench_mitsuba_coverage.py`.",
+        "Made by `benchmarks/renderer/bench_mitsuba_coverage.py`.",
         "",
         "| scene | before (as is) | after (as is) | after (mapped part) | per-pixel mean abs. diff. (mapped part) "
         "| not mapped (named on stderr) |",
@@ -200,7 +200,7 @@ def write_markdown(path: str, res: dict) -> None:
 
 
 def main(argv=None) -> int:
-    from results_io import add_output_options, markdown_only, save
+    from benchmarks.results_io import add_output_options, markdown_only, save
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--side", type=int, default=96, help="longer image side, pixels [96]")

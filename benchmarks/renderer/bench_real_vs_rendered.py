@@ -1,9 +1,9 @@
 """Real against rendered on the shipped photo sets: how many samples per pixel the report's renderings need.
 
-    python benchmarks/bench_real_vs_rendered.py [--sets industrial_ds1 gopro_wide] [--views 2] [--spp 1 2 4 8]
+    python benchmarks/renderer/bench_real_vs_rendered.py [--sets industrial_ds1 gopro_wide] [--views 2] [--spp 1 2 4 8]
         [--reference-spp 32] [--calib SET=CALIB.json ...]
 
-For each set: a calibration with the defaults from the cached detections (benchmarks/real_detections.py; or the
+For each set: a calibration with the defaults from the cached detections (tests/real_detections.py; or the
 given CALIB.json), then for a few views spread over the set the report's comparison (`tiltfit.report.real_vs_rendered`,
 at its default resolution) at each spp and at the reference spp (the peer: the converged rendering, same run).
 Reported per spp: the median over views of |profile error − the reference's| and |RMS over the board − the
@@ -22,9 +22,9 @@ import sys
 import tempfile
 import time
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 
-from results_io import ROOT, add_output_options, markdown_only, save  # noqa: E402
+from benchmarks.results_io import ROOT, add_output_options, markdown_only, save  # noqa: E402
 
 #: The profile error a reader can tell apart (grey levels): spp whose errors move less than this are enough.
 STABLE_GREY = 0.1
@@ -38,7 +38,7 @@ def calibration_file(name: str, given: dict, say) -> str:
     path = os.path.join(tempfile.gettempdir(), f"bench_real_vs_rendered_{name}.json")
     if os.path.exists(path):
         return path
-    from real_detections import observations
+    from tests.real_detections import observations
     from tiltfit.files.calib import calib_dict, write_calib
     from tiltfit.calibrate.flow import calibrate
     from tiltfit.calibrate.fit import FitOptions
@@ -118,7 +118,7 @@ def write_markdown(path: str, res: dict) -> None:
             seq = ", ".join(f"{k}: {v['profile_error']:.2f}" for k, v in by.items())
             ref = by[str(res["reference_spp"])] if str(res["reference_spp"]) in by else by[res["reference_spp"]]
             lines.append(f"| {name} | {row['view']} | {row['image']} | {seq} | {ref['rms_board']:.2f} |")
-    lines += ["", "Reproduce: `python benchmarks/bench_real_vs_rendered.py` (machine load changes the times, not the "
+    lines += ["", "Reproduce: `python benchmarks/renderer/bench_real_vs_rendered.py` (machine load changes the times, not the "
                   "errors)."]
     with open(path, "w", encoding="utf-8") as f:
         f.write("\n".join(lines) + "\n")

@@ -25,8 +25,8 @@ Equal error: RMSE of each renderer against its own high-spp reference (ours 1024
 16 renders of 256 spp, other seeds), over spp levels, for our `--ee-modes` and Mitsuba's `independent` and
 `ldsampler` samplers; Mitsuba's time at our RMSE at `--spp` is interpolated on log-log axes.
 
-    python benchmarks/bench_speed_mitsuba.py              # -> benchmarks/results/speed_thin_lens.{json,md}
-    python benchmarks/bench_speed_mitsuba.py --size 128 --repeats 3 --out /tmp/speed
+    python benchmarks/renderer/bench_speed_mitsuba.py              # -> benchmarks/results/speed_thin_lens.{json,md}
+    python benchmarks/renderer/bench_speed_mitsuba.py --size 128 --repeats 3 --out /tmp/speed
 """
 from __future__ import annotations
 
@@ -45,9 +45,10 @@ import torch
 from renderer import render
 from renderer.mitsuba import load_mitsuba, to_mitsuba
 from renderer.scene.file import load_scene
-from results_io import add_output_options, markdown_only, save
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))  # the repository root: benchmarks.results_io
+from benchmarks.results_io import add_output_options, markdown_only, save  # noqa: E402
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SCENE = os.path.join(ROOT, "benchmarks", "scenes", "speed_thin_lens.json")
 
 
@@ -365,7 +366,7 @@ def main(argv=None):
     import drjit as dr
 
     res = {"date": datetime.datetime.now().isoformat(timespec="seconds"),
-           "command": "python benchmarks/bench_speed_mitsuba.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+           "command": "python benchmarks/renderer/bench_speed_mitsuba.py " + " ".join(argv if argv is not None else sys.argv[1:]),
            "scene": os.path.relpath(SCENE, ROOT), "size": args.size, "spp": args.spp, "repeats": args.repeats,
            "ee_repeats": args.ee_repeats,
            "machine": {"cores": os.cpu_count(), "torch": torch.__version__, "mitsuba": ms.mi.__version__,

@@ -23,8 +23,8 @@ halves (different seeds), so its own noise is known, MSE_ref = mean((a − b)²)
 every measured MSE (`rmse`; `rmse_raw` keeps the uncorrected value).
 
 Usage (writes benchmarks/results/thin_lens_speed_accuracy.{json,md,png} and thin_lens_crosscheck.png):
-    .venv/bin/python benchmarks/bench_thin_lens.py            # 320 × 213, spp 1 ... 256, 3 repeats
-    .venv/bin/python benchmarks/bench_thin_lens.py --quick    # smoke run: 64 × 43, spp ≤ 16, under a minute
+    .venv/bin/python benchmarks/renderer/bench_thin_lens.py            # 320 × 213, spp 1 ... 256, 3 repeats
+    .venv/bin/python benchmarks/renderer/bench_thin_lens.py --quick    # smoke run: 64 × 43, spp ≤ 16, under a minute
 Timed runs use 2 torch and 2 Dr.Jit threads (`--threads`) and OMP_WAIT_POLICY=PASSIVE for torch unless the
 environment sets it (see the comment at the imports).
 Mitsuba's LLVM backend needs LLVM ≥ 16 (LLVM 14/15 abort with "Cannot select ... fmaximum"); on Debian 12
@@ -723,7 +723,7 @@ def main(argv=None) -> int:
     ap.add_argument("--mi-ref-spp", type=int, default=8192, help="Mitsuba's reference, independent (two halves)")
     ap.add_argument("--threads", type=int, default=2, help="torch and Dr.Jit threads for everything timed")
     ap.add_argument("--quick", action="store_true", help="smoke run: 64×43, spp ≤ 16, small references")
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results"))
+    ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "benchmarks", "results"))
     ap.add_argument("--probe-threads", action="store_true", help=argparse.SUPPRESS)  # child of `thread_probe`
     args = ap.parse_args(argv)
     if args.probe_threads:
@@ -761,7 +761,7 @@ def main(argv=None) -> int:
                               for p in curves[f"ours/{s}"]["points"] for q in curves["mitsuba/independent"]["points"]
                               if p["spp"] == q["spp"]} for s in OUR_SAMPLERS}
     cam = cfg["camera"]
-    command = "python benchmarks/bench_thin_lens.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    command = "python benchmarks/renderer/bench_thin_lens.py " + " ".join(argv if argv is not None else sys.argv[1:])
     res = {
         "command": command.strip(),
         "machine": machine_info(),

@@ -1,7 +1,7 @@
 """Calibration with one bad (low-contrast) view against the same without it (issue 33 §3), OpenCV's
 calibrateCamera on the same corners in the same run.
 
-    python benchmarks/bench_bad_view.py [--set industrial_ds1] [--good 3 | --views 0,5,10] [--contrast 0.003]
+    python benchmarks/robustness/bench_bad_view.py [--set industrial_ds1] [--good 3 | --views 0,5,10] [--contrast 0.003]
                                         [--bits 16|8]
 
 Three good photos of a shipped real set (tiltfit's cached detections) and a fourth photo made from another photo of
@@ -24,9 +24,9 @@ import time
 import cv2
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from real_detections import REAL, observations, photos  # noqa: E402
-from results_io import add_output_options, save  # noqa: E402
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from tests.real_detections import REAL, observations, photos  # noqa: E402
+from benchmarks.results_io import add_output_options, save  # noqa: E402
 
 PITCH = {"industrial_ds1": 0.0048, "gopro_wide": 0.005}
 
@@ -90,7 +90,7 @@ def calibrate_case(obs, repeats: int, screen: bool = True):
 def write_markdown(path: str, res: dict) -> None:
     lines = [f"# One bad (low-contrast) view: {res['set']}, {res['good']} good views + "
              f"{res['bad_photo']} at {res['contrast']:g} contrast", "",
-             f"Reproduce: `python benchmarks/bench_bad_view.py --set {res['set']} --views "
+             f"Reproduce: `python benchmarks/robustness/bench_bad_view.py --set {res['set']} --views "
              f"{','.join(map(str, res['views']))} --contrast {res['contrast']:g} --bits {res['bits']}` "
              f"({res['bits']}-bit photo). tiltfit: `calibrate` unified, distortion k1, flat board; OpenCV: calibrateCamera, "
              f"k1 only, square pixels, same corners. Times are medians of {res['repeats']} runs.", "",

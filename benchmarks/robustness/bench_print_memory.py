@@ -7,7 +7,7 @@ what the first call loads is in the baseline, but not a strip's working set), th
 `CharucoBoard.generateImage` of the same board at the same pixel size, then `cv2.imwrite` of the PNG, measured
 the same way. Medians over --repeats processes per case.
 
-    python benchmarks/bench_print_memory.py           # -> benchmarks/results/print_memory.{json,md}
+    python benchmarks/robustness/bench_print_memory.py           # -> benchmarks/results/print_memory.{json,md}
 """
 from __future__ import annotations
 
@@ -18,8 +18,8 @@ import statistics
 import subprocess
 import sys
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from results_io import ROOT, run_benchmark, write_lines  # noqa: E402
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from benchmarks.results_io import ROOT, run_benchmark, write_lines  # noqa: E402
 
 # (name, columns = rows of squares, square mm, dpi): up to the issue's 0.71 m board at 300 dpi (72 megapixels)
 CASES = [("charuco 11x11, 16 mm", 11, 16.0, 300.0), ("charuco 22x22, 16 mm", 22, 16.0, 300.0),
@@ -113,7 +113,7 @@ def write_markdown(path: str, res: dict) -> None:
                      f"{r['ours_bytes_per_pixel']:.2f} | {r['opencv_bytes_per_pixel']:.2f} | {ratio} | "
                      f"{r['ours_peak_increase_mib']:.0f} | {r['opencv_peak_increase_mib']:.0f} |")
     lines.append("")
-    lines.append("Reproduce: `python benchmarks/bench_print_memory.py`.")
+    lines.append("Reproduce: `python benchmarks/robustness/bench_print_memory.py`.")
     write_lines(path, lines)
 
 

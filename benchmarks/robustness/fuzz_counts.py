@@ -1,10 +1,10 @@
 """Run the fuzz corpora of tests/{renderer,tiltfit}/test_fuzz.py and test_fuzz_commands.py against whichever
 `renderer`/`tiltfit` PYTHONPATH points at, and write the outcome counts per category.
 
-    PYTHONPATH=/work/main python benchmarks/fuzz_counts.py --label before -o benchmarks/results/fuzz_before.json
-    PYTHONPATH=.          python benchmarks/fuzz_counts.py --label after  -o benchmarks/results/fuzz_after.json
+    PYTHONPATH=/work/main python benchmarks/robustness/fuzz_counts.py --label before -o benchmarks/results/fuzz_before.json
+    PYTHONPATH=.          python benchmarks/robustness/fuzz_counts.py --label after  -o benchmarks/results/fuzz_after.json
 
-    python benchmarks/fuzz_counts.py compare benchmarks/results/fuzz_before.json benchmarks/results/fuzz_after.json
+    python benchmarks/robustness/fuzz_counts.py compare benchmarks/results/fuzz_before.json benchmarks/results/fuzz_after.json
 
 (The corpus is always this checkout's; only the code under test changes.) Outcomes: ok, refused, and the
 failures traceback, hang, nan_output, leftover, bad_message, bad_exit, accepted_bad, unexpected_failure.
@@ -18,7 +18,7 @@ import os
 import sys
 import time
 
-HERE = os.path.dirname(os.path.abspath(__file__))
+HERE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # benchmarks/
 TESTS = os.path.join(os.path.dirname(HERE), "tests")
 
 

@@ -7,7 +7,7 @@ probe: then Mitsuba loads and the workers start; `--start worker`: until the fir
 a traceback, its number of lines, whether the render finished anyway (exit 0 or the image written: the Ctrl-C
 was lost), and the child processes still running 3 s after the command ended (orphaned workers).
 
-    python benchmarks/probe_group_interrupt.py [--label L] [--trials 24] [--step 0.1] [--start child|worker]
+    python benchmarks/robustness/probe_group_interrupt.py [--label L] [--trials 24] [--step 0.1] [--start child|worker]
                                                [--cwd CHECKOUT] [-o OUT.json]
 """
 from __future__ import annotations
@@ -22,7 +22,7 @@ import tempfile
 import threading
 import time
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SCENE = os.path.join(ROOT, "benchmarks", "scenes", "speed_thin_lens.json")
 
 sys.path.insert(0, os.path.join(ROOT, "tests"))

@@ -3,7 +3,7 @@
 Eager tracing and the fits' forward-mode Jacobians allocate and free many tensors of a few hundred KB to a
 few hundred MB per batch. glibc serves every block above its mmap threshold (128 KB, raised dynamically up
 to 32 MB) with a fresh mmap and returns it with munmap, so each batch pays page faults for memory it had a
-moment ago (kernel time; measured with `benchmarks/bench_allocator.py`, docs/speed.md).
+moment ago (kernel time; measured with `benchmarks/renderer/bench_allocator.py`, docs/speed.md).
 
 `tune_allocator` raises the mmap threshold and the heap-trim threshold once per process, so freed blocks
 are reused from the heap instead. The price: the process keeps up to `trim_threshold` of freed memory

@@ -31,7 +31,7 @@ returned `dropped` list, and raises NotImplementedError for a camera it cannot e
 
 Frames. Mitsuba's camera looks along its local +z with +x to the left and +y up in the image; ours looks
 along +z with x right and y down (OpenCV). So the sensor's to_world has columns (−x_cam, −y_cam, z_cam,
-position) in world coordinates, which keeps the image unmirrored (checked in `benchmarks/bench_fig6_mitsuba.py`
+position) in world coordinates, which keeps the image unmirrored (checked in `benchmarks/renderer/bench_fig6_mitsuba.py`
 by comparing the two images). Our sensor plugins work in our camera frame and need no flip.
 
 Mitsuba is an optional extra (`pip install -e '.[test]'` or `'.[bench]'`); it is imported on first use.

@@ -16,7 +16,7 @@ import pytest
 import torch
 
 pytest.importorskip("mitsuba")
-from renderer.mitsuba.export import jit_variant_runs  # noqa: E402
+from renderer.mitsuba.variants import jit_variant_runs  # noqa: E402
 
 if not jit_variant_runs("llvm_ad_rgb"):
     pytest.skip("mitsuba's llvm_ad_rgb variant does not run here (needs LLVM >= 16)", allow_module_level=True)
@@ -71,7 +71,7 @@ def test_applies_only_when_asked():
 @pytest.mark.slow
 def test_fused_matches_eager():
     # One scene (each scene compiles its own stages: about 20 s with an empty Inductor cache); the speed scene's
-    # image is compared at full size by benchmarks/bench_speed_mitsuba.py (image means).
+    # image is compared at full size by benchmarks/renderer/bench_speed_mitsuba.py (image means).
     scene = _mixed()
     eager = render(scene, intersector="mitsuba", workers=1).image
     got = render(scene, intersector="mitsuba", compile=True, workers=1)

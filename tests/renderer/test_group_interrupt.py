@@ -2,7 +2,7 @@
 terminal's Ctrl-C reaches the workers too, which printed their own KeyboardInterrupt tracebacks, and a Ctrl-C
 landing as the pool started was dropped (the image written, exit 0). Each case sends SIGINT to the group a
 given time after the first worker process appears and asserts one line `renderer: interrupted`, exit 130, no
-image and no process left behind. benchmarks/probe_group_interrupt.py runs the same at more delays. And the
+image and no process left behind. benchmarks/robustness/probe_group_interrupt.py runs the same at more delays. And the
 cause of the dropped Ctrl-C: one landing while Mitsuba loads."""
 import os
 import signal
@@ -15,7 +15,7 @@ import pytest
 from renderer.tracing.render import _cores
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from processes import children as _children  # noqa: E402  (shared with benchmarks/probe_group_interrupt.py)
+from processes import children as _children  # noqa: E402  (shared with benchmarks/robustness/probe_group_interrupt.py)
 from processes import is_worker as _is_worker  # noqa: E402
 from processes import kill_left_running  # noqa: E402
 

@@ -2,7 +2,7 @@
 what the exporter maps agrees with our tracer, and what it cannot map is named (renderer/mitsuba/export.py).
 
 The scene list, the names expected from each scene file and the overrides neutralising them are those of
-benchmarks/bench_mitsuba_coverage.py (which records the same comparisons at a larger size). Mitsuba runs in
+benchmarks/renderer/bench_mitsuba_coverage.py (which records the same comparisons at a larger size). Mitsuba runs in
 whichever variant runs here (scalar_rgb where Dr.Jit's LLVM backend cannot). Skipped where mitsuba is not
 installed, except the geometry of the plane's stand-in, which needs no Mitsuba.
 """
@@ -23,7 +23,7 @@ MEAN_TOL = 0.02  # |Mitsuba's mean / ours − 1| allowed (sampling noise at this
 
 def _bench():
     spec = importlib.util.spec_from_file_location("bench_mitsuba_coverage",
-                                                  ROOT / "benchmarks" / "bench_mitsuba_coverage.py")
+                                                  ROOT / "benchmarks" / "renderer" / "bench_mitsuba_coverage.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -41,7 +41,7 @@ def test_plane_pieces_cover_the_view_without_gaps():
     """The rectangles standing in for an infinite floor seen up to its horizon: the first square holds the
     near hits, and every point of the outermost square (out to `PLANE_REACH` times the camera's height or the
     scene's extent) lies in some rectangle."""
-    from renderer.mitsuba.export import PLANE_REACH, plane_pieces
+    from renderer.mitsuba.tessellate import PLANE_REACH, plane_pieces
     from renderer.scene.file import load_scene
 
     scene = load_scene(bench.ISSUE_SCENE, ["camera.look_at=[0, -150, 500]"])  # level camera: horizon in view

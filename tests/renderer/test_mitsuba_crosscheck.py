@@ -1,5 +1,5 @@
 """Our untilted thin lens against Mitsuba 3's `thinlens` sensor (the small version of
-benchmarks/bench_thin_lens.py): the same rays, and the same defocused image to within 1 % of the mean.
+benchmarks/renderer/bench_thin_lens.py): the same rays, and the same defocused image to within 1 % of the mean.
 
 Runs on Mitsuba's `scalar_rgb` variant, which needs no LLVM (mitsuba is in the `test` extra; the benchmark
 itself uses `llvm_ad_rgb` where it runs). Skipped only where mitsuba is not installed.
@@ -16,8 +16,8 @@ mi = pytest.importorskip("mitsuba")
 
 
 def _bench():
-    """benchmarks/bench_thin_lens.py as a module (benchmarks/ is not a package)."""
-    path = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_thin_lens.py"
+    """benchmarks/renderer/bench_thin_lens.py as a module (benchmarks/ is not a package)."""
+    path = Path(__file__).resolve().parents[2] / "benchmarks" / "renderer" / "bench_thin_lens.py"
     spec = importlib.util.spec_from_file_location("bench_thin_lens", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
@@ -35,7 +35,7 @@ def test_rays_match_mitsuba_thinlens(bench):
     """(Vectorised sensor calls: needs a JIT variant; skipped where llvm_ad_rgb cannot run here.)
     Same film position: Mitsuba's rays meet the plane of focus where our chief rays do; its aperture
     sample maps to our lens point rotated by 180° (same disc distribution, different sample map)."""
-    from renderer.mitsuba.export import jit_variant_runs
+    from renderer.mitsuba.variants import jit_variant_runs
 
     if not jit_variant_runs("llvm_ad_rgb"):
         pytest.skip("mitsuba's llvm_ad_rgb variant does not run here (needs LLVM >= 16)")

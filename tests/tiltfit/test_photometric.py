@@ -153,7 +153,7 @@ def test_photometric_fit_meets_the_targets_where_corners_are_biased(theta_L):
     at 128 spp with sensor noise 0.003 (`synth.render_view(method="renderer")`, not the fit's model): started
     from the corner-and-blur fit, the photometric fit (the aperture in closed form, 20,000 pixels a view) meets
     the issue's targets, θL within 0.01°, U within 0.05 % and d within 0.1 % of the truth, and improves on the
-    corner fit. (The captures of `benchmarks/bench_photometric.py`'s 23 px level.)"""
+    corner fit. (The captures of `benchmarks/photometric/bench_photometric.py`'s 23 px level.)"""
     images, poses, truth = _captures(U0_mm=760.0, spp=128, downscale=8, theta_L_deg=theta_L)
     blur = float(np.median(truth["blur_px"]))
     assert 15 <= blur < 30, f"median blur {blur:.1f} px"

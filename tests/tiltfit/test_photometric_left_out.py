@@ -128,7 +128,7 @@ def test_no_view_left_is_an_error(without):
 
 
 def _gopro_third_subset():
-    """data/real/gopro_wide, every third view from the third (benchmarks/bench_photometric_sigma.py's third subset),
+    """data/real/gopro_wide, every third view from the third (benchmarks/photometric/bench_photometric_sigma.py's third subset),
     its corner fit as `tiltfit calibrate` makes it (unified, free principal point, opencv5, 5-fold held-out error):
     (target, Observations with the photos' paths as names, result, used, held_out)."""
     sys.path.insert(0, os.path.join(ROOT, "tests"))

@@ -114,7 +114,7 @@ def test_export_of_a_flat_board_has_no_object_points(tmp_path):
 
 def blurred_capture(points_mm, nominal_mm, seed=0, n_views=8):
     """Corners and blur widths of `points_mm` seen by a pinhole with k1 and a thin-lens blur circle, written here
-    (not tiltfit's camera; as benchmarks/bench_sigma_honesty.py's capture), with `nominal_mm` as the target's points."""
+    (not tiltfit's camera; as benchmarks/calibration/bench_sigma_honesty.py's capture), with `nominal_mm` as the target's points."""
     import torch
 
     from tiltfit.calibrate.model import PAPER_LENS, PAPER_SENSOR, Observations, axis_angle_to_matrix, random_poses

@@ -2,7 +2,7 @@
 
 It shares no code with `renderer/` or `tiltfit/photometric/` (no camera class, no lens class, no blur closed form,
 no sample set, no sRGB helper): numpy only, the physics written out again. Used to judge the photometric forward
-model pixel by pixel (`benchmarks/bench_photometric_forward.py`) and the refinement (`tests/tiltfit/
+model pixel by pixel (`benchmarks/photometric/bench_photometric_forward.py`) and the refinement (`tests/tiltfit/
 test_photometric_exact.py`).
 
 The camera (frame x right, y down, z forward; lens centre at the origin):

@@ -32,7 +32,7 @@ HELD_OUT_TOLERANCE = 0.01
 MAX_UNDISTORTED_RADIUS = 60.0  # tan of 89°: the radial mapping is checked up to rays 89° off the axis
 # A distortion model asked for by name (one of `CHECKED_MODELS`) is refused where its radial mapping at the
 # image corner is uncertain by more than this (pixels, 1σ from the fit's covariance): the views do not
-# determine its coefficients. GoPro views (data/real/gopro_wide, benchmarks/rational_views.py), rational: 1 view
+# determine its coefficients. GoPro views (data/real/gopro_wide, benchmarks/calibration/rational_views.py), rational: 1 view
 # ±24 px, 2 views ±19 px, 3 views ±2.1 px, 10 views ±0.6 px, 35 views ±0.27 px.
 MAX_MAPPING_SIGMA_PX = 5.0
 # The models so checked: the rational model's numerator and denominator terms trade against each other over

@@ -38,7 +38,7 @@ the poses' σ in the Monte Carlo) and the projective (second-order) directions, 
 pulled τ² down (rotations 0.5–0.8). The Monte Carlo of tests/tiltfit/test_sigma_honest.py (8 views, pooled
 over them): rotations 1.05–1.16 of the spread, translations 0.92–0.94; with independent noise alone τ² ≈ 0
 and the own part is the classical one. On industrial_ds1 the flat-board fit's per-view pose errors (against the
-fitted board's poses, benchmarks/bench_sigma_honesty.py) are 1.13 and 0.99 of this σ for the tilts (classical
+fitted board's poses, benchmarks/calibration/bench_sigma_honesty.py) are 1.13 and 0.99 of this σ for the tilts (classical
 and OpenCV 8.0 and 5.1) but 4.0 for the roll (25): an unmodelled board shape errs along the pose's own
 directions more than isotropy says, which no residual shows (`board="auto"` fits the shape there).
 `view_error_px`: the per-view affine error's RMS length at a corner.

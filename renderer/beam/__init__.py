@@ -1,4 +1,4 @@
-"""Improved beam tracing (Koyama & Okada; /work/shared/papers/NOTES.md §3): recursive screen segmentation of
+"""Improved beam tracing (Koyama & Okada; method and steps in docs/beam_tracing.md): recursive screen segmentation of
 scenes of mirror and diffuse polyhedra, reused as the viewpoint moves along the view direction.
 
     tracer = BeamTracer(scene)              # step (1): polygons, once

@@ -333,7 +333,7 @@ class Lens:
         return b.numpy() / self._sensor("blur_px").pixel_pitch
 
     def scene_keys(self) -> dict:
-        """The scene file's `thin_lens` camera keys of this lens (docs/scene_format.md): w, U, d, theta_F_deg,
+        """The scene file's `thin_lens` camera keys of this lens (docs/file_formats.md): w, U, d, theta_F_deg,
         and sensor_size and principal_point_px when it has a sensor / principal point; numbers as plain floats."""
         keys = {"type": "thin_lens", "w": _float(self.w), "U": _float(self.U), "d": _float(self.d),
                 "theta_F_deg": math.degrees(_float(self.theta_F))}

@@ -20,7 +20,7 @@ OPTION = re.compile(r"(?<![\w-])--[a-z]")
 FRONT_ENDS = ("tiltfit/cli/main.py", "tiltfit/cli/target.py", "tiltfit/__main__.py")
 #: (file, function) whose strings may name options, and why.
 ALLOWED = {
-    ("tiltfit/files/formats.py", "calibration_reference"): "writes docs/formats.md, the page on the command line's files",
+    ("tiltfit/files/formats.py", "calibration_reference"): "writes docs/file_formats.md, the page on the command line's files",
     ("tiltfit/experiments/stability/__init__.py", "write_summary"): "the report states the command that made it",
 }
 

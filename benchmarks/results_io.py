@@ -11,11 +11,13 @@ import statistics
 import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+#: Where every benchmark writes its figures by default (one folder for all groups).
+RESULTS = os.path.join(ROOT, "benchmarks", "results")
 
 
 def add_output_options(ap, stem: str) -> None:
     """--out (default benchmarks/results/<stem>) and --markdown-only on an argparse parser."""
-    ap.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results", stem),
+    ap.add_argument("--out", default=os.path.join(RESULTS, stem),
                     help="output path without extension (.json and .md are written)")
     ap.add_argument("--markdown-only", action="store_true", help="rewrite OUT.md from OUT.json (no timing)")
 

@@ -10,6 +10,7 @@ Writes benchmarks/results/rational_terms.{json,md}. Usage: python benchmarks/cal
 """
 from __future__ import annotations
 
+import argparse
 import datetime
 import json
 import os
@@ -32,7 +33,7 @@ for _name, _t in _terms.items():
 _distortion.MODELS = tuple(_distortion.MODEL_TERMS)
 
 from tests.real_detections import REAL, observations  # noqa: E402
-from benchmarks.results_io import write_lines  # noqa: E402
+from benchmarks.results_io import RESULTS, write_lines  # noqa: E402
 
 from tiltfit.files.calib import calib_dict  # noqa: E402
 from tiltfit.calibrate.flow import calibrate  # noqa: E402
@@ -73,7 +74,11 @@ def opencv(obs, model) -> dict:
     return {"f_px": float(K[0, 0]), "principal_point_px": [float(K[0, 2]), float(K[1, 2])], "rms_px": float(rms)}
 
 
-def main() -> int:
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default=os.path.join(RESULTS, "rational_terms"),
+                    help="output path without extension (.json and .md are written)")
+    args = ap.parse_args(argv)
     gopro, _ = observations(os.path.join(REAL, "gopro_wide"), 0.005)
     ind, _ = observations(os.path.join(REAL, "industrial_ds1"), 0.0048)
     sets = [("gopro_wide", "first 12 photos", gopro.subset(list(range(12))), "free")]
@@ -97,8 +102,8 @@ def main() -> int:
                                                                       "error")}, file=sys.stderr, flush=True)
     out = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
            "machine": platform.platform(), "folds": FOLDS, "rows": rows}
-    here = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "benchmarks", "results")
-    with open(os.path.join(here, "rational_terms.json"), "w", encoding="utf-8") as f:
+    os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
+    with open(args.out + ".json", "w", encoding="utf-8") as f:
         json.dump(out, f, indent=1, default=lambda o: None)
         f.write("\n")
     lines = ["# Rational models with fewer terms (issue 22)", "",
@@ -130,7 +135,7 @@ def main() -> int:
             cmp = f" refused (flat) | {cv['f_px']:.2f} | | |"
         lines.append(f"{head} {r['held_out_rms_px']:.4f} | {r['projection_worst_px']:.3g} | {r['f_px']:.1f} ± "
                      f"{r['sigma_f_px']:.1f} | {rel[0]:.2g} ({rel[1]}) |" + cmp)
-    write_lines(os.path.join(here, "rational_terms.md"), lines + [""])
+    write_lines(args.out + ".md", lines + [""])
     print("\n".join(lines))
     return 0
 

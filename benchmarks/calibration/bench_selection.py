@@ -12,6 +12,7 @@ Writes benchmarks/results/selection.{json,md}. Usage: python benchmarks/calibrat
 """
 from __future__ import annotations
 
+import argparse
 import datetime
 import json
 import math
@@ -25,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 from tests.real_detections import REAL, observations  # noqa: E402
-from benchmarks.results_io import write_lines  # noqa: E402
+from benchmarks.results_io import RESULTS, write_lines  # noqa: E402
 
 from tiltfit.files.calib import calib_dict  # noqa: E402
 from tiltfit.calibrate.flow import calibrate  # noqa: E402
@@ -63,7 +64,11 @@ def paired_z(n, a, b) -> float:
     return float(d.sum() / (math.sqrt(len(d)) * d.std(ddof=1)))
 
 
-def main() -> int:
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default=os.path.join(RESULTS, "selection"),
+                    help="output path without extension (.json and .md are written)")
+    args = ap.parse_args(argv)
     obs, _ = observations(os.path.join(REAL, "gopro_wide"), 0.005)
     sets = {"first 12 photos": list(range(12))} | {f"views {g}, {g + 3}, … (every third)": list(range(g, obs.n_views, 3))
                                                    for g in range(3)}
@@ -82,8 +87,8 @@ def main() -> int:
                   f"z {row.get('paired_z')}", file=sys.stderr, flush=True)
     out = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
            "machine": platform.platform(), "folds": FOLDS, "rows": rows}
-    here = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "benchmarks", "results")
-    with open(os.path.join(here, "selection.json"), "w", encoding="utf-8") as f:
+    os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
+    with open(args.out + ".json", "w", encoding="utf-8") as f:
         json.dump(out, f, indent=1)
         f.write("\n")
     names = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
@@ -109,7 +114,7 @@ def main() -> int:
                          f"{x['sigma_f_px']:.1f} | {x['principal_point_px'][0]:.1f}, {x['principal_point_px'][1]:.1f} | "
                          f"{x['held_out_rms_px']:.4f} | {x['projection_worst_px']:.3g} | {rel[0]:.3g} ({rel[1]}) | "
                          + (f"{r['paired_z']:+.2f}" if k == "defaults" and "paired_z" in r else "") + " |")
-    write_lines(os.path.join(here, "selection.md"), lines + [""])
+    write_lines(args.out + ".md", lines + [""])
     print("\n".join(lines))
     return 0
 

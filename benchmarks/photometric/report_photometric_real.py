@@ -9,7 +9,7 @@ residual images copied beside the results. No peer: neither OpenCV nor mrcal ren
 
     python benchmarks/photometric/report_photometric_real.py [--views 3]
 
-Writes benchmarks/results/report_photometric_real.{json,md} and report_photometric_real/SET_view_KK.png.
+Writes OUT.{json,md} and OUT/SET_view_KK.png (OUT: --out, default benchmarks/results/report_photometric_real).
 """
 from __future__ import annotations
 
@@ -27,10 +27,9 @@ from benchmarks.results_io import run_benchmark, write_lines  # noqa: E402
 
 #: Set -> pixel pitch (mm), as bench_photometric_real_bounds.py takes them.
 SETS = {"industrial_ds1": 0.0048, "gopro_wide": 0.005}
-FIGURES = os.path.join(ROOT, "benchmarks", "results", "report_photometric_real")
 
 
-def run_set(name: str, pitch_mm: float, n_views: int) -> dict:
+def run_set(name: str, pitch_mm: float, n_views: int, figures_dir: str) -> dict:
     from benchmarks.photometric.photometric_start import calibrate_refined_cached
 
     from tiltfit.cli import main as cli
@@ -57,13 +56,13 @@ def run_set(name: str, pitch_mm: float, n_views: int) -> dict:
             report.photometric_residual = plain
         report_s = time.perf_counter() - t0
         md = open(os.path.join(out, "report.md"), encoding="utf-8").read()
-        os.makedirs(FIGURES, exist_ok=True)
+        os.makedirs(figures_dir, exist_ok=True)
         figures = []
         for f in sorted(os.listdir(out)):
             m = re.fullmatch(r"photometric_residual_view_(\d+)\.png", f)
             if m:
-                figures.append(f"report_photometric_real/{name}_view_{m.group(1)}.png")
-                shutil.copy(os.path.join(out, f), os.path.join(ROOT, "benchmarks", "results", figures[-1]))
+                figures.append(f"{os.path.basename(figures_dir)}/{name}_view_{m.group(1)}.png")
+                shutil.copy(os.path.join(out, f), os.path.join(os.path.dirname(figures_dir), figures[-1]))
     section = md[md.index("## Photometric refinement"):md.index("## Real against rendered")]
     section = "\n".join(line for line in section.splitlines() if not line.startswith("!["))
     return {"set": name, "views": names, "calibrate_exit": status, "calibrate_s": calibrate_s,
@@ -75,7 +74,7 @@ def measure(args) -> dict:
     rows = []
     for name, pitch in SETS.items():
         print(f"set {name}", file=sys.stderr, flush=True)
-        rows.append(run_set(name, pitch, args.views))
+        rows.append(run_set(name, pitch, args.views, args.out))
     return {"command": f"python benchmarks/photometric/report_photometric_real.py --views {args.views}",
             "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "sets": rows}
 

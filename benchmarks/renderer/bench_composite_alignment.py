@@ -63,6 +63,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--views", type=int, default=3, help="views per set [3]")
     p.add_argument("--spp", type=int, default=16, help="samples per pixel [16, as the example]")
+    p.add_argument("--out", default=os.path.join(RESULTS, "composite_alignment"),
+                   help="output path without extension (.json and .md are written)")
     args = p.parse_args(argv)
 
     from tiltfit.report.composite import board_alignment
@@ -95,8 +97,8 @@ def main(argv=None) -> int:
     summary = {name: {key: float(np.median([r[key] for r in rows if r["set"] == name]))
                       for key in ("ratio", "rendered_vs_projection_px", "rendered_vs_opencv_px",
                                   "projection_vs_opencv_px", "seconds")} for name in SETS}
-    os.makedirs(RESULTS, exist_ok=True)
-    with open(os.path.join(RESULTS, "composite_alignment.json"), "w", encoding="utf-8") as f:
+    os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
+    with open(args.out + ".json", "w", encoding="utf-8") as f:
         json.dump({"spp": args.spp, "rows": rows, "median": summary}, f, indent=1)
     lines = ["# The board rendered through a calibration against the photos (examples/composite.py's check)", "",
              f"`python benchmarks/renderer/bench_composite_alignment.py --views {args.views} --spp {args.spp}`: each set "
@@ -114,7 +116,7 @@ def main(argv=None) -> int:
     for name, m in summary.items():
         lines.append(f"- {name}: ratio {m['ratio']:.3f}, {m['rendered_vs_projection_px']:.3f} px, "
                      f"{m['rendered_vs_opencv_px']:.3f} px, {m['projection_vs_opencv_px']:.1e} px, {m['seconds']:.1f} s")
-    with open(os.path.join(RESULTS, "composite_alignment.md"), "w", encoding="utf-8") as f:
+    with open(args.out + ".md", "w", encoding="utf-8") as f:
         f.write("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0

@@ -5,7 +5,7 @@
 `intersector="auto"`, where `auto_engine` finds that this engine answers the render exactly as asked
 (else our own tracer answers, without a word). The scene's shapes are
 built once per scene as a Mitsuba scene in a JIT variant (`llvm_ad_rgb`, shapes mapped by
-`renderer.mitsuba.export.shape_dicts`) and cached; each batch of rays goes to Dr.Jit as zero-copy views of the
+`renderer.mitsuba.shapes.shape_dicts`) and cached; each batch of rays goes to Dr.Jit as zero-copy views of the
 torch rows (DLPack), Mitsuba's `ray_intersect_preliminary` / `ray_test` run in one fused kernel with the
 look-ups below, and the results come back as zero-copy torch views.
 
@@ -38,7 +38,8 @@ import numpy as np
 import torch
 
 from camio.interrupts import held
-from .export import load_mitsuba, shape_dicts
+from .shapes import shape_dicts
+from .variants import load_mitsuba
 
 # Shape types with an exact Mitsuba counterpart (see the module docstring).
 EXACT = {"sphere", "rectangle", "box", "cylinder", "polyhedron", "mesh", "plane"}
@@ -75,7 +76,7 @@ class MitsubaIntersector:
     Args:
         scene: the renderer scene; objects without an exact Mitsuba counterpart (`EXACT`) are traced by
             their own torch code (`fallback`, their indices).
-        variant: a Mitsuba JIT variant that runs here (see `export.jit_variant_runs`).
+        variant: a Mitsuba JIT variant that runs here (see `variants.jit_variant_runs`).
     Raises:
         NotImplementedError: no JIT variant runs here (one line).
     """
@@ -205,7 +206,7 @@ _LLVM: list = []  # [whether Mitsuba's LLVM variant loads here], probed once per
 
 def llvm_available() -> bool:
     """Whether Mitsuba imports and its LLVM variant (`DEFAULT_VARIANT`) runs here; probed once per process
-    (`export.jit_variant_runs` tries a kernel in a child process), any failure meaning no."""
+    (`variants.jit_variant_runs` tries a kernel in a child process), any failure meaning no."""
     if not _LLVM:
         # A Ctrl-C is held over the import and the probe: one inside the extension's import came back as an
         # ImportError, read here as "no Mitsuba", and the render went on (camio.interrupts).

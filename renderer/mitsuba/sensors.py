@@ -77,7 +77,9 @@ def undistort(dr, k, xd, yd):
     return x, y, ok
 
 
-def _classes(mi):
+def _sensor_base(mi):
+    """The base class of our sensor plugins for Mitsuba's current variant: film position to a screen point
+    (through the inverse lens distortion) and the ray to the world; subclasses give `camera_ray`."""
     import drjit as dr
 
     class _OurSensor(mi.Sensor):
@@ -124,6 +126,13 @@ def _classes(mi):
 
         def bbox(self):
             return mi.ScalarBoundingBox3f()
+
+    return _OurSensor
+
+
+def _classes(mi):
+    """{plugin name: sensor class} of our cameras for Mitsuba's current variant."""
+    _OurSensor = _sensor_base(mi)
 
     class TiltedThinLens(_OurSensor):
         """renderer/cameras/thin_lens.py: every ray of a pixel leaves the tilted lens disc at S and has the

@@ -217,7 +217,7 @@ def _worker_render(digest, blob, pixel, n, spp, sampler, seed, options, dtype, m
         _WORKER_SCENE[digest] = pickle.loads(blob)
     scene = _WORKER_SCENE[digest]
     if options.intersector == "mitsuba":  # one Dr.Jit thread per worker, as one torch thread
-        from renderer.mitsuba.export import variant_runs
+        from renderer.mitsuba.variants import variant_runs
         from renderer.mitsuba.intersect import DEFAULT_VARIANT, set_jit_threads
 
         if jit_runs:

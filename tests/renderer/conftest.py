@@ -29,7 +29,7 @@ def restore_mitsuba_variant():
     mi = sys.modules.get("mitsuba")
     if mi is None:
         return
-    from renderer.mitsuba.export import DEFAULT_VARIANT, load_mitsuba
+    from renderer.mitsuba.variants import DEFAULT_VARIANT, load_mitsuba
 
     if mi.variant() != DEFAULT_VARIANT:
         load_mitsuba(DEFAULT_VARIANT)

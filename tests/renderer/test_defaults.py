@@ -41,7 +41,7 @@ CFG = {
 
 def _llvm_runs() -> bool:
     try:
-        from renderer.mitsuba.export import jit_variant_runs
+        from renderer.mitsuba.variants import jit_variant_runs
 
         return jit_variant_runs("llvm_ad_rgb")
     except ImportError:
@@ -64,20 +64,20 @@ def fresh_process_variant(monkeypatch):
 def test_hiding_the_jit_variants_makes_auto_use_our_tracer(monkeypatch):
     """RENDERER_HIDE_MITSUBA_JIT (how CI runs the suite a second time, as on a machine without libLLVM >= 16)
     hides the llvm variant from the probe, so auto traces with our own code; unset, the probe answers again."""
-    from renderer.mitsuba import export
+    from renderer.mitsuba import variants
 
     pytest.importorskip("mitsuba")  # imported before fresh_process_variant, so the probe cannot set a variant
-    monkeypatch.setattr(export, "_LLVM_RUNS", {})
-    monkeypatch.setenv(export.HIDE_JIT_ENV, "1")
-    assert not export.jit_variant_runs("llvm_ad_rgb"), "a hidden llvm variant should not run"
-    assert export.jit_variant_runs("scalar_rgb"), "scalar variants are never hidden"
+    monkeypatch.setattr(variants, "_LLVM_RUNS", {})
+    monkeypatch.setenv(variants.HIDE_JIT_ENV, "1")
+    assert not variants.jit_variant_runs("llvm_ad_rgb"), "a hidden llvm variant should not run"
+    assert variants.jit_variant_runs("scalar_rgb"), "scalar variants are never hidden"
     monkeypatch.setattr(mi_intersect, "_LLVM", [])
     fresh_process_variant(monkeypatch)
     scene = load_scene(CFG)
     assert mi_intersect.auto_engine(scene, "cpu", torch.float32) is None, "auto should not take Embree when hidden"
     assert mi_intersect._LLVM == [False], f"the probe should say no: {mi_intersect._LLVM}"
-    monkeypatch.setenv(export.HIDE_JIT_ENV, "0")
-    assert not export.jit_hidden(), "0 should mean not hidden"
+    monkeypatch.setenv(variants.HIDE_JIT_ENV, "0")
+    assert not variants.jit_hidden(), "0 should mean not hidden"
 
 
 @pytest.mark.parametrize("failure", ["not installed", "scalar only"])

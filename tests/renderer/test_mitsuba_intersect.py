@@ -10,7 +10,7 @@
 - Shapes without an exact counterpart (cone, CSG) are traced by their own torch code and merged by distance
   (in every test scene); layers' object masks are answered by our own tracer.
 
-Skipped where Mitsuba is missing or its `llvm_ad_rgb` variant cannot run (renderer.mitsuba.export's probe).
+Skipped where Mitsuba is missing or its `llvm_ad_rgb` variant cannot run (renderer.mitsuba.variants' probe).
 """
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ import pytest
 import torch
 
 pytest.importorskip("mitsuba")
-from renderer.mitsuba.export import jit_variant_runs  # noqa: E402
+from renderer.mitsuba.variants import jit_variant_runs  # noqa: E402
 
 if not jit_variant_runs("llvm_ad_rgb"):
     pytest.skip("mitsuba's llvm_ad_rgb variant does not run here (needs LLVM >= 16)", allow_module_level=True)

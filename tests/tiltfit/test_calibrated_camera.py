@@ -260,7 +260,8 @@ def test_mitsuba_renders_the_calibrated_camera_as_ours(capture, centre, tmp_path
     image on scalar_rgb, whose Python sensor is slow). `lens_axis`: the same calibration with a lens tilted by
     8° about an axis at 30° and its distortion about the lens axis (OpenCV's tilted model)."""
     mi = pytest.importorskip("mitsuba")
-    from renderer.mitsuba.export import DEFAULT_VARIANT, develop, jit_variant_runs, load_mitsuba, to_mitsuba
+    from renderer.mitsuba.export import develop, to_mitsuba
+    from renderer.mitsuba.variants import DEFAULT_VARIANT, jit_variant_runs, load_mitsuba
 
     _, _, _, folder, data = capture
     if centre == "lens_axis":

@@ -166,10 +166,10 @@ def _add_background(radiance, found, background, pix, thr):
 
 
 class _Surfaces(NamedTuple):
-    """The hit points of one bounce, one row each: point, incoming unit direction and normal facing it
-    (n, 3), whether the ray enters the surface (n,), albedo (n, 3) and object id (n,)."""
+    """The hit points of one bounce, one row each (world frame): point, incoming unit direction and normal
+    facing it (n, 3), whether the ray enters the surface (n,), albedo (n, 3) and object id (n,)."""
     p: torch.Tensor
-    d: torch.Tensor
+    direction: torch.Tensor
     n_f: torch.Tensor
     entering: torch.Tensor
     albedo: torch.Tensor
@@ -290,7 +290,7 @@ def trace(scene: Scene, o: torch.Tensor, d: torch.Tensor, first_hit_objects: lis
         thr = None if thr is None else thr.index_select(0, hits)
         if not bounces:
             s = surfaces
-            local = direct_light(scene, s.p, s.n_f, s.d, s.albedo, table, s.obj, options=options,
+            local = direct_light(scene, s.p, s.n_f, s.direction, s.albedo, table, s.obj, options=options,
                                  outside=s.entering)[:hits.shape[0]]
             radiance.index_add_(0, pix, local if thr is None else thr * local)
             break

@@ -118,6 +118,80 @@ class LMResult:
                        normal=normal_equations(J, self.weights))
 
 
+@dataclass(frozen=True)
+class _Problem:
+    """The residual function of `levenberg_marquardt` on the flat parameter vector (`layout`'s order), and the
+    robust cost of its residuals."""
+    evaluate: Callable
+    layout: Layout
+    rho: Callable
+
+    def cost(self, r: torch.Tensor) -> float:
+        """½ Σ ρ(r²)."""
+        return 0.5 * float(self.rho(r * r).sum())
+
+    def linearise(self, v: torch.Tensor):
+        """Residuals (M,) and their `blocks.BlockJacobian` at the flat parameters v."""
+        r_v, jac = self.evaluate(self.layout.unflatten(v), True)
+        return r_v.detach(), self.layout.jacobian(jac)
+
+    def residuals(self, v: torch.Tensor) -> torch.Tensor:
+        """Residuals (M,) at the flat parameters v, without the Jacobian."""
+        return self.evaluate(self.layout.unflatten(v), False)[0].detach()
+
+
+@dataclass(frozen=True)
+class _Trial:
+    """An accepted damped step: the step (P,), the residuals there (M,), their Jacobian (None where only the
+    residuals were evaluated), the cost there, the decrease the quadratic model predicted, and the gain ratio."""
+    step: torch.Tensor
+    r: torch.Tensor
+    J: object
+    cost: float
+    predicted: float
+    gain: float
+
+
+def _decrement(ne, g: torch.Tensor, scaling: torch.Tensor) -> float:
+    """The Gauss–Newton decrement ½ gᵀ (JᵀWJ + εD)⁻¹ g (ε = `DECREMENT_DAMPING`); inf where the solve fails."""
+    try:
+        decrement = 0.5 * float(g @ ne.solve(DECREMENT_DAMPING * scaling, g))
+    except RuntimeError:
+        return math.inf
+    return decrement if math.isfinite(decrement) else math.inf
+
+
+def _damped_step(problem: _Problem, x, cost: float, ne, g, scaling, lam: float, nu: float):
+    """One iteration's trials: solve (JᵀWJ + λD) δ = −g and raise λ (λ ← λν, ν ← 2ν) until the gain ratio is
+    positive. Returns (the accepted `_Trial`, or None where λ passed `MAX_DAMPING`; λ; ν)."""
+    first_trial = True
+    while True:
+        try:
+            step = -ne.solve(lam * scaling, g)
+        except RuntimeError:
+            step = torch.full_like(g, math.nan)
+        ok = bool(torch.isfinite(step).all())
+        # The first trial of an iteration gets its Jacobian with its residuals (one call costs less than
+        # residuals now and the Jacobian after, and most first trials are accepted); later ones, after a
+        # rejection, residuals only.
+        if not ok:
+            r_new, J_new = None, None
+        elif first_trial:
+            r_new, J_new = problem.linearise(x + step)
+        else:
+            r_new, J_new = problem.residuals(x + step), None
+        first_trial = False
+        cost_new = problem.cost(r_new) if ok and torch.isfinite(r_new).all() else math.inf
+        predicted = float(-(g @ step) - 0.5 * step @ ne.matvec(step)) if ok else 0.0
+        gain = (cost - cost_new) / predicted if predicted > 0 else -1.0
+        if gain > 0:
+            return _Trial(step, r_new, J_new, cost_new, predicted, gain), lam, nu
+        lam *= nu
+        nu *= 2.0
+        if lam > MAX_DAMPING:
+            return None, lam, nu
+
+
 def levenberg_marquardt(evaluate, x0: dict, blocks, view_rows: torch.Tensor | None = None,
                         options: LMOptions = LMOptions()) -> LMResult:
     """Minimise ½ Σ ρ(r_i(x)²) over the named blocks (module docstring).
@@ -134,21 +208,13 @@ def levenberg_marquardt(evaluate, x0: dict, blocks, view_rows: torch.Tensor | No
         SolverError: non-finite residuals at the start, or no convergence within `options.max_iterations`.
     """
     layout = Layout(blocks, view_rows)
-    rho = options.rho or (lambda s2: s2)
+    problem = _Problem(evaluate, layout, options.rho or (lambda s2: s2))
     weight = options.weight or torch.ones_like
-
-    def cost_of(res: torch.Tensor) -> float:
-        return 0.5 * float(rho(res * res).sum())
-
-    def linearise(v: torch.Tensor):
-        r_v, jac = evaluate(layout.unflatten(v), True)
-        return r_v.detach(), layout.jacobian(jac)
-
     x = layout.flatten(x0).detach().clone()
-    r, J = linearise(x)
+    r, J = problem.linearise(x)
     if not torch.isfinite(r).all():
         raise SolverError("the model is undefined at the starting point (a point behind the camera?)")
-    cost = cost_of(r)
+    cost = problem.cost(r)
     wts = weight(r * r)
     lam, nu, scaling = INITIAL_DAMPING, 2.0, None
 
@@ -161,51 +227,23 @@ def levenberg_marquardt(evaluate, x0: dict, blocks, view_rows: torch.Tensor | No
         g = ne.gradient(r)
         d = ne.diag().clamp(min=1e-300)
         scaling = d if scaling is None else torch.maximum(scaling, d)
-        try:
-            decrement = 0.5 * float(g @ ne.solve(DECREMENT_DAMPING * scaling, g))
-            if not math.isfinite(decrement):
-                decrement = math.inf
-        except RuntimeError:
-            decrement = math.inf
+        decrement = _decrement(ne, g, scaling)
         if decrement < max(options.decrement_tol, options.ftol * cost):
             return done(it, "decrement", ne)
         if it == options.max_iterations:
             break
-        first_trial = True
-        while True:
-            try:
-                step = -ne.solve(lam * scaling, g)
-            except RuntimeError:
-                step = torch.full_like(g, math.nan)
-            ok = bool(torch.isfinite(step).all())
-            # The first trial of an iteration gets its Jacobian with its residuals (one call costs less than
-            # residuals now and the Jacobian after, and most first trials are accepted); later ones, after a
-            # rejection, residuals only.
-            if not ok:
-                r_new, J_new = None, None
-            elif first_trial:
-                r_new, J_new = linearise(x + step)
-            else:
-                r_new, J_new = evaluate(layout.unflatten(x + step), False)[0].detach(), None
-            first_trial = False
-            cost_new = cost_of(r_new) if ok and torch.isfinite(r_new).all() else math.inf
-            predicted = float(-(g @ step) - 0.5 * step @ ne.matvec(step)) if ok else 0.0
-            gain = (cost - cost_new) / predicted if predicted > 0 else -1.0
-            if gain > 0:
-                break
-            lam *= nu
-            nu *= 2.0
-            if lam > MAX_DAMPING:
-                return done(it, "stationary", ne)
-        small_decrease = cost - cost_new <= options.ftol * cost and predicted <= options.ftol * cost
-        x = x + step
-        lam *= max(DAMPING_DECREASE_FLOOR, 1.0 - (2.0 * gain - 1.0) ** 3)
+        trial, lam, nu = _damped_step(problem, x, cost, ne, g, scaling, lam, nu)
+        if trial is None:
+            return done(it, "stationary", ne)
+        small_decrease = cost - trial.cost <= options.ftol * cost and trial.predicted <= options.ftol * cost
+        x = x + trial.step
+        lam *= max(DAMPING_DECREASE_FLOOR, 1.0 - (2.0 * trial.gain - 1.0) ** 3)
         nu = 2.0
-        r, J, cost = (r_new, J_new, cost_new) if J_new is not None else (*linearise(x), cost_new)
+        r, J, cost = (trial.r, trial.J, trial.cost) if trial.J is not None else (*problem.linearise(x), trial.cost)
         wts = weight(r * r)
         if small_decrease:
             return done(it + 1, "ftol", normal_equations(J, wts))
-        if float(step.abs().max()) <= options.xtol * (float(x.abs().max()) + options.xtol):
+        if float(trial.step.abs().max()) <= options.xtol * (float(x.abs().max()) + options.xtol):
             return done(it + 1, "xtol", normal_equations(J, wts))
     raise SolverError(f"the fit did not converge in {options.max_iterations} iterations (cost {cost:.6g}, "
                       f"still decreasing by about {decrement:.3g})")

@@ -1,5 +1,5 @@
 """Import graphs of the project's packages, read from the source with `ast` (nothing is imported), for the
-layer tests (tests/tiltfit/test_layers.py, tests/renderer/test_package_layers.py).
+layer tests (tests/tiltfit/test_package_layers.py, tests/renderer/test_package_layers.py).
 
 Every import statement counts, at module level or inside a function (a function-level import that only hides
 a cycle is still a cycle). Modules are named by their dotted path; a package's __init__ by the package name.

@@ -1,6 +1,6 @@
 """Tilt-lens calibration from photographs of a checkerboard: corners, blur widths, a camera model, fits.
 
-Folders, one concept each (bottom to top; `tests/tiltfit/test_layers.py` checks the layers and that nothing forms
+Folders, one concept each (bottom to top; `tests/tiltfit/test_package_layers.py` checks the layers and that nothing forms
 an import cycle; docs/architecture.md walks a photo through them):
 - `target/`: the board (`layout`) and the printed board's fitted shape (`shape`);
 - `detect/`: corners (chessboard, ChArUco, OpenCV's as a peer) and blur widths in an image;

@@ -10,13 +10,14 @@ import re
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import torch
 
 from renderer import write_image
 from tiltfit.files.calib import REQUIRED_KEYS, SIGMA_KEYS, VIEW_KEYS, camera_from_calib, read_calib
 from tiltfit.cli.main import main
-from tiltfit.calibrate.model import PAPER_LENS, PAPER_SENSOR, TiltLensCamera, random_poses, synthesize_observations
+from tiltfit.calibrate.model import PAPER_LENS, PAPER_SENSOR, LensCamera, random_poses, synthesize_observations
 from tiltfit.target.layout import Target
 
 W_MM, U_MM, D_MM = PAPER_LENS["w_mm"], PAPER_LENS["U_mm"], PAPER_LENS["d_mm"]
@@ -45,9 +46,9 @@ def write_detections(folder, camera, prefix, seed):
 def views(n, seed, theta_L_deg=0.0):
     rvec, T = random_poses(n, seed, board_centre_mm=(112.5, 75.0))
     if theta_L_deg:
-        return TiltLensCamera.from_tilted_lens(n, **PAPER_SENSOR, w_mm=W_MM, f_mm=F_MM, d_mm=D_MM,
+        return LensCamera.from_tilted_lens(n, **PAPER_SENSOR, w_mm=W_MM, f_mm=F_MM, d_mm=D_MM,
                                                theta_L=math.radians(theta_L_deg), rvec=rvec, T_mm=T)
-    return TiltLensCamera(n, **PAPER_SENSOR, **PAPER_LENS, rvec=rvec, T_mm=T)
+    return LensCamera(n, **PAPER_SENSOR, **PAPER_LENS, rvec=rvec, T_mm=T)
 
 
 @pytest.fixture(scope="module")
@@ -322,3 +323,25 @@ def test_training_example_runs_and_resumes(tmp_path):
     again = subprocess.run([sys.executable, example, "--config", str(config), "--out", str(tmp_path), "--resume"],
                            capture_output=True, text=True, env=env)
     assert again.returncode == 0 and "resumed from" in again.stderr, again.stderr
+
+
+def test_truncated_png_detect_exit_2_one_line_no_output(tmp_path):
+    img = np.full((240, 360, 3), 0.5, dtype=np.float32)
+    img[::20] = 0.05
+    png = tmp_path / "board.png"
+    write_image(str(png), img)
+    data = png.read_bytes()
+    png.write_bytes(data[: len(data) // 2])
+    tjson = tmp_path / "target.json"
+    TARGET.save(str(tjson))  # a file that cannot be read: exit status 2, one line on stderr, no output file
+    out = tmp_path / "det.json"
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (os.getcwd(), os.environ.get("PYTHONPATH")) if p))
+    proc = subprocess.run([sys.executable, "-m", "tiltfit", "detect", str(png), "--target", str(tjson), "-o", str(out)],
+                          capture_output=True, text=True, timeout=60, env=env,
+                          cwd=os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+    assert proc.returncode == 2, (proc.returncode, proc.stderr)
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith("tiltfit: ") and "board.png" in lines[0], lines[0]
+    assert not out.exists()
+    assert not [f for f in os.listdir(tmp_path) if f.startswith(".tiltfit-")]

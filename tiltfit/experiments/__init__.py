@@ -1,4 +1,4 @@
-"""Experiments built on the tiltfit library (the library never imports them; `tests/tiltfit/test_layers.py`):
+"""Experiments built on the tiltfit library (the library never imports them; `tests/tiltfit/test_package_layers.py`):
 
 - `reproduce`: the tilt-lens paper's experiment end to end on a simulated camera (`tiltfit reproduce`), with
   `scenes` (its boxes scene and camera);

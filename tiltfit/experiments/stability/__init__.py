@@ -34,7 +34,7 @@ a few minutes. Progress goes to stderr, the findings to stdout.
 Layout: `common` (StabilityConfig, the simulated lens, the Study record), `closed_forms` (the predictions),
 one module per study (`detectors`, `two_stage`, `coverage`, `singular`, `gamma_noise`, each with its
 `study_*` function), and this module: the run, the output files and the command line (also
-`python -m tiltfit.experiments.stability`). An experiment built on the library (see tests/tiltfit/test_layers.py).
+`python -m tiltfit.experiments.stability`). An experiment built on the library (see tests/tiltfit/test_package_layers.py).
 """
 from __future__ import annotations
 

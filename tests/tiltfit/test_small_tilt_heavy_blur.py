@@ -1,25 +1,18 @@
-"""Hard cases: a small (1°) lens tilt, heavy blur (aperture twice the paper's), and a truncated image file.
-
-Each asserts what the code does: a calibration that succeeds must put the truth within 3σ of its own
-reported σ (and its model-selection verdict must agree with that σ); a file that cannot be read gives
-`tiltfit detect` exit status 2, one line on stderr and no output file.
+"""A small (1°) lens tilt and heavy blur (aperture twice the paper's): a calibration that succeeds must put the
+truth within 3σ of its own reported σ, and its model-selection verdict must agree with that σ.
 """
 import math
-import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 import torch
 
-from renderer import write_image
 from renderer.cameras import optics
 from tiltfit.experiments import synth
 from tiltfit.experiments import reproduce
 from tiltfit.calibrate.fit import FitOptions
 from tiltfit.calibrate.flow import calibrate
-from tiltfit.calibrate.model import Observations, TiltLensCamera, synthesize_observations
+from tiltfit.calibrate.model import Observations, LensCamera, synthesize_observations
 
 W_MM, U0_MM, D_MM = 55.39, 618.4, 18.81
 F_MM = float(optics.focal_length(W_MM, U0_MM))
@@ -34,7 +27,7 @@ def observations(theta_L_deg: float, d_mm: float, seed: int):
     (about what tiltfit.detect.chessboard achieves on 1368 × 912 noisy 8-bit images)."""
     R = torch.tensor(np.stack([p[0] for p in POSES]))
     T = torch.tensor(np.stack([p[1] for p in POSES]))
-    truth = TiltLensCamera.from_tilted_lens(len(POSES), SIZE, PITCH, W_MM, F_MM, d_mm, math.radians(theta_L_deg),
+    truth = LensCamera.from_tilted_lens(len(POSES), SIZE, PITCH, W_MM, F_MM, d_mm, math.radians(theta_L_deg),
                                             R=R, T_mm=T, blur_model="ellipse")
     obs = synthesize_observations(truth, torch.as_tensor(TARGET.feature_points()), noise_px=0.05,
                                   noise_blur_px=0.05, noise_blur_rel=0.02, seed=seed)
@@ -84,25 +77,3 @@ def test_heavy_blur_rendered_images_calibrate_stage1():
     for key, true in (("w_mm", cam.w), ("U_mm", cam.U), ("d_mm", D_HEAVY_MM)):
         assert 0 < res.sigma[key] and abs(res.values[key] - true) < 3 * res.sigma[key], (key, res.values[key],
                                                                                           res.sigma[key], true)
-
-
-def test_truncated_png_detect_exit_2_one_line_no_output(tmp_path):
-    img = np.full((240, 360, 3), 0.5, dtype=np.float32)
-    img[::20] = 0.05
-    png = tmp_path / "board.png"
-    write_image(str(png), img)
-    data = png.read_bytes()
-    png.write_bytes(data[: len(data) // 2])
-    tjson = tmp_path / "target.json"
-    TARGET.save(str(tjson))
-    out = tmp_path / "det.json"
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (os.getcwd(), os.environ.get("PYTHONPATH")) if p))
-    proc = subprocess.run([sys.executable, "-m", "tiltfit", "detect", str(png), "--target", str(tjson), "-o", str(out)],
-                          capture_output=True, text=True, timeout=60, env=env,
-                          cwd=os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
-    assert proc.returncode == 2, (proc.returncode, proc.stderr)
-    lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1, proc.stderr
-    assert lines[0].startswith("tiltfit: ") and "board.png" in lines[0], lines[0]
-    assert not out.exists()
-    assert not [f for f in os.listdir(tmp_path) if f.startswith(".tiltfit-")]

@@ -14,7 +14,7 @@ from tiltfit.experiments.charuco_views import (BOARD, CAMERA, FULL, PARTIAL, TAR
 from tiltfit.calibrate.fit import FitOptions
 from tiltfit.calibrate.model import Observations
 from tiltfit.calibrate.photos import fit_with_held_out
-from tiltfit.experiments.synth import render_view, renderer_available
+from tiltfit.experiments.synth import render_view
 from tiltfit.target.layout import CharucoTarget, Target, TargetError, rasterise, target_from_dict
 
 
@@ -163,8 +163,6 @@ def test_detect_board_dispatches_on_the_target_type(blurred_partial_views):
 @pytest.fixture(scope="module")
 def ray_traced():
     """Ray-traced views (the renderer's thin-lens camera, the board as a textured rectangle): partial and full."""
-    if not renderer_available():
-        pytest.skip("renderer has no thin_lens camera / rectangle shape")
     cam = CAMERA.with_(U=420.0, d=0.8)
     out = {}
     for kind, views in (("partial", PARTIAL[:5]), ("full", FULL[:3])):
@@ -215,8 +213,6 @@ def test_ray_traced_half_square_blur_within_005_px():
     """A generator other than the model's: the ray tracer's thin lens (aperture 24 mm, blur ~half a square, varying
     over the view), 256 spp, 8-bit, a view of a third of the board. Right ids, every corner within 0.05 px, and
     the RMS error at the noise's floor (the model fit's Cramér–Rao bound at the truth), two-sided: 0.5–2×."""
-    if not renderer_available():
-        pytest.skip("renderer has no thin_lens camera / rectangle shape")
     from tiltfit.detect.chessboard import to_gray
 
     R, T = pose(PARTIAL[1])

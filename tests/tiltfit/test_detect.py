@@ -208,10 +208,6 @@ def test_analytic_rendering_equals_brute_force_disc_convolution():
 @pytest.mark.slow
 def test_ray_tracer_agrees_with_the_analytic_rendering():
     """The renderer's thin-lens camera and textured rectangle show the same image (within Monte Carlo noise)."""
-    from tiltfit.experiments.synth import renderer_available
-
-    if not renderer_available():
-        pytest.skip("renderer has no thin_lens camera / rectangle shape")
     cam = PAPER_CAMERA.binned(16)
     R, T = look_at_pose(TARGET, (40.0, -30.0, -650.0), roll_deg=10.0)
     cam = with_blur_ratio(cam, TARGET, R, T, 0.2, U_mm=400.0)

@@ -323,16 +323,6 @@ def _pixels_value(flat_idx, W, sub, radius, c_lo, r_lo, kc, kr, near_outer, insi
 
 
 # --- the ray tracer ----------------------------------------------------------------------------------------
-def renderer_available() -> bool:
-    """Whether the renderer has the `thin_lens` camera and the `rectangle` shape this module needs."""
-    try:
-        from renderer.cameras import CAMERAS
-        from renderer.shapes import SHAPES
-    except ImportError:
-        return False
-    return "thin_lens" in CAMERAS and "rectangle" in SHAPES
-
-
 def renderer_scene(target: Target, camera: Lens, R, T, texture_file: str, spp: int = 64) -> dict:
     """The scene dict (contract's scene-file format) showing the target as `render_analytic` does.
 
@@ -366,8 +356,6 @@ def render_with_renderer(target: Target, camera: Lens, R, T, dark: float, white:
     The renderer looks textures up by nearest texel, so edges are placed to 1/px_per_mm mm; its Monte Carlo
     noise falls as 1/sqrt(spp). A cross-check of `render_analytic`, not a substitute for its precision.
     """
-    if not renderer_available():
-        raise RuntimeError("the renderer has no thin_lens camera or rectangle shape; use method='analytic'")
     import os
     import tempfile
 

@@ -1,9 +1,11 @@
-"""Image and plane-geometry helpers shared by corner detection (`tiltfit.detect.chessboard`) and blur measurement
-(`tiltfit.detect.blur`): the 2×2 box pyramid and its pixel mapping, the normalised-DLT homography, and a guard that
-runs small-tensor work on one torch thread.
+"""Image and plane-geometry helpers shared by corner detection (`tiltfit.detect.chessboard` and its stages) and
+blur measurement (`tiltfit.detect.blur`): the 2×2 box pyramid and its pixel mapping, the normalised-DLT homography,
+a guard that runs small-tensor work on one torch thread, the grey image of a photo (`to_gray`), its noise
+(`estimate_noise`) and bilinear samples (`_bilinear`).
 
-Library layer, bottom: imports neither `detect` nor `blur`, so both import it and the dependency runs one way
-(detect -> blur -> imaging). Pixel coordinates: x = column, y = row, (0, 0) the centre of the top-left pixel.
+Library layer, bottom: imports only `tiltfit.detect.detection` (for DetectionError), so the detector's stages and
+`blur` import it and the dependency runs one way (chessboard -> blur -> imaging). Pixel coordinates: x = column,
+y = row, (0, 0) the centre of the top-left pixel.
 """
 from __future__ import annotations
 
@@ -11,6 +13,8 @@ import math
 
 import numpy as np
 import torch
+
+from tiltfit.detect.detection import DetectionError
 
 
 class torch_threads:
@@ -109,3 +113,39 @@ def apply_homography(Hm: np.ndarray, p: np.ndarray) -> np.ndarray:
     """(N, 2) points mapped by the (3, 3) homography Hm (with the perspective division)."""
     q = np.c_[p, np.ones(len(p))] @ Hm.T
     return q[:, :2] / q[:, 2:]
+
+
+# --- grey images ------------------------------------------------------------------------------------------
+def to_gray(image) -> np.ndarray:
+    """(H, W) float32 grey image from a (H, W) or (H, W, C) linear image (mean of the colour channels)."""
+    img = np.asarray(image.detach().cpu() if hasattr(image, "detach") else image)
+    if img.ndim == 3:
+        img = ((img[..., 0] + img[..., 1] + img[..., 2]) * np.float32(1 / 3)) if img.shape[-1] >= 3 else img[..., 0]
+    if img.ndim != 2:
+        raise DetectionError(f"image: expected (H, W) or (H, W, C), got shape {img.shape}")
+    return np.ascontiguousarray(img, dtype=np.float32)
+
+
+def estimate_noise(img: np.ndarray) -> float:
+    """Robust standard deviation of the pixel noise, from second differences (blind to smooth gradients).
+
+    MAD of I[x−1] − 2 I[x] + I[x+1] along rows and columns (variance 6σ² for white noise); floored at 1e-4
+    of the image's range, so noise-free synthetic images keep a finite threshold.
+    """
+    sub = img[::2, ::2] if img.size > 4_000_000 else img
+    d = np.concatenate([(sub[:, :-2] - 2 * sub[:, 1:-1] + sub[:, 2:])[::2, ::2].ravel(),
+                        (sub[:-2] - 2 * sub[1:-1] + sub[2:])[::2, ::2].ravel()])
+    mad = float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(6.0))
+    lo, hi = np.percentile(sub[::4, ::4], [1, 99])
+    return max(mad, 1e-4 * float(hi - lo), 1e-6)
+
+
+def _bilinear(img: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Bilinear samples of a 2-D image at (..., 2) positions (x, y), clamped to the image."""
+    h, w = img.shape
+    x = np.clip(xy[..., 0], 0, w - 1.001)
+    y = np.clip(xy[..., 1], 0, h - 1.001)
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    fx, fy = x - x0, y - y0
+    return ((1 - fy) * ((1 - fx) * img[y0, x0] + fx * img[y0, x0 + 1])
+            + fy * ((1 - fx) * img[y0 + 1, x0] + fx * img[y0 + 1, x0 + 1]))

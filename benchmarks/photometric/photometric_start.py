@@ -56,13 +56,14 @@ def calibrate_refined_cached(name: str, pitch_mm: float, n_views: int, out: str)
     exit status, wall seconds)."""
     from tests.real_detections import read_cache
 
+    from tiltfit.cli import detect as cli_detect
     from tiltfit.cli import main as cli
 
     folder = os.path.join(ROOT, "data", "real", name)
     cache = read_cache(folder)
     names = [n for n in sorted(cache) if cache[n] and "no_board" not in cache[n]][:n_views]
     photos = [os.path.join(folder, n) for n in names]
-    detect = cli._detect_image
+    detect = cli_detect.detect_image
 
     def cached(path, target, encoding, keep=None):
         from renderer import read_image
@@ -73,10 +74,10 @@ def calibrate_refined_cached(name: str, pitch_mm: float, n_views: int, out: str)
 
     argv = ["calibrate", *photos, "--target", os.path.join(folder, "target.json"), "--pixel-pitch-mm", str(pitch_mm),
             "--refine", "photometric", "-o", out, "-q"]
-    cli._detect_image = cached
+    cli_detect.detect_image = cached
     t0 = time.perf_counter()
     try:
         status = cli.main(argv)
     finally:
-        cli._detect_image = detect
+        cli_detect.detect_image = detect
     return names, argv, status, time.perf_counter() - t0

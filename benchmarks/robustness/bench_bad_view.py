@@ -33,7 +33,7 @@ PITCH = {"industrial_ds1": 0.0048, "gopro_wide": 0.005}
 
 def low_contrast_view(folder: str, photo: str, contrast: float, target, bits: int = 16):
     """The DET dict of `photo` with its contrast scaled by `contrast` about mid-grey (`bits`-bit PNG)."""
-    from tiltfit.cli import main as cli
+    from tiltfit.cli.detect import detect_image
 
     grey = cv2.imread(photo, cv2.IMREAD_GRAYSCALE).astype(np.float64) / 255.0
     low = 0.5 + (grey - 0.5) * contrast
@@ -41,7 +41,7 @@ def low_contrast_view(folder: str, photo: str, contrast: float, target, bits: in
         path = os.path.join(tmp, "low_" + os.path.splitext(os.path.basename(photo))[0] + ".png")
         top, dtype = (65535, np.uint16) if bits == 16 else (255, np.uint8)
         cv2.imwrite(path, np.round(low * top).astype(dtype))
-        return cli._detect_image(path, target, None)
+        return detect_image(path, target, None)
 
 
 def calibrate_case(obs, repeats: int, screen: bool = True):

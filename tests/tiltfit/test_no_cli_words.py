@@ -1,8 +1,8 @@
 """Library messages speak in API terms: no "--flag" in the string constants of tiltfit's library modules.
 
 The library is called from Python as much as from the command line; a message such as "needs --distortion auto"
-means nothing to a caller of `calibrate(...)`. The command-line front ends (cli.py, target_cli.py, __main__.py)
-translate the library's names into options where needed (`tiltfit.cli.main._in_cli_terms`). Read from the source
+means nothing to a caller of `calibrate(...)`. The command-line front ends (tiltfit/cli/, __main__.py)
+translate the library's names into options where needed (`tiltfit.cli.errors.in_cli_terms`). Read from the source
 with `ast`: every string constant (f-string parts included) except docstrings, outside functions named `main`
 (a module's own command-line glue: its argparse options) and the places in ALLOWED.
 """
@@ -17,7 +17,8 @@ from import_graph import ROOT, modules  # noqa: E402
 #: A command-line option: two dashes and a letter, not inside a word (so "x--y" or "---" do not count).
 OPTION = re.compile(r"(?<![\w-])--[a-z]")
 #: The command-line front ends.
-FRONT_ENDS = ("tiltfit/cli/main.py", "tiltfit/cli/target.py", "tiltfit/__main__.py")
+FRONT_ENDS = tuple(f"tiltfit/cli/{name}.py" for name in (
+    "main", "parser", "errors", "detect", "calibrate", "photometric", "report", "export", "target")) + ("tiltfit/__main__.py",)
 #: (file, function) whose strings may name options, and why.
 ALLOWED = {
     ("tiltfit/files/formats.py", "calibration_reference"): "writes docs/file_formats.md, the page on the command line's files",
@@ -74,8 +75,8 @@ def test_library_messages_name_no_command_line_option():
 
 
 def test_the_command_line_translates_api_names_back():
-    from tiltfit.cli import main as cli
+    from tiltfit.cli.errors import in_cli_terms
 
     msg = "cam.yml: pixel_pitch_mm: not in the file; give it as the pixel_pitch_mm argument"
-    assert cli._in_cli_terms(msg) == "cam.yml: pixel_pitch_mm: not in the file; give it as --pixel-pitch-mm", \
-        f"the front end names the option: {cli._in_cli_terms(msg)!r}"
+    assert in_cli_terms(msg) == "cam.yml: pixel_pitch_mm: not in the file; give it as --pixel-pitch-mm", \
+        f"the front end names the option: {in_cli_terms(msg)!r}"

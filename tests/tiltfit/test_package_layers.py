@@ -34,7 +34,8 @@ from import_graph import modules as _modules  # noqa: E402
 #: Experiment modules (a package name covers its submodules).
 EXPERIMENTS = ("tiltfit.experiments",)
 #: Command-line front ends.
-FRONT_ENDS = ("tiltfit", "tiltfit.cli", "tiltfit.cli.main", "tiltfit.cli.target", "tiltfit.__main__")
+FRONT_ENDS = ("tiltfit", "tiltfit.cli", "tiltfit.__main__") + tuple(f"tiltfit.cli.{name}" for name in (
+    "main", "parser", "errors", "detect", "calibrate", "photometric", "report", "export", "target"))
 
 
 def test_find_cycle_finds_a_planted_cycle():

@@ -195,14 +195,15 @@ def _three_views(gopro_third):
 @pytest.mark.slow
 def test_real_gopro_subset_end_to_end(gopro_third, capsys):
     """The same subset through the function `tiltfit calibrate --refine photometric -q` runs
-    (`cli._refine_photometric`), on three of its views to stay small (GOPR0047, GOPR0053, GOPR0061; the corner
-    fit of all eleven): it finishes, GOPR0053.jpg is fitted (not left out), the block says `left_out: []`."""
-    from tiltfit.cli import main as cli
+    (`tiltfit.cli.photometric.refine_calibration`), on three of its views to stay small (GOPR0047, GOPR0053,
+    GOPR0061; the corner fit of all eleven): it finishes, GOPR0053.jpg is fitted (not left out), the block says
+    `left_out: []`."""
+    from tiltfit.cli.photometric import refine_calibration
 
     target, small, used, held_out = _three_views(gopro_third)
     assert {"U_mm", "d_mm"} <= set(small.undetermined), f"the GoPro's blur cannot tell U, d: {small.undetermined}"
     args = argparse.Namespace(psf="disc", encoding=None, inputs=small.views[0]["image"], quiet=True)
-    block = cli._refine_photometric(small, used, target, args, lambda line: None, held_out=held_out)
+    block = refine_calibration(small, used, target, args, lambda line: None, held_out=held_out)
     err = capsys.readouterr().err
     # U was held at the start's placeholder (not free), so U and d stay undetermined though the refinement is kept.
     assert block["kept"] == "photometric", f"the case this is about: the refinement kept ({block['rejected_because']})"
@@ -216,10 +217,10 @@ def test_real_gopro_subset_end_to_end(gopro_third, capsys):
 
 @pytest.mark.slow
 def test_command_line_path_records_a_left_out_view(gopro_third, capsys, monkeypatch):
-    """The same three views with GOPR0053.jpg's mask emptied (as the old guard did): `cli._refine_photometric`
-    under -q prints one note naming the photo and why, records it in the block's `left_out`, writes no levels
-    and no `rms_photometric` for it, and fits the other two."""
-    from tiltfit.cli import main as cli
+    """The same three views with GOPR0053.jpg's mask emptied (as the old guard did):
+    `tiltfit.cli.photometric.refine_calibration` under -q prints one note naming the photo and why, records it in
+    the block's `left_out`, writes no levels and no `rms_photometric` for it, and fits the other two."""
+    from tiltfit.cli.photometric import refine_calibration
     from tiltfit.photometric import refine
 
     target, small, used, held_out = _three_views(gopro_third)
@@ -232,7 +233,7 @@ def test_command_line_path_records_a_left_out_view(gopro_third, capsys, monkeypa
 
     monkeypatch.setattr(refine, "usable_pixels", second_view_empty)
     args = argparse.Namespace(psf="disc", encoding=None, inputs=small.views[0]["image"], quiet=True)
-    block = cli._refine_photometric(small, used, target, args, lambda line: None, held_out=held_out)
+    block = refine_calibration(small, used, target, args, lambda line: None, held_out=held_out)
     notes = [s for s in capsys.readouterr().err.splitlines() if "left out" in s]
     assert len(notes) == 1 and "GOPR0053.jpg" in notes[0] and "0 usable pixels" in notes[0], f"stderr {notes}"
     assert [(e["view"], os.path.basename(e["image"])) for e in block["left_out"]] == [(1, "GOPR0053.jpg")], \

@@ -109,9 +109,7 @@ def view_cluster_covariance(res, s2: float, modes: torch.Tensor | None = None, k
     L_inv = (Vs * mu.sqrt()[None, :]).T / Dg[None, :]
     S_inv = L @ L.T
     B = Jt @ L                                                          # H̃_vv = B Bᵀ
-    lam, Q = torch.linalg.eigh(B.transpose(1, 2) @ B)                   # (V, S), (V, S, S)
-    lam = lam.clamp(0.0, 1.0 - 1e-3)
-    U = B @ Q / lam.clamp_min(1e-30).sqrt()[:, None, :]                 # (V, R, S) eigenvectors of H̃_vv
+    U, lam = _leverage_eigen(B)                                         # eigenvectors of H̃_vv, clamped λ
     U = torch.where(lam[:, None, :] > 1e-12, U, torch.zeros_like(U))
     gain = (1.0 - lam) ** -0.5 - 1.0
     e = r + (U @ (gain[..., None] * (U.transpose(1, 2) @ r[..., None]))).squeeze(-1)
@@ -137,6 +135,21 @@ def view_cluster_covariance(res, s2: float, modes: torch.Tensor | None = None, k
         own = kappa * s2 * App_inv
     cov = SchurCovariance(C_g, own, Y, bj.s_idx, bj.p_idx, bj.n_params)
     return cov, info
+
+
+def _leverage_eigen(B: torch.Tensor):
+    """(U, λ) of each view's H̃_vv = B Bᵀ (B: (V, R, S)): λ its eigenvalues clamped to [0, 1 − 1e-3] and U the
+    matching eigenvectors scaled as B Q / √λ (Q the eigenvectors of Bᵀ B), so √(λ_raw / λ) above 1 where λ was
+    clamped. From the smaller Gram matrix: Bᵀ B (S × S) or, where a view has fewer rows than global
+    parameters (a free board: R = 2N rows, S ≈ 3N), B Bᵀ (R × R) itself, which has the same non-zero
+    eigenvalues."""
+    if B.shape[1] < B.shape[2]:
+        lam_raw, U = torch.linalg.eigh(B @ B.transpose(1, 2))              # (V, R), (V, R, R)
+        lam = lam_raw.clamp(0.0, 1.0 - 1e-3)
+        return U * (lam_raw.clamp_min(0.0) / lam.clamp_min(1e-30)).sqrt()[:, None, :], lam
+    lam_raw, Q = torch.linalg.eigh(B.transpose(1, 2) @ B)                  # (V, S), (V, S, S)
+    lam = lam_raw.clamp(0.0, 1.0 - 1e-3)
+    return B @ Q / lam.clamp_min(1e-30).sqrt()[:, None, :], lam
 
 
 def affine_modes(corners_px: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

@@ -143,6 +143,61 @@ def _local_homographies(target: Target, corners_px: np.ndarray, found: np.ndarra
     return {int(k): Hm for k, Hm in zip(ks, Hs) if np.isfinite(Hm).all()}
 
 
+# The four half-edges at a corner, in the order (horizontal, vertical) towards +, then towards −.
+_HORIZONTAL = np.array([True, False, True, False])
+_SIGN = np.array([1, 1, -1, -1])
+
+
+def _edge_cells(target: Target, j: np.ndarray, i: np.ndarray):
+    """Target-plane geometry of the four half-edges at the corners (j, i) (each (K, 1)), in the order of _HORIZONTAL:
+    (K, 4) the edge line's coordinate, the along-edge coordinates of its near and far ends, the parallel lines
+    that close the band before and after it, and (K, 4, 4) kappa, white (1) or dark (0), of the cells crossed.
+
+    A horizontal edge Y = ye[j+1] leaving the corner towards +X borders cell column i+1, towards −X column i.
+    """
+    horizontal, sgn = _HORIZONTAL, _SIGN
+    xe, ye = np.asarray(target.x_edges), np.asarray(target.y_edges)
+    value = np.where(horizontal, ye[j + 1], xe[i + 1])  # (K, 4) the edge line's coordinate
+    a_near = np.where(horizontal, xe[i + 1], ye[j + 1])
+    a_far = np.where(horizontal, xe[i + 1 + sgn], ye[j + 1 + sgn])
+    lane = np.where(horizontal, np.where(sgn > 0, i + 1, i), np.where(sgn > 0, j + 1, j))
+    idx = np.where(horizontal, j, i)  # the cell index across the edge just before it
+    far_lo = np.where(horizontal, ye[j], xe[i])  # the parallel edges before and after (always inside)
+    far_hi = np.where(horizontal, ye[j + 2], xe[i + 2])
+    cells = idx[..., None] + np.arange(-1, 3)  # (K, 4, 4) cells across the edge
+    dark = np.where(horizontal[:, None], target.is_dark(lane[..., None], cells), target.is_dark(cells, lane[..., None]))
+    kappa = np.where(dark, 0.0, 1.0)
+    clear = target.white_cell_clear_mm
+    if clear is not None:
+        # a white cell holding a marker (ChArUco) is white only within `clear` of its edges: the band's far
+        # line on that side is the marker's dark border
+        before_white, after_white = ~dark[..., 1], ~dark[..., 2]
+        far_lo = np.where(before_white, value - clear, far_lo)
+        far_hi = np.where(after_white, value + clear, far_hi)
+        kappa[..., 0] = np.where(before_white, 0.0, kappa[..., 0])
+        kappa[..., 3] = np.where(after_white, 0.0, kappa[..., 3])
+    return value, a_near, a_far, far_lo, far_hi, kappa
+
+
+def _band(lo, hi, lines, margin, reach, s_max, max_pixels) -> dict | None:
+    """One band's pixels within the box lo..hi (x, y): px (n, 2) and their signed distances d0 to the edge, d_lo
+    and d_hi to the next parallel edges, from the image lines (5, 3) (edge, near and far closing lines, lines
+    before and after); None below 12 pixels. At most max_pixels, evenly thinned."""
+    (x0, y0), (x1, y1) = lo, hi
+    P = np.empty(((y1 - y0 + 1) * (x1 - x0 + 1), 2))
+    P.reshape(y1 - y0 + 1, x1 - x0 + 1, 2)[..., 0] = np.arange(x0, x1 + 1)
+    P.reshape(y1 - y0 + 1, x1 - x0 + 1, 2)[..., 1] = np.arange(y0, y1 + 1)[:, None]
+    # signed distances to the edge, the two lines closing the band, and the next parallel edges
+    d0, dn, dfar, d_lo, d_hi = (P @ lines[:, :2].T + lines[:, 2]).T
+    keep = (np.abs(d0) <= s_max) & (dn >= margin) & (dfar >= margin) & (dn <= reach) & (d_lo >= 0) & (d_hi >= 0)
+    idx_keep = np.nonzero(keep)[0]
+    if idx_keep.size < 12:
+        return None
+    if idx_keep.size > max_pixels:
+        idx_keep = idx_keep[np.linspace(0, idx_keep.size - 1, max_pixels).astype(int)]
+    return dict(px=P[idx_keep].astype(int), d0=d0[idx_keep], d_lo=d_lo[idx_keep], d_hi=-d_hi[idx_keep])
+
+
 def _half_edges(target: Target, ks: np.ndarray, Hms: np.ndarray, r_est: np.ndarray, image_shape, max_pixels: int,
                 first_pass: bool = False, grads: np.ndarray | None = None) -> list[list[dict]]:
     """Pixel bands of the up-to-four half-edges at feature points ks, with their profile geometry.
@@ -162,38 +217,13 @@ def _half_edges(target: Target, ks: np.ndarray, Hms: np.ndarray, r_est: np.ndarr
         widths.
     """
     K = len(ks)
-    ny, nx = target.grid_shape
     xe, ye = np.asarray(target.x_edges), np.asarray(target.y_edges)
     H_img, W_img = image_shape
     r_est = np.asarray(r_est, dtype=np.float64)[:, None]  # (K, 1)
     gnorm = np.zeros((K, 1)) if grads is None else np.hypot(grads[:, 0], grads[:, 1])[:, None]
-    j, i = np.divmod(np.asarray(ks), nx)
-    j, i = j[:, None], i[:, None]
-    # the four half-edges, in the order (horizontal, vertical) towards +, then towards −. A horizontal edge
-    # Y = ye[j+1] lies along the line `axis` = 1; leaving the corner towards +X it borders cell column i+1,
-    # towards −X column i. `idx` is the cell index across the edge just before it.
-    horizontal = np.array([True, False, True, False])
-    sgn = np.array([1, 1, -1, -1])
-    value = np.where(horizontal, ye[j + 1], xe[i + 1])  # (K, 4) the edge line's coordinate
-    a_near = np.where(horizontal, xe[i + 1], ye[j + 1])
-    a_far = np.where(horizontal, xe[i + 1 + sgn], ye[j + 1 + sgn])
-    lane = np.where(horizontal, np.where(sgn > 0, i + 1, i), np.where(sgn > 0, j + 1, j))
-    idx = np.where(horizontal, j, i)
-    far_lo = np.where(horizontal, ye[j], xe[i])  # the parallel edges before and after (always inside)
-    far_hi = np.where(horizontal, ye[j + 2], xe[i + 2])
-    cells = idx[..., None] + np.arange(-1, 3)  # (K, 4, 4) cells across the edge
-    dark = np.where(horizontal[:, None], target.is_dark(lane[..., None], cells), target.is_dark(cells, lane[..., None]))
-    kappa = np.where(dark, 0.0, 1.0)
-    clear = target.white_cell_clear_mm
-    if clear is not None:
-        # a white cell holding a marker (ChArUco) is white only within `clear` of its edges: the band's far
-        # line on that side is the marker's dark border
-        before_white, after_white = ~dark[..., 1], ~dark[..., 2]
-        far_lo = np.where(before_white, value - clear, far_lo)
-        far_hi = np.where(after_white, value + clear, far_hi)
-        kappa[..., 0] = np.where(before_white, 0.0, kappa[..., 0])
-        kappa[..., 3] = np.where(after_white, 0.0, kappa[..., 3])
-
+    j, i = (a[:, None] for a in np.divmod(np.asarray(ks), target.grid_shape[1]))
+    horizontal = _HORIZONTAL
+    value, a_near, a_far, far_lo, far_hi, kappa = _edge_cells(target, j, i)
     HiT = np.linalg.inv(Hms).transpose(0, 2, 1)
 
     def line(on_x, v):
@@ -242,48 +272,20 @@ def _half_edges(target: Target, ks: np.ndarray, Hms: np.ndarray, r_est: np.ndarr
 
     out = []
     for c in range(K):
-        bands = []
-        for e in np.nonzero(use[c])[0]:
-            (x0, y0), (x1, y1) = lo[c, e], hi[c, e]
-            P = np.empty(((y1 - y0 + 1) * (x1 - x0 + 1), 2))
-            P.reshape(y1 - y0 + 1, x1 - x0 + 1, 2)[..., 0] = np.arange(x0, x1 + 1)
-            P.reshape(y1 - y0 + 1, x1 - x0 + 1, 2)[..., 1] = np.arange(y0, y1 + 1)[:, None]
-            # signed distances to the edge, the two lines closing the band, and the next parallel edges
-            d0, dn, dfar, d_lo, d_hi = (P @ lines[c, e, :, :2].T + lines[c, e, :, 2]).T
-            mg, rc = margin[c, e], reach[c, e]
-            keep = ((np.abs(d0) <= s_max[c, e]) & (dn >= mg) & (dfar >= mg) & (dn <= rc) & (d_lo >= 0)
-                    & (d_hi >= 0))
-            idx_keep = np.nonzero(keep)[0]
-            if idx_keep.size < 12:
-                continue
-            if idx_keep.size > max_pixels:
-                idx_keep = idx_keep[np.linspace(0, idx_keep.size - 1, max_pixels).astype(int)]
-            bands.append(dict(px=P[idx_keep].astype(int), dxy=P[idx_keep] - centre[c, e], d0=d0[idx_keep],
-                              d_lo=d_lo[idx_keep], d_hi=-d_hi[idx_keep], kappa=kappa[c, e].tolist(),
-                              wa=float(wa[c, e]), wb=float(wb[c, e])))
-        out.append(bands)
+        bands = [_band(lo[c, e], hi[c, e], lines[c, e], margin[c, e], reach[c, e], s_max[c, e], max_pixels)
+                 for e in np.nonzero(use[c])[0]]
+        out.append([dict(b, dxy=b["px"] - centre[c, e], kappa=kappa[c, e].tolist(), wa=float(wa[c, e]),
+                         wb=float(wb[c, e])) for e, b in zip(np.nonzero(use[c])[0], bands) if b is not None])
     return out
 
 
-def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, iterations: int = 30):
-    """Levenberg–Marquardt fit of the cell-profile model to the bands of each point, batched over points.
-
-    The blur diameter varies linearly over a point's neighbourhood through zero if need be,
-    b(x) = |β + g · (x − p)| (the paper's (4) is linear in position to first order), so a point on the plane
-    of focus is measured as sharp even though its edges away from it are not. Free per point: β, g (2);
-    per band: dark level, contrast and edge offset.
-
-    Args:
-        img: the (pyramid-level) image; groups: per point, the bands from `_half_edges`;
-        r0: (C,) upper bound of the blur radius per point, pixels (the start is scanned below it).
-    Returns:
-        b (C,) = |β|, sigma_b (C,), grad (C, 2), ok (C,), in pixels of `img`.
-    """
+def _pack_bands(img: np.ndarray, groups: list[list[dict]]):
+    """The bands of C points padded into tensors (B bands a point at most, n pixels a band at most): mask, values,
+    d0, d_lo, d_hi (C, B, n), dxy (C, B, n, 2), kappa (C, B, 4), wa, wb (C, B, 1); padding has mask 0 and its far
+    lines out of reach. float64 for the mask, values and far lines, float32 for the model's geometry."""
     C = len(groups)
     B = max(len(g) for g in groups)
     n = max(len(b["d0"]) for g in groups for b in g)
-    P = 3 + 3 * B
-    f32, f64 = torch.float32, torch.float64
     mask = np.zeros((C, B, n))
     vals = np.zeros((C, B, n))
     d0 = np.zeros((C, B, n))
@@ -301,20 +303,100 @@ def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, itera
             d0[c, e, :m], dlo[c, e, :m], dhi[c, e, :m] = b["d0"], b["d_lo"], b["d_hi"]
             dxy[c, e, :m] = b["dxy"]
             kap[c, e], wa[c, e], wb[c, e] = b["kappa"], b["wa"], b["wb"]
-    has_band = torch.from_numpy(mask.any(-1))
-    mask, I = torch.from_numpy(mask), torch.from_numpy(vals)
+    f32, t = torch.float32, torch.from_numpy
+    return (t(mask), t(vals), t(d0.clip(-1e4, 1e4)).to(f32), t(dlo), t(dhi), t(dxy).to(f32), t(kap).to(f32),
+            t(wa).to(f32)[..., None], t(wb).to(f32)[..., None])
+
+
+def _normal_equations(K: torch.Tensor, res: torch.Tensor, mask: torch.Tensor):
+    """JᵀJ (k, P, P) and Jᵀ res (k, P), P = 3 + 3B, from the six non-zero Jacobian columns K (k, B, n, 6) per pixel
+    of `fit_corners`' model (the point's β, gx, gy; the band's dark level, contrast, edge offset), the residuals
+    res (k, B, n) and the pixels' mask (k, B, n)."""
+    k, B = K.shape[:2]
+    P = 3 + 3 * B
+    KmT = (K.double() * mask[..., None]).transpose(-1, -2)
+    M = KmT @ KmT.transpose(-1, -2)  # (k, B, 6, 6)
+    v = (KmT @ res[..., None])[..., 0]  # (k, B, 6)
+    A = torch.zeros(k, P, P, dtype=torch.float64)
+    A[:, :3, :3] = M[:, :, :3, :3].sum(1)
+    for e in range(B):
+        sl = slice(3 + 3 * e, 6 + 3 * e)
+        A[:, :3, sl] = M[:, e, :3, 3:]
+        A[:, sl, :3] = M[:, e, 3:, :3]
+        A[:, sl, sl] = M[:, e, 3:, 3:]
+    return A, torch.cat([v[:, :, :3].sum(1), v[:, :, 3:].reshape(k, 3 * B)], 1)
+
+
+def _start(model, I: torch.Tensor, mask: torch.Tensor, has_band: torch.Tensor, r0: torch.Tensor) -> torch.Tensor:
+    """`fit_corners`' start (C, P): β scanned from 4 % to 200 % of 2 r0 (g = 0), the levels of each band solved
+    linearly at each β, the β that leaves the least squared residual kept. model(theta, idx, deriv) is the fit's."""
+    C, B = mask.shape[:2]
+    every = torch.arange(C)
+    npix = mask.sum(-1)
+    best = torch.full((C,), float("inf"), dtype=torch.float64)
+    theta = torch.zeros(C, 3 + 3 * B, dtype=torch.float64)
+    for frac in (0.05, 0.13, 0.3, 0.55, 1.0, 1.6):
+        trial = torch.zeros(C, 3 + 3 * B, dtype=torch.float64)
+        trial[:, 0] = (2 * r0 * frac).clamp_min(0.1)  # β is a diameter
+        trial[:, 4::3] = 1.0
+        gg = model(trial, every, deriv=False)[0] * mask
+        sg, sI = gg.sum(-1), (I * mask).sum(-1)
+        sgg, sgI = (gg * gg).sum(-1), (gg * I * mask).sum(-1)
+        det = npix * sgg - sg * sg
+        cc = (npix * sgI - sg * sI) / det.clamp_min(1e-30)
+        oo = (sI - cc * sg) / npix.clamp_min(1)
+        cost = ((((I - oo[..., None] - cc[..., None] * gg) * mask) ** 2).sum((-1, -2)))
+        better = cost < best
+        trial[:, 3::3], trial[:, 4::3] = oo, torch.where(has_band, cc, torch.ones_like(cc))
+        theta = torch.where(better[:, None], trial, theta)
+        best = torch.where(better, cost, best)
+    return theta
+
+
+def _diameter_sigma(A: torch.Tensor, cost: torch.Tensor, npix: torch.Tensor, has_band: torch.Tensor,
+                    contrast: torch.Tensor) -> torch.Tensor:
+    """(C,) one-σ of the fitted diameter β: from the normal matrix A (C, P, P) (bands without pixels left out) and
+    the residual variance per degree of freedom."""
+    C, P = A.shape[:2]
+    dof = (npix.sum(-1) - (3 + 3 * has_band.sum(-1))).clamp_min(1)
+    # a floor of 0.1 % of the contrast keeps noise-free fits honest where b is not identifiable (a sharp
+    # edge almost parallel to the pixel grid samples its profile at one phase only)
+    s2 = torch.maximum(cost / dof, (1e-3 * contrast) ** 2)
+    keep = torch.cat([torch.ones(C, 3, dtype=torch.bool), has_band.repeat_interleave(3, dim=1)], 1)
+    A = torch.where(keep[:, :, None] & keep[:, None, :], A, torch.diag_embed(torch.ones(C, P, dtype=torch.float64)))
+    cov = torch.linalg.pinv(A) * s2[:, None, None]
+    return torch.sqrt(cov[:, 0, 0].clamp_min(0))
+
+
+def _small_step(step: torch.Tensor, th: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """`fit_corners` converged: the diameter moves by < 1e-4 of itself (+1e-4 px) and the gradient by < 1e-5 (a
+    corner whose step is this small would hardly move again: < 0.01 σ of its blur on the shipped real photos)."""
+    return (step[:, 0].abs() < 1e-4 * (th[:, 0].abs() + 1)) & (step[:, 1:3].abs().max(1).values < 1e-5)
+
+
+def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, iterations: int = 30):
+    """Levenberg–Marquardt fit of the cell-profile model to the bands of each point, batched over points.
+
+    The blur diameter varies linearly over a point's neighbourhood through zero if need be,
+    b(x) = |β + g · (x − p)| (the paper's (4) is linear in position to first order), so a point on the plane
+    of focus is measured as sharp even though its edges away from it are not. Free per point: β, g (2);
+    per band: dark level, contrast and edge offset.
+
+    Args:
+        img: the (pyramid-level) image; groups: per point, the bands from `_half_edges`;
+        r0: (C,) upper bound of the blur radius per point, pixels (the start is scanned below it).
+    Returns:
+        b (C,) = |β|, sigma_b (C,), grad (C, 2), ok (C,), in pixels of `img`.
+    """
+    f32 = torch.float32
+    mask, I, d0_t, dlo_t, dhi_t, dxy_t, kap_t, wa_t, wb_t = _pack_bands(img, groups)
+    has_band = mask.any(-1)
     r0 = torch.as_tensor(np.asarray(r0, dtype=np.float64))
     r_cap = 1.5 * r0 + 1.0
     lim = (r_cap + 2.0)[:, None, None] + 0.0
-    dxy_t = torch.from_numpy(dxy).to(f32)
-    d0_t = torch.from_numpy(d0.clip(-1e4, 1e4)).to(f32)
-    dlo_t, dhi_t = torch.from_numpy(dlo), torch.from_numpy(dhi)
     # far lines: only the entries within reach are evaluated, elsewhere the step is 0 or 1
     far = [((dlo_t.abs() < 1.3 * lim), dlo_t.to(f32)), ((dhi_t.abs() < 1.3 * lim), dhi_t.to(f32))]
-    kap_t = torch.from_numpy(kap).to(f32)
     c_lo, c_0, c_hi = (kap_t[..., 1] - kap_t[..., 0]), (kap_t[..., 2] - kap_t[..., 1]), (kap_t[..., 3] - kap_t[..., 2])
-    wa_t = torch.from_numpy(wa).to(f32)[..., None]
-    wb_t = torch.from_numpy(wb).to(f32)[..., None]
 
     def model(theta, idx, deriv=True):
         """Model values f (k, B, n) at the corners idx (k,) and, with deriv, the six non-zero columns of the
@@ -339,41 +421,8 @@ def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, itera
                          -c[..., None] * c0 * e0_d], -1)
         return f.double(), K
 
-    def normal_equations(K, res, idx):
-        """JᵀJ (k, P, P) and Jᵀ res (k, P) from the six non-zero Jacobian columns K (k, B, n, 6) per pixel."""
-        k = K.shape[0]
-        KmT = (K.double() * mask[idx][..., None]).transpose(-1, -2)
-        M = KmT @ KmT.transpose(-1, -2)  # (k, B, 6, 6)
-        v = (KmT @ res[..., None])[..., 0]  # (k, B, 6)
-        A = torch.zeros(k, P, P, dtype=f64)
-        A[:, :3, :3] = M[:, :, :3, :3].sum(1)
-        for e in range(B):
-            sl = slice(3 + 3 * e, 6 + 3 * e)
-            A[:, :3, sl] = M[:, e, :3, 3:]
-            A[:, sl, :3] = M[:, e, 3:, :3]
-            A[:, sl, sl] = M[:, e, 3:, 3:]
-        return A, torch.cat([v[:, :, :3].sum(1), v[:, :, 3:].reshape(k, 3 * B)], 1)
-
-    # start: scan β from 4 % to 200 % of 2 r0 (g = 0) with the levels of each band solved linearly
-    every = torch.arange(C)
     npix = mask.sum(-1)
-    best = torch.full((C,), float("inf"), dtype=f64)
-    theta = torch.zeros(C, P, dtype=f64)
-    for frac in (0.05, 0.13, 0.3, 0.55, 1.0, 1.6):
-        trial = torch.zeros(C, P, dtype=f64)
-        trial[:, 0] = (2 * r0 * frac).clamp_min(0.1)  # β is a diameter
-        trial[:, 4::3] = 1.0
-        gg = model(trial, every, deriv=False)[0] * mask
-        sg, sI = gg.sum(-1), (I * mask).sum(-1)
-        sgg, sgI = (gg * gg).sum(-1), (gg * I * mask).sum(-1)
-        det = npix * sgg - sg * sg
-        cc = (npix * sgI - sg * sI) / det.clamp_min(1e-30)
-        oo = (sI - cc * sg) / npix.clamp_min(1)
-        cost = ((((I - oo[..., None] - cc[..., None] * gg) * mask) ** 2).sum((-1, -2)))
-        better = cost < best
-        trial[:, 3::3], trial[:, 4::3] = oo, torch.where(has_band, cc, torch.ones_like(cc))
-        theta = torch.where(better[:, None], trial, theta)
-        best = torch.where(better, cost, best)
+    theta = _start(model, I, mask, has_band, r0)
     # weak prior on g (1 % per pixel) keeps points with few bands well posed: residuals prior · (gx, gy)
     prior = 1e-2 * torch.sqrt(npix.sum(-1)) * theta[:, 4::3].abs().mean(-1).clamp_min(1e-6)
 
@@ -383,36 +432,23 @@ def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, itera
         f, K = model(th, idx)
         res = (I[idx] - f) * mask[idx]
         cost = (res * res).sum((-1, -2)) + ((prior[idx, None] * th[:, 1:3]) ** 2).sum(-1)
-        A, Kr = normal_equations(K, res, idx)
+        A, Kr = _normal_equations(K, res, mask[idx])
         A[:, 1, 1] += prior[idx] ** 2
         A[:, 2, 2] += prior[idx] ** 2
         g = -Kr
         g[:, 1:3] += prior[idx, None] ** 2 * th[:, 1:3]
         return Normal(cost, A, g)
 
-    def small_step(step, th, idx):
-        # converged: the diameter moves by < 1e-4 of itself (+1e-4 px) and the gradient by < 1e-5 (a corner
-        # whose step is this small would hardly move again: < 0.01 σ of its blur on the shipped real photos)
-        return (step[:, 0].abs() < 1e-4 * (th[:, 0].abs() + 1)) & (step[:, 1:3].abs().max(1).values < 1e-5)
-
     def within_cap(th, idx):
         th[:, 0] = th[:, 0].clamp(-2 * r_cap[idx], 2 * r_cap[idx])
         return th
 
     sol = batched_levenberg_marquardt(evaluate, theta, BatchedOptions(max_iterations=iterations),
-                                      small_step=small_step, project=within_cap)
+                                      small_step=_small_step, project=within_cap)
     theta, cost = sol.x, sol.cost
-    dof = (npix.sum(-1) - (3 + 3 * has_band.sum(-1))).clamp_min(1)
     contrast = theta[:, 4::3].abs().max(-1).values
-    # a floor of 0.1 % of the contrast keeps noise-free fits honest where b is not identifiable (a sharp
-    # edge almost parallel to the pixel grid samples its profile at one phase only)
-    s2 = torch.maximum(cost / dof, (1e-3 * contrast) ** 2)
-    A = sol.A
-    keep = torch.cat([torch.ones(C, 3, dtype=torch.bool), has_band.repeat_interleave(3, dim=1)], 1)
-    A = torch.where(keep[:, :, None] & keep[:, None, :], A, torch.diag_embed(torch.ones(C, P, dtype=f64)))
-    cov = torch.linalg.pinv(A) * s2[:, None, None]
     b = theta[:, 0].abs()
-    sig = torch.sqrt(cov[:, 0, 0].clamp_min(0))
+    sig = _diameter_sigma(sol.A, cost, npix, has_band, contrast)
     ok = torch.isfinite(b) & torch.isfinite(sig) & (contrast > 0) & (has_band.sum(-1) >= 1)
     return b.numpy(), sig.numpy(), theta[:, 1:3].numpy(), ok.numpy()
 

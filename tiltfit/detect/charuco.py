@@ -8,14 +8,17 @@ Pipeline (`detect_charuco`):
    coordinates, against the board's own picture (markers included) blurred by discs of 0 to 0.8 of a square,
    over every placement (4 turns × shifts) that keeps the lattice on the board (`place_lattice`). The best
    placement must explain the image clearly better than the next (`MIN_PLACEMENT_RATIO`), else it names
-   nothing. The two are merged; where both name a corner they must agree (`_merge`).
+   nothing. The two are merged; where both name a corner they must agree (`_merge`). The lattice is not
+   searched when OpenCV's corners, refined and completed (steps 2 and 3), already reach every corner of the
+   board: it could name none more, and it is the costliest step (saddle maps of the whole image at 7 scales).
 2. Sub-pixel refinement: the point-symmetry refinement of the checkerboard path (`refine_symmetric`): at a
    ChArUco corner the two markers touching it have black borders that are point images of each other, so the
    neighbourhood is point-symmetric out to the markers' data bits, √2 (clear + bit) from the corner; the
    window radius is that (`symmetric_radius`), at most 0.4 of the local square.
 3. Completion: corners neither step found, predicted by local homographies and refined the same way
    (`tiltfit.detect.chessboard.complete_corners` with the ChArUco window).
-4. Blur per corner (`tiltfit.detect.blur.measure_blur`, its bands stopping at the markers' borders).
+4. Blur per corner (`tiltfit.detect.blur.measure_blur`, its bands stopping at the markers' borders); when the
+   widths are not asked for, its first, coarse pass alone, for step 5's decision.
 5. Blur beyond CANCEL_BITS_BLUR of a square reaches the data bits from inside the window: each corner is
    fitted again by the board's own picture around it, markers' bits included (`refine_model`: the exact
    picture through the local homography, with an affine correction, convolved with a disc in the image whose
@@ -233,10 +236,7 @@ def detect_charuco(image, target: CharucoTarget, *, measure_blur: bool = True, u
 
 
 def _detect_charuco(image, target, measure_blur, use_opencv, refine_radius_max) -> Detection:
-    from tiltfit.detect.blur import measure_blur as _measure_blur
-
     from tiltfit.detect.checks import invert_photo
-    from tiltfit.files.det import mirrored
 
     timings: dict = {}
     t0 = time.perf_counter()
@@ -245,49 +245,90 @@ def _detect_charuco(image, target, measure_blur, use_opencv, refine_radius_max) 
     H, W = gray.shape
     levels = build_pyramid(gray)
     N = target.n_points
-    corners = opencv_corners(photo, target) if use_opencv else np.full((N, 2), np.nan)
+    named = opencv_corners(photo, target) if use_opencv else np.full((N, 2), np.nan)
     timings["opencv"] = time.perf_counter() - t0
-    t1 = time.perf_counter()
-    placed, message = _placed_lattice(gray, levels, target, refine_radius_max)
-    timings["lattice"] = time.perf_counter() - t1
-    corners, source = _merge(corners, placed, target)
-    if source is not None and mirrored(corners, target.feature_points()):
-        corners, source, message = np.full_like(corners, np.nan), None, MIRROR_IMAGE
+    corners, source, message = _named_corners(gray, photo, levels, target, named, refine_radius_max, timings)
     if source is None:
-        if not message.startswith(MIRROR_IMAGE):
-            hint = no_board_hint(photo, target)
-            message = hint or message
         return Detection((W, H), corners, np.full(N, np.nan), np.full(N, np.nan), False, message, 0, timings)
-    t2 = time.perf_counter()
-    corners = refine_charuco(gray, target, corners, refine_radius_max)
-    drop_inconsistent(corners, target)
-    if np.isfinite(corners).all(1).sum() >= 4:
-        complete_corners(gray, target, corners, refine_radius_max, rounds=COMPLETION_ROUNDS,
-                         window=symmetric_radius(target))
-    timings["refine"] = time.perf_counter() - t2
-    found = np.isfinite(corners).all(1)
-    blur, sigma = np.full(N, np.nan), np.full(N, np.nan)
-    if found.any():
-        t3 = time.perf_counter()
-        blur, sigma = _measure_blur(gray, target, corners, levels=levels)
-        timings["blur"] = time.perf_counter() - t3
-        if np.nanmedian(blur / _local_square_px(target, corners)) > CANCEL_BITS_BLUR:
-            # blur reaching the markers' data bits: fit the board's own blurred picture, bits included
-            t4 = time.perf_counter()
-            tex = board_texture(target)
-            for _ in range(MODEL_ROUNDS):  # better corners give better local homographies to start from
-                again, _ = refine_model(gray, target, corners, blur, tex)
-                corners = np.where(np.isfinite(again), again, corners)
-            # a corner nearer the image's edge than its blur diameter has its blurred neighbourhood cut by the
-            # edge (the symmetry window with it), and one its neighbours place elsewhere is dropped
-            edge = np.minimum.reduce([corners[:, 0], W - 1 - corners[:, 0], corners[:, 1], H - 1 - corners[:, 1]])
-            corners[edge < blur] = np.nan
-            drop_inconsistent(corners, target, tolerance=HEAVY_BLUR_TOLERANCE)
-            timings["model"] = time.perf_counter() - t4
-        if not measure_blur:
-            blur, sigma = np.full(N, np.nan), np.full(N, np.nan)
+    corners, blur, sigma = _blur_and_model(gray, levels, target, corners, measure_blur, timings)
     timings["total"] = time.perf_counter() - t0
     found = np.isfinite(corners).all(1)
     blur[~found], sigma[~found] = np.nan, np.nan
     ok = bool(found.sum() >= 4)
     return Detection((W, H), corners, blur, sigma, ok, f"{int(found.sum())} of {N} corners ({source})", 1, timings)
+
+
+def _refined_and_completed(gray, target, corners, refine_radius_max) -> np.ndarray:
+    """Step 2 and 3: named corners refined (inconsistent ones dropped) and the board completed from them."""
+    corners = refine_charuco(gray, target, corners, refine_radius_max)
+    drop_inconsistent(corners, target)
+    if np.isfinite(corners).all(1).sum() >= 4:
+        complete_corners(gray, target, corners, refine_radius_max, rounds=COMPLETION_ROUNDS,
+                         window=symmetric_radius(target))
+    return corners
+
+
+def _named_corners(gray, photo, levels, target, named, refine_radius_max, timings):
+    """Steps 1–3: (corners (N, 2), source, message); source None (corners all NaN) when no corner could be named.
+
+    OpenCV's named corners first: when they and the completion from them reach every corner of the board, the
+    lattice search (the costliest step, several saddle maps of the whole image) could add no corner, and is skipped.
+    """
+    from tiltfit.files.det import mirrored
+
+    t = time.perf_counter()
+    if np.isfinite(named).all(1).sum() >= 4:
+        corners = _refined_and_completed(gray, target, named, refine_radius_max)
+        timings["refine"] = time.perf_counter() - t
+        if np.isfinite(corners).all() and not mirrored(corners, target.feature_points()):
+            return corners, "markers read by OpenCV", ""
+    t = time.perf_counter()
+    placed, message = _placed_lattice(gray, levels, target, refine_radius_max)
+    timings["lattice"] = time.perf_counter() - t
+    corners, source = _merge(named, placed, target)
+    if source is not None and mirrored(corners, target.feature_points()):
+        corners, source, message = np.full_like(corners, np.nan), None, MIRROR_IMAGE
+    if source is None:
+        if not message.startswith(MIRROR_IMAGE):
+            message = no_board_hint(photo, target) or message
+        return corners, None, message
+    t = time.perf_counter()
+    corners = _refined_and_completed(gray, target, corners, refine_radius_max)
+    timings["refine"] = timings.get("refine", 0.0) + time.perf_counter() - t
+    return corners, source, message
+
+
+def _blur_and_model(gray, levels, target, corners, measure_blur, timings):
+    """Steps 4 and 5: (corners, blur_px (N,), blur_sigma_px (N,)); the widths NaN unless `measure_blur`.
+
+    Whether the blur reaches the markers' data bits (median width beyond CANCEL_BITS_BLUR of a square) is decided
+    on the widths; without `measure_blur` on those of the blur measurement's first, coarse pass alone (within
+    about 10 %, `tiltfit.detect.blur.measure_blur` with one pass), which costs a fraction of the full measurement.
+    """
+    from tiltfit.detect.blur import measure_blur as _measure_blur
+
+    N = target.n_points
+    H, W = gray.shape
+    blur, sigma = np.full(N, np.nan), np.full(N, np.nan)
+    if not np.isfinite(corners).all(1).any():
+        return corners, blur, sigma
+    t = time.perf_counter()
+    passes = {} if measure_blur else {"max_passes": 1}
+    blur, sigma = _measure_blur(gray, target, corners, levels=levels, **passes)
+    timings["blur"] = time.perf_counter() - t
+    if np.nanmedian(blur / _local_square_px(target, corners)) > CANCEL_BITS_BLUR:
+        # blur reaching the markers' data bits: fit the board's own blurred picture, bits included
+        t = time.perf_counter()
+        tex = board_texture(target)
+        for _ in range(MODEL_ROUNDS):  # better corners give better local homographies to start from
+            again, _ = refine_model(gray, target, corners, blur, tex)
+            corners = np.where(np.isfinite(again), again, corners)
+        # a corner nearer the image's edge than its blur diameter has its blurred neighbourhood cut by the
+        # edge (the symmetry window with it), and one its neighbours place elsewhere is dropped
+        edge = np.minimum.reduce([corners[:, 0], W - 1 - corners[:, 0], corners[:, 1], H - 1 - corners[:, 1]])
+        corners[edge < blur] = np.nan
+        drop_inconsistent(corners, target, tolerance=HEAVY_BLUR_TOLERANCE)
+        timings["model"] = time.perf_counter() - t
+    if not measure_blur:
+        blur, sigma = np.full(N, np.nan), np.full(N, np.nan)
+    return corners, blur, sigma

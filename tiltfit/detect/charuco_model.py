@@ -120,26 +120,11 @@ def refine_model(gray: np.ndarray, target: CharucoTarget, corners: np.ndarray, b
     return out, floor
 
 
-def _fit_corner(gray, target, texture, Hm, P, radius, noise):
-    """One corner of `refine_model`: (position (2,), floor) or None. Hm: homography board mm → px from the
-    corners around; P: the corner on the board, mm; radius: the blur disc's, px; noise: the pixels' σ.
-
-    Parameters x = (t (2), a (2 × 2), disc radius, gain, offset); the image is modelled as
-    gain · R(p) + offset, R the board's dark fraction through W ∘ Hm blurred by the disc, with
-    W(q) = q + a (q − c) + t about the start c. Derivatives: ∂R/∂t = −∇R, ∂R/∂a_ij = −∂_i R · (q − c)_j with
-    q = W⁻¹(p) (exact for a warp of the blurred picture), less ½ radius ∂R/∂radius on the diagonal (the disc does
-    not scale with the picture); ∂R/∂radius by a forward difference. The disc's change of shape under the warp
-    is left out of the derivatives (their affine columns are 30–50 % off): the solver only takes steps that
-    lower the true cost, so it costs iterations, not accuracy (the corners' errors are at the Cramér–Rao floor).
-    """
-    import torch
-
-    from tiltfit.solve import LMOptions, SolverError, covariance, least_squares
-
-    tex, origin, ppm = texture
+def _model_window(gray, target, Hm, P, radius):
+    """The pixels `_fit_corner` fits: ((r0, c0, h, w) the bounding box, use (h, w) bool the pixels whose board
+    position lies within MODEL_WINDOW square of the corner P (mm) and which the blur disc of `radius` px does not
+    carry past the image's edge, y (n,) their values, p (n, 2) their positions, px), or None when too few."""
     H_img, W_img = gray.shape
-    q = Hm @ np.array([P[0], P[1], 1.0])
-    c = q[:2] / q[2]
     win = MODEL_WINDOW * target.square_mm
     box = np.array([[P[0] - win, P[1] - win, 1], [P[0] + win, P[1] - win, 1], [P[0] + win, P[1] + win, 1],
                     [P[0] - win, P[1] + win, 1]]) @ Hm.T
@@ -159,8 +144,32 @@ def _fit_corner(gray, target, texture, Hm, P, radius, noise):
            & (yy >= reach) & (yy <= H_img - 1 - reach))
     if use.sum() < 50:
         return None
-    y = gray[r0:r0 + h, c0:c0 + w][use].astype(np.float64)
-    p = np.stack([xx[use], yy[use]], 1)
+    return (r0, c0, h, w), use, gray[r0:r0 + h, c0:c0 + w][use].astype(np.float64), np.stack([xx[use], yy[use]], 1)
+
+
+def _fit_corner(gray, target, texture, Hm, P, radius, noise):
+    """One corner of `refine_model`: (position (2,), floor) or None. Hm: homography board mm → px from the
+    corners around; P: the corner on the board, mm; radius: the blur disc's, px; noise: the pixels' σ.
+
+    Parameters x = (t (2), a (2 × 2), disc radius, gain, offset); the image is modelled as
+    gain · R(p) + offset, R the board's dark fraction through W ∘ Hm blurred by the disc, with
+    W(q) = q + a (q − c) + t about the start c. Derivatives: ∂R/∂t = −∇R, ∂R/∂a_ij = −∂_i R · (q − c)_j with
+    q = W⁻¹(p) (exact for a warp of the blurred picture), less ½ radius ∂R/∂radius on the diagonal (the disc does
+    not scale with the picture); ∂R/∂radius by a forward difference. The disc's change of shape under the warp
+    is left out of the derivatives (their affine columns are 30–50 % off): the solver only takes steps that
+    lower the true cost, so it costs iterations, not accuracy (the corners' errors are at the Cramér–Rao floor).
+    """
+    import torch
+
+    from tiltfit.solve import LMOptions, SolverError, covariance, least_squares
+
+    tex, origin, ppm = texture
+    window = _model_window(gray, target, Hm, P, radius)
+    if window is None:
+        return None
+    (r0, c0, h, w), use, y, p = window
+    q = Hm @ np.array([P[0], P[1], 1.0])
+    c = q[:2] / q[2]
     cache = {}
 
     def warp(v):

@@ -49,6 +49,32 @@ def _shift_patches(patches: torch.Tensor, frac: torch.Tensor):
     return along_y(tx, wy), along_y(tdx, wy), along_y(tx, dwy)
 
 
+def _patches(gray: np.ndarray, c0: np.ndarray, P: int, presmooth: float, ks: int) -> torch.Tensor:
+    """(N, S, S) float32 patches of half-size P around the integer pixels c0 (N, 2), edge pixels repeated beyond
+    the image, smoothed by a Gaussian of `presmooth` px (support ks). float32: the patches, weights and normal
+    equations (errors ~1e-5 px); the positions accumulate in float64."""
+    H, W = gray.shape
+    ys = np.clip(c0[:, 1, None] + np.arange(-P, P + 1)[None], 0, H - 1)
+    xs = np.clip(c0[:, 0, None] + np.arange(-P, P + 1)[None], 0, W - 1)
+    t = torch.from_numpy(gray[ys[:, :, None], xs[:, None, :]].astype(np.float32))[:, None]  # (N, 1, S, S)
+    if presmooth > 0:
+        import kornia
+
+        t = kornia.filters.gaussian_blur2d(t, (2 * ks + 1, 2 * ks + 1), (presmooth, presmooth),
+                                           border_type="replicate")
+    return t[:, 0]
+
+
+def _asymmetry(v: torch.Tensor, wgt: torch.Tensor) -> torch.Tensor:
+    """(N,) weighted RMS of I(p + v) − I(p − v) over that of I − mean, from the values v (N, 2M) at p + v (first
+    M) and p − v (last M) and the weights wgt (N, M): 0 for a perfect X-junction."""
+    M = wgt.shape[1]
+    r = v[:, :M] - v[:, M:]
+    wt2 = torch.cat([wgt, wgt], 1)
+    mean = (v * wt2).sum(1, keepdim=True) / wt2.sum(1, keepdim=True)
+    return torch.sqrt((wgt * r * r).sum(1) / ((wt2 * (v - mean) ** 2).sum(1) + 1e-30))
+
+
 def refine_symmetric(gray: np.ndarray, xy: np.ndarray, radius: np.ndarray, iterations: int = 20,
                      presmooth: float = 1.4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Point-symmetry refinement of corners at full resolution.
@@ -87,16 +113,7 @@ def refine_symmetric(gray: np.ndarray, xy: np.ndarray, radius: np.ndarray, itera
     c0 = np.round(xy).astype(int)
     c0[:, 0] = np.clip(c0[:, 0], 0, W - 1)
     c0[:, 1] = np.clip(c0[:, 1], 0, H - 1)
-    ys = np.clip(c0[:, 1, None] + np.arange(-P, P + 1)[None], 0, H - 1)
-    xs = np.clip(c0[:, 0, None] + np.arange(-P, P + 1)[None], 0, W - 1)
-    # float32: the patches, weights and normal equations (errors ~1e-5 px); the positions accumulate in float64
-    t = torch.from_numpy(gray[ys[:, :, None], xs[:, None, :]].astype(np.float32))[:, None]  # (N, 1, S, S)
-    if presmooth > 0:
-        import kornia
-
-        t = kornia.filters.gaussian_blur2d(t, (2 * ks + 1, 2 * ks + 1), (presmooth, presmooth),
-                                           border_type="replicate")
-    t = t[:, 0]
+    t = _patches(gray, c0, P, presmooth, ks)
     wgt = (torch.clamp(1 - (torch.from_numpy(rr)[None] / torch.from_numpy(R)[:, None]) ** 2, min=0.0) ** 2).float()
     offt = torch.from_numpy(off).long()
     loc = torch.from_numpy(xy - c0 + P)
@@ -133,11 +150,7 @@ def refine_symmetric(gray: np.ndarray, xy: np.ndarray, radius: np.ndarray, itera
         evaluate, loc, BatchedOptions(max_iterations=iterations, max_step=1.0),
         small_step=lambda step, x, idx: torch.linalg.vector_norm(step, dim=1) < 1e-4)
     loc = sol.x
-    v, _ = residuals(loc, torch.arange(N), with_jacobian=False)
-    r = v[:, :M] - v[:, M:]
-    wt2 = torch.cat([wgt, wgt], 1)
-    mean = (v * wt2).sum(1, keepdim=True) / wt2.sum(1, keepdim=True)
-    asym = torch.sqrt((wgt * r * r).sum(1) / ((wt2 * (v - mean) ** 2).sum(1) + 1e-30))
+    asym = _asymmetry(residuals(loc, torch.arange(N), with_jacobian=False)[0], wgt)
     out = loc.numpy() + c0 - P
     moved = np.hypot(*(out - xy).T)
     ok &= np.isfinite(out).all(1) & (moved < np.maximum(2.0, 1.2 * R))

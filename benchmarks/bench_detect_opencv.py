@@ -32,7 +32,7 @@ import torch
 from tiltfit.detect.chessboard import detect, detect_corners, to_gray
 from tiltfit.detect.blur import measure_blur
 from tiltfit.experiments.synth import PAPER_CAMERA, look_at_pose, projected_square_px, render_view, with_blur_ratio
-from tiltfit.target.layout import design_target
+from tiltfit.target.design import design_target
 
 TARGET = design_target(9, 6, 20.0, w_mm=55.39, distance_mm=650.0, inclination_deg=20.0)
 PATTERN = (TARGET.grid_shape[1], TARGET.grid_shape[0])  # OpenCV: (points per row, per column)

@@ -29,7 +29,8 @@ MARKER_RATIO = 0.75
 
 OURS = """
 import json, resource, sys, tempfile, os
-from tiltfit.target.layout import charuco_from_dict, write_printable
+from tiltfit.target.layout import charuco_from_dict
+from tiltfit.target.printable import write_printable
 n, square, dpi = int(sys.argv[1]), float(sys.argv[2]), float(sys.argv[3])
 board = lambda k: charuco_from_dict({{"type": "charuco", "dictionary": "{dictionary}", "squares": [k, k],
                                      "square_mm": square, "marker_mm": square * {ratio}}})

@@ -9,7 +9,7 @@ from camio.files import srgb_to_linear
 from tiltfit.detect.blur import measure_blur, pixel_esf
 
 from tiltfit.experiments.synth import PAPER_CAMERA, look_at_pose, projected_square_px, render_view, with_blur_ratio
-from tiltfit.target.layout import design_target
+from tiltfit.target.design import design_target
 
 torch.set_num_threads(1)
 

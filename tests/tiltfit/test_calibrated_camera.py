@@ -30,7 +30,9 @@ from tiltfit.files.export import write_mrcal, write_opencv
 from tiltfit.calibrate.fit import FitOptions
 from tiltfit.calibrate.model import Observations
 from tiltfit.files.scene_plugins import target_texture
-from tiltfit.target.layout import CharucoTarget, design_target, rasterise
+from tiltfit.target.design import design_target
+from tiltfit.target.layout import CharucoTarget
+from tiltfit.target.raster import rasterise
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SENSOR = Sensor(480, 320, 0.012)  # a small sensor: 5.76 × 3.84 mm
@@ -146,7 +148,7 @@ def test_renders_through_the_three_files_agree_with_the_true_lens(capture):
 
 def test_the_rendered_board_is_the_print(capture):
     """The target shape's albedo at each board point is the print's: cell centres dark or light as the target
-    says, the margin light, and the render of a fronto-parallel view matches `tiltfit.target.layout.rasterise`."""
+    says, the margin light, and the render of a fronto-parallel view matches `tiltfit.target.raster.rasterise`."""
     _, target, _, _, _ = capture
     tex = target_texture(target, (0.04, 0.8))
     x0, y0, x1, y1 = target.extent_mm

@@ -21,7 +21,7 @@ from renderer.cameras import ThinLensCamera
 from tiltfit import calibrate_photos
 from tiltfit.files.calibrated import Calibration
 from tiltfit.files.export import write_mrcal, write_opencv
-from tiltfit.target.layout import design_target
+from tiltfit.target.design import design_target
 
 pytestmark = pytest.mark.slow
 

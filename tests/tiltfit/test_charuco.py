@@ -15,7 +15,8 @@ from tiltfit.calibrate.fit import FitOptions
 from tiltfit.calibrate.model import Observations
 from tiltfit.calibrate.photos import fit_with_held_out
 from tiltfit.experiments.synth import render_view
-from tiltfit.target.layout import CharucoTarget, Target, TargetError, rasterise, target_from_dict
+from tiltfit.target.layout import CharucoTarget, Target, TargetError, target_from_dict
+from tiltfit.target.raster import rasterise
 
 
 # --- the file format and the printable ----------------------------------------------------------------------

@@ -256,7 +256,7 @@ def test_end_to_end_on_rendered_images(tmp_path, capfd):
     """Render target photographs (tiltfit.experiments.synth), then `tiltfit calibrate` them: detection + fit."""
     from camio.files import srgb_to_linear
     from tiltfit.experiments.synth import PAPER_CAMERA, pose_from_axis_angle, render_view
-    from tiltfit.target.layout import design_target
+    from tiltfit.target.design import design_target
 
     target = design_target(9, 6, 25.0, w_mm=W_MM, distance_mm=600.0, inclination_deg=15.0)
     target_file = str(tmp_path / "T.json")

@@ -11,7 +11,8 @@ from tiltfit.detect.chessboard import (Detection, detect, read_detection_json, r
 from renderer import Lens, Sensor
 from tiltfit.experiments.synth import (PAPER_CAMERA, look_at_pose, observe, projected_square_px, render_view,
                            with_blur_ratio)
-from tiltfit.target.layout import Target, design_target
+from tiltfit.target.design import design_target
+from tiltfit.target.layout import Target
 
 torch.set_num_threads(1)
 
@@ -174,7 +175,7 @@ def test_analytic_rendering_equals_brute_force_disc_convolution():
     """Fronto-parallel board, uniform blur: render_analytic against a 16× supersampled image convolved with
     an anti-aliased disc (FFT) and box-averaged back, away from the image border."""
     from tiltfit.experiments.synth import render_analytic
-    from tiltfit.target.layout import rasterise
+    from tiltfit.target.raster import rasterise
 
     t = Target(tuple(np.arange(0, 81, 10.0)), tuple(np.arange(0, 61, 10.0)), (0, 0), 10.0)
     cam = Lens(50.0, 500.0, 10.0, sensor=Sensor(64, 48, 0.05))

@@ -363,10 +363,10 @@ def test_interrupt_mid_write_one_line_exit_130_nothing_partial(tmp_path, monkeyp
         (tmp_path / "rep" / "keep.txt").write_text("mine")
     before = {p.relative_to(tmp_path) for p in tmp_path.rglob("*")}
     if command == "print-png":  # the PNG is written in strips of rows: Ctrl-C after the first strip
-        import tiltfit.target.layout
+        import tiltfit.target.printable
 
-        monkeypatch.setattr(tiltfit.target.layout, "PNG_STRIP_PIXELS", 1 << 12)
-        _interrupt_on_call(monkeypatch, tiltfit.target.layout, "_write_rows", 2)
+        monkeypatch.setattr(tiltfit.target.printable, "PNG_STRIP_PIXELS", 1 << 12)
+        _interrupt_on_call(monkeypatch, tiltfit.target.printable, "_write_rows", 2)
     else:
         _interrupt_on_call(monkeypatch, Figure, "savefig", 3 if command.startswith("report") else 1)
     argv = {"report": ["report", tmp_path / "I.json", "-o", tmp_path / "rep"],

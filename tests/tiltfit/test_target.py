@@ -6,8 +6,10 @@ import re
 import numpy as np
 import pytest
 
-from tiltfit.target.layout import (Target, TargetError, design_target, designed_pose, load_target, projected_row_spacing,
-                            rasterise, render_target, target_texture, write_printable)
+from tiltfit.target.design import design_target, designed_pose, projected_row_spacing
+from tiltfit.target.layout import Target, TargetError, load_target
+from tiltfit.target.printable import write_printable
+from tiltfit.target.raster import rasterise, render_target, target_texture
 
 W_MM, D_MM = 55.39, 620.0  # the paper's w and a distance near its plane of focus
 
@@ -172,7 +174,7 @@ def test_png_scale_bar_is_labelled_and_the_board_unchanged(tmp_path):
     from matplotlib.image import imread
 
     from camio.files import linear_to_srgb
-    from tiltfit.target.layout import _bar_geometry
+    from tiltfit.target.printable import _bar_geometry
 
     t = design_target(5, 4, 20.0, w_mm=W_MM, distance_mm=D_MM, inclination_deg=20)
     png = tmp_path / "t.png"
@@ -233,7 +235,7 @@ def test_png_written_in_strips_is_the_whole_board_exactly(tmp_path, monkeypatch)
     """Strips of a few rows (many seams) give the same board as one rasterisation of the whole page."""
     import OpenImageIO as oiio
 
-    import tiltfit.target.layout as tt
+    import tiltfit.target.printable as tt
     from camio.files import linear_to_srgb
 
     monkeypatch.setattr(tt, "PNG_STRIP_PIXELS", 1 << 12)
@@ -251,7 +253,7 @@ def test_png_print_memory_does_not_grow_with_the_page(tmp_path, monkeypatch):
     megapixels) with strips of 2^16 pixels: the same few MB for both, under 0.5 byte a pixel of the larger."""
     import tracemalloc
 
-    import tiltfit.target.layout as tt
+    import tiltfit.target.printable as tt
 
     monkeypatch.setattr(tt, "PNG_STRIP_PIXELS", 1 << 16)
     from tiltfit.target.layout import target_from_dict

@@ -6,11 +6,11 @@
                           [--margin-mm 25] -o T.json
     tiltfit target print T.json [--png OUT.png] [--pdf OUT.pdf] [--dpi 300] [--scale-bar-mm L]
 
-`design` writes a target whose rows project equally spaced in the design view (`tiltfit.target.layout.design_target`:
+`design` writes a target whose rows project equally spaced in the design view (`tiltfit.target.design.design_target`:
 a camera with lens-to-sensor distance W looking at the board D away, the board inclined by PHI about its X
 axis); with `--charuco` a ChArUco board (`tiltfit.target.layout.CharucoTarget`, OpenCV's CharucoBoard: uniform
 squares, markers of the dictionary in the white cells). `print` writes the board at true size with a labelled
-scale bar (`tiltfit.target.layout.write_printable`).
+scale bar (`tiltfit.target.printable.write_printable`).
 Errors print one line `tiltfit: <file or option>: <problem>` on stderr and exit with status 2.
 """
 from __future__ import annotations
@@ -74,7 +74,8 @@ class _Fail(Exception):
 
 def _design(args, say) -> None:
     from tiltfit.files.det import MIN_CORNERS
-    from tiltfit.target.layout import MAX_EDGES, MAX_FEATURE_POINTS, MAX_MM, TargetError, design_target, target_from_dict
+    from tiltfit.target.design import design_target
+    from tiltfit.target.layout import MAX_EDGES, MAX_FEATURE_POINTS, MAX_MM, TargetError, target_from_dict
 
     for name in ("cols", "rows"):
         v = getattr(args, name)
@@ -162,7 +163,8 @@ def _design_charuco(args, say) -> None:
 
 
 def _print(args, say) -> None:
-    from tiltfit.target.layout import MAX_PRINT_DPI, MIN_PRINT_DPI, TargetError, load_target, write_printable
+    from tiltfit.target.layout import TargetError, load_target
+    from tiltfit.target.printable import MAX_PRINT_DPI, MIN_PRINT_DPI, write_printable
 
     if not args.png and not args.pdf:
         raise _Fail("--png", "give --png OUT.png and/or --pdf OUT.pdf")

@@ -15,7 +15,8 @@ from tiltfit.detect.imaging import estimate_noise, homography_dlt_batch, to_full
 from tiltfit.detect.indexing import _rot
 from tiltfit.detect.refine import refine_symmetric
 from tiltfit.detect.saddles import saddle_map
-from tiltfit.target.layout import CharucoTarget, rasterise
+from tiltfit.target.layout import CharucoTarget
+from tiltfit.target.raster import rasterise
 
 
 # A placement is accepted when the next best one leaves this many times its residual (sum of squares after a

@@ -9,7 +9,8 @@ import math
 import numpy as np
 
 from tiltfit.detect.charuco_lattice import _local_square_px
-from tiltfit.target.layout import CharucoTarget, rasterise
+from tiltfit.target.layout import CharucoTarget
+from tiltfit.target.raster import rasterise
 
 
 # Points per pixel side where `refine_model` looks the board's picture up before blurring it.

@@ -364,7 +364,7 @@ def render_with_renderer(target: Target, camera: Lens, R, T, dark: float, white:
     from renderer import load_scene, write_image
     from renderer import render
 
-    from tiltfit.target.layout import target_texture
+    from tiltfit.target.raster import target_texture
 
     with tempfile.TemporaryDirectory() as tmp:
         tex = os.path.join(tmp, "target.exr")
@@ -388,7 +388,7 @@ def render_constant_blur(target: Target, homography: np.ndarray, size_px: tuple[
     """
     import cv2
 
-    from tiltfit.target.layout import rasterise
+    from tiltfit.target.raster import rasterise
 
     W, H = size_px
     s = supersample

@@ -11,7 +11,7 @@ from .common import StabilityConfig, Study, subplots_row
 def detector_target():
     """The detector sweep's target (as benchmarks/bench_detect_opencv.py): 9 × 6 cells of 20 mm, rows designed
     for a 20° inclined view from 650 mm."""
-    from tiltfit.target.layout import design_target
+    from tiltfit.target.design import design_target
 
     return design_target(9, 6, 20.0, w_mm=55.39, distance_mm=650.0, inclination_deg=20.0)
 

@@ -22,6 +22,12 @@ FRONT_ENDS = tuple(f"tiltfit/cli/{name}.py" for name in (
 #: (file, function) whose strings may name options, and why.
 ALLOWED = {
     ("tiltfit/files/formats.py", "calibration_reference"): "writes docs/file_formats.md, the page on the command line's files",
+    ("tiltfit/files/formats.py", "_target_lines"): "writes docs/file_formats.md, the page on the command line's files",
+    ("tiltfit/files/formats.py", "_det_lines"): "writes docs/file_formats.md, the page on the command line's files",
+    ("tiltfit/files/formats.py", "_calib_lines"): "writes docs/file_formats.md, the page on the command line's files",
+    ("tiltfit/files/formats.py", "_photometric_lines"): "writes docs/file_formats.md, the page on the command line's files",
+    ("tiltfit/files/formats.py", "_uncertainty_lines"): "writes docs/file_formats.md, the page on the command line's files",
+    ("tiltfit/files/formats.py", "_json_lines"): "writes docs/file_formats.md, the page on the command line's files",
     ("tiltfit/experiments/stability/__init__.py", "write_summary"): "the report states the command that made it",
 }
 

@@ -78,9 +78,13 @@ def _table(rows) -> str:
 
 def calibration_reference() -> str:
     """Markdown reference of the target, DET and CALIB files and of what reading them checks."""
-    from tiltfit.photometric import CLOSED_FORM_MIN_BLUR_PX, MIN_USABLE_PIXELS
+    return "\n".join(_target_lines() + _det_lines() + _calib_lines() + _photometric_lines()
+                     + _uncertainty_lines() + _json_lines())
 
-    return "\n".join([
+
+def _target_lines() -> list:
+    """The target-file section: checkerboard and ChArUco keys."""
+    return [
         "## Target files (`--target T.json`)", "", _table(TARGET_FIELDS), "",
         "Unknown keys are refused. Feature points are the interior intersections, row by row.", "",
         "ChArUco boards (`\"type\": \"charuco\"`):", "", _table(CHARUCO_FIELDS), "",
@@ -88,12 +92,24 @@ def calibration_reference() -> str:
         "m-th white cell, row by row. A DET file of a ChArUco view lists every corner of the board, `null` where "
         "it was not seen, so partial views need nothing new. Detection, blur and calibration: "
         "[charuco.md](charuco.md).", "",
+    ]
+
+
+def _det_lines() -> list:
+    """The DET-file section: its keys and the checks of a view."""
+    return [
         "## Detection files (`tiltfit detect -o DET.json`)", "", _table(DET_FIELDS), "",
         "Checks when `tiltfit calibrate` reads DET files (or detects images): every number finite; each view has at "
         "least 6 corners (`tiltfit.calibrate.model.MIN_CORNERS`, the fit's `min_corners` too; `tiltfit target design` refuses "
         "boards with fewer) that do not lie on one line (in the image or on the target); no view repeats another's "
         "detections (a copy would shrink σ as if it were new evidence); no view is a mirror image of the target "
         "(a flipped photo, or the board seen from behind).", "",
+    ]
+
+
+def _calib_lines() -> list:
+    """The CALIB-file section: its keys, ranges, models, board and the checks when reading it."""
+    return [
         "## Calibration files (`tiltfit calibrate -o CALIB.json`, `--init`)", "",
         "Keys: " + ", ".join(f"`{k}`" for k in calibfile.REQUIRED_KEYS) + "; each view: "
         + ", ".join(f"`{k}`" for k in calibfile.VIEW_KEYS) + "; `sigma`: "
@@ -146,6 +162,14 @@ def calibration_reference() -> str:
         f"{calibfile.MAX_LENGTH_MM:g} mm; `image_size_px` two integers 1 to {detfile.MAX_IMAGE_SIDE}; `principal_point_px` within one "
         "image size of the image; `|theta_F_deg| < 90`; each view's `R` a rotation (orthonormal, determinant +1, "
         f"finite) and `T_mm` within ±{calibfile.MAX_LENGTH_MM:g} mm.", "",
+    ]
+
+
+def _photometric_lines() -> list:
+    """The CALIB-file paragraph of `--refine photometric`: the `photometric` block."""
+    from tiltfit.photometric import CLOSED_FORM_MIN_BLUR_PX, MIN_USABLE_PIXELS
+
+    return [
         "After `--refine photometric`: `refinement: \"photometric\"` and a `photometric` block with the corner "
         "fit it started from (`corner_fit`, `corner_fit_sigma`), `rms_linear` (photometric RMS, linear units), "
         "`iterations`, `runtime_s`, `vignetting`, per-view `levels` (`white`, `black`; null for a view left out), "
@@ -182,6 +206,12 @@ def calibration_reference() -> str:
         "below the textbook σ; `design_effect`, `ratio_min`, `ratio_max`, `n_views`) or `tiles` (a sandwich over "
         "blur-disc tiles, where the per-view covariance cannot be formed: one view, or a singular one); a lens "
         "parameter `at_bound` is held out of it (σ 0).", "",
+    ]
+
+
+def _uncertainty_lines() -> list:
+    """The CALIB-file paragraph of the σ, the covariance and cross-validation."""
+    return [
         "Uncertainty: `sigma` is one standard deviation under the error model named in `sigma_model.name`: "
         "`views` (default; corner and blur errors may be correlated within a view, as a detector's bias with blur, "
         "the board's shape or a model misfit make them: per-view cluster-robust covariance with the poses profiled "
@@ -200,11 +230,18 @@ def calibration_reference() -> str:
         "the map `sigma_px` on `grid_x_px` × `grid_y_px`. After `--cross-validate K`: `cross_validation` "
         "(`groups` of images, per pair `median_px`, `worst_px`, `predicted_median_px`, `predicted_worst_px`, "
         "`rms_ratio`, `consistent`, `verdict`).", "",
+    ]
+
+
+def _json_lines() -> list:
+    """What holds for every JSON file."""
+    return [
         "## Every JSON file", "",
         f"UTF-8 (UTF-16/32, other encodings and image bytes are refused by name), nested at most {MAX_JSON_DEPTH} "
         "levels, numbers finite. Each refusal is one line `tiltfit: <file>: <field>: <problem>`, exit status 2; "
         "an interrupt prints `tiltfit: interrupted`, exit status 130. Outputs are written atomically with "
-        "permissions 0666 minus the umask.", ""])
+        "permissions 0666 minus the umask.", "",
+    ]
 
 
 def target_schema() -> dict:

@@ -71,6 +71,9 @@ BENCHMARKS = (
     Benchmark("calibration", "bench_real_calib.py", (), ("--repeats", "1", "--out", "{q}")),
     Benchmark("calibration", "bench_real_defaults.py", (), ("--sets", "industrial_ds1", "--out", "{q}")),
     Benchmark("calibration", "bench_calib_speed.py", ("--base", "none"), ("--quick", "--out", "{q}/calib_speed")),
+    Benchmark("calibration", "bench_calib_real_speed.py", (),
+              ("--repeats", "1", "--cv-repeats", "1", "--sets", "industrial_ds1",
+               "--name", "calib_real_speed_quick")),  # writes results/calib_real_speed_quick.*
     Benchmark("calibration", "bench_calib_scale.py", (),
               ("--sizes", "20,50", "--repeats", "1", "--out", "{q}/calib_scale")),
     Benchmark("calibration", "bench_selection.py", (), ("--out", "{q}/selection")),

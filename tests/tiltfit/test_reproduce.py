@@ -8,6 +8,10 @@ import numpy as np
 import pytest
 
 from tiltfit.experiments import reproduce
+from tiltfit.experiments.reproduce import pipeline
+from tiltfit.experiments.reproduce.calibration import stage1_rows
+from tiltfit.experiments.reproduce.config import save_png
+from tiltfit.experiments.reproduce.targets import stage_targets
 from tiltfit.experiments.reproduce import LENS_STATES, NOISE_FLOOR, TRUE_LENS, RunConfig, SetValues, SimulatedCamera
 from tiltfit.experiments.scenes import (EOS_6D, FOCUS_DISTANCE_MM, Lens, boxes_scene_dict, camera_pose, profile_lines,
                             scene_objects)
@@ -165,8 +169,8 @@ def test_quick_run_end_to_end(tmp_path):
             assert r["calibration_s"] > joint["calibration_s"], "the refinement starts from the joint fit"
     # Stage 1 (the paper's eq. (3)) in physical units: w to 0.05 %, U to 0.1 %, d to 0.5 %.
     stage1 = json.loads((tmp_path / "run.json").read_text())
-    table_s1 = {r["parameter"]: r for r in reproduce.stage1_rows(reproduce.SimulatedCamera(), reproduce.SetValues(),
-                                                                 {"records": stage1["calibration"]})}
+    table_s1 = {r["parameter"]: r for r in stage1_rows(reproduce.SimulatedCamera(), reproduce.SetValues(),
+                                                       {"records": stage1["calibration"]})}
     for key, tol in (("w_mm", 5e-4), ("U_mm", 1e-3), ("d_mm", 5e-3)):
         r = table_s1[key]
         assert abs(r["stage1"] - r["true"]) <= tol * r["true"], \
@@ -212,7 +216,7 @@ def test_png_of_a_photograph_holds_its_exact_grey_levels(tmp_path):
 
     img = np.random.default_rng(3).integers(0, 256, size=(7, 9, 3)).astype(np.uint8)
     img[0, :3] = [[0, 0, 0], [1, 2, 3], [255, 254, 128]]
-    reproduce._save_png(str(tmp_path / "p.png"), img)
+    save_png(str(tmp_path / "p.png"), img)
     np.testing.assert_array_equal(grey_levels(read_image(str(tmp_path / "p.png"))), img,
                                   err_msg="8-bit sRGB written and read back unchanged")
 
@@ -230,7 +234,7 @@ def test_cli_scales_reach_the_run_config(tmp_path, monkeypatch, capsys):
     """--scale bins the boxes images, --target-scale the target photographs; neither moves the other, and the
     defaults stay the config's (nothing heavy runs: `run` is replaced)."""
     seen = []
-    monkeypatch.setattr(reproduce, "run", lambda out_dir, **kw: seen.append(kw["config"]))
+    monkeypatch.setattr(pipeline, "run", lambda out_dir, **kw: seen.append(kw["config"]))
     out = str(tmp_path / "o")
     for argv, boxes, targets in ((["--target-scale", "1"], 16, 1), (["--scale", "4"], 4, 8),
                                  (["--quick", "--target-scale", "16"], 32, 16), ([], 16, 8)):
@@ -249,7 +253,7 @@ def test_target_photographs_come_out_at_the_target_scale(tmp_path):
 
     (tmp_path / "images").mkdir()
     cfg = RunConfig(target_views=1, target_method="analytic", target_downscale=32)
-    out = reproduce.stage_targets(SimulatedCamera(), SetValues(), cfg, str(tmp_path), lambda msg: None)
+    out = stage_targets(SimulatedCamera(), SetValues(), cfg, str(tmp_path), lambda msg: None)
     assert out["image_size_px"] == (5472 // 32, 3648 // 32), f"image size {out['image_size_px']}"
     assert out["pixel_pitch_mm"] == pytest.approx(EOS_6D.pixel_pitch * 32), "binned pixel pitch"
     files = [f for state in LENS_STATES for f in out["files"][state.label]]

@@ -97,7 +97,7 @@ def write_synthetic_views(n: int, out_dir: str, size=(1368, 912)) -> tuple[list,
         from tiltfit.experiments import reproduce
     except ImportError:  # --base code from before tiltfit/experiments/
         from tiltfit import reproduce
-    from tiltfit.calibrate.model import TiltLensCamera, random_poses, synthesize_observations
+    from tiltfit.calibrate.model import LensCamera, random_poses, synthesize_observations
     from tiltfit.target.layout import design_centre_mm
 
     target_file = os.path.join(out_dir, "target.json")
@@ -108,7 +108,7 @@ def write_synthetic_views(n: int, out_dir: str, size=(1368, 912)) -> tuple[list,
     target = reproduce.calibration_target(reproduce.SetValues())
     rvec, T = random_poses(n, seed=1, distance_mm=(480.0, 760.0), max_angle_deg=25.0,
                            board_centre_mm=design_centre_mm(target))
-    cam = TiltLensCamera.from_tilted_lens(n, size, SETS["synthetic_tilted_60"]["pitch_mm"], 55.39, 50.84,
+    cam = LensCamera.from_tilted_lens(n, size, SETS["synthetic_tilted_60"]["pitch_mm"], 55.39, 50.84,
                                           18.81, math.radians(5.0), rvec=rvec, T_mm=T)
     obs = synthesize_observations(cam, torch.tensor(target.feature_points()), noise_px=0.05, noise_blur_px=0.1,
                                   noise_blur_rel=0.03, seed=2, margin_px=5.0)

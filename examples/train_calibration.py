@@ -1,6 +1,6 @@
 """Calibrate a tilt-lens camera the way one trains a model: config file, optimizer loop, logs, checkpoints.
 
-Uses only tiltfit's public API: `TiltLensCamera` (an nn.Module whose parameters are the lens and the poses),
+Uses only tiltfit's public API: `LensCamera` (an nn.Module whose parameters are the lens and the poses),
 `synthesize_observations`, `loss`, `tiltfit.calibrate.start.initialize` (PnP poses, homography focal length, linear blur
 scan) and, for comparison, `tiltfit.calibrate.flow.calibrate` (Levenberg–Marquardt).
 
@@ -27,7 +27,7 @@ import torch
 
 from tiltfit.calibrate.flow import calibrate
 from tiltfit.calibrate.fit import FitOptions
-from tiltfit.calibrate.model import TiltLensCamera, board_points_mm, loss, random_poses, synthesize_observations
+from tiltfit.calibrate.model import LensCamera, board_points_mm, loss, random_poses, synthesize_observations
 from tiltfit.calibrate.start import initialize
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -37,7 +37,7 @@ def make_data(cfg: dict):
     """The true camera and its synthetic observations, as the config describes."""
     d, c = cfg["data"], cfg["camera"]
     rvec, T = random_poses(d["n_views"], d["pose_seed"])
-    truth = TiltLensCamera.from_tilted_lens(d["n_views"], c["image_size_px"], c["pixel_pitch_mm"], c["w_mm"],
+    truth = LensCamera.from_tilted_lens(d["n_views"], c["image_size_px"], c["pixel_pitch_mm"], c["w_mm"],
                                             c["f_mm"], c["d_mm"], math.radians(d["theta_L_deg"]), rvec=rvec,
                                             T_mm=T)
     b = d["board"]

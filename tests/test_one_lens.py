@@ -35,6 +35,8 @@ ALLOWED = {
     ("tiltfit/experiments/exact_capture.py", "ExactLens"): "the independent capture generator's own lens: it must "
                                                              "share no code with the lens it checks (issue 30 §4)",
     ("tiltfit/solve/blocks.py", "SchurNormal"): "not a lens: w holds the robust weights of the residuals",
+    ("renderer/tracing/fused.py", "_CameraConstants"): "the compiled path's constants (Python numbers baked into the "
+                                                       "compiled code), read from the camera's Lens on every batch",
 }
 
 
@@ -176,3 +178,151 @@ def test_scene_file_focus_points():
         build_camera("camera", {**base, "focus_points": world, "U": 600.0}, 36, 24)
     with pytest.raises(SceneError, match="camera.focus_points: .*collinear"):
         build_camera("camera", {**base, "focus_points": [[0, 0, 500], [1, 1, 600], [2, 2, 700]]}, 36, 24)
+
+
+# ------------------------------------------------------------------------------- one decoding, one centre, one focal
+# Forms a second copy of the lens's arithmetic takes, each found by reading the source (AST), each with a planted
+# example below that the scan must catch.
+
+#: Where the stored lens vector (log w, 1/U, d in cm, θF) is decoded: `renderer.cameras.lens_model`'s one section.
+LENS_VECTOR_OWNER = "renderer/cameras/lens_model.py"
+#: Where the image centre ((W − 1)/2, (H − 1)/2) is written: `renderer.cameras.projection.image_centre_px`.
+CENTRE_OWNER = "renderer/cameras/projection.py"
+#: Where a CALIB dict's w becomes a focal length in pixels: the calibration object (`lens_from_calib`, `Calibration`).
+FOCAL_OWNERS = ("tiltfit/files/calib_lens.py", "tiltfit/files/calibrated.py")
+#: Files allowed a form anyway, and why.
+INDEPENDENT = {
+    "tiltfit/experiments/exact_capture.py": "the independent capture generator: it shares no code with the lens it "
+                                            "checks (issue 30 §4), its pixel centre included",
+}
+
+
+def _text(node) -> str:
+    return ast.unparse(node)
+
+
+def _names_key(node, key: str) -> bool:
+    """Whether `node` reads `key` from a mapping: x["key"] or x.get("key", ...)."""
+    for n in ast.walk(node):
+        if isinstance(n, ast.Subscript) and isinstance(n.slice, ast.Constant) and n.slice.value == key:
+            return True
+        if (isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute) and n.func.attr == "get" and n.args
+                and isinstance(n.args[0], ast.Constant) and n.args[0].value == key):
+            return True
+    return False
+
+
+def _by_position(node) -> bool:
+    """Whether `node` is (a float of) a subscript by a small constant index: v[0], float(lens[1])."""
+    if isinstance(node, ast.Call) and node.args and _text(node.func) in ("float", "abs"):
+        node = node.args[0]
+    if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "abs":
+        node = node.func.value
+    return isinstance(node, ast.Subscript) and isinstance(node.slice, ast.Constant) and node.slice.value in (0, 1, 2, 3)
+
+
+def decoding_forms(source: str, path: str) -> list[str]:
+    """'path:line what' for each hand decoding of the stored lens vector in `source`: exp of log w (by name or
+    position), 1000 / (1/U), the aperture scale of d_scaled."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Name) and node.id == "APERTURE_SCALE_MM" and isinstance(node.ctx, ast.Load):
+            found.append(f"{path}:{node.lineno} d_scaled's scale (APERTURE_SCALE_MM)")
+        elif isinstance(node, ast.Call) and _text(node.func).split(".")[-1] == "exp" and node.args:
+            arg = node.args[0]
+            if "log_w" in _text(arg) or _by_position(arg):
+                found.append(f"{path}:{node.lineno} w = exp(log w): {_text(node)}")
+        elif (isinstance(node, ast.BinOp) and isinstance(node.op, ast.Div) and isinstance(node.left, ast.Constant)
+              and node.left.value == 1000 and ("inv_U" in _text(node.right) or _by_position(node.right))):
+            found.append(f"{path}:{node.lineno} U = 1000 / (1/U): {_text(node)}")
+    return found
+
+
+def calib_focal_forms(source: str, path: str) -> list[str]:
+    """'path:line' for each focal length computed from a CALIB dict: a division whose numerator reads "w_mm" from a
+    mapping (calib["w_mm"] / pitch, sigma.get("w_mm") / p)."""
+    return [f"{path}:{n.lineno} {_text(n)}" for n in ast.walk(ast.parse(source))
+            if isinstance(n, ast.BinOp) and isinstance(n.op, ast.Div) and _names_key(n.left, "w_mm")]
+
+
+_SIZE_WORDS = ("width", "height", "size")
+
+
+def _image_size(node) -> bool:
+    """Whether `node` names an image size: W, H, W0, width_px, cam.height, size[0] ..."""
+    text = _text(node)
+    last = text.split(".")[-1]
+    return last.rstrip("0123456789_px") in ("W", "H") or any(w in text.lower() for w in _SIZE_WORDS)
+
+
+def centre_forms(source: str, path: str) -> list[str]:
+    """'path:line' for each image centre written out: (W − 1) / 2 (or · 0.5) of an image size."""
+    found = []
+    for n in ast.walk(ast.parse(source)):
+        if not (isinstance(n, ast.BinOp) and isinstance(n.left, ast.BinOp) and isinstance(n.left.op, ast.Sub)
+                and isinstance(n.left.right, ast.Constant) and n.left.right.value == 1
+                and isinstance(n.right, ast.Constant)):
+            continue
+        halves = (isinstance(n.op, ast.Div) and n.right.value == 2) or (isinstance(n.op, ast.Mult) and n.right.value == 0.5)
+        if halves and _image_size(n.left.left):
+            found.append(f"{path}:{n.lineno} {_text(n)}")
+    return found
+
+
+def _scan(form, owners) -> list[str]:
+    found = []
+    for package in PACKAGES:
+        for file in sorted((ROOT / package).rglob("*.py")):
+            rel = file.relative_to(ROOT).as_posix()
+            if rel in owners or rel in INDEPENDENT:
+                continue
+            found += form(file.read_text(encoding="utf-8"), rel)
+    return found
+
+
+def test_the_lens_vector_is_decoded_in_one_place():
+    found = _scan(decoding_forms, (LENS_VECTOR_OWNER,))
+    assert not found, ("the stored lens vector decoded by hand (call renderer.cameras.lens_model.lens_values / "
+                       "stored_from_lens / stored_lens_sigma): " + "; ".join(found))
+
+
+def test_only_the_calibration_object_turns_calib_w_into_a_focal_length():
+    found = _scan(calib_focal_forms, FOCAL_OWNERS)
+    assert not found, ("a CALIB dict's w divided by hand (use tiltfit.files.calibrated.Calibration.focal_px / "
+                       "sigma_focal_px, or lens_from_calib(...).focal_px / .K): " + "; ".join(found))
+
+
+def test_the_image_centre_is_written_once():
+    found = _scan(centre_forms, (CENTRE_OWNER,))
+    assert not found, "(W − 1)/2 written out (use renderer.cameras.image_centre_px): " + "; ".join(found)
+
+
+def test_the_scans_find_their_planted_forms(tmp_path):
+    """Each form above, planted in a temporary file, is caught; the owners' own spellings and look-alikes are not."""
+    planted = tmp_path / "planted.py"
+    planted.write_text(
+        "import math, torch\n"
+        "def decode(p, lens, cam, params):\n"
+        "    w, U = torch.exp(p[0]), 1000.0 / p[1]\n"                                # 3: two forms
+        "    d = APERTURE_SCALE_MM * abs(float(lens[2]))\n"                           # 4
+        "    w2 = math.exp(float(cam.log_w_mm))\n"                                   # 5
+        "    U2 = 1000.0 / params['inv_U_per_m']\n"                                  # 6
+        "    return torch.exp(-x[..., 0] ** 2), 1000.0 / n_views\n"                    # 7: look-alikes
+        "def focal(calib, sig, p):\n"
+        "    F = calib['w_mm'] / calib['pixel_pitch_mm']\n"                          # 9
+        "    sF = sig.get('w_mm') / p\n"                                              # 10
+        "    return F, calib['w_mm'] * 2, w_mm / p\n"                                 # 11: look-alikes
+        "def centre(W, H, cam, kernel):\n"
+        "    c = ((W - 1) / 2, (H - 1) / 2.0)\n"                                      # 13: two
+        "    x = (cam.width - 1) * 0.5\n"                                              # 14
+        "    return (kernel - 1) / 2, (len(kernel) - 1) // 2\n")                      # 15: look-alikes
+    src, rel = planted.read_text(), "planted.py"
+    lines = lambda found: [int(f.split(":")[1].split()[0]) for f in found]  # noqa: E731
+    assert sorted(lines(decoding_forms(src, rel))) == [3, 3, 4, 5, 6], decoding_forms(src, rel)
+    assert sorted(lines(calib_focal_forms(src, rel))) == [9, 10], calib_focal_forms(src, rel)
+    assert sorted(lines(centre_forms(src, rel))) == [13, 13, 14], centre_forms(src, rel)
+    owner = (ROOT / LENS_VECTOR_OWNER).read_text(encoding="utf-8")
+    assert decoding_forms(owner, LENS_VECTOR_OWNER), "the owner itself decodes (the scan would see it if it moved)"
+    assert centre_forms((ROOT / CENTRE_OWNER).read_text(encoding="utf-8"), CENTRE_OWNER), "the centre's owner writes it"
+    for rel in INDEPENDENT:
+        assert (ROOT / rel).exists(), f"{rel}: allowed but gone (drop it from INDEPENDENT)"

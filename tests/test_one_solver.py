@@ -2,8 +2,9 @@
 other module of tiltfit/ or renderer/ iterates linear solves of its own.
 
 Read from the source with `ast` (nothing is imported): a `for`/`while` loop (or a comprehension) whose body
-calls a linear solve (`torch.linalg.solve`, `cholesky_solve`, `lstsq`, `np.linalg.solve`, ...) is an iterative
-solver, and belongs in tiltfit/solve/ unless listed in ALLOWED with the reason.
+calls a linear solve (`torch.linalg.solve`, `cholesky_solve`, `lstsq`, `np.linalg.solve`, ...) or solves by hand
+(a private `_solve…` helper such as a 2 × 2 Cramer's rule, or a determinant `det = …` computed in the loop) is an
+iterative solver, and belongs in tiltfit/solve/ unless listed in ALLOWED with the reason.
 """
 import ast
 import os
@@ -16,6 +17,14 @@ from import_graph import ROOT, modules  # noqa: E402
 SOLVER = os.path.join("tiltfit", "solve") + os.sep
 #: Files allowed a loop of linear solves outside it, and why.
 ALLOWED = {
+    "renderer/cameras/distortion.py": "`undistort`: Newton's method on millions of independent 2 × 2 systems (one per "
+                                      "pixel) by Cramer's rule (`_solve2`), each pixel leaving once converged; a "
+                                      "batched least-squares solver would be far slower, and renders depend on its bits",
+    "renderer/mitsuba/sensors.py": "`undistort`: the same Newton steps in Dr.Jit, inside Mitsuba's sensor (torch "
+                                   "functions cannot run there); kept step for step with renderer/cameras/distortion.py",
+    "tiltfit/detect/blur.py": "the edge fit's start: a scan over six trial blur widths β, at each the two levels of "
+                              "a band solved in closed form (2 × 2 normal equations); not an iteration, and the fit "
+                              "that follows is tiltfit.solve's batched Levenberg–Marquardt",
 }
 #: Calls that solve a linear system (the attribute name; on torch, torch.linalg, np.linalg, scipy.linalg ...).
 SOLVES = {"solve", "cholesky_solve", "lstsq", "solve_triangular", "lu_solve", "solve_ex", "pinv", "inv"}
@@ -33,19 +42,30 @@ def _receiver(node: ast.expr) -> str | None:
     return None
 
 
+def _solves(node: ast.AST) -> bool:
+    """Whether `node` solves a linear system: a library solve, a private `_solve…` helper, or `det = …`."""
+    if isinstance(node, ast.Call):
+        f = node.func
+        if isinstance(f, ast.Attribute) and f.attr in SOLVES and _receiver(f.value) in RECEIVERS:
+            return True
+        name = f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else ""
+        return name.startswith("_") and "solve" in name
+    if isinstance(node, ast.Assign):  # det = a * d - b * c: a 2 × 2 determinant (Cramer's rule)
+        v = node.value
+        return (any(isinstance(t, ast.Name) and t.id == "det" for t in node.targets) and isinstance(v, ast.BinOp)
+                and isinstance(v.op, ast.Sub) and all(isinstance(side, ast.BinOp) and isinstance(side.op, ast.Mult)
+                                                      for side in (v.left, v.right)))
+    return False
+
+
 def solve_loops(path: str) -> list[int]:
-    """Lines of the loops in the file whose body calls a linear solve."""
+    """Lines of the loops in the file whose body solves a linear system (`_solves`)."""
     with open(path, encoding="utf-8") as f:
         tree = ast.parse(f.read(), path)
     found = set()
     for loop in ast.walk(tree):
-        if not isinstance(loop, LOOPS):
-            continue
-        for node in ast.walk(loop):
-            if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr in SOLVES \
-                    and _receiver(node.func.value) in RECEIVERS:
-                found.add(loop.lineno)
-                break
+        if isinstance(loop, LOOPS) and any(_solves(node) for node in ast.walk(loop)):
+            found.add(loop.lineno)
     return sorted(found)
 
 
@@ -74,6 +94,17 @@ def test_the_scan_finds_a_hand_written_solver(tmp_path):
                    "            break\n"
                    "        x = x + np.linalg.lstsq(J(x), -r(x), rcond=None)[0]\n")
     assert solve_loops(str(src)) == [3, 8], "an LM `for` loop and a Gauss–Newton `while` loop are found"
+    src.write_text("def newton(x, y):\n"
+                   "    for _ in range(20):\n"
+                   "        x = x - _solve2(jacobian(x), f(x) - y)\n"
+                   "    while bad(x):\n"
+                   "        a, b, c, d = jacobian(x)\n"
+                   "        det = a * d - b * c\n"
+                   "        x = x - (d * r(x) - b) / det\n"
+                   "    for path in paths:\n"
+                   "        det = detect(path)\n"
+                   "    return [solve_lm(p) for p in problems]\n")
+    assert solve_loops(str(src)) == [2, 4], "Newton loops with a hand 2 × 2 solve are found; a detection named det and calling the solver are not"
     src.write_text("import torch\n"
                    "def once(A, b):\n"
                    "    return torch.linalg.solve(A, b)\n"
@@ -83,6 +114,7 @@ def test_the_scan_finds_a_hand_written_solver(tmp_path):
 
 
 def test_allowed_files_exist():
+    assert ALLOWED, "the allowed list names the hand-solved Newton loops (an empty list makes this test vacuous)"
     for rel in ALLOWED:
         assert os.path.exists(os.path.join(ROOT, rel)), f"{rel}: allowed here but gone (drop it from ALLOWED)"
         assert solve_loops(os.path.join(ROOT, rel)), f"{rel}: allowed here but has no solve loop any more " \

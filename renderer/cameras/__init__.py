@@ -26,6 +26,8 @@ from renderer.cameras import accumulation  # noqa: F401
 
 from .lens import (DISTORTION_CENTRES, EOS_6D, Lens, Sensor, lens_tilt_from_opencv, opencv_tilt,  # noqa: F401
                    tilt_rotation)
-from .lens_model import APERTURE_SCALE_MM, LensCamera, distortion_parameter_names  # noqa: F401
-from .projection import normalised_from_pixels, pixels_from_normalised, project_pinhole  # noqa: F401
+from .lens_model import (APERTURE_SCALE_MM, LENS_PARAMETERS, LensCamera, distortion_parameter_names,  # noqa: F401
+                         lens_values, stored_from_lens, stored_lens_sigma)
+from .projection import (camera_matrix, image_centre_px, normalised_from_pixels, pixels_from_normalised,  # noqa: F401
+                         project_pinhole)
 from .thin_lens import ThinLensCamera, concentric_disk  # noqa: F401

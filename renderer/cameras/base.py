@@ -14,7 +14,7 @@ import torch
 from renderer.core.params import SceneError
 from renderer.core.rays import Rays
 from renderer.core.transforms import CameraTransform
-from .projection import normalised_from_pixels, pixels_from_normalised, project_pinhole
+from .projection import image_centre_px, normalised_from_pixels, pixels_from_normalised, project_pinhole
 
 #: `Camera.undistort_pixels` keeps a map of the inverse distortion, nodes every this many pixels, for calls with at
 #: least `UNDISTORTION_MAP_MIN_POINTS` pixels (a render's), to start Newton's method near the root.
@@ -52,7 +52,7 @@ class Screen:
     def center_px(self) -> tuple[float, float]:
         if self.principal_point_px is not None:
             return self.principal_point_px
-        return (self.width_px - 1) / 2.0, (self.height_px - 1) / 2.0
+        return image_centre_px(self.width_px, self.height_px)
 
     def to_plane(self, uv_px: torch.Tensor) -> torch.Tensor:
         """(..., 2) pixels -> (..., 3) points on the screen plane, camera frame."""

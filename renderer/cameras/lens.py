@@ -73,7 +73,9 @@ class Sensor:
     @property
     def center_px(self) -> tuple[float, float]:
         """The image centre ((W − 1)/2, (H − 1)/2), pixels: the default principal point."""
-        return (self.width_px - 1) / 2.0, (self.height_px - 1) / 2.0
+        from .projection import image_centre_px
+
+        return image_centre_px(self.width_px, self.height_px)
 
     def binned(self, factor: int) -> "Sensor":
         """The sensor read out with `factor` × `factor` pixels binned, cropped to whole binned pixels."""
@@ -257,16 +259,24 @@ class Lens:
     @property
     def K(self) -> np.ndarray:
         """(3, 3) pixel-from-normalised-coordinates matrix [[w/p, 0, cx], [0, w/p, cy], [0, 0, 1]]."""
-        f = _float(self.focal_px)
-        cx, cy = (_float(c) for c in self.center_px)
-        return np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+        from .projection import camera_matrix
+
+        return camera_matrix(_float(self.focal_px), tuple(_float(c) for c in self.center_px))
 
     def binned(self, factor: int) -> "Lens":
         """The same optics read out with `factor` × `factor` pixels binned (image `factor` times smaller)."""
         pp = self.principal_point_px
         if pp is not None:
-            pp = tuple((c + 0.5) / factor - 0.5 for c in pp)
+            pp = _scaled_px(pp, 1.0 / factor)
         return replace(self, sensor=self._sensor("binned").binned(factor), principal_point_px=pp)
+
+    def resampled(self, width_px: int, height_px: int) -> "Lens":
+        """The same optics read out as a `width_px` × `height_px` image of the same field of view (pixels
+        W / width_px times larger; the caller keeps the aspect ratio): the principal point scaled with the pixels."""
+        sensor = self._sensor("resampled")
+        s = width_px / sensor.width_px
+        return replace(self, sensor=Sensor(int(width_px), int(height_px), sensor.pixel_pitch / s),
+                       principal_point_px=_scaled_px(tuple(_float(c) for c in self.center_px), s))
 
     def cropped(self, x0: int, y0: int, width_px: int, height_px: int) -> "Lens":
         """The same optics read out only on the window of pixels x0 ≤ x < x0 + width, y0 ≤ y < y0 + height:
@@ -413,6 +423,12 @@ def tilt_frame(p_cam: torch.Tensor, phi) -> torch.Tensor:
     c, s = torch.cos(phi), torch.sin(phi)
     x, y, z = p_cam.unbind(-1)
     return torch.stack([x * c + y * s, y * c - x * s, z], -1)
+
+
+def _scaled_px(point_px, s: float) -> tuple:
+    """Pixel coordinates (pixel centres at integers) of an image resampled by `s` (s < 1: coarser pixels): the pixel
+    edges, at c + 0.5, scale."""
+    return tuple((c + 0.5) * s - 0.5 for c in point_px)
 
 
 def _sensor_distance_for(f: float, U: float, theta_F: float) -> float:

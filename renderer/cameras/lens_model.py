@@ -1,7 +1,7 @@
 """The one camera model: pose, lens and sensor mapping as a torch module with tensor parameters, V views sharing
 one lens. It renders (`view_camera(v)` is the renderer's `ThinLensCamera` of view v, built from the module's own
 tensors, so gradients of a rendered image reach every parameter) and it is fitted (tiltfit's calibration uses it
-as `tiltfit.calibrate.model.TiltLensCamera`: pinhole geometry plus thin-lens blur, paper eqs 2–4). Its two closed-form
+as `tiltfit.calibrate.model.LensCamera`: pinhole geometry plus thin-lens blur, paper eqs 2–4). Its two closed-form
 calls, both differentiable in every parameter:
 
     project(X_world, view) -> uv_px    uv = c + (w / p) · D(x / z, y / z),  (x, y, z) = R X + T
@@ -56,10 +56,88 @@ from .distortion import (COEFFICIENT_NAMES, MODEL_TERMS, BrownConrady, distort, 
                          distort_jacobian)
 from .distortion import distort_about_axis_jacobians
 from .lens import DISTORTION_CENTRES, Lens, Sensor, opencv_tilt, tilt_frame, tilt_rotation
-from .projection import project_pinhole
+from .projection import image_centre_px, project_pinhole
 from .thin_lens import ThinLensCamera
 
 APERTURE_SCALE_MM = 10.0  # d_scaled is the aperture diameter in cm
+
+#: The stored lens parameters in the order of a lens vector: log w (w in mm), 1/U in dioptres, d in cm, θF in radians.
+#: This section is the one place a lens vector is read (by name or by position) and turned into lengths: every
+#: other module calls `lens_values` / `stored_lens_sigma` (tests/test_one_lens.py scans for hand-written copies).
+LENS_PARAMETERS = ("log_w_mm", "inv_U_per_m", "d_scaled", "theta_F")
+
+
+def w_from_stored(log_w_mm):
+    """w in mm of the stored log w (a tensor keeps its graph; a number gives a float)."""
+    return torch.exp(log_w_mm) if isinstance(log_w_mm, torch.Tensor) else math.exp(log_w_mm)
+
+
+def U_from_stored(inv_U_per_m):
+    """U in mm of the stored 1/U in dioptres (inf at 0, focus at infinity)."""
+    if isinstance(inv_U_per_m, torch.Tensor):
+        return 1000.0 / inv_U_per_m
+    return math.inf if inv_U_per_m == 0 else 1000.0 / inv_U_per_m
+
+
+def d_from_stored(d_scaled):
+    """The aperture d in mm of the stored d_scaled (cm, sign free: d = |d_scaled| · 10 mm)."""
+    return (d_scaled.abs() if isinstance(d_scaled, torch.Tensor) else abs(d_scaled)) * APERTURE_SCALE_MM
+
+
+def lens_values(stored) -> tuple:
+    """(w_mm, U_mm, d_mm, θF in radians) of stored lens parameters.
+
+    Args:
+        stored: a mapping by stored name (`LENS_PARAMETERS`: a module's parameters, a state dict), or a (4,) tensor
+            or sequence in that order (a solver's lens block). Tensors keep their graph; numbers give floats.
+    """
+    if hasattr(stored, "keys"):
+        log_w, inv_U, d_scaled, theta_F = (stored[n] for n in LENS_PARAMETERS)
+    else:
+        log_w, inv_U, d_scaled, theta_F = (stored[i] for i in range(len(LENS_PARAMETERS)))
+    return w_from_stored(log_w), U_from_stored(inv_U), d_from_stored(d_scaled), theta_F
+
+
+def stored_from_lens(w_mm=None, U_mm=None, d_mm=None, theta_F=None) -> dict:
+    """The stored values (floats) of the lens values given (mm, radians; U = inf: focus at infinity), by stored name:
+    the inverse of `lens_values`."""
+    out = {}
+    if w_mm is not None:
+        out["log_w_mm"] = math.log(float(w_mm))
+    if U_mm is not None:
+        out["inv_U_per_m"] = 1000.0 / float(U_mm)
+    if d_mm is not None:
+        out["d_scaled"] = float(d_mm) / APERTURE_SCALE_MM
+    if theta_F is not None:
+        out["theta_F"] = float(theta_F)
+    return out
+
+
+def stored_lens_sigma(w_mm: float, U_mm: float, sigma: dict) -> dict:
+    """One-σ of the stored lens parameters from physical ones, to first order: σ(log w) = σ_w / w,
+    σ(1/U) = 1000 σ_U / U² (dioptres), σ(d_scaled) = σ_d / 10 mm, σ(θF) = σ_θF.
+
+    Args:
+        w_mm, U_mm: the lens's w and U (floats, mm).
+        sigma: physical σ by CALIB.json name (w_mm, U_mm, d_mm, theta_F_deg); missing, None, 0 or non-finite ones are
+            left out (and σ_U where U is infinite).
+    Returns:
+        {stored name: σ} for the σ given.
+    """
+    def get(key):
+        v = sigma.get(key)
+        return float(v) if isinstance(v, (int, float)) and math.isfinite(float(v)) and float(v) > 0 else None
+
+    out = {}
+    if get("w_mm") is not None:
+        out["log_w_mm"] = get("w_mm") / w_mm
+    if get("U_mm") is not None and math.isfinite(U_mm):
+        out["inv_U_per_m"] = get("U_mm") * 1000.0 / (U_mm * U_mm)
+    if get("d_mm") is not None:
+        out["d_scaled"] = get("d_mm") / APERTURE_SCALE_MM
+    if get("theta_F_deg") is not None:
+        out["theta_F"] = math.radians(get("theta_F_deg"))
+    return out
 
 _DIST = tuple(f"dist_{k}" for k in COEFFICIENT_NAMES)
 _GROUPS = {
@@ -118,8 +196,8 @@ class _BlurTerms(NamedTuple):
 
 
 class LensCamera(torch.nn.Module):
-    """Thin-lens camera with a tilted plane of focus and lens distortion, V views sharing one lens (tiltfit calls
-    it `TiltLensCamera`).
+    """Thin-lens camera with a tilted plane of focus and lens distortion, V views sharing one lens (tiltfit's
+    calibration camera).
 
     Args:
         n_views: number of views V (poses).
@@ -172,16 +250,14 @@ class LensCamera(torch.nn.Module):
         T_mm = torch.tensor([[0.0, 0.0, 600.0]] * V) if T_mm is None else T_mm
         T_mm = torch.as_tensor(T_mm, dtype=dtype).reshape(V, 3)
         P = torch.nn.Parameter
-        self.log_w_mm = P(torch.tensor(math.log(float(w_mm)), dtype=dtype))
-        self.inv_U_per_m = P(torch.tensor(1000.0 / float(U_mm), dtype=dtype))
         # d = 0 exactly would be a stationary point of |d_scaled| (zero gradient): start a hair above it.
-        self.d_scaled = P(torch.tensor(max(float(d_mm), 1e-6) / APERTURE_SCALE_MM, dtype=dtype))
-        self.theta_F = P(torch.tensor(float(theta_F), dtype=dtype))
+        for name, v in stored_from_lens(w_mm, U_mm, max(float(d_mm), 1e-6), theta_F).items():
+            setattr(self, name, P(torch.tensor(v, dtype=dtype)))
         self.phi = P(torch.tensor(float(phi), dtype=dtype))
         self.rvec = P(rvec.clone())
         self.T_scaled = P(T_mm / self.length_scale_mm)
         W, H = self.image_size_px
-        centre = torch.tensor([(W - 1) / 2.0, (H - 1) / 2.0], dtype=dtype)
+        centre = torch.tensor(image_centre_px(W, H), dtype=dtype)
         self.register_buffer("image_centre_px", centre)
         pp = centre if principal_point_px is None else torch.as_tensor(principal_point_px, dtype=dtype)
         self.pp_scaled = P((pp - centre) / self.pixel_scale_px)
@@ -223,6 +299,14 @@ class LensCamera(torch.nn.Module):
     def free_parameter_names(self) -> list[str]:
         return [n for n, p in self.named_parameters() if p.requires_grad]
 
+    def set_lens(self, **values) -> "LensCamera":
+        """Set stored lens parameters in place from lens values (`stored_from_lens`' keywords: w_mm, U_mm, d_mm,
+        theta_F); returns self."""
+        with torch.no_grad():
+            for name, v in stored_from_lens(**values).items():
+                getattr(self, name).fill_(v)
+        return self
+
     # --- physical values ---------------------------------------------------------------------------------
     @property
     def n_views(self) -> int:
@@ -230,12 +314,12 @@ class LensCamera(torch.nn.Module):
 
     @property
     def w_mm(self) -> torch.Tensor:
-        return torch.exp(self.log_w_mm)
+        return w_from_stored(self.log_w_mm)
 
     @property
     def U_mm(self) -> torch.Tensor:
         """Focus distance, mm (inf at focus at infinity)."""
-        return 1000.0 / self.inv_U_per_m
+        return U_from_stored(self.inv_U_per_m)
 
     @property
     def distortion(self) -> torch.Tensor:
@@ -244,7 +328,7 @@ class LensCamera(torch.nn.Module):
 
     @property
     def d_mm(self) -> torch.Tensor:
-        return self.d_scaled.abs() * APERTURE_SCALE_MM
+        return d_from_stored(self.d_scaled)
 
     @property
     def tan_theta_F(self) -> torch.Tensor:

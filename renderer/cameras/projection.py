@@ -19,6 +19,19 @@ import torch
 from .distortion import distort_about_axis
 
 
+def image_centre_px(width_px, height_px) -> tuple[float, float]:
+    """The centre of a W × H image, ((W − 1)/2, (H − 1)/2) px (pixel (0, 0) is the centre of the top-left pixel):
+    the default principal point. Written once here (tests/test_one_lens.py scans for copies)."""
+    return (width_px - 1) / 2.0, (height_px - 1) / 2.0
+
+
+def camera_matrix(focal_px, principal_point_px) -> np.ndarray:
+    """(3, 3) OpenCV's camera matrix K = [[f, 0, cx], [0, f, cy], [0, 0, 1]] (pixels from normalised coordinates)
+    of a focal length f (px, square pixels) and principal point (cx, cy) (px), float64."""
+    cx, cy = principal_point_px
+    return np.array([[focal_px, 0.0, cx], [0.0, focal_px, cy], [0.0, 0.0, 1.0]], dtype=np.float64)
+
+
 def _as_pair(v, like):
     """A focal length or principal point as something that broadcasts against (..., 2) coordinates `like`:
     a scalar (number or 0-dim tensor) as it is, a pair (tuple, list) as a (2,) array of `like`'s kind (tensors

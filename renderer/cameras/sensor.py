@@ -26,6 +26,8 @@ import torch
 
 from camio.files import linear_to_srgb, srgb_to_linear
 
+from .projection import image_centre_px
+
 ENCODINGS = ("float", "srgb8", "linear8")
 
 
@@ -38,7 +40,7 @@ def radial_falloff(x, y, width: int, height: int, vignetting, centre=None):
         vignetting: v (a float or a tensor, so it can be fitted).
         centre: (cx, cy) px of the fall-off [the image centre ((W − 1)/2, (H − 1)/2)].
     """
-    hx, hy = (width - 1) / 2, (height - 1) / 2
+    hx, hy = image_centre_px(width, height)  # the centre, and the half-diagonal's components
     cx, cy = (hx, hy) if centre is None else centre
     rho2 = ((x - cx) ** 2 + (y - cy) ** 2) / (hx**2 + hy**2)
     return 1.0 - vignetting * rho2

@@ -102,6 +102,29 @@ def concentric_disk_xy(lens_uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
     return r * torch.cos(phi), r * torch.sin(phi)
 
 
+# The tilted thin lens's ray, per component (rows x, y, z), written once: the eager camera (`ThinLensCamera.lens_rows`,
+# `rays_in_camera`) and the compiled fused path (`renderer.tracing.fused`) call these. `_rays_in_place` repeats
+# them with in-place steps (the same operations in the same order, so the same bits: tests/renderer/test_thin_lens.py),
+# and Mitsuba's sensor (`renderer.mitsuba.sensors.TiltedThinLens`) in Dr.Jit, which torch functions cannot run in.
+
+def disc_rows(lx, ly, half_d, cos_theta_L, sin_theta_L):
+    """The lens disc's point (s_x, s_y cos θL, s_y sin θL), (s_x, s_y) = (lx, ly) · d/2, of unit-disc samples (lx, ly),
+    tilt axis the camera x axis."""
+    sx, sy = lx * half_d, ly * half_d
+    return sx, sy * cos_theta_L, sy * sin_theta_L
+
+
+def focus_weight_rows(y, z, tan_theta_F, U):
+    """D / U = (z − y tan θF) / U for chief directions (x, y, z) (y in the frame of the tilt axis): the pixel's focus
+    point is P_f = (x, y, z) · U / D."""
+    return (z - y * tan_theta_F) / U
+
+
+def direction_rows(x, y, z, sx, sy, sz, weight):
+    """The ray direction c − (D/U) S (not normalised) of chief direction c = (x, y, z) and lens point S."""
+    return x - weight * sx, y - weight * sy, z - weight * sz
+
+
 def focus_lens(path: str, cfg: dict, transform: CameraTransform) -> Lens:
     """The lens of a `focus_points` camera: the plane of focus through three world points (`Lens.focus_through`
     in the camera frame of `transform`). Messages name the field."""
@@ -278,10 +301,8 @@ class ThinLensCamera(Camera):
         """`lens_points` as its three (...,) components: the disc's point (s_a, s_b) on the tilt axis
         a = (cos φ, sin φ, 0) and across it, b cos θL + ẑ sin θL with b = (−sin φ, cos φ, 0)."""
         lx, ly = concentric_disk_xy(lens_uv)
-        r = self.lens.d / 2
-        sx, sy = lx * r, ly * r
-        theta_L = _like(self.lens.theta_L, sx)
-        across, sz = sy * torch.cos(theta_L), sy * torch.sin(theta_L)
+        theta_L = _like(self.lens.theta_L, lx)
+        sx, across, sz = disc_rows(lx, ly, self.lens.d / 2, torch.cos(theta_L), torch.sin(theta_L))
         if self._untwisted():
             return sx, across, sz
         phi = _like(self.lens.phi, sx)
@@ -302,7 +323,7 @@ class ThinLensCamera(Camera):
         if not self._untwisted():
             phi = _like(self.lens.phi, y)
             y = y * torch.cos(phi) - x * torch.sin(phi)
-        return (z - y * torch.tan(_like(self.lens.theta_F, y))) / self.lens.U
+        return focus_weight_rows(y, z, torch.tan(_like(self.lens.theta_F, y)), self.lens.U)
 
     def rays_in_camera(self, uv_px: torch.Tensor, lens_uv: torch.Tensor) -> Rays:
         # Per component (x, y, z rows), without (..., 3) intermediates, whose length-3 last axis is slow in
@@ -313,7 +334,7 @@ class ThinLensCamera(Camera):
         x, y, z = self.screen.plane_rows(uv_px)
         sx, sy, sz = self.lens_rows(lens_uv.to(x))
         weight = self._focus_weight(x, y, z)
-        dx, dy, dz = x - weight * sx, y - weight * sy, z - weight * sz
+        dx, dy, dz = direction_rows(x, y, z, sx, sy, sz, weight)
         valid = torch.ones(x.shape, dtype=torch.bool, device=x.device)
         return Rays(vectors_from_rows(sx, sy, sz), unit_vectors_from_rows(dx, dy, dz), valid, torch.ones_like(x))
 

@@ -25,7 +25,9 @@ import math
 
 import torch
 
-from renderer.cameras.thin_lens import concentric_disk_xy
+from typing import NamedTuple
+
+from renderer.cameras.thin_lens import concentric_disk_xy, direction_rows, disc_rows, focus_weight_rows
 from renderer.tracing.direct import applies as direct_applies
 from renderer.scene.model import Scene, TraceOptions
 
@@ -47,7 +49,7 @@ def applies(scene: Scene, options: TraceOptions, device, dtype) -> bool:
     if cam.distortion is not None and not cam.distortion.is_identity:
         return False
     lens = cam.lens
-    if any(isinstance(v, torch.Tensor) for v in (lens.w, lens.U, lens.d, lens.theta_F, lens.phi, cam.screen.distance)):
+    if any(isinstance(v, torch.Tensor) for v in (lens.w, lens.U, lens.d, lens.theta_F, lens.phi)):
         return False
     if lens.phi != 0:  # its compiled rays take the tilt about x only
         return False
@@ -90,23 +92,38 @@ class _Tables:
         self.background = [float(v) for v in scene.image.background]
 
 
-def _camera_rays(sampler, pixel, width: int, cam: tuple):
+class _CameraConstants(NamedTuple):
+    """The thin-lens camera's numbers as `_camera_rays` takes them (Python numbers, baked into the compiled code)."""
+    cx: float               # principal point, pixels
+    cy: float
+    pitch_x: float          # pixel pitch, scene units
+    pitch_y: float
+    w: float                # lens centre to sensor
+    half_d: float           # aperture radius
+    cos_theta_L: float      # lens tilt, float32-rounded trigonometry
+    sin_theta_L: float
+    tan_theta_F: float
+    U: float                # focus distance
+    R: list | None          # world_from_camera rows, None for the identity
+    position: list          # camera centre, world frame
+
+
+def _camera_rays(sampler, pixel, width: int, cam: _CameraConstants):
     """Stage 1: world rays (ox, oy, oz, dx, dy, dz), each (n·spp,) float32, for the samples of the pixels
-    `pixel` (n,): `Sampler.pixel_block`, `render._camera_samples` then `ThinLensCamera._rays_in_place`."""
+    `pixel` (n,): `Sampler.pixel_block`, `render._camera_samples` then the thin lens's rays (`renderer.cameras.
+    thin_lens`' row functions, as `ThinLensCamera._rays_in_place` computes them)."""
     block = sampler.pixel_block(pixel)
-    cx, cy, px, py, z, half_d, cos_l, sin_l, tan_f, U, R, t = cam
     xs = (block[0] + ((pixel % width).to(torch.float64) - 0.5)[:, None]).to(torch.float32).reshape(-1)
     ys = (block[1] + ((pixel // width).to(torch.float64) - 0.5)[:, None]).to(torch.float32).reshape(-1)
     # The thin lens's own concentric map (its selects are torch.where while compiling, one fused loop here).
     lx, ly = concentric_disk_xy(block[2:].to(torch.float32).reshape(2, -1).T)
-    x, y = (xs - cx) * px, (ys - cy) * py
-    o0 = lx * half_d
-    sy = ly * half_d
-    o1, o2 = sy * cos_l, sy * sin_l
-    w = (z - y * tan_f) / U
-    d0, d1, d2 = x - o0 * w, y - o1 * w, z - o2 * w
+    x, y, z = (xs - cam.cx) * cam.pitch_x, (ys - cam.cy) * cam.pitch_y, cam.w
+    o0, o1, o2 = disc_rows(lx, ly, cam.half_d, cam.cos_theta_L, cam.sin_theta_L)
+    weight = focus_weight_rows(y, z, cam.tan_theta_F, cam.U)
+    d0, d1, d2 = direction_rows(x, y, z, o0, o1, o2, weight)
     inv = (d0 * d0 + d1 * d1 + d2 * d2).rsqrt().clamp_max(1e12)
     d0, d1, d2 = d0 * inv, d1 * inv, d2 * inv
+    R, t = cam.R, cam.position
     if R is None:
         return o0 + t[0], o1 + t[1], o2 + t[2], d0, d1, d2
     o = [R[i][0] * o0 + R[i][1] * o1 + R[i][2] * o2 + t[i] for i in range(3)]
@@ -186,7 +203,7 @@ def _compiled(fn):
     return _COMPILED[fn]
 
 
-def _camera_constants(cam) -> tuple:
+def _camera_constants(cam) -> _CameraConstants:
     """The thin lens's numbers as `_camera_rays` takes them (read on every batch: a camera changed between
     renders is seen; torch.compile then recompiles for its new constants). Trigonometry in float32 as the
     eager path rounds it."""
@@ -194,10 +211,10 @@ def _camera_constants(cam) -> tuple:
     trig = lambda fn, angle: f32(fn(torch.tensor(float(angle), dtype=torch.float32)))  # noqa: E731
     R = cam.transform.world_from_camera.to(torch.float64)
     eye = bool((R == torch.eye(3, dtype=R.dtype)).all())
-    lens = cam.lens
-    return (*cam.screen.center_px, *cam.screen.pitch, cam.screen.distance, lens.d / 2,
-            trig(torch.cos, lens.theta_L), trig(torch.sin, lens.theta_L), trig(torch.tan, lens.theta_F), lens.U,
-            None if eye else R.tolist(), [float(v) for v in cam.transform.position])
+    lens, screen = cam.lens, cam.screen
+    return _CameraConstants(*screen.center_px, *screen.pitch, lens.w, lens.d / 2, trig(torch.cos, lens.theta_L),
+                            trig(torch.sin, lens.theta_L), trig(torch.tan, lens.theta_F), lens.U,
+                            None if eye else R.tolist(), [float(v) for v in cam.transform.position])
 
 
 def _state(scene: Scene):

@@ -47,7 +47,7 @@ def test_the_checks_find_planted_violations(tmp_path):
                               "camio.files": {"renderer.cli.main": 40}}, mods)
     assert bad == ["camio/files.py:40 imports renderer.cli.main"], f"a library module importing cli is found: {bad}"
     src = tmp_path / "x.py"
-    src.write_text("import numpy\n\ndef f():\n    from tiltfit.calibrate.model import TiltLensCamera\n    import tiltfit\n")
+    src.write_text("import numpy\n\ndef f():\n    from tiltfit.calibrate.model import LensCamera\n    import tiltfit\n")
     got = _tiltfit_imports({"renderer.x": str(src)})
     assert [g.rsplit(":", 1)[1] for g in got] == ["4", "5"], f"function-level imports of tiltfit are found: {got}"
 

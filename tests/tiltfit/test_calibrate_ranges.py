@@ -14,7 +14,7 @@ from tiltfit.cli import main as cli
 from tiltfit.files.calib import calib_dict
 from tiltfit.calibrate.fit import FitOptions
 from tiltfit.calibrate.flow import calibrate
-from tiltfit.calibrate.model import PAPER_LENS, PAPER_SENSOR, Observations, TiltLensCamera, random_poses
+from tiltfit.calibrate.model import PAPER_LENS, PAPER_SENSOR, Observations, LensCamera, random_poses
 from tiltfit.target.layout import Target
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -27,7 +27,7 @@ PITCH = PAPER_SENSOR["pixel_pitch_mm"]
 def observations(blur_of_depth, seed=3, n_views=6, corner_noise_px=0.05):
     """Synthetic corners of the paper's camera and blur widths `blur_of_depth(z_mm)` (pixels) with 3 % noise."""
     rvec, T = random_poses(n_views, seed, board_centre_mm=(112.5, 75.0))
-    cam = TiltLensCamera(n_views, **PAPER_SENSOR, **PAPER_LENS, rvec=rvec, T_mm=T)
+    cam = LensCamera(n_views, **PAPER_SENSOR, **PAPER_LENS, rvec=rvec, T_mm=T)
     points = torch.as_tensor(TARGET.feature_points())
     g = torch.Generator().manual_seed(seed)
     with torch.no_grad():

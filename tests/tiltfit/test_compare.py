@@ -11,7 +11,7 @@ from tiltfit.files.calib import calib_dict
 from tiltfit.calibrate.flow import calibrate
 from tiltfit.cli.main import main
 from tiltfit.calibrate.fit import FitOptions
-from tiltfit.calibrate.model import PAPER_LENS, PAPER_SENSOR, TiltLensCamera, board_points_mm, random_poses, \
+from tiltfit.calibrate.model import PAPER_LENS, PAPER_SENSOR, LensCamera, board_points_mm, random_poses, \
     synthesize_observations
 from tiltfit.uncertainty.covariance import projection_difference
 
@@ -20,7 +20,7 @@ OPTS = FitOptions(model_selection=False, free_principal_point=True, distortion="
 
 def fit(seed, k1=-0.05, noise=0.1):
     rvec, T = random_poses(8, seed)
-    cam = TiltLensCamera(8, **PAPER_SENSOR, **PAPER_LENS, rvec=rvec, T_mm=T, distortion=[k1])
+    cam = LensCamera(8, **PAPER_SENSOR, **PAPER_LENS, rvec=rvec, T_mm=T, distortion=[k1])
     obs = synthesize_observations(cam, board_points_mm(7, 5, 25.0), noise, 0.05, seed=seed)
     return calib_dict(calibrate(obs, "unified", options=OPTS))
 
@@ -83,7 +83,7 @@ def _calibrate_command(tmp_path, n_views: int, seed: int):
     from tests.tiltfit.test_cli import TARGET, write_detections  # noqa: F401
 
     rvec, T = random_poses(n_views, seed)
-    cam = TiltLensCamera(n_views, **PAPER_SENSOR, **PAPER_LENS, rvec=rvec, T_mm=T)
+    cam = LensCamera(n_views, **PAPER_SENSOR, **PAPER_LENS, rvec=rvec, T_mm=T)
     dets = write_detections(str(tmp_path), cam, "v", seed)
     target = tmp_path / "t.json"
     json.dump(TARGET.to_dict(), open(target, "w"))
@@ -114,7 +114,7 @@ def test_cross_validate_more_groups_than_views_is_refused_before_calibrating(tmp
 
 def test_report_draws_projection_uncertainty(tmp_path):
     rvec, T = random_poses(6, 4)
-    cam = TiltLensCamera(6, **PAPER_SENSOR, **PAPER_LENS, rvec=rvec, T_mm=T, distortion=[-0.05])
+    cam = LensCamera(6, **PAPER_SENSOR, **PAPER_LENS, rvec=rvec, T_mm=T, distortion=[-0.05])
     obs = synthesize_observations(cam, board_points_mm(7, 5, 25.0), 0.1, 0.05, seed=4)
     path = tmp_path / "c.json"
     json.dump(calib_dict(calibrate(obs, "unified", options=OPTS), obs=obs), open(path, "w"))
@@ -189,7 +189,7 @@ def named_calibs():
     """Calibrations of one camera from named views 0…11: A = 0–7, B = 4–11 (4 shared), C = 8–11 (none in A),
     and A2 = A's views with another distortion model (all shared); with their detected corners."""
     rvec, T = random_poses(12, 11)
-    cam = TiltLensCamera(12, **PAPER_SENSOR, **PAPER_LENS, rvec=rvec, T_mm=T, distortion=[-0.05])
+    cam = LensCamera(12, **PAPER_SENSOR, **PAPER_LENS, rvec=rvec, T_mm=T, distortion=[-0.05])
     obs = synthesize_observations(cam, board_points_mm(7, 5, 25.0), 0.1, 0.05, seed=11)
     obs.names = [f"photos/img{v:02d}.png" for v in range(12)]
     out = {}

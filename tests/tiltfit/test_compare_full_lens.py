@@ -19,7 +19,7 @@ from tiltfit.cli.main import main
 from tiltfit.uncertainty.compare import CompareError, compare
 from tiltfit.files.export import opencv_camera
 from tiltfit.calibrate.fit import FitOptions, _fit_camera, _set_free
-from tiltfit.calibrate.model import Observations, TiltLensCamera, axis_angle_to_matrix, board_points_mm, random_poses
+from tiltfit.calibrate.model import Observations, LensCamera, axis_angle_to_matrix, board_points_mm, random_poses
 from tiltfit.uncertainty.covariance import calib_lens, covariance_from_calib, projection_difference, projection_sigma
 
 SENSOR = Sensor(1368, 912, 0.02616)
@@ -30,7 +30,7 @@ LENS = Lens(55.39, 618.4, 18.81, math.radians(20.0), sensor=SENSOR, principal_po
             distortion=(-0.2,), distortion_centre="lens_axis")
 
 
-def _calib(cam: TiltLensCamera) -> dict:
+def _calib(cam: LensCamera) -> dict:
     """The CALIB.json keys of a camera (no fit, no covariance)."""
     s = cam.summary()
     return {"pixel_pitch_mm": cam.pixel_pitch_mm, "image_size_px": list(cam.image_size_px),
@@ -44,10 +44,10 @@ def _calib(cam: TiltLensCamera) -> dict:
 @pytest.fixture(scope="module")
 def truth():
     rvec, T = random_poses(N_VIEWS, 3)
-    return TiltLensCamera.from_lens(LENS, N_VIEWS, rvec=rvec, T_mm=T)
+    return LensCamera.from_lens(LENS, N_VIEWS, rvec=rvec, T_mm=T)
 
 
-def _opencv_capture(cam: TiltLensCamera):
+def _opencv_capture(cam: LensCamera):
     """Clean corners (V, N, 2) from cv2.projectPoints of OpenCV's tilted model of the camera, and blur widths."""
     K, dist, R_cl = opencv_camera(_calib(cam))
     R, T = axis_angle_to_matrix(cam.rvec.detach()).numpy(), cam.T_mm.detach().numpy()
@@ -126,7 +126,7 @@ def fitted(tmp_path_factory):
     from tiltfit.calibrate.model import PAPER_LENS, PAPER_SENSOR, synthesize_observations
 
     rvec, T = random_poses(8, 1)
-    cam = TiltLensCamera(8, **PAPER_SENSOR, **PAPER_LENS, rvec=rvec, T_mm=T, distortion=[-0.05])
+    cam = LensCamera(8, **PAPER_SENSOR, **PAPER_LENS, rvec=rvec, T_mm=T, distortion=[-0.05])
     obs = synthesize_observations(cam, board_points_mm(7, 5, 25.0), 0.1, 0.05, seed=1)
     opts = FitOptions(model_selection=False, free_principal_point=True, distortion="k1", max_rms_px=None)
     data = json.loads(json.dumps(calib_dict(calibrate(obs, "unified", options=opts))))

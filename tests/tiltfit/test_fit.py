@@ -14,7 +14,7 @@ import torch
 from renderer.cameras import optics
 from tiltfit.calibrate.flow import calibrate
 from tiltfit.calibrate.fit import FitError, FitOptions
-from tiltfit.calibrate.model import (PAPER_LENS, PAPER_SENSOR, TiltLensCamera, board_points_mm, random_poses,
+from tiltfit.calibrate.model import (PAPER_LENS, PAPER_SENSOR, LensCamera, board_points_mm, random_poses,
                            synthesize_observations)
 from tiltfit.calibrate.start import focal_from_homographies
 
@@ -29,10 +29,10 @@ QUIET = FitOptions(model_selection=False)
 def truth_camera(n_views, seed, theta_L_deg=0.0, principal_point_px=None):
     rvec, T = random_poses(n_views, seed)
     if theta_L_deg:
-        return TiltLensCamera.from_tilted_lens(n_views, **PAPER_SENSOR, w_mm=W_MM, f_mm=F_MM, d_mm=D_MM,
+        return LensCamera.from_tilted_lens(n_views, **PAPER_SENSOR, w_mm=W_MM, f_mm=F_MM, d_mm=D_MM,
                                                theta_L=math.radians(theta_L_deg), rvec=rvec, T_mm=T,
                                                principal_point_px=principal_point_px)
-    return TiltLensCamera(n_views, **PAPER_SENSOR, **PAPER_LENS, rvec=rvec, T_mm=T,
+    return LensCamera(n_views, **PAPER_SENSOR, **PAPER_LENS, rvec=rvec, T_mm=T,
                           principal_point_px=principal_point_px)
 
 
@@ -289,7 +289,7 @@ def test_focal_length_from_homographies():
     F = focal_from_homographies(obs)
     F_true = W_MM / PAPER_SENSOR["pixel_pitch_mm"]
     assert F is not None and abs(F / F_true - 1) < 0.01, f"focal length {F} px vs {F_true} px"
-    flat = TiltLensCamera(2, **PAPER_SENSOR, **PAPER_LENS, T_mm=[[0, 0, 600.0], [10, 0, 650.0]])
+    flat = LensCamera(2, **PAPER_SENSOR, **PAPER_LENS, T_mm=[[0, 0, 600.0], [10, 0, 650.0]])
     fronto = synthesize_observations(flat, BOARD, 0.0, 0.0)
     assert focal_from_homographies(fronto) is None, "fronto-parallel views cannot give a focal length"
     with pytest.raises(FitError, match="nominal focal length"):

@@ -7,7 +7,7 @@ import torch
 from torch.func import functional_call
 
 from renderer.cameras import optics
-from tiltfit.calibrate.model import (BLUR_MODELS, PAPER_LENS, PAPER_SENSOR, Observations, TiltLensCamera,
+from tiltfit.calibrate.model import (BLUR_MODELS, PAPER_LENS, PAPER_SENSOR, Observations, LensCamera,
                            axis_angle_to_matrix, blur_diameter_mm, board_points_mm, loss,
                            matrix_to_axis_angle, normalized_residual_vector, random_poses, residuals,
                            robust_rho, robust_weight, synthesize_observations)
@@ -18,16 +18,16 @@ F_PAPER = PAPER_LENS["w_mm"] * PAPER_LENS["U_mm"] / (PAPER_LENS["w_mm"] + PAPER_
 def paper_camera(n_views=3, seed=0, theta_L_deg=0.0, **kw):
     rvec, T = random_poses(n_views, seed)
     if theta_L_deg:
-        return TiltLensCamera.from_tilted_lens(n_views, **PAPER_SENSOR, w_mm=PAPER_LENS["w_mm"], f_mm=F_PAPER,
+        return LensCamera.from_tilted_lens(n_views, **PAPER_SENSOR, w_mm=PAPER_LENS["w_mm"], f_mm=F_PAPER,
                                                d_mm=PAPER_LENS["d_mm"], theta_L=math.radians(theta_L_deg),
                                                rvec=rvec, T_mm=T, **kw)
-    return TiltLensCamera(n_views, **PAPER_SENSOR, **PAPER_LENS, rvec=rvec, T_mm=T, **kw)
+    return LensCamera(n_views, **PAPER_SENSOR, **PAPER_LENS, rvec=rvec, T_mm=T, **kw)
 
 
 # --- projection ----------------------------------------------------------------------------------------------
 
 def test_pixel_convention_odd_non_square_image():
-    cam = TiltLensCamera(1, (7, 4), pixel_pitch_mm=0.5, w_mm=10.0, U_mm=100.0, d_mm=1.0, T_mm=[[0.0, 0.0, 0.0]])
+    cam = LensCamera(1, (7, 4), pixel_pitch_mm=0.5, w_mm=10.0, U_mm=100.0, d_mm=1.0, T_mm=[[0.0, 0.0, 0.0]])
     on_axis = cam.project(torch.tensor([0.0, 0.0, 50.0]), 0)
     assert torch.allclose(on_axis, torch.tensor([3.0, 1.5], dtype=torch.float64)), \
         f"the optical axis must land on ((W-1)/2, (H-1)/2) = (3, 1.5), got {on_axis.tolist()}"
@@ -38,7 +38,7 @@ def test_pixel_convention_odd_non_square_image():
 
 
 def test_principal_point_moves_the_image():
-    cam = TiltLensCamera(1, (7, 4), 0.5, 10.0, 100.0, 1.0, T_mm=[[0.0, 0.0, 0.0]], principal_point_px=(3.5, 2.0))
+    cam = LensCamera(1, (7, 4), 0.5, 10.0, 100.0, 1.0, T_mm=[[0.0, 0.0, 0.0]], principal_point_px=(3.5, 2.0))
     uv = cam.project(torch.tensor([0.0, 0.0, 50.0]), 0)
     assert torch.allclose(uv, torch.tensor([3.5, 2.0], dtype=torch.float64)), f"principal point ignored: {uv}"
 
@@ -150,16 +150,16 @@ def test_free_and_freeze():
 
 
 def test_parametrisation_round_trip():
-    cam = TiltLensCamera(2, (100, 80), 0.01, 50.0, 700.0, 12.0, theta_F=0.3, T_mm=[[1, 2, 600], [3, 4, 500]],
+    cam = LensCamera(2, (100, 80), 0.01, 50.0, 700.0, 12.0, theta_F=0.3, T_mm=[[1, 2, 600], [3, 4, 500]],
                          principal_point_px=(50.0, 41.0))
     s = cam.summary()
     assert abs(s["w_mm"] - 50) < 1e-12 and abs(s["U_mm"] - 700) < 1e-9, "lengths stored as logarithms"
     assert torch.allclose(cam.T_mm, torch.tensor([[1, 2, 600], [3, 4, 500]], dtype=torch.float64)), "T scaled"
     assert torch.allclose(cam.principal_point_px, torch.tensor([50.0, 41.0], dtype=torch.float64)), "pp"
     with pytest.raises(ValueError, match="w_mm"):
-        TiltLensCamera(1, (10, 10), 0.01, -5.0, 700.0, 12.0)
+        LensCamera(1, (10, 10), 0.01, -5.0, 700.0, 12.0)
     with pytest.raises(ValueError, match="blur_model"):
-        TiltLensCamera(1, (10, 10), 0.01, 5.0, 700.0, 12.0, blur_model="gauss")
+        LensCamera(1, (10, 10), 0.01, 5.0, 700.0, 12.0, blur_model="gauss")
 
 
 # --- gradcheck -----------------------------------------------------------------------------------------------
@@ -250,7 +250,7 @@ def test_synthesize_noise_levels_and_seed():
 
 
 def test_synthesize_marks_points_outside_the_image():
-    cam = TiltLensCamera(1, (100, 80), 0.01, 10.0, 500.0, 5.0, T_mm=[[0.0, 0.0, 500.0]])
+    cam = LensCamera(1, (100, 80), 0.01, 10.0, 500.0, 5.0, T_mm=[[0.0, 0.0, 500.0]])
     pts = torch.tensor([[0.0, 0.0, 0.0], [400.0, 0.0, 0.0], [0.0, 0.0, -600.0]], dtype=torch.float64)
     obs = synthesize_observations(cam, pts, 0.0, 0.0)
     assert obs.corner_mask.tolist() == [[True, False, False]], "off-image and behind-camera points are missing"

@@ -1,6 +1,6 @@
-"""tiltfit's cameras are the renderer's one camera model: the calibration's TiltLensCamera is renderer.LensCamera,
+"""tiltfit's cameras are the renderer's one camera model: the calibration's camera is renderer.LensCamera (one name),
 the synthetic camera's projection and blur agree with it.
-(The photometric fit renders through `TiltLensCamera.view_camera` itself: tests/tiltfit/test_photometric.py.)"""
+(The photometric fit renders through `LensCamera.view_camera` itself: tests/tiltfit/test_photometric.py.)"""
 from __future__ import annotations
 
 import math
@@ -12,11 +12,15 @@ import torch
 import renderer
 from renderer import Lens, Sensor
 from tiltfit.experiments import synth
-from tiltfit.calibrate.model import TiltLensCamera
+from tiltfit.calibrate.model import LensCamera
 
 
 def test_the_calibration_camera_is_the_renderers():
-    assert TiltLensCamera is renderer.LensCamera, "one class, two names"
+    from tiltfit.calibrate import model
+
+    assert LensCamera is renderer.LensCamera, "the calibration's camera is the renderer's class"
+    alias = "Tilt" + "LensCamera"
+    assert not hasattr(model, alias), f"one class, one name (the {alias} alias is gone)"
 
 
 @pytest.mark.parametrize("phi_deg", [0.0, 40.0])
@@ -24,7 +28,7 @@ def test_synth_camera_projects_and_blurs_as_the_lens_camera(phi_deg):
     sc = Lens(50.0, 700.0, 12.0, sensor=Sensor(801, 533, 0.01), theta_F=math.radians(25.0),
               principal_point_px=(410.5, 260.25), phi=math.radians(phi_deg))
     R, T = synth.pose_from_axis_angle([0.2, -0.15, 0.05], [10.0, -5.0, 650.0])
-    lc = TiltLensCamera.from_lens(sc, 1, R=R[None], T_mm=T[None])
+    lc = LensCamera.from_lens(sc, 1, R=R[None], T_mm=T[None])
     X = np.random.default_rng(2).uniform(-60, 60, (40, 3)) * np.array([1, 1, 0])
     p_cam = X @ R.T + T
     with torch.no_grad():

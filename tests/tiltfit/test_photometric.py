@@ -19,7 +19,7 @@ from tiltfit.experiments import synth
 from tiltfit.experiments import reproduce
 from renderer import ThinLensCamera, axis_angle_to_matrix
 from tiltfit.files.calib import camera_from_calib
-from tiltfit.calibrate.model import TiltLensCamera
+from tiltfit.calibrate.model import LensCamera
 from tiltfit.photometric import (PhotometricOptions, checker_dark_fraction, hammersley_disc_samples,
                                  refine_photometric, render_target)
 from tiltfit.target.layout import Target
@@ -58,7 +58,7 @@ def test_dark_fraction_closed_forms():
     assert got == pytest.approx(0.5, abs=1e-12), "interior corner"
 
 
-def _camera(start: dict, images, pitch: float) -> TiltLensCamera:
+def _camera(start: dict, images, pitch: float) -> LensCamera:
     """The calibration's camera of a start given as w, U, d, θF and per-view R, T (what a corner fit returns)."""
     h, w = images[0].shape[:2]
     return camera_from_calib({**start, "image_size_px": (w, h), "pixel_pitch_mm": pitch})
@@ -402,11 +402,11 @@ def own_model():
 
 def test_photometric_fit_recovers_its_own_model_exactly(own_model):
     """On noise-free captures of its own model the fit lands on the truth (lens, poses, exposure) in a few
-    iterations, returns a refined TiltLensCamera and leaves the start's camera alone."""
+    iterations, returns a refined LensCamera and leaves the start's camera alone."""
     images, truth, start = own_model
     before = {k: float(getattr(start, k).detach()) for k in ("log_w_mm", "inv_U_per_m", "d_scaled", "theta_F")}
     res = refine_photometric(images, BOARD, start, PhotometricOptions(max_pixels=300, aperture="closed_form"))
-    assert isinstance(res.camera, TiltLensCamera) and res.camera is not start, "returns a new TiltLensCamera"
+    assert isinstance(res.camera, LensCamera) and res.camera is not start, "returns a new LensCamera"
     assert {k: float(getattr(start, k).detach()) for k in before} == before, "the start's camera is not modified"
     want = truth.summary()
     got = res.camera.summary()

@@ -1,7 +1,7 @@
 """Honest σ (issue 22): the per-view cluster-robust error model against what fits actually scatter by.
 
 (a) Monte Carlo, two-sided: 60 noise draws of a capture made by an independent generator (a pinhole + Brown k1
-    projector and a geometric-optics blur-circle formula written here, not `TiltLensCamera`) with corner errors
+    projector and a geometric-optics blur-circle formula written here, not `LensCamera`) with corner errors
     correlated within each view (a random shift and affine warp of each view's corners, a random scale of each
     view's blur widths, plus independent noise). The predicted σ (RMS over the draws) of f, cx, cy, w, U, d, θL
     must lie within 0.8–1.25 of the empirical spread of the estimates, and the same check must fail for σ × 0.5
@@ -43,7 +43,7 @@ KEYS = ("f_px", "cx_px", "cy_px", "w_mm", "U_mm", "d_mm", "theta_L_deg")
 
 
 def independent_capture():
-    """Clean corners and blur widths from our own projector (not TiltLensCamera): pinhole with focal length w
+    """Clean corners and blur widths from our own projector (not LensCamera): pinhole with focal length w
     (the sensor distance), Brown k1, and the blur circle of a thin lens focused at U: d·|w − w_z| / w_z on the
     sensor for a point at depth z, whose image lies at w_z = 1 / (1/f − 1/z)."""
     rvec, T = random_poses(N_VIEWS, 3)

@@ -155,10 +155,10 @@ def test_calibration_problem_jacobian_equals_autograd_of_its_residuals():
     from torch.func import functional_call
 
     from tiltfit.calibrate.fit import _Problem
-    from tiltfit.calibrate.model import TiltLensCamera, board_points_mm, random_poses, synthesize_observations
+    from tiltfit.calibrate.model import LensCamera, board_points_mm, random_poses, synthesize_observations
 
     rvec, T = random_poses(3, seed=7)
-    cam = TiltLensCamera(3, (1368, 912), 0.026, 55.0, 640.0, 18.0, 0.3, rvec=rvec, T_mm=T,
+    cam = LensCamera(3, (1368, 912), 0.026, 55.0, 640.0, 18.0, 0.3, rvec=rvec, T_mm=T,
                          distortion=[0.05, -0.02, 0.001, 0.002, 0.01, 0.0, 0.0, 0.0])
     obs = synthesize_observations(cam, board_points_mm(5, 3, 25.0), 0.1, 0.1, seed=3)
     obs.corners_px[1, 3] = math.nan

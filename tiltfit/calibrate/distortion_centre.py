@@ -28,7 +28,7 @@ from renderer.cameras.distortion import MODEL_TERMS, MODELS as DISTORTION_MODELS
 
 from tiltfit.calibrate.fit import FitError, FitOptions, FitResult, _fit_camera, fit_geometry
 from tiltfit.target.shape import with_points
-from tiltfit.calibrate.model import Observations, TiltLensCamera, distortion_parameter_names
+from tiltfit.calibrate.model import Observations, LensCamera, distortion_parameter_names
 from tiltfit.select.nested import likelihood_ratio
 
 #: The radial terms kept when the lens-axis fit is started afresh (decentring and k3 imitate the axis's offset).
@@ -42,7 +42,7 @@ def _log_rss(fit: FitResult) -> float:
                if fit.rss.get(f"n_{g}", 0) > 0)
 
 
-def _with_terms(camera: TiltLensCamera, model: str, centre: str, keep: tuple | None = None) -> TiltLensCamera:
+def _with_terms(camera: LensCamera, model: str, centre: str, keep: tuple | None = None) -> LensCamera:
     """A copy of `camera` (its free parameters as they are) with the distortion about `centre` and only `model`'s
     terms free; the other coefficients, and those not in `keep` (names) where given, set to 0."""
     cam = camera.copy()

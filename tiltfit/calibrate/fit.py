@@ -19,7 +19,7 @@ chosen by their held-out error (`tiltfit.select.held_out.select_distortion`).
 Objective: ½ Σ ρ((r_i / σ_g)²) over reprojection residuals (group g = corners, pixels) and blur residuals
 (g = blur, pixels); ρ is quadratic, Huber or Cauchy. The noise levels σ_g are estimated from the residuals
 (variance components, with the degrees of freedom each group uses) unless given. Minimised by
-Levenberg–Marquardt with Marquardt's diagonal scaling on the free parameters of `TiltLensCamera`, its
+Levenberg–Marquardt with Marquardt's diagonal scaling on the free parameters of `LensCamera`, its
 Jacobian in closed form (`LensCamera.jacobian`), solved by `tiltfit.solve` (Schur complement of the per-view
 poses), robust losses by iterative reweighting.
 
@@ -42,7 +42,8 @@ import torch
 from renderer.cameras.distortion import MODELS as DISTORTION_MODELS
 
 from tiltfit.target.shape import BOARD_MODELS
-from tiltfit.calibrate.model import (APERTURE_SCALE_MM, BLUR_MODELS, MIN_CORNERS, ROBUST_LOSSES, Observations, TiltLensCamera,
+from renderer.cameras.lens_model import lens_values, stored_lens_sigma, w_from_stored
+from tiltfit.calibrate.model import (BLUR_MODELS, MIN_CORNERS, ROBUST_LOSSES, Observations, LensCamera,
                     distortion_parameter_names, residuals, robust_rho, robust_weight)
 from tiltfit.solve import Block, LMOptions, LMResult, SolverError
 from tiltfit.solve.blocks import DenseCovariance
@@ -186,7 +187,7 @@ class FitResult:
     """
 
     mode: str
-    camera: TiltLensCamera
+    camera: LensCamera
     values: dict
     sigma: dict
     views: list
@@ -234,7 +235,7 @@ class _Problem:
     POSE = ("rvec", "T_scaled")
     BOARD = "board"
 
-    def __init__(self, camera: TiltLensCamera, obs: Observations, names: list[str] | None = None, board=None):
+    def __init__(self, camera: LensCamera, obs: Observations, names: list[str] | None = None, board=None):
         self.camera = camera
         self.obs = obs
         self.board = board if board is not None and board.n_params > 0 else None
@@ -416,7 +417,7 @@ def _group_sigma(prob: _Problem, r_raw: torch.Tensor, normal, robust: str | None
     return out[0], out[1]
 
 
-def _solve(camera: TiltLensCamera, obs: Observations, options: FitOptions, sigma=None, say=None, board=None):
+def _solve(camera: LensCamera, obs: Observations, options: FitOptions, sigma=None, say=None, board=None):
     """Fit the camera's free parameters in place; returns (problem, LM result, σ_corner, σ_blur).
 
     Unless both σ are given, alternates solving with re-estimating them until they change by less than
@@ -458,13 +459,11 @@ def _solve(camera: TiltLensCamera, obs: Observations, options: FitOptions, sigma
     return prob, res, sc, sb
 
 
-def _derived(camera: TiltLensCamera, params: dict) -> torch.Tensor:
+def _derived(camera: LensCamera, params: dict) -> torch.Tensor:
     """(w, U, d, f, θF°, θL°, θL_paper°, φ°, cx, cy) as functions of the stored parameters."""
     from renderer.cameras import optics
 
-    w, d = torch.exp(params["log_w_mm"]), params["d_scaled"].abs() * APERTURE_SCALE_MM
-    U = 1000.0 / params["inv_U_per_m"]
-    thF = params["theta_F"]
+    w, U, d, thF = lens_values(params)
     thL = optics.theta_L_from_theta_F(thF, w, U)
     f = optics.focal_length(w, U, thL)
     thLp = optics.theta_L_paper(thF, f, U)
@@ -477,18 +476,12 @@ _DERIVED_KEYS = ("w_mm", "U_mm", "d_mm", "f_mm", "theta_F_deg", "theta_L_deg", "
                  "tilt_axis_deg")
 
 
-def _held_sigma(init_sigma: dict | None, camera: TiltLensCamera, names: list[str]) -> dict:
+def _held_sigma(init_sigma: dict | None, camera: LensCamera, names: list[str]) -> dict:
     """σ of held stored lens parameters from an `init` sigma dict (relative σ for log w, cm for d)."""
-    out = {}
     if not init_sigma:
-        return out
-    if "log_w_mm" in names and init_sigma.get("w_mm"):
-        out["log_w_mm"] = float(init_sigma["w_mm"]) / float(camera.w_mm)
-    if "d_scaled" in names and init_sigma.get("d_mm"):
-        out["d_scaled"] = float(init_sigma["d_mm"]) / APERTURE_SCALE_MM
-    if "inv_U_per_m" in names and init_sigma.get("U_mm") and math.isfinite(float(camera.U_mm)):
-        out["inv_U_per_m"] = 1000.0 * float(init_sigma["U_mm"]) / float(camera.U_mm) ** 2
-    return out
+        return {}
+    stored = stored_lens_sigma(float(camera.w_mm), float(camera.U_mm), init_sigma)
+    return {n: s for n, s in stored.items() if n in names and n != "theta_F"}
 
 
 def _jacobian_of(f, x: torch.Tensor) -> torch.Tensor:
@@ -496,13 +489,13 @@ def _jacobian_of(f, x: torch.Tensor) -> torch.Tensor:
     return torch.autograd.functional.jacobian(f, x.detach())
 
 
-def _intrinsics(camera: TiltLensCamera, params: dict) -> torch.Tensor:
+def _intrinsics(camera: LensCamera, params: dict) -> torch.Tensor:
     """(focal_px, cx, cy, k1 … k6, θL°, φ°) as functions of the stored parameters
     (`tiltfit.uncertainty.covariance.INTRINSIC_NAMES`: what the projection depends on; θL and φ place a lens-axis
     distortion's frame)."""
-    w = torch.exp(params["log_w_mm"])
+    w = w_from_stored(params["log_w_mm"])
     pp = camera.image_centre_px + params["pp_scaled"] * camera.pixel_scale_px
-    k = torch.stack([params[n].reshape(()) for n in TiltLensCamera.parameter_names("distortion")])
+    k = torch.stack([params[n].reshape(()) for n in LensCamera.parameter_names("distortion")])
     # tan θL = w tan θF / (U + w) written with 1/U, finite (θL = 0) and differentiable at focus at infinity
     u = params["inv_U_per_m"] / 1000.0
     theta_L = torch.atan(w * torch.tan(params["theta_F"]) * u / (1.0 + w * u))
@@ -574,7 +567,7 @@ def _uncertainties(prob: _Problem, res: LMResult, scale: torch.Tensor, init_sigm
         offsets = layout.offsets
         sd = Cx.diagonal().clamp_min(0).sqrt().tolist()
         sigma["distortion"] = [sd[offsets[n][0]] if n in offsets else 0.0
-                               for n in TiltLensCamera.parameter_names("distortion")]
+                               for n in LensCamera.parameter_names("distortion")]
         if "inv_U_per_m" in offsets:
             sigma["inv_U_per_m"] = sd[offsets["inv_U_per_m"][0]]
         if "blur_offset_px" in offsets:
@@ -604,7 +597,7 @@ def _uncertainties(prob: _Problem, res: LMResult, scale: torch.Tensor, init_sigm
     return C, sigma, view_sig, s2, extras
 
 
-def _set_free(camera: TiltLensCamera, mode: str, free_pp: bool):
+def _set_free(camera: LensCamera, mode: str, free_pp: bool):
     camera.freeze("all")
     camera.free(*_MODE_FREE[mode])
     if free_pp:
@@ -620,7 +613,7 @@ def _group_rss(prob: _Problem, res: LMResult, scale: torch.Tensor) -> dict:
             "n_corners": prob.n_corner, "n_blur": prob.n_blur}
 
 
-def _fit_camera(camera: TiltLensCamera, obs: Observations, options: FitOptions, init_sigma=None, say=None,
+def _fit_camera(camera: LensCamera, obs: Observations, options: FitOptions, init_sigma=None, say=None,
                 sigma=None, mode: str = "joint", board=None):
     """Fit the camera's free parameters (and `board`'s, a `tiltfit.target.shape.Board`, if given: fitted in place and
     kept in the result's `board`, the observations then seen as its points)."""
@@ -677,7 +670,7 @@ def without_blur(obs: Observations) -> Observations:
                         obs.pixel_pitch_mm, list(obs.names))
 
 
-def _set_free_geometry(camera: TiltLensCamera, mode: str, free_pp: bool, distortion: str | None):
+def _set_free_geometry(camera: LensCamera, mode: str, free_pp: bool, distortion: str | None):
     """Free the geometric parameters; `distortion` None holds the coefficients as they are, a model name frees
     its terms and sets the others to 0."""
     camera.freeze("all")
@@ -695,7 +688,7 @@ def _set_free_geometry(camera: TiltLensCamera, mode: str, free_pp: bool, distort
         camera.free(*free)
 
 
-def fit_geometry(camera: TiltLensCamera, obs: Observations, options: FitOptions, mode: str = "unified",
+def fit_geometry(camera: LensCamera, obs: Observations, options: FitOptions, mode: str = "unified",
                  say=None, hold_distortion: bool = False, board=None) -> FitResult:
     """Fit w (unless `mode` is "tilt"), the poses, the principal point if `options.free_principal_point` is
     True and the distortion on the corners alone (blur widths ignored; U, d, θF held).

@@ -1,8 +1,7 @@
 """Calibration model: observations, residuals and losses for the one camera model, plus synthetic observations.
 
 The camera is the renderer's `LensCamera` (renderer/cameras/lens_model.py; its docstring gives the projection,
-the blur models and the parametrisation): `TiltLensCamera` here is the same class under the name the
-calibration has always used, so CALIB.json files, notebooks and scripts keep working. The names this module
+the blur models and the parametrisation), under that one name here too. The names this module
 re-exports (BLUR_MODELS, APERTURE_SCALE_MM, blur_diameter_mm, axis_angle_to_matrix, matrix_to_axis_angle,
 distortion_parameter_names) are the renderer's too. Lengths in mm, angles in radians.
 
@@ -16,16 +15,13 @@ from dataclasses import dataclass
 
 import torch
 from renderer import Lens, axis_angle_to_matrix, matrix_to_axis_angle  # noqa: F401  (re-exported)
-from renderer.cameras import APERTURE_SCALE_MM, LensCamera, distortion_parameter_names  # noqa: F401
+from renderer.cameras import APERTURE_SCALE_MM, LensCamera, distortion_parameter_names  # noqa: F401  (re-exported)
 from renderer.cameras.optics import BLUR_MODELS  # noqa: F401  (re-exported)
 from renderer.cameras.optics import blur_diameter as blur_diameter_mm  # noqa: F401  (re-exported)
 
 from tiltfit.files.det import MIN_CORNERS  # noqa: F401 - the fewest corners a view must have (owned there: no torch)
 
 ROBUST_LOSSES = (None, "none", "huber", "cauchy")
-
-#: The calibration's camera: the renderer's one camera model (see the module docstring).
-TiltLensCamera = LensCamera
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -123,7 +119,7 @@ class Residuals:
         return rc, rb
 
 
-def residuals(camera: TiltLensCamera, obs: Observations) -> Residuals:
+def residuals(camera: LensCamera, obs: Observations) -> Residuals:
     """Residuals of the model against the observations (model − observed), all views at once."""
     uv, b = camera(obs.points_mm)
     cm, bm = obs.corner_mask.to(uv.device), obs.blur_mask.to(uv.device)
@@ -161,7 +157,7 @@ def robust_weight(s2: torch.Tensor, robust: str | None = None, scale: float = 3.
     raise ValueError(f"robust: expected one of {ROBUST_LOSSES}, got {robust!r}")
 
 
-def normalized_residual_vector(camera: TiltLensCamera, obs: Observations, sigma_corner_px: float = 1.0,
+def normalized_residual_vector(camera: LensCamera, obs: Observations, sigma_corner_px: float = 1.0,
                                sigma_blur_px: float = 1.0, use_corners: bool = True,
                                use_blur: bool = True) -> torch.Tensor:
     """Flat residual vector (V·N·2 corner entries, then V·N blur entries), each divided by its σ.
@@ -178,7 +174,7 @@ def normalized_residual_vector(camera: TiltLensCamera, obs: Observations, sigma_
     return torch.cat([rc, rb])
 
 
-def loss(camera: TiltLensCamera, obs: Observations, sigma_corner_px: float = 1.0, sigma_blur_px: float = 1.0,
+def loss(camera: LensCamera, obs: Observations, sigma_corner_px: float = 1.0, sigma_blur_px: float = 1.0,
          robust: str | None = None, robust_scale: float = 3.0, use_corners: bool = True,
          use_blur: bool = True) -> torch.Tensor:
     """Scalar ½ Σ ρ((r / σ)²) over corners and blur: minimise it with any torch optimizer."""
@@ -190,7 +186,7 @@ def loss(camera: TiltLensCamera, obs: Observations, sigma_corner_px: float = 1.0
 # Synthetic observations
 # ---------------------------------------------------------------------------------------------------------
 
-def synthesize_observations(camera: TiltLensCamera, points_mm, noise_px: float = 0.0, noise_blur_px: float = 0.0,
+def synthesize_observations(camera: LensCamera, points_mm, noise_px: float = 0.0, noise_blur_px: float = 0.0,
                             seed: int = 0, noise_blur_rel: float = 0.0, names=None,
                             margin_px: float = 0.0) -> Observations:
     """Noisy observations of target points seen by `camera` in each of its views.
@@ -234,7 +230,7 @@ def board_points_mm(nx: int = 8, ny: int = 5, pitch_mm: float = 25.0, centred: b
 
 
 # The paper's camera (`renderer.Lens.paper()`: Canon EOS 6D, TS-E 45 mm at f/2.8; stage-1 values of the paper's
-# experiment) as `TiltLensCamera`'s keyword arguments.
+# experiment) as `LensCamera`'s keyword arguments.
 PAPER_SENSOR = {"image_size_px": Lens.paper().sensor.size_px, "pixel_pitch_mm": Lens.paper().sensor.pixel_pitch}
 PAPER_LENS = {"w_mm": Lens.paper().w, "U_mm": Lens.paper().U, "d_mm": Lens.paper().d}
 

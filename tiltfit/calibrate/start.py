@@ -1,7 +1,7 @@
 """The starting camera of a calibration: focal length from homographies, poses by PnP, blur parameters by a
 linear scan.
 
-    initialize(obs, mode, init=None, options=FitOptions(), blur=True) -> TiltLensCamera
+    initialize(obs, mode, init=None, options=FitOptions(), blur=True) -> LensCamera
     start_blur(cam, obs, mode, init=None)                              -> cam (U, d, θF set in place)
     focal_from_homographies(obs, principal_point_px=None)              -> focal length, pixels, or None
     poses_from_pnp(obs, focal_px, principal_point_px, distortion=None) -> rvec (V, 3), T (V, 3, mm)
@@ -14,8 +14,10 @@ import math
 import numpy as np
 import torch
 
+from renderer.cameras import camera_matrix, image_centre_px
+
 from tiltfit.calibrate.fit import FitError, FitOptions
-from tiltfit.calibrate.model import APERTURE_SCALE_MM, Observations, TiltLensCamera
+from tiltfit.calibrate.model import Observations, LensCamera
 
 #: Entries (candidates × widths) of one block of `blur_from_scan`'s table: 2M float64, 16 MB per temporary.
 SCAN_ENTRIES = 1 << 21
@@ -31,7 +33,7 @@ def focal_from_homographies(obs: Observations, principal_point_px=None) -> float
     import cv2
 
     W, H = obs.image_size_px
-    c = np.array(principal_point_px if principal_point_px is not None else ((W - 1) / 2, (H - 1) / 2))
+    c = np.array(principal_point_px if principal_point_px is not None else image_centre_px(W, H))
     s = float(max(W, H))  # pixel coordinates in units of the image size keep the equations O(1)
     pts = obs.points_mm.numpy()
     if np.ptp(pts[:, 2]) > 1e-9:
@@ -66,7 +68,7 @@ def poses_from_pnp(obs: Observations, focal_px: float, principal_point_px,
     `distortion`: None or up to 8 Brown–Conrady coefficients in OpenCV's order."""
     import cv2
 
-    K = np.array([[focal_px, 0, principal_point_px[0]], [0, focal_px, principal_point_px[1]], [0, 0, 1.0]])
+    K = camera_matrix(focal_px, principal_point_px)
     dist = None if distortion is None or not any(float(v) for v in distortion) else \
         np.array([float(v) for v in distortion], dtype=np.float64)
     pts = obs.points_mm.numpy()
@@ -138,19 +140,17 @@ def blur_from_scan(p_cam: torch.Tensor, blur_px: torch.Tensor, mask: torch.Tenso
     return U0, wd / w_mm, th
 
 
-def _blur_rss(cam: TiltLensCamera, obs: Observations, U_mm: float, d_mm: float, theta_F: float) -> float:
+def _blur_rss(cam: LensCamera, obs: Observations, U_mm: float, d_mm: float, theta_F: float) -> float:
     with torch.no_grad():
-        cam.inv_U_per_m.fill_(1000.0 / U_mm)
-        cam.d_scaled.fill_(d_mm / APERTURE_SCALE_MM)
-        cam.theta_F.fill_(theta_F)
+        cam.set_lens(U_mm=U_mm, d_mm=d_mm, theta_F=theta_F)
         b = cam.blur(obs.points_mm)
         r = torch.where(obs.blur_mask, b - torch.nan_to_num(obs.blur_px), torch.zeros_like(b))
         rss = float((r * r).sum())
     return rss if math.isfinite(rss) else math.inf
 
 
-def initialize(obs: Observations, mode: str = "unified", init: TiltLensCamera | None = None,
-               options: FitOptions = FitOptions(), blur: bool = True) -> TiltLensCamera:
+def initialize(obs: Observations, mode: str = "unified", init: LensCamera | None = None,
+               options: FitOptions = FitOptions(), blur: bool = True) -> LensCamera:
     """A starting camera for `calibrate`.
 
     Poses from PnP with w from `init`, else the nominal focal length, else the homographies. The blur
@@ -167,7 +167,7 @@ def initialize(obs: Observations, mode: str = "unified", init: TiltLensCamera | 
         w_mm = float(init.w_mm)
         dist = [float(v) for v in init.distortion]
     else:
-        pp = [(W - 1) / 2.0, (H - 1) / 2.0]
+        pp = list(image_centre_px(W, H))
         if options.nominal_focal_mm is not None:
             w_mm = float(options.nominal_focal_mm)
         else:
@@ -180,7 +180,7 @@ def initialize(obs: Observations, mode: str = "unified", init: TiltLensCamera | 
     U0, d0 = (float(init.U_mm), float(init.d_mm)) if init is not None else (600.0, 10.0)
     if not U0 > 0:  # a start beyond infinity (1/U ≤ 0) is focus at infinity: never a negative U in a lens
         U0 = math.inf
-    cam = TiltLensCamera(obs.n_views, obs.image_size_px, obs.pixel_pitch_mm, w_mm, U0, d0, rvec=rvec,
+    cam = LensCamera(obs.n_views, obs.image_size_px, obs.pixel_pitch_mm, w_mm, U0, d0, rvec=rvec,
                          T_mm=T, principal_point_px=pp, blur_model=options.blur_model, distortion=dist)
     if init is not None:
         with torch.no_grad():
@@ -190,7 +190,7 @@ def initialize(obs: Observations, mode: str = "unified", init: TiltLensCamera | 
     return cam
 
 
-def start_blur(cam: TiltLensCamera, obs: Observations, mode: str, init: TiltLensCamera | None = None):
+def start_blur(cam: LensCamera, obs: Observations, mode: str, init: LensCamera | None = None):
     """Set cam's U, d, θF to the best start (see `initialize`) for its current poses; returns cam."""
     w_mm = float(cam.w_mm.detach())
     candidates = []

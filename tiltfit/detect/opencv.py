@@ -93,13 +93,15 @@ def opencv_calibrate(obs, flags: int = 0, focal_px: float = 600.0):
     fx/fy ratio, for the fixed aspect ratio, and starts from its own estimate). Returns (RMS per corner as OpenCV defines it, K, distortion)."""
     import cv2
 
+    from renderer.cameras.projection import camera_matrix, image_centre_px
+
     obj, img = [], []
     for v in range(obs.n_views):
         m = obs.corner_mask[v].numpy()
         obj.append(obs.points_mm.numpy()[m].astype(np.float32))
         img.append(obs.corners_px[v].numpy()[m].astype(np.float32))
     W, H = obs.image_size_px
-    K0 = np.array([[focal_px, 0, (W - 1) / 2], [0, focal_px, (H - 1) / 2], [0, 0, 1]])
+    K0 = camera_matrix(focal_px, image_centre_px(W, H))
     rms, K, dist, _, _ = cv2.calibrateCamera(obj, img, (W, H), K0, None, flags=cv2.CALIB_FIX_ASPECT_RATIO | flags,
                                              criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12))
     return float(rms), K, dist.ravel()

@@ -56,7 +56,7 @@ from tiltfit.files.det import MAX_IMAGE_SIDE
 # torch and the camera model (`tiltfit.calibrate.model`) are imported where a camera is built, so that reading and checking
 # a CALIB.json (`tiltfit export`, `compare`, `report`, the commands' file errors) does not load them.
 if TYPE_CHECKING:
-    from tiltfit.calibrate.model import TiltLensCamera
+    from tiltfit.calibrate.model import LensCamera
 
 FORMAT_VERSION = 2
 
@@ -530,34 +530,29 @@ def _check_uncertainty_extras(path: str, data: dict) -> None:
             raise CalibFileError(f"{path}: {key}.verdict: expected a sentence, got {describe(pair.get('verdict'))}")
 
 
-def camera_from_calib(data: dict, blur_model: str | None = None) -> TiltLensCamera:
-    """A TiltLensCamera with the file's lens state and views (one identity view if it has none).
+#: Where `camera_from_calib` starts U and d that the file leaves undetermined (mm).
+START_U_MM, START_D_MM = 600.0, 10.0
+
+
+def camera_from_calib(data: dict, blur_model: str | None = None) -> LensCamera:
+    """A LensCamera with the file's lens state and views (one identity view if it has none).
 
     U and d the file leaves undetermined start at 600 and 10 mm; a file that gives the lens tilt θL but not θF
     (an OpenCV tilted-model file: `tiltfit.files.export.read_opencv`) gets the θF of that θL at this U."""
     import torch
 
-    from renderer.cameras import optics
-
-    from tiltfit.calibrate.model import TiltLensCamera
+    from tiltfit.calibrate.model import LensCamera
+    from tiltfit.files.calib_lens import lens_from_calib
 
     views = data.get("views") or []
     n = max(len(views), 1)
     R = [v["R"] for v in views] if views else None
     T = [v["T_mm"] for v in views] if views else None
-    dist = (data.get("distortion") or {}).get("coefficients")
-    U = data["U_mm"] if data["U_mm"] is not None else 600.0
-    theta_F = math.radians(data.get("theta_F_deg") or 0.0)
-    if data.get("theta_F_deg") is None and data.get("theta_L_deg"):
-        theta_F = float(optics.theta_F_from_theta_L(math.radians(data["theta_L_deg"]), data["w_mm"], U))
-    cam = TiltLensCamera(
-        n, tuple(int(s) for s in data["image_size_px"]), data["pixel_pitch_mm"], data["w_mm"],
-        U, data["d_mm"] if data["d_mm"] is not None else 10.0,
-        theta_F, R=R, T_mm=T,
-        principal_point_px=data.get("principal_point_px"),
-        blur_model=blur_model or data.get("blur_model") or "ellipse", distortion=dist,
-        phi=math.radians(data.get("tilt_axis_deg") or 0.0),
-        distortion_centre=data.get("distortion_centre") or "sensor")
+    start = {"U_mm": START_U_MM if data["U_mm"] is None else data["U_mm"],
+             "d_mm": START_D_MM if data["d_mm"] is None else data["d_mm"]}
+    lens, _ = lens_from_calib({**data, **start})
+    cam = LensCamera.from_lens(lens, n, R=R, T_mm=T,
+                                   blur_model=blur_model or data.get("blur_model") or "ellipse")
     if isinstance(data.get("blur_offset_px"), (int, float)) and math.isfinite(data["blur_offset_px"]):
         with torch.no_grad():
             cam.blur_offset_px.fill_(float(data["blur_offset_px"]))

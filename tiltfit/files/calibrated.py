@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from renderer import Lens, Sensor
+from renderer import Lens
 
 
 class CalibrationError(ValueError):
@@ -143,6 +143,12 @@ class Calibration:
         return float(self.lens.focal_px)
 
     @property
+    def sigma_focal_px(self) -> float | None:
+        """One-σ of the focal length (px): the file's σ of w over the pixel pitch, or None where it has none."""
+        s = (self.data.get("sigma") or {}).get("w_mm")
+        return None if s is None else float(s) / self.lens.sensor.pixel_pitch
+
+    @property
     def principal_point_px(self) -> tuple[float, float]:
         """(cx, cy) in pixels (pixel centres at integers)."""
         cx, cy = self.lens.center_px
@@ -212,10 +218,7 @@ class Calibration:
         if W < 1 or H < 1 or abs(W / H - W0 / H0) > 0.01 * W0 / H0:
             raise CalibrationError(f"{self.path}: image size {W}x{H}: expected the calibration's aspect ratio "
                                    f"({W0}x{H0}, or a scaled copy of it)")
-        s = W / W0
-        pp = self.lens.principal_point_px or ((W0 - 1) / 2.0, (H0 - 1) / 2.0)
-        sensor = Sensor(W, H, self.lens.sensor.pixel_pitch / s)
-        return self.lens.with_(sensor=sensor, principal_point_px=((pp[0] + 0.5) * s - 0.5, (pp[1] + 0.5) * s - 0.5))
+        return self.lens.resampled(W, H)
 
     def camera(self, view=0, image_size_px=None, R=None, T_mm=None):
         """The renderer's camera of a view (`renderer.cameras.ThinLensCamera`, lengths in mm): the calibrated

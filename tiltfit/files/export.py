@@ -42,10 +42,10 @@ class ExportError(ValueError):
 
 
 def _K(calib: dict) -> np.ndarray:
-    F = float(calib["w_mm"]) / float(calib["pixel_pitch_mm"])
-    W, H = calib["image_size_px"]
-    cx, cy = calib.get("principal_point_px") or ((W - 1) / 2.0, (H - 1) / 2.0)
-    return np.array([[F, 0.0, cx], [0.0, F, cy], [0.0, 0.0, 1.0]])
+    """OpenCV's camera matrix of a CALIB.json dict: its lens's (`tiltfit.files.calib_lens.lens_from_calib`, `Lens.K`)."""
+    from tiltfit.files.calib_lens import lens_from_calib
+
+    return lens_from_calib(calib)[0].K
 
 
 def _theta_L_deg(calib: dict) -> float | None:

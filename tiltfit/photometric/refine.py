@@ -1,6 +1,6 @@
 """Photometric refinement: fit the calibration's camera and an exposure to the photographs' pixels.
 
-This is the analysis-by-synthesis step. Starting from a corner-and-blur calibration (its `TiltLensCamera`), every
+This is the analysis-by-synthesis step. Starting from a corner-and-blur calibration (its `LensCamera`), every
 photograph is re-rendered from the current parameters (`render`: the target seen through the camera's thin lens)
 and compared with the photo pixel by pixel; the parameters move to make the two agree. Corners are only a
 starting point, so their bias under heavy blur and lens tilt does not reach the result, and boards too blurred
@@ -41,11 +41,14 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
+from renderer.cameras.lens_model import (LENS_PARAMETERS, U_from_stored, d_from_stored, lens_values,
+                                         stored_lens_sigma, w_from_stored)
 from renderer.cameras.optics import theta_L_from_theta_F
+from renderer.cameras.projection import image_centre_px
 
 from tiltfit.photometric.aperture import checker_dark_fraction_disc, lines_cut
 from tiltfit.detect.imaging import torch_threads
-from tiltfit.calibrate.model import APERTURE_SCALE_MM, TiltLensCamera, axis_angle_to_matrix, robust_rho, robust_weight
+from tiltfit.calibrate.model import LensCamera, axis_angle_to_matrix, robust_rho, robust_weight
 from ..solve import (Block, LMOptions, SolverError, covariance, dense_jacobian, least_squares,
                      levenberg_marquardt)
 from tiltfit.select.stats import nested_test
@@ -78,8 +81,8 @@ JACOBIAN_BLOCK = 2048
 #: drawn at random from the board's bounding box (a 1280 x 1024 photo's board has about 700,000: predicting all
 #: of them took most of the 30-60 s of set-up a view).
 MAX_CANDIDATE_PIXELS = 1 << 16
-#: The camera's stored lens parameters the fit moves, in the order of the `lens` block.
-LENS_PARAMETERS = ("log_w_mm", "inv_U_per_m", "d_scaled", "theta_F")
+# The camera's stored lens parameters the fit moves, in the order of the `lens` block: `LENS_PARAMETERS`, the lens
+# vector of `renderer.cameras.lens_model` (which decodes it: `lens_values`).
 #: Illumination models of `PhotometricOptions.illumination`.
 ILLUMINATIONS = ("flat", "gradient")
 #: With the start's σ (`refine_photometric(start_sigma=...)`), each free lens parameter stays within this many of
@@ -214,7 +217,7 @@ class PhotometricResult:
     """What `refine_photometric` found.
 
     Attributes:
-        camera: the refined `TiltLensCamera` (a copy of the start's, lens and poses moved).
+        camera: the refined `LensCamera` (a copy of the start's, lens and poses moved).
         exposure: the fitted `Exposure`.
         values: w_mm, U_mm (inf when 1/U = 0), inv_U_per_m, d_mm, theta_F_deg, theta_L_deg, vignetting,
             psf_sigma_px (σ of the Gaussian part of the kernel, 0 for the disc alone), kernel, lens_samples,
@@ -253,7 +256,7 @@ class PhotometricResult:
             low, high (the bound's ends, same units), refined, at_bound}: which parameter hit which bound.
     """
 
-    camera: TiltLensCamera
+    camera: LensCamera
     exposure: Exposure
     values: dict
     sigma: dict
@@ -266,7 +269,7 @@ class PhotometricResult:
     sigma_gauss_newton: dict | None = None
     kept: str = "photometric"
     held_out: dict | None = None
-    start_camera: TiltLensCamera | None = None
+    start_camera: LensCamera | None = None
     corner_check: dict | None = None
     rejected_because: str = ""
     free: list = field(default_factory=lambda: list(LENS_PARAMETERS))
@@ -278,7 +281,7 @@ class PhotometricResult:
     bounds: list = field(default_factory=list)
 
     @property
-    def chosen_camera(self) -> TiltLensCamera:
+    def chosen_camera(self) -> LensCamera:
         """The refined camera where the held-out pixels kept it, else the start's (`kept`)."""
         return self.camera if self.kept == "photometric" else self.start_camera
 
@@ -296,7 +299,7 @@ class _View:
 class _ViewGeometry(torch.nn.Module):
     """The camera under `torch.func.functional_call`: `fn(camera.view_camera(view))` with substituted tensors."""
 
-    def __init__(self, camera: TiltLensCamera):
+    def __init__(self, camera: LensCamera):
         super().__init__()
         self.camera = camera
 
@@ -327,7 +330,7 @@ class _Problem:
     """The photometric least-squares problem: pixels of every view, the camera they are rendered with, and
     `evaluate` in the solver's form (residuals in units of `scale`, Jacobians by block)."""
 
-    def __init__(self, camera: TiltLensCamera, target: Target, data: list, lens_uv: torch.Tensor, say=None):
+    def __init__(self, camera: LensCamera, target: Target, data: list, lens_uv: torch.Tensor, say=None):
         self.camera, self.target, self.data, self.lens_uv = camera, target, data, lens_uv
         self.geometry = _ViewGeometry(camera)
         self.near = 1
@@ -439,7 +442,8 @@ class _Problem:
         vig = x["vignetting"][0] if "vignetting" in x else torch.zeros((), dtype=torch.float64)
         psf = x["psf"][0] if "psf" in x else torch.tensor(self.psf_fixed, dtype=torch.float64)
         M = sum(int(d.uv.shape[0]) for d in self.data)
-        if not (float(lens[1]) > 0 and float(lens[2]) > 0 and abs(float(lens[3])) < 1.5):
+        stored = dict(zip(LENS_PARAMETERS, (float(v) for v in lens)))
+        if not (stored["inv_U_per_m"] > 0 and stored["d_scaled"] > 0 and abs(stored["theta_F"]) < 1.5):
             nan = torch.full((M,), math.nan, dtype=torch.float64)   # outside the lens's domain
             sizes = {"lens": len(self.free), "pose": 6, "levels": 2, "vignetting": 1, "psf": 1, "gain": 2}
             return nan, ({k: nan[:, None].expand(M, sizes[k]) for k in x} if with_jacobian else None)
@@ -471,9 +475,10 @@ class _Problem:
         self.n_jacobians += 1
         if self.say:
             cost = 0.5 * float((r * r).sum())
+            _, U, d, theta_F = lens_values([float(v) for v in lens])
             self.say(f"photometric: linearisation {self.n_jacobians}, cost {cost:.6g}, θF "
-                     f"{math.degrees(float(lens[3])):+.4f}°, U {1000.0 / float(lens[1]):.2f} mm, d "
-                     f"{APERTURE_SCALE_MM * float(lens[2]):.4f} mm ({time.perf_counter() - self.t0:.1f} s)")
+                     f"{math.degrees(theta_F):+.4f}°, U {U:.2f} mm, d {d:.4f} mm "
+                     f"({time.perf_counter() - self.t0:.1f} s)")
         return r, jac
 
     def residuals(self, x: dict) -> torch.Tensor:
@@ -632,8 +637,9 @@ def _held_covariance(problem: "_Problem", res, start_covariance: dict | None):
 def _lens_sigma(lens: torch.Tensor, cov_lens: torch.Tensor) -> dict:
     """One-σ of w, 1/U, U, d, θF, θL (mm, 1/m, degrees) from the covariance of the stored lens block."""
     def physical(p):
-        w, U = torch.exp(p[0]), 1000.0 / p[1]
-        return torch.stack([w, p[1], U, APERTURE_SCALE_MM * p[2].abs(), p[3], theta_L_from_theta_F(p[3], w, U)])
+        w, U, d, theta_F = lens_values(p)
+        inv_U = p[LENS_PARAMETERS.index("inv_U_per_m")]
+        return torch.stack([w, inv_U, U, d, theta_F, theta_L_from_theta_F(theta_F, w, U)])
 
     Jp = torch.func.jacrev(physical)(lens.detach())
     var = torch.diagonal(Jp @ cov_lens @ Jp.T)
@@ -660,7 +666,7 @@ def _sigma_dict(res, cov: torch.Tensor, problem: "_Problem") -> dict:
     return out
 
 
-def refine_photometric(images, target: Target, camera: TiltLensCamera, options: PhotometricOptions | None = None,
+def refine_photometric(images, target: Target, camera: LensCamera, options: PhotometricOptions | None = None,
                        say=None, start_sigma: dict | None = None, corners=None,
                        corner_held_out_px: float | None = None,
                        start_covariance: dict | None = None) -> PhotometricResult:
@@ -669,7 +675,7 @@ def refine_photometric(images, target: Target, camera: TiltLensCamera, options: 
     Args:
         images: list of (H, W) or (H, W, 3) linear images (decode sRGB first), one per view of `camera`.
         target: the board.
-        camera: the start, a calibration's `TiltLensCamera` (its principal point and distortion are held);
+        camera: the start, a calibration's `LensCamera` (its principal point and distortion are held);
             not modified.
         options: PhotometricOptions.
         say: optional progress callback taking one line.
@@ -848,7 +854,7 @@ def _refine(images, target, camera, options, say, start_sigma, corners, corner_h
     lens_full = problem.full_lens(res.x["lens"])
     exposure = Exposure(res.x["levels"], float(res.x["vignetting"][0]) if "vignetting" in res.x else 0.0,
                         res.x.get("gain"))
-    values = {**_lens_values(lens_full), "inv_U_per_m": float(lens_full[1]),
+    values = {**_lens_values(lens_full), "inv_U_per_m": float(lens_full[LENS_PARAMETERS.index("inv_U_per_m")]),
               "vignetting": float(exposure.vignetting.detach()), "psf_sigma_px": abs(float(res.x["psf"][0])) if "psf" in res.x
               else 0.0, "kernel": kernel, "lens_samples": n_samples if aperture != "closed_form" else 0,
               "aperture": aperture, "closed_form_pixels": n_closed}
@@ -933,7 +939,7 @@ def _choose_pixels(imgs: list, views: list, target: Target, opts: PhotometricOpt
     # The solver's per-view blocks need the same number of pixels in every view.
     n_rows = min(p.size for p in picks)
     picks = [p if p.size == n_rows else np.sort(rng.choice(p, n_rows, replace=False)) for p in picks]
-    hx, hy = (W - 1) / 2, (H - 1) / 2
+    hx, hy = image_centre_px(W, H)
 
     def view_data(im, vc, pick) -> _View:
         uv = torch.tensor(np.stack([pick % W, pick // W], -1), dtype=torch.float64)
@@ -1057,20 +1063,12 @@ def _held_out_costs(problem: _Problem, held_data: list, x: dict, x0: dict, opts:
     return {"pixels": n, "refined": float(c_ref.mean()), "start": float(c_start.mean()), "difference_se": se}
 
 
-def _trust_region(cam: TiltLensCamera, sigma: dict):
+def _trust_region(cam: LensCamera, sigma: dict):
     """(free indices into LENS_PARAMETERS, (4,) bounds in stored units) from the start's σ: a parameter whose
     σ is missing, 0 or not finite is held (the start held or could not determine it)."""
-    w, inv_U = math.exp(float(cam.log_w_mm)), float(cam.inv_U_per_m)
-    U = 1000.0 / inv_U
-
-    def get(key):
-        v = sigma.get(key)
-        return float(v) if isinstance(v, (int, float)) and math.isfinite(float(v)) and float(v) > 0 else None
-
-    stored = [None if get("w_mm") is None else get("w_mm") / w,
-              None if get("U_mm") is None else get("U_mm") * 1000.0 / (U * U),
-              None if get("d_mm") is None else get("d_mm") / APERTURE_SCALE_MM,
-              None if get("theta_F_deg") is None else math.radians(get("theta_F_deg"))]
+    w, U, _, _ = lens_values({n: float(getattr(cam, n)) for n in LENS_PARAMETERS})
+    by_name = stored_lens_sigma(w, U, sigma)
+    stored = [by_name.get(n) for n in LENS_PARAMETERS]
     free = [i for i, sd in enumerate(stored) if sd is not None]
     if not free:
         free = [0]
@@ -1080,8 +1078,8 @@ def _trust_region(cam: TiltLensCamera, sigma: dict):
 
 
 #: Stored lens parameter -> (its name in CALIB.json, the physical value of a stored one).
-_PHYSICAL = {"log_w_mm": ("w_mm", math.exp), "inv_U_per_m": ("U_mm", lambda v: 1000.0 / v if v > 0 else math.inf),
-             "d_scaled": ("d_mm", lambda v: APERTURE_SCALE_MM * abs(v)), "theta_F": ("theta_F_deg", math.degrees)}
+_PHYSICAL = {"log_w_mm": ("w_mm", w_from_stored), "inv_U_per_m": ("U_mm", lambda v: U_from_stored(v) if v > 0 else math.inf),
+             "d_scaled": ("d_mm", d_from_stored), "theta_F": ("theta_F_deg", math.degrees)}
 
 
 def _bound_record(problem: "_Problem", z: torch.Tensor, at_bound: list) -> list:
@@ -1102,7 +1100,7 @@ def _bound_record(problem: "_Problem", z: torch.Tensor, at_bound: list) -> list:
     return out
 
 
-def _camera_views(camera: TiltLensCamera, views: list) -> TiltLensCamera:
+def _camera_views(camera: LensCamera, views: list) -> LensCamera:
     """A copy of `camera` with the listed views' poses only."""
     sub = camera.copy()
     for name in ("rvec", "T_scaled"):
@@ -1111,7 +1109,7 @@ def _camera_views(camera: TiltLensCamera, views: list) -> TiltLensCamera:
     return sub
 
 
-def _without_views(left_out: list, imgs: list, target: Target, camera: TiltLensCamera, options, say, start_sigma,
+def _without_views(left_out: list, imgs: list, target: Target, camera: LensCamera, options, say, start_sigma,
                    corners, corner_held_out_px, start_covariance, t0: float) -> PhotometricResult:
     """The refinement on the views not in `left_out` ((index, reason) pairs), exactly as if only they had been
     given; the left-out views' poses stay the start's. Stops where fewer than MIN_VIEWS remain."""
@@ -1165,7 +1163,7 @@ def _chi2_quantile(p: float, k: int) -> float:
     return 0.5 * (lo + hi)
 
 
-def _corner_check(refined: TiltLensCamera, start: TiltLensCamera, corners, start_held_out_px,
+def _corner_check(refined: LensCamera, start: LensCamera, corners, start_held_out_px,
                   n_free: int = 4) -> dict:
     """The refinement judged by the corners (held out of the photometric fit): each view's pose refitted to them
     with the refined lens held (`validate.predict_views`), RMS per corner, against the corner fit's held-out
@@ -1192,7 +1190,7 @@ def _corner_check(refined: TiltLensCamera, start: TiltLensCamera, corners, start
             "views": corners.n_views}
 
 
-def _camera_of(camera: TiltLensCamera, x: dict, problem: "_Problem") -> TiltLensCamera:
+def _camera_of(camera: LensCamera, x: dict, problem: "_Problem") -> LensCamera:
     """`camera` (modified in place) holding the lens and poses of the solver's state `x`."""
     lens = problem.full_lens(x["lens"].detach())
     with torch.no_grad():
@@ -1205,7 +1203,6 @@ def _camera_of(camera: TiltLensCamera, x: dict, problem: "_Problem") -> TiltLens
 
 def _lens_values(lens: torch.Tensor) -> dict:
     """w, U, d, θF, θL of a stored lens block (mm, degrees)."""
-    w, inv_U, d, theta_F = math.exp(float(lens[0])), float(lens[1]), APERTURE_SCALE_MM * abs(float(lens[2])), float(lens[3])
-    U = 1000.0 / inv_U
+    w, U, d, theta_F = lens_values([float(v) for v in lens])
     return {"w_mm": w, "U_mm": U, "d_mm": d, "theta_F_deg": math.degrees(theta_F),
             "theta_L_deg": math.degrees(float(theta_L_from_theta_F(theta_F, w, U)))}

@@ -1,7 +1,7 @@
 """The target renderer of the photometric fit: what a pixel of a thin-lens camera sees of the checkerboard.
 
 Every function takes the renderer's thin-lens camera of one view (`renderer.ThinLensCamera`, as
-`TiltLensCamera.view_camera(v)` builds it, tensor parameters with gradients) and returns the dark fraction D(u) ∈
+`LensCamera.view_camera(v)` builds it, tensor parameters with gradients) and returns the dark fraction D(u) ∈
 [0, 1] of the board a pixel u sees: the mean, over the pixel's area and the lens's aperture, of the checker's
 darkness (1 dark cell, 0 white cell or margin). No general tracer and no random numbers, so D is smooth and
 deterministic and its derivatives exact. The photograph's intensity is then the exposure's affine map of D
@@ -39,7 +39,7 @@ import math
 import numpy as np
 import torch
 
-from renderer.cameras import ThinLensCamera, concentric_disk
+from renderer.cameras import ThinLensCamera, concentric_disk, image_centre_px
 from renderer.cameras.optics import blur_diameter_first_order, blur_diameter_paper
 from renderer.cameras.sensor import radial_falloff
 
@@ -338,7 +338,7 @@ def dark_fraction_image(target: Target, cam: ThinLensCamera, subpixels: int = 2,
     pixel, so a stride thins the picture without changing the model.
 
     Args:
-        cam: the view's camera (`TiltLensCamera.view_camera(v)`, or `tiltfit.files.calibrated.Calibration.camera(v)`).
+        cam: the view's camera (`LensCamera.view_camera(v)`, or `tiltfit.files.calibrated.Calibration.camera(v)`).
         subpixels: points per pixel side of the closed-form aperture [2: a picture, not a fit].
     """
     W, H = cam.width, cam.height
@@ -369,7 +369,7 @@ def shade_image(dark: np.ndarray, white: float, black: float, vignetting: float 
     H, W = dark.shape
     ys, xs = np.mgrid[0:H, 0:W]
     uv = torch.tensor(np.stack([xs.ravel(), ys.ravel()], -1), dtype=torch.float64)
-    hx, hy = (W - 1) / 2, (H - 1) / 2
+    hx, hy = image_centre_px(W, H)
     with torch.no_grad():
         pred = shade(torch.from_numpy(np.ascontiguousarray(dark, dtype=np.float64).ravel()), uv, (W, H), white, black,
                      vignetting)
@@ -386,7 +386,7 @@ def residual_image(image: np.ndarray, target: Target, cam: ThinLensCamera, white
 
     Args:
         image: (H, W) linear photo of the view (decode sRGB first).
-        cam: the view's camera (`TiltLensCamera.view_camera(v)` of the calibration).
+        cam: the view's camera (`LensCamera.view_camera(v)` of the calibration).
         white, black, vignetting, gain: the view's exposure (CALIB.json's photometric `levels` and `vignetting`;
             gain (g_x, g_y) the illumination gradient, `render.shade` and `refine.Exposure`).
         subpixels: points per pixel side of the closed-form aperture [2: a picture, not a fit].

@@ -257,10 +257,11 @@ def _write_plots(calib: dict, views: list, out_dir: str) -> list:
     ho = calib.get("held_out") or {}
     lines.append(f"- reprojection RMS (per corner, as OpenCV): {rms_all if rms_all is None else f'{rms_all:.4f}'} px"
                  + (f"; held out ({ho.get('folds')}-fold): {ho['rms_px']:.4f} px" if ho.get("rms_px") else ""))
-    p = calib["pixel_pitch_mm"]
-    F = calib["w_mm"] / p
+    from tiltfit.files.calibrated import Calibration
+
+    lens_calib = Calibration.from_dict(calib)
+    F, sF = lens_calib.focal_px, lens_calib.sigma_focal_px
     sig = calib.get("sigma") or {}
-    sF = sig.get("w_mm") / p if sig.get("w_mm") is not None else None
     pp, spp = calib.get("principal_point_px") or [math.nan, math.nan], sig.get("principal_point_px") or [None, None]
     lines.append(f"- focal length {with_sigma(F, sF)} px, principal point ({with_sigma(pp[0], spp[0])}, "
                  f"{with_sigma(pp[1], spp[1])}) px, distortion {calib.get('distortion_model', 'none')}: "

@@ -24,7 +24,7 @@ from renderer.cameras.distortion import MODEL_TERMS, MODELS as DISTORTION_MODELS
 
 from tiltfit.calibrate.fit import FitError, FitOptions, FitResult, fit_geometry, without_blur
 from tiltfit.calibrate.start import initialize
-from tiltfit.calibrate.model import Observations, TiltLensCamera
+from tiltfit.calibrate.model import Observations, LensCamera
 
 # Models whose held-out errors lie within this fraction of the best are not told apart by K-fold validation
 # on a few dozen views (its fold-to-fold scatter is of this order); the one with the fewest terms is chosen.
@@ -77,7 +77,7 @@ def predict_views(camera, obs: Observations, options: FitOptions = FitOptions())
     return fit_geometry(cam, without_blur(obs), held, mode="tilt", hold_distortion=True)
 
 
-def keep_distortion_axis(camera: TiltLensCamera, start: TiltLensCamera | None) -> TiltLensCamera:
+def keep_distortion_axis(camera: LensCamera, start: LensCamera | None) -> LensCamera:
     """`camera` (a geometric start made by `initialize`, which sets θF = 0 and centres the distortion on the
     principal point) given `start`'s tilt (θF, φ) and centre where `start`'s distortion is about its lens axis:
     the corners then see the distortion where the lens puts it (θF and φ are held by the geometric fits)."""
@@ -91,7 +91,7 @@ def keep_distortion_axis(camera: TiltLensCamera, start: TiltLensCamera | None) -
 
 
 def held_out_rms(obs: Observations, options: FitOptions = FitOptions(), folds: int = 5,
-                 distortion: str | None = None, start: TiltLensCamera | None = None, board: str | None = None) -> dict:
+                 distortion: str | None = None, start: LensCamera | None = None, board: str | None = None) -> dict:
     """K-fold held-out reprojection RMS (pixels per corner) of a geometric calibration with `options`' settings.
 
     Args:
@@ -142,13 +142,13 @@ def held_out_rms(obs: Observations, options: FitOptions = FitOptions(), folds: i
             "median_view_px": float(np.nanmedian(per_view))}
 
 
-def _radial_coefficients(camera: TiltLensCamera) -> tuple[float, ...]:
+def _radial_coefficients(camera: LensCamera) -> tuple[float, ...]:
     """k1, k2, k3 (numerator) and k4, k5, k6 (denominator) of the camera's radial mapping."""
     k = [float(c) for c in camera.distortion.detach()]
     return k[0], k[1], k[4], k[5], k[6], k[7]
 
 
-def _corner_radius(camera: TiltLensCamera) -> float:
+def _corner_radius(camera: LensCamera) -> float:
     """Normalised radius of the image corner farthest from the principal point (what `cv2.undistort` samples)."""
     W, H = camera.image_size_px
     F = float(camera.focal_px.detach())
@@ -156,7 +156,7 @@ def _corner_radius(camera: TiltLensCamera) -> float:
     return max(math.hypot(x - cx, y - cy) for x in (-0.5, W - 0.5) for y in (-0.5, H - 0.5)) / F
 
 
-def radial_fold(camera: TiltLensCamera, obs: Observations) -> str | None:
+def radial_fold(camera: LensCamera, obs: Observations) -> str | None:
     """Where the camera's radial distortion stops being one-to-one on the image, or None.
 
     The radial mapping r ↦ r_d = r (1 + k1 r² + k2 r⁴ + k3 r⁶) / (1 + k4 r² + k5 r⁴ + k6 r⁶) (normalised radii
@@ -316,7 +316,7 @@ def _per_corner_rms(fit: FitResult) -> float:
     return math.sqrt(fit.rss["corners"] / max(fit.rss["n_corners"] // 2, 1))
 
 
-def select_distortion(camera: TiltLensCamera, obs: Observations, options: FitOptions, mode: str = "unified",
+def select_distortion(camera: LensCamera, obs: Observations, options: FitOptions, mode: str = "unified",
                       say=None, folds: int = 5, board=None, known: dict | None = None,
                       models=DISTORTION_MODELS) -> FitResult:
     """Fit every distortion model on the corners and keep the one that predicts held-out views best.
@@ -338,53 +338,13 @@ def select_distortion(camera: TiltLensCamera, obs: Observations, options: FitOpt
     every figure is the held-out error of the whole calibration (lens and board). `known` ({model: (fit,
     held-out dict)}) gives fits already made with these settings (and `board`'s model), not made again;
     `models` the candidates (fewest terms first).
-
-    Each candidate is warm-started from the previous one's fit (lens and board); only the models whose checks read a
-    covariance (`CHECKED_MODELS`, `REFERENCE_MODEL`) are fitted with their uncertainties, the chosen one's added after
-    the choice (a refit from its own solution: the same minimum).
     """
     obs = without_blur(obs)
     fixed = replace(options, progress=None, model_selection=False, free_principal_point=bool(
         options.free_principal_point))
-    fits, entries = _fit_candidates(camera, obs, fixed, mode, board, known or {}, models)
+    known = known or {}
     use_held_out = obs.n_views >= 3
-    held = _score_held_out(obs, fixed, folds, fits, entries, known or {}, models) if use_held_out else {}
-    if use_held_out:
-        fits = {m: f for m, f in fits.items() if m in held}
-    shape = "" if board is None else f" (board {board.model} fitted, and refitted in each fold)"
-    for entry in entries if say else []:
-        say(f"distortion {entry['model']}{shape}: " + _entry_line(entry))
-    while True:
-        if not fits:
-            raise FitError("no distortion model could be fitted: " + "; ".join(
-                f"{e['model']}: {e.get('refused')}" for e in entries))
-        key = "held_out_rms_px" if use_held_out else "bic"
-        scores = {e["model"]: e[key] for e in entries if e["model"] in fits and key in e}
-        chosen = _fewest_terms_within_one_se(models, scores, held, obs, entries) if use_held_out else \
-            min(scores, key=scores.get)
-        try:
-            result = _with_uncertainties(fits[chosen], obs, replace(fixed, distortion=chosen), mode)
-            break
-        except FitError as e:  # degenerate: refused as a fit with its uncertainties would have been
-            entries[models.index(chosen)]["refused"] = f"not fitted ({e})"
-            fits.pop(chosen)
-    for e in entries:
-        e["chosen"] = e["model"] == chosen
-        if board is not None:
-            e["board"] = board.model
-    result.distortion_model = chosen
-    result.distortion_selection = entries
-    result.held_out = held.get(chosen)
-    if use_held_out:
-        var = choice_variance({m: (fits[m].values, held.get(m)) for m in fits}, chosen, obs, ONE_SE)
-        result.choice_variance = {"distortion": var} if var else {}
-    return result
-
-
-def _fit_candidates(camera, obs: Observations, fixed: FitOptions, mode: str, board, known: dict, models):
-    """Each model fitted on all views, each from the previous fit (`known` ones taken as given), and checked:
-    returns ({model: fit} of those not refused, entries {model, n_terms, rms_px, bic | refused})."""
-    fits, entries, prev, reference = {}, [], None, None
+    fits, entries, held, prev, reference = {}, [], {}, None, None
     for m in models:
         entry = {"model": m, "n_terms": len(MODEL_TERMS[m])}
         entries.append(entry)
@@ -393,10 +353,9 @@ def _fit_candidates(camera, obs: Observations, fixed: FitOptions, mode: str, boa
                 fit = known[m][0]
             else:
                 start = board if prev is None or board is None else prev.board
-                needs_sigma = m in CHECKED_MODELS or m == REFERENCE_MODEL  # their checks read the covariance
                 fit = fit_geometry((prev.camera if prev is not None else camera).copy(), obs,
-                                   replace(fixed, distortion=m, uncertainties=fixed.uncertainties and needs_sigma),
-                                   mode, board=None if board is None else start.copy())
+                                   replace(fixed, distortion=m), mode,
+                                   board=None if board is None else start.copy())
         except FitError as e:
             entry["refused"] = f"not fitted ({e})"
             continue
@@ -413,17 +372,10 @@ def _fit_candidates(camera, obs: Observations, fixed: FitOptions, mode: str, boa
             fits[m] = fit
             n = fit.rss["n_corners"]
             entry["bic"] = n * math.log(max(fit.rss["corners"], 1e-300) / n) + fit.n_parameters * math.log(n)
-    return fits, entries
-
-
-def _score_held_out(obs: Observations, fixed: FitOptions, folds: int, fits: dict, entries: list, known: dict,
-                    models) -> dict:
-    """{model: held-out dict} of the candidates, best-fitting model first (entries get `held_out_rms_px`, or why
-    not). A model whose fit RMS already exceeds the best held-out error found (with the tolerance) is not scored:
-    its held-out error is at least its fit RMS (a fit explains the views it was fitted to better than new ones),
-    so it cannot be chosen."""
-    held = {}
-    for m in sorted(fits, key=lambda m: fits[m].rss["corners"]):
+    # Held-out errors, best-fitting model first. A model whose fit RMS already exceeds the best held-out error
+    # found (with the tolerance) is not scored: its held-out error is at least its fit RMS (a fit explains
+    # the views it was fitted to better than new ones), so it cannot be chosen.
+    for m in sorted(fits, key=lambda m: fits[m].rss["corners"]) if use_held_out else []:
         entry = entries[models.index(m)]
         best = min((h["rms_px"] for h in held.values()), default=math.inf)
         if entry["rms_px"] > (1 + HELD_OUT_TOLERANCE) * best:
@@ -436,23 +388,38 @@ def _score_held_out(obs: Observations, fixed: FitOptions, folds: int, fits: dict
             entry["held_out_rms_px"] = held[m]["rms_px"]
         except FitError as e:
             entry["refused"] = f"held-out error not computed ({e})"
-    return held
-
-
-def _entry_line(entry: dict) -> str:
-    """A candidate's progress line after its name: fit RMS and score, or why it was not scored."""
-    score = (f"held-out {entry['held_out_rms_px']:.4f} px" if "held_out_rms_px" in entry else
-             f"refused: {entry['refused']}" if "refused" in entry else
-             f"held-out not computed ({entry['held_out_skipped']})" if "held_out_skipped" in entry else
-             f"BIC {entry['bic']:.1f}")
-    return (f"RMS {entry['rms_px']:.4f} px per corner, " if "rms_px" in entry else "") + score
-
-
-def _with_uncertainties(fit: FitResult, obs: Observations, options: FitOptions, mode: str) -> FitResult:
-    """`fit` with its covariance and σ (refitted from its own solution where it was fitted without them)."""
-    if fit.covariance is not None or not options.uncertainties:
-        return fit
-    return fit_geometry(fit.camera.copy(), obs, options, mode, board=None if fit.board is None else fit.board.copy())
+    if use_held_out:
+        fits = {m: f for m, f in fits.items() if m in held}
+    shape = "" if board is None else f" (board {board.model} fitted, and refitted in each fold)"
+    for entry in entries if say else []:
+        score = (f"held-out {entry['held_out_rms_px']:.4f} px" if "held_out_rms_px" in entry else
+                 f"refused: {entry['refused']}" if "refused" in entry else
+                 f"held-out not computed ({entry['held_out_skipped']})" if "held_out_skipped" in entry else
+                 f"BIC {entry['bic']:.1f}")
+        say(f"distortion {entry['model']}{shape}: " + (f"RMS {entry['rms_px']:.4f} px per corner, "
+                                                       if "rms_px" in entry else "") + score)
+    if not fits:
+        raise FitError("no distortion model could be fitted: " + "; ".join(
+            f"{e['model']}: {e.get('refused')}" for e in entries))
+    key = "held_out_rms_px" if use_held_out else "bic"
+    scores = {e["model"]: e[key] for e in entries if e["model"] in fits and key in e}
+    best = min(scores.values())
+    if use_held_out:
+        chosen = _fewest_terms_within_one_se(models, scores, held, obs, entries)
+    else:
+        chosen = min(scores, key=scores.get)
+    for e in entries:
+        e["chosen"] = e["model"] == chosen
+        if board is not None:
+            e["board"] = board.model
+    result = fits[chosen]
+    result.distortion_model = chosen
+    result.distortion_selection = entries
+    result.held_out = held.get(chosen)
+    if use_held_out:
+        var = choice_variance({m: (fits[m].values, held.get(m)) for m in fits}, chosen, obs, ONE_SE)
+        result.choice_variance = {"distortion": var} if var else {}
+    return result
 
 
 def _fewest_terms_within_one_se(models, scores: dict, held: dict, obs: Observations, entries: list) -> str:

@@ -19,7 +19,7 @@ from dataclasses import replace
 import torch
 
 from tiltfit.calibrate.fit import FitError, FitOptions, FitResult, _fit_camera, without_blur
-from tiltfit.calibrate.model import Observations, TiltLensCamera
+from tiltfit.calibrate.model import Observations, LensCamera
 from tiltfit.select.stats import nested_test
 
 
@@ -100,7 +100,7 @@ def blur_is_informative(obs: Observations, floor_px: float = 1.0) -> bool:
     return b.numel() >= 3 and float(b.max()) >= floor_px
 
 
-def blur_depends_on_depth(camera: TiltLensCamera, obs: Observations, alpha: float = 1e-3) -> bool:
+def blur_depends_on_depth(camera: LensCamera, obs: Observations, alpha: float = 1e-3) -> bool:
     """Whether the blur widths vary with the corners' place in the camera frame beyond their scatter: a
     likelihood-ratio test (χ², 4 degrees of freedom) of widths regressed on (1, 1/z, 1/z², x/z, y/z)
     (defocus on either side of a plane of focus, tilted or not) against a constant, at level `alpha`, with

@@ -62,7 +62,7 @@ def two_stage_prediction(p_cam, theta_L: float, w_mm: float = W_MM, U_mm: float 
     values and fits θF with the paper's eq. (4); with the poses known from the corners this is the 1-D least
     squares problem min over θF of Σ (b_eq4(p; w, U, d, θF) − b_exact(p))², solved here on a 0.1° grid
     refined by golden section. θL then follows from eq. (1) with f = U w cos θL / (U + w) at the fitted
-    state (as `TiltLensCamera.theta_L_paper`).
+    state (as `LensCamera.theta_L_paper`).
 
     Args:
         p_cam: (N, 3) camera-frame points where blur is observed, mm.

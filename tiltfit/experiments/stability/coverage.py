@@ -9,7 +9,7 @@ import time
 import numpy as np
 import torch
 from renderer import load_scene
-from renderer.cameras import optics
+from renderer.cameras import image_centre_px, optics
 from renderer import render
 
 from .closed_forms import coverage_closed_form, first_row_lost_theta_F
@@ -31,7 +31,7 @@ def bottom_edge_valid(scene, theta_F: float) -> bool:
     the image's bottom edge (pixel y = H − 0.5, the lowest sample position), through the lens centre."""
     cam = scene.camera
     tilted = cam.with_lens(cam.lens.with_(theta_F=theta_F))
-    uv = torch.tensor([[(cam.width - 1) / 2.0, cam.height - 0.5]], dtype=torch.float64)
+    uv = torch.tensor([[image_centre_px(cam.width, cam.height)[0], cam.height - 0.5]], dtype=torch.float64)
     return bool(tilted.generate_rays(uv, torch.full_like(uv, 0.5)).valid.all())
 
 

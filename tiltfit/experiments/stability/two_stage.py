@@ -38,12 +38,12 @@ def _tilt_setup(cfg: StabilityConfig):
 def tilt_observations(theta_L: float, cfg: StabilityConfig, seed: int):
     """Observations of the exact tilted thin lens (w, f, d of the simulated camera, tilted by θL about its
     centre; exact blur spot) seeing reproduce's target from its target views; returns (obs, true camera)."""
-    from tiltfit.calibrate.model import TiltLensCamera, synthesize_observations
+    from tiltfit.calibrate.model import LensCamera, synthesize_observations
 
     target, poses, size, pitch = _tilt_setup(cfg)
     R = torch.tensor(np.stack([p[0] for p in poses]))
     T = torch.tensor(np.stack([p[1] for p in poses]))
-    truth = TiltLensCamera.from_tilted_lens(len(poses), size, pitch, W_MM, F_MM, D_MM, theta_L, R=R, T_mm=T,
+    truth = LensCamera.from_tilted_lens(len(poses), size, pitch, W_MM, F_MM, D_MM, theta_L, R=R, T_mm=T,
                                             blur_model="ellipse")
     obs = synthesize_observations(truth, target.feature_points(), noise_px=cfg.tilt_noise_px,
                                   noise_blur_px=cfg.tilt_noise_px, seed=seed)

@@ -10,6 +10,7 @@ import re
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import torch
 
@@ -255,7 +256,7 @@ def test_end_to_end_on_rendered_images(tmp_path, capfd):
     """Render target photographs (tiltfit.experiments.synth), then `tiltfit calibrate` them: detection + fit."""
     from camio.files import srgb_to_linear
     from tiltfit.experiments.synth import PAPER_CAMERA, pose_from_axis_angle, render_view
-    from tiltfit.target.layout import design_target
+    from tiltfit.target.design import design_target
 
     target = design_target(9, 6, 25.0, w_mm=W_MM, distance_mm=600.0, inclination_deg=15.0)
     target_file = str(tmp_path / "T.json")
@@ -322,3 +323,25 @@ def test_training_example_runs_and_resumes(tmp_path):
     again = subprocess.run([sys.executable, example, "--config", str(config), "--out", str(tmp_path), "--resume"],
                            capture_output=True, text=True, env=env)
     assert again.returncode == 0 and "resumed from" in again.stderr, again.stderr
+
+
+def test_truncated_png_detect_exit_2_one_line_no_output(tmp_path):
+    img = np.full((240, 360, 3), 0.5, dtype=np.float32)
+    img[::20] = 0.05
+    png = tmp_path / "board.png"
+    write_image(str(png), img)
+    data = png.read_bytes()
+    png.write_bytes(data[: len(data) // 2])
+    tjson = tmp_path / "target.json"
+    TARGET.save(str(tjson))  # a file that cannot be read: exit status 2, one line on stderr, no output file
+    out = tmp_path / "det.json"
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (os.getcwd(), os.environ.get("PYTHONPATH")) if p))
+    proc = subprocess.run([sys.executable, "-m", "tiltfit", "detect", str(png), "--target", str(tjson), "-o", str(out)],
+                          capture_output=True, text=True, timeout=60, env=env,
+                          cwd=os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+    assert proc.returncode == 2, (proc.returncode, proc.stderr)
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith("tiltfit: ") and "board.png" in lines[0], lines[0]
+    assert not out.exists()
+    assert not [f for f in os.listdir(tmp_path) if f.startswith(".tiltfit-")]

@@ -338,13 +338,53 @@ def select_distortion(camera: LensCamera, obs: Observations, options: FitOptions
     every figure is the held-out error of the whole calibration (lens and board). `known` ({model: (fit,
     held-out dict)}) gives fits already made with these settings (and `board`'s model), not made again;
     `models` the candidates (fewest terms first).
+
+    Each candidate is warm-started from the previous one's fit (lens and board); only the models whose checks read a
+    covariance (`CHECKED_MODELS`, `REFERENCE_MODEL`) are fitted with their uncertainties, the chosen one's added after
+    the choice (a refit from its own solution: the same minimum).
     """
     obs = without_blur(obs)
     fixed = replace(options, progress=None, model_selection=False, free_principal_point=bool(
         options.free_principal_point))
-    known = known or {}
+    fits, entries = _fit_candidates(camera, obs, fixed, mode, board, known or {}, models)
     use_held_out = obs.n_views >= 3
-    fits, entries, held, prev, reference = {}, [], {}, None, None
+    held = _score_held_out(obs, fixed, folds, fits, entries, known or {}, models) if use_held_out else {}
+    if use_held_out:
+        fits = {m: f for m, f in fits.items() if m in held}
+    shape = "" if board is None else f" (board {board.model} fitted, and refitted in each fold)"
+    for entry in entries if say else []:
+        say(f"distortion {entry['model']}{shape}: " + _entry_line(entry))
+    while True:
+        if not fits:
+            raise FitError("no distortion model could be fitted: " + "; ".join(
+                f"{e['model']}: {e.get('refused')}" for e in entries))
+        key = "held_out_rms_px" if use_held_out else "bic"
+        scores = {e["model"]: e[key] for e in entries if e["model"] in fits and key in e}
+        chosen = _fewest_terms_within_one_se(models, scores, held, obs, entries) if use_held_out else \
+            min(scores, key=scores.get)
+        try:
+            result = _with_uncertainties(fits[chosen], obs, replace(fixed, distortion=chosen), mode)
+            break
+        except FitError as e:  # degenerate: refused as a fit with its uncertainties would have been
+            entries[models.index(chosen)]["refused"] = f"not fitted ({e})"
+            fits.pop(chosen)
+    for e in entries:
+        e["chosen"] = e["model"] == chosen
+        if board is not None:
+            e["board"] = board.model
+    result.distortion_model = chosen
+    result.distortion_selection = entries
+    result.held_out = held.get(chosen)
+    if use_held_out:
+        var = choice_variance({m: (fits[m].values, held.get(m)) for m in fits}, chosen, obs, ONE_SE)
+        result.choice_variance = {"distortion": var} if var else {}
+    return result
+
+
+def _fit_candidates(camera, obs: Observations, fixed: FitOptions, mode: str, board, known: dict, models):
+    """Each model fitted on all views, each from the previous fit (`known` ones taken as given), and checked:
+    returns ({model: fit} of those not refused, entries {model, n_terms, rms_px, bic | refused})."""
+    fits, entries, prev, reference = {}, [], None, None
     for m in models:
         entry = {"model": m, "n_terms": len(MODEL_TERMS[m])}
         entries.append(entry)
@@ -353,9 +393,10 @@ def select_distortion(camera: LensCamera, obs: Observations, options: FitOptions
                 fit = known[m][0]
             else:
                 start = board if prev is None or board is None else prev.board
+                needs_sigma = m in CHECKED_MODELS or m == REFERENCE_MODEL  # their checks read the covariance
                 fit = fit_geometry((prev.camera if prev is not None else camera).copy(), obs,
-                                   replace(fixed, distortion=m), mode,
-                                   board=None if board is None else start.copy())
+                                   replace(fixed, distortion=m, uncertainties=fixed.uncertainties and needs_sigma),
+                                   mode, board=None if board is None else start.copy())
         except FitError as e:
             entry["refused"] = f"not fitted ({e})"
             continue
@@ -372,10 +413,17 @@ def select_distortion(camera: LensCamera, obs: Observations, options: FitOptions
             fits[m] = fit
             n = fit.rss["n_corners"]
             entry["bic"] = n * math.log(max(fit.rss["corners"], 1e-300) / n) + fit.n_parameters * math.log(n)
-    # Held-out errors, best-fitting model first. A model whose fit RMS already exceeds the best held-out error
-    # found (with the tolerance) is not scored: its held-out error is at least its fit RMS (a fit explains
-    # the views it was fitted to better than new ones), so it cannot be chosen.
-    for m in sorted(fits, key=lambda m: fits[m].rss["corners"]) if use_held_out else []:
+    return fits, entries
+
+
+def _score_held_out(obs: Observations, fixed: FitOptions, folds: int, fits: dict, entries: list, known: dict,
+                    models) -> dict:
+    """{model: held-out dict} of the candidates, best-fitting model first (entries get `held_out_rms_px`, or why
+    not). A model whose fit RMS already exceeds the best held-out error found (with the tolerance) is not scored:
+    its held-out error is at least its fit RMS (a fit explains the views it was fitted to better than new ones),
+    so it cannot be chosen."""
+    held = {}
+    for m in sorted(fits, key=lambda m: fits[m].rss["corners"]):
         entry = entries[models.index(m)]
         best = min((h["rms_px"] for h in held.values()), default=math.inf)
         if entry["rms_px"] > (1 + HELD_OUT_TOLERANCE) * best:
@@ -388,38 +436,23 @@ def select_distortion(camera: LensCamera, obs: Observations, options: FitOptions
             entry["held_out_rms_px"] = held[m]["rms_px"]
         except FitError as e:
             entry["refused"] = f"held-out error not computed ({e})"
-    if use_held_out:
-        fits = {m: f for m, f in fits.items() if m in held}
-    shape = "" if board is None else f" (board {board.model} fitted, and refitted in each fold)"
-    for entry in entries if say else []:
-        score = (f"held-out {entry['held_out_rms_px']:.4f} px" if "held_out_rms_px" in entry else
-                 f"refused: {entry['refused']}" if "refused" in entry else
-                 f"held-out not computed ({entry['held_out_skipped']})" if "held_out_skipped" in entry else
-                 f"BIC {entry['bic']:.1f}")
-        say(f"distortion {entry['model']}{shape}: " + (f"RMS {entry['rms_px']:.4f} px per corner, "
-                                                       if "rms_px" in entry else "") + score)
-    if not fits:
-        raise FitError("no distortion model could be fitted: " + "; ".join(
-            f"{e['model']}: {e.get('refused')}" for e in entries))
-    key = "held_out_rms_px" if use_held_out else "bic"
-    scores = {e["model"]: e[key] for e in entries if e["model"] in fits and key in e}
-    best = min(scores.values())
-    if use_held_out:
-        chosen = _fewest_terms_within_one_se(models, scores, held, obs, entries)
-    else:
-        chosen = min(scores, key=scores.get)
-    for e in entries:
-        e["chosen"] = e["model"] == chosen
-        if board is not None:
-            e["board"] = board.model
-    result = fits[chosen]
-    result.distortion_model = chosen
-    result.distortion_selection = entries
-    result.held_out = held.get(chosen)
-    if use_held_out:
-        var = choice_variance({m: (fits[m].values, held.get(m)) for m in fits}, chosen, obs, ONE_SE)
-        result.choice_variance = {"distortion": var} if var else {}
-    return result
+    return held
+
+
+def _entry_line(entry: dict) -> str:
+    """A candidate's progress line after its name: fit RMS and score, or why it was not scored."""
+    score = (f"held-out {entry['held_out_rms_px']:.4f} px" if "held_out_rms_px" in entry else
+             f"refused: {entry['refused']}" if "refused" in entry else
+             f"held-out not computed ({entry['held_out_skipped']})" if "held_out_skipped" in entry else
+             f"BIC {entry['bic']:.1f}")
+    return (f"RMS {entry['rms_px']:.4f} px per corner, " if "rms_px" in entry else "") + score
+
+
+def _with_uncertainties(fit: FitResult, obs: Observations, options: FitOptions, mode: str) -> FitResult:
+    """`fit` with its covariance and σ (refitted from its own solution where it was fitted without them)."""
+    if fit.covariance is not None or not options.uncertainties:
+        return fit
+    return fit_geometry(fit.camera.copy(), obs, options, mode, board=None if fit.board is None else fit.board.copy())
 
 
 def _fewest_terms_within_one_se(models, scores: dict, held: dict, obs: Observations, entries: list) -> str:

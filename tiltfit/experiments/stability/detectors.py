@@ -8,6 +8,7 @@ import numpy as np
 
 from .common import StabilityConfig, Study, subplots_row
 
+
 def detector_target():
     """The detector sweep's target (as benchmarks/bench_detect_opencv.py): 9 × 6 cells of 20 mm, rows designed
     for a 20° inclined view from 650 mm."""
@@ -61,14 +62,28 @@ def _score(found, truth, visible, by_index: bool, square_px: float):
 
 def study_detectors(cfg: StabilityConfig, log) -> Study:
     """(a) Success rate and corner RMS of the three detectors against blur / projected square."""
-    from tiltfit.detect.chessboard import detect
-    from tiltfit.experiments.synth import PAPER_CAMERA, look_at_pose, projected_square_px, render_view, with_blur_ratio
+    from tiltfit.experiments.synth import PAPER_CAMERA
 
     t0 = time.perf_counter()
     target = detector_target()
     ny, nx = target.grid_shape
     methods = {"ours": None, **_opencv_detectors((nx, ny))}
     base = PAPER_CAMERA.binned(cfg.detector_downscale)
+    images = _detector_images(cfg, target, methods, base, log)
+    rows = _detector_rows(cfg, images, methods)
+    limits, findings = _detector_findings(rows, methods)
+    fig = _detector_figure(cfg, rows, methods, base)
+    return Study("detectors", "(a) Corner detectors against blur", rows, findings,
+                 {"limits": limits, "images": images, "image_px": [base.sensor.width_px, base.sensor.height_px],
+                  "noise_linear": DETECTOR_NOISE, "target": target.to_dict()}, fig, time.perf_counter() - t0)
+
+
+def _detector_images(cfg: StabilityConfig, target, methods: dict, base, log) -> list:
+    """One record per blur ratio and pose: the view's square and blur (px), and each detector's success and
+    corner RMS (px)."""
+    from tiltfit.detect.chessboard import detect
+    from tiltfit.experiments.synth import look_at_pose, projected_square_px, render_view, with_blur_ratio
+
     images = []
     for ratio in cfg.detector_ratios:
         for k, (pos, roll) in enumerate(DETECTOR_POSES[:cfg.detector_poses]):
@@ -90,6 +105,11 @@ def study_detectors(cfg: StabilityConfig, log) -> Study:
             images.append(rec)
             log(f"(a) blur/square {ratio:.2f} pose {k}: blur {rec['blur_px']:.1f} px, square {square:.1f} px | "
                 + " | ".join(f"{n} {'ok' if rec[n + '_ok'] else '--'}" for n in methods))
+    return images
+
+
+def _detector_rows(cfg: StabilityConfig, images: list, methods: dict) -> list:
+    """One row per blur ratio: median blur and square (px), each detector's success rate and corner RMS (px)."""
     rows = []
     for ratio in cfg.detector_ratios:
         rr = [r for r in images if r["ratio"] == ratio]
@@ -100,7 +120,12 @@ def study_detectors(cfg: StabilityConfig, log) -> Study:
             errs = [r[f"{name}_rms_px"] for r in rr if r[f"{name}_rms_px"] is not None]
             row[f"{name}_rms_px"] = float(np.sqrt(np.mean(np.square(errs)))) if errs else None
         rows.append(row)
+    return rows
 
+
+def _detector_findings(rows: list, methods: dict) -> tuple[dict, list]:
+    """Each detector's limits (the largest blur where it finds every board, its first failure, its corner RMS)
+    and one sentence each."""
     limits = {}
     findings = []
     for name in methods:
@@ -129,7 +154,11 @@ def study_detectors(cfg: StabilityConfig, log) -> Study:
         findings.append(text + ".")
     findings.append("A board counts as found when every visible corner is returned within half a square of its "
                     "true position (OpenCV's corners matched to the nearest true corner, ours by index).")
+    return limits, findings
 
+
+def _detector_figure(cfg: StabilityConfig, rows: list, methods: dict, base):
+    """Success rate and corner RMS against blur / projected square, one curve per detector."""
     fig, (ax1, ax2) = subplots_row(2)
     x = [r["blur_over_square"] for r in rows]
     for name, style in zip(methods, ("o-", "s--", "^:")):
@@ -147,6 +176,4 @@ def study_detectors(cfg: StabilityConfig, log) -> Study:
         ax.grid(alpha=0.3)
     fig.suptitle(f"(a) detectors vs blur: {base.sensor.width_px}×{base.sensor.height_px} px, "
                  f"{min(cfg.detector_poses, len(DETECTOR_POSES))} pose(s) per blur", fontsize="medium")
-    return Study("detectors", "(a) Corner detectors against blur", rows, findings,
-                 {"limits": limits, "images": images, "image_px": [base.sensor.width_px, base.sensor.height_px],
-                  "noise_linear": DETECTOR_NOISE, "target": target.to_dict()}, fig, time.perf_counter() - t0)
+    return fig

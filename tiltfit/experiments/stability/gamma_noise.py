@@ -127,6 +127,16 @@ def study_gamma_noise(cfg: StabilityConfig, log) -> Study:
     t0 = time.perf_counter()
     srgb = srgb_bias_rows(cfg, log)
     noise = _noise_rows(cfg, log)
+    findings = _srgb_findings(srgb) + _noise_findings(cfg, noise)
+    fig = _gamma_noise_figure(srgb, noise)
+    return Study("gamma_noise", "(e) Gamma mistakes and image noise", srgb, findings,
+                 {"srgb": srgb, "noise": noise, "truth": {"w_mm": W_MM, "U_mm": U0_MM, "d_mm": D_MM}}, fig,
+                 time.perf_counter() - t0)
+
+
+def _srgb_findings(srgb: list) -> list:
+    """What the sRGB sweep shows: the bias of blur read off sRGB values against the disc model's prediction and
+    against the truth."""
     findings = []
     small = min(srgb, key=lambda r: r["blur_px"])
     large = max(srgb, key=lambda r: r["blur_px"])
@@ -146,6 +156,12 @@ def study_gamma_noise(cfg: StabilityConfig, log) -> Study:
         f"{100 * large['bias_encoded']:+.2f} % at {large['blur_px']:.1f} px; decoded, the largest bias is "
         f"{100 * worst['bias_decoded']:+.1f} % ({worst['bias_decoded'] * worst['blur_px']:+.3f} px) at "
         f"{worst['blur_px']:.2f} px.")
+    return findings
+
+
+def _noise_findings(cfg: StabilityConfig, noise: list) -> list:
+    """What the noise sweep shows: stage-1 errors against image noise, failures, and the sRGB mistake's effect."""
+    findings = []
     good = [r for r in noise if r["blur_read_on"] == "linear" and r["w_error_mm"] is not None]
     failed = [r for r in noise if r["blur_read_on"] == "linear" and r["w_error_mm"] is None]
     if good:
@@ -171,7 +187,12 @@ def study_gamma_noise(cfg: StabilityConfig, log) -> Study:
             f"{ref['d_error_mm']:+.3f} and {ref['U_error_mm']:+.2f} mm when decoded.")
     elif mistake is not None:
         findings.append(f"With the blur read off sRGB values stage 1 fails: {mistake['failure']}.")
+    return findings
 
+
+def _gamma_noise_figure(srgb: list, noise: list):
+    """Blur bias against blur diameter, and the stage-1 relative errors against noise."""
+    good = [r for r in noise if r["blur_read_on"] == "linear" and r["w_error_mm"] is not None]
     fig, (ax1, ax2) = subplots_row(2)
     b = [r["blur_px"] for r in srgb]
     fine = np.geomspace(min(min(b), 0.7), max(max(b), 12.0), 24)
@@ -202,9 +223,7 @@ def study_gamma_noise(cfg: StabilityConfig, log) -> Study:
     for ax in (ax1, ax2):
         ax.grid(alpha=0.3, which="both")
     fig.suptitle("(e) gamma mistake in the blur, and calibration against noise", fontsize="medium")
-    return Study("gamma_noise", "(e) Gamma mistakes and image noise", srgb, findings,
-                 {"srgb": srgb, "noise": noise, "truth": {"w_mm": W_MM, "U_mm": U0_MM, "d_mm": D_MM}}, fig,
-                 time.perf_counter() - t0)
+    return fig
 
 
 def _sensor_px(downscale: int) -> str:

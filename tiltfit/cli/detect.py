@@ -2,7 +2,6 @@
 (DET.json dict), or a DET.json file read, then checked view by view (`tiltfit.files.det`)."""
 from __future__ import annotations
 
-import json
 import math
 import os
 import sys
@@ -68,22 +67,25 @@ def detect_image(path: str, target, encoding: str | None, keep: dict | None = No
 
 
 def _det_dict(width: int, height: int, corners, blur) -> dict:
-    """The DET.json dict of corners (N, 2) and blur (N,) px found by a detector without `to_json_dict`."""
+    """The DET.json dict of corners (N, 2) and blur (N,) px found by a detector without `to_json_dict` (rounded as
+    `Detection.to_json_dict` rounds: `det_number`)."""
     import numpy as np
+
+    from tiltfit.detect.detection import det_number
 
     c = np.asarray(corners, dtype=np.float64).reshape(-1, 2)
     b = np.asarray(blur, dtype=np.float64).reshape(-1)
-    corners_out = [[float(x), float(y)] if np.isfinite(x) and np.isfinite(y) else None for x, y in c]
-    blur_out = [float(v) if np.isfinite(v) else None for v in b]
+    corners_out = [[det_number(x), det_number(y)] if np.isfinite(x) and np.isfinite(y) else None for x, y in c]
+    blur_out = [det_number(v) for v in b]
     return {"image_size_px": [int(width), int(height)], "corners_px": corners_out, "blur_px": blur_out,
             "grid_found": any(v is not None for v in corners_out)}
 
 
 def write_json_atomic(path: str, data: dict) -> None:
-    """Write JSON atomically with umask-respecting permissions (camio.files.atomic_output)."""
-    from camio.files import write_text
+    """Write a DET.json dict (`tiltfit.detect.detection.write_det_json`, the one writer)."""
+    from tiltfit.detect.detection import write_det_json
 
-    write_text(path, json.dumps(data, indent=1, allow_nan=False) + "\n")
+    write_det_json(data, path)
 
 
 def read_det_file(path: str, n_points: int) -> dict:

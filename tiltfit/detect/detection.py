@@ -6,8 +6,6 @@ Pixels: x = column, y = row, (0, 0) the centre of the top-left pixel.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -50,9 +48,7 @@ class Detection:
     def to_json_dict(self) -> dict:
         """The `tiltfit detect` output: {image_size_px, corners_px, blur_px, grid_found} (+ extra keys)."""
 
-        def num(v):
-            return None if not np.isfinite(v) else float(round(float(v), 4))
-
+        num = det_number
         return {
             "image_size_px": [int(self.image_size_px[0]), int(self.image_size_px[1])],
             "corners_px": [None if not np.isfinite(c).all() else [num(c[0]), num(c[1])] for c in self.corners_px],
@@ -64,19 +60,26 @@ class Detection:
         }
 
 
+#: DET.json's pixel values are rounded to this many decimals (1e-4 px, far below any detector's precision).
+DET_DECIMALS = 4
+
+
+def det_number(v) -> float | None:
+    """A pixel value as DET.json holds it: rounded to `DET_DECIMALS`, None where not finite."""
+    return None if not np.isfinite(v) else float(round(float(v), DET_DECIMALS))
+
+
+def write_det_json(data: dict, path: str) -> None:
+    """Write a DET.json dict: the one writer of `tiltfit detect`'s files, atomic with umask permissions like every
+    other output (`camio.files.write_text`)."""
+    from camio.files import write_text
+
+    write_text(path, json.dumps(data, indent=1, allow_nan=False) + "\n")
+
+
 def write_detection_json(detection: Detection, path: str) -> None:
-    """Write the detection as JSON; written to a temporary file and renamed (no partial file on failure)."""
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".json", dir=folder)
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(detection.to_json_dict(), f, indent=1)
-            f.write("\n")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    """Write the detection as DET.json (`write_det_json`; no partial file on failure)."""
+    write_det_json(detection.to_json_dict(), path)
 
 
 def read_detection_json(path: str, n_points: int | None = None) -> Detection:

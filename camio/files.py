@@ -61,11 +61,26 @@ def srgb_to_linear(v: np.ndarray) -> np.ndarray:
     return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
 
 
-def linear_to_srgb(v: np.ndarray) -> np.ndarray:
+def linear_to_srgb(v):
+    """The sRGB transfer function (IEC 61966-2-1) of linear values, negatives as 0: the one place it is written.
+    numpy in, float64 numpy out; a torch tensor in, a tensor of its dtype on its device out."""
+    if type(v).__module__.startswith("torch"):
+        import torch
+
+        v = v.clamp(min=0.0)
+        return torch.where(v <= 0.0031308, v * 12.92, 1.055 * v.pow(1 / 2.4) - 0.055)
     import numpy as np
 
     v = np.clip(np.asarray(v, dtype=np.float64), 0.0, None)
     return np.where(v <= 0.0031308, v * 12.92, 1.055 * np.power(v, 1 / 2.4) - 0.055)
+
+
+def encode_srgb8(linear):
+    """Linear values to the uint8 an 8-bit sRGB file holds: round(255 · sRGB(clip(v, 0, 1))) (numpy)."""
+    import numpy as np
+
+    v = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
+    return np.clip(np.round(linear_to_srgb(v) * 255.0), 0, 255).astype(np.uint8)
 
 
 def _default_encoding(path: str, is_8bit: bool) -> str:

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from camio.files import linear_to_srgb, srgb_to_linear
+from camio.files import encode_srgb8, linear_to_srgb, srgb_to_linear  # noqa: F401 - encode_srgb8 re-exported
 
 from .projection import image_centre_px
 
@@ -46,16 +46,9 @@ def radial_falloff(x, y, width: int, height: int, vignetting, centre=None):
     return 1.0 - vignetting * rho2
 
 
-def encode_srgb8(linear) -> np.ndarray:
-    """Linear values to the uint8 an 8-bit sRGB file holds: round(255 · sRGB(clip(v, 0, 1)))."""
-    v = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
-    return np.clip(np.round(linear_to_srgb(v) * 255.0), 0, 255).astype(np.uint8)
-
-
 def _encode_srgb8_torch(linear: torch.Tensor) -> torch.Tensor:
     """`encode_srgb8` for a tensor, on its device: uint8 tensor."""
-    v = linear.to(torch.float64).clamp(0.0, 1.0)
-    s = torch.where(v <= 0.0031308, v * 12.92, 1.055 * v.pow(1 / 2.4) - 0.055)
+    s = linear_to_srgb(linear.to(torch.float64).clamp(0.0, 1.0))
     return torch.round(s * 255.0).clamp(0, 255).to(torch.uint8)
 
 

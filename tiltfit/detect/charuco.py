@@ -71,10 +71,10 @@ def symmetric_radius(target: CharucoTarget) -> float:
 
 def _srgb8(gray: np.ndarray) -> np.ndarray:
     """8-bit sRGB-encoded copy of a linear image (what OpenCV's detectors expect), scaled to its 99.9th percentile."""
-    from camio.files import linear_to_srgb
+    from camio.files import encode_srgb8
 
     top = float(np.percentile(gray, 99.9)) or 1.0
-    return np.clip(np.round(255 * linear_to_srgb(np.clip(gray / top, 0, 1))), 0, 255).astype(np.uint8)
+    return encode_srgb8(gray / top)
 
 
 def opencv_corners(gray: np.ndarray, target: CharucoTarget, refine: bool = True) -> np.ndarray:

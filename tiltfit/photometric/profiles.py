@@ -26,7 +26,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from camio.files import linear_to_srgb
+from camio.files import linear_to_srgb, write_text
 from renderer.cameras.sensor import decode_srgb8
 
 # ITU-R BT.601 luma weights, as OpenCV's RGB->grey conversion (the usual "brightness" of an 8-bit photo).
@@ -320,27 +320,18 @@ def csv_table(rows: list[dict], columns=None) -> str:
     return buf.getvalue()
 
 
-def _write_text(path: str, text: str) -> None:
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    tmp = path + ".tmp"
-    with open(tmp, "w", encoding="utf-8") as f:
-        f.write(text)
-    os.replace(tmp, path)
-
-
 def write_markdown(rows: list[dict], path: str, columns=None, title: str | None = None,
                    floatfmt: str = ".3f") -> str:
     """Write a Markdown table (with an optional `# title` line); returns the text."""
     text = (f"# {title}\n\n" if title else "") + markdown_table(rows, columns, floatfmt)
-    _write_text(path, text)
+    write_text(path, text)
     return text
 
 
 def write_csv(rows: list[dict], path: str, columns=None) -> str:
     """Write a CSV table; returns the text."""
     text = csv_table(rows, columns)
-    _write_text(path, text)
+    write_text(path, text)
     return text
 
 

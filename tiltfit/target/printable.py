@@ -118,9 +118,9 @@ class _WithRectangles:
 
 
 def _srgb8(linear: np.ndarray) -> np.ndarray:
-    from camio.files import linear_to_srgb
+    from camio.files import encode_srgb8
 
-    return np.clip(np.round(linear_to_srgb(linear) * 255.0), 0, 255).astype(np.uint8)
+    return encode_srgb8(linear)
 
 
 def _write_rows(out, r0: int, rows_u8: np.ndarray) -> None:

@@ -620,13 +620,10 @@ class LensCamera(torch.nn.Module):
         return copy.deepcopy(self)
 
     def summary(self) -> dict:
-        """Plain floats of the lens state (mm and degrees)."""
+        """Plain floats of the lens state (mm and degrees): the lens's `Lens.record()` and the module's own values."""
         with torch.no_grad():
             return {
-                "w_mm": float(self.w_mm), "U_mm": float(self.U_mm), "d_mm": float(self.d_mm),
-                "f_mm": float(self.f_mm), "theta_F_deg": math.degrees(float(self.theta_F)),
-                "tilt_axis_deg": math.degrees(float(self.phi)),
-                "theta_L_deg": math.degrees(float(self.theta_L)),
+                **self.lens.record(), "f_mm": float(self.f_mm),
                 "theta_L_paper_deg": math.degrees(float(self.theta_L_paper)),
                 "principal_point_px": [float(v) for v in self.principal_point_px],
                 "distortion": [float(v) for v in self.distortion],

@@ -41,6 +41,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
+from renderer.cameras import Lens
 from renderer.cameras.lens_model import (LENS_PARAMETERS, U_from_stored, d_from_stored, lens_values,
                                          stored_lens_sigma, w_from_stored)
 from renderer.cameras.optics import theta_L_from_theta_F
@@ -1203,6 +1204,5 @@ def _camera_of(camera: LensCamera, x: dict, problem: "_Problem") -> LensCamera:
 
 def _lens_values(lens: torch.Tensor) -> dict:
     """w, U, d, θF, θL of a stored lens block (mm, degrees)."""
-    w, U, d, theta_F = lens_values([float(v) for v in lens])
-    return {"w_mm": w, "U_mm": U, "d_mm": d, "theta_F_deg": math.degrees(theta_F),
-            "theta_L_deg": math.degrees(float(theta_L_from_theta_F(theta_F, w, U)))}
+    record = Lens(*lens_values([float(v) for v in lens])).record()
+    return {k: v for k, v in record.items() if k != "tilt_axis_deg"}   # the block has no tilt axis

@@ -26,7 +26,7 @@ import torch
 
 from renderer.cameras.distortion import MODEL_TERMS, MODELS as DISTORTION_MODELS
 
-from tiltfit.calibrate.fit import FitError, FitOptions, FitResult, _fit_camera, fit_geometry
+from tiltfit.calibrate.fit import FitError, FitOptions, FitResult, _fit_camera, fit_geometry, per_corner_rms_px
 from tiltfit.target.shape import with_points
 from tiltfit.calibrate.model import Observations, LensCamera, distortion_parameter_names
 from tiltfit.select.nested import likelihood_ratio
@@ -149,7 +149,7 @@ def with_distortion_centre(base: FitResult, obs: Observations, mode: str, option
             except FitError:
                 continue
             entries.append({"model": m, "centre": "lens_axis", "n_terms": len(MODEL_TERMS[m]),
-                            "rms_px": math.sqrt(fit.rss["corners"] / max(fit.rss["n_corners"] // 2, 1)),
+                            "rms_px": per_corner_rms_px(fit.rss),
                             "held_out_rms_px": held["rms_px"], "held_out": held, "chosen": False})
         if ("sensor", model) in scores and len(scores) > 1:
             best = min(scores.values())

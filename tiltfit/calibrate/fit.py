@@ -152,6 +152,12 @@ class FitOptions:
             raise ValueError(f"distortion: expected one of {DISTORTION_MODELS + ('auto',)}, got {self.distortion!r}")
 
 
+def per_corner_rms_px(rss: dict) -> float:
+    """The reprojection RMS per corner (px; OpenCV's `calibrateCamera` definition) of a fit's residual sums
+    (`FitResult.rss`: the corners' RSS over two rows a corner): the one place it is computed."""
+    return math.sqrt(rss["corners"] / max(rss["n_corners"] // 2, 1))
+
+
 @dataclass
 class FitResult:
     """What `calibrate` found.

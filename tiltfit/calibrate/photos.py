@@ -7,7 +7,6 @@ the held-out error, and the CALIB.json content, as `tiltfit calibrate` does them
 """
 from __future__ import annotations
 
-import math
 import os
 import time
 from dataclasses import replace
@@ -17,7 +16,7 @@ import numpy as np
 from tiltfit.files.calib import calib_dict
 from tiltfit.files.calibrated import Calibration
 from tiltfit.calibrate.flow import calibrate
-from tiltfit.calibrate.fit import FitOptions, FitResult
+from tiltfit.calibrate.fit import FitOptions, FitResult, per_corner_rms_px
 from tiltfit.calibrate.model import Observations
 from tiltfit.target.layout import Target, load_target
 
@@ -47,7 +46,7 @@ def fit_with_held_out(obs: Observations, mode: str = "unified", init=None, optio
                                  folds=held_out_folds, distortion=result.distortion_model, start=result.camera,
                                  board=result.board.model if result.board is not None else None)
             if say:
-                fit_rms = math.sqrt(result.rss["corners"] / max(result.rss["n_corners"] // 2, 1))
+                fit_rms = per_corner_rms_px(result.rss)
                 say(f"reprojection RMS {fit_rms:.4f} px per corner (fit), {held_out['rms_px']:.4f} px (held out, "
                     f"{held_out['folds']}-fold)")
         except FitError as e:  # a note, not progress: CALIB.json then has no held-out error, and the user is told

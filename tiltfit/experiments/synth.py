@@ -174,6 +174,9 @@ def plane_homography(camera: Lens, R: np.ndarray, T: np.ndarray) -> np.ndarray:
 def _disc_polygon_area(c: np.ndarray, r: np.ndarray, verts: np.ndarray) -> np.ndarray:
     """Signed area of disc(c, r) ∩ polygon, summed over the polygon's edges.
 
+    Deliberately not `tiltfit.photometric.aperture`'s disc geometry: these images are the test data of the
+    photometric fit that uses that code (tests/tiltfit/test_photometric.py), so the generator shares none of it.
+
     Args:
         c: (..., 2) disc centres; r: (...,) radii; verts: (..., V, 2) polygon vertices (convex or not: the
             sum of per-edge triangle areas is exact for any simple polygon).

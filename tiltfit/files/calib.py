@@ -145,6 +145,8 @@ def calib_dict(result, runtime_s: float | None = None, obs=None, target: dict | 
     """
     import datetime
 
+    from tiltfit.calibrate.fit import per_corner_rms_px
+
     cam = result.camera
     v, s = dict(result.values), dict(result.sigma)
     undetermined = list(getattr(result, "undetermined", []) or [])
@@ -196,7 +198,7 @@ def calib_dict(result, runtime_s: float | None = None, obs=None, target: dict | 
         "undetermined": undetermined,
         "skipped": list(getattr(result, "skipped", []) or []),
         "notes": list(getattr(result, "notes", []) or []),
-        "rms_reprojection_px": math.sqrt(result.rss["corners"] / (n_rows / 2)) if n_rows else None,  # per corner
+        "rms_reprojection_px": per_corner_rms_px(result.rss) if n_rows else None,
         "warnings": list(getattr(result, "warnings", []) or []),
         "principal_point_fitted": bool(getattr(result, "free_principal_point", False)),
         "blur_offset_px": v.get("blur_offset_px"),

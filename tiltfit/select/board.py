@@ -16,7 +16,7 @@ from dataclasses import replace
 
 from tiltfit.target.shape import (BOARD_GAIN_Z, BOARD_MODELS, BOARD_TOLERANCE, MAX_BOARD_JACOBIAN_ENTRIES,
                     MIN_CORNERS_PER_BOARD_PARAMETER, Board, free_board_at)
-from tiltfit.calibrate.fit import FitError, fit_geometry
+from tiltfit.calibrate.fit import FitError, fit_geometry, per_corner_rms_px
 from tiltfit.calibrate.model import Observations
 from tiltfit.select.held_out import choice_variance, held_out_gain
 from tiltfit.select.held_out import held_out_rms as _held_out
@@ -88,7 +88,7 @@ def select_board(camera, obs: Observations, options, mode: str = "unified", mode
             entry["refused"] = f"not fitted ({e})"
             continue
         fits[m] = fit
-        entry["rms_px"] = math.sqrt(fit.rss["corners"] / max(fit.rss["n_corners"] // 2, 1))
+        entry["rms_px"] = per_corner_rms_px(fit.rss)
         if obs.n_views >= 3 and len(models) > 1:
             try:
                 reuse = m == "flat" and flat is not None and (flat.held_out or {}).get("folds") == folds

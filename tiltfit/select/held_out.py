@@ -22,7 +22,7 @@ import torch
 
 from renderer.cameras.distortion import MODEL_TERMS, MODELS as DISTORTION_MODELS
 
-from tiltfit.calibrate.fit import FitError, FitOptions, FitResult, fit_geometry, without_blur
+from tiltfit.calibrate.fit import FitError, FitOptions, FitResult, fit_geometry, per_corner_rms_px, without_blur
 from tiltfit.calibrate.start import initialize
 from tiltfit.calibrate.model import Observations, LensCamera
 
@@ -312,10 +312,6 @@ def held_out_gain(simple: dict | None, rich: dict | None, obs: Observations) -> 
     return mean / math.sqrt(var / len(d))
 
 
-def _per_corner_rms(fit: FitResult) -> float:
-    return math.sqrt(fit.rss["corners"] / max(fit.rss["n_corners"] // 2, 1))
-
-
 def select_distortion(camera: LensCamera, obs: Observations, options: FitOptions, mode: str = "unified",
                       say=None, folds: int = 5, board=None, known: dict | None = None,
                       models=DISTORTION_MODELS) -> FitResult:
@@ -403,7 +399,7 @@ def _fit_candidates(camera, obs: Observations, fixed: FitOptions, mode: str, boa
         prev = fit
         if m == REFERENCE_MODEL:
             reference = fit
-        entry["rms_px"] = _per_corner_rms(fit)
+        entry["rms_px"] = per_corner_rms_px(fit.rss)
         seen = obs if fit.board is None else _with_board(obs, fit.board)
         fold = (radial_fold(fit.camera, seen) or undetermined_distortion(fit, m, obs.n_views)
                 or undetermined_for_choice(fit, m, reference))

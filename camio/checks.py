@@ -27,7 +27,7 @@ import math
 import os
 import re
 
-from camio.errors import SceneError, UsageError
+from camio.errors import SceneError, UsageError, one_line, os_reason
 
 MAX_JSON_BYTES = 64 << 20
 MAX_JSON_DEPTH = 64
@@ -46,7 +46,7 @@ def describe(value) -> str:
     if isinstance(value, int) and not isinstance(value, bool) and abs(value) > 10**20:
         return f"a {len(str(abs(value)))}-digit integer"
     text = repr(value)
-    text = " ".join(text.split())
+    text = one_line(text)
     return text if len(text) <= 80 else text[:77] + "..."
 
 
@@ -198,7 +198,7 @@ def read_json(path: str, error=ValueError, what: str = "file", max_depth: int = 
         with open(path, "rb") as f:
             data = f.read(MAX_JSON_BYTES + 1)
     except OSError as e:
-        raise error(f"{path}: cannot read {what} ({e.strerror or e})") from None
+        raise error(f"{path}: cannot read {what} ({os_reason(e)})") from None
     return parse_json(path, _decode(path, data, error, what), error, max_depth)
 
 

@@ -20,8 +20,15 @@ class UsageError(Exception):
     """A bad command-line value that argparse cannot check by itself (one-line message)."""
 
 
-def one_line(e: Exception) -> str:
-    """An exception as one line: an OSError as `FILE: reason`, anything else with its whitespace collapsed."""
+def one_line(e) -> str:
+    """An exception or a message as one line: an OSError as `FILE: reason`, anything else (a message: a str, None
+    as "") with its whitespace collapsed. The one way a message is flattened for stderr and for image metadata."""
     if isinstance(e, OSError) and e.filename is not None and e.strerror:
         return f"{e.filename}: {e.strerror}"
-    return " ".join(str(e).split())
+    return " ".join(str("" if e is None else e).split())
+
+
+def os_reason(e: OSError) -> str:
+    """Why an OSError happened, without its file (for messages that name the file themselves): its strerror
+    ("Permission denied"), else the exception as one line."""
+    return e.strerror or one_line(e)

@@ -33,7 +33,7 @@ import shutil
 import sys
 import tempfile
 
-from camio.errors import ImageIOError  # noqa: F401 - raised here, and importable from here as before
+from camio.errors import ImageIOError, one_line  # noqa: F401 - ImageIOError raised here, importable from here as before
 
 
 SRGB_SPACE = "srgb_rec709_scene"
@@ -137,7 +137,7 @@ def read_image(path: str, encoding: str | None = None, max_pixels: int | None = 
     with quiet_c_stderr():
         inp = oiio.ImageInput.open(path)
         if inp is None:
-            raise ImageIOError(f"{path}: cannot read image ({_one_line(oiio.geterror()) or 'unknown format'})")
+            raise ImageIOError(f"{path}: cannot read image ({one_line(oiio.geterror()) or 'unknown format'})")
         try:
             spec = inp.spec()
             is_8bit = spec.format == oiio.UINT8
@@ -154,7 +154,7 @@ def read_image(path: str, encoding: str | None = None, max_pixels: int | None = 
         finally:
             inp.close()
     if pixels is None or err:
-        raise ImageIOError(f"{path}: cannot read image data ({_one_line(err) or 'truncated or corrupt'})")
+        raise ImageIOError(f"{path}: cannot read image data ({one_line(err) or 'truncated or corrupt'})")
     pixels = np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
     enc = encoding or recorded or _default_encoding(path, is_8bit)
     if enc == "srgb":
@@ -168,10 +168,6 @@ def _available_bytes() -> int:
     from camio.checks import available_memory_bytes
 
     return available_memory_bytes()
-
-
-def _one_line(text: str) -> str:
-    return " ".join((text or "").split())
 
 
 def write_image(path: str, image, encoding: str | None = None, metadata: dict | None = None) -> None:
@@ -229,17 +225,17 @@ def write_image(path: str, image, encoding: str | None = None, metadata: dict | 
     spec.attribute("Software", software_version())
     spec.attribute("DateTime", datetime.datetime.now().strftime("%Y:%m:%d %H:%M:%S"))
     meta = {"encoding": enc, **(metadata or {})}
-    spec.attribute("ImageDescription", "; ".join(f"{k}={_one_line(str(v))}" for k, v in meta.items()))
+    spec.attribute("ImageDescription", "; ".join(f"{k}={one_line(str(v))}" for k, v in meta.items()))
     if kind == "float" and ext == ".exr":
         for k, v in meta.items():
-            spec.attribute(f"renderer:{k}", _one_line(str(v)))
+            spec.attribute(f"renderer:{k}", one_line(str(v)))
     with atomic_output(path) as tmp:
         out = oiio.ImageOutput.create(path)
         if not out or not out.open(tmp, spec) or not out.write_image(np.ascontiguousarray(data, dtype=np.uint8 if levels else np.float32)):
             err = (out.geterror() if out else "") or oiio.geterror()
-            raise ImageIOError(f"{path}: cannot write image ({_one_line(err) or 'unknown error'})")
+            raise ImageIOError(f"{path}: cannot write image ({one_line(err) or 'unknown error'})")
         if not out.close():
-            raise ImageIOError(f"{path}: cannot write image ({_one_line(out.geterror()) or 'close failed'})")
+            raise ImageIOError(f"{path}: cannot write image ({one_line(out.geterror()) or 'close failed'})")
 
 
 def image_metadata(path: str) -> dict:
@@ -248,7 +244,7 @@ def image_metadata(path: str) -> dict:
 
     inp = oiio.ImageInput.open(path)
     if inp is None:
-        raise ImageIOError(f"{path}: cannot read image ({_one_line(oiio.geterror())})")
+        raise ImageIOError(f"{path}: cannot read image ({one_line(oiio.geterror())})")
     try:
         spec = inp.spec()
         desc = spec.get_string_attribute("ImageDescription")

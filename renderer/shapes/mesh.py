@@ -30,6 +30,7 @@ import torch
 
 from renderer.core.transforms import euler_xyz_deg
 from camio.checks import FLOAT32_MAX
+from camio.errors import os_reason
 from .base import INF, ParameterError, Shape
 from .polyhedron import coordinates_across
 
@@ -49,7 +50,7 @@ def load_obj(path: str) -> tuple[torch.Tensor, torch.Tensor]:
         with open(path, encoding="utf-8", errors="replace") as f:
             lines = f.readlines()
     except OSError as e:
-        raise ParameterError("file", f"cannot read {path}: {e.strerror or e}") from None
+        raise ParameterError("file", f"cannot read {path}: {os_reason(e)}") from None
     vertices, triangles = [], []
     for number, line in enumerate(lines, 1):
         words = line.split("#", 1)[0].split()

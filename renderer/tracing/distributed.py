@@ -32,6 +32,7 @@ from dataclasses import replace
 
 import torch
 
+from camio.errors import os_reason
 from camio.progress import Progress
 from renderer.tracing.render import RenderResult, _chunks, _render_pixels
 from renderer.tracing.sampling import Sampler
@@ -185,7 +186,7 @@ def _check_reachable(address: str, timeout: float = 5.0) -> None:
         raise ConnectionError(f"--cluster {address[:80]}: {host}:{port} does not answer as a Ray cluster "
                               f"(no reply within {timeout:g} s)") from None
     except OSError as e:
-        raise ConnectionError(f"--cluster {address[:80]}: cannot reach {host}:{port} ({e.strerror or e})") from None
+        raise ConnectionError(f"--cluster {address[:80]}: cannot reach {host}:{port} ({os_reason(e)})") from None
     if len(reply) < 4 or reply[3] != _HTTP2_SETTINGS:
         raise ConnectionError(f"--cluster {address[:80]}: {host}:{port} answers, but not as a Ray cluster "
                               "(no gRPC reply)")

@@ -8,6 +8,7 @@ import os
 import sys
 import time
 
+from camio.errors import os_reason
 from camio.files import quiet_c_stderr
 
 from .detect import is_det_file, load_target_file, observations
@@ -63,7 +64,7 @@ def cmd_calibrate(args) -> int:
     try:
         write_calib(args.output, data)
     except OSError as e:
-        raise CliError(args.output, f"cannot write ({e.strerror or e})") from None
+        raise CliError(args.output, f"cannot write ({os_reason(e)})") from None
     say(f"wrote {args.output}")
     return 0
 

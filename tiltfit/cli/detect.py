@@ -7,6 +7,7 @@ import os
 import sys
 import time
 
+from camio.errors import os_reason
 from camio.files import quiet_c_stderr
 
 from .errors import CliError, as_cli_error, check_output, progress_printer
@@ -126,7 +127,7 @@ def cmd_detect(args) -> int:
     try:
         write_json_atomic(args.output, det)
     except (OSError, ValueError) as e:
-        raise CliError(args.output, f"cannot write ({e.strerror or e})") from None
+        raise CliError(args.output, f"cannot write ({os_reason(e)})") from None
     return 0
 
 

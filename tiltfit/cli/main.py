@@ -28,6 +28,7 @@ import signal
 import sys
 import warnings
 
+from camio.errors import one_line
 from camio.interrupts import interrupt_on_sigterm
 
 from .errors import CliError
@@ -71,7 +72,7 @@ def main(argv=None) -> int:
             warnings.simplefilter("ignore", RuntimeWarning)
             return args.func(args)
     except CliError as e:
-        print(f"tiltfit: {e.file}: {' '.join(e.problem.split())}", file=sys.stderr)
+        print(f"tiltfit: {e.file}: {one_line(e.problem)}", file=sys.stderr)
         return EXIT_ERROR
     except MemoryError:
         print("tiltfit: out of memory", file=sys.stderr)

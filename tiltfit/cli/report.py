@@ -5,6 +5,8 @@ from __future__ import annotations
 import os
 import sys
 
+from camio.errors import os_reason
+
 from .errors import CliError, as_cli_error, progress_printer
 
 
@@ -24,7 +26,7 @@ def cmd_report(args) -> int:
     try:
         files = write_report(data, args.output, args.calib, options)
     except OSError as e:
-        raise CliError(args.output, f"cannot write ({e.strerror or e})") from None
+        raise CliError(args.output, f"cannot write ({os_reason(e)})") from None
     except ValueError as e:
         raise as_cli_error(args.calib, e) from None
     say = progress_printer(args.quiet)
@@ -106,7 +108,7 @@ def cmd_compare(args) -> int:
         try:
             files = write_compare(res, args.output, args.a, args.b)
         except OSError as e:
-            raise CliError(args.output, f"cannot write ({e.strerror or e})") from None
+            raise CliError(args.output, f"cannot write ({os_reason(e)})") from None
         for f in files:
             progress_printer(args.quiet)(f"wrote {f}")
     return 0

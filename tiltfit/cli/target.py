@@ -20,6 +20,8 @@ import math
 import os
 import sys
 
+from camio.errors import one_line, os_reason
+
 EXIT_ERROR = 2
 
 
@@ -27,7 +29,7 @@ class _OneLineParser(argparse.ArgumentParser):
     """argparse with its usage errors as one line `tiltfit: <option>: <problem>` (exit 2)."""
 
     def error(self, message):
-        msg = " ".join(message.split())
+        msg = one_line(message)
         if msg.startswith("argument "):
             where, _, problem = msg[len("argument "):].partition(": ")
             msg = f"{where.split('/')[-1]}: {problem}"
@@ -130,7 +132,7 @@ def _design(args, say) -> None:
         os.makedirs(folder, exist_ok=True)
         target.save(args.output)
     except OSError as e:
-        raise _Fail(args.output, f"cannot write ({e.strerror or e})") from None
+        raise _Fail(args.output, f"cannot write ({os_reason(e)})") from None
     x, y = target.x_edges[-1] - target.x_edges[0], target.y_edges[-1] - target.y_edges[0]
     say(f"wrote {args.output}: {args.cols} × {args.rows} cells, {x:.1f} × {y:.1f} mm, "
         f"{target.grid_shape[1]} × {target.grid_shape[0]} corners")
@@ -157,7 +159,7 @@ def _design_charuco(args, say) -> None:
         os.makedirs(os.path.dirname(os.path.abspath(args.output)), exist_ok=True)
         target.save(args.output)
     except OSError as e:
-        raise _Fail(args.output, f"cannot write ({e.strerror or e})") from None
+        raise _Fail(args.output, f"cannot write ({os_reason(e)})") from None
     say(f"wrote {args.output}: ChArUco {args.cols} × {args.rows} squares of {args.square_mm:g} mm, markers "
         f"{marker:g} mm ({args.charuco}), {target.grid_shape[1]} × {target.grid_shape[0]} corners")
 
@@ -184,7 +186,7 @@ def _print(args, say) -> None:
             raise _Fail("--" + field.replace("_", "-"), str(e).split(": ", 1)[1]) from None
         raise _Fail(args.target, str(e)) from None
     except OSError as e:
-        raise _Fail(args.png or args.pdf, f"cannot write ({e.strerror or e})") from None
+        raise _Fail(args.png or args.pdf, f"cannot write ({os_reason(e)})") from None
     for path in (args.png, args.pdf):
         if path:
             say(f"wrote {path}: print at 100 % and check the scale bar with a ruler")

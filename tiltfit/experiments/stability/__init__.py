@@ -50,6 +50,8 @@ import torch
 
 from tiltfit.photometric.profiles import markdown_table, save_figure, write_csv
 from tiltfit.experiments.runlog import RunLog
+from camio.errors import one_line, os_reason
+
 from .closed_forms import (coverage_closed_form, first_row_lost_theta_F, inverted_magnification, singular_depth,
                            srgb_blur_bias, two_stage_prediction)
 from .common import D_MM, F_MM, U0_MM, W_MM, StabilityConfig, Study
@@ -232,10 +234,10 @@ def main(argv=None) -> int:
     try:
         run(args.output, quick=args.quick, only=args.only, threads=args.threads or None, cluster=args.cluster)
     except (ImportError, ConnectionError) as e:
-        print(f"tiltfit stability: {e}", file=sys.stderr)
+        print(f"tiltfit stability: {one_line(e)}", file=sys.stderr)
         return 2
     except OSError as e:
-        print(f"tiltfit stability: {e.filename or args.output}: cannot write ({e.strerror or e})", file=sys.stderr)
+        print(f"tiltfit stability: {e.filename or args.output}: cannot write ({os_reason(e)})", file=sys.stderr)
         return 2
     return 0
 

@@ -38,6 +38,7 @@ from dataclasses import dataclass
 
 import torch
 
+from camio.checks import is_finite_number
 from renderer.core.params import SceneError
 
 N_COEFFICIENTS = 8
@@ -364,7 +365,7 @@ def distortion_from_config(path: str, cfg) -> BrownConrady | None:
         raise SceneError(f"{path}.model: expected 'brown_conrady', got {model!r}")
     c = cfg.get("coefficients")
     if not (isinstance(c, list) and 1 <= len(c) <= N_COEFFICIENTS
-            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in c)):
+            and all(is_finite_number(v) for v in c)):
         raise SceneError(f"{path}.coefficients: expected 1 to 8 numbers [k1, k2, p1, p2, k3, k4, k5, k6], "
                          f"got {c!r}")
     return BrownConrady(tuple(c))

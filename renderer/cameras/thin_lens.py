@@ -47,6 +47,7 @@ import torch
 
 from . import optics
 from renderer.core.blend import carries_derivative, selector
+from camio.checks import is_finite_number
 from renderer.core.params import Param, SceneError
 from renderer.core.rays import Rays, normalize_rows_, unit_vectors_from_rows, vectors_from_rows
 from renderer.core.transforms import CameraTransform
@@ -133,8 +134,7 @@ def focus_lens(path: str, cfg: dict, transform: CameraTransform) -> Lens:
             raise SceneError(f"{path}: give focus_points or {key}, not both (the points set U and the tilts)")
     pts = cfg["focus_points"]
     if not (len(pts) == 3 and all(isinstance(q, (list, tuple)) and len(q) == 3 for q in pts)
-            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-                    for q in pts for v in q)):
+            and all(is_finite_number(v) for q in pts for v in q)):
         raise SceneError(f"{path}.focus_points: expected three points [x, y, z] of finite numbers, got {pts!r}")
     _check_lens_and_sensor(path, cfg)
     world = torch.tensor(pts, dtype=torch.float64)

@@ -34,10 +34,6 @@ class Param:
     choices: tuple | None = None
 
 
-def _is_number(x) -> bool:
-    return is_number(x)
-
-
 def check_value(path: str, kind: str, value, choices=None):
     """Validate one value of a declared kind; returns it normalised (floats, tuples)."""
 
@@ -47,7 +43,7 @@ def check_value(path: str, kind: str, value, choices=None):
     if kind == "any":
         return value
     if kind in ("float", "int"):
-        if not _is_number(value):
+        if not is_number(value):
             fail("a number")
         if not is_finite_number(value):
             fail("a finite number")
@@ -68,9 +64,9 @@ def check_value(path: str, kind: str, value, choices=None):
         return value
     if kind in ("vec2", "vec3", "color"):
         n = 2 if kind == "vec2" else 3
-        if _is_number(value) and kind == "color":
+        if is_number(value) and kind == "color":
             value = [value] * 3
-        if not isinstance(value, (list, tuple)) or len(value) != n or not all(_is_number(v) for v in value):
+        if not isinstance(value, (list, tuple)) or len(value) != n or not all(is_number(v) for v in value):
             fail(f"a list of {n} numbers")
         if not all(is_finite_number(v) for v in value):
             fail(f"a list of {n} finite numbers")

@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from camio.checks import describe, is_finite_number, read_json
+from camio.checks import describe, is_finite_number, is_number, read_json
 
 # Stated limit for target files: at most this many edges per axis (200 × 200 feature points, detection's own
 # limit MAX_FEATURE_POINTS), so an absurd file is refused when it is loaded. Real boards have tens.
@@ -209,7 +209,7 @@ def target_from_dict(data, source: str = "<target>") -> Target:
     edges = {}
     for key in ("x_edges", "y_edges"):
         v = data[key]
-        if not isinstance(v, list) or not all(_is_number(e) for e in v):
+        if not isinstance(v, list) or not all(is_number(e) for e in v):
             fail(key, "a list of numbers (mm)", v)
         problem = _edges_problem(v) or (f"at most {MAX_EDGES} edges" if len(v) > MAX_EDGES else None)
         if problem:
@@ -225,10 +225,6 @@ def target_from_dict(data, source: str = "<target>") -> Target:
     inverted = _inverted(data, fail)
     return Target(tuple(edges["x_edges"]), tuple(edges["y_edges"]), (int(dark[0]), int(dark[1])), float(margin),
                   inverted=inverted)
-
-
-def _is_number(x) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool)
 
 
 def load_target(path: str) -> Target:

@@ -33,7 +33,7 @@ def run_set(name: str, pitch_mm: float, n_views: int, figures_dir: str) -> dict:
     from benchmarks.photometric.photometric_start import calibrate_refined_cached
 
     from tiltfit.cli import main as cli
-    from tiltfit.report import plots as report
+    from tiltfit.report import photometric as report
 
     timings = []
     plain = report.photometric_residual

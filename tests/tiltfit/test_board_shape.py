@@ -20,7 +20,8 @@ from tiltfit.files.calib import calib_dict, camera_from_calib, read_calib
 from tiltfit.calibrate.flow import calibrate
 from tiltfit.calibrate.fit import FitOptions, without_blur
 from tiltfit.calibrate.model import Observations, board_points_mm
-from tiltfit.report.plots import coverage_fraction, with_sigma, write_report
+from tiltfit.report.plots import coverage_fraction, write_report
+from tiltfit.report.summary import with_sigma
 from tiltfit.calibrate.start import initialize
 
 ROOT = os.path.join(os.path.dirname(__file__), "..", "..")

@@ -185,7 +185,7 @@ def test_bound_record_says_which_parameter_is_where(tilted_fit):
         assert b["at_bound"] == (b["parameter"] in {e for e in res.at_bound} or
                                  {"w_mm": "log_w_mm", "U_mm": "inv_U_per_m", "d_mm": "d_scaled",
                                   "theta_F_deg": "theta_F"}[b["parameter"]] in res.at_bound), b
-    from tiltfit.report.plots import photometric_lines
+    from tiltfit.report.photometric import photometric_lines
 
     lines = "\n".join(photometric_lines({"photometric": {"kept": res.kept, "bounds": res.bounds,
                                                          "rejected_because": res.rejected_because}}))
@@ -196,7 +196,7 @@ def test_residual_image_of_the_truth_is_noise(tmp_path):
     """At the generator's truth the residual image (photo − rendered board) is the capture's noise on the usable
     pixels and NaN elsewhere; with d 10 % off it shows the edges (a negative control); it plots to a PNG."""
     from tiltfit.photometric import residual_image
-    from tiltfit.report.plots import plot_residual_image
+    from tiltfit.report.photometric import plot_residual_image
 
     truth, R, T, (W, H, pitch), D = _forward_case(6.0, 5.0, 20.0)
     photo = (LOOK.paper - (LOOK.paper - LOOK.ink) * D[0]).reshape(H, W)

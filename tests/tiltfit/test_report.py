@@ -9,7 +9,7 @@ import pytest
 def test_report_distortion_list_keeps_positions():
     """A coefficient that is 0 inside the list is shown, not dropped (dropping it moved the later ones into its
     place: p1 = 0 made k3 read as p1); only the trailing zeros are left out."""
-    from tiltfit.report.plots import _rounded_list
+    from tiltfit.report.summary import _rounded_list
 
     text = _rounded_list([-0.1, 0.02, 0.0, 0.0, 0.003, 0.0, 0.0, 0.0], None)
     assert text == "[-0.1, 0.02, 0, 0, 0.003]", text
@@ -41,7 +41,7 @@ def test_report_board_text_with_null_sigma():
     """A warp board whose `sigma` is null (validate_calib accepts it: σ is optional) is written without σ, not an
     AttributeError."""
     from tiltfit.files.calib import _check_board
-    from tiltfit.report.plots import _board_text
+    from tiltfit.report.summary import _board_text
 
     board = {"model": "warp", "parameters": {"sag_x_mm": 0.5, "sag_y_mm": -0.2, "scale_y_minus_1": 1e-4},
              "sigma": None}
@@ -92,7 +92,7 @@ def test_report_refuses_malformed_uncertainty_extras_in_one_line(tmp_path, capsy
 
 def test_report_of_a_cross_validation_without_a_finite_median(tmp_path):
     """A pair whose difference had no finite pixel (median null, as `calib_dict` writes NaN) reads 'unknown'."""
-    from tiltfit.report.plots import _uncertainty_lines
+    from tiltfit.report.summary import _uncertainty_lines
 
     lines = _uncertainty_lines({"cross_validation": {"pairs": [{"groups": [1, 2], "median_px": None,
                                                                 "predicted_median_px": 0.2, "verdict": "x: y"}]}})

@@ -90,7 +90,8 @@ def test_report_draws_the_residual_images_of_the_compared_views(refined, tmp_pat
     """write_report: one `photometric_residual_view_KK.png` per compared view, shown in report.md after the bounds
     table and its sentence; the residual through the calibration is near the capture's noise."""
     from tiltfit.report.real_vs_rendered import RealVsRenderedOptions
-    from tiltfit.report.plots import photometric_residual, write_report
+    from tiltfit.report.photometric import photometric_residual
+    from tiltfit.report.plots import write_report
 
     folder, calib, path, poses, again, photos = refined
     out = tmp_path / "report"
@@ -123,7 +124,7 @@ def test_residual_at_the_truth_is_noise_and_a_wrong_camera_is_not(refined, kept)
     """At the generator's truth (as the refined camera, or as the corner fit's in a rejected record whose `refined`
     lens is 20 % off in d: it must not be used) the residual RMS is the capture's noise within ×1.5 both ways; with
     the principal point 2 px off it is at least twice that."""
-    from tiltfit.report.plots import photometric_residual
+    from tiltfit.report.photometric import photometric_residual
 
     _, calib, path, poses, again, photos = refined
     truth = _at_truth(calib, poses, kept)
@@ -143,7 +144,7 @@ def test_residual_at_the_truth_is_noise_and_a_wrong_camera_is_not(refined, kept)
 
 def test_bound_sentence_names_the_parameter_and_the_end():
     """The sentence under the bounds table: which parameter hit which end; without a hit, why it was not kept."""
-    from tiltfit.report.plots import bound_sentence, photometric_lines
+    from tiltfit.report.photometric import bound_sentence, photometric_lines
 
     d = {"parameter": "d_mm", "start": 36.01, "low": 35.5, "high": 36.12, "refined": 36.12, "at_bound": True}
     w = {"parameter": "w_mm", "start": 55.0, "low": 54.0, "high": 56.0, "refined": 54.9, "at_bound": False}

@@ -132,7 +132,7 @@ def _redistort(fit: FitResult, obs: Observations, mode: str, options: FitOptions
 
 def board_line(board) -> str:
     """', sag ... ± ...' of a fitted board for the notes (values rounded to their σ)."""
-    from tiltfit.report.plots import with_sigma
+    from tiltfit.report.summary import with_sigma
 
     s = board.summary()
     if board.model == "warp" and "sigma" in s:

@@ -382,7 +382,7 @@ def residual_image(image: np.ndarray, target: Target, cam: ThinLensCamera, white
                    chunk: int = 1 << 15, stride: int = 1) -> np.ndarray:
     """(H, W) photo − rendered board of one view (linear units), NaN outside the pixels the fit may use
     (`usable_pixels` of the board's box; with `stride`, off its grid: `dark_fraction_image`): what the refinement
-    could not explain, for `tiltfit.report.plots`'s `plot_residual_image`.
+    could not explain, for `tiltfit.report.photometric.plot_residual_image`.
 
     Args:
         image: (H, W) linear photo of the view (decode sRGB first).

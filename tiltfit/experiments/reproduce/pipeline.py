@@ -173,9 +173,8 @@ def write_report(out_dir, table1, table_s1, table2, speed, files, skipped, cfg, 
 def main(argv=None) -> int:
     """`tiltfit reproduce [--quick] [--scale N] [--target-scale N] [--device cpu|cuda] [-o DIR]` (also
     `python -m tiltfit.experiments.reproduce`)."""
-    from tiltfit.experiments import reproduce
-
-    ap = argparse.ArgumentParser(prog="tiltfit reproduce", description=reproduce.__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="tiltfit reproduce", description=(  # the package docstring's first line
+        "The tilt-lens paper's experiment end to end on a simulated camera (`tiltfit reproduce [--quick] [-o DIR]`)."))
     ap.add_argument("--quick", action="store_true", help="small images and few samples (about a minute)")
     ap.add_argument("-o", "--output", default="reproduce_out", help="output folder [reproduce_out]")
     ap.add_argument("--threads", type=int, default=1, help="torch threads [1]; 0 keeps torch's default")

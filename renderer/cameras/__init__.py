@@ -27,7 +27,7 @@ from renderer.cameras import accumulation  # noqa: F401
 from .lens import (DISTORTION_CENTRES, EOS_6D, Lens, Sensor, lens_tilt_from_opencv, opencv_tilt,  # noqa: F401
                    tilt_rotation)
 from .lens_model import (APERTURE_SCALE_MM, LENS_PARAMETERS, LensCamera, distortion_parameter_names,  # noqa: F401
-                         lens_values, stored_from_lens, stored_lens_sigma)
+                         U_from_stored, d_from_stored, lens_values, stored_from_lens, stored_lens_sigma, w_from_stored)
 from .projection import (camera_matrix, image_centre_px, normalised_from_pixels, pixels_from_normalised,  # noqa: F401
                          project_pinhole)
 from .thin_lens import ThinLensCamera, concentric_disk  # noqa: F401

@@ -9,7 +9,7 @@ library      everything not listed below: target, imaging (pyramid, homography),
              selection (nested-model tests), calibration (the flow), validate, calibfile, detfile, formats,
              export, opencv_corners, report, evaluate (photo vs rendering profiles), photometric, synth
              (synthetic observations and images: public API, used by tests and benchmarks as much as by the
-             experiments), runlog (progress lines), target_cli (`tiltfit target ...`). A new module is library
+             experiments), target_cli (`tiltfit target ...`). A new module is library
              unless it is added to EXPERIMENTS.
 experiments  tiltfit/experiments/: reproduce (the paper's experiment), scenes (its boxes scene), stability and
              its studies, cluster (studies as Ray tasks): built on the library, may import anything below them.

@@ -12,7 +12,7 @@ import math
 
 import torch
 
-from renderer.cameras.lens_model import lens_values, stored_lens_sigma, w_from_stored
+from renderer.cameras import lens_values, stored_lens_sigma, w_from_stored
 from tiltfit.calibrate.model import LensCamera
 from tiltfit.solve import LMResult
 from tiltfit.solve import covariance as solve_covariance

@@ -93,7 +93,7 @@ def opencv_calibrate(obs, flags: int = 0, focal_px: float = 600.0):
     fx/fy ratio, for the fixed aspect ratio, and starts from its own estimate). Returns (RMS per corner as OpenCV defines it, K, distortion)."""
     import cv2
 
-    from renderer.cameras.projection import camera_matrix, image_centre_px
+    from renderer.cameras import camera_matrix, image_centre_px
 
     obj, img = [], []
     for v in range(obs.n_views):

@@ -19,7 +19,7 @@ import pickle
 
 import torch
 
-from tiltfit.experiments.runlog import RunLog
+from camio.progress import RunLog
 
 
 def run_studies(studies: dict, names, cfg, log, cluster: str | None = None):

@@ -41,11 +41,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from renderer.cameras import Lens
-from renderer.cameras.lens_model import (LENS_PARAMETERS, U_from_stored, d_from_stored, lens_values,
-                                         stored_lens_sigma, w_from_stored)
+from renderer.cameras import (LENS_PARAMETERS, Lens, U_from_stored, d_from_stored, image_centre_px, lens_values,
+                              stored_lens_sigma, w_from_stored)
 from renderer.cameras.optics import theta_L_from_theta_F
-from renderer.cameras.projection import image_centre_px
 
 from tiltfit.photometric.aperture import checker_dark_fraction_disc, lines_cut
 from tiltfit.detect.imaging import torch_threads

@@ -14,7 +14,7 @@ from renderer import render
 from renderer.cameras.sensor import SensorResponse
 
 from ..scenes import Lens, Sensor, boxes_scene
-from tiltfit.experiments.runlog import RunLog
+from camio.progress import RunLog
 
 NOT_RUN = "not run"  # a table cell of a stage that was skipped (RunConfig.calibrate False) or failed
 

@@ -49,7 +49,7 @@ import numpy as np
 import torch
 
 from tiltfit.photometric.profiles import markdown_table, save_figure, write_csv
-from tiltfit.experiments.runlog import RunLog
+from camio.progress import RunLog
 from camio.errors import one_line, os_reason
 
 from .closed_forms import (coverage_closed_form, first_row_lost_theta_F, inverted_magnification, singular_depth,

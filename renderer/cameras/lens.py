@@ -307,6 +307,27 @@ class Lens:
         p = torch.as_tensor(np.asarray(p_cam, dtype=np.float64))
         return project_pinhole(p, self.focal_px, self.center_px, self.distortion, frame).numpy()
 
+    def unproject(self, uv_px: torch.Tensor) -> torch.Tensor:
+        """(..., 2) pixels -> (..., 3) unit camera-frame directions that `project` maps to them: the inverse of the
+        distortion (Newton's method, about the principal point or the lens axis); NaN where it cannot be inverted
+        (no root, or one that does not project back within 1e-3 px). Plain-number lens; float64 tensors."""
+        from .distortion import undistort_about_axis
+        from .projection import normalised_from_pixels
+
+        f, c = _float(self.focal_px), tuple(_float(x) for x in self.center_px)
+        xy = undistort_about_axis(normalised_from_pixels(uv_px, f, c), self.distortion or (0.0,), self.distortion_frame)
+        v = torch.cat([xy, torch.ones_like(xy[..., :1])], -1)
+        ok = torch.isfinite(xy).all(-1) & ((self.project(v) - uv_px).norm(dim=-1) < 1e-3)
+        v = v / v.norm(dim=-1, keepdim=True)
+        return torch.where(ok[..., None], v, torch.full_like(v, math.nan))
+
+    def detached(self) -> "Lens":
+        """The same lens with tensor fields (a fitted camera's) as plain floats."""
+        dist = None if self.distortion is None else tuple(_float(k) for k in self.distortion)
+        pp = None if self.principal_point_px is None else tuple(_float(c) for c in self.principal_point_px)
+        return replace(self, w=_float(self.w), U=_float(self.U), d=_float(self.d), theta_F=_float(self.theta_F),
+                       principal_point_px=pp, distortion=dist, phi=_float(self.phi))
+
     @property
     def lens_axis(self):
         """(3,) the lens axis, a unit vector in the camera frame pointing forward: the lens plane's normal

@@ -244,23 +244,12 @@ def calib_lens(calib: dict):
     return lens_from_calib(calib)[0]
 
 
-def _plain_lens(lens):
-    """A `Lens` with tensor fields (a fitted camera's) as plain floats."""
-    def _float(v):
-        return float(v.detach()) if isinstance(v, torch.Tensor) else float(v)
-
-    dist = None if lens.distortion is None else tuple(_float(k) for k in lens.distortion)
-    pp = None if lens.principal_point_px is None else tuple(_float(c) for c in lens.principal_point_px)
-    return type(lens)(_float(lens.w), _float(lens.U), _float(lens.d), _float(lens.theta_F), lens.sensor, pp, dist,
-                      _float(lens.phi), lens.distortion_centre)
-
-
 def intrinsics_vector(lens) -> torch.Tensor:
     """θ (`INTRINSIC_NAMES`: focal_px, cx, cy, k1 … k6, θL°, φ°) of a `renderer.Lens` or a CALIB.json dict
     (`calib_lens`): the parameters the projection depends on, the coordinates of `intrinsics_covariance`."""
     if isinstance(lens, dict):
         lens = calib_lens(lens)
-    lens = _plain_lens(lens)
+    lens = lens.detached()
     k = (list(lens.distortion or ()) + [0.0] * 8)[:8]
     cx, cy = lens.center_px
     return torch.tensor([float(lens.focal_px), cx, cy, *k, math.degrees(lens.theta_L), math.degrees(lens.phi)],
@@ -280,23 +269,6 @@ def _lens_at(lens, theta: torch.Tensor):
 def _project(lens, theta: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """(n, 3) camera-frame directions -> (n, 2) pixels through the lens of intrinsics θ (`Lens.project`)."""
     return _lens_at(lens, theta).project(v)
-
-
-def _unproject(lens, q: torch.Tensor) -> torch.Tensor:
-    """(n, 2) pixels -> (n, 3) unit camera-frame directions through `lens` (its distortion about its centre, the
-    principal point or the lens axis); NaN where the distortion cannot be inverted."""
-    from renderer.cameras.distortion import undistort_about_axis
-    from renderer.cameras import normalised_from_pixels
-
-    f, c = float(lens.focal_px), tuple(float(x) for x in lens.center_px)
-    xy_d = normalised_from_pixels(q, f, c)
-    k = lens.distortion or (0.0,)
-    xy = undistort_about_axis(xy_d, k, lens.distortion_frame)
-    v = torch.cat([xy, torch.ones_like(xy[:, :1])], -1)
-    back = lens.project(v)
-    ok = torch.isfinite(xy).all(-1) & ((back - q).norm(dim=-1) < 1e-3)
-    v = v / v.norm(dim=-1, keepdim=True)
-    return torch.where(ok[:, None], v, torch.full_like(v, math.nan))
 
 
 def pixel_grid(image_size_px, nx: int = 32, ny: int | None = None):
@@ -345,12 +317,12 @@ def projection_sigma(lens, cov: torch.Tensor, nx: int = 32, ny: int | None = Non
     Returns:
         (xs, ys, sigma (ny, nx) px; NaN where the distortion cannot be inverted).
     """
-    lens = _plain_lens(lens)
+    lens = lens.detached()
     theta = intrinsics_vector(lens)
     xs, ys = pixel_grid(lens.sensor.size_px, nx, ny)
     X, Yg = np.meshgrid(xs, ys)
     q = torch.tensor(np.stack([X.ravel(), Yg.ravel()], -1), dtype=torch.float64)
-    v = _unproject(lens, q)
+    v = lens.unproject(q)
     ok = torch.isfinite(v).all(-1)
     sig = torch.full((q.shape[0],), math.nan, dtype=torch.float64)
     if int(ok.sum()) >= 3:
@@ -381,7 +353,7 @@ def _best_rotation(lens_a, lens_b, v_a, q):
     """Rotation ω (axis-angle) minimising Σ |proj_B(R(ω) v_a) − q|² (`tiltfit.solve.least_squares` from Kabsch)."""
     from renderer import axis_angle_to_matrix, matrix_to_axis_angle
 
-    v_b = _unproject(lens_b, q)
+    v_b = lens_b.unproject(q)
     ok = torch.isfinite(v_b).all(-1)
     Hm = v_a[ok].T @ v_b[ok]
     Uu, _, Vt = torch.linalg.svd(Hm)
@@ -438,7 +410,7 @@ def projection_difference(calib_a: dict, calib_b: dict, nx: int = 32, cov_a=None
     xs, ys = pixel_grid(size, nx)
     X, Yg = np.meshgrid(xs, ys)
     q = torch.tensor(np.stack([X.ravel(), Yg.ravel()], -1), dtype=torch.float64)
-    v_a = _unproject(la, q)
+    v_a = la.unproject(q)
     ok = torch.isfinite(v_a).all(-1)
     w = _best_rotation(la, lb, v_a[ok], q[ok]) if rotation else torch.zeros(3, dtype=torch.float64)
     diff = torch.full((q.shape[0],), math.nan, dtype=torch.float64)

@@ -31,7 +31,7 @@ from benchmarks.results_io import run_benchmark, write_lines  # noqa: E402
 
 from tiltfit.files.calib import calib_dict  # noqa: E402
 from tiltfit.calibrate.flow import calibrate  # noqa: E402
-from tiltfit.files.export import opencv_text  # noqa: E402
+from tiltfit.files.opencv_file import opencv_text  # noqa: E402
 from tiltfit.calibrate.fit import FitOptions  # noqa: E402
 
 

@@ -26,7 +26,8 @@ from tiltfit.experiments import synth
 from tiltfit.files.calib import calib_dict, write_calib
 from tiltfit.files.calibrated import Calibration, CalibrationError
 from tiltfit.calibrate.flow import calibrate
-from tiltfit.files.export import write_mrcal, write_opencv
+from tiltfit.files.mrcal_file import write_mrcal
+from tiltfit.files.opencv_file import write_opencv
 from tiltfit.calibrate.fit import FitOptions
 from tiltfit.calibrate.model import Observations
 from tiltfit.files.scene_plugins import target_texture

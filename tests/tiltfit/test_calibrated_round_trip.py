@@ -20,7 +20,8 @@ from renderer import Lens, Sensor
 from renderer.cameras import ThinLensCamera
 from tiltfit import calibrate_photos
 from tiltfit.files.calibrated import Calibration
-from tiltfit.files.export import write_mrcal, write_opencv
+from tiltfit.files.mrcal_file import write_mrcal
+from tiltfit.files.opencv_file import write_opencv
 from tiltfit.target.design import design_target
 
 pytestmark = pytest.mark.slow

@@ -10,7 +10,8 @@ import torch
 
 from tiltfit.cli import main as cli
 from tiltfit.files.calib import calib_dict, camera_from_calib, read_calib
-from tiltfit.files.export import ExportError, kornia_camera, read_opencv, write_opencv
+from tiltfit.files.export import ExportError, kornia_camera
+from tiltfit.files.opencv_file import read_opencv, write_opencv
 from tiltfit.calibrate.fit import FitOptions
 from tiltfit.calibrate.flow import calibrate
 from tiltfit.target.layout import load_target

@@ -317,7 +317,7 @@ def test_export_files_are_accepted_by_init(tmp_path, ext):
     with the lens and poses unchanged."""
     from tiltfit.files.calib import validate_calib
     from tiltfit.cli.main import main
-    from tiltfit.files.export import is_opencv_file, read_opencv
+    from tiltfit.files.opencv_file import is_opencv_file, read_opencv
 
     (tmp_path / "I.json").write_text(json.dumps(CALIB))
     out = tmp_path / f"cam{ext}"

@@ -60,7 +60,7 @@ def test_export_of_a_lens_axis_calibration_without_theta_L_deg():
     from renderer import Lens
     from renderer.cameras import EOS_6D, LensCamera
     from tiltfit.files.calib import camera_from_calib, validate_calib
-    from tiltfit.files.export import opencv_text
+    from tiltfit.files.opencv_file import opencv_text
 
     sensor = EOS_6D.binned(4)
     lens = Lens.from_tilt(55.39, 45.0, math.radians(4.0), 16.0, sensor=sensor, phi=math.radians(25.0),

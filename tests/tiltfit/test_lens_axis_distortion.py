@@ -21,7 +21,7 @@ from renderer.cameras import EOS_6D, LensCamera
 from tiltfit.files.calib import calib_dict, camera_from_calib, validate_calib
 from tiltfit.calibrate.flow import calibrate
 from tiltfit.experiments import reproduce
-from tiltfit.files.export import opencv_text, read_opencv
+from tiltfit.files.opencv_file import opencv_text, read_opencv
 from tiltfit.calibrate.fit import FitOptions
 from tiltfit.calibrate.model import Observations
 
@@ -319,7 +319,8 @@ def test_scene_file_thin_lens_with_distortion_about_its_axis():
 
 
 def test_what_other_tools_cannot_hold_is_said_and_bad_tau_files_are_refused(tmp_path):
-    from tiltfit.files.export import ExportError, mrcal_text
+    from tiltfit.files.export import ExportError
+    from tiltfit.files.mrcal_file import mrcal_text
 
     data = _dict(_camera(5.0, 30.0))
     assert "approximates" in mrcal_text(data), "mrcal has no tilted model: the file says the distortion is approximate"

@@ -20,7 +20,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import lens_axis_capture as gen  # noqa: E402  (the independent generator, beside this file)
 from tiltfit.files.calib import calib_dict
 from tiltfit.calibrate.flow import calibrate
-from tiltfit.files.export import opencv_text
+from tiltfit.files.opencv_file import opencv_text
 from tiltfit.calibrate.fit import FitOptions
 from tiltfit.calibrate.model import Observations
 

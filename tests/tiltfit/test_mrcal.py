@@ -17,7 +17,8 @@ import pytest
 
 from renderer import Lens, Sensor
 from tiltfit.files.calib import camera_from_calib, validate_calib
-from tiltfit.files.export import ExportError, mrcal_text, read_mrcal
+from tiltfit.files.export import ExportError
+from tiltfit.files.mrcal_file import mrcal_text, read_mrcal
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 import fuzz_harness  # noqa: E402  (tests/fuzz_harness.py: run a command's main in-process)

@@ -12,7 +12,9 @@ import pytest
 
 from tiltfit.files.calib import calib_dict
 from tiltfit.calibrate.flow import calibrate
-from tiltfit.files.export import mrcal_text, opencv_model, opencv_text
+from tiltfit.files.export import opencv_model
+from tiltfit.files.mrcal_file import mrcal_text
+from tiltfit.files.opencv_file import opencv_text
 from tiltfit.calibrate.fit import FitError, FitOptions, without_blur
 from tiltfit.detect.imaging import torch_threads
 from tiltfit.detect.opencv import opencv_calibrate

@@ -94,7 +94,8 @@ def _read_init(args):
     if not args.init:
         return None, None
     from tiltfit.files.calib import camera_from_calib, read_calib, sigma_from_calib, validate_calib
-    from tiltfit.files.export import is_mrcal_file, is_opencv_file, read_mrcal, read_opencv
+    from tiltfit.files.mrcal_file import is_mrcal_file, read_mrcal
+    from tiltfit.files.opencv_file import is_opencv_file, read_opencv
 
     try:
         if is_mrcal_file(args.init):

@@ -1,5 +1,5 @@
 """`tiltfit export`: a calibration written for another library (OpenCV FileStorage, mrcal .cameramodel;
-`tiltfit.files.export`)."""
+`tiltfit.files.opencv_file`, `tiltfit.files.mrcal_file`)."""
 from __future__ import annotations
 
 from .errors import CliError, as_cli_error, check_output, progress_printer
@@ -8,7 +8,9 @@ from .errors import CliError, as_cli_error, check_output, progress_printer
 def cmd_export(args) -> int:
     """`tiltfit export CALIB.json --to opencv|mrcal -o FILE`."""
     from tiltfit.files.calib import read_calib
-    from tiltfit.files.export import MRCAL_EXTENSION, ExportError, check_exportable, write_mrcal, write_opencv
+    from tiltfit.files.export import ExportError, check_exportable
+    from tiltfit.files.mrcal_file import MRCAL_EXTENSION, write_mrcal
+    from tiltfit.files.opencv_file import write_opencv
 
     check_output(args.output)
     if (args.to == "mrcal") != args.output.lower().endswith(MRCAL_EXTENSION):

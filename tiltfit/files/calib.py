@@ -148,25 +148,7 @@ def calib_dict(result, runtime_s: float | None = None, obs=None, target: dict | 
     from tiltfit.calibrate.fit import per_corner_rms_px
 
     cam = result.camera
-    v, s = dict(result.values), dict(result.sigma)
-    undetermined = list(getattr(result, "undetermined", []) or [])
-    for k in undetermined:
-        v[k] = None
-        s[k] = None
-    for k in ("w_mm", "U_mm", "d_mm", "f_mm"):  # never a number outside its physical range (w, U, f > 0, d ≥ 0)
-        x = v.get(k)
-        if x is not None and not (math.isfinite(x) and (x >= 0 if k == "d_mm" else x > 0)):
-            v[k] = s[k] = None
-            if k != "f_mm" and k not in undetermined:
-                undetermined.append(k)
-    if v.get("theta_F_deg") is not None and not abs(v["theta_F_deg"]) < 90:
-        v["theta_F_deg"] = s["theta_F_deg"] = None
-        undetermined.append("theta_F_deg")
-    if "U_mm" in undetermined:  # f = U w / (U + w) needs U
-        v["f_mm"] = s["f_mm"] = None
-    if "theta_F_deg" in undetermined:
-        for k in ("theta_L_deg", "theta_L_paper_deg", "tilt_axis_deg"):
-            v[k] = s[k] = None
+    v, s, undetermined = _determined_values(result)
     n_rows = result.rss.get("n_corners", 0)
     out = {
         "pixel_pitch_mm": cam.pixel_pitch_mm,
@@ -219,6 +201,32 @@ def calib_dict(result, runtime_s: float | None = None, obs=None, target: dict | 
         for view, extra in zip(out["views"], _per_view_data(result, obs)):
             view.update(extra)
     return _clean(out)
+
+
+def _determined_values(result) -> tuple[dict, dict, list]:
+    """(values, σ, undetermined keys) of a fit as CALIB.json writes them: undetermined keys null, and never a number
+    outside its physical range (w, U, f > 0, d ≥ 0, |θF| < 90°; such a key becomes null and undetermined); f null
+    without U, the tilt angles null without θF."""
+    v, s = dict(result.values), dict(result.sigma)
+    undetermined = list(getattr(result, "undetermined", []) or [])
+    for k in undetermined:
+        v[k] = None
+        s[k] = None
+    for k in ("w_mm", "U_mm", "d_mm", "f_mm"):  # never a number outside its physical range (w, U, f > 0, d ≥ 0)
+        x = v.get(k)
+        if x is not None and not (math.isfinite(x) and (x >= 0 if k == "d_mm" else x > 0)):
+            v[k] = s[k] = None
+            if k != "f_mm" and k not in undetermined:
+                undetermined.append(k)
+    if v.get("theta_F_deg") is not None and not abs(v["theta_F_deg"]) < 90:
+        v["theta_F_deg"] = s["theta_F_deg"] = None
+        undetermined.append("theta_F_deg")
+    if "U_mm" in undetermined:  # f = U w / (U + w) needs U
+        v["f_mm"] = s["f_mm"] = None
+    if "theta_F_deg" in undetermined:
+        for k in ("theta_L_deg", "theta_L_paper_deg", "tilt_axis_deg"):
+            v[k] = s[k] = None
+    return v, s, undetermined
 
 
 def _add_uncertainty(out: dict, result, undetermined: list) -> None:
@@ -278,7 +286,7 @@ def read_calib(path: str) -> dict:
 
 def validate_calib(path: str, data) -> dict:
     """The checks of `read_calib` on an already parsed CALIB dict (also an OpenCV file's, from
-    `tiltfit.files.export.read_opencv`); `path` names the file in messages."""
+    `tiltfit.files.opencv_file.read_opencv`); `path` names the file in messages."""
     if not isinstance(data, dict):
         raise CalibFileError(f"{path}: expected a JSON object")
     # Only the lens state is needed to start another fit; views and sigma may be absent in hand-made files.
@@ -540,7 +548,7 @@ def camera_from_calib(data: dict, blur_model: str | None = None) -> LensCamera:
     """A LensCamera with the file's lens state and views (one identity view if it has none).
 
     U and d the file leaves undetermined start at 600 and 10 mm; a file that gives the lens tilt θL but not θF
-    (an OpenCV tilted-model file: `tiltfit.files.export.read_opencv`) gets the θF of that θL at this U."""
+    (an OpenCV tilted-model file: `tiltfit.files.opencv_file.read_opencv`) gets the θF of that θL at this U."""
     import torch
 
     from tiltfit.calibrate.model import LensCamera

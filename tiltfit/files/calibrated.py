@@ -85,7 +85,8 @@ def read_calibration_dict(path: str, pixel_pitch_mm: float | None = None) -> dic
         ValueError (CalibFileError, ExportError): one line naming the file and the field.
     """
     from tiltfit.files.calib import read_calib, validate_calib
-    from tiltfit.files.export import is_mrcal_file, is_opencv_file, read_mrcal, read_opencv
+    from tiltfit.files.mrcal_file import is_mrcal_file, read_mrcal
+    from tiltfit.files.opencv_file import is_opencv_file, read_opencv
 
     path = os.fspath(path)
     if not os.path.exists(path):

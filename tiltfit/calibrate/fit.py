@@ -45,7 +45,7 @@ from tiltfit.target.shape import BOARD_MODELS
 from tiltfit.calibrate.model import (BLUR_MODELS, MIN_CORNERS, ROBUST_LOSSES, Observations, LensCamera,
                     distortion_parameter_names, residuals, robust_rho, robust_weight)
 from tiltfit.calibrate.fit_sigma import DERIVED_KEYS, derived, uncertainties
-from tiltfit.solve import Block, LMOptions, LMResult, SolverError
+from tiltfit.solve import Block, LMOptions, LMResult, SolverError, solve_rescaling
 from tiltfit.solve.blocks import DenseCovariance
 from tiltfit.solve import levenberg_marquardt as solve_lm
 
@@ -437,31 +437,34 @@ def _solve(camera: LensCamera, obs: Observations, options: FitOptions, sigma=Non
     estimate = (options.sigma_corner_px is None or options.sigma_blur_px is None) and not (
         one_group and not options.uncertainties)
     lm_options = _robust_options(options.robust, options.robust_scale, options.max_iterations)
-    x, total_it = prob.x0(), 0
-    for outer in range(options.noise_iterations + 1):
-        scale = prob.scale(sc, sb)
-        res = _lm(prob.evaluate(scale), x, prob.blocks, prob.view_rows, lm_options)
-        x, total_it = res.x, total_it + res.iterations
-        if not estimate or outer == options.noise_iterations:
-            break
-        new_sc, new_sb = _group_sigma(prob, res.r / scale, res.normal, options.robust)
+    sigma_now = [sc, sb]   # σ_corner, σ_blur of the current solve
+
+    def solve(x):
+        return _lm(prob.evaluate(prob.scale(*sigma_now)), x, prob.blocks, prob.view_rows, lm_options)
+
+    def rescale(res, k: int, last: bool):
+        if not estimate or last:
+            return res, False
+        sc, sb = sigma_now
+        new_sc, new_sb = _group_sigma(prob, res.r / prob.scale(sc, sb), res.normal, options.robust)
         new_sc = options.sigma_corner_px or new_sc
         new_sb = options.sigma_blur_px or new_sb
         changed = abs(new_sc / sc - 1) > 1e-3 or abs(new_sb / sb - 1) > 1e-3
         if say:
-            say(f"  pass {outer + 1}: cost {res.cost:.6g} after {res.iterations} iterations; "
+            say(f"  pass {k + 1}: cost {res.cost:.6g} after {res.iterations} iterations; "
                 f"σ_corner {new_sc:.4g} px, σ_blur {new_sb:.4g} px")
         if not changed:
-            break
+            return res, False
+        sigma_now[:] = new_sc, new_sb
         if one_group:
             # One σ scales every residual alike: the minimiser stays, and the estimate is final.
-            res = res.scaled(sc / new_sc if prob.n_corner else sb / new_sb)
-            sc, sb = new_sc, new_sb
-            break
-        sc, sb = new_sc, new_sb
-    res.iterations = total_it
+            return res.scaled(sc / new_sc if prob.n_corner else sb / new_sb), False
+        return res, True
+
+    res, iterations = solve_rescaling(solve, rescale, prob.x0(), options.noise_iterations + 1)
+    res.iterations = iterations
     prob.write_back(res.x)
-    return prob, res, sc, sb
+    return prob, res, sigma_now[0], sigma_now[1]
 
 
 

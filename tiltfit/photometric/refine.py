@@ -49,7 +49,7 @@ from tiltfit.photometric.aperture import checker_dark_fraction_disc, lines_cut
 from tiltfit.detect.imaging import torch_threads
 from tiltfit.calibrate.model import LensCamera, axis_angle_to_matrix, robust_rho, robust_weight
 from ..solve import (Block, LMOptions, SolverError, covariance, dense_jacobian, least_squares,
-                     levenberg_marquardt)
+                     levenberg_marquardt, solve_rescaling)
 from tiltfit.select.stats import nested_test
 from tiltfit.target.layout import Target
 from .render import (SHARP_BLUR_PX, SUBPIXELS, SUBPIXELS_SHARP, auto_lens_samples, board_blur_px,
@@ -498,23 +498,25 @@ def _solve(problem: _Problem, x0: dict, blocks: list, view_rows: torch.Tensor, o
     lm = LMOptions(max_iterations=opts.iterations, rho=lambda s2: robust_rho(s2, "huber", k),
                    weight=lambda s2: robust_weight(s2, "huber", k), ftol=SOLVE_FTOL)
     problem.scale = _robust_sigma(problem.residuals(x0))
-    x, iterations, res = x0, 0, None
-    for _ in range(3):
+
+    def solve(x):
         try:
-            res = levenberg_marquardt(problem.evaluate, x, blocks, view_rows, lm)
+            return levenberg_marquardt(problem.evaluate, x, blocks, view_rows, lm)
         except SolverError as e:
             raise PhotometricError(str(e)) from None
-        iterations += res.iterations
+
+    def rescale(res, k: int, last: bool):
         history.append(res.cost)
-        x = res.x
         new = _robust_sigma(res.r * problem.scale)
         if abs(new / problem.scale - 1) <= SCALE_TOLERANCE:
-            break
+            return res, False
         if problem.say:
             problem.say(f"photometric: the residuals' robust σ re-estimated ({problem.scale:.4g} → {new:.4g}); the "
                         "fit resumes with the new Huber weights, and its cost is not comparable with the lines above")
         problem.scale = new
-    return res, iterations
+        return res, True
+
+    return solve_rescaling(solve, rescale, x0, 3)
 
 
 def _cluster_sandwich(res, problem: _Problem) -> torch.Tensor:

@@ -10,8 +10,8 @@ tests/test_one_solver.py keeps it so).
 """
 from .batched import BatchedOptions, BatchedResult, Normal, batched_levenberg_marquardt, normal_from_residuals
 from .blocks import Block, BlockJacobian, Layout, dense_jacobian, normal_equations
-from .lm import LMOptions, LMResult, SolverError, covariance, least_squares, levenberg_marquardt
+from .lm import LMOptions, LMResult, SolverError, covariance, least_squares, levenberg_marquardt, solve_rescaling
 
 __all__ = ["BatchedOptions", "BatchedResult", "Block", "BlockJacobian", "LMOptions", "LMResult", "Layout", "Normal",
            "SolverError", "batched_levenberg_marquardt", "covariance", "dense_jacobian", "least_squares",
-           "levenberg_marquardt", "normal_equations", "normal_from_residuals"]
+           "levenberg_marquardt", "normal_equations", "normal_from_residuals", "solve_rescaling"]

@@ -249,6 +249,31 @@ def levenberg_marquardt(evaluate, x0: dict, blocks, view_rows: torch.Tensor | No
                       f"still decreasing by about {decrement:.3g})")
 
 
+def solve_rescaling(solve, rescale, x0, max_solves: int):
+    """Solve; re-estimate the residuals' scale from the solution; solve again from there while it moved: the outer
+    loop of a fit whose residual weights follow a scale estimated from its own residuals (the corner and blur
+    groups' σ of the calibration, the photometric fit's robust σ). Written once here.
+
+    Args:
+        solve: x -> `LMResult`, a solve from x at the current scale.
+        rescale: (result, k, last) -> (result, again): after solve k (0-based; `last` for the final one allowed),
+            re-estimate and keep the scale; `again` whether to solve once more (ignored after the last), the result
+            possibly rescaled to the new scale.
+        x0: the first solve's start.
+        max_solves: the most solves.
+    Returns:
+        (the last result, the iterations of all solves).
+    """
+    x, iterations, result = x0, 0, None
+    for k in range(max_solves):
+        result = solve(x)
+        x, iterations = result.x, iterations + result.iterations
+        result, again = rescale(result, k, k == max_solves - 1)
+        if not again:
+            break
+    return result, iterations
+
+
 def covariance(result: LMResult, variance_factor: float = 1.0):
     """Gauss–Newton covariance s² (JᵀWJ)⁻¹ of the flat parameters at the solution (`layout` order), as a
     `blocks.SchurCovariance` (per-view blocks: never a (P, P) matrix) or `blocks.DenseCovariance`; `.dense()`

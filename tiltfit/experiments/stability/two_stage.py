@@ -16,6 +16,7 @@ from .common import D_MM, F_MM, U0_MM, W_MM, StabilityConfig, Study, subplots_ro
 #: The paper's Table 1: lens tilt set 5.0° estimated as 4.152° (their stage 2 and eq. (1)).
 PAPER_TABLE1_5DEG = 4.152
 
+
 def _fmt(v, spec: str) -> str:
     return "n/a" if v is None else format(v, spec)
 
@@ -52,7 +53,7 @@ def tilt_observations(theta_L: float, cfg: StabilityConfig, seed: int):
 
 def study_two_stage(cfg: StabilityConfig, log) -> Study:
     """(b) θL error of the paper's two stages and of the joint fit as the tilt grows."""
-    from tiltfit.calibrate.fit import FitError, FitOptions
+    from tiltfit.calibrate.fit import FitOptions
 
     from tiltfit.calibrate.flow import calibrate
 
@@ -63,38 +64,57 @@ def study_two_stage(cfg: StabilityConfig, log) -> Study:
     s1 = stage1.values
     log(f"(b) stage 1: w {s1['w_mm']:.3f} mm, U {s1['U_mm']:.2f} mm, d {s1['d_mm']:.3f} mm "
         f"(true {W_MM}, {U0_MM}, {D_MM})")
-    rows = []
-    for k, tl in enumerate(cfg.tilts_deg):
-        obs, truth = tilt_observations(math.radians(tl), cfg, cfg.seed + 1 + k)
-        with torch.no_grad():
-            p_cam = truth.to_camera(obs.points_mm)[obs.blur_mask]
-        # The prediction starts from what stage 1 measured, as stage 2 does; the truth is the exact lens.
-        pred = two_stage_prediction(p_cam.numpy(), math.radians(tl), s1["w_mm"], s1["U_mm"], s1["d_mm"])
-        true = truth.summary()
-        row = {"theta_L_true_deg": tl, "U_true_mm": true["U_mm"], "theta_F_true_deg": true["theta_F_deg"]}
-        try:
-            st2 = calibrate(obs, "tilt", init=stage1.camera, init_sigma=stage1.sigma,
-                            options=replace(opts, blur_model="paper"))
-            row.update(two_stage_theta_F_deg=st2.values["theta_F_deg"],
-                       two_stage_theta_L_deg=st2.values["theta_L_paper_deg"],
-                       two_stage_error_deg=st2.values["theta_L_paper_deg"] - tl)
-        except FitError as e:
-            row.update(two_stage_theta_F_deg=None, two_stage_theta_L_deg=None, two_stage_error_deg=None)
-            log(f"(b) θL {tl:+g}°: two-stage fit failed: {e}")
-        row.update(predicted_theta_L_deg=pred["theta_L_stage2"], predicted_error_deg=pred["error"],
-                   formula_only_error_deg=true["theta_L_paper_deg"] - tl)
-        try:
-            jt = calibrate(obs, "joint", init=stage1.camera, options=opts)
-            row.update(joint_theta_L_deg=jt.values["theta_L_deg"], joint_error_deg=jt.values["theta_L_deg"] - tl,
-                       joint_sigma_deg=jt.sigma["theta_L_deg"], joint_U_mm=jt.values["U_mm"])
-        except FitError as e:
-            row.update(joint_theta_L_deg=None, joint_error_deg=None, joint_sigma_deg=None, joint_U_mm=None)
-            log(f"(b) θL {tl:+g}°: joint fit failed: {e}")
-        rows.append(row)
-        log(f"(b) θL {tl:+g}°: U {true['U_mm']:.1f} mm, θF {true['theta_F_deg']:.2f}° | two-stage error "
-            f"{_fmt(row['two_stage_error_deg'], '+.3f')}° (predicted {pred['error']:+.3f}°) | joint error "
-            f"{_fmt(row['joint_error_deg'], '+.4f')}° ± {_fmt(row['joint_sigma_deg'], '.4f')}°")
+    rows = [_tilt_row(cfg, k, tl, stage1, opts, log) for k, tl in enumerate(cfg.tilts_deg)]
+    findings = _two_stage_findings(cfg, rows)
+    fig = _two_stage_figure(rows, s1)
+    return Study("two_stage", "(b) Two stages (paper) against the joint fit as the tilt grows", rows, findings,
+                 {"stage1": {k: s1[k] for k in ("w_mm", "U_mm", "d_mm", "f_mm")},
+                  "truth": {"w_mm": W_MM, "U0_mm": U0_MM, "d_mm": D_MM, "f_mm": F_MM},
+                  "noise_px": cfg.tilt_noise_px, "n_views": obs0.n_views}, fig, time.perf_counter() - t0)
 
+
+def _tilt_row(cfg: StabilityConfig, k: int, tl: float, stage1, opts, log) -> dict:
+    """One tilt θL = `tl` degrees: the exact lens's U and θF, the two-stage fit from `stage1` and its predicted
+    error, and the joint fit."""
+    from tiltfit.calibrate.fit import FitError
+
+    from tiltfit.calibrate.flow import calibrate
+
+    s1 = stage1.values
+    obs, truth = tilt_observations(math.radians(tl), cfg, cfg.seed + 1 + k)
+    with torch.no_grad():
+        p_cam = truth.to_camera(obs.points_mm)[obs.blur_mask]
+    # The prediction starts from what stage 1 measured, as stage 2 does; the truth is the exact lens.
+    pred = two_stage_prediction(p_cam.numpy(), math.radians(tl), s1["w_mm"], s1["U_mm"], s1["d_mm"])
+    true = truth.summary()
+    row = {"theta_L_true_deg": tl, "U_true_mm": true["U_mm"], "theta_F_true_deg": true["theta_F_deg"]}
+    try:
+        st2 = calibrate(obs, "tilt", init=stage1.camera, init_sigma=stage1.sigma,
+                        options=replace(opts, blur_model="paper"))
+        row.update(two_stage_theta_F_deg=st2.values["theta_F_deg"],
+                   two_stage_theta_L_deg=st2.values["theta_L_paper_deg"],
+                   two_stage_error_deg=st2.values["theta_L_paper_deg"] - tl)
+    except FitError as e:
+        row.update(two_stage_theta_F_deg=None, two_stage_theta_L_deg=None, two_stage_error_deg=None)
+        log(f"(b) θL {tl:+g}°: two-stage fit failed: {e}")
+    row.update(predicted_theta_L_deg=pred["theta_L_stage2"], predicted_error_deg=pred["error"],
+               formula_only_error_deg=true["theta_L_paper_deg"] - tl)
+    try:
+        jt = calibrate(obs, "joint", init=stage1.camera, options=opts)
+        row.update(joint_theta_L_deg=jt.values["theta_L_deg"], joint_error_deg=jt.values["theta_L_deg"] - tl,
+                   joint_sigma_deg=jt.sigma["theta_L_deg"], joint_U_mm=jt.values["U_mm"])
+    except FitError as e:
+        row.update(joint_theta_L_deg=None, joint_error_deg=None, joint_sigma_deg=None, joint_U_mm=None)
+        log(f"(b) θL {tl:+g}°: joint fit failed: {e}")
+    log(f"(b) θL {tl:+g}°: U {true['U_mm']:.1f} mm, θF {true['theta_F_deg']:.2f}° | two-stage error "
+        f"{_fmt(row['two_stage_error_deg'], '+.3f')}° (predicted {pred['error']:+.3f}°) | joint error "
+        f"{_fmt(row['joint_error_deg'], '+.4f')}° ± {_fmt(row['joint_sigma_deg'], '.4f')}°")
+    return row
+
+
+def _two_stage_findings(cfg: StabilityConfig, rows: list) -> list:
+    """What the sweep shows: the error at +5° against the paper's Table 1, how the two-stage bias grows, its
+    asymmetry, and the joint fit's worst error."""
     findings = []
     at5 = next((r for r in rows if r["theta_L_true_deg"] == 5.0), None)
     if at5 and at5["two_stage_error_deg"] is not None:
@@ -128,7 +148,11 @@ def study_two_stage(cfg: StabilityConfig, log) -> Study:
             f"The joint fit (U free) stays within {abs(worst['joint_error_deg']):.4f}° of the true θL over the whole "
             f"sweep (worst at {worst['theta_L_true_deg']:+g}°, one-σ {worst['joint_sigma_deg']:.4f}°), with "
             f"{cfg.tilt_noise_px} px noise on corners and blur.")
+    return findings
 
+
+def _two_stage_figure(rows: list, s1: dict):
+    """θL error against |θL| (two-stage measured and predicted, joint), and U against θL (true, joint, held)."""
     fig, (ax1, ax2) = subplots_row(2)
     for sign, mk in ((1, "o"), (-1, "s")):
         rr = sorted((r for r in rows if np.sign(r["theta_L_true_deg"]) == sign), key=lambda r: r["theta_L_true_deg"])
@@ -156,9 +180,4 @@ def study_two_stage(cfg: StabilityConfig, log) -> Study:
     for ax in (ax1, ax2):
         ax.grid(alpha=0.3)
     fig.suptitle("(b) lens tilted about its centre: two-stage (paper) vs joint", fontsize="medium")
-    return Study("two_stage", "(b) Two stages (paper) against the joint fit as the tilt grows", rows, findings,
-                 {"stage1": {k: s1[k] for k in ("w_mm", "U_mm", "d_mm", "f_mm")},
-                  "truth": {"w_mm": W_MM, "U0_mm": U0_MM, "d_mm": D_MM, "f_mm": F_MM},
-                  "noise_px": cfg.tilt_noise_px, "n_views": obs0.n_views}, fig, time.perf_counter() - t0)
-
-
+    return fig

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import ast
 import math
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -326,3 +327,51 @@ def test_the_scans_find_their_planted_forms(tmp_path):
     assert centre_forms((ROOT / CENTRE_OWNER).read_text(encoding="utf-8"), CENTRE_OWNER), "the centre's owner writes it"
     for rel in INDEPENDENT:
         assert (ROOT / rel).exists(), f"{rel}: allowed but gone (drop it from INDEPENDENT)"
+
+
+#: What a camera holding a `Lens` must read from it rather than keep beside it (the Screen at w, the distortion).
+LENS_DERIVED = frozenset({"screen", "distortion", "principal_point_px", "center_px", "focal_px", "distance"})
+
+
+def lens_copies(source: str, path: str) -> list[str]:
+    """'path:line Class.name' for each class that holds a lens (`self.lens = …`) and also stores something its
+    lens determines (`LENS_DERIVED`: a Screen at w, the distortion, the principal point)."""
+    found = []
+    for cls in (n for n in ast.walk(ast.parse(source)) if isinstance(n, ast.ClassDef)):
+        # attributes set on self or on a camera the class builds (cam.distortion = … in a classmethod)
+        stored = [(t.value.id, t.attr, t.lineno) for node in ast.walk(cls) if isinstance(node, ast.Assign)
+                  for tgt in node.targets for t in (tgt.elts if isinstance(tgt, ast.Tuple) else [tgt])
+                  if isinstance(t, ast.Attribute) and isinstance(t.value, ast.Name)]
+        if not any(owner == "self" and name == "lens" for owner, name, _ in stored):
+            continue
+        found += [f"{path}:{line} {cls.name}.{name}" for _, name, line in stored if name in LENS_DERIVED]
+        for call in (n for n in ast.walk(cls) if isinstance(n, ast.Call)):  # super().__init__(transform, screen)
+            if (isinstance(call.func, ast.Attribute) and call.func.attr == "__init__"
+                    and any(isinstance(a, ast.Name) and a.id in LENS_DERIVED for a in call.args)):
+                found.append(f"{path}:{call.lineno} {cls.name}.screen (given to the base class)")
+    return found
+
+
+def test_a_camera_with_a_lens_keeps_no_copy_of_it():
+    found = []
+    for package in PACKAGES:
+        for file in sorted((ROOT / package).rglob("*.py")):
+            rel = file.relative_to(ROOT).as_posix()
+            found += lens_copies(file.read_text(encoding="utf-8"), rel)
+    assert not found, "a camera keeps lens state beside its Lens (read it from the lens): " + "; ".join(found)
+
+
+def test_the_copy_scan_finds_a_screen_beside_a_lens():
+    src = ("class Cam:\n    def __init__(self, screen, lens):\n        self.lens = lens\n        self.screen = screen\n"
+           "        self.distortion = lens.distortion\n"
+           "class Pinhole:\n    def __init__(self, screen):\n        self.screen = screen\n"
+           "class Thin(Camera):\n    def __init__(self, transform, screen, lens):\n"       # 9: the form this replaced
+           "        super().__init__(transform, screen)\n        self.lens = lens\n"
+           "    @classmethod\n    def of(cls, lens):\n        cam = cls(None, None, lens)\n"
+           "        cam.distortion = lens.distortion\n        return cam\n")
+    assert sorted(lens_copies(src, "x.py")) == ["x.py:11 Thin.screen (given to the base class)", "x.py:16 Thin.distortion",
+                                                "x.py:4 Cam.screen", "x.py:5 Cam.distortion"], lens_copies(src, "x.py")
+    old = subprocess.run(["git", "show", "c4c7693:renderer/cameras/thin_lens.py"], cwd=ROOT, capture_output=True,
+                         text=True)
+    if old.returncode == 0:  # the camera before issue 31 §2 kept a Screen at w and its own distortion
+        assert lens_copies(old.stdout, "thin_lens.py"), "the scan finds the old ThinLensCamera's copies"

@@ -136,7 +136,11 @@ def _classes(mi):
 
     class TiltedThinLens(_OurSensor):
         """renderer/cameras/thin_lens.py: every ray of a pixel leaves the tilted lens disc at S and has the
-        direction c − (D/U)·S, c = (x_s, y_s, w), D = w − y_s tan θF."""
+        direction c − (D/U)·S, c = (x_s, y_s, w), D = w − y_s tan θF.
+
+        The Dr.Jit twin of thin_lens.py's row functions (`disc_rows`, `focus_weight_rows`, `direction_rows`):
+        Mitsuba calls it inside its own kernels, where torch functions cannot run, so the formulas are written
+        again here (checked ray for ray against the torch camera: tests/renderer/test_mitsuba_sensors.py)."""
 
         def __init__(self, props):
             _OurSensor.__init__(self, props)

@@ -30,7 +30,7 @@ from camio.interrupts import interrupt_on_sigterm
 from camio.files import atomic_output, linear_to_srgb, output_problem, write_image
 from camio.checks import parse_device, read_json
 
-SCENES_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "scenes")
+SCENES_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "scenes")
 GALLERY_MANIFEST = os.path.join(SCENES_DIR, "gallery.json")
 EXIT_USAGE = 2
 

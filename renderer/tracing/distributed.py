@@ -62,7 +62,7 @@ def connect(address: str = "auto"):
             ray.init(address="auto", **kwargs)
         except (ConnectionError, RuntimeError):
             # No running cluster: a local one on this machine's cores. Workers import `renderer` from here.
-            root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+            root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
             env = {"env_vars": {"PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")])),
                                 "OMP_NUM_THREADS": "1"}}
             ray.init(runtime_env=env, **kwargs)

@@ -21,7 +21,7 @@ from tiltfit.files import calib as calibfile
 from tiltfit.files import det as detfile
 from tiltfit.target import layout as target
 
-DOCS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "docs")
+DOCS = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "docs")
 
 TARGET_FIELDS = [
     ("type", "string", "required", '"checkerboard" (this table) or "charuco" (the next)'),

@@ -66,6 +66,7 @@ SIGMA_MODELS = ("views", "classical")
 #: frame when it is about the lens axis).
 INTRINSIC_NAMES = ("focal_px", "cx_px", "cy_px", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "theta_L_deg",
                    "tilt_axis_deg")
+_AT = {name: i for i, name in enumerate(INTRINSIC_NAMES)}   # θ's entries by name
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -261,9 +262,13 @@ def _lens_at(lens, theta: torch.Tensor):
     from `lens`: θL and φ place the distortion's frame (`Lens.distortion_frame`; θF from θL at U)."""
     from renderer.cameras import Lens
 
-    return Lens.from_theta_L(theta[0] * lens.sensor.pixel_pitch, lens.U, lens.d, torch.deg2rad(theta[11]),
-                             sensor=lens.sensor, principal_point_px=(theta[1], theta[2]), distortion=theta[3:11],
-                             phi=torch.deg2rad(theta[12]), distortion_centre=lens.distortion_centre)
+    def at(name):
+        return theta[_AT[name]]
+
+    return Lens.from_theta_L(at("focal_px") * lens.sensor.pixel_pitch, lens.U, lens.d, torch.deg2rad(at("theta_L_deg")),
+                             sensor=lens.sensor, principal_point_px=(at("cx_px"), at("cy_px")),
+                             distortion=theta[_AT["k1"]:_AT["k6"] + 1], phi=torch.deg2rad(at("tilt_axis_deg")),
+                             distortion_centre=lens.distortion_centre)
 
 
 def _project(lens, theta: torch.Tensor, v: torch.Tensor) -> torch.Tensor:

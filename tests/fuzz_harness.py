@@ -7,7 +7,8 @@ and the standard library, never the code under test, so it measures any version 
 A case is a dict:
     name       unique id, e.g. "scene/number/objects[0].shape.radius=1e39"
     category   the issue's category (encoding, depth, number, size, physics, overflow, cli, det, calib, ...)
-    files      {relative name: bytes | str} written into a fresh folder first (str is UTF-8)
+    files      {relative name: bytes | str | a function returning one} written into a fresh folder first (str is
+               UTF-8; a function is called then, so an image that takes seconds to make is not made at collection)
     argv       the command line; "{d}" in an argument is replaced by the folder
     output     the output's relative name (checked for NaN/Inf pixels or values after exit 0)
     expect     "refuse" (must exit 2), "ok" (must exit 0) or "either"
@@ -134,6 +135,7 @@ def materialise(case: dict, folder: str) -> list[str]:
             os.makedirs(path, exist_ok=True)
             continue
         os.makedirs(os.path.dirname(path), exist_ok=True)
+        content = content() if callable(content) else content
         with open(path, "wb") as f:
             f.write(content.encode("utf-8") if isinstance(content, str) else content)
     return [a.replace("{d}", folder) if isinstance(a, str) else a for a in case["argv"]]

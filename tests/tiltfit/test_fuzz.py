@@ -8,6 +8,7 @@ four synthetic views of a 7×5-corner board (about a second each). An interrupt 
 from __future__ import annotations
 
 import copy
+import functools
 import json
 import os
 import signal
@@ -168,9 +169,10 @@ def _target_cases() -> list[dict]:
         out.append(_detect({"T.json": json.dumps(t)}, expect=expect, name=f"target/size/{n}x{n}",
                            fields=("T.json", "x_edges") if expect == "refuse" else ()))
     # On a real board image: a matching target is found; an absurd one is refused before detection starts.
-    board = {"img.png": _board_png()}
+    # The board photos are made when a case runs, not here at collection (seconds of rendering in each worker).
+    board = {"img.png": _board_png}
     out.append(_detect({**board, "T.json": json.dumps(BOARD_TARGET)}, expect="ok", name="target/board-ok"))
-    out.append(_detect({"img.png": _board_png(mirror=True), "T.json": json.dumps(BOARD_TARGET)}, category="image",
+    out.append(_detect({"img.png": functools.partial(_board_png, mirror=True), "T.json": json.dumps(BOARD_TARGET)}, category="image",
                        name="image/mirrored-board", fields=("img.png", "mirrored")))
     for n in (1000, 300):
         t = {**TARGET, "x_edges": list(range(0, 25 * n, 25)), "y_edges": list(range(0, 25 * n, 25))}

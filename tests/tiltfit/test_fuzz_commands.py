@@ -6,6 +6,7 @@ a finite output, or exit 2 and one line `tiltfit: <file>: <field>: ...`; no trac
 from __future__ import annotations
 
 import copy
+import functools
 import gzip
 import json
 import os
@@ -268,7 +269,9 @@ def _board_png(kind: str) -> bytes:
 def _detection_cases() -> list[dict]:
     def detect(image, target, name, expect="refuse", fields=("img.png", "contradicts")):
         return {"name": f"detect/{name}", "category": "detection", "expect": expect, "fields": fields,
-                "files": {"img.png": _board_png(image), "T.json": json.dumps(target)}, "output": "D.json",
+                # The photo is made when the case runs, not at collection (seconds of rendering in each worker).
+                "files": {"img.png": functools.partial(_board_png, image), "T.json": json.dumps(target)},
+                "output": "D.json",
                 "argv": ["detect", "{d}/img.png", "--target", "{d}/T.json", "-o", "{d}/D.json", "-q"]}
 
     transposed = {**BOARD, "x_edges": BOARD["y_edges"], "y_edges": BOARD["x_edges"]}

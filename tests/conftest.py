@@ -31,8 +31,8 @@ def pytest_collection_modifyitems(items):
     """Tests that share a module-scoped fixture run on one worker (`make test`: `--dist loadgroup`).
 
     A module-scoped fixture is built once per worker process that runs a test needing it; with tests handed
-    out one by one (`--dist load`) the two workers each built most of them (a calibration, a set of renders),
-    so the expensive ones were made twice. Tests that use none stay free to go to either worker."""
+    out in chunks (`--dist load`) a module whose tests straddle two chunks had its fixture (a calibration, a set
+    of renders) built by both workers. Tests that use none stay free to go to either worker."""
     for item in items:
         info = getattr(item, "_fixtureinfo", None)
         if info is None:

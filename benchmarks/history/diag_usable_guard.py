@@ -1,7 +1,7 @@
 """The usable-pixel mask's guard on the real sets: per view, usable pixels with the guard's chief-ray length taken
 from the rays that meet the board's plane near the board (tiltfit.photometric.render.usable_pixels now) and
 from every candidate of the board's box (before: a grazing ray of a GoPro view met the plane 255 m away and
-left 0 usable pixels). Candidates as `refine._choose_pixels` draws them; corner fits unified, free principal
+left 0 usable pixels). Candidates as `pixels._choose_pixels` draws them; corner fits unified, free principal
 point, opencv5: industrial_ds1's 6 even views of the first 12, gopro_wide's and its three thirds.
 
     python benchmarks/history/diag_usable_guard.py
@@ -24,7 +24,7 @@ def main() -> int:
     from renderer import read_image
     from tiltfit.calibrate.flow import calibrate
     from tiltfit.calibrate.fit import FitOptions
-    from tiltfit.photometric import PhotometricOptions, refine, render
+    from tiltfit.photometric import PhotometricOptions, pixels, render
     from tiltfit.target.layout import load_target
 
     torch.set_num_threads(1)
@@ -39,7 +39,7 @@ def main() -> int:
         rows.append((round(longest, 1), int(now.sum()), int(before.sum()), bool((now == before).all())))
         return now
 
-    refine.usable_pixels = both
+    pixels.usable_pixels = both
     for name, pitch, n in (("industrial_ds1", 0.0048, 20), ("gopro_wide", 0.005, 35)):
         folder = os.path.join(ROOT, "data", "real", name)
         target = load_target(os.path.join(folder, "target.json"))
@@ -56,9 +56,9 @@ def main() -> int:
                 imgs.append(im.mean(-1) if im.ndim == 3 else im)
             rows.clear()
             try:
-                refine._choose_pixels(imgs, [cam.view_camera(v) for v in range(cam.n_views)], target,
+                pixels._choose_pixels(imgs, [cam.view_camera(v) for v in range(cam.n_views)], target,
                                       PhotometricOptions(max_pixels=1000), True, None, time.perf_counter())
-            except refine._ViewsLeftOut as e:
+            except pixels._ViewsLeftOut as e:
                 print(f"  left out: {e.views}")
             print(name, f"views {views[0]}, {views[1]}, …:", rows, flush=True)
     return 0

@@ -200,7 +200,7 @@ def test_industrial_ds1_blur_trend_is_warned_about():
 
 def test_photometric_progress_says_when_the_robust_scale_is_re_estimated(monkeypatch):
     """The photometric fit's cost jumps when the Huber σ is re-estimated: a progress line says so."""
-    from tiltfit.photometric import refine
+    from tiltfit.photometric import fit
 
     said = []
     problem = SimpleNamespace(scale=1.0, say=said.append, residuals=lambda x: torch.ones(100), evaluate=None)
@@ -212,9 +212,9 @@ def test_photometric_progress_says_when_the_robust_scale_is_re_estimated(monkeyp
         r = torch.full((100,), 2.0 / 1.4826 if len(calls) == 1 else 1.0 / 1.4826)
         return SimpleNamespace(x=x, iterations=3, cost=float(len(calls)), r=r)
 
-    monkeypatch.setattr(refine, "levenberg_marquardt", fake_lm)
+    monkeypatch.setattr(fit, "levenberg_marquardt", fake_lm)
     problem.scale = 1.4826 + 1e-12  # the robust σ of residuals of ones
-    refine._solve(problem, {}, [], torch.zeros(0), refine.PhotometricOptions(), [])
+    fit._solve(problem, {}, [], torch.zeros(0), fit.PhotometricOptions(), [])
     lines = [s for s in said if "re-estimated" in s]
     assert len(calls) == 2 and len(lines) == 1 and "not comparable" in lines[0], \
         f"one line when the scale changed, none when it held: {said}"

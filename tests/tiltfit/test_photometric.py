@@ -332,16 +332,17 @@ def test_auto_kernel_needs_enough_lens_samples():
 def test_photometric_fit_does_not_depend_on_the_jacobian_block(monkeypatch):
     """The Jacobian is formed in blocks of pixels (memory); a view split into many blocks, with the closed-form
     and the lens-sample pixels in different blocks, gives the same fit as one block per view."""
-    from tiltfit.photometric import refine as photometric
+    from tiltfit.photometric import pixels, problem, refine
 
     # Focused near the boards: about a third of the pixels are sharper than 3 px, the rest blurred more; with the
     # closed form from 3 px (it is from 0 px by default) they take the lens samples, so blocks of 97 split both kinds.
-    monkeypatch.setattr(photometric, "CLOSED_FORM_MIN_BLUR_PX", 3.0)
+    monkeypatch.setattr(refine, "CLOSED_FORM_MIN_BLUR_PX", 3.0)
+    monkeypatch.setattr(pixels, "CLOSED_FORM_MIN_BLUR_PX", 3.0)
     images, poses, truth = _captures(U0_mm=560.0, spp=16, downscale=32)
     init = _camera(_perturbed_init(poses, truth), images, truth["pitch"])
     results = []
     for block in (4096, 97):
-        monkeypatch.setattr(photometric, "JACOBIAN_BLOCK", block)
+        monkeypatch.setattr(problem, "JACOBIAN_BLOCK", block)
         results.append(refine_photometric(images, BOARD, init, PhotometricOptions(max_pixels=400)))
     a, b = results
     assert a.values["aperture"] == "mixed" and 200 < a.values["closed_form_pixels"] < 1000, \
@@ -356,7 +357,7 @@ def test_usable_mask_in_chunks_and_thinned_candidates(monkeypatch):
     """Full-resolution photographs (20 MP) go through the usable-pixel mask in chunks and predict a regular
     subset of candidate pixels: the mask in chunks of 997 pixels gives the same fit as in one chunk, and
     thinning the candidates to 5,000 a view still lands on the same lens (within the fits' own σ)."""
-    from tiltfit.photometric import refine, render
+    from tiltfit.photometric import pixels, render
 
     images, poses, truth = _captures(U0_mm=560.0, spp=16, downscale=32)
     init = _camera(_perturbed_init(poses, truth), images, truth["pitch"])
@@ -364,7 +365,7 @@ def test_usable_mask_in_chunks_and_thinned_candidates(monkeypatch):
     for name, chunk, candidates in (("one chunk", 1 << 19, 1 << 19), ("chunks", 997, 1 << 19),
                                     ("thinned", 1 << 19, 5000)):
         monkeypatch.setattr(render, "MASK_CHUNK_PIXELS", chunk)
-        monkeypatch.setattr(refine, "MAX_CANDIDATE_PIXELS", candidates)
+        monkeypatch.setattr(pixels, "MAX_CANDIDATE_PIXELS", candidates)
         runs[name] = refine_photometric(images, BOARD, init, PhotometricOptions(max_pixels=400))
     a, b, c = runs["one chunk"], runs["chunks"], runs["thinned"]
     for key in ("theta_L_deg", "U_mm", "d_mm", "w_mm"):

@@ -216,7 +216,7 @@ def test_residual_image_of_the_truth_is_noise(tmp_path):
 
 def test_chi2_quantile_of_the_corner_check():
     """The corner check's χ² quantiles against the tables (0.99: 6.635 for 1, 13.277 for 4 degrees of freedom)."""
-    from tiltfit.photometric.refine import _chi2_quantile
+    from tiltfit.photometric.checks import _chi2_quantile
 
     assert _chi2_quantile(0.99, 1) == pytest.approx(6.6349, abs=1e-3), _chi2_quantile(0.99, 1)
     assert _chi2_quantile(0.99, 4) == pytest.approx(13.2767, abs=1e-3), _chi2_quantile(0.99, 4)

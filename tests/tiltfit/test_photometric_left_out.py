@@ -221,17 +221,17 @@ def test_command_line_path_records_a_left_out_view(gopro_third, capsys, monkeypa
     `tiltfit.cli.photometric.refine_calibration` under -q prints one note naming the photo and why, records it in
     the block's `left_out`, writes no levels and no `rms_photometric` for it, and fits the other two."""
     from tiltfit.cli.photometric import refine_calibration
-    from tiltfit.photometric import refine
+    from tiltfit.photometric import pixels
 
     target, small, used, held_out = _three_views(gopro_third)
-    plain, calls = refine.usable_pixels, []
+    plain, calls = pixels.usable_pixels, []
 
     def second_view_empty(target, cam, uv, t_max=None):
         calls.append(1)
         ok = plain(target, cam, uv, t_max)
         return ok & False if len(calls) == 2 else ok   # the first pass's second view: GOPR0053.jpg
 
-    monkeypatch.setattr(refine, "usable_pixels", second_view_empty)
+    monkeypatch.setattr(pixels, "usable_pixels", second_view_empty)
     args = argparse.Namespace(psf="disc", encoding=None, inputs=small.views[0]["image"], quiet=True)
     block = refine_calibration(small, used, target, args, lambda line: None, held_out=held_out)
     notes = [s for s in capsys.readouterr().err.splitlines() if "left out" in s]

@@ -168,7 +168,7 @@ def test_held_distortion_uncertainty_moves_the_lens_as_a_refit_does(monkeypatch)
     1.41, 1.28, 1.19 × `sigma_held`, the same at a fifth of the step: the Gauss–Newton sensitivities undershoot
     along the weakly determined w–U–d direction of 3 views). Refitting from another start is no check: on 3 views
     of 300 pixels a restart from the fit's own result (new pixels, a trust region about it) moves w by 3 of its σ."""
-    from tiltfit.photometric import PhotometricOptions, refine, refine_photometric
+    from tiltfit.photometric import PhotometricOptions, fit, refine, refine_photometric
 
     views = VIEWS[:3]
     images = draw_captures("heavy blur", 1, views, 0.0, RINGS, SECTORS)
@@ -182,7 +182,7 @@ def test_held_distortion_uncertainty_moves_the_lens_as_a_refit_does(monkeypatch)
         return original(problem, res, start_covariance)
 
     monkeypatch.setattr(refine, "_held_covariance", spy)
-    monkeypatch.setattr(refine, "SOLVE_FTOL", 1e-13)   # the default stops early in a flat valley
+    monkeypatch.setattr(fit, "SOLVE_FTOL", 1e-13)   # the default stops early in a flat valley
     opts = PhotometricOptions(max_pixels=MAX_PIXELS, held_out_pixels=0, aperture="closed_form", iterations=100)
     base = refine_photometric(images, sim.BOARD, corner.camera, opts, start_sigma=corner.sigma,
                               start_covariance={"names": ["k1"], "matrix": [[sd_k1 ** 2]]})
@@ -190,8 +190,8 @@ def test_held_distortion_uncertainty_moves_the_lens_as_a_refit_does(monkeypatch)
     problem, res = seen["problem"], seen["res"]
     with torch.no_grad():
         problem.camera.dist_k1 += sd_k1
-    again, _ = refine._solve(problem, res.x, list(res.layout.blocks), res.jacobian.rows, opts, [])
-    lens0, lens1 = (refine._lens_values(problem.full_lens(x["lens"].detach())) for x in (res.x, again.x))
+    again, _ = fit._solve(problem, res.x, list(res.layout.blocks), res.jacobian.rows, opts, [])
+    lens0, lens1 = (fit._lens_values(problem.full_lens(x["lens"].detach())) for x in (res.x, again.x))
     for k in ("w_mm", "U_mm", "d_mm"):
         held, step = base.sigma_held[k], abs(lens1[k] - lens0[k])
         summary = f"{k}: solved again with k1 + {sd_k1}: moved {step:.4g}; sigma_held {held:.4g}; σ {base.sigma[k]:.4g}"

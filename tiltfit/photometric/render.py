@@ -5,7 +5,7 @@ Every function takes the renderer's thin-lens camera of one view (`renderer.Thin
 [0, 1] of the board a pixel u sees: the mean, over the pixel's area and the lens's aperture, of the checker's
 darkness (1 dark cell, 0 white cell or margin). No general tracer and no random numbers, so D is smooth and
 deterministic and its derivatives exact. The photograph's intensity is then the exposure's affine map of D
-(`render_target`; `refine.Exposure`):
+(`render_target`; `options.Exposure`):
 
     I(u) = (1 − v ρ(u)²) · (white − (white − black) · D(u))
 
@@ -18,7 +18,7 @@ D is integrated over the aperture in one of two ways:
   aperture disc through its focus point (`ThinLensCamera.focus_geometry`), on which the board's cell edges are
   straight lines, so D is a sum of disc segments and wedges (`tiltfit.photometric.aperture`). Exact over the aperture for
   the thin lens at any tilt and blur; the pixel's box is the n x n points' quadrature, whose error grows as the
-  blur disc shrinks. The fit uses it for every pixel with the disc kernel (`refine.CLOSED_FORM_MIN_BLUR_PX`);
+  blur disc shrinks. The fit uses it for every pixel with the disc kernel (`options.CLOSED_FORM_MIN_BLUR_PX`);
 - by fixed lens samples (`dark_fraction_samples`): rays for each pixel and sample, intersected with the board
   plane Z = 0, the checker evaluated analytically and antialiased over the pixel's footprint (below). The
   Gaussian kernels need it (the disc convolved with a Gaussian has no closed form here).
@@ -365,7 +365,7 @@ def dark_fraction_image(target: Target, cam: ThinLensCamera, subpixels: int = 2,
 def shade_image(dark: np.ndarray, white: float, black: float, vignetting: float = 0.0, gain=(0.0, 0.0)) -> np.ndarray:
     """(H, W) linear intensity the exposure makes of a dark-fraction image (`dark_fraction_image`; NaN stays NaN):
     `shade`'s vignetting and levels times the view's illumination gradient 1 + g_x x + g_y y (x, y about the image
-    centre, ±1 at the edges; `refine.Exposure`)."""
+    centre, ±1 at the edges; `options.Exposure`)."""
     H, W = dark.shape
     ys, xs = np.mgrid[0:H, 0:W]
     uv = torch.tensor(np.stack([xs.ravel(), ys.ravel()], -1), dtype=torch.float64)
@@ -388,7 +388,7 @@ def residual_image(image: np.ndarray, target: Target, cam: ThinLensCamera, white
         image: (H, W) linear photo of the view (decode sRGB first).
         cam: the view's camera (`LensCamera.view_camera(v)` of the calibration).
         white, black, vignetting, gain: the view's exposure (CALIB.json's photometric `levels` and `vignetting`;
-            gain (g_x, g_y) the illumination gradient, `render.shade` and `refine.Exposure`).
+            gain (g_x, g_y) the illumination gradient, `render.shade` and `options.Exposure`).
         subpixels: points per pixel side of the closed-form aperture [2: a picture, not a fit].
     """
     dark = dark_fraction_image(target, cam, subpixels, stride, chunk)

@@ -1,0 +1,205 @@
+"""The photometric least-squares problem: each fitted pixel's residual (photo − rendered board under the
+exposure) and its Jacobian with respect to the lens, the poses and the exposure (`_Problem.evaluate`). The
+lens block holds the camera's stored lens parameters the fit moves, in the order of `LENS_PARAMETERS`, the lens
+vector of `renderer.cameras.lens_model` (which decodes it: `lens_values`).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import torch
+
+from renderer.cameras import LENS_PARAMETERS, lens_values
+
+from tiltfit.photometric.aperture import checker_dark_fraction_disc, lines_cut
+from tiltfit.calibrate.model import LensCamera
+from tiltfit.target.layout import Target
+from .render import SUBPIXELS, SUBPIXELS_SHARP, dark_fraction_samples, sub_points
+
+
+#: Pixels per block of the Jacobian (bounds its memory; results do not depend on it).
+JACOBIAN_BLOCK = 2048
+
+
+@dataclass
+class _View:
+    uv: torch.Tensor          # (N, 2) pixels used
+    observed: torch.Tensor    # (N,) linear intensities
+    n_closed_form: int        # the first n_closed_form pixels integrate the aperture in closed form
+    rho2: torch.Tensor        # (N,) squared distance from the image centre, 1 at the corners
+    xy: torch.Tensor | None = None   # (N, 2) pixel coordinates about the image centre, ±1 at the edges
+    n_sharp: int = 0          # the first n_sharp of them with SUBPIXELS_SHARP points a side (blur < SHARP_BLUR_PX)
+
+
+class _ViewGeometry(torch.nn.Module):
+    """The camera under `torch.func.functional_call`: `fn(camera.view_camera(view))` with substituted tensors."""
+
+    def __init__(self, camera: LensCamera):
+        super().__init__()
+        self.camera = camera
+
+    def forward(self, view: int, fn):
+        return fn(self.camera.view_camera(view))
+
+
+class _Problem:
+    """The photometric least-squares problem: pixels of every view, the camera they are rendered with, and
+    `evaluate` in the solver's form (residuals in units of `scale`, Jacobians by block)."""
+
+    def __init__(self, camera: LensCamera, target: Target, data: list, lens_uv: torch.Tensor, say=None):
+        self.camera, self.target, self.data, self.lens_uv = camera, target, data, lens_uv
+        self.geometry = _ViewGeometry(camera)
+        self.near = 1
+        self.n_edges = max(len(target.x_edges), len(target.y_edges))
+        self.scale = 1.0
+        self.psf_fixed = 0.0
+        self.say, self.t0, self.n_jacobians = say, time.perf_counter(), 0
+        self.lens_start = torch.stack([getattr(camera, n).detach() for n in LENS_PARAMETERS]).to(torch.float64)
+        self.free = list(range(4))                     # the stored lens parameters the fit moves
+        self.bound = torch.full((4,), math.inf, dtype=torch.float64)
+
+    # --- the lens block: the free stored parameters, each within ±bound of the start (smoothly, by tanh) -----
+    def full_lens(self, z: torch.Tensor) -> torch.Tensor:
+        """(4,) stored lens parameters of the solver's lens block z (len(free),): start + b tanh(z / b)."""
+        lens = self.lens_start.clone()
+        if self.free:
+            b = self.bound[self.free]
+            step = torch.where(torch.isfinite(b), b * torch.tanh(z / b.clamp(max=1e300)), z)
+            lens[self.free] = self.lens_start[self.free] + step
+        return lens
+
+    def lens_jacobian(self, z: torch.Tensor) -> torch.Tensor:
+        """(4, len(free)) d full_lens / dz."""
+        J = torch.zeros(4, len(self.free), dtype=torch.float64)
+        if self.free:
+            b = self.bound[self.free]
+            d = torch.where(torch.isfinite(b), 1.0 / torch.cosh(z / b.clamp(max=1e300)) ** 2, torch.ones_like(z))
+            J[self.free, torch.arange(len(self.free))] = d
+        return J
+
+    # --- the camera of a state -----------------------------------------------------------------------------
+    def _params(self, v: int, lens: torch.Tensor, pose: torch.Tensor) -> dict:
+        rv, Ts = self.camera.rvec.detach(), self.camera.T_scaled.detach()
+        out = {f"camera.{n}": lens[i] for i, n in enumerate(LENS_PARAMETERS)}
+        out["camera.rvec"] = torch.cat([rv[:v], pose[None, :3], rv[v + 1:]])
+        out["camera.T_scaled"] = torch.cat([Ts[:v], pose[None, 3:6], Ts[v + 1:]])
+        return out
+
+    def _call(self, v: int, geo: torch.Tensor, fn):
+        """fn(view camera of view v) with lens = geo[:4], pose = geo[4:10]."""
+        return torch.func.functional_call(self.geometry, self._params(v, geo[:4], geo[4:10]), (v, fn))
+
+    # --- dark fractions and their Jacobians ------------------------------------------------------------------
+    def _closed(self, v: int, geo: torch.Tensor, uv: torch.Tensor, jacobian: bool, subpixels: int = SUBPIXELS):
+        pts = sub_points(uv, subpixels)
+        if not jacobian:
+            with torch.no_grad():
+                q, c, a = self._call(v, geo, lambda cam: cam.focus_geometry(pts)[:3])
+                return checker_dark_fraction_disc(q, c, a, self.target, self.near).mean(-1), None
+
+        def focus(g):
+            out = self._call(v, g, lambda cam: cam.focus_geometry(pts)[:3])
+            return out, tuple(o.detach() for o in out)
+
+        (dq, dc, da), (q, c, a) = torch.func.jacfwd(focus, has_aux=True)(geo)
+        self.near = min(self.n_edges, max(self.near, lines_cut(q, c, a, self.target) + 1))
+        n, s = pts.shape[:2]
+        with torch.enable_grad():
+            # Each point's own copy of the lens centre and axes: the gradient of the sum is every point's partials.
+            qq = q.clone().requires_grad_()
+            cc = c.expand(n, s, 3).clone().requires_grad_()
+            aa = a.expand(n, s, 2, 3).clone().requires_grad_()
+            dark = checker_dark_fraction_disc(qq, cc, aa, self.target, self.near)
+            grads = torch.autograd.grad(dark.sum(), (qq, cc, aa), allow_unused=True)
+        gq, gc, ga = (torch.zeros_like(t) if g is None else g for g, t in zip(grads, (qq, cc, aa)))
+        dD = (torch.einsum("nsk,nskp->np", gq, dq) + torch.einsum("nsk,kp->np", gc, dc)
+              + torch.einsum("nsij,ijp->np", ga, da)) / s
+        return dark.detach().mean(-1), dD
+
+    def _samples(self, v: int, geo: torch.Tensor, psf: torch.Tensor, uv: torch.Tensor, jacobian: bool):
+        def dark(g):
+            d = self._call(v, g[:10], lambda cam: dark_fraction_samples(self.target, cam, uv, self.lens_uv,
+                                                                         g[10] ** 2))
+            return d, d.detach()
+
+        g = torch.cat([geo, psf.reshape(1)])
+        if not jacobian:
+            with torch.no_grad():
+                return dark(g)[1], None
+        dD, D = torch.func.jacfwd(dark, has_aux=True)(g)
+        return D, dD
+
+    def _dark(self, v: int, geo: torch.Tensor, psf: torch.Tensor, jacobian: bool):
+        """(N,) dark fractions of view v's pixels and (N, 11) their derivatives by (lens, pose, psf)."""
+        dv = self.data[v]
+        Ds, dDs = [], []
+        # Pixels in three runs: closed form with SUBPIXELS_SHARP points a side, closed form with SUBPIXELS, samples.
+        runs = ((0, dv.n_sharp, SUBPIXELS_SHARP), (dv.n_sharp, dv.n_closed_form, SUBPIXELS),
+                (dv.n_closed_form, dv.uv.shape[0], None))
+        for a in range(0, dv.uv.shape[0], JACOBIAN_BLOCK):
+            b = min(a + JACOBIAN_BLOCK, dv.uv.shape[0])
+            for lo, hi, sub in runs:
+                lo, hi = max(lo, a), min(hi, b)
+                if lo >= hi:
+                    continue
+                if sub is None:
+                    D, dD = self._samples(v, geo, psf, dv.uv[lo:hi], jacobian)
+                else:
+                    D, dD = self._closed(v, geo, dv.uv[lo:hi], jacobian, sub)
+                    dD = None if dD is None else torch.cat([dD, dD.new_zeros(hi - lo, 1)], 1)
+                Ds.append(D)
+                dDs.append(dD)
+        return torch.cat(Ds), (torch.cat(dDs) if jacobian else None)
+
+    # --- the solver's callback -------------------------------------------------------------------------------
+    def evaluate(self, x: dict, with_jacobian: bool):
+        lens, pose, levels = self.full_lens(x["lens"]), x["pose"], x["levels"]
+        gain = x.get("gain")
+        vig = x["vignetting"][0] if "vignetting" in x else torch.zeros((), dtype=torch.float64)
+        psf = x["psf"][0] if "psf" in x else torch.tensor(self.psf_fixed, dtype=torch.float64)
+        M = sum(int(d.uv.shape[0]) for d in self.data)
+        stored = dict(zip(LENS_PARAMETERS, (float(v) for v in lens)))
+        if not (stored["inv_U_per_m"] > 0 and stored["d_scaled"] > 0 and abs(stored["theta_F"]) < 1.5):
+            nan = torch.full((M,), math.nan, dtype=torch.float64)   # outside the lens's domain
+            sizes = {"lens": len(self.free), "pose": 6, "levels": 2, "vignetting": 1, "psf": 1, "gain": 2}
+            return nan, ({k: nan[:, None].expand(M, sizes[k]) for k in x} if with_jacobian else None)
+        rs, jac = [], {k: [] for k in x}
+        for v, dv in enumerate(self.data):
+            D, dD = self._dark(v, torch.cat([lens, pose[v]]), psf, with_jacobian)
+            falloff = 1.0 - vig * dv.rho2
+            if gain is not None:   # the illumination's gradient across the view: 1 + g_x x + g_y y
+                falloff = falloff * (1.0 + dv.xy @ gain[v])
+            white, black = levels[v, 0], levels[v, 1]
+            shade = white - (white - black) * D
+            rs.append((falloff * shade - dv.observed) / self.scale)
+            if with_jacobian:
+                Jg = (-falloff * (white - black) / self.scale)[:, None] * dD
+                jac["lens"].append(Jg[:, :4] @ self.lens_jacobian(x["lens"]))
+                if gain is not None:
+                    jac["gain"].append(((1.0 - vig * dv.rho2) * shade / self.scale)[:, None] * dv.xy)
+                jac["pose"].append(Jg[:, 4:10])
+                jac["levels"].append(torch.stack([falloff * (1 - D), falloff * D], 1) / self.scale)
+                if "vignetting" in jac:
+                    g = 1.0 if gain is None else 1.0 + dv.xy @ gain[v]
+                    jac["vignetting"].append((-dv.rho2 * g * shade / self.scale)[:, None])
+                if "psf" in jac:
+                    jac["psf"].append(Jg[:, 10:11])
+        r = torch.cat(rs)
+        if not with_jacobian:
+            return r, None
+        jac = {k: torch.cat(v) for k, v in jac.items()}
+        self.n_jacobians += 1
+        if self.say:
+            cost = 0.5 * float((r * r).sum())
+            _, U, d, theta_F = lens_values([float(v) for v in lens])
+            self.say(f"photometric: linearisation {self.n_jacobians}, cost {cost:.6g}, θF "
+                     f"{math.degrees(theta_F):+.4f}°, U {U:.2f} mm, d {d:.4f} mm "
+                     f"({time.perf_counter() - self.t0:.1f} s)")
+        return r, jac
+
+    def residuals(self, x: dict) -> torch.Tensor:
+        """(M,) residuals in linear intensity units."""
+        with torch.no_grad():
+            return self.evaluate(x, False)[0] * self.scale

@@ -94,8 +94,7 @@ def pixel_esf(d: torch.Tensor, r: torch.Tensor, wa: torch.Tensor, wb: torch.Tens
     return E, dE_dd, dE_dr
 
 
-def _pixel_esf_on_edges(d: torch.Tensor, r: torch.Tensor, wa: torch.Tensor, wb: torch.Tensor, deriv: bool,
-                        where: torch.Tensor | None = None):
+def _pixel_esf_on_edges(d: torch.Tensor, r: torch.Tensor, wa: torch.Tensor, wb: torch.Tensor, deriv: bool):
     """`pixel_esf` evaluated only at the pixels the blurred edge reaches; elsewhere E is exactly 0 or 1.
 
     Most pixels of a band lie inside the cells, beyond the blur disc and the pixel's own width from the
@@ -103,19 +102,14 @@ def _pixel_esf_on_edges(d: torch.Tensor, r: torch.Tensor, wa: torch.Tensor, wb: 
     evaluated on the rest only (typically 5–15 % of a band).
 
     Args:
-        d, r: (..., n) distances and radii, pixels; wa, wb: (..., 1) projected pixel widths per band;
-        where: (..., n) bool, the pixels that may be evaluated (others take the step value).
+        d, r: (..., n) distances and radii, pixels; wa, wb: (..., 1) projected pixel widths per band.
     Returns:
         E, ∂E/∂d, ∂E/∂r (..., n); the derivatives None without deriv.
     """
     E = (d > 0).to(d.dtype)
     E_d = torch.zeros_like(d) if deriv else None
     E_r = torch.zeros_like(d) if deriv else None
-    if where is not None and not bool(where.any()):
-        return E, E_d, E_r
     sel = d.abs() < r + (0.5 * (wa + wb.clamp_min(0.02)) + 1e-3)
-    if where is not None:
-        sel &= where
     at = sel.reshape(-1).nonzero().squeeze(1)
     if at.numel() == 0:
         return E, E_d, E_r
@@ -308,15 +302,14 @@ def _pack_bands(img: np.ndarray, groups: list[list[dict]]):
             t(wa).to(f32)[..., None], t(wb).to(f32)[..., None])
 
 
-def _normal_equations(K: torch.Tensor, res: torch.Tensor, mask: torch.Tensor):
-    """JᵀJ (k, P, P) and Jᵀ res (k, P), P = 3 + 3B, from the six non-zero Jacobian columns K (k, B, n, 6) per pixel
-    of `fit_corners`' model (the point's β, gx, gy; the band's dark level, contrast, edge offset), the residuals
-    res (k, B, n) and the pixels' mask (k, B, n)."""
-    k, B = K.shape[:2]
+def _normal_equations(Kt: torch.Tensor, res: torch.Tensor):
+    """JᵀJ (k, P, P) and Jᵀ res (k, P), P = 3 + 3B, from the six non-zero Jacobian columns Kt (k, B, 6, n) per pixel
+    of `fit_corners`' model (the point's β, gx, gy; the band's dark level, contrast, edge offset; zero on padding)
+    and the residuals res (k, B, n)."""
+    k, B = Kt.shape[:2]
     P = 3 + 3 * B
-    KmT = (K.double() * mask[..., None]).transpose(-1, -2)
-    M = KmT @ KmT.transpose(-1, -2)  # (k, B, 6, 6)
-    v = (KmT @ res[..., None])[..., 0]  # (k, B, 6)
+    M = Kt @ Kt.transpose(-1, -2)  # (k, B, 6, 6)
+    v = (Kt @ res[..., None])[..., 0]  # (k, B, 6)
     A = torch.zeros(k, P, P, dtype=torch.float64)
     A[:, :3, :3] = M[:, :, :3, :3].sum(1)
     for e in range(B):
@@ -374,6 +367,81 @@ def _small_step(step: torch.Tensor, th: torch.Tensor, idx: torch.Tensor) -> torc
     return (step[:, 0].abs() < 1e-4 * (th[:, 0].abs() + 1)) & (step[:, 1:3].abs().max(1).values < 1e-5)
 
 
+class _BandModel:
+    """`fit_corners`' model of the packed bands: values and Jacobian columns at the points idx.
+
+    The solver asks for the same points for several iterations (until one of them stops), so the tensors of the
+    points asked for are gathered once per set; the far lines do not move, so the pixels they may reach are
+    listed once per set too, and only those are tested against the current blur.
+    """
+
+    def __init__(self, img: np.ndarray, groups: list[list[dict]], r_cap: torch.Tensor):
+        f32 = torch.float32
+        self.mask, self.I, d0, dlo, dhi, dxy, kap, wa, wb = _pack_bands(img, groups)
+        lim = (r_cap + 2.0)[:, None, None] + 0.0
+        # far lines: only the entries within reach are evaluated, elsewhere the step is 0 or 1
+        self._far = [((dlo.abs() < 1.3 * lim), dlo.to(f32)), ((dhi.abs() < 1.3 * lim), dhi.to(f32))]
+        self._points = dict(I=self.I, mask=self.mask, m32=self.mask.to(f32), d0=d0, dx=dxy[..., 0].contiguous(),
+                            dy=dxy[..., 1].contiguous(), kap0=kap[..., 0:1], wa=wa, wb=wb,
+                            c_lo=(kap[..., 1] - kap[..., 0])[..., None], c_0=(kap[..., 2] - kap[..., 1])[..., None],
+                            c_hi=(kap[..., 3] - kap[..., 2])[..., None])
+        self._idx, self._at = None, None
+
+    def at(self, idx: torch.Tensor) -> dict:
+        """The points' tensors gathered at idx (k,), kept until another set is asked for."""
+        if self._idx is not None and idx.numel() == self._idx.numel() and torch.equal(idx, self._idx):
+            return self._at
+        g = {k: v[idx] for k, v in self._points.items()}
+        n = g["d0"].shape[-1]
+        reach = (0.5 * (g["wa"] + g["wb"].clamp_min(0.02)) + 1e-3).reshape(-1)  # per band, beyond the blur radius
+        g["far"] = []
+        for near, dist in self._far:
+            d = dist[idx]
+            px = near[idx].reshape(-1).nonzero().squeeze(1)  # the pixels this line may reach
+            g["far"].append(((d > 0).to(d.dtype), px, d.reshape(-1)[px], px // n, reach[px // n]))
+        self._idx, self._at = idx, g
+        return g
+
+    @staticmethod
+    def _far_term(g: dict, line, r: torch.Tensor, deriv: bool):
+        """E and ∂E/∂r (None without deriv) of a far line: the step, and `pixel_esf` where the blur reaches."""
+        step, px, d, band, reach = line
+        E = step.clone()
+        E_r = torch.zeros_like(step) if deriv else None
+        r_px = r.reshape(-1)[px]
+        sel = (d.abs() < r_px + reach).nonzero().squeeze(1)
+        if sel.numel() == 0:
+            return E, E_r
+        at, b = px[sel], band[sel]
+        out = pixel_esf(d[sel], r_px[sel], g["wa"].reshape(-1)[b], g["wb"].reshape(-1)[b], deriv)
+        E.view(-1).index_copy_(0, at, out[0] if deriv else out)
+        if deriv:
+            E_r.view(-1).index_copy_(0, at, out[2])
+        return E, E_r
+
+    def __call__(self, theta: torch.Tensor, idx: torch.Tensor, deriv: bool = True):
+        """Model values f (k, B, n) at the points idx (k,) for parameters theta (k, P) and, with deriv, the six
+        non-zero columns of the Jacobian per pixel (k, B, 6, n), float64, zero on padding: a pixel of band e depends
+        on the point's (β, gx, gy) and on band e's (dark level, contrast, edge offset) only."""
+        g = self.at(idx)
+        th = theta.to(torch.float32)
+        beta, gx, gy = th[:, 0], th[:, 1], th[:, 2]
+        o, c, delta = th[:, 3::3], th[:, 4::3], th[:, 5::3]  # (k, B)
+        sb = beta[:, None, None] + gx[:, None, None] * g["dx"] + gy[:, None, None] * g["dy"]
+        r = (0.5 * sb.abs()).clamp_min(1e-3)
+        e0, e0_d, e0_r = _pixel_esf_on_edges(g["d0"] - delta[..., None], r, g["wa"], g["wb"], deriv)
+        (elo, elo_r), (ehi, ehi_r) = (self._far_term(g, line, r, deriv) for line in g["far"])
+        cl, c0, ch = g["c_lo"], g["c_0"], g["c_hi"]
+        gsum = g["kap0"] + cl * elo + c0 * e0 + ch * ehi
+        f = o[..., None] + c[..., None] * gsum
+        if not deriv:
+            return f.double(), None
+        m = g["m32"]  # 0 or 1: the columns on padding are zeroed exactly
+        dr = c[..., None] * (cl * elo_r + c0 * e0_r + ch * ehi_r) * 0.5 * torch.sign(sb) * m
+        Kt = torch.stack([dr, dr * g["dx"], dr * g["dy"], m, gsum * m, -c[..., None] * c0 * e0_d * m], -2)
+        return f.double(), Kt.double()
+
+
 def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, iterations: int = 30):
     """Levenberg–Marquardt fit of the cell-profile model to the bands of each point, batched over points.
 
@@ -388,55 +456,29 @@ def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, itera
     Returns:
         b (C,) = |β|, sigma_b (C,), grad (C, 2), ok (C,), in pixels of `img`.
     """
-    f32 = torch.float32
-    mask, I, d0_t, dlo_t, dhi_t, dxy_t, kap_t, wa_t, wb_t = _pack_bands(img, groups)
-    has_band = mask.any(-1)
     r0 = torch.as_tensor(np.asarray(r0, dtype=np.float64))
     r_cap = 1.5 * r0 + 1.0
-    lim = (r_cap + 2.0)[:, None, None] + 0.0
-    # far lines: only the entries within reach are evaluated, elsewhere the step is 0 or 1
-    far = [((dlo_t.abs() < 1.3 * lim), dlo_t.to(f32)), ((dhi_t.abs() < 1.3 * lim), dhi_t.to(f32))]
-    c_lo, c_0, c_hi = (kap_t[..., 1] - kap_t[..., 0]), (kap_t[..., 2] - kap_t[..., 1]), (kap_t[..., 3] - kap_t[..., 2])
-
-    def model(theta, idx, deriv=True):
-        """Model values f (k, B, n) at the corners idx (k,) and, with deriv, the six non-zero columns of the
-        Jacobian per pixel (k, B, n, 6): a pixel of band e depends on the point's (β, gx, gy) and on band e's
-        (dark level, contrast, edge offset) only."""
-        th = theta.to(f32)
-        beta, gx, gy = th[:, 0], th[:, 1], th[:, 2]
-        o, c, delta = th[:, 3::3], th[:, 4::3], th[:, 5::3]  # (k, B)
-        dxy_k, wa_k, wb_k = dxy_t[idx], wa_t[idx], wb_t[idx]
-        sb = beta[:, None, None] + gx[:, None, None] * dxy_k[..., 0] + gy[:, None, None] * dxy_k[..., 1]
-        r = (0.5 * sb.abs()).clamp_min(1e-3)
-        e0, e0_d, e0_r = _pixel_esf_on_edges(d0_t[idx] - delta[..., None], r, wa_k, wb_k, deriv)
-        terms = [_pixel_esf_on_edges(dist[idx], r, wa_k, wb_k, deriv, near[idx])[::2] for near, dist in far]
-        (elo, elo_r), (ehi, ehi_r) = terms
-        cl, c0, ch = c_lo[idx][..., None], c_0[idx][..., None], c_hi[idx][..., None]
-        gsum = kap_t[idx][..., 0:1] + cl * elo + c0 * e0 + ch * ehi
-        f = o[..., None] + c[..., None] * gsum
-        if not deriv:
-            return f.double(), None
-        dr = c[..., None] * (cl * elo_r + c0 * e0_r + ch * ehi_r) * 0.5 * torch.sign(sb)
-        K = torch.stack([dr, dr * dxy_k[..., 0], dr * dxy_k[..., 1], torch.ones_like(dr), gsum,
-                         -c[..., None] * c0 * e0_d], -1)
-        return f.double(), K
-
+    model = _BandModel(img, groups, r_cap)
+    mask = model.mask
+    has_band = mask.any(-1)
     npix = mask.sum(-1)
-    theta = _start(model, I, mask, has_band, r0)
+    theta = _start(model, model.I, mask, has_band, r0)
     # weak prior on g (1 % per pixel) keeps points with few bands well posed: residuals prior · (gx, gy)
     prior = 1e-2 * torch.sqrt(npix.sum(-1)) * theta[:, 4::3].abs().mean(-1).clamp_min(1e-6)
 
     def evaluate(th, idx):
         """`tiltfit.solve.Normal` (cost, JᵀJ, Jᵀr) of the corners idx at parameters th (k, P), r model − data,
         the prior included."""
-        f, K = model(th, idx)
-        res = (I[idx] - f) * mask[idx]
-        cost = (res * res).sum((-1, -2)) + ((prior[idx, None] * th[:, 1:3]) ** 2).sum(-1)
-        A, Kr = _normal_equations(K, res, mask[idx])
-        A[:, 1, 1] += prior[idx] ** 2
-        A[:, 2, 2] += prior[idx] ** 2
+        f, Kt = model(th, idx)
+        at = model.at(idx)
+        res = (at["I"] - f) * at["mask"]
+        p = prior[idx]
+        cost = (res * res).sum((-1, -2)) + ((p[:, None] * th[:, 1:3]) ** 2).sum(-1)
+        A, Kr = _normal_equations(Kt, res)
+        A[:, 1, 1] += p ** 2
+        A[:, 2, 2] += p ** 2
         g = -Kr
-        g[:, 1:3] += prior[idx, None] ** 2 * th[:, 1:3]
+        g[:, 1:3] += p[:, None] ** 2 * th[:, 1:3]
         return Normal(cost, A, g)
 
     def within_cap(th, idx):

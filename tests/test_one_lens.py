@@ -185,8 +185,8 @@ def test_scene_file_focus_points():
 # Forms a second copy of the lens's arithmetic takes, each found by reading the source (AST), each with a planted
 # example below that the scan must catch.
 
-#: Where the stored lens vector (log w, 1/U, d in cm, θF) is decoded: `renderer.cameras.lens_model`'s one section.
-LENS_VECTOR_OWNER = "renderer/cameras/lens_model.py"
+#: Where the stored lens vector (log w, 1/U, d in cm, θF) is decoded: `renderer.cameras.lens_vector`.
+LENS_VECTOR_OWNER = "renderer/cameras/lens_vector.py"
 #: Where the image centre ((W − 1)/2, (H − 1)/2) is written: `renderer.cameras.projection.image_centre_px`.
 CENTRE_OWNER = "renderer/cameras/projection.py"
 #: Where a CALIB dict's w becomes a focal length in pixels: the calibration object (`lens_from_calib`, `Calibration`).
@@ -283,7 +283,7 @@ def _scan(form, owners) -> list[str]:
 
 def test_the_lens_vector_is_decoded_in_one_place():
     found = _scan(decoding_forms, (LENS_VECTOR_OWNER,))
-    assert not found, ("the stored lens vector decoded by hand (call renderer.cameras.lens_model.lens_values / "
+    assert not found, ("the stored lens vector decoded by hand (call renderer.cameras.lens_vector.lens_values / "
                        "stored_from_lens / stored_lens_sigma): " + "; ".join(found))
 
 

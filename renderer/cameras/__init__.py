@@ -6,7 +6,8 @@ Each camera module declares its parameters (`PARAMS`, a list of `renderer.core.p
 `registry`, which the camera modules import: they never import this package).
 
 Public API (what `tiltfit` and users import from here): the camera classes, `LensCamera` (the one fitted and
-rendered camera model: pose, lens, distortion and sensor as a torch module over V views; `lens_model`),
+rendered camera model: pose, lens, distortion and sensor as a torch module over V views; `lens_model`), its
+stored lens vector decoded in one place (`lens_values`, `stored_from_lens`, `stored_lens_sigma`; `lens_vector`),
 `project_pinhole` and its inverse (the one pinhole projection; `projection`), OpenCV's tilted model's angles
 (`opencv_tilt`, `lens_tilt_from_opencv`, `tilt_rotation`: the frame of a distortion about a tilted lens's axis),
 `concentric_disk` (lens samples
@@ -26,8 +27,9 @@ from renderer.cameras import accumulation  # noqa: F401
 
 from .lens import (DISTORTION_CENTRES, EOS_6D, Lens, Sensor, lens_tilt_from_opencv, opencv_tilt,  # noqa: F401
                    tilt_rotation)
-from .lens_model import (APERTURE_SCALE_MM, LENS_PARAMETERS, LensCamera, distortion_parameter_names,  # noqa: F401
-                         U_from_stored, d_from_stored, lens_values, stored_from_lens, stored_lens_sigma, w_from_stored)
+from .lens_model import LensCamera, distortion_parameter_names  # noqa: F401
+from .lens_vector import (APERTURE_SCALE_MM, LENS_PARAMETERS, U_from_stored, d_from_stored, lens_values,  # noqa: F401
+                          stored_from_lens, stored_lens_sigma, w_from_stored)
 from .projection import (camera_matrix, image_centre_px, normalised_from_pixels, pixels_from_normalised,  # noqa: F401
                          project_pinhole)
 from .thin_lens import ThinLensCamera, concentric_disk  # noqa: F401

@@ -58,86 +58,7 @@ from .distortion import distort_about_axis_jacobians
 from .lens import DISTORTION_CENTRES, Lens, Sensor, opencv_tilt, tilt_frame, tilt_rotation
 from .projection import image_centre_px, project_pinhole
 from .thin_lens import ThinLensCamera
-
-APERTURE_SCALE_MM = 10.0  # d_scaled is the aperture diameter in cm
-
-#: The stored lens parameters in the order of a lens vector: log w (w in mm), 1/U in dioptres, d in cm, θF in radians.
-#: This section is the one place a lens vector is read (by name or by position) and turned into lengths: every
-#: other module calls `lens_values` / `stored_lens_sigma` (tests/test_one_lens.py scans for hand-written copies).
-LENS_PARAMETERS = ("log_w_mm", "inv_U_per_m", "d_scaled", "theta_F")
-
-
-def w_from_stored(log_w_mm):
-    """w in mm of the stored log w (a tensor keeps its graph; a number gives a float)."""
-    return torch.exp(log_w_mm) if isinstance(log_w_mm, torch.Tensor) else math.exp(log_w_mm)
-
-
-def U_from_stored(inv_U_per_m):
-    """U in mm of the stored 1/U in dioptres (inf at 0, focus at infinity)."""
-    if isinstance(inv_U_per_m, torch.Tensor):
-        return 1000.0 / inv_U_per_m
-    return math.inf if inv_U_per_m == 0 else 1000.0 / inv_U_per_m
-
-
-def d_from_stored(d_scaled):
-    """The aperture d in mm of the stored d_scaled (cm, sign free: d = |d_scaled| · 10 mm)."""
-    return (d_scaled.abs() if isinstance(d_scaled, torch.Tensor) else abs(d_scaled)) * APERTURE_SCALE_MM
-
-
-def lens_values(stored) -> tuple:
-    """(w_mm, U_mm, d_mm, θF in radians) of stored lens parameters.
-
-    Args:
-        stored: a mapping by stored name (`LENS_PARAMETERS`: a module's parameters, a state dict), or a (4,) tensor
-            or sequence in that order (a solver's lens block). Tensors keep their graph; numbers give floats.
-    """
-    if hasattr(stored, "keys"):
-        log_w, inv_U, d_scaled, theta_F = (stored[n] for n in LENS_PARAMETERS)
-    else:
-        log_w, inv_U, d_scaled, theta_F = (stored[i] for i in range(len(LENS_PARAMETERS)))
-    return w_from_stored(log_w), U_from_stored(inv_U), d_from_stored(d_scaled), theta_F
-
-
-def stored_from_lens(w_mm=None, U_mm=None, d_mm=None, theta_F=None) -> dict:
-    """The stored values (floats) of the lens values given (mm, radians; U = inf: focus at infinity), by stored name:
-    the inverse of `lens_values`."""
-    out = {}
-    if w_mm is not None:
-        out["log_w_mm"] = math.log(float(w_mm))
-    if U_mm is not None:
-        out["inv_U_per_m"] = 1000.0 / float(U_mm)
-    if d_mm is not None:
-        out["d_scaled"] = float(d_mm) / APERTURE_SCALE_MM
-    if theta_F is not None:
-        out["theta_F"] = float(theta_F)
-    return out
-
-
-def stored_lens_sigma(w_mm: float, U_mm: float, sigma: dict) -> dict:
-    """One-σ of the stored lens parameters from physical ones, to first order: σ(log w) = σ_w / w,
-    σ(1/U) = 1000 σ_U / U² (dioptres), σ(d_scaled) = σ_d / 10 mm, σ(θF) = σ_θF.
-
-    Args:
-        w_mm, U_mm: the lens's w and U (floats, mm).
-        sigma: physical σ by CALIB.json name (w_mm, U_mm, d_mm, theta_F_deg); missing, None, 0 or non-finite ones are
-            left out (and σ_U where U is infinite).
-    Returns:
-        {stored name: σ} for the σ given.
-    """
-    def get(key):
-        v = sigma.get(key)
-        return float(v) if isinstance(v, (int, float)) and math.isfinite(float(v)) and float(v) > 0 else None
-
-    out = {}
-    if get("w_mm") is not None:
-        out["log_w_mm"] = get("w_mm") / w_mm
-    if get("U_mm") is not None and math.isfinite(U_mm):
-        out["inv_U_per_m"] = get("U_mm") * 1000.0 / (U_mm * U_mm)
-    if get("d_mm") is not None:
-        out["d_scaled"] = get("d_mm") / APERTURE_SCALE_MM
-    if get("theta_F_deg") is not None:
-        out["theta_F"] = math.radians(get("theta_F_deg"))
-    return out
+from .lens_vector import U_from_stored, d_from_stored, lens_from_stored_jacobian, stored_from_lens, w_from_stored
 
 _DIST = tuple(f"dist_{k}" for k in COEFFICIENT_NAMES)
 _GROUPS = {
@@ -527,9 +448,7 @@ class LensCamera(torch.nn.Module):
         lens[..., :2, 0] = proj.xd / pitch
         if blur.with_blur:
             lens[..., 2, :] = blur.db_dlens / pitch
-        chain = torch.stack([w, -U * U / 1000.0, APERTURE_SCALE_MM * torch.sign(self.d_scaled.detach()),
-                             torch.ones_like(w)])
-        lens = lens * chain
+        lens = lens * lens_from_stored_jacobian(w, U, self.d_scaled.detach())
         if proj.axis:  # through θL(w, 1/U, θF) of the distortion's frame, already by the stored parameters
             for i, g in zip((0, 1, 3), proj.dthL):
                 lens[..., :2, i] += proj.F * proj.J_angles[0] * g

@@ -1,7 +1,7 @@
 """The photometric least-squares problem: each fitted pixel's residual (photo − rendered board under the
 exposure) and its Jacobian with respect to the lens, the poses and the exposure (`_Problem.evaluate`). The
 lens block holds the camera's stored lens parameters the fit moves, in the order of `LENS_PARAMETERS`, the lens
-vector of `renderer.cameras.lens_model` (which decodes it: `lens_values`).
+vector of `renderer.cameras.lens_vector` (which decodes it: `lens_values`).
 """
 from __future__ import annotations
 

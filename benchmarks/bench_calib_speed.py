@@ -98,7 +98,10 @@ def write_synthetic_views(n: int, out_dir: str, size=(1368, 912)) -> tuple[list,
     except ImportError:  # --base code from before tiltfit/experiments/
         from tiltfit import reproduce
     from tiltfit.calibrate.model import LensCamera, random_poses, synthesize_observations
-    from tiltfit.target.design import design_centre_mm
+    try:
+        from tiltfit.target.design import design_centre_mm
+    except ImportError:  # --base code from before tiltfit.target.design
+        from tiltfit.target.layout import design_centre_mm
 
     target_file = os.path.join(out_dir, "target.json")
     dets = [os.path.join(out_dir, f"view{v:05d}.json") for v in range(n)]

@@ -143,7 +143,7 @@ def test_cluster_port_that_is_not_ray_fails_fast_with_one_line(tmp_path, monkeyp
     import functools
     import time
 
-    from renderer.cli import distributed
+    from renderer.tracing import distributed
     from renderer.cli.main import main
 
     monkeypatch.setattr(distributed, "_check_reachable",

@@ -438,8 +438,10 @@ class _BandModel:
             return f.double(), None
         m = g["m32"]  # 0 or 1: the columns on padding are zeroed exactly
         dr = c[..., None] * (cl * elo_r + c0 * e0_r + ch * ehi_r) * 0.5 * torch.sign(sb) * m
-        Kt = torch.stack([dr, dr * g["dx"], dr * g["dy"], m, gsum * m, -c[..., None] * c0 * e0_d * m], -2)
-        return f.double(), Kt.double()
+        Kt = torch.empty(*m.shape[:2], 6, m.shape[-1], dtype=torch.float64)  # float32 rows, cast exactly once
+        for row, col in enumerate((dr, dr * g["dx"], dr * g["dy"], m, gsum * m, -c[..., None] * c0 * e0_d * m)):
+            Kt[:, :, row] = col
+        return f.double(), Kt
 
 
 def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, iterations: int = 30):

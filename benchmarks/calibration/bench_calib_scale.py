@@ -4,7 +4,7 @@ cv2.calibrateCamera on the same corners as the peer.
 Views: synthetic DET files of the paper's designed target (`reproduce.calibration_target`, 40 corners) seen by
 the simulated tilt lens (w = 55.39 mm, f = 50.84 mm, d = 18.81 mm, θL = 5°), 1368 × 912 px, random poses at
 480–760 mm (seeded), corners with 0.05 px and blur widths with 0.1 px + 3 % Gaussian noise
-(`model.synthesize_observations`), as benchmarks/bench_calib_speed.py's synthetic set but with N views.
+(`model.synthesize_observations`), as benchmarks/calibration/bench_calib_speed.py's synthetic set but with N views.
 
 Each measurement runs in a fresh child process (so its peak RSS is its own):
 - tiltfit: `tiltfit calibrate DET... --target T --pixel-pitch-mm P -q -o CALIB.json` in the child (`cli.main`:

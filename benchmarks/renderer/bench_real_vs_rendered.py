@@ -28,7 +28,7 @@ from benchmarks.results_io import ROOT, add_output_options, markdown_only, save 
 
 #: The profile error a reader can tell apart (grey levels): spp whose errors move less than this are enough.
 STABLE_GREY = 0.1
-PIXEL_PITCH_MM = 0.00155  # as benchmarks/bench_real_calib.py; pixels and profiles do not depend on it
+PIXEL_PITCH_MM = 0.00155  # as benchmarks/calibration/bench_real_calib.py; pixels and profiles do not depend on it
 
 
 def calibration_file(name: str, given: dict, say) -> str:

@@ -88,7 +88,7 @@ def test_gopro_at_least_34_of_36_boards_with_consistent_labelling(gopro):
 
 
 def test_gopro_corners_agree_with_opencv(gopro):
-    """Every third photo (OpenCV's exhaustive search is slow; benchmarks/bench_real_detect.py does all 36)."""
+    """Every third photo (OpenCV's exhaustive search is slow; benchmarks/detection/bench_real_detect.py does all 36)."""
     paths, target, dets = gopro
     errors, both = [], 0
     for p, d in list(zip(paths, dets))[::3]:

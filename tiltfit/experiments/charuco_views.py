@@ -1,4 +1,4 @@
-"""The ChArUco views of `tests/tiltfit/test_charuco.py` and `benchmarks/bench_charuco.py`: one board, one camera,
+"""The ChArUco views of `tests/tiltfit/test_charuco.py` and `benchmarks/detection/bench_charuco.py`: one board, one camera,
 views of about a third of the board and whole views, and their constant-blur renders.
 
 Board: 12 × 9 squares of 15 mm with 11 mm DICT_5X5_100 markers, 10 mm margin. Camera: a 25 mm lens focused at

@@ -6,7 +6,7 @@ Five small sweeps, each with a closed-form prediction beside the measurement, a 
 (a) detectors    our detector (`tiltfit.detect.chessboard`) against OpenCV's findChessboardCornersSB and
                  findChessboardCorners + cornerSubPix on `tiltfit.experiments.synth` images of the target whose blur
                  diameter grows to the size of a projected square: success rate and corner RMS. (The
-                 benchmark `benchmarks/bench_detect_opencv.py` is not part of the installed package, so the
+                 benchmark `benchmarks/detection/bench_detect_opencv.py` is not part of the installed package, so the
                  sweep is repeated here, small, with the same target, poses and scoring.)
 (b) two-stage    the paper's two stages (stage 1 untilted; stage 2 with w, U, d held, eq. (4), θL from
                  eq. (1)) against the joint fit as the lens tilt grows, on `tiltfit.calibrate.model` observations made

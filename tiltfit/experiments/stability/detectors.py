@@ -10,7 +10,7 @@ from .common import StabilityConfig, Study, subplots_row
 
 
 def detector_target():
-    """The detector sweep's target (as benchmarks/bench_detect_opencv.py): 9 × 6 cells of 20 mm, rows designed
+    """The detector sweep's target (as benchmarks/detection/bench_detect_opencv.py): 9 × 6 cells of 20 mm, rows designed
     for a 20° inclined view from 650 mm."""
     from tiltfit.target.design import design_target
 

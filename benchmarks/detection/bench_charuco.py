@@ -15,7 +15,7 @@ Images:
   whole views; `unified` fit without distortion, principal point held: w ± σ of each set.
 
 Writes benchmarks/results/charuco.{json,md}. Usage:
-    python benchmarks/bench_charuco.py [--quick] [--out STEM] [--markdown-only]
+    python benchmarks/detection/bench_charuco.py [--quick] [--out STEM] [--markdown-only]
 """
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ import sys
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 
 from benchmarks import results_io  # noqa: E402
 from tiltfit.detect.charuco import CANCEL_BITS_BLUR, detect_charuco, opencv_corners, refine_model  # noqa: E402
@@ -128,7 +128,7 @@ def write_markdown(path: str, res: dict) -> None:
 
     lines = ["# ChArUco corners: ours against OpenCV's CharucoDetector", "",
              f"Machine: {res['machine']}. Command: `{res['command']}`. Same images for both, in one run; "
-             f"times are medians of {res['repeats']} runs per image. See `benchmarks/bench_charuco.py` for the "
+             f"times are medians of {res['repeats']} runs per image. See `benchmarks/detection/bench_charuco.py` for the "
              "renders (one blur disc per image, Gaussian noise of σ 0.003 on white 0.8 and dark 0.05: 0.4 % of the "
              "contrast) and `docs/charuco.md` for the method.", "",
              "## Corner error against blur", "",
@@ -187,7 +187,7 @@ def main() -> int:
     repeats = 1 if args.quick else args.repeats
     views = [("partial", v) for v in PARTIAL[:2 if args.quick else 4]] + [("whole", v) for v in FULL[:1 if args.quick else 2]]
     res = {"machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs (shared)",
-           "command": "python benchmarks/bench_charuco.py" + (" --quick" if args.quick else ""),
+           "command": "python benchmarks/detection/bench_charuco.py" + (" --quick" if args.quick else ""),
            "repeats": repeats, "blur_sweep": blur_sweep(repeats, views), "checker_reference": checker_reference(views)}
     if not args.quick:
         res["calibration"] = calibration(spp=24)

@@ -20,7 +20,7 @@ Ratios are ours / OpenCV in the same process. "Before": the same measurements wi
 `main`, extracted by `git archive` into a temporary folder) in a child process of the same run.
 
 Writes benchmarks/results/calib_speed.{json,md}. Usage:
-    python benchmarks/bench_calib_speed.py [--repeats 5] [--default-repeats 3] [--base main|none] [--quick]
+    python benchmarks/calibration/bench_calib_speed.py [--repeats 5] [--default-repeats 3] [--base main|none] [--quick]
 """
 from __future__ import annotations
 
@@ -41,8 +41,9 @@ import cv2
 import numpy as np
 import torch
 
-from bench_real_calib import OPENCV_FLAGS
-from results_io import ROOT, add_output_options, markdown_only, save, timed
+sys.path.append(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))  # the repository root, last: a --base child's PYTHONPATH keeps its own tiltfit
+from benchmarks.calibration.bench_real_calib import OPENCV_FLAGS  # noqa: E402
+from benchmarks.results_io import ROOT, add_output_options, markdown_only, save, timed  # noqa: E402
 
 #: The sets: folder (or "synthetic"), image glob, pixel pitch (mm; intrinsics in pixels do not depend on it),
 #: and the distortion model of the geometric comparison.
@@ -412,7 +413,7 @@ def main(argv=None) -> int:
                    f"{platform.python_version()}",
         "torch": torch.__version__, "opencv": cv2.__version__,
         "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-        "command": "python benchmarks/bench_calib_speed.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "command": "python benchmarks/calibration/bench_calib_speed.py " + " ".join(argv if argv is not None else sys.argv[1:]),
         "run_time_s": time.perf_counter() - T0, "repeats": args.repeats, "default_repeats": args.default_repeats,
         "commit": commit[:10], "base": args.base, "base_commit": base_commit or "",
         "after": after, "before": before,

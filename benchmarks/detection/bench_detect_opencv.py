@@ -14,7 +14,7 @@ both rates); corner error = distance to the true projection (OpenCV corners matc
 corner, ours by index — a wrong index counts as an error of a square).
 
 Writes benchmarks/results/detect_opencv.{json,md,png}. Usage:
-    python benchmarks/bench_detect_opencv.py [--quick] [--out benchmarks/results]
+    python benchmarks/detection/bench_detect_opencv.py [--quick] [--out benchmarks/results]
 """
 from __future__ import annotations
 
@@ -240,7 +240,7 @@ def write_outputs(out_dir, summary, rows, timings, meta):
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="684×456 sweep, one pose, no 20 MP timing")
-    p.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results"))
+    p.add_argument("--out", default=os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "benchmarks", "results"))
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--opencv-limit-s", type=float, default=120.0, help="time limit per OpenCV call (timing)")
     p.add_argument("--skip-sweep", action="store_true", help="keep the sweep of the last run's JSON, redo timing")
@@ -266,7 +266,7 @@ def main(argv=None):
     meta = {"machine": f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.python_version()}, torch "
                        f"{torch.__version__}, OpenCV {cv2.__version__}",
             "loadavg": [round(v, 2) for v in os.getloadavg()], "torch_threads": torch.get_num_threads(),
-            "cv2_threads": cv2.getNumThreads(), "command": "python benchmarks/bench_detect_opencv.py"
+            "cv2_threads": cv2.getNumThreads(), "command": "python benchmarks/detection/bench_detect_opencv.py"
             + (" --quick" if args.quick else ""), "sweep_image_px": [sweep_cam.sensor.width_px, sweep_cam.sensor.height_px],
             "poses": len(poses), "noise_linear": 0.004, "target": TARGET.to_dict()}
     if args.skip_sweep:

@@ -11,7 +11,7 @@ Times: median of `--repeats` runs of each fit, on the same machine in the same r
 Also OpenCV's default (fx ≠ fy) for reference.
 
 Writes benchmarks/results/real_calib.{json,md}. Usage:
-    python benchmarks/bench_real_calib.py [--repeats 5] [--out benchmarks/results]
+    python benchmarks/calibration/bench_real_calib.py [--repeats 5] [--out benchmarks/results]
 """
 from __future__ import annotations
 
@@ -36,9 +36,10 @@ from tiltfit.detect.opencv import opencv_detections
 from tiltfit.target.layout import load_target
 from tiltfit.select.held_out import held_out_rms
 
-from results_io import timed
+sys.path.append(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))  # the repository root, last: a --base child's PYTHONPATH keeps its own tiltfit
+from benchmarks.results_io import timed  # noqa: E402
 
-ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 DATA = os.path.join(ROOT, "data", "real", "gopro_wide")
 PIXEL_PITCH_MM = 0.00155  # GoPro HERO sensor pitch at 1280×960 is not published; intrinsics in px don't depend on it
 

@@ -14,7 +14,7 @@ labelling (the board looks the same turned by 180°: the peer's order as is, or 
 `labelling_same` counts the views where the peer's labelling already equals ours.
 
 Writes benchmarks/results/real_detect.{json,md}. Usage:
-    python benchmarks/bench_real_detect.py [--repeats 3 | --quick] [--out benchmarks/results]
+    python benchmarks/detection/bench_real_detect.py [--repeats 3 | --quick] [--out benchmarks/results]
 """
 from __future__ import annotations
 
@@ -24,6 +24,7 @@ import json
 import os
 import platform
 import statistics
+import sys
 import time
 
 import cv2
@@ -37,9 +38,10 @@ from tiltfit.detect.imaging import build_pyramid
 from tiltfit.detect.opencv import match_labelling, sb_corners
 from tiltfit.target.layout import load_target
 
-from results_io import timed
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))  # the repository root: benchmarks.results_io
+from benchmarks.results_io import timed  # noqa: E402
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 DATA = os.path.join(ROOT, "data", "real", "gopro_wide")
 PATTERN = (8, 6)
 
@@ -139,7 +141,7 @@ def main(argv=None):
     a = summary["agreement"]
     md = [f"# Detection on the shipped real photos ({len(rows)} GoPro images, 8 × 6 corners) against OpenCV",
           "",
-          "`python benchmarks/bench_real_detect.py` (1 thread each; time = median over images of the median of "
+          "`python benchmarks/detection/bench_real_detect.py` (1 thread each; time = median over images of the median of "
           f"{args.repeats} runs; file decoding excluded)",
           "",
           "| method | boards found | corners | time / image (median) | ours / peer time |",

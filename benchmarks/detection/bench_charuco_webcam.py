@@ -9,7 +9,7 @@ Ours: `tiltfit.detect.charuco.detect_board` with the target's `"inverted": true`
 same frames: `cv2.aruco.CharucoDetector(board).detectBoard` on the inverted 8-bit grey frame (its default
 refinement). A corner farther than 2 px from the published corner of its id counts as a wrong id.
 
-Writes benchmarks/results/charuco_webcam.{json,md}. Usage: python benchmarks/bench_charuco_webcam.py [--every K]
+Writes benchmarks/results/charuco_webcam.{json,md}. Usage: python benchmarks/detection/bench_charuco_webcam.py [--every K]
 """
 from __future__ import annotations
 
@@ -24,10 +24,10 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 
 DATA = "/work/shared/data/real/charuco_webcam"
-OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "charuco_webcam")
+OUT = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "benchmarks", "results", "charuco_webcam")
 WRONG_ID_PX = 2.0
 
 
@@ -127,7 +127,7 @@ def main(argv=None) -> int:
     rows = [("ours vs published", result["ours_vs_published"]), ("OpenCV vs published", result["opencv_vs_published"]),
             ("ours vs OpenCV", result["ours_vs_opencv"])]
     md = ["# ChArUco corners on the inverted-print webcam video (charuco_webcam)", "",
-          f"`python benchmarks/bench_charuco_webcam.py`: {n['frames']} frames; a corner more than {WRONG_ID_PX:g} px "
+          f"`python benchmarks/detection/bench_charuco_webcam.py`: {n['frames']} frames; a corner more than {WRONG_ID_PX:g} px "
           "from the reference corner of its id is a wrong id.", "",
           "| comparison | corners compared | found / reference | median px | 90th pct px | wrong ids |", "|---|---|---|---|---|---|"]
     for name, s in rows:

@@ -97,7 +97,8 @@ BENCHMARKS = (
     Benchmark("photometric", "bench_photometric_real_bounds.py", (),
               ("--views", "2", "--out", "{q}/photometric_real_bounds")),
     Benchmark("photometric", "report_photometric_real.py", (), ("--views", "1", "--out", "{q}/report_photometric_real")),
-    # robustness: bad input, interrupts, memory
+    # robustness: bad input, interrupts, memory, start-up of the commands
+    Benchmark("robustness", "bench_startup.py", (), ("--repeats", "1", "--out", "{q}/startup")),
     Benchmark("robustness", "bench_bad_view.py", (), ("--repeats", "1", "--out", "{q}/bad_view")),
     Benchmark("robustness", "bench_print_memory.py", (), ("--repeats", "1", "--out", "{q}/print_memory")),
     Benchmark("robustness", "probe_group_interrupt.py", ("-o", "{r}/group_interrupt_now.json"),

@@ -3,14 +3,13 @@
 export, compare), before and after the lazy imports, and which heavy libraries each command loads.
 
 Each case is a fresh `python -m tiltfit|renderer ...` process, timed from the parent (wall clock, medians of
---repeats). "before" runs the same commands from an older checkout of the project (--old, default /tmp/old; make
-it with `git worktree add /tmp/old c3ffd60`) through PYTHONPATH with the same virtualenv; "after" runs this
-checkout. The peers in the same run: the bare interpreter (`python -c pass`), `import cv2` (OpenCV's own start-up,
+--repeats). "after" runs this checkout; "before", only where --old names an existing folder (default /tmp/old,
+e.g. `git worktree add /tmp/old c3ffd60`, the revision before the lazy imports), runs the same commands from that
+older checkout through PYTHONPATH with the same virtualenv. The peers in the same run: the bare interpreter (`python -c pass`), `import cv2` (OpenCV's own start-up,
 what a script calling OpenCV pays first) and `import torch`. Heavy libraries loaded per command are read from one
 extra `-X importtime` run of the "after" tree.
 
-    git worktree add /tmp/old c3ffd60
-    python benchmarks/history/bench_startup.py [--repeats 5] [--old /tmp/old]   # -> benchmarks/results/startup.{json,md}
+    python benchmarks/robustness/bench_startup.py [--repeats 5] [--old /tmp/old]   # -> benchmarks/results/startup.{json,md}
 """
 from __future__ import annotations
 
@@ -148,7 +147,7 @@ def write_markdown(path: str, res: dict) -> None:
     lines = [
         "# Start-up of the commands (issue 32 §2)",
         "",
-        f"`python benchmarks/history/bench_startup.py` on {res['date']}: each case a fresh process, wall seconds from launch "
+        f"`python benchmarks/robustness/bench_startup.py` on {res['date']}: each case a fresh process, wall seconds from launch "
         f"to exit, median of {res['repeats']} (after one warm-up run); {res['cpus']} CPUs, load average "
         f"{res['load_average'][0]:.1f} at the end. before: {res['old_tree'] or '(not measured)'}; after: this checkout. "
         f"Peers in the same run: the bare interpreter, `import cv2`, `import torch`. Goal for help and bad input: "

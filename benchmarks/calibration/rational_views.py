@@ -3,13 +3,14 @@ propagated from the fit's covariance, `tiltfit.select.held_out.mapping_sigma_px`
 n GoPro views (data/real/gopro_wide, tiltfit's cached detections). Issue 24: `--distortion rational` from one
 view wrote coefficients of 3.6e5; it is now refused where that σ exceeds `MAX_MAPPING_SIGMA_PX`.
 
-    python benchmarks/calibration/rational_views.py [-o benchmarks/results/rational_views.json]
+    python benchmarks/calibration/rational_views.py [-o benchmarks/results/rational_views.json]   # and .md beside it
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import re
 import sys
 
 import numpy as np
@@ -54,7 +55,32 @@ def main(argv=None) -> int:
            "rows": rows}
     with open(args.output, "w", encoding="utf-8") as f:
         json.dump(res, f, indent=1)
+    write_markdown(os.path.splitext(args.output)[0] + ".md", res)
     return 0
+
+
+def write_markdown(path: str, res: dict) -> None:
+    """The table of `res` (one row a model and view count) as the results page quotes it."""
+    lines = ["# Distortion models against the number of views", "",
+             "The fitted radial mapping's 1σ at the image corner (pixels, propagated from the fit's covariance, "
+             "`tiltfit.select.held_out.mapping_sigma_px`) for the first n GoPro views (data/real/gopro_wide, cached "
+             f"detections), default options otherwise. A named model is refused above {res['max_mapping_sigma_px']} px "
+             "or where its terms are undetermined. `python benchmarks/calibration/rational_views.py`.", "",
+             "| model | views | mapping σ at the corner (px) | max abs coefficient | RMS (px) | outcome |",
+             "|---|---:|---:|---:|---:|---|"]
+    for r in res["rows"]:
+        if "refused" in r:
+            sigma = re.search(r"uncertain by ±([0-9.]+) px", r["refused"])
+            why = re.search(r"(its denominator term .*? is not determined|the fit found no consistent solution)",
+                            r["refused"])
+            lines.append(f"| {r['model']} | {r['views']} | {sigma.group(1) if sigma else ''} | | | refused"
+                         + (f": {why.group(1)}" if why else "") + " |")
+        else:
+            top = max(abs(c) for c in r["coefficients"])
+            lines.append(f"| {r['model']} | {r['views']} | {r['mapping_sigma_px']:.3g} | {top:.3g} | "
+                         f"{r['rms_px']:.3g} | fitted |")
+    with open(path, "w", encoding="utf-8") as f:
+        f.write("\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

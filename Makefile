@@ -31,15 +31,13 @@ reproduce: .venv/.installed
 # Python. As root with apt-get it is installed; otherwise that test is skipped.
 MRCAL_PROBE := /usr/bin/python3 -c "import mrcal" >/dev/null 2>&1
 
-# --dist loadgroup: the tests that share a module-scoped fixture (a calibration, a set of renders) run on one worker,
-# so it is built once, not once a worker (tests/conftest.py marks them); every other test goes where a worker is free.
 test: .venv/.installed
 	@$(MRCAL_PROBE) || ! [ "$$(id -u)" = 0 ] || ! command -v apt-get >/dev/null || { \
 	  echo "installing Debian's python3-mrcal for the mrcal cross-check"; \
 	  apt-get install -y -q python3-mrcal >/dev/null 2>&1 || { apt-get update -q >/dev/null 2>&1 && \
 	  apt-get install -y -q python3-mrcal >/dev/null 2>&1; } || true; }
 	@$(MRCAL_PROBE) || echo "tiltfit: mrcal (Debian's python3-mrcal) is not installed: its cross-check is skipped"
-	$(PY) -m pytest -n 2 --dist loadgroup --durations=15 tests
+	$(PY) -m pytest -n 2 --durations=15 tests
 
 bench: .venv/.installed
 	.venv/bin/pip install -q -e '.[bench]'

@@ -184,7 +184,7 @@ def test_uncertainties_are_honest():
     """Across 20 + 20 seeded fits with independent corner noise the errors in units of the classical σ behave like
     N(0, 1) — a two-sided test: the same check fails when σ is scaled by 2 or by 0.5. The default σ (the per-view
     error model, `tiltfit.uncertainty.covariance`, with the classical σ as its floor) may only be conservative here: never
-    too small, at most about 1.3× the classical (mean z² ≥ 0.5); correlated errors: test_sigma_honest.py."""
+    too small, at most about 1.3× the classical (mean z² ≥ 0.5); correlated errors: test_sigma_against_spread.py."""
     zs, lines, zv = [], [], []
     for seed in range(20):
         truth = truth_camera(6, seed=1000 + seed)

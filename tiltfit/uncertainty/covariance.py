@@ -35,7 +35,7 @@ error isotropic across the six directions carries τ² to the ones the pose abso
 A_vv⁻¹ + τ² K_v K_vᵀ, K_v = A_vv⁻¹ J_pᵀ B_v (the pose move of each mode), never below the classical s² A_vv⁻¹
 (the matrix max, as for the globals). Left out: the pose–global covariance these errors add (below 0.1 % of
 the poses' σ in the Monte Carlo) and the projective (second-order) directions, which there see no error and
-pulled τ² down (rotations 0.5–0.8). The Monte Carlo of tests/tiltfit/test_sigma_honest.py (8 views, pooled
+pulled τ² down (rotations 0.5–0.8). The Monte Carlo of tests/tiltfit/test_sigma_against_spread.py (8 views, pooled
 over them): rotations 1.05–1.16 of the spread, translations 0.92–0.94; with independent noise alone τ² ≈ 0
 and the own part is the classical one. On industrial_ds1 the flat-board fit's per-view pose errors (against the
 fitted board's poses, benchmarks/calibration/bench_sigma_honesty.py) are 1.13 and 0.99 of this σ for the tilts (classical

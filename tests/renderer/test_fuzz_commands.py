@@ -246,7 +246,13 @@ def test_compile_under_quiet_prints_no_torch_warnings(tmp_path, monkeypatch, qui
         def emit(self, record):
             self.lines.append(record.getMessage())
 
+    import renderer.scene.model
+    import renderer.tracing.fused
+
     monkeypatch.setattr(torch, "compile", noisy_compile)
+    # Functions an earlier test in this process compiled are cached: start without them, so the stand-in runs.
+    monkeypatch.setattr(renderer.scene.model, "_COMPILED", {})
+    monkeypatch.setattr(renderer.tracing.fused, "_COMPILED", {})
     scene = json.loads(_scene())
     scene["camera"] = {"type": "thin_lens", "position": [0, 0, -5], "look_at": [0, 0, 0], "w": 1, "U": 5, "d": 0.2,
                        "sensor_size": [0.8, 0.6], "theta_F_deg": 5}

@@ -8,8 +8,8 @@ import stat
 
 import numpy as np
 
-from tiltfit.cli.detect import _det_dict, write_json_atomic
-from tiltfit.detect.detection import Detection, write_detection_json
+from tiltfit.cli.detect import _det_dict
+from tiltfit.detect.detection import Detection, write_det_json, write_detection_json
 
 CORNERS = [[1.234567, 2.0], [np.nan, np.nan]]
 BLUR = [0.123456, np.nan]
@@ -20,7 +20,7 @@ def test_both_det_writers_round_alike_with_umask_permissions(tmp_path):
     old = os.umask(0o022)
     try:
         write_detection_json(det, str(tmp_path / "a.json"))
-        write_json_atomic(str(tmp_path / "b.json"), _det_dict(4, 3, CORNERS, BLUR))
+        write_det_json(_det_dict(4, 3, CORNERS, BLUR), str(tmp_path / "b.json"))
     finally:
         os.umask(old)
     for name in ("a.json", "b.json"):

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from tiltfit.files.calib import read_calib, write_calib
-from tiltfit.cli.detect import write_json_atomic
+from tiltfit.detect.detection import write_det_json
 from tiltfit.cli.main import main
 from tiltfit.files.det import DET_FORMAT_VERSION, DetFileError, check_view, check_views, describe_detection, read_det
 from renderer import Lens, Sensor
@@ -34,7 +34,7 @@ def _det_dict(corners, blur) -> dict:
 def test_det_file_describes_itself_and_reads_back_equal(tmp_path):
     det = describe_detection(_det_dict(*_view()), "photo.png", "T.json", TARGET)
     path = str(tmp_path / "DET.json")
-    write_json_atomic(path, det)
+    write_det_json(det, path)
     back = read_det(path, TARGET.n_points)
     assert back == det, "DET.json reads back equal"
     assert back["format_version"] == DET_FORMAT_VERSION and back["image"] == "photo.png", back

@@ -82,13 +82,6 @@ def _det_dict(width: int, height: int, corners, blur) -> dict:
             "grid_found": any(v is not None for v in corners_out)}
 
 
-def write_json_atomic(path: str, data: dict) -> None:
-    """Write a DET.json dict (`tiltfit.detect.detection.write_det_json`, the one writer)."""
-    from tiltfit.detect.detection import write_det_json
-
-    write_det_json(data, path)
-
-
 def read_det_file(path: str, n_points: int) -> dict:
     """Read and validate a DET.json for a target of n_points feature points (tiltfit.files.det)."""
     from tiltfit.files.det import DetFileError, read_det
@@ -113,6 +106,7 @@ def cmd_detect(args) -> int:
     target = load_target_file(args.target)
     t0 = time.perf_counter()
     det = detect_image(args.image, target, args.encoding)
+    from tiltfit.detect.detection import write_det_json
     from tiltfit.files.det import MIRRORED, describe_detection, mirrored
 
     corners = [c if c is not None else [math.nan, math.nan] for c in det["corners_px"]]
@@ -125,7 +119,7 @@ def cmd_detect(args) -> int:
     if det.get("message"):
         say(f"{args.image}: note: {det['message']}")
     try:
-        write_json_atomic(args.output, det)
+        write_det_json(det, args.output)
     except (OSError, ValueError) as e:
         raise CliError(args.output, f"cannot write ({os_reason(e)})") from None
     return 0

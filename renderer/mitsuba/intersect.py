@@ -129,32 +129,50 @@ class MitsubaIntersector:
 
     def _ray(self, o, d, t_min: float, t_max=None):
         """Mitsuba rays from (3, N) rows o, d (torch, float32 views, no copy), starting at o + t_min·d."""
-        mi = self.mi
         if o.device.type != "cpu":
             raise ValueError(f"intersector mitsuba: rays on {o.device}; it traces CPU tensors only (variant {self.variant})")
+        F = self.mi.Float
+        return self.jit_ray([F(_f32(o[i])) for i in range(3)], [F(_f32(d[i])) for i in range(3)], t_min,
+                            None if t_max is None else F(_f32(t_max)))
+
+    def jit_ray(self, o, d, t_min: float, t_max=None):
+        """A Mitsuba ray from three Dr.Jit `mi.Float` components each of origin o and direction d (and of the
+        distance t_max, None: unbounded), starting at o + t_min·d."""
+        mi = self.mi
         if mi.variant() != self.variant:  # another caller switched Mitsuba's global variant
             mi.set_variant(self.variant)
-        F = mi.Float
-        ox, oy, oz = (F(_f32(o[i])) for i in range(3))
-        dx, dy, dz = (F(_f32(d[i])) for i in range(3))
-        origin = mi.Point3f(ox + t_min * dx, oy + t_min * dy, oz + t_min * dz)
-        maxt = F(math.inf) if t_max is None else F(_f32(t_max)) - t_min
-        return mi.Ray3f(origin, mi.Vector3f(dx, dy, dz), maxt, 0.0, mi.Color0f())
+        origin = mi.Point3f(o[0] + t_min * d[0], o[1] + t_min * d[1], o[2] + t_min * d[2])
+        maxt = mi.Float(math.inf) if t_max is None else t_max - t_min
+        return mi.Ray3f(origin, mi.Vector3f(*d), maxt, 0.0, mi.Color0f())
+
+    def jit_nearest(self, ray, t_min: float, index_type=None):
+        """The nearest hits of a Mitsuba `ray` (`jit_ray`) as Dr.Jit arrays, not evaluated (so that a caller's
+        kernel takes them in): (t, object, aux), t +inf and object −1 on a miss; object and aux of
+        `index_type` [mi.Int64, what `nearest` hands to torch]."""
+        mi, dr = self.mi, self.dr
+        index_type = mi.Int64 if index_type is None else index_type
+        pi = self.mscene.ray_intersect_preliminary(ray, coherent=True)
+        valid = pi.is_valid()
+        sid = dr.reinterpret_array(mi.UInt32, pi.shape)
+        obj = index_type(dr.gather(mi.Int64, self._obj_of, sid))
+        index = dr.gather(mi.UInt32, self._start, sid) + dr.gather(mi.UInt32, self._stride, sid) * pi.prim_index
+        aux = index_type(dr.gather(mi.Int64, self._aux, index, valid))
+        t = dr.select(valid, pi.t + t_min, math.inf)
+        return t, dr.select(valid, obj, -1), aux
+
+    def jit_visible(self, ray):
+        """1.0 where nothing blocks the Mitsuba `ray` (`jit_ray` with t_max) before its end, else 0.0, as a
+        Dr.Jit `mi.Float`, not evaluated; rays of length <= 0 are visible."""
+        mi, dr = self.mi, self.dr
+        active = ray.maxt > 0
+        blocked = self.mscene.ray_test(ray, active)
+        return dr.select(blocked & active, 0.0, mi.Float(1.0))
 
     def nearest(self, o: torch.Tensor, d: torch.Tensor, t_min: float):
         """Nearest hits beyond t_min of the rays o, d given as (3, N) rows: (t, object, aux), each (N,) torch
         (t in o's dtype, +inf on a miss; object −1 on a miss, long; aux long)."""
-        mi, dr = self.mi, self.dr
-        ray = self._ray(o, d, t_min)
-        pi = self.mscene.ray_intersect_preliminary(ray, coherent=True)
-        valid = pi.is_valid()
-        sid = dr.reinterpret_array(mi.UInt32, pi.shape)
-        obj = dr.gather(mi.Int64, self._obj_of, sid)
-        index = dr.gather(mi.UInt32, self._start, sid) + dr.gather(mi.UInt32, self._stride, sid) * pi.prim_index
-        aux = dr.gather(mi.Int64, self._aux, index, valid)
-        t = dr.select(valid, pi.t + t_min, math.inf)
-        obj = dr.select(valid, obj, -1)
-        dr.eval(t, obj, aux)
+        t, obj, aux = self.jit_nearest(self._ray(o, d, t_min), t_min)
+        self.dr.eval(t, obj, aux)
         t, obj, aux = _to_torch(t, obj, aux)
         t, obj, aux = t.to(o.dtype), obj.long(), aux.long()
         for k in self.fallback:
@@ -165,12 +183,8 @@ class MitsubaIntersector:
 
     def visible(self, o: torch.Tensor, d: torch.Tensor, t_max: torch.Tensor, t_min: float) -> torch.Tensor:
         """(N,) 1 where nothing lies on o + t·d for t in (t_min, t_max), else 0 (o's dtype); o, d (3, N) rows."""
-        mi, dr = self.mi, self.dr
-        ray = self._ray(o, d, t_min, t_max)
-        active = ray.maxt > 0
-        blocked = self.mscene.ray_test(ray, active)
-        vis = dr.select(blocked & active, 0.0, mi.Float(1.0))
-        dr.eval(vis)
+        vis = self.jit_visible(self._ray(o, d, t_min, t_max))
+        self.dr.eval(vis)
         vis = _to_torch(vis)[0].to(o.dtype)
         for k in self.fallback:
             t_k, _ = self.shapes[k].intersect_soa(o, d, t_min, need_aux=False)

@@ -40,11 +40,17 @@ CHUNK_RAYS = 1 << 19
 
 def applies(scene: Scene, options: TraceOptions, device, dtype) -> bool:
     """Whether `render_pixels` computes this scene's image (see the module docstring)."""
+    return options.compile and options.intersector == "mitsuba" and scene_fits(scene, device, dtype)
+
+
+def scene_fits(scene: Scene, device, dtype) -> bool:
+    """Whether the scene is one the per-component stages here shade (see the module docstring), for a
+    render on `device` in `dtype`; `renderer.tracing.jit_direct` takes the same scenes."""
     from renderer.cameras.thin_lens import ThinLensCamera
 
     cam = scene.camera
-    if (not options.compile or options.intersector != "mitsuba" or torch.device(device).type != "cpu"
-            or dtype != torch.float32 or scene.layers or type(cam) is not ThinLensCamera):
+    if (torch.device(device).type != "cpu" or dtype != torch.float32 or scene.layers
+            or type(cam) is not ThinLensCamera):
         return False
     if cam.distortion is not None and not cam.distortion.is_identity:
         return False

@@ -115,9 +115,11 @@ def _render_pixels(scene: Scene, pixel: torch.Tensor, sampler: Sampler, options:
     the caller.
     """
     spp, W = sampler.spp, scene.camera.width
-    if options.compile and options.intersector == "mitsuba":
-        from renderer.tracing import fused
+    if options.intersector == "mitsuba":
+        from renderer.tracing import fused, jit_direct
 
+        if jit_direct.applies(scene, options, device, dtype):  # the whole batch in Dr.Jit kernels beside Embree
+            return jit_direct.render_pixels(scene, pixel, sampler, options)
         if fused.applies(scene, options, device, dtype):  # compiled stages between the Embree calls
             return fused.render_pixels(scene, pixel, sampler, options)
     background = torch.tensor(scene.image.background, dtype=dtype, device=device)

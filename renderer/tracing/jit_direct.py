@@ -1,0 +1,210 @@
+"""Direct light beside Embree in Dr.Jit: the default path of `render` for the scenes `renderer.tracing.fused` takes.
+
+With `intersector="mitsuba"` (the default `auto` where Mitsuba's llvm variant runs) the eager path hands each
+batch of rays to Embree and back, and spends most of its time in a few hundred torch operations per batch, each
+a pass over memory (docs/speed.md, "Where the time goes"). Here the whole per-sample computation of a batch is
+written with Dr.Jit arrays, the JIT Embree already runs in, so that Dr.Jit traces it into a few LLVM kernels
+(one loop over the samples, Embree's queries inside) as Mitsuba's own renders are:
+
+    samples (Sobol here; other samplers from `Sampler.pixel_block`) -> thin-lens rays -> Embree nearest hits
+        -> shading -> Embree shadow rays -> radiance -> pixel sums (`drjit.block_sum`)
+
+Dr.Jit compiles each distinct kernel once (tens of milliseconds with LLVM) and keeps it in memory and on disk
+(`~/.drjit`), so the first render of a new machine is not delayed by seconds as `torch.compile` is (`fused`).
+
+Same scenes as `fused.scene_fits` (direct light only: Lambert, point and ambient lights; the thin-lens
+camera with plain-number parameters, no tilt-axis turn, no distortion; no layers; spheres, boxes, rectangles
+and planes; checker textures on rectangles; CPU float32) and the same formulas as `renderer.tracing.direct`
+and `ThinLensCamera._rays_in_place`, in float32 as they are (the samples in float64 as `Sampler` makes them).
+The images agree with the eager path to float rounding: Dr.Jit's sine and cosine are its own, so lens points
+may differ in the last bit, and a ray grazing an edge may then change its hit (tests/renderer/test_jit_direct.py).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from renderer.cameras.thin_lens import direction_rows, disc_rows, focus_weight_rows
+from renderer.scene.materials import CheckerTexture
+from renderer.scene.model import Scene, TraceOptions
+from renderer.tracing import fused
+
+
+def applies(scene: Scene, options: TraceOptions, device, dtype) -> bool:
+    """Whether `render_pixels` computes this scene's image: eager Embree renders (`intersector="mitsuba"`,
+    not `compile`, `fast_paths` on) of the scenes `fused.scene_fits` takes whose textures are all checkers."""
+    if options.compile or not options.fast_paths or options.intersector != "mitsuba":
+        return False
+    return scene.derived(("jit_direct.applies", torch.device(device).type, dtype), lambda: _fits(scene, device, dtype))
+
+
+def _fits(scene: Scene, device, dtype) -> bool:
+    if not fused.scene_fits(scene, device, dtype):
+        return False
+    table = scene.materials(torch.zeros(0, dtype=dtype))
+    return all(isinstance(tex, CheckerTexture) for tex in table.textures.values())
+
+
+class _Kernel:
+    """What the Dr.Jit computation of a scene reads: its `fused._Tables` as Dr.Jit arrays (gathered by object
+    id in the kernel), the intersector, Mitsuba and Dr.Jit."""
+
+    def __init__(self, scene: Scene):
+        from renderer.mitsuba.intersect import engine
+
+        self.engine = engine(scene)
+        if self.engine.fallback:
+            raise AssertionError("jit_direct: every shape should be traced by Embree (see applies)")
+        mi = self.mi = self.engine.mi
+        self.dr = self.engine.dr
+        tb = self.tables = fused._Tables(scene, scene.materials(torch.zeros(0, dtype=torch.float32)))
+        F = lambda rows: [mi.Float(r.numpy()) for r in rows]  # noqa: E731
+        self.faces, self.center, self.colors = F(tb.faces), F(tb.center), F(tb.colors)
+        self.inv_r, self.kd = mi.Float(tb.inv_r.numpy()), mi.Float(tb.kd.numpy())
+
+
+def _kernel(scene: Scene) -> _Kernel:
+    """The scene's `_Kernel`, kept by the scene (`Scene.derived`: rebuilt after a move)."""
+    return scene.derived("jit_direct.kernel", lambda: _Kernel(scene))
+
+
+def render_pixels(scene: Scene, pixel: torch.Tensor, sampler, options: TraceOptions):
+    """Estimates (n, 3) and coverage (n,) of the pixels `pixel` (n,), as `render._render_pixels` returns
+    them (every thin-lens ray is valid with weight 1)."""
+    k = _kernel(scene)
+    mi, dr = k.mi, k.dr
+    spp = sampler.spp
+    xs, ys, u, v = _samples(k, sampler, pixel, scene.camera.width)
+    o, d = _camera_rays(k, xs, ys, u, v, fused._camera_constants(scene.camera))
+    eps = scene.ray_epsilon
+    t, obj, aux = k.engine.jit_nearest(k.engine.jit_ray(o, d, eps), eps, mi.Int32)
+    found, origin, shadow, ambient, unshadowed = _shade(k, o, d, t, obj, aux)
+    rad = None if ambient is None else list(ambient)
+    for (l, reach), term in zip(shadow, unshadowed):
+        vis = k.engine.jit_visible(k.engine.jit_ray(origin, l, eps, reach))
+        rad = [term[i] * vis + (0 if rad is None else rad[i]) for i in range(3)]
+    if rad is None:  # no lights: black
+        rad = [dr.zeros(mi.Float, dr.width(t)) for _ in range(3)]
+    background = k.tables.background
+    if any(background):
+        missed = dr.select(found, 0.0, mi.Float(1.0))
+        rad = [rad[i] + background[i] * missed for i in range(3)]
+    dr.eval(*rad)  # one kernel for the three channels (`block_sum` would evaluate each channel's own)
+    sums = [dr.block_sum(r, spp) for r in rad]
+    dr.eval(*sums)
+    estimate = torch.stack([s.torch() for s in sums], 1) / spp
+    return estimate, torch.ones(pixel.shape[0], dtype=estimate.dtype)
+
+
+def _samples(k: _Kernel, sampler, pixel: torch.Tensor, width: int):
+    """Pixel positions x, y and lens samples u, v (`mi.Float` each, (n·spp,), a pixel's samples consecutive),
+    as `render._camera_samples` makes them: Sobol points in Dr.Jit (the same integer hashes and float64 steps
+    as `Sampler.pixel_block`), other samplers from `Sampler.pixel_block` itself."""
+    mi, dr = k.mi, k.dr
+    spp = sampler.spp
+    if sampler.name != "sobol":
+        from renderer.tracing.render import _camera_samples
+
+        uv_px, lens_uv = _camera_samples(sampler, pixel, width, torch.float32)
+        return [mi.Float(c.contiguous()) for c in (uv_px[:, 0], uv_px[:, 1], lens_uv[:, 0], lens_uv[:, 1])]
+    U32, F64 = mi.UInt32, mi.Float64
+    index = dr.arange(U32, pixel.shape[0] * spp)
+    slot = index // spp
+    px = dr.gather(U32, U32(pixel.numpy().astype(np.uint32)), slot)
+    h = _chain(dr.opaque(U32, int(sampler._keys[2])), px)
+    table = F64(sampler._points.reshape(-1).numpy())
+    first = (index - slot * spp) * 4
+    rows = []
+    for dim in range(4):
+        value = dr.gather(F64, table, first + dim) + F64(_chain(h, dim)) / 2.0**32  # in [0, 2)
+        rows.append(dr.select(value >= 1, value - 1, value))
+    rows[0] = rows[0] + (F64(px % width) - 0.5)
+    rows[1] = rows[1] + (F64(px // width) - 0.5)
+    return [mi.Float(r) for r in rows]
+
+
+def _hash32(x):
+    """`sampling._hash32` on Dr.Jit UInt32 arrays (whose products wrap at 2^32 as its masks do)."""
+    x = x ^ (x >> 16)
+    x = x * 0x7FEB352D
+    x = x ^ (x >> 15)
+    x = x * 0x846CA68B
+    return x ^ (x >> 16)
+
+
+def _chain(h, key):
+    """`sampling._chain` on Dr.Jit UInt32 arrays."""
+    return _hash32(key + h * 0x9E3779B1)
+
+
+def _camera_rays(k: _Kernel, xs, ys, u, v, cam: fused._CameraConstants):
+    """World rays: origin and unit direction, three `mi.Float` each, as `fused._camera_rays` makes them."""
+    dr = k.dr
+    a, b = 2 * u - 1, 2 * v - 1  # `thin_lens.concentric_disk_xy`
+    pick = dr.abs(a) > dr.abs(b)
+    r, other = dr.select(pick, a, b), dr.select(pick, b, a)
+    q = (math.pi / 4) * (other / (r + dr.select(r == 0, 1.0, 0.0)))
+    sin, cos = dr.sincos(dr.select(pick, q, math.pi / 2 - q))
+    lx, ly = r * cos, r * sin
+    x, y, z = (xs - cam.cx) * cam.pitch_x, (ys - cam.cy) * cam.pitch_y, cam.w
+    o0, o1, o2 = disc_rows(lx, ly, cam.half_d, cam.cos_theta_L, cam.sin_theta_L)
+    weight = focus_weight_rows(y, z, cam.tan_theta_F, cam.U)
+    d0, d1, d2 = direction_rows(x, y, z, o0, o1, o2, weight)
+    inv = dr.minimum(dr.rsqrt(d0 * d0 + d1 * d1 + d2 * d2), 1e12)
+    d0, d1, d2 = d0 * inv, d1 * inv, d2 * inv
+    R, t = cam.R, cam.position
+    if R is None:
+        return [o0 + t[0], o1 + t[1], o2 + t[2]], [d0, d1, d2]
+    o = [R[i][0] * o0 + R[i][1] * o1 + R[i][2] * o2 + t[i] for i in range(3)]
+    d = [R[i][0] * d0 + R[i][1] * d1 + R[i][2] * d2 for i in range(3)]
+    return o, d
+
+
+def _shade(k: _Kernel, o, d, t, obj, aux):
+    """`fused._shade` in Dr.Jit: found, the shadow rays' origin (3 components), per point light its shadow
+    ray (direction (3 components), reach), the ambient radiance (3 components or None) and per point light
+    the unshadowed radiance (3 components)."""
+    mi, dr, tb = k.mi, k.dr, k.tables
+    F, I = mi.Float, mi.Int32
+    found = obj >= 0
+    safe = dr.maximum(obj, 0)
+    tt = dr.select(found, t, 0.0)
+    p = [o[i] + tt * d[i] for i in range(3)]
+    face = dr.clip(aux, 0, 5) + 6 * safe
+    inv_r = dr.gather(F, k.inv_r, safe)
+    n = [dr.gather(F, k.faces[i], face) + (p[i] - dr.gather(F, k.center[i], safe)) * inv_r for i in range(3)]
+    slot = obj + 1
+    index = slot
+    for obj_k, tex, first, origin, R, half in tb.textured:  # the rectangle's `uv_rows`, then the checker's cell
+        q = [p[i] - origin[i] for i in range(3)]
+        if R is None:
+            u, v = q[0], q[1]
+        else:
+            u, v = (R[j][0] * q[0] + R[j][1] * q[1] + R[j][2] * q[2] for j in range(2))
+        cell = dr.floor((u + half[0]) / tex.size) + dr.floor((v + half[1]) / tex.size)
+        half_cell = cell * 0.5  # odd cells: half an integer (exact)
+        odd = I(dr.select(half_cell != dr.floor(half_cell), 1, 0))
+        index = dr.select(obj == obj_k, odd + first, index)
+    albedo = [dr.gather(F, k.colors[i], index) for i in range(3)]
+    entering = n[0] * d[0] + n[1] * d[1] + n[2] * d[2] < 0
+    sign = dr.select(entering, 1.0, F(-1.0))
+    nf = [n[i] * sign for i in range(3)]
+    kds = dr.gather(F, k.kd, slot)
+    origin = [p[i] + nf[i] * tb.eps for i in range(3)]
+    ambient, shadow, unshadowed = None, [], []
+    for kind, intensity, position in tb.lights:
+        if kind == "ambient":
+            ambient = [intensity[i] * albedo[i] + (0 if ambient is None else ambient[i]) for i in range(3)]
+            continue
+        to = [position[i] - origin[i] for i in range(3)]
+        dist = dr.sqrt(to[0] * to[0] + to[1] * to[1] + to[2] * to[2])
+        inv = 1 / dr.maximum(dist, 1e-12)
+        l = [to[i] * inv for i in range(3)]
+        cos = dr.maximum(nf[0] * l[0] + nf[1] * l[1] + nf[2] * l[2], 0.0)
+        reach = dr.select((cos > 0) & found, dist, 0.0)
+        scale = kds * cos / (math.pi * dr.maximum(reach * reach, 1e-30))
+        shadow.append((l, reach))
+        unshadowed.append([albedo[i] * scale * intensity[i] for i in range(3)])
+    return found, origin, shadow, ambient, unshadowed

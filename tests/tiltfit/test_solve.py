@@ -1,5 +1,6 @@
 """tiltfit.solve: Levenberg–Marquardt over named blocks on problems with a known minimum; the Schur complement of
-per-view blocks against the dense normal equations; the Gauss–Newton covariance against linear regression."""
+per-view blocks, and the elimination of per-point blocks, against the dense normal equations; the Gauss–Newton
+covariance against linear regression."""
 import math
 
 import pytest
@@ -7,6 +8,7 @@ import torch
 
 from tiltfit.solve import Block, LMOptions, SolverError, covariance, least_squares, levenberg_marquardt
 from tiltfit.solve.blocks import DenseNormal, Layout, SchurCovariance, SchurNormal
+from tiltfit.solve.points import PointCovariance, PointSchurNormal
 
 F64 = torch.float64
 
@@ -125,6 +127,90 @@ def test_per_view_blocks_by_schur_complement_match_the_dense_solve():
     assert abs(float(lev.sum()) - layout.n_params) < 1e-8, \
         f"the hat matrix's trace is the number of parameters: {float(lev.sum())} vs {layout.n_params}"
     assert layout.flat_names()[:3] == ["radius", "centre[0,0]", "centre[0,1]"], layout.flat_names()[:3]
+
+
+def _points_seen_by_cameras(n_views=5, n_points=7, seed=4):
+    """A small bundle adjustment: N points seen by V translated pinhole views of one focal length, the points'
+    gauge fixed (point 0, which fixes the translation, and point 1's x and z, which fix the scales of x, y and z
+    that the focal length offsets): global, per-view and per-point blocks."""
+    gen = torch.Generator().manual_seed(seed)
+    pts = torch.randn(n_points, 3, generator=gen, dtype=F64) + torch.tensor([0.0, 0.0, 8.0], dtype=F64)
+    shift = 0.8 * torch.randn(n_views, 3, generator=gen, dtype=F64)
+    focal = 2.0
+    obs = focal * (pts[None] + shift[:, None])[..., :2] / (pts[None] + shift[:, None])[..., 2:]
+    obs = obs + 1e-3 * torch.randn(obs.shape, generator=gen, dtype=F64)
+    index = torch.full((n_points, 3), -1, dtype=torch.long)
+    free = torch.ones(n_points, 3, dtype=torch.bool)
+    free[0] = False
+    free[1, 0] = False
+    free[1, 2] = False
+    index[free] = torch.arange(int(free.sum()))
+
+    def points_of(x):
+        p = pts.clone().reshape(-1)
+        p[index.reshape(-1) >= 0] = x["points"]
+        return p.reshape(n_points, 3)
+
+    def evaluate(x, with_jacobian):
+        X = points_of(x)[None] + x["shift"][:, None]                      # (V, N, 3)
+        z = X[..., 2:]
+        r = (x["focal"] * X[..., :2] / z - obs).reshape(-1)               # rows (v, n, u|v)
+        if not with_jacobian:
+            return r, None
+        f = x["focal"]
+        dX = torch.zeros(*X.shape[:2], 2, 3, dtype=F64)                   # ∂(u, v)/∂X
+        dX[..., 0, 0] = f / z[..., 0]
+        dX[..., 1, 1] = f / z[..., 0]
+        dX[..., :, 2] = -f * X[..., :2] / z ** 2
+        dX = dX.reshape(-1, 3)
+        jac = {"focal": (X[..., :2] / z).reshape(-1, 1), "shift": dX, "points": dX}
+        return r, jac
+
+    blocks = [Block("focal", ()), Block("shift", (n_views, 3), per_view=True),
+              Block("points", (int(free.sum()),), points=index)]
+    view_rows = torch.arange(n_views * n_points * 2).reshape(n_views, -1)
+    row_points = torch.arange(n_points).repeat(n_views).repeat_interleave(2)
+    x0 = {"focal": torch.tensor(1.9, dtype=F64), "shift": shift + 0.05,
+          "points": (pts.reshape(-1)[index.reshape(-1) >= 0] + 0.05)}
+    return evaluate, blocks, view_rows, row_points, x0
+
+
+def test_point_blocks_eliminated_as_in_bundle_adjustment_match_the_dense_solve():
+    evaluate, blocks, view_rows, row_points, x0 = _points_seen_by_cameras()
+    res = levenberg_marquardt(evaluate, x0, blocks, view_rows, row_points=row_points)
+    assert isinstance(res.normal, PointSchurNormal), "a point block is eliminated point by point"
+    layout = Layout(blocks, view_rows, row_points)
+    J = layout.jacobian(evaluate(layout.unflatten(res.x_flat), True)[1])
+    assert J.Jq.shape == (row_points.numel(), 3), "the point block's Jacobian is kept as 3 columns a row"
+    Jd = J.dense()
+    A = Jd.T @ Jd
+    assert torch.allclose(res.normal.dense(), A, rtol=1e-12, atol=1e-12), "normal matrix from its blocks"
+
+    def dense_eval(x, with_jacobian):
+        r, jac = evaluate(layout.unflatten(x["all"]), with_jacobian)
+        return r, ({"all": layout.jacobian(jac).dense()} if with_jacobian else None)
+
+    dense = levenberg_marquardt(dense_eval, {"all": layout.flatten(x0)}, [Block("all", (layout.n_params,))])
+    assert torch.allclose(res.x_flat, dense.x_flat, rtol=1e-10, atol=1e-12), "point elimination and dense agree"
+    g = torch.randn(layout.n_params, dtype=F64, generator=torch.Generator().manual_seed(1))
+    d = torch.rand(layout.n_params, dtype=F64, generator=torch.Generator().manual_seed(2))
+    assert torch.allclose(res.normal.solve(d, g), torch.linalg.solve(res.normal.dense() + torch.diag(d), g),
+                          rtol=1e-9, atol=1e-12), "damped solve"
+    assert torch.allclose(res.normal.matvec(g), res.normal.dense() @ g, rtol=1e-12, atol=1e-12), "A v"
+    assert torch.allclose(res.normal.gradient(res.r), dense.normal.gradient(res.r), rtol=1e-10, atol=1e-14), "Jᵀr"
+    C_dense = covariance(dense).dense()
+    cov = covariance(res)
+    assert isinstance(cov, PointCovariance), "the covariance kept by blocks"
+    assert torch.allclose(cov.dense(), C_dense, rtol=1e-7, atol=1e-12), "block inverse equals the dense inverse"
+    assert torch.allclose(cov.diagonal(), torch.diagonal(C_dense), rtol=1e-7, atol=1e-14), "block variances"
+    X = torch.randn(layout.n_params, 3, dtype=F64, generator=torch.Generator().manual_seed(0))
+    assert torch.allclose(cov.matmul(X), C_dense @ X, rtol=1e-7, atol=1e-10), "block product A⁻¹ X"
+    lev = res.normal.leverages(cov)
+    lev_dense = ((Jd @ C_dense) * Jd).sum(-1)
+    assert torch.allclose(lev, lev_dense, rtol=1e-7, atol=1e-10), "each row's leverage"
+    assert abs(float(lev.sum()) - layout.n_params) < 1e-7, "the hat matrix's trace is the number of parameters"
+    glob = J.points_as_globals()
+    assert glob.Jq is None and torch.equal(glob.dense(), Jd), "the points as dense global columns: same Jacobian"
 
 
 def test_huber_loss_down_weights_an_outlier():

@@ -233,8 +233,10 @@ class _Problem:
     model − observation, 0 where unobserved, each divided by its group's σ (`scale`). Parameters: the camera's free stored parameters by
     name (`LensCamera.named_parameters` order); the poses (`rvec`, `T_scaled`) are per-view blocks. The
     Jacobian is the camera's closed form (`LensCamera.jacobian`). With a `board` (`tiltfit.target.shape.Board`) that
-    has parameters, the target points are the board's and its parameters are one more global block, "board"
-    (∂uv/∂θ = ∂uv/∂p_cam · R_v · ∂X/∂θ).
+    has parameters, the target points are the board's and its parameters are one more block, "board"
+    (∂uv/∂θ = ∂uv/∂p_cam · R_v · ∂X/∂θ): global for a shape of a few parameters (warp); a point block where each
+    parameter is one coordinate of one point (free: `_point_index`), whose Jacobian is each row's ∂/∂X of its own
+    point (M, 3) and whose points the solve eliminates (`tiltfit.solve.points`).
     """
 
     POSE = ("rvec", "T_scaled")
@@ -254,8 +256,11 @@ class _Problem:
             params[self.BOARD] = self.board.params
         self.shapes = [params[n].shape for n in self.names]
         self.held = {n: p.detach() for n, p in params.items() if n not in self.names}
-        # columns per parameter in a residual row (a pose's: its own view's 3)
+        # columns per parameter in a residual row (a pose's: its own view's 3; a point block's: its point's 3)
         self._sizes = {n: (p.shape[-1] if n in self.POSE else p.numel()) for n, p in params.items()}
+        self.point_index = _point_index(self.board.basis) if self.board is not None else None
+        if self.point_index is not None:
+            self._sizes[self.BOARD] = 3
         self.work = camera.copy().requires_grad_(False)  # evaluated at trial parameters, never autograd
         self._work_params = dict(self.work.named_parameters())
         self._overridden = set()  # held parameters `_load` replaced (restored on the next call)
@@ -277,12 +282,19 @@ class _Problem:
         self.blur_rows = torch.zeros_like(self.corner_rows)
         self.blur_rows[nc:] = self.bmask.reshape(-1) if nb else False
         V, N = self.cmask.shape
-        self.blocks = [Block(n, tuple(shape), per_view=n in self.POSE) for n, shape in zip(self.names, self.shapes)]
+        self.blocks = [Block(n, tuple(shape), per_view=n in self.POSE,
+                             points=self.point_index if n == self.BOARD else None)
+                       for n, shape in zip(self.names, self.shapes)]
         # rows of view v: its 2N corner entries (and its N blur entries)
         self.view_rows = 2 * N * torch.arange(V)[:, None] + torch.arange(2 * N)[None]
         if nb:
             self.view_rows = torch.cat([self.view_rows, 2 * V * N + N * torch.arange(V)[:, None]
                                         + torch.arange(N)[None]], 1)
+        # the point of each row: corner rows (v, n, u|v), then blur rows (v, n)
+        points = torch.arange(N).repeat(V)
+        self.row_points = torch.cat([points.repeat_interleave(2)] + ([points] if nb else []))
+        if self.point_index is None:
+            self.row_points = None
 
     def x0(self) -> dict:
         params = dict(self.camera.named_parameters())
@@ -342,7 +354,8 @@ class _Problem:
         if self.BOARD in names:
             d_pcam = jac["T_scaled"] / self.work.length_scale_mm                # (V, N, 3, 3) ∂(u, v, b)/∂p_cam
             d_world = d_pcam @ self.work.R.detach()[:, None]                    # ∂/∂X_world
-            jac[self.BOARD] = torch.einsum("vnij,njk->vnik", d_world, self.board.basis)
+            jac[self.BOARD] = d_world if self.point_index is not None else \
+                torch.einsum("vnij,njk->vnik", d_world, self.board.basis)
         j = torch.cat([jac[n] for n in names], -1)                          # (V, N, 3, P)
         jc = torch.where(self.cmask[..., None, None], j[..., :2, :], 0.0).reshape(-1, j.shape[-1])
         if not self.blur_rows_kept:
@@ -379,6 +392,18 @@ class _Problem:
                 params[n].copy_(v)
 
 
+def _point_index(basis: torch.Tensor) -> torch.Tensor | None:
+    """(N, 3) long: the parameter that is each coordinate of each point, −1 where none (a gauge), when every
+    parameter of a board's shape is one coordinate of one point (`basis` (N, 3, K) a selection: the free model);
+    else None (the parameters move many points: a global block)."""
+    N, _, K = basis.shape
+    B = basis.reshape(3 * N, K)
+    if K == 0 or not bool(((B != 0).sum(0) == 1).all()) or not bool((B.sum(0) == 1).all()) \
+            or bool(((B != 0).sum(1) > 1).any()):
+        return None
+    return torch.where((B != 0).any(1), B.argmax(1), -1).reshape(N, 3)
+
+
 def _robust_options(robust: str | None, scale: float, max_iterations: int) -> LMOptions:
     """`LMOptions` with the robust loss of `tiltfit.calibrate.model` (ρ and its IRLS weight)."""
     if robust in (None, "none"):
@@ -387,9 +412,9 @@ def _robust_options(robust: str | None, scale: float, max_iterations: int) -> LM
                      weight=lambda s2: robust_weight(s2, robust, scale))
 
 
-def _lm(evaluate, x0: dict, blocks, view_rows, options: LMOptions) -> LMResult:
+def _lm(evaluate, x0: dict, blocks, view_rows, options: LMOptions, row_points=None) -> LMResult:
     try:
-        return solve_lm(evaluate, x0, blocks, view_rows, options)
+        return solve_lm(evaluate, x0, blocks, view_rows, options, row_points)
     except SolverError as e:
         raise FitError(str(e)) from None
 
@@ -440,7 +465,7 @@ def _solve(camera: LensCamera, obs: Observations, options: FitOptions, sigma=Non
     sigma_now = [sc, sb]   # σ_corner, σ_blur of the current solve
 
     def solve(x):
-        return _lm(prob.evaluate(prob.scale(*sigma_now)), x, prob.blocks, prob.view_rows, lm_options)
+        return _lm(prob.evaluate(prob.scale(*sigma_now)), x, prob.blocks, prob.view_rows, lm_options, prob.row_points)
 
     def rescale(res, k: int, last: bool):
         if not estimate or last:

@@ -10,12 +10,14 @@ With per-view blocks the normal equations A = Jᵀ W J have the arrow structure 
 per-view part is block diagonal (one K×K block per view) and is eliminated by the Schur complement
 (Triggs et al., "Bundle adjustment — a modern synthesis", 2000, §6.1), so a solve costs
 O(M (S + K)² + V K³ + S³) instead of O(M P² + P³) for M residuals, S global and P = S + V K parameters
-(`SchurNormal`; `DenseNormal` without per-view blocks).
+(`SchurNormal`; `DenseNormal` without per-view blocks). A point block (a free board's target points) holds up
+to 3 numbers for each point, and row i depends only on its own point: its Jacobian stays (M, 3) and the points
+are eliminated like bundle adjustment's (`tiltfit.solve.points`).
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -29,11 +31,15 @@ class Block:
         name: the block's name (the key of the state dict and of the Jacobian dict).
         shape: the block's tensor shape; for a per-view block (V, K).
         per_view: each view has its own row of the block, and only that view's residuals depend on it.
+        points: for a point block, (N, 3) long: the position in the block of each point's x, y, z, or −1 where a
+            gauge fixes it; residual row i depends only on the 3 coordinates of its point (`Layout`'s
+            `row_points`), and the callback's Jacobian of the block is (M, 3). None: not a point block.
     """
 
     name: str
     shape: tuple
     per_view: bool = False
+    points: object = field(default=None, compare=False)
 
     @property
     def size(self) -> int:
@@ -48,9 +54,11 @@ class Layout:
     Args:
         blocks: the blocks, in flat order.
         view_rows: (V, R) long, the residual rows of each view (needed when a block is per view).
+        row_points: (M,) long, the point of each residual row (needed with a point block, which needs per-view
+            blocks too).
     """
 
-    def __init__(self, blocks, view_rows: torch.Tensor | None = None):
+    def __init__(self, blocks, view_rows: torch.Tensor | None = None, row_points: torch.Tensor | None = None):
         self.blocks = tuple(blocks)
         if not self.blocks:
             raise ValueError("blocks: expected at least one parameter block")
@@ -58,7 +66,11 @@ class Layout:
         if len(set(names)) != len(names):
             raise ValueError(f"blocks: duplicate names in {names}")
         self.view_blocks = tuple(b for b in self.blocks if b.per_view)
-        self.global_blocks = tuple(b for b in self.blocks if not b.per_view)
+        self.point_blocks = tuple(b for b in self.blocks if b.points is not None)
+        self.global_blocks = tuple(b for b in self.blocks if not b.per_view and b.points is None)
+        if self.point_blocks and (len(self.point_blocks) > 1 or not self.view_blocks or row_points is None):
+            raise ValueError("a point block: at most one, beside per-view blocks, with row_points")
+        self.row_points = row_points
         if self.view_blocks and view_rows is None:
             raise ValueError("view_rows: needed for per-view blocks")
         n_views = {b.shape[0] for b in self.view_blocks}
@@ -80,6 +92,11 @@ class Layout:
             else torch.zeros(0, dtype=torch.long)
         self.p_idx = torch.cat([self.offsets[b.name][0] + b.size * torch.arange(V)[:, None] + torch.arange(b.size)
                                 for b in self.view_blocks], 1) if self.view_blocks else None
+        self.q_idx = None
+        if self.point_blocks:
+            b = self.point_blocks[0]
+            pts = torch.as_tensor(b.points, dtype=torch.long)
+            self.q_idx = torch.where(pts >= 0, self.offsets[b.name][0] + pts, -1)
 
     def flatten(self, x: dict) -> torch.Tensor:
         """{name: tensor} -> (P,) flat vector."""
@@ -108,7 +125,11 @@ class Layout:
         Jp = torch.cat([jac[b.name] for b in self.view_blocks], 1)
         if Js is None:
             Js = Jp.new_zeros(Jp.shape[0], 0)
-        return BlockJacobian(Js, Jp, self.view_rows, self.s_idx, self.p_idx, self.n_params)
+        if not self.point_blocks:
+            return BlockJacobian(Js, Jp, self.view_rows, self.s_idx, self.p_idx, self.n_params)
+        Jq = jac[self.point_blocks[0].name] * (self.q_idx >= 0)[self.row_points]
+        return BlockJacobian(Js, Jp, self.view_rows, self.s_idx, self.p_idx, self.n_params, Jq, self.row_points,
+                             self.q_idx)
 
 
 @dataclass
@@ -122,7 +143,10 @@ class BlockJacobian:
         rows: (V, R) long, the residual rows of each view.
         s_idx: (S,) long, positions of the global parameters in the flat parameter vector.
         p_idx: (V, K) long, positions of each view's parameters.
-        n_params: P = S + V·K.
+        n_params: P = S + V·K (+ the point block's).
+        Jq: (M, 3) or None: columns of a point block, row i's derivatives with respect to its own point's
+            coordinates (0 at gauge coordinates); row_points: (M,) long, the point of each row; q_idx: (N, 3) long,
+            positions of each point's coordinates (−1: fixed by the gauge).
     """
 
     Js: torch.Tensor
@@ -131,13 +155,41 @@ class BlockJacobian:
     s_idx: torch.Tensor
     p_idx: torch.Tensor
     n_params: int
+    Jq: torch.Tensor | None = None
+    row_points: torch.Tensor | None = None
+    q_idx: torch.Tensor | None = None
 
     def dense(self) -> torch.Tensor:
         """(M, P) the full Jacobian."""
-        J = self.Js.new_zeros(self.Js.shape[0], self.n_params)
+        J = self.Js.new_zeros(self.Js.shape[0], self.n_params + 1)
         J[:, self.s_idx] = self.Js
         J[self.rows[:, :, None], self.p_idx[:, None, :]] = self.Jp[self.rows]
-        return J
+        if self.Jq is not None:
+            J[torch.arange(J.shape[0])[:, None], self._point_columns()] = self.Jq
+        return J[:, :self.n_params]
+
+    def _point_columns(self) -> torch.Tensor:
+        """(M, 3) each row's point columns in the flat vector (n_params for gauge coordinates)."""
+        return torch.where(self.q_idx < 0, self.n_params, self.q_idx)[self.row_points]
+
+    def scaled(self, factor) -> "BlockJacobian":
+        """The Jacobian times `factor` (a scalar or (M,) per row)."""
+        f = factor[:, None] if torch.is_tensor(factor) and factor.dim() == 1 else factor
+        return replace(self, Js=self.Js * f, Jp=self.Jp * f, Jq=None if self.Jq is None else self.Jq * f)
+
+    def points_as_globals(self) -> "BlockJacobian":
+        """The same Jacobian with the point block's columns held as dense global ones (M, 3N − gauge), after
+        the other global blocks: the form of a Jacobian without point blocks (for computations written for
+        it)."""
+        if self.Jq is None:
+            return self
+        free = self.q_idx[self.q_idx >= 0]
+        order = torch.argsort(free)
+        Jd = self.Js.new_zeros(self.Js.shape[0], self.n_params + 1)
+        Jd[torch.arange(Jd.shape[0])[:, None], self._point_columns()] = self.Jq
+        cols = free[order]
+        return BlockJacobian(torch.cat([self.Js, Jd[:, cols]], 1), self.Jp, self.rows,
+                             torch.cat([self.s_idx, cols]), self.p_idx, self.n_params)
 
 
 class DenseNormal:
@@ -349,8 +401,15 @@ class SchurCovariance:
 
 
 def normal_equations(J, wts: torch.Tensor):
-    """`SchurNormal` of a `BlockJacobian`, `DenseNormal` of a dense (M, P) tensor."""
-    return SchurNormal(J, wts) if isinstance(J, BlockJacobian) else DenseNormal(J, wts)
+    """`SchurNormal` of a `BlockJacobian` (`points.PointSchurNormal` with a point block), `DenseNormal` of a dense
+    (M, P) tensor."""
+    if not isinstance(J, BlockJacobian):
+        return DenseNormal(J, wts)
+    if J.Jq is not None:
+        from .points import PointSchurNormal
+
+        return PointSchurNormal(J, wts)
+    return SchurNormal(J, wts)
 
 
 def dense_jacobian(J) -> torch.Tensor:

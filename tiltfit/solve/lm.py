@@ -113,7 +113,7 @@ class LMResult:
         minimiser of ½ Σ r² does not move, so no re-solve is needed. Without a robust loss only (its
         weights depend on the scale)."""
         J = self.jacobian
-        J = replace(J, Js=J.Js * factor, Jp=J.Jp * factor) if isinstance(J, BlockJacobian) else J * factor
+        J = J.scaled(factor) if isinstance(J, BlockJacobian) else J * factor
         return replace(self, cost=self.cost * factor**2, r=self.r * factor, jacobian=J,
                        normal=normal_equations(J, self.weights))
 
@@ -193,7 +193,7 @@ def _damped_step(problem: _Problem, x, cost: float, ne, g, scaling, lam: float, 
 
 
 def levenberg_marquardt(evaluate, x0: dict, blocks, view_rows: torch.Tensor | None = None,
-                        options: LMOptions = LMOptions()) -> LMResult:
+                        options: LMOptions = LMOptions(), row_points: torch.Tensor | None = None) -> LMResult:
     """Minimise ½ Σ ρ(r_i(x)²) over the named blocks (module docstring).
 
     Args:
@@ -202,12 +202,13 @@ def levenberg_marquardt(evaluate, x0: dict, blocks, view_rows: torch.Tensor | No
         blocks: the `Block`s in flat order.
         view_rows: (V, R) long, each view's residual rows (when a block is per view).
         options: `LMOptions`.
+        row_points: (M,) long, each residual row's point (when a block is a point block, `Block.points`).
     Returns:
         LMResult.
     Raises:
         SolverError: non-finite residuals at the start, or no convergence within `options.max_iterations`.
     """
-    layout = Layout(blocks, view_rows)
+    layout = Layout(blocks, view_rows, row_points)
     problem = _Problem(evaluate, layout, options.rho or (lambda s2: s2))
     weight = options.weight or torch.ones_like
     x = layout.flatten(x0).detach().clone()

@@ -90,6 +90,8 @@ def view_cluster_covariance(res, s2: float, modes: torch.Tensor | None = None, k
     from tiltfit.solve.blocks import BlockJacobian, SchurCovariance
 
     bj = res.jacobian
+    if isinstance(bj, BlockJacobian):
+        bj = bj.points_as_globals()   # a free board's points among the globals, as the sandwich is written
     if not isinstance(bj, BlockJacobian) or bj.rows.shape[0] < 2 or bj.Js.shape[1] == 0:
         return None
     a = res.weights.clamp_min(0).sqrt()

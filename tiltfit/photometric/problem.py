@@ -11,12 +11,12 @@ from dataclasses import dataclass
 
 import torch
 
-from renderer.cameras import LENS_PARAMETERS, lens_values
+from renderer.cameras import LENS_PARAMETERS, concentric_disk, lens_values
 
 from tiltfit.photometric.aperture import checker_dark_fraction_disc, lines_cut
 from tiltfit.calibrate.model import LensCamera
 from tiltfit.target.layout import Target
-from .render import SUBPIXELS, SUBPIXELS_SHARP, dark_fraction_samples, sub_points
+from .render import SUBPIXELS, SUBPIXELS_SHARP, dark_fraction_lens_samples, sample_points, sub_points
 
 
 #: Pixels per block of the Jacobian (bounds its memory; results do not depend on it).
@@ -50,6 +50,7 @@ class _Problem:
 
     def __init__(self, camera: LensCamera, target: Target, data: list, lens_uv: torch.Tensor, say=None):
         self.camera, self.target, self.data, self.lens_uv = camera, target, data, lens_uv
+        self.lens_xy = concentric_disk(lens_uv.to(torch.float64))   # the samples' points of the unit disc
         self.geometry = _ViewGeometry(camera)
         self.near = 1
         self.n_edges = max(len(target.x_edges), len(target.y_edges))
@@ -119,17 +120,32 @@ class _Problem:
         return dark.detach().mean(-1), dD
 
     def _samples(self, v: int, geo: torch.Tensor, psf: torch.Tensor, uv: torch.Tensor, jacobian: bool):
-        def dark(g):
-            d = self._call(v, g[:10], lambda cam: dark_fraction_samples(self.target, cam, uv, self.lens_uv,
-                                                                         g[10] ** 2))
-            return d, d.detach()
-
-        g = torch.cat([geo, psf.reshape(1)])
+        """(N,) dark fractions by the fixed lens samples and (N, 11) their derivatives by (lens, pose, psf): as
+        `_closed`, forward mode through the 7 focus points a pixel (`render.sample_points`) and one reverse pass
+        through the samples' checker (elementwise in the pixels), chained."""
+        pts = sample_points(uv)
         if not jacobian:
             with torch.no_grad():
-                return dark(g)[1], None
-        dD, D = torch.func.jacfwd(dark, has_aux=True)(g)
-        return D, dD
+                q, c, a = self._call(v, geo, lambda cam: cam.focus_geometry(pts)[:3])
+                return dark_fraction_lens_samples(self.target, q, c, a, self.lens_xy, psf * psf), None
+
+        def focus(g):
+            out = self._call(v, g, lambda cam: cam.focus_geometry(pts)[:3])
+            return out, tuple(o.detach() for o in out)
+
+        (dq, dc, da), (q, c, a) = torch.func.jacfwd(focus, has_aux=True)(geo)
+        n = pts.shape[0]
+        with torch.enable_grad():
+            # Each pixel's own copy of the lens centre, axes and the Gaussian's variance (see `_closed`).
+            qq = q.clone().requires_grad_()
+            cc = c.expand(n, 3).clone().requires_grad_()
+            aa = a.expand(n, 2, 3).clone().requires_grad_()
+            var = (psf.detach() ** 2).expand(n).clone().requires_grad_()
+            dark = dark_fraction_lens_samples(self.target, qq, cc, aa, self.lens_xy, var)
+            gq, gc, ga, gv = torch.autograd.grad(dark.sum(), (qq, cc, aa, var))
+        dD = (torch.einsum("nsk,nskp->np", gq, dq) + torch.einsum("nk,kp->np", gc, dc)
+              + torch.einsum("nij,ijp->np", ga, da))
+        return dark.detach(), torch.cat([dD, (2.0 * psf.detach() * gv)[:, None]], 1)
 
     def _dark(self, v: int, geo: torch.Tensor, psf: torch.Tensor, jacobian: bool):
         """(N,) dark fractions of view v's pixels and (N, 11) their derivatives by (lens, pose, psf)."""

@@ -17,9 +17,11 @@ The Jacobian: the exposure enters in closed form; the dark fraction D of a close
 geometry only through each sub-point's focus point and the lens's centre and aperture axes
 (`ThinLensCamera.focus_geometry`), so D is differentiated with respect to those per-point inputs by one
 reverse pass (the aperture integral is elementwise in the points) and chained with the forward-mode Jacobian
-of `focus_geometry` (10 tangents through cheap geometry). Lens-sample pixels take forward mode through their
-rays (benchmarks/results/photometric_profile.md: forward mode through the aperture integral was 78 % of the
-time before).
+of `focus_geometry` (10 tangents through cheap geometry). Lens-sample pixels likewise: their rays are lines
+from the lens points through 4 sub-pixels' focus points, met with the board in closed form, so forward mode
+runs through 7 focus points a pixel (the sub-pixels and the footprint's chief rays) and one reverse pass through
+the samples' checker (benchmarks/results/photometric_profile.md: forward mode through the aperture integral, then
+through the traced rays, was most of the time before).
 
 σ: the per-view cluster-robust covariance of the corner fit (`tiltfit.uncertainty.covariance.view_cluster_covariance`: views
 as clusters, each view's pose, levels and illumination profiled out, the CR2 small-sample correction, the

@@ -180,30 +180,77 @@ def sub_points(uv_px: torch.Tensor, subpixels: int = SUBPIXELS) -> torch.Tensor:
     return uv_px[:, None, :] + sub
 
 
+#: Sensor points of a pixel the lens samples are traced from, about its centre (px): the 2 x 2 sub-pixel centres.
+SAMPLE_SUBPIXELS = ((-0.25, -0.25), (0.25, -0.25), (-0.25, 0.25), (0.25, 0.25))
+#: ... and the chief rays of the pixel and of its right and lower neighbours (the footprint's Jacobian).
+FOOTPRINT_STEPS = ((0.0, 0.0), (1.0, 0.0), (0.0, 1.0))
+
+
+def sample_points(uv_px: torch.Tensor) -> torch.Tensor:
+    """(N, 7, 2) the sensor points `dark_fraction_samples` needs of each pixel of `uv_px` (N, 2): the 2 x 2
+    sub-pixel centres (SAMPLE_SUBPIXELS), then the pixel and its right and lower neighbours (FOOTPRINT_STEPS)."""
+    offsets = torch.tensor(SAMPLE_SUBPIXELS + FOOTPRINT_STEPS, dtype=uv_px.dtype, device=uv_px.device)
+    return uv_px[:, None, :] + offsets
+
+
+def _board_hit(q_h: torch.Tensor, lx, ly, lz):
+    """(X, Y) where the rays from lens points (lx, ly, lz) through the focus points q_h (homogeneous (x, y, z, s),
+    target frame) meet the board plane Z = 0: the central projection X_k = (L_z q_k − q_z L_k) / (L_z s − q_z)
+    (`tiltfit.photometric.aperture`'s line equation, solved for the point). Shapes broadcast."""
+    qx, qy, qz, s = q_h.unbind(-1)
+    den = lz * s - qz
+    return (lz * qx - qz * lx) / den, (lz * qy - qz * ly) / den
+
+
+def dark_fraction_lens_samples(target: Target, q_h: torch.Tensor, centre: torch.Tensor, axes: torch.Tensor,
+                               lens_xy: torch.Tensor, psf_var_px2=0.0) -> torch.Tensor:
+    """(N,) dark fraction of pixels averaged over fixed points of the lens's disc, from each pixel's focus
+    geometry (no rays traced: each sample's ray is the line from its lens point through the sub-pixel's focus
+    point, met with the board plane in closed form).
+
+    Args:
+        q_h: (N, 7, 4) homogeneous focus points of `sample_points` (`ThinLensCamera.focus_geometry`), target frame.
+        centre: (3,) or (N, 3) the lens centre; axes: (2, 3) or (N, 2, 3) the aperture's half-diameter vectors
+            (one copy per pixel where the fit differentiates each pixel with respect to its own).
+        lens_xy: (S, 2) points of the unit disc (`concentric_disk` of the lens samples).
+        psf_var_px2: variance (px²) of a Gaussian convolved with the disc, a number or (N,).
+    Returns:
+        (N,) the mean over the 2 x 2 sub-pixels and S lens points of the antialiased checker (module docstring).
+    """
+    if centre.dim() == 1:
+        centre, axes = centre.expand(q_h.shape[0], 3), axes.expand(q_h.shape[0], 2, 3)
+    a, b = lens_xy[:, 0], lens_xy[:, 1]
+    # Lens points (N, 1, S) per component, L = C + a A₁ + b A₂.
+    lens = [(centre[:, k, None] + axes[:, 0, k, None] * a + axes[:, 1, k, None] * b)[:, None, :] for k in range(3)]
+    X, Y = _board_hit(q_h[:, :4, None, :], *lens)                        # (N, 4, S)
+    cx, cy = _board_hit(q_h[:, 4:], *(centre[:, k, None] for k in range(3)))   # chief rays (N, 3)
+    # The pixel's area (as the sub-pixels' Gaussian footprints, see `dark_fraction_samples`).
+    jx, jy = cx[:, 1:] - cx[:, :1], cy[:, 1:] - cy[:, :1]               # (N, 2 (du, dv))
+    var = torch.as_tensor(psf_var_px2, dtype=q_h.dtype, device=q_h.device)
+    sigma_x = torch.sqrt((jx * jx).sum(1) * (1.0 / 48.0 + var))
+    sigma_y = torch.sqrt((jy * jy).sum(1) * (1.0 / 48.0 + var))
+    n = q_h.shape[0]
+    return checker_dark_fraction(X.reshape(n, -1), Y.reshape(n, -1), sigma_x[:, None], target,
+                                 sigma_y=sigma_y[:, None]).mean(-1)
+
+
 def dark_fraction_samples(target: Target, cam: ThinLensCamera, uv_px: torch.Tensor, lens_uv: torch.Tensor,
                           psf_var_px2=0.0) -> torch.Tensor:
     """(N,) dark fraction of pixels `uv_px` (N, 2), averaged over the fixed lens samples `lens_uv` (S, 2) in
     [0, 1)² (their points on the aperture should have the disc's moments, as `hammersley_disc_samples`'s do, or
     d comes out scaled). `psf_var_px2`: variance (px²) of a Gaussian convolved with the lens's disc [0]; it
-    widens each sub-pixel's Gaussian footprint on the board."""
-    n, s = uv_px.shape[0], lens_uv.shape[0]
-    # The pixel's area: every lens sample is traced from each of the 2 x 2 sub-pixel centres, and each
-    # sub-pixel's remaining box (half a pixel wide) is a Gaussian footprint on the board of the same
-    # variance, per board axis, from the chief rays of the pixel and of its right and lower neighbours
-    # (J = d(X, Y)/d(u, v)): (J_u² + J_v²) / (4 · 12). A single Gaussian for the whole pixel misses the
-    # box's shape, which matters where the blur is a pixel or two (it biased θF by 0.1° on sharp boards).
-    sub = torch.tensor([[-0.25, -0.25], [0.25, -0.25], [-0.25, 0.25], [0.25, 0.25]], dtype=uv_px.dtype,
-                       device=uv_px.device)
-    uv_s = (uv_px[:, None, None, :] + sub[None, :, None, :]).expand(n, 4, s, 2)
-    rays = cam.generate_rays(uv_s, lens_uv[None, None].expand(n, 4, s, 2))
-    hit = on_board(rays).reshape(n, 4 * s, 3)
-    steps = torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]], dtype=uv_px.dtype, device=uv_px.device)
-    chief = on_board(cam.generate_rays(uv_px[:, None, :] + steps,
-                                       torch.full((n, 3, 2), 0.5, dtype=uv_px.dtype, device=uv_px.device)))
-    J = chief[:, 1:, :2] - chief[:, :1, :2]              # (N, 2 (du, dv), 2 (X, Y))
-    sigma_xy = torch.sqrt((J**2).sum(1) * (1.0 / 48.0 + psf_var_px2))  # (N, 2)
-    return checker_dark_fraction(hit[..., 0], hit[..., 1], sigma_xy[:, None, 0], target,
-                                 sigma_y=sigma_xy[:, None, 1]).mean(-1)
+    widens each sub-pixel's Gaussian footprint on the board.
+
+    The pixel's area: every lens sample is traced from each of the 2 x 2 sub-pixel centres, and each sub-pixel's
+    remaining box (half a pixel wide) is a Gaussian footprint on the board of the same variance, per board axis,
+    from the chief rays of the pixel and of its right and lower neighbours (J = d(X, Y)/d(u, v)):
+    (J_u² + J_v²) / (4 · 12). A single Gaussian for the whole pixel misses the box's shape, which matters where
+    the blur is a pixel or two (it biased θF by 0.1° on sharp boards). The rays are the thin lens's
+    (`ThinLensCamera.generate_rays`: from the sample's lens point through the sensor point's focus point), met
+    with the board in closed form from the 7 points' focus geometry (`dark_fraction_lens_samples`), so the
+    distortion is inverted 7 times a pixel, not 4 S times."""
+    q_h, centre, axes, _ = cam.focus_geometry(sample_points(uv_px))
+    return dark_fraction_lens_samples(target, q_h, centre, axes, concentric_disk(lens_uv.to(q_h)), psf_var_px2)
 
 
 def dark_fraction_disc(target: Target, cam: ThinLensCamera, uv_px: torch.Tensor, near: int,

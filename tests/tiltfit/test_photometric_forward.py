@@ -1,0 +1,100 @@
+"""The photometric fit's lens-sample path: the same dark fraction as the thin lens's own traced rays, from each
+pixel's focus geometry alone (no ray traced per lens sample), with a Jacobian that asks for no rays either."""
+from __future__ import annotations
+
+import math
+import os
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+sys.path.insert(0, os.path.dirname(__file__))
+import test_photometric as tp  # noqa: E402  (the board, the lens and the camera helper)
+
+from renderer import Lens, Sensor  # noqa: E402
+from renderer.cameras import EOS_6D, ThinLensCamera, optics  # noqa: E402
+from tiltfit.experiments import reproduce  # noqa: E402
+from tiltfit.photometric import checker_dark_fraction, dark_fraction_samples, hammersley_disc_samples  # noqa: E402
+from tiltfit.photometric.problem import _Problem, _View  # noqa: E402
+from tiltfit.photometric.render import on_board  # noqa: E402
+
+
+def _traced_dark_fraction(target, cam, uv_px, lens_uv, psf_var_px2):
+    """The reference: every lens sample traced by `generate_rays` from the 2 x 2 sub-pixel centres and met with the
+    board plane, the footprint from the chief rays of the pixel and its right and lower neighbours."""
+    n, s = uv_px.shape[0], lens_uv.shape[0]
+    sub = torch.tensor([[-0.25, -0.25], [0.25, -0.25], [-0.25, 0.25], [0.25, 0.25]], dtype=uv_px.dtype)
+    uv_s = (uv_px[:, None, None, :] + sub[None, :, None, :]).expand(n, 4, s, 2)
+    hit = on_board(cam.generate_rays(uv_s, lens_uv[None, None].expand(n, 4, s, 2))).reshape(n, 4 * s, 3)
+    steps = torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]], dtype=uv_px.dtype)
+    chief = on_board(cam.generate_rays(uv_px[:, None, :] + steps, torch.full((n, 3, 2), 0.5, dtype=uv_px.dtype)))
+    J = chief[:, 1:, :2] - chief[:, :1, :2]
+    sigma = torch.sqrt((J ** 2).sum(1) * (1.0 / 48.0 + psf_var_px2))
+    return checker_dark_fraction(hit[..., 0], hit[..., 1], sigma[:, None, 0], tp.BOARD,
+                                 sigma_y=sigma[:, None, 1]).mean(-1)
+
+
+def _tilted_view(theta_L_deg: float = 4.65, view: int = 1):
+    """A tilted lens (blur about 9 px) looking at the test board, 342 x 228."""
+    w_px, h_px = EOS_6D.binned(16).size_px
+    lens = Lens.from_tilt(tp.W_MM, float(optics.focal_length(tp.W_MM, 700.0)), math.radians(theta_L_deg), tp.D_MM,
+                          sensor=Sensor(w_px, h_px, EOS_6D.pixel_pitch * 16))
+    R, T = reproduce.target_pose(tp.BOARD, *reproduce.TARGET_VIEWS[view])
+    return lens, R, T
+
+
+@pytest.mark.parametrize("theta_L_deg, psf_var", [(4.65, 0.0), (-5.0, 1.44)])
+def test_lens_samples_match_the_traced_rays(theta_L_deg, psf_var):
+    """`dark_fraction_samples` (focus points met with the board in closed form) against the same lens samples
+    traced as rays by the camera: equal to rounding, on pixels that see edges and corners."""
+    lens, R, T = _tilted_view(theta_L_deg)
+    cam = ThinLensCamera.from_calibration(lens, torch.as_tensor(R, dtype=torch.float64),
+                                          torch.as_tensor(T, dtype=torch.float64))
+    rng = np.random.default_rng(1)
+    uv = torch.tensor(np.stack([rng.uniform(0, lens.sensor.width_px, 2000),
+                                rng.uniform(0, lens.sensor.height_px, 2000)], -1))
+    samples = hammersley_disc_samples(64)
+    with torch.no_grad():
+        got = dark_fraction_samples(tp.BOARD, cam, uv, samples, psf_var)
+        want = _traced_dark_fraction(tp.BOARD, cam, uv, samples, psf_var)
+    edges = int(((want > 0.02) & (want < 0.98)).sum())
+    assert edges > 100, f"only {edges} pixels see an edge"
+    assert float((got - want).abs().max()) < 1e-12, f"off by {float((got - want).abs().max()):.3g}"
+
+
+def test_lens_sample_jacobian_traces_no_rays(monkeypatch):
+    """The fit's residuals and Jacobian on lens-sample pixels come from the 7 focus points a pixel: no ray is
+    traced per lens sample (the old path traced 4 S rays a pixel under 11 forward-mode tangents, 99 % of the
+    kernel-choice fit's time), and they match the traced rays' dark fraction."""
+    lens, _, _ = _tilted_view()
+    poses = [reproduce.target_pose(tp.BOARD, *reproduce.TARGET_VIEWS[i]) for i in (0, 1)]
+    start = {"w_mm": tp.W_MM, "U_mm": lens.U, "d_mm": tp.D_MM, "theta_F_deg": math.degrees(lens.theta_F),
+             "views": [{"R": R, "T_mm": T} for R, T in poses]}
+    w_px, h_px = lens.sensor.width_px, lens.sensor.height_px
+    camera = tp._camera(start, [np.zeros((h_px, w_px))], lens.sensor.pixel_pitch).double()
+    for p in camera.parameters():
+        p.requires_grad_(False)
+    rng = np.random.default_rng(2)
+    uv = torch.tensor(np.stack([rng.integers(0, w_px, 400), rng.integers(0, h_px, 400)], -1), dtype=torch.float64)
+    with torch.no_grad():
+        traced = [_traced_dark_fraction(tp.BOARD, camera.view_camera(v), uv, hammersley_disc_samples(32), 0.25)
+                  for v in range(2)]
+    zeros = torch.zeros(400, dtype=torch.float64)
+    data = [_View(uv, zeros, 0, zeros, torch.zeros(400, 2, dtype=torch.float64)) for _ in range(2)]
+    problem = _Problem(camera, tp.BOARD, data, hammersley_disc_samples(32))
+
+    def no_rays(*args, **kwargs):
+        raise AssertionError("generate_rays called by the lens-sample path")
+
+    monkeypatch.setattr(ThinLensCamera, "generate_rays", no_rays)
+    x = {"lens": torch.zeros(4, dtype=torch.float64),
+         "pose": torch.cat([camera.rvec.detach(), camera.T_scaled.detach()], 1),
+         "levels": torch.tensor([[1.0, 0.0]] * 2, dtype=torch.float64), "psf": torch.tensor([0.5], dtype=torch.float64)}
+    r, jac = problem.evaluate(x, True)
+    assert set(jac) == set(x) and jac["pose"].shape == (800, 6) and bool(torch.isfinite(jac["psf"]).all()), \
+        f"Jacobian blocks {({k: tuple(v.shape) for k, v in jac.items()})}"
+    # Levels (1, 0) and no vignetting: the residual is 1 − D (observed 0).
+    dark = 1.0 - torch.cat([r[:400], r[400:]])
+    assert float((dark - torch.cat(traced)).abs().max()) < 1e-12, "the fit's dark fraction is the traced rays'"

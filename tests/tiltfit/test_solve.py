@@ -209,8 +209,32 @@ def test_point_blocks_eliminated_as_in_bundle_adjustment_match_the_dense_solve()
     lev_dense = ((Jd @ C_dense) * Jd).sum(-1)
     assert torch.allclose(lev, lev_dense, rtol=1e-7, atol=1e-10), "each row's leverage"
     assert abs(float(lev.sum()) - layout.n_params) < 1e-7, "the hat matrix's trace is the number of parameters"
-    glob = J.points_as_globals()
-    assert glob.Jq is None and torch.equal(glob.dense(), Jd), "the points as dense global columns: same Jacobian"
+
+
+def test_cluster_covariance_with_a_point_block_equals_it_with_the_points_as_dense_globals():
+    """The per-view sandwich through the point block's 3 columns a row equals the one written for dense global
+    columns (the points' columns spelt out), poses' random-effect part included."""
+    from dataclasses import replace
+
+    from tiltfit.solve.blocks import BlockJacobian
+    from tiltfit.uncertainty.covariance import view_cluster_covariance
+
+    evaluate, blocks, view_rows, row_points, x0 = _points_seen_by_cameras()
+    res = levenberg_marquardt(evaluate, x0, blocks, view_rows, row_points=row_points)
+    bj = res.jacobian
+    q = bj.q_idx[bj.q_idx >= 0].sort().values
+    dense = BlockJacobian(torch.cat([bj.Js, bj.dense()[:, q]], 1), bj.Jp, bj.rows, torch.cat([bj.s_idx, q]),
+                          bj.p_idx, bj.n_params)
+    gen = torch.Generator().manual_seed(5)
+    modes = torch.randn(*view_rows.shape, 3, generator=gen, dtype=F64)
+    kinds = torch.ones(view_rows.shape, dtype=torch.long)
+    s2 = 2.0 * res.cost / (res.r.numel() - res.x_flat.numel())
+    got, info = view_cluster_covariance(res, s2, modes, kinds)
+    want, info_dense = view_cluster_covariance(replace(res, jacobian=dense), s2, modes, kinds)
+    assert torch.allclose(got.dense(), want.dense(), rtol=1e-7, atol=1e-12), \
+        f"largest difference {float((got.dense() - want.dense()).abs().max()):.3g}"
+    for k in ("design_effect", "view_error_px", "pose_ratio_min", "pose_ratio_max"):
+        assert info[k] == pytest.approx(info_dense[k], rel=1e-7), k
 
 
 def test_huber_loss_down_weights_an_outlier():

@@ -177,20 +177,6 @@ class BlockJacobian:
         f = factor[:, None] if torch.is_tensor(factor) and factor.dim() == 1 else factor
         return replace(self, Js=self.Js * f, Jp=self.Jp * f, Jq=None if self.Jq is None else self.Jq * f)
 
-    def points_as_globals(self) -> "BlockJacobian":
-        """The same Jacobian with the point block's columns held as dense global ones (M, 3N − gauge), after
-        the other global blocks: the form of a Jacobian without point blocks (for computations written for
-        it)."""
-        if self.Jq is None:
-            return self
-        free = self.q_idx[self.q_idx >= 0]
-        order = torch.argsort(free)
-        Jd = self.Js.new_zeros(self.Js.shape[0], self.n_params + 1)
-        Jd[torch.arange(Jd.shape[0])[:, None], self._point_columns()] = self.Jq
-        cols = free[order]
-        return BlockJacobian(torch.cat([self.Js, Jd[:, cols]], 1), self.Jp, self.rows,
-                             torch.cat([self.s_idx, cols]), self.p_idx, self.n_params)
-
 
 class DenseNormal:
     """Normal equations A = Jᵀ W J of a dense Jacobian (M, P); W = diag(wts)."""

@@ -77,7 +77,8 @@ def view_cluster_covariance(res, s2: float, modes: torch.Tensor | None = None, k
     """The per-view cluster-robust covariance (module docstring) of an LM result with per-view blocks.
 
     Args:
-        res: `tiltfit.solve.LMResult` whose jacobian is a `BlockJacobian` (poses per view).
+        res: `tiltfit.solve.LMResult` whose jacobian is a `BlockJacobian` (poses per view; a point block, a free
+            board's points, counts among the global parameters and keeps its 3 columns a row, `_PointColumns`).
         s2: the residual variance factor of the classical covariance s² A⁻¹.
         modes: (V, R, m) each view's correlated-error fields on its residual rows (`bj.rows` order), in the
             residuals' units (`affine_modes` times the rows' 1/σ); kinds: (V, R) 1 corner row, 2 blur row, 0 none.
@@ -90,19 +91,15 @@ def view_cluster_covariance(res, s2: float, modes: torch.Tensor | None = None, k
     from tiltfit.solve.blocks import BlockJacobian, SchurCovariance
 
     bj = res.jacobian
-    if isinstance(bj, BlockJacobian):
-        bj = bj.points_as_globals()   # a free board's points among the globals, as the sandwich is written
-    if not isinstance(bj, BlockJacobian) or bj.rows.shape[0] < 2 or bj.Js.shape[1] == 0:
+    if not isinstance(bj, BlockJacobian) or bj.rows.shape[0] < 2 or bj.Js.shape[1] + (bj.Jq is not None) == 0:
         return None
     a = res.weights.clamp_min(0).sqrt()
-    Js = (bj.Js * a[:, None])[bj.rows]                                  # (V, R, S)
     Jp = (bj.Jp * a[:, None])[bj.rows]                                  # (V, R, K)
     r = (res.r * a)[bj.rows]                                            # (V, R)
     App = Jp.transpose(1, 2) @ Jp
     App_inv = torch.linalg.inv(App)
-    Y = App_inv @ (Jp.transpose(1, 2) @ Js)                             # (V, K, S)
-    Jt = Js - Jp @ Y                                                    # (V, R, S) pose-profiled
-    S = (Jt.transpose(1, 2) @ Jt).sum(0)
+    Jt = _DenseColumns(bj, a, Jp, App_inv) if bj.Jq is None else _PointColumns(bj, a, Jp, App_inv)
+    S = Jt.gram()
     # S⁻¹ = L Lᵀ by the eigenvalues of S in its diagonal scaling (S may be badly conditioned: U, d from blur)
     Dg = torch.diagonal(S).clamp_min(1e-300).rsqrt()
     mu, Vs = torch.linalg.eigh(Dg[:, None] * S * Dg[None, :])
@@ -111,12 +108,11 @@ def view_cluster_covariance(res, s2: float, modes: torch.Tensor | None = None, k
     L = Dg[:, None] * Vs * mu.rsqrt()[None, :]
     L_inv = (Vs * mu.sqrt()[None, :]).T / Dg[None, :]
     S_inv = L @ L.T
-    B = Jt @ L                                                          # H̃_vv = B Bᵀ
-    U, lam = _leverage_eigen(B)                                         # eigenvectors of H̃_vv, clamped λ
+    U, lam = Jt.hat_eigen(L, S_inv)                                     # eigenvectors of H̃_vv, clamped λ
     U = torch.where(lam[:, None, :] > 1e-12, U, torch.zeros_like(U))
     gain = (1.0 - lam) ** -0.5 - 1.0
     e = r + (U @ (gain[..., None] * (U.transpose(1, 2) @ r[..., None]))).squeeze(-1)
-    u = (Jt.transpose(1, 2) @ e[..., None]).squeeze(-1)                 # (V, S)
+    u = Jt.left(e[..., None]).squeeze(-1)                               # (V, S)
     meat = u.T @ u
     C_rob = S_inv @ meat @ S_inv
     C_cls = s2 * S_inv
@@ -136,8 +132,119 @@ def view_cluster_covariance(res, s2: float, modes: torch.Tensor | None = None, k
         info |= extra
     else:
         own = kappa * s2 * App_inv
-    cov = SchurCovariance(C_g, own, Y, bj.s_idx, bj.p_idx, bj.n_params)
+    cov = SchurCovariance(C_g, own, Jt.Y, Jt.s_idx, bj.p_idx, bj.n_params)
     return cov, info
+
+
+class _DenseColumns:
+    """Each view's global columns with its pose profiled out, J̃_v = J_g,v − J_p,v Y_v (Y_v = A_vv⁻¹ A_vg), held as
+    the (V, R, S) tensor, and the products with it the sandwich needs.
+
+    Attributes: Y (V, K, S); s_idx (S,) the globals' flat positions; J (V, R, S) J̃."""
+
+    def __init__(self, bj, a, Jp, App_inv):
+        Js = (bj.Js * a[:, None])[bj.rows]                              # (V, R, S)
+        self.Y = App_inv @ (Jp.transpose(1, 2) @ Js)                    # (V, K, S)
+        self.J = Js - Jp @ self.Y
+        self.s_idx = bj.s_idx
+
+    def gram(self) -> torch.Tensor:
+        """(S, S) Σ_v J̃_vᵀ J̃_v, the Schur complement of the poses."""
+        return (self.J.transpose(1, 2) @ self.J).sum(0)
+
+    def right(self, M: torch.Tensor) -> torch.Tensor:
+        """J̃_v M for M (S, n) or (V, S, n): (V, R, n)."""
+        return self.J @ M
+
+    def left(self, Z: torch.Tensor) -> torch.Tensor:
+        """J̃_vᵀ Z_v for Z (V, R, m): (V, S, m)."""
+        return self.J.transpose(1, 2) @ Z
+
+    def rowdot(self, F: torch.Tensor) -> torch.Tensor:
+        """(V, R) each row of F (V, R, S) dotted with the same row of J̃."""
+        return (F * self.J).sum(-1)
+
+    def hat_eigen(self, L, S_inv):
+        """(U, λ) of each view's hat block H̃_vv = J̃_v S⁻¹ J̃_vᵀ = B Bᵀ (B = J̃_v L): `_leverage_eigen`."""
+        return _leverage_eigen(self.right(L))
+
+
+class _PointColumns(_DenseColumns):
+    """J̃_v of a Jacobian with a point block (a free board): the global columns are the lens's (S₀, dense) and the
+    points' free coordinates, of which row i touches only its own point's 3 (`BlockJacobian.Jq`). J̃_v = E_v −
+    J_p,v Y_v is never formed: the products go through E_v's 3 non-zeros a row (gathers and scatters) and the
+    rank-K pose part, so a product J̃_v M costs R (S₀ + 3 + K) n instead of R S n (S = S₀ + 3N − gauge)."""
+
+    def __init__(self, bj, a, Jp, App_inv):
+        free = bj.q_idx >= 0
+        cols = bj.q_idx[free]
+        order = torch.argsort(cols)
+        self.s_idx = torch.cat([bj.s_idx, cols[order]])
+        S0, Q = bj.s_idx.numel(), cols.numel()
+        self.S = S0 + Q
+        col = torch.zeros_like(bj.q_idx)                                # each coordinate's global column
+        col[free] = S0 + torch.argsort(order)
+        self.Es = (bj.Js * a[:, None])[bj.rows]                         # (V, R, S₀)
+        self.jq = (bj.Jq * a[:, None])[bj.rows]                         # (V, R, 3), 0 at gauge coordinates
+        self.col = col[bj.row_points][bj.rows]                          # (V, R, 3)
+        self.Jp = Jp
+        self.Y = App_inv @ self._e_left(Jp).transpose(1, 2)             # (V, K, S)
+        self.App = Jp.transpose(1, 2) @ Jp
+
+    def _e_left(self, Z: torch.Tensor) -> torch.Tensor:
+        """E_vᵀ Z_v for Z (V, R, m): (V, S, m)."""
+        V, R, m = Z.shape
+        out = Z.new_zeros(V, self.S, m)
+        out[:, :self.Es.shape[-1]] = self.Es.transpose(1, 2) @ Z
+        idx = (self.col + self.S * torch.arange(V)[:, None, None]).reshape(-1)
+        out.view(V * self.S, m).index_add_(0, idx, (self.jq[..., None] * Z[:, :, None, :]).reshape(-1, m))
+        return out
+
+    def gram(self) -> torch.Tensor:
+        """Σ_v E_vᵀ E_v − Y_vᵀ A_vv Y_v (E_vᵀ J_p,v = A_vv Y_v)."""
+        S0, V = self.Es.shape[-1], self.Es.shape[0]
+        G = self.Es.new_zeros(self.S, self.S)
+        Es = self.Es.reshape(-1, S0)
+        G[:S0, :S0] = Es.T @ Es
+        sq = self._e_left(self.Es)[:, S0:].sum(0)                       # (Q, S₀) the points' rows against the lens
+        G[S0:, :S0] = sq
+        G[:S0, S0:] = sq.T
+        ci, cj = self.col[..., :, None].expand(-1, -1, 3, 3), self.col[..., None, :].expand(-1, -1, 3, 3)
+        G.index_put_((ci.reshape(-1), cj.reshape(-1)),
+                     (self.jq[..., :, None] * self.jq[..., None, :]).reshape(-1), accumulate=True)
+        return G - (self.Y.transpose(1, 2) @ self.App @ self.Y).sum(0)
+
+    def right(self, M: torch.Tensor) -> torch.Tensor:
+        S0 = self.Es.shape[-1]
+        out = []
+        for v in range(self.Es.shape[0]):                               # one view at a time: gathers of (R, 3, n)
+            Mv = M if M.dim() == 2 else M[v]
+            out.append(self.Es[v] @ Mv[:S0] + (self.jq[v][..., None] * Mv[self.col[v]]).sum(1)
+                       - self.Jp[v] @ (self.Y[v] @ Mv))
+        return torch.stack(out)
+
+    def left(self, Z: torch.Tensor) -> torch.Tensor:
+        return self._e_left(Z) - self.Y.transpose(1, 2) @ (self.Jp.transpose(1, 2) @ Z)
+
+    def rowdot(self, F: torch.Tensor) -> torch.Tensor:
+        S0 = self.Es.shape[-1]
+        return (F[..., :S0] * self.Es).sum(-1) + (torch.gather(F, 2, self.col) * self.jq).sum(-1) \
+            - ((F @ self.Y.transpose(1, 2)) * self.Jp).sum(-1)
+
+    def hat_eigen(self, L, S_inv):
+        """H̃_vv = F_v J̃_vᵀ with F_v = J̃_v S⁻¹, both through E_v's non-zeros: (R, R) a view."""
+        F = self.right(S_inv)
+        self.F = F                                                      # J̃ S⁻¹, read again by the poses' part
+        H = self.right(F.transpose(1, 2)).transpose(1, 2)
+        return _hat_eigen(0.5 * (H + H.transpose(1, 2))) if H.shape[1] < self.S else _leverage_eigen(self.right(L))
+
+
+def _hat_eigen(H: torch.Tensor):
+    """(U, λ) of each view's hat block H (V, R, R): λ its eigenvalues clamped to [0, 1 − 1e-3], U the eigenvectors
+    scaled by √(λ_raw / λ) (above 1 where λ was clamped)."""
+    lam_raw, U = torch.linalg.eigh(H)                                   # (V, R), (V, R, R)
+    lam = lam_raw.clamp(0.0, 1.0 - 1e-3)
+    return U * (lam_raw.clamp_min(0.0) / lam.clamp_min(1e-30)).sqrt()[:, None, :], lam
 
 
 def _leverage_eigen(B: torch.Tensor):
@@ -147,9 +254,7 @@ def _leverage_eigen(B: torch.Tensor):
     parameters (a free board: R = 2N rows, S ≈ 3N), B Bᵀ (R × R) itself, which has the same non-zero
     eigenvalues."""
     if B.shape[1] < B.shape[2]:
-        lam_raw, U = torch.linalg.eigh(B @ B.transpose(1, 2))              # (V, R), (V, R, R)
-        lam = lam_raw.clamp(0.0, 1.0 - 1e-3)
-        return U * (lam_raw.clamp_min(0.0) / lam.clamp_min(1e-30)).sqrt()[:, None, :], lam
+        return _hat_eigen(B @ B.transpose(1, 2))
     lam_raw, Q = torch.linalg.eigh(B.transpose(1, 2) @ B)                  # (V, S), (V, S, S)
     lam = lam_raw.clamp(0.0, 1.0 - 1e-3)
     return B @ Q / lam.clamp_min(1e-30).sqrt()[:, None, :], lam
@@ -178,26 +283,29 @@ def affine_modes(corners_px: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 def _pose_random_effect(Jp, Jt, r, S_inv, App, App_inv, B, kinds, s2):
     """The poses' own covariance under the per-view random effect (module docstring).
 
-    Jp (V, R, K), Jt (V, R, S) pose-profiled global columns, r (V, R), S_inv (S, S) and App_inv (V, K, K) the
-    unscaled inverses, B (V, R, m) the modes, all in whitened weighted rows; kinds (V, R). Returns (own
-    (V, K, K), info), or None without corner rows."""
+    Jp (V, R, K), Jt the pose-profiled global columns (`_DenseColumns`), r (V, R), S_inv (S, S) and App_inv
+    (V, K, K) the unscaled inverses, B (V, R, m) the modes, all in whitened weighted rows; kinds (V, R). Returns
+    (own (V, K, K), info), or None without corner rows."""
     cm = (kinds == 1).to(r.dtype) * (B != 0).any(-1).to(r.dtype)
     bm = (kinds == 2).to(r.dtype) * (Jp != 0).any(-1).to(r.dtype)
-    F = Jt @ S_inv                                                      # (V, R, S)
-    h = ((Jp @ App_inv) * Jp).sum(-1) + (F * Jt).sum(-1)                # leverages
+    F = getattr(Jt, "F", None)
+    F = Jt.right(S_inv) if F is None else F                            # (V, R, S) J̃ S⁻¹
+    h = ((Jp @ App_inv) * Jp).sum(-1) + Jt.rowdot(F)                   # leverages
     R1, a1 = float((cm * r * r).sum()), float((cm * (1 - h)).sum())
     if a1 <= 0:
         return None
     R3, a3 = float((bm * r * r).sum()), float((bm * (1 - h)).sum())
     Kp = App_inv @ (Jp.transpose(1, 2) @ B)                             # (V, K, m): a mode's pose shift
     PB = Jp @ Kp
-    g = Jt.transpose(1, 2) @ B                                          # (V, S, m)
-    Nv = B - PB - F @ g                                                 # (I − H) B, the view's own rows
+    g = Jt.left(B)                                                      # (V, S, m)
+    Fg = F @ g
+    Nv = B - PB - Fg                                                    # (I − H) B, the view's own rows
     GG = (g @ g.transpose(1, 2)).sum(0)
-    Phi = F.transpose(1, 2) @ (cm[..., None] * F)                       # (V, S, S)
     gSg = g.transpose(1, 2) @ S_inv @ g                                 # (V, m, m)
-    b1 = float((cm[..., None] * Nv * Nv).sum() + (Phi * GG).sum()
-               - (g * (Phi @ g)).sum())                                 # |(I − H) B|² on corner rows
+    # |(I − H) B|² on corner rows: Σ cm |Nv|² + Σ_v tr(Φ_v GG) − Σ_v tr(g_vᵀ Φ_v g_v), Φ_v = F_vᵀ diag(cm) F_v,
+    # with tr(Φ_v GG) = Σ_i cm_i J̃_i (S⁻¹ GG S⁻¹) J̃_iᵀ (no (S, S) matrix a view)
+    b1 = float((cm[..., None] * Nv * Nv).sum() + (cm * Jt.rowdot(Jt.right(S_inv @ GG @ S_inv))).sum()
+               - (cm[..., None] * Fg * Fg).sum())
     D = B.transpose(1, 2) @ B - B.transpose(1, 2) @ PB
     a2 = float(torch.diagonal(D - gSg, dim1=-2, dim2=-1).sum())         # tr Bᵀ(I − H)B
     SG = S_inv @ GG

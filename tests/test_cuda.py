@@ -127,7 +127,7 @@ def test_cuda_default_chunk_is_large_and_changes_nothing():
 
 @pytest.mark.parametrize("name", ["independent", "stratified", "sobol", "center"])
 def test_cuda_camera_samples_are_the_cpu_samples_bit_for_bit(name):
-    from renderer.tracing.render import _camera_samples
+    from renderer.tracing.sampling import camera_samples as _camera_samples
     from renderer.tracing.sampling import Sampler
 
     pixel = torch.arange(0, 5000, 7)

@@ -55,7 +55,7 @@ def _wrap(owner, name: str, label: str):
 def instrument(scene):
     """Time the stages of `renderer.render` / `renderer.tracing.integrator` and each shape kind's intersect."""
     _wrap(render_mod.Sampler, "pixel_block", "samples")
-    _wrap(render_mod, "_camera_samples", "camera samples")
+    _wrap(render_mod, "camera_samples", "camera samples")
     for cam in {type(scene.camera)}:
         _wrap(cam, "generate_rays", "ray generation")
     _wrap(render_mod, "trace", "trace")

@@ -116,7 +116,7 @@ class _CameraConstants(NamedTuple):
 
 def _camera_rays(sampler, pixel, width: int, cam: _CameraConstants):
     """Stage 1: world rays (ox, oy, oz, dx, dy, dz), each (n·spp,) float32, for the samples of the pixels
-    `pixel` (n,): `Sampler.pixel_block`, `render._camera_samples` then the thin lens's rays (`renderer.cameras.
+    `pixel` (n,): `Sampler.pixel_block`, `sampling.camera_samples` then the thin lens's rays (`renderer.cameras.
     thin_lens`' row functions, as `ThinLensCamera._rays_in_place` computes them)."""
     block = sampler.pixel_block(pixel)
     xs = (block[0] + ((pixel % width).to(torch.float64) - 0.5)[:, None]).to(torch.float32).reshape(-1)

@@ -30,6 +30,12 @@ from renderer.cameras.thin_lens import direction_rows, disc_rows, focus_weight_r
 from renderer.scene.materials import CheckerTexture
 from renderer.scene.model import Scene, TraceOptions
 from renderer.tracing import fused
+from renderer.tracing.sampling import camera_samples
+
+# Rays a batch by default: a batch is one kernel launch and a few milliseconds of Python, so large batches pay;
+# 2^22 (a 512 x 512 image at 16 spp in one batch, about 50 MB of results) was the fastest measured on the speed
+# scene (docs/speed.md, "Defaults and where they come from").
+CHUNK_RAYS = 1 << 22
 
 
 def applies(scene: Scene, options: TraceOptions, device, dtype) -> bool:
@@ -100,14 +106,12 @@ def render_pixels(scene: Scene, pixel: torch.Tensor, sampler, options: TraceOpti
 
 def _samples(k: _Kernel, sampler, pixel: torch.Tensor, width: int):
     """Pixel positions x, y and lens samples u, v (`mi.Float` each, (n·spp,), a pixel's samples consecutive),
-    as `render._camera_samples` makes them: Sobol points in Dr.Jit (the same integer hashes and float64 steps
+    as `sampling.camera_samples` makes them: Sobol points in Dr.Jit (the same integer hashes and float64 steps
     as `Sampler.pixel_block`), other samplers from `Sampler.pixel_block` itself."""
     mi, dr = k.mi, k.dr
     spp = sampler.spp
     if sampler.name != "sobol":
-        from renderer.tracing.render import _camera_samples
-
-        uv_px, lens_uv = _camera_samples(sampler, pixel, width, torch.float32)
+        uv_px, lens_uv = camera_samples(sampler, pixel, width, torch.float32)
         return [mi.Float(c.contiguous()) for c in (uv_px[:, 0], uv_px[:, 1], lens_uv[:, 0], lens_uv[:, 1])]
     U32, F64 = mi.UInt32, mi.Float64
     index = dr.arange(U32, pixel.shape[0] * spp)

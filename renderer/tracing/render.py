@@ -27,7 +27,7 @@ import torch
 from renderer.tracing.integrator import trace
 from camio.interrupts import INTERRUPTS, held
 from camio.progress import Progress
-from renderer.tracing.sampling import Sampler
+from renderer.tracing.sampling import Sampler, camera_samples
 from renderer.scene.model import Scene, TraceOptions, compiled_call
 
 # Side of the square screen tiles, pixels.
@@ -80,18 +80,6 @@ def _tile_order_cached(width: int, height: int) -> torch.Tensor:
     return tile_order(width, height)
 
 
-def _camera_samples(sampler: Sampler, pixel: torch.Tensor, width: int, dtype: torch.dtype):
-    """Pixel positions (n·spp, 2) (x = column, y = row) and lens samples (n·spp, 2) in [0, 1)² for all
-    samples of the pixels `pixel` (n,), the samples of a pixel consecutive. Both are (n·spp, 2) views of one
-    (4, n·spp) block of rows x, y, u, v (the cameras read them row by row), made in float64 and rounded to
-    `dtype` once."""
-    block = sampler.pixel_block(pixel)  # (4, n, spp), ours to write to
-    block[0] += ((pixel % width).to(torch.float64) - 0.5)[:, None]
-    block[1] += ((pixel // width).to(torch.float64) - 0.5)[:, None]
-    rows = block.to(dtype).view(4, -1)
-    return rows[:2].T, rows[2:].T
-
-
 def _pixel_estimates(color, weight, valid, background, spp: int, all_valid: bool = False):
     """Weighted mean of each pixel's spp consecutive samples (n, 3) (background where no sample has
     weight), and the fraction of valid samples (n,). all_valid: the caller knows every sample is valid."""
@@ -125,7 +113,7 @@ def _render_pixels(scene: Scene, pixel: torch.Tensor, sampler: Sampler, options:
     background = torch.tensor(scene.image.background, dtype=dtype, device=device)
     # Samples are made where they are traced: integer hashing and exact float steps give the same values on
     # every device, and on a GPU this saves the host-side sampling and its copy (docs/speed.md).
-    uv_px, lens_uv = _camera_samples(sampler, pixel.to(device), W, dtype)
+    uv_px, lens_uv = camera_samples(sampler, pixel.to(device), W, dtype)
     color = weight = valid = None
     all_valid = False
     for camera, flags in render_passes(scene):
@@ -375,13 +363,17 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
         chunk_rays: camera samples traced at once (rounded to whole pixels); bounds memory (about 1 KB per
             ray at depth 5). The image does not depend on it. [`default_chunk_rays`: `CPU_CHUNK_RAYS` on the
             CPU, `GPU_CHUNK_RAYS` on a GPU or fewer where its free memory is short; `EMBREE_CHUNK_RAYS` with
-            `intersector="mitsuba"`, `fused.CHUNK_RAYS` on the fused path]
+            `intersector="mitsuba"`, `jit_direct.CHUNK_RAYS` on its Dr.Jit path, `fused.CHUNK_RAYS` on the
+            fused path]
         progress: print the progress on stderr [False]; max_depth: bounces [scene.image.max_depth].
         culling, compile, intersector: override scene.options (see `renderer.scene.model.TraceOptions`); speed only.
             `intersector="mitsuba"`: hits and shadow rays by Embree through Mitsuba 3
             (`renderer.mitsuba.intersect`), float32 images the same as ours to float rounding (a ray grazing
             an edge may change its hit); the default `auto` takes it for float32 CPU renders where Mitsuba's
             llvm variant loads and every shape is one it has, ours otherwise; `torch`: always ours.
+            With it, where `renderer.tracing.jit_direct.applies` (direct light, thin lens, CPU float32, not
+            compile; the speed scene's kind), the whole batch runs as Dr.Jit kernels beside Embree
+            (milliseconds of compilation, kept on disk by Dr.Jit).
             `compile=True` with `intersector="mitsuba"`: where `renderer.tracing.fused.applies` (direct light, thin
             lens, CPU float32), the work between the Embree calls runs as three compiled stages (seconds of
             compilation per process and batch size).
@@ -389,15 +381,16 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
             are started on first use and kept for later calls; each unpickles the scene once per render).
             The image does not depend on it. None (the default): `auto_workers`, i.e. the available cores
             for float32 CPU renders of at least `AUTO_WORKERS_MIN_RAYS` camera rays without gradients, else
-            1. Processes are started with `spawn`, which runs the main script again in each worker, so a
+            1; on the Dr.Jit path (`jit_direct`) none: Dr.Jit's thread pool runs its kernels on the
+            available cores in this process, as Mitsuba's renders do. Processes are started with `spawn`, which runs the main script again in each worker, so a
             script's renders get workers only from inside `if __name__ == "__main__":` (a render at a
             script's unguarded top level traces in its own process); where workers still fail to start,
             `render` warns once and traces in this process from then on.
         threads: torch threads while tracing on the CPU in this process, restored afterwards [1; None:
             torch's own setting]; with `intersector="mitsuba"` Dr.Jit's thread pool gets the same number
-            while tracing. Eager tracing is a chain of small memory-bound operations, and threads of one
-            process wait on each other where other programs share the cores: use `workers` for more cores
-            (measurements in docs/speed.md).
+            while tracing (on the Dr.Jit path with `workers=None`, the available cores). Eager tracing is a
+            chain of small memory-bound operations, and threads of one process wait on each other where
+            other programs share the cores: use `workers` for more cores (measurements in docs/speed.md).
     Returns:
         RenderResult with the (H, W, 3) image and the (H, W) coverage; pixels without any valid ray keep
         the background colour.
@@ -409,12 +402,16 @@ def render(scene: Scene, spp: int | None = None, sampler: str | None = None, *, 
     options = _options(scene, culling, compile, intersector, device, dtype)
     chunk_rays = _chunk_size(scene, options, chunk_rays, device, dtype)
     auto = workers is None
-    workers = _worker_count(scene, workers, W * H * spp * len(render_passes(scene)), device, dtype)
+    if auto and _jit_kernels(scene, options, device, dtype):
+        workers, jit_threads = 1, _cores()  # Dr.Jit's own pool runs the kernels on every core, as Mitsuba's does
+    else:
+        workers = _worker_count(scene, workers, W * H * spp * len(render_passes(scene)), device, dtype)
+        jit_threads = threads if options.intersector == "mitsuba" and workers <= 1 else None
     smp = Sampler(sampler, spp, seed)
     image = torch.empty(W * H, 3, dtype=dtype, device=device)
     coverage = torch.empty(W * H, dtype=dtype, device=device)
     bar = Progress(W * H * spp, "render", enabled=progress)
-    with _thread_limits(threads, device, jit=options.intersector == "mitsuba" and workers <= 1):
+    with _thread_limits(threads, device, jit_threads):
         _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device, dtype, seed, chunk_rays,
                      max_depth, workers, auto)
     return RenderResult(image.reshape(H, W, 3), coverage.reshape(H, W))
@@ -432,13 +429,27 @@ def _options(scene: Scene, culling, compile, intersector, device, dtype) -> Trac
     return _resolve_intersector(scene, options, device, dtype)
 
 
+def _jit_kernels(scene: Scene, options: TraceOptions, device, dtype) -> bool:
+    """Whether the render's batches are traced as Dr.Jit kernels (`renderer.tracing.jit_direct`)."""
+    if options.intersector != "mitsuba":
+        return False
+    from renderer.tracing import jit_direct
+
+    return jit_direct.applies(scene, options, device, dtype)
+
+
 def _chunk_size(scene: Scene, options: TraceOptions, chunk_rays: int | None, device, dtype) -> int:
-    """Camera rays a batch: chunk_rays where given; else `fused.CHUNK_RAYS` on the fused path,
-    `EMBREE_CHUNK_RAYS` with the mitsuba intersector, `default_chunk_rays` otherwise."""
+    """Camera rays a batch: chunk_rays where given; else `jit_direct.CHUNK_RAYS` on the Dr.Jit path,
+    `fused.CHUNK_RAYS` on the fused path, `EMBREE_CHUNK_RAYS` with the mitsuba intersector,
+    `default_chunk_rays` otherwise."""
     if chunk_rays is not None:
         return chunk_rays
     if options.intersector != "mitsuba":
         return default_chunk_rays(device)
+    if _jit_kernels(scene, options, device, dtype):
+        from renderer.tracing import jit_direct
+
+        return jit_direct.CHUNK_RAYS
     if options.compile:
         from renderer.tracing import fused
 
@@ -460,24 +471,24 @@ def _worker_count(scene: Scene, workers: int | None, rays: int, device, dtype) -
 
 
 @contextlib.contextmanager
-def _thread_limits(threads: int | None, device, jit: bool):
-    """torch's CPU threads (and, jit, Dr.Jit's thread pool) set to `threads` inside the block and restored
-    after it; None: left as they are."""
+def _thread_limits(threads: int | None, device, jit_threads: int | None):
+    """torch's CPU threads set to `threads` and Dr.Jit's thread pool to `jit_threads` inside the block, both
+    restored after it; None: left as they are."""
     previous = torch.get_num_threads()
     if threads is not None and torch.device(device).type == "cpu" and threads != previous:
         torch.set_num_threads(threads)
-    jit_threads = None
-    if jit and threads is not None:
+    jit_previous = None
+    if jit_threads is not None:
         from renderer.mitsuba.intersect import set_jit_threads
 
-        jit_threads = set_jit_threads(threads)
+        jit_previous = set_jit_threads(jit_threads)
     try:
         yield
     finally:
         if torch.get_num_threads() != previous:
             torch.set_num_threads(previous)
-        if jit_threads is not None:
-            set_jit_threads(jit_threads)
+        if jit_previous is not None:
+            set_jit_threads(jit_previous)
 
 def _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device, dtype, seed, chunk_rays,
                  max_depth, workers, auto=False):

@@ -145,6 +145,18 @@ class Sampler:
         return torch.cat(torch.broadcast_tensors(px, py, lx, ly), -1)
 
 
+def camera_samples(sampler: Sampler, pixel: torch.Tensor, width: int, dtype: torch.dtype):
+    """Pixel positions (n·spp, 2) (x = column, y = row) and lens samples (n·spp, 2) in [0, 1)² for all
+    samples of the pixels `pixel` (n,), the samples of a pixel consecutive. Both are (n·spp, 2) views of one
+    (4, n·spp) block of rows x, y, u, v (the cameras read them row by row), made in float64 and rounded to
+    `dtype` once."""
+    block = sampler.pixel_block(pixel)  # (4, n, spp), ours to write to
+    block[0] += ((pixel % width).to(torch.float64) - 0.5)[:, None]
+    block[1] += ((pixel // width).to(torch.float64) - 0.5)[:, None]
+    rows = block.to(dtype).view(4, -1)
+    return rows[:2].T, rows[2:].T
+
+
 def permute(index: torch.Tensor, n: int, key: torch.Tensor) -> torch.Tensor:
     """Element `index` of a pseudo-random permutation of range(n) chosen by the 32-bit `key` (broadcast).
 

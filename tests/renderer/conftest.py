@@ -5,18 +5,20 @@ import pytest
 
 @pytest.fixture
 def calls(monkeypatch):
-    """Counts of the Mitsuba intersector's nearest-hit and shadow calls (so a silent fallback fails)."""
+    """Counts of the Mitsuba intersector's nearest-hit and shadow queries (so a silent fallback fails): its
+    Dr.Jit-level `jit_nearest` and `jit_visible`, which both the torch-facing `nearest` and `visible` and the
+    Dr.Jit path (`renderer.tracing.jit_direct`) call."""
     from renderer.mitsuba import intersect as mi_intersect
 
     count = {"nearest": 0, "visible": 0}
     for name in count:
-        fn = getattr(mi_intersect.MitsubaIntersector, name)
+        fn = getattr(mi_intersect.MitsubaIntersector, "jit_" + name)
 
         def counted(self, *args, _fn=fn, _name=name, **kwargs):
             count[_name] += 1
             return _fn(self, *args, **kwargs)
 
-        monkeypatch.setattr(mi_intersect.MitsubaIntersector, name, counted)
+        monkeypatch.setattr(mi_intersect.MitsubaIntersector, "jit_" + name, counted)
     return count
 
 

@@ -227,8 +227,9 @@ def test_auto_workers_give_the_one_process_image(monkeypatch):
     monkeypatch.setattr(RENDER, "_AUTO_WORKERS_OFF", [])
     monkeypatch.setattr(RENDER, "AUTO_WORKERS_MIN_RAYS", 1)
     scene = load_scene(CFG)
-    reference = render(scene, seed=6, workers=1, chunk_rays=64)
-    result = render(scene, seed=6, chunk_rays=64)
+    # Our own tracer: Embree renders of this scene take the Dr.Jit path, which uses no worker processes.
+    reference = render(scene, seed=6, workers=1, chunk_rays=64, intersector="torch")
+    result = render(scene, seed=6, chunk_rays=64, intersector="torch")
     assert 2 in RENDER._POOL, f"workers=None on 2 cores should start two worker processes: {list(RENDER._POOL)}"
     assert torch.equal(result.image, reference.image), "workers=None should give the one-process image"
     assert torch.equal(result.coverage, reference.coverage), "coverage changed with workers"
@@ -243,13 +244,14 @@ render_module = sys.modules["renderer.tracing.render"]
 render_module.AUTO_WORKERS_MIN_RAYS = 1  # every render would start workers,
 render_module._cores = lambda: 2  # two of them, on any machine
 scene = load_scene({cfg!r})
-alone = render_module.render(scene, seed=4, workers=1).image
+ours = dict(intersector="torch")  # Embree renders of this scene take the Dr.Jit path, without worker processes
+alone = render_module.render(scene, seed=4, workers=1, **ours).image
 with warnings.catch_warnings(record=True) as caught:
     warnings.simplefilter("always")
-    image = render_module.render(scene, seed=4).image  # the script's top level: no workers
+    image = render_module.render(scene, seed=4, **ours).image  # the script's top level: no workers
     print("TOP", len(caught), len(render_module._POOL), torch.equal(image, alone))
     render_module._spawn_safe = lambda: True  # as if called later, from a thread: workers start, then fail
-    image = render_module.render(scene, seed=4).image
+    image = render_module.render(scene, seed=4, **ours).image
     print("FORCED", sum("failed to start" in str(w.message) for w in caught), bool(render_module._AUTO_WORKERS_OFF),
           torch.equal(image, alone))
 """

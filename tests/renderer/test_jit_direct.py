@@ -1,0 +1,139 @@
+"""The default path of Embree renders for direct-light thin-lens scenes (`renderer.tracing.jit_direct`): the whole
+batch as Dr.Jit kernels beside Embree.
+
+- It is taken by `render(scene)` (defaults) for the speed scene and the mixed scene of tests/renderer/test_fused.py
+  (turned camera and tilted lens, checkered rectangles turned and aligned, a plane, a turned box, a sphere, two
+  point lights and an ambient one, a background), and not where its formulas do not reach (a Phong lobe, an
+  image texture, compile=True, our own intersector, float64).
+- Its Sobol samples are `Sampler.pixel_block`'s bit for bit; its images equal our own tracer's (different
+  intersection code, torch shading) to float rounding for every sampler.
+- `workers=None` on it starts no worker processes and runs Dr.Jit's pool on the cores during the render only;
+  the image does not depend on the threads, the workers or the batch size.
+Skipped where Mitsuba's llvm variant cannot run.
+"""
+from __future__ import annotations
+
+import os
+import sys
+
+import pytest
+import torch
+
+pytest.importorskip("mitsuba")
+from renderer.mitsuba.variants import jit_variant_runs  # noqa: E402
+
+if not jit_variant_runs("llvm_ad_rgb"):
+    pytest.skip("mitsuba's llvm_ad_rgb variant does not run here (needs LLVM >= 16)", allow_module_level=True)
+
+from renderer import render  # noqa: E402
+from renderer.scene.file import build_scene, load_scene  # noqa: E402
+from renderer.scene.model import TraceOptions  # noqa: E402
+from renderer.tracing import jit_direct  # noqa: E402
+from renderer.tracing.sampling import Sampler, camera_samples  # noqa: E402
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from test_fused import SPEED, _mixed, _speed  # noqa: E402
+
+RENDER = sys.modules["renderer.tracing.render"]
+EMBREE = TraceOptions(intersector="mitsuba")
+
+
+def test_applies_to_the_defaults_scenes_only():
+    assert jit_direct.applies(_speed(), EMBREE, "cpu", torch.float32), "the speed scene should take the Dr.Jit path"
+    assert jit_direct.applies(_mixed(), EMBREE, "cpu", torch.float32), "the mixed scene should take the Dr.Jit path"
+    for options, dtype in [(TraceOptions(intersector="mitsuba", compile=True), torch.float32),  # fused: opt-in
+                           (TraceOptions(intersector="torch"), torch.float32),
+                           (TraceOptions(intersector="mitsuba", fast_paths=False), torch.float32),
+                           (EMBREE, torch.float64)]:
+        assert not jit_direct.applies(_speed(), options, "cpu", dtype), f"Dr.Jit path taken for {options}, {dtype}"
+    specular = load_scene(SPEED, ["image.width=8", "image.height=8", "objects.1.material.specular=0.5"])
+    assert not jit_direct.applies(specular, EMBREE, "cpu", torch.float32), "a Phong lobe is not in its shading"
+
+
+def test_not_for_a_grid_texture():
+    # A grid texture has a palette (the fused path indexes it with searchsorted) but no formula here.
+    from dataclasses import replace
+
+    from renderer.scene.materials import GridTexture
+
+    scene = _speed(size=8, spp=1)
+    plate = scene.objects[0]
+    grid = GridTexture([-3.0, 0.0, 3.0], [-3.0, 3.0], [[0, 1]], ((0.9, 0.9, 0.9), (0.1, 0.1, 0.1)))
+    plate.material = replace(plate.material, texture=grid)
+    scene.refresh()
+    assert not jit_direct.applies(scene, EMBREE, "cpu", torch.float32), "a grid texture is not shaded here"
+    assert jit_direct.applies(_speed(size=8, spp=1), EMBREE, "cpu", torch.float32), "the checkered plate is"
+
+
+def test_sobol_samples_are_the_samplers():
+    scene = _mixed()
+    kernel = jit_direct._kernel(scene)
+    sampler = Sampler("sobol", 4, seed=3)
+    pixel = torch.arange(scene.camera.width * scene.camera.height).flip(0)  # any order, as tiles give
+    got = jit_direct._samples(kernel, sampler, pixel, scene.camera.width)
+    uv_px, lens_uv = camera_samples(sampler, pixel, scene.camera.width, torch.float32)
+    for name, g, want in zip("xyuv", got, (uv_px[:, 0], uv_px[:, 1], lens_uv[:, 0], lens_uv[:, 1])):
+        assert torch.equal(g.torch(), want.contiguous()), f"sample row {name} differs from Sampler.pixel_block"
+
+
+@pytest.mark.parametrize("sampler", ["sobol", "independent", "stratified", "center"])
+def test_matches_our_tracer(sampler):
+    scene = _mixed()
+    ours = render(scene, sampler=sampler, seed=2, intersector="torch", workers=1)
+    got = render(scene, sampler=sampler, seed=2, intersector="mitsuba", workers=1)
+    diff = (got.image - ours.image).abs()
+    # Float rounding (Dr.Jit's sine and cosine, Embree's hit distances): a grazing ray may change its hit.
+    assert (diff > 1e-4).sum() <= 2, f"{int((diff > 1e-4).sum())} pixels differ from our tracer by > 1e-4"
+    assert diff.max() < 0.05, f"largest difference {diff.max():.3g}"
+    assert float((got.image.mean() - ours.image.mean()).abs()) < 1e-5, "the image mean should agree"
+    assert torch.equal(got.coverage, torch.ones_like(got.coverage)), "every thin-lens sample is valid"
+    assert float(got.image.std()) > 0.05, "a scene with contrast (not a blank image agreeing with a blank one)"
+
+
+def test_detects_a_wrong_shading():
+    # The comparison above must be able to fail: a light twice as bright in the Dr.Jit tables only.
+    scene = _mixed()
+    ours = render(scene, intersector="torch", workers=1).image
+    kernel = jit_direct._kernel(scene)
+    kernel.tables.lights = [(kind, [2 * v for v in intensity], position)
+                            for kind, intensity, position in kernel.tables.lights]
+    got = render(scene, intersector="mitsuba", workers=1).image
+    assert (got - ours).abs().max() > 0.01, "a doubled light should show"
+
+
+def test_defaults_trace_in_this_process_on_every_core(monkeypatch):
+    monkeypatch.setattr(RENDER, "_cores", lambda: 2)
+    monkeypatch.setattr(RENDER, "AUTO_WORKERS_MIN_RAYS", 1)
+    import drjit as dr
+
+    seen = []
+    real = jit_direct.render_pixels
+    monkeypatch.setattr(jit_direct, "render_pixels", lambda *a: seen.append(dr.thread_count()) or real(*a))
+    pools = dict(RENDER._POOL)
+    before = dr.thread_count()
+    scene = _speed(size=32, spp=4)
+    result = render(scene, seed=5)  # defaults: intersector auto, workers None
+    assert seen and set(seen) == {2}, f"Dr.Jit's pool should run on both cores while tracing: {seen}"
+    assert dr.thread_count() == before, "Dr.Jit's pool should be restored after the render"
+    assert dict(RENDER._POOL) == pools, "no worker processes for the Dr.Jit path"
+    one = render(scene, seed=5, workers=1, chunk_rays=64)  # one Dr.Jit thread, batches of 16 pixels
+    assert torch.equal(result.image, one.image), "the image should not depend on threads or batch size"
+
+
+@pytest.mark.slow
+def test_explicit_workers_give_the_same_image(monkeypatch):
+    monkeypatch.setattr(RENDER, "_AUTO_WORKERS_OFF", [])
+    scene = _speed(size=32, spp=4)
+    one = render(scene, seed=7, workers=1, chunk_rays=256)
+    two = render(scene, seed=7, workers=2, chunk_rays=256)  # each worker: the Dr.Jit path on one thread
+    assert 2 in RENDER._POOL, "workers=2 should start worker processes"
+    assert torch.equal(one.image, two.image), "worker processes should give the one-process image"
+
+
+def test_defaults_compile_nothing_with_torch(monkeypatch):
+    # The first render of the defaults must not wait for torch.compile (seconds on a new machine).
+    def refuse(*args, **kwargs):
+        raise AssertionError("torch.compile called by the defaults")
+
+    monkeypatch.setattr(torch, "compile", refuse)
+    render(_speed(size=16, spp=2), seed=1)

@@ -61,6 +61,9 @@ class TraceOptions:
             loading here: `renderer.mitsuba.intersect.auto_engine`), else `torch`, silently. Either answers
             float32 rays without gradients only; float64 rays, rays that need gradients and layers' first
             hits stay with ours ["auto"; `torch` for our own intersection code bit for bit].
+        jit_kernels: with the mitsuba intersector, eager tracing: the scenes `renderer.tracing.jit_direct` shades
+            (direct light, thin lens; the speed scene's kind) are traced as Dr.Jit kernels beside Embree [True];
+            False: shaded in torch between the Embree calls (`renderer.tracing.direct`), as before it.
     """
 
     culling: bool = True
@@ -68,6 +71,7 @@ class TraceOptions:
     compile: bool = False
     fast_paths: bool = True
     intersector: str = "auto"
+    jit_kernels: bool = True
 
 
 @dataclass

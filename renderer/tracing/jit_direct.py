@@ -40,8 +40,10 @@ CHUNK_RAYS = 1 << 22
 
 def applies(scene: Scene, options: TraceOptions, device, dtype) -> bool:
     """Whether `render_pixels` computes this scene's image: eager Embree renders (`intersector="mitsuba"`,
-    not `compile`, `fast_paths` on) of the scenes `fused.scene_fits` takes whose textures are all checkers."""
-    if options.compile or not options.fast_paths or options.intersector != "mitsuba":
+    not `compile`, `fast_paths` and `jit_kernels` on) of the scenes `fused.scene_fits` takes whose textures are
+    all checkers."""
+    if (options.compile or not options.fast_paths or not options.jit_kernels
+            or options.intersector != "mitsuba"):
         return False
     return scene.derived(("jit_direct.applies", torch.device(device).type, dtype), lambda: _fits(scene, device, dtype))
 

@@ -44,6 +44,7 @@ def test_applies_to_the_defaults_scenes_only():
     for options, dtype in [(TraceOptions(intersector="mitsuba", compile=True), torch.float32),  # fused: opt-in
                            (TraceOptions(intersector="torch"), torch.float32),
                            (TraceOptions(intersector="mitsuba", fast_paths=False), torch.float32),
+                           (TraceOptions(intersector="mitsuba", jit_kernels=False), torch.float32),  # eager
                            (EMBREE, torch.float64)]:
         assert not jit_direct.applies(_speed(), options, "cpu", dtype), f"Dr.Jit path taken for {options}, {dtype}"
     specular = load_scene(SPEED, ["image.width=8", "image.height=8", "objects.1.material.specular=0.5"])
@@ -88,6 +89,20 @@ def test_matches_our_tracer(sampler):
     assert float((got.image.mean() - ours.image.mean()).abs()) < 1e-5, "the image mean should agree"
     assert torch.equal(got.coverage, torch.ones_like(got.coverage)), "every thin-lens sample is valid"
     assert float(got.image.std()) > 0.05, "a scene with contrast (not a blank image agreeing with a blank one)"
+
+
+def test_matches_the_eager_embree_path():
+    # The same Embree scene, shaded in torch between the Embree calls (`jit_kernels=False`, the defaults before).
+    from dataclasses import replace
+
+    scene = _mixed()
+    got = render(scene, seed=4, workers=1).image
+    scene.options = replace(scene.options, jit_kernels=False)
+    assert not jit_direct.applies(scene, replace(scene.options, intersector="mitsuba"), "cpu", torch.float32)
+    eager = render(scene, seed=4, workers=1).image
+    diff = (got - eager).abs()
+    assert (diff > 1e-4).sum() <= 2, f"{int((diff > 1e-4).sum())} pixels differ from the eager path by > 1e-4"
+    assert float((got.mean() - eager.mean()).abs()) < 1e-5, "the image mean should agree"
 
 
 def test_detects_a_wrong_shading():

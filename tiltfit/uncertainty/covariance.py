@@ -232,11 +232,13 @@ class _PointColumns(_DenseColumns):
             - ((F @ self.Y.transpose(1, 2)) * self.Jp).sum(-1)
 
     def hat_eigen(self, L, S_inv):
-        """H̃_vv = F_v J̃_vᵀ with F_v = J̃_v S⁻¹, both through E_v's non-zeros: (R, R) a view."""
+        """H̃_vv = F_v J̃_vᵀ with F_v = J̃_v S⁻¹, both through E_v's non-zeros: (R, R) a view (a view has at most
+        3 rows a point, the board 3 parameters a point less its gauge: R is never much above S, and B = J̃_v L
+        would cost R S² a view)."""
         F = self.right(S_inv)
         self.F = F                                                      # J̃ S⁻¹, read again by the poses' part
         H = self.right(F.transpose(1, 2)).transpose(1, 2)
-        return _hat_eigen(0.5 * (H + H.transpose(1, 2))) if H.shape[1] < self.S else _leverage_eigen(self.right(L))
+        return _hat_eigen(0.5 * (H + H.transpose(1, 2)))
 
 
 def _hat_eigen(H: torch.Tensor):

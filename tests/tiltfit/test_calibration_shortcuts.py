@@ -59,3 +59,43 @@ def test_free_board_at_keeps_the_points_but_its_gauge():
     others = [i for i in range(len(nominal)) if i not in gauge]
     assert float(moved[others].max()) < 1e-12, f"free points moved by {float(moved[others].max()):.3g} mm"
     assert torch.allclose(free.points()[gauge[:2]], nominal[gauge[:2]]), "the gauge points stay nominal"
+
+
+def test_deferred_per_view_sigma_equal_those_made_at_once():
+    """A geometric fit whose per-view σ are deferred (a blur fit usually replaces it) gets, when asked, exactly the σ
+    the refit made at once gives; until then it carries the classical ones."""
+    from dataclasses import replace
+
+    import cv2
+    import numpy as np
+
+    from tiltfit.calibrate.fit import FitOptions, with_deferred_sigma
+    from tiltfit.calibrate.model import Observations, board_points_mm
+    from tiltfit.calibrate.start import initialize
+    from tiltfit.select.board import fit_board
+    from tiltfit.select.held_out import _with_uncertainties
+
+    points = board_points_mm(8, 6, 15.0, centred=False).numpy()
+    rng = np.random.default_rng(7)
+    K = np.array([[2000.0, 0, 650.0], [0, 2000.0, 505.0], [0, 0, 1]])
+    corners = []
+    for _ in range(8):
+        rv = rng.uniform(-1, 1, 3) * np.radians([25, 25, 10])
+        t = np.array([rng.uniform(-20, 20), rng.uniform(-20, 20), 600.0]) - cv2.Rodrigues(rv)[0] @ points.mean(0)
+        uv = cv2.projectPoints(points, rv, t, K, np.array([-0.1, 0, 0, 0, 0.0]))[0][:, 0]
+        corners.append(uv + rng.normal(0, 0.1, uv.shape))
+    C = np.stack(corners)
+    obs = Observations(torch.as_tensor(points), C, np.full(C.shape[:2], np.nan), (1280, 1024), 0.005)
+    opts = FitOptions(distortion="k1", free_principal_point=True, model_selection=False, uncertainties=False)
+    fit = fit_board(initialize(obs, "unified", options=opts, blur=False), obs, opts, "free")
+    with_sigma = replace(opts, uncertainties=True)
+    at_once = _with_uncertainties(fit, obs, with_sigma, "unified")
+    later = _with_uncertainties(fit, obs, with_sigma, "unified", defer=True)
+    assert at_once.sigma_model["name"] == "views" and at_once.deferred_sigma is None
+    assert later.sigma_model["name"] == "classical" and later.deferred_sigma is not None, "classical σ until asked"
+    assert later.sigma == at_once.sigma_classical, "the classical σ meanwhile"
+    with_deferred_sigma(later)
+    assert later.deferred_sigma is None
+    assert later.sigma == at_once.sigma and later.sigma_model == at_once.sigma_model, "the same per-view σ"
+    assert torch.equal(later.board.sigma, at_once.board.sigma), "the board's σ too"
+    assert later.values == at_once.values

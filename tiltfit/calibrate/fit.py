@@ -189,6 +189,8 @@ class FitResult:
         choice_variance: {"distortion" | "board": `tiltfit.select.held_out.choice_variance`'s dict}: the spread of the
             focal length and principal point over the models an automatic choice could not tell apart, added to
             `sigma` by `tiltfit.calibrate.flow` (`sigma_model["model_choice"]` records it).
+        deferred_sigma: None, or a function giving this fit made again with the per-view error model where only the
+            classical σ were computed (`with_deferred_sigma`): a geometric fit that a blur fit replaces.
     """
 
     mode: str
@@ -220,6 +222,25 @@ class FitResult:
     sigma_model: dict = field(default_factory=dict)
     intrinsics_covariance: dict | None = None
     choice_variance: dict = field(default_factory=dict)
+    deferred_sigma: object = None
+
+
+#: What `with_deferred_sigma` takes from the fit made again: everything the error model sets.
+_SIGMA_FIELDS = ("sigma", "views", "noise", "covariance", "sigma_classical", "sigma_model", "intrinsics_covariance")
+
+
+def with_deferred_sigma(fit: FitResult) -> FitResult:
+    """`fit` with the σ of its `FitOptions.sigma_model` where they were deferred (`FitResult.deferred_sigma`): the
+    fit made again from the same camera and board, its σ put in `fit` (whose choices and records stay)."""
+    if fit.deferred_sigma is None:
+        return fit
+    full = fit.deferred_sigma()
+    for k in _SIGMA_FIELDS:
+        setattr(fit, k, getattr(full, k))
+    if fit.board is not None and full.board is not None:
+        fit.board.sigma = full.board.sigma
+    fit.deferred_sigma = None
+    return fit
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -24,7 +24,7 @@ from tiltfit.calibrate.blur_checks import (BLUR_TREND_ALPHA, blur_misfit, blur_n
 from tiltfit.calibrate.blur_stage import BlurOutcome, blur_stage
 from tiltfit.calibrate.finish import (add_choice_variance, add_sharp_lines, check_rms, flag_outliers,  # noqa: F401
                                       model_selection_record, sharp_line)  # (sharp_line: public here too)
-from tiltfit.calibrate.fit import MODES, FitError, FitOptions, FitResult
+from tiltfit.calibrate.fit import MODES, FitError, FitOptions, FitResult, with_deferred_sigma
 from tiltfit.calibrate.geometry_stage import board_line, fit_board_stage, fit_geometry, geometry_with_principal_point
 from tiltfit.calibrate.model import Observations, LensCamera
 from tiltfit.calibrate.start import initialize
@@ -98,7 +98,7 @@ def _calibrate(obs: Observations, mode: str, init: LensCamera | None, options: F
     cam, geometry, choices = _geometry(obs, mode, init, options, blur_ok, say)
     options = replace(options, free_principal_point=choices.free_principal_point)
     noise_px = blur_noise_px(obs) if blur_ok else math.nan  # on the target file's points (`blur_noise_px`)
-    cam, geometry, obs, choices = _board(cam, geometry, obs, mode, options, choices, say)
+    cam, geometry, obs, choices = _board(cam, geometry, obs, mode, options, choices, say, defer_sigma=blur_ok)
     if blur_ok:
         blur = blur_stage(cam, obs, mode, init, init_sigma, options, choices, geometry, noise_px, say)
     else:
@@ -154,14 +154,17 @@ def _geometry(obs: Observations, mode: str, init, options: FitOptions, blur_ok: 
     return geometry.camera.copy(), geometry, choices
 
 
-def _board(cam, geometry, obs: Observations, mode: str, options: FitOptions, choices: ModelChoices, say=None):
+def _board(cam, geometry, obs: Observations, mode: str, options: FitOptions, choices: ModelChoices, say=None,
+           defer_sigma: bool = False):
     """The target's shape (`options.board`; nothing to do for "flat"): a non-flat board replaces the geometric fit
-    and the target points for the stages after it. Returns (camera, geometric fit, obs, choices)."""
+    and the target points for the stages after it. Returns (camera, geometric fit, obs, choices). `defer_sigma`
+    (a blur fit follows, which is reported unless it fails or is refused): the refitted geometric fit's per-view
+    σ are made only where it is reported (`_result`)."""
     if options.board == "flat":
         return cam, geometry, obs, choices
     base = geometry if geometry is not None else fit_geometry(cam, obs, replace(options, distortion=choices.distortion),
                                                               mode, say)
-    fitted, selection, held = fit_board_stage(base, obs, mode, options, choices.distortion, say)
+    fitted, selection, held = fit_board_stage(base, obs, mode, options, choices.distortion, say, defer_sigma)
     choices = replace(choices, board=fitted.board, board_selection=selection, board_held_out=held,
                       choice_variance=fitted.choice_variance)
     if fitted.board.model == "flat":  # a flat board changes nothing
@@ -190,7 +193,7 @@ def _result(blur: BlurOutcome, cam, mode: str, options: FitOptions, blur_ok: boo
     geometry = blur.geometry
     if blur.result is None and geometry is None:
         geometry = fit_geometry(cam, obs, replace(options, distortion=choices.distortion), mode, say)
-    result = blur.result if blur.result is not None else geometry
+    result = blur.result if blur.result is not None else with_deferred_sigma(geometry)
     result.mode, result.distortion_model = mode, choices.distortion
     result.free_principal_point = choices.free_principal_point
     notes, warnings = list(blur.notes), list(blur.warnings)

@@ -66,10 +66,12 @@ def geometry_with_principal_point(camera: LensCamera, obs: Observations, options
     return held, entry
 
 
-def fit_board_stage(geometry: FitResult, obs: Observations, mode: str, options: FitOptions, distortion: str, say=None):
+def fit_board_stage(geometry: FitResult, obs: Observations, mode: str, options: FitOptions, distortion: str, say=None,
+                    defer_sigma: bool = False):
     """The target's shape as `options.board` says (`tiltfit.target.shape`): a named model fitted, or "auto" chosen by
     the held-out error against the flat board's fit `geometry`. Returns (geometric fit with `board` set, the
-    selection's entries, the chosen model's held-out error or None)."""
+    selection's entries, the chosen model's held-out error or None). `defer_sigma`: a distortion chosen again
+    with the board gets its per-view σ only when asked (`select_distortion`; a blur fit follows)."""
     opts = replace(options, distortion=distortion)
     if options.board == "auto":
         fit, entries = select_board(geometry.camera, obs, opts, mode, say=say, folds=options.held_out_folds,
@@ -84,14 +86,15 @@ def fit_board_stage(geometry: FitResult, obs: Observations, mode: str, options: 
     board_var = fit.choice_variance.get("board")
     fit.choice_variance = dict(geometry.choice_variance)
     if options.distortion == "auto" and fit.board.model != "flat":
-        fit, held = _redistort(fit, obs, mode, opts, held, say)
+        fit, held = _redistort(fit, obs, mode, opts, held, say, defer_sigma)
         fit.held_out = held
     if board_var:
         fit.choice_variance = dict(fit.choice_variance, board=board_var)
     return fit, entries, held
 
 
-def _redistort(fit: FitResult, obs: Observations, mode: str, options: FitOptions, held, say=None):
+def _redistort(fit: FitResult, obs: Observations, mode: str, options: FitOptions, held, say=None,
+               defer_sigma: bool = False):
     """The distortion model chosen again with the board as fitted (a flat board's misfit had asked for terms the
     fitted shape explains): `select_distortion` with the board fitted beside each model and refitted in each
     fold, so that the held-out errors it prints and records are those of the whole calibration (a choice made
@@ -116,7 +119,7 @@ def _redistort(fit: FitResult, obs: Observations, mode: str, options: FitOptions
     models = tuple(m for m in DISTORTION_MODELS if m in models)
     try:
         sel = select_distortion(fit.camera, obs, options, mode, say, folds=options.held_out_folds, board=fit.board,
-                                known=known, models=models)
+                                known=known, models=models, defer_sigma=defer_sigma)
     except FitError:
         return fit, held
     new, old = sel.distortion_model, fit.distortion_model

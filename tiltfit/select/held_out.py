@@ -314,7 +314,7 @@ def held_out_gain(simple: dict | None, rich: dict | None, obs: Observations) -> 
 
 def select_distortion(camera: LensCamera, obs: Observations, options: FitOptions, mode: str = "unified",
                       say=None, folds: int = 5, board=None, known: dict | None = None,
-                      models=DISTORTION_MODELS) -> FitResult:
+                      models=DISTORTION_MODELS, defer_sigma: bool = False) -> FitResult:
     """Fit every distortion model on the corners and keep the one that predicts held-out views best.
 
     Models none, k1, k1k2, opencv5, rational5, rational are fitted in turn on all views (each starting from the previous
@@ -337,7 +337,9 @@ def select_distortion(camera: LensCamera, obs: Observations, options: FitOptions
 
     Each candidate is warm-started from the previous one's fit (lens and board); only the models whose checks read a
     covariance (`CHECKED_MODELS`, `REFERENCE_MODEL`) are fitted with their uncertainties, the chosen one's added after
-    the choice (a refit from its own solution: the same minimum).
+    the choice (a refit from its own solution: the same minimum). `defer_sigma`: that refit computes the classical
+    σ only (which tell a degenerate fit as the per-view ones do) and leaves the per-view error model to
+    `tiltfit.calibrate.fit.with_deferred_sigma`, for a fit that a later one (the blur fit) usually replaces.
     """
     obs = without_blur(obs)
     fixed = replace(options, progress=None, model_selection=False, free_principal_point=bool(
@@ -359,7 +361,7 @@ def select_distortion(camera: LensCamera, obs: Observations, options: FitOptions
         chosen = _fewest_terms_within_one_se(models, scores, held, obs, entries) if use_held_out else \
             min(scores, key=scores.get)
         try:
-            result = _with_uncertainties(fits[chosen], obs, replace(fixed, distortion=chosen), mode)
+            result = _with_uncertainties(fits[chosen], obs, replace(fixed, distortion=chosen), mode, defer_sigma)
             break
         except FitError as e:  # degenerate: refused as a fit with its uncertainties would have been
             entries[models.index(chosen)]["refused"] = f"not fitted ({e})"
@@ -444,11 +446,22 @@ def _entry_line(entry: dict) -> str:
     return (f"RMS {entry['rms_px']:.4f} px per corner, " if "rms_px" in entry else "") + score
 
 
-def _with_uncertainties(fit: FitResult, obs: Observations, options: FitOptions, mode: str) -> FitResult:
-    """`fit` with its covariance and σ (refitted from its own solution where it was fitted without them)."""
+def _with_uncertainties(fit: FitResult, obs: Observations, options: FitOptions, mode: str,
+                        defer: bool = False) -> FitResult:
+    """`fit` with its covariance and σ (refitted from its own solution where it was fitted without them); `defer`:
+    the classical σ now, the per-view ones when `tiltfit.calibrate.fit.with_deferred_sigma` asks (the same refit)."""
     if fit.covariance is not None or not options.uncertainties:
         return fit
-    return fit_geometry(fit.camera.copy(), obs, options, mode, board=None if fit.board is None else fit.board.copy())
+    cam, board = fit.camera.copy(), None if fit.board is None else fit.board.copy()
+
+    def refit(opts: FitOptions) -> FitResult:
+        return fit_geometry(cam.copy(), obs, opts, mode, board=None if board is None else board.copy())
+
+    if not defer or options.sigma_model == "classical":
+        return refit(options)
+    out = refit(replace(options, sigma_model="classical"))
+    out.deferred_sigma = lambda: refit(options)
+    return out
 
 
 def _fewest_terms_within_one_se(models, scores: dict, held: dict, obs: Observations, entries: list) -> str:

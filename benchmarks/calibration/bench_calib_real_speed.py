@@ -7,6 +7,7 @@ Sets (tiltfit's own detections cached beside the photos, `data/real/SET/detectio
 not timed):
 - gopro_wide (35 views with a board of 36, 8×6 corners, pixel pitch 0.00155 mm);
 - industrial_ds1 (20 views, 16×10 corners, 0.0048 mm);
+- sony_small (13 views of a 4×6-corner board, 640×480, 0.0096 mm; detections cached in benchmarks/small_sets);
 - industrial_60: 60 views of the industrial camera, the size the issue reports (84 s there). Only dataset 1 of the
   source's three (20 photos) is shipped, so the set is its 20 views and two copies of each whose corners and blur
   widths have independent Gaussian noise added (0.1 px a corner coordinate, the free-board fit's residual RMS;
@@ -20,7 +21,9 @@ Timed in one process, CPU seconds (`time.process_time`, one torch thread) and wa
   its default model (k1 k2 p1 p2 k3, free principal point and both focal lengths).
 `--base DIR` times the same in a child process with the code of another checkout (e.g. the commit before a
 change: `git clone -q . /tmp/calib_before && git -C /tmp/calib_before checkout START`), so "before" and "after"
-share a run. Writes benchmarks/results/NAME.{json,md}: times, ratios ours/OpenCV, and the chosen models and focal
+share a run, and checks that a speed change changed no result: the same distortion, board and principal-point
+choices, and focal length and principal point within `SAME_RELATIVE` of the other checkout's (the check's
+verdict per set is in both files; the command exits with status 1 where one differs). Writes benchmarks/results/NAME.{json,md}: times, ratios ours/OpenCV, and the chosen models and focal
 length / principal point with σ of ours.
 """
 from __future__ import annotations
@@ -40,7 +43,11 @@ import numpy as np
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SETS = {"gopro_wide": ("gopro_wide", 0.00155), "industrial_ds1": ("industrial_ds1", 0.0048),
-        "industrial_60": ("industrial_ds1", 0.0048)}
+        "industrial_60": ("industrial_ds1", 0.0048), "sony_small": ("sony_small", 0.0096)}
+#: Folders of the sets not in data/real (relative to the repository).
+FOLDERS = {"sony_small": os.path.join("benchmarks", "small_sets", "sony_small")}
+#: `--base`'s check: fitted focal length and principal point of the two checkouts within this, relative.
+SAME_RELATIVE = 1e-7
 #: industrial_60's copies: noise added to corners (px a coordinate) and blur widths (px), and the seed.
 COPY_CORNER_NOISE_PX, COPY_BLUR_NOISE_PX, COPY_SEED = 0.1, 0.2, 0
 
@@ -51,7 +58,7 @@ def observations(name: str, root: str):
     from tiltfit.target.layout import load_target
 
     folder, pitch = SETS[name]
-    folder = os.path.join(ROOT, "data", "real", folder)
+    folder = os.path.join(ROOT, FOLDERS.get(name, os.path.join("data", "real", folder)))
     target = load_target(os.path.join(folder, "target.json"))
     with open(os.path.join(folder, "detections_tiltfit.json"), encoding="utf-8") as f:
         cache = json.load(f)
@@ -138,6 +145,17 @@ def run_tree(code: str, args, opencv: bool) -> dict:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
+def same_results(after: dict, before: dict) -> str:
+    """'same' where two checkouts' results on a set agree (choices equal, focal length and principal point within
+    `SAME_RELATIVE`), else what differs."""
+    diffs = [k for k in ("distortion", "board", "free_principal_point") if after[k] != before[k]]
+    pairs = [("focal_px", after["focal_px"], before["focal_px"])] + [
+        (f"principal_point_px[{i}]", a, b) for i, (a, b) in
+        enumerate(zip(after["principal_point_px"], before["principal_point_px"]))]
+    diffs += [f"{k} {a:.10g} vs {b:.10g}" for k, a, b in pairs if abs(a - b) > SAME_RELATIVE * max(abs(a), abs(b))]
+    return "same" if not diffs else "differs: " + ", ".join(diffs)
+
+
 def markdown(res: dict, args) -> str:
     lines = [f"# Default calibration after detection against OpenCV on real photo sets ({res['date']})", "",
              f"- machine: {res['machine']}; one torch thread; `python benchmarks/calibration/bench_calib_real_speed.py "
@@ -146,16 +164,20 @@ def markdown(res: dict, args) -> str:
              f"- after: this tree ({res['after_commit']}); before: {res['base'] or 'not measured'}"
              + (f" ({res['before_commit']})" if res.get('before_commit') else ""),
              "- CPU seconds, medians of the repeats; ratio = ours / cv2.calibrateCamera on the same corners, same run",
-             "- industrial_60: the 20 shipped industrial views and two noisy copies of each (module docstring)", "",
+             "- industrial_60: the 20 shipped industrial views and two noisy copies of each (module docstring)",
+             f"- check (with --base): the same distortion, board and principal-point choices, and focal length and "
+             f"principal point within {SAME_RELATIVE:g} relative of before's", "",
              "| set | views | OpenCV CPU s | ours after CPU s | ratio after | ours before CPU s | ratio before | "
-             "after: distortion, board, pp | before: distortion, board, pp |", "|---|---|---|---|---|---|---|---|---|"]
+             "after: distortion, board, pp | before: distortion, board, pp | check |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for name, a in res["after"].items():
         b = (res.get("before") or {}).get(name)
         cv = a["opencv"]["cpu_s"]
         desc = lambda o: f"{o['distortion']}, {o['board']}, {'free' if o['free_principal_point'] else 'held'}"  # noqa
         lines.append(f"| {name} | {a['views']} | {cv:.3f} | {a['ours']['cpu_s']:.2f} | {a['ours']['cpu_s'] / cv:.0f}× | "
                      + (f"{b['ours']['cpu_s']:.2f} | {b['ours']['cpu_s'] / cv:.0f}× | " if b else "– | – | ")
-                     + f"{desc(a['ours'])} | " + (desc(b["ours"]) if b else "–") + " |")
+                     + f"{desc(a['ours'])} | " + (desc(b["ours"]) if b else "–") + " | "
+                     + (res.get("check", {}).get(name, "–")) + " |")
     lines += ["", "Fitted values (focal length and principal point, px, ± σ):", "",
               "| set | after | before | OpenCV |", "|---|---|---|---|"]
     for name, a in res["after"].items():
@@ -192,13 +214,14 @@ def main() -> int:
     if args.base:
         res["before_commit"] = commit(args.base)
         res["before"] = run_tree(args.base, args, opencv=False)
+        res["check"] = {name: same_results(a["ours"], res["before"][name]["ours"]) for name, a in res["after"].items()}
     out = os.path.join(ROOT, "benchmarks", "results", args.name)
     with open(out + ".json", "w", encoding="utf-8") as f:
         json.dump(res, f, indent=1)
     with open(out + ".md", "w", encoding="utf-8") as f:
         f.write(markdown(res, args))
     print(markdown(res, args))
-    return 0
+    return 0 if all(v == "same" for v in res.get("check", {}).values()) else 1
 
 
 if __name__ == "__main__":

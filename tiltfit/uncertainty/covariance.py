@@ -219,7 +219,7 @@ class _PointColumns(_DenseColumns):
         out = []
         for v in range(self.Es.shape[0]):                               # one view at a time: gathers of (R, 3, n)
             Mv = M if M.dim() == 2 else M[v]
-            out.append(self.Es[v] @ Mv[:S0] + (self.jq[v][..., None] * Mv[self.col[v]]).sum(1)
+            out.append(self.Es[v] @ Mv[:S0] + torch.bmm(self.jq[v][:, None, :], Mv[self.col[v]]).squeeze(1)
                        - self.Jp[v] @ (self.Y[v] @ Mv))
         return torch.stack(out)
 

@@ -98,3 +98,46 @@ def test_lens_sample_jacobian_traces_no_rays(monkeypatch):
     # Levels (1, 0) and no vignetting: the residual is 1 − D (observed 0).
     dark = 1.0 - torch.cat([r[:400], r[400:]])
     assert float((dark - torch.cat(traced)).abs().max()) < 1e-12, "the fit's dark fraction is the traced rays'"
+
+
+@pytest.mark.parametrize("k1", [0.0, -0.05])
+def test_focus_geometry_of_the_fit_equals_the_cameras(k1):
+    """The fit's focus geometry (`_Problem._focus`: without distortion combined from three points, with it every
+    point through forward mode) and its chained derivatives equal the camera's own `focus_geometry` and forward
+    mode at every point, with and without distortion (the sigma's held-intrinsics step moves k1 between calls)."""
+    lens, _, _ = _tilted_view()
+    poses = [reproduce.target_pose(tp.BOARD, *reproduce.TARGET_VIEWS[i]) for i in (0, 1)]
+    start = {"w_mm": tp.W_MM, "U_mm": lens.U, "d_mm": tp.D_MM, "theta_F_deg": math.degrees(lens.theta_F),
+             "views": [{"R": R, "T_mm": T} for R, T in poses]}
+    w_px, h_px = lens.sensor.width_px, lens.sensor.height_px
+    camera = tp._camera(start, [np.zeros((h_px, w_px))], lens.sensor.pixel_pitch).double()
+    for p in camera.parameters():
+        p.requires_grad_(False)
+    zeros = torch.zeros(10, dtype=torch.float64)
+    problem = _Problem(camera, tp.BOARD, [_View(torch.zeros(10, 2), zeros, 0, zeros)], hammersley_disc_samples(16))
+    with torch.no_grad():
+        camera.dist_k1 += k1
+    rng = np.random.default_rng(3)
+    pts = torch.tensor(rng.uniform(0, w_px, (50, 7, 2)))
+    from renderer.cameras import LENS_PARAMETERS
+    geo = torch.cat([torch.stack([getattr(camera, n).detach() for n in LENS_PARAMETERS]),
+                     camera.rvec.detach()[1], camera.T_scaled.detach()[1]])
+    q, c, a, chain = problem._focus(1, geo, True)(pts)
+
+    def direct(g):
+        return problem._call(1, g, lambda cam: cam.focus_geometry(pts)[:3])
+
+    want = direct(geo)
+    dq, dc, da = torch.func.jacfwd(direct)(geo)
+    scale = float(want[0].abs().max())
+    assert float((q - want[0]).abs().max()) < 1e-12 * scale, f"focus points off by {float((q - want[0]).abs().max()):.3g}"
+    assert torch.equal(c, want[1]) and torch.equal(a, want[2]), "the lens centre and axes are the camera's"
+    gq, gc, ga = torch.tensor(rng.normal(size=(50, 7, 4))), torch.tensor(rng.normal(size=(50, 3))), \
+        torch.tensor(rng.normal(size=(50, 2, 3)))
+    got = chain(gq, gc, ga)
+    ref = torch.einsum("nsk,nskp->np", gq, dq) + gc @ dc + torch.einsum("nij,ijp->np", ga, da)
+    assert float((got - ref).abs().max()) < 1e-10 * float(ref.abs().max()), \
+        f"chained derivatives off by {float((got - ref).abs().max()):.3g} of {float(ref.abs().max()):.3g}"
+    if k1:
+        assert float((problem._focus(1, geo, False)(pts)[0] - direct(geo)[0]).abs().max()) < 1e-12 * scale, \
+            "with distortion the points are not combined from three"

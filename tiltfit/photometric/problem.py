@@ -22,6 +22,10 @@ from .render import SUBPIXELS, SUBPIXELS_SHARP, dark_fraction_lens_samples, samp
 #: Pixels per block of the Jacobian (bounds its memory; results do not depend on it).
 JACOBIAN_BLOCK = 2048
 
+#: Pixels between the image centre and the other two points the focus geometry of an undistorted camera is taken
+#: at (`_Problem._focus`); any span gives the same focus points to rounding.
+FOCUS_BASIS_SPAN = 256.0
+
 
 @dataclass
 class _View:
@@ -93,47 +97,93 @@ class _Problem:
         return torch.func.functional_call(self.geometry, self._params(v, geo[:4], geo[4:10]), (v, fn))
 
     # --- dark fractions and their Jacobians ------------------------------------------------------------------
-    def _closed(self, v: int, geo: torch.Tensor, uv: torch.Tensor, jacobian: bool, subpixels: int = SUBPIXELS):
+    def _focus(self, v: int, geo: torch.Tensor, jacobian: bool):
+        """View v's focus geometry at the state `geo`, as a function of sensor points: at(pts (N, S, 2)) ->
+        (q_h (N, S, 4), centre (3,), axes (2, 3), chain), where chain(gq (N, S, 4), gc (N, 3), ga (N, 2, 3)) ->
+        (N, 10) turns a function's gradients with respect to them (per pixel) into its derivatives by (lens, pose);
+        chain is None without `jacobian`.
+
+        Without distortion the focus point is affine in the sensor point (`ThinLensCamera.focus_geometry`: the
+        screen point, its focus weight and the pose's map are all affine), so it and its forward-mode derivative
+        are taken once a view and state at three points of the image (`_basis`) and combined for every point
+        (equal to rounding, 1e-13 relative). With distortion (held, but `sigma._held_covariance` moves it between
+        calls) every point goes through forward mode."""
+        def focus_at(points):
+            def focus(g):
+                out = self._call(v, g, lambda cam: cam.focus_geometry(points)[:3])
+                return out, tuple(o.detach() for o in out)
+
+            if jacobian:
+                return torch.func.jacfwd(focus, has_aux=True)(geo)
+            with torch.no_grad():
+                return None, focus(geo)[1]
+
+        if bool((self.camera.distortion.detach() != 0).any()):
+            def at_each(pts):
+                d, (q, c, a) = focus_at(pts)
+                chain = None if d is None else lambda gq, gc, ga: (
+                    torch.einsum("nsk,nskp->np", gq, d[0]) + gc @ d[1] + torch.einsum("nij,ijp->np", ga, d[2]))
+                return q, c, a, chain
+            return at_each
+        d, (q, c, a) = focus_at(self._basis(geo.dtype))
+        q0, qu, qv = q[0], q[1] - q[0], q[2] - q[0]
+
+        def at(pts):
+            su, sv = self._basis_coordinates(pts)
+            q_pts = q0 + su[..., None] * qu + sv[..., None] * qv
+            if d is None:
+                return q_pts, c, a, None
+            dq, dc, da = d
+            d0, du, dv = dq[0], dq[1] - dq[0], dq[2] - dq[0]
+
+            def chain(gq, gc, ga):
+                return (gq.sum(1) @ d0 + (gq * su[..., None]).sum(1) @ du + (gq * sv[..., None]).sum(1) @ dv
+                        + gc @ dc + torch.einsum("nij,ijp->np", ga, da))
+
+            return q_pts, c, a, chain
+        return at
+
+    def _basis(self, dtype) -> torch.Tensor:
+        """(3, 2) the image centre and the points FOCUS_BASIS_SPAN px to its right and below it."""
+        cu, cv = self.camera.image_size_px[0] / 2.0, self.camera.image_size_px[1] / 2.0
+        return torch.tensor([[cu, cv], [cu + FOCUS_BASIS_SPAN, cv], [cu, cv + FOCUS_BASIS_SPAN]], dtype=dtype)
+
+    def _basis_coordinates(self, pts: torch.Tensor):
+        """(su, sv) (N, S): `pts` in the basis of `_basis` (its origin, FOCUS_BASIS_SPAN px a unit)."""
+        cu, cv = self.camera.image_size_px[0] / 2.0, self.camera.image_size_px[1] / 2.0
+        return (pts[..., 0] - cu) / FOCUS_BASIS_SPAN, (pts[..., 1] - cv) / FOCUS_BASIS_SPAN
+
+    def _closed(self, focus, uv: torch.Tensor, jacobian: bool, subpixels: int = SUBPIXELS):
+        """(N,) dark fractions in closed form and (N, 10) their derivatives by (lens, pose): forward mode through
+        the focus geometry (`_focus`), one reverse pass through the aperture integral (elementwise in the
+        points), chained."""
         pts = sub_points(uv, subpixels)
+        q, c, a, chain = focus(pts)
         if not jacobian:
             with torch.no_grad():
-                q, c, a = self._call(v, geo, lambda cam: cam.focus_geometry(pts)[:3])
                 return checker_dark_fraction_disc(q, c, a, self.target, self.near).mean(-1), None
-
-        def focus(g):
-            out = self._call(v, g, lambda cam: cam.focus_geometry(pts)[:3])
-            return out, tuple(o.detach() for o in out)
-
-        (dq, dc, da), (q, c, a) = torch.func.jacfwd(focus, has_aux=True)(geo)
         self.near = min(self.n_edges, max(self.near, lines_cut(q, c, a, self.target) + 1))
         n, s = pts.shape[:2]
         with torch.enable_grad():
-            # Each point's own copy of the lens centre and axes: the gradient of the sum is every point's partials.
+            # Each pixel's own copy of the lens centre and axes (broadcast over its points): the gradient of the
+            # sum is every pixel's partials.
             qq = q.clone().requires_grad_()
-            cc = c.expand(n, s, 3).clone().requires_grad_()
-            aa = a.expand(n, s, 2, 3).clone().requires_grad_()
+            cc = c.expand(n, 1, 3).clone().requires_grad_()
+            aa = a.expand(n, 1, 2, 3).clone().requires_grad_()
             dark = checker_dark_fraction_disc(qq, cc, aa, self.target, self.near)
             grads = torch.autograd.grad(dark.sum(), (qq, cc, aa), allow_unused=True)
         gq, gc, ga = (torch.zeros_like(t) if g is None else g for g, t in zip(grads, (qq, cc, aa)))
-        dD = (torch.einsum("nsk,nskp->np", gq, dq) + torch.einsum("nsk,kp->np", gc, dc)
-              + torch.einsum("nsij,ijp->np", ga, da)) / s
-        return dark.detach().mean(-1), dD
+        return dark.detach().mean(-1), chain(gq, gc.reshape(n, 3), ga.reshape(n, 2, 3)) / s
 
-    def _samples(self, v: int, geo: torch.Tensor, psf: torch.Tensor, uv: torch.Tensor, jacobian: bool):
+    def _samples(self, focus, psf: torch.Tensor, uv: torch.Tensor, jacobian: bool):
         """(N,) dark fractions by the fixed lens samples and (N, 11) their derivatives by (lens, pose, psf): as
         `_closed`, forward mode through the 7 focus points a pixel (`render.sample_points`) and one reverse pass
         through the samples' checker (elementwise in the pixels), chained."""
         pts = sample_points(uv)
+        q, c, a, chain = focus(pts)
         if not jacobian:
             with torch.no_grad():
-                q, c, a = self._call(v, geo, lambda cam: cam.focus_geometry(pts)[:3])
                 return dark_fraction_lens_samples(self.target, q, c, a, self.lens_xy, psf * psf), None
-
-        def focus(g):
-            out = self._call(v, g, lambda cam: cam.focus_geometry(pts)[:3])
-            return out, tuple(o.detach() for o in out)
-
-        (dq, dc, da), (q, c, a) = torch.func.jacfwd(focus, has_aux=True)(geo)
         n = pts.shape[0]
         with torch.enable_grad():
             # Each pixel's own copy of the lens centre, axes and the Gaussian's variance (see `_closed`).
@@ -143,9 +193,7 @@ class _Problem:
             var = (psf.detach() ** 2).expand(n).clone().requires_grad_()
             dark = dark_fraction_lens_samples(self.target, qq, cc, aa, self.lens_xy, var)
             gq, gc, ga, gv = torch.autograd.grad(dark.sum(), (qq, cc, aa, var))
-        dD = (torch.einsum("nsk,nskp->np", gq, dq) + torch.einsum("nk,kp->np", gc, dc)
-              + torch.einsum("nij,ijp->np", ga, da))
-        return dark.detach(), torch.cat([dD, (2.0 * psf.detach() * gv)[:, None]], 1)
+        return dark.detach(), torch.cat([chain(gq, gc, ga), (2.0 * psf.detach() * gv)[:, None]], 1)
 
     def _dark(self, v: int, geo: torch.Tensor, psf: torch.Tensor, jacobian: bool):
         """(N,) dark fractions of view v's pixels and (N, 11) their derivatives by (lens, pose, psf)."""
@@ -154,6 +202,7 @@ class _Problem:
         # Pixels in three runs: closed form with SUBPIXELS_SHARP points a side, closed form with SUBPIXELS, samples.
         runs = ((0, dv.n_sharp, SUBPIXELS_SHARP), (dv.n_sharp, dv.n_closed_form, SUBPIXELS),
                 (dv.n_closed_form, dv.uv.shape[0], None))
+        focus = self._focus(v, geo, jacobian)
         for a in range(0, dv.uv.shape[0], JACOBIAN_BLOCK):
             b = min(a + JACOBIAN_BLOCK, dv.uv.shape[0])
             for lo, hi, sub in runs:
@@ -161,9 +210,9 @@ class _Problem:
                 if lo >= hi:
                     continue
                 if sub is None:
-                    D, dD = self._samples(v, geo, psf, dv.uv[lo:hi], jacobian)
+                    D, dD = self._samples(focus, psf, dv.uv[lo:hi], jacobian)
                 else:
-                    D, dD = self._closed(v, geo, dv.uv[lo:hi], jacobian, sub)
+                    D, dD = self._closed(focus, dv.uv[lo:hi], jacobian, sub)
                     dD = None if dD is None else torch.cat([dD, dD.new_zeros(hi - lo, 1)], 1)
                 Ds.append(D)
                 dDs.append(dD)

@@ -45,7 +45,20 @@ def applies(scene: Scene, options: TraceOptions, device, dtype) -> bool:
 
 def scene_fits(scene: Scene, device, dtype) -> bool:
     """Whether the scene is one the per-component stages here shade (see the module docstring), for a
-    render on `device` in `dtype`; `renderer.tracing.jit_direct` takes the same scenes."""
+    render on `device` in `dtype`."""
+    if not camera_fits(scene, device, dtype) or not all(o.shape.type_name in _KINDS for o in scene.objects):
+        return False
+    table = scene.materials(torch.zeros(0, dtype=dtype, device=device))
+    if not direct_applies(scene, TraceOptions(), table):
+        return False
+    return all(scene.objects[k].shape.type_name == "rectangle" and tex.palette is not None
+               for k, tex in table.textures.items())
+
+
+def camera_fits(scene: Scene, device, dtype) -> bool:
+    """Whether `_camera_rays` makes the scene's camera rays (and `renderer.tracing.jit_direct`'s): a render on
+    the CPU in float32, no layers, the thin lens with plain-number parameters, its tilt about the camera x axis,
+    no distortion, nothing in the scene needing gradients."""
     from renderer.cameras.thin_lens import ThinLensCamera
 
     cam = scene.camera
@@ -59,13 +72,7 @@ def scene_fits(scene: Scene, device, dtype) -> bool:
         return False
     if lens.phi != 0:  # its compiled rays take the tilt about x only
         return False
-    if scene.requires_grad() or not all(o.shape.type_name in _KINDS for o in scene.objects):
-        return False
-    table = scene.materials(torch.zeros(0, dtype=dtype, device=device))
-    if not direct_applies(scene, TraceOptions(), table):
-        return False
-    return all(scene.objects[k].shape.type_name == "rectangle" and tex.palette is not None
-               for k, tex in table.textures.items())
+    return not scene.requires_grad()
 
 
 class _Tables:

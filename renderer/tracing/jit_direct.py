@@ -1,4 +1,4 @@
-"""Direct light beside Embree in Dr.Jit: the default path of `render` for the scenes `renderer.tracing.fused` takes.
+"""Direct light beside Embree in Dr.Jit: the default path of `render` for direct-light thin-lens scenes.
 
 With `intersector="mitsuba"` (the default `auto` where Mitsuba's llvm variant runs) the eager path hands each
 batch of rays to Embree and back, and spends most of its time in a few hundred torch operations per batch, each
@@ -12,10 +12,12 @@ written with Dr.Jit arrays, the JIT Embree already runs in, so that Dr.Jit trace
 Dr.Jit compiles each distinct kernel once (tens of milliseconds with LLVM) and keeps it in memory and on disk
 (`~/.drjit`), so the first render of a new machine is not delayed by seconds as `torch.compile` is (`fused`).
 
-Same scenes as `fused.scene_fits` (direct light only: Lambert, point and ambient lights; the thin-lens
-camera with plain-number parameters, no tilt-axis turn, no distortion; no layers; spheres, boxes, rectangles
-and planes; checker textures on rectangles; CPU float32) and the same formulas as `renderer.tracing.direct`
-and `ThinLensCamera._rays_in_place`, in float32 as they are (the samples in float64 as `Sampler` makes them).
+Scenes (`applies`): direct light only (Lambert and Phong materials without mirror or refraction weights;
+point and ambient lights); the thin-lens camera as `fused.camera_fits` takes it (plain-number parameters, no
+tilt-axis turn, no distortion, no layers); spheres, boxes, rectangles and planes; checker textures on
+rectangles and planes; CPU float32. Formulas: those of `renderer.tracing.direct` (and of
+`integrator._lambert_phong` for a Phong lobe) and `ThinLensCamera._rays_in_place`, in float32 as they are (the
+samples in float64 as `Sampler` makes them).
 The images agree with the eager path to float rounding: Dr.Jit's sine and cosine are its own, so lens points
 may differ in the last bit, and a ray grazing an edge may then change its hit (tests/renderer/test_jit_direct.py).
 """
@@ -40,37 +42,75 @@ CHUNK_RAYS = 1 << 22
 
 def applies(scene: Scene, options: TraceOptions, device, dtype) -> bool:
     """Whether `render_pixels` computes this scene's image: eager Embree renders (`intersector="mitsuba"`,
-    not `compile`, `fast_paths` and `jit_kernels` on) of the scenes `fused.scene_fits` takes whose textures are
-    all checkers."""
+    not `compile`, `fast_paths` and `jit_kernels` on) of the scenes in the module docstring."""
     if (options.compile or not options.fast_paths or not options.jit_kernels
             or options.intersector != "mitsuba"):
         return False
     return scene.derived(("jit_direct.applies", torch.device(device).type, dtype), lambda: _fits(scene, device, dtype))
 
 
+# Shapes whose normals `NormalTables` holds and whose Embree counterpart is the same surface; of these, the flat
+# ones may carry a checker (their texture coordinates are an affine function of the hit point).
+_KINDS = {"sphere", "box", "rectangle", "plane"}
+_FLAT = {"rectangle", "plane"}
+
+
 def _fits(scene: Scene, device, dtype) -> bool:
-    if not fused.scene_fits(scene, device, dtype):
+    if not fused.camera_fits(scene, device, dtype) or not all(o.shape.type_name in _KINDS for o in scene.objects):
+        return False
+    if any(light.type not in ("point", "ambient") for light in scene.lights):
         return False
     table = scene.materials(torch.zeros(0, dtype=dtype))
-    return all(isinstance(tex, CheckerTexture) for tex in table.textures.values())
+    if bool(((table.reflect > 0) | (table.transmit > 0)).any()):
+        return False
+    return all(isinstance(tex, CheckerTexture) and scene.objects[k].shape.type_name in _FLAT
+               for k, tex in table.textures.items())
 
 
 class _Kernel:
-    """What the Dr.Jit computation of a scene reads: its `fused._Tables` as Dr.Jit arrays (gathered by object
-    id in the kernel), the intersector, Mitsuba and Dr.Jit."""
+    """What the Dr.Jit computation of a scene reads, made once per scene: per-object tables as Dr.Jit arrays
+    gathered by object id in the kernel (slot 0 of the material tables a miss, slot k + 1 object k), the
+    checkers' planes and the lights as Python numbers (literals in the kernel), the intersector, Mitsuba and
+    Dr.Jit."""
 
     def __init__(self, scene: Scene):
         from renderer.mitsuba.intersect import engine
+        from renderer.tracing.direct import NormalTables
 
         self.engine = engine(scene)
         if self.engine.fallback:
             raise AssertionError("jit_direct: every shape should be traced by Embree (see applies)")
         mi = self.mi = self.engine.mi
         self.dr = self.engine.dr
-        tb = self.tables = fused._Tables(scene, scene.materials(torch.zeros(0, dtype=torch.float32)))
-        F = lambda rows: [mi.Float(r.numpy()) for r in rows]  # noqa: E731
-        self.faces, self.center, self.colors = F(tb.faces), F(tb.center), F(tb.colors)
-        self.inv_r, self.kd = mi.Float(tb.inv_r.numpy()), mi.Float(tb.kd.numpy())
+        table = scene.materials(torch.zeros(0, dtype=torch.float32))
+        normals = NormalTables(scene, table, torch.zeros(0, dtype=torch.float32))
+        F = lambda rows: [mi.Float(r.contiguous().numpy()) for r in rows]  # noqa: E731
+        slots = lambda values: mi.Float(torch.cat([torch.zeros(1), values.float()]).numpy())  # noqa: E731
+        self.faces, self.center, self.inv_r = F(normals.faces), F(normals.center), mi.Float(normals.inv_r.numpy())
+        self.kd = slots(table.diffuse)
+        self.specular = bool((table.specular > 0).any())  # a Phong lobe on some object
+        self.ks, self.shininess = slots(table.specular), slots(table.shininess)
+        colors = [torch.zeros(3, 1), table.color.T.float()]
+        # (object, checker, first palette slot, origin (3), u and v axes (2 × 3), offset (2)) per checker: its
+        # cell coordinates are u = axis_u · (p − origin) + offset_u, likewise v (`Rectangle.uv_rows`,
+        # `Plane.surface`)
+        self.checkers = []
+        for k in sorted(table.textures):
+            shape, tex = scene.objects[k].shape, table.textures[k]
+            first = sum(c.shape[1] for c in colors)
+            colors.append(torch.tensor(tex.palette, dtype=torch.float32).T)
+            if shape.type_name == "rectangle":
+                axes = None if shape.axis_aligned else shape.local_from_world[:2].tolist()
+                origin, offset = shape.origin, shape.half
+            else:
+                axes, origin, offset = [shape.tangent_u.tolist(), shape.tangent_v.tolist()], shape.point, (0.0, 0.0)
+            self.checkers.append((k, tex, first, [float(v) for v in origin], axes, [float(v) for v in offset]))
+        self.colors = F(torch.cat(colors, 1).unbind(0))
+        self.eps = float(scene.ray_epsilon)
+        self.lights = [(light.type, [float(v) for v in light.intensity],
+                        None if light.type == "ambient" else [float(v) for v in light.position])
+                       for light in scene.lights]
+        self.background = [float(v) for v in scene.image.background]
 
 
 def _kernel(scene: Scene) -> _Kernel:
@@ -95,7 +135,7 @@ def render_pixels(scene: Scene, pixel: torch.Tensor, sampler, options: TraceOpti
         rad = [term[i] * vis + (0 if rad is None else rad[i]) for i in range(3)]
     if rad is None:  # no lights: black
         rad = [dr.zeros(mi.Float, dr.width(t)) for _ in range(3)]
-    background = k.tables.background
+    background = k.background
     if any(background):
         missed = dr.select(found, 0.0, mi.Float(1.0))
         rad = [rad[i] + background[i] * missed for i in range(3)]
@@ -169,10 +209,11 @@ def _camera_rays(k: _Kernel, xs, ys, u, v, cam: fused._CameraConstants):
 
 
 def _shade(k: _Kernel, o, d, t, obj, aux):
-    """`fused._shade` in Dr.Jit: found, the shadow rays' origin (3 components), per point light its shadow
-    ray (direction (3 components), reach), the ambient radiance (3 components or None) and per point light
-    the unshadowed radiance (3 components)."""
-    mi, dr, tb = k.mi, k.dr, k.tables
+    """The direct light at the first hits but the shadow rays' answers, as `renderer.tracing.direct.shade_hits`
+    (and, with a Phong lobe, `integrator._lambert_phong`) compute it: found, the shadow rays' origin (3
+    components), per point light its shadow ray (direction (3 components), reach: 0 for none), the ambient
+    radiance (3 components or None) and per point light the unshadowed radiance (3 components)."""
+    mi, dr = k.mi, k.dr
     F, I = mi.Float, mi.Int32
     found = obj >= 0
     safe = dr.maximum(obj, 0)
@@ -183,13 +224,13 @@ def _shade(k: _Kernel, o, d, t, obj, aux):
     n = [dr.gather(F, k.faces[i], face) + (p[i] - dr.gather(F, k.center[i], safe)) * inv_r for i in range(3)]
     slot = obj + 1
     index = slot
-    for obj_k, tex, first, origin, R, half in tb.textured:  # the rectangle's `uv_rows`, then the checker's cell
+    for obj_k, tex, first, origin, axes, offset in k.checkers:  # the checker's cell (`CheckerTexture.palette_index`)
         q = [p[i] - origin[i] for i in range(3)]
-        if R is None:
+        if axes is None:
             u, v = q[0], q[1]
         else:
-            u, v = (R[j][0] * q[0] + R[j][1] * q[1] + R[j][2] * q[2] for j in range(2))
-        cell = dr.floor((u + half[0]) / tex.size) + dr.floor((v + half[1]) / tex.size)
+            u, v = (axes[j][0] * q[0] + axes[j][1] * q[1] + axes[j][2] * q[2] for j in range(2))
+        cell = dr.floor((u + offset[0]) / tex.size) + dr.floor((v + offset[1]) / tex.size)
         half_cell = cell * 0.5  # odd cells: half an integer (exact)
         odd = I(dr.select(half_cell != dr.floor(half_cell), 1, 0))
         index = dr.select(obj == obj_k, odd + first, index)
@@ -197,10 +238,12 @@ def _shade(k: _Kernel, o, d, t, obj, aux):
     entering = n[0] * d[0] + n[1] * d[1] + n[2] * d[2] < 0
     sign = dr.select(entering, 1.0, F(-1.0))
     nf = [n[i] * sign for i in range(3)]
-    kds = dr.gather(F, k.kd, slot)
-    origin = [p[i] + nf[i] * tb.eps for i in range(3)]
+    kd = dr.gather(F, k.kd, slot)
+    if k.specular:
+        ks, shininess = dr.gather(F, k.ks, slot), dr.gather(F, k.shininess, slot)
+    origin = [p[i] + nf[i] * k.eps for i in range(3)]
     ambient, shadow, unshadowed = None, [], []
-    for kind, intensity, position in tb.lights:
+    for kind, intensity, position in k.lights:
         if kind == "ambient":
             ambient = [intensity[i] * albedo[i] + (0 if ambient is None else ambient[i]) for i in range(3)]
             continue
@@ -210,7 +253,16 @@ def _shade(k: _Kernel, o, d, t, obj, aux):
         l = [to[i] * inv for i in range(3)]
         cos = dr.maximum(nf[0] * l[0] + nf[1] * l[1] + nf[2] * l[2], 0.0)
         reach = dr.select((cos > 0) & found, dist, 0.0)
-        scale = kds * cos / (math.pi * dr.maximum(reach * reach, 1e-30))
         shadow.append((l, reach))
-        unshadowed.append([albedo[i] * scale * intensity[i] for i in range(3)])
+        if not k.specular:
+            scale = kd * cos / (math.pi * dr.maximum(reach * reach, 1e-30))
+            unshadowed.append([albedo[i] * scale * intensity[i] for i in range(3)])
+            continue
+        irradiance = cos / dr.maximum(reach * reach, 1e-30)
+        # Normalised Phong, ks (s + 2) / (2π) max(0, r·v)^s with r the mirrored light direction and v = −d
+        # (`integrator._lambert_phong`); 0^0 = 1 as torch takes it.
+        r = [2 * cos * nf[i] - l[i] for i in range(3)]
+        rv = dr.maximum(-(r[0] * d[0] + r[1] * d[1] + r[2] * d[2]), 0.0)
+        lobe = ks * (shininess + 2) / (2 * math.pi) * dr.select(shininess == 0, 1.0, dr.power(rv, shininess))
+        unshadowed.append([(kd * albedo[i] / math.pi + lobe) * (intensity[i] * irradiance) for i in range(3)])
     return found, origin, shadow, ambient, unshadowed

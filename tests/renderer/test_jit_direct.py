@@ -38,17 +38,33 @@ RENDER = sys.modules["renderer.tracing.render"]
 EMBREE = TraceOptions(intersector="mitsuba")
 
 
+def _phong():
+    """The mixed scene with Phong lobes (one with exponent 0: 0^0 = 1) and a checkered floor plane."""
+    scene = _mixed()
+    from dataclasses import replace
+
+    from renderer.scene.materials import CheckerTexture
+
+    floor, box, ball = scene.objects[2], scene.objects[3], scene.objects[4]
+    box.material = replace(box.material, specular=0.4, shininess=40.0)
+    ball.material = replace(ball.material, specular=0.3, shininess=0.0)
+    floor.material = replace(floor.material, texture=CheckerTexture(0.3, ((0.9, 0.9, 0.8), (0.2, 0.2, 0.3))))
+    scene.refresh()
+    return scene
+
+
 def test_applies_to_the_defaults_scenes_only():
     assert jit_direct.applies(_speed(), EMBREE, "cpu", torch.float32), "the speed scene should take the Dr.Jit path"
     assert jit_direct.applies(_mixed(), EMBREE, "cpu", torch.float32), "the mixed scene should take the Dr.Jit path"
+    assert jit_direct.applies(_phong(), EMBREE, "cpu", torch.float32), "Phong lobes and a checkered plane too"
     for options, dtype in [(TraceOptions(intersector="mitsuba", compile=True), torch.float32),  # fused: opt-in
                            (TraceOptions(intersector="torch"), torch.float32),
                            (TraceOptions(intersector="mitsuba", fast_paths=False), torch.float32),
                            (TraceOptions(intersector="mitsuba", jit_kernels=False), torch.float32),  # eager
                            (EMBREE, torch.float64)]:
         assert not jit_direct.applies(_speed(), options, "cpu", dtype), f"Dr.Jit path taken for {options}, {dtype}"
-    specular = load_scene(SPEED, ["image.width=8", "image.height=8", "objects.1.material.specular=0.5"])
-    assert not jit_direct.applies(specular, EMBREE, "cpu", torch.float32), "a Phong lobe is not in its shading"
+    mirror = load_scene(SPEED, ["image.width=8", "image.height=8", "objects.1.material.reflect=0.5"])
+    assert not jit_direct.applies(mirror, EMBREE, "cpu", torch.float32), "a mirror needs the bounces"
 
 
 def test_not_for_a_grid_texture():
@@ -77,9 +93,10 @@ def test_sobol_samples_are_the_samplers():
         assert torch.equal(g.torch(), want.contiguous()), f"sample row {name} differs from Sampler.pixel_block"
 
 
-@pytest.mark.parametrize("sampler", ["sobol", "independent", "stratified", "center"])
-def test_matches_our_tracer(sampler):
-    scene = _mixed()
+@pytest.mark.parametrize("sampler,make", [("sobol", _mixed), ("independent", _mixed), ("stratified", _mixed),
+                                         ("center", _mixed), ("sobol", _phong)], ids=lambda v: getattr(v, "__name__", v))
+def test_matches_our_tracer(sampler, make):
+    scene = make()
     ours = render(scene, sampler=sampler, seed=2, intersector="torch", workers=1)
     got = render(scene, sampler=sampler, seed=2, intersector="mitsuba", workers=1)
     diff = (got.image - ours.image).abs()
@@ -110,8 +127,7 @@ def test_detects_a_wrong_shading():
     scene = _mixed()
     ours = render(scene, intersector="torch", workers=1).image
     kernel = jit_direct._kernel(scene)
-    kernel.tables.lights = [(kind, [2 * v for v in intensity], position)
-                            for kind, intensity, position in kernel.tables.lights]
+    kernel.lights = [(kind, [2 * v for v in intensity], position) for kind, intensity, position in kernel.lights]
     got = render(scene, intersector="mitsuba", workers=1).image
     assert (got - ours).abs().max() > 0.01, "a doubled light should show"
 

@@ -377,12 +377,22 @@ class _Problem:
             d_world = d_pcam @ self.work.R.detach()[:, None]                    # ∂/∂X_world
             jac[self.BOARD] = d_world if self.point_index is not None else \
                 torch.einsum("vnij,njk->vnik", d_world, self.board.basis)
-        j = torch.cat([jac[n] for n in names], -1)                          # (V, N, 3, P)
-        jc = torch.where(self.cmask[..., None, None], j[..., :2, :], 0.0).reshape(-1, j.shape[-1])
-        if not self.blur_rows_kept:
-            return jc, self._flat(uv, b)
-        jb = torch.where(self.bmask[..., None], j[..., 2, :], 0.0).reshape(-1, j.shape[-1])
-        return torch.cat([jc, jb]), self._flat(uv, b)
+        # written once into the (M, P) matrix: corner rows (V, N, 2) then blur rows (V, N), 0 where unobserved
+        sizes = [jac[n].shape[-1] for n in names]
+        V, N = self.cmask.shape
+        nc = 2 * V * N
+        J = uv.new_empty(nc + (V * N if self.blur_rows_kept else 0), sum(sizes))
+        Jc, Jb = J[:nc].view(V, N, 2, -1), J[nc:].view(V, N, -1)
+        a = 0
+        for n, k in zip(names, sizes):
+            Jc[..., a:a + k] = jac[n][..., :2, :]
+            if self.blur_rows_kept:
+                Jb[..., a:a + k] = jac[n][..., 2, :]
+            a += k
+        Jc.masked_fill_(~self.cmask[..., None, None], 0.0)
+        if self.blur_rows_kept:
+            Jb.masked_fill_(~self.bmask[..., None], 0.0)
+        return J, self._flat(uv, b)
 
     def evaluate(self, scale: torch.Tensor):
         """The `tiltfit.solve.levenberg_marquardt` callback of the residuals `raw(x) * scale`."""
@@ -392,7 +402,7 @@ class _Problem:
             if not with_jacobian:
                 return self.raw(x) * scale, None
             J, r = self._raw_jacobian_matrix(x, self.names)
-            return r * scale, dict(zip(self.names, torch.split(J * scale[:, None], sizes, 1)))
+            return r * scale, dict(zip(self.names, torch.split(J.mul_(scale[:, None]), sizes, 1)))
 
         return evaluate
 

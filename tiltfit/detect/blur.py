@@ -34,6 +34,12 @@ from tiltfit.detect.imaging import apply_homography, build_pyramid, homography_d
 from tiltfit.solve.batched import BatchedOptions, Normal, batched_levenberg_marquardt
 from tiltfit.target.layout import Target
 
+# The band model is evaluated in float64: Levenberg–Marquardt takes a step when the cost falls, and near the
+# minimum the fall is below a float32 model's rounding, so where a float32 fit stopped depended on its path
+# (a corner moved by 1e-6 px moved a first-pass width by 2e-3 px, and final widths by many σ through the passes
+# that follow, whose bands are cut for the width found); in float64 the same first pass moves by 2e-6 px
+_MODEL_DTYPE = torch.float64
+
 
 
 def _G(u: torch.Tensor) -> torch.Tensor:
@@ -50,7 +56,7 @@ def _G_and_G2(u: torch.Tensor, with_G: bool = True):
     """(G(u) or None, G2(u)), sharing the square root and arcsine (the costly part of the pixel ESF)."""
     uc = u.clamp(-1.0, 1.0)
     # floored: the square root of exact zeros (every |u| >= 1) is slow on some CPUs' vector units, and
-    # √1e-30 = 1e-15 changes G and G2 by far less than float32 resolves
+    # √1e-30 = 1e-15 changes G and G2 by far less than the image's noise
     s = torch.sqrt((1 - uc * uc).clamp_min_(1e-30))
     a = torch.asin(uc)
     over = (u - 1).clamp_min(0.0)
@@ -173,23 +179,48 @@ def _edge_cells(target: Target, j: np.ndarray, i: np.ndarray):
     return value, a_near, a_far, far_lo, far_hi, kappa
 
 
+# Band weights fall from 1 to 0 over this distance (pixels of the level) inside each limit of the band, so the
+# pixel set, and with it the fitted width, moves smoothly with the corner (a pixel entering at full weight
+# moved some widths by many σ for a 1e-6 px change of a corner)
+_TAPER_PX = 1.0
+# Weight a band needs to be kept; it fades in over as much again, so a band does not appear at full weight
+_MIN_BAND_WEIGHT = 12.0
+# Thinning keeps a pixel (x, y) when frac(x φ₁ + y φ₂) < 2^−k (the R2 low-discrepancy sequence, Roberts 2018): a
+# fixed, evenly spread subset of the image, so a pixel entering or leaving the band does not reshuffle the rest
+_R2 = (0.7548776662466927, 0.5698402909980532)
+
+
+def _ramp(x: np.ndarray) -> np.ndarray:
+    """0 for x <= 0, 1 for x >= _TAPER_PX, linear between."""
+    return np.clip(x / _TAPER_PX, 0.0, 1.0)
+
+
 def _band(lo, hi, lines, margin, reach, s_max, max_pixels) -> dict | None:
-    """One band's pixels within the box lo..hi (x, y): px (n, 2) and their signed distances d0 to the edge, d_lo
-    and d_hi to the next parallel edges, from the image lines (5, 3) (edge, near and far closing lines, lines
-    before and after); None below 12 pixels. At most max_pixels, evenly thinned."""
+    """One band's pixels within the box lo..hi (x, y): px (n, 2), their weights w (n,) in (0, 1] and their signed
+    distances d0 to the edge, d_lo and d_hi to the next parallel edges, from the image lines (5, 3) (edge, near
+    and far closing lines, lines before and after); None below _MIN_BAND_WEIGHT.
+
+    A pixel's weight tapers to 0 inside every limit of the band (`_TAPER_PX`), so it is a continuous function
+    of the corners; beyond max_pixels the band keeps a fixed 2^−k share of the image's pixels (`_R2`)."""
     (x0, y0), (x1, y1) = lo, hi
     P = np.empty(((y1 - y0 + 1) * (x1 - x0 + 1), 2))
     P.reshape(y1 - y0 + 1, x1 - x0 + 1, 2)[..., 0] = np.arange(x0, x1 + 1)
     P.reshape(y1 - y0 + 1, x1 - x0 + 1, 2)[..., 1] = np.arange(y0, y1 + 1)[:, None]
     # signed distances to the edge, the two lines closing the band, and the next parallel edges
     d0, dn, dfar, d_lo, d_hi = (P @ lines[:, :2].T + lines[:, 2]).T
-    keep = (np.abs(d0) <= s_max) & (dn >= margin) & (dfar >= margin) & (dn <= reach) & (d_lo >= 0) & (d_hi >= 0)
-    idx_keep = np.nonzero(keep)[0]
-    if idx_keep.size < 12:
-        return None
+    w = (_ramp(s_max - np.abs(d0)) * _ramp(dn - margin) * _ramp(dfar - margin) * _ramp(reach - dn)
+         * _ramp(d_lo) * _ramp(d_hi))
+    idx_keep = np.nonzero(w > 0)[0]
     if idx_keep.size > max_pixels:
-        idx_keep = idx_keep[np.linspace(0, idx_keep.size - 1, max_pixels).astype(int)]
-    return dict(px=P[idx_keep].astype(int), d0=d0[idx_keep], d_lo=d_lo[idx_keep], d_hi=-d_hi[idx_keep])
+        share = 0.5 ** math.ceil(math.log2(idx_keep.size / max_pixels))
+        u = np.modf(P[idx_keep] @ np.asarray(_R2))[0]
+        idx_keep = idx_keep[u < share]
+    total = w[idx_keep].sum()
+    if total <= _MIN_BAND_WEIGHT:
+        return None
+    fade = min(1.0, (total - _MIN_BAND_WEIGHT) / _MIN_BAND_WEIGHT)
+    return dict(px=P[idx_keep].astype(int), w=w[idx_keep] * fade, d0=d0[idx_keep], d_lo=d_lo[idx_keep],
+                d_hi=-d_hi[idx_keep])
 
 
 def _half_edges(target: Target, ks: np.ndarray, Hms: np.ndarray, r_est: np.ndarray, image_shape, max_pixels: int,
@@ -274,9 +305,10 @@ def _half_edges(target: Target, ks: np.ndarray, Hms: np.ndarray, r_est: np.ndarr
 
 
 def _pack_bands(img: np.ndarray, groups: list[list[dict]]):
-    """The bands of C points padded into tensors (B bands a point at most, n pixels a band at most): mask, values,
+    """The bands of C points padded into tensors (B bands a point at most, n pixels a band at most): mask (the
+    square root of the pixel's weight, so that residuals and Jacobian rows times mask weight the squares), values,
     d0, d_lo, d_hi (C, B, n), dxy (C, B, n, 2), kappa (C, B, 4), wa, wb (C, B, 1); padding has mask 0 and its far
-    lines out of reach. float64 for the mask, values and far lines, float32 for the model's geometry."""
+    lines out of reach. float64 for the mask, values and far lines, `_MODEL_DTYPE` for the model's geometry."""
     C = len(groups)
     B = max(len(g) for g in groups)
     n = max(len(b["d0"]) for g in groups for b in g)
@@ -292,14 +324,14 @@ def _pack_bands(img: np.ndarray, groups: list[list[dict]]):
     for c, g in enumerate(groups):
         for e, b in enumerate(g):
             m = len(b["d0"])
-            mask[c, e, :m] = 1.0
+            mask[c, e, :m] = np.sqrt(b["w"])
             vals[c, e, :m] = img[b["px"][:, 1], b["px"][:, 0]]
             d0[c, e, :m], dlo[c, e, :m], dhi[c, e, :m] = b["d0"], b["d_lo"], b["d_hi"]
             dxy[c, e, :m] = b["dxy"]
             kap[c, e], wa[c, e], wb[c, e] = b["kappa"], b["wa"], b["wb"]
-    f32, t = torch.float32, torch.from_numpy
-    return (t(mask), t(vals), t(d0.clip(-1e4, 1e4)).to(f32), t(dlo), t(dhi), t(dxy).to(f32), t(kap).to(f32),
-            t(wa).to(f32)[..., None], t(wb).to(f32)[..., None])
+    dt, t = _MODEL_DTYPE, torch.from_numpy
+    return (t(mask), t(vals), t(d0.clip(-1e4, 1e4)).to(dt), t(dlo), t(dhi), t(dxy).to(dt), t(kap).to(dt),
+            t(wa).to(dt)[..., None], t(wb).to(dt)[..., None])
 
 
 def _normal_equations(Kt: torch.Tensor, res: torch.Tensor):
@@ -322,22 +354,24 @@ def _normal_equations(Kt: torch.Tensor, res: torch.Tensor):
 
 def _start(model, I: torch.Tensor, mask: torch.Tensor, has_band: torch.Tensor, r0: torch.Tensor) -> torch.Tensor:
     """`fit_corners`' start (C, P): β scanned from 4 % to 200 % of 2 r0 (g = 0), the levels of each band solved
-    linearly at each β, the β that leaves the least squared residual kept. model(theta, idx, deriv) is the fit's."""
+    linearly at each β (weighted by mask²), the β that leaves the least weighted squared residual kept.
+    model(theta, idx, deriv) is the fit's."""
     C, B = mask.shape[:2]
     every = torch.arange(C)
-    npix = mask.sum(-1)
+    w = mask * mask
+    npix = w.sum(-1)
     best = torch.full((C,), float("inf"), dtype=torch.float64)
     theta = torch.zeros(C, 3 + 3 * B, dtype=torch.float64)
     for frac in (0.05, 0.13, 0.3, 0.55, 1.0, 1.6):
         trial = torch.zeros(C, 3 + 3 * B, dtype=torch.float64)
         trial[:, 0] = (2 * r0 * frac).clamp_min(0.1)  # β is a diameter
         trial[:, 4::3] = 1.0
-        gg = model(trial, every, deriv=False)[0] * mask
-        sg, sI = gg.sum(-1), (I * mask).sum(-1)
-        sgg, sgI = (gg * gg).sum(-1), (gg * I * mask).sum(-1)
+        gg = model(trial, every, deriv=False)[0]
+        sg, sI = (w * gg).sum(-1), (w * I).sum(-1)
+        sgg, sgI = (w * gg * gg).sum(-1), (w * gg * I).sum(-1)
         det = npix * sgg - sg * sg
         cc = (npix * sgI - sg * sI) / det.clamp_min(1e-30)
-        oo = (sI - cc * sg) / npix.clamp_min(1)
+        oo = (sI - cc * sg) / npix.clamp_min(1e-9)
         cost = ((((I - oo[..., None] - cc[..., None] * gg) * mask) ** 2).sum((-1, -2)))
         better = cost < best
         trial[:, 3::3], trial[:, 4::3] = oo, torch.where(has_band, cc, torch.ones_like(cc))
@@ -357,8 +391,11 @@ def _diameter_sigma(A: torch.Tensor, cost: torch.Tensor, npix: torch.Tensor, has
     s2 = torch.maximum(cost / dof, (1e-3 * contrast) ** 2)
     keep = torch.cat([torch.ones(C, 3, dtype=torch.bool), has_band.repeat_interleave(3, dim=1)], 1)
     A = torch.where(keep[:, :, None] & keep[:, None, :], A, torch.diag_embed(torch.ones(C, P, dtype=torch.float64)))
-    cov = torch.linalg.pinv(A) * s2[:, None, None]
-    return torch.sqrt(cov[:, 0, 0].clamp_min(0))
+    # β's information with every other parameter free (the Schur complement of the rest); none left (β in the
+    # null space: no pixel the blur reaches) gives σ = inf, not the 0 a pseudo-inverse would
+    info = A[:, 0, 0] - (A[:, 0:1, 1:] @ torch.linalg.pinv(A[:, 1:, 1:]) @ A[:, 1:, 0:1])[:, 0, 0]
+    determined = info > 1e-9 * A[:, 0, 0].clamp_min(1e-300)
+    return torch.where(determined, torch.sqrt(s2 / torch.where(determined, info, 1.0)), math.inf)
 
 
 def _small_step(step: torch.Tensor, th: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
@@ -376,12 +413,12 @@ class _BandModel:
     """
 
     def __init__(self, img: np.ndarray, groups: list[list[dict]], r_cap: torch.Tensor):
-        f32 = torch.float32
+        dt = _MODEL_DTYPE  # the model's working precision
         self.mask, self.I, d0, dlo, dhi, dxy, kap, wa, wb = _pack_bands(img, groups)
         lim = (r_cap + 2.0)[:, None, None] + 0.0
         # far lines: only the entries within reach are evaluated, elsewhere the step is 0 or 1
-        self._far = [((dlo.abs() < 1.3 * lim), dlo.to(f32)), ((dhi.abs() < 1.3 * lim), dhi.to(f32))]
-        self._points = dict(I=self.I, mask=self.mask, m32=self.mask.to(f32), d0=d0, dx=dxy[..., 0].contiguous(),
+        self._far = [((dlo.abs() < 1.3 * lim), dlo.to(dt)), ((dhi.abs() < 1.3 * lim), dhi.to(dt))]
+        self._points = dict(I=self.I, mask=self.mask, m_model=self.mask.to(dt), d0=d0, dx=dxy[..., 0].contiguous(),
                             dy=dxy[..., 1].contiguous(), kap0=kap[..., 0:1], wa=wa, wb=wb,
                             c_lo=(kap[..., 1] - kap[..., 0])[..., None], c_0=(kap[..., 2] - kap[..., 1])[..., None],
                             c_hi=(kap[..., 3] - kap[..., 2])[..., None])
@@ -424,7 +461,7 @@ class _BandModel:
         non-zero columns of the Jacobian per pixel (k, B, 6, n), float64, zero on padding: a pixel of band e depends
         on the point's (β, gx, gy) and on band e's (dark level, contrast, edge offset) only."""
         g = self.at(idx)
-        th = theta.to(torch.float32)
+        th = theta.to(_MODEL_DTYPE)
         beta, gx, gy = th[:, 0], th[:, 1], th[:, 2]
         o, c, delta = th[:, 3::3], th[:, 4::3], th[:, 5::3]  # (k, B)
         sb = beta[:, None, None] + gx[:, None, None] * g["dx"] + gy[:, None, None] * g["dy"]
@@ -436,9 +473,9 @@ class _BandModel:
         f = o[..., None] + c[..., None] * gsum
         if not deriv:
             return f.double(), None
-        m = g["m32"]  # 0 or 1: the columns on padding are zeroed exactly
+        m = g["m_model"]  # √weight, 0 on padding: the columns there are zeroed exactly
         dr = c[..., None] * (cl * elo_r + c0 * e0_r + ch * ehi_r) * 0.5 * torch.sign(sb) * m
-        Kt = torch.empty(*m.shape[:2], 6, m.shape[-1], dtype=torch.float64)  # float32 rows, cast exactly once
+        Kt = torch.empty(*m.shape[:2], 6, m.shape[-1], dtype=torch.float64)  # the rows, cast exactly once
         for row, col in enumerate((dr, dr * g["dx"], dr * g["dy"], m, gsum * m, -c[..., None] * c0 * e0_d * m)):
             Kt[:, :, row] = col
         return f.double(), Kt
@@ -463,7 +500,7 @@ def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, itera
     model = _BandModel(img, groups, r_cap)
     mask = model.mask
     has_band = mask.any(-1)
-    npix = mask.sum(-1)
+    npix = (mask * mask).sum(-1)  # the bands' weights: pixels, tapered at the band's limits
     theta = _start(model, model.I, mask, has_band, r0)
     # weak prior on g (1 % per pixel) keeps points with few bands well posed: residuals prior · (gx, gy)
     prior = 1e-2 * torch.sqrt(npix.sum(-1)) * theta[:, 4::3].abs().mean(-1).clamp_min(1e-6)

@@ -3,8 +3,10 @@ tests/test_one_solver.py keeps it so).
 
     lm.py       Levenberg–Marquardt over named parameter blocks (one large problem: the corner fit, the blur
                 fit); `least_squares` for one dense vector; Gauss–Newton covariance
-    blocks.py   parameter blocks (global and per view), their flat vector, and the normal equations
+    blocks.py   parameter blocks (global, per view, per point), their flat vector, and the normal equations
                 (dense, or the Schur complement of the per-view blocks)
+    points.py   the normal equations with a per-point block (a free board's points) eliminated point by point,
+                as bundle adjustment's, and their covariance
     batched.py  Levenberg–Marquardt on many small independent problems at once (the detector's and the blur
                 measurement's per-corner fits)
 """

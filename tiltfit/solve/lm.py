@@ -8,7 +8,9 @@
 already divided by their standard deviations, and jac {block name: (M, size)} (None when not asked for): for a
 per-view block (`Block.per_view`), row i holds the derivatives with respect to the block of row i's view
 (`blocks.Layout`). Every residual row belongs to one view (`view_rows`) when there are per-view blocks; their
-normal equations are then solved by the Schur complement (`blocks.SchurNormal`).
+normal equations are then solved by the Schur complement (`blocks.SchurNormal`). A point block (`Block.points`:
+each row depends on its own point's 3 coordinates, `row_points`) is eliminated point by point before that
+(`points.PointSchurNormal`).
 
 Minimises ½ Σ ρ(r_i²) (ρ(s) = s unless `LMOptions.rho`), robust losses by iteratively reweighted least
 squares (weights ρ'(r_i²), `LMOptions.weight`), each step solving (JᵀWJ + λ D) δ = −JᵀW r:

@@ -147,6 +147,13 @@ class _DenseColumns:
         self.Y = App_inv @ (Jp.transpose(1, 2) @ Js)                    # (V, K, S)
         self.J = Js - Jp @ self.Y
         self.s_idx = bj.s_idx
+        self._F = None
+
+    def times(self, S_inv: torch.Tensor) -> torch.Tensor:
+        """(V, R, S) J̃_v S⁻¹, made once (the leverages and the poses' part both read it)."""
+        if self._F is None:
+            self._F = self.right(S_inv)
+        return self._F
 
     def gram(self) -> torch.Tensor:
         """(S, S) Σ_v J̃_vᵀ J̃_v, the Schur complement of the poses."""
@@ -190,6 +197,7 @@ class _PointColumns(_DenseColumns):
         self.Jp = Jp
         self.Y = App_inv @ self._e_left(Jp).transpose(1, 2)             # (V, K, S)
         self.App = Jp.transpose(1, 2) @ Jp
+        self._F = None
 
     def _e_left(self, Z: torch.Tensor) -> torch.Tensor:
         """E_vᵀ Z_v for Z (V, R, m): (V, S, m)."""
@@ -235,9 +243,7 @@ class _PointColumns(_DenseColumns):
         """H̃_vv = F_v J̃_vᵀ with F_v = J̃_v S⁻¹, both through E_v's non-zeros: (R, R) a view (a view has at most
         3 rows a point, the board 3 parameters a point less its gauge: R is never much above S, and B = J̃_v L
         would cost R S² a view)."""
-        F = self.right(S_inv)
-        self.F = F                                                      # J̃ S⁻¹, read again by the poses' part
-        H = self.right(F.transpose(1, 2)).transpose(1, 2)
+        H = self.right(self.times(S_inv).transpose(1, 2)).transpose(1, 2)
         return _hat_eigen(0.5 * (H + H.transpose(1, 2)))
 
 
@@ -290,8 +296,7 @@ def _pose_random_effect(Jp, Jt, r, S_inv, App, App_inv, B, kinds, s2):
     (own (V, K, K), info), or None without corner rows."""
     cm = (kinds == 1).to(r.dtype) * (B != 0).any(-1).to(r.dtype)
     bm = (kinds == 2).to(r.dtype) * (Jp != 0).any(-1).to(r.dtype)
-    F = getattr(Jt, "F", None)
-    F = Jt.right(S_inv) if F is None else F                            # (V, R, S) J̃ S⁻¹
+    F = Jt.times(S_inv)                                                 # (V, R, S) J̃ S⁻¹
     h = ((Jp @ App_inv) * Jp).sum(-1) + Jt.rowdot(F)                   # leverages
     R1, a1 = float((cm * r * r).sum()), float((cm * (1 - h)).sum())
     if a1 <= 0:

@@ -118,20 +118,50 @@ def _edge_lines(q_h, centre, axes, edges, k: int):
     return alpha * f, beta * f, gamma * f
 
 
-def _family_terms(q_h, centre, axes, edges, k: int, near: int):
-    """Per line family: F (..., n) half-plane fractions, the `near` lines nearest the disc's centre (their
-    normals, distances, indices), and the checker coefficients of I (inside) and B (parity sign)."""
-    nx, ny, h = _edge_lines(q_h, centre, axes, edges, k)
-    F = disc_halfplane_fraction(h)
-    idx = torch.topk(h.detach().abs(), min(near, h.shape[-1]), dim=-1, largest=False).indices
-    take = lambda t: torch.gather(t, -1, idx)  # noqa: E731
-    n = edges.shape[0] - 1
-    j = torch.arange(n + 1, device=edges.device)
-    parity = torch.where(j % 2 == 0, 1.0, -1.0).to(h.dtype)
-    k_b = torch.where((j > 0) & (j < n), 2 * parity, parity)   # 1, −2, 2, …, (−1)ⁿ
-    k_i = torch.zeros(n + 1, dtype=h.dtype, device=h.device)
+def _family_lines(q_h, centre, axes, edges, k: int):
+    """`_edge_lines` without the normals' products: (alpha, beta, f, h) (P, n_edges) with the unit normal
+    (alpha f, beta f) and h = gamma f, the same numbers in the same order (the fit forms the normals only for
+    the lines whose pairs it integrates)."""
+    qk, qz, s = q_h[..., k, None], q_h[..., 2, None], q_h[..., 3, None]
+    m = qk - edges * s
+    cz, ck = centre[..., 2, None], centre[..., k, None]
+    gamma = cz * m - qz * (ck - edges)
+    alpha = axes[..., 0, 2, None] * m - qz * axes[..., 0, k, None]
+    beta = axes[..., 1, 2, None] * m - qz * axes[..., 1, k, None]
+    side = torch.where(cz * s - qz >= 0, 1.0, -1.0).to(m.dtype)
+    norm = torch.sqrt(alpha * alpha + beta * beta).clamp_min(torch.finfo(alpha.dtype).tiny)
+    f = side / norm
+    return alpha, beta, f, gamma * f
+
+
+def _halfplane_where_cut(h: torch.Tensor) -> torch.Tensor:
+    """`disc_halfplane_fraction` (same numbers), the circular segment evaluated only where the line cuts the
+    disc (|h| < 1: a few of a point's lines); elsewhere 0 or 1, whose derivative is 0."""
+    hd = h.detach()
+    at = (hd.abs() < 1).reshape(-1).nonzero().squeeze(1)
+    hs = h.reshape(-1).index_select(0, at)
+    cut = (torch.acos(hs) - hs * torch.sqrt(1 - hs * hs)) / math.pi
+    return (hd > 0).to(h.dtype).reshape(-1).index_put((at,), 1 - cut).reshape(h.shape)
+
+
+def _pair_lines(h: torch.Tensor, near: int) -> torch.Tensor:
+    """(P, n) bool: the lines given a two-line term, those of the `near` nearest the disc's centre that cut it."""
+    cut = h.detach().abs() < 1
+    if near >= h.shape[-1]:
+        return cut
+    idx = torch.topk(h.detach().abs(), near, dim=-1, largest=False).indices
+    return torch.zeros_like(cut).scatter_(-1, idx, True) & cut
+
+
+def _checker_coefficients(n: int, dtype, device):
+    """The checker's coefficients over a family's n + 1 edges: of I (inside the board: 1, 0, …, 0, −1) and of B
+    (the parity sign: 1, −2, 2, …, (−1)ⁿ)."""
+    j = torch.arange(n + 1, device=device)
+    parity = torch.where(j % 2 == 0, 1.0, -1.0).to(dtype)
+    k_b = torch.where((j > 0) & (j < n), 2 * parity, parity)
+    k_i = torch.zeros(n + 1, dtype=dtype, device=device)
     k_i[0], k_i[n] = 1.0, -1.0
-    return F, (take(nx), take(ny), take(h)), idx, k_i, k_b
+    return k_i, k_b
 
 
 def checker_dark_fraction_disc(q_h: torch.Tensor, centre: torch.Tensor, axes: torch.Tensor, target: Target,
@@ -141,34 +171,40 @@ def checker_dark_fraction_disc(q_h: torch.Tensor, centre: torch.Tensor, axes: to
     Args:
         q_h: (..., 4) homogeneous focus points, target frame (board plane Z = 0), as
             `ThinLensCamera.focus_geometry` returns them; centre: (3,) lens centre; axes: (2, 3) the aperture's
-            half-diameter vectors (or (..., 3) and (..., 2, 3), one copy per point).
+            half-diameter vectors (or (..., 3) and (..., 2, 3), one copy per point, or broadcast to the points).
         target: the board (cell edges `x_edges`, `y_edges`, mm; `dark_cell`).
         near: lines of each family given an exact two-line term: at least the number one blur disc can cut
-            (`lines_cut` counts them for given points); more only costs time.
+            (`lines_cut` counts them for given points); more costs nothing (only lines that cut the disc are
+            integrated in pairs).
     Returns:
         (...,) in [0, 1]: the mean of the checker's darkness (1 dark cell, 0 white or margin) over the disc.
     """
     xe = torch.as_tensor(target.x_edges, dtype=q_h.dtype, device=q_h.device)
     ye = torch.as_tensor(target.y_edges, dtype=q_h.dtype, device=q_h.device)
-    Fx, (ax_, ay_, hx), ix, kix, kbx = _family_terms(q_h, centre, axes, xe, 0, near)
-    Fy, (bx_, by_, hy), iy, kiy, kby = _family_terms(q_h, centre, axes, ye, 1, near)
-    # Wedges of the near pairs minus their product part, zero unless both lines cut the disc: computed for
-    # those pairs only (a few of every pixel's near x near), gathered into one flat list of (point, i, j).
+    ax_, ay_, fx, hx = _family_lines(q_h, centre, axes, xe, 0)
+    bx_, by_, fy, hy = _family_lines(q_h, centre, axes, ye, 1)
+    Fx, Fy = _halfplane_where_cut(hx), _halfplane_where_cut(hy)
+    kix, kbx = _checker_coefficients(xe.shape[0] - 1, q_h.dtype, q_h.device)
+    kiy, kby = _checker_coefficients(ye.shape[0] - 1, q_h.dtype, q_h.device)
+    # Wedges minus their product part, zero unless both lines cut the disc: computed for those pairs only (a few
+    # of every point's lines x lines), gathered into one flat list of (point, i, j).
     nx_, ny_ = hx.shape[-1], hy.shape[-1]
-    both = (hx.detach().abs() < 1)[..., :, None] & (hy.detach().abs() < 1)[..., None, :]
+    both = _pair_lines(hx, near)[..., :, None] & _pair_lines(hy, near)[..., None, :]
     shape = both.shape[:-2]
     sel = both.reshape(-1).nonzero().squeeze(1)
     point, pair = sel // (nx_ * ny_), sel % (nx_ * ny_)
-    at_x, at_y = point * nx_ + pair // ny_, point * ny_ + pair % ny_
+    ix, iy = pair // ny_, pair % ny_
+    at_x, at_y = point * nx_ + ix, point * ny_ + iy
     gx = lambda t: t.reshape(-1).index_select(0, at_x)  # noqa: E731
     gy = lambda t: t.reshape(-1).index_select(0, at_y)  # noqa: E731
-    wedge = disc_wedge_fraction(gx(ax_), gx(ay_), gx(hx), gy(bx_), gy(by_), gy(hy))
-    excess = wedge - gx(torch.gather(Fx, -1, ix)) * gy(torch.gather(Fy, -1, iy))
+    fxs, fys = gx(fx), gy(fy)
+    wedge = disc_wedge_fraction(gx(ax_) * fxs, gx(ay_) * fxs, gx(hx), gy(bx_) * fys, gy(by_) * fys, gy(hy))
+    excess = wedge - gx(Fx) * gy(Fy)
     n_points = math.prod(shape)
 
     def expect(cx, cy):
         product = (Fx * cx).sum(-1) * (Fy * cy).sum(-1)
-        pairs = gx(cx[ix]) * gy(cy[iy]) * excess
+        pairs = cx[ix] * cy[iy] * excess
         return product + torch.zeros(n_points, dtype=pairs.dtype, device=pairs.device).index_add(
             0, point, pairs).reshape(shape)
 

@@ -13,7 +13,7 @@ import torch
 
 from renderer.cameras import LENS_PARAMETERS, concentric_disk, lens_values
 
-from tiltfit.photometric.aperture import checker_dark_fraction_disc, lines_cut
+from tiltfit.photometric.aperture import checker_dark_fraction_disc
 from tiltfit.calibrate.model import LensCamera
 from tiltfit.target.layout import Target
 from .render import SUBPIXELS, SUBPIXELS_SHARP, dark_fraction_lens_samples, sample_points, sub_points
@@ -56,8 +56,10 @@ class _Problem:
         self.camera, self.target, self.data, self.lens_uv = camera, target, data, lens_uv
         self.lens_xy = concentric_disk(lens_uv.to(torch.float64))   # the samples' points of the unit disc
         self.geometry = _ViewGeometry(camera)
-        self.near = 1
         self.n_edges = max(len(target.x_edges), len(target.y_edges))
+        # Every cell edge that cuts a disc gets its two-line term (`checker_dark_fraction_disc` integrates only the
+        # pairs that cut, so all cost no more than a few).
+        self.near = self.n_edges
         self.scale = 1.0
         self.psf_fixed = 0.0
         self.say, self.t0, self.n_jacobians = say, time.perf_counter(), 0
@@ -162,7 +164,6 @@ class _Problem:
         if not jacobian:
             with torch.no_grad():
                 return checker_dark_fraction_disc(q, c, a, self.target, self.near).mean(-1), None
-        self.near = min(self.n_edges, max(self.near, lines_cut(q, c, a, self.target) + 1))
         n, s = pts.shape[:2]
         with torch.enable_grad():
             # Each pixel's own copy of the lens centre and axes (broadcast over its points): the gradient of the

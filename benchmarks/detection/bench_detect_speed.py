@@ -8,7 +8,8 @@ Image kinds (3 images each; real photos, decoded to linear by camio.files for ou
 - `chess_1280x1024`: industrial_ds1 (16 × 10 corners), the first three photos;
 - `charuco_1280x720`: charuco_webcam frames 0, 16 and 32 (cam_0.mp4, 4 × 5 squares, 12 corners, inverted print).
 
-Methods, each timed in the same run on the same image (median of `--repeats` calls; decoding excluded):
+Methods, each timed in the same run on the same image (median CPU time of `--repeats` calls, one thread each;
+decoding excluded):
 - `ours`: corners alone (`tiltfit.detect.chessboard.detect` / `tiltfit.detect.charuco.detect_board` with
   measure_blur=False), what OpenCV measures;
 - `ours_widths`: corners and blur widths, what `tiltfit detect` does by default;
@@ -119,12 +120,14 @@ def _published():
 
 
 def _timed(fn, repeats):
-    out, wall = None, []
+    """(fn's result, median CPU time of `repeats` calls, s): CPU time, not wall, so that other jobs on a shared
+    machine do not inflate it (every method runs on one thread)."""
+    out, cpu = None, []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         out = fn()
-        wall.append(time.perf_counter() - t0)
-    return out, statistics.median(wall)
+        cpu.append(time.process_time() - t0)
+    return out, statistics.median(cpu)
 
 
 def _stages(timings: dict) -> dict:
@@ -256,7 +259,7 @@ def _f(x, fmt="{:.3f}"):
 def write_markdown(path, res):
     lines = ["# Detection time against OpenCV, by image kind", "",
              f"`python benchmarks/detection/bench_detect_speed.py` (tiltfit from `{res['tiltfit']}`; one thread each; time = "
-             f"median over the kind's images of the median of {res['repeats']} runs; decoding excluded). OpenCV: "
+             f"CPU time, median over the kind's images of the median of {res['repeats']} runs; decoding excluded). OpenCV: "
              "findChessboardCornersSB (normalised, exhaustive, accurate) + cornerSubPix for chessboards (`plain`: SB "
              "without flags), CharucoDetector.detectBoard for ChArUco.", "",
              "| kind | images | corners | ours, corners | ours, corners + widths | OpenCV | OpenCV plain | "
@@ -268,7 +271,8 @@ def write_markdown(path, res):
                      f"{_f(t['ours_widths_s'])} s | {_f(t['opencv_s'])} s | {_f(t['opencv_plain_s'])} s | "
                      f"{_f(k['ratio_ours_over_opencv'], '{:.2f}')} | {_f(k['ratio_widths_over_opencv'], '{:.2f}')} | "
                      f"{_f(k['ratio_ours_over_opencv_plain'], '{:.2f}')} |")
-    lines += ["", "Where the time goes (corners + widths; stage medians, s): per image = pyramid, saddle maps and grid "
+    lines += ["", "Where the time goes (corners + widths; the detector's own stage timings, wall clock, medians, s: "
+              "inflated on a loaded machine, their shares are what to read): per image = pyramid, saddle maps and grid "
               "growth, OpenCV's marker reading, lattice search; per corner = refinement, indexing, completion, blur "
               "widths, ChArUco model fit.", "",
               "| kind | per image | per-corner stages | per corner | stages |", "|---|---|---|---|---|"]

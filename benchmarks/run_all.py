@@ -64,6 +64,7 @@ BENCHMARKS = (
     Benchmark("detection", "bench_real_speed.py", (),
               ("--repeats", "1", "--every", "6", "--out", "{q}/real_speed_detect")),
     Benchmark("detection", "bench_detect_speed.py", (), ("--repeats", "1", "--images", "1", "--out", "{q}/detect_speed")),
+    Benchmark("detection", "bench_blur_smoothness.py", (), ("--every", "12", "--out", "{q}/blur_smoothness")),
     Benchmark("detection", "bench_charuco.py", (), ("--quick", "--out", "{q}/charuco")),
     Benchmark("detection", "bench_charuco_webcam.py", (), None),
     # calibration: against OpenCV on the same corners

@@ -14,6 +14,7 @@ Skipped where Mitsuba's llvm variant cannot run.
 from __future__ import annotations
 
 import os
+import signal
 import sys
 
 import pytest
@@ -159,6 +160,23 @@ def test_explicit_workers_give_the_same_image(monkeypatch):
     two = render(scene, seed=7, workers=2, chunk_rays=256)  # each worker: the Dr.Jit path on one thread
     assert 2 in RENDER._POOL, "workers=2 should start worker processes"
     assert torch.equal(one.image, two.image), "worker processes should give the one-process image"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_interrupt_one_line_exit_130(tmp_path, sig):
+    # A batch is one long Dr.Jit call (2^22 rays); the signal is acted on when it returns.
+    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    import fuzz_harness
+
+    out = tmp_path / "out.exr"
+    out.write_bytes(b"previous")
+    rc, lines = fuzz_harness.interrupt_after_progress(
+        ["renderer", "render", SPEED, "-o", str(out), "--spp", "256", "--set", "image.width=1024",
+         "--set", "image.height=1024"], sig, "render")
+    assert rc == 130, f"exit {rc}: {lines[-3:]}"
+    assert [ln for ln in lines if ln.startswith("renderer:")] == ["renderer: interrupted"], f"one line: {lines[-3:]}"
+    assert out.read_bytes() == b"previous", "the existing output survives an interrupt"
 
 
 def test_defaults_compile_nothing_with_torch(monkeypatch):

@@ -210,7 +210,7 @@ class _PointColumns(_DenseColumns):
 
     def gram(self) -> torch.Tensor:
         """Σ_v E_vᵀ E_v − Y_vᵀ A_vv Y_v (E_vᵀ J_p,v = A_vv Y_v)."""
-        S0, V = self.Es.shape[-1], self.Es.shape[0]
+        S0 = self.Es.shape[-1]
         G = self.Es.new_zeros(self.S, self.S)
         Es = self.Es.reshape(-1, S0)
         G[:S0, :S0] = Es.T @ Es

@@ -10,9 +10,6 @@ DEFAULT_VARIANT = "llvm_ad_rgb"
 
 
 _LLVM_RUNS: dict = {}  # variant -> whether its JIT runs here (probed once per process)
-_PROBES: dict = {}  # variant -> its probe's child process, started and not yet waited for
-# How long a probe may take, seconds (a child importing Mitsuba and compiling one kernel: about a second).
-PROBE_TIMEOUT_S = 300
 _PROBE = ("import drjit as dr, mitsuba as mi; mi.set_variant({v!r}); "
           "x = dr.maximum(mi.Float([1, 2]), mi.Float([2, 1])); dr.eval(x); print(x)")
 
@@ -36,31 +33,15 @@ def jit_variant_runs(variant: str) -> bool:
         return False
     if variant not in _LLVM_RUNS:
         import subprocess
-
-        probe = _start_probe(variant)
-        _PROBES.pop(variant, None)
-        try:
-            _LLVM_RUNS[variant] = probe is not None and probe.wait(timeout=PROBE_TIMEOUT_S) == 0
-        except subprocess.TimeoutExpired:
-            probe.kill()
-            probe.wait()
-            _LLVM_RUNS[variant] = False
-    return _LLVM_RUNS[variant]
-
-
-def _start_probe(variant: str):
-    """The child process probing a JIT variant (`jit_variant_runs`), started on the first call (None where it
-    could not start): `load_mitsuba` starts it before importing Mitsuba here, so the two overlap."""
-    if variant not in _PROBES:
-        import subprocess
         import sys
 
         try:
-            _PROBES[variant] = subprocess.Popen([sys.executable, "-c", _PROBE.format(v=variant)],
-                                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        except OSError:
-            _PROBES[variant] = None
-    return _PROBES[variant]
+            probe = subprocess.run([sys.executable, "-c", _PROBE.format(v=variant)], capture_output=True,
+                                   text=True, timeout=300)
+            _LLVM_RUNS[variant] = probe.returncode == 0
+        except (OSError, subprocess.TimeoutExpired):
+            _LLVM_RUNS[variant] = False
+    return _LLVM_RUNS[variant]
 
 
 def variant_runs(variant: str) -> None:
@@ -71,8 +52,6 @@ def variant_runs(variant: str) -> None:
 def load_mitsuba(variant: str | None = DEFAULT_VARIANT):
     """Import mitsuba and set `variant` (None: keep the current one, or the default if none is set); falls
     back to scalar_rgb where a JIT variant is missing or cannot run here (see `jit_variant_runs`)."""
-    if variant is not None and not variant.startswith("scalar") and variant not in _LLVM_RUNS and not jit_hidden():
-        _start_probe(variant)  # the probe's child runs while Mitsuba is imported here (about a second each)
     try:
         import mitsuba as mi
     except ImportError as e:  # pragma: no cover - depends on the environment

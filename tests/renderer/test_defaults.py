@@ -80,35 +80,6 @@ def test_hiding_the_jit_variants_makes_auto_use_our_tracer(monkeypatch):
     assert not variants.jit_hidden(), "0 should mean not hidden"
 
 
-def test_the_probe_runs_beside_the_import(monkeypatch):
-    """`load_mitsuba` starts the llvm probe's child process before importing Mitsuba here (the two take about a
-    second each on a first render), and `jit_variant_runs` waits for that same child instead of starting one."""
-    import subprocess
-
-    from renderer.mitsuba import variants
-
-    pytest.importorskip("mitsuba")
-    expected = _llvm_runs()  # this process's answer, probed before
-    monkeypatch.setattr(variants, "_LLVM_RUNS", {})
-    monkeypatch.setattr(variants, "_PROBES", {})
-    monkeypatch.delenv(variants.HIDE_JIT_ENV, raising=False)
-    fresh_process_variant(monkeypatch)
-    started = []
-    real = subprocess.Popen
-
-    def counted(*args, **kwargs):
-        started.append(args[0])
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(subprocess, "Popen", counted)
-    variants.load_mitsuba("llvm_ad_rgb")
-    assert len(started) == 1, f"one probe child per variant, started by load_mitsuba: {started}"
-    assert variants._PROBES == {}, "the probe should have been waited for"
-    assert variants._LLVM_RUNS == {"llvm_ad_rgb": expected}, f"the same answer as before: {variants._LLVM_RUNS}"
-    variants.load_mitsuba("llvm_ad_rgb")
-    assert len(started) == 1, "a variant is probed once per process"
-
-
 @pytest.mark.parametrize("failure", ["not installed", "scalar only"])
 def test_auto_falls_back_to_our_tracer_where_mitsuba_does_not_load(monkeypatch, failure):
     def missing(variant):

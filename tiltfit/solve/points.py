@@ -35,7 +35,7 @@ class PointSchurNormal:
 
     def __init__(self, bj, wts: torch.Tensor):
         self.bj = bj
-        self.w = wts
+        self.wts = wts
         self.base = SchurNormal(bj, wts)                           # the z part: A_ss, A_sp, A_pp
         V, K = bj.p_idx.shape
         S = bj.s_idx.numel()
@@ -152,7 +152,7 @@ class PointSchurNormal:
             + 2 * (torch.einsum("ms,msc->mc", js, F_s[rp]) * jq).sum(-1) \
             + 2 * (torch.einsum("mk,mkc->mc", jp, F_v[rv, rp]) * jq).sum(-1) \
             + (torch.einsum("mc,mcd->md", jq, C_qq[rp]) * jq).sum(-1)
-        return self.w * q
+        return self.wts * q
 
 
 class PointCovariance:

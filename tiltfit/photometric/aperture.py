@@ -119,9 +119,10 @@ def _edge_lines(q_h, centre, axes, edges, k: int):
 
 
 def _family_lines(q_h, centre, axes, edges, k: int):
-    """`_edge_lines` without the normals' products: (alpha, beta, f, h) (P, n_edges) with the unit normal
-    (alpha f, beta f) and h = gamma f, the same numbers in the same order (the fit forms the normals only for
-    the lines whose pairs it integrates)."""
+    """`_edge_lines` without the normals' products: (alpha, beta, f, h) with the unit normal (alpha f, beta f) and
+    h = gamma f, the same numbers in the same order. Shapes broadcast: (..., n_edges) for `_edge_lines`'s inputs, or
+    one line each for inputs gathered per line (q_h (K, 4), centre (K, 3), axes (K, 2, 3), edges (K,): pass
+    them with a trailing axis of one, as `_cut_lines` does)."""
     qk, qz, s = q_h[..., k, None], q_h[..., 2, None], q_h[..., 3, None]
     m = qk - edges * s
     cz, ck = centre[..., 2, None], centre[..., k, None]
@@ -134,22 +135,12 @@ def _family_lines(q_h, centre, axes, edges, k: int):
     return alpha, beta, f, gamma * f
 
 
-def _halfplane_where_cut(h: torch.Tensor) -> torch.Tensor:
-    """`disc_halfplane_fraction` (same numbers), the circular segment evaluated only where the line cuts the
-    disc (|h| < 1: a few of a point's lines); elsewhere 0 or 1, whose derivative is 0."""
-    hd = h.detach()
-    at = (hd.abs() < 1).reshape(-1).nonzero().squeeze(1)
-    hs = h.reshape(-1).index_select(0, at)
-    cut = (torch.acos(hs) - hs * torch.sqrt(1 - hs * hs)) / math.pi
-    return (hd > 0).to(h.dtype).reshape(-1).index_put((at,), 1 - cut).reshape(h.shape)
-
-
 def _pair_lines(h: torch.Tensor, near: int) -> torch.Tensor:
     """(P, n) bool: the lines given a two-line term, those of the `near` nearest the disc's centre that cut it."""
-    cut = h.detach().abs() < 1
+    cut = h.abs() < 1
     if near >= h.shape[-1]:
         return cut
-    idx = torch.topk(h.detach().abs(), near, dim=-1, largest=False).indices
+    idx = torch.topk(h.abs(), near, dim=-1, largest=False).indices
     return torch.zeros_like(cut).scatter_(-1, idx, True) & cut
 
 
@@ -164,9 +155,43 @@ def _checker_coefficients(n: int, dtype, device):
     return k_i, k_b
 
 
+class _CutLines:
+    """One family's lines that cut a point's disc (|h| < 1), as a flat list: the only entries whose half-plane
+    fraction F is not 0 or 1, so the only ones through which D has a derivative. Their lines are formed again
+    from the points' inputs, with gradients; the dense pass over every point and line runs without them.
+
+    Attributes: point, edge (K,) the entries; alpha, beta, f, h (K,) their lines (`_family_lines`); F (K,) their
+    circular segments; step (K,) what F is at the same entry once the line no longer cuts (0 or 1); position
+    (P · n_edges,) each dense entry's index in the list (−1 where the line does not cut)."""
+
+    def __init__(self, q, c, a, h_dense, edges, k: int):
+        P, n = h_dense.shape
+        at = (h_dense.abs() < 1).reshape(-1).nonzero().squeeze(1)
+        self.point, self.edge = at // n, at % n
+        self.alpha, self.beta, self.f, h = (t.squeeze(-1) for t in _family_lines(
+            q.index_select(0, self.point), c.index_select(0, self.point), a.index_select(0, self.point),
+            edges[self.edge][:, None], k))
+        self.h = h
+        hc = h.clamp(-1, 1)   # the dense pass said |h| < 1; the same numbers again, so the clamp only guards acos
+        self.F = 1 - (torch.acos(hc) - hc * torch.sqrt(1 - hc * hc)) / math.pi
+        self.step = (h_dense.reshape(-1)[at] > 0).to(q.dtype)
+        self.position = torch.full((P * n,), -1, dtype=torch.long, device=q.device)
+        self.position[at] = torch.arange(at.shape[0], device=q.device)
+        self.n_points = P
+
+    def sum_with(self, step_dense: torch.Tensor, coefficients: torch.Tensor) -> torch.Tensor:
+        """(P,) Σ_j F_j c_j: the lines that do not cut (0 or 1, no derivative) in the dense sum, the cut ones'
+        segments added from the list."""
+        return (step_dense * coefficients).sum(-1).index_add(0, self.point, (self.F - self.step)
+                                                             * coefficients[self.edge])
+
+
 def checker_dark_fraction_disc(q_h: torch.Tensor, centre: torch.Tensor, axes: torch.Tensor, target: Target,
                                near: int = 2) -> torch.Tensor:
     """Fraction of the aperture whose rays through the focus points `q_h` land on the board's dark cells.
+
+    Every line of each family is placed on the disc without gradients; the few that cut it (its segment, its
+    pairs) are formed again with them (`_CutLines`), so the reverse pass runs over those only.
 
     Args:
         q_h: (..., 4) homogeneous focus points, target frame (board plane Z = 0), as
@@ -181,32 +206,34 @@ def checker_dark_fraction_disc(q_h: torch.Tensor, centre: torch.Tensor, axes: to
     """
     xe = torch.as_tensor(target.x_edges, dtype=q_h.dtype, device=q_h.device)
     ye = torch.as_tensor(target.y_edges, dtype=q_h.dtype, device=q_h.device)
-    ax_, ay_, fx, hx = _family_lines(q_h, centre, axes, xe, 0)
-    bx_, by_, fy, hy = _family_lines(q_h, centre, axes, ye, 1)
-    Fx, Fy = _halfplane_where_cut(hx), _halfplane_where_cut(hy)
+    shape = q_h.shape[:-1]
+    n_points = math.prod(shape)
+    with torch.no_grad():
+        hx = _family_lines(q_h, centre, axes, xe, 0)[3].reshape(n_points, -1)
+        hy = _family_lines(q_h, centre, axes, ye, 1)[3].reshape(n_points, -1)
+        step_x, step_y = (hx > 0).to(q_h.dtype), (hy > 0).to(q_h.dtype)
+        both = _pair_lines(hx, near)[:, :, None] & _pair_lines(hy, near)[:, None, :]
+    q = q_h.reshape(n_points, 4)
+    c = centre.expand(*shape, 3).reshape(n_points, 3)
+    a = axes.expand(*shape, 2, 3).reshape(n_points, 2, 3)
+    lx, ly = _CutLines(q, c, a, hx, xe, 0), _CutLines(q, c, a, hy, ye, 1)
     kix, kbx = _checker_coefficients(xe.shape[0] - 1, q_h.dtype, q_h.device)
     kiy, kby = _checker_coefficients(ye.shape[0] - 1, q_h.dtype, q_h.device)
     # Wedges minus their product part, zero unless both lines cut the disc: computed for those pairs only (a few
-    # of every point's lines x lines), gathered into one flat list of (point, i, j).
+    # of every point's lines x lines), gathered from the cut lines into one flat list of (point, i, j).
     nx_, ny_ = hx.shape[-1], hy.shape[-1]
-    both = _pair_lines(hx, near)[..., :, None] & _pair_lines(hy, near)[..., None, :]
-    shape = both.shape[:-2]
     sel = both.reshape(-1).nonzero().squeeze(1)
     point, pair = sel // (nx_ * ny_), sel % (nx_ * ny_)
     ix, iy = pair // ny_, pair % ny_
-    at_x, at_y = point * nx_ + ix, point * ny_ + iy
-    gx = lambda t: t.reshape(-1).index_select(0, at_x)  # noqa: E731
-    gy = lambda t: t.reshape(-1).index_select(0, at_y)  # noqa: E731
-    fxs, fys = gx(fx), gy(fy)
-    wedge = disc_wedge_fraction(gx(ax_) * fxs, gx(ay_) * fxs, gx(hx), gy(bx_) * fys, gy(by_) * fys, gy(hy))
-    excess = wedge - gx(Fx) * gy(Fy)
-    n_points = math.prod(shape)
+    px, py = lx.position[point * nx_ + ix], ly.position[point * ny_ + iy]
+    fx, fy = lx.f[px], ly.f[py]
+    wedge = disc_wedge_fraction(lx.alpha[px] * fx, lx.beta[px] * fx, lx.h[px], ly.alpha[py] * fy, ly.beta[py] * fy,
+                                ly.h[py])
+    excess = wedge - lx.F[px] * ly.F[py]
 
     def expect(cx, cy):
-        product = (Fx * cx).sum(-1) * (Fy * cy).sum(-1)
         pairs = cx[ix] * cy[iy] * excess
-        return product + torch.zeros(n_points, dtype=pairs.dtype, device=pairs.device).index_add(
-            0, point, pairs).reshape(shape)
+        return (lx.sum_with(step_x, cx) * ly.sum_with(step_y, cy)).index_add(0, point, pairs).reshape(shape)
 
     parity = 1.0 if (target.dark_cell[0] + target.dark_cell[1]) % 2 == 0 else -1.0
     return 0.5 * (expect(kix, kiy) + parity * expect(kbx, kby))

@@ -10,7 +10,11 @@ once by this checkout and fitted by the code of two trees in subprocesses (`--be
   aperture, 20,000 pixels a view, 3 views at 684 x 456, 128 spp captures, started from the corner fit);
 - sigma: `test_photometric_sigma_covers_the_error_over_noise_draws`'s three fits (500 pixels, 3 views at 171 x 114);
 - forward: the forward model alone (no Jacobian) on 20,000 pixels of a kernel view: the lens samples (64, 256) and
-  the closed form (4 x 4 points a pixel).
+  the closed form (4 x 4 points a pixel);
+- real: `tiltfit calibrate ... --refine photometric` with its defaults on the first 4 photos with a board of
+  data/real/industrial_ds1 and gopro_wide (`photometric_start.calibrate_refined_cached`, detections from the cache;
+  distorted lenses, so the focus geometry goes point by point): wall seconds of the whole command (the corner fit
+  included) and CALIB.json's photometric values.
 
 CPU seconds of the worker process (one torch thread) after a warm-up fit (imports); the fitted values of both
 trees side by side, their difference in units of the fit's own σ, and each fit's error against the captures'
@@ -35,6 +39,8 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(os.path.dirname(HERE))
 RESULTS = os.path.join(ROOT, "benchmarks", "results")
 KEYS = ("w_mm", "U_mm", "d_mm", "theta_L_deg", "theta_F_deg", "psf_sigma_px")
+#: Real sets -> pixel pitch (mm), as bench_photometric_real_bounds.py takes them.
+REAL_SETS = {"industrial_ds1": 0.0048, "gopro_wide": 0.005}
 
 
 def make_cases(path: str) -> None:
@@ -121,6 +127,22 @@ def worker(cases_path: str, out_path: str) -> None:
                 D = fn()
                 times.append(time.process_time() - t)
             out["forward"][name] = {"cpu_s": float(np.median(times)), "D": D.numpy().tolist()}
+    from benchmarks.photometric.photometric_start import calibrate_refined_cached
+
+    out["real"] = {}
+    for name, pitch in REAL_SETS.items():
+        path = out_path + f".{name}.CALIB.json"
+        t = time.process_time()
+        _, _, status, wall = calibrate_refined_cached(name, pitch, 4, path)
+        calib = json.load(open(path)) if os.path.isfile(path) else {}
+        ph = calib.get("photometric") or {}
+        out["real"][name] = {"status": status, "wall_s": wall, "cpu_s": time.process_time() - t,
+                             "kept": ph.get("kept", calib.get("refinement")),
+                             "values": {k: calib.get(k) for k in ("w_mm", "U_mm", "d_mm", "theta_F_deg")},
+                             "refined": {k: (ph.get("refined") or ph).get(k) for k in ("w_mm", "U_mm", "d_mm")},
+                             "sigma": {k: (ph.get("sigma") or {}).get(k) for k in ("w_mm", "U_mm", "d_mm")},
+                             "photometric": ph}
+        print(f"{name}: {wall:.1f} s wall", file=sys.stderr, flush=True)
     with open(out_path, "w") as f:
         json.dump(out, f)
 
@@ -136,7 +158,7 @@ def _tree(rev: str, where: str) -> str:
 
 def _run_worker(tree: str, cases: str, out: str) -> dict:
     env = {**os.environ, "PYTHONPATH": tree, "OMP_NUM_THREADS": "1"}
-    code = (f"import sys; sys.path.insert(0, {tree!r}); sys.path.insert(0, {HERE!r}); "
+    code = (f"import sys; sys.path.insert(0, {tree!r}); sys.path.insert(1, {HERE!r}); "
             f"import bench_photometric_fit_speed as b; b.worker({cases!r}, {out!r})")
     subprocess.run([sys.executable, "-c", code], check=True, env=env, cwd=tree)
     with open(out) as f:
@@ -162,7 +184,17 @@ def compare(before: dict, after: dict) -> dict:
         diff = max(abs(x - y) for x, y in zip(a["D"], b["D"]))
         forward[name] = {"before_cpu_s": b["cpu_s"], "after_cpu_s": a["cpu_s"], "speed_up": b["cpu_s"] / a["cpu_s"],
                          "max_abs_dD": diff}
-    return {"fits": rows, "forward": forward}
+    real = {}
+    for name, a in after.get("real", {}).items():
+        b = before.get("real", {}).get(name)
+        if b:
+            real[name] = {"before_wall_s": b["wall_s"], "after_wall_s": a["wall_s"], "before_kept": b["kept"],
+                          "after_kept": a["kept"], "before": b["values"], "after": a["values"]}
+    return {"fits": rows, "forward": forward, "real": real}
+
+
+def _num(v) -> str:
+    return "—" if v is None else f"{v:.8g}"
 
 
 def write_markdown(path: str, res: dict) -> None:
@@ -181,6 +213,15 @@ def write_markdown(path: str, res: dict) -> None:
     for name, r in c["forward"].items():
         L.append(f"| {name} | {r['before_cpu_s']:.3f} | {r['after_cpu_s']:.3f} | {r['speed_up']:.1f}x | "
                  f"{r['max_abs_dD']:.1e} |")
+    if c.get("real"):
+        L += ["", "Real photos, `tiltfit calibrate ... --refine photometric` with its defaults on 4 photos (wall s of the "
+              "whole command; CALIB.json's lens, the refinement's where kept):", "",
+              "| set | wall s before | after | kept before | after | w mm before | after | U mm before | after | "
+              "d mm before | after |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+        for name, r in c["real"].items():
+            vals = " | ".join(f"{_num(r['before'].get(k))} | {_num(r['after'].get(k))}" for k in ("w_mm", "U_mm", "d_mm"))
+            L.append(f"| {name} | {r['before_wall_s']:.1f} | {r['after_wall_s']:.1f} | {r['before_kept']} | "
+                     f"{r['after_kept']} | {vals} |")
     L += ["", "Fitted values (error against the captures' truth: θL °, U and d %, w %; σ the fit's own):", "",
           "| fit | code | kernel | θL err ° | σ θL ° | U err % | d err % | w err % | Gaussian σ px | RMS | iterations |",
           "|---|---|---|---|---|---|---|---|---|---|---|"]

@@ -14,8 +14,8 @@ Dr.Jit compiles each distinct kernel once (tens of milliseconds with LLVM) and k
 
 Scenes (`applies`): direct light only (Lambert and Phong materials without mirror or refraction weights;
 point and ambient lights); the thin-lens camera as `fused.camera_fits` takes it (plain-number parameters, no
-tilt-axis turn, no distortion, no layers); spheres, boxes, rectangles and planes; checker textures on
-rectangles and planes; CPU float32. Formulas: those of `renderer.tracing.direct` (and of
+tilt-axis turn, no distortion, no layers); spheres, boxes, rectangles and planes; checker and image textures
+on rectangles and planes; CPU float32. Formulas: those of `renderer.tracing.direct` (and of
 `integrator._lambert_phong` for a Phong lobe) and `ThinLensCamera._rays_in_place`, in float32 as they are (the
 samples in float64 as `Sampler` makes them).
 The images agree with the eager path to float rounding: Dr.Jit's sine and cosine are its own, so lens points
@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from renderer.cameras.thin_lens import direction_rows, disc_rows, focus_weight_rows
-from renderer.scene.materials import CheckerTexture
+from renderer.scene.materials import CheckerTexture, ImageTexture
 from renderer.scene.model import Scene, TraceOptions
 from renderer.tracing import fused
 from renderer.tracing.sampling import camera_samples
@@ -63,14 +63,14 @@ def _fits(scene: Scene, device, dtype) -> bool:
     table = scene.materials(torch.zeros(0, dtype=dtype))
     if bool(((table.reflect > 0) | (table.transmit > 0)).any()):
         return False
-    return all(isinstance(tex, CheckerTexture) and scene.objects[k].shape.type_name in _FLAT
+    return all(isinstance(tex, (CheckerTexture, ImageTexture)) and scene.objects[k].shape.type_name in _FLAT
                for k, tex in table.textures.items())
 
 
 class _Kernel:
     """What the Dr.Jit computation of a scene reads, made once per scene: per-object tables as Dr.Jit arrays
     gathered by object id in the kernel (slot 0 of the material tables a miss, slot k + 1 object k), the
-    checkers' planes and the lights as Python numbers (literals in the kernel), the intersector, Mitsuba and
+    textures' frames and the lights as Python numbers (literals in the kernel), the intersector, Mitsuba and
     Dr.Jit."""
 
     def __init__(self, scene: Scene):
@@ -91,20 +91,25 @@ class _Kernel:
         self.specular = bool((table.specular > 0).any())  # a Phong lobe on some object
         self.ks, self.shininess = slots(table.specular), slots(table.shininess)
         colors = [torch.zeros(3, 1), table.color.T.float()]
-        # (object, checker, first palette slot, origin (3), u and v axes (2 × 3), offset (2)) per checker: its
-        # cell coordinates are u = axis_u · (p − origin) + offset_u, likewise v (`Rectangle.uv_rows`,
-        # `Plane.surface`)
-        self.checkers = []
+        # Per texture (object, texture, origin (3), u and v axes (2 × 3), offset (2); its texture coordinates are
+        # u = axis_u · (p − origin) + offset_u, likewise v: `Rectangle.uv_rows`, `Plane.surface`), then for a
+        # checker its first palette slot (its colours extend the colour table), for an image its texels (three
+        # (H·W,) channels).
+        self.checkers, self.images = [], []
         for k in sorted(table.textures):
             shape, tex = scene.objects[k].shape, table.textures[k]
-            first = sum(c.shape[1] for c in colors)
-            colors.append(torch.tensor(tex.palette, dtype=torch.float32).T)
             if shape.type_name == "rectangle":
                 axes = None if shape.axis_aligned else shape.local_from_world[:2].tolist()
                 origin, offset = shape.origin, shape.half
             else:
                 axes, origin, offset = [shape.tangent_u.tolist(), shape.tangent_v.tolist()], shape.point, (0.0, 0.0)
-            self.checkers.append((k, tex, first, [float(v) for v in origin], axes, [float(v) for v in offset]))
+            frame = (k, tex, [float(v) for v in origin], axes, [float(v) for v in offset])
+            if isinstance(tex, CheckerTexture):
+                self.checkers.append((*frame, sum(c.shape[1] for c in colors)))
+                colors.append(torch.tensor(tex.palette, dtype=torch.float32).T)
+            else:
+                texels = torch.as_tensor(tex.pixels, dtype=torch.float32).reshape(-1, 3).T
+                self.images.append((*frame, F(texels.unbind(0))))
         self.colors = F(torch.cat(colors, 1).unbind(0))
         self.eps = float(scene.ray_epsilon)
         self.lights = [(light.type, [float(v) for v in light.intensity],
@@ -208,6 +213,37 @@ def _camera_rays(k: _Kernel, xs, ys, u, v, cam: fused._CameraConstants):
     return o, d
 
 
+def _uv(p, origin, axes):
+    """Texture coordinates (before their offset) of points p (3 components) on a flat shape: p − origin along
+    the shape's u and v axes (None: the world's x and y)."""
+    q = [p[i] - origin[i] for i in range(3)]
+    if axes is None:
+        return q[0], q[1]
+    return tuple(axes[j][0] * q[0] + axes[j][1] * q[1] + axes[j][2] * q[2] for j in range(2))
+
+
+def _bilinear(k: _Kernel, tex: ImageTexture, texels, u, v, active):
+    """`ImageTexture.evaluate` at texture coordinates u, v: bilinear between texel centres, wrapping at the tile
+    edges (three `mi.Float`); texels read where `active`."""
+    mi, dr = k.mi, k.dr
+    h, w = tex.pixels.shape[:2]
+    s, t = u / tex.size[0], v / tex.size[1]
+    fx = (s - dr.floor(s)) * w - 0.5  # torch.remainder(·, 1.0): x − floor(x)
+    fy = (t - dr.floor(t)) * h - 0.5
+    x0, y0 = dr.floor(fx), dr.floor(fy)
+    ax, ay = fx - x0, fy - y0
+    x0, y0 = mi.Int32(x0), mi.Int32(y0)  # in [−1, w − 1] and [−1, h − 1]
+    xa, ya = dr.select(x0 < 0, x0 + w, x0), dr.select(y0 < 0, y0 + h, y0)
+    xb, yb = dr.select(x0 + 1 >= w, x0 + 1 - w, x0 + 1), dr.select(y0 + 1 >= h, y0 + 1 - h, y0 + 1)
+    out = []
+    for channel in texels:
+        at = lambda y, x: dr.gather(mi.Float, channel, mi.UInt32(y * w + x), active)  # noqa: E731
+        top = at(ya, xa) * (1 - ax) + at(ya, xb) * ax
+        bottom = at(yb, xa) * (1 - ax) + at(yb, xb) * ax
+        out.append(top * (1 - ay) + bottom * ay)
+    return out
+
+
 def _shade(k: _Kernel, o, d, t, obj, aux):
     """The direct light at the first hits but the shadow rays' answers, as `renderer.tracing.direct.shade_hits`
     (and, with a Phong lobe, `integrator._lambert_phong`) compute it: found, the shadow rays' origin (3
@@ -224,17 +260,17 @@ def _shade(k: _Kernel, o, d, t, obj, aux):
     n = [dr.gather(F, k.faces[i], face) + (p[i] - dr.gather(F, k.center[i], safe)) * inv_r for i in range(3)]
     slot = obj + 1
     index = slot
-    for obj_k, tex, first, origin, axes, offset in k.checkers:  # the checker's cell (`CheckerTexture.palette_index`)
-        q = [p[i] - origin[i] for i in range(3)]
-        if axes is None:
-            u, v = q[0], q[1]
-        else:
-            u, v = (axes[j][0] * q[0] + axes[j][1] * q[1] + axes[j][2] * q[2] for j in range(2))
+    for obj_k, tex, origin, axes, offset, first in k.checkers:  # the cell (`CheckerTexture.palette_index`)
+        u, v = _uv(p, origin, axes)
         cell = dr.floor((u + offset[0]) / tex.size) + dr.floor((v + offset[1]) / tex.size)
         half_cell = cell * 0.5  # odd cells: half an integer (exact)
         odd = I(dr.select(half_cell != dr.floor(half_cell), 1, 0))
         index = dr.select(obj == obj_k, odd + first, index)
     albedo = [dr.gather(F, k.colors[i], index) for i in range(3)]
+    for obj_k, tex, origin, axes, offset, texels in k.images:
+        u, v = _uv(p, origin, axes)
+        rgb = _bilinear(k, tex, texels, u + offset[0], v + offset[1], obj == obj_k)
+        albedo = [dr.select(obj == obj_k, rgb[i], albedo[i]) for i in range(3)]
     entering = n[0] * d[0] + n[1] * d[1] + n[2] * d[2] < 0
     sign = dr.select(entering, 1.0, F(-1.0))
     nf = [n[i] * sign for i in range(3)]

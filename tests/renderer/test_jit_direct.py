@@ -3,8 +3,8 @@ batch as Dr.Jit kernels beside Embree.
 
 - It is taken by `render(scene)` (defaults) for the speed scene and the mixed scene of tests/renderer/test_fused.py
   (turned camera and tilted lens, checkered rectangles turned and aligned, a plane, a turned box, a sphere, two
-  point lights and an ambient one, a background), and not where its formulas do not reach (a Phong lobe, an
-  image texture, compile=True, our own intersector, float64).
+  point lights and an ambient one, a background), with Phong lobes, a checkered plane and image textures, and
+  not where its formulas do not reach (a mirror, a grid texture, compile=True, our own intersector, float64).
 - Its Sobol samples are `Sampler.pixel_block`'s bit for bit; its images equal our own tracer's (different
   intersection code, torch shading) to float rounding for every sampler.
 - `workers=None` on it starts no worker processes and runs Dr.Jit's pool on the cores during the render only;
@@ -58,6 +58,7 @@ def test_applies_to_the_defaults_scenes_only():
     assert jit_direct.applies(_speed(), EMBREE, "cpu", torch.float32), "the speed scene should take the Dr.Jit path"
     assert jit_direct.applies(_mixed(), EMBREE, "cpu", torch.float32), "the mixed scene should take the Dr.Jit path"
     assert jit_direct.applies(_phong(), EMBREE, "cpu", torch.float32), "Phong lobes and a checkered plane too"
+    assert jit_direct.applies(_images(), EMBREE, "cpu", torch.float32), "and image textures on flat shapes"
     for options, dtype in [(TraceOptions(intersector="mitsuba", compile=True), torch.float32),  # fused: opt-in
                            (TraceOptions(intersector="torch"), torch.float32),
                            (TraceOptions(intersector="mitsuba", fast_paths=False), torch.float32),
@@ -94,8 +95,25 @@ def test_sobol_samples_are_the_samplers():
         assert torch.equal(g.torch(), want.contiguous()), f"sample row {name} differs from Sampler.pixel_block"
 
 
+def _images():
+    """The mixed scene with image textures (random texels, bilinear) on the turned rectangle and the floor plane."""
+    import numpy as np
+    from dataclasses import replace
+
+    from renderer.scene.materials import ImageTexture
+
+    scene = _mixed()
+    texels = np.random.default_rng(0).random((5, 7, 3)).astype(np.float32)
+    for index, size in [(0, (1.3, 0.9)), (2, (0.7, 0.7))]:
+        item = scene.objects[index]
+        item.material = replace(item.material, texture=ImageTexture("noise.exr", size, texels))
+    scene.refresh()
+    return scene
+
+
 @pytest.mark.parametrize("sampler,make", [("sobol", _mixed), ("independent", _mixed), ("stratified", _mixed),
-                                         ("center", _mixed), ("sobol", _phong)], ids=lambda v: getattr(v, "__name__", v))
+                                         ("center", _mixed), ("sobol", _phong), ("sobol", _images)],
+                         ids=lambda v: getattr(v, "__name__", v))
 def test_matches_our_tracer(sampler, make):
     scene = make()
     ours = render(scene, sampler=sampler, seed=2, intersector="torch", workers=1)
@@ -121,6 +139,16 @@ def test_matches_the_eager_embree_path():
     diff = (got - eager).abs()
     assert (diff > 1e-4).sum() <= 2, f"{int((diff > 1e-4).sum())} pixels differ from the eager path by > 1e-4"
     assert float((got.mean() - eager.mean()).abs()) < 1e-5, "the image mean should agree"
+
+
+def test_detects_a_wrong_texel():
+    scene = _images()
+    ours = render(scene, intersector="torch", workers=1).image
+    kernel = jit_direct._kernel(scene)
+    obj, tex, origin, axes, offset, texels = kernel.images[0]
+    kernel.images[0] = (obj, tex, origin, axes, offset, texels[::-1])  # channels swapped: red and blue
+    got = render(scene, intersector="mitsuba", workers=1).image
+    assert (got - ours).abs().max() > 0.05, "swapped texel channels should show"
 
 
 def test_detects_a_wrong_shading():

@@ -67,8 +67,9 @@ def camera_fits(scene: Scene, device, dtype) -> bool:
         return False
     if cam.distortion is not None and not cam.distortion.is_identity:
         return False
-    lens = cam.lens
-    if any(isinstance(v, torch.Tensor) for v in (lens.w, lens.U, lens.d, lens.theta_F, lens.phi)):
+    lens, screen = cam.lens, cam.screen
+    numbers = (lens.w, lens.U, lens.d, lens.theta_F, lens.phi, *screen.center_px, *screen.pitch)
+    if any(isinstance(v, torch.Tensor) for v in numbers):  # Python numbers only (constants of the kernels)
         return False
     if lens.phi != 0:  # its compiled rays take the tilt about x only
         return False

@@ -65,6 +65,10 @@ def test_applies_to_the_defaults_scenes_only():
                            (TraceOptions(intersector="mitsuba", jit_kernels=False), torch.float32),  # eager
                            (EMBREE, torch.float64)]:
         assert not jit_direct.applies(_speed(), options, "cpu", dtype), f"Dr.Jit path taken for {options}, {dtype}"
+    tensors = _speed(size=16, spp=2)  # numbers as tensors cannot be the kernel's constants
+    tensors.camera.lens = tensors.camera.lens.with_(principal_point_px=(torch.tensor(8.0), torch.tensor(8.0)))
+    assert not jit_direct.applies(tensors, EMBREE, "cpu", torch.float32), "a principal point given as tensors"
+    assert float(render(tensors).image.mean()) > 0.1, "renders on the eager path"
     mirror = load_scene(SPEED, ["image.width=8", "image.height=8", "objects.1.material.reflect=0.5"])
     assert not jit_direct.applies(mirror, EMBREE, "cpu", torch.float32), "a mirror needs the bounces"
 

@@ -19,7 +19,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import statistics
 import tempfile
 from collections import OrderedDict
 
@@ -31,6 +30,8 @@ SEED_FILE = os.path.join(HERE, "durations.json")
 CACHE_KEY = "tests/durations"
 SHARED_SCOPES = ("module", "class")  # fixtures built once per module or class: their tests stay on one worker
 SLOW_GUESS_S = 20.0  # an unmeasured test marked slow ("more than a few seconds")
+QUICK_GUESS_S = 0.2  # any other unmeasured test (tests/durations.json leaves out those under SEED_MIN_S)
+SEED_MIN_S = 0.5
 
 
 def shared_fixture_group(item: pytest.Item) -> str | None:
@@ -112,10 +113,10 @@ class LongestFirstScheduling(LoadScopeScheduling):
                     self.plan = json.load(f)
                 return
 
-    def _guess(self, nodeid: str, typical: float) -> float:
+    def _guess(self, nodeid: str) -> float:
         if nodeid in self.seconds:
             return self.seconds[nodeid]
-        return SLOW_GUESS_S if (self.plan.get(nodeid) or {}).get("slow") else typical
+        return SLOW_GUESS_S if (self.plan.get(nodeid) or {}).get("slow") else QUICK_GUESS_S
 
     def schedule(self) -> None:
         if self.collection is not None or not self.collection_is_completed:
@@ -129,8 +130,7 @@ class LongestFirstScheduling(LoadScopeScheduling):
         super()._assign_work_unit(node)
 
     def _order_workqueue(self) -> None:
-        typical = statistics.median(self.seconds.values()) if self.seconds else 1.0
-        cost = {scope: sum(self._guess(nodeid, typical) for nodeid in unit) for scope, unit in self.workqueue.items()}
+        cost = {scope: sum(self._guess(nodeid) for nodeid in unit) for scope, unit in self.workqueue.items()}
         self.workqueue = OrderedDict(sorted(self.workqueue.items(), key=lambda kv: -cost[kv[0]]))
         self._ordered = True
 
@@ -172,9 +172,9 @@ def write_seed() -> None:
         seconds = json.load(f)
     merged = {**read_seed(), **seconds}
     with open(SEED_FILE, "w") as f:
-        json.dump({k: round(merged[k], 1) for k in sorted(merged)}, f, indent=0)
+        json.dump({k: round(merged[k], 1) for k in sorted(merged) if merged[k] >= SEED_MIN_S}, f, indent=0)
         f.write("\n")
-    print(f"{SEED_FILE}: {len(merged)} tests")
+    print(f"{SEED_FILE}: the tests of {SEED_MIN_S} s or more of {len(merged)}")
 
 
 if __name__ == "__main__":

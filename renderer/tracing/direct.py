@@ -32,8 +32,8 @@ _OWN_NORMALS = {"cylinder", "cone"}
 
 def applies(scene: Scene, options: TraceOptions, table) -> bool:
     """Whether `trace_direct` computes exactly what `integrator.trace` would for this scene."""
-    if options.compile or not getattr(options, "fast_paths", True):
-        return False
+    if options.compile or not getattr(options, "fast_paths", True) or not scene.objects:
+        return False  # (no objects: no normal tables to gather from; the general integrator draws the background)
     if not all(o.shape.soa_native and o.shape.type_name in _KINDS for o in scene.objects):
         return False
     if any(light.type not in ("point", "ambient") for light in scene.lights):

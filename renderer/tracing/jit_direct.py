@@ -56,7 +56,9 @@ _FLAT = {"rectangle", "plane"}
 
 
 def _fits(scene: Scene, device, dtype) -> bool:
-    if not fused.camera_fits(scene, device, dtype) or not all(o.shape.type_name in _KINDS for o in scene.objects):
+    if not scene.objects or not all(o.shape.type_name in _KINDS for o in scene.objects):
+        return False  # an empty scene has no tables to gather from (the eager path draws its background)
+    if not fused.camera_fits(scene, device, dtype):
         return False
     if any(light.type not in ("point", "ambient") for light in scene.lights):
         return False

@@ -88,6 +88,18 @@ def test_not_for_a_grid_texture():
     assert jit_direct.applies(_speed(size=8, spp=1), EMBREE, "cpu", torch.float32), "the checkered plate is"
 
 
+@pytest.mark.parametrize("intersector", ["auto", "torch", "mitsuba"])
+def test_an_empty_scene_renders_its_background(intersector):
+    # Neither fast path has tables to gather from without objects (both had failed with an IndexError).
+    scene = build_scene({"image": {"width": 8, "height": 6, "spp": 2, "background": [0.1, 0.2, 0.3]},
+                         "camera": {"type": "thin_lens", "w": 1.0, "U": 4.0, "d": 0.05, "sensor_size": [1.0, 0.8]},
+                         "lights": [{"type": "point", "position": [0, 0, 0], "intensity": [1, 1, 1]}], "objects": []})
+    assert not jit_direct.applies(scene, EMBREE, "cpu", torch.float32), "no objects: not the Dr.Jit path"
+    image = render(scene, intersector=intersector).image
+    want = torch.tensor([0.1, 0.2, 0.3]).expand_as(image)
+    assert torch.equal(image, want), f"expected the background everywhere, got {image.mean((0, 1)).tolist()}"
+
+
 def test_sobol_samples_are_the_samplers():
     scene = _mixed()
     kernel = jit_direct._kernel(scene)

@@ -78,9 +78,19 @@ class Timings:
     def __init__(self, config: pytest.Config):
         self.config = config
         self.seconds: dict[str, float] = {}
+        self.per_worker: dict[str, float] = {}
 
     def pytest_runtest_logreport(self, report: pytest.TestReport) -> None:
         self.seconds[report.nodeid] = self.seconds.get(report.nodeid, 0.0) + report.duration
+        node = getattr(report, "node", None)  # the worker that ran it, under xdist
+        if node is not None:
+            worker = node.gateway.id
+            self.per_worker[worker] = self.per_worker.get(worker, 0.0) + report.duration
+
+    def pytest_terminal_summary(self, terminalreporter) -> None:
+        if self.per_worker:  # whether the workers ended together
+            terminalreporter.write_line("test seconds per worker: " + ", ".join(
+                f"{w} {s:.0f}" for w, s in sorted(self.per_worker.items())))
 
     def pytest_sessionfinish(self) -> None:
         cache = getattr(self.config, "cache", None)

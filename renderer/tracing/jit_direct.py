@@ -132,7 +132,7 @@ def render_pixels(scene: Scene, pixel: torch.Tensor, sampler, options: TraceOpti
     mi, dr = k.mi, k.dr
     spp = sampler.spp
     xs, ys, u, v = _samples(k, sampler, pixel, scene.camera.width)
-    o, d = _camera_rays(k, xs, ys, u, v, fused._camera_constants(scene.camera))
+    o, d = _camera_rays(k, xs, ys, u, v, _opaque_camera(k, fused._camera_constants(scene.camera)))
     eps = scene.ray_epsilon
     t, obj, aux = k.engine.jit_nearest(k.engine.jit_ray(o, d, eps), eps, mi.Int32)
     found, origin, shadow, ambient, unshadowed = _shade(k, o, d, t, obj, aux)
@@ -190,6 +190,16 @@ def _hash32(x):
 def _chain(h, key):
     """`sampling._chain` on Dr.Jit UInt32 arrays."""
     return _hash32(key + h * 0x9E3779B1)
+
+
+def _opaque_camera(k: _Kernel, cam: fused._CameraConstants) -> fused._CameraConstants:
+    """The camera's numbers as opaque Dr.Jit scalars (`drjit.opaque`): inputs of the kernel, not constants in
+    its code, so a moved camera (an animation's frames) runs the kernel already compiled instead of compiling
+    and caching one per frame. The identity rotation stays None (one more kernel for turned cameras)."""
+    mi, dr = k.mi, k.dr
+    scalar = lambda v: dr.opaque(mi.Float, v)  # noqa: E731
+    R = None if cam.R is None else [[scalar(v) for v in row] for row in cam.R]
+    return fused._CameraConstants(*(scalar(v) for v in cam[:10]), R, [scalar(v) for v in cam.position])
 
 
 def _camera_rays(k: _Kernel, xs, ys, u, v, cam: fused._CameraConstants):

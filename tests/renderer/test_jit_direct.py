@@ -177,6 +177,30 @@ def test_detects_a_wrong_shading():
     assert (got - ours).abs().max() > 0.01, "a doubled light should show"
 
 
+def test_a_moved_camera_compiles_no_new_kernel():
+    # The camera's numbers are kernel inputs: an animation's next frame reuses the compiled kernel (it had
+    # compiled, and cached on disk, one kernel per frame).
+    import drjit as dr
+
+    from renderer.core.transforms import CameraTransform
+
+    scene = _mixed()
+    first = render(scene, seed=1).image
+    R = scene.camera.transform.world_from_camera.T
+    moved = CameraTransform.from_extrinsics(R, -R @ (scene.camera.transform.position + torch.tensor([0.05, 0.0, 0.1],
+                                                                                             dtype=R.dtype)))
+    scene.camera.transform = moved
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()  # cleared
+        second = render(scene, seed=1).image
+        jit = [e for e in dr.kernel_history() if e["type"] == dr.KernelType.JIT]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert (second - first).abs().max() > 0.01, "the camera moved"
+    assert jit and all(e["cache_hit"] for e in jit), f"compiled again: {[e['hash'] for e in jit if not e['cache_hit']]}"
+
+
 def test_defaults_trace_in_this_process_on_every_core(monkeypatch):
     monkeypatch.setattr(RENDER, "_cores", lambda: 2)
     monkeypatch.setattr(RENDER, "AUTO_WORKERS_MIN_RAYS", 1)

@@ -50,7 +50,7 @@ def applies(scene: Scene, options: TraceOptions, device, dtype) -> bool:
 
 
 # Shapes whose normals `NormalTables` holds and whose Embree counterpart is the same surface; of these, the flat
-# ones may carry a checker (their texture coordinates are an affine function of the hit point).
+# ones may carry a checker or an image texture (their texture coordinates are an affine function of the hit point).
 _KINDS = {"sphere", "box", "rectangle", "plane"}
 _FLAT = {"rectangle", "plane"}
 
@@ -166,7 +166,7 @@ def _samples(k: _Kernel, sampler, pixel: torch.Tensor, width: int):
     index = dr.arange(U32, pixel.shape[0] * spp)
     slot = index // spp
     px = dr.gather(U32, U32(pixel.numpy().astype(np.uint32)), slot)
-    h = _chain(dr.opaque(U32, int(sampler._keys[2])), px)
+    h = _chain(dr.opaque(U32, int(sampler._keys[2])), px)  # the Sobol shift's first key (`Sampler.pixel_block`)
     table = F64(sampler._points.reshape(-1).numpy())
     first = (index - slot * spp) * 4
     rows = []

@@ -95,11 +95,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--intersector", choices=("auto", "torch", "mitsuba"), default="auto",
                    help="auto: mitsuba where it runs here (CPU, float32, shapes it has), else torch [default]; "
                         "torch: our ray-shape tests; mitsuba: hits and shadow rays by Embree through "
-                        "Mitsuba 3 (CPU), cameras and shading still ours")
+                        "Mitsuba 3 (CPU), cameras and shading still ours (for direct light and a thin lens as "
+                        "Dr.Jit kernels beside Embree)")
     r.add_argument("--compile", action="store_true",
                    help="compile the tracing with torch.compile (seconds to a minute the first time, cached on "
                         "disk); with the mitsuba intersector, direct light and a thin lens, the fused stages of "
-                        "renderer.tracing.fused, the fastest setting measured")
+                        "renderer.tracing.fused (slower than the default Dr.Jit kernels)")
 
     g = sub.add_parser("gallery", help="render the paper figures into one labelled contact sheet",
                        description="Render every entry of the gallery manifest and lay them out in one PNG.")

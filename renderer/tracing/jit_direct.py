@@ -46,7 +46,13 @@ def applies(scene: Scene, options: TraceOptions, device, dtype) -> bool:
     if (options.compile or not options.fast_paths or not options.jit_kernels
             or options.intersector != "mitsuba"):
         return False
-    return scene.derived(("jit_direct.applies", torch.device(device).type, dtype), lambda: _fits(scene, device, dtype))
+    # The camera and the lights are checked on every call (a caller may replace them between renders); what
+    # depends on the objects only is kept until they change.
+    if not fused.camera_fits(scene, device, dtype):
+        return False
+    if any(light.type not in ("point", "ambient") for light in scene.lights):
+        return False
+    return scene.derived("jit_direct.objects_fit", lambda: _objects_fit(scene))
 
 
 # Shapes whose normals `NormalTables` holds and whose Embree counterpart is the same surface; of these, the flat
@@ -55,14 +61,11 @@ _KINDS = {"sphere", "box", "rectangle", "plane"}
 _FLAT = {"rectangle", "plane"}
 
 
-def _fits(scene: Scene, device, dtype) -> bool:
+def _objects_fit(scene: Scene) -> bool:
+    """Whether the scene's objects and materials are ones the kernels shade (see the module docstring)."""
     if not scene.objects or not all(o.shape.type_name in _KINDS for o in scene.objects):
         return False  # an empty scene has no tables to gather from (the eager path draws its background)
-    if not fused.camera_fits(scene, device, dtype):
-        return False
-    if any(light.type not in ("point", "ambient") for light in scene.lights):
-        return False
-    table = scene.materials(torch.zeros(0, dtype=dtype))
+    table = scene.materials(torch.zeros(0, dtype=torch.float32))
     if bool(((table.reflect > 0) | (table.transmit > 0)).any()):
         return False
     return all(isinstance(tex, (CheckerTexture, ImageTexture)) and scene.objects[k].shape.type_name in _FLAT
@@ -121,8 +124,11 @@ class _Kernel:
 
 
 def _kernel(scene: Scene) -> _Kernel:
-    """The scene's `_Kernel`, kept by the scene (`Scene.derived`: rebuilt after a move)."""
-    return scene.derived("jit_direct.kernel", lambda: _Kernel(scene))
+    """The scene's `_Kernel`, kept by the scene (`Scene.derived`: rebuilt after a move) for its lights and
+    background (made again for others)."""
+    key = (tuple(scene.image.background),
+           tuple((l.type, tuple(l.intensity), tuple(getattr(l, "position", None) or ())) for l in scene.lights))
+    return scene.derived(("jit_direct.kernel", key), lambda: _Kernel(scene))
 
 
 def render_pixels(scene: Scene, pixel: torch.Tensor, sampler, options: TraceOptions):

@@ -100,6 +100,24 @@ def test_an_empty_scene_renders_its_background(intersector):
     assert torch.equal(image, want), f"expected the background everywhere, got {image.mean((0, 1)).tolist()}"
 
 
+def test_follows_a_replaced_camera_and_lights():
+    # A caller may replace the camera or the lights between renders (the objects are what `Scene.refresh` sees).
+    from dataclasses import replace
+
+    from renderer.scene.model import Light
+
+    scene = _mixed()
+    render(scene, seed=3)
+    scene.lights = [Light("point", (30.0, 10.0, 5.0), (1.0, -2.0, 1.0))]
+    scene.image = replace(scene.image, background=(0.5, 0.0, 0.0))
+    got = render(scene, seed=3).image
+    ours = render(scene, seed=3, intersector="torch").image
+    assert (got - ours).abs().max() < 1e-3, f"new lights and background: {float((got - ours).abs().max()):.3g} off ours"
+    distorted = scene.camera.lens.with_(distortion=(0.05, 0.0, 0.0, 0.0, 0.0))
+    scene.camera = scene.camera.with_lens(distorted)
+    assert not jit_direct.applies(scene, EMBREE, "cpu", torch.float32), "a distorted lens is not the kernels' camera"
+
+
 def test_sobol_samples_are_the_samplers():
     scene = _mixed()
     kernel = jit_direct._kernel(scene)

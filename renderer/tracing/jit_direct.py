@@ -172,8 +172,8 @@ def _samples(k: _Kernel, sampler, pixel: torch.Tensor, width: int):
     index = dr.arange(U32, pixel.shape[0] * spp)
     slot = index // spp
     px = dr.gather(U32, U32(pixel.numpy().astype(np.uint32)), slot)
-    h = _chain(dr.opaque(U32, int(sampler._keys[2])), px)  # the Sobol shift's first key (`Sampler.pixel_block`)
-    table = F64(sampler._points.reshape(-1).numpy())
+    h = _chain(dr.opaque(U32, int(sampler.sobol_shift_key)), px)
+    table = F64(sampler.sobol_points.reshape(-1).numpy())
     first = (index - slot * spp) * 4
     rows = []
     for dim in range(4):

@@ -75,6 +75,16 @@ class Sampler:
             engine = torch.quasirandom.SobolEngine(4, scramble=True, seed=seed)
             self._points = engine.draw(spp, dtype=torch.float64)
 
+    @property
+    def sobol_points(self) -> torch.Tensor:
+        """`sobol`: the (spp, 4) float64 point set every pixel shifts (`pixel_block`)."""
+        return self._points
+
+    @property
+    def sobol_shift_key(self) -> torch.Tensor:
+        """`sobol`: the first link (0-dim int64) of the key chain that hashes a pixel's shift (`pixel_block`)."""
+        return self._keys[2]
+
     def pixel_samples(self, pixel: torch.Tensor) -> torch.Tensor:
         """All spp samples of each pixel: (n, spp, 4) float64, equal to samples(pixel[i], s) for s < spp.
 

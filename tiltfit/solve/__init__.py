@@ -11,7 +11,8 @@ tests/test_one_solver.py keeps it so).
                 measurement's per-corner fits)
 """
 from .batched import BatchedOptions, BatchedResult, Normal, batched_levenberg_marquardt, normal_from_residuals
-from .blocks import Block, BlockJacobian, Layout, dense_jacobian, normal_equations
+from .blocks import Block, BlockJacobian, Layout, dense_jacobian
+from .points import normal_equations
 from .lm import LMOptions, LMResult, SolverError, covariance, least_squares, levenberg_marquardt, solve_rescaling
 
 __all__ = ["BatchedOptions", "BatchedResult", "Block", "BlockJacobian", "LMOptions", "LMResult", "Layout", "Normal",

@@ -386,18 +386,6 @@ class SchurCovariance:
                                self.n_params)
 
 
-def normal_equations(J, wts: torch.Tensor):
-    """`SchurNormal` of a `BlockJacobian` (`points.PointSchurNormal` with a point block), `DenseNormal` of a dense
-    (M, P) tensor."""
-    if not isinstance(J, BlockJacobian):
-        return DenseNormal(J, wts)
-    if J.Jq is not None:
-        from .points import PointSchurNormal
-
-        return PointSchurNormal(J, wts)
-    return SchurNormal(J, wts)
-
-
 def dense_jacobian(J) -> torch.Tensor:
     """The (M, P) matrix of a dense or block Jacobian."""
     return J.dense() if isinstance(J, BlockJacobian) else J

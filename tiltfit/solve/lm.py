@@ -43,7 +43,8 @@ from typing import Callable
 
 import torch
 
-from .blocks import Block, BlockJacobian, Layout, normal_equations
+from .blocks import Block, BlockJacobian, Layout
+from .points import normal_equations
 
 #: Smallest factor λ is multiplied by after a successful step (Nielsen's rule has 1/3).
 DAMPING_DECREASE_FLOOR = 0.1

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import torch
 
-from .blocks import SchurNormal
+from .blocks import BlockJacobian, DenseNormal, SchurNormal
 
 
 def _row_views(rows: torch.Tensor, n_rows: int) -> torch.Tensor:
@@ -215,3 +215,13 @@ class PointCovariance:
         """factor · A⁻¹ (AQ does not change)."""
         return PointCovariance(self.Cz * factor, self.Q_inv * factor, self.AQ, self.z_idx, self.q_idx,
                                self.n_params)
+
+
+def normal_equations(J, wts: torch.Tensor):
+    """`SchurNormal` of a `BlockJacobian` (`PointSchurNormal` with a point block), `DenseNormal` of a dense
+    (M, P) tensor."""
+    if not isinstance(J, BlockJacobian):
+        return DenseNormal(J, wts)
+    if J.Jq is not None:
+        return PointSchurNormal(J, wts)
+    return SchurNormal(J, wts)

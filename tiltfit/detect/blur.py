@@ -55,16 +55,18 @@ def _G2(u: torch.Tensor) -> torch.Tensor:
 def _G_and_G2(u: torch.Tensor, with_G: bool = True):
     """(G(u) or None, G2(u)), sharing the square root and arcsine (the costly part of the pixel ESF)."""
     uc = u.clamp(-1.0, 1.0)
+    q = uc * uc
     # floored: the square root of exact zeros (every |u| >= 1) is slow on some CPUs' vector units, and
     # √1e-30 = 1e-15 changes G and G2 by far less than the image's noise
-    s = torch.sqrt((1 - uc * uc).clamp_min_(1e-30))
+    s2 = (1 - q).clamp_min_(1e-30)  # s², reused below for s * s
+    s = torch.sqrt(s2)
     a = torch.asin(uc)
-    over = (u - 1).clamp_min(0.0)
-    inner = (0.25 * uc * uc + 1.0 / 16 + (a * (0.5 * uc * uc + 0.125) + uc * s * (0.625 - s * s / 12)) / math.pi)
+    over = (u - 1).clamp_min_(0.0)
+    inner = (0.25 * q + 1.0 / 16 + (a * (0.5 * q + 0.125) + uc * s * (0.625 - s2 / 12)) / math.pi)
     G2 = inner + over * (1 + 0.5 * over)  # (u² − 1)/2 = over + over²/2 for u = 1 + over
     if not with_G:
         return None, G2
-    G = 0.5 * uc + (uc * a + s * (1 - s * s / 3.0)) / math.pi + over
+    G = 0.5 * uc + (uc * a + s * (1 - s2 / 3.0)) / math.pi + over
     return G, G2
 
 

@@ -8,7 +8,7 @@ OUT ?= out
 # libLLVM >= 16; Debian 12 ships 14 and 15 by default and 19 as libllvm19. As root with apt-get it is installed;
 # otherwise one line says what to install and what is lost without it.
 LLVM_PROBE := from renderer.mitsuba.variants import jit_variant_runs as r; raise SystemExit(not r('llvm_ad_rgb'))
-LLVM_LINE := renderer: Mitsuba's llvm variant does not run here (it needs libLLVM >= 16, e.g. apt-get install libllvm19): renders use the pure-torch tracer, about 1.8x slower; everything else works
+LLVM_LINE := renderer: Mitsuba's llvm variant does not run here (it needs libLLVM >= 16, e.g. apt-get install libllvm19): renders use the pure-torch tracer, about 5x slower; everything else works
 
 .venv/.installed: pyproject.toml
 	python3 -m venv .venv

@@ -298,6 +298,20 @@ def test_calibration_problem_jacobian_equals_autograd_of_its_residuals():
     assert ours.shape == auto.shape and err < 1e-9, f"problem Jacobian vs autograd: {err:.2e}"
 
 
+def test_jacobian_columns_side_by_side_in_memory_are_copied_as_one_block():
+    """The distortion coefficients' columns are slices of one tensor: adjacent ones join into one block of the
+    same numbers; a gap, another order or another tensor keeps blocks apart."""
+    from tiltfit.calibrate.fit import _side_by_side
+
+    dk = torch.arange(2 * 3 * 8, dtype=torch.float64).reshape(2, 3, 8)
+    other = torch.arange(2 * 3 * 2, dtype=torch.float64).reshape(2, 3, 2) + 1000
+    columns = [other, dk[..., 0:1], dk[..., 1:2], dk[..., 2:5], dk[..., 6:7], dk[..., 5:6], other[..., 1:2]]
+    joined = _side_by_side(columns)
+    assert [b.shape[-1] for b in joined] == [2, 5, 1, 1, 1], [b.shape for b in joined]
+    assert torch.equal(torch.cat(joined, -1), torch.cat(columns, -1)), "joined blocks change the numbers"
+    assert joined[1].untyped_storage().data_ptr() == dk.untyped_storage().data_ptr(), "a copy, not a view"
+
+
 def test_least_squares_on_a_small_dense_problem():
     t = torch.linspace(0, 1, 20, dtype=torch.float64)
     y = 2.0 * torch.exp(-1.5 * t) + 0.3

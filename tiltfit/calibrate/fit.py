@@ -374,20 +374,22 @@ class _Problem:
                                         names=cam_names)
         if self.BOARD in names:
             d_pcam = jac["T_scaled"] / self.work.length_scale_mm                # (V, N, 3, 3) ∂(u, v, b)/∂p_cam
-            d_world = d_pcam @ self.work.R.detach()[:, None]                    # ∂/∂X_world
+            V, N = d_pcam.shape[:2]                                             # ∂/∂X_world, one product a view
+            d_world = torch.bmm(d_pcam.reshape(V, N * 3, 3), self.work.R.detach()).reshape(V, N, 3, 3)
             jac[self.BOARD] = d_world if self.point_index is not None else \
                 torch.einsum("vnij,njk->vnik", d_world, self.board.basis)
         # written once into the (M, P) matrix: corner rows (V, N, 2) then blur rows (V, N), 0 where unobserved
-        sizes = [jac[n].shape[-1] for n in names]
+        blocks = _side_by_side([jac[n] for n in names])
         V, N = self.cmask.shape
         nc = 2 * V * N
-        J = uv.new_empty(nc + (V * N if self.blur_rows_kept else 0), sum(sizes))
+        J = uv.new_empty(nc + (V * N if self.blur_rows_kept else 0), sum(b.shape[-1] for b in blocks))
         Jc, Jb = J[:nc].view(V, N, 2, -1), J[nc:].view(V, N, -1)
         a = 0
-        for n, k in zip(names, sizes):
-            Jc[..., a:a + k] = jac[n][..., :2, :]
+        for block in blocks:
+            k = block.shape[-1]
+            Jc[..., a:a + k] = block[..., :2, :]
             if self.blur_rows_kept:
-                Jb[..., a:a + k] = jac[n][..., 2, :]
+                Jb[..., a:a + k] = block[..., 2, :]
             a += k
         Jc.masked_fill_(~self.cmask[..., None, None], 0.0)
         if self.blur_rows_kept:
@@ -421,6 +423,27 @@ class _Problem:
                     self.board.params = v.detach().clone()
                     continue
                 params[n].copy_(v)
+
+
+def _side_by_side(columns: list) -> list:
+    """Column blocks (..., k_i) in order, each run of blocks that lie side by side in one tensor's memory (the
+    distortion coefficients' columns are slices of one (V, N, 3, 8) tensor) joined into one view of that memory.
+
+    The views hold the same numbers; each strided copy into the Jacobian costs about as much for one column as
+    for eight, so fewer, wider blocks are cheaper."""
+    joined = []
+    for block in columns:
+        if joined:
+            last = joined[-1]
+            if (block.dim() == last.dim() and block.shape[:-1] == last.shape[:-1] and block.stride() == last.stride()
+                    and block.stride(-1) == 1 and block.dtype == last.dtype
+                    and block.untyped_storage().data_ptr() == last.untyped_storage().data_ptr()
+                    and block.storage_offset() == last.storage_offset() + last.shape[-1]):
+                joined[-1] = last.as_strided(last.shape[:-1] + (last.shape[-1] + block.shape[-1],), last.stride(),
+                                             last.storage_offset())
+                continue
+        joined.append(block)
+    return joined
 
 
 def _point_index(basis: torch.Tensor) -> torch.Tensor | None:

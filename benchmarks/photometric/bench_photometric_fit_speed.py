@@ -188,13 +188,16 @@ def compare(before: dict, after: dict) -> dict:
     for name, a in after.get("real", {}).items():
         b = before.get("real", {}).get(name)
         if b:
-            real[name] = {"before_wall_s": b["wall_s"], "after_wall_s": a["wall_s"], "before_kept": b["kept"],
+            real[name] = {"before_wall_s": b["wall_s"], "after_wall_s": a["wall_s"], "before_cpu_s": b.get("cpu_s"),
+                          "after_cpu_s": a.get("cpu_s"), "before_kept": b["kept"],
                           "after_kept": a["kept"], "before": b["values"], "after": a["values"]}
     return {"fits": rows, "forward": forward, "real": real}
 
 
-def _num(v) -> str:
-    return "—" if v is None else f"{v:.8g}"
+def _num(v, decimals: int | None = None) -> str:
+    if v is None:
+        return "—"
+    return f"{v:.{decimals}f}" if decimals is not None else f"{v:.8g}"
 
 
 def write_markdown(path: str, res: dict) -> None:
@@ -214,13 +217,15 @@ def write_markdown(path: str, res: dict) -> None:
         L.append(f"| {name} | {r['before_cpu_s']:.3f} | {r['after_cpu_s']:.3f} | {r['speed_up']:.1f}x | "
                  f"{r['max_abs_dD']:.1e} |")
     if c.get("real"):
-        L += ["", "Real photos, `tiltfit calibrate ... --refine photometric` with its defaults on 4 photos (wall s of the "
-              "whole command; CALIB.json's lens, the refinement's where kept):", "",
-              "| set | wall s before | after | kept before | after | w mm before | after | U mm before | after | "
-              "d mm before | after |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+        L += ["", "Real photos, `tiltfit calibrate ... --refine photometric` with its defaults on 4 photos (CPU and wall "
+              "s of the whole command, the corner calibration included, so commits between the two revisions outside "
+              "the photometric fit count too; CALIB.json's lens, the refinement's where kept):", "",
+              "| set | CPU s before | after | wall s before | after | kept before | after | w mm before | after | "
+              "U mm before | after | d mm before | after |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for name, r in c["real"].items():
             vals = " | ".join(f"{_num(r['before'].get(k))} | {_num(r['after'].get(k))}" for k in ("w_mm", "U_mm", "d_mm"))
-            L.append(f"| {name} | {r['before_wall_s']:.1f} | {r['after_wall_s']:.1f} | {r['before_kept']} | "
+            L.append(f"| {name} | {_num(r.get('before_cpu_s'), 1)} | {_num(r.get('after_cpu_s'), 1)} | "
+                     f"{r['before_wall_s']:.1f} | {r['after_wall_s']:.1f} | {r['before_kept']} | "
                      f"{r['after_kept']} | {vals} |")
     L += ["", "Fitted values (error against the captures' truth: θL °, U and d %, w %; σ the fit's own):", "",
           "| fit | code | kernel | θL err ° | σ θL ° | U err % | d err % | w err % | Gaussian σ px | RMS | iterations |",
@@ -228,7 +233,8 @@ def write_markdown(path: str, res: dict) -> None:
     for name in c["fits"]:
         for code in ("before", "after"):
             for i, r in enumerate(res[code]["fits"][name]["results"]):
-                e, v, t = r["error"], r["values"], {k: v[k] - r["error"][k] for k in r["error"]}
+                e, v = r["error"], r["values"]
+                t = {k: v[k] - e[k] for k in e}
                 L.append(f"| {name} #{i + 1} | {code} | {r['kernel']} | {e['theta_L_deg']:+.5f} | "
                          f"{r['sigma']['theta_L_deg']:.5f} | {100 * e['U_mm'] / t['U_mm']:+.4f} | "
                          f"{100 * e['d_mm'] / t['d_mm']:+.4f} | {100 * e['w_mm'] / t['w_mm']:+.4f} | "
@@ -243,7 +249,12 @@ def main() -> int:
     ap.add_argument("--after", default=None, help="revision to measure [the working tree]")
     ap.add_argument("--out", default=os.path.join(RESULTS, "photometric_fit_speed"),
                     help="results path without extension")
+    ap.add_argument("--markdown-only", action="store_true", help="rewrite OUT.md from OUT.json (no timing)")
     args = ap.parse_args()
+    if args.markdown_only:
+        with open(args.out + ".json") as f:
+            write_markdown(args.out + ".md", json.load(f))
+        return 0
     rev = subprocess.run(["git", "-C", ROOT, "rev-parse", "--short", args.after or "HEAD"], capture_output=True,
                          text=True).stdout.strip()
     with tempfile.TemporaryDirectory() as tmp:

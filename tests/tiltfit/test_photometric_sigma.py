@@ -142,8 +142,10 @@ def heavy_blur_draws():
 def test_photometric_sigma_matches_the_spread_over_draws(heavy_blur_draws):
     """Heavy blur, 6 views, every lens parameter freed (w, U, d, θF and so θL): the reported σ (per-view
     cluster-robust) is within the band of the empirical spread for each, while the textbook σ is too small
-    (the per-view errors are there; σ × 0.5 or × 2 leaves the band). Measured (20 draws): 0.89–1.26, the
-    textbook σ 0.61–0.75 (benchmarks/results/photometric_sigma.md with more draws)."""
+    (the per-view errors are there; σ × 0.5 or × 2 leaves the band), by a factor the per-view σ adds to it (the
+    ratio of the two predictions, free of the 20 draws' ±16 % on the spread). Measured (20 draws): 1.03–1.50, the
+    textbook σ 0.62–0.91, per-view / textbook 1.53–1.66 (before the detector's widths were made smooth, 2026-11-29:
+    0.89–1.26 and 0.61–0.75; benchmarks/results/photometric_sigma.md with more draws)."""
     mc = heavy_blur_draws
     assert mc["free"] == ["log_w_mm", "inv_U_per_m", "d_scaled", "theta_F"], f"freed {mc['free']}"
     views = ratios(mc, "sigma")
@@ -156,7 +158,9 @@ def test_photometric_sigma_matches_the_spread_over_draws(heavy_blur_draws):
     mean = math.exp(np.mean([math.log(views[k]) for k in KEYS]))
     assert BAND_MEAN[0] <= mean <= BAND_MEAN[1], f"geometric mean {mean:.2f} outside {BAND_MEAN}: {summary}"
     mean_textbook = math.exp(np.mean([math.log(textbook[k]) for k in KEYS]))
-    assert mean_textbook < 0.8, f"the textbook σ should miss the per-view errors ({mean_textbook:.2f}): {summary}"
+    assert mean_textbook < 1.0, f"the textbook σ should miss the per-view errors ({mean_textbook:.2f}): {summary}"
+    gain = math.exp(np.mean([math.log(views[k] / textbook[k]) for k in KEYS]))
+    assert gain >= 1.3, f"the per-view σ should add the errors a view shares to the textbook σ (×{gain:.2f}): {summary}"
 
 
 @pytest.mark.slow

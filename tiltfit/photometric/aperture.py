@@ -160,15 +160,15 @@ class _CutLines:
     fraction F is not 0 or 1, so the only ones through which D has a derivative. Their lines are formed again
     from the points' inputs, with gradients; the dense pass over every point and line runs without them.
 
-    Attributes: point, edge (K,) the entries; alpha, beta, f, h (K,) their lines (`_family_lines`); F (K,) their
-    circular segments; step (K,) what F is at the same entry once the line no longer cuts (0 or 1); position
-    (P · n_edges,) each dense entry's index in the list (−1 where the line does not cut)."""
+    Attributes: point, edge (K,) the entries; alpha, beta, scale, h (K,) their lines (`_family_lines`, its f as
+    scale); F (K,) their circular segments; step (K,) what F is at the same entry once the line no longer cuts (0
+    or 1); position (P · n_edges,) each dense entry's index in the list (−1 where the line does not cut)."""
 
     def __init__(self, q, c, a, h_dense, edges, k: int):
         P, n = h_dense.shape
         at = (h_dense.abs() < 1).reshape(-1).nonzero().squeeze(1)
         self.point, self.edge = at // n, at % n
-        self.alpha, self.beta, self.f, h = (t.squeeze(-1) for t in _family_lines(
+        self.alpha, self.beta, self.scale, h = (t.squeeze(-1) for t in _family_lines(
             q.index_select(0, self.point), c.index_select(0, self.point), a.index_select(0, self.point),
             edges[self.edge][:, None], k))
         self.h = h
@@ -226,7 +226,7 @@ def checker_dark_fraction_disc(q_h: torch.Tensor, centre: torch.Tensor, axes: to
     point, pair = sel // (nx_ * ny_), sel % (nx_ * ny_)
     ix, iy = pair // ny_, pair % ny_
     px, py = lx.position[point * nx_ + ix], ly.position[point * ny_ + iy]
-    fx, fy = lx.f[px], ly.f[py]
+    fx, fy = lx.scale[px], ly.scale[py]
     wedge = disc_wedge_fraction(lx.alpha[px] * fx, lx.beta[px] * fx, lx.h[px], ly.alpha[py] * fy, ly.beta[py] * fy,
                                 ly.h[py])
     excess = wedge - lx.F[px] * ly.F[py]

@@ -1,11 +1,23 @@
+import importlib.util
 import os
 import sys
 
 import pytest
 import torch
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # tests/scheduling.py
-import scheduling  # noqa: E402
+
+def _load_scheduling():
+    """tests/scheduling.py, loaded by its path: putting tests/ on sys.path would let tests/renderer and
+    tests/tiltfit shadow the packages of the same names for a bare `pytest`."""
+    spec = importlib.util.spec_from_file_location(
+        "scheduling", os.path.join(os.path.dirname(os.path.abspath(__file__)), "scheduling.py"))
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["scheduling"] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+scheduling = _load_scheduling()
 
 # Tests check correctness, not speed: one torch thread per process avoids oversubscribing the two cores
 # that the two pytest-xdist workers already share.

@@ -203,6 +203,8 @@ class _PointColumns(_DenseColumns):
         """E_vᵀ Z_v for Z (V, R, m): (V, S, m)."""
         V, R, m = Z.shape
         out = Z.new_zeros(V, self.S, m)
+        if m == 0:                                                      # e.g. no pose columns: nothing to add
+            return out
         out[:, :self.Es.shape[-1]] = self.Es.transpose(1, 2) @ Z
         idx = (self.col + self.S * torch.arange(V)[:, None, None]).reshape(-1)
         out.view(V * self.S, m).index_add_(0, idx, (self.jq[..., None] * Z[:, :, None, :]).reshape(-1, m))
@@ -212,7 +214,7 @@ class _PointColumns(_DenseColumns):
         """Σ_v E_vᵀ E_v − Y_vᵀ A_vv Y_v (E_vᵀ J_p,v = A_vv Y_v)."""
         S0 = self.Es.shape[-1]
         G = self.Es.new_zeros(self.S, self.S)
-        Es = self.Es.reshape(-1, S0)
+        Es = self.Es.flatten(0, 1)                                     # (V·R, S₀), S₀ may be 0
         G[:S0, :S0] = Es.T @ Es
         sq = self._e_left(self.Es)[:, S0:].sum(0)                       # (Q, S₀) the points' rows against the lens
         G[S0:, :S0] = sq

@@ -28,13 +28,12 @@ from __future__ import annotations
 import contextlib
 import math
 import os
-from dataclasses import replace
 
 import torch
 
 from camio.errors import os_reason
 from camio.progress import Progress
-from renderer.tracing.render import RenderResult, _chunks, _render_pixels
+from renderer.tracing.render import RenderResult, _chunks, _options, _render_pixels
 from renderer.tracing.sampling import Sampler
 from renderer.scene.model import Scene
 
@@ -213,7 +212,7 @@ def render_on_ray(scene: Scene, spp: int | None = None, sampler: str | None = No
     W, H = scene.camera.width, scene.camera.height
     spp = scene.image.spp if spp is None else spp
     sampler = sampler or scene.image.sampler
-    options = replace(scene.options, compile=False)
+    options = _options(scene, None, False, None, "cpu", dtype)   # `auto` resolved here, so tasks take render's path
     chunks = list(_chunks(scene, spp, options, chunk_rays))
     with cluster_session(address) as ray:
         n_tasks = min(len(chunks), cluster_cpus(ray) * tasks_per_cpu)

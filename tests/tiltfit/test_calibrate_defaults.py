@@ -83,6 +83,10 @@ def test_cache_is_what_the_detector_finds(tmp_path):
     diff = np.abs(np.array(fresh["corners_px"], dtype=float) - np.array(cached["corners_px"], dtype=float))
     assert np.nanmax(diff) < 1e-6, f"cached corners differ from a fresh detection by {np.nanmax(diff)} px: rerun " \
                                    f"tests/real_detections.py"
+    widths = [np.array([np.nan if b is None else b for b in d["blur_px"]], dtype=float) for d in (fresh, cached)]
+    assert np.array_equal(np.isnan(widths[0]), np.isnan(widths[1])), "cached blur widths measured elsewhere"
+    wdiff = np.nanmax(np.abs(widths[0] - widths[1]))
+    assert wdiff < 1e-6, f"cached blur widths differ from a fresh detection by {wdiff} px: rerun tests/real_detections.py"
 
 
 def test_defaults_match_opencv_on_the_same_corners(gopro):

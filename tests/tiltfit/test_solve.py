@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from tiltfit.solve import Block, LMOptions, SolverError, covariance, least_squares, levenberg_marquardt
-from tiltfit.solve.blocks import DenseNormal, Layout, SchurCovariance, SchurNormal
+from tiltfit.solve.blocks import DenseCovariance, DenseNormal, Layout, SchurCovariance, SchurNormal
 from tiltfit.solve.points import PointCovariance, PointSchurNormal
 
 F64 = torch.float64
@@ -209,6 +209,9 @@ def test_point_blocks_eliminated_as_in_bundle_adjustment_match_the_dense_solve()
     lev_dense = ((Jd @ C_dense) * Jd).sum(-1)
     assert torch.allclose(lev, lev_dense, rtol=1e-7, atol=1e-10), "each row's leverage"
     assert abs(float(lev.sum()) - layout.n_params) < 1e-7, "the hat matrix's trace is the number of parameters"
+    # where A is singular the fit's σ falls back to a pseudo-inverse held densely (fit._group_sigma)
+    lev_pinv = res.normal.leverages(DenseCovariance(torch.linalg.pinv(res.normal.dense())))
+    assert torch.allclose(lev_pinv, lev_dense, rtol=1e-7, atol=1e-10), "leverages of a dense covariance"
 
 
 def test_cluster_covariance_with_a_point_block_equals_it_with_the_points_as_dense_globals():

@@ -130,9 +130,13 @@ class PointSchurNormal:
         Q_inv, AQ, H = self._reduce(self.A_zz.new_zeros(self.Z), zero)
         return PointCovariance(torch.linalg.inv(H), Q_inv, AQ, self.z_idx, self.bj.q_idx, self.bj.n_params)
 
-    def leverages(self, cov: "PointCovariance") -> torch.Tensor:
+    def leverages(self, cov) -> torch.Tensor:
         """(M,) diagonal of the hat matrix W J A⁻¹ Jᵀ: row i (view v, point n) touches A⁻¹'s blocks of the
-        globals, view v's pose and point n."""
+        globals, view v's pose and point n. `cov` another covariance (a pseudo-inverse's `DenseCovariance`, where A
+        is singular): through the dense Jacobian."""
+        if not isinstance(cov, PointCovariance):
+            J = self.bj.dense()
+            return self.wts * ((J @ cov.dense()) * J).sum(-1)
         bj, S, K, N = self.bj, self.S, self.K, self.N
         Cz = cov.Cz
         rv = _row_views(bj.rows, bj.Js.shape[0])

@@ -131,16 +131,22 @@ class MitsubaIntersector:
         """Mitsuba rays from (3, N) rows o, d (torch, float32 views, no copy), starting at o + t_min·d."""
         if o.device.type != "cpu":
             raise ValueError(f"intersector mitsuba: rays on {o.device}; it traces CPU tensors only (variant {self.variant})")
+        self.ensure_variant()
         F = self.mi.Float
         return self.jit_ray([F(_f32(o[i])) for i in range(3)], [F(_f32(d[i])) for i in range(3)], t_min,
                             None if t_max is None else F(_f32(t_max)))
+
+    def ensure_variant(self):
+        """Mitsuba's global variant set back to this engine's where another caller switched it (a `--backend
+        mitsuba` render with `scalar_rgb`, say): `mi.Float` and the other types follow the variant."""
+        if self.mi.variant() != self.variant:
+            self.mi.set_variant(self.variant)
 
     def jit_ray(self, o, d, t_min: float, t_max=None):
         """A Mitsuba ray from three Dr.Jit `mi.Float` components each of origin o and direction d (and of the
         distance t_max, None: unbounded), starting at o + t_min·d."""
         mi = self.mi
-        if mi.variant() != self.variant:  # another caller switched Mitsuba's global variant
-            mi.set_variant(self.variant)
+        self.ensure_variant()
         origin = mi.Point3f(o[0] + t_min * d[0], o[1] + t_min * d[1], o[2] + t_min * d[2])
         maxt = mi.Float(math.inf) if t_max is None else t_max - t_min
         return mi.Ray3f(origin, mi.Vector3f(*d), maxt, 0.0, mi.Color0f())

@@ -85,6 +85,7 @@ class _Kernel:
         self.engine = engine(scene)
         if self.engine.fallback:
             raise AssertionError("jit_direct: every shape should be traced by Embree (see applies)")
+        self.engine.ensure_variant()  # the tables below are built with `mi`'s types
         mi = self.mi = self.engine.mi
         self.dr = self.engine.dr
         table = scene.materials(torch.zeros(0, dtype=torch.float32))
@@ -135,6 +136,7 @@ def render_pixels(scene: Scene, pixel: torch.Tensor, sampler, options: TraceOpti
     """Estimates (n, 3) and coverage (n,) of the pixels `pixel` (n,), as `render._render_pixels` returns
     them (every thin-lens ray is valid with weight 1)."""
     k = _kernel(scene)
+    k.engine.ensure_variant()  # the samples and camera below are built with `mi`'s types
     mi, dr = k.mi, k.dr
     spp = sampler.spp
     xs, ys, u, v = _samples(k, sampler, pixel, scene.camera.width)

@@ -272,3 +272,23 @@ def test_defaults_compile_nothing_with_torch(monkeypatch):
 
     monkeypatch.setattr(torch, "compile", refuse)
     render(_speed(size=16, spp=2), seed=1)
+
+
+def test_a_mitsuba_variant_switched_by_another_caller_is_set_back():
+    """Mitsuba's variant is process-wide: after another caller switched it (a `--backend mitsuba` render with
+    `scalar_rgb`, say), the Dr.Jit path builds its tables, samples and rays with its own variant's types again
+    and gives the same image, for a scene seen before and a new one."""
+    import mitsuba as mi
+
+    seen, new = _speed(size=8, spp=2), _speed(size=10, spp=2)
+    ref_seen = render(seen, seed=3, intersector="mitsuba")
+    variant = mi.variant()
+    try:
+        mi.set_variant("scalar_rgb")
+        again = render(seen, seed=3, intersector="mitsuba")
+        mi.set_variant("scalar_rgb")
+        first_new = render(new, seed=3, intersector="mitsuba")
+    finally:
+        mi.set_variant(variant)
+    assert torch.equal(again.image, ref_seen.image), "the same image after the variant was switched"
+    assert torch.equal(first_new.image, render(new, seed=3, intersector="mitsuba").image), "a new scene's kernel too"

@@ -195,6 +195,10 @@ def _trace_chunks(job, chunks):
     """Estimates (n, 3) and coverage (n,) of the real pixels of `chunks` [(pixel, n), ...], concatenated.
     job: (scene, spp, sampler, seed, options, dtype, max_depth), shared by every task."""
     scene, spp, sampler, seed, options, dtype, max_depth = job
+    if options.intersector == "mitsuba":  # one Dr.Jit thread a task, as a local worker process has
+        from renderer.mitsuba.intersect import set_jit_threads
+
+        set_jit_threads(1)
     smp = Sampler(sampler, spp, seed)
     est, cov = [], []
     for pixel, n in chunks:

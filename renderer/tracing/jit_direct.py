@@ -126,10 +126,15 @@ class _Kernel:
 
 def _kernel(scene: Scene) -> _Kernel:
     """The scene's `_Kernel`, kept by the scene (`Scene.derived`: rebuilt after a move) for its lights and
-    background (made again for others)."""
+    background: made again when they change, and only the latest kept (lights moved every frame of an animation
+    do not pile up kernels)."""
     key = (tuple(scene.image.background),
            tuple((l.type, tuple(l.intensity), tuple(getattr(l, "position", None) or ())) for l in scene.lights))
-    return scene.derived(("jit_direct.kernel", key), lambda: _Kernel(scene))
+    held = scene.derived("jit_direct.kernel", lambda: {})
+    if held.get("key") != key:
+        held.clear()
+        held.update(key=key, kernel=_Kernel(scene))
+    return held["kernel"]
 
 
 def render_pixels(scene: Scene, pixel: torch.Tensor, sampler, options: TraceOptions):

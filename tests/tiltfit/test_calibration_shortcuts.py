@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from tiltfit.target.shape import Board, free_board_at
-from tiltfit.uncertainty.covariance import _jac, _leverage_eigen
+from tiltfit.uncertainty.columns import _leverage_eigen
+from tiltfit.uncertainty.covariance import _jac
 
 
 def _correction(U, lam):

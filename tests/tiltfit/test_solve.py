@@ -267,7 +267,7 @@ def test_calibration_problem_jacobian_equals_autograd_of_its_residuals():
     same matrix autograd gives for its residual vector, with corners and blur widths missing here and there."""
     from torch.func import functional_call
 
-    from tiltfit.calibrate.fit import _Problem
+    from tiltfit.calibrate.problem import _Problem
     from tiltfit.calibrate.model import LensCamera, board_points_mm, random_poses, synthesize_observations
 
     rvec, T = random_poses(3, seed=7)
@@ -304,7 +304,7 @@ def test_calibration_problem_jacobian_equals_autograd_of_its_residuals():
 def test_jacobian_columns_side_by_side_in_memory_are_copied_as_one_block():
     """The distortion coefficients' columns are slices of one tensor: adjacent ones join into one block of the
     same numbers; a gap, another order or another tensor keeps blocks apart."""
-    from tiltfit.calibrate.fit import _side_by_side
+    from tiltfit.calibrate.problem import _side_by_side
 
     dk = torch.arange(2 * 3 * 8, dtype=torch.float64).reshape(2, 3, 8)
     other = torch.arange(2 * 3 * 2, dtype=torch.float64).reshape(2, 3, 2) + 1000

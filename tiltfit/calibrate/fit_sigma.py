@@ -66,7 +66,7 @@ def _intrinsics(camera: LensCamera, params: dict) -> torch.Tensor:
 def uncertainties(prob, res: LMResult, scale: torch.Tensor, init_sigma: dict | None, sigma_model: str = "views"):
     """Covariance of the free parameters and σ of the derived quantities and per-view poses, under
     `sigma_model` ("views": per-view cluster-robust with the classical floor, `tiltfit.uncertainty.covariance`;
-    "classical": s² (JᵀWJ)⁻¹); `prob` the fit's `tiltfit.calibrate.fit._Problem`. Returns (C, sigma, view σ, s²,
+    "classical": s² (JᵀWJ)⁻¹); `prob` the fit's `tiltfit.calibrate.problem._Problem`. Returns (C, sigma, view σ, s²,
     extras {sigma_classical, sigma_model, intrinsics_covariance}).
 
     Raises:

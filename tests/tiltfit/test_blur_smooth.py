@@ -13,7 +13,8 @@ import pytest
 import torch
 
 from camio.files import read_image
-from tiltfit.detect.blur import _band, _diameter_sigma, measure_blur
+from tiltfit.detect.blur import _diameter_sigma, measure_blur
+from tiltfit.detect.blur_bands import _band
 from tiltfit.detect.imaging import to_gray
 from tiltfit.target.layout import load_target
 

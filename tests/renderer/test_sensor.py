@@ -65,6 +65,23 @@ def test_srgb8_levels_and_round_trip():
     assert np.array_equal(back, levels), "decode then encode gives every level back"
 
 
+def test_srgb8_table_matches_the_formula_to_the_last_bit():
+    """`encode_srgb8` reads large arrays from a table: the same codes as round(255 · sRGB(v)) everywhere, the 2,000
+    floats either side of every code's threshold and values outside [0, 1] (-0.0 included) among them."""
+    from camio.files import _encode_srgb8_formula, _srgb8_table
+
+    nxt = _srgb8_table()[1]
+    thresholds = np.unique(nxt[np.isfinite(nxt)])
+    assert thresholds.size == 255, f"{thresholds.size} thresholds, one per code above 0"
+    near = (thresholds.view(np.int64)[:, None] + np.arange(-2000, 2000)[None]).view(np.float64).ravel()
+    rng = np.random.default_rng(3)
+    v = np.concatenate([near, rng.random(100_000) ** 4, rng.normal(0.5, 1.0, 100_000), [-0.0, 0.0, 1.0, 5e-324]])
+    got, want = encode_srgb8(v), _encode_srgb8_formula(np.clip(v, 0.0, 1.0))
+    assert got.dtype == np.uint8 and np.array_equal(got, want), f"{int((got != want).sum())} codes differ"
+    img = rng.random((300, 200)).astype(np.float32)
+    assert np.array_equal(encode_srgb8(img), _encode_srgb8_formula(img.astype(np.float64))), "float32 image"
+
+
 def test_quantised_output_and_decode():
     s = SensorResponse(encoding="srgb8")
     out = s.expose(np.array([[0.2, 0.8]]))

@@ -100,3 +100,51 @@ def test_deferred_per_view_sigma_equal_those_made_at_once():
     assert later.sigma == at_once.sigma and later.sigma_model == at_once.sigma_model, "the same per-view σ"
     assert torch.equal(later.board.sigma, at_once.board.sigma), "the board's σ too"
     assert later.values == at_once.values
+
+
+def _synthetic_views(n_views: int = 10, seed: int = 7):
+    """Observations of an 8 × 6 board seen by a camera with k1 = −0.1 (0.1 px corner noise), no blur widths."""
+    import cv2
+    import numpy as np
+
+    from tiltfit.calibrate.model import Observations, board_points_mm
+
+    points = board_points_mm(8, 6, 15.0, centred=False).numpy()
+    rng = np.random.default_rng(seed)
+    K = np.array([[2000.0, 0, 650.0], [0, 2000.0, 505.0], [0, 0, 1]])
+    corners = []
+    for _ in range(n_views):
+        rv = rng.uniform(-1, 1, 3) * np.radians([25, 25, 10])
+        t = np.array([rng.uniform(-20, 20), rng.uniform(-20, 20), 600.0]) - cv2.Rodrigues(rv)[0] @ points.mean(0)
+        uv = cv2.projectPoints(points, rv, t, K, np.array([-0.1, 0, 0, 0, 0.0]))[0][:, 0]
+        corners.append(uv + rng.normal(0, 0.1, uv.shape))
+    C = np.stack(corners)
+    return Observations(torch.as_tensor(points), C, np.full(C.shape[:2], np.nan), (1280, 1024), 0.005)
+
+
+@pytest.mark.parametrize("board", [None, "free"])
+def test_held_out_folds_started_from_the_fit_agree_with_pnp_starts(board, monkeypatch):
+    """The held-out folds start their training views' poses at the fit on all views (`held_out_start` "fit", the
+    default; with a fitted board its points too) instead of PnP's: no PnP for the training views (PnP only where the
+    held-out views are predicted), and the same held-out error (each fold converges to its own minimum)."""
+    from dataclasses import replace
+
+    from tiltfit.calibrate import start as start_module
+    from tiltfit.calibrate.fit import FitOptions, fit_geometry
+    from tiltfit.calibrate.start import initialize
+    from tiltfit.select.held_out import held_out_rms
+
+    obs = _synthetic_views()
+    opts = FitOptions(distortion="k1", free_principal_point=True, model_selection=False, uncertainties=False)
+    assert opts.held_out_start == "fit", "the default"
+    full = fit_geometry(initialize(obs, "unified", options=opts, blur=False), obs, opts,
+                        board=None if board is None else Board(obs.points_mm, board))
+    fitted = None if board is None else full.board
+    pnp = held_out_rms(obs, replace(opts, held_out_start="pnp"), 5, start=full.camera, board=fitted)
+    calls = []
+    real_pnp = start_module.poses_from_pnp
+    monkeypatch.setattr(start_module, "poses_from_pnp", lambda o, *a: calls.append(o.n_views) or real_pnp(o, *a))
+    warm = held_out_rms(obs, opts, 5, start=full.camera, board=fitted)
+    assert calls == [2] * 5, f"PnP for the predicted views only (2 a fold), got views {calls}"
+    assert warm["rms_px"] == pytest.approx(pnp["rms_px"], rel=1e-4), (warm["rms_px"], pnp["rms_px"])
+    assert warm["per_view_px"] == pytest.approx(pnp["per_view_px"], rel=1e-3)

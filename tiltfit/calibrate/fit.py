@@ -70,6 +70,10 @@ class FitOptions:
             None fits it where the views support it: free unless the likelihood-ratio test on the corners
             (`_geometry_with_principal_point`) finds it not justified; held when `model_selection` is off [None].
         held_out_folds: K of the K-fold held-out error that chooses the distortion model under "auto" [5].
+        held_out_start: where each held-out fold's fit starts its training views' poses: "fit" (the fit on all
+            views that the fold is scored for: its poses of those views, beside its lens and board) or "pnp" (PnP
+            with that lens, as before; the fold then converges to the same minimum within the solver's tolerance)
+            (`tiltfit.select.held_out.held_out_rms`) ["fit"].
         uncertainties: compute the covariance and σ (False: only the fitted camera is wanted, as in the held-out
             folds; a fit whose parameters are not all determined is then no error) [True].
         sigma_model: the error model of the σ: "views" (corner errors may be correlated within a view: per-view
@@ -110,6 +114,7 @@ class FitOptions:
     robust_scale: float = 3.0
     free_principal_point: bool | None = None
     held_out_folds: int = 5
+    held_out_start: str = "fit"
     sigma_corner_px: float | None = None
     sigma_blur_px: float | None = None
     blur_model: str = "ellipse"
@@ -137,6 +142,8 @@ class FitOptions:
             raise ValueError(f"blur_model: expected one of {BLUR_MODELS}, got {self.blur_model!r}")
         if self.max_iterations < 1:
             raise ValueError(f"max_iterations: expected at least 1, got {self.max_iterations}")
+        if self.held_out_start not in ("fit", "pnp"):
+            raise ValueError(f"held_out_start: expected 'fit' or 'pnp', got {self.held_out_start!r}")
         if self.distortion_centre not in ("auto", "sensor"):
             raise ValueError(f"distortion_centre: expected 'auto' or 'sensor', got {self.distortion_centre!r}")
         if self.board not in BOARD_MODELS + ("auto",):

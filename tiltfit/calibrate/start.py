@@ -150,10 +150,11 @@ def _blur_rss(cam: LensCamera, obs: Observations, U_mm: float, d_mm: float, thet
 
 
 def initialize(obs: Observations, mode: str = "unified", init: LensCamera | None = None,
-               options: FitOptions = FitOptions(), blur: bool = True) -> LensCamera:
+               options: FitOptions = FitOptions(), blur: bool = True, poses=None) -> LensCamera:
     """A starting camera for `calibrate`.
 
-    Poses from PnP with w from `init`, else the nominal focal length, else the homographies. The blur
+    Poses from PnP with w from `init`, else the nominal focal length, else the homographies; or `poses`
+    ((rvec (V, 3), T_mm (V, 3)) of `obs`'s views, e.g. a fit's on more views) where given. The blur
     parameters are the best (least squared blur error) of: `init`'s U, d, θF; the linear scan
     (`blur_from_scan`, θF scanned too in `joint` mode) unless `tilt` mode holds U and d; and, in `tilt` mode,
     a scan of θF over ±80° with `init`'s U and d. With `blur` False the blur parameters are `init`'s (or
@@ -176,7 +177,7 @@ def initialize(obs: Observations, mode: str = "unified", init: LensCamera | None
                 raise FitError("cannot estimate the focal length from these views (too fronto-parallel, or the "
                                "target does not match the detections); give a nominal focal length")
             w_mm = F * obs.pixel_pitch_mm
-    rvec, T = poses_from_pnp(obs, w_mm / obs.pixel_pitch_mm, pp, dist)
+    rvec, T = poses if poses is not None else poses_from_pnp(obs, w_mm / obs.pixel_pitch_mm, pp, dist)
     U0, d0 = (float(init.U_mm), float(init.d_mm)) if init is not None else (600.0, 10.0)
     if not U0 > 0:  # a start beyond infinity (1/U ≤ 0) is focus at infinity: never a negative U in a lens
         U0 = math.inf

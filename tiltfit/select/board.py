@@ -22,11 +22,14 @@ from tiltfit.select.held_out import choice_variance, held_out_gain
 from tiltfit.select.held_out import held_out_rms as _held_out
 
 
-def held_out_rms(obs: Observations, options, model: str, folds: int = 5, start=None) -> dict:
+def held_out_rms(obs: Observations, options, model: str, folds: int = 5, start=None, fitted=None) -> dict:
     """K-fold held-out reprojection RMS (px per corner) of a geometric calibration that fits the board as `model`:
     each fold fits lens and board on the other views, then only the poses of its own views with both held
-    (`tiltfit.select.held_out.held_out_rms` with a board). Returns that function's dict plus the model."""
-    out = _held_out(obs, options, folds, start=start, board=model)
+    (`tiltfit.select.held_out.held_out_rms` with a board). `fitted` (the board of `model` fitted with `start` on
+    all views) starts each fold's board where the folds start from that fit (`options.held_out_start` "fit").
+    Returns that function's dict plus the model."""
+    warm = fitted is not None and fitted.model == model and options.held_out_start == "fit"
+    out = _held_out(obs, options, folds, start=start, board=fitted if warm else model)
     out["board"] = model
     return out
 
@@ -93,7 +96,7 @@ def select_board(camera, obs: Observations, options, mode: str = "unified", mode
             try:
                 reuse = m == "flat" and flat is not None and (flat.held_out or {}).get("folds") == folds
                 entry["held_out"] = flat.held_out if reuse else held_out_rms(obs, quiet, m, folds,
-                                                                             start=fit.camera)
+                                                                             start=fit.camera, fitted=fit.board)
                 entry["held_out_rms_px"] = entry["held_out"]["rms_px"]
             except FitError as e:
                 entry["refused"] = f"held-out error not computed ({e})"

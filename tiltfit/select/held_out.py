@@ -119,11 +119,16 @@ def held_out_rms(obs: Observations, options: FitOptions = FitOptions(), folds: i
         raise ValueError("held_out_rms: give the distortion model (not auto)")
     per_view = [math.nan] * V
     sq, n = 0.0, 0
+    # `start` fitted on these views (`FitOptions.held_out_start` "fit"): its poses of each fold's training views
+    # start the fold's fit (no PnP)
+    warm = opts.held_out_start == "fit" and start is not None and start.n_views == V
     for k in range(K):
         test = [v for v in range(V) if v % K == k]
         train = [v for v in range(V) if v % K != k]
         tr = obs.subset(train)
-        cam = keep_distortion_axis(initialize(tr, "unified", init=start, options=opts, blur=False), start)
+        poses = (start.rvec.detach()[train], start.T_mm.detach()[train]) if warm else None
+        cam = keep_distortion_axis(initialize(tr, "unified", init=start, options=opts, blur=False, poses=poses),
+                                   start)
         if board is None:
             fit = fit_geometry(cam, tr, opts, mode="unified")
             pred = predict_views(fit.camera, obs.subset(test), opts)

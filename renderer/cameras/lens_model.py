@@ -89,6 +89,13 @@ def distortion_parameter_names(model: str) -> tuple[str, ...]:
     return tuple(f"dist_{k}" for k in MODEL_TERMS[model])
 
 
+def _through_perspective(J_xy: torch.Tensor, xn: torch.Tensor, iz: torch.Tensor) -> torch.Tensor:
+    """(..., 2, 2) ∂f/∂xn times ∂xn/∂p_cam = [[1/z, 0, −x/z²], [0, 1/z, −y/z²]] -> (..., 2, 3) ∂f/∂p_cam, written
+    out (the product's zeros skipped; a batched 2 × 2 by 2 × 3 matmul per point costs more)."""
+    Jz = J_xy * iz[..., None, None]
+    return torch.cat([Jz, -(Jz[..., 0:1] * xn[..., None, 0:1] + Jz[..., 1:2] * xn[..., None, 1:2])], -1)
+
+
 class _ProjectionTerms(NamedTuple):
     """The terms of `LensCamera.jacobian`'s projection that its columns share (V views, N points)."""
     rvec: torch.Tensor      # (V, 3) axis-angle rotations
@@ -397,20 +404,20 @@ class LensCamera(torch.nn.Module):
         z = p_cam[..., 2]
         iz = 1.0 / z
         xn = p_cam[..., :2] * iz[..., None]
-        zero = torch.zeros_like(z)
-        dxn_dp = torch.stack([iz, zero, -xn[..., 0] * iz, zero, iz, -xn[..., 1] * iz], -1).reshape(z.shape + (2, 3))
         k = self.distortion.detach()
         F = float(self.focal_px.detach())
         axis = with_distortion and self.distortion_centre == "lens_axis"
         J_k = J_angles = dthL = None
         if axis:  # D about the lens axis: its frame turns with θL (so w, U, θF) and φ
             xd, J_xy, J_k, J_angles, dthL = self._lens_axis_jacobians(xn, k)
-            dxd_dp = J_xy @ dxn_dp
+            dxd_dp = _through_perspective(J_xy, xn, iz)
         elif with_distortion:
             xd = distort(xn, k)
-            dxd_dp = distort_jacobian(xn, k) @ dxn_dp
+            dxd_dp = _through_perspective(distort_jacobian(xn, k), xn, iz)
         else:
-            xd, dxd_dp = xn, dxn_dp
+            zero = torch.zeros_like(z)
+            xd = xn
+            dxd_dp = torch.stack([iz, zero, -xn[..., 0] * iz, zero, iz, -xn[..., 1] * iz], -1).reshape(z.shape + (2, 3))
         uv = self.principal_point_px.detach() + F * xd
         return _ProjectionTerms(rvec, p_rot, p_cam, xn, k, xd, dxd_dp, uv, F, with_distortion, axis, J_k, J_angles,
                                 dthL)

@@ -144,7 +144,8 @@ class _Problem:
                                         names=cam_names)
         if self.BOARD in names:
             d_pcam = jac["T_scaled"] / self.work.length_scale_mm                # (V, N, 3, 3) ∂(u, v, b)/∂p_cam
-            d_world = d_pcam @ self.work.R.detach()[:, None]                    # ∂/∂X_world
+            V, N = d_pcam.shape[:2]                                             # ∂/∂X_world, one product a view
+            d_world = torch.bmm(d_pcam.reshape(V, N * 3, 3), self.work.R.detach()).reshape(V, N, 3, 3)
             jac[self.BOARD] = d_world if self.point_index is not None else \
                 torch.einsum("vnij,njk->vnik", d_world, self.board.basis)
         # written once into the (M, P) matrix: corner rows (V, N, 2) then blur rows (V, N), 0 where unobserved

@@ -540,9 +540,12 @@ def _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device
             _render_into(scene, image, coverage, bar, spp, sampler, smp, options, device, dtype, seed, chunk_rays,
                          max_depth, 1)
         except BaseException:  # an interrupt: stop the workers now, not after their jobs (and at exit)
+            # Taken before shutdown, which sets the pool's `_processes` to None (the loop found none, and the
+            # command's exit waited for every running job: seconds to a minute after the Ctrl-C).
+            processes = list((getattr(pool, "_processes", None) or {}).values())
             _POOL.pop(workers, None)
             pool.shutdown(wait=False, cancel_futures=True)
-            for process in list((getattr(pool, "_processes", None) or {}).values()):
+            for process in processes:
                 process.terminate()
             raise
     else:

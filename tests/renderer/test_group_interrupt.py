@@ -3,7 +3,8 @@ terminal's Ctrl-C reaches the workers too, which printed their own KeyboardInter
 landing as the pool started was dropped (the image written, exit 0). Each case sends SIGINT to the group a
 given time after the first worker process appears and asserts one line `renderer: interrupted`, exit 130, no
 image and no process left behind. benchmarks/robustness/probe_group_interrupt.py runs the same at more delays. And the
-cause of the dropped Ctrl-C: one landing while Mitsuba loads."""
+cause of the dropped Ctrl-C: one landing while Mitsuba loads. And an interrupt reaching the command alone (as
+`kill -INT` or a supervisor's SIGTERM does): its workers are terminated at once, not after their jobs."""
 import os
 import signal
 import subprocess
@@ -12,6 +13,7 @@ import time
 
 import pytest
 
+from renderer.scene.file import load_scene
 from renderer.tracing.render import _cores
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -93,3 +95,46 @@ def test_sigint_while_mitsuba_loads_is_not_read_as_no_mitsuba(delay_s):
                        env={**os.environ, "PYTHONPATH": ROOT + os.pathsep + os.environ.get("PYTHONPATH", "")})
     assert p.returncode == 130 and p.stdout.strip() == "interrupted", \
         f"SIGINT {delay_s} s into auto_engine: exit {p.returncode}, {p.stdout.strip()!r}, {p.stderr[-800:]}"
+
+
+@pytest.mark.skipif(_cores() < 2, reason="needs worker processes (2 cores)")
+def test_an_interrupt_ends_the_worker_processes_at_once():
+    """A render interrupted while its workers trace terminates them then and there, not after their running
+    jobs. The worker processes were read from the pool after `shutdown`, which had emptied it: none were
+    terminated, and a `renderer render` signalled alone (not its group) exited only once every running job
+    had ended (5-20 s after the signal here). Between two mirrors every ray bounces max_depth times, so a job
+    runs far longer than the 5 s allowed."""
+    import threading
+
+    from camio.interrupts import INTERRUPTS
+    from renderer import render
+
+    mirror = {"color": [0.9, 0.9, 0.9], "reflect": 1.0}
+    scene = load_scene({
+        "image": {"width": 256, "height": 256, "spp": 64, "max_depth": 64},
+        "camera": {"type": "pinhole", "fov_deg": 50},
+        "lights": [{"type": "ambient", "intensity": [0.1, 0.1, 0.1]}],
+        "objects": [
+            {"name": "a", "shape": {"type": "plane", "point": [0, 0, 2], "normal": [0, 0, -1]}, "material": mirror},
+            {"name": "b", "shape": {"type": "plane", "point": [0, 0, -8], "normal": [0, 0, 1]}, "material": mirror}]})
+    workers: set = set()
+
+    def interrupt_once_the_workers_run():
+        deadline = time.time() + 120
+        while time.time() < deadline and len(workers) < 2:
+            workers.update(c for c in _children(os.getpid()) if _is_worker(c))
+            time.sleep(0.05)
+        time.sleep(1.0)  # by now the pool has queued a job for each worker
+        INTERRUPTS.append(signal.SIGINT)  # as the `renderer` command's SIGINT handler does
+
+    watcher = threading.Thread(target=interrupt_once_the_workers_run, daemon=True)
+    watcher.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            render(scene, workers=2, intersector="torch")
+    finally:
+        INTERRUPTS.clear()
+    watcher.join(timeout=5)
+    assert len(workers) == 2, f"worker processes seen: {workers}"
+    left = kill_left_running(workers, within_s=5, poll_s=0.05)
+    assert not left, f"worker processes {left} still ran 5 s after the interrupt"

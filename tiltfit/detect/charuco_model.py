@@ -4,9 +4,11 @@ whose diameter is fitted too (`refine_model`). Step 5 of `tiltfit.detect.charuco
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
+import torch
 
 from tiltfit.detect.charuco_lattice import _local_square_px
 from tiltfit.target.layout import CharucoTarget
@@ -21,8 +23,8 @@ def _disc_kernel(r: float) -> np.ndarray:
     """Normalised kernel of a disc of radius r (in taps), each tap weighted by its area inside (4 × 4 points)."""
     k = int(math.ceil(r)) + 1
     o = (np.arange(4) + 0.5) / 4 - 0.5
-    yy, xx = np.mgrid[-k:k + 1, -k:k + 1].astype(np.float64)
-    ker = sum(((xx + a) ** 2 + (yy + b) ** 2 <= r * r) for a in o for b in o).astype(np.float32)
+    d2 = (np.arange(-k, k + 1)[None] + o[:, None]) ** 2  # (4, taps): squared offsets of the points along an axis
+    ker = (d2[None, :, :, None] + d2[:, None, None, :] <= r * r).sum((0, 1)).astype(np.float32)
     return ker / ker.sum()
 
 
@@ -60,11 +62,65 @@ def board_texture(target: CharucoTarget):
     return tex.astype(np.float32), np.array([x0, y0]), ppm
 
 
+def _fft_length(n: int) -> int:
+    """The least length >= n that is SUPERSAMPLE times a product of 2s and 3s (fast transforms that fold evenly)."""
+    best = None
+    p2 = 1
+    while p2 * SUPERSAMPLE < 2 * n:
+        p3 = p2
+        while p3 * SUPERSAMPLE < 2 * n:
+            if p3 * SUPERSAMPLE >= n and (best is None or p3 * SUPERSAMPLE < best):
+                best = p3 * SUPERSAMPLE
+            p3 *= 3
+        p2 *= 2
+    return best
+
+
+@functools.lru_cache(maxsize=64)
+def _cosines(L: int, taps: int, real: bool) -> torch.Tensor:
+    """cos(ω t) at the angular frequencies ω of a length-L transform (its first L // 2 + 1 for `real`'s rfft)
+    and t = 0..taps − 1: (frequencies, taps)."""
+    w = 2 * np.pi * (np.fft.rfftfreq(L) if real else np.fft.fftfreq(L))
+    return torch.from_numpy(np.cos(w[:, None] * np.arange(taps)))
+
+
+def _disc_spectrum(r: float, L1: int, L2: int) -> np.ndarray:
+    """Fourier transform of `_disc_kernel(r)` at the frequencies of rfft2 over (L1, L2): real, the kernel being even
+    along both axes, Σ ker(y, x) cos(ω1 y) cos(ω2 x) summed over a quadrant (weights 2 off the axes)."""
+    ker = _disc_kernel(r).astype(np.float64)
+    k = ker.shape[0] // 2
+    twice = np.where(np.arange(k + 1) > 0, 2.0, 1.0)
+    quadrant = torch.from_numpy(ker[k:, k:] * twice[:, None] * twice[None])
+    # torch's product (one thread in `refine_model`), not numpy's: numpy's OpenBLAS spreads even these small
+    # products over threads that wait for each other (tens of times the CPU time on a loaded machine)
+    return (_cosines(L1, k + 1, False) @ quadrant @ _cosines(L2, k + 1, True).T).numpy()
+
+
+@functools.lru_cache(maxsize=64)
+def _patch_factors(L1: int, L2: int):
+    """Factors over rfft2's frequencies of an (L1, L2) supersampled picture: the mean of SUPERSAMPLE taps (a
+    pixel's box average, anchored at its first tap), and the central differences along rows (ω1, (S, L1 // S, 1):
+    grouped as folded) and columns (ω2, (1, L2 // 2 + 1)), in pixels (SUPERSAMPLE taps a pixel)."""
+    S = SUPERSAMPLE
+    w1 = 2 * np.pi * np.fft.fftfreq(L1)[:, None]
+    w2 = 2 * np.pi * np.fft.rfftfreq(L2)[None, :]
+    taps = np.arange(S)
+    box = np.exp(1j * w1 * taps).mean(1, keepdims=True) * np.exp(1j * w2.T * taps).mean(1)[None]
+    return box, (1j * S * np.sin(w1)).reshape(S, L1 // S, 1), 1j * S * np.sin(w2)
+
+
 def _render_patch(tex, origin, ppm, Hm, r0, c0, h, w, radius_px, d_radius=None):
     """Model of pixels rows r0..r0+h−1, columns c0..c0+w−1: the board's dark fraction through homography Hm
     (mm → px), looked up at SUPERSAMPLE² points a pixel, convolved with a disc of `radius_px` there and
-    box-averaged; its derivatives along x and y (per pixel); and, given `d_radius`, the same picture under a
-    disc of radius_px + d_radius."""
+    box-averaged; its derivatives along x and y (per pixel: the central differences of the supersampled picture,
+    box-averaged); and, given `d_radius`, the same picture under a disc of radius_px + d_radius.
+
+    The supersampled picture extends `pad` pixels beyond the patch, more than the disc's reach, so no border
+    rule enters the patch and the convolutions are products of discrete Fourier transforms (the picture
+    zero-padded to a fast length): the picture is transformed once, each disc in closed form (`_disc_spectrum`),
+    the box average and the central differences are factors (`_patch_factors`), and the samples a pixel apart
+    are read from the transforms folded SUPERSAMPLE-fold along the rows and from every SUPERSAMPLE-th column, so
+    no supersampled picture is transformed back whole (float64 throughout)."""
     import cv2
 
     S = SUPERSAMPLE
@@ -72,20 +128,27 @@ def _render_patch(tex, origin, ppm, Hm, r0, c0, h, w, radius_px, d_radius=None):
     sub = (np.arange(S) + 0.5) / S - 0.5
     v = (np.arange(r0 - pad, r0 + h + pad)[:, None] + sub[None]).ravel()
     u = (np.arange(c0 - pad, c0 + w + pad)[:, None] + sub[None]).ravel()
-    V, U = np.meshgrid(v, u, indexing="ij")
-    p = np.stack([U, V, np.ones_like(U)], -1) @ np.linalg.inv(Hm).T
-    mx = ((p[..., 0] / p[..., 2] - origin[0]) * ppm - 0.5).astype(np.float32)
-    my = ((p[..., 1] / p[..., 2] - origin[1]) * ppm - 0.5).astype(np.float32)
+    Hi = np.linalg.inv(Hm)
+    px, py, pw = (Hi[i, 0] * u[None] + Hi[i, 1] * v[:, None] + Hi[i, 2] for i in range(3))  # board mm, homogeneous
+    mx = ((px / pw - origin[0]) * ppm - 0.5).astype(np.float32)
+    my = ((py / pw - origin[1]) * ppm - 0.5).astype(np.float32)
     sharp = cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
-    def blurred(r):
-        return cv2.filter2D(sharp, -1, _disc_kernel(r), borderType=cv2.BORDER_REPLICATE) if r > 0.5 else sharp
+    L1, L2 = _fft_length(sharp.shape[0]), _fft_length(sharp.shape[1])
+    box, d_rows, d_cols = _patch_factors(L1, L2)
+    F = (np.fft.rfft2(sharp.astype(np.float64), s=(L1, L2)) * box).reshape(S, L1 // S, -1)
 
-    fine = blurred(radius_px * S).astype(np.float64)
-    gy, gx = np.gradient(fine, 1.0 / S)
-    out = [fine, gx, gy] + ([] if d_radius is None else [blurred((radius_px + d_radius) * S)])
-    m = pad * S
-    return [a[m:m + h * S, m:m + w * S].reshape(h, S, w, S).mean((1, 3), dtype=np.float64) for a in out]
+    def disc(r):
+        return _disc_spectrum(r, L1, L2).reshape(S, L1 // S, -1) if r > 0.5 else 1.0
+
+    # folding the rows' frequencies S-fold (their mean) keeps every S-th row; a factor along the columns can wait
+    B = F * disc(radius_px * S)
+    B_rows = B.mean(0)
+    folded = [B_rows, B_rows * d_cols, (B * d_rows).mean(0)]
+    if d_radius is not None:
+        folded.append((F * disc((radius_px + d_radius) * S)).mean(0))
+    rows = np.fft.irfft(np.fft.ifft(np.stack(folded), axis=1), n=L2, axis=2)
+    return list(rows[:, pad:pad + h, pad * S:(pad + w) * S:S])
 
 
 def refine_model(gray: np.ndarray, target: CharucoTarget, corners: np.ndarray, blur_px: np.ndarray,
@@ -102,6 +165,13 @@ def refine_model(gray: np.ndarray, target: CharucoTarget, corners: np.ndarray, b
     assumed symmetric: the bits are part of the model. The corner is the corrected homography's image of the
     board corner.
     """
+    from tiltfit.detect.imaging import torch_threads
+
+    with torch_threads(1):
+        return _refine_model(gray, target, corners, blur_px, texture)
+
+
+def _refine_model(gray, target, corners, blur_px, texture):
     from tiltfit.detect.blur import _local_homographies
     from tiltfit.detect.imaging import estimate_noise
 

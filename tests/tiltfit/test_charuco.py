@@ -128,6 +128,45 @@ def test_heavy_blur_error_at_the_noise_floor(blurred_partial_views):
         assert rms_floor < 0.02, f"floor {rms_floor:.4f} px: not a floor that allows 0.05 px corners"
 
 
+@pytest.mark.parametrize("radius_px, d_radius", [(3.7, 0.2), (0.1, None)])
+def test_model_picture_is_the_direct_convolution(radius_px, d_radius):
+    """The model's picture (`_render_patch`: the disc blur as products of Fourier transforms, pixels read from
+    folded transforms) is the supersampled picture convolved with the disc's kernel directly, its central
+    differences and each pixel's box average, within 2e-6 of the dark fraction (float32 transforms), for a blur
+    of some pixels (and the picture under a larger disc) and one under half a tap (not blurred)."""
+    import cv2
+
+    from tiltfit.detect.charuco_model import SUPERSAMPLE as S, _disc_kernel, _render_patch, board_texture
+    from tiltfit.experiments.synth import plane_homography
+
+    tex, origin, ppm = board_texture(TARGET)
+    Hm = plane_homography(CAMERA, *pose(PARTIAL[0]))
+    c = Hm @ np.r_[TARGET.feature_points()[40, :2], 1.0]
+    r0, c0, h, w = int(c[1] / c[2]) - 20, int(c[0] / c[2]) - 23, 40, 47
+    pad = math.ceil(radius_px + (d_radius or 0.0)) + 2
+    v = (np.arange(r0 - pad, r0 + h + pad)[:, None] + (np.arange(S) + 0.5) / S - 0.5).ravel()
+    u = (np.arange(c0 - pad, c0 + w + pad)[:, None] + (np.arange(S) + 0.5) / S - 0.5).ravel()
+    V, U = np.meshgrid(v, u, indexing="ij")
+    p = np.stack([U, V, np.ones_like(U)], -1) @ np.linalg.inv(Hm).T
+    sharp = cv2.remap(tex, ((p[..., 0] / p[..., 2] - origin[0]) * ppm - 0.5).astype(np.float32),
+                      ((p[..., 1] / p[..., 2] - origin[1]) * ppm - 0.5).astype(np.float32), cv2.INTER_LINEAR,
+                      borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+
+    def blurred(r):
+        return cv2.filter2D(sharp, -1, _disc_kernel(r).astype(np.float64), borderType=cv2.BORDER_REPLICATE) \
+            if r > 0.5 else sharp
+
+    fine = blurred(radius_px * S)
+    gy, gx = np.gradient(fine, 1.0 / S)
+    want = [fine, gx, gy] + ([] if d_radius is None else [blurred((radius_px + d_radius) * S)])
+    want = [a[pad * S:(pad + h) * S, pad * S:(pad + w) * S].reshape(h, S, w, S).mean((1, 3)) for a in want]
+    got = _render_patch(tex, origin, ppm, Hm, r0, c0, h, w, radius_px, d_radius)
+    assert len(got) == len(want) and all(g.shape == (h, w) for g in got), "picture, x and y slopes (, larger disc)"
+    assert np.ptp(want[0]) > 0.5, "the patch shows the board's pattern"
+    for name, g, e in zip(("picture", "x slope", "y slope", "larger disc"), got, want):
+        assert np.abs(g - e).max() < 2e-6, f"{name}: {np.abs(g - e).max():.2e} from the direct convolution"
+
+
 @pytest.mark.slow
 def test_better_than_opencv_on_sharp_views(blurred_partial_views):
     """On the same sharp renders our refinement is closer to the truth than OpenCV's CharucoDetector."""

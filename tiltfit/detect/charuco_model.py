@@ -63,17 +63,16 @@ def board_texture(target: CharucoTarget):
 
 
 def _fft_length(n: int) -> int:
-    """The least length >= n that is SUPERSAMPLE times a product of 2s and 3s (fast transforms that fold evenly)."""
-    best = None
-    p2 = 1
-    while p2 * SUPERSAMPLE < 2 * n:
-        p3 = p2
-        while p3 * SUPERSAMPLE < 2 * n:
-            if p3 * SUPERSAMPLE >= n and (best is None or p3 * SUPERSAMPLE < best):
-                best = p3 * SUPERSAMPLE
-            p3 *= 3
-        p2 *= 2
-    return best
+    """The least multiple of SUPERSAMPLE >= n whose other factors are 2s and 3s: a fast transform that folds evenly."""
+    L = -(-n // SUPERSAMPLE) * SUPERSAMPLE
+    while True:
+        m = L // SUPERSAMPLE
+        for p in (2, 3):
+            while m % p == 0:
+                m //= p
+        if m == 1:
+            return L
+        L += SUPERSAMPLE
 
 
 @functools.lru_cache(maxsize=64)
@@ -81,32 +80,47 @@ def _cosines(L: int, taps: int, real: bool) -> torch.Tensor:
     """cos(ω t) at the angular frequencies ω of a length-L transform (its first L // 2 + 1 for `real`'s rfft)
     and t = 0..taps − 1: (frequencies, taps)."""
     w = 2 * np.pi * (np.fft.rfftfreq(L) if real else np.fft.fftfreq(L))
-    return torch.from_numpy(np.cos(w[:, None] * np.arange(taps)))
+    return torch.from_numpy(np.cos(w[:, None] * np.arange(taps)).astype(np.float32))
 
 
-def _disc_spectrum(r: float, L1: int, L2: int) -> np.ndarray:
+def _disc_spectrum(r: float, L1: int, L2: int) -> torch.Tensor:
     """Fourier transform of `_disc_kernel(r)` at the frequencies of rfft2 over (L1, L2): real, the kernel being even
     along both axes, Σ ker(y, x) cos(ω1 y) cos(ω2 x) summed over a quadrant (weights 2 off the axes)."""
-    ker = _disc_kernel(r).astype(np.float64)
+    ker = _disc_kernel(r)
     k = ker.shape[0] // 2
-    twice = np.where(np.arange(k + 1) > 0, 2.0, 1.0)
+    twice = np.where(np.arange(k + 1) > 0, 2.0, 1.0).astype(np.float32)
     quadrant = torch.from_numpy(ker[k:, k:] * twice[:, None] * twice[None])
     # torch's product (one thread in `refine_model`), not numpy's: numpy's OpenBLAS spreads even these small
     # products over threads that wait for each other (tens of times the CPU time on a loaded machine)
-    return (_cosines(L1, k + 1, False) @ quadrant @ _cosines(L2, k + 1, True).T).numpy()
+    return _cosines(L1, k + 1, False) @ quadrant @ _cosines(L2, k + 1, True).T
 
 
 @functools.lru_cache(maxsize=64)
 def _patch_factors(L1: int, L2: int):
-    """Factors over rfft2's frequencies of an (L1, L2) supersampled picture: the mean of SUPERSAMPLE taps (a
-    pixel's box average, anchored at its first tap), and the central differences along rows (ω1, (S, L1 // S, 1):
-    grouped as folded) and columns (ω2, (1, L2 // 2 + 1)), in pixels (SUPERSAMPLE taps a pixel)."""
+    """Factors over rfft2's frequencies of an (L1, L2) supersampled picture (complex tensors): the mean of
+    SUPERSAMPLE taps (a pixel's box average, anchored at its first tap), and the central differences along rows
+    (ω1, (S, L1 // S, 1): grouped as folded) and columns (ω2, (1, L2 // 2 + 1)), in pixels (SUPERSAMPLE taps a
+    pixel)."""
     S = SUPERSAMPLE
     w1 = 2 * np.pi * np.fft.fftfreq(L1)[:, None]
     w2 = 2 * np.pi * np.fft.rfftfreq(L2)[None, :]
     taps = np.arange(S)
     box = np.exp(1j * w1 * taps).mean(1, keepdims=True) * np.exp(1j * w2.T * taps).mean(1)[None]
-    return box, (1j * S * np.sin(w1)).reshape(S, L1 // S, 1), 1j * S * np.sin(w2)
+    d_rows, d_cols = (1j * S * np.sin(w1)).reshape(S, L1 // S, 1), 1j * S * np.sin(w2)
+    return tuple(torch.from_numpy(a.astype(np.complex64)) for a in (box, d_rows, d_cols))
+
+
+@functools.lru_cache(maxsize=64)
+def _column_fold(N1: int, L2: int):
+    """Where `_render_patch` reads the columns' folded frequencies v' = 0..N2 // 2 (N2 = L2 / SUPERSAMPLE) from an
+    rfft layout with N1 rows (tensors): (cols (N2 // 2 + 1, S) into the stored half, mirrored (same shape, bool):
+    the frequency v' + s N2 lies past the half and is the conjugate of column L2 − (v' + s N2) at the rows
+    (−u) mod N1, those rows)."""
+    N2 = L2 // SUPERSAMPLE
+    j = np.arange(N2 // 2 + 1)[:, None] + N2 * np.arange(SUPERSAMPLE)[None]
+    mirrored = j > L2 // 2
+    return (torch.from_numpy(np.where(mirrored, L2 - j, j)), torch.from_numpy(mirrored),
+            torch.from_numpy((-np.arange(N1)) % N1))
 
 
 def _render_patch(tex, origin, ppm, Hm, r0, c0, h, w, radius_px, d_radius=None):
@@ -115,31 +129,33 @@ def _render_patch(tex, origin, ppm, Hm, r0, c0, h, w, radius_px, d_radius=None):
     box-averaged; its derivatives along x and y (per pixel: the central differences of the supersampled picture,
     box-averaged); and, given `d_radius`, the same picture under a disc of radius_px + d_radius.
 
-    The supersampled picture extends `pad` pixels beyond the patch, more than the disc's reach, so no border
-    rule enters the patch and the convolutions are products of discrete Fourier transforms (the picture
-    zero-padded to a fast length): the picture is transformed once, each disc in closed form (`_disc_spectrum`),
-    the box average and the central differences are factors (`_patch_factors`), and the samples a pixel apart
-    are read from the transforms folded SUPERSAMPLE-fold along the rows and from every SUPERSAMPLE-th column, so
-    no supersampled picture is transformed back whole (float64 throughout)."""
+    The supersampled picture extends at least `pad` pixels beyond the patch, more than the disc's reach, so
+    neither a border rule nor the transforms' wrap-around enters the patch, and the convolutions are products of
+    discrete Fourier transforms (the picture sampled to a fast length): the picture is transformed once, each
+    disc in closed form (`_disc_spectrum`), the box average and the central differences are factors
+    (`_patch_factors`), and the samples a pixel apart are read from the transforms folded SUPERSAMPLE-fold along
+    both axes, so no supersampled picture is transformed back. float32 transforms (as the direct convolution
+    was): the values within 1e-6 of float64 ones, the fitted corners within 1e-4 px."""
     import cv2
 
     S = SUPERSAMPLE
     pad = int(math.ceil(radius_px + (d_radius or 0.0))) + 2  # pixels beyond the patch so that its blur is whole
+    L1, L2 = _fft_length((h + 2 * pad) * S), _fft_length((w + 2 * pad) * S)
+    N1, N2 = L1 // S, L2 // S
     sub = (np.arange(S) + 0.5) / S - 0.5
-    v = (np.arange(r0 - pad, r0 + h + pad)[:, None] + sub[None]).ravel()
-    u = (np.arange(c0 - pad, c0 + w + pad)[:, None] + sub[None]).ravel()
+    v = (np.arange(r0 - pad, r0 - pad + N1)[:, None] + sub[None]).ravel()
+    u = (np.arange(c0 - pad, c0 - pad + N2)[:, None] + sub[None]).ravel()
     Hi = np.linalg.inv(Hm)
     px, py, pw = (Hi[i, 0] * u[None] + Hi[i, 1] * v[:, None] + Hi[i, 2] for i in range(3))  # board mm, homogeneous
     mx = ((px / pw - origin[0]) * ppm - 0.5).astype(np.float32)
     my = ((py / pw - origin[1]) * ppm - 0.5).astype(np.float32)
     sharp = cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
-    L1, L2 = _fft_length(sharp.shape[0]), _fft_length(sharp.shape[1])
     box, d_rows, d_cols = _patch_factors(L1, L2)
-    F = (np.fft.rfft2(sharp.astype(np.float64), s=(L1, L2)) * box).reshape(S, L1 // S, -1)
+    F = (torch.fft.rfft2(torch.from_numpy(sharp)) * box).reshape(S, N1, -1)
 
     def disc(r):
-        return _disc_spectrum(r, L1, L2).reshape(S, L1 // S, -1) if r > 0.5 else 1.0
+        return _disc_spectrum(r, L1, L2).reshape(S, N1, -1) if r > 0.5 else 1.0
 
     # folding the rows' frequencies S-fold (their mean) keeps every S-th row; a factor along the columns can wait
     B = F * disc(radius_px * S)
@@ -147,8 +163,10 @@ def _render_patch(tex, origin, ppm, Hm, r0, c0, h, w, radius_px, d_radius=None):
     folded = [B_rows, B_rows * d_cols, (B * d_rows).mean(0)]
     if d_radius is not None:
         folded.append((F * disc((radius_px + d_radius) * S)).mean(0))
-    rows = np.fft.irfft(np.fft.ifft(np.stack(folded), axis=1), n=L2, axis=2)
-    return list(rows[:, pad:pad + h, pad * S:(pad + w) * S:S])
+    folded = torch.stack(folded)
+    cols, mirrored, neg_rows = _column_fold(N1, L2)
+    both = torch.where(mirrored, folded[:, neg_rows][..., cols].conj(), folded[..., cols]).mean(-1)
+    return list(torch.fft.irfft2(both, s=(N1, N2))[:, pad:pad + h, pad:pad + w].double().numpy())
 
 
 def refine_model(gray: np.ndarray, target: CharucoTarget, corners: np.ndarray, blur_px: np.ndarray,

@@ -46,3 +46,32 @@ def test_joint_fit_on_ray_traced_tilted_images():
     assert abs(v["d_mm"] / cam0.d - 1) < 0.01, f"d {msg}"
     for key, true in (("theta_L_deg", THETA_L_DEG), ("U_mm", U), ("d_mm", cam0.d), ("w_mm", cam0.w)):
         assert abs(v[key] - true) < 5 * s[key], f"{key}: error {v[key] - true:+.4g} beyond 5σ ({s[key]:.3g})"
+
+
+def test_views_of_one_board_share_one_texture_file(monkeypatch, tmp_path):
+    """`synth.render_with_renderer` rasterises and writes a board's texture once a process (one grey channel), not
+    once a view: two views of one board make one texture, a third board another, and each image is the one an RGB
+    texture written for that view alone gives, to the bit."""
+    import renderer
+    from tiltfit.target import raster
+    from tiltfit.target.layout import Target
+
+    made = []
+    plain = raster.target_texture
+    monkeypatch.setattr(raster, "target_texture", lambda *a, **k: made.append(a[0]) or plain(*a, **k))
+    monkeypatch.setattr(synth, "_TEXTURES", {})
+    board = Target((0.0, 20.0, 40.0, 60.0), (0.0, 20.0, 40.0), (0, 0), 10.0)
+    other = Target((0.0, 25.0, 50.0, 75.0), (0.0, 25.0, 50.0), (0, 0), 10.0)
+    cam = Lens(16.0, 400.0, 4.0, 0.0, renderer.Sensor(48, 32, 0.05))
+    images = []
+    for k, target in enumerate((board, board, other)):
+        R, T = reproduce.target_pose(target, 10.0 * k, 5.0, 400.0)
+        images.append(synth.render_with_renderer(target, cam, R, T, 0.05, 0.8, 0.3, spp=2, seed=k))
+        # The reference: the board's RGB texture written for this view alone, through the same scene.
+        tex = str(tmp_path / f"rgb{k}.exr")
+        renderer.write_image(tex, plain(target, 10.0, 0.05, 0.8))
+        scene = synth.renderer_scene(target, cam, R, T, tex, spp=2)
+        scene["image"]["background"] = [0.3] * 3
+        want = renderer.render(renderer.load_scene(scene), spp=2, seed=k, dtype=torch.float32).image.mean(-1)
+        assert np.array_equal(images[-1], want.numpy().astype(np.float64)), f"view {k}: not the RGB texture's image"
+    assert made == [board, other], f"textures rasterised for {len(made)} views of 2 boards"

@@ -359,24 +359,55 @@ def render_with_renderer(target: Target, camera: Lens, R, T, dark: float, white:
     The renderer looks textures up by nearest texel, so edges are placed to 1/px_per_mm mm; its Monte Carlo
     noise falls as 1/sqrt(spp). A cross-check of `render_analytic`, not a substitute for its precision.
     """
-    import os
-    import tempfile
-
     import torch
 
-    from renderer import load_scene, write_image
+    from renderer import load_scene
     from renderer import render
+
+    scene_dict = renderer_scene(target, camera, R, T, _texture_file(target, px_per_mm, dark, white), spp=spp)
+    scene_dict["image"]["background"] = [background] * 3
+    scene = load_scene(scene_dict)
+    result = render(scene, spp=spp, seed=seed, dtype=torch.float32)
+    return result.image.mean(-1).numpy().astype(np.float64)
+
+
+#: Board textures `render_with_renderer` has written in this process, (target, px_per_mm, dark, white) -> file, at
+#: most TEXTURES_KEPT (the oldest file removed first). Every view of a board reads the one file: rasterising and
+#: writing it (a 3500 x 2500 EXR at 10 px/mm) cost 1.3 CPU s a view, more than a small 16-spp render.
+_TEXTURES: dict = {}
+TEXTURES_KEPT = 8
+_TEXTURE_FOLDER: dict = {}   # this process's folder of texture files ("folder") and how many it has held ("count")
+
+
+def _texture_file(target: Target, px_per_mm: float, dark: float, white: float) -> str:
+    """The EXR file of `target`'s texture (`target_texture`; one channel: the scene reader repeats a grey image's
+    channel into RGB, so the renders are the same to the bit), written once a process into a folder removed
+    at exit."""
+    import atexit
+    import os
+    import shutil
+    import tempfile
+
+    from renderer import write_image
 
     from tiltfit.target.raster import target_texture
 
-    with tempfile.TemporaryDirectory() as tmp:
-        tex = os.path.join(tmp, "target.exr")
-        write_image(tex, target_texture(target, px_per_mm, dark, white))
-        scene_dict = renderer_scene(target, camera, R, T, tex, spp=spp)
-        scene_dict["image"]["background"] = [background] * 3
-        scene = load_scene(scene_dict)
-        result = render(scene, spp=spp, seed=seed, dtype=torch.float32)
-    return result.image.mean(-1).numpy().astype(np.float64)
+    key = (target, float(px_per_mm), float(dark), float(white))
+    path = _TEXTURES.get(key)
+    if path is not None and os.path.isfile(path):
+        return path
+    if "folder" not in _TEXTURE_FOLDER:
+        _TEXTURE_FOLDER["folder"] = tempfile.mkdtemp(prefix="tiltfit-textures-")
+        atexit.register(shutil.rmtree, _TEXTURE_FOLDER["folder"], True)
+    while len(_TEXTURES) >= TEXTURES_KEPT:
+        old = _TEXTURES.pop(next(iter(_TEXTURES)))
+        if os.path.isfile(old):
+            os.remove(old)
+    _TEXTURE_FOLDER["count"] = _TEXTURE_FOLDER.get("count", 0) + 1
+    path = os.path.join(_TEXTURE_FOLDER["folder"], f"target{_TEXTURE_FOLDER['count']}.exr")
+    write_image(path, target_texture(target, px_per_mm, dark, white)[..., :1])
+    _TEXTURES[key] = path
+    return path
 
 
 def render_constant_blur(target: Target, homography: np.ndarray, size_px: tuple[int, int], blur_px: float,

@@ -148,3 +148,50 @@ def test_held_out_folds_started_from_the_fit_agree_with_pnp_starts(board, monkey
     assert calls == [2] * 5, f"PnP for the predicted views only (2 a fold), got views {calls}"
     assert warm["rms_px"] == pytest.approx(pnp["rms_px"], rel=1e-4), (warm["rms_px"], pnp["rms_px"])
     assert warm["per_view_px"] == pytest.approx(pnp["per_view_px"], rel=1e-3)
+
+
+def test_fit_with_deferred_sigma_gets_those_made_at_once():
+    """`_fit_camera(defer_sigma=True)` (the blur fit's) carries the classical σ until asked, then exactly the per-view
+    σ the same fit made at once has (from the same solve: no refit), the free board's included."""
+    from tiltfit.calibrate.fit import FitOptions, _fit_camera, _set_free_geometry, with_deferred_sigma
+    from tiltfit.calibrate.start import initialize
+
+    obs = _synthetic_views(8)
+    opts = FitOptions(distortion="k1", free_principal_point=True, model_selection=False)
+
+    def fit(defer):
+        cam = initialize(obs, "unified", options=opts, blur=False)
+        _set_free_geometry(cam, "unified", True, "k1")
+        return _fit_camera(cam, obs, opts, mode="unified", board=Board(obs.points_mm, "free"), defer_sigma=defer)
+
+    at_once, later = fit(False), fit(True)
+    assert at_once.sigma_model["name"] == "views" and at_once.deferred_sigma is None
+    assert later.sigma_model["name"] == "classical", "classical σ until asked"
+    assert later.sigma == at_once.sigma_classical
+    with_deferred_sigma(later)
+    assert later.deferred_sigma is None and later.sigma_model == at_once.sigma_model
+    no_blur = [[{k: x for k, x in v.items() if k != "rms_blur_px"} for v in f.views] for f in (later, at_once)]  # NaN
+    assert later.sigma == at_once.sigma and no_blur[0] == no_blur[1], "the same per-view σ, poses' included"
+    assert torch.equal(later.board.sigma, at_once.board.sigma), "the board's too"
+    assert later.values == at_once.values
+
+
+@pytest.mark.parametrize("classical_sigma, asked", [(10.0, False), (0.01, True)])
+def test_undetermined_focus_asks_for_per_view_sigma_only_where_the_classical_leave_it_open(classical_sigma, asked):
+    """The per-view σ are never below the classical ones: where the classical σ already put 1/U and d within 2σ of 0,
+    the blur fit is not reported and its per-view σ are not made; otherwise they decide."""
+    from types import SimpleNamespace
+
+    from tiltfit.calibrate.blur_checks import undetermined_focus_deferred
+    from tiltfit.calibrate.fit import _SIGMA_FIELDS
+
+    calls = []
+    camera = SimpleNamespace(inv_U_per_m=torch.tensor(1.0), d_mm=torch.tensor(1.0))
+    views_sigma = {"inv_U_per_m": 5.0, "d_mm": 0.1}   # U undetermined, d determined
+    full = SimpleNamespace(**{k: None for k in _SIGMA_FIELDS} | {"sigma": views_sigma, "board": None})
+    fit = SimpleNamespace(camera=camera, sigma={"inv_U_per_m": classical_sigma, "d_mm": classical_sigma},
+                          parameter_names=["inv_U_per_m", "d_scaled"], board=None,
+                          deferred_sigma=lambda: calls.append(1) or full)
+    out = undetermined_focus_deferred(fit)
+    assert bool(calls) == asked
+    assert out == (["U_mm"] if asked else ["U_mm", "d_mm"])

@@ -8,6 +8,7 @@ and CALIB.json's record of it all (`blur_record`). Used by the calibration's blu
     focus_below_floor(result, obs, ...)   -> why U rests on sub-floor widths, or None
     blur_trend(result, obs, noise)        -> the residuals' trend with depth, or None
     undetermined_focus(result)            -> ["U_mm", "d_mm"] those within 2σ of 0
+    undetermined_focus_deferred(result)   -> the same, the per-view σ made only where the classical ones leave it open
 """
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from tiltfit.calibrate.fit import FitError, FitOptions, FitResult, _fit_camera
+from tiltfit.calibrate.fit import FitError, FitOptions, FitResult, _fit_camera, with_deferred_sigma
 from tiltfit.calibrate.model import Observations, residuals, robust_rho, robust_weight
 from tiltfit.solve import LMOptions, SolverError, least_squares
 
@@ -35,6 +36,18 @@ def undetermined_focus(result: FitResult) -> list:
     if "d_scaled" in result.parameter_names and s_d is not None and not float(cam.d_mm.detach()) > 2.0 * s_d:
         out.append("d_mm")
     return out
+
+
+def undetermined_focus_deferred(result: FitResult) -> list:
+    """`undetermined_focus` of a fit whose per-view σ may be deferred (`FitResult.deferred_sigma`): where the
+    classical σ already leave every focus parameter it tests undetermined, so do the per-view ones, which are never
+    below them (the classical covariance is their floor, `tiltfit.uncertainty.covariance`), and they are not made
+    (a blur fit with U and d undetermined is not reported); else they are made and decide."""
+    out = undetermined_focus(result)
+    tested = ["U_mm"] + (["d_mm"] if "d_scaled" in result.parameter_names else [])
+    if result.deferred_sigma is None or out == tested:
+        return out
+    return undetermined_focus(with_deferred_sigma(result))
 
 
 def focus_beyond_infinity(result: FitResult) -> str | None:
@@ -180,6 +193,7 @@ def focus_below_floor(result: FitResult, obs: Observations, options: FitOptions,
                 f"without them the blur fit fails ({e})")
     if "U_mm" not in undetermined_focus(alt):
         return None
+    with_deferred_sigma(result)  # its σ in the line below are the reported ones
     return (f"U rests on the widths below the detector's floor ({options.blur_floor_px:g} px; {share}): "
             f"{result.values['U_mm']:.0f} ± {result.sigma['U_mm']:.2g} mm with them, undetermined without them "
             f"(1/U within 2σ of 0)")

@@ -13,10 +13,10 @@ from dataclasses import dataclass, field, replace
 import torch
 
 from tiltfit.calibrate.blur_checks import (blur_misfit, blur_noise_px, blur_trend, focus_below_floor,
-                                           undetermined_focus)
+                                           undetermined_focus_deferred)
 from tiltfit.calibrate.blur_views import screen_blur_views
 from tiltfit.calibrate.distortion_centre import with_distortion_centre
-from tiltfit.calibrate.fit import FitError, FitOptions, FitResult, _fit_camera, _set_free
+from tiltfit.calibrate.fit import FitError, FitOptions, FitResult, _fit_camera, _set_free, with_deferred_sigma
 from tiltfit.calibrate.geometry_stage import fit_geometry, say_test
 from tiltfit.calibrate.model import Observations, LensCamera, distortion_parameter_names
 from tiltfit.calibrate.start import start_blur
@@ -59,6 +59,8 @@ def blur_stage(cam: LensCamera, obs: Observations, mode: str, init, init_sigma, 
     file_points = choices.board.nominal_mm if choices.board is not None else obs.points_mm
     noise_of = (lambda o: noise_px if o is obs else blur_noise_px(with_points(o, file_points)))
     board = choices.board
+    # `undetermined` None: what the fit's σ leave undetermined is decided after the model is judged (a refused
+    # model needs no per-view σ, which `_fit_blur` defers)
     result, undetermined, note, obs, outlier = screen_blur_views(
         lambda o: _fit_blur(cam.copy(), o, mode, init, init_sigma, options, choices.distortion, geometry, say,
                             board=board),
@@ -70,13 +72,19 @@ def blur_stage(cam: LensCamera, obs: Observations, mode: str, init, init_sigma, 
         choices = replace(choices, board=result.board)
         obs = with_points(obs, result.board.points())
     notes += [note] if note else []
+    fitted = result
     if result is not None and mode == "joint" and options.model_selection:
+        with_deferred_sigma(result)  # σ as at once before the tests refit from it
         result, obs, choices = tilt_tests(result, obs, mode, options, init_sigma, choices, say)
-    out = BlurOutcome(result, geometry, obs, choices, undetermined, notes, [], noise_px)
+    out = BlurOutcome(result, geometry, obs, choices, undetermined or [], notes, [], noise_px)
     if result is not None and mode != "tilt":
         out = judge_blur_model(out, cam, mode, options, say)
+    if undetermined is None and out.result is not None:
+        out.undetermined = undetermined_focus_deferred(fitted)
     if out.undetermined and out.geometry is not None and out.result is not None and len(out.undetermined) == 2:
         out.result = None  # neither focus parameter determined: report the geometric fit
+    if out.result is not None:  # reported: its per-view σ (`_fit_blur` deferred them)
+        with_deferred_sigma(out.result)
     return out
 
 
@@ -192,7 +200,9 @@ def _fit_blur(cam: LensCamera, obs: Observations, mode: str, init, init_sigma, o
               distortion: str, geometry: FitResult | None, say=None, board=None):
     """The corner-and-blur fit from `cam` (distortion terms `distortion` free); returns (result or None,
     undetermined keys, note or None). None where the blur fit failed and there is a geometric fit to report
-    instead (made here if needed); raises where the widths vary with depth and still did not fit."""
+    instead (made here if needed); raises where the widths vary with depth and still did not fit. The result's
+    per-view σ are deferred (`with_deferred_sigma`), and its undetermined keys None: `undetermined_focus_deferred`
+    decides them after the blur model is judged (`blur_stage`)."""
     if geometry is not None:
         start_blur(cam, obs, mode, init)
     if say:
@@ -207,8 +217,9 @@ def _fit_blur(cam: LensCamera, obs: Observations, mode: str, init, init_sigma, o
         if options.blur_offset and mode != "tilt":
             cam.free("blur_offset")
             try:
-                result = _fit_camera(cam, obs, options, sigma_init, say, mode=mode, board=_board_copy(board))
-                if _offset_correlation(result) > MAX_OFFSET_CORRELATION:
+                result = _fit_camera(cam, obs, options, sigma_init, say, mode=mode, board=_board_copy(board),
+                                     defer_sigma=True)
+                if _offset_correlation(with_deferred_sigma(result)) > MAX_OFFSET_CORRELATION:
                     raise FitError("the blur offset is not separable from U and d: the depths do not "
                                    "straddle the plane of focus")
             except FitError as e:
@@ -218,8 +229,9 @@ def _fit_blur(cam: LensCamera, obs: Observations, mode: str, init, init_sigma, o
                 cam, board = (start.copy(), board) if result is None else _offset_held(result, start)
                 result = None
         if result is None:
-            result = _fit_camera(cam, obs, options, sigma_init, say, mode=mode, board=_board_copy(board))
-        return result, undetermined_focus(result), None
+            result = _fit_camera(cam, obs, options, sigma_init, say, mode=mode, board=_board_copy(board),
+                                 defer_sigma=True)
+        return result, None, None
     except FitError as e:
         if geometry is None:
             # No geometric fit to fall back on: make one where the widths say nothing about focus (the same

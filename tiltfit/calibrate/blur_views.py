@@ -105,8 +105,9 @@ def screen_blur_views(fit: Callable, obs: Observations, noise_px: Callable, acce
     """The blur fit with a view whose widths disagree with the others' left out, naming it.
 
     Args:
-        fit: obs -> (result or None, undetermined keys, note or None); raises FitError (`calibration._fit_blur`
-            with everything else bound). Called with every view first, then without each suspect's widths.
+        fit: obs -> (result or None, undetermined keys (None: decided by the caller), note or None); raises
+            FitError (`calibration._fit_blur` with everything else bound). Called with every view first, then
+            without each suspect's widths.
         obs: the observations; noise_px: obs -> the widths' measurement noise σ, px (`calibration.blur_noise_px`;
             the outlier is judged against the other views' noise, not a pooled one it inflates).
         accept: (result, obs) -> whether the blur model fitted without a suspect's widths describes the lens

@@ -338,9 +338,11 @@ def _group_rss(prob: _Problem, res: LMResult, scale: torch.Tensor) -> dict:
 
 
 def _fit_camera(camera: LensCamera, obs: Observations, options: FitOptions, init_sigma=None, say=None,
-                sigma=None, mode: str = "joint", board=None):
+                sigma=None, mode: str = "joint", board=None, defer_sigma: bool = False):
     """Fit the camera's free parameters (and `board`'s, a `tiltfit.target.shape.Board`, if given: fitted in place and
-    kept in the result's `board`, the observations then seen as its points)."""
+    kept in the result's `board`, the observations then seen as its points). `defer_sigma`: the σ of
+    `options.sigma_model` "views" are made only when `with_deferred_sigma` asks (from this solve's Jacobian and
+    residuals: the same numbers as at once); until then the result carries the classical ones."""
     t0 = time.perf_counter()
     prob, res, sc, sb = _solve(camera, obs, options, sigma, say, board)
     if board is not None:
@@ -348,11 +350,16 @@ def _fit_camera(camera: LensCamera, obs: Observations, options: FitOptions, init
 
         obs = with_points(obs, board.points())
     scale = prob.scale(sc, sb)
-    if options.uncertainties:
+    defer = defer_sigma and options.uncertainties and options.sigma_model != "classical"
+
+    def sigma_of(model: str):
         try:
-            C, sig, view_sig, s2, extras = uncertainties(prob, res, scale, init_sigma, options.sigma_model)
+            return uncertainties(prob, res, scale, init_sigma, model)
         except SolverError:
             raise FitError("the fit is degenerate: the free parameters are not all determined by the data") from None
+
+    if options.uncertainties:
+        C, sig, view_sig, s2, extras = sigma_of("classical" if defer else options.sigma_model)
     else:  # only the fitted camera is wanted (held-out folds): σ unknown, and a near-degenerate fit is no error
         C, view_sig, s2, extras = None, [{}] * obs.n_views, math.nan, {}
         sig = {k: math.nan for k in DERIVED_KEYS} | {"principal_point_px": [math.nan, math.nan],
@@ -363,23 +370,26 @@ def _fit_camera(camera: LensCamera, obs: Observations, options: FitOptions, init
     values = {k: float(vals[i]) for i, k in enumerate(DERIVED_KEYS)}
     values["principal_point_px"] = [float(vals[8]), float(vals[9])]
     values["blur_offset_px"] = float(camera.blur_offset_px.detach())
-    views = []
     R = camera.R.detach()
     T = camera.T_mm.detach()
     n_points = obs.corner_mask.sum(-1).tolist()
-    for v in range(obs.n_views):
-        views.append({
-            "image": obs.names[v], "R": R[v].tolist(), "T_mm": T[v].tolist(),
-            "rms_reprojection_px": float(rc[v]), "rms_blur_px": float(rb[v]),
-            "n_points": int(n_points[v]), **view_sig[v],
-        })
-    return FitResult(
-        mode=mode, camera=camera, values=values, sigma=sig, views=views,
+    plain = [{"image": obs.names[v], "R": R[v].tolist(), "T_mm": T[v].tolist(), "rms_reprojection_px": float(rc[v]),
+              "rms_blur_px": float(rb[v]), "n_points": int(n_points[v])} for v in range(obs.n_views)]
+    fit = FitResult(
+        mode=mode, camera=camera, values=values, sigma=sig, views=[{**p, **s} for p, s in zip(plain, view_sig)],
         noise={"sigma_corner_px": sc, "sigma_blur_px": sb, "variance_factor": s2},
         parameter_names=res.layout.flat_names(), covariance=C, chi2=2.0 * res.cost,
         n_residuals=prob.n_corner + prob.n_blur, n_parameters=res.x_flat.numel(), iterations=res.iterations,
         runtime_s=time.perf_counter() - t0, rss=_group_rss(prob, res, scale), board=_fitted_board(board, sig),
         **extras)
+    if defer:
+        def deferred() -> FitResult:
+            C, sig, view_sig, s2, extras = sigma_of(options.sigma_model)
+            return replace(fit, sigma=sig, views=[{**p, **s} for p, s in zip(plain, view_sig)], covariance=C,
+                           noise=dict(fit.noise, variance_factor=s2), board=_fitted_board(board, sig), **extras)
+
+        fit.deferred_sigma = deferred
+    return fit
 
 
 def _fitted_board(board, sigma: dict):

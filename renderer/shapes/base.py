@@ -61,6 +61,8 @@ class Shape:
         """Attribute `name` (a float64 tensor) converted to `like`'s device and dtype, cached until the
         attribute is replaced or edited in place (its identity or version counter changes)."""
         value = getattr(self, name)
+        if torch.compiler.is_compiling():  # traced into the graph: a cache check there (a tensor's version
+            return value.to(device=like.device, dtype=like.dtype)  # counter) broke the graph at every call
         key, stamp = (name, like.device, like.dtype), (id(value), value._version)
         cached = self._cache.get(key)
         if cached is None or cached[0] != stamp:

@@ -225,6 +225,19 @@ def test_worker_processes_give_the_same_image(scene, reference):
     assert torch.equal(result.coverage, reference.coverage), "coverage changed with workers"
 
 
+def test_shape_parameters_do_not_break_a_compiled_graph():
+    """Under torch.compile a shape's parameters are read into the graph as they are: `Shape._param`'s cache
+    check (a tensor's version counter, data-dependent to the compiler) broke the graph at each call (32 of the
+    45 frames compiled for the two-shape scene below; 14 without), so the first compilation took longer."""
+    box = every_shape_scene().objects[3].shape  # rotated: its local frame and half sizes are parameters
+    o, d = _random_rays(64, seed=3)
+    o, d = o.T.contiguous(), d.T.contiguous()
+    eager = box.intersect_soa(o, d, 1e-4, need_aux=False)[0]  # first, as a render would: the cache is filled
+    compiled = torch.compile(lambda o, d: box.intersect_soa(o, d, 1e-4, need_aux=False)[0], fullgraph=True,
+                             backend="eager")  # fullgraph: a graph break raises
+    assert torch.equal(compiled(o, d), eager), "same hits as eager"
+
+
 @pytest.mark.slow
 def test_compiled_tracing_gives_the_eager_image():
     """torch.compile (fused per-shape kernels) against eager on two shape types: float rounding only

@@ -426,13 +426,14 @@ def _set_free_geometry(camera: LensCamera, mode: str, free_pp: bool, distortion:
 
 
 def fit_geometry(camera: LensCamera, obs: Observations, options: FitOptions, mode: str = "unified",
-                 say=None, hold_distortion: bool = False, board=None) -> FitResult:
+                 say=None, hold_distortion: bool = False, board=None, defer_sigma: bool = False) -> FitResult:
     """Fit w (unless `mode` is "tilt"), the poses, the principal point if `options.free_principal_point` is
     True and the distortion on the corners alone (blur widths ignored; U, d, θF held).
 
     `options.distortion` names the terms to free (the others are set to 0, except with `hold_distortion`, which
     keeps the camera's coefficients fixed as they are); "auto" is `tiltfit.calibrate.flow.fit_geometry`'s.
     `board` (a `tiltfit.target.shape.Board`) is fitted beside the camera, starting from its parameters.
+    `defer_sigma`: the per-view σ made only when `with_deferred_sigma` asks (`_fit_camera`).
     """
     if options.distortion == "auto" and not hold_distortion:
         raise ValueError("distortion: auto is chosen by held-out error in tiltfit.calibrate.flow.fit_geometry; "
@@ -440,6 +441,6 @@ def fit_geometry(camera: LensCamera, obs: Observations, options: FitOptions, mod
     quiet = replace(options, model_selection=False, progress=None)
     cam = camera.copy()
     _set_free_geometry(cam, mode, bool(options.free_principal_point), None if hold_distortion else options.distortion)
-    fit = _fit_camera(cam, without_blur(obs), quiet, mode=mode, board=board)
+    fit = _fit_camera(cam, without_blur(obs), quiet, mode=mode, board=board, defer_sigma=defer_sigma)
     fit.distortion_model = "none" if hold_distortion else options.distortion
     return fit

@@ -454,19 +454,12 @@ def _entry_line(entry: dict) -> str:
 def _with_uncertainties(fit: FitResult, obs: Observations, options: FitOptions, mode: str,
                         defer: bool = False) -> FitResult:
     """`fit` with its covariance and σ (refitted from its own solution where it was fitted without them); `defer`:
-    the classical σ now, the per-view ones when `tiltfit.calibrate.fit.with_deferred_sigma` asks (the same refit)."""
+    the classical σ now, the per-view ones when `tiltfit.calibrate.fit.with_deferred_sigma` asks (from the same
+    refit's solve)."""
     if fit.covariance is not None or not options.uncertainties:
         return fit
-    cam, board = fit.camera.copy(), None if fit.board is None else fit.board.copy()
-
-    def refit(opts: FitOptions) -> FitResult:
-        return fit_geometry(cam.copy(), obs, opts, mode, board=None if board is None else board.copy())
-
-    if not defer or options.sigma_model == "classical":
-        return refit(options)
-    out = refit(replace(options, sigma_model="classical"))
-    out.deferred_sigma = lambda: refit(options)
-    return out
+    return fit_geometry(fit.camera.copy(), obs, options, mode, board=None if fit.board is None else fit.board.copy(),
+                        defer_sigma=defer)
 
 
 def _fewest_terms_within_one_se(models, scores: dict, held: dict, obs: Observations, entries: list) -> str:

@@ -21,10 +21,11 @@ Timed in one process, CPU seconds (`time.process_time`, one torch thread) and wa
   its default model (k1 k2 p1 p2 k3, free principal point and both focal lengths).
 `--base DIR` times the same in a child process with the code of another checkout (e.g. the commit before a
 change: `git clone -q . /tmp/calib_before && git -C /tmp/calib_before checkout START`), so "before" and "after"
-share a run, and checks that a speed change changed no result: the same distortion, board and principal-point
-choices, and focal length and principal point within `SAME_SIGMA` of their σ of the other checkout's (the check's
-verdict per set is in both files; the command exits with status 1 where one differs). Writes benchmarks/results/NAME.{json,md}: times, ratios ours/OpenCV, and the chosen models and focal
-length / principal point with σ of ours.
+share a run (the two trees in turn, one repeat of every set each), and checks that a speed change changed no
+result: the same distortion, board and principal-point choices, and focal length and principal point within
+`SAME_SIGMA` of their σ of the other checkout's (the check's verdict per set is in both files; the command exits
+with status 1 where one differs). Writes benchmarks/results/NAME.{json,md}: times, ratios ours/OpenCV, and the
+chosen models and focal length / principal point with σ of ours.
 """
 from __future__ import annotations
 
@@ -140,11 +141,26 @@ def child(args) -> None:
     print(json.dumps(out))
 
 
-def run_tree(code: str, args, opencv: bool) -> dict:
+def run_tree(code: str, args, opencv: bool, repeats: int | None = None) -> dict:
     cmd = [sys.executable, os.path.abspath(__file__), "--child", "--code", code, "--sets", args.sets,
-           "--repeats", str(args.repeats), "--cv-repeats", str(args.cv_repeats)] + ([] if opencv else ["--no-opencv"])
+           "--repeats", str(repeats or args.repeats), "--cv-repeats", str(args.cv_repeats)] + \
+        ([] if opencv else ["--no-opencv"])
     done = subprocess.run(cmd, check=True, stdout=subprocess.PIPE, text=True, cwd=code)
     return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def merged(runs: list) -> dict:
+    """One tree's results from several children (one repeat each): the last run's record, its times the medians
+    over the runs (`cpu_s_all` every run's)."""
+    out = json.loads(json.dumps(runs[-1]))
+    for name, rec in out.items():
+        cpu = [r[name]["ours"]["cpu_s"] for r in runs]
+        rec["ours"].update(cpu_s=statistics.median(cpu), cpu_s_all=cpu, repeats=len(runs),
+                           wall_s=statistics.median(r[name]["ours"]["wall_s"] for r in runs))
+        if rec["opencv"] is not None:
+            rec["opencv"]["cpu_s"] = statistics.median(r[name]["opencv"]["cpu_s"] for r in runs)
+            rec["opencv"]["wall_s"] = statistics.median(r[name]["opencv"]["wall_s"] for r in runs)
+    return out
 
 
 def same_results(after: dict, before: dict) -> str:
@@ -168,7 +184,8 @@ def markdown(res: dict, args) -> str:
              + (f" --base {args.base}" if args.base else "") + "`",
              f"- after: this tree ({res['after_commit']}); before: {res['base'] or 'not measured'}"
              + (f" ({res['before_commit']})" if res.get('before_commit') else ""),
-             "- CPU seconds, medians of the repeats; ratio = ours / cv2.calibrateCamera on the same corners, same run",
+             "- CPU seconds, medians of the repeats (with --base: after and before in turn, one repeat each); ratio = "
+             "ours / cv2.calibrateCamera on the same corners, same run",
              "- industrial_60: the 20 shipped industrial views and two noisy copies of each (module docstring)",
              f"- check (with --base): the same distortion, board and principal-point choices, and focal length and "
              f"principal point within {SAME_SIGMA:g} of their σ of before's (the largest difference in σ)", "",
@@ -215,10 +232,17 @@ def main() -> int:
                                       stdout=subprocess.PIPE).stdout.strip()
     res = {"date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
            "machine": f"{platform.machine()}, {os.cpu_count()} CPUs (shared)", "base": args.base,
-           "after_commit": commit(ROOT), "after": run_tree(ROOT, args, opencv=True)}
-    if args.base:
+           "after_commit": commit(ROOT)}
+    if not args.base:
+        res["after"] = run_tree(ROOT, args, opencv=True)
+    else:
+        # the two trees in turn, one repeat of every set each (the load of a shared machine drifts over minutes)
+        after, before = [], []
+        for _ in range(args.repeats):
+            after.append(run_tree(ROOT, args, opencv=True, repeats=1))
+            before.append(run_tree(args.base, args, opencv=False, repeats=1))
+        res["after"], res["before"] = merged(after), merged(before)
         res["before_commit"] = commit(args.base)
-        res["before"] = run_tree(args.base, args, opencv=False)
         res["check"] = {name: same_results(a["ours"], res["before"][name]["ours"]) for name, a in res["after"].items()}
     out = os.path.join(ROOT, "benchmarks", "results", args.name)
     with open(out + ".json", "w", encoding="utf-8") as f:

@@ -198,12 +198,15 @@ def undistort(xy_d: torch.Tensor, coefficients, iterations: int = 20, start: tor
             if idx.numel() == 0:
                 break
         xy = xy.reshape(xy_d.shape)
-        bad = (distort(xy, kd) - xy_d.detach()).norm(dim=-1) > tol * (1 + xy_d.detach().norm(dim=-1))
-        bad |= torch.linalg.det(distort_jacobian(xy, kd)) <= 0
+    # The final step's distortion and Jacobian (k has kd's values: the same numbers) also give the checks.
+    J = distort_jacobian(xy, k)
+    err = distort(xy, k) - xy_d
+    with torch.no_grad():
+        bad = err.detach().norm(dim=-1) > tol * (1 + xy_d.detach().norm(dim=-1))
+        bad |= torch.linalg.det(J.detach()) <= 0
         if skip is not None:
             bad |= skip.reshape(bad.shape)
-    J = distort_jacobian(xy, k)
-    out = xy - _solve2(J, distort(xy, k) - xy_d)
+    out = xy - _solve2(J, err)
     return torch.where(bad[..., None], torch.full_like(out, math.nan), out)
 
 

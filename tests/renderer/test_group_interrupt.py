@@ -98,7 +98,7 @@ def test_sigint_while_mitsuba_loads_is_not_read_as_no_mitsuba(delay_s):
 
 
 @pytest.mark.skipif(_cores() < 2, reason="needs worker processes (2 cores)")
-def test_an_interrupt_ends_the_worker_processes_at_once():
+def test_an_interrupt_ends_the_worker_processes_at_once(monkeypatch):
     """A render interrupted while its workers trace terminates them then and there, not after their running
     jobs. The worker processes were read from the pool after `shutdown`, which had emptied it: none were
     terminated, and a `renderer render` signalled alone (not its group) exited only once every running job
@@ -106,8 +106,12 @@ def test_an_interrupt_ends_the_worker_processes_at_once():
     runs far longer than the 5 s allowed."""
     import threading
 
+    import renderer.tracing.render as render_module
     from camio.interrupts import INTERRUPTS
     from renderer import render
+
+    monkeypatch.setattr(render_module, "_POOL", {})  # a pool of its own, not one an earlier test left running
+    earlier = {c for c in _children(os.getpid()) if _is_worker(c)}
 
     mirror = {"color": [0.9, 0.9, 0.9], "reflect": 1.0}
     scene = load_scene({
@@ -122,7 +126,7 @@ def test_an_interrupt_ends_the_worker_processes_at_once():
     def interrupt_once_the_workers_run():
         deadline = time.time() + 120
         while time.time() < deadline and len(workers) < 2:
-            workers.update(c for c in _children(os.getpid()) if _is_worker(c))
+            workers.update(c for c in _children(os.getpid()) if _is_worker(c) and c not in earlier)
             time.sleep(0.05)
         time.sleep(1.0)  # by now the pool has queued a job for each worker
         INTERRUPTS.append(signal.SIGINT)  # as the `renderer` command's SIGINT handler does

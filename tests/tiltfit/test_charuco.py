@@ -167,6 +167,23 @@ def test_model_picture_is_the_direct_convolution(radius_px, d_radius):
         assert np.abs(g - e).max() < 2e-6, f"{name}: {np.abs(g - e).max():.2e} from the direct convolution"
 
 
+def test_markers_read_from_the_photo_as_encoded_unless_dark_or_over_range():
+    """OpenCV reads the markers from the photo's own 8-bit encoding when its 99.9th percentile is within
+    [DARK_PHOTO, 1] (stretching a frame at 0.82 reads the same markers at up to twice OpenCV's time), and from the
+    photo scaled to that percentile when it is dark or above 1 (a linear render or HDR file)."""
+    from camio.files import encode_srgb8, srgb_to_linear
+    from tiltfit.detect.charuco import DARK_PHOTO, _srgb8
+
+    g8 = np.random.default_rng(2).integers(0, 210, (60, 80)).astype(np.uint8)  # top ≈ sRGB 209: 0.64 linear
+    lin = srgb_to_linear(g8 / 255.0)
+    assert DARK_PHOTO < np.percentile(lin, 99.9) < 1.0
+    assert np.array_equal(_srgb8(lin), g8), "a photo near the full range is read as encoded"
+    for scale in (0.25, 3.0):
+        top = np.percentile(lin * scale, 99.9)
+        assert np.array_equal(_srgb8(lin * scale), encode_srgb8(lin * scale / top)), f"× {scale}: scaled to 99.9 %"
+        assert _srgb8(lin * scale).max() == 255, f"× {scale}: the 8-bit copy spans the range"
+
+
 @pytest.mark.slow
 def test_better_than_opencv_on_sharp_views(blurred_partial_views):
     """On the same sharp renders our refinement is closer to the truth than OpenCV's CharucoDetector."""

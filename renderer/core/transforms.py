@@ -101,10 +101,13 @@ def rotated_point_jacobian(rvec: torch.Tensor, p_rot: torch.Tensor, rows: torch.
         return -_skew(p_rot) @ axis_angle_left_jacobian(rvec)
     crossed = torch.linalg.cross(p_rot[..., None, :].expand_as(rows), rows, dim=-1)
     J_l = axis_angle_left_jacobian(rvec)
-    if J_l.dim() == crossed.dim() and J_l.shape[-3] == 1 and crossed.dim() >= 4:
+    lead = crossed.shape[:-3]
+    if J_l.dim() == crossed.dim() and J_l.shape[-3] == 1 and crossed.dim() >= 4 and \
+            torch.broadcast_shapes(J_l.shape[:-3], lead) == lead:
         # one J_l per batch entry of the leading dimensions (a view's pose, all its points): one (N m × 3) @ (3 × 3)
-        # product per batch instead of N broadcast 3 × 3 products
-        lead, n, m = crossed.shape[:-3], crossed.shape[-3], crossed.shape[-2]
+        # product per batch instead of N broadcast 3 × 3 products (rotations with more batch entries than the rows
+        # take the broadcast product below)
+        n, m = crossed.shape[-3], crossed.shape[-2]
         flat = crossed.reshape((-1, n * m, 3))
         J_flat = J_l.expand(lead + (1, 3, 3)).reshape((-1, 3, 3))
         return torch.bmm(flat, J_flat).reshape(crossed.shape)

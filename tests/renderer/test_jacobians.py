@@ -29,6 +29,22 @@ def test_rotated_point_jacobian_matches_autograd(rvec):
     assert _rel_err(ours, auto) < TOL, f"∂(R X)/∂r at r = {rvec}: {_rel_err(ours, auto):.2e}"
 
 
+@pytest.mark.parametrize("lead", [((3, 1), (3, 5)), ((3, 1), (1, 5)), ((1, 1), (3, 5)), ((2, 3, 1), (2, 1, 5))],
+                         ids=["per-view", "rows-shared", "rotation-shared", "two-batch-dims"])
+def test_rotated_point_jacobian_rows_broadcast(lead):
+    """With `rows`, ∂f/∂r = rows · ∂(R X)/∂r for every broadcast of the rotations' and the rows' batch dimensions
+    (one rotation a view over its points, or rows shared by all views)."""
+    gen = torch.Generator().manual_seed(3)
+    r_lead, x_lead = lead
+    r = 0.4 * torch.randn(*r_lead, 3, generator=gen, dtype=F64)
+    p = 100.0 * torch.randn(*x_lead, 3, generator=gen, dtype=F64)
+    rows = torch.randn(*x_lead, 2, 3, generator=gen, dtype=F64)
+    want = rows @ rotated_point_jacobian(r, p)
+    ours = rotated_point_jacobian(r, p, rows)
+    assert ours.shape == want.shape, f"shape {tuple(ours.shape)}, expected {tuple(want.shape)}"
+    assert _rel_err(ours, want) < TOL, f"rows · ∂(R X)/∂r: {_rel_err(ours, want):.2e}"
+
+
 def test_distort_coefficient_jacobian_matches_autograd():
     gen = torch.Generator().manual_seed(1)
     xy = 0.4 * torch.randn(30, 2, generator=gen, dtype=F64)

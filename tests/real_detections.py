@@ -96,4 +96,7 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
+    # run as a script, Python puts tests/ first on sys.path, where tests/renderer (a folder of tests, no package)
+    # would be taken for the renderer package by a path search that ends there: the repository's root goes first
+    sys.path.insert(0, ROOT)
     sys.exit(main())

@@ -46,7 +46,8 @@ class _Problem:
         if self.board is not None:
             params[self.BOARD] = self.board.params
         self.shapes = [params[n].shape for n in self.names]
-        self.held = {n: p.detach() for n, p in params.items() if n not in self.names}
+        # copies: a deferred σ reads them after the fit, when the result's camera may have been edited in place
+        self.held = {n: p.detach().clone() for n, p in params.items() if n not in self.names}
         # columns per parameter in a residual row (a pose's: its own view's 3; a point block's: its point's 3)
         self._sizes = {n: (p.shape[-1] if n in self.POSE else p.numel()) for n, p in params.items()}
         self.point_index = _point_index(self.board.basis) if self.board is not None else None

@@ -3,6 +3,9 @@ not by the model being fitted: the lens of the simulated camera tilted by θL = 
 target views at 1/8 of the EOS 6D's resolution (684 × 456), 16 samples per pixel, corners and blur from
 `tiltfit.detect.chessboard`."""
 import math
+import os
+import shutil
+import sys
 
 import numpy as np
 import pytest
@@ -75,3 +78,29 @@ def test_views_of_one_board_share_one_texture_file(monkeypatch, tmp_path):
         want = renderer.render(renderer.load_scene(scene), spp=2, seed=k, dtype=torch.float32).image.mean(-1)
         assert np.array_equal(images[-1], want.numpy().astype(np.float64)), f"view {k}: not the RGB texture's image"
     assert made == [board, other], f"textures rasterised for {len(made)} views of 2 boards"
+
+
+def test_texture_folders_of_ended_processes_are_removed(monkeypatch):
+    """A pool's terminated worker skips its exit handlers and leaves its texture folder: a process making its first
+    texture removes the folders of processes that have ended (named by their process ids), not those of live ones."""
+    import subprocess
+    import tempfile
+
+    from tiltfit.target.layout import Target
+
+    ended = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                           text=True, check=True).stdout.strip()
+    dead = tempfile.mkdtemp(prefix=f"{synth.TEXTURE_PREFIX}{ended}-")
+    alive = tempfile.mkdtemp(prefix=f"{synth.TEXTURE_PREFIX}{os.getppid()}-")
+    open(os.path.join(dead, "target1.exr"), "wb").close()
+    try:
+        monkeypatch.setattr(synth, "_TEXTURES", {})
+        monkeypatch.setattr(synth, "_TEXTURE_FOLDER", {})
+        path = synth._texture_file(Target((0.0, 20.0, 40.0), (0.0, 20.0, 40.0), (0, 0), 10.0), 2.0, 0.05, 0.8)
+        assert os.path.isfile(path) and f"{synth.TEXTURE_PREFIX}{os.getpid()}-" in path, path
+        assert not os.path.exists(dead), "the ended process's texture folder is left"
+        assert os.path.isdir(alive), "a live process's texture folder was removed"
+    finally:
+        shutil.rmtree(dead, True)
+        shutil.rmtree(alive, True)
+        shutil.rmtree(synth._TEXTURE_FOLDER.get("folder", dead), True)

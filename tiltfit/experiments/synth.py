@@ -376,7 +376,30 @@ def render_with_renderer(target: Target, camera: Lens, R, T, dark: float, white:
 #: writing it (a 3500 x 2500 EXR at 10 px/mm) cost 1.3 CPU s a view, more than a small 16-spp render.
 _TEXTURES: dict = {}
 TEXTURES_KEPT = 8
-_TEXTURE_FOLDER: dict = {}   # this process's folder of texture files ("folder") and how many it has held ("count")
+_TEXTURE_FOLDER: dict = {}   # this process's texture folder ("folder"), its "pid", the files it has held ("count")
+
+
+TEXTURE_PREFIX = "tiltfit-textures-"
+
+
+def _remove_dead_texture_folders() -> None:
+    """Remove the texture folders of processes that ended without their exit handlers (a pool's terminated
+    workers): each folder is named by its process id."""
+    import glob
+    import os
+    import shutil
+    import tempfile
+
+    for folder in glob.glob(os.path.join(tempfile.gettempdir(), TEXTURE_PREFIX + "*-*")):
+        pid = os.path.basename(folder)[len(TEXTURE_PREFIX):].split("-")[0]
+        if not pid.isdigit():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            shutil.rmtree(folder, True)
+        except OSError:
+            pass  # alive, another user's
 
 
 def _texture_file(target: Target, px_per_mm: float, dark: float, white: float) -> str:
@@ -396,8 +419,11 @@ def _texture_file(target: Target, px_per_mm: float, dark: float, white: float) -
     path = _TEXTURES.get(key)
     if path is not None and os.path.isfile(path):
         return path
-    if "folder" not in _TEXTURE_FOLDER:
-        _TEXTURE_FOLDER["folder"] = tempfile.mkdtemp(prefix="tiltfit-textures-")
+    if _TEXTURE_FOLDER.get("pid") != os.getpid():  # this process's first texture, or a forked child's
+        _TEXTURES.clear()
+        _remove_dead_texture_folders()
+        _TEXTURE_FOLDER.update(pid=os.getpid(), count=0,
+                               folder=tempfile.mkdtemp(prefix=f"{TEXTURE_PREFIX}{os.getpid()}-"))
         atexit.register(shutil.rmtree, _TEXTURE_FOLDER["folder"], True)
     while len(_TEXTURES) >= TEXTURES_KEPT:
         old = _TEXTURES.pop(next(iter(_TEXTURES)))

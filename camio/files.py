@@ -118,7 +118,7 @@ def encode_srgb8(linear):
     """Linear values to the uint8 an 8-bit sRGB file holds: round(255 · sRGB(clip(v, 0, 1))) (numpy).
 
     Read from a table binned by the values' bit patterns (`_srgb8_table`, the same codes as the formula to the
-    last bit; five times faster than the power law on a photo); NaN (code of the formula) takes the formula."""
+    last bit, without the power law's per-value cost); NaN (code of the formula) takes the formula."""
     import numpy as np
 
     v = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)

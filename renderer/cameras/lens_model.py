@@ -90,8 +90,8 @@ def distortion_parameter_names(model: str) -> tuple[str, ...]:
 
 
 def _through_perspective(J_xy: torch.Tensor, xn: torch.Tensor, iz: torch.Tensor) -> torch.Tensor:
-    """(..., 2, 2) ∂f/∂xn times ∂xn/∂p_cam = [[1/z, 0, −x/z²], [0, 1/z, −y/z²]] -> (..., 2, 3) ∂f/∂p_cam, written
-    out (the product's zeros skipped; a batched 2 × 2 by 2 × 3 matmul per point costs more)."""
+    """(..., 2, 2) ∂f/∂xn times ∂xn/∂p_cam = [[1/z, 0, −x/z²], [0, 1/z, −y/z²]] -> (..., 2, 3) ∂f/∂p_cam,
+    written out (the product's zeros skipped; a batched 2 × 2 by 2 × 3 matmul per point costs more)."""
     Jz = J_xy * iz[..., None, None]
     return torch.cat([Jz, -(Jz[..., 0:1] * xn[..., None, 0:1] + Jz[..., 1:2] * xn[..., None, 1:2])], -1)
 

@@ -57,7 +57,7 @@ def _hessian(img: np.ndarray, sigma: float):
 
 def _max_5x5(a: np.ndarray) -> np.ndarray:
     """Maximum over each pixel's 5 × 5 neighbourhood within the image (torch's max_pool2d with padding 2,
-    exactly; OpenCV's dilation costs a fiftieth of it on one thread)."""
+    exactly, by OpenCV's dilation)."""
     import cv2
 
     return cv2.dilate(a, np.ones((5, 5), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=-np.inf)

@@ -372,8 +372,8 @@ def render_with_renderer(target: Target, camera: Lens, R, T, dark: float, white:
 
 
 #: Board textures `render_with_renderer` has written in this process, (target, px_per_mm, dark, white) -> file, at
-#: most TEXTURES_KEPT (the oldest file removed first). Every view of a board reads the one file: rasterising and
-#: writing it (a 3500 x 2500 EXR at 10 px/mm) cost 1.3 CPU s a view, more than a small 16-spp render.
+#: most TEXTURES_KEPT (the oldest file removed first). Every view of a board reads the one file, rasterised and
+#: written (a 3500 x 2500 EXR at 10 px/mm) once.
 _TEXTURES: dict = {}
 TEXTURES_KEPT = 8
 _TEXTURE_FOLDER: dict = {}   # this process's texture folder ("folder"), its "pid", the files it has held ("count")

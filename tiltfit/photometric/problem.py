@@ -112,10 +112,9 @@ class _Problem:
         calls) every point goes through forward mode.
 
         The three points' 21 numbers are differentiated in reverse mode (`jacrev`, one batched backward pass): under
-        forward mode each of the camera's operations with a Python number (`x * 2`, `1 - x`, about 28 of them) runs
-        through torch's Python reference implementation, which made the 10 tangents cost 17 ms a view and state
-        against 6 ms (the same derivatives to 2e-16 relative). Every point's own focus point (distortion) has as
-        many outputs as points: forward mode's 10 tangents stay cheaper there."""
+        forward mode each of the camera's operations with a Python number (`x * 2`, `1 - x`) runs through torch's
+        Python reference implementation (docs/history.md, 2026-11-29). Every point's own focus point (distortion)
+        has as many outputs as points: forward mode's 10 tangents stay cheaper there."""
         def focus_at(points, reverse: bool = False):
             def focus(g):
                 out = self._call(v, g, lambda cam: cam.focus_geometry(points)[:3])

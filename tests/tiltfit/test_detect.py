@@ -153,32 +153,6 @@ def test_symmetric_refinement_is_unbiased_across_subpixel_phase(blur_px):
     assert worst < 0.04, f"refinement bias {worst:.3f} px at blur {blur_px} px"
 
 
-@pytest.mark.parametrize("sigma", [1.0, 1.5, 4.5])
-def test_saddle_filters_are_kornias(sigma):
-    """The saddle map's Hessian (`saddles._hessian`, OpenCV and numpy slices) is kornia's gaussian_blur2d and
-    unnormalised 'diff' second differences with replicated borders, its 5 × 5 maximum torch's max_pool2d exactly,
-    and the refinement's patch smoothing (`imaging.gaussian_smooth`) kornia's: within 1e-6 of a unit range."""
-    import kornia
-    import torch.nn.functional as F
-
-    from tiltfit.detect.imaging import gaussian_smooth
-    from tiltfit.detect.saddles import _hessian, _max_5x5
-
-    img = np.random.default_rng(5).random((67, 90)).astype(np.float32)
-    t = torch.from_numpy(img)[None, None]
-    k = 2 * int(math.ceil(3 * sigma)) + 1
-    sm = kornia.filters.gaussian_blur2d(t, (k, k), (sigma, sigma), border_type="replicate")
-    g = kornia.filters.spatial_gradient(sm, mode="diff", order=2, normalized=False)[0, 0]
-    ours = _hessian(img, sigma)
-    for name, want, got in zip(("smooth", "Ixx", "Ixy", "Iyy"), (sm[0, 0], g[0], g[1], g[2]), ours):
-        assert got.dtype == np.float32 and np.abs(got - want.numpy()).max() < 1e-6, f"{name} is not kornia's"
-    assert np.abs(gaussian_smooth(img, 1.4, 11) - kornia.filters.gaussian_blur2d(
-        t, (11, 11), (1.4, 1.4), border_type="replicate")[0, 0].numpy()).max() < 1e-6, "patch smoothing"
-    neg = -(ours[1] * ours[3] - ours[2] ** 2)
-    assert np.array_equal(_max_5x5(neg), F.max_pool2d(torch.from_numpy(neg)[None, None], 5, 1, 2)[0, 0].numpy()), \
-        "the 5 × 5 maximum is max_pool2d's"
-
-
 def test_detection_json_contract(tmp_path):
     v = view(0.15, seed=8)
     det = detect(v.image, TARGET)

@@ -1,7 +1,7 @@
 """Image and plane-geometry helpers shared by corner detection (`tiltfit.detect.chessboard` and its stages) and
 blur measurement (`tiltfit.detect.blur`): the 2×2 box pyramid and its pixel mapping, the normalised-DLT homography,
-a guard that runs small-tensor work on one torch thread, Gaussian smoothing (`gaussian_smooth`), the grey image of
-a photo (`to_gray`), its noise (`estimate_noise`) and bilinear samples (`_bilinear`).
+a guard that runs small-tensor work on one torch thread, the grey image of a photo (`to_gray`), its noise
+(`estimate_noise`) and bilinear samples (`_bilinear`).
 
 Library layer, bottom: imports only `tiltfit.detect.detection` (for DetectionError), so the detector's stages and
 `blur` import it and the dependency runs one way (chessboard -> blur -> imaging). Pixel coordinates: x = column,
@@ -9,7 +9,6 @@ y = row, (0, 0) the centre of the top-left pixel.
 """
 from __future__ import annotations
 
-import functools
 import math
 
 import numpy as np
@@ -33,26 +32,6 @@ class torch_threads:
     def __exit__(self, *exc):
         if torch.get_num_threads() != self.saved:
             torch.set_num_threads(self.saved)
-
-
-# --- Gaussian smoothing --------------------------------------------------------------------------------------
-@functools.lru_cache(maxsize=None)
-def _gaussian_taps(size: int, sigma: float) -> np.ndarray:
-    """kornia's normalised Gaussian taps (`get_gaussian_kernel1d`, float32: the ones its `gaussian_blur2d` uses)."""
-    import kornia
-
-    return kornia.filters.get_gaussian_kernel1d(size, torch.tensor([[sigma]], dtype=torch.float32))[0].numpy()
-
-
-def gaussian_smooth(img: np.ndarray, sigma: float, size: int) -> np.ndarray:
-    """(H, W) float32 image smoothed by a `size`-tap Gaussian of `sigma` px along each axis, edge pixels repeated:
-    kornia's `gaussian_blur2d` (same taps, border and float32; sums in another order, within 1e-6 of the range)
-    by OpenCV's separable filter (torch's one-thread convolutions are far dearer here: docs/speed.md)."""
-    import cv2
-
-    taps = _gaussian_taps(size, float(sigma))
-    return cv2.sepFilter2D(np.ascontiguousarray(img, dtype=np.float32), -1, taps, taps,
-                           borderType=cv2.BORDER_REPLICATE)
 
 
 # --- image pyramid -----------------------------------------------------------------------------------------

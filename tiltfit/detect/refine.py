@@ -9,7 +9,7 @@ import math
 import numpy as np
 import torch
 
-from tiltfit.detect.imaging import apply_homography, gaussian_smooth, homography_dlt
+from tiltfit.detect.imaging import apply_homography, homography_dlt
 from tiltfit.solve.batched import BatchedOptions, batched_levenberg_marquardt, normal_from_residuals
 from tiltfit.target.layout import Target
 
@@ -56,10 +56,13 @@ def _patches(gray: np.ndarray, c0: np.ndarray, P: int, presmooth: float, ks: int
     H, W = gray.shape
     ys = np.clip(c0[:, 1, None] + np.arange(-P, P + 1)[None], 0, H - 1)
     xs = np.clip(c0[:, 0, None] + np.arange(-P, P + 1)[None], 0, W - 1)
-    t = gray[ys[:, :, None], xs[:, None, :]].astype(np.float32)  # (N, S, S)
+    t = torch.from_numpy(gray[ys[:, :, None], xs[:, None, :]].astype(np.float32))[:, None]  # (N, 1, S, S)
     if presmooth > 0:
-        t = np.stack([gaussian_smooth(patch, presmooth, 2 * ks + 1) for patch in t])
-    return torch.from_numpy(t)
+        import kornia
+
+        t = kornia.filters.gaussian_blur2d(t, (2 * ks + 1, 2 * ks + 1), (presmooth, presmooth),
+                                           border_type="replicate")
+    return t[:, 0]
 
 
 def _asymmetry(v: torch.Tensor, wgt: torch.Tensor) -> torch.Tensor:

@@ -1,9 +1,8 @@
 """Stage 2 of the checkerboard detector (`tiltfit.detect.chessboard`): saddle candidates of a pyramid level.
 
 Candidates are the local minima of the Hessian determinant det H = Ixx Iyy − Ixy² of the Gaussian-smoothed image
-(kornia's filters, computed by OpenCV and numpy slices), below a threshold set from the measured noise, where the
-saddle is well formed and the gradient small; the two zero directions of vᵀHv are the edges through the corner
-(`edge_directions`).
+(kornia), below a threshold set from the measured noise, where the saddle is well formed and the gradient small;
+the two zero directions of vᵀHv are the edges through the corner (`edge_directions`).
 """
 from __future__ import annotations
 
@@ -12,8 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
-from tiltfit.detect.imaging import estimate_noise, gaussian_smooth
+from tiltfit.detect.imaging import estimate_noise
 
 
 @dataclass
@@ -41,44 +41,31 @@ class SaddleMap:
 _NOISE_GAIN: dict[float, float] = {}
 
 
-def _hessian(img: np.ndarray, sigma: float):
-    """(smoothed image, Ixx, Ixy, Iyy) of a (H, W) float32 image: kornia's `gaussian_blur2d` (replicated border)
-    then its unnormalised 'diff' second differences (Ixy the 4-tap cross difference, 4 × ∂²I/∂x∂y), edge pixels
-    repeated, all float32 (`gaussian_smooth`; the differences by slicing)."""
+def _hessian(img_t: torch.Tensor, sigma: float):
     k = 2 * int(math.ceil(3 * sigma)) + 1
-    sm = gaussian_smooth(img, sigma, k)
-    p = np.pad(sm, 1, mode="edge")
-    c = p[1:-1, 1:-1]
-    dxx = p[1:-1, :-2] - 2 * c + p[1:-1, 2:]
-    dyy = p[:-2, 1:-1] - 2 * c + p[2:, 1:-1]
-    dxy = p[:-2, :-2] - p[:-2, 2:] - p[2:, :-2] + p[2:, 2:]
-    return sm, dxx, dxy, dyy
+    import kornia
 
-
-def _max_5x5(a: np.ndarray) -> np.ndarray:
-    """Maximum over each pixel's 5 × 5 neighbourhood within the image (torch's max_pool2d with padding 2,
-    exactly, by OpenCV's dilation)."""
-    import cv2
-
-    return cv2.dilate(a, np.ones((5, 5), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=-np.inf)
+    sm = kornia.filters.gaussian_blur2d(img_t, (k, k), (sigma, sigma), border_type="replicate")
+    g = kornia.filters.spatial_gradient(sm, mode="diff", order=2, normalized=False)  # (B, C, 3, H, W)
+    return sm, g[:, 0, 0], g[:, 0, 1], g[:, 0, 2]
 
 
 def _det_noise_gain(sigma: float) -> float:
-    """Standard deviation of Ixx, 2 Ixy and Iyy (the largest) for unit white noise after smoothing with `sigma`
-    (measured once)."""
+    """Standard deviation of Ixy for unit white noise after smoothing with `sigma` (measured once)."""
     if sigma not in _NOISE_GAIN:
         gen = torch.Generator().manual_seed(1)
-        n = torch.randn(96, 96, generator=gen, dtype=torch.float32).numpy()
-        _, dxx, dxy, dyy = (torch.from_numpy(a) for a in _hessian(n, sigma))
+        n = torch.randn(1, 1, 96, 96, generator=gen, dtype=torch.float32)
+        _, dxx, dxy, dyy = _hessian(n, sigma)
         c = slice(16, -16)
-        _NOISE_GAIN[sigma] = float(torch.stack([dxx[c, c].std(), 2 * dxy[c, c].std(), dyy[c, c].std()]).max())
+        _NOISE_GAIN[sigma] = float(torch.stack([dxx[0, c, c].std(), 2 * dxy[0, c, c].std(), dyy[0, c, c].std()]).max())
     return _NOISE_GAIN[sigma]
 
 
 def saddle_map(img: np.ndarray, sigma: float = 1.0, noise: float | None = None, k_noise: float = 6.0,
                min_quality: float = 0.3, max_candidates: int = 4000) -> SaddleMap:
     """Saddle candidates of a level image: local minima of det H (5×5) with −det H > (k σ_H)²."""
-    sm, dxx, dxy, dyy = _hessian(np.asarray(img, dtype=np.float32), sigma)
+    t = torch.from_numpy(np.ascontiguousarray(img))[None, None]
+    sm, dxx, dxy, dyy = _hessian(t, sigma)
     det = dxx * dyy - dxy * dxy
     noise = estimate_noise(img) if noise is None else noise
     sd_h = max(noise, 1e-4) * _det_noise_gain(sigma)
@@ -86,31 +73,32 @@ def saddle_map(img: np.ndarray, sigma: float = 1.0, noise: float | None = None, 
     # noise-based, and at least 1e-3 of the strongest saddle (blur varies across a tilted-lens image, but a
     # corner's response falls as (blur)^-4 only down to the smoothing scale)
     thr = max((k_noise * sd_h) ** 2, 1e-3 * float(neg.max()))
-    pooled = _max_5x5(neg)
+    pooled = F.max_pool2d(neg[None], 5, stride=1, padding=2)[0]
     # saddle quality: −det / (½(Ixx² + Iyy²) + Ixy²) is 1 where the edges cross at right angles, about 0.5 for
     # edges at 45°, and near 0 or below on straight edges, in blobs and on noise riding on either
-    quality = neg / (np.float32(0.5) * (dxx * dxx + dyy * dyy) + dxy * dxy + np.float32(1e-30))
-    # a saddle's centre is flat: |∇I| ≤ |H| δ within δ ≈ 1 px of it, while a point on an edge is steep (kornia's
-    # unnormalised 'diff' gradient: central differences, 2 × ∂I)
-    p = np.pad(sm, 1, mode="edge")
-    gx, gy = p[1:-1, 2:] - p[1:-1, :-2], p[2:, 1:-1] - p[:-2, 1:-1]
-    flat = np.sqrt(gx ** 2 + gy ** 2) < np.float32(1.5) * np.sqrt(np.maximum(neg, np.float32(0)))
+    quality = neg / (0.5 * (dxx * dxx + dyy * dyy) + dxy * dxy + 1e-30)
+    # a saddle's centre is flat: |∇I| ≤ |H| δ within δ ≈ 1 px of it, while a point on an edge is steep
+    import kornia
+
+    grad = kornia.filters.spatial_gradient(sm, mode="diff", order=1, normalized=False)[:, 0]
+    flat = torch.sqrt(grad[:, 0] ** 2 + grad[:, 1] ** 2) < 1.5 * torch.sqrt(neg.clamp_min(0))
     is_min = (neg == pooled) & (neg > thr) & (quality > min_quality) & flat
     # ignore the outermost pixels, where the smoothing saw the replicated border
     b = int(math.ceil(2 * sigma)) + 1
-    is_min[:b] = False
-    is_min[-b:] = False
     is_min[:, :b] = False
     is_min[:, -b:] = False
-    ys, xs = np.nonzero(is_min)
-    s = neg[ys, xs]
-    if s.size > max_candidates:
-        keep = torch.topk(torch.from_numpy(s), max_candidates).indices.numpy()
+    is_min[:, :, :b] = False
+    is_min[:, :, -b:] = False
+    ys, xs = torch.nonzero(is_min[0], as_tuple=True)
+    s = neg[0, ys, xs]
+    if s.numel() > max_candidates:
+        keep = torch.topk(s, max_candidates).indices
         ys, xs, s = ys[keep], xs[keep], s[keep]
-    xy = np.stack([xs, ys], -1).astype(np.float64)
-    xy = xy + _quadratic_peak(det, xs, ys)
-    edges = edge_directions(dxx[ys, xs], dxy[ys, xs], dyy[ys, xs])
-    return SaddleMap(sm, dxx, dxy, dyy, det, xy, s.astype(np.float64), edges, thr)
+    dxx_n, dxy_n, dyy_n, det_n = (a[0].numpy() for a in (dxx, dxy, dyy, det))
+    xy = np.stack([xs.numpy(), ys.numpy()], -1).astype(np.float64)
+    xy = xy + _quadratic_peak(det_n, xs.numpy(), ys.numpy())
+    edges = edge_directions(dxx_n[ys, xs], dxy_n[ys, xs], dyy_n[ys, xs])
+    return SaddleMap(sm[0, 0].numpy(), dxx_n, dxy_n, dyy_n, det_n, xy, s.numpy().astype(np.float64), edges, thr)
 
 
 def _quadratic_peak(f: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:

@@ -233,8 +233,8 @@ _SIGMA_FIELDS = ("sigma", "views", "noise", "covariance", "sigma_classical", "si
 
 
 def with_deferred_sigma(fit: FitResult) -> FitResult:
-    """`fit` with the σ of its `FitOptions.sigma_model` where they were deferred (`FitResult.deferred_sigma`): the
-    fit made again from the same camera and board, its σ put in `fit` (whose choices and records stay)."""
+    """`fit` with the σ of its `FitOptions.sigma_model` where they were deferred (`FitResult.deferred_sigma`): made
+    from the same solve's Jacobian and residuals and put in `fit` in place (its choices and records stay)."""
     if fit.deferred_sigma is None:
         return fit
     full = fit.deferred_sigma()

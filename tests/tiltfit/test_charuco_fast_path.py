@@ -27,3 +27,76 @@ def test_lattice_still_searched_on_a_partial_view():
     truth, sq, b, img = next(blurred_renders(PARTIAL[0], (0.0,), 0.003, rng))
     det = detect_charuco(img, TARGET, measure_blur=False)
     assert not det.found.all() and "lattice" in det.timings_s, f"partial view: {det.message}, {det.timings_s}"
+
+
+def _spy_reads(monkeypatch):
+    """The marker reads `detect_charuco` asks OpenCV for: their windows (None: OpenCV's default), in order."""
+    from tiltfit.detect import charuco
+
+    reads, read = [], charuco.opencv_corners
+
+    def spy(*args, windows=None, **kw):
+        reads.append(windows)
+        return read(*args, windows=windows, **kw)
+
+    monkeypatch.setattr(charuco, "opencv_corners", spy)
+    return reads
+
+
+def test_first_marker_read_alone_names_the_webcam_frames_as_the_default_read(monkeypatch):
+    """OpenCV's first read (FIRST_READ_WINDOWS, about 0.65 of its default's time) names every corner of the three
+    real webcam frames, so its default read is skipped; the corners are those the default read leads to."""
+    import os
+
+    from camio.files import read_image
+    from tiltfit.detect import charuco
+    from tiltfit.target.layout import target_from_dict
+
+    webcam = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "data", "charuco_webcam")
+    target = target_from_dict({"type": "charuco", "dictionary": "DICT_4X4_1000", "squares": [4, 5], "square_mm": 54,
+                               "marker_mm": 40.5, "inverted": True}, "T.json")
+    for name in ("frame_26.png", "frame_36.png", "frame_39.png"):
+        image = read_image(os.path.join(webcam, name))
+        with monkeypatch.context() as m:
+            reads = _spy_reads(m)
+            fast = detect_charuco(image, target, measure_blur=False)
+        assert reads == [charuco.FIRST_READ_WINDOWS], f"{name}: reads {reads}, the first alone should name every corner"
+        with monkeypatch.context() as m:
+            m.setattr(charuco, "FIRST_READ_WINDOWS", None)  # OpenCV's default read first
+            full = detect_charuco(image, target, measure_blur=False)
+        assert fast.found.all() and full.found.all(), f"{name}: {fast.message} / {full.message}"
+        d = np.hypot(*(fast.corners_px - full.corners_px).T)
+        assert d.max() < 1e-3, f"{name}: a corner {d.max():.4f} px from where the default read puts it"
+
+
+def test_default_marker_read_still_runs_on_a_partial_view(monkeypatch):
+    from tiltfit.detect import charuco
+
+    reads = _spy_reads(monkeypatch)
+    truth, sq, b, img = next(blurred_renders(PARTIAL[0], (0.0,), 0.003, np.random.default_rng(4)))
+    det = detect_charuco(img, TARGET, measure_blur=False)
+    assert reads == [charuco.FIRST_READ_WINDOWS, None], f"partial view: reads {reads}"
+    assert det.grid_found and not det.found.all(), det.message
+
+
+def test_top_within_is_the_percentile_test():
+    """`_srgb8` scales the photo when its 99.9th percentile lies outside [DARK_PHOTO, 1]; `_top_within` answers
+    that from two counts, and must never say 'within' when np.percentile says otherwise."""
+    from tiltfit.detect.charuco import _top_within
+
+    rng = np.random.default_rng(5)
+    n = 4000  # the percentile lies between order statistics 3995 and 3996
+    answered = 0
+    for trial in range(400):
+        x = rng.uniform(0.0, 0.45, n).astype(np.float32)
+        # the top values straddle the limits, exactly at them too
+        top = rng.choice(np.array([0.3, 0.5, np.nextafter(np.float32(0.5), 0), 0.7, 1.0, 1.2], np.float32), 8)
+        x[rng.choice(n, 8, replace=False)] = top
+        p = np.percentile(x, 99.9)
+        within = _top_within(x, 0.5, 1.0)
+        assert not within or 0.5 <= p <= 1.0, f"trial {trial}: within, but the percentile is {p}"
+        s = np.sort(x)
+        if 0.5 <= s[3995] and s[3996] <= 1.0:
+            assert within, f"trial {trial}: both order statistics within, answered no"
+        answered += within
+    assert 50 < answered < 350, f"{answered} of 400 within: the trials should test both answers"

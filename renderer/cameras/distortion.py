@@ -108,25 +108,59 @@ def distort_jacobian(xy: torch.Tensor, coefficients) -> torch.Tensor:
     return torch.stack([torch.stack([dxx, dxy], -1), torch.stack([dxy, dyy], -1)], -2)
 
 
-def distort_coefficient_jacobian(xy: torch.Tensor, coefficients) -> torch.Tensor:
-    """(..., 2, 8) Jacobian ∂(x_d, y_d)/∂(k1, k2, p1, p2, k3, k4, k5, k6) of `distort` (columns in OpenCV's
-    order; the rational terms through s = a / b: ∂s/∂k4 = −s r² / b, and so on)."""
+def distort_coefficient_jacobian(xy: torch.Tensor, coefficients, names=COEFFICIENT_NAMES) -> torch.Tensor:
+    """(..., 2, n) Jacobian ∂(x_d, y_d)/∂(k1, k2, p1, p2, k3, k4, k5, k6) of `distort` (columns in OpenCV's
+    order; the rational terms through s = a / b: ∂s/∂k4 = −s r² / b, and so on); `names` the columns wanted
+    (`COEFFICIENT_NAMES`, in any order; default all 8)."""
     k = _padded(coefficients, xy)
     x, y = xy[..., 0], xy[..., 1]
     r2 = x * x + y * y
-    r4 = r2 * r2
-    r6 = r4 * r2
+    s, _ = _radial(r2, k)
+    return _coefficient_columns(x, y, r2, s, k, names)
+
+
+def _coefficient_columns(x, y, r2, s, k, names) -> torch.Tensor:
+    """`distort_coefficient_jacobian`'s columns `names` from the shared terms (r², the radial factor s)."""
     k4, k5, k6 = k[..., 5], k[..., 6], k[..., 7]
     b = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
-    s, _ = _radial(r2, k)
-    # ∂s/∂(k1, k2, k3, k4, k5, k6)
-    radial = torch.stack([r2 / b, r4 / b, r6 / b, -s * r2 / b, -s * r4 / b, -s * r6 / b], -1)
+    r4 = r2 * r2
+    powers = {"k1": r2, "k2": r4, "k3": r4 * r2, "k4": r2, "k5": r4, "k6": r4 * r2}
     xy2 = 2 * x * y
-    jx = torch.stack([x * radial[..., 0], x * radial[..., 1], xy2, r2 + 2 * x * x, x * radial[..., 2],
-                      x * radial[..., 3], x * radial[..., 4], x * radial[..., 5]], -1)
-    jy = torch.stack([y * radial[..., 0], y * radial[..., 1], r2 + 2 * y * y, xy2, y * radial[..., 2],
-                      y * radial[..., 3], y * radial[..., 4], y * radial[..., 5]], -1)
-    return torch.stack([jx, jy], -2)
+    jx, jy = [], []
+    for n in names:
+        if n == "p1":
+            jx.append(xy2)
+            jy.append(r2 + 2 * y * y)
+        elif n == "p2":
+            jx.append(r2 + 2 * x * x)
+            jy.append(xy2)
+        else:  # ∂s/∂k of a numerator term r^2j / b, of a denominator term −s r^2j / b
+            ds = powers[n] / b if n in ("k1", "k2", "k3") else -s * powers[n] / b
+            jx.append(x * ds)
+            jy.append(y * ds)
+    return torch.stack([torch.stack(jx, -1), torch.stack(jy, -1)], -2)
+
+
+def distort_with_jacobians(xy: torch.Tensor, coefficients, names=COEFFICIENT_NAMES):
+    """`distort`, `distort_jacobian` and `distort_coefficient_jacobian` (of the coefficients `names`, or None for
+    none) at once, their shared terms (r², the radial factor and its derivative) computed once: the same numbers.
+
+    Returns:
+        (x_d (..., 2), ∂x_d/∂xy (..., 2, 2), ∂x_d/∂k (..., 2, len(names)) or None).
+    """
+    k = _padded(coefficients, xy)
+    x, y = xy[..., 0], xy[..., 1]
+    p1, p2 = k[..., 2], k[..., 3]
+    r2 = x * x + y * y
+    s, ds = _radial(r2, k)
+    xd = x * s + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * s + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    dxx = s + 2 * x * x * ds + 2 * p1 * y + 6 * p2 * x
+    dxy = 2 * x * y * ds + 2 * p1 * x + 2 * p2 * y
+    dyy = s + 2 * y * y * ds + 6 * p1 * y + 2 * p2 * x
+    J_xy = torch.stack([torch.stack([dxx, dxy], -1), torch.stack([dxy, dyy], -1)], -2)
+    J_k = _coefficient_columns(x, y, r2, s, k, names) if names else None
+    return torch.stack([xd, yd], -1), J_xy, J_k
 
 
 def _solve2(J: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

@@ -52,8 +52,7 @@ import torch
 from . import optics
 from renderer.cameras.optics import BLUR_MODELS
 from renderer.core.transforms import axis_angle_to_matrix, matrix_to_axis_angle, rotated_point_jacobian
-from .distortion import (COEFFICIENT_NAMES, MODEL_TERMS, BrownConrady, distort, distort_coefficient_jacobian,
-                         distort_jacobian)
+from .distortion import COEFFICIENT_NAMES, MODEL_TERMS, BrownConrady, distort_with_jacobians
 from .distortion import distort_about_axis_jacobians
 from .lens import DISTORTION_CENTRES, Lens, Sensor, opencv_tilt, tilt_frame, tilt_rotation
 from .projection import image_centre_px, project_pinhole
@@ -109,7 +108,8 @@ class _ProjectionTerms(NamedTuple):
     F: float                # focal length, pixels
     with_distortion: bool
     axis: bool              # D about the lens axis (its frame turns with θL and φ)
-    J_k: torch.Tensor | None        # axis only: ∂x_d/∂k
+    J_k: torch.Tensor | None        # ∂x_d/∂k: about the lens axis all 8 columns; else those of `dist_names`
+    dist_names: tuple               # the distortion coefficients (stored names) whose columns are asked for
     J_angles: list | None           # axis only: [∂x_d/∂θL, ∂x_d/∂φ]
     dthL: list | None               # axis only: ∂θL/∂(log w, 1/U in dioptres, θF)
 
@@ -387,15 +387,16 @@ class LensCamera(torch.nn.Module):
         """
         names = tuple(n for n, _ in self.named_parameters()) if names is None else tuple(names)
         with torch.no_grad():
-            proj = self._projection_terms(X_world, with_distortion)
+            proj = self._projection_terms(X_world, with_distortion, tuple(n for n in _DIST if n in names))
             blur = self._blur_terms(proj, with_blur)
             jac = self._lens_columns(proj, blur, names)
             jac.update(self._pose_columns(proj, blur, names))
             jac.update(self._sensor_columns(proj, blur, names))
         return proj.uv, blur.b, jac
 
-    def _projection_terms(self, X_world: torch.Tensor, with_distortion: bool) -> _ProjectionTerms:
-        """The projection part of `jacobian`: pixels and ∂(x_d)/∂p_cam for all views (no autograd)."""
+    def _projection_terms(self, X_world: torch.Tensor, with_distortion: bool, dist_names=()) -> _ProjectionTerms:
+        """The projection part of `jacobian`: pixels, ∂(x_d)/∂p_cam and ∂(x_d)/∂k of the coefficients `dist_names`
+        (stored names) for all views (no autograd)."""
         dt, dev = self.rvec.dtype, self.rvec.device
         X = torch.as_tensor(X_world, dtype=dt, device=dev)
         rvec = self.rvec.detach()
@@ -412,15 +413,15 @@ class LensCamera(torch.nn.Module):
             xd, J_xy, J_k, J_angles, dthL = self._lens_axis_jacobians(xn, k)
             dxd_dp = _through_perspective(J_xy, xn, iz)
         elif with_distortion:
-            xd = distort(xn, k)
-            dxd_dp = _through_perspective(distort_jacobian(xn, k), xn, iz)
+            xd, J_xy, J_k = distort_with_jacobians(xn, k, tuple(n[len("dist_"):] for n in dist_names))
+            dxd_dp = _through_perspective(J_xy, xn, iz)
         else:
             zero = torch.zeros_like(z)
             xd = xn
             dxd_dp = torch.stack([iz, zero, -xn[..., 0] * iz, zero, iz, -xn[..., 1] * iz], -1).reshape(z.shape + (2, 3))
         uv = self.principal_point_px.detach() + F * xd
-        return _ProjectionTerms(rvec, p_rot, p_cam, xn, k, xd, dxd_dp, uv, F, with_distortion, axis, J_k, J_angles,
-                                dthL)
+        return _ProjectionTerms(rvec, p_rot, p_cam, xn, k, xd, dxd_dp, uv, F, with_distortion, axis, J_k,
+                                tuple(dist_names), J_angles, dthL)
 
     def _blur_terms(self, proj: _ProjectionTerms, with_blur: bool) -> _BlurTerms:
         """The blur part of `jacobian`: b (V, N) pixels, ∂b/∂(w, U, d, θF), ∂b/∂φ and the rows ∂(u, v, b)/∂p_cam."""
@@ -491,15 +492,14 @@ class LensCamera(torch.nn.Module):
             if blur.with_blur:
                 off[..., 2, 0] = 1.0
             jac["blur_offset_px"] = off
-        dist_names = [n for n in _DIST if n in names]
-        if dist_names:
-            dk = torch.zeros(shape + (3, 8), dtype=dt, device=dev)
+        dist_names = proj.dist_names
+        if dist_names:  # side by side in one tensor, in `_DIST`'s order
+            dk = torch.zeros(shape + (3, len(dist_names)), dtype=dt, device=dev)
             if proj.axis:
-                dk[..., :2, :] = proj.F * proj.J_k
+                dk[..., :2, :] = proj.F * proj.J_k[..., [_DIST.index(n) for n in dist_names]]
             elif proj.with_distortion:
-                dk[..., :2, :] = proj.F * distort_coefficient_jacobian(proj.xn, proj.k)
-            for n in dist_names:
-                i = _DIST.index(n)
+                dk[..., :2, :] = proj.F * proj.J_k
+            for i, n in enumerate(dist_names):
                 jac[n] = dk[..., i:i + 1]
         return jac
 

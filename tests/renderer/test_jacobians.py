@@ -9,7 +9,8 @@ from torch.func import functional_call, jacrev
 
 from renderer.cameras import optics
 from renderer.cameras import LensCamera
-from renderer.cameras.distortion import MODEL_TERMS, COEFFICIENT_NAMES, distort, distort_coefficient_jacobian
+from renderer.cameras.distortion import (MODEL_TERMS, COEFFICIENT_NAMES, distort, distort_coefficient_jacobian,
+                                         distort_jacobian, distort_with_jacobians)
 from renderer.core.transforms import axis_angle_to_matrix, rotated_point_jacobian
 
 F64 = torch.float64
@@ -53,6 +54,23 @@ def test_distort_coefficient_jacobian_matches_autograd():
     ours = distort_coefficient_jacobian(xy, k)
     assert ours.shape == (30, 2, 8), f"shape {tuple(ours.shape)}"
     assert _rel_err(ours, auto) < TOL, f"∂D/∂k: {_rel_err(ours, auto):.2e}"
+
+
+def test_distortion_and_its_jacobians_at_once_are_the_same_numbers():
+    """`distort_with_jacobians` (the Jacobian's one pass: r² and the radial factor shared) gives exactly the numbers
+    of `distort`, `distort_jacobian` and `distort_coefficient_jacobian`, for any subset of the coefficients' columns
+    in their order, and no coefficient columns where none are asked for."""
+    gen = torch.Generator().manual_seed(7)
+    xy = 0.4 * torch.randn(3, 30, 2, generator=gen, dtype=F64)
+    k = 0.1 * torch.randn(8, generator=gen, dtype=F64)
+    full = distort_coefficient_jacobian(xy, k)
+    for names in (COEFFICIENT_NAMES, ("k1",), ("k2", "p2", "k4"), MODEL_TERMS["rational5"]):
+        xd, J_xy, J_k = distort_with_jacobians(xy, k, names)
+        assert torch.equal(xd, distort(xy, k)) and torch.equal(J_xy, distort_jacobian(xy, k)), "x_d and ∂x_d/∂xy"
+        cols = [COEFFICIENT_NAMES.index(n) for n in names]
+        assert torch.equal(J_k, full[..., cols]), f"∂x_d/∂k of {names}"
+        assert torch.equal(distort_coefficient_jacobian(xy, k, names), J_k), f"the named columns of {names}"
+    assert distort_with_jacobians(xy, k, ())[2] is None, "no coefficient columns asked for"
 
 
 @pytest.fixture(scope="module")

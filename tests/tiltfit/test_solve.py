@@ -214,6 +214,48 @@ def test_point_blocks_eliminated_as_in_bundle_adjustment_match_the_dense_solve()
     assert torch.allclose(lev_pinv, lev_dense, rtol=1e-7, atol=1e-10), "leverages of a dense covariance"
 
 
+@pytest.mark.parametrize("layout", ["views in order", "rows of a point apart", "rows a point unequal"])
+def test_point_block_normal_equations_for_any_row_layout(layout):
+    """The point block's products with the other columns, summed over each point's rows: as batched products where
+    every point has the same rows in every view (in order, or a point's rows apart as a calibration's corner and
+    blur rows are), row by row otherwise (a point with more rows than another in a view); each equals JᵀJ of the
+    dense Jacobian."""
+    from tiltfit.solve.points import _rows_by_point
+
+    evaluate, blocks, view_rows, row_points, x0 = _points_seen_by_cameras()
+    r, jac = evaluate(x0, True)
+    V, R = view_rows.shape
+    N = R // 2
+    if layout == "rows of a point apart":   # each view's u rows first, then its v rows
+        order = torch.cat([view_rows[:, 0::2], view_rows[:, 1::2]], 1)
+        view_rows = order
+    elif layout == "rows a point unequal":  # in view 0 one row of point 3 counted as point 4's (the algebra holds)
+        row_points = row_points.clone()
+        row_points[7] = 4
+    grouped = _rows_by_point(view_rows, row_points, N) if layout != "rows a point unequal" else None
+    assert (grouped is None) == (layout == "rows a point unequal"), "batched exactly where the layout allows"
+    bj = Layout(blocks, view_rows, row_points).jacobian(jac)
+    ne = PointSchurNormal(bj, torch.ones_like(r))
+    Jd = bj.dense()
+    assert torch.allclose(ne.dense(), Jd.T @ Jd, rtol=1e-12, atol=1e-12), f"normal matrix, {layout}"
+
+
+def test_views_rows_in_order_are_read_in_place():
+    """Where the views' rows are all rows in order (a geometric fit's), the normal equations read each view's rows
+    of the Jacobian as a view of it, not a copy; in another order they gather them, and both equal JᵀJ."""
+    evaluate, blocks, view_rows, x0, _ = _circles()
+    r, jac = evaluate(x0, True)
+    layout = Layout(blocks, view_rows)
+    bj = layout.jacobian(jac)
+    ne = SchurNormal(bj, torch.ones_like(r))
+    assert ne.Jp_v.untyped_storage().data_ptr() == bj.Jp.untyped_storage().data_ptr(), "a copy, not a view"
+    shuffled = Layout(blocks, view_rows.flip(1)).jacobian(jac)
+    ne2 = SchurNormal(shuffled, torch.ones_like(r))
+    Jd = bj.dense()
+    for n in (ne, ne2):
+        assert torch.allclose(n.dense(), Jd.T @ Jd, rtol=1e-12, atol=1e-12), "normal matrix"
+
+
 def test_cluster_covariance_with_a_point_block_equals_it_with_the_points_as_dense_globals():
     """The per-view sandwich through the point block's 3 columns a row equals the one written for dense global
     columns (the points' columns spelt out), poses' random-effect part included."""

@@ -7,6 +7,7 @@ import torch
 from tiltfit.calibrate.model import Observations, LensCamera, robust_rho, robust_weight
 from tiltfit.solve import Block, LMOptions, LMResult, SolverError
 from tiltfit.solve import levenberg_marquardt as solve_lm
+from tiltfit.solve.blocks import side_by_side as _side_by_side
 
 
 class FitError(RuntimeError):
@@ -169,13 +170,15 @@ class _Problem:
 
     def evaluate(self, scale: torch.Tensor):
         """The `tiltfit.solve.levenberg_marquardt` callback of the residuals `raw(x) * scale`."""
-        sizes = [self._sizes[n] for n in self.names]
+        # the columns in the solver's order (globals, poses, board): its blocks are then views of one matrix
+        order = sorted(self.names, key=lambda n: (n in self.POSE) + 2 * (n == self.BOARD))
+        sizes = [self._sizes[n] for n in order]
 
         def evaluate(x: dict, with_jacobian: bool):
             if not with_jacobian:
                 return self.raw(x) * scale, None
-            J, r = self._raw_jacobian_matrix(x, self.names)
-            return r * scale, dict(zip(self.names, torch.split(J.mul_(scale[:, None]), sizes, 1)))
+            J, r = self._raw_jacobian_matrix(x, order)
+            return r * scale, dict(zip(order, torch.split(J.mul_(scale[:, None]), sizes, 1)))
 
         return evaluate
 
@@ -194,27 +197,6 @@ class _Problem:
                     self.board.params = v.detach().clone()
                     continue
                 params[n].copy_(v)
-
-
-def _side_by_side(columns: list) -> list:
-    """Column blocks (..., k_i) in order, each run of blocks that lie side by side in one tensor's memory (the
-    distortion coefficients' columns are slices of one (V, N, 3, 8) tensor) joined into one view of that memory.
-
-    The views hold the same numbers; each strided copy into the Jacobian costs about as much for one column as
-    for eight, so fewer, wider blocks are cheaper."""
-    joined = []
-    for block in columns:
-        if joined:
-            last = joined[-1]
-            if (block.dim() == last.dim() and block.shape[:-1] == last.shape[:-1] and block.stride() == last.stride()
-                    and block.stride(-1) == 1 and block.dtype == last.dtype
-                    and block.untyped_storage().data_ptr() == last.untyped_storage().data_ptr()
-                    and block.storage_offset() == last.storage_offset() + last.shape[-1]):
-                joined[-1] = last.as_strided(last.shape[:-1] + (last.shape[-1] + block.shape[-1],), last.stride(),
-                                             last.storage_offset())
-                continue
-        joined.append(block)
-    return joined
 
 
 def _point_index(basis: torch.Tensor) -> torch.Tensor | None:

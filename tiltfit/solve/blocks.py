@@ -48,6 +48,40 @@ class Block:
         return int(math.prod(dims))
 
 
+def side_by_side(columns: list) -> list:
+    """Column blocks (..., k_i) in order, each run of blocks that lie side by side in one tensor's memory (the
+    distortion coefficients' columns are slices of one (V, N, 3, 8) tensor) joined into one view of that memory.
+
+    The views hold the same numbers; each strided copy into the Jacobian costs about as much for one column as
+    for eight, so fewer, wider blocks are cheaper, and blocks of one matrix side by side need no copy at all."""
+    joined = []
+    for block in columns:
+        if joined:
+            last = joined[-1]
+            if (block.dim() == last.dim() and block.shape[:-1] == last.shape[:-1] and block.stride() == last.stride()
+                    and block.stride(-1) == 1 and block.dtype == last.dtype
+                    and block.untyped_storage().data_ptr() == last.untyped_storage().data_ptr()
+                    and block.storage_offset() == last.storage_offset() + last.shape[-1]):
+                joined[-1] = last.as_strided(last.shape[:-1] + (last.shape[-1] + block.shape[-1],), last.stride(),
+                                             last.storage_offset())
+                continue
+        joined.append(block)
+    return joined
+
+
+def _joined(columns: list) -> torch.Tensor:
+    """Column blocks (M, k_i) side by side as one (M, Σ k_i) tensor: a view where they lie side by side in one
+    tensor's memory (`side_by_side`), else a copy."""
+    runs = side_by_side(columns)
+    return runs[0] if len(runs) == 1 else torch.cat(runs, 1)
+
+
+def _rows_in_order(rows: torch.Tensor, n_rows: int) -> bool:
+    """Whether the views' rows (V, R) are all `n_rows` rows in order (view 0's, then view 1's, …): a geometric fit's,
+    whose rows are each view's corners. Then each view's rows of a matrix are a reshape of it, not a gather."""
+    return rows.numel() == n_rows and bool((rows.reshape(-1) == torch.arange(n_rows)).all())
+
+
 class Layout:
     """The flat parameter vector of named blocks, and which residual rows belong to which view.
 
@@ -97,6 +131,7 @@ class Layout:
             b = self.point_blocks[0]
             pts = torch.as_tensor(b.points, dtype=torch.long)
             self.q_idx = torch.where(pts >= 0, self.offsets[b.name][0] + pts, -1)
+            self._row_point_free = (pts >= 0)[row_points]                  # (M, 3): 0 at gauge coordinates
 
     def flatten(self, x: dict) -> torch.Tensor:
         """{name: tensor} -> (P,) flat vector."""
@@ -119,15 +154,15 @@ class Layout:
     def jacobian(self, jac: dict) -> "BlockJacobian | torch.Tensor":
         """Assemble a callback's Jacobian {name: (M, size)} into a `BlockJacobian` (per-view blocks: row i
         holds the derivatives with respect to the block of row i's view) or a dense (M, P) tensor."""
-        Js = torch.cat([jac[b.name] for b in self.global_blocks], 1) if self.global_blocks else None
+        Js = _joined([jac[b.name] for b in self.global_blocks]) if self.global_blocks else None
         if not self.view_blocks:
             return Js
-        Jp = torch.cat([jac[b.name] for b in self.view_blocks], 1)
+        Jp = _joined([jac[b.name] for b in self.view_blocks])
         if Js is None:
             Js = Jp.new_zeros(Jp.shape[0], 0)
         if not self.point_blocks:
             return BlockJacobian(Js, Jp, self.view_rows, self.s_idx, self.p_idx, self.n_params)
-        Jq = jac[self.point_blocks[0].name] * (self.q_idx >= 0)[self.row_points]
+        Jq = jac[self.point_blocks[0].name] * self._row_point_free
         return BlockJacobian(Js, Jp, self.view_rows, self.s_idx, self.p_idx, self.n_params, Jq, self.row_points,
                              self.q_idx)
 
@@ -227,12 +262,17 @@ class SchurNormal:
         self.w = wts
         self.Jsw = bj.Js * wts[:, None]
         self.A_ss = bj.Js.T @ self.Jsw
-        self.Jp_v = bj.Jp[bj.rows]                       # (V, R, K)
-        self.w_v = wts[bj.rows]                          # (V, R)
-        self.Js_v = bj.Js[bj.rows]                       # (V, R, S)
+        self._in_order = _rows_in_order(bj.rows, bj.Js.shape[0])
+        self.Jp_v = self._by_view(bj.Jp)                 # (V, R, K)
+        self.w_v = self._by_view(wts)                    # (V, R)
+        self.Js_v = self._by_view(bj.Js)                 # (V, R, S)
         Jpw_v = self.Jp_v * self.w_v[..., None]
         self.A_pp = Jpw_v.transpose(1, 2) @ self.Jp_v    # (V, K, K)
         self.A_sp = self.Js_v.transpose(1, 2) @ Jpw_v    # (V, S, K)
+
+    def _by_view(self, rows: torch.Tensor) -> torch.Tensor:
+        """(M, ...) rows -> (V, R, ...) each view's (a view of them where the views' rows are all rows in order)."""
+        return rows.reshape(self.bj.rows.shape + rows.shape[1:]) if self._in_order else rows[self.bj.rows]
 
     def _split(self, v: torch.Tensor):
         return v[self.bj.s_idx], v[self.bj.p_idx]
@@ -246,7 +286,7 @@ class SchurNormal:
     def gradient(self, r: torch.Tensor) -> torch.Tensor:
         """Jᵀ W r."""
         gs = self.Jsw.T @ r
-        gp = (self.Jp_v * (self.w_v * r[self.bj.rows])[..., None]).sum(1)
+        gp = (self.Jp_v * (self.w_v * self._by_view(r))[..., None]).sum(1)
         return self._join(gs, gp)
 
     def diag(self) -> torch.Tensor:

@@ -29,6 +29,41 @@ def _row_views(rows: torch.Tensor, n_rows: int) -> torch.Tensor:
     return out
 
 
+def _rows_by_point(rows: torch.Tensor, row_points: torch.Tensor, n_points: int) -> torch.Tensor | None:
+    """(V, N, c) long: each view's rows grouped by their point, where every point has the same number c of rows in
+    every view (a calibration's: its 2 corner rows, and its blur row where widths are fitted; rows of unobserved
+    corners are there with zero Jacobian rows); None otherwise."""
+    V, R = rows.shape
+    if R % n_points:
+        return None
+    c = R // n_points
+    rp = row_points[rows]                                                           # (V, R)
+    order = torch.argsort(rp, dim=1, stable=True)
+    grouped = torch.gather(rp, 1, order).view(V, n_points, c)
+    if not bool((grouped == torch.arange(n_points)[None, :, None]).all()):
+        return None
+    return torch.gather(rows, 1, order).view(V, n_points, c)
+
+
+def _point_products(bj, Jqw: torch.Tensor):
+    """The point block's normal-matrix blocks: A_qq (N, 3, 3), A_sq (N, S, 3) against the globals and A_pq
+    (V, N, K, 3) against each view's pose. Where each point has the same rows in every view (`_rows_by_point`),
+    as batched products over the views' rows of each point; otherwise summed row by row (`index_add_`)."""
+    N = bj.q_idx.shape[0]
+    V, K = bj.p_idx.shape
+    grouped = _rows_by_point(bj.rows, bj.row_points, N)
+    if grouped is not None:
+        Jq, Jqw_g = bj.Jq[grouped], Jqw[grouped]                                    # (V, N, c, 3)
+        return (torch.einsum("vnci,vncj->nij", Jq, Jqw_g), torch.einsum("vncs,vncj->nsj", bj.Js[grouped], Jqw_g),
+                torch.einsum("vnck,vncj->vnkj", bj.Jp[grouped], Jqw_g))
+    rp, Jq, S = bj.row_points, bj.Jq, bj.Js.shape[1]
+    rv = _row_views(bj.rows, bj.Js.shape[0])
+    A_qq = Jq.new_zeros(N, 3, 3).index_add_(0, rp, Jq[:, :, None] * Jqw[:, None, :])
+    A_sq = Jq.new_zeros(N, S, 3).index_add_(0, rp, bj.Js[:, :, None] * Jqw[:, None, :])
+    A_pq = Jq.new_zeros(V * N, K, 3).index_add_(0, rv * N + rp, bj.Jp[:, :, None] * Jqw[:, None, :])
+    return A_qq, A_sq, A_pq.view(V, N, K, 3)
+
+
 class PointSchurNormal:
     """Normal equations of a `blocks.BlockJacobian` with a point block (`Jq`, `row_points`, `q_idx`), solved by
     eliminating the points' 3×3 blocks (module docstring). Same interface as `blocks.SchurNormal`."""
@@ -44,15 +79,11 @@ class PointSchurNormal:
         self.Z = S + V * K
         self.z_idx = torch.cat([bj.s_idx, bj.p_idx.reshape(-1)])
         self.fixed = bj.q_idx < 0                                   # (N, 3) gauge coordinates
-        rp = bj.row_points
-        rv = _row_views(bj.rows, bj.Js.shape[0])
         Jq, Jqw = bj.Jq, bj.Jq * wts[:, None]
         self.Jqw = Jqw
-        self.A_qq = Jq.new_zeros(N, 3, 3).index_add_(0, rp, Jq[:, :, None] * Jqw[:, None, :])
-        A_sq = Jq.new_zeros(N, S, 3).index_add_(0, rp, bj.Js[:, :, None] * Jqw[:, None, :])
-        A_pq = Jq.new_zeros(V * N, K, 3).index_add_(0, rv * N + rp, bj.Jp[:, :, None] * Jqw[:, None, :])
+        self.A_qq, A_sq, A_pq = _point_products(bj, Jqw)
         self.A_zq = torch.cat([A_sq.permute(1, 0, 2).reshape(S, 3 * N),
-                               A_pq.reshape(V, N, K, 3).permute(0, 2, 1, 3).reshape(V * K, 3 * N)])   # (Z, 3N)
+                               A_pq.permute(0, 2, 1, 3).reshape(V * K, 3 * N)])                  # (Z, 3N)
         A_zz = Jq.new_zeros(self.Z, self.Z)
         b = self.base
         A_zz[:S, :S] = b.A_ss

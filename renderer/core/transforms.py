@@ -102,8 +102,10 @@ def rotated_point_jacobian(rvec: torch.Tensor, p_rot: torch.Tensor, rows: torch.
     crossed = torch.linalg.cross(p_rot[..., None, :].expand_as(rows), rows, dim=-1)
     J_l = axis_angle_left_jacobian(rvec)
     lead = crossed.shape[:-3]
+    # (J_l's leading dimensions broadcast to `lead`, compared by hand: torch.broadcast_shapes imports sympy on its
+    # first call, half a CPU second of a calibration command's)
     if J_l.dim() == crossed.dim() and J_l.shape[-3] == 1 and crossed.dim() >= 4 and \
-            torch.broadcast_shapes(J_l.shape[:-3], lead) == lead:
+            all(j in (1, k) for j, k in zip(J_l.shape[:-3], lead)):
         # one J_l per batch entry of the leading dimensions (a view's pose, all its points): one (N m × 3) @ (3 × 3)
         # product per batch instead of N broadcast 3 × 3 products (rotations with more batch entries than the rows
         # take the broadcast product below)

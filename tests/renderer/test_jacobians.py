@@ -46,6 +46,21 @@ def test_rotated_point_jacobian_rows_broadcast(lead):
     assert _rel_err(ours, want) < TOL, f"rows · ∂(R X)/∂r: {_rel_err(ours, want):.2e}"
 
 
+def test_rotated_point_jacobian_needs_no_broadcast_shapes(monkeypatch):
+    """The per-view product's broadcast check is made by hand: `torch.broadcast_shapes` imports sympy on its first
+    call (half a CPU second of every `tiltfit calibrate`, whose Jacobian calls this first)."""
+    def refuse(*shapes):
+        raise AssertionError("torch.broadcast_shapes called")
+
+    monkeypatch.setattr(torch, "broadcast_shapes", refuse)
+    gen = torch.Generator().manual_seed(4)
+    r = 0.4 * torch.randn(3, 1, 3, generator=gen, dtype=F64)
+    p = 100.0 * torch.randn(3, 5, 3, generator=gen, dtype=F64)
+    rows = torch.randn(3, 5, 2, 3, generator=gen, dtype=F64)
+    ours = rotated_point_jacobian(r, p, rows)
+    assert _rel_err(ours, rows @ rotated_point_jacobian(r, p)) < TOL, "rows · ∂(R X)/∂r"
+
+
 def test_distort_coefficient_jacobian_matches_autograd():
     gen = torch.Generator().manual_seed(1)
     xy = 0.4 * torch.randn(30, 2, generator=gen, dtype=F64)

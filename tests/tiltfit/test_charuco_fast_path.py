@@ -100,3 +100,73 @@ def test_top_within_is_the_percentile_test():
             assert within, f"trial {trial}: both order statistics within, answered no"
         answered += within
     assert 50 < answered < 350, f"{answered} of 400 within: the trials should test both answers"
+
+
+def _motion_blurred(img, length_px, angle_deg, rng, noise=0.003):
+    """`img` smeared along a line of `length_px` at `angle_deg` (a box along it: motion, not a lens), plus noise."""
+    import cv2
+
+    n = int(np.ceil(length_px)) | 1
+    k = np.zeros((n, n), np.float32)
+    k[n // 2, :] = 1.0
+    k = cv2.warpAffine(k, cv2.getRotationMatrix2D((n / 2 - 0.5, n / 2 - 0.5), angle_deg, 1.0), (n, n))
+    out = cv2.filter2D(img.astype(np.float32), -1, k / k.sum(), borderType=cv2.BORDER_REPLICATE)
+    return out + rng.normal(0.0, noise, img.shape).astype(np.float32)
+
+
+def test_edge_spread_never_calls_sharp_a_view_the_width_pass_calls_blurred():
+    """Step 5's decision skips the width pass only where the edges' spread is below `sharp_limit`: on renders whose
+    blur reaches the markers' data bits (a disc of 0.15-0.8 square, or a smear of half a square along any
+    direction, which a steepest slope over all edges would miss) it must stay above it, with a margin; on a sharp
+    render below it."""
+    from tiltfit.detect.blur import measure_blur
+    from tiltfit.detect.charuco import CANCEL_BITS_BLUR, edge_spread_blur, sharp_limit
+    from tiltfit.detect.charuco_lattice import _local_square_px
+    from tiltfit.detect.imaging import build_pyramid
+
+    rng = np.random.default_rng(6)
+    limit = sharp_limit(TARGET)
+    cases = []
+    for truth, sq, b, img in blurred_renders(PARTIAL[1], (0.0, 0.02, 0.15, 0.3, 0.8), 0.003, rng):
+        corners = np.where(truth.in_image[:, None], truth.corners_px, np.nan)
+        if b == 0.02:
+            cases += [(f"smear 0.5 square at {a}°", _motion_blurred(img, 0.5 * sq, a, rng), corners, True)
+                      for a in (0, 60)]
+        else:
+            cases.append((f"disc {b} square", img, corners, b >= CANCEL_BITS_BLUR))
+    for name, img, corners, blurred in cases:
+        levels = build_pyramid(np.asarray(img, np.float32))
+        spread = float(np.nanmedian(edge_spread_blur(levels, TARGET, corners)))
+        if blurred:
+            assert spread > 1.5 * limit, f"{name}: edge spread {spread:.3f} square, limit {limit:.3f}"
+        else:
+            assert spread < limit, f"{name}: edge spread {spread:.3f} square: a sharp view not called sharp"
+            width, _ = measure_blur(img, TARGET, corners, levels=levels, max_passes=1)
+            assert np.nanmedian(width / _local_square_px(TARGET, corners)) < CANCEL_BITS_BLUR, name
+
+
+def test_sharp_webcam_frames_skip_the_width_pass_with_the_same_corners(monkeypatch):
+    """Corners alone on the real webcam frames (blur about 0.005 square): no width pass runs, and the corners are
+    those the width pass would have left (it decides against the model fit)."""
+    import os
+
+    from camio.files import read_image
+    from tiltfit.detect import blur, charuco
+    from tiltfit.target.layout import target_from_dict
+
+    webcam = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "data", "charuco_webcam")
+    target = target_from_dict({"type": "charuco", "dictionary": "DICT_4X4_1000", "squares": [4, 5], "square_mm": 54,
+                               "marker_mm": 40.5, "inverted": True}, "T.json")
+    for name in ("frame_26.png", "frame_36.png"):
+        image = read_image(os.path.join(webcam, name))
+        with monkeypatch.context() as m:
+            calls = []
+            measure = blur.measure_blur
+            m.setattr(blur, "measure_blur", lambda *a, **kw: calls.append(kw) or measure(*a, **kw))
+            fast = detect_charuco(image, target, measure_blur=False)
+        assert calls == [], f"{name}: the width pass ran ({calls})"
+        with monkeypatch.context() as m:
+            m.setattr(charuco, "edge_spread_blur", lambda levels, t, c: np.full(len(c), np.inf))  # never sharp
+            passed = detect_charuco(image, target, measure_blur=False)
+        assert "model" not in passed.timings_s, f"{name}: the width pass asked for the model fit"
+        assert np.array_equal(fast.corners_px, passed.corners_px), f"{name}: the corners moved"

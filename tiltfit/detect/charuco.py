@@ -356,7 +356,9 @@ def _blur_and_model(gray, levels, target, corners, measure_blur, timings):
 
     Whether the blur reaches the markers' data bits (median width beyond CANCEL_BITS_BLUR of a square) is decided
     on the widths; without `measure_blur` on those of the blur measurement's first, coarse pass alone (within
-    about 10 %, `tiltfit.detect.blur.measure_blur` with one pass), which costs a fraction of the full measurement.
+    about 10 %, `tiltfit.detect.blur.measure_blur` with one pass), which costs a fraction of the full measurement,
+    and not even that where the edges' spread (`edge_spread_blur`, a pass over a few pixels) puts the median
+    below `sharp_limit`: far below the decision's limit, where no width pass could take it.
     """
     from tiltfit.detect.blur import measure_blur as _measure_blur
 
@@ -366,6 +368,9 @@ def _blur_and_model(gray, levels, target, corners, measure_blur, timings):
     if not np.isfinite(corners).all(1).any():
         return corners, blur, sigma
     t = time.perf_counter()
+    if not measure_blur and np.nanmedian(edge_spread_blur(levels, target, corners)) < sharp_limit(target):
+        timings["blur"] = time.perf_counter() - t
+        return corners, blur, sigma
     passes = {} if measure_blur else {"max_passes": 1}
     blur, sigma = _measure_blur(gray, target, corners, levels=levels, **passes)
     timings["blur"] = time.perf_counter() - t
@@ -385,3 +390,84 @@ def _blur_and_model(gray, levels, target, corners, measure_blur, timings):
     if not measure_blur:
         blur, sigma = np.full(N, np.nan), np.full(N, np.nan)
     return corners, blur, sigma
+
+
+# --- the edges' spread: step 5's decision in a few pixels ------------------------------------------------------
+# `edge_spread_blur` looks at each corner within EDGE_WINDOW of a square, on the coarsest pyramid level where a
+# square is at least EDGE_LEVEL_SQUARE_PX wide (the full resolution below), after a Gaussian of EDGE_SMOOTH_PX.
+EDGE_WINDOW, EDGE_LEVEL_SQUARE_PX, EDGE_SMOOTH_PX = 0.3, 64.0, 1.0
+# Its median is trusted to say "sharp" below this fraction of the white cells' clear band (the estimate saturates
+# near the band's width once the blur covers the band: 0.12-0.31 of a square on renders blurred by 0.15-0.8, with
+# a band of 0.13) and below half of CANCEL_BITS_BLUR.
+SHARP_FRACTION_OF_CLEAR = 0.6
+
+
+def sharp_limit(target: CharucoTarget) -> float:
+    """Median edge spread (`edge_spread_blur`, squares) below which the blur is taken to be far from
+    CANCEL_BITS_BLUR."""
+    return min(0.5 * CANCEL_BITS_BLUR, SHARP_FRACTION_OF_CLEAR * target.white_cell_clear_mm / target.square_mm)
+
+
+def edge_spread_blur(levels: dict, target: CharucoTarget, corners: np.ndarray) -> np.ndarray:
+    """(N,) an estimate of the blur-disc diameter at each found corner, squares (NaN elsewhere), from how steep its
+    edges are: the diameter of the Gaussian edge of the same contrast and steepest slope, σ = C / (√(2π) g), less the
+    pixel's box and the smoothing (b = 4 √(σ² − 1/12 − s²)). A disc's edge is less steep than the Gaussian of its
+    σ = b / 4, so a disc is read 25 % wider; noise makes edges look steeper, the smoothing damps it. C: the 2nd to
+    98th percentile of the smoothed pixels within EDGE_WINDOW square; g: the steepest slope, taken per edge through
+    the corner (pixels whose gradient is nearer the normal of the row or of the column line of the grid), the wider
+    of the two kept, so that blur along one direction (motion) is not hidden by the other's sharp edges.
+
+    Args:
+        levels: the image's pyramid ({factor: (H, W) linear image}); corners: (N, 2) full-resolution pixels.
+    """
+    import cv2
+
+    ny, nx = target.grid_shape
+    square = _local_square_px(target, corners)
+    found = np.isfinite(corners).all(1)
+    out = np.full(len(corners), np.nan)
+    s = EDGE_SMOOTH_PX
+    ks = int(math.ceil(3 * s))
+    for k in np.nonzero(found)[0]:
+        f = max([f for f in levels if square[k] / f >= EDGE_LEVEL_SQUARE_PX] or [min(levels)])
+        img = levels[f]
+        x, y = (corners[k] + 0.5) / f - 0.5
+        R = max(EDGE_WINDOW * square[k] / f, 3.0)
+        r0, r1 = max(int(y - R) - ks - 1, 0), min(int(y + R) + ks + 3, img.shape[0])
+        c0, c1 = max(int(x - R) - ks - 1, 0), min(int(x + R) + ks + 3, img.shape[1])
+        patch = cv2.GaussianBlur(np.ascontiguousarray(img[r0:r1, c0:c1], dtype=np.float32), (2 * ks + 1, 2 * ks + 1),
+                                 s, borderType=cv2.BORDER_REPLICATE)
+        gy, gx = np.gradient(patch)
+        yy, xx = np.mgrid[r0:r1, c0:c1]
+        use = (((xx - x) ** 2 + (yy - y) ** 2 <= R * R) & (yy >= r0 + ks + 1) & (yy < r1 - ks - 1)
+               & (xx >= c0 + ks + 1) & (xx < c1 - ks - 1))  # the smoothing whole: not cut by the patch's edge
+        if use.sum() < 20:
+            continue
+        v, gx, gy = patch[use], gx[use], gy[use]
+        lo, hi = np.percentile(v, (2, 98))
+        slope = np.hypot(gx, gy)
+        j, i = divmod(int(k), nx)
+        lines = [_grid_direction(corners, found, k, step, lo_ok, hi_ok)
+                 for step, lo_ok, hi_ok in ((1, i > 0, i < nx - 1), (nx, j > 0, j < ny - 1))]
+        if all(u is not None for u in lines):  # a pixel on the row's edge has its gradient across the row
+            across_row = np.abs(gx * lines[0][0] + gy * lines[0][1]) < np.abs(gx * lines[1][0] + gy * lines[1][1])
+            groups = [slope[across_row], slope[~across_row]]
+            steepest = min(float(g.max()) for g in groups if g.size >= 5) if max(g.size for g in groups) >= 5 else 0.0
+        else:
+            steepest = float(slope.max())
+        if steepest <= 0:
+            out[k] = np.inf
+            continue
+        sigma = (hi - lo) / (math.sqrt(2 * math.pi) * steepest)
+        out[k] = 4 * math.sqrt(max(sigma * sigma - 1 / 12 - s * s, 0.0)) * f / square[k]
+    return out
+
+
+def _grid_direction(corners, found, k, step, lo_ok, hi_ok):
+    """Unit vector along the grid line through corner k (neighbours k ± step, where found), or None."""
+    a = k - step if lo_ok and found[k - step] else k
+    b = k + step if hi_ok and found[k + step] else k
+    if a == b:
+        return None
+    d = corners[b] - corners[a]
+    return d / np.hypot(*d)

@@ -156,13 +156,9 @@ class _Problem:
         nc = 2 * V * N
         J = uv.new_empty(nc + (V * N if self.blur_rows_kept else 0), sum(b.shape[-1] for b in blocks))
         Jc, Jb = J[:nc].view(V, N, 2, -1), J[nc:].view(V, N, -1)
-        a = 0
-        for block in blocks:
-            k = block.shape[-1]
-            Jc[..., a:a + k] = block[..., :2, :]
-            if self.blur_rows_kept:
-                Jb[..., a:a + k] = block[..., 2, :]
-            a += k
+        torch.cat([block[..., :2, :] for block in blocks], -1, out=Jc)          # one copy of strided slices
+        if self.blur_rows_kept:
+            torch.cat([block[..., 2, :] for block in blocks], -1, out=Jb)
         Jc.masked_fill_(~self.cmask[..., None, None], 0.0)
         if self.blur_rows_kept:
             Jb.masked_fill_(~self.bmask[..., None], 0.0)

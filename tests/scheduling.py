@@ -3,8 +3,9 @@
 Two rules, both for wall time on few cores:
 
 - Tests that share a module- or class-scoped fixture go to one worker together, so the fixture is built once in
-  the run. xdist's `load` hands tests out one by one (its first quarter alternately to each worker), so such a
-  fixture was built on both workers; its `--dist loadgroup` cannot help under pytest 9, which no longer reads the
+  the run; so do tests marked with one `@pytest.mark.xdist_group(name)` (a cost paid once a process). xdist's
+  `load` hands tests out one by one (its first quarter alternately to each worker), so such a fixture was built
+  on both workers; its `--dist loadgroup` cannot help under pytest 9, which no longer reads the
   `item._nodeid` that xdist renames to carry the group.
 - The longest units start first (longest-processing-time-first), so the workers end together instead of one of
   them starting a four-minute test near the end. A unit's time is the sum of its tests' times: measured in this
@@ -35,7 +36,16 @@ SEED_MIN_S = 0.5
 
 
 def shared_fixture_group(item: pytest.Item) -> str | None:
-    """The group of `item`: its module's path when it uses a module- or class-scoped fixture, else None."""
+    """The group of `item`: the name its `xdist_group` mark gives, else its module's path when it uses a module- or
+    class-scoped fixture, else None.
+
+    The mark groups tests of several modules that share a cost each process pays once (torch.compile's first
+    compilation in a process imports and sets up Inductor and probes the CPU with subprocesses: on one worker it
+    is paid once in the run). A marked test in a module with a shared fixture leaves that module's group.
+    """
+    mark = item.get_closest_marker("xdist_group")
+    if mark is not None:
+        return "group:" + str(mark.args[0] if mark.args else mark.kwargs.get("name", "default"))
     info = getattr(item, "_fixtureinfo", None)  # pytest keeps a test's fixture definitions only here
     if info is None:
         return None

@@ -69,6 +69,7 @@ def test_applies_only_when_asked():
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("inductor")  # with test_render.py's compiled tracing: Inductor's set-up once a run
 def test_fused_matches_eager():
     # One scene (each scene compiles its own stages: about 20 s with an empty Inductor cache); the speed scene's
     # image is compared at full size by benchmarks/renderer/bench_speed_mitsuba.py (image means).
@@ -133,6 +134,7 @@ def test_cli_compile_flag_reaches_render(tmp_path, monkeypatch):
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("inductor")  # with test_render.py's compiled tracing: Inductor's set-up once a run
 def test_a_new_seed_does_not_compile_again():
     """The sampler's seed reaches the compiled stages as a tensor, not a constant: renders with new seeds
     (animation frames, repeats) reuse the compiled code. With the seed baked in, each seed compiled the stages

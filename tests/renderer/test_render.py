@@ -239,6 +239,7 @@ def test_shape_parameters_do_not_break_a_compiled_graph():
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("inductor")  # with test_fused.py's compiling tests: Inductor's set-up once a run
 def test_compiled_tracing_gives_the_eager_image():
     """torch.compile (fused per-shape kernels) against eager on two shape types: float rounding only
     (a ray grazing a silhouette may flip, so a few pixels may differ)."""

@@ -82,6 +82,27 @@ def test_srgb8_table_matches_the_formula_to_the_last_bit():
     assert np.array_equal(encode_srgb8(img), _encode_srgb8_formula(img.astype(np.float64))), "float32 image"
 
 
+def test_srgb8_float32_table_matches_the_formula_to_the_last_bit():
+    """float32 images are read from their own table (no float64 copy): the same codes as the formula on the
+    values made float64, the 3,000 float32 values either side of every threshold, and values outside [0, 1]."""
+    from camio.files import _encode_srgb8_formula, _srgb8_table32, _srgb8_thresholds
+
+    assert np.isfinite(_srgb8_table32()[1]).sum() > 0 and _srgb8_table32()[1].dtype == np.float32
+    t = _srgb8_thresholds().astype(np.float32)
+    near = (t.view(np.int32)[:, None] + np.arange(-3000, 3000, dtype=np.int32)[None]).view(np.float32).ravel()
+    rng = np.random.default_rng(4)
+    v = np.concatenate([near, (rng.random(100_000) ** 4).astype(np.float32),
+                        rng.normal(0.5, 1.0, 100_000).astype(np.float32),
+                        np.array([-0.0, 0.0, 1.0, 1e-45, np.inf, -np.inf], np.float32)])
+    got, want = encode_srgb8(v), _encode_srgb8_formula(np.clip(v.astype(np.float64), 0.0, 1.0))
+    assert got.dtype == np.uint8 and np.array_equal(got, want), f"{int((got != want).sum())} codes differ"
+    with_nan = v.copy()
+    with_nan[7] = np.nan
+    with np.errstate(invalid="ignore"):  # the formula casts NaN to a code
+        want = _encode_srgb8_formula(np.clip(with_nan.astype(np.float64), 0, 1))
+        assert np.array_equal(encode_srgb8(with_nan), want), "NaN takes the formula"
+
+
 def test_quantised_output_and_decode():
     s = SensorResponse(encoding="srgb8")
     out = s.expose(np.array([[0.2, 0.8]]))

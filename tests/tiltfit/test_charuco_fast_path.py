@@ -170,3 +170,34 @@ def test_sharp_webcam_frames_skip_the_width_pass_with_the_same_corners(monkeypat
             passed = detect_charuco(image, target, measure_blur=False)
         assert "model" not in passed.timings_s, f"{name}: the width pass asked for the model fit"
         assert np.array_equal(fast.corners_px, passed.corners_px), f"{name}: the corners moved"
+
+
+def test_drop_inconsistent_drops_the_corner_its_neighbours_place_elsewhere():
+    """Every corner is placed by the homography of its neighbours within two indices (at least 5, not on one line),
+    all corners at once: on a whole view with noise of 0.03 px, a corner moved by half a square is the one dropped at
+    tolerance 0.2 square; one moved by a tenth is dropped too at 0.05 (with neighbours that the first one's move
+    puts out); a view whose neighbours are too few drops nothing."""
+    from tiltfit.detect.charuco import drop_inconsistent
+
+    truth = next(blurred_renders(FULL[0], (0.0,), 0.0, np.random.default_rng(7)))[0]
+    rng = np.random.default_rng(8)
+    clean = np.where(truth.in_image[:, None], truth.corners_px, np.nan) + rng.normal(0, 0.03, truth.corners_px.shape)
+    found = np.nonzero(np.isfinite(clean).all(1))[0]
+    far, near = int(found[len(found) // 2]), int(found[len(found) // 4])
+    sq = np.nanmedian(np.hypot(*np.diff(clean.reshape(*TARGET.grid_shape, 2), axis=1).reshape(-1, 2).T))
+    moved = clean.copy()
+    moved[far] += [0.5 * sq, 0.0]
+    moved[near] += [0.0, 0.1 * sq]
+    for tolerance in (0.2, 0.05):
+        c = moved.copy()
+        n = drop_inconsistent(c, TARGET, tolerance)
+        gone = set(np.nonzero(np.isfinite(moved).all(1) & ~np.isfinite(c).all(1))[0].tolist())
+        assert n == len(gone), f"tolerance {tolerance}: {n} counted, {len(gone)} dropped"
+        if tolerance == 0.2:
+            assert gone == {far}, f"tolerance 0.2: dropped {sorted(gone)}, not [{far}]"
+        else:
+            assert {far, near} <= gone and len(gone) < 0.2 * len(found), f"tolerance 0.05: dropped {sorted(gone)}"
+    assert drop_inconsistent(clean.copy(), TARGET, 0.05) == 0, "nothing moved: nothing dropped"
+    few = np.full_like(clean, np.nan)
+    few[found[:4]] = clean[found[:4]]
+    assert drop_inconsistent(few, TARGET) == 0 and np.isfinite(few).all(1).sum() == 4, "4 corners: nothing to place by"

@@ -39,7 +39,7 @@ import numpy as np
 from tiltfit.detect.charuco_lattice import MIRROR_IMAGE, _local_square_px, _placed_lattice
 from tiltfit.detect.charuco_model import MODEL_ROUNDS, board_texture, refine_model
 from tiltfit.detect.detection import Detection
-from tiltfit.detect.imaging import build_pyramid, homography_dlt, to_gray, torch_threads
+from tiltfit.detect.imaging import build_pyramid, homography_dlt_batch, to_gray, torch_threads
 from tiltfit.detect.refine import complete_corners, refine_symmetric
 from tiltfit.target.layout import CharucoTarget
 
@@ -204,25 +204,34 @@ def refine_charuco(gray: np.ndarray, target: CharucoTarget, corners: np.ndarray,
 
 def drop_inconsistent(corners: np.ndarray, target: CharucoTarget, tolerance: float = 0.2) -> int:
     """Drop corners that their neighbours (within two indices, at least 5) place elsewhere: further than
-    `tolerance` squares from the local homography of the others. Modifies `corners`; returns how many."""
+    `tolerance` squares from the local homography of the others. Modifies `corners`; returns how many.
+    The homographies of all corners in one batch (`homography_dlt_batch`)."""
+
     ny, nx = target.grid_shape
     pts = target.feature_points()[:, :2]
     found = np.isfinite(corners).all(1)
+    ks = np.nonzero(found)[0]
+    if not ks.size:
+        return 0
     square = _local_square_px(target, corners)
-    bad = []
-    for k in np.nonzero(found)[0]:
-        j, i = divmod(int(k), nx)
-        near = [jj * nx + ii for jj in range(max(0, j - 2), min(ny, j + 3))
-                for ii in range(max(0, i - 2), min(nx, i + 3))
-                if found[jj * nx + ii] and jj * nx + ii != k]
-        if len(near) < 5 or np.linalg.matrix_rank(pts[near] - pts[near].mean(0)) < 2:
-            continue
-        Hm = homography_dlt(pts[near], corners[near])
-        if Hm is None or not np.isfinite(Hm).all():
-            continue
-        q = Hm @ np.array([pts[k, 0], pts[k, 1], 1.0])
-        if np.hypot(*(q[:2] / q[2] - corners[k])) > tolerance * square[k]:
-            bad.append(k)
+    j, i = np.divmod(ks, nx)
+    steps = np.arange(-2, 3)
+    jj, ii = j[:, None, None] + steps[None, :, None], i[:, None, None] + steps[None, None, :]
+    inside = ((jj >= 0) & (jj < ny) & (ii >= 0) & (ii < nx)).reshape(len(ks), -1)
+    near_k = np.where(inside, (jj * nx + ii).reshape(len(ks), -1), 0)
+    near = inside & found[near_k] & (near_k != ks[:, None])  # (K, 25): the neighbours each corner is placed by
+    src = np.where(near[..., None], pts[near_k], 0.0)
+    n = np.maximum(near.sum(1), 1)[:, None]
+    spread = np.where(near[..., None], src - src.sum(1, keepdims=True) / n[..., None], 0.0)
+    placed = (near.sum(1) >= 5) & (np.linalg.matrix_rank(spread) >= 2)  # not all on one line
+    if not placed.any():
+        return 0
+    Hs = homography_dlt_batch(src[placed], np.where(near[placed, :, None], corners[near_k[placed]], 0.0), near[placed])
+    k = ks[placed]
+    q = np.einsum("kij,kj->ki", Hs, np.c_[pts[k], np.ones(len(k))])
+    with np.errstate(divide="ignore", invalid="ignore"):  # a point sent to infinity is far off: dropped
+        off = np.hypot(*(q[:, :2] / q[:, 2:] - corners[k]).T)
+    bad = k[np.isfinite(Hs).all((1, 2)) & (off > tolerance * square[k])]
     corners[bad] = np.nan
     return len(bad)
 

@@ -40,6 +40,10 @@ from tiltfit.target.layout import Target
 # (a corner moved by 1e-6 px moved a first-pass width by 2e-3 px, and final widths by many σ through the passes
 # that follow, whose bands are cut for the width found); in float64 the same first pass moves by 2e-6 px
 _MODEL_DTYPE = torch.float64
+# Pixel slots (points × bands × pixels a band, padding included) a model evaluation takes at once: an evaluation
+# is some 60 element-wise passes over arrays of this size, and beyond it they leave the core's cache (a 1280 × 1024
+# photo's 160 points in one evaluation, 380,000 slots, cost twice as much CPU time as in chunks of this size)
+_CHUNK_SLOTS = 65536
 
 
 
@@ -54,21 +58,30 @@ def _G2(u: torch.Tensor) -> torch.Tensor:
 
 
 def _G_and_G2(u: torch.Tensor, with_G: bool = True):
-    """(G(u) or None, G2(u)), sharing the square root and arcsine (the costly part of the pixel ESF)."""
+    """(G(u) or None, G2(u)), sharing the square root and arcsine (the costly part of the pixel ESF).
+
+    With c = clip(u, −1, 1), s = √(1 − c²), α = asin(c)/π, h = c²/2 + 1/8 and o = max(u − 1, 0):
+        G2 = h (1/2 + α) + c s (13/24 + c²/12)/π + o (1 + o/2),   G = c (1/2 + α) + s (2 + c²)/(3π) + o,
+    both 0 at u ≤ −1. Written as few whole-array passes, most in place: they are the model's inner loop.
+    """
     uc = u.clamp(-1.0, 1.0)
     q = uc * uc
     # floored: the square root of exact zeros (every |u| >= 1) is slow on some CPUs' vector units, and
     # √1e-30 = 1e-15 changes G and G2 by far less than the image's noise
-    s2 = (1 - q).clamp_min_(1e-30)  # s², reused below for s * s
-    s = torch.sqrt(s2)
-    a = torch.asin(uc)
+    s = torch.rsub(q, 1.0).clamp_min_(1e-30).sqrt_()
+    half_a = torch.asin(uc).div_(math.pi).add_(0.5)  # 1/2 + α
     over = (u - 1).clamp_min_(0.0)
-    inner = (0.25 * q + 1.0 / 16 + (a * (0.5 * q + 0.125) + uc * s * (0.625 - s2 / 12)) / math.pi)
-    G2 = inner + over * (1 + 0.5 * over)  # (u² − 1)/2 = over + over²/2 for u = 1 + over
+    G2 = (q * 0.5).add_(0.125).mul_(half_a)
+    G2.addcmul_(uc * s, (q * (1 / (12 * math.pi))).add_(13 / (24 * math.pi)))
+    G2.addcmul_(over, (over * 0.5).add_(1.0))
     if not with_G:
         return None, G2
-    G = 0.5 * uc + (uc * a + s * (1 - s2 / 3.0)) / math.pi + over
+    G = (uc * half_a).addcmul_(s, (q * (1 / (3 * math.pi))).add_(2 / (3 * math.pi))).add_(over)
     return G, G2
+
+
+# The second difference over the four abscissae of `pixel_esf` (+, −, −, +), as one product
+_SECOND_DIFFERENCE = (1.0, -1.0, -1.0, 1.0)
 
 
 def pixel_esf(d: torch.Tensor, r: torch.Tensor, wa: torch.Tensor, wb: torch.Tensor, with_derivatives: bool = False):
@@ -86,60 +99,35 @@ def pixel_esf(d: torch.Tensor, r: torch.Tensor, wa: torch.Tensor, wb: torch.Tens
     """
     r = r.clamp_min(1e-3)
     wb = wb.clamp_min(0.02)  # an axis-aligned edge: a box of 0.02 px changes E by < 1e-4
-    reach = r + 0.5 * (wa + wb) + 1e-3
-    d = torch.maximum(torch.minimum(d, reach), -reach)  # E is exactly 0 or 1 beyond; keeps G2 small
     hp, hm = 0.5 * (wa + wb), 0.5 * (wa - wb)
-    # the four abscissae lead (not trail), so the second differences are plain sums of whole arrays
-    u = torch.stack(torch.broadcast_tensors(d + hp, d + hm, d - hm, d - hp)) / r
+    reach = r + hp + 1e-3
+    d = torch.maximum(torch.minimum(d, reach), -reach)  # E is exactly 0 or 1 beyond; keeps G2 small
+    # the four abscissae lead (not trail), so the second differences are one product with (+1, −1, −1, +1)
+    u = torch.stack(torch.broadcast_tensors(d + hp, d + hm, d - hm, d - hp)).div_(r)
+    sd = torch.tensor(_SECOND_DIFFERENCE, dtype=u.dtype)
     norm = r * r / (wa * wb)
     G, G2 = _G_and_G2(u, with_G=with_derivatives)
-    G2u = (G2[0] + G2[3]) - (G2[1] + G2[2])
+    shape = u.shape[1:]
+    G2u = (sd @ G2.reshape(4, -1)).reshape(shape)
     E = G2u * norm
     if not with_derivatives:
         return E
-    uG = u * G
-    dE_dd = ((G[0] + G[3]) - (G[1] + G[2])) * norm / r
-    dE_dr = (2 * G2u - ((uG[0] + uG[3]) - (uG[1] + uG[2]))) * norm / r
+    norm_r = norm / r
+    dE_dd = (sd @ G.reshape(4, -1)).reshape(shape) * norm_r
+    dE_dr = (2 * G2u - (sd @ G.mul_(u).reshape(4, -1)).reshape(shape)) * norm_r
     return E, dE_dd, dE_dr
 
 
-def _pixel_esf_on_edges(d: torch.Tensor, r: torch.Tensor, wa: torch.Tensor, wb: torch.Tensor, deriv: bool):
-    """`pixel_esf` evaluated only at the pixels the blurred edge reaches; elsewhere E is exactly 0 or 1.
-
-    Most pixels of a band lie inside the cells, beyond the blur disc and the pixel's own width from the
-    edge (|d| >= r + (wa + wb)/2), where E is 1 (d > 0) or 0 with zero derivatives: the closed form is
-    evaluated on the rest only (typically 5–15 % of a band).
-
-    Args:
-        d, r: (..., n) distances and radii, pixels; wa, wb: (..., 1) projected pixel widths per band.
-    Returns:
-        E, ∂E/∂d, ∂E/∂r (..., n); the derivatives None without deriv.
-    """
-    E = (d > 0).to(d.dtype)
-    E_d = torch.zeros_like(d) if deriv else None
-    E_r = torch.zeros_like(d) if deriv else None
-    sel = d.abs() < r + (0.5 * (wa + wb.clamp_min(0.02)) + 1e-3)
-    at = sel.reshape(-1).nonzero().squeeze(1)
-    if at.numel() == 0:
-        return E, E_d, E_r
-    band = at // d.shape[-1]
-    out = pixel_esf(d.reshape(-1)[at], r.reshape(-1)[at], wa.reshape(-1)[band], wb.reshape(-1)[band], deriv)
-    for full, part in zip((E, E_d, E_r), out if deriv else (out,)):
-        full.view(-1).index_copy_(0, at, part)
-    return E, E_d, E_r
-
-
-def _pack_bands(img: np.ndarray, groups: list[list[dict]]):
-    """The bands of C points padded into tensors (B bands a point at most, n pixels a band at most): mask (the
-    square root of the pixel's weight, so that residuals and Jacobian rows times mask weight the squares), values,
-    d0, d_lo, d_hi (C, B, n), dxy (C, B, n, 2), kappa (C, B, 4), wa, wb (C, B, 1); padding has mask 0 and its far
-    lines out of reach. float64 for the mask, values and far lines, `_MODEL_DTYPE` for the model's geometry."""
+def _pack_bands(img: np.ndarray, groups: list[list[dict]], B: int):
+    """The bands of C points padded into tensors (B bands a point, n pixels a band at most): mask (the square root
+    of the pixel's weight, so that residuals and Jacobian rows times mask weight the squares), values, d0, d_lo,
+    d_hi (C, B, n), dxy (C, B, n, 2), kappa (C, B, 4), wa, wb (C, B, 1); padding has mask 0 and every edge out of
+    reach. float64 for the mask, values and far lines, `_MODEL_DTYPE` for the model's geometry."""
     C = len(groups)
-    B = max(len(g) for g in groups)
     n = max(len(b["d0"]) for g in groups for b in g)
     mask = np.zeros((C, B, n))
     vals = np.zeros((C, B, n))
-    d0 = np.zeros((C, B, n))
+    d0 = np.full((C, B, n), 1e4)  # padding: every edge out of reach, so no closed form is evaluated there
     dlo = np.full((C, B, n), 1e6)
     dhi = np.full((C, B, n), -1e6)
     dxy = np.zeros((C, B, n, 2))
@@ -159,28 +147,20 @@ def _pack_bands(img: np.ndarray, groups: list[list[dict]]):
             t(wa).to(dt)[..., None], t(wb).to(dt)[..., None])
 
 
-def _normal_equations(Kt: torch.Tensor, res: torch.Tensor):
-    """JᵀJ (k, P, P) and Jᵀ res (k, P), P = 3 + 3B, from the six non-zero Jacobian columns Kt (k, B, 6, n) per pixel
-    of `fit_corners`' model (the point's β, gx, gy; the band's dark level, contrast, edge offset; zero on padding)
-    and the residuals res (k, B, n)."""
-    k, B = Kt.shape[:2]
+def _band_blocks(B: int):
+    """Where the (7, 7) product of a band's rows (β, gx, gy, dark level, contrast, edge offset; residual) goes in a
+    point's normal equations: flat indices into JᵀJ (P × P, P = 3 + 3B) of each band's 6 × 6 block (B * 36,) (the
+    point's 3 × 3 block is shared by its bands and summed), and into Jᵀr (P,) of each band's 6 (B * 6,)."""
     P = 3 + 3 * B
-    M = Kt @ Kt.transpose(-1, -2)  # (k, B, 6, 6)
-    v = (Kt @ res[..., None])[..., 0]  # (k, B, 6)
-    A = torch.zeros(k, P, P, dtype=torch.float64)
-    A[:, :3, :3] = M[:, :, :3, :3].sum(1)
-    for e in range(B):
-        sl = slice(3 + 3 * e, 6 + 3 * e)
-        A[:, :3, sl] = M[:, e, :3, 3:]
-        A[:, sl, :3] = M[:, e, 3:, :3]
-        A[:, sl, sl] = M[:, e, 3:, 3:]
-    return A, torch.cat([v[:, :, :3].sum(1), v[:, :, 3:].reshape(k, 3 * B)], 1)
+    params = np.array([[0, 1, 2, 3 + 3 * e, 4 + 3 * e, 5 + 3 * e] for e in range(B)])  # (B, 6)
+    to_A = (params[:, :, None] * P + params[:, None, :]).reshape(-1)
+    return torch.from_numpy(to_A), torch.from_numpy(params.reshape(-1))
 
 
 def _start(model, I: torch.Tensor, mask: torch.Tensor, has_band: torch.Tensor, r0: torch.Tensor) -> torch.Tensor:
     """`fit_corners`' start (C, P): β scanned from 4 % to 200 % of 2 r0 (g = 0), the levels of each band solved
     linearly at each β (weighted by mask²), the β that leaves the least weighted squared residual kept.
-    model(theta, idx, deriv) is the fit's."""
+    model.profile(theta, idx) gives the cells' profile at unit contrast and zero dark level."""
     C, B = mask.shape[:2]
     every = torch.arange(C)
     w = mask * mask
@@ -191,7 +171,7 @@ def _start(model, I: torch.Tensor, mask: torch.Tensor, has_band: torch.Tensor, r
         trial = torch.zeros(C, 3 + 3 * B, dtype=torch.float64)
         trial[:, 0] = (2 * r0 * frac).clamp_min(0.1)  # β is a diameter
         trial[:, 4::3] = 1.0
-        gg = model(trial, every, deriv=False)[0]
+        gg = model.profile(trial, every)
         sg, sI = (w * gg).sum(-1), (w * I).sum(-1)
         sgg, sgI = (w * gg * gg).sum(-1), (w * gg * I).sum(-1)
         det = npix * sgg - sg * sg
@@ -230,80 +210,136 @@ def _small_step(step: torch.Tensor, th: torch.Tensor, idx: torch.Tensor) -> torc
 
 
 class _BandModel:
-    """`fit_corners`' model of the packed bands: values and Jacobian columns at the points idx.
+    """`fit_corners`' model of one chunk of points' packed bands: the cells' profile, and the normal equations.
 
-    The solver asks for the same points for several iterations (until one of them stops), so the tensors of the
-    points asked for are gathered once per set; the far lines do not move, so the pixels they may reach are
-    listed once per set too, and only those are tested against the current blur.
+    A band's profile crosses three edges, its own and the parallel edges before and after it, each a step (0 or 1)
+    blurred by the disc. They are evaluated as one list of candidate slots: every slot for the band's own edge, and
+    for the far edges, which do not move, the slots within reach of the largest blur allowed (`r_cap`); the closed
+    form (`pixel_esf`) runs on the candidates the current blur reaches, elsewhere a profile is its step. The
+    solver asks for the same points for several iterations (until one of them stops), so their tensors and
+    candidates are gathered once per set of points.
     """
 
-    def __init__(self, img: np.ndarray, groups: list[list[dict]], r_cap: torch.Tensor):
+    def __init__(self, img: np.ndarray, groups: list[list[dict]], r_cap: torch.Tensor, B: int):
         dt = _MODEL_DTYPE  # the model's working precision
-        self.mask, self.I, d0, dlo, dhi, dxy, kap, wa, wb = _pack_bands(img, groups)
-        lim = (r_cap + 2.0)[:, None, None] + 0.0
-        # far lines: only the entries within reach are evaluated, elsewhere the step is 0 or 1
-        self._far = [((dlo.abs() < 1.3 * lim), dlo.to(dt)), ((dhi.abs() < 1.3 * lim), dhi.to(dt))]
-        self._points = dict(I=self.I, mask=self.mask, m_model=self.mask.to(dt), d0=d0, dx=dxy[..., 0].contiguous(),
-                            dy=dxy[..., 1].contiguous(), kap0=kap[..., 0:1], wa=wa, wb=wb,
-                            c_lo=(kap[..., 1] - kap[..., 0])[..., None], c_0=(kap[..., 2] - kap[..., 1])[..., None],
-                            c_hi=(kap[..., 3] - kap[..., 2])[..., None])
+        self.mask, self.I, d0, dlo, dhi, dxy, kap, wa, wb = _pack_bands(img, groups, B)
+        lim = 1.3 * (r_cap + 2.0)[:, None, None]
+        c_lo, c_0, c_hi = ((kap[..., j + 1] - kap[..., j])[..., None] for j in range(3))
+        # the profile where no blur reaches: the cells' levels with every edge a step
+        steps = kap[..., 0:1] + c_lo * (dlo > 0) + c_hi * (dhi > 0)  # the far edges' steps, which do not move
+        self._points = dict(I=self.I, mask=self.mask.to(dt), d0=d0, dx=dxy[..., 0].contiguous(),
+                            dy=dxy[..., 1].contiguous(), steps=steps, c_0=c_0, wa=wa, wb=wb,
+                            far=torch.stack([dlo.abs() < lim, dhi.abs() < lim]), d_far=torch.stack([dlo, dhi]).to(dt),
+                            c_far=torch.stack([c_lo, c_hi]))
+        self._to_A, self._to_g = _band_blocks(B)
         self._idx, self._at = None, None
 
     def at(self, idx: torch.Tensor) -> dict:
-        """The points' tensors gathered at idx (k,), kept until another set is asked for."""
+        """The points' tensors gathered at idx (k,), and their candidate slots (class docstring), kept until
+        another set is asked for."""
         if self._idx is not None and idx.numel() == self._idx.numel() and torch.equal(idx, self._idx):
             return self._at
-        g = {k: v[idx] for k, v in self._points.items()}
-        n = g["d0"].shape[-1]
-        reach = (0.5 * (g["wa"] + g["wb"].clamp_min(0.02)) + 1e-3).reshape(-1)  # per band, beyond the blur radius
-        g["far"] = []
-        for near, dist in self._far:
-            d = dist[idx]
-            px = near[idx].reshape(-1).nonzero().squeeze(1)  # the pixels this line may reach
-            g["far"].append(((d > 0).to(d.dtype), px, d.reshape(-1)[px], px // n, reach[px // n]))
+        p = self._points
+        g = {k: p[k][idx] for k in ("I", "mask", "d0", "dx", "dy", "c_0", "wa", "wb")}
+        k, B, n = g["d0"].shape
+        # where the own edge is a step: the cells' levels, the own step written 1/2 + sign(d)/2 (a float
+        # sign, not a comparison: several times cheaper in torch)
+        g["steps"] = torch.addcmul(p["steps"][idx], g["c_0"], torch.tensor(0.5, dtype=torch.float64))
+        g["half_c_0"] = 0.5 * g["c_0"]
+        reach = 0.5 * (g["wa"] + g["wb"].clamp_min(0.02)) + 1e-3  # (k, B, 1) beyond the blur radius
+        g["reach"] = reach.expand(k, B, n).reshape(-1).numpy()
+        far = p["far"][:, idx].reshape(-1).nonzero().squeeze(1)  # (line, slot) of the far edges' candidates
+        slot_far = far % (k * B * n)
+        g["slot_far"] = slot_far
+        g["d_far"] = p["d_far"][:, idx].reshape(-1)[far]
+        g["reach_far"] = reach.reshape(-1)[slot_far // n].numpy()
+        band = torch.cat([torch.arange(k * B).repeat_interleave(n), slot_far // n])
+        g["coef"] = torch.cat([g["c_0"].expand(k, B, n).reshape(-1), p["c_far"][:, idx].reshape(-1)[far // n]])
+        g["cand_wa"], g["cand_wb"] = g["wa"].reshape(-1)[band], g["wb"].reshape(-1)[band]
         self._idx, self._at = idx, g
         return g
 
-    @staticmethod
-    def _far_term(g: dict, line, r: torch.Tensor, deriv: bool):
-        """E and ∂E/∂r (None without deriv) of a far line: the step, and `pixel_esf` where the blur reaches."""
-        step, px, d, band, reach = line
-        E = step.clone()
-        E_r = torch.zeros_like(step) if deriv else None
-        r_px = r.reshape(-1)[px]
-        sel = (d.abs() < r_px + reach).nonzero().squeeze(1)
-        if sel.numel() == 0:
-            return E, E_r
-        at, b = px[sel], band[sel]
-        out = pixel_esf(d[sel], r_px[sel], g["wa"].reshape(-1)[b], g["wb"].reshape(-1)[b], deriv)
-        E.view(-1).index_copy_(0, at, out[0] if deriv else out)
-        if deriv:
-            E_r.view(-1).index_copy_(0, at, out[2])
-        return E, E_r
+    def _profile(self, g: dict, theta: torch.Tensor, deriv: bool):
+        """The cells' profile (k, B, n) at unit contrast and zero dark level for parameters theta (k, P), and with
+        deriv Σ (cell step) ∂E/∂r over the edges, ∂E/∂d of the own edge (both (k, B, n)) and sign(β + g · x)."""
+        beta, gx, gy = (theta[:, j, None, None] for j in range(3))
+        delta = theta[:, 5::3, None]  # (k, B, 1)
+        sb = torch.addcmul(beta, gx, g["dx"]).addcmul_(gy, g["dy"])
+        r = sb.abs().mul_(0.5).clamp_min_(1e-3)
+        d = g["d0"] - delta
+        S = d.numel()
+        r_far = r.reshape(-1).index_select(0, g["slot_far"])
+        # the candidates the blur reaches, chosen in numpy: its comparisons and flatnonzero cost a fifth of torch's
+        dn, rn = d.numpy().reshape(-1), r.numpy().reshape(-1)
+        own = torch.from_numpy(np.flatnonzero(np.abs(dn) < rn + g["reach"]))
+        far = torch.from_numpy(np.flatnonzero(np.abs(g["d_far"].numpy()) < r_far.numpy() + g["reach_far"]))
+        at = torch.cat([own, far + S])  # into the candidates: own slots, then the far edges' list
+        slot = torch.cat([own, g["slot_far"].index_select(0, far)])
+        ds = torch.cat([d.reshape(-1).index_select(0, own), g["d_far"].index_select(0, far)])
+        rs = torch.cat([r.reshape(-1).index_select(0, own), r_far.index_select(0, far)])
+        out = pixel_esf(ds, rs, g["cand_wa"].index_select(0, at), g["cand_wb"].index_select(0, at), deriv)
+        E = out[0] if deriv else out
+        coef = g["coef"].index_select(0, at)
+        gsum = torch.addcmul(g["steps"], g["half_c_0"], torch.sign(d))
+        # at the candidates reached, the step there (1/2 + sign/2 for the own edge, as above) becomes E
+        step = torch.cat([torch.sign(ds[:own.numel()]).mul_(0.5).add_(0.5), (ds[own.numel():] > 0).to(ds.dtype)])
+        gsum.view(-1).index_add_(0, slot, coef * (E - step))
+        if not deriv:
+            return gsum, None, None, None
+        E_r = torch.zeros(S, dtype=gsum.dtype).index_add_(0, slot, coef * out[2])
+        E_d = torch.zeros(S, dtype=gsum.dtype).index_copy_(0, own, out[1][:own.numel()])
+        return gsum, E_r.view_as(gsum), E_d.view_as(gsum), torch.sign(sb)
 
-    def __call__(self, theta: torch.Tensor, idx: torch.Tensor, deriv: bool = True):
-        """Model values f (k, B, n) at the points idx (k,) for parameters theta (k, P) and, with deriv, the six
-        non-zero columns of the Jacobian per pixel (k, B, 6, n), float64, zero on padding: a pixel of band e depends
-        on the point's (β, gx, gy) and on band e's (dark level, contrast, edge offset) only."""
+    def profile(self, theta: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+        """The cells' profile (k, B, n) at the points idx (k,) for parameters theta (k, P), unit contrast and zero
+        dark level (the start's model)."""
+        return self._profile(self.at(idx), theta.to(_MODEL_DTYPE), deriv=False)[0]
+
+    def normal(self, theta: torch.Tensor, idx: torch.Tensor, prior: torch.Tensor) -> Normal:
+        """`tiltfit.solve.Normal` of the points idx (k,) at parameters theta (k, P): the cost Σ mask² (model − data)²
+        with the prior on g (prior² |g|², prior (k,)), JᵀJ (k, P, P) and Jᵀr (k, P), r model − data.
+
+        A pixel of band e depends on the point's (β, gx, gy) and on band e's (dark level, contrast, edge offset)
+        only: its six Jacobian entries and its residual form 7 rows a band, whose products (one bmm) are the
+        band's blocks of the normal equations and its squared residuals."""
         g = self.at(idx)
         th = theta.to(_MODEL_DTYPE)
-        beta, gx, gy = th[:, 0], th[:, 1], th[:, 2]
-        o, c, delta = th[:, 3::3], th[:, 4::3], th[:, 5::3]  # (k, B)
-        sb = beta[:, None, None] + gx[:, None, None] * g["dx"] + gy[:, None, None] * g["dy"]
-        r = (0.5 * sb.abs()).clamp_min(1e-3)
-        e0, e0_d, e0_r = _pixel_esf_on_edges(g["d0"] - delta[..., None], r, g["wa"], g["wb"], deriv)
-        (elo, elo_r), (ehi, ehi_r) = (self._far_term(g, line, r, deriv) for line in g["far"])
-        cl, c0, ch = g["c_lo"], g["c_0"], g["c_hi"]
-        gsum = g["kap0"] + cl * elo + c0 * e0 + ch * ehi
-        f = o[..., None] + c[..., None] * gsum
-        if not deriv:
-            return f.double(), None
-        m = g["m_model"]  # √weight, 0 on padding: the columns there are zeroed exactly
-        dr = c[..., None] * (cl * elo_r + c0 * e0_r + ch * ehi_r) * 0.5 * torch.sign(sb) * m
-        Kt = torch.empty(*m.shape[:2], 6, m.shape[-1], dtype=torch.float64)  # the rows, cast exactly once
-        for row, col in enumerate((dr, dr * g["dx"], dr * g["dy"], m, gsum * m, -c[..., None] * c0 * e0_d * m)):
-            Kt[:, :, row] = col
-        return f.double(), Kt
+        k, B, n = g["d0"].shape
+        P = 3 + 3 * B
+        o, c = th[:, 3::3, None], th[:, 4::3, None]  # (k, B, 1)
+        gsum, E_r, E_d, sign = self._profile(g, th, deriv=True)
+        m = g["mask"]  # √weight, 0 on padding: the rows there are zeroed exactly
+        rows = torch.empty(k, B, 7, n, dtype=torch.float64)
+        torch.mul(E_r, (0.5 * c) * m, out=rows[:, :, 0]).mul_(sign)  # ∂r/∂β = sign(β + g · x) / 2
+        torch.mul(rows[:, :, 0], g["dx"], out=rows[:, :, 1])
+        torch.mul(rows[:, :, 0], g["dy"], out=rows[:, :, 2])
+        rows[:, :, 3] = m
+        torch.mul(gsum, m, out=rows[:, :, 4])
+        torch.mul(E_d, (-c * g["c_0"]) * m, out=rows[:, :, 5])
+        torch.addcmul(o - g["I"], c, gsum, out=rows[:, :, 6]).mul_(m)
+        M = rows @ rows.transpose(-1, -2)  # (k, B, 7, 7)
+        A = torch.zeros(k, P * P, dtype=torch.float64).index_add_(1, self._to_A, M[..., :6, :6].reshape(k, B * 36))
+        A = A.view(k, P, P)
+        grad = torch.zeros(k, P, dtype=torch.float64).index_add_(1, self._to_g, M[..., :6, 6].reshape(k, B * 6))
+        p2 = prior * prior
+        A[:, 1, 1] += p2
+        A[:, 2, 2] += p2
+        grad[:, 1:3] += p2[:, None] * th[:, 1:3]
+        cost = M[..., 6, 6].sum(-1) + p2 * (th[:, 1:3] ** 2).sum(-1)
+        return Normal(cost, A, grad)
+
+
+def _chunks(groups: list[list[dict]]) -> list[np.ndarray]:
+    """The points in chunks a model evaluation takes at once: ordered by their longest band (so a chunk pads its
+    bands to about their own length) and cut into as few chunks of about equal pixel slots as keep each within
+    about `_CHUNK_SLOTS`."""
+    B = max(len(g) for g in groups)
+    n = np.array([max(len(b["d0"]) for b in g) for g in groups])
+    order = np.argsort(n, kind="stable")
+    slots = np.cumsum(B * n[order])
+    pieces = math.ceil(slots[-1] / _CHUNK_SLOTS)
+    cuts = np.searchsorted(slots, slots[-1] * np.arange(1, pieces) / pieces)
+    return [ch for ch in np.split(order, cuts) if ch.size]
 
 
 def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, iterations: int = 30):
@@ -312,7 +348,7 @@ def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, itera
     The blur diameter varies linearly over a point's neighbourhood through zero if need be,
     b(x) = |β + g · (x − p)| (the paper's (4) is linear in position to first order), so a point on the plane
     of focus is measured as sharp even though its edges away from it are not. Free per point: β, g (2);
-    per band: dark level, contrast and edge offset.
+    per band: dark level, contrast and edge offset. The model is evaluated in chunks of points (`_chunks`).
 
     Args:
         img: the (pyramid-level) image; groups: per point, the bands from `_half_edges`;
@@ -320,30 +356,29 @@ def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, itera
     Returns:
         b (C,) = |β|, sigma_b (C,), grad (C, 2), ok (C,), in pixels of `img`.
     """
-    r0 = torch.as_tensor(np.asarray(r0, dtype=np.float64))
+    chunks = _chunks(groups)
+    order = np.concatenate(chunks)  # the fit runs on the points in this order
+    B = max(len(g) for g in groups)
+    r0 = torch.as_tensor(np.asarray(r0, dtype=np.float64)[order])
     r_cap = 1.5 * r0 + 1.0
-    model = _BandModel(img, groups, r_cap)
-    mask = model.mask
-    has_band = mask.any(-1)
-    npix = (mask * mask).sum(-1)  # the bands' weights: pixels, tapered at the band's limits
-    theta = _start(model, model.I, mask, has_band, r0)
+    bounds = np.cumsum([0] + [len(ch) for ch in chunks])
+    spans = list(zip(bounds[:-1].tolist(), bounds[1:].tolist()))
+    models = [_BandModel(img, [groups[i] for i in ch], r_cap[a:b], B) for ch, (a, b) in zip(chunks, spans)]
+    has_band = torch.cat([m.mask.any(-1) for m in models])
+    npix = torch.cat([(m.mask * m.mask).sum(-1) for m in models])  # the bands' weights: pixels, tapered
+    theta = torch.cat([_start(m, m.I, m.mask, m.mask.any(-1), r0[a:b]) for m, (a, b) in zip(models, spans)])
     # weak prior on g (1 % per pixel) keeps points with few bands well posed: residuals prior · (gx, gy)
     prior = 1e-2 * torch.sqrt(npix.sum(-1)) * theta[:, 4::3].abs().mean(-1).clamp_min(1e-6)
+    starts = torch.as_tensor(bounds)
 
     def evaluate(th, idx):
-        """`tiltfit.solve.Normal` (cost, JᵀJ, Jᵀr) of the corners idx at parameters th (k, P), r model − data,
-        the prior included."""
-        f, Kt = model(th, idx)
-        at = model.at(idx)
-        res = (at["I"] - f) * at["mask"]
-        p = prior[idx]
-        cost = (res * res).sum((-1, -2)) + ((p[:, None] * th[:, 1:3]) ** 2).sum(-1)
-        A, Kr = _normal_equations(Kt, res)
-        A[:, 1, 1] += p ** 2
-        A[:, 2, 2] += p ** 2
-        g = -Kr
-        g[:, 1:3] += p[:, None] ** 2 * th[:, 1:3]
-        return Normal(cost, A, g)
+        """`tiltfit.solve.Normal` of the points idx (ascending) at th (k, P), chunk by chunk."""
+        cuts = torch.searchsorted(idx, starts).tolist()
+        parts = [m.normal(th[p:q], idx[p:q] - a, prior[idx[p:q]])
+                 for m, (a, _), p, q in zip(models, spans, cuts, cuts[1:]) if q > p]
+        if len(parts) == 1:
+            return parts[0]
+        return Normal(*(torch.cat(x) for x in zip(*((n.cost, n.A, n.g) for n in parts))))
 
     def within_cap(th, idx):
         th[:, 0] = th[:, 0].clamp(-2 * r_cap[idx], 2 * r_cap[idx])
@@ -356,7 +391,8 @@ def fit_corners(img: np.ndarray, groups: list[list[dict]], r0: np.ndarray, itera
     b = theta[:, 0].abs()
     sig = _diameter_sigma(sol.A, cost, npix, has_band, contrast)
     ok = torch.isfinite(b) & torch.isfinite(sig) & (contrast > 0) & (has_band.sum(-1) >= 1)
-    return b.numpy(), sig.numpy(), theta[:, 1:3].numpy(), ok.numpy()
+    back = np.argsort(order)
+    return b.numpy()[back], sig.numpy()[back], theta[:, 1:3].numpy()[back], ok.numpy()[back]
 
 
 def _level_homography(Hm: np.ndarray, factor: int) -> np.ndarray:

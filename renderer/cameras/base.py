@@ -14,6 +14,7 @@ import torch
 from renderer.core.params import SceneError
 from renderer.core.rays import Rays
 from renderer.core.transforms import CameraTransform
+from .distortion import distort_about_axis_jacobians, distort_jacobian
 from .projection import image_centre_px, normalised_from_pixels, pixels_from_normalised, project_pinhole
 
 #: `Camera.undistort_pixels` keeps a map of the inverse distortion, nodes every this many pixels, for calls with at
@@ -127,19 +128,76 @@ class Camera:
     def _from_normalised(self, xy: torch.Tensor) -> torch.Tensor:
         return pixels_from_normalised(xy, self.focal_px, self.screen.center_px)
 
-    def undistort_pixels(self, uv_px: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def undistort_pixels(self, uv_px: torch.Tensor,
+                         start_px: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Pixels of the distorted image -> ((..., 2) pixels of the ideal, distortion-free camera, (...,) valid).
 
-        Identity without `distortion`; invalid where the distortion cannot be inverted.
+        Identity without `distortion`; invalid where the distortion cannot be inverted. `start_px`: (..., 2) ideal
+        pixels near the answer where Newton's method starts (the root is the same, reached in fewer steps) [an
+        interpolated map of the inverse where the camera's numbers are plain, else the pixels themselves].
         """
         if self.distortion is None or self.distortion.is_identity:
             return uv_px, torch.ones(uv_px.shape[:-1], dtype=torch.bool, device=uv_px.device)
         start = skip = None
-        if self._plain_distortion() and uv_px.shape[:-1].numel() >= UNDISTORTION_MAP_MIN_POINTS:
+        if start_px is not None:
+            start = self._normalised(start_px)
+        elif self._plain_distortion() and uv_px.shape[:-1].numel() >= UNDISTORTION_MAP_MIN_POINTS:
             start, skip = self._undistortion_start(uv_px)
         xy = self.distortion.undistort(self._normalised(uv_px), start, skip)
         ok = torch.isfinite(xy).all(-1)
         return torch.where(ok[..., None], self._from_normalised(torch.nan_to_num(xy)), uv_px), ok
+
+    def undistort_pixels_from(self, uv_px: torch.Tensor, ideal_px: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        """`undistort_pixels(uv_px)[0]` as a function of the camera's parameters, given its values `ideal_px` and
+        `valid` (computed without derivatives): one Newton step from them, so the same numbers to rounding, whose
+        derivatives are the implicit function's, dx = J⁻¹ (dx_d − ∂D) with J = ∂D/∂x at the root (`distortion.
+        undistort` ends the same way). The Newton iterations then run once, not under forward-mode tangents.
+
+        Args:
+            uv_px: (..., 2) pixels of the distorted image; ideal_px, valid: what `undistort_pixels` returned for
+                them (pixels where `valid` is False stay `uv_px`, as there).
+        Returns:
+            (..., 2) pixels of the ideal, distortion-free camera.
+        """
+        if self.distortion is None or self.distortion.is_identity:
+            return uv_px
+        xy0 = self._normalised(ideal_px)
+        k, R = self.distortion.coefficients, self.distortion.camera_from_lens
+        with torch.no_grad():
+            x, kd = xy0.detach(), (k.detach() if isinstance(k, torch.Tensor) else k)
+            J = distort_jacobian(x, kd) if R is None else distort_about_axis_jacobians(
+                x, kd, R.detach() if isinstance(R, torch.Tensor) else R)[1]
+            det = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
+        err = self.distortion.distort(xy0) - self._normalised(uv_px)
+        step = torch.stack([J[..., 1, 1] * err[..., 0] - J[..., 0, 1] * err[..., 1],
+                            J[..., 0, 0] * err[..., 1] - J[..., 1, 0] * err[..., 0]], -1) / det[..., None]
+        ok = valid & (det != 0)
+        return torch.where(ok[..., None], self._from_normalised(xy0 - torch.where(ok[..., None], step, 0.0)), uv_px)
+
+    def undistort_pixels_jacobian(self, uv_px: torch.Tensor, ideal_px: torch.Tensor,
+                                  valid: torch.Tensor) -> torch.Tensor:
+        """(..., 2, 4) derivatives of `undistort_pixels(uv_px)[0]` by the focal lengths and the principal point
+        (f_x, f_y, c_x, c_y; pixels), given its values `ideal_px` and `valid`, for a distortion about the
+        principal point with fixed coefficients (`distortion.camera_from_lens` None): at the root x of
+        D(x) = n = (uv − c) / f, dx = J⁻¹ dn with J = ∂D/∂x (implicit function), and ideal = f x + c. Zero where
+        `valid` is False (those pixels stay `uv_px`)."""
+        if self.distortion.camera_from_lens is not None:
+            raise ValueError("undistort_pixels_jacobian: the distortion is about the lens axis, not the principal point")
+        f = torch.stack([torch.as_tensor(t).to(uv_px) for t in self.focal_px])
+        c = torch.stack([torch.as_tensor(t).to(uv_px) for t in self.screen.center_px])
+        x, n = (ideal_px - c) / f, (uv_px - c) / f
+        J = distort_jacobian(x, self.distortion.coefficients)
+        det = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
+        # dn/d(f, c): n_i = (uv_i − c_i) / f_i, so ∂n_i/∂f_i = −n_i / f_i and ∂n_i/∂c_i = −1 / f_i.
+        eye = torch.eye(2, dtype=uv_px.dtype, device=uv_px.device)
+        dn = torch.cat([-(n / f)[..., None] * eye, (-1.0 / f)[:, None] * eye.expand(n.shape[:-1] + (2, 2))], -1)
+        dx = torch.stack([J[..., 1, 1, None] * dn[..., 0, :] - J[..., 0, 1, None] * dn[..., 1, :],
+                          J[..., 0, 0, None] * dn[..., 1, :] - J[..., 1, 0, None] * dn[..., 0, :]], -2)
+        dx = dx / det[..., None, None]
+        # ideal_i = f_i x_i + c_i: ∂/∂f_i = x_i + f_i ∂x_i/∂f_i, ∂/∂c_i = 1 + f_i ∂x_i/∂c_i (and the cross terms).
+        d_ideal = f[:, None] * dx + torch.cat([x[..., None] * eye, eye.expand(x.shape[:-1] + (2, 2))], -1)
+        ok = valid & torch.isfinite(d_ideal).all(-1).all(-1)
+        return torch.where(ok[..., None, None], d_ideal, 0.0)
 
     def _plain_distortion(self) -> bool:
         """Whether the distortion and the pixel mapping are plain numbers (no gradient wanted through them), so

@@ -372,7 +372,7 @@ class ThinLensCamera(Camera):
         valid = torch.ones(x.shape, dtype=torch.bool, device=x.device)
         return Rays(origin.movedim(0, -1), d.movedim(0, -1), valid, torch.ones_like(x))
 
-    def focus_geometry(self, uv_px: torch.Tensor):
+    def focus_geometry(self, uv_px: torch.Tensor, distorted: bool = True):
         """Where the rays of sensor points converge, and the aperture they come from, world frame.
 
         Every ray `generate_rays` traces from the sensor point of `uv_px` leaves a point L of the lens disc and
@@ -383,6 +383,8 @@ class ThinLensCamera(Camera):
         Args:
             uv_px: (..., 2) pixel positions (distorted pixels are traced through their ideal positions, as in
                 `generate_rays`).
+            distorted: whether `uv_px` are pixels of the distorted image [True]; False: already ideal pixels (as
+                `undistort_pixels` gives them), taken as they are.
         Returns:
             q_h: (..., 4) homogeneous focus points (x, y, z, s), world frame: q = (x, y, z) / s, with s ≤ 0 for
                 focus points at infinity or behind the lens (s = D/U, `focus_weight`).
@@ -390,7 +392,10 @@ class ThinLensCamera(Camera):
                 disc (length d/2), so its points are centre + a·axes[0] + b·axes[1], a² + b² ≤ 1.
             valid: (...,) False where the distortion cannot be inverted.
         """
-        ideal_px, valid = self.undistort_pixels(uv_px)
+        if distorted:
+            ideal_px, valid = self.undistort_pixels(uv_px)
+        else:
+            ideal_px, valid = uv_px, torch.ones(uv_px.shape[:-1], dtype=torch.bool, device=uv_px.device)
         x, y, z = self.screen.plane_rows(ideal_px)
         weight = self._focus_weight(x, y, z)
         R = self.transform.world_from_camera.to(x)

@@ -100,11 +100,13 @@ def test_lens_sample_jacobian_traces_no_rays(monkeypatch):
     assert float((dark - torch.cat(traced)).abs().max()) < 1e-12, "the fit's dark fraction is the traced rays'"
 
 
-@pytest.mark.parametrize("k1", [0.0, -0.05])
-def test_focus_geometry_of_the_fit_equals_the_cameras(k1):
-    """The fit's focus geometry (`_Problem._focus`: without distortion combined from three points, with it every
-    point through forward mode) and its chained derivatives equal the camera's own `focus_geometry` and forward
-    mode at every point, with and without distortion (the sigma's held-intrinsics step moves k1 between calls)."""
+@pytest.mark.parametrize("k1, centre", [(0.0, "sensor"), (-0.05, "sensor"), (-0.05, "lens_axis")])
+def test_focus_geometry_of_the_fit_equals_the_cameras(k1, centre):
+    """The fit's focus geometry (`_Problem._focus`: combined from three ideal points; with distortion each point's
+    ideal position by Newton once and its derivative by the implicit function, in closed form about the principal
+    point, by one Newton step in forward mode about the lens axis) and its chained derivatives equal the camera's
+    own `focus_geometry` and forward mode at every point, with and without distortion (the sigma's
+    held-intrinsics step moves k1 between calls)."""
     lens, _, _ = _tilted_view()
     poses = [reproduce.target_pose(tp.BOARD, *reproduce.TARGET_VIEWS[i]) for i in (0, 1)]
     start = {"w_mm": tp.W_MM, "U_mm": lens.U, "d_mm": tp.D_MM, "theta_F_deg": math.degrees(lens.theta_F),
@@ -115,6 +117,7 @@ def test_focus_geometry_of_the_fit_equals_the_cameras(k1):
         p.requires_grad_(False)
     zeros = torch.zeros(10, dtype=torch.float64)
     problem = _Problem(camera, tp.BOARD, [_View(torch.zeros(10, 2), zeros, 0, zeros)], hammersley_disc_samples(16))
+    camera.distortion_centre = centre
     with torch.no_grad():
         camera.dist_k1 += k1
     rng = np.random.default_rng(3)
@@ -140,7 +143,62 @@ def test_focus_geometry_of_the_fit_equals_the_cameras(k1):
         f"chained derivatives off by {float((got - ref).abs().max()):.3g} of {float(ref.abs().max()):.3g}"
     if k1:
         assert float((problem._focus(1, geo, False)(pts)[0] - direct(geo)[0]).abs().max()) < 1e-12 * scale, \
-            "with distortion the points are not combined from three"
+            "without derivatives, the same focus points"
+
+
+@pytest.mark.parametrize("centre", ["sensor", "lens_axis"])
+def test_undistorted_pixels_by_one_newton_step_have_the_newton_derivatives(centre):
+    """`Camera.undistort_pixels_from` (one Newton step from the root) gives `undistort_pixels`'s values to rounding
+    and its forward-mode derivatives by the lens and pose; `undistort_pixels_jacobian` (about the principal point,
+    by the focal lengths and principal point, chained here) gives the same derivatives in closed form, and is
+    refused for a distortion about the lens axis. Pixels whose inverse does not exist stay put, without
+    derivatives."""
+    lens, _, _ = _tilted_view()
+    poses = [reproduce.target_pose(tp.BOARD, *reproduce.TARGET_VIEWS[i]) for i in (0, 1)]
+    start = {"w_mm": tp.W_MM, "U_mm": lens.U, "d_mm": tp.D_MM, "theta_F_deg": math.degrees(lens.theta_F),
+             "views": [{"R": R, "T_mm": T} for R, T in poses]}
+    w_px, h_px = lens.sensor.width_px, lens.sensor.height_px
+    camera = tp._camera(start, [np.zeros((h_px, w_px))], lens.sensor.pixel_pitch).double()
+    for p in camera.parameters():
+        p.requires_grad_(False)
+    camera.distortion_centre = centre
+    with torch.no_grad():
+        camera.dist_k1 += -0.3   # strong barrel: the outer pixels have no inverse
+    problem = _Problem(camera, tp.BOARD, [], hammersley_disc_samples(4))
+    from renderer.cameras import LENS_PARAMETERS
+    geo = torch.cat([torch.stack([getattr(camera, n).detach() for n in LENS_PARAMETERS]),
+                     camera.rvec.detach()[1], camera.T_scaled.detach()[1]])
+    rng = np.random.default_rng(5)
+    pts = torch.tensor(np.concatenate([rng.uniform(0, w_px, (40, 2)), [[-4 * w_px, -4 * h_px]]]))
+
+    def newton(g):
+        return problem._call(1, g, lambda cam: cam.undistort_pixels(pts)[0])
+
+    with torch.no_grad():
+        ideal, valid = problem._call(1, geo, lambda cam: cam.undistort_pixels(pts))
+    assert bool(valid[:-1].all()) and not bool(valid[-1]), f"valid {valid.tolist()}"
+
+    def step(g):
+        return problem._call(1, g, lambda cam: cam.undistort_pixels_from(pts, ideal, valid))
+
+    want, got = torch.func.jacfwd(newton)(geo), torch.func.jacfwd(step)(geo)
+    assert float((step(geo) - ideal).abs().max()) < 1e-9, "one step from the root stays at the root"
+    assert float((got - want).abs().max()) < 1e-9 * float(want.abs().max()), \
+        f"one step's derivatives off by {float((got - want).abs().max()):.3g} of {float(want.abs().max()):.3g}"
+    assert float(want[:, 0].abs().max()) > 1e-3 and not bool(got[-1].any()), "w moves the ideal points; not the lost one"
+    if centre == "lens_axis":
+        with pytest.raises(ValueError, match="lens axis"):
+            problem._call(1, geo, lambda cam: cam.undistort_pixels_jacobian(pts, ideal, valid))
+        return
+
+    def intrinsics(g):
+        return problem._call(1, g, lambda cam: torch.stack([torch.as_tensor(t).to(g) for t in
+                                                            (*cam.focal_px, *cam.screen.center_px)]))
+
+    closed = problem._call(1, geo, lambda cam: cam.undistort_pixels_jacobian(pts, ideal, valid)) @ \
+        torch.func.jacrev(intrinsics)(geo)
+    assert float((closed - want).abs().max()) < 1e-9 * float(want.abs().max()), \
+        f"closed-form derivatives off by {float((closed - want).abs().max()):.3g} of {float(want.abs().max()):.3g}"
 
 
 def test_closed_form_reverse_pass_holds_only_the_lines_that_cut():

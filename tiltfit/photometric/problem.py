@@ -105,38 +105,65 @@ class _Problem:
         (N, 10) turns a function's gradients with respect to them (per pixel) into its derivatives by (lens, pose);
         chain is None without `jacobian`.
 
-        Without distortion the focus point is affine in the sensor point (`ThinLensCamera.focus_geometry`: the
-        screen point, its focus weight and the pose's map are all affine), so it and its forward-mode derivative
-        are taken once a view and state at three points of the image (`_basis`) and combined for every point
-        (equal to rounding, 1e-13 relative). With distortion (held, but `sigma._held_covariance` moves it between
-        calls) every point goes through forward mode.
+        The focus point is affine in the ideal (distortion-free) sensor point (`ThinLensCamera.focus_geometry`:
+        the screen point, its focus weight and the pose's map are all affine), so it and its derivative are taken
+        once a view and state at three ideal points of the image (`_basis`) and combined for every point (equal to
+        rounding, 1e-13 relative). With distortion a point's ideal position is its Newton root (`undistort_pixels`,
+        once, without derivatives), and its derivative by (lens, pose) the implicit function's, through one Newton
+        step in forward mode (`Camera.undistort_pixels_from`; distortion and principal point are held, but the
+        focal length moves the normalised coordinates, and `sigma._held_covariance` moves k1 between calls).
 
         The three points' 21 numbers are differentiated in reverse mode (`jacrev`, one batched backward pass): under
         forward mode each of the camera's operations with a Python number (`x * 2`, `1 - x`) runs through torch's
-        Python reference implementation (docs/history.md, 2026-11-29). Every point's own focus point (distortion)
-        has as many outputs as points: forward mode's 10 tangents stay cheaper there."""
-        def focus_at(points, reverse: bool = False):
-            def focus(g):
-                out = self._call(v, g, lambda cam: cam.focus_geometry(points)[:3])
-                return out, tuple(o.detach() for o in out)
+        Python reference implementation (docs/history.md, 2026-11-29). The ideal points have as many outputs as
+        points: forward mode's 10 tangents stay cheaper there."""
+        def focus(g):
+            out = self._call(v, g, lambda cam: cam.focus_geometry(self._basis(geo.dtype), distorted=False)[:3])
+            return out, tuple(o.detach() for o in out)
 
-            if jacobian:
-                return (torch.func.jacrev if reverse else torch.func.jacfwd)(focus, has_aux=True)(geo)
+        if jacobian:
+            d, (q, c, a) = torch.func.jacrev(focus, has_aux=True)(geo)
+        else:
+            d = None
             with torch.no_grad():
-                return None, focus(geo)[1]
-
-        if bool((self.camera.distortion.detach() != 0).any()):
-            def at_each(pts):
-                d, (q, c, a) = focus_at(pts)
-                chain = None if d is None else lambda gq, gc, ga: (
-                    torch.einsum("nsk,nskp->np", gq, d[0]) + gc @ d[1] + torch.einsum("nij,ijp->np", ga, d[2]))
-                return q, c, a, chain
-            return at_each
-        d, (q, c, a) = focus_at(self._basis(geo.dtype), reverse=True)
+                q, c, a = focus(geo)[1]
         q0, qu, qv = q[0], q[1] - q[0], q[2] - q[0]
+        distorted = bool((self.camera.distortion.detach() != 0).any())
+        if distorted and jacobian and self.camera.distortion_centre != "lens_axis":
+            def intrinsics(g):   # (f_x, f_y, c_x, c_y) px
+                out = self._call(v, g, lambda cam: torch.stack(
+                    [torch.as_tensor(t).to(geo) for t in (*cam.focal_px, *cam.screen.center_px)]))
+                return out, out.detach()
+
+            d_intrinsics = torch.func.jacrev(intrinsics, has_aux=True)(geo)[0]   # (4, 10)
+
+        def ideal(pts):
+            """(ideal points (N, S, 2), their derivatives by (lens, pose) (N, S, 2, 10) or None)."""
+            if not distorted:
+                return pts, None
+            with torch.no_grad():
+                # A pixel's points lie within it: Newton starts each from its pixel centre's root, moved by its
+                # offset (two or three steps instead of up to 20 from the distorted point; the same root).
+                centre = pts.mean(-2, keepdim=True)
+                start = self._call(v, geo, lambda cam: cam.undistort_pixels(centre))[0] + (pts - centre)
+                ideal_px, valid = self._call(v, geo, lambda cam: cam.undistort_pixels(pts, start))
+            if d is None:
+                return ideal_px, None
+
+            if self.camera.distortion_centre == "lens_axis":   # the lens frame moves with θF: forward mode
+                def step(g):
+                    out = self._call(v, g, lambda cam: cam.undistort_pixels_from(pts, ideal_px, valid))
+                    return out, out.detach()
+
+                d_ideal, ideal_px = torch.func.jacfwd(step, has_aux=True)(geo)
+                return ideal_px, d_ideal
+            with torch.no_grad():   # about the principal point: only the intrinsics move the ideal points
+                d_ideal = self._call(v, geo, lambda cam: cam.undistort_pixels_jacobian(pts, ideal_px, valid))
+            return ideal_px, d_ideal @ d_intrinsics
 
         def at(pts):
-            su, sv = self._basis_coordinates(pts)
+            ideal_px, d_ideal = ideal(pts)
+            su, sv = self._basis_coordinates(ideal_px)
             q_pts = q0 + su[..., None] * qu + sv[..., None] * qv
             if d is None:
                 return q_pts, c, a, None
@@ -144,8 +171,12 @@ class _Problem:
             d0, du, dv = dq[0], dq[1] - dq[0], dq[2] - dq[0]
 
             def chain(gq, gc, ga):
-                return (gq.sum(1) @ d0 + (gq * su[..., None]).sum(1) @ du + (gq * sv[..., None]).sum(1) @ dv
-                        + gc @ dc + torch.einsum("nij,ijp->np", ga, da))
+                out = (gq.sum(1) @ d0 + (gq * su[..., None]).sum(1) @ du + (gq * sv[..., None]).sum(1) @ dv
+                       + gc @ dc + torch.einsum("nij,ijp->np", ga, da))
+                if d_ideal is not None:   # the ideal points move with the focal length: q moves along qu, qv
+                    g_ideal = torch.stack([(gq * qu).sum(-1), (gq * qv).sum(-1)], -1) / FOCUS_BASIS_SPAN
+                    out = out + torch.einsum("nsk,nskp->np", g_ideal, d_ideal)
+                return out
 
             return q_pts, c, a, chain
         return at

@@ -2,6 +2,9 @@
 a board that looks the same turned by 180°, crossing the image border, dim, noisy, JPEG-compressed and bent
 by barrel distortion (applied by image warping, a model the detector does not have)."""
 import glob
+import hashlib
+import inspect
+import json
 import os
 
 import cv2
@@ -87,12 +90,43 @@ def test_gopro_at_least_34_of_36_boards_with_consistent_labelling(gopro):
         assert diag.sum() > 0, f"{p}: labelling points {diag} (should go to the lower right)"
 
 
+# OpenCV's corners of the compared photos (findChessboardCornersSB's exhaustive search: about 0.6 CPU s a photo,
+# the peer's time): kept with each photo's fingerprint (its bytes, the pattern, OpenCV's version and sb_corners'
+# source) and found again wherever it differs. `python tests/tiltfit/test_detect_real.py` writes them afresh.
+SB_CACHE = os.path.join(GOPRO, "opencv_sb_corners.json")
+
+
+def _sb_key(path):
+    with open(path, "rb") as f:
+        data = f.read()
+    return hashlib.sha256(repr((data, PATTERN, cv2.__version__, inspect.getsource(sb_corners))).encode()).hexdigest()
+
+
+def _sb(path):
+    theirs = sb_corners(cv2.imread(path, cv2.IMREAD_GRAYSCALE), PATTERN)
+    return None if theirs is None else theirs.tolist()
+
+
+def opencv_corners(paths):
+    """sb_corners of each photo ((n, 2) or None), from SB_CACHE where the photo's entry has its fingerprint."""
+    try:
+        with open(SB_CACHE) as f:
+            saved = json.load(f)
+    except (OSError, ValueError):
+        saved = {}
+    out = []
+    for p in paths:
+        entry = saved.get(os.path.basename(p), {})
+        corners = entry["corners"] if entry.get("sha256") == _sb_key(p) else _sb(p)
+        out.append(None if corners is None else np.array(corners, np.float64))
+    return out
+
+
 def test_gopro_corners_agree_with_opencv(gopro):
     """Every third photo (OpenCV's exhaustive search is slow; benchmarks/detection/bench_real_detect.py does all 36)."""
     paths, target, dets = gopro
     errors, both = [], 0
-    for p, d in list(zip(paths, dets))[::3]:
-        theirs = sb_corners(cv2.imread(p, cv2.IMREAD_GRAYSCALE), PATTERN)
+    for p, d, theirs in zip(paths[::3], dets[::3], opencv_corners(paths[::3])):
         if d is None or theirs is None:
             continue
         both += 1
@@ -211,3 +245,11 @@ def test_symmetric_board_crossing_the_border_keeps_the_labelling(roll):
     assert np.all(in_image[det.found]), "a corner outside the image was reported"
     assert det.found[inner].mean() > 0.9, f"found {det.found[inner].sum()} of {inner.sum()} corners well inside"
     assert np.nanmax(e) < 0.15, f"turned {roll}°: worst corner {np.nanmax(e):.2f} px (a wrong index is a square)"
+
+
+if __name__ == "__main__":  # writes SB_CACHE: OpenCV's corners of every third GoPro photo
+    compared = sorted(glob.glob(os.path.join(GOPRO, "*.jpg")))[::3]
+    with open(SB_CACHE, "w") as f:
+        json.dump({os.path.basename(p): {"sha256": _sb_key(p), "corners": _sb(p)} for p in compared}, f)
+        f.write("\n")
+    print(f"wrote {SB_CACHE}")

@@ -221,3 +221,38 @@ def test_ray_tracer_agrees_with_the_analytic_rendering():
     assert det.found.all() and rms(e) < 0.1, f"on the ray-traced image: {det.found.sum()} corners, RMS {rms(e):.3f}"
     ratio = np.median(det.blur_px / va.truth.blur_px)
     assert abs(ratio - 1) < 0.03, f"blur on the ray-traced image is {ratio:.3f} of the closed form"
+
+
+def test_shifted_patches_are_the_separable_cubic_filter():
+    """`_shift_patches` (both axes' weights at once, the filters that share a pass together) gives the same bits as
+    filtering one output at a time: the x pass, then the y pass, each a sum of four weighted shifted slices."""
+    import torch
+
+    from tiltfit.detect.refine import _dkeys, _keys, _shift_patches
+
+    rng = np.random.default_rng(9)
+    for n, size in ((1, 11), (7, 23), (12, 59)):
+        patches = torch.from_numpy(rng.random((n, size, size)).astype(np.float32))
+        frac = torch.from_numpy(rng.random((n, 2)).astype(np.float32))
+        ks = torch.arange(-1, 3, dtype=torch.float32)
+
+        def one(img, w, axis):
+            cut = size - 3
+            return sum(w[:, k, None, None] * (img[:, :, k:k + cut] if axis == 1 else img[:, k:k + cut, :])
+                       for k in range(4))
+
+        wx, wy = _keys(frac[:, 0:1] - ks), _keys(frac[:, 1:2] - ks)
+        dwx, dwy = _dkeys(frac[:, 0:1] - ks), _dkeys(frac[:, 1:2] - ks)
+        tx, tdx = one(patches, wx, 1), one(patches, dwx, 1)
+        want = (one(tx, wy, 0), one(tdx, wy, 0), one(tx, dwy, 0))
+        got = _shift_patches(patches, frac)
+        for name, g, e in zip(("value", "x slope", "y slope"), got, want):
+            assert g.shape == (n, size - 3, size - 3) and torch.equal(g, e), f"{n} patches of {size}: {name} differs"
+        # and the interpolant reproduces a quadratic (Keys' kernel with a = -1/2 is third-order accurate)
+    yy, xx = np.mgrid[0:15, 0:15].astype(np.float64)
+    quad = torch.from_numpy((0.01 * xx * xx + 0.02 * xx * yy - 0.03 * yy + 0.5)[None].astype(np.float32))
+    v, gx, gy = _shift_patches(quad, torch.tensor([[0.25, 0.75]]))
+    x, y = xx[:12, :12] + 1.25, yy[:12, :12] + 1.75
+    assert np.abs(v[0].numpy() - (0.01 * x * x + 0.02 * x * y - 0.03 * y + 0.5)).max() < 1e-5, "value of a quadratic"
+    assert np.abs(gx[0].numpy() - (0.02 * x + 0.02 * y)).max() < 1e-5, "x slope of a quadratic"
+    assert np.abs(gy[0].numpy() - (0.02 * x - 0.03)).max() < 1e-5, "y slope of a quadratic"

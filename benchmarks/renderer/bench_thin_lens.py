@@ -274,14 +274,15 @@ def ray_agreement(width: int = 33, height: int = 21) -> dict:
             "lens_map": min(lens_err, key=lens_err.get)}
 
 
-def image_difference(cfg: dict, spp: int, mi_spp: int, seed: int = 5) -> dict:
+def image_difference(cfg: dict, spp: int, mi_spp: int, seed: int = 5, mitsuba_image=None) -> dict:
     """Mean |ours − Mitsuba| / mean intensity of one scene: ours sobol at spp, Mitsuba independent at mi_spp.
 
     Also with Mitsuba's image flipped left-right and upside-down: a convention error (a mirrored axis)
     shows as `as_is` far above the noise and a flip far below it. Returns {as_is, flip_x, flip_y}.
+    `mitsuba_image`: Mitsuba's (H, W, 3) image of this scene, mi_spp and seed where already rendered.
     """
     a = render_ours(load_scene(cfg), spp, "sobol", seed=seed)
-    b = mitsuba_high_spp(cfg, mitsuba_scene(cfg), mi_spp, seed=seed)
+    b = mitsuba_high_spp(cfg, mitsuba_scene(cfg), mi_spp, seed=seed) if mitsuba_image is None else mitsuba_image
     mean = float(b.mean())
     mad = lambda x, y: float(np.abs(x - y).mean() / mean)  # noqa: E731
     return {"as_is": mad(a, b), "flip_x": mad(a, b[:, ::-1]), "flip_y": mad(a, b[::-1])}

@@ -88,16 +88,16 @@ def _srgb8(gray: np.ndarray) -> np.ndarray:
 
 
 def _top_within(gray: np.ndarray, lo: float, hi: float) -> bool:
-    """Whether the 99.9th percentile of `gray` (numpy's, linear between the two order statistics around it) lies
-    in [lo, hi], from two counts where both order statistics do (False where either does not: then it is computed
-    whole). A count is a pass over the pixels; the percentile, a partition of a copy, costs several."""
+    """Whether the 99.9th percentile of `gray` (numpy's, linear between two adjacent order statistics) lies in
+    [lo, hi], from two counts where the order statistics around it do (False where one does not: then it is
+    computed whole). A count is a pass over the pixels; the percentile, a partition of a copy, costs several."""
     n = gray.size
-    i = int(0.999 * (n - 1))  # the order statistics i and i + 1 (0-based) bracket the percentile
-    if i + 1 >= n:
+    i = int(0.999 * (n - 1))  # order statistics i − 1 .. i + 2 (0-based): numpy's pair, whatever its rounding
+    if i < 1 or i + 2 >= n:
         return False
     below = int(np.count_nonzero(gray < lo))  # order statistics 0 .. below − 1 are < lo
     within = int(np.count_nonzero(gray <= hi))  # 0 .. within − 1 are <= hi (NaN counts in neither)
-    return below <= i and within >= i + 2
+    return below <= i - 1 and within >= i + 3
 
 
 # OpenCV's marker reading thresholds the photo at several window sizes (by default 3, 13 and 23 px), each a pass

@@ -48,13 +48,14 @@ def write_lines(path: str, lines) -> None:
 
 
 def run_benchmark(doc: str, stem: str, measure, write_markdown, argv=None, **int_options) -> int:
-    """A benchmark's main: parse `--NAME N` for each of `int_options` (name=default), --out and --markdown-only;
-    with --markdown-only rewrite OUT.md, else `save` what `measure(args)` returns. Returns the exit status (0)."""
+    """A benchmark's main: parse `--NAME N` for each of `int_options` (name=default; a str default takes a
+    string), --out and --markdown-only; with --markdown-only rewrite OUT.md, else `save` what `measure(args)`
+    returns. Returns the exit status (0)."""
     import argparse
 
     ap = argparse.ArgumentParser(description=doc.splitlines()[0])
     for name, default in int_options.items():
-        ap.add_argument("--" + name.replace("_", "-"), type=int, default=default)
+        ap.add_argument("--" + name.replace("_", "-"), type=str if isinstance(default, str) else int, default=default)
     add_output_options(ap, stem)
     args = ap.parse_args(argv)
     if not markdown_only(args, write_markdown):

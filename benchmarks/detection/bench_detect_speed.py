@@ -27,7 +27,8 @@ can be measured with the same script: `cd /tmp/det_before && python /work/main/b
 --out /work/main/benchmarks/results/detect_speed_before`).
 
 Writes benchmarks/results/detect_speed.{json,md}. Usage:
-    python benchmarks/detection/bench_detect_speed.py [--repeats 3] [--images 3] [--out STEM]
+    python benchmarks/detection/bench_detect_speed.py [--repeats 3] [--images 3] [--kinds all|KIND,...] [--out STEM]
+(`--kinds charuco_1280x720`: that kind alone, e.g. with `--out benchmarks/results/detect_speed_charuco`).
 """
 from __future__ import annotations
 
@@ -241,6 +242,8 @@ def measure(args):
     published = _published()
     kinds = list(_chess_kinds(args.images))
     kinds.insert(2, _charuco_kind(args.images))
+    if args.kinds != "all":
+        kinds = [k for k in kinds if k[0] in args.kinds.split(",")]
     from tiltfit.detect.charuco import detect_board
 
     for _, target, images in kinds[:3]:  # first calls (imports, kernels, dictionaries) are not what is measured
@@ -292,4 +295,4 @@ def write_markdown(path, res):
 
 
 if __name__ == "__main__":
-    sys.exit(run_benchmark(__doc__, "detect_speed", measure, write_markdown, repeats=3, images=3))
+    sys.exit(run_benchmark(__doc__, "detect_speed", measure, write_markdown, repeats=3, images=3, kinds="all"))

@@ -54,6 +54,88 @@ def test_pixel_esf_symmetry_and_derivatives():
     assert torch.allclose(dEd, num_d, atol=1e-6) and torch.allclose(dEr, num_r, atol=1e-6), "analytic derivatives"
 
 
+# --- the band model's normal equations --------------------------------------------------------------------
+def _synthetic_bands(rng, bands_per_point=(4, 3, 4), img_shape=(40, 60)):
+    """Random bands (the dicts `_half_edges` returns) with far edges within a few pixels, and an image to read."""
+    img = rng.uniform(0.0, 1.0, img_shape)
+    groups = []
+    for n_bands in bands_per_point:
+        group = []
+        for _ in range(n_bands):
+            n = int(rng.integers(20, 60))
+            alpha = rng.uniform(0, math.pi)
+            group.append(dict(px=np.stack([rng.integers(0, img_shape[1], n), rng.integers(0, img_shape[0], n)], 1),
+                              w=rng.uniform(0.2, 1.0, n), d0=rng.uniform(-5, 5, n), d_lo=rng.uniform(-6, 9, n),
+                              d_hi=rng.uniform(-6, 9, n), dxy=rng.uniform(-12, 12, (n, 2)),
+                              kappa=[float(k) for k in rng.integers(0, 2, 4)],
+                              wa=max(abs(math.cos(alpha)), abs(math.sin(alpha))),
+                              wb=min(abs(math.cos(alpha)), abs(math.sin(alpha)))))
+        groups.append(group)
+    return img, groups
+
+
+def _dense_normal(img, groups, theta, prior):
+    """Cost, JᵀJ and Jᵀr of `fit_corners`' model written pixel by pixel (every edge through `pixel_esf`, no
+    selection of the pixels the blur reaches), for the points' parameters theta (C, P)."""
+    B = max(len(g) for g in groups)
+    P = 3 + 3 * B
+    out = []
+    for c, group in enumerate(groups):
+        th = theta[c]
+        J_rows, res = [], []
+        for e, b in enumerate(group):
+            t = {k: torch.as_tensor(np.asarray(b[k], dtype=np.float64)) for k in ("d0", "d_lo", "d_hi", "dxy", "w")}
+            kap = b["kappa"]
+            sb = th[0] + t["dxy"] @ th[1:3]
+            r = (0.5 * sb.abs()).clamp_min(1e-3)
+            wa, wb = torch.tensor(b["wa"], dtype=torch.float64), torch.tensor(b["wb"], dtype=torch.float64)
+            o, ct, delta = th[3 + 3 * e], th[4 + 3 * e], th[5 + 3 * e]
+            E0, E0d, E0r = pixel_esf(t["d0"] - delta, r, wa, wb, with_derivatives=True)
+            El, _, Elr = pixel_esf(t["d_lo"], r, wa, wb, with_derivatives=True)
+            Eh, _, Ehr = pixel_esf(t["d_hi"], r, wa, wb, with_derivatives=True)
+            cl, c0, ch = kap[1] - kap[0], kap[2] - kap[1], kap[3] - kap[2]
+            prof = kap[0] + cl * El + c0 * E0 + ch * Eh
+            m = t["w"].sqrt()
+            I = torch.as_tensor(img[b["px"][:, 1], b["px"][:, 0]])
+            res.append((o + ct * prof - I) * m)
+            J = torch.zeros(len(m), P, dtype=torch.float64)
+            dr = ct * (cl * Elr + c0 * E0r + ch * Ehr) * 0.5 * torch.sign(sb) * m
+            J[:, 0], J[:, 1], J[:, 2] = dr, dr * t["dxy"][:, 0], dr * t["dxy"][:, 1]
+            J[:, 3 + 3 * e], J[:, 4 + 3 * e], J[:, 5 + 3 * e] = m, prof * m, -ct * c0 * E0d * m
+            J_rows.append(J)
+        J, r = torch.cat(J_rows), torch.cat(res)
+        p2 = float(prior[c]) ** 2
+        A = J.T @ J
+        A[1, 1] += p2
+        A[2, 2] += p2
+        g = J.T @ r
+        g[1:3] += p2 * th[1:3]
+        out.append(((r * r).sum() + p2 * (th[1:3] ** 2).sum(), A, g))
+    return [torch.stack(x) for x in zip(*out)]
+
+
+def test_band_model_normal_equations_are_the_pixel_by_pixel_ones():
+    """The model evaluates the closed form only where the blur reaches (own edge and the far edges' listed
+    candidates) and forms the normal equations from 7 rows a band: the same as every pixel through `pixel_esf`."""
+    from tiltfit.detect.blur import _BandModel
+
+    rng = np.random.default_rng(5)
+    img, groups = _synthetic_bands(rng)
+    C, B = len(groups), 4
+    theta = torch.zeros(C, 3 + 3 * B, dtype=torch.float64)
+    theta[:, 0] = torch.tensor([4.0, -2.5, 0.6], dtype=torch.float64)  # β: large, negative and small blur
+    theta[:, 1:3] = torch.tensor([[0.05, -0.03], [0.2, 0.1], [-0.02, 0.04]], dtype=torch.float64)
+    theta[:, 3::3], theta[:, 4::3], theta[:, 5::3] = 0.1, 0.8, 0.3
+    prior = torch.tensor([0.5, 1.0, 2.0], dtype=torch.float64)
+    model = _BandModel(img, groups, torch.full((C,), 3.0, dtype=torch.float64), B)
+    idx = torch.tensor([1, 2])  # a subset, as the solver asks once points have converged; point 1 has 3 bands
+    got = model.normal(theta[idx], idx, prior[idx])
+    cost, A, g = _dense_normal(img, [groups[i] for i in idx], theta[idx], prior[idx])
+    for name, x, ref in (("cost", got.cost, cost), ("JᵀJ", got.A, A), ("Jᵀr", got.g, g)):
+        err = float((x - ref).abs().max() / ref.abs().max())
+        assert err < 1e-10, f"{name} differs from the pixel-by-pixel model by {err:.2e} of its largest entry"
+
+
 # --- accuracy on images ------------------------------------------------------------------------------------
 def _view(ratio, noise, seed=0, pose=POSE, U_mm=400.0):
     cam = with_blur_ratio(CAM, TARGET, *pose, ratio, U_mm=U_mm)

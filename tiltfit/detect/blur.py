@@ -81,7 +81,7 @@ def _G_and_G2(u: torch.Tensor, with_G: bool = True):
 
 
 # The second difference over the four abscissae of `pixel_esf` (+, −, −, +), as one product
-_SECOND_DIFFERENCE = (1.0, -1.0, -1.0, 1.0)
+_SECOND_DIFFERENCE = torch.tensor((1.0, -1.0, -1.0, 1.0), dtype=torch.float64)
 
 
 def pixel_esf(d: torch.Tensor, r: torch.Tensor, wa: torch.Tensor, wb: torch.Tensor, with_derivatives: bool = False):
@@ -102,20 +102,27 @@ def pixel_esf(d: torch.Tensor, r: torch.Tensor, wa: torch.Tensor, wb: torch.Tens
     hp, hm = 0.5 * (wa + wb), 0.5 * (wa - wb)
     reach = r + hp + 1e-3
     d = torch.maximum(torch.minimum(d, reach), -reach)  # E is exactly 0 or 1 beyond; keeps G2 small
+    d, r, hp, hm, inv_area = torch.broadcast_tensors(d, r, hp, hm, 1 / (wa * wb))
+    return _pixel_esf(d.reshape(-1), r.reshape(-1), hp.reshape(-1), hm.reshape(-1), inv_area.reshape(-1),
+                      with_derivatives, d.shape)
+
+
+def _pixel_esf(d, r, hp, hm, inv_area, with_derivatives: bool, shape=None):
+    """`pixel_esf` of (m,) pixels from r ≥ 1e-3 and each box's half widths hp = (wa + wb)/2, hm = (wa − wb)/2 and
+    1/(wa wb) (wb ≥ 0.02), reshaped to `shape`: the model's inner loop, which has them per band."""
     # the four abscissae lead (not trail), so the second differences are one product with (+1, −1, −1, +1)
-    u = torch.stack(torch.broadcast_tensors(d + hp, d + hm, d - hm, d - hp)).div_(r)
-    sd = torch.tensor(_SECOND_DIFFERENCE, dtype=u.dtype)
-    norm = r * r / (wa * wb)
+    u = torch.stack((d + hp, d + hm, d - hm, d - hp)).div_(r)
+    norm = (r * r).mul_(inv_area)
     G, G2 = _G_and_G2(u, with_G=with_derivatives)
-    shape = u.shape[1:]
-    G2u = (sd @ G2.reshape(4, -1)).reshape(shape)
+    G2u = _SECOND_DIFFERENCE.to(u.dtype) @ G2
     E = G2u * norm
+    shape = d.shape if shape is None else shape
     if not with_derivatives:
-        return E
-    norm_r = norm / r
-    dE_dd = (sd @ G.reshape(4, -1)).reshape(shape) * norm_r
-    dE_dr = (2 * G2u - (sd @ G.mul_(u).reshape(4, -1)).reshape(shape)) * norm_r
-    return E, dE_dd, dE_dr
+        return E.reshape(shape)
+    norm_r = norm.div_(r)
+    dE_dd = (_SECOND_DIFFERENCE.to(u.dtype) @ G).mul_(norm_r)
+    dE_dr = (2 * G2u).sub_(_SECOND_DIFFERENCE.to(u.dtype) @ G.mul_(u)).mul_(norm_r)
+    return E.reshape(shape), dE_dd.reshape(shape), dE_dr.reshape(shape)
 
 
 def _pack_bands(img: np.ndarray, groups: list[list[dict]], B: int):
@@ -255,13 +262,18 @@ class _BandModel:
         g["reach_far"] = reach.reshape(-1)[slot_far // n].numpy()
         band = torch.cat([torch.arange(k * B).repeat_interleave(n), slot_far // n])
         g["coef"] = torch.cat([g["c_0"].expand(k, B, n).reshape(-1), p["c_far"][:, idx].reshape(-1)[far // n]])
-        g["cand_wa"], g["cand_wb"] = g["wa"].reshape(-1)[band], g["wb"].reshape(-1)[band]
+        wa, wb = g["wa"].reshape(-1)[band], g["wb"].reshape(-1)[band].clamp_min(0.02)  # as `pixel_esf` has them
+        g["cand_hp"], g["cand_hm"], g["cand_inv_area"] = 0.5 * (wa + wb), 0.5 * (wa - wb), 1 / (wa * wb)
+        g["rows"] = torch.empty(k, B, 7, n, dtype=torch.float64)  # `normal`'s rows; the dark level's is √weight
+        g["rows"][:, :, 3] = g["mask"]
+        g["neg_Im"] = -g["I"] * g["mask"]
         self._idx, self._at = idx, g
         return g
 
     def _profile(self, g: dict, theta: torch.Tensor, deriv: bool):
         """The cells' profile (k, B, n) at unit contrast and zero dark level for parameters theta (k, P), and with
-        deriv Σ (cell step) ∂E/∂r over the edges, ∂E/∂d of the own edge (both (k, B, n)) and sign(β + g · x)."""
+        deriv the mask times Σ (cell step) ∂E/∂r over the edges times sign(β + g · x) (∂E/∂β / ∂r/∂β · 2), and the
+        mask times ∂E/∂d of the own edge (both (k, B, n))."""
         beta, gx, gy = (theta[:, j, None, None] for j in range(3))
         delta = theta[:, 5::3, None]  # (k, B, 1)
         sb = torch.addcmul(beta, gx, g["dx"]).addcmul_(gy, g["dy"])
@@ -277,7 +289,8 @@ class _BandModel:
         slot = torch.cat([own, g["slot_far"].index_select(0, far)])
         ds = torch.cat([d.reshape(-1).index_select(0, own), g["d_far"].index_select(0, far)])
         rs = torch.cat([r.reshape(-1).index_select(0, own), r_far.index_select(0, far)])
-        out = pixel_esf(ds, rs, g["cand_wa"].index_select(0, at), g["cand_wb"].index_select(0, at), deriv)
+        # r ≥ 1e-3 already, and a reached |d| is below r + hp + 1e-3, where `pixel_esf` would clamp it
+        out = _pixel_esf(ds, rs, *(g[k].index_select(0, at) for k in ("cand_hp", "cand_hm", "cand_inv_area")), deriv)
         E = out[0] if deriv else out
         coef = g["coef"].index_select(0, at)
         gsum = torch.addcmul(g["steps"], g["half_c_0"], torch.sign(d))
@@ -285,10 +298,12 @@ class _BandModel:
         step = torch.cat([torch.sign(ds[:own.numel()]).mul_(0.5).add_(0.5), (ds[own.numel():] > 0).to(ds.dtype)])
         gsum.view(-1).index_add_(0, slot, coef * (E - step))
         if not deriv:
-            return gsum, None, None, None
-        E_r = torch.zeros(S, dtype=gsum.dtype).index_add_(0, slot, coef * out[2])
-        E_d = torch.zeros(S, dtype=gsum.dtype).index_copy_(0, own, out[1][:own.numel()])
-        return gsum, E_r.view_as(gsum), E_d.view_as(gsum), torch.sign(sb)
+            return gsum, None, None
+        m = g["mask"].reshape(-1)
+        E_r = coef.mul_(out[2]).mul_(m.index_select(0, slot)).mul_(sb.reshape(-1).index_select(0, slot).sign_())
+        E_r = torch.zeros(S, dtype=gsum.dtype).index_add_(0, slot, E_r)
+        E_d = torch.zeros(S, dtype=gsum.dtype).index_copy_(0, own, out[1][:own.numel()] * m.index_select(0, own))
+        return gsum, E_r.view_as(gsum), E_d.view_as(gsum)
 
     def profile(self, theta: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
         """The cells' profile (k, B, n) at the points idx (k,) for parameters theta (k, P), unit contrast and zero
@@ -307,16 +322,14 @@ class _BandModel:
         k, B, n = g["d0"].shape
         P = 3 + 3 * B
         o, c = th[:, 3::3, None], th[:, 4::3, None]  # (k, B, 1)
-        gsum, E_r, E_d, sign = self._profile(g, th, deriv=True)
-        m = g["mask"]  # √weight, 0 on padding: the rows there are zeroed exactly
-        rows = torch.empty(k, B, 7, n, dtype=torch.float64)
-        torch.mul(E_r, (0.5 * c) * m, out=rows[:, :, 0]).mul_(sign)  # ∂r/∂β = sign(β + g · x) / 2
+        gsum, E_r, E_d = self._profile(g, th, deriv=True)
+        m, rows = g["mask"], g["rows"]  # √weight, 0 on padding: the rows there are zeroed exactly
+        torch.mul(E_r, 0.5 * c, out=rows[:, :, 0])  # ∂r/∂β = sign(β + g · x) / 2
         torch.mul(rows[:, :, 0], g["dx"], out=rows[:, :, 1])
         torch.mul(rows[:, :, 0], g["dy"], out=rows[:, :, 2])
-        rows[:, :, 3] = m
         torch.mul(gsum, m, out=rows[:, :, 4])
-        torch.mul(E_d, (-c * g["c_0"]) * m, out=rows[:, :, 5])
-        torch.addcmul(o - g["I"], c, gsum, out=rows[:, :, 6]).mul_(m)
+        torch.mul(E_d, -c * g["c_0"], out=rows[:, :, 5])
+        torch.addcmul(g["neg_Im"], c, rows[:, :, 4], out=rows[:, :, 6]).addcmul_(o, m)
         M = rows @ rows.transpose(-1, -2)  # (k, B, 7, 7)
         A = torch.zeros(k, P * P, dtype=torch.float64).index_add_(1, self._to_A, M[..., :6, :6].reshape(k, B * 36))
         A = A.view(k, P, P)

@@ -395,8 +395,8 @@ class LensCamera(torch.nn.Module):
         return proj.uv, blur.b, jac
 
     def _projection_terms(self, X_world: torch.Tensor, with_distortion: bool, dist_names=()) -> _ProjectionTerms:
-        """The projection part of `jacobian`: pixels, ∂(x_d)/∂p_cam and ∂(x_d)/∂k of the coefficients `dist_names`
-        (stored names) for all views (no autograd)."""
+        """The projection part of `jacobian`: pixels, ∂(x_d)/∂p_cam and ∂(x_d)/∂k of the coefficients
+        `dist_names` (stored names) for all views (no autograd)."""
         dt, dev = self.rvec.dtype, self.rvec.device
         X = torch.as_tensor(X_world, dtype=dt, device=dev)
         rvec = self.rvec.detach()

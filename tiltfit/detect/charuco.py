@@ -8,9 +8,11 @@ Pipeline (`detect_charuco`):
    coordinates, against the board's own picture (markers included) blurred by discs of 0 to 0.8 of a square,
    over every placement (4 turns × shifts) that keeps the lattice on the board (`place_lattice`). The best
    placement must explain the image clearly better than the next (`MIN_PLACEMENT_RATIO`), else it names
-   nothing. The two are merged; where both name a corner they must agree (`_merge`). The lattice is not
-   searched when OpenCV's corners, refined and completed (steps 2 and 3), already reach every corner of the
-   board: it could name none more, and it is the costliest step (saddle maps of the whole image at 7 scales).
+   nothing. The two are merged; where both name a corner they must agree (`_merge`). OpenCV reads the markers
+   first at two of its three threshold windows (FIRST_READ_WINDOWS), then with its defaults; neither the fuller
+   read nor the lattice is searched once OpenCV's corners, refined and completed (steps 2 and 3), reach every
+   corner of the board: they could name none more, and the lattice is the costliest step (saddle maps of the
+   whole image at 7 scales).
 2. Sub-pixel refinement: the point-symmetry refinement of the checkerboard path (`refine_symmetric`): at a
    ChArUco corner the two markers touching it have black borders that are point images of each other, so the
    neighbourhood is point-symmetric out to the markers' data bits, √2 (clear + bit) from the corner; the
@@ -18,7 +20,8 @@ Pipeline (`detect_charuco`):
 3. Completion: corners neither step found, predicted by local homographies and refined the same way
    (`tiltfit.detect.chessboard.complete_corners` with the ChArUco window).
 4. Blur per corner (`tiltfit.detect.blur.measure_blur`, its bands stopping at the markers' borders); when the
-   widths are not asked for, its first, coarse pass alone, for step 5's decision.
+   widths are not asked for, its first, coarse pass alone, for step 5's decision, and not even that where the
+   edges' steepness (`edge_spread_blur`) puts the blur far below the decision's limit.
 5. Blur beyond CANCEL_BITS_BLUR of a square reaches the data bits from inside the window: each corner is
    fitted again by the board's own picture around it, markers' bits included (`refine_model`: the exact
    picture through the local homography, with an affine correction, convolved with a disc in the image whose

@@ -97,9 +97,9 @@ def clip_halfplane(poly, a: float, b: float, h: float):
         return EMPTY
     w = np.array([-m[1], m[0]])
     p0 = center - g * m
-    corners = [p0 + 2 * radius * w, p0 - 2 * radius * w, p0 - 2 * radius * w - 4 * radius * m,
-               p0 + 2 * radius * w - 4 * radius * m]
-    return shapely.intersection(poly, Polygon(corners))
+    corners = np.array([p0 + 2 * radius * w, p0 - 2 * radius * w, p0 - 2 * radius * w - 4 * radius * m,
+                        p0 + 2 * radius * w - 4 * radius * m])
+    return shapely.intersection(poly, shapely.polygons(corners))  # Polygon(corners) without its Python checks
 
 
 def clip_halfspace(poly, o, u, v, a: np.ndarray, b: float):

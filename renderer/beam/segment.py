@@ -190,6 +190,7 @@ class Segmenter:
         self.faces = faces
         self._face_n = np.array([f.n for f in faces]).reshape(-1, 3)  # the real planes, for `crossed`
         self._face_c = np.array([f.c for f in faces])
+        self._face_frames = np.array([[f.o, f.u, f.v, f.n] for f in faces], dtype=np.float64).reshape(-1, 4, 3)
         self.reflect = np.asarray(reflect, dtype=np.float64)
         self.max_depth = max_depth
         self.tol = SIDE_TOL * (1.0 + extent)
@@ -211,8 +212,9 @@ class Segmenter:
             A, b = S @ parent.A, S @ parent.b + s
             mirror = (n_m, c_m)
         ids, polys, O, U, V, N, C, verts = [], [], [], [], [], [], [], []
-        for f in self.faces:
-            o, u, v, n = A @ f.o + b, A @ f.u, A @ f.v, A @ f.n
+        frames = self._face_frames @ A.T  # (F, 4, 3): every face's o, u, v, n moved by A at once
+        for f, (o, u, v, n) in zip(self.faces, frames):
+            o = o + b
             c = float(n @ o)
             poly = f.poly
             if mirror is not None:

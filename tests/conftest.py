@@ -19,6 +19,13 @@ def _load_scheduling():
 
 scheduling = _load_scheduling()
 
+# Several test modules put tests/ first on sys.path for their helpers (fuzz_harness.py, real_detections.py). The
+# repository's root on sys.path keeps `import renderer` and `import tiltfit` the packages for a bare `pytest FILE`
+# too: tests/renderer and tests/tiltfit are namespace folders, which lose to a regular package anywhere on the path.
+_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+if _ROOT not in sys.path:
+    sys.path.append(_ROOT)
+
 # Tests check correctness, not speed: one torch thread per process avoids oversubscribing the two cores
 # that the two pytest-xdist workers already share.
 torch.set_num_threads(1)

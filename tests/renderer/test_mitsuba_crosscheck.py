@@ -6,6 +6,7 @@ itself uses `llvm_ad_rgb` where it runs). Skipped only where mitsuba is not inst
 """
 import hashlib
 import importlib.util
+import inspect
 import json
 from pathlib import Path
 
@@ -49,7 +50,7 @@ def test_rays_match_mitsuba_thinlens(bench):
 
 # Mitsuba's image of the defocused scene (8192 spp on scalar_rgb: about 8 CPU s, the peer's time) kept with the
 # fingerprint of what makes it (the sources of the benchmark, which builds Mitsuba's scene and sensor, and of the
-# transforms it uses; the scene; the samples and seed; Mitsuba's version) and rendered again wherever it differs.
+# transforms it uses, and of `_mitsuba_render`; the scene; the samples and seed; Mitsuba's version) and rendered again wherever it differs.
 # Ours is rendered in the test. `python tests/renderer/test_mitsuba_crosscheck.py` writes it afresh.
 MI_CACHE = Path(__file__).resolve().parent / "mitsuba_defocused_40x27.json"
 MI_SPP, SEED = 8192, 5
@@ -59,6 +60,7 @@ def _mitsuba_key(bench, cfg):
     import renderer.core.transforms as transforms  # the benchmark turns Mitsuba's shapes with its euler_xyz_deg
 
     source = Path(bench.__file__).read_bytes() + Path(transforms.__file__).read_bytes()
+    source += inspect.getsource(_mitsuba_render).encode()
     return hashlib.sha256(repr((source, cfg, MI_SPP, SEED, mi.__version__, mi.variant())).encode()).hexdigest()
 
 

@@ -4,6 +4,7 @@ calibrateCameraRO on the same corners and the flat board is rejected; on boards 
 model) the automatic choice keeps a flat board flat and finds a bent one; CALIB.json carries the fitted board and
 the files it makes are read back, exported and reported (with the residuals with and without the board)."""
 import hashlib
+import inspect
 import json
 import math
 import os
@@ -71,7 +72,7 @@ def industrial():
 
 
 # OpenCV's calibrateCameraRO of the training half (about 30 CPU s, the peer's time, not tiltfit's): kept with the
-# fingerprint of its exact input and OpenCV's version, and run again wherever either differs (new detections in
+# fingerprint of its exact input, OpenCV's version and the call (`_run_ro`'s source), and run again wherever either differs (new detections in
 # data/real/industrial_ds1/detections_tiltfit.json, another OpenCV). `python tests/tiltfit/test_board_shape.py`
 # writes it afresh.
 RO_CACHE = os.path.join(ROOT, "data", "real", "industrial_ds1", "calibrateCameraRO_train_half.json")
@@ -81,7 +82,7 @@ def _ro_input(train):
     P = train.points_mm.numpy().astype(np.float32)
     img = [train.corners_px[v].numpy().astype(np.float32) for v in range(train.n_views)]
     key = hashlib.sha256(repr((P.tobytes(), [c.tobytes() for c in img], tuple(train.image_size_px), CV_FLAGS,
-                               CV_CRITERIA, cv2.__version__)).encode()).hexdigest()
+                               CV_CRITERIA, cv2.__version__, inspect.getsource(_run_ro))).encode()).hexdigest()
     return P, img, key
 
 

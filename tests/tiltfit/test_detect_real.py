@@ -91,15 +91,16 @@ def test_gopro_at_least_34_of_36_boards_with_consistent_labelling(gopro):
 
 
 # OpenCV's corners of the compared photos (findChessboardCornersSB's exhaustive search: about 0.6 CPU s a photo,
-# the peer's time): kept with each photo's fingerprint (its bytes, the pattern, OpenCV's version and sb_corners'
-# source) and found again wherever it differs. `python tests/tiltfit/test_detect_real.py` writes them afresh.
+# the peer's time): kept with each photo's fingerprint (its bytes, the pattern, OpenCV's version, the sources of
+# sb_corners and of `_sb`) and found again wherever it differs. `python tests/tiltfit/test_detect_real.py` writes them afresh.
 SB_CACHE = os.path.join(GOPRO, "opencv_sb_corners.json")
 
 
 def _sb_key(path):
     with open(path, "rb") as f:
         data = f.read()
-    return hashlib.sha256(repr((data, PATTERN, cv2.__version__, inspect.getsource(sb_corners))).encode()).hexdigest()
+    return hashlib.sha256(repr((data, PATTERN, cv2.__version__, inspect.getsource(sb_corners),
+                           inspect.getsource(_sb))).encode()).hexdigest()
 
 
 def _sb(path):

@@ -158,7 +158,7 @@ def encode_srgb8(linear):
         if not np.isnan(v).any():
             code, nxt = _srgb8_table32()
             b = (v.view(np.int32) >> _SRGB8_SHIFT32) & ((1 << (31 - _SRGB8_SHIFT32)) - 1)  # -0.0 as 0.0
-            return np.take(code, b) + (v >= np.take(nxt, b))  # take: half the time of indexing
+            return np.take(code, b) + (v >= np.take(nxt, b))  # np.take: cheaper than indexing here
     v = np.clip(np.asarray(a, dtype=np.float64), 0.0, 1.0)
     if v.size < 4096 or np.isnan(v).any():
         return _encode_srgb8_formula(v)

@@ -9,7 +9,8 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def test_a_bare_pytest_of_one_file_imports_the_packages_not_the_test_folders(tmp_path):
-    target = os.path.join(ROOT, "tests", "tiltfit", "test_fuzz_files.py")  # tests/ first, then `from renderer import Lens`
+    # this module puts tests/ first on sys.path, then imports `from renderer import Lens`
+    target = os.path.join(ROOT, "tests", "tiltfit", "test_fuzz_files.py")
     code = ("import sys, pytest; sys.exit(pytest.main(['--collect-only', '-q', '-p', 'no:cacheprovider', "
             f"'-p', 'no:xdist', {target!r}]))")
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}

@@ -147,7 +147,8 @@ class Camera:
         ok = torch.isfinite(xy).all(-1)
         return torch.where(ok[..., None], self._from_normalised(torch.nan_to_num(xy)), uv_px), ok
 
-    def undistort_pixels_from(self, uv_px: torch.Tensor, ideal_px: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    def undistort_pixels_from(self, uv_px: torch.Tensor, ideal_px: torch.Tensor,
+                              valid: torch.Tensor) -> torch.Tensor:
         """`undistort_pixels(uv_px)[0]` as a function of the camera's parameters, given its values `ideal_px` and
         `valid` (computed without derivatives): one Newton step from them, so the same numbers to rounding, whose
         derivatives are the implicit function's, dx = J⁻¹ (dx_d − ∂D) with J = ∂D/∂x at the root (`distortion.
@@ -180,9 +181,16 @@ class Camera:
         (f_x, f_y, c_x, c_y; pixels), given its values `ideal_px` and `valid`, for a distortion about the
         principal point with fixed coefficients (`distortion.camera_from_lens` None): at the root x of
         D(x) = n = (uv − c) / f, dx = J⁻¹ dn with J = ∂D/∂x (implicit function), and ideal = f x + c. Zero where
-        `valid` is False (those pixels stay `uv_px`)."""
-        if self.distortion.camera_from_lens is not None:
-            raise ValueError("undistort_pixels_jacobian: the distortion is about the lens axis, not the principal point")
+        `valid` is False (those pixels stay `uv_px`).
+
+        Args:
+            uv_px: (..., 2) pixels of the distorted image; ideal_px, valid: what `undistort_pixels` returned for them.
+        Returns:
+            (..., 2, 4) derivatives of the ideal pixels by (f_x, f_y, c_x, c_y).
+        """
+        if self.distortion is None or self.distortion.camera_from_lens is not None:
+            raise ValueError("undistort_pixels_jacobian: needs a distortion about the principal point (none, or one "
+                             "about the lens axis, given)")
         f = torch.stack([torch.as_tensor(t).to(uv_px) for t in self.focal_px])
         c = torch.stack([torch.as_tensor(t).to(uv_px) for t in self.screen.center_px])
         x, n = (ideal_px - c) / f, (uv_px - c) / f
@@ -190,11 +198,13 @@ class Camera:
         det = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
         # dn/d(f, c): n_i = (uv_i − c_i) / f_i, so ∂n_i/∂f_i = −n_i / f_i and ∂n_i/∂c_i = −1 / f_i.
         eye = torch.eye(2, dtype=uv_px.dtype, device=uv_px.device)
-        dn = torch.cat([-(n / f)[..., None] * eye, (-1.0 / f)[:, None] * eye.expand(n.shape[:-1] + (2, 2))], -1)
+        dn = torch.cat([-(n / f)[..., None] * eye,
+                        (-1.0 / f)[:, None] * eye.expand(n.shape[:-1] + (2, 2))], -1)
         dx = torch.stack([J[..., 1, 1, None] * dn[..., 0, :] - J[..., 0, 1, None] * dn[..., 1, :],
                           J[..., 0, 0, None] * dn[..., 1, :] - J[..., 1, 0, None] * dn[..., 0, :]], -2)
         dx = dx / det[..., None, None]
-        # ideal_i = f_i x_i + c_i: ∂/∂f_i = x_i + f_i ∂x_i/∂f_i, ∂/∂c_i = 1 + f_i ∂x_i/∂c_i (and the cross terms).
+        # ideal_i = f_i x_i + c_i: ∂/∂f_i = x_i + f_i ∂x_i/∂f_i, ∂/∂c_i = 1 + f_i ∂x_i/∂c_i (and the cross
+        # terms).
         d_ideal = f[:, None] * dx + torch.cat([x[..., None] * eye, eye.expand(x.shape[:-1] + (2, 2))], -1)
         ok = valid & torch.isfinite(d_ideal).all(-1).all(-1)
         return torch.where(ok[..., None, None], d_ideal, 0.0)

@@ -103,7 +103,7 @@ def rotated_point_jacobian(rvec: torch.Tensor, p_rot: torch.Tensor, rows: torch.
     J_l = axis_angle_left_jacobian(rvec)
     lead = crossed.shape[:-3]
     # (J_l's leading dimensions broadcast to `lead`, compared by hand: torch.broadcast_shapes imports sympy on its
-    # first call, half a CPU second of a calibration command's)
+    # first call, a cost every calibration command would pay)
     if J_l.dim() == crossed.dim() and J_l.shape[-3] == 1 and crossed.dim() >= 4 and \
             all(j in (1, k) for j, k in zip(J_l.shape[:-3], lead)):
         # one J_l per batch entry of the leading dimensions (a view's pose, all its points): one (N m × 3) @ (3 × 3)

@@ -48,7 +48,7 @@ def test_rotated_point_jacobian_rows_broadcast(lead):
 
 def test_rotated_point_jacobian_needs_no_broadcast_shapes(monkeypatch):
     """The per-view product's broadcast check is made by hand: `torch.broadcast_shapes` imports sympy on its first
-    call (half a CPU second of every `tiltfit calibrate`, whose Jacobian calls this first)."""
+    call, which every `tiltfit calibrate` would pay (its Jacobian calls this first)."""
     def refuse(*shapes):
         raise AssertionError("torch.broadcast_shapes called")
 

@@ -48,10 +48,10 @@ def test_rays_match_mitsuba_thinlens(bench):
     assert r["lens_point_max_err_mm"]["rotate_180"] < 1e-4, f"lens points: {r['lens_point_max_err_mm']}"
 
 
-# Mitsuba's image of the defocused scene (8192 spp on scalar_rgb: about 8 CPU s, the peer's time) kept with the
-# fingerprint of what makes it (the sources of the benchmark, which builds Mitsuba's scene and sensor, and of the
-# transforms it uses, and of `_mitsuba_render`; the scene; the samples and seed; Mitsuba's version) and rendered again wherever it differs.
-# Ours is rendered in the test. `python tests/renderer/test_mitsuba_crosscheck.py` writes it afresh.
+# Mitsuba's image of the defocused scene (8192 spp on scalar_rgb: the peer's time) kept with the fingerprint of
+# what makes it (the sources of the benchmark, which builds Mitsuba's scene and sensor, of the transforms it uses
+# and of `_mitsuba_render`; the scene; the samples and seed; Mitsuba's version) and rendered again wherever it
+# differs. Ours is rendered in the test. `python tests/renderer/test_mitsuba_crosscheck.py` writes it afresh.
 MI_CACHE = Path(__file__).resolve().parent / "mitsuba_defocused_40x27.json"
 MI_SPP, SEED = 8192, 5
 

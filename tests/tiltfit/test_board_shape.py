@@ -71,10 +71,10 @@ def industrial():
     return {"ours": ours, "train": train, "test": test_corners, "ro": calibrate_camera_ro(train)}
 
 
-# OpenCV's calibrateCameraRO of the training half (about 30 CPU s, the peer's time, not tiltfit's): kept with the
-# fingerprint of its exact input, OpenCV's version and the call (`_run_ro`'s source), and run again wherever either differs (new detections in
-# data/real/industrial_ds1/detections_tiltfit.json, another OpenCV). `python tests/tiltfit/test_board_shape.py`
-# writes it afresh.
+# OpenCV's calibrateCameraRO of the training half (the peer's time, not tiltfit's): kept with the fingerprint of
+# its exact input, OpenCV's version and the call (`_run_ro`'s source), and run again wherever one differs (new
+# detections in data/real/industrial_ds1/detections_tiltfit.json, another OpenCV).
+# `python tests/tiltfit/test_board_shape.py` writes it afresh.
 RO_CACHE = os.path.join(ROOT, "data", "real", "industrial_ds1", "calibrateCameraRO_train_half.json")
 
 

@@ -44,7 +44,7 @@ def _spy_reads(monkeypatch):
 
 
 def test_first_marker_read_alone_names_the_webcam_frames_as_the_default_read(monkeypatch):
-    """OpenCV's first read (FIRST_READ_WINDOWS, about 0.65 of its default's time) names every corner of the three
+    """OpenCV's first read (FIRST_READ_WINDOWS, fewer threshold passes than its default) names every corner of the three
     real webcam frames, so its default read is skipped; the corners are those the default read leads to."""
     import os
 

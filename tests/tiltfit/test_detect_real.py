@@ -90,9 +90,9 @@ def test_gopro_at_least_34_of_36_boards_with_consistent_labelling(gopro):
         assert diag.sum() > 0, f"{p}: labelling points {diag} (should go to the lower right)"
 
 
-# OpenCV's corners of the compared photos (findChessboardCornersSB's exhaustive search: about 0.6 CPU s a photo,
-# the peer's time): kept with each photo's fingerprint (its bytes, the pattern, OpenCV's version, the sources of
-# sb_corners and of `_sb`) and found again wherever it differs. `python tests/tiltfit/test_detect_real.py` writes them afresh.
+# OpenCV's corners of the compared photos (findChessboardCornersSB's exhaustive search: the peer's time): kept
+# with each photo's fingerprint (its bytes, the pattern, OpenCV's version, the sources of sb_corners and of `_sb`)
+# and found again wherever it differs. `python tests/tiltfit/test_detect_real.py` writes them afresh.
 SB_CACHE = os.path.join(GOPRO, "opencv_sb_corners.json")
 
 

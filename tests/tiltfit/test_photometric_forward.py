@@ -133,7 +133,8 @@ def test_focus_geometry_of_the_fit_equals_the_cameras(k1, centre):
     want = direct(geo)
     dq, dc, da = torch.func.jacfwd(direct)(geo)
     scale = float(want[0].abs().max())
-    assert float((q - want[0]).abs().max()) < 1e-12 * scale, f"focus points off by {float((q - want[0]).abs().max()):.3g}"
+    assert float((q - want[0]).abs().max()) < 1e-12 * scale, \
+        f"focus points off by {float((q - want[0]).abs().max()):.3g}"
     assert torch.equal(c, want[1]) and torch.equal(a, want[2]), "the lens centre and axes are the camera's"
     gq, gc, ga = torch.tensor(rng.normal(size=(50, 7, 4))), torch.tensor(rng.normal(size=(50, 3))), \
         torch.tensor(rng.normal(size=(50, 2, 3)))
@@ -185,7 +186,8 @@ def test_undistorted_pixels_by_one_newton_step_have_the_newton_derivatives(centr
     assert float((step(geo) - ideal).abs().max()) < 1e-9, "one step from the root stays at the root"
     assert float((got - want).abs().max()) < 1e-9 * float(want.abs().max()), \
         f"one step's derivatives off by {float((got - want).abs().max()):.3g} of {float(want.abs().max()):.3g}"
-    assert float(want[:, 0].abs().max()) > 1e-3 and not bool(got[-1].any()), "w moves the ideal points; not the lost one"
+    assert float(want[:, 0].abs().max()) > 1e-3 and not bool(got[-1].any()), \
+        "w moves the ideal points; not the lost one"
     if centre == "lens_axis":
         with pytest.raises(ValueError, match="lens axis"):
             problem._call(1, geo, lambda cam: cam.undistort_pixels_jacobian(pts, ideal, valid))

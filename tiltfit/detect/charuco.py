@@ -104,10 +104,10 @@ def _top_within(gray: np.ndarray, lo: float, hi: float) -> bool:
 
 
 # OpenCV's marker reading thresholds the photo at several window sizes (by default 3, 13 and 23 px), each a pass
-# that costs about a third of its time. A first read thresholds at FIRST_READ_WINDOWS alone; OpenCV's default
-# reading runs only when the corners named by the first read, refined and completed, leave one of the board's
-# corners unnamed (more markers could then name more). On the 48 frames of the webcam video both read the same
-# markers, at 0.65 of the default's time.
+# over the photo. A first read thresholds at FIRST_READ_WINDOWS alone; OpenCV's default reading runs only when
+# the corners named by the first read, refined and completed, leave one of the board's corners unnamed (more
+# markers could then name more). On the 48 frames of the webcam video both read the same markers
+# (`benchmarks/results/detect_speed_charuco.md` for the time).
 FIRST_READ_WINDOWS = (3, 13)
 
 

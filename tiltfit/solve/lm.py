@@ -200,7 +200,8 @@ def levenberg_marquardt(evaluate, x0: dict, blocks, view_rows: torch.Tensor | No
     """Minimise ½ Σ ρ(r_i(x)²) over the named blocks (module docstring).
 
     Args:
-        evaluate: (x: {name: tensor}, with_jacobian: bool) -> (r (M,), {name: (M, size)} or None).
+        evaluate: (x: {name: tensor}, with_jacobian: bool) -> (r (M,), {name: (M, size)} or None). Its tensors
+            must be new each call: the solver and `LMResult.jacobian` keep views of them, not copies.
         x0: {name: tensor} the start, each of its block's shape (float64).
         blocks: the `Block`s in flat order.
         view_rows: (V, R) long, each view's residual rows (when a block is per view).

@@ -136,6 +136,32 @@ def test_band_model_normal_equations_are_the_pixel_by_pixel_ones():
         assert err < 1e-10, f"{name} differs from the pixel-by-pixel model by {err:.2e} of its largest entry"
 
 
+def test_band_model_evaluates_a_large_subset_with_its_kept_points():
+    """The solver drops converged points a few at a time: a subset of most of the points gathered last is evaluated
+    with them (nothing gathered anew) and gives the normal equations a model asked for that subset alone gives."""
+    from tiltfit.detect.blur import _BandModel
+
+    rng = np.random.default_rng(7)
+    img, groups = _synthetic_bands(rng, bands_per_point=(4, 3, 4, 4, 2, 4))
+    C, B = len(groups), 4
+    theta = torch.zeros(C, 3 + 3 * B, dtype=torch.float64)
+    theta[:, 0] = torch.linspace(-3.0, 4.0, C, dtype=torch.float64)
+    theta[:, 1:3] = 0.05
+    theta[:, 3::3], theta[:, 4::3], theta[:, 5::3] = 0.1, 0.8, 0.3
+    prior = torch.linspace(0.5, 2.0, C, dtype=torch.float64)
+    r_cap = torch.full((C,), 3.0, dtype=torch.float64)
+    model = _BandModel(img, groups, r_cap, B)
+    every = torch.arange(C)
+    model.normal(theta, every, prior)
+    idx = torch.tensor([0, 2, 3, 4, 5])  # point 1 converged
+    step = 0.01 * torch.arange(idx.numel(), dtype=torch.float64)[:, None]  # the others moved on
+    got = model.normal(theta[idx] + step, idx, prior[idx])
+    assert torch.equal(model._idx, every), "a subset of 5 of the 6 points kept should not gather its tensors anew"
+    ref = _BandModel(img, groups, r_cap, B).normal(theta[idx] + step, idx, prior[idx])
+    for name in ("cost", "A", "g"):
+        assert torch.equal(getattr(got, name), getattr(ref, name)), f"{name} differs from the subset's own model"
+
+
 # --- accuracy on images ------------------------------------------------------------------------------------
 def _view(ratio, noise, seed=0, pose=POSE, U_mm=400.0):
     cam = with_blur_ratio(CAM, TARGET, *pose, ratio, U_mm=U_mm)

@@ -44,6 +44,10 @@ _MODEL_DTYPE = torch.float64
 # is some 60 element-wise passes over arrays of this size, and beyond it they leave the core's cache (a 1280 × 1024
 # photo's 160 points in one evaluation, 380,000 slots, cost twice as much CPU time as in chunks of this size)
 _CHUNK_SLOTS = 65536
+# A point set's gathered tensors are kept while the solver asks for at least this share of it (the points it no
+# longer asks for are evaluated along and their results dropped): gathering a set anew costs about as much as
+# 1.5 evaluations of it, and the solver drops converged points a few at a time
+_KEEP_SET_SHARE = 0.75
 
 
 
@@ -239,7 +243,7 @@ class _BandModel:
                             far=torch.stack([dlo.abs() < lim, dhi.abs() < lim]), d_far=torch.stack([dlo, dhi]).to(dt),
                             c_far=torch.stack([c_lo, c_hi]))
         self._to_A, self._to_g = _band_blocks(B)
-        self._idx, self._at = None, None
+        self._idx, self._at, self._theta, self._prior = None, None, None, None
 
     def at(self, idx: torch.Tensor) -> dict:
         """The points' tensors gathered at idx (k,), and their candidate slots (class docstring), kept until
@@ -267,8 +271,17 @@ class _BandModel:
         g["rows"] = torch.empty(k, B, 7, n, dtype=torch.float64)  # `normal`'s rows; the dark level's is √weight
         g["rows"][:, :, 3] = g["mask"]
         g["neg_Im"] = -g["I"] * g["mask"]
-        self._idx, self._at = idx, g
+        self._idx, self._at, self._theta = idx, g, None
         return g
+
+    def _within_kept(self, idx: torch.Tensor) -> torch.Tensor | None:
+        """Where the points idx (k,) (ascending) sit in the kept set, if they are a strict subset of it with at least
+        `_KEEP_SET_SHARE` of its points; else None."""
+        kept = self._idx
+        if self._theta is None or not (_KEEP_SET_SHARE * kept.numel() <= idx.numel() < kept.numel()):
+            return None
+        pos = torch.searchsorted(kept, idx).clamp_max_(kept.numel() - 1)
+        return pos if torch.equal(kept[pos], idx) else None
 
     def _profile(self, g: dict, theta: torch.Tensor, deriv: bool):
         """The cells' profile (k, B, n) at unit contrast and zero dark level for parameters theta (k, P), and with
@@ -317,8 +330,14 @@ class _BandModel:
         A pixel of band e depends on the point's (β, gx, gy) and on band e's (dark level, contrast, edge offset)
         only: its six Jacobian entries and its residual form 7 rows a band, whose products (one bmm) are the
         band's blocks of the normal equations and its squared residuals."""
-        g = self.at(idx)
         th = theta.to(_MODEL_DTYPE)
+        pos = self._within_kept(idx)
+        if pos is None:
+            g = self.at(idx)
+        else:  # the kept set, the other points at their last parameters
+            g = self._at
+            th, prior = self._theta.index_copy(0, pos, th), self._prior.index_copy(0, pos, prior)
+        self._theta, self._prior = th, prior
         k, B, n = g["d0"].shape
         P = 3 + 3 * B
         o, c = th[:, 3::3, None], th[:, 4::3, None]  # (k, B, 1)
@@ -339,6 +358,8 @@ class _BandModel:
         A[:, 2, 2] += p2
         grad[:, 1:3] += p2[:, None] * th[:, 1:3]
         cost = M[..., 6, 6].sum(-1) + p2 * (th[:, 1:3] ** 2).sum(-1)
+        if pos is not None:
+            return Normal(cost[pos], A[pos], grad[pos])
         return Normal(cost, A, grad)
 
 

@@ -136,31 +136,37 @@ def batched_levenberg_marquardt(evaluate: Callable, x0: torch.Tensor, options: B
         def small_step(step, xa, idx):
             return step.abs().amax(-1) <= options.xtol * (xa.abs().amax(-1) + options.xtol)
     active, it = every, 0
+    # the active problems' state, compact: written back to the batch's when a problem leaves and at the end, so an
+    # iteration gathers and scatters nothing
+    xa, Aa, ga, ca, la = x, A, g, cost, lam
     for it in range(1, options.max_iterations + 1):
-        a = active
-        Aa = A[a]
         diag = torch.diagonal(Aa, dim1=1, dim2=2)
-        damped = Aa + lam[a, None, None].to(Aa.dtype) * torch.diag_embed(diag + options.diagonal_floor)
-        step = -torch.linalg.solve(damped, g[a][..., None])[..., 0]
+        damped = Aa + la[:, None, None].to(Aa.dtype) * torch.diag_embed(diag + options.diagonal_floor)
+        step = -torch.linalg.solve(damped, ga[..., None])[..., 0]
         if math.isfinite(options.max_step):
             length = torch.linalg.vector_norm(step, dim=1, keepdim=True)
             step = torch.where(length > options.max_step, step * (options.max_step / length), step)
-        trial = x[a] + step.to(x.dtype)
+        trial = xa + step.to(xa.dtype)
         if project is not None:
-            trial = project(trial, a)
-        new = _linearise(evaluate, trial, a)
-        better = new.cost < cost[a]
-        x[a] = torch.where(better[:, None], trial, x[a])
-        A[a] = torch.where(better[:, None, None], new.A, A[a])
-        g[a] = torch.where(better[:, None], new.g, g[a])
-        cost[a] = torch.where(better, new.cost, cost[a])
-        lam[a] = torch.where(better, lam[a] * options.damping_decrease,
-                             lam[a] * options.damping_increase).clamp(options.min_damping, options.max_damping)
-        done = small_step(step, x[a], a) | (lam[a] > options.give_up_damping)
-        converged[a] = done
-        active = a[~done]
-        if active.numel() == 0:
-            break
+            trial = project(trial, active)
+        new = _linearise(evaluate, trial, active)
+        better = new.cost < ca
+        xa = torch.where(better[:, None], trial, xa)
+        Aa = torch.where(better[:, None, None], new.A, Aa)
+        ga = torch.where(better[:, None], new.g, ga)
+        ca = torch.where(better, new.cost, ca)
+        la = torch.where(better, la * options.damping_decrease,
+                         la * options.damping_increase).clamp(options.min_damping, options.max_damping)
+        done = small_step(step, xa, active) | (la > options.give_up_damping)
+        if bool(done.any()):
+            gone = active[done]
+            x[gone], A[gone], g[gone], cost[gone], lam[gone] = xa[done], Aa[done], ga[done], ca[done], la[done]
+            converged[gone] = True
+            stay = ~done
+            active, xa, Aa, ga, ca, la = active[stay], xa[stay], Aa[stay], ga[stay], ca[stay], la[stay]
+            if active.numel() == 0:
+                break
+    x[active], A[active], g[active], cost[active], lam[active] = xa, Aa, ga, ca, la
     return BatchedResult(x, cost, A, g, lam, converged, it)
 
 

@@ -176,6 +176,7 @@ def _start(model, I: torch.Tensor, mask: torch.Tensor, has_band: torch.Tensor, r
     every = torch.arange(C)
     w = mask * mask
     npix = w.sum(-1)
+    sI = (w * I).sum(-1)
     best = torch.full((C,), float("inf"), dtype=torch.float64)
     theta = torch.zeros(C, 3 + 3 * B, dtype=torch.float64)
     for frac in (0.05, 0.13, 0.3, 0.55, 1.0, 1.6):
@@ -183,8 +184,8 @@ def _start(model, I: torch.Tensor, mask: torch.Tensor, has_band: torch.Tensor, r
         trial[:, 0] = (2 * r0 * frac).clamp_min(0.1)  # β is a diameter
         trial[:, 4::3] = 1.0
         gg = model.profile(trial, every)
-        sg, sI = (w * gg).sum(-1), (w * I).sum(-1)
-        sgg, sgI = (w * gg * gg).sum(-1), (w * gg * I).sum(-1)
+        wg = w * gg
+        sg, sgg, sgI = wg.sum(-1), (wg * gg).sum(-1), (wg * I).sum(-1)
         det = npix * sgg - sg * sg
         cc = (npix * sgI - sg * sI) / det.clamp_min(1e-30)
         oo = (sI - cc * sg) / npix.clamp_min(1e-9)

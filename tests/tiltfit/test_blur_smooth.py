@@ -14,7 +14,7 @@ import torch
 
 from camio.files import read_image
 from tiltfit.detect.blur import _diameter_sigma, measure_blur
-from tiltfit.detect.blur_bands import _band
+from tiltfit.detect.blur_bands import _TAPER_PX, _band, _bands
 from tiltfit.detect.imaging import to_gray
 from tiltfit.target.layout import load_target
 
@@ -74,6 +74,53 @@ def test_band_weights_taper_so_a_tiny_move_changes_them_tinily():
         assert 0.4 * min(max_pixels, 300) < len(a["px"]) <= max_pixels, f"{len(a['px'])} pixels kept"
         # the old pixel set's hard edge: a pixel 0.5 px inside a limit now has weight 0.5, not 1
         assert a["w"].min() < 0.5 < a["w"].max() == 1.0, "the weights should taper at the band's limits"
+
+
+def _band_by_pixel(lo, hi, lines, margin, reach, s_max):
+    """A band's pixels written pixel by pixel over its whole box (no thinning): {(x, y): (w before the fade, d0,
+    d_lo, d_hi)}."""
+    ramp = lambda t: min(max(t / _TAPER_PX, 0.0), 1.0)
+    out = {}
+    for y in range(lo[1], hi[1] + 1):
+        for x in range(lo[0], hi[0] + 1):
+            d0, dn, dfar, d_lo, d_hi = (a * x + b * y + c for a, b, c in lines)
+            w = (ramp(s_max - abs(d0)) * ramp(dn - margin) * ramp(dfar - margin) * ramp(reach - dn) * ramp(d_lo)
+                 * ramp(d_hi))
+            if w > 0:
+                out[(x, y)] = (w, d0, d_lo, -d_hi)
+    return out
+
+
+def test_bands_at_once_are_each_band_pixel_by_pixel():
+    """`_bands` lists the pixels of many bands at once (only the runs of each box row near the edge): each band's
+    pixels, weights and distances are those of its whole box pixel by pixel, whatever the edge's slope."""
+    rng = np.random.default_rng(3)
+    m = 12
+    lines = np.empty((m, 5, 3))
+    lo, hi = np.empty((m, 2), int), np.empty((m, 2), int)
+    margin, reach, s_max = np.full(m, 1.5), np.full(m, 14.0), np.empty(m)
+    for b in range(m):
+        angle = (rng.uniform(0, np.pi) if b > 1 else b * np.pi / 2)  # two edges along the pixel grid
+        n, t = np.array([np.cos(angle), np.sin(angle)]), np.array([-np.sin(angle), np.cos(angle)])
+        p = rng.uniform(20, 40, 2)  # the corner
+        half = rng.uniform(4, 9)  # half the band's width on either side, pixels
+        s_max[b] = half
+        lines[b] = [[*n, -n @ p], [*t, -t @ p], [*-t, t @ p + 24.0], [*n, -n @ p + 7.0], [*-n, n @ p + 6.0]]
+        corners = p + np.array([-half * n, half * n, 24 * t - half * n, 24 * t + half * n])  # the box's corners
+        lo[b], hi[b] = np.floor(corners.min(0)).astype(int), np.ceil(corners.max(0)).astype(int)
+    got = _bands(lo, hi, lines, margin, reach, s_max, max_pixels=10_000)
+    for b in range(m):
+        ref = _band_by_pixel(lo[b], hi[b], lines[b], margin[b], reach[b], s_max[b])
+        band = got[b]
+        assert band is not None and len(band["px"]) == len(ref), f"band {b}: {len(ref)} pixels expected"
+        fade = min(1.0, (sum(v[0] for v in ref.values()) - 12.0) / 12.0)
+        for (x, y), w, d0, d_lo, d_hi in zip(band["px"], band["w"], band["d0"], band["d_lo"], band["d_hi"]):
+            want = ref[(int(x), int(y))]
+            assert np.allclose((w, d0, d_lo, d_hi), (want[0] * fade, *want[1:]), rtol=0, atol=1e-9), (
+                f"band {b}, pixel {(x, y)}: {(w, d0, d_lo, d_hi)} against {want}")
+        alone = _band(lo[b], hi[b], lines[b], margin[b], reach[b], s_max[b], 10_000)
+        assert np.array_equal(alone["px"], band["px"]) and np.allclose(alone["w"], band["w"], rtol=0, atol=1e-12), (
+            f"band {b} alone differs from band {b} among {m}")
 
 
 def test_sigma_of_an_undetermined_width_is_infinite_not_zero():

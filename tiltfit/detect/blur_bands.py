@@ -86,41 +86,80 @@ def _ramp(x: np.ndarray) -> np.ndarray:
 def _band(lo, hi, lines, margin, reach, s_max, max_pixels) -> dict | None:
     """One band's pixels within the box lo..hi (x, y): px (n, 2), their weights w (n,) in (0, 1] and their signed
     distances d0 to the edge, d_lo and d_hi to the next parallel edges, from the image lines (5, 3) (edge, near
-    and far closing lines, lines before and after); None below _MIN_BAND_WEIGHT.
+    and far closing lines, lines before and after); None below _MIN_BAND_WEIGHT (`_bands` of one band)."""
+    return _bands(np.asarray([lo]), np.asarray([hi]), np.asarray([lines]), np.asarray([margin]), np.asarray([reach]),
+                  np.asarray([s_max]), max_pixels)[0]
+
+
+def _bands(lo, hi, lines, margin, reach, s_max, max_pixels) -> list[dict | None]:
+    """The pixels of m bands at once, each within its box lo..hi (m, 2) (x, y), from its image lines (m, 5, 3) (edge,
+    near and far closing lines, lines before and after) and its limits margin, reach, s_max (m,): per band px (n, 2),
+    weights w (n,) in (0, 1], signed distances d0 to the edge, d_lo and d_hi to the next parallel edges; None for a
+    band below _MIN_BAND_WEIGHT.
 
     A pixel's weight tapers to 0 inside every limit of the band (`_TAPER_PX`), so it is a continuous function
-    of the corners; beyond max_pixels the band keeps a fixed 2^−k share of the image's pixels (`_R2`)."""
-    (x0, y0), (x1, y1) = lo, hi
-    P = np.empty(((y1 - y0 + 1) * (x1 - x0 + 1), 2))
-    P.reshape(y1 - y0 + 1, x1 - x0 + 1, 2)[..., 0] = np.arange(x0, x1 + 1)
-    P.reshape(y1 - y0 + 1, x1 - x0 + 1, 2)[..., 1] = np.arange(y0, y1 + 1)[:, None]
-    # signed distances to the edge, the two lines closing the band, and the next parallel edges; the box of a
-    # slanted band is mostly outside it, so the pixels beyond s_max of the edge (weight 0) are dropped first
-    d0 = P @ lines[0, :2] + lines[0, 2]
-    near = np.nonzero(np.abs(d0) < s_max)[0]
-    P, d0 = P[near], d0[near]
-    dn, dfar, d_lo, d_hi = (P @ lines[1:, :2].T + lines[1:, 2]).T
-    w = (_ramp(s_max - np.abs(d0)) * _ramp(dn - margin) * _ramp(dfar - margin) * _ramp(reach - dn)
+    of the corners; beyond max_pixels a band keeps a fixed 2^−k share of the image's pixels (`_R2`)."""
+    lo, hi = np.asarray(lo, dtype=np.int64), np.asarray(hi, dtype=np.int64)
+    m = len(lo)
+    if m == 0:
+        return []
+    # the box of a slanted band is mostly outside it: on each of its rows, only the run of pixels within s_max
+    # (and a pixel more) of the edge line a x + b y + c = 0 is listed
+    height = hi[:, 1] - lo[:, 1] + 1
+    row_band = np.repeat(np.arange(m), height)
+    row_y = lo[row_band, 1] + np.arange(row_band.size) - np.repeat(np.cumsum(height) - height, height)
+    a, b, c = (lines[row_band, 0, j] for j in range(3))
+    steep = np.abs(a) > 1e-6  # else the edge is nearly along the row: the whole row
+    a_safe = np.where(steep, a, 1.0)
+    x_mid, half = -(b * row_y + c) / a_safe, s_max[row_band] / np.abs(a_safe)
+    x_lo, x_hi = lo[row_band, 0], hi[row_band, 0]
+    first = np.where(steep, np.clip(np.floor(x_mid - half) - 1, x_lo, x_hi + 1), x_lo).astype(np.int64)
+    last = np.where(steep, np.clip(np.ceil(x_mid + half) + 1, x_lo - 1, x_hi), x_hi).astype(np.int64)
+    count = np.maximum(last - first + 1, 0)
+    # those runs' pixels, row by row, in one list
+    row = np.repeat(np.arange(row_band.size), count)
+    band = row_band[row]
+    x = (first[row] + np.arange(row.size) - np.repeat(np.cumsum(count) - count, count)).astype(np.float64)
+    y = row_y[row].astype(np.float64)
+    # signed distances to the edge, the two lines closing the band, and the next parallel edges; the pixels
+    # beyond s_max of the edge (weight 0) are dropped first
+    coef = np.ascontiguousarray(lines.transpose(1, 2, 0))  # (5, 3, m): each line's a, b, c by band
+    d0 = x * coef[0, 0].take(band) + y * coef[0, 1].take(band) + coef[0, 2].take(band)
+    near = np.nonzero(np.abs(d0) < s_max.take(band))[0]
+    band, x, y, d0 = band[near], x[near], y[near], d0[near]
+    dn, dfar, d_lo, d_hi = (x * coef[j, 0].take(band) + y * coef[j, 1].take(band) + coef[j, 2].take(band)
+                            for j in range(1, 5))
+    mg = margin.take(band)
+    w = (_ramp(s_max.take(band) - np.abs(d0)) * _ramp(dn - mg) * _ramp(dfar - mg) * _ramp(reach.take(band) - dn)
          * _ramp(d_lo) * _ramp(d_hi))
-    idx_keep = np.nonzero(w > 0)[0]
-    if idx_keep.size > max_pixels:
-        share = 0.5 ** math.ceil(math.log2(idx_keep.size / max_pixels))
-        u = np.modf(P[idx_keep] @ np.asarray(_R2))[0]
-        idx_keep = idx_keep[u < share]
-    total = w[idx_keep].sum()
-    if total <= _MIN_BAND_WEIGHT:
-        return None
-    fade = min(1.0, (total - _MIN_BAND_WEIGHT) / _MIN_BAND_WEIGHT)
-    return dict(px=P[idx_keep].astype(int), w=w[idx_keep] * fade, d0=d0[idx_keep], d_lo=d_lo[idx_keep],
-                d_hi=-d_hi[idx_keep])
+    keep = w > 0
+    n_keep = np.bincount(band[keep], minlength=m)
+    thin = n_keep > max_pixels
+    if thin.any():
+        share = np.where(thin, 0.5 ** np.ceil(np.log2(np.maximum(n_keep, 1) / max_pixels)), 2.0)
+        u = np.modf(x * _R2[0] + y * _R2[1])[0]
+        keep &= u < share[band]
+    band, w = band[keep], w[keep]
+    px = np.stack([x[keep], y[keep]], -1).astype(int)
+    d0, d_lo, d_hi = d0[keep], d_lo[keep], d_hi[keep]
+    total = np.bincount(band, weights=w, minlength=m).tolist()
+    ends = np.cumsum(np.bincount(band, minlength=m)).tolist()
+    out = []
+    for b, (a, z) in enumerate(zip([0] + ends[:-1], ends)):
+        if total[b] <= _MIN_BAND_WEIGHT:
+            out.append(None)
+            continue
+        fade = min(1.0, (total[b] - _MIN_BAND_WEIGHT) / _MIN_BAND_WEIGHT)
+        out.append(dict(px=px[a:z], w=w[a:z] * fade, d0=d0[a:z], d_lo=d_lo[a:z], d_hi=-d_hi[a:z]))
+    return out
 
 
 def _half_edges(target: Target, ks: np.ndarray, Hms: np.ndarray, r_est: np.ndarray, image_shape, max_pixels: int,
                 first_pass: bool = False, grads: np.ndarray | None = None) -> list[list[dict]]:
     """Pixel bands of the up-to-four half-edges at feature points ks, with their profile geometry.
 
-    The geometry (edge lines, band limits, bounding boxes) is computed for all points at once; only the
-    pixel selection runs per band.
+    The geometry (edge lines, band limits, bounding boxes) and the pixels (`_bands`) are computed for all bands at
+    once.
 
     Args:
         ks: (K,) feature-point indices; Hms: (K, 3, 3) homographies target -> pixels of the image the bands
@@ -187,10 +226,11 @@ def _half_edges(target: Target, ks: np.ndarray, Hms: np.ndarray, r_est: np.ndarr
     use = (seg - 2 * margin >= 3.0) & (hi > lo).all(-1)
     lines = np.stack([L0, P_near, P_far, L_lo, L_hi], -2)  # (K, 4, 5, 3)
 
-    out = []
-    for c in range(K):
-        bands = [_band(lo[c, e], hi[c, e], lines[c, e], margin[c, e], reach[c, e], s_max[c, e], max_pixels)
-                 for e in np.nonzero(use[c])[0]]
-        out.append([dict(b, dxy=b["px"] - centre[c, e], kappa=kappa[c, e].tolist(), wa=float(wa[c, e]),
-                         wb=float(wb[c, e])) for e, b in zip(np.nonzero(use[c])[0], bands) if b is not None])
+    cs, es = np.nonzero(use)
+    bands = _bands(lo[cs, es], hi[cs, es], lines[cs, es], margin[cs, es], reach[cs, es], s_max[cs, es], max_pixels)
+    out = [[] for _ in range(K)]
+    for c, e, b in zip(cs.tolist(), es.tolist(), bands):
+        if b is not None:
+            out[c].append(dict(b, dxy=b["px"] - centre[c, e], kappa=kappa[c, e].tolist(), wa=float(wa[c, e]),
+                               wb=float(wb[c, e])))
     return out

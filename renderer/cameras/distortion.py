@@ -86,14 +86,21 @@ def distort(xy: torch.Tensor, coefficients) -> torch.Tensor:
     Returns:
         (..., 2) distorted normalised coordinates.
     """
+    *_, xd, yd = _distorted(xy, coefficients)
+    return torch.stack([xd, yd], -1)
+
+
+def _distorted(xy: torch.Tensor, coefficients):
+    """The terms `distort` and `distort_with_jacobians` share: (x, y, k padded, p1, p2, r², radial factor s, ds/dr²,
+    x_d, y_d)."""
     k = _padded(coefficients, xy)
     x, y = xy[..., 0], xy[..., 1]
     p1, p2 = k[..., 2], k[..., 3]
     r2 = x * x + y * y
-    s, _ = _radial(r2, k)
+    s, ds = _radial(r2, k)
     xd = x * s + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
     yd = y * s + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    return torch.stack([xd, yd], -1)
+    return x, y, k, p1, p2, r2, s, ds, xd, yd
 
 
 def distort_jacobian(xy: torch.Tensor, coefficients) -> torch.Tensor:
@@ -148,13 +155,7 @@ def distort_with_jacobians(xy: torch.Tensor, coefficients, names=COEFFICIENT_NAM
     Returns:
         (x_d (..., 2), ∂x_d/∂xy (..., 2, 2), ∂x_d/∂k (..., 2, len(names)) or None).
     """
-    k = _padded(coefficients, xy)
-    x, y = xy[..., 0], xy[..., 1]
-    p1, p2 = k[..., 2], k[..., 3]
-    r2 = x * x + y * y
-    s, ds = _radial(r2, k)
-    xd = x * s + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * s + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    x, y, k, p1, p2, r2, s, ds, xd, yd = _distorted(xy, coefficients)
     dxx = s + 2 * x * x * ds + 2 * p1 * y + 6 * p2 * x
     dxy = 2 * x * y * ds + 2 * p1 * x + 2 * p2 * y
     dyy = s + 2 * y * y * ds + 6 * p1 * y + 2 * p2 * x

@@ -64,18 +64,25 @@ def test_lens_samples_match_the_traced_rays(theta_L_deg, psf_var):
     assert float((got - want).abs().max()) < 1e-12, f"off by {float((got - want).abs().max()):.3g}"
 
 
-def test_lens_sample_jacobian_traces_no_rays(monkeypatch):
-    """The fit's residuals and Jacobian on lens-sample pixels come from the 7 focus points a pixel: no ray is
-    traced per lens sample (the old path traced 4 S rays a pixel under 11 forward-mode tangents, 99 % of the
-    kernel-choice fit's time), and they match the traced rays' dark fraction."""
+def _fit_camera_of_two_views():
+    """(lens, the photometric fit's float64 camera of the tilted view's first two target poses, no gradients)."""
     lens, _, _ = _tilted_view()
     poses = [reproduce.target_pose(tp.BOARD, *reproduce.TARGET_VIEWS[i]) for i in (0, 1)]
     start = {"w_mm": tp.W_MM, "U_mm": lens.U, "d_mm": tp.D_MM, "theta_F_deg": math.degrees(lens.theta_F),
              "views": [{"R": R, "T_mm": T} for R, T in poses]}
-    w_px, h_px = lens.sensor.width_px, lens.sensor.height_px
-    camera = tp._camera(start, [np.zeros((h_px, w_px))], lens.sensor.pixel_pitch).double()
+    camera = tp._camera(start, [np.zeros((lens.sensor.height_px, lens.sensor.width_px))],
+                        lens.sensor.pixel_pitch).double()
     for p in camera.parameters():
         p.requires_grad_(False)
+    return lens, camera
+
+
+def test_lens_sample_jacobian_traces_no_rays(monkeypatch):
+    """The fit's residuals and Jacobian on lens-sample pixels come from the 7 focus points a pixel: no ray is
+    traced per lens sample (the old path traced 4 S rays a pixel under 11 forward-mode tangents, 99 % of the
+    kernel-choice fit's time), and they match the traced rays' dark fraction."""
+    lens, camera = _fit_camera_of_two_views()
+    w_px, h_px = lens.sensor.width_px, lens.sensor.height_px
     rng = np.random.default_rng(2)
     uv = torch.tensor(np.stack([rng.integers(0, w_px, 400), rng.integers(0, h_px, 400)], -1), dtype=torch.float64)
     with torch.no_grad():
@@ -107,14 +114,8 @@ def test_focus_geometry_of_the_fit_equals_the_cameras(k1, centre):
     point, by one Newton step in forward mode about the lens axis) and its chained derivatives equal the camera's
     own `focus_geometry` and forward mode at every point, with and without distortion (the sigma's
     held-intrinsics step moves k1 between calls)."""
-    lens, _, _ = _tilted_view()
-    poses = [reproduce.target_pose(tp.BOARD, *reproduce.TARGET_VIEWS[i]) for i in (0, 1)]
-    start = {"w_mm": tp.W_MM, "U_mm": lens.U, "d_mm": tp.D_MM, "theta_F_deg": math.degrees(lens.theta_F),
-             "views": [{"R": R, "T_mm": T} for R, T in poses]}
+    lens, camera = _fit_camera_of_two_views()
     w_px, h_px = lens.sensor.width_px, lens.sensor.height_px
-    camera = tp._camera(start, [np.zeros((h_px, w_px))], lens.sensor.pixel_pitch).double()
-    for p in camera.parameters():
-        p.requires_grad_(False)
     zeros = torch.zeros(10, dtype=torch.float64)
     problem = _Problem(camera, tp.BOARD, [_View(torch.zeros(10, 2), zeros, 0, zeros)], hammersley_disc_samples(16))
     camera.distortion_centre = centre
@@ -154,14 +155,8 @@ def test_undistorted_pixels_by_one_newton_step_have_the_newton_derivatives(centr
     by the focal lengths and principal point, chained here) gives the same derivatives in closed form, and is
     refused for a distortion about the lens axis. Pixels whose inverse does not exist stay put, without
     derivatives."""
-    lens, _, _ = _tilted_view()
-    poses = [reproduce.target_pose(tp.BOARD, *reproduce.TARGET_VIEWS[i]) for i in (0, 1)]
-    start = {"w_mm": tp.W_MM, "U_mm": lens.U, "d_mm": tp.D_MM, "theta_F_deg": math.degrees(lens.theta_F),
-             "views": [{"R": R, "T_mm": T} for R, T in poses]}
+    lens, camera = _fit_camera_of_two_views()
     w_px, h_px = lens.sensor.width_px, lens.sensor.height_px
-    camera = tp._camera(start, [np.zeros((h_px, w_px))], lens.sensor.pixel_pitch).double()
-    for p in camera.parameters():
-        p.requires_grad_(False)
     camera.distortion_centre = centre
     with torch.no_grad():
         camera.dist_k1 += -0.3   # strong barrel: the outer pixels have no inverse

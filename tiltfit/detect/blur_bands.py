@@ -145,12 +145,12 @@ def _bands(lo, hi, lines, margin, reach, s_max, max_pixels) -> list[dict | None]
     total = np.bincount(band, weights=w, minlength=m).tolist()
     ends = np.cumsum(np.bincount(band, minlength=m)).tolist()
     out = []
-    for b, (a, z) in enumerate(zip([0] + ends[:-1], ends)):
-        if total[b] <= _MIN_BAND_WEIGHT:
+    for weight, i, j in zip(total, [0] + ends[:-1], ends):  # band by band: its total weight and its pixels i:j
+        if weight <= _MIN_BAND_WEIGHT:
             out.append(None)
             continue
-        fade = min(1.0, (total[b] - _MIN_BAND_WEIGHT) / _MIN_BAND_WEIGHT)
-        out.append(dict(px=px[a:z], w=w[a:z] * fade, d0=d0[a:z], d_lo=d_lo[a:z], d_hi=-d_hi[a:z]))
+        fade = min(1.0, (weight - _MIN_BAND_WEIGHT) / _MIN_BAND_WEIGHT)
+        out.append(dict(px=px[i:j], w=w[i:j] * fade, d0=d0[i:j], d_lo=d_lo[i:j], d_hi=-d_hi[i:j]))
     return out
 
 

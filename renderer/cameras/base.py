@@ -14,7 +14,7 @@ import torch
 from renderer.core.params import SceneError
 from renderer.core.rays import Rays
 from renderer.core.transforms import CameraTransform
-from .distortion import distort_about_axis_jacobians, distort_jacobian
+from .distortion import _solve2, distort_about_axis_jacobians, distort_jacobian
 from .projection import image_centre_px, normalised_from_pixels, pixels_from_normalised, project_pinhole
 
 #: `Camera.undistort_pixels` keeps a map of the inverse distortion, nodes every this many pixels, for calls with at
@@ -169,9 +169,7 @@ class Camera:
             J = distort_jacobian(x, kd) if R is None else distort_about_axis_jacobians(
                 x, kd, R.detach() if isinstance(R, torch.Tensor) else R)[1]
             det = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
-        err = self.distortion.distort(xy0) - self._normalised(uv_px)
-        step = torch.stack([J[..., 1, 1] * err[..., 0] - J[..., 0, 1] * err[..., 1],
-                            J[..., 0, 0] * err[..., 1] - J[..., 1, 0] * err[..., 0]], -1) / det[..., None]
+        step = _solve2(J, self.distortion.distort(xy0) - self._normalised(uv_px))
         ok = valid & (det != 0)
         return torch.where(ok[..., None], self._from_normalised(xy0 - torch.where(ok[..., None], step, 0.0)), uv_px)
 
@@ -195,14 +193,11 @@ class Camera:
         c = torch.stack([torch.as_tensor(t).to(uv_px) for t in self.screen.center_px])
         x, n = (ideal_px - c) / f, (uv_px - c) / f
         J = distort_jacobian(x, self.distortion.coefficients)
-        det = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
         # dn/d(f, c): n_i = (uv_i − c_i) / f_i, so ∂n_i/∂f_i = −n_i / f_i and ∂n_i/∂c_i = −1 / f_i.
         eye = torch.eye(2, dtype=uv_px.dtype, device=uv_px.device)
         dn = torch.cat([-(n / f)[..., None] * eye,
                         (-1.0 / f)[:, None] * eye.expand(n.shape[:-1] + (2, 2))], -1)
-        dx = torch.stack([J[..., 1, 1, None] * dn[..., 0, :] - J[..., 0, 1, None] * dn[..., 1, :],
-                          J[..., 0, 0, None] * dn[..., 1, :] - J[..., 1, 0, None] * dn[..., 0, :]], -2)
-        dx = dx / det[..., None, None]
+        dx = _solve2(J[..., None, :, :], dn.transpose(-1, -2)).transpose(-1, -2)  # J⁻¹ dn, column by column
         # ideal_i = f_i x_i + c_i: ∂/∂f_i = x_i + f_i ∂x_i/∂f_i, ∂/∂c_i = 1 + f_i ∂x_i/∂c_i (and the cross
         # terms).
         d_ideal = f[:, None] * dx + torch.cat([x[..., None] * eye, eye.expand(x.shape[:-1] + (2, 2))], -1)

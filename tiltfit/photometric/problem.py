@@ -129,6 +129,7 @@ class _Problem:
                 q, c, a = focus(geo)[1]
         q0, qu, qv = q[0], q[1] - q[0], q[2] - q[0]
         distorted = bool((self.camera.distortion.detach() != 0).any())
+        d_intrinsics = None
         if distorted and jacobian and self.camera.distortion_centre != "lens_axis":
             def intrinsics(g):   # (f_x, f_y, c_x, c_y) px
                 out = self._call(v, g, lambda cam: torch.stack(
@@ -137,32 +138,8 @@ class _Problem:
 
             d_intrinsics = torch.func.jacrev(intrinsics, has_aux=True)(geo)[0]   # (4, 10)
 
-        def ideal(pts):
-            """(ideal points (N, S, 2), their derivatives by (lens, pose) (N, S, 2, 10) or None)."""
-            if not distorted:
-                return pts, None
-            with torch.no_grad():
-                # A pixel's points lie within it: Newton starts each from its pixel centre's root, moved by its
-                # offset (two or three steps instead of up to 20 from the distorted point; the same root).
-                centre = pts.mean(-2, keepdim=True)
-                start = self._call(v, geo, lambda cam: cam.undistort_pixels(centre))[0] + (pts - centre)
-                ideal_px, valid = self._call(v, geo, lambda cam: cam.undistort_pixels(pts, start))
-            if d is None:
-                return ideal_px, None
-
-            if self.camera.distortion_centre == "lens_axis":   # the lens frame moves with θF: forward mode
-                def step(g):
-                    out = self._call(v, g, lambda cam: cam.undistort_pixels_from(pts, ideal_px, valid))
-                    return out, out.detach()
-
-                d_ideal, ideal_px = torch.func.jacfwd(step, has_aux=True)(geo)
-                return ideal_px, d_ideal
-            with torch.no_grad():   # about the principal point: only the intrinsics move the ideal points
-                d_ideal = self._call(v, geo, lambda cam: cam.undistort_pixels_jacobian(pts, ideal_px, valid))
-            return ideal_px, d_ideal @ d_intrinsics
-
         def at(pts):
-            ideal_px, d_ideal = ideal(pts)
+            ideal_px, d_ideal = self._ideal(v, geo, pts, distorted, jacobian, d_intrinsics)
             su, sv = self._basis_coordinates(ideal_px)
             q_pts = q0 + su[..., None] * qu + sv[..., None] * qv
             if d is None:
@@ -180,6 +157,32 @@ class _Problem:
 
             return q_pts, c, a, chain
         return at
+
+    def _ideal(self, v: int, geo: torch.Tensor, pts: torch.Tensor, distorted: bool, jacobian: bool,
+               d_intrinsics: torch.Tensor | None):
+        """(ideal points (N, S, 2) of view v's sensor points `pts` at the state `geo`, their derivatives by (lens,
+        pose) (N, S, 2, 10) or None without `jacobian`), for `_focus`. `d_intrinsics`: (4, 10) derivatives of
+        (f_x, f_y, c_x, c_y) by (lens, pose), for a distortion about the principal point."""
+        if not distorted:
+            return pts, None
+        with torch.no_grad():
+            # A pixel's points lie within it: Newton starts each from its pixel centre's root, moved by its
+            # offset (two or three steps instead of up to 20 from the distorted point; the same root).
+            centre = pts.mean(-2, keepdim=True)
+            start = self._call(v, geo, lambda cam: cam.undistort_pixels(centre))[0] + (pts - centre)
+            ideal_px, valid = self._call(v, geo, lambda cam: cam.undistort_pixels(pts, start))
+        if not jacobian:
+            return ideal_px, None
+        if self.camera.distortion_centre == "lens_axis":   # the lens frame moves with θF: forward mode
+            def step(g):
+                out = self._call(v, g, lambda cam: cam.undistort_pixels_from(pts, ideal_px, valid))
+                return out, out.detach()
+
+            d_ideal, ideal_px = torch.func.jacfwd(step, has_aux=True)(geo)
+            return ideal_px, d_ideal
+        with torch.no_grad():   # about the principal point: only the intrinsics move the ideal points
+            d_ideal = self._call(v, geo, lambda cam: cam.undistort_pixels_jacobian(pts, ideal_px, valid))
+        return ideal_px, d_ideal @ d_intrinsics
 
     def _basis(self, dtype) -> torch.Tensor:
         """(3, 2) the image centre and the points FOCUS_BASIS_SPAN px to its right and below it."""

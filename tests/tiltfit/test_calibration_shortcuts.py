@@ -195,3 +195,61 @@ def test_undetermined_focus_asks_for_per_view_sigma_only_where_the_classical_lea
     out = undetermined_focus_deferred(fit)
     assert bool(calls) == asked
     assert out == (["U_mm"] if asked else ["U_mm", "d_mm"])
+
+
+def _long_correction(H, r):
+    """(I − H)^(−1/2) r for each view's hat block H (V, R, R) through its eigenproblem, λ clamped as
+    `view_cluster_covariance` clamps it."""
+    from tiltfit.uncertainty.columns import _apply_correction, _hat_eigen
+
+    return _apply_correction(*_hat_eigen(H), r)
+
+
+@pytest.mark.parametrize("rows, rank, scale", [(40, 60, 0.3), (40, 8, 1.0), (200, 300, 0.05)])
+def test_lanczos_correction_equals_the_hat_blocks_eigenproblem(rows, rank, scale):
+    """(I − H)^(−1/2) r by the Lanczos process equals it through H's eigenvectors: leverages of many views (small),
+    of few (up to 0.4), a low-rank block whose Krylov space ends early, and one view clamped below 1."""
+    from tiltfit.uncertainty.columns import _lanczos_correction
+
+    g = torch.Generator().manual_seed(11)
+    B = scale * torch.randn(4, rows, rank, generator=g, dtype=torch.float64) / rank ** 0.5
+    B[0] *= 3.0
+    H = B @ B.transpose(1, 2)
+    r = torch.randn(4, rows, generator=g, dtype=torch.float64)
+    got, done = _lanczos_correction(lambda X: (H @ X[..., None]).squeeze(-1), r)
+    want = _long_correction(H, r)
+    assert bool(done.all()), "every view converges"
+    err = float(((got - want).norm(dim=-1) / want.norm(dim=-1)).max())
+    assert err < 1e-12, f"relative difference {err:.3g}"
+    if rank < rows:
+        assert float(torch.linalg.eigvalsh(H[0]).max()) > 1.0 - 1e-3, "the test should clamp a leverage"
+
+
+def test_free_board_sandwich_solves_no_hat_block_eigenproblem(monkeypatch):
+    """A free board's per-view sandwich makes (I − H̃_vv)^(−1/2) r_v by the Lanczos process: no eigenproblem of a
+    view's R × R hat block, and the covariance the hat blocks' eigenvectors give (forced: every view unconverged)."""
+    from tests.tiltfit.test_solve import _points_seen_by_cameras
+    from tiltfit.solve import levenberg_marquardt
+    from tiltfit.uncertainty import columns
+    from tiltfit.uncertainty.covariance import view_cluster_covariance
+
+    evaluate, blocks, view_rows, row_points, x0 = _points_seen_by_cameras()
+    res = levenberg_marquardt(evaluate, x0, blocks, view_rows, row_points=row_points)
+    s2 = 2.0 * res.cost / (res.r.numel() - res.x_flat.numel())
+    R = view_rows.shape[1]
+    sizes = []
+    eigh = torch.linalg.eigh
+
+    def recording(A, *args, **kwargs):
+        sizes.append(tuple(A.shape))
+        return eigh(A, *args, **kwargs)
+
+    monkeypatch.setattr(torch.linalg, "eigh", recording)
+    got = view_cluster_covariance(res, s2)[0].dense()
+    hat = [s for s in sizes if len(s) == 3 and s[0] == view_rows.shape[0] and s[-1] == R]
+    assert not hat, f"an eigenproblem of each view's {R} × {R} hat block: {hat}"
+    monkeypatch.setattr(columns, "LANCZOS_STEPS", 1)                    # no view converges: the eigenproblem
+    want = view_cluster_covariance(res, s2)[0].dense()
+    assert any(len(s) == 3 and s[-1] == R for s in sizes), "the fallback solves the hat blocks' eigenproblem"
+    assert torch.allclose(got, want, rtol=1e-10, atol=1e-14), \
+        f"largest difference {float((got - want).abs().max()):.3g} of {float(want.abs().max()):.3g}"

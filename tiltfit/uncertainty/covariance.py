@@ -57,7 +57,7 @@ import math
 import numpy as np
 import torch
 
-from .columns import _DenseColumns, _PointColumns
+from .columns import KRYLOV_MAX_CONDITION, _DenseColumns, _PointColumns
 
 
 #: Names of the error models written to CALIB.json's `sigma_model.name`.
@@ -110,10 +110,8 @@ def view_cluster_covariance(res, s2: float, modes: torch.Tensor | None = None, k
     L = Dg[:, None] * Vs * mu.rsqrt()[None, :]
     L_inv = (Vs * mu.sqrt()[None, :]).T / Dg[None, :]
     S_inv = L @ L.T
-    U, lam = Jt.hat_eigen(L, S_inv)                                     # eigenvectors of H̃_vv, clamped λ
-    U = torch.where(lam[:, None, :] > 1e-12, U, torch.zeros_like(U))
-    gain = (1.0 - lam) ** -0.5 - 1.0
-    e = r + (U @ (gain[..., None] * (U.transpose(1, 2) @ r[..., None]))).squeeze(-1)
+    krylov = float(mu.max()) < KRYLOV_MAX_CONDITION * float(mu.min())
+    e = Jt.corrected(r, L, S_inv, krylov)                               # (I − H̃_vv)^(−1/2) r_v, clamped λ
     u = Jt.left(e[..., None]).squeeze(-1)                               # (V, S)
     meat = u.T @ u
     C_rob = S_inv @ meat @ S_inv

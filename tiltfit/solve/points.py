@@ -37,12 +37,26 @@ def _rows_by_point(rows: torch.Tensor, row_points: torch.Tensor, n_points: int) 
     if R % n_points:
         return None
     c = R // n_points
+    if _in_order(rows, row_points, n_points):                                      # a geometric fit's rows
+        return rows.view(V, n_points, c)
     rp = row_points[rows]                                                           # (V, R)
     order = torch.argsort(rp, dim=1, stable=True)
     grouped = torch.gather(rp, 1, order).view(V, n_points, c)
     if not bool((grouped == torch.arange(n_points)[None, :, None]).all()):
         return None
     return torch.gather(rows, 1, order).view(V, n_points, c)
+
+
+def _in_order(rows: torch.Tensor, row_points: torch.Tensor, n_points: int) -> bool:
+    """Whether the rows are 0 … M − 1 view after view, each view's grouped by point in order (c rows a point: a
+    geometric calibration's corner rows u, v), so that (V, N, c) views of (M, …) tensors are its rows by point."""
+    V, R = rows.shape
+    M = rows.numel()
+    if row_points.numel() != M:
+        return False
+    order = torch.arange(M, dtype=rows.dtype)
+    points = torch.arange(n_points, dtype=row_points.dtype)[None, :, None].expand(V, n_points, R // n_points)
+    return torch.equal(rows.reshape(-1), order) and torch.equal(row_points.view(V, n_points, -1), points)
 
 
 def _point_products(bj, Jqw: torch.Tensor):
@@ -53,9 +67,13 @@ def _point_products(bj, Jqw: torch.Tensor):
     V, K = bj.p_idx.shape
     grouped = _rows_by_point(bj.rows, bj.row_points, N)
     if grouped is not None:
-        Jq, Jqw_g = bj.Jq[grouped], Jqw[grouped]                                    # (V, N, c, 3)
-        return (torch.einsum("vnci,vncj->nij", Jq, Jqw_g), torch.einsum("vncs,vncj->nsj", bj.Js[grouped], Jqw_g),
-                torch.einsum("vnck,vncj->vnkj", bj.Jp[grouped], Jqw_g))
+        if _in_order(bj.rows, bj.row_points, N):                               # the same rows as views, no copies
+            shape = grouped.shape
+            Jq, Jqw_g, Js, Jp = (t.view(shape + t.shape[1:]) for t in (bj.Jq, Jqw, bj.Js, bj.Jp))
+        else:
+            Jq, Jqw_g, Js, Jp = bj.Jq[grouped], Jqw[grouped], bj.Js[grouped], bj.Jp[grouped]   # (V, N, c, ·)
+        return (torch.einsum("vnci,vncj->nij", Jq, Jqw_g), torch.einsum("vncs,vncj->nsj", Js, Jqw_g),
+                torch.einsum("vnck,vncj->vnkj", Jp, Jqw_g))
     rp, Jq, S = bj.row_points, bj.Jq, bj.Js.shape[1]
     rv = _row_views(bj.rows, bj.Js.shape[0])
     A_qq = Jq.new_zeros(N, 3, 3).index_add_(0, rp, Jq[:, :, None] * Jqw[:, None, :])

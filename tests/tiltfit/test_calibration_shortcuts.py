@@ -253,3 +253,37 @@ def test_free_board_sandwich_solves_no_hat_block_eigenproblem(monkeypatch):
     assert any(len(s) == 3 and s[-1] == R for s in sizes), "the fallback solves the hat blocks' eigenproblem"
     assert torch.allclose(got, want, rtol=1e-10, atol=1e-14), \
         f"largest difference {float((got - want).abs().max()):.3g} of {float(want.abs().max()):.3g}"
+
+
+def test_pose_random_effect_of_corner_rows_only_reads_the_trace(monkeypatch):
+    """Where every row with a Jacobian is a corner row (a geometric fit), Σ_i J̃_i S⁻¹ GG S⁻¹ J̃_iᵀ is tr(S⁻¹ GG):
+    one product of the point columns with an (S, S) matrix (J̃ S⁻¹) instead of two, and the same τ² and poses' σ as
+    the sum over the rows."""
+    from tests.tiltfit.test_solve import _points_seen_by_cameras
+    from tiltfit.solve import levenberg_marquardt
+    from tiltfit.uncertainty import columns
+    from tiltfit.uncertainty.covariance import view_cluster_covariance
+
+    evaluate, blocks, view_rows, row_points, x0 = _points_seen_by_cameras()
+    res = levenberg_marquardt(evaluate, x0, blocks, view_rows, row_points=row_points)
+    s2 = 2.0 * res.cost / (res.r.numel() - res.x_flat.numel())
+    gen = torch.Generator().manual_seed(5)
+    modes = torch.randn(*view_rows.shape, 3, generator=gen, dtype=torch.float64)
+    kinds = torch.ones(view_rows.shape, dtype=torch.long)
+    right = columns._PointColumns.right
+    products = []
+
+    def counted(self, M):
+        products.append(tuple(M.shape))
+        return right(self, M)
+
+    monkeypatch.setattr(columns._PointColumns, "right", counted)
+    got, info = view_cluster_covariance(res, s2, modes, kinds)
+    square = [s for s in products if len(s) == 2 and s[0] == s[1]]
+    assert len(square) == 1, f"products with an (S, S) matrix: {square}"
+    monkeypatch.setattr(columns._PointColumns, "rows_touch", lambda self, rows: True)   # the sum over the rows
+    want, info_rows = view_cluster_covariance(res, s2, modes, kinds)
+    assert torch.allclose(got.dense(), want.dense(), rtol=1e-10, atol=1e-14)
+    for k in ("view_error_px", "pose_ratio_min", "pose_ratio_max"):
+        assert info[k] == pytest.approx(info_rows[k], rel=1e-9), k
+    assert info["view_error_px"] > 0, "the random effect should be estimated (τ² > 0)"

@@ -43,6 +43,10 @@ class _DenseColumns:
         """(V, R) each row of F (V, R, S) dotted with the same row of J̃."""
         return (F * self.J).sum(-1)
 
+    def rows_touch(self, rows: torch.Tensor) -> bool:
+        """Whether any of the rows (V, R) bool has a non-zero J̃ row."""
+        return bool((self.J[rows] != 0).any())
+
     def hat_eigen(self, L, S_inv):
         """(U, λ) of each view's hat block H̃_vv = J̃_v S⁻¹ J̃_vᵀ = B Bᵀ (B = J̃_v L): `_leverage_eigen`."""
         return _leverage_eigen(self.right(L))
@@ -131,6 +135,11 @@ class _PointColumns(_DenseColumns):
         S0 = self.Es.shape[-1]
         return (F[..., :S0] * self.Es).sum(-1) + (torch.gather(F, 2, self.col) * self.jq).sum(-1) \
             - ((F @ self.Y.transpose(1, 2)) * self.Jp).sum(-1)
+
+    def rows_touch(self, rows: torch.Tensor) -> bool:
+        """Whether any of the rows (V, R) bool can have a non-zero J̃ row (J̃_i = E_i − J_p,i Y_v: E_i or J_p,i
+        non-zero)."""
+        return bool((self.Es[rows] != 0).any() or (self.jq[rows] != 0).any() or (self.Jp[rows] != 0).any())
 
     def hat_eigen(self, L, S_inv):
         """H̃_vv = F_v J̃_vᵀ with F_v = J̃_v S⁻¹, both through E_v's non-zeros: (R, R) a view (a view has at most

@@ -178,9 +178,13 @@ def _pose_random_effect(Jp, Jt, r, S_inv, App, App_inv, B, kinds, s2):
     GG = (g @ g.transpose(1, 2)).sum(0)
     gSg = g.transpose(1, 2) @ S_inv @ g                                 # (V, m, m)
     # |(I − H) B|² on corner rows: Σ cm |Nv|² + Σ_v tr(Φ_v GG) − Σ_v tr(g_vᵀ Φ_v g_v), Φ_v = F_vᵀ diag(cm) F_v,
-    # with tr(Φ_v GG) = Σ_i cm_i J̃_i (S⁻¹ GG S⁻¹) J̃_iᵀ (no (S, S) matrix a view)
-    b1 = float((cm[..., None] * Nv * Nv).sum() + (cm * Jt.rowdot(Jt.right(S_inv @ GG @ S_inv))).sum()
-               - (cm[..., None] * Fg * Fg).sum())
+    # with Σ_v tr(Φ_v GG) = Σ_i cm_i J̃_i (S⁻¹ GG S⁻¹) J̃_iᵀ (no (S, S) matrix a view), which is tr(S⁻¹ GG) where
+    # every row outside the corner rows has no Jacobian (a geometric fit: Σ_i cm_i J̃_iᵀ J̃_i = S)
+    if Jt.rows_touch(cm == 0):
+        spread = (cm * Jt.rowdot(Jt.right(S_inv @ GG @ S_inv))).sum()
+    else:
+        spread = (S_inv * GG).sum()
+    b1 = float((cm[..., None] * Nv * Nv).sum() + spread - (cm[..., None] * Fg * Fg).sum())
     D = B.transpose(1, 2) @ B - B.transpose(1, 2) @ PB
     a2 = float(torch.diagonal(D - gSg, dim1=-2, dim2=-1).sum())         # tr Bᵀ(I − H)B
     SG = S_inv @ GG

@@ -7,6 +7,9 @@ from __future__ import annotations
 
 import torch
 
+#: The clamp of a view's leverages, below 1 (a view whose corners the fit follows exactly).
+MAX_LEVERAGE = 1.0 - 1e-3
+
 
 class _DenseColumns:
     """Each view's global columns with its pose profiled out, J̃_v = J_g,v − J_p,v Y_v (Y_v = A_vv⁻¹ A_vg), held as
@@ -53,7 +56,8 @@ class _DenseColumns:
 
     def corrected(self, r: torch.Tensor, L, S_inv, krylov: bool = True) -> torch.Tensor:
         """(V, R) each view's residuals with the CR2 correction, (I − H̃_vv)^(−1/2) r_v, λ clamped as `_hat_eigen`
-        says: from the eigenvectors of the hat block (`hat_eigen`; its Gram matrix is at most S × S here)."""
+        says: from the eigenvectors of the hat block (`hat_eigen`; its Gram matrix is at most S × S here, so
+        `krylov` is not needed)."""
         return _apply_correction(*self.hat_eigen(L, S_inv), r)
 
 
@@ -168,7 +172,7 @@ def _hat_eigen(H: torch.Tensor):
     """(U, λ) of each view's hat block H (V, R, R): λ its eigenvalues clamped to [0, 1 − 1e-3], U the eigenvectors
     scaled by √(λ_raw / λ) (above 1 where λ was clamped)."""
     lam_raw, U = torch.linalg.eigh(H)                                   # (V, R), (V, R, R)
-    lam = lam_raw.clamp(0.0, 1.0 - 1e-3)
+    lam = lam_raw.clamp(0.0, MAX_LEVERAGE)
     return U * (lam_raw.clamp_min(0.0) / lam.clamp_min(1e-30)).sqrt()[:, None, :], lam
 
 
@@ -181,12 +185,8 @@ def _leverage_eigen(B: torch.Tensor):
     if B.shape[1] < B.shape[2]:
         return _hat_eigen(B @ B.transpose(1, 2))
     lam_raw, Q = torch.linalg.eigh(B.transpose(1, 2) @ B)                  # (V, S), (V, S, S)
-    lam = lam_raw.clamp(0.0, 1.0 - 1e-3)
+    lam = lam_raw.clamp(0.0, MAX_LEVERAGE)
     return B @ Q / lam.clamp_min(1e-30).sqrt()[:, None, :], lam
-
-
-#: `_hat_eigen`'s clamp of a view's leverages, below 1 (a view whose corners the fit follows exactly).
-MAX_LEVERAGE = 1.0 - 1e-3
 
 
 def _correction_factor(lam: torch.Tensor) -> torch.Tensor:

@@ -71,3 +71,24 @@ def test_patch_smoothing_is_kornias_gaussian_blur():
         want = kornia.filters.gaussian_blur2d(raw, (2 * ks + 1, 2 * ks + 1), (presmooth, presmooth),
                                               border_type="replicate")[:, 0]
         assert torch.equal(got, want), f"{n} patches of half-size {P}, sigma {presmooth}: not kornia's blur"
+
+
+def test_pyramid_levels_are_made_when_read_and_equal_the_box_averages():
+    """`build_pyramid` gives every factor at once but makes a level only when it is read (a ChArUco frame whose
+    corners are found at full resolution reads no other); each level is the 2×2 box average of the one above, odd
+    rows and columns dropped, down to the last whose halving stays at least `min_size` px."""
+    from tiltfit.detect.imaging import build_pyramid
+
+    rng = np.random.default_rng(13)
+    for shape, factors in (((720, 1280), [1, 2, 4, 8]), ((129, 131), [1, 2]), ((127, 300), [1]), ((64, 64), [1])):
+        gray = rng.random(shape).astype(np.float32)
+        levels = build_pyramid(gray)
+        assert list(levels) == factors and len(levels) == len(factors), f"{shape}: factors {list(levels)}"
+        assert levels[1] is gray and len(levels._levels) == 1, f"{shape}: levels made before being read"
+        img = gray
+        for f in factors[1:]:
+            h, w = img.shape[0] // 2 * 2, img.shape[1] // 2 * 2
+            img = 0.25 * (img[0:h:2, 0:w:2] + img[1:h:2, 0:w:2] + img[0:h:2, 1:w:2] + img[1:h:2, 1:w:2])
+            assert np.array_equal(levels[f], img) and levels[f].dtype == np.float32, f"{shape}: level {f}"
+        with pytest.raises(KeyError):
+            levels[2 * factors[-1]]

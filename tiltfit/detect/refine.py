@@ -193,9 +193,17 @@ def refine_symmetric(gray: np.ndarray, xy: np.ndarray, radius: np.ndarray, itera
         J = np.stack([gxx[:, :M] - gxx[:, M:], gyy[:, :M] - gyy[:, M:]], -1)  # (k, M, 2)
         return vv, torch.from_numpy(np.ascontiguousarray(J))
 
+    # each corner's samples at its cheapest point so far: where the solver ends (it moves only to lower the cost)
+    best_cost, best_loc, best_vv = np.full(N, np.inf), np.full((N, 2), np.nan), np.empty((N, 2 * M), np.float32)
+
     def evaluate(loc, idx):
         vv, J = residuals(loc, idx)
-        return normal_from_residuals(vv[:, :M] - vv[:, M:], J, wgt[idx])
+        normal = normal_from_residuals(vv[:, :M] - vv[:, M:], J, wgt[idx])
+        cost = normal.cost.numpy()
+        better = cost < best_cost[idx.numpy()]
+        k = idx.numpy()[better]
+        best_cost[k], best_loc[k], best_vv[k] = cost[better], loc.numpy()[better], vv.numpy()[better]
+        return normal
 
     # Levenberg–Marquardt (Gauss–Newton's steps once the damping has fallen), steps capped at 1 px so a corner
     # cannot jump to a neighbouring junction; done when a corner moves by < 1e-4 px
@@ -203,7 +211,9 @@ def refine_symmetric(gray: np.ndarray, xy: np.ndarray, radius: np.ndarray, itera
         evaluate, loc, BatchedOptions(max_iterations=iterations, max_step=1.0),
         small_step=lambda step, x, idx: torch.linalg.vector_norm(step, dim=1) < 1e-4)
     loc = sol.x
-    asym = _asymmetry(residuals(loc, torch.arange(N), with_jacobian=False)[0], wgt)
+    at_end = torch.from_numpy(best_vv) if np.array_equal(best_loc, loc.numpy()) else \
+        residuals(loc, torch.arange(N), with_jacobian=False)[0]
+    asym = _asymmetry(at_end, wgt)
     out = loc.numpy() + c0 - P
     moved = np.hypot(*(out - xy).T)
     ok &= np.isfinite(out).all(1) & (moved < np.maximum(2.0, 1.2 * R))

@@ -93,6 +93,47 @@ def _gaussian_taps(size: int, sigma: float) -> torch.Tensor:
     return kornia.filters.get_gaussian_kernel1d(size, torch.tensor([[sigma]], dtype=torch.float32))
 
 
+class _Samples:
+    """The cubic interpolant of N smoothed patches (N, S, S) and its x and y derivatives at p + v and p − v, for the
+    half-disc offsets v (M, 2) (integers, |v| ≤ Rmax) and each corner's position p (in patch pixels).
+
+    Every p ± v of a corner lies in the L × L box of shifted values around p (L = 2 Rmax + 1): while the boxes stay
+    inside the patches (the corners have moved less than ~4 + the smoothing's support from their starts), the
+    interpolant is computed on each box alone, from the (L + 3)² pixels it reads; the same products and sums as on
+    the whole patch (the same bits), on about half of it. Else the whole patches, indices clamped.
+    """
+
+    def __init__(self, t: np.ndarray, off: np.ndarray, Rmax: int):
+        self.t, self.off, self.Rmax = t, off, Rmax
+        self.S, self.L = t.shape[-1], 2 * Rmax + 1
+        L, S = self.L, self.S
+        self.box = np.concatenate([(Rmax + off[:, 1]) * (L + 3) + (Rmax + off[:, 0]),  # in `_shifted_rows`' layout
+                                   (Rmax - off[:, 1]) * (L + 3) + (Rmax - off[:, 0])])
+        span = np.arange(L + 3)
+        self.box_pixels = span[:, None] * S + span[None, :]  # a box's pixels, as flat offsets from its first
+
+    def __call__(self, loc: np.ndarray, idx: np.ndarray):
+        """(v, gx, gy), (k, 2M) each: at p + v (first M) and p − v (last M) of the patches idx (k,) at loc (k, 2)."""
+        S, L, Rmax = self.S, self.L, self.Rmax
+        base = np.floor(loc)
+        frac = (loc - base).astype(np.float32)
+        # shifted entry [y, x] is the interpolant at (x + 1 + fx, y + 1 + fy): p + v sits at base + v − 1
+        with np.errstate(invalid="ignore"):  # a non-finite trial point: its indices are clamped below
+            b = base.astype(np.int64) - 1
+        k = idx.size
+        first = b - Rmax  # (k, 2) the box's first column and row in the patch
+        if _box_fits(first, S, L):
+            start = idx * (S * S) + first[:, 1] * S + first[:, 0]
+            window = np.take(self.t, start[:, None, None] + self.box_pixels)
+            return tuple(np.take(s.reshape(k, -1), self.box, axis=1) for s in _shifted_rows(window, frac))
+        v, gx, gy = _shift_patches(self.t[idx], frac)  # a corner far from its start: the whole patch
+        Sr, off = S - 3, self.off
+        ip = (b[:, None, 1] + off[None, :, 1]) * Sr + (b[:, None, 0] + off[None, :, 0])
+        im = (b[:, None, 1] - off[None, :, 1]) * Sr + (b[:, None, 0] - off[None, :, 0])
+        ix = np.clip(np.concatenate([ip, im], 1), 0, Sr * Sr - 1)
+        return tuple(np.take_along_axis(s.reshape(k, -1), ix, 1) for s in (v, gx, gy))
+
+
 def _box_fits(first: np.ndarray, S: int, L: int) -> bool:
     """Whether every corner's L × L box of shifted values, from `first` ((k, 2) column and row in its patch), reads
     only its S × S patch ((L + 3)² pixels from `first`)."""
@@ -142,45 +183,16 @@ def refine_symmetric(gray: np.ndarray, xy: np.ndarray, radius: np.ndarray, itera
     S = 2 * P + 1
     oy, ox = np.mgrid[0:Rmax + 1, -Rmax:Rmax + 1]
     half = (oy > 0) | ((oy == 0) & (ox > 0))
-    off = np.stack([ox[half], oy[half]], -1).astype(np.float64)  # (M, 2) half-disc offsets
+    off = np.stack([ox[half], oy[half]], -1).astype(np.int64)  # (M, 2) half-disc offsets
     rr = np.hypot(off[:, 0], off[:, 1])
     c0 = np.round(xy).astype(int)
     c0[:, 0] = np.clip(c0[:, 0], 0, W - 1)
     c0[:, 1] = np.clip(c0[:, 1], 0, H - 1)
     t = _patches(gray, c0, P, presmooth, ks).numpy()
     wgt = (torch.clamp(1 - (torch.from_numpy(rr)[None] / torch.from_numpy(R)[:, None]) ** 2, min=0.0) ** 2).float()
-    off_i = off.astype(np.int64)
     loc = torch.from_numpy(xy - c0 + P)
     M = off.shape[0]
-    Sr = S - 3
-    # Every p ± v of a corner lies in the L × L box of shifted values around p: while the box stays inside the patch
-    # (the corner has moved less than ~4 + ks px), the interpolant is computed on that box alone, from the
-    # (L + 3)² pixels it reads; the same products and sums as on the whole patch (the same bits), on a third of it
-    L = 2 * Rmax + 1
-    box = np.concatenate([(Rmax + off_i[:, 1]) * (L + 3) + (Rmax + off_i[:, 0]),  # in `_shifted_rows`' layout
-                          (Rmax - off_i[:, 1]) * (L + 3) + (Rmax - off_i[:, 0])])
-    span = np.arange(L + 3)
-    box_rows = span[:, None] * S + span[None, :]  # a box's pixels, as flat offsets from its first in the patch
-
-    def samples(loc, idx):
-        """(v, gx, gy): the interpolant and its x and y derivatives at p + v (first M) and p − v (last M), (k, 2M)
-        each, for the patches idx at loc (numpy)."""
-        base = np.floor(loc)
-        frac = (loc - base).astype(np.float32)
-        # shifted entry [y, x] is the interpolant at (x + 1 + fx, y + 1 + fy): p + v sits at base + v − 1
-        with np.errstate(invalid="ignore"):  # a non-finite trial point: its indices are clamped below
-            b = base.astype(np.int64) - 1
-        k = idx.size
-        first = b - Rmax  # (k, 2) the box's first column and row in the patch
-        if _box_fits(first, S, L):
-            start = idx * (S * S) + first[:, 1] * S + first[:, 0]
-            window = np.take(t, start[:, None, None] + box_rows)
-            return tuple(np.take(s.reshape(k, -1), box, axis=1) for s in _shifted_rows(window, frac))
-        v, gx, gy = _shift_patches(t[idx], frac)  # a corner far from its start: the whole patch, indices clamped
-        ip = (b[:, None, 1] + off_i[None, :, 1]) * Sr + (b[:, None, 0] + off_i[None, :, 0])
-        im = (b[:, None, 1] - off_i[None, :, 1]) * Sr + (b[:, None, 0] - off_i[None, :, 0])
-        ix = np.clip(np.concatenate([ip, im], 1), 0, Sr * Sr - 1)
-        return tuple(np.take_along_axis(s.reshape(k, -1), ix, 1) for s in (v, gx, gy))
+    samples = _Samples(t, off, Rmax)
 
     def residuals(loc, idx, with_jacobian=True):
         """Values at p ± v of the patches idx (k, 2M) and, with_jacobian, the derivatives of

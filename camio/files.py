@@ -133,7 +133,10 @@ def _srgb8_table():
 @functools.lru_cache(maxsize=None)
 def _srgb8_table32():
     """`_srgb8_table` for float32 values: each threshold rounded up to the least float32 at or above it (a float32
-    value reaches a threshold exactly when it reaches that float32), the bins by the float32 bit pattern."""
+    value reaches a threshold exactly when it reaches that float32), the bins by the float32 bit pattern, all
+    2^16 of them (sign and exponent included, so no value needs clipping first): the bins past 1 (+inf too) give
+    255, the negative ones (−0.0 too) 0, with a threshold of NaN that no value reaches. NaN's bins are never read
+    (NaN takes the formula)."""
     import numpy as np
 
     t = _srgb8_thresholds()
@@ -141,7 +144,12 @@ def _srgb8_table32():
     t32 = np.where(t32.astype(np.float64) < t, np.nextafter(t32, np.float32(np.inf)), t32)
     starts = (np.arange((np.float32(1.0).view(np.int32) >> _SRGB8_SHIFT32) + 2, dtype=np.int32)
               << _SRGB8_SHIFT32).view(np.float32)
-    return _binned_table(t32, starts)
+    code, nxt = _binned_table(t32, starts)
+    every_code = np.zeros(1 << (32 - _SRGB8_SHIFT32), np.uint8)
+    every_nxt = np.full(every_code.shape, np.nan, np.float32)
+    every_code[:code.size], every_nxt[:code.size] = code, nxt
+    every_code[code.size:1 << (31 - _SRGB8_SHIFT32)] = 255  # past 1 up to +inf (and +NaN's bins)
+    return every_code, every_nxt
 
 
 def encode_srgb8(linear):
@@ -153,12 +161,10 @@ def encode_srgb8(linear):
     import numpy as np
 
     a = np.asarray(linear)
-    if a.dtype == np.float32 and a.size >= 4096:
-        v = np.clip(a, np.float32(0.0), np.float32(1.0))
-        if not np.isnan(v).any():
-            code, nxt = _srgb8_table32()
-            b = (v.view(np.int32) >> _SRGB8_SHIFT32) & ((1 << (31 - _SRGB8_SHIFT32)) - 1)  # -0.0 as 0.0
-            return np.take(code, b) + (v >= np.take(nxt, b))  # np.take: cheaper than indexing here
+    if a.dtype == np.float32 and a.size >= 4096 and not np.isnan(a).any():
+        code, nxt = _srgb8_table32()
+        b = np.ascontiguousarray(a).view(np.uint32) >> _SRGB8_SHIFT32  # every bit pattern has its bin: no clipping
+        return np.take(code, b) + (a >= np.take(nxt, b))  # np.take: cheaper than indexing here
     v = np.clip(np.asarray(a, dtype=np.float64), 0.0, 1.0)
     if v.size < 4096 or np.isnan(v).any():
         return _encode_srgb8_formula(v)

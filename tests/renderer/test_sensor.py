@@ -83,8 +83,9 @@ def test_srgb8_table_matches_the_formula_to_the_last_bit():
 
 
 def test_srgb8_float32_table_matches_the_formula_to_the_last_bit():
-    """float32 images are read from their own table (no float64 copy): the same codes as the formula on the
-    values made float64, the 3,000 float32 values either side of every threshold, and values outside [0, 1]."""
+    """float32 images are read from their own table (no float64 copy, no clipping): the same codes as the formula
+    on the values made float64, the 3,000 float32 values either side of every threshold, values outside [0, 1], and
+    the first and last value of every one of the table's 65,536 bins (NaN's aside)."""
     from camio.files import _encode_srgb8_formula, _srgb8_table32, _srgb8_thresholds
 
     assert np.isfinite(_srgb8_table32()[1]).sum() > 0 and _srgb8_table32()[1].dtype == np.float32
@@ -94,6 +95,9 @@ def test_srgb8_float32_table_matches_the_formula_to_the_last_bit():
     v = np.concatenate([near, (rng.random(100_000) ** 4).astype(np.float32),
                         rng.normal(0.5, 1.0, 100_000).astype(np.float32),
                         np.array([-0.0, 0.0, 1.0, 1e-45, np.inf, -np.inf], np.float32)])
+    ends = (np.arange(1 << 16, dtype=np.uint32)[:, None] << 16) + np.array([0, 0xFFFF], np.uint32)
+    ends = ends.view(np.float32).ravel()
+    v = np.concatenate([v, ends[~np.isnan(ends)]])
     got, want = encode_srgb8(v), _encode_srgb8_formula(np.clip(v.astype(np.float64), 0.0, 1.0))
     assert got.dtype == np.uint8 and np.array_equal(got, want), f"{int((got != want).sum())} codes differ"
     with_nan = v.copy()

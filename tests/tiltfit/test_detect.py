@@ -224,16 +224,29 @@ def test_ray_tracer_agrees_with_the_analytic_rendering():
 
 
 def test_shifted_patches_are_the_separable_cubic_filter():
-    """`_shift_patches` (both axes' weights at once, the filters that share a pass together) gives the same bits as
-    filtering one output at a time: the x pass, then the y pass, each a sum of four weighted shifted slices."""
+    """`_shift_patches` (numpy, both axes' weights at once, the filters that share a pass together, each pass along
+    the flattened patch) gives the same bits as torch filtering one output at a time: Keys' kernel, the x pass, then
+    the y pass, each a sum of four weighted shifted slices in float32."""
     import torch
 
-    from tiltfit.detect.refine import _dkeys, _keys, _shift_patches
+    from tiltfit.detect.refine import _shift_patches
+
+    def keys(x):  # Keys' cubic kernel (a = -1/2) and its derivative, in torch
+        ax = x.abs()
+        return torch.where(ax <= 1, (1.5 * ax - 2.5) * ax * ax + 1,
+                           torch.where(ax < 2, ((-0.5 * ax + 2.5) * ax - 4) * ax + 2, torch.zeros_like(ax)))
+
+    def dkeys(x):
+        ax = x.abs()
+        return torch.sign(x) * torch.where(ax <= 1, (4.5 * ax - 5) * ax,
+                                           torch.where(ax < 2, (-1.5 * ax + 5) * ax - 4, torch.zeros_like(ax)))
 
     rng = np.random.default_rng(9)
-    for n, size in ((1, 11), (7, 23), (12, 59)):
-        patches = torch.from_numpy(rng.random((n, size, size)).astype(np.float32))
-        frac = torch.from_numpy(rng.random((n, 2)).astype(np.float32))
+    for n, size in ((1, 11), (7, 23), (12, 59), (3, 81)):
+        patches = rng.random((n, size, size)).astype(np.float32) - np.float32(0.25)
+        frac = rng.random((n, 2)).astype(np.float32)
+        frac[0] = 0.0  # a tap of weight exactly 0
+        pt, ft = torch.from_numpy(patches), torch.from_numpy(frac)
         ks = torch.arange(-1, 3, dtype=torch.float32)
 
         def one(img, w, axis):
@@ -241,18 +254,19 @@ def test_shifted_patches_are_the_separable_cubic_filter():
             return sum(w[:, k, None, None] * (img[:, :, k:k + cut] if axis == 1 else img[:, k:k + cut, :])
                        for k in range(4))
 
-        wx, wy = _keys(frac[:, 0:1] - ks), _keys(frac[:, 1:2] - ks)
-        dwx, dwy = _dkeys(frac[:, 0:1] - ks), _dkeys(frac[:, 1:2] - ks)
-        tx, tdx = one(patches, wx, 1), one(patches, dwx, 1)
+        wx, wy = keys(ft[:, 0:1] - ks), keys(ft[:, 1:2] - ks)
+        dwx, dwy = dkeys(ft[:, 0:1] - ks), dkeys(ft[:, 1:2] - ks)
+        tx, tdx = one(pt, wx, 1), one(pt, dwx, 1)
         want = (one(tx, wy, 0), one(tdx, wy, 0), one(tx, dwy, 0))
         got = _shift_patches(patches, frac)
         for name, g, e in zip(("value", "x slope", "y slope"), got, want):
-            assert g.shape == (n, size - 3, size - 3) and torch.equal(g, e), f"{n} patches of {size}: {name} differs"
-        # and the interpolant reproduces a quadratic (Keys' kernel with a = -1/2 is third-order accurate)
+            assert g.shape == (n, size - 3, size - 3) and np.array_equal(g, e.numpy()), \
+                f"{n} patches of {size}: {name} differs"
+    # and the interpolant reproduces a quadratic (Keys' kernel with a = -1/2 is third-order accurate)
     yy, xx = np.mgrid[0:15, 0:15].astype(np.float64)
-    quad = torch.from_numpy((0.01 * xx * xx + 0.02 * xx * yy - 0.03 * yy + 0.5)[None].astype(np.float32))
-    v, gx, gy = _shift_patches(quad, torch.tensor([[0.25, 0.75]]))
+    quad = (0.01 * xx * xx + 0.02 * xx * yy - 0.03 * yy + 0.5)[None].astype(np.float32)
+    v, gx, gy = _shift_patches(quad, np.array([[0.25, 0.75]], np.float32))
     x, y = xx[:12, :12] + 1.25, yy[:12, :12] + 1.75
-    assert np.abs(v[0].numpy() - (0.01 * x * x + 0.02 * x * y - 0.03 * y + 0.5)).max() < 1e-5, "value of a quadratic"
-    assert np.abs(gx[0].numpy() - (0.02 * x + 0.02 * y)).max() < 1e-5, "x slope of a quadratic"
-    assert np.abs(gy[0].numpy() - (0.02 * x - 0.03)).max() < 1e-5, "y slope of a quadratic"
+    assert np.abs(v[0] - (0.01 * x * x + 0.02 * x * y - 0.03 * y + 0.5)).max() < 1e-5, "value of a quadratic"
+    assert np.abs(gx[0] - (0.02 * x + 0.02 * y)).max() < 1e-5, "x slope of a quadratic"
+    assert np.abs(gy[0] - (0.02 * x - 0.03)).max() < 1e-5, "y slope of a quadratic"

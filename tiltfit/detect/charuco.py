@@ -449,13 +449,15 @@ def edge_spread_blur(levels: dict, target: CharucoTarget, corners: np.ndarray) -
         c0, c1 = max(int(x - R) - ks - 1, 0), min(int(x + R) + ks + 3, img.shape[1])
         patch = cv2.GaussianBlur(np.ascontiguousarray(img[r0:r1, c0:c1], dtype=np.float32), (2 * ks + 1, 2 * ks + 1),
                                  s, borderType=cv2.BORDER_REPLICATE)
-        gy, gx = np.gradient(patch)
-        yy, xx = np.mgrid[r0:r1, c0:c1]
-        use = (((xx - x) ** 2 + (yy - y) ** 2 <= R * R) & (yy >= r0 + ks + 1) & (yy < r1 - ks - 1)
-               & (xx >= c0 + ks + 1) & (xx < c1 - ks - 1))  # the smoothing whole: not cut by the patch's edge
+        # the pixels within R whose smoothing is whole (not cut by the patch's edge): rows and columns ks + 1 in from
+        # the patch's edges, so each has both neighbours for np.gradient's central differences
+        a, b, c, d = ks + 1, r1 - r0 - ks - 1, ks + 1, c1 - c0 - ks - 1
+        use = (np.arange(c0 + c, c0 + d)[None, :] - x) ** 2 + (np.arange(r0 + a, r0 + b)[:, None] - y) ** 2 <= R * R
         if use.sum() < 20:
             continue
-        v, gx, gy = patch[use], gx[use], gy[use]
+        v = patch[a:b, c:d][use]
+        gx = ((patch[a:b, c + 1:d + 1] - patch[a:b, c - 1:d - 1]) / 2.0)[use]
+        gy = ((patch[a + 1:b + 1, c:d] - patch[a - 1:b - 1, c:d]) / 2.0)[use]
         lo, hi = np.percentile(v, (2, 98))
         slope = np.hypot(gx, gy)
         j, i = divmod(int(k), nx)

@@ -10,6 +10,7 @@ y = row, (0, 0) the centre of the top-left pixel.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 import numpy as np
 import torch
@@ -35,16 +36,39 @@ class torch_threads:
 
 
 # --- image pyramid -----------------------------------------------------------------------------------------
-def build_pyramid(gray: np.ndarray, min_size: int = 64) -> dict[int, np.ndarray]:
-    """{factor: image} with factor 1, 2, 4, ...: each level the 2×2 box average of the previous one."""
-    levels = {1: gray}
-    f, img = 1, gray
-    while min(img.shape) // 2 >= min_size:
-        h, w = (img.shape[0] // 2) * 2, (img.shape[1] // 2) * 2
-        img = 0.25 * (img[0:h:2, 0:w:2] + img[1:h:2, 0:w:2] + img[0:h:2, 1:w:2] + img[1:h:2, 1:w:2])
-        f *= 2
-        levels[f] = img
-    return levels
+def build_pyramid(gray: np.ndarray, min_size: int = 64) -> "Pyramid":
+    """{factor: image} with factor 1, 2, 4, ...: each level the 2×2 box average of the previous one, down to the
+    last whose halving would be under `min_size` px (a `Pyramid`: each level made when first read)."""
+    return Pyramid(gray, min_size)
+
+
+class Pyramid(Mapping):
+    """`build_pyramid`'s levels as a read-only mapping {factor: (h, w) image}: its factors known at once, each level
+    made when first read (from the one above it, the 2×2 box average), so that a detection that reads only the full
+    resolution pays for no other. Iterates in increasing factor."""
+
+    def __init__(self, gray: np.ndarray, min_size: int = 64):
+        self._levels = {1: gray}
+        self._factors = [1]
+        h, w = gray.shape
+        while min(h, w) // 2 >= min_size:
+            h, w = h // 2, w // 2
+            self._factors.append(2 * self._factors[-1])
+
+    def __getitem__(self, f: int) -> np.ndarray:
+        if f not in self._levels:
+            if f not in self._factors:
+                raise KeyError(f)
+            img = self[f // 2]
+            h, w = (img.shape[0] // 2) * 2, (img.shape[1] // 2) * 2
+            self._levels[f] = 0.25 * (img[0:h:2, 0:w:2] + img[1:h:2, 0:w:2] + img[0:h:2, 1:w:2] + img[1:h:2, 1:w:2])
+        return self._levels[f]
+
+    def __iter__(self):
+        return iter(self._factors)
+
+    def __len__(self) -> int:
+        return len(self._factors)
 
 
 def to_full(xy_level: np.ndarray, factor: int) -> np.ndarray:

@@ -4,6 +4,7 @@ missed, predicted by local homographies (`complete_corners`). Also used by the C
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -14,43 +15,57 @@ from tiltfit.solve.batched import BatchedOptions, batched_levenberg_marquardt, n
 from tiltfit.target.layout import Target
 
 
-def _keys(x: torch.Tensor) -> torch.Tensor:
+def _keys(x: np.ndarray) -> np.ndarray:
     """Keys' cubic convolution kernel with a = −1/2 (reproduces quadratics: third-order accurate)."""
-    ax = x.abs()
-    return torch.where(ax <= 1, (1.5 * ax - 2.5) * ax * ax + 1,
-                       torch.where(ax < 2, ((-0.5 * ax + 2.5) * ax - 4) * ax + 2, torch.zeros_like(ax)))
+    ax = np.abs(x)
+    return np.where(ax <= 1, (1.5 * ax - 2.5) * ax * ax + 1,
+                    np.where(ax < 2, ((-0.5 * ax + 2.5) * ax - 4) * ax + 2, np.zeros_like(ax)))
 
 
-def _dkeys(x: torch.Tensor) -> torch.Tensor:
-    ax = x.abs()
-    return torch.sign(x) * torch.where(ax <= 1, (4.5 * ax - 5) * ax,
-                                       torch.where(ax < 2, (-1.5 * ax + 5) * ax - 4, torch.zeros_like(ax)))
+def _dkeys(x: np.ndarray) -> np.ndarray:
+    ax = np.abs(x)
+    return np.sign(x) * np.where(ax <= 1, (4.5 * ax - 5) * ax,
+                                 np.where(ax < 2, (-1.5 * ax + 5) * ax - 4, np.zeros_like(ax)))
 
 
-def _shift_patches(patches: torch.Tensor, frac: torch.Tensor):
-    """Cubic interpolant of (N, S, S) patches at every pixel + frac (N, 2), and its x and y derivatives.
+def _shift_patches(patches: np.ndarray, frac: np.ndarray):
+    """Cubic interpolant of (N, S, S) float32 patches at every pixel + frac (N, 2), and its x and y derivatives.
 
     Every sample p ± v (v integer) of one corner has the same fractional part, so interpolation is one
     separable 4-tap filter per corner. Entry [n, y, x] of the outputs holds the value at (x + 1 + fx,
-    y + 1 + fy) in patch coordinates, for x, y in [0, S − 4]. The weights of both axes are computed at once, and
-    the filters that share a pass run together (the x pass with the kernel and its derivative, the y pass of the
-    first with both): the same products and sums, in the same order, as one filter at a time (the same bits), in
-    half the tensor operations (each costs more to launch than to compute at these sizes).
+    y + 1 + fy) in patch coordinates, for x, y in [0, S − 4] (views of `_shifted_rows`' outputs).
     """
-    ks = torch.arange(-1, 3, dtype=patches.dtype)
-    taps = frac.T[:, :, None] - ks  # (2, N, 4): offsets of the taps along x, then y
-    w, dw = _keys(taps), _dkeys(taps)  # (2, N, 4): weight of tap at offset k
     S = patches.shape[-1]
+    return tuple(a[:, :, :S - 3] for a in _shifted_rows(patches, frac))
 
-    def along_x(img, w):  # img (N, S, S), w (F, N, 4) -> (F, N, S, S - 3)
-        return sum(w[:, :, k, None, None] * img[None, :, :, k:k + S - 3] for k in range(4))
 
-    def along_y(img, w):  # img (N, S, S - 3), w (F, N, 4) -> (F, N, S - 3, S - 3)
-        return sum(w[:, :, k, None, None] * img[None, :, k:k + S - 3, :] for k in range(4))
+def _shifted_rows(patches: np.ndarray, frac: np.ndarray):
+    """`_shift_patches`' three outputs with rows S long, (N, S − 3, S) each: entries [n, y, x] for x in [0, S − 4]
+    are the interpolant's; the last three of each row are not (the passes run along the flattened patch, across the
+    rows' ends, so that each tap is one long slice).
 
-    tx, tdx = along_x(patches, torch.stack([w[0], dw[0]]))
-    v, dy = along_y(tx, torch.stack([w[1], dw[1]]))
-    return v, along_y(tdx, w[1:2])[0], dy
+    The weights of both axes are computed at once, and the filters that share a pass run together (the x pass with
+    the kernel and its derivative, the y pass of the first with both): the same products and sums, in the same
+    order, as one filter at a time, float32 throughout (each rounded as torch rounds it: the same values). In
+    numpy, on whole rows: at these sizes an operation costs more to launch than to compute.
+    """
+    taps = frac.T - np.arange(-1, 3, dtype=np.float32)[:, None, None]  # (4, 2, N): offsets of tap k along x, y
+    w, dw = _keys(taps)[..., None], _dkeys(taps)[..., None]  # (4, 2, N, 1): weights of tap k
+    N, S = patches.shape[0], patches.shape[-1]
+
+    def taps_along(img, wk, step, n):  # img (N, l), wk (4, F, N, 1) -> (F, N, n): Σ_k wk[k] img[i + k step], i < n
+        out = wk[0] * img[:, 0:n]
+        term = np.empty_like(out)
+        for k in range(1, 4):
+            out += np.multiply(wk[k], img[:, k * step:k * step + n], out=term)
+        return out
+
+    tx = np.zeros((2, N, S * S), np.float32)  # the x pass, the last 3 entries (never read by a kept entry) zero
+    tx[:, :, :S * S - 3] = taps_along(patches.reshape(N, S * S), np.concatenate([w[:, :1], dw[:, :1]], 1), 1,
+                                      S * S - 3)
+    n = (S - 3) * S
+    v, dy = taps_along(tx[0], np.concatenate([w[:, 1:], dw[:, 1:]], 1), S, n).reshape(2, N, S - 3, S)
+    return v, taps_along(tx[1], w[:, 1:], S, n).reshape(N, S - 3, S), dy
 
 
 def _patches(gray: np.ndarray, c0: np.ndarray, P: int, presmooth: float, ks: int) -> torch.Tensor:
@@ -64,9 +79,65 @@ def _patches(gray: np.ndarray, c0: np.ndarray, P: int, presmooth: float, ks: int
     if presmooth > 0:
         import kornia
 
-        t = kornia.filters.gaussian_blur2d(t, (2 * ks + 1, 2 * ks + 1), (presmooth, presmooth),
-                                           border_type="replicate")
+        taps = _gaussian_taps(2 * ks + 1, presmooth)
+        t = kornia.filters.filter2d_separable(t, taps, taps, border_type="replicate")
     return t[:, 0]
+
+
+@functools.lru_cache(maxsize=8)
+def _gaussian_taps(size: int, sigma: float) -> torch.Tensor:
+    """(1, size) float32 taps of the Gaussian kornia's `gaussian_blur2d` makes for a float32 image, made once: with
+    `filter2d_separable` they give its result to the bit, without remaking the kernels at every call."""
+    import kornia
+
+    return kornia.filters.get_gaussian_kernel1d(size, torch.tensor([[sigma]], dtype=torch.float32))
+
+
+class _Samples:
+    """The cubic interpolant of N smoothed patches (N, S, S) and its x and y derivatives at p + v and p − v, for the
+    half-disc offsets v (M, 2) (integers, |v| ≤ Rmax) and each corner's position p (in patch pixels).
+
+    Every p ± v of a corner lies in the L × L box of shifted values around p (L = 2 Rmax + 1): while the boxes stay
+    inside the patches (the corners have moved less than ~4 + the smoothing's support from their starts), the
+    interpolant is computed on each box alone, from the (L + 3)² pixels it reads; the same products and sums as on
+    the whole patch (the same bits), on about half of it. Else the whole patches, indices clamped.
+    """
+
+    def __init__(self, t: np.ndarray, off: np.ndarray, Rmax: int):
+        self.t, self.off, self.Rmax = t, off, Rmax
+        self.S, self.L = t.shape[-1], 2 * Rmax + 1
+        L, S = self.L, self.S
+        self.box = np.concatenate([(Rmax + off[:, 1]) * (L + 3) + (Rmax + off[:, 0]),  # in `_shifted_rows`' layout
+                                   (Rmax - off[:, 1]) * (L + 3) + (Rmax - off[:, 0])])
+        span = np.arange(L + 3)
+        self.box_pixels = span[:, None] * S + span[None, :]  # a box's pixels, as flat offsets from its first
+
+    def __call__(self, loc: np.ndarray, idx: np.ndarray):
+        """(v, gx, gy), (k, 2M) each: at p + v (first M) and p − v (last M) of the patches idx (k,) at loc (k, 2)."""
+        S, L, Rmax = self.S, self.L, self.Rmax
+        base = np.floor(loc)
+        frac = (loc - base).astype(np.float32)
+        # shifted entry [y, x] is the interpolant at (x + 1 + fx, y + 1 + fy): p + v sits at base + v − 1
+        with np.errstate(invalid="ignore"):  # a non-finite trial point: its indices are clamped below
+            b = base.astype(np.int64) - 1
+        k = idx.size
+        first = b - Rmax  # (k, 2) the box's first column and row in the patch
+        if _box_fits(first, S, L):
+            start = idx * (S * S) + first[:, 1] * S + first[:, 0]
+            window = np.take(self.t, start[:, None, None] + self.box_pixels)
+            return tuple(np.take(s.reshape(k, -1), self.box, axis=1) for s in _shifted_rows(window, frac))
+        v, gx, gy = _shift_patches(self.t[idx], frac)  # a corner far from its start: the whole patch
+        Sr, off = S - 3, self.off
+        ip = (b[:, None, 1] + off[None, :, 1]) * Sr + (b[:, None, 0] + off[None, :, 0])
+        im = (b[:, None, 1] - off[None, :, 1]) * Sr + (b[:, None, 0] - off[None, :, 0])
+        ix = np.clip(np.concatenate([ip, im], 1), 0, Sr * Sr - 1)
+        return tuple(np.take_along_axis(s.reshape(k, -1), ix, 1) for s in (v, gx, gy))
+
+
+def _box_fits(first: np.ndarray, S: int, L: int) -> bool:
+    """Whether every corner's L × L box of shifted values, from `first` ((k, 2) column and row in its patch), reads
+    only its S × S patch ((L + 3)² pixels from `first`)."""
+    return bool(((first >= 0) & (first <= S - L - 3)).all())
 
 
 def _asymmetry(v: torch.Tensor, wgt: torch.Tensor) -> torch.Tensor:
@@ -112,41 +183,39 @@ def refine_symmetric(gray: np.ndarray, xy: np.ndarray, radius: np.ndarray, itera
     S = 2 * P + 1
     oy, ox = np.mgrid[0:Rmax + 1, -Rmax:Rmax + 1]
     half = (oy > 0) | ((oy == 0) & (ox > 0))
-    off = np.stack([ox[half], oy[half]], -1).astype(np.float64)  # (M, 2) half-disc offsets
+    off = np.stack([ox[half], oy[half]], -1).astype(np.int64)  # (M, 2) half-disc offsets
     rr = np.hypot(off[:, 0], off[:, 1])
     c0 = np.round(xy).astype(int)
     c0[:, 0] = np.clip(c0[:, 0], 0, W - 1)
     c0[:, 1] = np.clip(c0[:, 1], 0, H - 1)
-    t = _patches(gray, c0, P, presmooth, ks)
+    t = _patches(gray, c0, P, presmooth, ks).numpy()
     wgt = (torch.clamp(1 - (torch.from_numpy(rr)[None] / torch.from_numpy(R)[:, None]) ** 2, min=0.0) ** 2).float()
-    offt = torch.from_numpy(off).long()
     loc = torch.from_numpy(xy - c0 + P)
     M = off.shape[0]
-    Sr = S - 3
+    samples = _Samples(t, off, Rmax)
 
     def residuals(loc, idx, with_jacobian=True):
         """Values at p ± v of the patches idx (k, 2M) and, with_jacobian, the derivatives of
-        I(p + v) − I(p − v) by p (k, M, 2)."""
-        base = torch.floor(loc)
-        frac = (loc - base).float()
-        v, gx, gy = _shift_patches(t[idx], frac)
-        # shifted entry [y, x] is the interpolant at (x + 1 + fx, y + 1 + fy): p + v sits at base + v − 1
-        b = base.long() - 1
-        ip = (b[:, None, 1] + offt[None, :, 1]) * Sr + (b[:, None, 0] + offt[None, :, 0])
-        im = (b[:, None, 1] - offt[None, :, 1]) * Sr + (b[:, None, 0] - offt[None, :, 0])
-        ix = torch.cat([ip, im], 1).clamp(0, Sr * Sr - 1)
-        k = idx.numel()
-        vv = torch.gather(v.reshape(k, -1), 1, ix)
+        I(p + v) − I(p − v) by p (k, M, 2); torch tensors (loc, idx: torch, as the solver passes them)."""
+        vv, gxx, gyy = samples(loc.numpy(), idx.numpy())
+        # C order, as torch lays out its own results: its sums over other layouts add in another order
+        vv = torch.from_numpy(np.ascontiguousarray(vv))
         if not with_jacobian:
             return vv, None
-        gxx = torch.gather(gx.reshape(k, -1), 1, ix)
-        gyy = torch.gather(gy.reshape(k, -1), 1, ix)
-        J = torch.stack([gxx[:, :M] - gxx[:, M:], gyy[:, :M] - gyy[:, M:]], -1)  # (k, M, 2)
-        return vv, J
+        J = np.stack([gxx[:, :M] - gxx[:, M:], gyy[:, :M] - gyy[:, M:]], -1)  # (k, M, 2)
+        return vv, torch.from_numpy(np.ascontiguousarray(J))
+
+    # each corner's samples at its cheapest point so far: where the solver ends (it moves only to lower the cost)
+    best_cost, best_loc, best_vv = np.full(N, np.inf), np.full((N, 2), np.nan), np.empty((N, 2 * M), np.float32)
 
     def evaluate(loc, idx):
         vv, J = residuals(loc, idx)
-        return normal_from_residuals(vv[:, :M] - vv[:, M:], J, wgt[idx])
+        normal = normal_from_residuals(vv[:, :M] - vv[:, M:], J, wgt[idx])
+        cost = normal.cost.numpy()
+        better = cost < best_cost[idx.numpy()]
+        k = idx.numpy()[better]
+        best_cost[k], best_loc[k], best_vv[k] = cost[better], loc.numpy()[better], vv.numpy()[better]
+        return normal
 
     # Levenberg–Marquardt (Gauss–Newton's steps once the damping has fallen), steps capped at 1 px so a corner
     # cannot jump to a neighbouring junction; done when a corner moves by < 1e-4 px
@@ -154,7 +223,9 @@ def refine_symmetric(gray: np.ndarray, xy: np.ndarray, radius: np.ndarray, itera
         evaluate, loc, BatchedOptions(max_iterations=iterations, max_step=1.0),
         small_step=lambda step, x, idx: torch.linalg.vector_norm(step, dim=1) < 1e-4)
     loc = sol.x
-    asym = _asymmetry(residuals(loc, torch.arange(N), with_jacobian=False)[0], wgt)
+    at_end = torch.from_numpy(best_vv) if np.array_equal(best_loc, loc.numpy()) else \
+        residuals(loc, torch.arange(N), with_jacobian=False)[0]
+    asym = _asymmetry(at_end, wgt)
     out = loc.numpy() + c0 - P
     moved = np.hypot(*(out - xy).T)
     ok &= np.isfinite(out).all(1) & (moved < np.maximum(2.0, 1.2 * R))

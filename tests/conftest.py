@@ -1,4 +1,6 @@
+import contextlib
 import importlib.util
+import io
 import os
 import sys
 
@@ -50,3 +52,18 @@ def cluster():
              runtime_env={"env_vars": {"OMP_NUM_THREADS": "1"}})
     yield ray
     ray.shutdown()
+
+
+@pytest.fixture(scope="session")
+def stability_quick_run(tmp_path_factory):
+    """`tiltfit stability --quick` with every study, once a process: (its StabilityResult, the folder it wrote, what
+    it printed). tests/tiltfit/test_stability.py's end-to-end test reads it, and test_stability_cluster.py compares
+    the cluster's run of some studies with it (each study draws from its own seeds: a run of some of them writes
+    the same files); both are marked `xdist_group("stability_quick")`, so one worker runs it."""
+    from tiltfit.experiments import stability
+
+    out = tmp_path_factory.mktemp("stability_quick")
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        result = stability.run(str(out), quick=True, progress=False)
+    return result, out, printed.getvalue()

@@ -227,19 +227,21 @@ class Camera:
             gx = torch.arange(nx, dtype=uv_px.dtype, device=uv_px.device) * step - 0.5
             gy = torch.arange(ny, dtype=uv_px.dtype, device=uv_px.device) * step - 0.5
             nodes = torch.stack(torch.meshgrid(gx, gy, indexing="xy"), -1)  # (ny, nx, 2)
-            cached = (key, self.distortion.undistort(self._normalised(nodes)))
+            inverse = self.distortion.undistort(self._normalised(nodes)).reshape(ny * nx, 2)
+            # The nodes row by row, and each node's four corners of its cell side by side (x then y of the node,
+            # its right, lower and lower-right neighbours): one row gathered a pixel.
+            cells = torch.cat([inverse, inverse.roll(-1, 0), inverse.roll(-nx, 0), inverse.roll(-nx - 1, 0)], -1)
+            cached = (key, (nx, ny), cells, torch.isfinite(cells).reshape(-1, 4, 2).all(-1).any(-1))
             self._undistortion_map = cached
-        grid = cached[1]
-        ny, nx = grid.shape[:2]
+        _, (nx, ny), cells, any_inverse = cached
         fx = ((uv_px[..., 0].detach() + 0.5) / UNDISTORTION_MAP_STEP_PX).clamp(0, nx - 1 - 1e-9)
         fy = ((uv_px[..., 1].detach() + 0.5) / UNDISTORTION_MAP_STEP_PX).clamp(0, ny - 1 - 1e-9)
         i0, j0 = fx.floor().long().clamp(max=nx - 2), fy.floor().long().clamp(max=ny - 2)
         ax, ay = (fx - i0)[..., None], (fy - j0)[..., None]
-        c00, c10 = grid[j0, i0], grid[j0, i0 + 1]
-        c01, c11 = grid[j0 + 1, i0], grid[j0 + 1, i0 + 1]
+        cell = (j0 * nx + i0).reshape(-1)
+        c00, c10, c01, c11 = cells.index_select(0, cell).reshape(uv_px.shape[:-1] + (4, 2)).unbind(-2)
         start = (1 - ay) * ((1 - ax) * c00 + ax * c10) + ay * ((1 - ax) * c01 + ax * c11)
-        good = torch.stack([torch.isfinite(c).all(-1) for c in (c00, c10, c01, c11)])
-        return start, ~good.any(0)
+        return start, ~any_inverse.index_select(0, cell).reshape(uv_px.shape[:-1])
 
     @property
     def width(self) -> int:

@@ -182,8 +182,9 @@ def _no_nan(token):
 
 
 @pytest.mark.slow
-def test_quick_run_end_to_end(tmp_path):
-    res = st.run(str(tmp_path), quick=True, progress=False)
+@pytest.mark.xdist_group("stability_quick")  # the run is test_stability_cluster.py's serial reference too
+def test_quick_run_end_to_end(stability_quick_run):
+    res, tmp_path, _ = stability_quick_run
     assert set(res.studies) == set(st.STUDIES), "every sweep ran"
     for name in st.STUDIES:
         for ext in ("json", "csv", "png"):

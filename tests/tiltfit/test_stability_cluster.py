@@ -16,12 +16,16 @@ def _untimed(path):
     return data
 
 
-def test_studies_on_cluster_equal_serial_run(cluster, tmp_path, capsys):
-    """Same seeds, same outputs: every study's JSON (timing aside), CSV and plot, and the findings."""
-    here, spread = tmp_path / "here", tmp_path / "spread"
-    st.run(str(here), quick=True, only=ONLY, progress=False)
-    serial_out = capsys.readouterr().out
+@pytest.mark.xdist_group("stability_quick")  # the serial run is test_stability.py's end-to-end run
+def test_studies_on_cluster_equal_serial_run(cluster, stability_quick_run, tmp_path, capsys):
+    """Same seeds, same outputs: every study's JSON (timing aside), CSV and plot, and the findings, against the serial
+    quick run of every study (`stability_quick_run`)."""
+    serial, here, printed = stability_quick_run
+    assert printed == st.summary_text(serial.studies) + "\n", "the serial run prints each study's findings"
+    spread = tmp_path / "spread"
+    capsys.readouterr()
     on_ray = st.run(str(spread), quick=True, only=ONLY, progress=False, cluster="auto")
+    serial_out = st.summary_text({name: serial.studies[name] for name in ONLY}) + "\n"  # what `run` prints of them
     assert capsys.readouterr().out == serial_out, "the findings printed differ"
     assert list(on_ray.studies) == ONLY, f"studies in the order asked: {list(on_ray.studies)}"
     for name in ONLY:

@@ -349,23 +349,20 @@ class _BandModel:
         pos = torch.searchsorted(kept, idx).clamp_max_(kept.numel() - 1)
         return pos if torch.equal(kept[pos], idx) else None
 
-    def _profile(self, g: dict, theta: np.ndarray, deriv: bool):
+    def _profile(self, g: dict, theta: torch.Tensor, deriv: bool):
         """The cells' profile (k, B, n) at unit contrast and zero dark level for parameters theta (k, P), and with
         deriv the mask times Σ (cell step) ∂E/∂r over the edges times sign(β + g · x) (∂E/∂β / ∂r/∂β · 2), and the
-        mask times ∂E/∂d of the own edge (both (k, B, n)); numpy arrays, in numpy throughout (its calls cost a third
-        of torch's, and an evaluation is a hundred calls on arrays of a few thousand pixels)."""
+        mask times ∂E/∂d of the own edge (both (k, B, n)). The passes over every slot run in torch, the candidates'
+        closed form in numpy (`_pixel_esf_np`: a few thousand values, where a call's cost, a third of torch's,
+        outweighs its arithmetic)."""
         a = g["np"]
         beta, gx, gy = (theta[:, j, None, None] for j in range(3))
         delta = theta[:, 5::3, None]  # (k, B, 1)
-        sb = a["dx"] * gx
-        sb += beta
-        sb += a["dy"] * gy
-        r = np.abs(sb)
-        r *= 0.5
-        np.maximum(r, 1e-3, out=r)
-        d = a["d0"] - delta
-        S = d.size
-        dn, rn = d.reshape(-1), r.reshape(-1)
+        sb = torch.addcmul(beta, gx, g["dx"]).addcmul_(gy, g["dy"])
+        r = sb.abs().mul_(0.5).clamp_min_(1e-3)
+        d = g["d0"] - delta
+        S = d.numel()
+        dn, rn = d.numpy().reshape(-1), r.numpy().reshape(-1)
         r_far = rn[a["slot_far"]]
         # the candidates the blur reaches
         own = np.flatnonzero(np.abs(dn) < rn + g["reach"])
@@ -377,32 +374,30 @@ class _BandModel:
         # r ≥ 1e-3 already, and a reached |d| is below r + hp + 1e-3, where `pixel_esf` would clamp it
         E, E_dd, E_dr = _pixel_esf_np(ds, rs, a["cand_hp"][at], a["cand_hm"][at], a["cand_inv_area"][at], deriv)
         coef = a["coef"][at]
-        gsum = np.sign(d)
-        gsum *= a["half_c_0"]
-        gsum += a["steps"]
+        gsum = torch.addcmul(g["steps"], g["half_c_0"], torch.sign(d))
         # at the candidates reached, the step there (1/2 + sign/2 for the own edge, as above) becomes E
         no = own.size
         step = np.concatenate([np.sign(ds[:no]) * 0.5 + 0.5, (ds[no:] > 0).astype(np.float64)])
-        gsum += np.bincount(slot, weights=coef * (E - step), minlength=S).reshape(gsum.shape)
+        slot_t = torch.from_numpy(slot)
+        gsum.view(-1).index_add_(0, slot_t, torch.from_numpy(coef * (E - step)))
         if not deriv:
             return gsum, None, None
         m = a["mask"]
         coef *= E_dr
         coef *= m[slot]
-        coef *= np.sign(sb.reshape(-1)[slot])
-        E_r = np.bincount(slot, weights=coef, minlength=S).reshape(gsum.shape)
-        E_d = np.zeros(S)
-        E_d[own] = E_dd[:no] * m[own]
-        return gsum, E_r, E_d.reshape(gsum.shape)
+        coef *= np.sign(sb.numpy().reshape(-1)[slot])
+        E_r = torch.zeros(S, dtype=gsum.dtype).index_add_(0, slot_t, torch.from_numpy(coef))
+        E_d = torch.zeros(S, dtype=gsum.dtype).index_copy_(0, slot_t[:no], torch.from_numpy(E_dd[:no] * m[own]))
+        return gsum, E_r.view_as(gsum), E_d.view_as(gsum)
 
     def profile(self, theta: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
         """The cells' profile (k, B, n) at the points idx (k,) for parameters theta (k, P), unit contrast and zero
         dark level (the start's model)."""
-        return torch.from_numpy(self.profile_np(theta.to(_MODEL_DTYPE).numpy(), idx))
+        return self._profile(self.at(idx), theta.to(_MODEL_DTYPE), deriv=False)[0]
 
     def profile_np(self, theta: np.ndarray, idx: torch.Tensor) -> np.ndarray:
         """`profile` of numpy parameters theta (k, P), as a numpy array."""
-        return self._profile(self.at(idx), theta, deriv=False)[0]
+        return self.profile(torch.from_numpy(theta), idx).numpy()
 
     def normal(self, theta: torch.Tensor, idx: torch.Tensor, prior: torch.Tensor) -> Normal:
         """`tiltfit.solve.Normal` of the points idx (k,) at parameters theta (k, P): the cost Σ mask² (model − data)²
@@ -421,20 +416,15 @@ class _BandModel:
         self._theta, self._prior = th, prior
         k, B, n = g["d0"].shape
         P = 3 + 3 * B
-        thn = th.numpy()
-        o, c = thn[:, 3::3, None], thn[:, 4::3, None]  # (k, B, 1)
-        gsum, E_r, E_d = self._profile(g, thn, deriv=True)
-        a = g["np"]
-        m, rows = a["mask"].reshape(gsum.shape), a["rows"]  # √weight, 0 on padding: the rows there are zeroed exactly
-        np.multiply(E_r, 0.5 * c, out=rows[:, :, 0])  # ∂r/∂β = sign(β + g · x) / 2
-        np.multiply(rows[:, :, 0], a["dx"], out=rows[:, :, 1])
-        np.multiply(rows[:, :, 0], a["dy"], out=rows[:, :, 2])
-        np.multiply(gsum, m, out=rows[:, :, 4])
-        np.multiply(E_d, -c * a["c_0"], out=rows[:, :, 5])
-        np.multiply(rows[:, :, 4], c, out=rows[:, :, 6])
-        rows[:, :, 6] += a["neg_Im"]
-        rows[:, :, 6] += o * m
-        rows = g["rows"]
+        o, c = th[:, 3::3, None], th[:, 4::3, None]  # (k, B, 1)
+        gsum, E_r, E_d = self._profile(g, th, deriv=True)
+        m, rows = g["mask"], g["rows"]  # √weight, 0 on padding: the rows there are zeroed exactly
+        torch.mul(E_r, 0.5 * c, out=rows[:, :, 0])  # ∂r/∂β = sign(β + g · x) / 2
+        torch.mul(rows[:, :, 0], g["dx"], out=rows[:, :, 1])
+        torch.mul(rows[:, :, 0], g["dy"], out=rows[:, :, 2])
+        torch.mul(gsum, m, out=rows[:, :, 4])
+        torch.mul(E_d, -c * g["c_0"], out=rows[:, :, 5])
+        torch.addcmul(g["neg_Im"], c, rows[:, :, 4], out=rows[:, :, 6]).addcmul_(o, m)
         M = rows @ rows.transpose(-1, -2)  # (k, B, 7, 7)
         A = torch.zeros(k, P * P, dtype=torch.float64).index_add_(1, self._to_A, M[..., :6, :6].reshape(k, B * 36))
         A = A.view(k, P, P)

@@ -333,9 +333,8 @@ class _BandModel:
         g["rows"] = torch.empty(k, B, 7, n, dtype=torch.float64)  # `normal`'s rows; the dark level's is √weight
         g["rows"][:, :, 3] = g["mask"]
         g["neg_Im"] = -g["I"] * g["mask"]
-        # what `_profile` reads, as numpy arrays (views of the tensors)
-        g["np"] = {key: g[key].numpy() for key in ("dx", "dy", "d0", "steps", "half_c_0", "slot_far", "d_far", "coef",
-                                                   "cand_hp", "cand_hm", "cand_inv_area", "rows", "neg_Im", "c_0")}
+        # what `_profile` reads at the candidates, as numpy arrays (views of the tensors)
+        g["np"] = {key: g[key].numpy() for key in ("slot_far", "d_far", "coef", "cand_hp", "cand_hm", "cand_inv_area")}
         g["np"]["mask"] = g["mask"].numpy().reshape(-1)
         self._idx, self._at, self._theta = idx, g, None
         return g

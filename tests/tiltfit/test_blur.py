@@ -192,6 +192,33 @@ def test_blur_across_the_plane_of_focus():
     assert (err <= tolerance(v.truth.blur_px)).all(), f"worst blur error {err.max():.3f} px across the focus"
 
 
+def test_a_point_the_first_pass_finds_too_sharp_is_measured_by_the_next(monkeypatch):
+    """The first pass only plans the next: a point whose coarse fit leaves β undetermined (σ infinite, as a sharp
+    corner's tiny β on the coarse level can, by rounding) is refitted on the level chosen for its blur and measured
+    there, not dropped; nor is the coarse fit's width reported for it."""
+    import tiltfit.detect.blur as blur
+
+    v = _view(0.07, 0.002, seed=5)
+    fit = blur.fit_corners
+    sharp = {}
+
+    def first_pass_undetermined(img, groups, r0, iterations=30):
+        b, sb, grad, ok = fit(img, groups, r0, iterations)
+        if iterations == 8 and not sharp:  # the first pass: its first point's β left undetermined
+            sharp["done"] = True
+            sb, ok = sb.copy(), ok.copy()
+            sb[0], ok[0] = math.inf, False
+        return b, sb, grad, ok
+
+    monkeypatch.setattr(blur, "fit_corners", first_pass_undetermined)
+    b, sb = measure_blur(v.image[..., 0], TARGET, v.truth.corners_px)
+    monkeypatch.setattr(blur, "fit_corners", fit)
+    ref, ref_sb = measure_blur(v.image[..., 0], TARGET, v.truth.corners_px)
+    assert sharp, "the first pass should have run"
+    assert np.isfinite(b).all() and np.isfinite(sb).all(), f"{np.isnan(b).sum()} points without a width"
+    assert np.array_equal(b, ref) and np.array_equal(sb, ref_sb), "the later passes should measure the point as usual"
+
+
 @pytest.mark.slow
 def test_blur_08_of_the_square():
     v = _view(0.8, 0.004, seed=3)

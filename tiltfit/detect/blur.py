@@ -129,6 +129,63 @@ def _pixel_esf(d, r, hp, hm, inv_area, with_derivatives: bool, shape=None):
     return E.reshape(shape), dE_dd.reshape(shape), dE_dr.reshape(shape)
 
 
+def _pixel_esf_np(d: np.ndarray, r: np.ndarray, hp: np.ndarray, hm: np.ndarray, inv_area: np.ndarray,
+                  with_derivatives: bool):
+    """`_pixel_esf` in numpy, of (m,) float64 arrays (the model's inner loop: numpy's call costs a third of torch's
+    on the few thousand pixels a fit reaches, and an evaluation is some forty such calls): E, and with_derivatives
+    ∂E/∂d and ∂E/∂r (else None). The same formulas as `_G_and_G2`."""
+    u = np.stack((d + hp, d + hm, d - hm, d - hp))
+    u /= r
+    norm = r * r
+    norm *= inv_area
+    uc = np.minimum(np.maximum(u, -1.0), 1.0)
+    q = uc * uc
+    s = 1.0 - q
+    np.sqrt(np.maximum(s, 1e-30, out=s), out=s)  # floored as in `_G_and_G2`
+    half_a = np.arcsin(uc)
+    half_a /= math.pi
+    half_a += 0.5
+    over = u - 1.0
+    np.maximum(over, 0.0, out=over)
+    G2 = q * 0.5
+    G2 += 0.125
+    G2 *= half_a
+    t = q * (1 / (12 * math.pi))
+    t += 13 / (24 * math.pi)
+    t *= s
+    t *= uc
+    G2 += t
+    t = over * 0.5
+    t += 1.0
+    t *= over
+    G2 += t
+    G2u = G2[0] - G2[1]
+    G2u -= G2[2]
+    G2u += G2[3]
+    E = G2u * norm
+    if not with_derivatives:
+        return E, None, None
+    G = uc * half_a
+    t = q * (1 / (3 * math.pi))
+    t += 2 / (3 * math.pi)
+    t *= s
+    G += t
+    G += over
+    norm /= r
+    dE_dd = G[0] - G[1]
+    dE_dd -= G[2]
+    dE_dd += G[3]
+    dE_dd *= norm
+    G *= u
+    dE_dr = 2.0 * G2u
+    dE_dr -= G[0]
+    dE_dr += G[1]
+    dE_dr += G[2]
+    dE_dr -= G[3]
+    dE_dr *= norm
+    return E, dE_dd, dE_dr
+
+
 def _pack_bands(img: np.ndarray, groups: list[list[dict]], B: int):
     """The bands of C points padded into tensors (B bands a point, n pixels a band at most): mask (the square root
     of the pixel's weight, so that residuals and Jacobian rows times mask weight the squares), values, d0, d_lo,
@@ -171,30 +228,34 @@ def _band_blocks(B: int):
 def _start(model, I: torch.Tensor, mask: torch.Tensor, has_band: torch.Tensor, r0: torch.Tensor) -> torch.Tensor:
     """`fit_corners`' start (C, P): β scanned from 4 % to 200 % of 2 r0 (g = 0), the levels of each band solved
     linearly at each β (weighted by mask²), the β that leaves the least weighted squared residual kept.
-    model.profile(theta, idx) gives the cells' profile at unit contrast and zero dark level."""
+    model.profile_np(theta, idx) gives the cells' profile at unit contrast and zero dark level (numpy, as the
+    sums here: a few dozen calls on small arrays, a third of torch's cost each)."""
     C, B = mask.shape[:2]
     every = torch.arange(C)
+    I, mask, has_band, r0 = I.numpy(), mask.numpy(), has_band.numpy(), r0.numpy()
     w = mask * mask
     npix = w.sum(-1)
     sI = (w * I).sum(-1)
-    best = torch.full((C,), float("inf"), dtype=torch.float64)
-    theta = torch.zeros(C, 3 + 3 * B, dtype=torch.float64)
+    best = np.full(C, np.inf)
+    theta = np.zeros((C, 3 + 3 * B))
     for frac in (0.05, 0.13, 0.3, 0.55, 1.0, 1.6):
-        trial = torch.zeros(C, 3 + 3 * B, dtype=torch.float64)
-        trial[:, 0] = (2 * r0 * frac).clamp_min(0.1)  # β is a diameter
+        trial = np.zeros((C, 3 + 3 * B))
+        trial[:, 0] = np.maximum(2 * r0 * frac, 0.1)  # β is a diameter
         trial[:, 4::3] = 1.0
-        gg = model.profile(trial, every)
+        gg = model.profile_np(trial, every)
         wg = w * gg
         sg, sgg, sgI = wg.sum(-1), (wg * gg).sum(-1), (wg * I).sum(-1)
         det = npix * sgg - sg * sg
-        cc = (npix * sgI - sg * sI) / det.clamp_min(1e-30)
-        oo = (sI - cc * sg) / npix.clamp_min(1e-9)
-        cost = ((((I - oo[..., None] - cc[..., None] * gg) * mask) ** 2).sum((-1, -2)))
+        cc = (npix * sgI - sg * sI) / np.maximum(det, 1e-30)
+        oo = (sI - cc * sg) / np.maximum(npix, 1e-9)
+        res = I - oo[..., None] - cc[..., None] * gg
+        res *= mask
+        cost = (res * res).sum((-1, -2))
         better = cost < best
-        trial[:, 3::3], trial[:, 4::3] = oo, torch.where(has_band, cc, torch.ones_like(cc))
-        theta = torch.where(better[:, None], trial, theta)
-        best = torch.where(better, cost, best)
-    return theta
+        trial[:, 3::3], trial[:, 4::3] = oo, np.where(has_band, cc, 1.0)
+        theta = np.where(better[:, None], trial, theta)
+        best = np.where(better, cost, best)
+    return torch.from_numpy(theta)
 
 
 def _diameter_sigma(A: torch.Tensor, cost: torch.Tensor, npix: torch.Tensor, has_band: torch.Tensor,
@@ -272,6 +333,9 @@ class _BandModel:
         g["rows"] = torch.empty(k, B, 7, n, dtype=torch.float64)  # `normal`'s rows; the dark level's is √weight
         g["rows"][:, :, 3] = g["mask"]
         g["neg_Im"] = -g["I"] * g["mask"]
+        # what `_profile` reads at the candidates, as numpy arrays (views of the tensors)
+        g["np"] = {key: g[key].numpy() for key in ("slot_far", "d_far", "coef", "cand_hp", "cand_hm", "cand_inv_area")}
+        g["np"]["mask"] = g["mask"].numpy().reshape(-1)
         self._idx, self._at, self._theta = idx, g, None
         return g
 
@@ -287,42 +351,52 @@ class _BandModel:
     def _profile(self, g: dict, theta: torch.Tensor, deriv: bool):
         """The cells' profile (k, B, n) at unit contrast and zero dark level for parameters theta (k, P), and with
         deriv the mask times Σ (cell step) ∂E/∂r over the edges times sign(β + g · x) (∂E/∂β / ∂r/∂β · 2), and the
-        mask times ∂E/∂d of the own edge (both (k, B, n))."""
+        mask times ∂E/∂d of the own edge (both (k, B, n)). The passes over every slot run in torch, the candidates'
+        closed form in numpy (`_pixel_esf_np`: a few thousand values, where a call's cost, a third of torch's,
+        outweighs its arithmetic)."""
+        a = g["np"]
         beta, gx, gy = (theta[:, j, None, None] for j in range(3))
         delta = theta[:, 5::3, None]  # (k, B, 1)
         sb = torch.addcmul(beta, gx, g["dx"]).addcmul_(gy, g["dy"])
         r = sb.abs().mul_(0.5).clamp_min_(1e-3)
         d = g["d0"] - delta
         S = d.numel()
-        r_far = r.reshape(-1).index_select(0, g["slot_far"])
-        # the candidates the blur reaches, chosen in numpy: its comparisons and flatnonzero cost a fifth of torch's
         dn, rn = d.numpy().reshape(-1), r.numpy().reshape(-1)
-        own = torch.from_numpy(np.flatnonzero(np.abs(dn) < rn + g["reach"]))
-        far = torch.from_numpy(np.flatnonzero(np.abs(g["d_far"].numpy()) < r_far.numpy() + g["reach_far"]))
-        at = torch.cat([own, far + S])  # into the candidates: own slots, then the far edges' list
-        slot = torch.cat([own, g["slot_far"].index_select(0, far)])
-        ds = torch.cat([d.reshape(-1).index_select(0, own), g["d_far"].index_select(0, far)])
-        rs = torch.cat([r.reshape(-1).index_select(0, own), r_far.index_select(0, far)])
+        r_far = rn[a["slot_far"]]
+        # the candidates the blur reaches
+        own = np.flatnonzero(np.abs(dn) < rn + g["reach"])
+        far = np.flatnonzero(np.abs(a["d_far"]) < r_far + g["reach_far"])
+        at = np.concatenate([own, far + S])  # into the candidates: own slots, then the far edges' list
+        slot = np.concatenate([own, a["slot_far"][far]])
+        ds = np.concatenate([dn[own], a["d_far"][far]])
+        rs = np.concatenate([rn[own], r_far[far]])
         # r ≥ 1e-3 already, and a reached |d| is below r + hp + 1e-3, where `pixel_esf` would clamp it
-        out = _pixel_esf(ds, rs, *(g[k].index_select(0, at) for k in ("cand_hp", "cand_hm", "cand_inv_area")), deriv)
-        E = out[0] if deriv else out
-        coef = g["coef"].index_select(0, at)
+        E, E_dd, E_dr = _pixel_esf_np(ds, rs, a["cand_hp"][at], a["cand_hm"][at], a["cand_inv_area"][at], deriv)
+        coef = a["coef"][at]
         gsum = torch.addcmul(g["steps"], g["half_c_0"], torch.sign(d))
         # at the candidates reached, the step there (1/2 + sign/2 for the own edge, as above) becomes E
-        step = torch.cat([torch.sign(ds[:own.numel()]).mul_(0.5).add_(0.5), (ds[own.numel():] > 0).to(ds.dtype)])
-        gsum.view(-1).index_add_(0, slot, coef * (E - step))
+        no = own.size
+        step = np.concatenate([np.sign(ds[:no]) * 0.5 + 0.5, (ds[no:] > 0).astype(np.float64)])
+        slot_t = torch.from_numpy(slot)
+        gsum.view(-1).index_add_(0, slot_t, torch.from_numpy(coef * (E - step)))
         if not deriv:
             return gsum, None, None
-        m = g["mask"].reshape(-1)
-        E_r = coef.mul_(out[2]).mul_(m.index_select(0, slot)).mul_(sb.reshape(-1).index_select(0, slot).sign_())
-        E_r = torch.zeros(S, dtype=gsum.dtype).index_add_(0, slot, E_r)
-        E_d = torch.zeros(S, dtype=gsum.dtype).index_copy_(0, own, out[1][:own.numel()] * m.index_select(0, own))
+        m = a["mask"]
+        coef *= E_dr
+        coef *= m[slot]
+        coef *= np.sign(sb.numpy().reshape(-1)[slot])
+        E_r = torch.zeros(S, dtype=gsum.dtype).index_add_(0, slot_t, torch.from_numpy(coef))
+        E_d = torch.zeros(S, dtype=gsum.dtype).index_copy_(0, slot_t[:no], torch.from_numpy(E_dd[:no] * m[own]))
         return gsum, E_r.view_as(gsum), E_d.view_as(gsum)
 
     def profile(self, theta: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
         """The cells' profile (k, B, n) at the points idx (k,) for parameters theta (k, P), unit contrast and zero
         dark level (the start's model)."""
         return self._profile(self.at(idx), theta.to(_MODEL_DTYPE), deriv=False)[0]
+
+    def profile_np(self, theta: np.ndarray, idx: torch.Tensor) -> np.ndarray:
+        """`profile` of numpy parameters theta (k, P), as a numpy array."""
+        return self.profile(torch.from_numpy(theta), idx).numpy()
 
     def normal(self, theta: torch.Tensor, idx: torch.Tensor, prior: torch.Tensor) -> Normal:
         """`tiltfit.solve.Normal` of the points idx (k,) at parameters theta (k, P): the cost Σ mask² (model − data)²
@@ -512,12 +586,17 @@ def _measure_blur(gray, target, corners_px, levels, max_passes, max_pixels, leve
             r0 = np.array([max(plan[k][1], 0.3) for k in keys])
             first = plan[keys[0]][3]
             b, sb, grad, ok = fit_corners(levels[f], groups, r0, iterations=8 if first else 30)
+            # the first pass only plans the next: a point it finds too sharp to tell (β undetermined, σ infinite: no
+            # pixel its blur reaches on this level) is refitted on the level chosen for that blur, not dropped
+            # (whether its tiny β's information passed the test of `_diameter_sigma` was a matter of rounding)
+            planned = ok | (first & np.isfinite(b) & np.isinf(sb))
             for i, k in enumerate(keys):
-                if ok[i]:
+                if planned[i]:
                     results[k] = (b[i] * f, sb[i] * f, grad[i])
         new_plan = {}
         for k, (m, s, g) in results.items():
-            blur[k], sigma[k] = m, s
+            if np.isfinite(s):
+                blur[k], sigma[k] = m, s
             f_new = level_for(square[k], m)
             r_new = 0.55 * m / f_new + 0.5
             fk, r_l, _, first = plan[k]

@@ -68,12 +68,13 @@ PROJECTION_SIGMA_FACTOR = 3.0
 ONE_SE = 1.0
 
 
-def predict_views(camera, obs: Observations, options: FitOptions = FitOptions()):
+def predict_views(camera, obs: Observations, options: FitOptions = FitOptions(), poses=None):
     """Fit only the poses of `obs`'s views with `camera`'s lens held (w, U, d, θF, principal point,
-    distortion); returns the FitResult (its RMS is the prediction error)."""
+    distortion); returns the FitResult (its RMS is the prediction error). `poses` ((rvec (V, 3), T_mm (V, 3)), e.g.
+    a fit's of these views with a nearby lens) start them; None: PnP."""
     held = replace(options, distortion="none", free_principal_point=False, model_selection=False, progress=None,
                    max_rms_px=None)
-    cam = keep_distortion_axis(initialize(obs, "tilt", init=camera, options=held, blur=False), camera)
+    cam = keep_distortion_axis(initialize(obs, "tilt", init=camera, options=held, blur=False, poses=poses), camera)
     return fit_geometry(cam, without_blur(obs), held, mode="tilt", hold_distortion=True)
 
 
@@ -120,25 +121,26 @@ def held_out_rms(obs: Observations, options: FitOptions = FitOptions(), folds: i
     per_view = [math.nan] * V
     sq, n = 0.0, 0
     # `start` fitted on these views (`FitOptions.held_out_start` "fit"): its poses of each fold's training views
-    # start the fold's fit (no PnP)
+    # start the fold's fit, its poses of the held-out views their prediction (no PnP)
     warm = opts.held_out_start == "fit" and start is not None and start.n_views == V
     for k in range(K):
         test = [v for v in range(V) if v % K == k]
         train = [v for v in range(V) if v % K != k]
         tr = obs.subset(train)
         poses = (start.rvec.detach()[train], start.T_mm.detach()[train]) if warm else None
+        held_poses = (start.rvec.detach()[test], start.T_mm.detach()[test]) if warm else None
         cam = keep_distortion_axis(initialize(tr, "unified", init=start, options=opts, blur=False, poses=poses),
                                    start)
         if board is None:
             fit = fit_geometry(cam, tr, opts, mode="unified")
-            pred = predict_views(fit.camera, obs.subset(test), opts)
+            pred = predict_views(fit.camera, obs.subset(test), opts, held_poses)
         else:
             from tiltfit.target.shape import Board, with_points
 
             b = Board(tr.points_mm, board.model, board.params) if isinstance(board, Board) else \
                 Board(tr.points_mm, board)
             fit = fit_geometry(cam, tr, opts, mode="unified", board=b)
-            pred = predict_views(fit.camera, with_points(obs.subset(test), fit.board.points()), opts)
+            pred = predict_views(fit.camera, with_points(obs.subset(test), fit.board.points()), opts, held_poses)
         sq += pred.rss["corners"]
         n += pred.rss["n_corners"] // 2
         for v, view in zip(test, pred.views):

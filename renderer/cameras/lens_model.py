@@ -542,8 +542,20 @@ class LensCamera(torch.nn.Module):
 
     # --- convenience -------------------------------------------------------------------------------------
     def copy(self) -> "LensCamera":
-        """An independent copy with the same free/frozen state."""
-        return copy.deepcopy(self)
+        """An independent copy with the same free/frozen state: the parameters and buffers cloned (the same
+        numbers), the module's other state (plain values, empty hook tables) copied one level deep: the same copy as
+        `copy.deepcopy` in less than half its time (a calibration copies its camera a few hundred times)."""
+        if self._modules or any(p is not None and p.grad is not None for p in self._parameters.values()):
+            return copy.deepcopy(self)  # submodules or gradients: what deepcopy copies beyond this
+        out = self.__class__.__new__(self.__class__)
+        for k, v in self.__dict__.items():
+            out.__dict__[k] = v.copy() if isinstance(v, (dict, set)) else v
+        P = torch.nn.Parameter
+        with torch.no_grad():
+            out._parameters = {n: None if p is None else P(p.clone(), requires_grad=p.requires_grad)
+                               for n, p in self._parameters.items()}
+            out._buffers = {n: None if b is None else b.clone() for n, b in self._buffers.items()}
+        return out
 
     def summary(self) -> dict:
         """Plain floats of the lens state (mm and degrees): the lens's `Lens.record()` and the module's own values."""

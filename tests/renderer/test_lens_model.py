@@ -192,3 +192,38 @@ def test_rodrigues_and_look_at_are_the_rotations_of_both_packages():
     assert float(origin_cam[:2].abs().max()) < 1e-12 and float(origin_cam[2]) > 0, "target on the optical axis"
     up_cam = pose.points_to_camera(torch.tensor([0.0, -10.0, 0.0], dtype=torch.float64))
     assert float(up_cam[1] / up_cam[2]) < 0, "world up appears above the axis (negative y)"
+
+
+def test_copy_is_deepcopys_without_walking_the_module(monkeypatch):
+    """`LensCamera.copy` gives what `copy.deepcopy` gives (the same numbers, free/frozen state, settings and
+    buffers, none of them shared) without calling it (issue 32 §0: a calibration copies its camera hundreds of
+    times)."""
+    import copy as copy_module
+
+    from renderer.cameras import lens_model
+
+    cam = _random_camera(4).free("principal_point", "k1")
+    cam.distortion_centre = "lens_axis"
+    want = copy_module.deepcopy(cam)
+    monkeypatch.setattr(lens_model.copy, "deepcopy", lambda *a: pytest.fail("deepcopy called"))
+    got = cam.copy()
+    assert type(got) is LensCamera and got.__dict__.keys() == want.__dict__.keys()
+    for (n, p), (m, q) in zip(got.named_parameters(), want.named_parameters()):
+        assert n == m and type(p) is type(q) and p.requires_grad == q.requires_grad and torch.equal(p, q), n
+        assert p.data_ptr() != dict(cam.named_parameters())[n].data_ptr(), f"{n} shares the original's memory"
+    for (n, b), (_, c) in zip(got.named_buffers(), want.named_buffers()):
+        assert torch.equal(b, c) and b.data_ptr() != dict(cam.named_buffers())[n].data_ptr(), n
+    for k, v in want.__dict__.items():
+        if not isinstance(v, dict):
+            assert got.__dict__[k] == v, k
+        else:
+            assert got.__dict__[k] is not cam.__dict__[k], f"{k} shared with the original"
+    with torch.no_grad():
+        got.rvec.add_(1.0)
+        got.log_w_mm.add_(1.0)
+    got.freeze("all")
+    assert torch.equal(cam.rvec, want.rvec) and torch.equal(cam.log_w_mm, want.log_w_mm)
+    assert cam.pp_scaled.requires_grad, "freezing the copy froze the original"
+    uv_cam, _ = cam(torch.zeros(1, 3, dtype=torch.float64))
+    uv_copy, _ = cam.copy()(torch.zeros(1, 3, dtype=torch.float64))
+    assert torch.equal(uv_cam, uv_copy)

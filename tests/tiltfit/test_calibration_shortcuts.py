@@ -288,3 +288,32 @@ def test_pose_random_effect_of_corner_rows_only_reads_the_trace(monkeypatch):
     for k in ("view_error_px", "pose_ratio_min", "pose_ratio_max"):
         assert info[k] == pytest.approx(info_rows[k], rel=1e-9), k
     assert info["view_error_px"] > 0, "the random effect should be estimated (τ² > 0)"
+
+
+def test_initialize_reads_its_start_without_copying_it(monkeypatch):
+    """`initialize(init=camera)` (each held-out fold's and prediction's start) reads the camera's lens without copying
+    it, and leaves it as it was (its values and free/frozen state); unobserved corners' Jacobian rows stay 0."""
+    from renderer.cameras.lens_model import LensCamera
+    from tiltfit.calibrate.fit import FitOptions, fit_geometry
+    from tiltfit.calibrate.problem import _Problem
+    from tiltfit.calibrate.start import initialize
+
+    obs = _synthetic_views(6)
+    obs.corners_px[2, :5] = float("nan")  # five unobserved corners
+    opts = FitOptions(distortion="k1", model_selection=False, uncertainties=False)
+    start = fit_geometry(initialize(obs, "unified", options=opts, blur=False), obs, opts).camera
+    before = {n: (p.detach().clone(), p.requires_grad) for n, p in start.named_parameters()}
+    real = LensCamera.copy
+    monkeypatch.setattr(LensCamera, "copy", lambda self: pytest.fail("initialize copied its start"))
+    poses = (start.rvec.detach(), start.T_mm.detach())
+    cam = initialize(obs, "unified", init=start, options=opts, blur=False, poses=poses)
+    monkeypatch.setattr(LensCamera, "copy", real)
+    for n, p in start.named_parameters():
+        assert torch.equal(p.detach(), before[n][0]) and p.requires_grad == before[n][1], n
+    assert float(cam.w_mm.detach()) == float(start.w_mm.detach())
+    assert torch.equal(cam.distortion.detach(), start.distortion.detach())
+    prob = _Problem(cam, obs)
+    J, r = prob._raw_jacobian_matrix(prob.x0(), prob.names)
+    rows = ~prob.corner_rows
+    assert int(rows.sum()) == 10 and bool((J[rows] == 0).all()) and bool((r[rows] == 0).all())
+    assert bool((J[prob.corner_rows] != 0).any(1).all()), "observed rows keep their derivatives"

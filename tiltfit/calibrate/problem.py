@@ -74,6 +74,8 @@ class _Problem:
         self.corner_rows[:nc] = self.cmask[..., None].expand(-1, -1, 2).reshape(-1)
         self.blur_rows = torch.zeros_like(self.corner_rows)
         self.blur_rows[nc:] = self.bmask.reshape(-1) if nb else False
+        # the unobserved rows, whose Jacobian rows are 0: a few, so zeroing them by index is cheaper than a mask
+        self.unobserved_rows = (~(self.corner_rows | self.blur_rows)).nonzero().squeeze(1)
         V, N = self.cmask.shape
         self.blocks = [Block(n, tuple(shape), per_view=n in self.POSE,
                              points=self.point_index if n == self.BOARD else None)
@@ -159,9 +161,7 @@ class _Problem:
         torch.cat([block[..., :2, :] for block in blocks], -1, out=Jc)          # one copy of strided slices
         if self.blur_rows_kept:
             torch.cat([block[..., 2, :] for block in blocks], -1, out=Jb)
-        Jc.masked_fill_(~self.cmask[..., None, None], 0.0)
-        if self.blur_rows_kept:
-            Jb.masked_fill_(~self.bmask[..., None], 0.0)
+        J.index_fill_(0, self.unobserved_rows, 0.0)
         return J, self._flat(uv, b)
 
     def evaluate(self, scale: torch.Tensor):

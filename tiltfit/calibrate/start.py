@@ -162,11 +162,11 @@ def initialize(obs: Observations, mode: str = "unified", init: LensCamera | None
     """
     W, H = obs.image_size_px
     dist = None
-    if init is not None:
-        init = init.copy().requires_grad_(False)
-        pp = [float(v) for v in init.principal_point_px]
-        w_mm = float(init.w_mm)
-        dist = [float(v) for v in init.distortion]
+    if init is not None:  # read, never changed: no copy
+        with torch.no_grad():
+            pp = [float(v) for v in init.principal_point_px]
+            w_mm = float(init.w_mm)
+            dist = [float(v) for v in init.distortion]
     else:
         pp = list(image_centre_px(W, H))
         if options.nominal_focal_mm is not None:
@@ -178,7 +178,7 @@ def initialize(obs: Observations, mode: str = "unified", init: LensCamera | None
                                "target does not match the detections); give a nominal focal length")
             w_mm = F * obs.pixel_pitch_mm
     rvec, T = poses if poses is not None else poses_from_pnp(obs, w_mm / obs.pixel_pitch_mm, pp, dist)
-    U0, d0 = (float(init.U_mm), float(init.d_mm)) if init is not None else (600.0, 10.0)
+    U0, d0 = (float(init.U_mm.detach()), float(init.d_mm.detach())) if init is not None else (600.0, 10.0)
     if not U0 > 0:  # a start beyond infinity (1/U ≤ 0) is focus at infinity: never a negative U in a lens
         U0 = math.inf
     cam = LensCamera(obs.n_views, obs.image_size_px, obs.pixel_pitch_mm, w_mm, U0, d0, rvec=rvec,

@@ -317,3 +317,23 @@ def test_initialize_reads_its_start_without_copying_it(monkeypatch):
     rows = ~prob.corner_rows
     assert int(rows.sum()) == 10 and bool((J[rows] == 0).all()) and bool((r[rows] == 0).all())
     assert bool((J[prob.corner_rows] != 0).any(1).all()), "observed rows keep their derivatives"
+
+
+def test_residuals_without_blur_widths_model_no_blur(monkeypatch):
+    """`residuals` of observations without blur widths (every geometric fit's report) leaves the blur model out: the
+    same corner residuals, blur residuals 0, and no blur computed."""
+    from renderer.cameras.lens_model import LensCamera
+    from tiltfit.calibrate.fit import FitOptions
+    from tiltfit.calibrate.model import residuals
+    from tiltfit.calibrate.start import initialize
+
+    obs = _synthetic_views(4)
+    obs.corners_px[1, :3] = float("nan")
+    cam = initialize(obs, "unified", options=FitOptions(), blur=False)
+    with torch.no_grad():
+        uv, _ = cam(obs.points_mm)
+        monkeypatch.setattr(LensCamera, "blur_camera", lambda *a: pytest.fail("blur computed"))
+        got = residuals(cam, obs)
+    want = torch.where(obs.corner_mask[..., None], uv - torch.nan_to_num(obs.corners_px), torch.zeros_like(uv))
+    assert torch.equal(got.corners_px, want) and torch.equal(got.blur_px, torch.zeros_like(got.blur_px))
+    assert not bool(got.blur_mask.any())

@@ -120,9 +120,11 @@ class Residuals:
 
 
 def residuals(camera: LensCamera, obs: Observations) -> Residuals:
-    """Residuals of the model against the observations (model − observed), all views at once."""
-    uv, b = camera(obs.points_mm)
-    cm, bm = obs.corner_mask.to(uv.device), obs.blur_mask.to(uv.device)
+    """Residuals of the model against the observations (model − observed), all views at once (the blur widths'
+    not modelled where none was measured: their residuals are 0 then)."""
+    bm = obs.blur_mask
+    uv, b = camera(obs.points_mm, with_blur=bool(bm.any()))
+    cm, bm = obs.corner_mask.to(uv.device), bm.to(uv.device)
     rc = torch.where(cm[..., None], uv - torch.nan_to_num(obs.corners_px.to(uv)), torch.zeros_like(uv))
     rb = torch.where(bm, b - torch.nan_to_num(obs.blur_px.to(b)), torch.zeros_like(b))
     return Residuals(rc, rb, cm, bm)

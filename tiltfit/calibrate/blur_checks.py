@@ -4,6 +4,7 @@ residuals with depth (`blur_trend`), focus values the fit cannot determine or th
 and CALIB.json's record of it all (`blur_record`). Used by the calibration's blur stage (`tiltfit.calibrate.blur_stage`).
 
     blur_noise_px(obs)                    -> the widths' measurement noise, px (no blur model)
+    widths_within_noise(obs, noise)       -> why the widths cannot carry defocus, or None (no blur model: before a fit)
     blur_misfit(result, obs, noise)       -> why the model does not describe the widths, or None
     focus_below_floor(result, obs, ...)   -> why U rests on sub-floor widths, or None
     blur_trend(result, obs, noise)        -> the residuals' trend with depth, or None
@@ -130,6 +131,25 @@ def blur_noise_px(obs: Observations) -> float:
         return math.nan
     d2 = (obs.blur_px[:, i] - 2 * obs.blur_px[:, j] + obs.blur_px[:, k])[ok].double()
     return math.sqrt(float((d2 * d2).mean()) / 6.0)
+
+
+def widths_within_noise(obs: Observations, noise_px: float) -> str | None:
+    """Why the blur widths cannot carry a resolvable defocus, without a blur model (before any blur fit), or None.
+
+    The widths' variance across the corners is their noise's σ_n² (`blur_noise_px`) plus what varies with the
+    scene: s² − σ_n² is all the variation any blur model can explain (more would be fitting the noise). Where it
+    is below (`BLUR_MIN_SIGNAL_RATIO` σ_n)², i.e. s below √(1 + ratio²) σ_n, a fitted model's explained variation
+    is below the noise too and `blur_misfit` would refuse it; the fit is not made. Widths at a detector's floor
+    (the floor plus noise) have s ≈ σ_n, where the blur fit crawls towards a focus at infinity."""
+    m = obs.blur_mask
+    if int(m.sum()) < 10 or not (math.isfinite(noise_px) and noise_px > 0):
+        return None
+    spread = float(obs.blur_px[m].double().std())
+    if spread * spread >= (1.0 + BLUR_MIN_SIGNAL_RATIO ** 2) * noise_px * noise_px:
+        return None
+    signal = math.sqrt(max(spread * spread - noise_px * noise_px, 0.0))
+    return (f"the widths vary by {spread:.3g} px across the corners, which leaves {signal:.3g} px beside their "
+            f"noise ({noise_px:.3g} px, from neighbouring corners) for any blur model to explain, less than the noise")
 
 
 def blur_misfit(result: FitResult, obs: Observations, noise_px: float | None = None) -> str | None:

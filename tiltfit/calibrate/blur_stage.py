@@ -13,7 +13,7 @@ from dataclasses import dataclass, field, replace
 import torch
 
 from tiltfit.calibrate.blur_checks import (blur_misfit, blur_noise_px, blur_trend, focus_below_floor,
-                                           undetermined_focus_deferred)
+                                           undetermined_focus_deferred, widths_within_noise)
 from tiltfit.calibrate.blur_views import screen_blur_views
 from tiltfit.calibrate.distortion_centre import with_distortion_centre
 from tiltfit.calibrate.fit import FitError, FitOptions, FitResult, _fit_camera, _set_free, with_deferred_sigma
@@ -54,7 +54,12 @@ class BlurOutcome:
 def blur_stage(cam: LensCamera, obs: Observations, mode: str, init, init_sigma, options: FitOptions, choices,
                geometry: FitResult | None, noise_px: float, say=None) -> BlurOutcome:
     """The blur fit (one view whose widths disagree with the others' left out, named), the tilt tests of the joint
-    fit, then the judgement of the blur model (`judge_blur_model`)."""
+    fit, then the judgement of the blur model (`judge_blur_model`). Widths whose spread is within their noise
+    (`widths_within_noise`) are not fitted: the model is refused as `judge_blur_model` would refuse its fit."""
+    quiet = widths_within_noise(obs, noise_px) if mode != "tilt" else None
+    if quiet:
+        out = BlurOutcome(None, geometry, obs, choices, noise_px=noise_px)
+        return _refused(out, cam, mode, options, "the thin-lens blur model does not describe this lens", quiet, say)
     # the widths' noise is found on the target file's points (a fitted board's are no longer on exact lines)
     file_points = choices.board.nominal_mm if choices.board is not None else obs.points_mm
     noise_of = (lambda o: noise_px if o is obs else blur_noise_px(with_points(o, file_points)))
@@ -130,13 +135,19 @@ def judge_blur_model(out: BlurOutcome, cam: LensCamera, mode: str, options: FitO
     if trend and trend["significant"]:
         out.warnings.append(trend["why"] + "; U and d may be biased by it")
     out.misfit, out.trend = misfit, trend
-    if misfit:
-        out.warnings.append(f"{head}: {misfit}; U and d are not reported and the tilt is not tested (calibration "
-                            f"from the corners only)")
-        out.undetermined = ["U_mm", "d_mm"] + (["theta_F_deg"] if mode != "unified" else [])
-        if out.geometry is None:
-            out.geometry = fit_geometry(cam, obs, replace(options, distortion=out.choices.distortion), mode, say)
-        out.result = None
+    return _refused(out, cam, mode, options, head, misfit, say) if misfit else out
+
+
+def _refused(out: BlurOutcome, cam: LensCamera, mode: str, options: FitOptions, head: str, why: str, say=None):
+    """`out` with the blur model refused (`why`, after `head`): U and d (and θF outside the unified mode)
+    undetermined, the geometric fit reported (made here where there is none)."""
+    out.misfit = why
+    out.warnings.append(f"{head}: {why}; U and d are not reported and the tilt is not tested (calibration "
+                        f"from the corners only)")
+    out.undetermined = ["U_mm", "d_mm"] + (["theta_F_deg"] if mode != "unified" else [])
+    if out.geometry is None:
+        out.geometry = fit_geometry(cam, out.obs, replace(options, distortion=out.choices.distortion), mode, say)
+    out.result = None
     return out
 
 

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field, replace
 
 import torch
 
+from renderer.cameras.lens import tilt_frame
 from tiltfit.calibrate.blur_checks import (blur_misfit, blur_noise_px, blur_trend, focus_below_floor,
                                            undetermined_focus_deferred, widths_within_noise)
 from tiltfit.calibrate.blur_views import screen_blur_views
@@ -56,12 +57,12 @@ def blur_stage(cam: LensCamera, obs: Observations, mode: str, init, init_sigma, 
     """The blur fit (one view whose widths disagree with the others' left out, named), the tilt tests of the joint
     fit, then the judgement of the blur model (`judge_blur_model`). Widths whose spread is within their noise
     (`widths_within_noise`) are not fitted: the model is refused as `judge_blur_model` would refuse its fit."""
-    quiet = widths_within_noise(obs, noise_px) if mode != "tilt" else None
+    # the widths' noise is found on the target file's points (a fitted board's are no longer on exact lines)
+    file_points = choices.board.nominal_mm if choices.board is not None else obs.points_mm
+    quiet = widths_within_noise(with_points(obs, file_points)) if mode != "tilt" else None
     if quiet:
         out = BlurOutcome(None, geometry, obs, choices, noise_px=noise_px)
         return _refused(out, cam, mode, options, "the thin-lens blur model does not describe this lens", quiet, say)
-    # the widths' noise is found on the target file's points (a fitted board's are no longer on exact lines)
-    file_points = choices.board.nominal_mm if choices.board is not None else obs.points_mm
     noise_of = (lambda o: noise_px if o is obs else blur_noise_px(with_points(o, file_points)))
     board = choices.board
     # `undetermined` None: what the fit's σ leave undetermined is decided after the model is judged (a refused
@@ -223,9 +224,14 @@ def _fit_blur(cam: LensCamera, obs: Observations, mode: str, init, init_sigma, o
     cam.free(*distortion_parameter_names(distortion))
     start = cam.copy()
     sigma_init = init_sigma if mode == "tilt" else None
-    result = None
+    result = held = None
     try:
         if options.blur_offset and mode != "tilt":
+            held = _held_first(start, obs, options, sigma_init, say, mode, board)
+            if held is not None and _one_sided(held, obs):
+                if say:
+                    say("blur offset held at 0 (every width's point on one side of the plane of focus)")
+                return held, None, None
             cam.free("blur_offset")
             try:
                 result = _fit_camera(cam, obs, options, sigma_init, say, mode=mode, board=_board_copy(board),
@@ -236,6 +242,8 @@ def _fit_blur(cam: LensCamera, obs: Observations, mode: str, init, init_sigma, o
             except FitError as e:
                 if say:
                     say(f"blur offset held at 0 ({e})")
+                if result is None and held is not None:  # the fit with it held from `start`: made above
+                    return held, None, None
                 # warm start: the fit with the offset, the offset held at 0 (the same minimum, fewer iterations)
                 cam, board = (start.copy(), board) if result is None else _offset_held(result, start)
                 result = None
@@ -251,6 +259,29 @@ def _fit_blur(cam: LensCamera, obs: Observations, mode: str, init, init_sigma, o
             if mode == "tilt" or blur_depends_on_depth(start, obs):
                 raise
         return None, ["U_mm", "d_mm"], f"U and d undetermined: the blur fit failed ({e}); the calibration is geometric"
+
+
+def _held_first(start: LensCamera, obs: Observations, options: FitOptions, sigma_init, say, mode: str, board):
+    """The blur fit from `start` with the offset held at 0 (`_fit_blur`'s fit where the offset is refused), or
+    None where it fails (the fit with the offset free is then tried as before)."""
+    try:
+        return _fit_camera(start.copy(), obs, options, sigma_init, say, mode=mode, board=_board_copy(board),
+                           defer_sigma=True)
+    except FitError:
+        return None
+
+
+def _one_sided(fit: FitResult, obs: Observations) -> bool:
+    """Whether every blur width's point lies on one side of `fit`'s plane of focus (U + y tan θF − z of one sign,
+    in the tilt axis's frame). There the thin-lens width is w d |1/z_F − 1/z| without the modulus's kink, so a
+    constant offset's column is a combination of U's and d's: `fit` is then also a minimum of the fit with the
+    offset free, whose covariance is singular there (the offset is refused: not separable from U and d)."""
+    cam = fit.camera
+    points = fit.board.points() if fit.board is not None else obs.points_mm
+    with torch.no_grad():
+        p = tilt_frame(cam.to_camera(points.to(cam.rvec.dtype)), cam.phi)
+        side = (cam.U_mm + p[..., 1] * torch.tan(cam.theta_F) - p[..., 2])[obs.blur_mask]
+    return bool(side.numel() > 0 and ((side > 0).all() or (side < 0).all()))
 
 
 def _offset_held(fitted: FitResult, start: LensCamera):

@@ -184,7 +184,7 @@ def test_widths_within_their_noise_are_refused_before_a_fit():
     assert why is not None and "less than the noise" in why, why
     focus = floor + 5 * 0.06 * np.linspace(-1.0, 1.0, 6)[:, None]
     obs = Observations(P, corners, focus, (640, 480), 0.005)
-    assert widths_within_noise(obs) is None
+    assert widths_within_noise(obs) is None, "widths changing by 5 noise σ across the views carry defocus"
 
 
 @pytest.mark.slow

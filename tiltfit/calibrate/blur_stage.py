@@ -12,7 +12,6 @@ from dataclasses import dataclass, field, replace
 
 import torch
 
-from renderer.cameras.lens import tilt_frame
 from tiltfit.calibrate.blur_checks import (blur_misfit, blur_noise_px, blur_trend, focus_below_floor,
                                            undetermined_focus_deferred, widths_within_noise)
 from tiltfit.calibrate.blur_views import screen_blur_views
@@ -272,15 +271,16 @@ def _held_first(start: LensCamera, obs: Observations, options: FitOptions, sigma
 
 
 def _one_sided(fit: FitResult, obs: Observations) -> bool:
-    """Whether every blur width's point lies on one side of `fit`'s plane of focus (U + y tan θF − z of one sign,
-    in the tilt axis's frame). There the thin-lens width is w d |1/z_F − 1/z| without the modulus's kink, so a
-    constant offset's column is a combination of U's and d's: `fit` is then also a minimum of the fit with the
-    offset free, whose covariance is singular there (the offset is refused: not separable from U and d)."""
+    """Whether every blur width's point lies on one side of `fit`'s plane of focus (`Lens.focus_plane`). There the
+    thin-lens width is w d |1/z_F − 1/z| without the modulus's kink, so a constant offset's column is a
+    combination of U's and d's: `fit` is then also a minimum of the fit with the offset free, whose covariance is
+    singular there (the offset is refused: not separable from U and d)."""
     cam = fit.camera
     points = fit.board.points() if fit.board is not None else obs.points_mm
     with torch.no_grad():
-        p = tilt_frame(cam.to_camera(points.to(cam.rvec.dtype)), cam.phi)
-        side = (cam.U_mm + p[..., 1] * torch.tan(cam.theta_F) - p[..., 2])[obs.blur_mask]
+        m, U = cam.lens.focus_plane()  # m · p = U on the plane (camera frame)
+        p_cam = cam.to_camera(points.to(cam.rvec.dtype))[obs.blur_mask]
+        side = U - p_cam @ torch.as_tensor(m, dtype=p_cam.dtype)
     return bool(side.numel() > 0 and ((side > 0).all() or (side < 0).all()))
 
 

@@ -226,8 +226,10 @@ def _fit_blur(cam: LensCamera, obs: Observations, mode: str, init, init_sigma, o
     result = held = None
     try:
         if options.blur_offset and mode != "tilt":
-            held = _held_first(start, obs, options, sigma_init, say, mode, board)
-            if held is not None and _one_sided(held, obs):
+            # where the start is one-sided too, the fit with the offset held is likely the one kept: made first
+            if _one_sided(start, obs.points_mm, obs):
+                held = _held_first(start, obs, options, sigma_init, say, mode, board)
+            if held is not None and _one_sided(held.camera, _points(held, obs), obs):
                 if say:
                     say("blur offset held at 0 (every width's point on one side of the plane of focus)")
                 return held, None, None
@@ -270,13 +272,16 @@ def _held_first(start: LensCamera, obs: Observations, options: FitOptions, sigma
         return None
 
 
-def _one_sided(fit: FitResult, obs: Observations) -> bool:
-    """Whether every blur width's point lies on one side of `fit`'s plane of focus (`Lens.focus_plane`). There the
-    thin-lens width is w d |1/z_F − 1/z| without the modulus's kink, so a constant offset's column is a
-    combination of U's and d's: `fit` is then also a minimum of the fit with the offset free, whose covariance is
-    singular there (the offset is refused: not separable from U and d)."""
-    cam = fit.camera
-    points = fit.board.points() if fit.board is not None else obs.points_mm
+def _points(fit: FitResult, obs: Observations) -> torch.Tensor:
+    """The board points `fit` saw: its fitted board's, else `obs`'s."""
+    return fit.board.points() if fit.board is not None else obs.points_mm
+
+
+def _one_sided(cam: LensCamera, points: torch.Tensor, obs: Observations) -> bool:
+    """Whether every blur width's point (`points`, posed by `cam`) lies on one side of `cam`'s plane of focus
+    (`Lens.focus_plane`). There the thin-lens width is w d |1/z_F − 1/z| without the modulus's kink, so a constant
+    offset's column is a combination of U's and d's: a fit there is also a minimum of the fit with the offset
+    free, whose covariance is singular there (the offset is refused: not separable from U and d)."""
     with torch.no_grad():
         m, U = cam.lens.focus_plane()  # m · p = U on the plane (camera frame)
         p_cam = cam.to_camera(points.to(cam.rvec.dtype))[obs.blur_mask]

@@ -407,3 +407,25 @@ def test_batched_solves_each_problem_as_the_single_solver_does():
     assert float(capped.x[:, 0].max()) <= 1.5, "the bound holds"
     free = truth[:, 0] < 1.45
     assert torch.allclose(capped.x[free], sol.x[free], atol=1e-5), "where the bound is not active the minimum is the same"
+
+
+def test_an_iteration_at_tiny_damping_solves_once(monkeypatch):
+    """Where λ ≤ `DECREMENT_DAMPING`, an iteration's first trial is the decrement's own solve: one linear solve an
+    iteration, not two (the old code's were at least 2 × iterations + 1), and the same minimum."""
+    import tiltfit.solve.lm as lm
+
+    t = torch.linspace(0.0, 3.0, 40, dtype=torch.float64)
+    y = 2.0 * torch.exp(-1.3 * t) + 0.5 + 1e-3 * torch.sin(7.0 * t)
+    fn = lambda p: p[0] * torch.exp(-p[1] * t) + p[2] - y  # noqa: E731
+    start = torch.tensor([1.8, 1.1, 0.45])
+    solves = []
+    plain = DenseNormal.solve
+    monkeypatch.setattr(DenseNormal, "solve", lambda self, damping, rhs: solves.append(1) or plain(self, damping, rhs))
+    monkeypatch.setattr(lm, "INITIAL_DAMPING", 1e-13)  # λ below the decrement's damping from the first iteration
+    with pytest.raises(SolverError):  # five steps, the sixth point's decrement, no tolerance met
+        least_squares(fn, start, LMOptions(decrement_tol=0.0, ftol=0.0, xtol=0.0, max_iterations=5))
+    assert len(solves) < 2 * 5 + 1, len(solves)
+    res = least_squares(fn, start)
+    monkeypatch.setattr(lm, "DECREMENT_DAMPING", 1e-30)  # no λ reaches it: every iteration solves twice
+    ref = least_squares(fn, start)
+    assert res.stop == ref.stop and torch.allclose(res.x, ref.x, rtol=1e-10, atol=0.0), (res.x, ref.x)

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field, replace
 import torch
 
 from tiltfit.calibrate.blur_checks import (blur_misfit, blur_noise_px, blur_trend, focus_below_floor,
-                                           undetermined_focus_deferred)
+                                           undetermined_focus_deferred, widths_within_noise)
 from tiltfit.calibrate.blur_views import screen_blur_views
 from tiltfit.calibrate.distortion_centre import with_distortion_centre
 from tiltfit.calibrate.fit import FitError, FitOptions, FitResult, _fit_camera, _set_free, with_deferred_sigma
@@ -54,9 +54,14 @@ class BlurOutcome:
 def blur_stage(cam: LensCamera, obs: Observations, mode: str, init, init_sigma, options: FitOptions, choices,
                geometry: FitResult | None, noise_px: float, say=None) -> BlurOutcome:
     """The blur fit (one view whose widths disagree with the others' left out, named), the tilt tests of the joint
-    fit, then the judgement of the blur model (`judge_blur_model`)."""
+    fit, then the judgement of the blur model (`judge_blur_model`). Widths whose spread is within their noise
+    (`widths_within_noise`) are not fitted: the model is refused as `judge_blur_model` would refuse its fit."""
     # the widths' noise is found on the target file's points (a fitted board's are no longer on exact lines)
     file_points = choices.board.nominal_mm if choices.board is not None else obs.points_mm
+    quiet = widths_within_noise(with_points(obs, file_points)) if mode != "tilt" else None
+    if quiet:
+        out = BlurOutcome(None, geometry, obs, choices, noise_px=noise_px)
+        return _refused(out, cam, mode, options, "the thin-lens blur model does not describe this lens", quiet, say)
     noise_of = (lambda o: noise_px if o is obs else blur_noise_px(with_points(o, file_points)))
     board = choices.board
     # `undetermined` None: what the fit's σ leave undetermined is decided after the model is judged (a refused
@@ -130,13 +135,19 @@ def judge_blur_model(out: BlurOutcome, cam: LensCamera, mode: str, options: FitO
     if trend and trend["significant"]:
         out.warnings.append(trend["why"] + "; U and d may be biased by it")
     out.misfit, out.trend = misfit, trend
-    if misfit:
-        out.warnings.append(f"{head}: {misfit}; U and d are not reported and the tilt is not tested (calibration "
-                            f"from the corners only)")
-        out.undetermined = ["U_mm", "d_mm"] + (["theta_F_deg"] if mode != "unified" else [])
-        if out.geometry is None:
-            out.geometry = fit_geometry(cam, obs, replace(options, distortion=out.choices.distortion), mode, say)
-        out.result = None
+    return _refused(out, cam, mode, options, head, misfit, say) if misfit else out
+
+
+def _refused(out: BlurOutcome, cam: LensCamera, mode: str, options: FitOptions, head: str, why: str, say=None):
+    """`out` with the blur model refused (`why`, after `head`): U and d (and θF outside the unified mode)
+    undetermined, the geometric fit reported (made here where there is none)."""
+    out.misfit = why
+    out.warnings.append(f"{head}: {why}; U and d are not reported and the tilt is not tested (calibration "
+                        f"from the corners only)")
+    out.undetermined = ["U_mm", "d_mm"] + (["theta_F_deg"] if mode != "unified" else [])
+    if out.geometry is None:
+        out.geometry = fit_geometry(cam, out.obs, replace(options, distortion=out.choices.distortion), mode, say)
+    out.result = None
     return out
 
 
@@ -212,9 +223,16 @@ def _fit_blur(cam: LensCamera, obs: Observations, mode: str, init, init_sigma, o
     cam.free(*distortion_parameter_names(distortion))
     start = cam.copy()
     sigma_init = init_sigma if mode == "tilt" else None
-    result = None
+    result = held = None
     try:
         if options.blur_offset and mode != "tilt":
+            # where the start is one-sided too, the fit with the offset held is likely the one kept: made first
+            if _one_sided(start, obs.points_mm, obs):
+                held = _held_first(start, obs, options, sigma_init, say, mode, board)
+            if held is not None and _one_sided(held.camera, _points(held, obs), obs):
+                if say:
+                    say("blur offset held at 0 (every width's point on one side of the plane of focus)")
+                return held, None, None
             cam.free("blur_offset")
             try:
                 result = _fit_camera(cam, obs, options, sigma_init, say, mode=mode, board=_board_copy(board),
@@ -225,6 +243,8 @@ def _fit_blur(cam: LensCamera, obs: Observations, mode: str, init, init_sigma, o
             except FitError as e:
                 if say:
                     say(f"blur offset held at 0 ({e})")
+                if result is None and held is not None:  # the fit with it held from `start`: made above
+                    return held, None, None
                 # warm start: the fit with the offset, the offset held at 0 (the same minimum, fewer iterations)
                 cam, board = (start.copy(), board) if result is None else _offset_held(result, start)
                 result = None
@@ -240,6 +260,33 @@ def _fit_blur(cam: LensCamera, obs: Observations, mode: str, init, init_sigma, o
             if mode == "tilt" or blur_depends_on_depth(start, obs):
                 raise
         return None, ["U_mm", "d_mm"], f"U and d undetermined: the blur fit failed ({e}); the calibration is geometric"
+
+
+def _held_first(start: LensCamera, obs: Observations, options: FitOptions, sigma_init, say, mode: str, board):
+    """The blur fit from `start` with the offset held at 0 (`_fit_blur`'s fit where the offset is refused), or
+    None where it fails (the fit with the offset free is then tried as before)."""
+    try:
+        return _fit_camera(start.copy(), obs, options, sigma_init, say, mode=mode, board=_board_copy(board),
+                           defer_sigma=True)
+    except FitError:
+        return None
+
+
+def _points(fit: FitResult, obs: Observations) -> torch.Tensor:
+    """The board points `fit` saw: its fitted board's, else `obs`'s."""
+    return fit.board.points() if fit.board is not None else obs.points_mm
+
+
+def _one_sided(cam: LensCamera, points: torch.Tensor, obs: Observations) -> bool:
+    """Whether every blur width's point (`points`, posed by `cam`) lies on one side of `cam`'s plane of focus
+    (`Lens.focus_plane`). There the thin-lens width is w d |1/z_F − 1/z| without the modulus's kink, so a constant
+    offset's column is a combination of U's and d's: a fit there is also a minimum of the fit with the offset
+    free, whose covariance is singular there (the offset is refused: not separable from U and d)."""
+    with torch.no_grad():
+        m, U = cam.lens.focus_plane()  # m · p = U on the plane (camera frame)
+        p_cam = cam.to_camera(points.to(cam.rvec.dtype))[obs.blur_mask]
+        side = U - p_cam @ torch.as_tensor(m, dtype=p_cam.dtype)
+    return bool(side.numel() > 0 and ((side > 0).all() or (side < 0).all()))
 
 
 def _offset_held(fitted: FitResult, start: LensCamera):

@@ -155,24 +155,35 @@ class _Trial:
     gain: float
 
 
-def _decrement(ne, g: torch.Tensor, scaling: torch.Tensor) -> float:
-    """The Gauss–Newton decrement ½ gᵀ (JᵀWJ + εD)⁻¹ g (ε = `DECREMENT_DAMPING`); inf where the solve fails."""
+def _decrement(ne, g: torch.Tensor, scaling: torch.Tensor, lam: float = math.inf) -> float:
+    """The Gauss–Newton decrement ½ gᵀ (JᵀWJ + εD)⁻¹ g (ε = `DECREMENT_DAMPING`, or the iteration's λ where that
+    is smaller: then the solve is the iteration's first trial's, kept on `ne` as `ne.decrement_solve` (g, D, λ,
+    (JᵀWJ + λD)⁻¹ g) for `_damped_step`); inf where the solve fails."""
+    ne.decrement_solve = None
+    damping = min(lam, DECREMENT_DAMPING)
     try:
-        decrement = 0.5 * float(g @ ne.solve(DECREMENT_DAMPING * scaling, g))
+        solution = ne.solve(damping * scaling, g)
     except RuntimeError:
         return math.inf
+    ne.decrement_solve = (g, scaling, damping, solution)
+    decrement = 0.5 * float(g @ solution)
     return decrement if math.isfinite(decrement) else math.inf
 
 
 def _damped_step(problem: _Problem, x, cost: float, ne, g, scaling, lam: float, nu: float):
     """One iteration's trials: solve (JᵀWJ + λD) δ = −g and raise λ (λ ← λν, ν ← 2ν) until the gain ratio is
-    positive. Returns (the accepted `_Trial`, or None where λ passed `MAX_DAMPING`; λ; ν)."""
+    positive. Returns (the accepted `_Trial`, or None where λ passed `MAX_DAMPING`; λ; ν). A first trial whose
+    solve the decrement made (`_decrement` at λ ≤ `DECREMENT_DAMPING`) is not solved again."""
     first_trial = True
+    kept = getattr(ne, "decrement_solve", None)
     while True:
-        try:
-            step = -ne.solve(lam * scaling, g)
-        except RuntimeError:
-            step = torch.full_like(g, math.nan)
+        if first_trial and kept is not None and kept[0] is g and kept[1] is scaling and kept[2] == lam:
+            step = -kept[3]
+        else:
+            try:
+                step = -ne.solve(lam * scaling, g)
+            except RuntimeError:
+                step = torch.full_like(g, math.nan)
         ok = bool(torch.isfinite(step).all())
         # The first trial of an iteration gets its Jacobian with its residuals (one call costs less than
         # residuals now and the Jacobian after, and most first trials are accepted); later ones, after a
@@ -232,7 +243,7 @@ def levenberg_marquardt(evaluate, x0: dict, blocks, view_rows: torch.Tensor | No
         g = ne.gradient(r)
         d = ne.diag().clamp(min=1e-300)
         scaling = d if scaling is None else torch.maximum(scaling, d)
-        decrement = _decrement(ne, g, scaling)
+        decrement = _decrement(ne, g, scaling, lam)
         if decrement < max(options.decrement_tol, options.ftol * cost):
             return done(it, "decrement", ne)
         if it == options.max_iterations:

@@ -168,25 +168,6 @@ def test_widths_on_one_side_of_the_focus_make_no_fit_with_the_offset_free(monkey
         f"U {res.values['U_mm']:.0f} ± {res.sigma['U_mm']:.2g} mm, truth 1500 mm"
 
 
-def test_widths_within_their_noise_are_refused_before_a_fit():
-    """`widths_within_noise`: widths at a floor plus noise (spread ≈ their noise from neighbouring corners) carry no
-    defocus and are refused before any blur fit; the same noise on widths that change across the views by 5 noise
-    σ (a defocus the noise does not hide) are not."""
-    from tiltfit.calibrate.blur_checks import widths_within_noise
-
-    rng = np.random.default_rng(3)
-    gx, gy = np.meshgrid(np.arange(8) * 10.0, np.arange(6) * 10.0)
-    P = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], 1)
-    corners = np.zeros((6, len(P), 2))
-    floor = 1.0 + np.abs(rng.normal(0.0, 0.1, (6, len(P))))
-    obs = Observations(P, corners, floor, (640, 480), 0.005)
-    why = widths_within_noise(obs)
-    assert why is not None and "less than the noise" in why, why
-    focus = floor + 5 * 0.06 * np.linspace(-1.0, 1.0, 6)[:, None]
-    obs = Observations(P, corners, focus, (640, 480), 0.005)
-    assert widths_within_noise(obs) is None, "widths changing by 5 noise σ across the views carry defocus"
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("board", ["flat", "free"])
 @pytest.mark.parametrize("d_mm", [0.15, 0.5])
@@ -216,18 +197,19 @@ def test_widths_at_the_detector_floor_leave_the_focus_undetermined_without_a_neg
     assert calib["U_mm"] is None and "U_mm" in calib["undetermined"], \
         f"U undetermined (null) from widths at the floor: U {calib['U_mm']}, undetermined {calib['undetermined']}"
     assert calib["sigma"]["U_mm"] is None, f"no σ for an undetermined U: {calib['sigma']['U_mm']}"
-    # the reason: widths at the floor (0.15 mm) carry no defocus: their spread is their noise (s ≈ σ_n), which the
-    # stage sees before any blur fit (`widths_within_noise`) and refuses the model for, with one reason. (Fitted,
-    # they crawled towards a focus at infinity, and whether that fit stopped within its 200 iterations turned on
-    # rounding: two outcomes.) Widths above the floor (0.5 mm) put the focus beyond infinity (a note).
+    # the reason: widths at the floor (0.15 mm) carry no defocus. Their fit crawls towards a focus at infinity, and
+    # whether it stops within its 200 iterations turns on rounding (not at 433e7c1, yes after the batched Jacobian
+    # 4ad644e, not again after the solver's fewer copies 05471f8: identical arithmetic, other rounding): converged,
+    # the blur model is refused as explaining less than the widths' noise (model_selection.blur.why_not); not
+    # converged, a note says the blur fit failed. One of those two, and no other reason.
+    # Widths above the floor (0.5 mm) put the focus beyond infinity (a note).
     why_not = calib["model_selection"]["blur"]["why_not"]
     if d_mm < 0.2:
-        assert why_not is not None and why_not.startswith("the widths vary by") and "less than the noise" in why_not \
-            and not any("blur fit failed" in n for n in calib["notes"]), \
-            f"refused before any fit, widths within their noise: why_not {why_not}, notes {calib['notes']}"
-        assert any(w.startswith("the thin-lens blur model does not describe this lens: the widths vary by")
-                   for w in res.warnings), \
-            f"the warning says why: {res.warnings}"
+        refused = why_not is not None and "less than the widths' noise" in why_not
+        failed = why_not is None and any(n.startswith("U and d undetermined: the blur fit failed (the fit did not "
+                                                      "converge") for n in calib["notes"])
+        assert refused or failed, \
+            f"the blur model refused or its fit failed at the floor: why_not {why_not}, notes {calib['notes']}"
     else:
         assert why_not is None and any(n.startswith("U undetermined: the blur widths put the focus beyond infinity")
                                        for n in calib["notes"]), \

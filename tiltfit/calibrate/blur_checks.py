@@ -4,7 +4,6 @@ residuals with depth (`blur_trend`), focus values the fit cannot determine or th
 and CALIB.json's record of it all (`blur_record`). Used by the calibration's blur stage (`tiltfit.calibrate.blur_stage`).
 
     blur_noise_px(obs)                    -> the widths' measurement noise, px (no blur model)
-    widths_within_noise(obs)              -> why the widths cannot carry defocus, or None (no blur model: before a fit)
     blur_misfit(result, obs, noise)       -> why the model does not describe the widths, or None
     focus_below_floor(result, obs, ...)   -> why U rests on sub-floor widths, or None
     blur_trend(result, obs, noise)        -> the residuals' trend with depth, or None
@@ -114,16 +113,6 @@ def blur_noise_px(obs: Observations) -> float:
     Three consecutive corners on the target lie at nearly the same depth and the blur changes nearly linearly
     across them whatever the lens (tilted or not), so b_(i−1) − 2 b_i + b_(i+1) is noise with variance 6 σ²
     plus a curvature term that only makes the estimate err large. NaN with fewer than 10 triples."""
-    d2 = _second_differences(obs)
-    if d2 is None or int(torch.isfinite(d2).sum()) < 10:
-        return math.nan
-    d2 = d2[torch.isfinite(d2)]
-    return math.sqrt(float((d2 * d2).mean()) / 6.0)
-
-
-def _second_differences(obs: Observations) -> torch.Tensor | None:
-    """(V, T) second differences b_(i−1) − 2 b_i + b_(i+1) of each view's widths along the target's rows and
-    columns (float64; NaN where a width of the triple is missing), or None where the target has no triple."""
     pts = obs.points_mm.numpy()
     triples = []
     for axis in (0, 1):
@@ -133,46 +122,14 @@ def _second_differences(obs: Observations) -> torch.Tensor | None:
             idx = idx[np.argsort(pts[idx, axis])]
             triples += list(zip(idx[:-2], idx[1:-1], idx[2:]))
     if not triples:
-        return None
+        return math.nan
     i, j, k = (torch.as_tensor(np.array(v)) for v in zip(*triples))
     m = obs.blur_mask
     ok = m[:, i] & m[:, j] & m[:, k]
-    d2 = (obs.blur_px[:, i] - 2 * obs.blur_px[:, j] + obs.blur_px[:, k]).double()
-    return torch.where(ok, d2, torch.nan)
-
-
-def widths_within_noise(obs: Observations) -> str | None:
-    """Why the blur widths cannot carry a resolvable defocus, without a blur model (before any blur fit), or None.
-    `obs` on the target file's points (`blur_noise_px`).
-
-    The widths' variance across the corners is their noise's σ_n² (`blur_noise_px`) plus what varies with the
-    scene: s² − σ_n² is all the variation any blur model can explain (more would be fitting the noise). Where it
-    is below (`BLUR_MIN_SIGNAL_RATIO` σ_n)², i.e. s below √(1 + ratio²) σ_n, a fitted model's explained variation
-    is below the noise too and `blur_misfit` would refuse it; the fit is not made. Widths at a detector's floor
-    (the floor plus noise) have s ≈ σ_n, where the blur fit crawls towards a focus at infinity. One view of
-    random widths inflates s and σ_n alike (the blur stage leaves such a view out, `screen_blur_views`), so with
-    three views or more the test must also hold with each view's widths left out (s and σ_n found again)."""
-    m = obs.blur_mask
-    d2 = _second_differences(obs)
-    noise_px = blur_noise_px(obs)
-    if int(m.sum()) < 10 or d2 is None or not (math.isfinite(noise_px) and noise_px > 0):
-        return None
-    b = torch.where(m, obs.blur_px.double(), 0.0)
-    # per view: widths' count, sum and sum of squares; second differences' count and sum of squares
-    n, s1, s2 = m.sum(-1).double(), b.sum(-1), (b * b).sum(-1)
-    t = torch.isfinite(d2)
-    nt, q = t.sum(-1).double(), torch.where(t, d2 * d2, 0.0).sum(-1)
-    within = lambda n, s1, s2, nt, q: bool(  # noqa: E731
-        n >= 10 and nt >= 10 and (s2 - s1 * s1 / n) / (n - 1) < (1.0 + BLUR_MIN_SIGNAL_RATIO ** 2) * q / nt / 6.0)
-    spread = math.sqrt(float((s2.sum() - s1.sum() ** 2 / n.sum()) / (n.sum() - 1)))
-    if spread * spread >= (1.0 + BLUR_MIN_SIGNAL_RATIO ** 2) * noise_px * noise_px:
-        return None
-    if int((n > 0).sum()) >= 3 and not all(
-            within(*(float(x.sum() - x[v]) for x in (n, s1, s2, nt, q))) for v in range(len(n)) if n[v] > 0):
-        return None
-    signal = math.sqrt(max(spread * spread - noise_px * noise_px, 0.0))
-    return (f"the widths vary by {spread:.3g} px across the corners, which leaves {signal:.3g} px beside their "
-            f"noise ({noise_px:.3g} px, from neighbouring corners) for any blur model to explain, less than the noise")
+    if int(ok.sum()) < 10:
+        return math.nan
+    d2 = (obs.blur_px[:, i] - 2 * obs.blur_px[:, j] + obs.blur_px[:, k])[ok].double()
+    return math.sqrt(float((d2 * d2).mean()) / 6.0)
 
 
 def blur_misfit(result: FitResult, obs: Observations, noise_px: float | None = None) -> str | None:

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field, replace
 import torch
 
 from tiltfit.calibrate.blur_checks import (blur_misfit, blur_noise_px, blur_trend, focus_below_floor,
-                                           undetermined_focus_deferred, widths_within_noise)
+                                           undetermined_focus_deferred)
 from tiltfit.calibrate.blur_views import screen_blur_views
 from tiltfit.calibrate.distortion_centre import with_distortion_centre
 from tiltfit.calibrate.fit import FitError, FitOptions, FitResult, _fit_camera, _set_free, with_deferred_sigma
@@ -54,14 +54,9 @@ class BlurOutcome:
 def blur_stage(cam: LensCamera, obs: Observations, mode: str, init, init_sigma, options: FitOptions, choices,
                geometry: FitResult | None, noise_px: float, say=None) -> BlurOutcome:
     """The blur fit (one view whose widths disagree with the others' left out, named), the tilt tests of the joint
-    fit, then the judgement of the blur model (`judge_blur_model`). Widths whose spread is within their noise
-    (`widths_within_noise`) are not fitted: the model is refused as `judge_blur_model` would refuse its fit."""
+    fit, then the judgement of the blur model (`judge_blur_model`)."""
     # the widths' noise is found on the target file's points (a fitted board's are no longer on exact lines)
     file_points = choices.board.nominal_mm if choices.board is not None else obs.points_mm
-    quiet = widths_within_noise(with_points(obs, file_points)) if mode != "tilt" else None
-    if quiet:
-        out = BlurOutcome(None, geometry, obs, choices, noise_px=noise_px)
-        return _refused(out, cam, mode, options, "the thin-lens blur model does not describe this lens", quiet, say)
     noise_of = (lambda o: noise_px if o is obs else blur_noise_px(with_points(o, file_points)))
     board = choices.board
     # `undetermined` None: what the fit's σ leave undetermined is decided after the model is judged (a refused

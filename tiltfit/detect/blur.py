@@ -51,43 +51,6 @@ _KEEP_SET_SHARE = 0.75
 
 
 
-def _G(u: torch.Tensor) -> torch.Tensor:
-    """G(u) = ∫_{−1}^{u} F: antiderivative of the disc edge spread function (radius units); G(u ≥ 1) = u."""
-    return _G_and_G2(u, with_G=True)[0]
-
-
-def _G2(u: torch.Tensor) -> torch.Tensor:
-    """G2(u) = ∫_{−1}^{u} G, closed form; G2(u ≥ 1) = 5/8 + (u² − 1)/2."""
-    return _G_and_G2(u, with_G=False)[1]
-
-
-def _G_and_G2(u: torch.Tensor, with_G: bool = True):
-    """(G(u) or None, G2(u)), sharing the square root and arcsine (the costly part of the pixel ESF).
-
-    With c = clip(u, −1, 1), s = √(1 − c²), α = asin(c)/π, h = c²/2 + 1/8 and o = max(u − 1, 0):
-        G2 = h (1/2 + α) + c s (13/24 + c²/12)/π + o (1 + o/2),   G = c (1/2 + α) + s (2 + c²)/(3π) + o,
-    both 0 at u ≤ −1. Written as few whole-array passes, most in place: they are the model's inner loop.
-    """
-    uc = u.clamp(-1.0, 1.0)
-    q = uc * uc
-    # floored: the square root of exact zeros (every |u| >= 1) is slow on some CPUs' vector units, and
-    # √1e-30 = 1e-15 changes G and G2 by far less than the image's noise
-    s = torch.rsub(q, 1.0).clamp_min_(1e-30).sqrt_()
-    half_a = torch.asin(uc).div_(math.pi).add_(0.5)  # 1/2 + α
-    over = (u - 1).clamp_min_(0.0)
-    G2 = (q * 0.5).add_(0.125).mul_(half_a)
-    G2.addcmul_(uc * s, (q * (1 / (12 * math.pi))).add_(13 / (24 * math.pi)))
-    G2.addcmul_(over, (over * 0.5).add_(1.0))
-    if not with_G:
-        return None, G2
-    G = (uc * half_a).addcmul_(s, (q * (1 / (3 * math.pi))).add_(2 / (3 * math.pi))).add_(over)
-    return G, G2
-
-
-# The second difference over the four abscissae of `pixel_esf` (+, −, −, +), as one product
-_SECOND_DIFFERENCE = torch.tensor((1.0, -1.0, -1.0, 1.0), dtype=torch.float64)
-
-
 def pixel_esf(d: torch.Tensor, r: torch.Tensor, wa: torch.Tensor, wb: torch.Tensor, with_derivatives: bool = False):
     """Disc edge spread function integrated exactly over a pixel.
 
@@ -107,33 +70,22 @@ def pixel_esf(d: torch.Tensor, r: torch.Tensor, wa: torch.Tensor, wb: torch.Tens
     reach = r + hp + 1e-3
     d = torch.maximum(torch.minimum(d, reach), -reach)  # E is exactly 0 or 1 beyond; keeps G2 small
     d, r, hp, hm, inv_area = torch.broadcast_tensors(d, r, hp, hm, 1 / (wa * wb))
-    return _pixel_esf(d.reshape(-1), r.reshape(-1), hp.reshape(-1), hm.reshape(-1), inv_area.reshape(-1),
-                      with_derivatives, d.shape)
+    flat = (t.detach().double().reshape(-1).numpy() for t in (d, r, hp, hm, inv_area))
+    out = [torch.from_numpy(v).reshape(d.shape) for v in _pixel_esf(*flat, with_derivatives) if v is not None]
+    return tuple(out) if with_derivatives else out[0]
 
 
-def _pixel_esf(d, r, hp, hm, inv_area, with_derivatives: bool, shape=None):
-    """`pixel_esf` of (m,) pixels from r ≥ 1e-3 and each box's half widths hp = (wa + wb)/2, hm = (wa − wb)/2 and
-    1/(wa wb) (wb ≥ 0.02), reshaped to `shape`: the model's inner loop, which has them per band."""
-    # the four abscissae lead (not trail), so the second differences are one product with (+1, −1, −1, +1)
-    u = torch.stack((d + hp, d + hm, d - hm, d - hp)).div_(r)
-    norm = (r * r).mul_(inv_area)
-    G, G2 = _G_and_G2(u, with_G=with_derivatives)
-    G2u = _SECOND_DIFFERENCE.to(u.dtype) @ G2
-    E = G2u * norm
-    shape = d.shape if shape is None else shape
-    if not with_derivatives:
-        return E.reshape(shape)
-    norm_r = norm.div_(r)
-    dE_dd = (_SECOND_DIFFERENCE.to(u.dtype) @ G).mul_(norm_r)
-    dE_dr = (2 * G2u).sub_(_SECOND_DIFFERENCE.to(u.dtype) @ G.mul_(u)).mul_(norm_r)
-    return E.reshape(shape), dE_dd.reshape(shape), dE_dr.reshape(shape)
+def _pixel_esf(d: np.ndarray, r: np.ndarray, hp: np.ndarray, hm: np.ndarray, inv_area: np.ndarray,
+               with_derivatives: bool):
+    """`pixel_esf` of (m,) float64 pixels from r ≥ 1e-3 and each box's half widths hp = (wa + wb)/2,
+    hm = (wa − wb)/2 and 1/(wa wb) (wb ≥ 0.02): E, and with_derivatives ∂E/∂d and ∂E/∂r (else None). In numpy: the
+    model's inner loop, where a call costs a third of torch's on the few thousand pixels a fit reaches.
 
-
-def _pixel_esf_np(d: np.ndarray, r: np.ndarray, hp: np.ndarray, hm: np.ndarray, inv_area: np.ndarray,
-                  with_derivatives: bool):
-    """`_pixel_esf` in numpy, of (m,) float64 arrays (the model's inner loop: numpy's call costs a third of torch's
-    on the few thousand pixels a fit reaches, and an evaluation is some forty such calls): E, and with_derivatives
-    ∂E/∂d and ∂E/∂r (else None). The same formulas as `_G_and_G2`."""
+    With G(u) = ∫_{−1}^{u} F (the disc edge spread function F, radius units) and G2(u) = ∫_{−1}^{u} G, and
+    c = clip(u, −1, 1), s = √(1 − c²), α = asin(c)/π, h = c²/2 + 1/8, o = max(u − 1, 0):
+        G2 = h (1/2 + α) + c s (13/24 + c²/12)/π + o (1 + o/2),   G = c (1/2 + α) + s (2 + c²)/(3π) + o,
+    both 0 at u ≤ −1; E = r² (G2(u₁) − G2(u₂) − G2(u₃) + G2(u₄)) / (wa wb) at the four abscissae (d ± hp, d ± hm)/r.
+    Written as few whole-array passes, most in place."""
     u = np.stack((d + hp, d + hm, d - hm, d - hp))
     u /= r
     norm = r * r
@@ -141,7 +93,9 @@ def _pixel_esf_np(d: np.ndarray, r: np.ndarray, hp: np.ndarray, hm: np.ndarray, 
     uc = np.minimum(np.maximum(u, -1.0), 1.0)
     q = uc * uc
     s = 1.0 - q
-    np.sqrt(np.maximum(s, 1e-30, out=s), out=s)  # floored as in `_G_and_G2`
+    # floored: the square root of exact zeros (every |u| ≥ 1) is slow on some CPUs' vector units, and
+    # √1e-30 = 1e-15 changes G and G2 by far less than the image's noise
+    np.sqrt(np.maximum(s, 1e-30, out=s), out=s)
     half_a = np.arcsin(uc)
     half_a /= math.pi
     half_a += 0.5
@@ -352,7 +306,7 @@ class _BandModel:
         """The cells' profile (k, B, n) at unit contrast and zero dark level for parameters theta (k, P), and with
         deriv the mask times Σ (cell step) ∂E/∂r over the edges times sign(β + g · x) (∂E/∂β / ∂r/∂β · 2), and the
         mask times ∂E/∂d of the own edge (both (k, B, n)). The passes over every slot run in torch, the candidates'
-        closed form in numpy (`_pixel_esf_np`: a few thousand values, where a call's cost, a third of torch's,
+        closed form in numpy (`_pixel_esf`: a few thousand values, where a call's cost, a third of torch's,
         outweighs its arithmetic)."""
         a = g["np"]
         beta, gx, gy = (theta[:, j, None, None] for j in range(3))
@@ -371,7 +325,7 @@ class _BandModel:
         ds = np.concatenate([dn[own], a["d_far"][far]])
         rs = np.concatenate([rn[own], r_far[far]])
         # r ≥ 1e-3 already, and a reached |d| is below r + hp + 1e-3, where `pixel_esf` would clamp it
-        E, E_dd, E_dr = _pixel_esf_np(ds, rs, a["cand_hp"][at], a["cand_hm"][at], a["cand_inv_area"][at], deriv)
+        E, E_dd, E_dr = _pixel_esf(ds, rs, a["cand_hp"][at], a["cand_hm"][at], a["cand_inv_area"][at], deriv)
         coef = a["coef"][at]
         gsum = torch.addcmul(g["steps"], g["half_c_0"], torch.sign(d))
         # at the candidates reached, the step there (1/2 + sign/2 for the own edge, as above) becomes E

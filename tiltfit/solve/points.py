@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import torch
 
-from .blocks import BlockJacobian, DenseNormal, SchurNormal
+from .blocks import BlockJacobian, DenseNormal, SchurNormal, _rows_in_order
 
 
 def _row_views(rows: torch.Tensor, n_rows: int) -> torch.Tensor:
@@ -37,8 +37,6 @@ def _rows_by_point(rows: torch.Tensor, row_points: torch.Tensor, n_points: int) 
     if R % n_points:
         return None
     c = R // n_points
-    if _in_order(rows, row_points, n_points):                                      # a geometric fit's rows
-        return rows.view(V, n_points, c)
     rp = row_points[rows]                                                           # (V, R)
     order = torch.argsort(rp, dim=1, stable=True)
     grouped = torch.gather(rp, 1, order).view(V, n_points, c)
@@ -51,12 +49,10 @@ def _in_order(rows: torch.Tensor, row_points: torch.Tensor, n_points: int) -> bo
     """Whether the rows are 0 … M − 1 view after view, each view's grouped by point in order (c rows a point: a
     geometric calibration's corner rows u, v), so that (V, N, c) views of (M, …) tensors are its rows by point."""
     V, R = rows.shape
-    M = rows.numel()
-    if row_points.numel() != M:
+    if R % n_points or not _rows_in_order(rows, row_points.numel()):
         return False
-    order = torch.arange(M, dtype=rows.dtype)
     points = torch.arange(n_points, dtype=row_points.dtype)[None, :, None].expand(V, n_points, R // n_points)
-    return torch.equal(rows.reshape(-1), order) and torch.equal(row_points.view(V, n_points, -1), points)
+    return torch.equal(row_points.view(V, n_points, -1), points)
 
 
 def _point_products(bj, Jqw: torch.Tensor):
@@ -65,10 +61,11 @@ def _point_products(bj, Jqw: torch.Tensor):
     as batched products over the views' rows of each point; otherwise summed row by row (`index_add_`)."""
     N = bj.q_idx.shape[0]
     V, K = bj.p_idx.shape
-    grouped = _rows_by_point(bj.rows, bj.row_points, N)
-    if grouped is not None:
-        if _in_order(bj.rows, bj.row_points, N):                               # the same rows as views, no copies
-            shape = grouped.shape
+    in_order = _in_order(bj.rows, bj.row_points, N)  # a geometric fit's rows: (V, N, c) views, no copies
+    grouped = None if in_order else _rows_by_point(bj.rows, bj.row_points, N)
+    if in_order or grouped is not None:
+        if in_order:
+            shape = (V, N, bj.rows.shape[1] // N)
             Jq, Jqw_g, Js, Jp = (t.view(shape + t.shape[1:]) for t in (bj.Jq, Jqw, bj.Js, bj.Jp))
         else:
             Jq, Jqw_g, Js, Jp = bj.Jq[grouped], Jqw[grouped], bj.Js[grouped], bj.Jp[grouped]   # (V, N, c, ·)

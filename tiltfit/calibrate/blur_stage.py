@@ -130,19 +130,13 @@ def judge_blur_model(out: BlurOutcome, cam: LensCamera, mode: str, options: FitO
     if trend and trend["significant"]:
         out.warnings.append(trend["why"] + "; U and d may be biased by it")
     out.misfit, out.trend = misfit, trend
-    return _refused(out, cam, mode, options, head, misfit, say) if misfit else out
-
-
-def _refused(out: BlurOutcome, cam: LensCamera, mode: str, options: FitOptions, head: str, why: str, say=None):
-    """`out` with the blur model refused (`why`, after `head`): U and d (and θF outside the unified mode)
-    undetermined, the geometric fit reported (made here where there is none)."""
-    out.misfit = why
-    out.warnings.append(f"{head}: {why}; U and d are not reported and the tilt is not tested (calibration "
-                        f"from the corners only)")
-    out.undetermined = ["U_mm", "d_mm"] + (["theta_F_deg"] if mode != "unified" else [])
-    if out.geometry is None:
-        out.geometry = fit_geometry(cam, out.obs, replace(options, distortion=out.choices.distortion), mode, say)
-    out.result = None
+    if misfit:
+        out.warnings.append(f"{head}: {misfit}; U and d are not reported and the tilt is not tested (calibration "
+                            f"from the corners only)")
+        out.undetermined = ["U_mm", "d_mm"] + (["theta_F_deg"] if mode != "unified" else [])
+        if out.geometry is None:
+            out.geometry = fit_geometry(cam, obs, replace(options, distortion=out.choices.distortion), mode, say)
+        out.result = None
     return out
 
 

@@ -155,30 +155,27 @@ class _Trial:
     gain: float
 
 
-def _decrement(ne, g: torch.Tensor, scaling: torch.Tensor, lam: float = math.inf) -> float:
-    """The Gauss–Newton decrement ½ gᵀ (JᵀWJ + εD)⁻¹ g (ε = `DECREMENT_DAMPING`, or the iteration's λ where that
-    is smaller: then the solve is the iteration's first trial's, kept on `ne` as `ne.decrement_solve` (g, D, λ,
-    (JᵀWJ + λD)⁻¹ g) for `_damped_step`); inf where the solve fails."""
-    ne.decrement_solve = None
+def _decrement(ne, g: torch.Tensor, scaling: torch.Tensor, lam: float = math.inf):
+    """(The Gauss–Newton decrement ½ gᵀ (JᵀWJ + εD)⁻¹ g, inf where the solve fails; the solve (JᵀWJ + λD)⁻¹ g where
+    it is that one, else None) with ε = `DECREMENT_DAMPING`, or the iteration's λ where that is smaller: then the
+    solve is also the iteration's first trial's (`_damped_step`'s `solved`)."""
     damping = min(lam, DECREMENT_DAMPING)
     try:
         solution = ne.solve(damping * scaling, g)
     except RuntimeError:
-        return math.inf
-    ne.decrement_solve = (g, scaling, damping, solution)
+        return math.inf, None
     decrement = 0.5 * float(g @ solution)
-    return decrement if math.isfinite(decrement) else math.inf
+    return (decrement if math.isfinite(decrement) else math.inf), (solution if damping == lam else None)
 
 
-def _damped_step(problem: _Problem, x, cost: float, ne, g, scaling, lam: float, nu: float):
+def _damped_step(problem: _Problem, x, cost: float, ne, g, scaling, lam: float, nu: float, solved=None):
     """One iteration's trials: solve (JᵀWJ + λD) δ = −g and raise λ (λ ← λν, ν ← 2ν) until the gain ratio is
-    positive. Returns (the accepted `_Trial`, or None where λ passed `MAX_DAMPING`; λ; ν). A first trial whose
-    solve the decrement made (`_decrement` at λ ≤ `DECREMENT_DAMPING`) is not solved again."""
+    positive. Returns (the accepted `_Trial`, or None where λ passed `MAX_DAMPING`; λ; ν). `solved`: the first
+    trial's solve (JᵀWJ + λD)⁻¹ g where `_decrement` made it (λ ≤ `DECREMENT_DAMPING`), not solved again."""
     first_trial = True
-    kept = getattr(ne, "decrement_solve", None)
     while True:
-        if first_trial and kept is not None and kept[0] is g and kept[1] is scaling and kept[2] == lam:
-            step = -kept[3]
+        if first_trial and solved is not None:
+            step = -solved
         else:
             try:
                 step = -ne.solve(lam * scaling, g)
@@ -243,12 +240,12 @@ def levenberg_marquardt(evaluate, x0: dict, blocks, view_rows: torch.Tensor | No
         g = ne.gradient(r)
         d = ne.diag().clamp(min=1e-300)
         scaling = d if scaling is None else torch.maximum(scaling, d)
-        decrement = _decrement(ne, g, scaling, lam)
+        decrement, solved = _decrement(ne, g, scaling, lam)
         if decrement < max(options.decrement_tol, options.ftol * cost):
             return done(it, "decrement", ne)
         if it == options.max_iterations:
             break
-        trial, lam, nu = _damped_step(problem, x, cost, ne, g, scaling, lam, nu)
+        trial, lam, nu = _damped_step(problem, x, cost, ne, g, scaling, lam, nu, solved)
         if trial is None:
             return done(it, "stationary", ne)
         small_decrease = cost - trial.cost <= options.ftol * cost and trial.predicted <= options.ftol * cost
